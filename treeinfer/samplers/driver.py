@@ -1,0 +1,242 @@
+"""Run any :class:`SamplingAlgorithm` for many iterations, in jitted chunks.
+
+Iterations run in chunks of one jitted ``lax.scan`` (compiled once per run),
+so progress can be reported, a callback can checkpoint, and the run can be
+resumed between chunks. The key for (0-based) iteration ``i`` is
+``jax.random.fold_in(rng_key, i)`` and the key for ``init`` is
+``fold_in(rng_key, 2**32 - 1)``, so a run resumed from a saved state at
+iteration ``k`` reproduces the uninterrupted run exactly.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from ..errors import ConfigError
+from .base import SamplingAlgorithm, check_positions
+
+__all__ = ["RunResult", "run", "iteration_key", "init_key"]
+
+_INIT_TAG = np.uint32(0xFFFFFFFF)
+
+
+class RunResult(NamedTuple):
+    """Output of :func:`run` (host numpy arrays unless noted).
+
+    final_positions: [P, D] particles after the last iteration.
+    final_state: the sampler state after the last iteration (jax arrays): pass it
+      back as ``initial_state`` with ``start_iteration=n_iterations`` to continue.
+    trace_positions: [n_trace, P, D]; trace_logdensity: [n_trace, P];
+    trace_iterations: [n_trace] completed-iteration count of each trace entry
+      (0 is the initial state, recorded on fresh runs only).
+    diagnostics: name -> [n_run] per-iteration scalars of the sampler's info
+      (``mean_logdensity``, ``bandwidth``, ``mean_acceptance_rate``, ...), for
+      iterations ``start_iteration + 1 .. n_iterations``.
+    settings: everything needed to reproduce the run (sampler name and
+      hyperparameters, seed or key, iteration counts, shapes).
+    elapsed_s: wall-clock seconds of this call.
+    """
+
+    final_positions: np.ndarray
+    final_state: Any
+    trace_positions: np.ndarray
+    trace_logdensity: np.ndarray
+    trace_iterations: np.ndarray
+    diagnostics: dict
+    settings: dict
+    elapsed_s: float
+
+
+def iteration_key(rng_key, i):
+    """Key of 0-based iteration ``i``."""
+    return jax.random.fold_in(rng_key, i)
+
+
+def init_key(rng_key):
+    """Key handed to ``algorithm.init``."""
+    return jax.random.fold_in(rng_key, _INIT_TAG)
+
+
+def _scalars(info) -> dict:
+    fields = info._asdict() if hasattr(info, "_asdict") else {}
+    return {k: v for k, v in fields.items() if jnp.ndim(v) == 0}
+
+
+def _build_chunk(step, length: int, record_trace: bool, scalar_template: dict):
+    def chunk(state, rng_key, first, stop):
+        def body(state, i):
+            def advance(s):
+                s, info = step(iteration_key(rng_key, i), s)
+                return s, _scalars(info)
+
+            def hold(s):  # padding past the end of the run: no evaluation
+                return s, {k: jnp.zeros(v.shape, v.dtype) for k, v in scalar_template.items()}
+
+            state, scalars = jax.lax.cond(i < stop, advance, hold, state)
+            trace = (state.position, state.logdensity) if record_trace else None
+            return state, (scalars, trace)
+
+        return jax.lax.scan(body, state, first + jnp.arange(length, dtype=jnp.int32))
+
+    return jax.jit(chunk)
+
+
+def _key_record(rng_key) -> dict:
+    if isinstance(rng_key, (int, np.integer)):
+        return {"seed": int(rng_key)}
+    key = rng_key
+    if jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key):
+        return {"seed": None, "rng_key_data": np.asarray(jax.random.key_data(key)).tolist(),
+                "rng_impl": str(jax.random.key_impl(key))}
+    return {"seed": None, "rng_key_data": np.asarray(key).tolist()}
+
+
+def run(
+    algorithm: SamplingAlgorithm,
+    rng_key,
+    initial_positions=None,
+    n_iterations: int = 1000,
+    *,
+    progress: bool = True,
+    trace_every: int | None = 1,
+    chunk_size: int | None = None,
+    callback: Callable[[int, Any], None] | None = None,
+    callback_every: int | None = None,
+    initial_state=None,
+    start_iteration: int = 0,
+) -> RunResult:
+    """Run ``algorithm`` from ``initial_positions [P, D]`` (or a saved state) to ``n_iterations``.
+
+    Args:
+      algorithm: a :class:`SamplingAlgorithm` (``make_sampler(...)``).
+      rng_key: a JAX key or an integer seed (``jax.random.key(seed)``).
+      initial_positions: ``[P, D]`` starting particles (ignored when resuming).
+      n_iterations: total iteration count of the whole run, *including* the
+        ``start_iteration`` already done when resuming.
+      progress: show a tqdm bar (iteration, mean log p, SVGD bandwidth, elapsed).
+      trace_every: record particles and log-densities every this many
+        iterations (at completed counts divisible by it); None records nothing.
+      chunk_size: iterations per jitted chunk (default 100, or
+        ``callback_every``); chunk ends are multiples of it, so the bar and the
+        callback see whole chunks.
+      callback: ``callback(iteration, state)`` called on the host after the
+        chunk ending at every multiple of ``callback_every`` (completed
+        iteration count); use it to checkpoint ``state``.
+      initial_state, start_iteration: resume from ``state`` saved after
+        ``start_iteration`` iterations of a run with the same ``rng_key``;
+        the result equals the uninterrupted run.
+
+    The step is traced twice (shape inference and compilation) and the chunk
+    compiled once per call; ``init`` is compiled separately.
+    """
+    t0 = time.perf_counter()
+    for nm, v in (("n_iterations", n_iterations), ("start_iteration", start_iteration)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+            raise ConfigError(f"run: {nm} must be a non-negative integer, got {v!r}")
+    if start_iteration > n_iterations:
+        raise ConfigError(f"run: start_iteration={start_iteration} is beyond n_iterations={n_iterations}")
+    for nm, v in (("trace_every", trace_every), ("chunk_size", chunk_size), ("callback_every", callback_every)):
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
+            raise ConfigError(f"run: {nm} must be a positive integer or None, got {v!r}")
+    if callback is not None and callback_every is None:
+        raise ConfigError("run: callback needs callback_every")
+    if chunk_size is None:
+        chunk_size = callback_every if callback_every is not None else 100
+    if callback_every is not None and callback_every % chunk_size:
+        raise ConfigError(
+            f"run: callback_every={callback_every} must be a multiple of chunk_size={chunk_size}"
+        )
+
+    key_record = _key_record(rng_key)
+    key = jax.random.key(int(rng_key)) if isinstance(rng_key, (int, np.integer)) else rng_key
+
+    if initial_state is None:
+        if start_iteration != 0:
+            raise ConfigError("run: start_iteration > 0 needs the initial_state saved at that iteration")
+        if initial_positions is None:
+            raise ConfigError("run: give initial_positions [P, D] (or initial_state to resume)")
+        state = jax.jit(algorithm.init)(init_key(key), check_positions(initial_positions))
+    else:
+        state = initial_state
+    n_particles, dim = state.position.shape
+
+    record_trace = trace_every is not None
+    trace_pos, trace_ld, trace_it = [], [], []
+    if record_trace and start_iteration == 0:
+        trace_pos.append(np.asarray(state.position))
+        trace_ld.append(np.asarray(state.logdensity))
+        trace_it.append(0)
+
+    diagnostics: dict[str, list] = {}
+    remaining = n_iterations - start_iteration
+    if remaining > 0:
+        _, info_shape = jax.eval_shape(algorithm.step, iteration_key(key, 0), state)
+        template = _scalars(info_shape)
+        length = min(chunk_size, remaining)
+        chunk = _build_chunk(algorithm.step, length, record_trace, template)
+        bar = tqdm(total=n_iterations, initial=start_iteration, disable=not progress,
+                   desc=algorithm.name or "sampling", unit="it", dynamic_ncols=True)
+        it = start_iteration
+        try:
+            while it < n_iterations:
+                stop = min((it // chunk_size + 1) * chunk_size, n_iterations)
+                state, (scalars, trace) = chunk(state, key, jnp.int32(it), jnp.int32(stop))
+                n_done = stop - it
+                scalars = {k: np.asarray(v)[:n_done] for k, v in scalars.items()}
+                for k, v in scalars.items():
+                    diagnostics.setdefault(k, []).append(v)
+                if record_trace:
+                    counts = np.arange(it + 1, stop + 1)
+                    keep = np.nonzero(counts % trace_every == 0)[0]
+                    if keep.size:
+                        trace_pos.append(np.asarray(trace[0])[keep])
+                        trace_ld.append(np.asarray(trace[1])[keep])
+                        trace_it.extend(counts[keep].tolist())
+                it = stop
+                postfix = {}
+                if "mean_logdensity" in scalars:
+                    postfix["logp"] = f"{float(scalars['mean_logdensity'][-1]):.4g}"
+                if "bandwidth" in scalars:
+                    postfix["bw"] = f"{float(scalars['bandwidth'][-1]):.3g}"
+                if "mean_acceptance_rate" in scalars:
+                    postfix["acc"] = f"{float(np.mean(scalars['mean_acceptance_rate'])):.2f}"
+                bar.set_postfix(postfix, refresh=False)
+                bar.update(n_done)
+                if callback is not None and it % callback_every == 0:
+                    callback(it, state)
+        finally:
+            bar.close()
+
+    if record_trace and trace_pos:
+        trace_positions = np.concatenate([t if t.ndim == 3 else t[None] for t in trace_pos])
+        trace_logdensity = np.concatenate([t if t.ndim == 2 else t[None] for t in trace_ld])
+    else:
+        trace_positions = np.zeros((0, n_particles, dim), np.asarray(state.position).dtype)
+        trace_logdensity = np.zeros((0, n_particles), np.asarray(state.logdensity).dtype)
+    settings = {
+        "sampler": algorithm.name,
+        "hyperparameters": dict(algorithm.settings),
+        **key_record,
+        "n_iterations": int(n_iterations),
+        "start_iteration": int(start_iteration),
+        "n_particles": int(n_particles),
+        "dim": int(dim),
+        "trace_every": trace_every,
+        "chunk_size": int(chunk_size),
+    }
+    return RunResult(
+        final_positions=np.asarray(state.position),
+        final_state=state,
+        trace_positions=trace_positions,
+        trace_logdensity=trace_logdensity,
+        trace_iterations=np.asarray(trace_it, dtype=np.int64),
+        diagnostics={k: np.concatenate(v) for k, v in diagnostics.items()},
+        settings=settings,
+        elapsed_s=time.perf_counter() - t0,
+    )

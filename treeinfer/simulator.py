@@ -1,0 +1,457 @@
+"""The batched branch simulator: MuJoCo MJX rolled out for P parameter sets x B force profiles.
+
+One jittable function, :func:`simulate`, takes joint stiffness/damping for P parameter sets and B
+force profiles and returns the downward displacement ``tau`` of the grasp point C from its
+gravity-settled rest, its velocity ``tau_dot`` and a per-entry stability flag, each [P, B, ...],
+in one batched call (``vmap`` over parameters and profiles; no Python loop over particles).
+
+Physics, per parameter set:
+
+1. **Settle.** A softer branch sags more under gravity, so each parameter set has its own rest
+   pose. We find it by a *static solve*: Newton's method on the joint-space equilibrium
+   ``qfrc_passive(q) - qfrc_bias(q) = 0`` at zero velocity (spring torque balances gravity),
+   with the Jacobian from ``jax.jacfwd`` through MJX's position/velocity stages and a step clip
+   for robustness. This is exact (no residual motion, unlike damped settling) and costs about
+   ``settle_iterations * nv`` forward passes. The reference path does the same in MuJoCo C.
+2. **Pull.** The force profile acts straight down (along gravity) at C: the applied wrench at
+   the grasp body's centre of mass is ``F`` plus the torque ``(C - com) x F``. Each observation
+   interval ``dt_obs`` is split into ``substeps`` simulation steps with the force held constant.
+3. **Observe.** ``tau[t] = (C(t * dt_obs) - C_rest) . g_hat`` (metres, positive downward);
+   ``tau_dot`` is its time derivative by second-order finite differences (the same scheme used
+   for recorded trajectories that have no velocity column, so both sides of the loss match).
+
+Joint model: each hinge has ``stiffness = Kp``, ``damping = Kd`` and ``springref = 0``, so the
+passive torque is ``-Kp * psi - Kd * psi_dot`` about the geometric rest angle, the paper's PD
+controller with zero target. Integrator: ``implicitfast`` (damping implicit, so any Kd in the
+prior is stable); the step is chosen from the stiffest corner of the prior box so that
+``omega_max * dt <= 1`` (explicit springs are stable for ``omega * dt < 2``).
+
+Instability: a parameter set whose state becomes non-finite, whose joint speed exceeds
+``max_joint_speed`` or whose displacement exceeds ``max_displacement`` (or that fails to
+settle) gets ``stable = False`` and zeros in ``tau``/``tau_dot``; vmapped lanes are independent,
+so it never affects other entries.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .errors import ConfigError, SimulationError, TreeFileError
+from .tree import Tree
+
+DEFAULT_MAX_SIM_DT = 0.002  # s: upper bound on the simulation step whatever the prior
+STABILITY_MARGIN = 1.0  # require omega_max * dt <= this (explicit-spring limit is 2)
+PRIOR_STIFFNESS_HEADROOM = 2.0  # particles may wander a little past the prior box's upper Kp
+
+
+class Rollout(NamedTuple):
+    """Simulator output.
+
+    Attributes:
+      tau: [P, B, T] m, displacement of the grasp point from its settled rest, positive downward.
+      tau_dot: [P, B, T] m/s, its time derivative.
+      stable: [P, B] bool; False where the rollout blew up (tau, tau_dot are zero there).
+    """
+
+    tau: jax.Array
+    tau_dot: jax.Array
+    stable: jax.Array
+
+
+@dataclass(frozen=True, eq=False)  # eq=False: hashed by identity, usable as a static jit argument
+class Simulator:
+    """A compiled tree model ready for batched rollouts. Build with :func:`make_simulator`.
+
+    Attributes:
+      mj_model: the MuJoCo C model (reference path, exports).
+      model: the MJX model (device arrays).
+      joint_names: names of the inferred joints (order of the Kp/Kd columns).
+      joint_ids, dof_ids: their MuJoCo joint and dof indices.
+      grasp_body, grasp_site: indices of the grasped body and the grasp-point site.
+      grasp_start, grasp_end: [3] the grasped branch's axis in its body frame
+        (grasp fraction f puts C at ``start + f * (end - start)``).
+      obs_dt: s between observations. substeps: simulation steps per observation.
+      gravity_dir: [3] unit vector along gravity (the "downward" axis).
+    """
+
+    mj_model: object
+    model: object
+    joint_names: tuple[str, ...]
+    joint_ids: np.ndarray
+    dof_ids: np.ndarray
+    grasp_body: int
+    grasp_site: int
+    grasp_start: np.ndarray
+    grasp_end: np.ndarray
+    obs_dt: float
+    substeps: int
+    gravity_dir: np.ndarray
+    settle_iterations: int = 30
+    max_displacement: float = 5.0
+    max_joint_speed: float = 200.0
+    settle_tolerance: float = 1e-3
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_ids)
+
+    @property
+    def sim_dt(self) -> float:
+        return self.obs_dt / self.substeps
+
+    def grasp_point(self, fraction) -> jax.Array:
+        """Grasp point in the grasped body's frame for a fraction of the branch length."""
+        f = jnp.asarray(fraction, dtype=self.model.site_pos.dtype)
+        return jnp.asarray(self.grasp_start) + f[..., None] * jnp.asarray(self.grasp_end - self.grasp_start)
+
+
+# ---- construction ---------------------------------------------------------------------------
+def _stiff_corner_omega(mj_model, joint_ids: np.ndarray, kp_max: np.ndarray) -> float:
+    """Largest natural frequency (rad/s) at the rest pose with inferred joints at ``kp_max``."""
+    import mujoco
+
+    d = mujoco.MjData(mj_model)
+    mujoco.mj_forward(mj_model, d)
+    nv = mj_model.nv
+    mass = np.zeros((nv, nv))
+    mujoco.mj_fullM(mj_model, d, mass)
+    k = np.zeros(nv)
+    for j in range(mj_model.njnt):
+        k[mj_model.jnt_dofadr[j]] = mj_model.jnt_stiffness[j]
+    for jid, kp in zip(joint_ids, kp_max):
+        k[mj_model.jnt_dofadr[jid]] = kp
+    # generalized eigenvalues of K v = w^2 M v
+    lm = np.linalg.cholesky(mass)
+    li = np.linalg.inv(lm)
+    w2 = np.linalg.eigvalsh(li @ np.diag(k) @ li.T)
+    return float(np.sqrt(max(w2.max(), 0.0)))
+
+
+def choose_substeps(mj_model, joint_ids, kp_max, obs_dt: float, max_sim_dt: float = DEFAULT_MAX_SIM_DT) -> int:
+    """Simulation steps per observation so that ``omega_max * dt <= STABILITY_MARGIN``."""
+    omega = _stiff_corner_omega(mj_model, np.asarray(joint_ids), np.asarray(kp_max) * PRIOR_STIFFNESS_HEADROOM)
+    dt_max = min(max_sim_dt, STABILITY_MARGIN / omega if omega > 0 else max_sim_dt)
+    return max(1, int(math.ceil(obs_dt / dt_max - 1e-9)))
+
+
+def make_simulator(
+    tree: Tree,
+    obs_dt: float = 0.01,
+    substeps: int | None = None,
+    max_sim_dt: float = DEFAULT_MAX_SIM_DT,
+    model_file=None,
+    settle_iterations: int = 30,
+) -> Simulator:
+    """Compile ``tree`` for batched rollouts observed every ``obs_dt`` seconds.
+
+    Args:
+      tree: the tree description (geometry, grasp, inferred joints, prior box).
+      obs_dt: s, the trajectory sample interval (the CSV files' time step).
+      substeps: simulation steps per observation; default: the fewest that keep the stiffest
+        corner of the prior box stable and ``dt <= max_sim_dt``.
+      model_file: a user's own MJCF (``.xml``) or URDF file to simulate instead of exporting
+        ``tree``; it must have hinge joints named like the inferred joints and a body named like
+        the grasp branch whose axis runs along its local x-axis from 0 to the branch length.
+    """
+    import mujoco
+    from mujoco import mjx
+
+    from .export import GRASP_SITE, to_mjmodel
+
+    if not (isinstance(obs_dt, (int, float)) and math.isfinite(obs_dt) and obs_dt > 0):
+        raise ConfigError(f"obs_dt: must be a positive number of seconds, got {obs_dt!r}")
+    if substeps is not None and (not isinstance(substeps, int) or substeps < 1):
+        raise ConfigError(f"substeps: must be a positive integer, got {substeps!r}")
+    mj_model = to_mjmodel(tree) if model_file is None else _prepare_user_model(model_file, tree)
+    bad = [mj_model.joint(j).name for j in range(mj_model.njnt) if mj_model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE]
+    if bad:
+        raise TreeFileError(f"model: only hinge joints are supported, found other joint types: {bad}")
+
+    def jid(name):
+        i = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if i < 0:
+            raise TreeFileError(f"model: no joint named '{name}' (inferred joints must exist in the model)")
+        return i
+
+    joint_ids = np.array([jid(n) for n in tree.inferred], dtype=np.int32)
+    dof_ids = np.array([mj_model.jnt_dofadr[j] for j in joint_ids], dtype=np.int32)
+    body = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_BODY, tree.grasp_branch)
+    if body < 0:
+        raise TreeFileError(f"model: no body named '{tree.grasp_branch}' (the grasp branch)")
+    site = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_SITE, GRASP_SITE)
+    if site < 0 or mj_model.site_bodyid[site] != body:
+        raise TreeFileError(f"model: no site '{GRASP_SITE}' on body '{tree.grasp_branch}'")
+    length = tree.branch(tree.grasp_branch).length
+    start, end = np.zeros(3), np.array([length, 0.0, 0.0])
+
+    _, kp_hi = tree.bounds_array()
+    kp_max = kp_hi[: tree.n_inferred]
+    if substeps is None:
+        substeps = choose_substeps(mj_model, joint_ids, kp_max, obs_dt, max_sim_dt)
+    mj_model.opt.timestep = obs_dt / substeps
+    g = np.asarray(mj_model.opt.gravity, float)
+    gdir = g / np.linalg.norm(g)
+    return Simulator(
+        mj_model=mj_model,
+        model=mjx.put_model(mj_model),
+        joint_names=tuple(tree.inferred),
+        joint_ids=joint_ids,
+        dof_ids=dof_ids,
+        grasp_body=int(body),
+        grasp_site=int(site),
+        grasp_start=start,
+        grasp_end=end,
+        obs_dt=float(obs_dt),
+        substeps=int(substeps),
+        gravity_dir=gdir,
+        settle_iterations=settle_iterations,
+        max_displacement=max(5.0, 2.0 * tree.total_length()),
+    )
+
+
+def _prepare_user_model(model_file, tree: Tree):
+    """Load a user's own MJCF or URDF and add the grasp site and contact-free options."""
+    import mujoco
+
+    from .export import GRASP_SITE
+
+    try:
+        spec = mujoco.MjSpec.from_file(str(model_file))
+    except Exception as e:  # MuJoCo's own message says what is wrong with the file
+        raise TreeFileError(f"{model_file}: MuJoCo cannot load this model: {e}") from None
+    body = spec.body(tree.grasp_branch)
+    if body is None:
+        raise TreeFileError(f"{model_file}: no body named '{tree.grasp_branch}' (the grasp branch)")
+    if spec.site(GRASP_SITE) is None:
+        length = tree.branch(tree.grasp_branch).length
+        body.add_site(name=GRASP_SITE, pos=[tree.grasp_fraction * length, 0, 0], size=[0.01, 0.01, 0.01])
+    # A contact-free articulated chain: no collision detection, no constraint solver.
+    spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    try:
+        return spec.compile()
+    except Exception as e:
+        raise TreeFileError(f"{model_file}: MuJoCo cannot compile this model: {e}") from None
+
+
+# ---- the batched rollout ----------------------------------------------------------------------
+def with_gains(sim: Simulator, kp: jax.Array, kd: jax.Array):
+    """MJX model with the inferred joints' stiffness ``kp`` [R] and damping ``kd`` [R]."""
+    m = sim.model
+    return m.replace(
+        jnt_stiffness=m.jnt_stiffness.at[sim.joint_ids].set(kp.astype(m.jnt_stiffness.dtype)),
+        dof_damping=m.dof_damping.at[sim.dof_ids].set(kd.astype(m.dof_damping.dtype)),
+    )
+
+
+def _static_torque(model, data, qpos):
+    """Net joint torque at rest: spring (passive) minus gravity (bias at zero velocity), [nv]."""
+    from mujoco import mjx
+
+    d = data.replace(qpos=qpos, qvel=jnp.zeros_like(data.qvel))
+    d = mjx.fwd_velocity(model, mjx.fwd_position(model, d))
+    return d.qfrc_passive - d.qfrc_bias
+
+
+def settle_one(sim: Simulator, model) -> tuple[jax.Array, jax.Array]:
+    """Gravity-settled joint angles [nq] of one model and whether the solve converged.
+
+    Newton's method with a central-difference Jacobian of the static torque: the nv + 1
+    residuals per iteration run as one vmapped evaluation, which compiles several times faster
+    than ``jax.jacfwd`` through MJX and converges to the same point (the residual, not the
+    Jacobian, decides where Newton stops)."""
+    from mujoco import mjx
+
+    data = mjx.make_data(model)
+    nq = sim.mj_model.nq
+    q0 = jnp.zeros(nq, dtype=data.qpos.dtype)
+    f = jax.vmap(lambda q: _static_torque(model, data, q))
+    eps = jnp.asarray(1e-3, q0.dtype)
+    probes = jnp.concatenate([jnp.zeros((1, nq), q0.dtype), eps * jnp.eye(nq, dtype=q0.dtype), -eps * jnp.eye(nq, dtype=q0.dtype)])
+
+    def newton(q, _):
+        r = f(q[None] + probes)
+        jac = ((r[1 : nq + 1] - r[nq + 1 :]) / (2 * eps)).T
+        dq = -jnp.linalg.solve(jac, r[0])
+        dq = jnp.clip(dq, -0.2, 0.2)  # clipped steps: robust far from the solution
+        return q + dq, None
+
+    q, _ = jax.lax.scan(newton, q0, None, length=sim.settle_iterations)
+    r = f(jnp.stack([q, q0]))
+    scale = 1.0 + jnp.max(jnp.abs(r[1]))
+    ok = jnp.all(jnp.isfinite(q)) & (jnp.max(jnp.abs(r[0])) <= sim.settle_tolerance * scale)
+    return q, ok
+
+
+def velocity(tau: jax.Array, dt: float) -> jax.Array:
+    """d tau / dt along the last axis: second-order central differences inside, second-order
+    one-sided at both ends (``numpy.gradient(..., edge_order=2)``)."""
+    from .trajectories import velocity_from_displacement
+
+    return velocity_from_displacement(tau, dt)
+
+
+def _pull_one(sim: Simulator, model, qpos_rest, forces, site_local):
+    """One rollout: displacement [T] of C under ``forces`` [T] (N, downward), and a stable flag."""
+    from mujoco import mjx
+
+    sid, bid = sim.grasp_site, sim.grasp_body
+    model = model.replace(site_pos=model.site_pos.at[sid].set(site_local))
+    gdir = jnp.asarray(sim.gravity_dir, dtype=model.site_pos.dtype)
+    data = mjx.make_data(model).replace(qpos=qpos_rest)
+    data = mjx.kinematics(model, data)
+    data = mjx.com_pos(model, data)
+    c_rest = data.site_xpos[sid]
+    nbody = sim.mj_model.nbody
+
+    def push(d, f):
+        force = f * gdir
+        lever = d.site_xpos[sid] - d.xipos[bid]
+        wrench = jnp.concatenate([force, jnp.cross(lever, force)])
+        return d.replace(xfrc_applied=jnp.zeros((nbody, 6), force.dtype).at[bid].set(wrench))
+
+    def sub(d, f):
+        return mjx.step(model, push(d, f))
+
+    def observe(carry, f):
+        d, ok = carry
+        d = sub(d, f)
+        c = d.site_xpos[sid]  # kinematics of the state at the start of this interval
+        if sim.substeps > 1:
+            d = jax.lax.fori_loop(0, sim.substeps - 1, lambda _, dd: sub(dd, f), d)
+        ok = ok & jnp.all(jnp.isfinite(d.qpos)) & jnp.all(jnp.abs(d.qvel) < sim.max_joint_speed)
+        return (d, ok), c
+
+    (_, ok), cs = jax.lax.scan(observe, (data, jnp.bool_(True)), forces.astype(gdir.dtype))
+    tau = (cs - c_rest) @ gdir
+    ok = ok & jnp.all(jnp.isfinite(tau)) & jnp.all(jnp.abs(tau) < sim.max_displacement)
+    return tau, ok
+
+
+def simulate(sim: Simulator, kp: jax.Array, kd: jax.Array, forces: jax.Array, grasp_fraction=None) -> Rollout:
+    """Roll out P parameter sets under B force profiles in one batched call.
+
+    Args:
+      sim: from :func:`make_simulator`.
+      kp: [P, R] N m/rad, stiffness of the inferred joints (order ``sim.joint_names``).
+      kd: [P, R] N m s/rad, damping of the inferred joints.
+      forces: [B, T] N, force along gravity (downward) at the grasp point, one row per profile;
+        ``forces[:, t]`` acts from ``t * obs_dt`` to ``(t + 1) * obs_dt``.
+      grasp_fraction: None (the tree's), a scalar, or [B]: where along the grasped branch the
+        force acts, as a fraction of its length from its parent joint.
+
+    Returns:
+      :class:`Rollout` with ``tau``, ``tau_dot`` [P, B, T] and ``stable`` [P, B].
+    """
+    kp = jnp.atleast_2d(kp)
+    kd = jnp.atleast_2d(kd)
+    forces = jnp.atleast_2d(forces)
+    n_profiles = forces.shape[0]
+    if grasp_fraction is None:
+        site_local = jnp.asarray(sim.model.site_pos[sim.grasp_site])
+        site_local = jnp.broadcast_to(site_local, (n_profiles, 3))
+    else:
+        frac = jnp.broadcast_to(jnp.asarray(grasp_fraction, sim.model.site_pos.dtype), (n_profiles,))
+        site_local = sim.grasp_point(frac)
+
+    def per_params(kp_i, kd_i):
+        model = with_gains(sim, kp_i, kd_i)
+        qpos_rest, settled = settle_one(sim, model)
+        tau, ok = jax.vmap(lambda f, s: _pull_one(sim, model, qpos_rest, f, s))(forces, site_local)
+        return tau, ok & settled
+
+    tau, ok = jax.vmap(per_params)(kp, kd)
+    tau = jnp.where(ok[..., None], tau, 0.0)
+    tau_dot = jnp.where(ok[..., None], velocity(tau, sim.obs_dt), 0.0)
+    return Rollout(tau=tau, tau_dot=tau_dot, stable=ok)
+
+
+def settle(sim: Simulator, kp: jax.Array, kd: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Settled joint angles [P, nq] and convergence flags [P] for P parameter sets."""
+    return jax.vmap(lambda a, b: settle_one(sim, with_gains(sim, a, b)))(jnp.atleast_2d(kp), jnp.atleast_2d(kd))
+
+
+# ---- reference path: plain MuJoCo C ------------------------------------------------------------
+def _c_model(sim: Simulator, kp, kd, grasp_fraction=None):
+    import copy
+
+    m = copy.deepcopy(sim.mj_model)
+    for j, d, a, b in zip(sim.joint_ids, sim.dof_ids, np.asarray(kp, float), np.asarray(kd, float)):
+        m.jnt_stiffness[j] = a
+        m.dof_damping[d] = b
+    if grasp_fraction is not None:
+        m.site_pos[sim.grasp_site] = sim.grasp_start + float(grasp_fraction) * (sim.grasp_end - sim.grasp_start)
+    return m
+
+
+def settle_reference(m, iterations: int = 50, tol: float = 1e-10) -> np.ndarray:
+    """Static equilibrium of a MuJoCo C model by Newton's method with a finite-difference
+    Jacobian (float64), the C twin of :func:`settle_one`."""
+    import mujoco
+
+    d = mujoco.MjData(m)
+
+    def torque(q):
+        d.qpos[:] = q
+        d.qvel[:] = 0
+        mujoco.mj_forward(m, d)
+        return d.qfrc_passive - d.qfrc_bias
+
+    q = np.zeros(m.nq)
+    for _ in range(iterations):
+        r = torque(q)
+        if np.max(np.abs(r)) < tol:
+            break
+        jac = np.zeros((m.nv, m.nq))
+        for k in range(m.nq):
+            e = np.zeros(m.nq)
+            e[k] = 1e-6
+            jac[:, k] = (torque(q + e) - torque(q - e)) / 2e-6
+        q = q + np.clip(-np.linalg.solve(jac, r), -0.2, 0.2)
+    return q
+
+
+def simulate_reference(sim: Simulator, kp, kd, force, grasp_fraction=None) -> tuple[np.ndarray, np.ndarray]:
+    """One rollout in plain MuJoCo (``mujoco.mj_step``, float64): tau [T], tau_dot [T].
+
+    Same settle, force application and observation timing as :func:`simulate`; used as the
+    independent reference in tests and as the naive baseline in benchmarks."""
+    import mujoco
+
+    m = _c_model(sim, kp, kd, grasp_fraction)
+    d = mujoco.MjData(m)
+    d.qpos[:] = settle_reference(m)
+    mujoco.mj_forward(m, d)
+    sid, bid = sim.grasp_site, sim.grasp_body
+    c_rest = d.site_xpos[sid].copy()
+    out = []
+    for f in np.asarray(force, float):
+        for k in range(sim.substeps):
+            fv = f * sim.gravity_dir
+            d.xfrc_applied[:] = 0
+            d.xfrc_applied[bid, :3] = fv
+            d.xfrc_applied[bid, 3:] = np.cross(d.site_xpos[sid] - d.xipos[bid], fv)
+            mujoco.mj_step(m, d)
+            if k == 0:
+                out.append(d.site_xpos[sid].copy())
+    tau = (np.asarray(out) - c_rest) @ sim.gravity_dir
+    tau_dot = np.asarray(velocity(jnp.asarray(tau), sim.obs_dt))
+    return tau, tau_dot
+
+
+def check_stable_share(stable, max_unstable_share: float, what: str = "particles") -> None:
+    """Raise :class:`SimulationError` if more than ``max_unstable_share`` of entries blew up."""
+    stable = np.asarray(stable)
+    share = 1.0 - stable.mean()
+    if share > max_unstable_share:
+        raise SimulationError(
+            f"{share:.0%} of {what} gave unstable simulations (limit {max_unstable_share:.0%}); "
+            "narrow the Kp prior box, lower the simulation step (--max-sim-dt) or check the tree's units"
+        )

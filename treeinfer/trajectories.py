@@ -1,0 +1,475 @@
+"""Force–deformation trajectories: the observed data.
+
+A trajectory is what the robot measured during one pull on a branch: the force
+it applied and the resulting displacement of the grasp point, both projected on
+the gravity axis (positive downward), sampled on a uniform time grid.
+
+On disk a trajectory is one CSV file::
+
+    # optional comment lines (metadata), anywhere in the file
+    time,force,displacement[,velocity]
+    0.00,0.0,0.0
+    0.01,0.5,0.0001
+    ...
+
+in seconds, newtons, metres (and metres per second). Everything a user can get
+wrong in such a file raises :class:`~treeinfer.errors.TrajectoryFileError`
+naming the file, the 1-based line and the problem.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._io import atomic_write_text
+from .errors import ConfigError, TrajectoryFileError, where
+
+__all__ = [
+    "OPTIONAL_COLUMNS",
+    "REQUIRED_COLUMNS",
+    "Observations",
+    "Trajectory",
+    "add_noise",
+    "ground_truth_velocity",
+    "read_trajectory",
+    "read_trajectory_dir",
+    "stack_trajectories",
+    "validate_trajectory",
+    "velocity_from_displacement",
+    "write_trajectory",
+]
+
+REQUIRED_COLUMNS = ("time", "force", "displacement")
+OPTIONAL_COLUMNS = ("velocity",)
+
+# Plausibility limits: values beyond these almost always mean a wrong unit.
+MIN_ROWS = 3  # the second-order velocity scheme needs three samples
+DT_REL_TOL = 1e-3  # allowed relative deviation of each time step from the median step
+MAX_DT = 1.0  # s; a branch pull sampled slower than 1 Hz is almost certainly milliseconds
+MAX_DISPLACEMENT = 5.0  # m
+MAX_FORCE = 1.0e4  # N
+MAX_VELOCITY = 50.0  # m/s
+DIR_DT_RTOL = 1e-6  # trajectories loaded together must share one time step
+
+
+class Trajectory(NamedTuple):
+    """One measured (or simulated) pull.
+
+    Attributes:
+        time: [T] seconds, strictly increasing, uniform step.
+        force: [T] newtons applied on the branch along gravity, positive downward.
+        displacement: [T] metres of the grasp point from its rest position along
+            gravity, positive downward.
+        velocity: [T] metres per second (positive downward) if recorded, else ``None``
+            (then :func:`ground_truth_velocity` differentiates ``displacement``).
+        source: file name or label, used in messages and plots.
+    """
+
+    time: np.ndarray
+    force: np.ndarray
+    displacement: np.ndarray
+    velocity: np.ndarray | None = None
+    source: str = ""
+
+    @property
+    def n_steps(self) -> int:
+        """Number of samples T."""
+        return int(np.shape(self.time)[0])
+
+    @property
+    def dt(self) -> float:
+        """Time step in seconds (span / (T - 1), the least rounding-sensitive estimate)."""
+        t = np.asarray(self.time, dtype=float)
+        return float((t[-1] - t[0]) / (t.shape[0] - 1))
+
+
+class Observations(NamedTuple):
+    """A batch of trajectories on one time grid, padded to the longest.
+
+    Attributes:
+        force: [B, T] newtons, positive downward; padded with each row's last value.
+        displacement: [B, T] metres, positive downward; padded with each row's last value.
+        velocity: [B, T] metres per second; padded with 0 (at rest).
+        mask: [B, T] bool, True on real samples, False on padding.
+        dt: time step in seconds shared by all rows.
+    """
+
+    force: np.ndarray
+    displacement: np.ndarray
+    velocity: np.ndarray
+    mask: np.ndarray
+    dt: float
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def _err(path, line, problem: str) -> TrajectoryFileError:
+    loc = where(path if path is not None else "<trajectory>", line)
+    return TrajectoryFileError(f"{loc}: {problem}")
+
+
+def _line_of(lines: Sequence[int] | None, i: int) -> int | None:
+    return None if lines is None else lines[i]
+
+
+def _validate_arrays(
+    time: np.ndarray,
+    force: np.ndarray,
+    displacement: np.ndarray,
+    velocity: np.ndarray | None,
+    path,
+    lines: Sequence[int] | None = None,
+) -> None:
+    """Check shapes, finiteness, time grid and units; ``lines[i]`` is the file line of row i."""
+    named = {"time": time, "force": force, "displacement": displacement}
+    if velocity is not None:
+        named["velocity"] = velocity
+    for name, a in named.items():
+        if a.ndim != 1:
+            raise _err(path, None, f"column '{name}' must be one-dimensional, got shape {a.shape}")
+    n = time.shape[0]
+    for name, a in named.items():
+        if a.shape[0] != n:
+            raise _err(path, None, f"column '{name}' has {a.shape[0]} values but 'time' has {n}")
+    if n == 0:
+        raise _err(path, None, "no data rows")
+    if n < MIN_ROWS:
+        raise _err(path, None, f"only {n} data row(s); at least {MIN_ROWS} are needed")
+    for name, a in named.items():
+        bad = np.flatnonzero(~np.isfinite(a))
+        if bad.size:
+            i = int(bad[0])
+            raise _err(path, _line_of(lines, i), f"column '{name}' is {a[i]} (NaN/inf not allowed)")
+
+    with np.errstate(over="ignore", invalid="ignore"):
+        steps = np.diff(time)
+    bad = np.flatnonzero(~(steps > 0))
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise _err(
+            path,
+            _line_of(lines, i),
+            f"time {float(time[i])!r} s is not after the previous time {float(time[i - 1])!r} s "
+            "(time must be strictly increasing)",
+        )
+    if not np.all(np.isfinite(steps)):
+        raise _err(path, None, "time values too large (step overflows)")
+    dt = float(np.median(steps))
+    if dt >= MAX_DT:
+        raise _err(
+            path,
+            _line_of(lines, 1),
+            f"time step is {dt:g} s; looks like milliseconds, expected seconds "
+            f"(steps of {MAX_DT:g} s or more are not plausible for a pull)",
+        )
+    bad = np.flatnonzero(np.abs(steps - dt) > DT_REL_TOL * dt)
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise _err(
+            path,
+            _line_of(lines, i),
+            f"uneven time step: {steps[i - 1]:g} s from the previous row, expected {dt:g} s "
+            f"(relative tolerance {DT_REL_TOL:g}); resample to a fixed step",
+        )
+
+    i = int(np.argmax(np.abs(displacement)))
+    if abs(displacement[i]) > MAX_DISPLACEMENT:
+        raise _err(
+            path,
+            _line_of(lines, i),
+            f"displacement {displacement[i]:g} exceeds {MAX_DISPLACEMENT:g} m; "
+            "looks like millimetres, expected metres",
+        )
+    i = int(np.argmax(np.abs(force)))
+    if abs(force[i]) > MAX_FORCE:
+        raise _err(
+            path,
+            _line_of(lines, i),
+            f"force {force[i]:g} N exceeds {MAX_FORCE:g} N, which is implausible for a branch; "
+            "expected newtons",
+        )
+    if velocity is not None:
+        i = int(np.argmax(np.abs(velocity)))
+        if abs(velocity[i]) > MAX_VELOCITY:
+            raise _err(
+                path,
+                _line_of(lines, i),
+                f"velocity {velocity[i]:g} exceeds {MAX_VELOCITY:g} m/s; "
+                "looks like millimetres per second, expected metres per second",
+            )
+
+
+def validate_trajectory(traj: Trajectory) -> Trajectory:
+    """Return ``traj`` with float64 arrays after checking it as :func:`read_trajectory` would.
+
+    Raises:
+        TrajectoryFileError: naming ``traj.source`` and the problem.
+    """
+    arrs = [np.asarray(a, dtype=float) for a in (traj.time, traj.force, traj.displacement)]
+    vel = None if traj.velocity is None else np.asarray(traj.velocity, dtype=float)
+    _validate_arrays(*arrs, vel, traj.source or None)
+    return Trajectory(*arrs, vel, traj.source)
+
+
+# ----------------------------------------------------------------------------- CSV I/O
+
+
+def _parse_header(cells: list[str], path, line: int) -> list[str]:
+    names = [c.strip().strip('"').strip("'").strip().lower() for c in cells]
+    expected = ",".join(REQUIRED_COLUMNS) + "[," + ",".join(OPTIONAL_COLUMNS) + "]"
+    if all(_is_number(c) for c in names):
+        raise _err(path, line, f"missing header line; expected '{expected}' before the data")
+    if any(n == "" for n in names):
+        raise _err(path, line, f"empty column name in header (stray comma?); expected '{expected}'")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise _err(path, line, f"duplicate column(s) {dup} in header")
+    unknown = [n for n in names if n not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
+    if unknown:
+        raise _err(path, line, f"unknown column(s) {unknown}; expected '{expected}'")
+    missing = [n for n in REQUIRED_COLUMNS if n not in names]
+    if missing:
+        raise _err(path, line, f"missing column(s) {missing}; expected '{expected}'")
+    return names
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
+def _short(s: str, n: int = 30) -> str:
+    return repr(s if len(s) <= n else s[:n] + "...")
+
+
+def read_trajectory(path: str | os.PathLike) -> Trajectory:
+    """Read one trajectory CSV (see module docstring for the format).
+
+    Returns:
+        A validated :class:`Trajectory` (float64 arrays, ``source`` = file name).
+
+    Raises:
+        TrajectoryFileError: unreadable file, bad header, bad cell, too few rows,
+            non-uniform or non-increasing time, or values in the wrong unit.
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise TrajectoryFileError(
+            f"{path}: cannot read trajectory file ({e.strerror or e})"
+        ) from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise TrajectoryFileError(f"{path}: not UTF-8 text (byte {e.start})") from None
+
+    header: list[str] | None = None
+    rows: list[list[float]] = []
+    lines: list[int] = []
+    # str.splitlines also splits on \x0b, \x1c, ... which would shift line numbers.
+    for lineno, line in enumerate(text.split("\n"), start=1):
+        line = line.rstrip("\r")
+        stripped = line.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        cells = line.split(",")
+        if header is None:
+            header = _parse_header(cells, path, lineno)
+            continue
+        if len(cells) != len(header):
+            raise _err(
+                path,
+                lineno,
+                f"row has {len(cells)} cell(s) but the header has {len(header)} column(s)",
+            )
+        row = []
+        for name, cell in zip(header, cells):
+            c = cell.strip()
+            try:
+                v = float(c)
+            except ValueError:
+                what = "empty cell" if not c else f"non-numeric value {_short(c)}"
+                raise _err(path, lineno, f"column '{name}': {what}") from None
+            if not math.isfinite(v):
+                raise _err(path, lineno, f"column '{name}' is {_short(c)} (NaN/inf not allowed)")
+            row.append(v)
+        rows.append(row)
+        lines.append(lineno)
+
+    if header is None:
+        raise _err(path, None, "file is empty (no header, no data)")
+    if not rows:
+        raise _err(path, None, "header only, no data rows")
+    data = np.asarray(rows, dtype=float).reshape(len(rows), len(header))
+    col = {name: data[:, j] for j, name in enumerate(header)}
+    _validate_arrays(
+        col["time"], col["force"], col["displacement"], col.get("velocity"), path, lines
+    )
+    return Trajectory(
+        time=col["time"],
+        force=col["force"],
+        displacement=col["displacement"],
+        velocity=col.get("velocity"),
+        source=path.name,
+    )
+
+
+def write_trajectory(
+    path: str | os.PathLike, traj: Trajectory, comments: Sequence[str] = ()
+) -> Path:
+    """Validate ``traj`` and write it atomically as CSV; floats round-trip exactly.
+
+    Args:
+        path: destination ``.csv``.
+        traj: the trajectory; ``velocity`` is written only if not ``None``.
+        comments: metadata lines, written as ``# ...`` before the header.
+    """
+    traj = validate_trajectory(traj._replace(source=traj.source or str(path)))
+    cols = [traj.time, traj.force, traj.displacement]
+    names = list(REQUIRED_COLUMNS)
+    if traj.velocity is not None:
+        cols.append(traj.velocity)
+        names.append("velocity")
+    out = [f"# {c}".rstrip() for comment in comments for c in str(comment).split("\n")]
+    out.append(",".join(names))
+    # repr() gives the shortest string that parses back to the same float64.
+    out.extend(",".join(repr(float(v)) for v in row) for row in zip(*cols))
+    return atomic_write_text(path, "\n".join(out) + "\n")
+
+
+def _check_common_dt(trajs: Sequence[Trajectory], rtol: float, context: str) -> float:
+    dts = [t.dt for t in trajs]
+    ref = dts[0]
+    bad = [(t.source, d) for t, d in zip(trajs, dts) if abs(d - ref) > rtol * abs(ref)]
+    if bad:
+        listed = ", ".join(f"{s or '<unnamed>'} (dt={d:.9g} s)" for s, d in bad)
+        raise TrajectoryFileError(
+            f"{context}: trajectories must share one time step; {trajs[0].source or '<unnamed>'} "
+            f"has dt={ref:.9g} s but {listed}; resample them to a common step"
+        )
+    return float(ref)
+
+
+def read_trajectory_dir(directory: str | os.PathLike, pattern: str = "*.csv") -> list[Trajectory]:
+    """Read every file matching ``pattern`` in ``directory``, sorted by name.
+
+    Raises:
+        TrajectoryFileError: no such folder, no matching file, any bad file, or
+            files whose time steps differ (the mismatched files are named).
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise TrajectoryFileError(f"{directory}: trajectory folder does not exist")
+    files = sorted(p for p in directory.glob(pattern) if p.is_file())
+    if not files:
+        raise TrajectoryFileError(f"{directory}: no trajectory files matching '{pattern}'")
+    trajs = [read_trajectory(p) for p in files]
+    _check_common_dt(trajs, DIR_DT_RTOL, str(directory))
+    return trajs
+
+
+# ----------------------------------------------------------------------------- numerics
+
+
+def velocity_from_displacement(displacement, dt):
+    """Second-order finite-difference velocity along the last axis.
+
+    Central differences inside, second-order one-sided differences at both ends:
+    the scheme of ``numpy.gradient(x, dt, axis=-1, edge_order=2)``.
+
+    Args:
+        displacement: [..., T] metres, T >= 3; a jax array (works under jit/vmap)
+            or a numpy array (then computed in numpy, keeping float64).
+        dt: time step in seconds (scalar).
+
+    Returns:
+        [..., T] metres per second, same array type as ``displacement``.
+    """
+    # One formula for numpy and jax: numpy keeps float64 for data handling,
+    # jnp makes it traceable for the simulator and likelihood.
+    xp = np if isinstance(displacement, np.ndarray) and not isinstance(dt, jax.Array) else jnp
+    x = xp.asarray(displacement)
+    if x.shape[-1] < 3:
+        raise ValueError(f"need at least 3 samples along the last axis, got shape {x.shape}")
+    inv = 1.0 / (2.0 * dt)
+    first = (-3.0 * x[..., 0:1] + 4.0 * x[..., 1:2] - x[..., 2:3]) * inv
+    inner = (x[..., 2:] - x[..., :-2]) * inv
+    last = (3.0 * x[..., -1:] - 4.0 * x[..., -2:-1] + x[..., -3:-2]) * inv
+    return xp.concatenate([first, inner, last], axis=-1)
+
+
+def ground_truth_velocity(traj: Trajectory) -> np.ndarray:
+    """[T] m/s: the recorded velocity if present, else differentiated displacement."""
+    if traj.velocity is not None:
+        return np.asarray(traj.velocity, dtype=float)
+    return velocity_from_displacement(np.asarray(traj.displacement, dtype=float), traj.dt)
+
+
+def stack_trajectories(trajs: Sequence[Trajectory]) -> Observations:
+    """Stack trajectories of one time step into padded ``[B, T]`` arrays.
+
+    Shorter trajectories are padded with their last force/displacement value
+    (velocity 0) and masked out (``mask`` False).
+
+    Raises:
+        TrajectoryFileError: empty input or differing time steps.
+    """
+    trajs = list(trajs)
+    if not trajs:
+        raise TrajectoryFileError("no trajectories given")
+    dt = _check_common_dt(trajs, DIR_DT_RTOL, "stacking trajectories")
+    b, t_max = len(trajs), max(t.n_steps for t in trajs)
+    force = np.zeros((b, t_max))
+    disp = np.zeros((b, t_max))
+    vel = np.zeros((b, t_max))
+    mask = np.zeros((b, t_max), dtype=bool)
+    for i, tr in enumerate(trajs):
+        n = tr.n_steps
+        f = np.asarray(tr.force, dtype=float)
+        x = np.asarray(tr.displacement, dtype=float)
+        force[i, :n], force[i, n:] = f, f[-1]
+        disp[i, :n], disp[i, n:] = x, x[-1]
+        vel[i, :n] = ground_truth_velocity(tr)
+        mask[i, :n] = True
+    return Observations(force, disp, vel, mask, dt)
+
+
+def add_noise(
+    traj: Trajectory,
+    sigma_force: float,
+    sigma_displacement: float,
+    rng: np.random.Generator | int,
+) -> Trajectory:
+    """Add independent Gaussian noise to force (N) and displacement (m).
+
+    The recorded velocity is dropped, so :func:`ground_truth_velocity`
+    recomputes it from the noisy displacement. ``rng`` is a numpy Generator or a seed.
+    """
+    if not (sigma_force >= 0 and sigma_displacement >= 0):
+        raise ConfigError(
+            f"noise standard deviations must be >= 0, got sigma_force={sigma_force}, "
+            f"sigma_displacement={sigma_displacement}"
+        )
+    rng = np.random.default_rng(rng)
+    f = np.asarray(traj.force, dtype=float)
+    x = np.asarray(traj.displacement, dtype=float)
+    return Trajectory(
+        time=np.asarray(traj.time, dtype=float).copy(),
+        force=f + sigma_force * rng.standard_normal(f.shape),
+        displacement=x + sigma_displacement * rng.standard_normal(x.shape),
+        velocity=None,
+        source=f"{traj.source}+noise(force={sigma_force:g}N,disp={sigma_displacement:g}m)",
+    )

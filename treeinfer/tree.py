@@ -1,0 +1,575 @@
+"""Tree descriptions: branches, the grasp point, which joints are inferred, and their prior boxes.
+
+A tree is a set of cylindrical branches, each hinged to its parent by one revolute joint at
+its base that acts as a torsional spring-damper ``T = Kp * psi + Kd * psi_dot`` about the
+branch's geometric rest angle (the paper's PD controller with zero target).
+
+Frames. Every branch has a frame whose origin is its joint, whose x-axis runs along the
+branch and whose y-axis is the hinge axis. The root's frame is the base pose: ``base.position``
+and a direction given by ``base.pitch_deg`` (elevation above horizontal; 90 = vertical trunk)
+and ``base.yaw_deg`` (heading about the world z-axis). A child's frame sits ``attach`` (a
+fraction of the parent's length, default 1 = the tip) along its parent, turned by ``azimuth_deg``
+about the parent's x-axis (which plane it forks in; 0 keeps the parent's bending plane) and then
+by ``angle_deg`` about the new y-axis (positive = upward when the bending plane is vertical).
+
+The file format (YAML or JSON) is documented in the README; :func:`load_tree` reads it and
+:func:`tree_to_dict` writes it back.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from .errors import TreeFileError
+
+# Default prior boxes (natural units). Kp in N m/rad, Kd in N m s/rad. Chosen for branches of
+# a few cm radius and up to ~1.5 m: gravity sag of a few degrees to tens of degrees.
+DEFAULT_KP_BOUNDS = (5.0, 500.0)
+DEFAULT_KD_BOUNDS = (0.05, 10.0)
+DEFAULT_DENSITY = 700.0  # kg/m^3, typical fresh hardwood
+DEFAULT_FIXED_KP = 2000.0
+DEFAULT_FIXED_KD = 20.0
+
+
+@dataclass(frozen=True)
+class Branch:
+    """One cylindrical branch and the joint at its base.
+
+    Attributes:
+      name: unique name; also the MJCF body/joint name.
+      parent: parent branch name, or None for the root.
+      length: m. radius: m.
+      angle_deg: fork angle relative to the parent's direction, in the bending plane (deg).
+      azimuth_deg: rotation of the bending plane about the parent's axis (deg).
+      attach: where along the parent it forks, as a fraction of the parent's length.
+      density: wood density, kg/m^3 (None: the tree's default).
+      kp, kd: fixed joint stiffness/damping used when this joint is not inferred
+        (None: the tree's defaults).
+      fixed: True welds the branch to its parent (no joint at all).
+    """
+
+    name: str
+    parent: str | None
+    length: float
+    radius: float
+    angle_deg: float = 0.0
+    azimuth_deg: float = 0.0
+    attach: float = 1.0
+    density: float | None = None
+    kp: float | None = None
+    kd: float | None = None
+    fixed: bool = False
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """Prior box of one joint in natural units: Kp in N m/rad, Kd in N m s/rad."""
+
+    kp: tuple[float, float] = DEFAULT_KP_BOUNDS
+    kd: tuple[float, float] = DEFAULT_KD_BOUNDS
+
+
+@dataclass(frozen=True)
+class Tree:
+    """A validated tree description. Build one with :func:`make_tree` or :func:`load_tree`."""
+
+    name: str
+    branches: tuple[Branch, ...]
+    grasp_branch: str
+    grasp_fraction: float
+    inferred: tuple[str, ...]  # joint (= branch) names, grasped branch first, then up the tree
+    bounds: dict[str, Bounds] = field(default_factory=dict)
+    base_position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    base_pitch_deg: float = 0.0
+    base_yaw_deg: float = 0.0
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
+    density: float = DEFAULT_DENSITY
+    fixed_kp: float = DEFAULT_FIXED_KP
+    fixed_kd: float = DEFAULT_FIXED_KD
+
+    # ---- lookups -------------------------------------------------------------------------
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(b.name for b in self.branches)
+
+    def branch(self, name: str) -> Branch:
+        for b in self.branches:
+            if b.name == name:
+                return b
+        raise TreeFileError(f"unknown branch '{name}'; the tree has: {', '.join(self.names)}")
+
+    def children(self, name: str) -> tuple[str, ...]:
+        return tuple(b.name for b in self.branches if b.parent == name)
+
+    def ancestors(self, name: str) -> tuple[str, ...]:
+        """Names from ``name`` itself up to the root."""
+        out, cur = [], self.branch(name)
+        while cur is not None:
+            out.append(cur.name)
+            cur = self.branch(cur.parent) if cur.parent is not None else None
+        return tuple(out)
+
+    @property
+    def n_inferred(self) -> int:
+        return len(self.inferred)
+
+    def parameter_labels(self) -> list[str]:
+        """Labels of the parameter vector: ``Kp[j]`` for each inferred joint, then ``Kd[j]``."""
+        return [f"Kp[{n}]" for n in self.inferred] + [f"Kd[{n}]" for n in self.inferred]
+
+    def inferred_pairs(self) -> list[tuple[int, int]]:
+        """(parent index, child index) into ``inferred`` for each inferred joint whose nearest
+        jointed ancestor is also inferred: the pairs the inequality prior constrains."""
+        idx = {n: i for i, n in enumerate(self.inferred)}
+        pairs = []
+        for child in self.inferred:
+            for anc in self.ancestors(child)[1:]:
+                if self.branch(anc).fixed:
+                    continue
+                if anc in idx:
+                    pairs.append((idx[anc], idx[child]))
+                break
+        return pairs
+
+    def bounds_array(self) -> tuple[np.ndarray, np.ndarray]:
+        """Prior box as (lower [2R], upper [2R]) in natural units, ordered like the labels."""
+        lo = [self.bounds[n].kp[0] for n in self.inferred] + [self.bounds[n].kd[0] for n in self.inferred]
+        hi = [self.bounds[n].kp[1] for n in self.inferred] + [self.bounds[n].kd[1] for n in self.inferred]
+        return np.asarray(lo, float), np.asarray(hi, float)
+
+    def fixed_gains(self, name: str) -> tuple[float, float]:
+        b = self.branch(name)
+        return (self.fixed_kp if b.kp is None else b.kp, self.fixed_kd if b.kd is None else b.kd)
+
+    def with_grasp(self, fraction: float, branch: str | None = None) -> "Tree":
+        _check_fraction(fraction, "grasp.fraction")
+        name = self.grasp_branch if branch is None else branch
+        self.branch(name)
+        return replace(self, grasp_fraction=float(fraction), grasp_branch=name)
+
+    def total_length(self) -> float:
+        return float(sum(b.length for b in self.branches))
+
+
+# ---- geometry ---------------------------------------------------------------------------------
+def rot_x(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def rot_y(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def rot_z(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def base_rotation(tree: Tree) -> np.ndarray:
+    # rot_y(-pitch) lifts the x-axis towards +z for a positive pitch.
+    return rot_z(math.radians(tree.base_yaw_deg)) @ rot_y(-math.radians(tree.base_pitch_deg))
+
+
+def local_rotation(b: Branch) -> np.ndarray:
+    """Rotation of a branch frame relative to its parent's frame (or the base frame)."""
+    return rot_x(math.radians(b.azimuth_deg)) @ rot_y(-math.radians(b.angle_deg))
+
+
+def local_offset(tree: Tree, b: Branch) -> np.ndarray:
+    """Joint position in the parent's frame (the root: in the base frame, i.e. zero)."""
+    if b.parent is None:
+        return np.zeros(3)
+    return np.array([b.attach * tree.branch(b.parent).length, 0.0, 0.0])
+
+
+def world_frames(tree: Tree) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """World (position [3], rotation [3,3]) of every branch frame at the rest pose."""
+    frames: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for b in tree.branches:  # parents come before children (validated)
+        if b.parent is None:
+            p0, r0 = np.asarray(tree.base_position, float), base_rotation(tree)
+        else:
+            p0, r0 = frames[b.parent]
+        frames[b.name] = (p0 + r0 @ local_offset(tree, b), r0 @ local_rotation(b))
+    return frames
+
+
+def cylinder_inertia(b: Branch, density: float) -> tuple[float, np.ndarray]:
+    """Mass (kg) and principal inertia about the centre of mass (kg m^2), axis along x."""
+    m = density * math.pi * b.radius**2 * b.length
+    ia = 0.5 * m * b.radius**2
+    it = m * (3 * b.radius**2 + b.length**2) / 12.0
+    return m, np.array([ia, it, it])
+
+
+def branch_density(tree: Tree, b: Branch) -> float:
+    return tree.density if b.density is None else b.density
+
+
+def quat_from_matrix(r: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) unit quaternion of a rotation matrix (MuJoCo convention)."""
+    import mujoco
+
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.asarray(r, float).reshape(-1))
+    return q
+
+
+# ---- construction and validation -----------------------------------------------------------
+def _check_fraction(f: Any, fld: str, where: str = "") -> float:
+    try:
+        f = float(f)
+    except (TypeError, ValueError):
+        raise TreeFileError(f"{where}{fld}: expected a number in (0, 1], got {f!r}") from None
+    if not (0.0 < f <= 1.0) or math.isnan(f):
+        raise TreeFileError(f"{where}{fld}: must be in (0, 1] (a fraction of the branch length), got {f}")
+    return f
+
+
+def _positive(v: Any, fld: str, where: str = "") -> float:
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        raise TreeFileError(f"{where}{fld}: expected a positive number, got {v!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise TreeFileError(f"{where}{fld}: must be a finite positive number, got {v}")
+    return v
+
+
+def _finite(v: Any, fld: str, where: str = "") -> float:
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        raise TreeFileError(f"{where}{fld}: expected a number, got {v!r}") from None
+    if not math.isfinite(v):
+        raise TreeFileError(f"{where}{fld}: must be finite, got {v}")
+    return v
+
+
+def _bounds_pair(v: Any, fld: str, where: str = "") -> tuple[float, float]:
+    if not isinstance(v, (list, tuple)) or len(v) != 2:
+        raise TreeFileError(f"{where}{fld}: expected [lower, upper], got {v!r}")
+    lo, hi = _positive(v[0], fld + "[0]", where), _positive(v[1], fld + "[1]", where)
+    if not lo < hi:
+        raise TreeFileError(f"{where}{fld}: lower bound {lo} must be below upper bound {hi}")
+    return (lo, hi)
+
+
+def default_inferred(branches: Iterable[Branch], grasp_branch: str, levels: int) -> tuple[str, ...]:
+    """The chain from the grasped branch up ``levels`` jointed branches (fixed ones skipped)."""
+    by = {b.name: b for b in branches}
+    out, cur = [], by[grasp_branch]
+    while cur is not None and len(out) < levels:
+        if not cur.fixed:
+            out.append(cur.name)
+        cur = by[cur.parent] if cur.parent is not None else None
+    return tuple(out)
+
+
+def make_tree(
+    branches: Iterable[Branch],
+    grasp_branch: str,
+    grasp_fraction: float = 1.0,
+    inferred: Iterable[str] | None = None,
+    levels: int = 1,
+    bounds: dict[str, Bounds] | Bounds | None = None,
+    name: str = "tree",
+    **kwargs: Any,
+) -> Tree:
+    """Validate and build a :class:`Tree`. ``inferred`` defaults to the chain from the grasped
+    branch up ``levels`` joints; ``bounds`` may be one :class:`Bounds` for every inferred joint."""
+    branches = tuple(branches)
+    _validate_branches(branches)
+    names = [b.name for b in branches]
+    if grasp_branch not in names:
+        raise TreeFileError(f"grasp.branch: unknown branch '{grasp_branch}'; the tree has: {', '.join(names)}")
+    grasp_fraction = _check_fraction(grasp_fraction, "grasp.fraction")
+    if inferred is None:
+        if not isinstance(levels, int) or levels < 1:
+            raise TreeFileError(f"inference.levels: must be a positive integer, got {levels!r}")
+        inferred = default_inferred(branches, grasp_branch, levels)
+    inferred = tuple(inferred)
+    if not inferred:
+        raise TreeFileError("inference.joints: no joint to infer (every branch on the chain is fixed?)")
+    for n in inferred:
+        if n not in names:
+            raise TreeFileError(f"inference.joints: unknown branch '{n}'; the tree has: {', '.join(names)}")
+        if next(b for b in branches if b.name == n).fixed:
+            raise TreeFileError(f"inference.joints: branch '{n}' is fixed (welded) and has no joint to infer")
+    if len(set(inferred)) != len(inferred):
+        raise TreeFileError(f"inference.joints: duplicate names in {list(inferred)}")
+    if bounds is None:
+        bounds = Bounds()
+    if isinstance(bounds, Bounds):
+        bounds = {n: bounds for n in inferred}
+    missing = [n for n in inferred if n not in bounds]
+    if missing:
+        raise TreeFileError(f"inference.prior: no bounds for joint(s) {missing}")
+    for n, bd in bounds.items():
+        _bounds_pair(bd.kp, f"inference.prior.{n}.kp")
+        _bounds_pair(bd.kd, f"inference.prior.{n}.kd")
+    tree = Tree(
+        name=name,
+        branches=branches,
+        grasp_branch=grasp_branch,
+        grasp_fraction=grasp_fraction,
+        inferred=inferred,
+        bounds={n: bounds[n] for n in inferred},
+        **kwargs,
+    )
+    _positive(tree.density, "density")
+    _positive(tree.fixed_kp, "fixed.kp")
+    _positive(tree.fixed_kd, "fixed.kd")
+    if len(tree.base_position) != 3 or len(tree.gravity) != 3:
+        raise TreeFileError("base.position and gravity must have 3 components")
+    g = np.asarray(tree.gravity, float)
+    if not np.all(np.isfinite(g)) or np.linalg.norm(g) == 0:
+        raise TreeFileError(f"gravity: must be a finite non-zero vector, got {list(tree.gravity)}")
+    return tree
+
+
+def _validate_branches(branches: tuple[Branch, ...]) -> None:
+    if not branches:
+        raise TreeFileError("branches: the tree has no branches")
+    seen: set[str] = set()
+    roots = 0
+    for i, b in enumerate(branches):
+        w = f"branches[{i}] ('{b.name}'): "
+        if not isinstance(b.name, str) or not b.name or not b.name.replace("_", "").replace("-", "").replace(".", "").isalnum():
+            raise TreeFileError(f"branches[{i}].name: must be a non-empty name of letters, digits, '_', '-', '.', got {b.name!r}")
+        if b.name in seen:
+            raise TreeFileError(f"{w}duplicate branch name")
+        _positive(b.length, "length", w)
+        _positive(b.radius, "radius", w)
+        if b.radius > b.length:
+            raise TreeFileError(f"{w}radius {b.radius} m exceeds length {b.length} m (units mixed up?)")
+        _finite(b.angle_deg, "angle_deg", w)
+        _finite(b.azimuth_deg, "azimuth_deg", w)
+        _check_fraction(b.attach, "attach", w)
+        if b.density is not None:
+            _positive(b.density, "density", w)
+        if b.kp is not None:
+            _positive(b.kp, "kp", w)
+        if b.kd is not None:
+            _positive(b.kd, "kd", w)
+        if b.parent is None:
+            roots += 1
+        elif b.parent not in seen:
+            known = [x.name for x in branches]
+            if b.parent in known:
+                raise TreeFileError(f"{w}parent '{b.parent}' must be listed before its child")
+            raise TreeFileError(f"{w}unknown parent '{b.parent}'; the tree has: {', '.join(known)}")
+        seen.add(b.name)
+    if roots != 1:
+        raise TreeFileError(f"branches: exactly one root (parent: null) is required, found {roots}")
+
+
+# ---- file I/O --------------------------------------------------------------------------------
+_BRANCH_KEYS = {
+    "name", "parent", "length", "radius", "angle_deg", "azimuth_deg", "attach", "density", "kp", "kd", "fixed",
+}
+_TOP_KEYS = {"name", "branches", "base", "gravity", "density", "grasp", "inference", "fixed", "generator"}
+
+
+def _no_unknown(m: Any, allowed: set[str], fld: str, pre: str) -> None:
+    if not isinstance(m, dict):
+        raise TreeFileError(f"{pre}{fld}: expected a mapping with {sorted(allowed)}, got {m!r}")
+    bad = set(m) - allowed
+    if bad:
+        raise TreeFileError(f"{pre}{fld}: unknown field(s) {sorted(bad)}; allowed: {sorted(allowed)}")
+
+
+def tree_from_dict(d: Any, source: str = "<dict>") -> Tree:
+    """Build a tree from the parsed file content; errors name ``source`` and the field."""
+    pre = f"{source}: "
+    if not isinstance(d, dict):
+        raise TreeFileError(f"{pre}expected a mapping at the top level, got {type(d).__name__}")
+    unknown = set(d) - _TOP_KEYS
+    if unknown:
+        raise TreeFileError(f"{pre}unknown top-level field(s) {sorted(unknown)}; allowed: {sorted(_TOP_KEYS)}")
+    raw = d.get("branches")
+    if not isinstance(raw, list) or not raw:
+        raise TreeFileError(f"{pre}branches: expected a non-empty list of branches")
+    branches = []
+    for i, rb in enumerate(raw):
+        if not isinstance(rb, dict):
+            raise TreeFileError(f"{pre}branches[{i}]: expected a mapping, got {rb!r}")
+        unknown = set(rb) - _BRANCH_KEYS
+        if unknown:
+            raise TreeFileError(f"{pre}branches[{i}]: unknown field(s) {sorted(unknown)}; allowed: {sorted(_BRANCH_KEYS)}")
+        for req in ("name", "length", "radius"):
+            if req not in rb:
+                raise TreeFileError(f"{pre}branches[{i}]: missing required field '{req}'")
+        w = f"{pre}branches[{i}] ('{rb['name']}'): "
+        fixed = rb.get("fixed", False)
+        if not isinstance(fixed, bool):
+            raise TreeFileError(f"{w}fixed: expected true/false, got {fixed!r}")
+        branches.append(
+            Branch(
+                name=str(rb["name"]),
+                parent=None if rb.get("parent") is None else str(rb["parent"]),
+                length=_positive(rb["length"], "length", w),
+                radius=_positive(rb["radius"], "radius", w),
+                angle_deg=_finite(rb.get("angle_deg", 0.0), "angle_deg", w),
+                azimuth_deg=_finite(rb.get("azimuth_deg", 0.0), "azimuth_deg", w),
+                attach=_check_fraction(rb.get("attach", 1.0), "attach", w),
+                density=None if rb.get("density") is None else _positive(rb["density"], "density", w),
+                kp=None if rb.get("kp") is None else _positive(rb["kp"], "kp", w),
+                kd=None if rb.get("kd") is None else _positive(rb["kd"], "kd", w),
+                fixed=fixed,
+            )
+        )
+    try:
+        _validate_branches(tuple(branches))
+    except TreeFileError as e:
+        raise TreeFileError(f"{pre}{e}") from None
+
+    grasp = d.get("grasp")
+    if not isinstance(grasp, dict) or "branch" not in grasp:
+        raise TreeFileError(f"{pre}grasp: expected a mapping with 'branch' and 'fraction'")
+    _no_unknown(grasp, {"branch", "fraction"}, "grasp", pre)
+    base = d.get("base", {}) or {}
+    if not isinstance(base, dict):
+        raise TreeFileError(f"{pre}base: expected a mapping with position, pitch_deg, yaw_deg")
+    bad = set(base) - {"position", "pitch_deg", "yaw_deg"}
+    if bad:
+        raise TreeFileError(f"{pre}base: unknown field(s) {sorted(bad)}")
+    fixed = d.get("fixed", {}) or {}
+    _no_unknown(fixed, {"kp", "kd"}, "fixed", pre)
+    inf = d.get("inference", {}) or {}
+    if not isinstance(inf, dict):
+        raise TreeFileError(f"{pre}inference: expected a mapping")
+    bad = set(inf) - {"joints", "levels", "prior"}
+    if bad:
+        raise TreeFileError(f"{pre}inference: unknown field(s) {sorted(bad)}; allowed: joints, levels, prior")
+    levels = inf.get("levels", 1)
+    joints = inf.get("joints")
+    if joints is not None and (not isinstance(joints, list) or not all(isinstance(j, str) for j in joints)):
+        raise TreeFileError(f"{pre}inference.joints: expected a list of branch names, got {joints!r}")
+    prior = inf.get("prior", {}) or {}
+    _no_unknown(prior, {"kp", "kd", "joints"}, "inference.prior", pre)
+    per_joint_raw = prior.get("joints", {}) or {}
+    if not isinstance(per_joint_raw, dict):
+        raise TreeFileError(f"{pre}inference.prior.joints: expected a mapping {{joint: {{kp: [lo, hi], kd: [lo, hi]}}}}")
+    for n, pj in per_joint_raw.items():
+        _no_unknown(pj, {"kp", "kd"}, f"inference.prior.joints.{n}", pre)
+    try:
+        default = Bounds(
+            kp=_bounds_pair(prior.get("kp", DEFAULT_KP_BOUNDS), "inference.prior.kp"),
+            kd=_bounds_pair(prior.get("kd", DEFAULT_KD_BOUNDS), "inference.prior.kd"),
+        )
+        per_joint = prior.get("joints", {}) or {}
+        bounds_map: dict[str, Bounds] = {}
+        tmp_inferred = tuple(joints) if joints is not None else default_inferred(branches, str(grasp["branch"]), int(levels)) if str(grasp["branch"]) in {b.name for b in branches} else ()
+        for n in tmp_inferred:
+            pj = per_joint.get(n, {})
+            bounds_map[n] = Bounds(
+                kp=_bounds_pair(pj.get("kp", default.kp), f"inference.prior.joints.{n}.kp"),
+                kd=_bounds_pair(pj.get("kd", default.kd), f"inference.prior.joints.{n}.kd"),
+            )
+        unknown_pj = set(per_joint) - set(tmp_inferred)
+        if unknown_pj:
+            raise TreeFileError(f"inference.prior.joints: bounds given for joint(s) {sorted(unknown_pj)} that are not inferred")
+        return make_tree(
+            branches,
+            grasp_branch=str(grasp["branch"]),
+            grasp_fraction=grasp.get("fraction", 1.0),
+            inferred=joints,
+            levels=levels,
+            bounds=bounds_map,
+            name=str(d.get("name", "tree")),
+            base_position=tuple(_finite(x, "base.position") for x in base.get("position", (0.0, 0.0, 0.0))),
+            base_pitch_deg=_finite(base.get("pitch_deg", 0.0), "base.pitch_deg"),
+            base_yaw_deg=_finite(base.get("yaw_deg", 0.0), "base.yaw_deg"),
+            gravity=tuple(_finite(x, "gravity") for x in d.get("gravity", (0.0, 0.0, -9.81))),
+            density=_positive(d.get("density", DEFAULT_DENSITY), "density"),
+            fixed_kp=_positive(fixed.get("kp", DEFAULT_FIXED_KP), "fixed.kp"),
+            fixed_kd=_positive(fixed.get("kd", DEFAULT_FIXED_KD), "fixed.kd"),
+        )
+    except TreeFileError as e:
+        msg = str(e)
+        raise TreeFileError(msg if msg.startswith(pre) else f"{pre}{msg}") from None
+    except (TypeError, ValueError, AttributeError) as e:
+        raise TreeFileError(f"{pre}malformed field: {e}") from None
+
+
+def tree_to_dict(tree: Tree) -> dict[str, Any]:
+    """The file representation of ``tree`` (round-trips through :func:`tree_from_dict`)."""
+    branches = []
+    for b in tree.branches:
+        rb: dict[str, Any] = {"name": b.name, "parent": b.parent, "length": b.length, "radius": b.radius}
+        for k in ("angle_deg", "azimuth_deg"):
+            if getattr(b, k) != 0.0:
+                rb[k] = getattr(b, k)
+        if b.attach != 1.0:
+            rb["attach"] = b.attach
+        for k in ("density", "kp", "kd"):
+            if getattr(b, k) is not None:
+                rb[k] = getattr(b, k)
+        if b.fixed:
+            rb["fixed"] = True
+        branches.append(rb)
+    return {
+        "name": tree.name,
+        "base": {"position": list(tree.base_position), "pitch_deg": tree.base_pitch_deg, "yaw_deg": tree.base_yaw_deg},
+        "gravity": list(tree.gravity),
+        "density": tree.density,
+        "fixed": {"kp": tree.fixed_kp, "kd": tree.fixed_kd},
+        "branches": branches,
+        "grasp": {"branch": tree.grasp_branch, "fraction": tree.grasp_fraction},
+        "inference": {
+            "joints": list(tree.inferred),
+            "prior": {
+                "joints": {n: {"kp": list(tree.bounds[n].kp), "kd": list(tree.bounds[n].kd)} for n in tree.inferred}
+            },
+        },
+    }
+
+
+def load_tree(path: str | Path) -> Tree:
+    """Read a tree description from YAML (``.yaml``/``.yml``) or JSON (``.json``)."""
+    path = Path(path)
+    if not path.exists():
+        raise TreeFileError(f"{path}: no such file")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise TreeFileError(f"{path}: cannot read: {e}") from None
+    if path.suffix.lower() == ".json":
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise TreeFileError(f"{path}, line {e.lineno}: invalid JSON: {e.msg}") from None
+    else:
+        import yaml
+
+        try:
+            d = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            line = f", line {mark.line + 1}" if mark is not None else ""
+            raise TreeFileError(f"{path}{line}: invalid YAML: {getattr(e, 'problem', e)}") from None
+    return tree_from_dict(d, source=str(path))
+
+
+def dump_tree(tree: Tree, path: str | Path) -> Path:
+    """Write ``tree`` as YAML or JSON (by suffix), atomically."""
+    from ._io import atomic_write_text
+
+    path = Path(path)
+    d = tree_to_dict(tree)
+    if path.suffix.lower() == ".json":
+        text = json.dumps(d, indent=2) + "\n"
+    else:
+        import yaml
+
+        text = yaml.safe_dump(d, sort_keys=False)
+    return atomic_write_text(path, text)
