@@ -15,7 +15,7 @@ def _scipy_interval(x, level=0.95):
     kde = stats.gaussian_kde(x)
     a = 0.5 * (1 - level)
     lo_b, hi_b = x.min() - 20 * x.std(), x.max() + 20 * x.std()
-    cdf = lambda y: kde.integrate_box_1d(-np.inf, y)  # noqa: E731
+    cdf = lambda y: kde.integrate_box_1d(-np.inf, y)
     lo = optimize.brentq(lambda y: cdf(y) - a, lo_b, hi_b, xtol=1e-12)
     hi = optimize.brentq(lambda y: cdf(y) - (1 - a), lo_b, hi_b, xtol=1e-12)
     return lo, hi
@@ -38,7 +38,9 @@ def test_bandwidth_matches_scipy(rng):
 def test_interval_matches_scipy_kde_quantiles(rng):
     # bimodal + skewed columns so the KDE quantile differs from a Gaussian one
     P, B, T = 50, 2, 5
-    x = np.concatenate([rng.normal(0.0, 0.1, (P // 2, B, T)), rng.gamma(2.0, 0.3, (P - P // 2, B, T)) + 1.0])
+    x = np.concatenate(
+        [rng.normal(0.0, 0.1, (P // 2, B, T)), rng.gamma(2.0, 0.3, (P - P // 2, B, T)) + 1.0]
+    )
     lower, upper, mean = metrics.predictive_interval(x, 0.95)
     assert lower.shape == upper.shape == mean.shape == (B, T)
     for b in range(B):
@@ -62,7 +64,7 @@ def test_degenerate_step_is_zero_width_not_nan(rng):
     x = rng.normal(0.0, 0.1, size=(20, 6))
     x[:, 0] = 0.0  # t = 0: displacement exactly zero
     x[:, 1] = 0.3  # constant non-zero (float32 rounding in the mean)
-    lower, upper, mean = metrics.predictive_interval(x)
+    lower, upper, _mean = metrics.predictive_interval(x)
     assert np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))
     assert lower[0] == upper[0] == 0.0
     np.testing.assert_allclose([lower[1], upper[1]], [0.3, 0.3], rtol=1e-6)
@@ -81,6 +83,18 @@ def test_jit_and_vmap_friendly(rng):
     b = metrics.predictive_interval(x, 0.9, valid)
     for u, v in zip(a, b):
         np.testing.assert_allclose(u, v, rtol=1e-6)
+    gt = jnp.asarray(rng.normal(size=(3, 5)))
+    nll_jit = jax.jit(metrics.predictive_nll)(x, gt, None, valid)
+    np.testing.assert_allclose(
+        nll_jit.total, metrics.predictive_nll(x, gt, valid=valid).total, rtol=1e-6
+    )
+    # vmap over a leading "condition" axis (e.g. noise levels): same as a loop
+    xs = jnp.stack([x, 2.0 * x])
+    lo_v, hi_v, _ = jax.vmap(lambda p: metrics.predictive_interval(p, 0.9, valid))(xs)
+    np.testing.assert_allclose(
+        lo_v[1], metrics.predictive_interval(2.0 * x, 0.9, valid).lower, rtol=1e-5
+    )
+    np.testing.assert_allclose(hi_v[0], b.upper, rtol=1e-5)
 
 
 def test_invalid_particles_are_excluded(rng):
@@ -99,7 +113,9 @@ def test_invalid_particles_are_excluded(rng):
         np.testing.assert_allclose(u, v, rtol=1e-5, atol=1e-6)
     gt = rng.normal(size=(2, 4))
     np.testing.assert_allclose(
-        metrics.predictive_nll(y, gt, valid=valid).total, metrics.predictive_nll(x[valid_all], gt).total, rtol=1e-5
+        metrics.predictive_nll(y, gt, valid=valid).total,
+        metrics.predictive_nll(x[valid_all], gt).total,
+        rtol=1e-5,
     )
     s = metrics.summarize(y, gt, valid=valid)
     assert s["n_invalid_particles"] == 3 and s["n_valid_particles"] == 22
@@ -111,6 +127,10 @@ def test_too_few_particles_raise():
         metrics.predictive_interval(x, valid=np.array([True, False, False]))
     with pytest.raises(ConfigError):
         metrics.predictive_interval(x, level=1.5)
+    # under jit the check cannot raise: NaN instead of a plausible-looking number
+    f = jax.jit(metrics.predictive_interval)
+    for v in ([True, False, False], [False, False, False]):
+        assert np.all(np.isnan(np.asarray(f(x + 1.0, valid=jnp.asarray(v)))))
 
 
 def test_ci_width_and_fraction_outside_by_hand():
@@ -123,8 +143,13 @@ def test_ci_width_and_fraction_outside_by_hand():
     # usable GT points: (0,0) in, (0,1) out, (0,2) in (degenerate, equal), (1,1) out; NaN and masked skipped
     np.testing.assert_allclose(metrics.fraction_outside(lower, upper, gt, mask), 2 / 4)
     # a hair beyond a degenerate bound is tolerated, a real miss is not
-    assert float(metrics.fraction_outside(np.array([1.0]), np.array([1.0]), np.array([1.0 + 1e-7]))) == 0.0
-    assert float(metrics.fraction_outside(np.array([1.0]), np.array([1.0]), np.array([1.01]))) == 1.0
+    assert (
+        float(metrics.fraction_outside(np.array([1.0]), np.array([1.0]), np.array([1.0 + 1e-7])))
+        == 0.0
+    )
+    assert (
+        float(metrics.fraction_outside(np.array([1.0]), np.array([1.0]), np.array([1.01]))) == 1.0
+    )
 
 
 def test_predictive_nll_matches_scipy_logpdf(rng):
@@ -198,10 +223,17 @@ def test_summarize_is_json_ready(rng):
     gt[:, 0] = 0.0
     parts = rng.normal(size=(20, 2))
     s = metrics.summarize(
-        pred, gt, log_likelihood=rng.normal(size=20), particles=parts, truth=np.zeros(2), labels=["Kp[b1]", "Kd[b1]"]
+        pred,
+        gt,
+        log_likelihood=rng.normal(size=20),
+        particles=parts,
+        truth=np.zeros(2),
+        labels=["Kp[b1]", "Kd[b1]"],
     )
     json.dumps(s)
     lower, upper, _ = metrics.predictive_interval(pred)
-    np.testing.assert_allclose(s["pct_outside"], 100 * float(metrics.fraction_outside(lower, upper, gt)))
+    np.testing.assert_allclose(
+        s["pct_outside"], 100 * float(metrics.fraction_outside(lower, upper, gt))
+    )
     assert s["n_points"] == 8 and s["n_degenerate_points"] == 2
     assert set(s["parameters"]) == {"Kp[b1]", "Kd[b1]"}

@@ -36,7 +36,8 @@ out of the predictive NLL (the KDE is a Dirac there); the count is reported.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -51,13 +52,13 @@ __all__ = [
     "PredictiveInterval",
     "PredictiveNLL",
     "TruthCheck",
-    "kde_1d",
-    "predictive_interval",
     "ci_width",
     "fraction_outside",
-    "predictive_nll",
+    "kde_1d",
     "posterior_nll",
     "posterior_vs_truth",
+    "predictive_interval",
+    "predictive_nll",
     "summarize",
 ]
 
@@ -230,6 +231,11 @@ def _kde_1d(pred: jax.Array, eff: jax.Array) -> KDE1D:
     scale = jnp.max(jnp.where(eff, jnp.abs(x), 0.0), axis=-1)
     degenerate = std <= _DEGENERATE_EPS_FACTOR * jnp.finfo(x.dtype).eps * scale
     bw = jnp.where(degenerate, 0.0, std * n.astype(x.dtype) ** (-1.0 / 5.0))
+    # under jit nobody can raise on too few particles: make everything NaN instead
+    enough = n >= 2
+    mean = jnp.where(enough, mean, jnp.nan)
+    bw = jnp.where(enough, bw, jnp.nan)
+    degenerate = degenerate & enough
     return KDE1D(x, w, mean, bw, degenerate, n)
 
 
@@ -246,7 +252,10 @@ def _kde_quantile(kde: KDE1D, q: jax.Array, n_iter: int) -> jax.Array:
     valid = kde.weights > 0
     lo = jnp.min(jnp.where(valid, kde.points, jnp.inf), axis=-1) - _BRACKET_BANDWIDTHS * h_safe
     hi = jnp.max(jnp.where(valid, kde.points, -jnp.inf), axis=-1) + _BRACKET_BANDWIDTHS * h_safe
-    lo, hi = jnp.broadcast_to(lo, q.shape[:1] + lo.shape), jnp.broadcast_to(hi, q.shape[:1] + hi.shape)
+    lo, hi = (
+        jnp.broadcast_to(lo, q.shape[:1] + lo.shape),
+        jnp.broadcast_to(hi, q.shape[:1] + hi.shape),
+    )
 
     def body(_, bracket):
         lo, hi = bracket
@@ -258,7 +267,9 @@ def _kde_quantile(kde: KDE1D, q: jax.Array, n_iter: int) -> jax.Array:
     return jnp.where(kde.degenerate, kde.mean, 0.5 * (lo + hi))
 
 
-def predictive_interval(pred, level: float = 0.95, valid=None, n_iter: int = 60) -> PredictiveInterval:
+def predictive_interval(
+    pred, level: float = 0.95, valid=None, n_iter: int = 60
+) -> PredictiveInterval:
     """Central ``level`` interval of the per-time-step predictive KDE.
 
     Args:
@@ -296,7 +307,9 @@ def ci_width(lower, upper, mask=None) -> jax.Array:
     Pooled mean over all (trajectory, time step) points with ``mask`` True, so a
     longer trajectory counts proportionally more. Trajectory units.
     """
-    return _ci_width(jnp.asarray(lower), jnp.asarray(upper), None if mask is None else jnp.asarray(mask, bool))
+    return _ci_width(
+        jnp.asarray(lower), jnp.asarray(upper), None if mask is None else jnp.asarray(mask, bool)
+    )
 
 
 @jax.jit
@@ -307,7 +320,9 @@ def _ci_width(lower, upper, mask):
     return jnp.sum(jnp.where(m, upper - lower, 0.0)) / jnp.sum(m)
 
 
-def fraction_outside(lower, upper, gt, mask=None, atol: float = 1e-6, rtol: float = 1e-5) -> jax.Array:
+def fraction_outside(
+    lower, upper, gt, mask=None, atol: float = 1e-6, rtol: float = 1e-5
+) -> jax.Array:
     """Share of ground-truth points outside ``[lower, upper]``, as a FRACTION in [0, 1].
 
     (Multiply by 100 for the paper's "% GT outside CI"; :func:`summarize`
@@ -317,7 +332,9 @@ def fraction_outside(lower, upper, gt, mask=None, atol: float = 1e-6, rtol: floa
     Points with ``mask`` False or non-finite ``gt`` are ignored.
     """
     mask = None if mask is None else jnp.asarray(mask, bool)
-    return _fraction_outside(jnp.asarray(lower), jnp.asarray(upper), jnp.asarray(gt), mask, atol, rtol)
+    return _fraction_outside(
+        jnp.asarray(lower), jnp.asarray(upper), jnp.asarray(gt), mask, atol, rtol
+    )
 
 
 @jax.jit
@@ -357,7 +374,9 @@ def predictive_nll(pred, gt, mask=None, valid=None) -> PredictiveNLL:
     _require_particles(eff)
     gt = jnp.asarray(gt, pred.dtype)
     if gt.shape != pred.shape[1:]:
-        raise ConfigError(f"gt: expected shape {tuple(pred.shape[1:])} to match pred, got {gt.shape}")
+        raise ConfigError(
+            f"gt: expected shape {tuple(pred.shape[1:])} to match pred, got {gt.shape}"
+        )
     return _nll(pred, eff, gt, _point_mask(gt, mask))
 
 
@@ -406,7 +425,9 @@ def _posterior_nll(ll, valid):
 # --------------------------------------------------------------------------- parameters
 
 
-def posterior_vs_truth(particles, truth, level: float = 0.95, valid=None, log: bool = False) -> TruthCheck:
+def posterior_vs_truth(
+    particles, truth, level: float = 0.95, valid=None, log: bool = False
+) -> TruthCheck:
     """Compare posterior particles with the true parameters (sim-to-sim).
 
     Args:
@@ -453,12 +474,16 @@ def posterior_vs_truth(particles, truth, level: float = 0.95, valid=None, log: b
     eig = np.linalg.eigvalsh(cov) if np.all(np.isfinite(cov)) else np.array([0.0])
     # float32 KDE: treat a covariance that is singular to ~1e-6 relative as undefined
     if xv.shape[0] > x.shape[1] and eig.min() > 1e-6 * max(eig.max(), np.finfo(float).tiny):
-        ld = np.asarray(_joint_logpdf(jnp.asarray(xv.T), jnp.asarray(np.column_stack([xv.T, t]))), float)
+        ld = np.asarray(
+            _joint_logpdf(jnp.asarray(xv.T), jnp.asarray(np.column_stack([xv.T, t]))), float
+        )
         ld_parts, ld_truth = ld[:-1], float(ld[-1])
         ld_thr = float(np.quantile(ld_parts, 1.0 - level))
         if np.isfinite(ld_thr):
             in_joint = bool(ld_truth >= ld_thr)
-    return TruthCheck(mean, abs_err, rel_err, lower, upper, in_marg, in_joint, ld_truth, ld_thr, int(eff.sum()))
+    return TruthCheck(
+        mean, abs_err, rel_err, lower, upper, in_marg, in_joint, ld_truth, ld_thr, int(eff.sum())
+    )
 
 
 @jax.jit

@@ -269,9 +269,9 @@ def train_inequality_network(
     form: str = "linear",
     hidden: int = 64,
     activation: str | None = None,
-    n_samples: int = 8192,
-    steps: int = 3000,
-    learning_rate: float = 1e-2,
+    n_samples: int = 4096,
+    steps: int = 4000,
+    learning_rate: float = 3e-2,
     seed: int = 0,
 ) -> InequalityNet:
     """Fit the inequality-prior MLP ``y'(parent, child)`` (paper eq. 14) by least squares.
@@ -345,9 +345,9 @@ def load_or_train_inequality_network(
     form: str = "linear",
     hidden: int = 64,
     activation: str | None = None,
-    n_samples: int = 8192,
-    steps: int = 3000,
-    learning_rate: float = 1e-2,
+    n_samples: int = 4096,
+    steps: int = 4000,
+    learning_rate: float = 3e-2,
     seed: int = 0,
     cache_dir: str | os.PathLike | None = None,
 ) -> InequalityNet:

@@ -276,17 +276,19 @@ def settle_one(sim: Simulator, model) -> tuple[jax.Array, jax.Array]:
     eps = jnp.asarray(1e-3, q0.dtype)
     probes = jnp.concatenate([jnp.zeros((1, nq), q0.dtype), eps * jnp.eye(nq, dtype=q0.dtype), -eps * jnp.eye(nq, dtype=q0.dtype)])
 
-    def newton(q, _):
+    def newton(carry, i):
+        q, r_first, _ = carry
         r = f(q[None] + probes)
         jac = ((r[1 : nq + 1] - r[nq + 1 :]) / (2 * eps)).T
-        dq = -jnp.linalg.solve(jac, r[0])
-        dq = jnp.clip(dq, -0.2, 0.2)  # clipped steps: robust far from the solution
-        return q + dq, None
+        dq = jnp.clip(-jnp.linalg.solve(jac, r[0]), -0.2, 0.2)  # clipped: robust far from the root
+        r_first = jnp.where(i == 0, r[0], r_first)
+        return (q + dq, r_first, r[0]), None
 
-    q, _ = jax.lax.scan(newton, q0, None, length=sim.settle_iterations)
-    r = f(jnp.stack([q, q0]))
-    scale = 1.0 + jnp.max(jnp.abs(r[1]))
-    ok = jnp.all(jnp.isfinite(q)) & (jnp.max(jnp.abs(r[0])) <= sim.settle_tolerance * scale)
+    zero = jnp.zeros(sim.mj_model.nv, q0.dtype)
+    # One traced residual (inside the scan): MJX compiles slowly, so nothing is traced twice.
+    (q, r_first, r_last), _ = jax.lax.scan(newton, (q0, zero, zero), jnp.arange(sim.settle_iterations))
+    scale = 1.0 + jnp.max(jnp.abs(r_first))
+    ok = jnp.all(jnp.isfinite(q)) & (jnp.max(jnp.abs(r_last)) <= sim.settle_tolerance * scale)
     return q, ok
 
 
@@ -317,15 +319,17 @@ def _pull_one(sim: Simulator, model, qpos_rest, forces, site_local):
         wrench = jnp.concatenate([force, jnp.cross(lever, force)])
         return d.replace(xfrc_applied=jnp.zeros((nbody, 6), force.dtype).at[bid].set(wrench))
 
-    def sub(d, f):
-        return mjx.step(model, push(d, f))
-
     def observe(carry, f):
         d, ok = carry
-        d = sub(d, f)
-        c = d.site_xpos[sid]  # kinematics of the state at the start of this interval
-        if sim.substeps > 1:
-            d = jax.lax.fori_loop(0, sim.substeps - 1, lambda _, dd: sub(dd, f), d)
+
+        def sub(k, dc):
+            dd, c = dc
+            dd = mjx.step(model, push(dd, f))
+            # after the first substep, site_xpos holds C at the start of this interval
+            return dd, jnp.where(k == 0, dd.site_xpos[sid], c)
+
+        # one traced mjx.step per rollout (MJX compiles slowly; a split first step doubles it)
+        d, c = jax.lax.fori_loop(0, sim.substeps, sub, (d, c_rest))
         ok = ok & jnp.all(jnp.isfinite(d.qpos)) & jnp.all(jnp.abs(d.qvel) < sim.max_joint_speed)
         return (d, ok), c
 

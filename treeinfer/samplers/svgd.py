@@ -150,12 +150,19 @@ def svgd(
     return SamplingAlgorithm(init, step, name, settings)
 
 
-def nnsvgd(value_and_grad_fn: ValueAndGradFn, **kwargs) -> SamplingAlgorithm:
+def nnsvgd(
+    value_and_grad_fn: ValueAndGradFn,
+    learning_rate: float = 1e-2,
+    optimizer: optax.GradientTransformation | None = None,
+    length_scale: float | None = None,
+    min_length_scale: float = 1e-6,
+    name: str = "nnsvgd",
+) -> SamplingAlgorithm:
     """NNSVGD (the paper's method): :func:`svgd` recorded under the name ``"nnsvgd"``.
 
     The algorithm is plain SVGD; what makes it NNSVGD is the target, which the
     caller composes to include the neural-network inequality prior, e.g.
     ``combined_value_and_grad(fd_terms=[likelihood], autodiff_terms=[box_prior, inequality_prior(net, pairs)])``.
+    Arguments as for :func:`svgd`.
     """
-    kwargs.setdefault("name", "nnsvgd")
-    return svgd(value_and_grad_fn, **kwargs)
+    return svgd(value_and_grad_fn, learning_rate, optimizer, length_scale, min_length_scale, name)

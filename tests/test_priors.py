@@ -1,0 +1,242 @@
+"""Smoothed box prior and neural-network inequality prior."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import integrate
+
+import treeinfer.priors as priors
+from treeinfer.errors import ConfigError
+from treeinfer.gradients import autodiff_value_and_grad
+from treeinfer.priors import (
+    inequality_prior,
+    inequality_target,
+    load_or_train_inequality_network,
+    smoothed_box,
+    train_inequality_network,
+)
+
+LOWER = np.array([0.0, -2.0, 1.0])
+UPPER = np.array([1.0, 3.0, 1.5])
+SIGMA = np.array([0.1, 0.5, 0.2])
+
+
+def box_reference(theta):
+    """Independent closed form: distance to the box per coordinate, numpy."""
+    theta = np.asarray(theta, np.float64)
+    dist = np.where(theta < LOWER, LOWER - theta, np.where(theta > UPPER, theta - UPPER, 0.0))
+    return -np.sum(dist**2 / (2 * SIGMA**2), axis=-1)
+
+
+# ---------------------------------------------------------------- smoothed box
+
+
+def test_smoothed_box_flat_inside_with_zero_gradient():
+    logp = smoothed_box(LOWER, UPPER, SIGMA)
+    inside = jax.random.uniform(jax.random.key(0), (50, 3), minval=LOWER, maxval=UPPER)
+    value, grad = autodiff_value_and_grad(logp)(inside)
+    np.testing.assert_array_equal(value, 0.0)
+    np.testing.assert_array_equal(grad, 0.0)
+
+
+def test_smoothed_box_tails_match_closed_form():
+    logp = smoothed_box(LOWER, UPPER, SIGMA)
+    theta = jax.random.uniform(jax.random.key(1), (200, 3), minval=-4.0, maxval=5.0)
+    np.testing.assert_allclose(logp(theta), box_reference(theta), rtol=1e-5, atol=1e-5)
+    # gradient: -dist / sigma^2 pointing back into the box
+    _, grad = autodiff_value_and_grad(logp)(theta)
+    t = np.asarray(theta)
+    ref = np.where(t < LOWER, (LOWER - t), np.where(t > UPPER, -(t - UPPER), 0.0)) / SIGMA**2
+    np.testing.assert_allclose(grad, ref, rtol=1e-5, atol=1e-4)
+
+
+def test_smoothed_box_gradient_continuous_at_boundary():
+    logp = smoothed_box(LOWER, UPPER, SIGMA)
+    vg = autodiff_value_and_grad(logp)
+    mid = (LOWER + UPPER) / 2
+    for d in range(3):
+        for edge in (LOWER[d], UPPER[d]):
+            for delta in (1e-3, 1e-5):
+                pts = np.tile(mid, (2, 1))
+                pts[0, d], pts[1, d] = edge - delta, edge + delta
+                value, grad = vg(jnp.asarray(pts))
+                # both sides within delta / sigma^2 of 0 -> continuous (no jump at the edge)
+                assert np.max(np.abs(grad)) <= delta / SIGMA[d] ** 2 * 1.01 + 1e-6
+                assert np.max(np.abs(value)) <= delta**2 / SIGMA[d] ** 2
+
+
+def test_smoothed_box_normalised_matches_gpytorch_and_integrates_to_one():
+    lo, hi, s = -1.0, 2.0, 0.3
+    logp = smoothed_box([lo], [hi], s, normalized=True)
+    # GPyTorch: Normal(0, s).log_prob(dist) - log(1 + (hi - lo) / (sqrt(2 pi) s))
+    x = np.array([-2.0, -1.0, 0.0, 2.5])
+    dist = np.maximum(np.abs(x - 0.5) - 1.5, 0)
+    gp = -(dist**2) / (2 * s**2) - math.log(s * math.sqrt(2 * math.pi)) - math.log(
+        1 + (hi - lo) / (math.sqrt(2 * math.pi) * s)
+    )
+    np.testing.assert_allclose(logp(jnp.asarray(x[:, None])), gp, rtol=1e-5)
+    total, _ = integrate.quad(lambda t: math.exp(float(logp(jnp.array([[t]]))[0])), -10, 10, points=[lo, hi])
+    assert total == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ([0.0, 1.0], [1.0, 1.0], 0.1),  # lower == upper
+        ([0.0], [1.0], 0.0),  # sigma == 0
+        ([0.0], [1.0], [0.1, 0.2]),  # sigma length
+        ([0.0, 1.0], [1.0], 0.1),  # lengths differ
+        ([np.nan], [1.0], 0.1),
+    ],
+)
+def test_smoothed_box_validation(args):
+    with pytest.raises(ConfigError):
+        smoothed_box(*args)
+
+
+def test_smoothed_box_wrong_dimension():
+    with pytest.raises(ConfigError, match="box has 3"):
+        smoothed_box(LOWER, UPPER, SIGMA)(jnp.zeros((2, 4)))
+
+
+# ---------------------------------------------------------- inequality network
+
+BOX = (-2.0, 6.0)  # log-space training box
+ETA = 10.0
+WIDTH = BOX[1] - BOX[0]
+
+
+@pytest.fixture(scope="module")
+def linear_net():
+    return train_inequality_network(*BOX, eta=ETA)  # shipped defaults (~5-10 s on CPU)
+
+
+def held_out(n=4000, seed=7):
+    x = jax.random.uniform(jax.random.key(seed), (n, 2), minval=BOX[0], maxval=BOX[1])
+    return x[:, 0], x[:, 1]
+
+
+def test_linear_net_matches_target(linear_net):
+    p, c = held_out()
+    err = np.abs(np.asarray(linear_net(p, c) - inequality_target(p, c, ETA, "linear")))
+    # Tolerance: mean |error| < 1.5% and, away from the kink (|p - c| > 10% of the
+    # box), max |error| < 5% of the target range eta * width (= 80 here).
+    assert err.mean() < 0.015 * ETA * WIDTH
+    far = np.abs(np.asarray(p - c)) > 0.1 * WIDTH
+    assert err[far].max() < 0.05 * ETA * WIDTH
+
+
+def test_linear_net_gradient_points_into_feasible_region(linear_net):
+    p, c = held_out()
+    gp, gc = jax.vmap(jax.grad(linear_net, argnums=(0, 1)))(p, c)
+    gp, gc = np.asarray(gp), np.asarray(gc)
+    violated = np.asarray(c - p) > 0.1 * WIDTH
+    assert np.all(gp[violated] > 0) and np.all(gc[violated] < 0)
+    # slope of eq. 15 is +-eta there
+    assert np.mean(gp[violated]) == pytest.approx(ETA, rel=0.1)
+    assert np.mean(gc[violated]) == pytest.approx(-ETA, rel=0.1)
+    satisfied = np.asarray(p - c) > 0.1 * WIDTH
+    assert np.mean(np.abs(gp[satisfied])) < 0.1 * ETA
+    assert np.mean(np.abs(gc[satisfied])) < 0.1 * ETA
+
+
+def test_inequality_prior_chain_of_four_branches(linear_net):
+    # theta = [logKp_0..3, logKd_0..3]; chain 0 -> 1 -> 2 -> 3 for both.
+    pairs = [(0, 1), (1, 2), (2, 3), (4, 5), (5, 6), (6, 7)]
+    logp = inequality_prior(linear_net, pairs)
+    theta = jax.random.uniform(jax.random.key(3), (500, 8), minval=BOX[0], maxval=BOX[1])
+    ref = sum(inequality_target(theta[:, i], theta[:, j], ETA) for i, j in pairs)
+    got = logp(theta)
+    assert got.shape == (500,)
+    assert np.mean(np.abs(np.asarray(got - ref))) < 6 * 0.015 * ETA * WIDTH
+    # exact sum of the network over the pairs
+    net_sum = sum(linear_net(theta[:, i], theta[:, j]) for i, j in pairs)
+    np.testing.assert_allclose(got, net_sum, rtol=1e-5, atol=1e-4)
+    # gradient (autodiff) pushes a violating child down and its parent up
+    bad = jnp.array([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]]).at[0, 3].set(4.0)
+    _, g = autodiff_value_and_grad(logp)(bad)
+    assert g[0, 3] < -0.5 * ETA and g[0, 2] > 0.5 * ETA
+    # satisfied chain: nearly flat
+    good = jnp.array([[4.0, 2.5, 1.0, -0.5, 4.0, 2.5, 1.0, -0.5]])
+    assert abs(float(logp(good)[0])) < 0.05 * ETA * WIDTH
+    with pytest.raises(ConfigError):
+        logp(jnp.zeros((2, 5)))
+    with pytest.raises(ConfigError):
+        inequality_prior(linear_net, [(1, 1)])
+    with pytest.raises(ConfigError):
+        inequality_prior(linear_net, [(0, -1)])
+
+
+def test_step_form_matches_target_away_from_the_step():
+    net = train_inequality_network(*BOX, eta=ETA, form="step", steps=2000)
+    p, c = held_out()
+    err = np.abs(np.asarray(net(p, c) - inequality_target(p, c, ETA, "step")))
+    far = np.abs(np.asarray(p - c)) > 0.1 * WIDTH
+    # Tolerance: mean |error| < 5% of eta away from the step (the fit is smooth across it).
+    assert err[far].mean() < 0.05 * ETA
+    gp, gc = jax.vmap(jax.grad(net, argnums=(0, 1)))(p, c)
+    near = np.abs(np.asarray(p - c)) < 0.02 * WIDTH
+    assert np.mean(np.asarray(gp)[near]) > 0 and np.mean(np.asarray(gc)[near]) < 0
+
+
+def test_training_is_seeded():
+    a = train_inequality_network(0.0, 1.0, steps=30, n_samples=128, seed=3)
+    b = train_inequality_network(0.0, 1.0, steps=30, n_samples=128, seed=3)
+    c = train_inequality_network(0.0, 1.0, steps=30, n_samples=128, seed=4)
+    jax.tree.map(np.testing.assert_array_equal, a.params, b.params)
+    assert not np.array_equal(a.params["Dense_0"]["kernel"], c.params["Dense_0"]["kernel"])
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(box_low=1.0, box_high=1.0),
+        dict(box_low=0.0, box_high=1.0, eta=0.0),
+        dict(box_low=0.0, box_high=1.0, form="quadratic"),
+        dict(box_low=0.0, box_high=1.0, hidden=0),
+        dict(box_low=0.0, box_high=1.0, activation="relu6"),
+    ],
+)
+def test_training_validation(kwargs):
+    with pytest.raises(ConfigError):
+        train_inequality_network(**kwargs)
+
+
+def test_cache_second_call_loads(tmp_path, monkeypatch):
+    settings = dict(box_low=-1.0, box_high=2.0, eta=3.0, steps=20, n_samples=64, hidden=8)
+    first = load_or_train_inequality_network(**settings, cache_dir=tmp_path)
+    assert not first.loaded and first.cache_path is not None
+    files = list(tmp_path.iterdir())
+    assert len(files) == 1 and files[0].suffix == ".msgpack"
+
+    def boom(*a, **k):
+        raise AssertionError("retrained although the weights are cached")
+
+    monkeypatch.setattr(priors, "train_inequality_network", boom)
+    second = load_or_train_inequality_network(**settings, cache_dir=tmp_path)
+    assert second.loaded and second.settings == first.settings
+    jax.tree.map(np.testing.assert_array_equal, first.params, second.params)
+    x = jnp.linspace(-1, 2, 7)
+    np.testing.assert_array_equal(first(x, x[::-1]), second(x, x[::-1]))
+
+    # a different setting is a different key -> trains (here: the patched trainer raises)
+    with pytest.raises(AssertionError, match="retrained"):
+        load_or_train_inequality_network(**{**settings, "eta": 4.0}, cache_dir=tmp_path)
+
+    # $TREEINFER_CACHE is the default folder
+    monkeypatch.setenv("TREEINFER_CACHE", str(tmp_path))
+    assert load_or_train_inequality_network(**settings).loaded
+
+
+def test_corrupt_cache_is_retrained(tmp_path):
+    settings = dict(box_low=-1.0, box_high=2.0, steps=10, n_samples=32, hidden=4)
+    first = load_or_train_inequality_network(**settings, cache_dir=tmp_path)
+    with open(first.cache_path, "wb") as f:
+        f.write(b"not msgpack")
+    with pytest.warns(UserWarning, match="unusable"):
+        again = load_or_train_inequality_network(**settings, cache_dir=tmp_path)
+    assert not again.loaded
+    assert load_or_train_inequality_network(**settings, cache_dir=tmp_path).loaded

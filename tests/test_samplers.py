@@ -1,0 +1,255 @@
+"""Samplers and the run driver on an analytic 2-D correlated Gaussian.
+
+The gradient samplers get the finite-difference gradient (central_difference)
+of the analytic log-density, as they will get the simulator likelihood's.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from scipy.spatial.distance import pdist
+
+from treeinfer.errors import ConfigError
+from treeinfer.gradients import central_difference
+from treeinfer.samplers import (
+    SAMPLERS,
+    make_sampler,
+    median_length_scale,
+    run,
+    sghmc,
+    sgld,
+    stein_direction,
+    svgd,
+)
+
+MU = np.array([1.0, -0.5])
+SD = np.array([1.0, 0.5])
+RHO = 0.8
+COV = np.array([[SD[0] ** 2, RHO * SD[0] * SD[1]], [RHO * SD[0] * SD[1], SD[1] ** 2]])
+PREC = jnp.asarray(np.linalg.inv(COV), jnp.float32)
+
+
+def logp(theta):
+    d = theta - jnp.asarray(MU, theta.dtype)
+    return -0.5 * jnp.einsum("pi,ij,pj->p", d, PREC.astype(theta.dtype), d)
+
+
+VG = central_difference(logp)
+
+# Hyperparameters per sampler for the Gaussian test, and particle counts.
+CONFIGS = {
+    "svgd": (dict(value_and_grad_fn=VG, learning_rate=0.05), 200, 400),
+    "nnsvgd": (dict(value_and_grad_fn=VG, learning_rate=0.05), 200, 400),
+    "sgld": (dict(value_and_grad_fn=VG, step_size=0.02), 1000, 500),
+    "sghmc": (dict(value_and_grad_fn=VG, step_size=0.02, alpha=1.5), 1000, 500),
+    "mh": (dict(logdensity_fn=logp, proposal_scale=[0.8, 0.4]), 1000, 500),
+}
+
+
+def start(n, seed=1):
+    """Initial particles away from the target: N((-1, 1), 0.5^2 I)."""
+    return jax.random.normal(jax.random.key(seed), (n, 2)) * 0.5 + jnp.array([-1.0, 1.0])
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_recovers_correlated_gaussian(name):
+    kwargs, n, iters = CONFIGS[name]
+    result = run(make_sampler(name, **kwargs), 0, start(n), iters, progress=False, trace_every=None)
+    x = result.final_positions
+    assert np.all(np.isfinite(x))
+    # Tolerance: mean within 0.15 sd per coordinate; covariance entries within
+    # 0.2 * sd_i * sd_j (20% of the variances, 25% of the covariance 0.4*...).
+    np.testing.assert_array_less(np.abs(x.mean(0) - MU) / SD, 0.15)
+    np.testing.assert_array_less(np.abs(np.cov(x.T) - COV) / np.outer(SD, SD), 0.2)
+    assert result.settings["sampler"] == name
+    assert len(result.diagnostics["mean_logdensity"]) == iters
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_fixed_seed_is_bit_identical(name):
+    kwargs, _, _ = CONFIGS[name]
+    alg = make_sampler(name, **kwargs)
+    a = run(alg, 42, start(64), 30, progress=False, trace_every=10)
+    b = run(make_sampler(name, **kwargs), 42, start(64), 30, progress=False, trace_every=10)
+    np.testing.assert_array_equal(a.final_positions, b.final_positions)
+    np.testing.assert_array_equal(a.trace_positions, b.trace_positions)
+    if name in ("sgld", "sghmc", "mh"):  # stochastic: another seed differs
+        c = run(alg, 43, start(64), 30, progress=False, trace_every=None)
+        assert not np.array_equal(a.final_positions, c.final_positions)
+
+
+@pytest.mark.parametrize("name", ["svgd", "sgld", "sghmc", "mh"])
+def test_resume_equals_uninterrupted(name):
+    kwargs, _, _ = CONFIGS[name]
+    alg = make_sampler(name, **kwargs)
+    key = jax.random.key(7)
+    full = run(alg, key, start(32), 60, progress=False, trace_every=5, chunk_size=20)
+
+    saved = {}
+    first = run(alg, key, start(32), 40, progress=False, trace_every=5, chunk_size=20,
+                callback=lambda it, state: saved.__setitem__(it, state), callback_every=20)
+    assert sorted(saved) == [20, 40]
+    # resume from the checkpoint at 20 with a chunk size that does not align with it
+    rest = run(alg, key, None, 60, progress=False, trace_every=5, chunk_size=15,
+               initial_state=saved[20], start_iteration=20)
+    np.testing.assert_array_equal(rest.final_positions, full.final_positions)
+    jax.tree.map(np.testing.assert_array_equal, rest.final_state, full.final_state)
+    # traces line up: first part up to 20 + resumed part == uninterrupted
+    head = first.trace_iterations <= 20
+    np.testing.assert_array_equal(
+        np.concatenate([first.trace_iterations[head], rest.trace_iterations]), full.trace_iterations
+    )
+    np.testing.assert_array_equal(
+        np.concatenate([first.trace_positions[head], rest.trace_positions]), full.trace_positions
+    )
+    np.testing.assert_array_equal(rest.diagnostics["mean_logdensity"], full.diagnostics["mean_logdensity"][20:])
+
+
+def test_one_batched_evaluation_per_step():
+    calls = []
+
+    def counted(theta):
+        calls.append(theta.shape)  # Python side effect: runs when traced, not when executed
+        return logp(theta)
+
+    vg = central_difference(counted)
+    for name in SAMPLERS:
+        calls.clear()
+        fn = dict(logdensity_fn=counted) if name == "mh" else dict(value_and_grad_fn=vg)
+        extra = dict(proposal_scale=0.5) if name == "mh" else {}
+        alg = make_sampler(name, **fn, **extra)
+        state = jax.jit(alg.init)(jax.random.key(0), start(8))
+        step = jax.jit(alg.step)
+        for i in range(3):
+            state, _ = step(jax.random.key(i), state)
+        assert len(calls) == 2, name  # one trace for init + one for step, executed 3 times
+        expected = (8 * 5, 2) if name != "mh" else (8, 2)  # FD stacks P * (2D + 1) rows
+        assert calls[-1] == expected, name
+
+        calls.clear()
+        run(alg, 0, start(8), 10, progress=False)
+        n10 = len(calls)
+        calls.clear()
+        run(alg, 0, start(8), 25, progress=False, chunk_size=10)
+        assert len(calls) == n10 == 3, name  # init + shape inference + one compiled chunk
+
+
+def test_collapsed_and_single_particles_do_not_nan():
+    same = jnp.ones((50, 2))
+    assert float(median_length_scale(same)) == pytest.approx(1e-6)
+    assert float(median_length_scale(same[:1])) == 1.0
+    for positions in (same, same[:1]):
+        r = run(svgd(VG, learning_rate=0.05), 0, positions, 30, progress=False)
+        assert np.all(np.isfinite(r.final_positions))
+        assert np.all(np.isfinite(r.diagnostics["bandwidth"]))
+        assert np.all(r.diagnostics["bandwidth"] > 0)
+    # single particle: SVGD is gradient ascent -> moves toward the mode
+    r = run(svgd(VG, learning_rate=0.05), 0, jnp.zeros((1, 2)), 300, progress=False)
+    np.testing.assert_allclose(r.final_positions[0], MU, atol=0.05)
+    # collapsed particles spread out again once the kernel sees a nonzero spread
+    r = run(svgd(VG, learning_rate=0.05), 0, same.at[0, 0].add(1e-3), 200, progress=False)
+    assert np.std(r.final_positions[:, 0]) > 0.3
+
+
+def test_nonfinite_target_region_does_not_leak():
+    # log p = -inf for theta_0 > 2.5 (e.g. unstable simulations there)
+    def cut(theta):
+        return jnp.where(theta[:, 0] > 2.5, -jnp.inf, logp(theta))
+
+    vg = central_difference(cut)
+    x0 = start(64).at[:8, 0].set(3.0)
+    for alg in (svgd(vg, learning_rate=0.05), sgld(vg, step_size=0.02), sghmc(vg, step_size=0.02),
+                make_sampler("mh", logdensity_fn=cut, proposal_scale=0.3)):
+        r = run(alg, 0, x0, 50, progress=False, trace_every=None)
+        assert np.all(np.isfinite(r.final_positions)), alg.name
+        assert np.all(np.isfinite(np.asarray(r.final_state.logdensity)) | (np.asarray(r.final_state.logdensity) == -np.inf))
+        assert np.isfinite(r.diagnostics["mean_logdensity"]).all(), alg.name
+
+
+def test_stein_direction_matches_closed_form():
+    x = jax.random.normal(jax.random.key(0), (30, 3))
+    g = -x
+    h = 0.7
+    xn, gn = np.asarray(x, np.float64), np.asarray(g, np.float64)
+    diff = xn[:, None, :] - xn[None, :, :]  # x_i - x_j
+    k = np.exp(-np.sum(diff**2, -1) / h)
+    # phi_i = 1/n sum_j k(x_j, x_i) g_j + d/dx_j k(x_j, x_i) = ... + 2/h (x_i - x_j) k
+    ref = (k @ gn + 2.0 / h * np.einsum("ij,ijd->id", k, diff)) / 30
+    np.testing.assert_allclose(stein_direction(x, g, h), ref, rtol=1e-4, atol=1e-5)
+
+
+def test_svgd_bandwidth_is_median_heuristic_of_current_particles():
+    x0 = start(40)
+    alg = svgd(VG, learning_rate=0.05)
+    state = alg.init(None, x0)
+    _, info = alg.step(None, state)  # first step already uses the heuristic (not h = 1)
+    expected = np.median(pdist(np.asarray(x0, np.float64))) ** 2 / np.log(40)
+    assert float(info.bandwidth) == pytest.approx(expected, rel=1e-4)
+    # fixed length scale and plain SGD: x += lr * phi
+    alg = svgd(VG, optimizer=optax.sgd(0.1), length_scale=0.5)
+    state = alg.init(None, x0)
+    new, info = alg.step(None, state)
+    phi = stein_direction(x0, state.logdensity_grad, 0.5)
+    np.testing.assert_allclose(new.position, x0 + 0.1 * phi, rtol=1e-5, atol=1e-6)
+    assert float(info.bandwidth) == 0.5
+
+
+def test_sgld_schedule_and_temperature_zero():
+    schedule = optax.exponential_decay(0.05, transition_steps=10, decay_rate=0.5)
+    r = run(sgld(VG, step_size=schedule), 0, start(16), 20, progress=False)
+    np.testing.assert_allclose(r.diagnostics["step_size"], [schedule(i) for i in range(20)], rtol=1e-6)
+    # T = 0 is noiseless gradient ascent: converges to the mode
+    r = run(sgld(VG, step_size=0.05, temperature=0.0), 0, start(16), 400, progress=False)
+    np.testing.assert_allclose(r.final_positions, np.tile(MU, (16, 1)), atol=1e-2)
+    # the Adam-guided variant runs and stays finite
+    r = run(sgld(VG, step_size=0.01, optimizer=optax.adam(0.01)), 0, start(16), 50, progress=False)
+    assert np.all(np.isfinite(r.final_positions))
+
+
+def test_sghmc_noise_guard():
+    with pytest.raises(ConfigError, match="beta"):
+        sghmc(VG, step_size=0.1, alpha=1.0, beta=30.0)
+    with pytest.raises(ConfigError, match="alpha"):
+        sghmc(VG, step_size=0.5, alpha=3.0)
+    # a schedule that would make the noise imaginary is clipped, not NaN
+    alg = sghmc(VG, step_size=lambda t: 0.01 + 0.01 * t, alpha=1.0, beta=50.0)
+    r = run(alg, 0, start(16), 10, progress=False)
+    assert np.all(np.isfinite(r.final_positions))
+
+
+def test_run_outputs_and_settings():
+    kwargs, _, _ = CONFIGS["mh"]
+    r = run(make_sampler("mh", **kwargs), 5, start(20), 23, progress=False, trace_every=5, chunk_size=10)
+    np.testing.assert_array_equal(r.trace_iterations, [0, 5, 10, 15, 20])
+    assert r.trace_positions.shape == (5, 20, 2) and r.trace_logdensity.shape == (5, 20)
+    np.testing.assert_array_equal(r.trace_positions[0], start(20))
+    np.testing.assert_allclose(r.trace_logdensity[-1], logp(jnp.asarray(r.trace_positions[-1])), rtol=1e-5)
+    s = r.settings
+    assert s["sampler"] == "mh" and s["seed"] == 5 and s["n_iterations"] == 23
+    assert s["hyperparameters"] == {"proposal_scale": [0.8, 0.4]}
+    assert 0.1 < r.diagnostics["mean_acceptance_rate"].mean() < 0.9
+    with pytest.raises(ConfigError):
+        run(make_sampler("mh", **kwargs), 0, None, 10, progress=False)
+    with pytest.raises(ConfigError):
+        run(make_sampler("mh", **kwargs), 0, start(4), 10, progress=False, start_iteration=3)
+    with pytest.raises(ConfigError):
+        run(make_sampler("mh", **kwargs), 0, start(4), 10, progress=False,
+            callback=print, callback_every=15, chunk_size=10)
+
+
+def test_make_sampler_errors():
+    with pytest.raises(ConfigError, match="unknown sampler"):
+        make_sampler("hmc", value_and_grad_fn=VG)
+    with pytest.raises(ConfigError, match="needs logdensity_fn"):
+        make_sampler("mh", proposal_scale=0.1)
+    with pytest.raises(ConfigError, match="needs value_and_grad_fn"):
+        make_sampler("svgd")
+    with pytest.raises(ConfigError, match="svgd"):
+        make_sampler("svgd", value_and_grad_fn=VG, step_size=0.1)
+    with pytest.raises(ConfigError):
+        make_sampler("sgld", value_and_grad_fn=VG, step_size=-1.0)
+    with pytest.raises(ConfigError):
+        make_sampler("mh", logdensity_fn=logp, proposal_scale=[0.1, 0.0])
+    assert make_sampler("nnsvgd", value_and_grad_fn=VG).name == "nnsvgd"

@@ -1,0 +1,332 @@
+"""The front end: tree + trajectories -> posterior particles -> predictions.
+
+    problem = treeinfer.make_problem(tree, trajectories)          # likelihood + priors
+    posterior = treeinfer.infer(problem, sampler="nnsvgd", n_particles=64, n_iterations=200)
+    bands = treeinfer.predict(problem, posterior.theta, forces)   # Rollout [P, B, T]
+
+The target density is built by composition (Optax style), all in theta = [log Kp, log Kd]:
+
+    log p(theta | D) = boltzmann_log_likelihood          (black box: central differences)
+                     + smoothed_box(log bounds)          (autodiff)
+                     [+ NN inequality prior, NNSVGD]     (autodiff)
+
+Prior space: the box is placed on log Kp / log Kd (a log-uniform prior on the gains), so no
+Jacobian is needed. ``prior_space="linear"`` puts the box on Kp / Kd themselves instead and
+adds the log-Jacobian ``sum(theta)`` of ``K = exp(theta)`` so the density stays correct in theta.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any, Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import samplers as _samplers
+from .errors import ConfigError
+from .gradients import autodiff_value_and_grad, central_difference, combine, mask_nonfinite
+from .likelihood import DEFAULT_KT, boltzmann_log_likelihood, check_kT, gains_from_theta
+from .priors import inequality_prior, load_or_train_inequality_network, smoothed_box
+from .simulator import Rollout, Simulator, make_simulator, simulate
+from .trajectories import Observations, Trajectory, stack_trajectories
+from .tree import Tree
+
+DEFAULT_ETA = 10.0  # nats per unit of log-gain violation (paper: eta >> 0)
+DEFAULT_PRIOR_SIGMA = 0.1  # tail width of the smoothed box, as a share of each log-box width
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """Everything the samplers need about one inference problem.
+
+    Attributes:
+      tree, sim, obs: the tree, its compiled simulator, the stacked training trajectories.
+      kT: likelihood temperature. labels: ``Kp[j]``..., ``Kd[j]``... (theta's columns).
+      lower, upper: [D] the prior box in theta (log) units.
+      log_likelihood, log_prior: batched terms ``theta [N, D] -> [N]``.
+      value_and_grad: ``theta [P, D] -> (log p [P], grad [P, D])`` of the whole target.
+      log_density: ``theta [P, D] -> [P]``, the whole target (for MH and metrics).
+      settings: what built it (recorded next to results).
+    """
+
+    tree: Tree
+    sim: Simulator
+    obs: Observations
+    kT: float
+    labels: tuple[str, ...]
+    lower: np.ndarray
+    upper: np.ndarray
+    log_likelihood: Callable
+    log_prior: Callable
+    value_and_grad: Callable
+    log_density: Callable
+    nn_prior: bool
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def dim(self) -> int:
+        return len(self.labels)
+
+
+def box_prior(tree: Tree, prior_sigma: float = DEFAULT_PRIOR_SIGMA, prior_space: str = "log"):
+    """Smoothed box over the inferred joints' gains as a theta-space log-density."""
+    lo, hi = tree.bounds_array()
+    if prior_space == "log":
+        llo, lhi = np.log(lo), np.log(hi)
+        return smoothed_box(llo, lhi, prior_sigma * (lhi - llo))
+    if prior_space == "linear":
+        box = smoothed_box(lo, hi, prior_sigma * (hi - lo))
+        # density of K = exp(theta) expressed in theta: p(theta) = p_K(exp theta) * |dK/dtheta|
+        return lambda theta: box(jnp.exp(theta)) + jnp.sum(theta, axis=-1)
+    raise ConfigError(f"prior_space: expected 'log' or 'linear', got {prior_space!r}")
+
+
+def nn_inequality_prior(tree: Tree, eta: float = DEFAULT_ETA, form: str = "linear", seed: int = 0, cache_dir=None):
+    """The learned inequality prior on every inferred parent-child pair, for Kp and for Kd.
+
+    One network per gain kind (their log ranges differ), trained over that kind's log box
+    (widened by the tails) and cached on disk."""
+    pairs = tree.inferred_pairs()
+    if not pairs:
+        return None
+    r = tree.n_inferred
+    lo, hi = np.log(tree.bounds_array()[0]), np.log(tree.bounds_array()[1])
+    terms = []
+    for kind, cols in (("Kp", slice(0, r)), ("Kd", slice(r, 2 * r))):
+        a, b = float(lo[cols].min()), float(hi[cols].max())
+        pad = 0.5 * (b - a)  # cover the smoothed box's tails too
+        net = load_or_train_inequality_network(a - pad, b + pad, eta=eta, form=form, seed=seed, cache_dir=cache_dir)
+        off = 0 if kind == "Kp" else r
+        terms.append(inequality_prior(net, [(p + off, c + off) for p, c in pairs]))
+    return combine(*terms)
+
+
+def make_problem(
+    tree: Tree,
+    trajectories: Sequence[Trajectory] | Observations,
+    kT: float = DEFAULT_KT,
+    nn_prior: bool = True,
+    eta: float = DEFAULT_ETA,
+    prior_sigma: float = DEFAULT_PRIOR_SIGMA,
+    prior_space: str = "log",
+    gradient: str = "fd",
+    rel_step: float | None = None,
+    substeps: int | None = None,
+    max_sim_dt: float | None = None,
+    grasp_fraction: float | None = None,
+    model_file=None,
+    sim: Simulator | None = None,
+    nn_seed: int = 0,
+) -> Problem:
+    """Build the posterior target of ``tree`` given training ``trajectories``.
+
+    Args:
+      kT: likelihood temperature (see :mod:`treeinfer.likelihood` on choosing it).
+      nn_prior: add the learned inequality prior (NNSVGD's target); False gives SVGD's.
+      eta: inequality penalty slope (nats per unit of log-gain the child exceeds its parent).
+      gradient: ``"fd"`` (central differences, the paper's black-box route) or ``"autodiff"``
+        (exact gradients through MJX; slower to compile, for checks).
+      rel_step: finite-difference step in log units (default ~5e-3 for float32).
+      grasp_fraction: where the training data were recorded (None: the tree's grasp).
+    """
+    kT = check_kT(kT)
+    if gradient not in ("fd", "autodiff"):
+        raise ConfigError(f"gradient: expected 'fd' or 'autodiff', got {gradient!r}")
+    if not (isinstance(prior_sigma, (int, float)) and prior_sigma > 0):
+        raise ConfigError(f"prior_sigma: must be positive, got {prior_sigma!r}")
+    obs = trajectories if isinstance(trajectories, Observations) else stack_trajectories(list(trajectories))
+    if sim is None:
+        kwargs = {} if max_sim_dt is None else {"max_sim_dt": max_sim_dt}
+        sim = make_simulator(tree, obs_dt=float(obs.dt), substeps=substeps, model_file=model_file, **kwargs)
+    loglik = boltzmann_log_likelihood(sim, obs, kT, grasp_fraction)
+    prior_terms = [box_prior(tree, prior_sigma, prior_space)]
+    nn = nn_inequality_prior(tree, eta=eta, seed=nn_seed) if nn_prior else None
+    if nn is not None:
+        prior_terms.append(nn)
+    log_prior = combine(*prior_terms)
+    if gradient == "fd":
+        lik_vg = central_difference(loglik, rel_step=rel_step)
+    else:
+        lik_vg = autodiff_value_and_grad(loglik)
+    prior_vg = autodiff_value_and_grad(log_prior)
+
+    def value_and_grad(theta):
+        (a, ga), (b, gb) = lik_vg(theta), prior_vg(theta)
+        return mask_nonfinite(a + b, ga + gb)
+
+    lo, hi = tree.bounds_array()
+    settings = dict(
+        kT=kT, nn_prior=bool(nn is not None), eta=eta, prior_sigma=prior_sigma, prior_space=prior_space,
+        gradient=gradient, rel_step=rel_step, substeps=sim.substeps, sim_dt=sim.sim_dt, obs_dt=sim.obs_dt,
+        grasp_fraction=grasp_fraction if grasp_fraction is not None else tree.grasp_fraction,
+        n_trajectories=int(obs.force.shape[0]), n_steps=int(obs.force.shape[1]), nn_seed=nn_seed,
+    )
+    return Problem(
+        tree=tree, sim=sim, obs=obs, kT=kT, labels=tuple(tree.parameter_labels()),
+        lower=np.log(lo), upper=np.log(hi), log_likelihood=loglik, log_prior=log_prior,
+        value_and_grad=value_and_grad, log_density=combine(loglik, log_prior), nn_prior=nn is not None,
+        settings=settings,
+    )
+
+
+def initial_particles(problem: Problem, n_particles: int, seed: int = 0) -> jax.Array:
+    """``[P, D]`` particles drawn uniformly in the (log) prior box."""
+    check_count(n_particles, "n_particles")
+    key = jax.random.fold_in(jax.random.key(int(seed)), 0x1A17)
+    u = jax.random.uniform(key, (n_particles, problem.dim))
+    return jnp.asarray(problem.lower) + u * jnp.asarray(problem.upper - problem.lower)
+
+
+def check_count(n, what: str, minimum: int = 1) -> int:
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < minimum:
+        raise ConfigError(f"{what}: must be an integer >= {minimum}, got {n!r}")
+    return int(n)
+
+
+# Per-sampler defaults tuned for theta in log units (a prior box a few units wide).
+SAMPLER_DEFAULTS: dict[str, dict[str, Any]] = {
+    "nnsvgd": {"learning_rate": 0.05},
+    "svgd": {"learning_rate": 0.05},
+    # The paper's gradient baselines: "an Adam optimizer with a small learning rate guides the
+    # descent"; the Langevin noise is kept.
+    "sgld": {"step_size": 1e-4, "learning_rate": 0.05},
+    "sghmc": {"step_size": 1e-4, "learning_rate": 0.05, "alpha": 0.1},
+    "mh": {"proposal_scale": 0.05},  # share of each log-box width
+}
+
+
+def make_algorithm(problem: Problem, sampler: str = "nnsvgd", **options) -> _samplers.SamplingAlgorithm:
+    """A sampler by name, wired to ``problem``'s target, with treeinfer's defaults."""
+    import optax
+
+    name = sampler.lower()
+    if name not in _samplers.SAMPLERS:
+        raise ConfigError(f"sampler: unknown '{sampler}'; choose one of {', '.join(_samplers.SAMPLERS)}")
+    opts = {**SAMPLER_DEFAULTS[name], **options}
+    if name in ("svgd", "nnsvgd"):
+        return _samplers.SAMPLERS[name](problem.value_and_grad, learning_rate=opts["learning_rate"])
+    if name in ("sgld", "sghmc"):
+        kw = {"step_size": opts["step_size"], "optimizer": optax.adam(opts["learning_rate"])}
+        if name == "sghmc":
+            kw["alpha"] = opts["alpha"]
+        return _samplers.SAMPLERS[name](problem.value_and_grad, **kw)
+    scale = opts["proposal_scale"] * (problem.upper - problem.lower)
+    return _samplers.mh(problem.log_density, jnp.asarray(scale))
+
+
+@dataclass(frozen=True, eq=False)
+class Posterior:
+    """Result of :func:`infer`.
+
+    Attributes:
+      theta: [P, D] final particles (log Kp, log Kd). kp, kd: [P, R] in natural units.
+      log_density: [P] at the final particles. labels: column labels of theta.
+      run: the sampler driver's :class:`~treeinfer.samplers.RunResult` (trace, state, settings).
+      settings: problem + sampler settings, enough to reproduce the run.
+    """
+
+    theta: np.ndarray
+    kp: np.ndarray
+    kd: np.ndarray
+    log_density: np.ndarray
+    labels: tuple[str, ...]
+    run: Any
+    settings: dict
+
+    @property
+    def valid(self) -> np.ndarray:
+        """[P] particles with a finite log-density (their simulations were stable)."""
+        return np.isfinite(self.log_density)
+
+
+def infer(
+    problem: Problem,
+    sampler: str = "nnsvgd",
+    n_particles: int = 64,
+    n_iterations: int = 200,
+    seed: int = 0,
+    progress: bool = True,
+    initial_theta=None,
+    callback=None,
+    callback_every: int | None = None,
+    initial_state=None,
+    start_iteration: int = 0,
+    trace_every: int | None = 1,
+    **sampler_options,
+) -> Posterior:
+    """Sample the posterior of ``problem`` with one of ``nnsvgd``, ``svgd``, ``sgld``, ``sghmc``, ``mh``.
+
+    Particles start uniformly in the prior box (seeded); MCMC samplers run one chain per
+    particle. Returns a :class:`Posterior`; ``posterior.run.trace`` holds the particle and
+    log-density trace. ``callback(iteration, state)`` every ``callback_every`` iterations is
+    where checkpoints are written; ``initial_state``/``start_iteration`` resume exactly.
+    """
+    check_count(n_particles, "n_particles")
+    check_count(n_iterations, "n_iterations")
+    name = sampler.lower()
+    if name == "nnsvgd" and not problem.nn_prior and problem.tree.inferred_pairs():
+        raise ConfigError("sampler 'nnsvgd' needs a problem built with nn_prior=True")
+    algorithm = make_algorithm(problem, name, **sampler_options)
+    theta0 = initial_particles(problem, n_particles, seed) if initial_theta is None else jnp.asarray(initial_theta)
+    result = _samplers.run(
+        algorithm, jax.random.key(int(seed)), theta0, n_iterations, progress=progress, callback=callback,
+        callback_every=callback_every, initial_state=initial_state, start_iteration=start_iteration,
+        trace_every=trace_every,
+    )
+    theta = np.asarray(result.final_positions)
+    logp = np.asarray(problem.log_density(jnp.asarray(theta)))
+    kp, kd = gains_from_theta(theta, problem.sim.n_joints)
+    settings = {
+        "problem": problem.settings,
+        "sampler": name,
+        "sampler_options": {**SAMPLER_DEFAULTS[name], **sampler_options},
+        "n_particles": n_particles,
+        "n_iterations": n_iterations,
+        "seed": int(seed),
+        "run": result.settings,
+    }
+    return Posterior(theta, np.asarray(kp), np.asarray(kd), logp, problem.labels, result, settings)
+
+
+def predict(
+    sim_or_problem: Simulator | Problem,
+    theta,
+    forces,
+    grasp_fraction=None,
+) -> Rollout:
+    """Simulate every particle ``theta [P, D]`` under ``forces [B, T]``: :class:`Rollout` [P, B, T].
+
+    ``grasp_fraction`` (scalar or [B]) predicts at another point of the grasped branch.
+    Particles whose rollout is unstable have ``stable = False``; drop them before summarising."""
+    sim = sim_or_problem.sim if isinstance(sim_or_problem, Problem) else sim_or_problem
+    theta = jnp.atleast_2d(jnp.asarray(theta))
+    if theta.shape[-1] != 2 * sim.n_joints:
+        raise ConfigError(f"theta: expected {2 * sim.n_joints} columns (log Kp, log Kd per joint), got {theta.shape[-1]}")
+    if grasp_fraction is not None:
+        g = np.asarray(grasp_fraction, float)
+        if np.any(~np.isfinite(g)) or np.any(g <= 0) or np.any(g > 1):
+            raise ConfigError(f"grasp_fraction: must be in (0, 1], got {g.tolist()}")
+    kp, kd = gains_from_theta(theta, sim.n_joints)
+    return _predict_jit(sim, kp, kd, jnp.atleast_2d(jnp.asarray(forces)), grasp_fraction)
+
+
+@partial(jax.jit, static_argnums=0)
+def _predict_jit(sim, kp, kd, forces, grasp_fraction):
+    return simulate(sim, kp, kd, forces, grasp_fraction)
+
+
+__all__ = [
+    "Problem",
+    "Posterior",
+    "make_problem",
+    "infer",
+    "predict",
+    "initial_particles",
+    "make_algorithm",
+    "box_prior",
+    "nn_inequality_prior",
+    "SAMPLER_DEFAULTS",
+]
