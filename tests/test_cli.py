@@ -20,13 +20,12 @@ import mujoco
 import numpy as np
 import pytest
 
-from treeinfer import __version__
-from treeinfer import cli
+from treeinfer import __version__, cli
 from treeinfer import generators as gen
 from treeinfer.cli import COMMANDS, main
 from treeinfer.forces import from_spec
-from treeinfer.tree import branch_density, load_tree, tree_to_dict
 from treeinfer.trajectories import read_trajectory, read_trajectory_dir
+from treeinfer.tree import branch_density, load_tree, tree_to_dict
 from treeinfer.urdf import load_model_file
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -131,14 +130,14 @@ def test_interrupt_and_oserror(capsys, monkeypatch, tmp_path):
 
 def test_python_m_treeinfer_subprocess(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
-    p = subprocess.run([sys.executable, "-m", "treeinfer", "--help"], capture_output=True, text=True, env=env, cwd=tmp_path)
+    p = subprocess.run([sys.executable, "-m", "treeinfer", "--help"], capture_output=True, text=True, env=env, cwd=tmp_path, check=False)
     assert p.returncode == 0, p.stderr
     assert "usage: treeinfer" in p.stdout and "simulate" in p.stdout
     bad = tmp_path / "bad.yaml"
     bad.write_text("branches: [\n")
     p = subprocess.run(
         [sys.executable, "-m", "treeinfer", "tree", "--from", str(bad), "--out", str(tmp_path / "x.yaml")],
-        capture_output=True, text=True, env=env, cwd=tmp_path,
+        capture_output=True, text=True, env=env, cwd=tmp_path, check=False,
     )
     assert p.returncode == 2 and "invalid YAML" in p.stderr and "Traceback" not in p.stderr
     assert not (tmp_path / "x.yaml").exists()
@@ -296,7 +295,7 @@ def test_simulate_writes_a_complete_data_set(sim_a, capsys):
 
 def test_simulate_same_seed_same_files_and_params_json_round_trip(sim_a, capsys, tmp_path):
     b = tmp_path / "b"
-    rc, out, err = run(capsys, "simulate", "--tree", TWO, "--out", b, "--seed", "1", *SIM_ARGS)
+    rc, _, err = run(capsys, "simulate", "--tree", TWO, "--out", b, "--seed", "1", *SIM_ARGS)
     assert rc == 0, err
     for name in ("traj_000.csv", "traj_001.csv", "true_params.json"):
         assert (b / name).read_bytes() == (sim_a / name).read_bytes()
@@ -411,18 +410,27 @@ def test_simulate_refuses_non_empty_out(capsys, tmp_path):
     assert [p.name for p in out.iterdir()] == ["old.csv"] and (out / "old.csv").read_text() == "keep"
 
 
-def test_default_true_params_independent_check():
-    """Order and window of the default draw on a 3-joint chain with unequal boxes."""
+def test_default_true_params_order_and_window():
+    """The default draw on a 3-joint chain, with a different prior box per joint: each value sits
+    in the middle third of its own log box, and the fraction of the box decreases from the root
+    to the tip (so with shared boxes parent >= child)."""
+    from dataclasses import replace
+
     from treeinfer.tree import Bounds
 
-    tree = gen.chain(3, 0.5, 0.02, bounds=Bounds())
-    tree = tree.__class__(**{**tree.__dict__, "bounds": {
-        "branch2": Bounds((1.0, 100.0), (0.1, 1.0)), "branch1": Bounds((1.0, 100.0), (0.1, 1.0)),
-        "branch0": Bounds((1.0, 100.0), (0.1, 1.0)),
-    }})
+    boxes = {
+        "branch2": Bounds((1.0, 100.0), (0.1, 1.0)),
+        "branch1": Bounds((2.0, 400.0), (0.05, 5.0)),
+        "branch0": Bounds((5.0, 500.0), (0.2, 20.0)),
+    }
+    tree = replace(gen.chain(3, 0.5, 0.02), bounds=boxes)
+    assert tree.inferred == ("branch2", "branch1", "branch0")  # tip first
+    lo, hi = tree.bounds_array()
     for seed in range(5):
         kp, kd = cli.default_true_params(tree, np.random.default_rng(seed))
-        # inferred = (branch2, branch1, branch0): tip first, so values increase along the vector
-        assert np.all(np.diff(kp) >= 0) and np.all(np.diff(kd) >= 0)
-        assert np.all((kp >= 100 ** (1 / 3) - 1e-9) & (kp <= 100 ** (2 / 3) + 1e-9))
-        assert np.all((kd >= 0.1 * 10 ** (1 / 3) - 1e-12) & (kd <= 0.1 * 10 ** (2 / 3) + 1e-12))
+        u = np.log(np.concatenate([kp, kd]) / lo) / np.log(hi / lo)
+        assert np.all((u >= 1 / 3 - 1e-12) & (u <= 2 / 3 + 1e-12))
+        assert np.all(np.diff(u[:3]) >= 0) and np.all(np.diff(u[3:]) >= 0)
+    a = cli.default_true_params(tree, np.random.default_rng(0))
+    b = cli.default_true_params(tree, np.random.default_rng(0))
+    np.testing.assert_array_equal(np.concatenate(a), np.concatenate(b))

@@ -95,7 +95,7 @@ def test_smooth_step_closed_form_and_flat_ends():
     slope = np.diff(f) / DT
     max_slope = 1.5 * peak / rise  # the smoothstep's slope at mid-rise
     assert slope.max() <= max_slope + 1e-9
-    i0, i1 = int(round(start / DT)), int(round((start + rise) / DT))
+    i0, i1 = round(start / DT), round((start + rise) / DT)
     # slope ~ 0 at both ends of the rise (a linear ramp would have peak / rise there)
     assert abs(slope[i0]) < 0.1 * peak / rise and abs(slope[i1 - 1]) < 0.1 * peak / rise
 

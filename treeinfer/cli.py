@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from . import __version__
-from .errors import ConfigError, OutputExistsError, SimulationError, TreeFileError, TreeinferError
+from .errors import ConfigError, OutputExistsError, SimulationError, TreeinferError
 
 __all__ = [
     "COMMANDS",
@@ -330,9 +330,10 @@ def _convert(tree, settings: dict[str, Any], source: Path):
 def _summary(tree, path: Path) -> str:
     from .tree import world_frames
 
+    jointed = sum(not b.fixed for b in tree.branches)
     lines = [
-        f"wrote {path}: tree '{tree.name}', {len(tree.branches)} branches "
-        f"({sum(not b.fixed for b in tree.branches)} jointed), total length {tree.total_length():.3g} m"
+        f"wrote {path}: tree '{tree.name}', {len(tree.branches)} branches ({jointed} jointed), "
+        + f"total length {tree.total_length():.3g} m"
     ]
     g = tree.branch(tree.grasp_branch)
     frames = world_frames(tree)
@@ -473,7 +474,7 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
     gf.add_argument("--profiles", choices=SET_KINDS, default=None, help="kind of random profile set (default mixed: ramp and ramp-hold-release alternately)")
     gf.add_argument("--profile", action="append", metavar="SPEC", help="explicit profile spec, repeatable (one trajectory each)")
     p.add_argument(
-        "--peak-range", type=_pair, default=DEFAULT_PEAK_RANGE, metavar="LO,HI", help="N, range of the random peaks (default %s,%s)" % DEFAULT_PEAK_RANGE
+        "--peak-range", type=_pair, default=DEFAULT_PEAK_RANGE, metavar="LO,HI", help=f"N, range of the random peaks (default {DEFAULT_PEAK_RANGE[0]:g},{DEFAULT_PEAK_RANGE[1]:g})"
     )
     p.add_argument("--noise-force", type=float, default=0.0, metavar="SIGMA", help="N, Gaussian noise added to the force")
     p.add_argument("--noise-displacement", type=float, default=0.0, metavar="SIGMA", help="m, Gaussian noise added to the displacement")
@@ -872,7 +873,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             traceback.print_exc()
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except Exception as e:
+    except Exception as e:  # noqa: BLE001 -- anything else is a bug: report it, exit 3
         if debug:
             traceback.print_exc()
         print(

@@ -43,9 +43,9 @@ from .errors import ConfigError
 __all__ = [
     "DEFAULT_PEAK_RANGE",
     "MIN_STEPS",
+    "SET_KINDS",
     "SHAPES",
     "SPEC_KEYS",
-    "SET_KINDS",
     "ProfileSpec",
     "format_spec",
     "from_spec",
@@ -99,7 +99,7 @@ def n_steps(duration: float, dt: float) -> int:
     ``duration``). Raises :class:`ConfigError` when ``dt <= 0`` or ``T < MIN_STEPS``."""
     duration = _positive(duration, "duration", "force profile")
     dt = _positive(dt, "dt", "force profile")
-    t = int(math.floor(duration / dt * (1.0 + _STEP_TOL)))
+    t = math.floor(duration / dt * (1.0 + _STEP_TOL))
     if t < MIN_STEPS:
         raise ConfigError(
             f"force profile: duration {duration:g} s at dt {dt:g} s gives {t} sample(s); "

@@ -10,6 +10,7 @@ iteration ``k`` reproduces the uninterrupted run exactly.
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any, Callable, NamedTuple
 
@@ -68,7 +69,12 @@ def _scalars(info) -> dict:
     return {k: v for k, v in fields.items() if jnp.ndim(v) == 0}
 
 
-def _build_chunk(step, length: int, record_trace: bool, scalar_template: dict):
+@functools.lru_cache(maxsize=4)
+def _build_chunk(step, length: int, record_trace: bool, scalar_template: tuple):
+    """Jitted chunk of ``length`` iterations; cached so repeated runs of one
+    algorithm (resume, benchmarks, notebooks) do not recompile."""
+    scalar_template = dict(scalar_template)
+
     def chunk(state, rng_key, first, stop):
         def body(state, i):
             def advance(s):
@@ -133,7 +139,9 @@ def run(
         the result equals the uninterrupted run.
 
     The step is traced twice (shape inference and compilation) and the chunk
-    compiled once per call; ``init`` is compiled separately.
+    compiled once; ``init`` is compiled separately. Compiled chunks of the
+    last few (algorithm, chunk length) pairs are cached, so a resumed run of
+    the same algorithm object does not recompile.
     """
     t0 = time.perf_counter()
     for nm, v in (("n_iterations", n_iterations), ("start_iteration", start_iteration)):
@@ -177,7 +185,7 @@ def run(
     remaining = n_iterations - start_iteration
     if remaining > 0:
         _, info_shape = jax.eval_shape(algorithm.step, iteration_key(key, 0), state)
-        template = _scalars(info_shape)
+        template = tuple((k, jax.ShapeDtypeStruct(v.shape, v.dtype)) for k, v in _scalars(info_shape).items())
         length = min(chunk_size, remaining)
         chunk = _build_chunk(algorithm.step, length, record_trace, template)
         bar = tqdm(total=n_iterations, initial=start_iteration, disable=not progress,

@@ -120,8 +120,9 @@ def sghmc(
 
     def step(rng_key, state: SGHMCState) -> tuple[SGHMCState, SGHMCInfo]:
         eps = jnp.asarray(schedule(state.step), state.position.dtype)
-        # Keep the noise variance eps T (2 alpha - eps T beta) >= 0 under any schedule.
-        beta_ok = jnp.minimum(beta, 2 * alpha / (eps * temperature))
+        # Keep the noise variance eps T (2 alpha - eps T beta) >= 0 under any schedule
+        # (the 1e-6 margin absorbs rounding in BlackJAX's product eps * T * beta).
+        beta_ok = jnp.minimum(beta, 2 * alpha / (eps * temperature) * (1 - 1e-6))
         integrator = diffusions.sghmc(alpha, beta_ok)
         drift, opt_state = preconditioned_drift(
             optimizer, state.logdensity_grad, state.opt_state, state.position, eps

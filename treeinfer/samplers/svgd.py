@@ -109,7 +109,8 @@ def svgd(
       min_length_scale: floor for the heuristic (collapsed particles).
       name: recorded sampler name.
 
-    The key passed to ``step`` is ignored: SVGD is deterministic.
+    The key passed to ``step`` is ignored: SVGD is deterministic, so exactly
+    identical initial particles stay identical (start from a spread).
     """
     lr = positive(learning_rate, "svgd: learning_rate")
     min_ls = positive(min_length_scale, "svgd: min_length_scale")
