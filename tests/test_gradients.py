@@ -38,7 +38,10 @@ def sinprod_grad(t):
     s, c = jnp.sin(t), jnp.cos(t)
     d = t.shape[1]
     return jnp.stack(
-        [c[:, i] * jnp.prod(jnp.delete(s, i, axis=1, assume_unique_indices=True), axis=1) for i in range(d)],
+        [
+            c[:, i] * jnp.prod(jnp.delete(s, i, axis=1, assume_unique_indices=True), axis=1)
+            for i in range(d)
+        ],
         axis=1,
     )
 
@@ -166,7 +169,9 @@ def test_combine_and_combined_value_and_grad():
     value, g = vg(THETA)
     assert len(calls) == 1  # both FD terms share one batched evaluation
     np.testing.assert_allclose(value, 2 * sinprod(THETA) + quad(THETA) + gauss(THETA), rtol=1e-5)
-    np.testing.assert_allclose(g, 2 * sinprod_grad(THETA) + quad_grad(THETA) + gauss_grad(THETA), atol=3e-3)
+    np.testing.assert_allclose(
+        g, 2 * sinprod_grad(THETA) + quad_grad(THETA) + gauss_grad(THETA), atol=3e-3
+    )
     with pytest.raises(ConfigError):
         combined_value_and_grad()
     with pytest.raises(ConfigError):

@@ -2,6 +2,38 @@
 
 __version__ = "0.1.0"
 
+# The public API, imported lazily so `treeinfer --help` does not pay for JAX and MuJoCo.
+_EXPORTS = {
+    "load_tree": "tree", "dump_tree": "tree", "make_tree": "tree", "Tree": "tree", "Branch": "tree",
+    "Bounds": "tree",
+    "Trajectory": "trajectories", "read_trajectory": "trajectories",
+    "read_trajectory_dir": "trajectories", "write_trajectory": "trajectories",
+    "stack_trajectories": "trajectories",
+    "make_simulator": "simulator", "simulate": "simulator", "Rollout": "simulator",
+    "make_problem": "inference", "infer": "inference", "predict": "inference",
+    "Problem": "inference", "Posterior": "inference",
+    "example_path": "examples",
+}
+_MODULES = {
+    "tree", "generators", "export", "urdf", "simulator", "likelihood", "priors", "gradients",
+    "samplers", "inference", "metrics", "plots", "diagnostics", "trajectories", "bags", "forces",
+    "errors", "examples", "sharding", "runs",
+}
+
+
+def __getattr__(name):
+    import importlib
+
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+    if name in _MODULES:
+        return importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module 'treeinfer' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS) | _MODULES)
+
 
 def enable_compilation_cache(path: str | None = None) -> str:
     """Keep compiled XLA programs on disk so a second run (or test session) skips MJX's

@@ -21,7 +21,7 @@ sums both.
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -31,9 +31,9 @@ from .errors import ConfigError
 __all__ = [
     "LogDensityFn",
     "ValueAndGradFn",
-    "combine",
-    "central_difference",
     "autodiff_value_and_grad",
+    "central_difference",
+    "combine",
     "combined_value_and_grad",
     "default_rel_step",
     "mask_nonfinite",
@@ -55,7 +55,9 @@ def combine(*terms: LogDensityFn) -> LogDensityFn:
     terms = tuple(terms)
     for i, t in enumerate(terms):
         if not callable(t):
-            raise ConfigError(f"combine: term {i} is {type(t).__name__}, not a log-density function")
+            raise ConfigError(
+                f"combine: term {i} is {type(t).__name__}, not a log-density function"
+            )
 
     def logdensity(theta: jax.Array) -> jax.Array:
         total = jnp.zeros(jnp.shape(theta)[:1], dtype=jnp.result_type(theta, jnp.float32))
@@ -125,7 +127,9 @@ def central_difference(
     def value_and_grad(theta: jax.Array) -> tuple[jax.Array, jax.Array]:
         theta = jnp.asarray(theta)
         if theta.ndim != 2:
-            raise ConfigError(f"central_difference: theta must have shape [P, D], got {theta.shape}")
+            raise ConfigError(
+                f"central_difference: theta must have shape [P, D], got {theta.shape}"
+            )
         if not jnp.issubdtype(theta.dtype, jnp.floating):
             theta = theta.astype(jnp.float32)
         n_particles, dim = theta.shape
@@ -188,7 +192,9 @@ def combined_value_and_grad(
     fd_terms, autodiff_terms = tuple(fd_terms), tuple(autodiff_terms)
     if not fd_terms and not autodiff_terms:
         raise ConfigError("combined_value_and_grad: give at least one log-density term")
-    fd = central_difference(combine(*fd_terms), rel_step=rel_step, scale=scale) if fd_terms else None
+    fd = (
+        central_difference(combine(*fd_terms), rel_step=rel_step, scale=scale) if fd_terms else None
+    )
     ad = autodiff_value_and_grad(combine(*autodiff_terms)) if autodiff_terms else None
 
     def value_and_grad(theta: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -21,8 +21,9 @@ import json
 import math
 import os
 import warnings
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Callable, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -35,13 +36,13 @@ from ._io import atomic_write_bytes
 from .errors import ConfigError
 
 __all__ = [
-    "smoothed_box",
-    "inequality_target",
     "InequalityNet",
-    "train_inequality_network",
-    "load_or_train_inequality_network",
-    "inequality_prior",
     "default_cache_dir",
+    "inequality_prior",
+    "inequality_target",
+    "load_or_train_inequality_network",
+    "smoothed_box",
+    "train_inequality_network",
 ]
 
 # ----------------------------------------------------------------------------
@@ -114,7 +115,9 @@ def smoothed_box(
     dim = lower.size
     centre = (lower + upper) / 2
     half_width = (upper - lower) / 2
-    const = float(np.sum(np.log(upper - lower + math.sqrt(2 * math.pi) * sigma))) if normalized else 0.0
+    const = (
+        float(np.sum(np.log(upper - lower + math.sqrt(2 * math.pi) * sigma))) if normalized else 0.0
+    )
 
     def logdensity(theta: jax.Array) -> jax.Array:
         theta = jnp.asarray(theta)
@@ -228,7 +231,9 @@ def _training_settings(
 
     box_low, box_high = num("box_low", box_low), num("box_high", box_high)
     if not box_low < box_high:
-        raise ConfigError(f"inequality prior: need box_low < box_high, got {box_low} and {box_high}")
+        raise ConfigError(
+            f"inequality prior: need box_low < box_high, got {box_low} and {box_high}"
+        )
     eta = num("eta", eta)
     if not eta > 0:
         raise ConfigError(f"inequality prior: eta must be > 0, got {eta}")
@@ -302,7 +307,9 @@ def _fit(settings: dict):
     key_data, key_init = jax.random.split(jax.random.key(settings["seed"]))
     low, high = settings["box_low"], settings["box_high"]
     x = jax.random.uniform(key_data, (settings["n_samples"], 2), minval=low, maxval=high)
-    y = inequality_target(x[:, 0], x[:, 1], settings["eta"], settings["form"]) / _output_scale(settings)
+    y = inequality_target(x[:, 0], x[:, 1], settings["eta"], settings["form"]) / _output_scale(
+        settings
+    )
     u = 2.0 * (x - low) / (high - low) - 1.0
     model = _MLP(settings["hidden"], settings["activation"])
     params = model.init(key_init, u[:1])["params"]
@@ -320,7 +327,7 @@ def _fit(settings: dict):
 
     @jax.jit
     def train(p):
-        (p, _), losses = jax.lax.scan(body, (p, opt.init(p)), None, length=settings["steps"])
+        (p, _), _ = jax.lax.scan(body, (p, opt.init(p)), None, length=settings["steps"])
         return p, loss_fn(p)
 
     params, loss = train(params)
@@ -373,12 +380,12 @@ def load_or_train_inequality_network(
                 raise ValueError("stored settings differ from the requested ones")
             params = jax.tree.map(jnp.asarray, blob["params"])
             return InequalityNet(params, settings, float(blob["final_loss"]), str(path), True)
-        except Exception as exc:  # corrupt / foreign file: retrain below
-            warnings.warn(f"{path}: cached inequality network unusable ({exc}); retraining", stacklevel=2)
+        except Exception as exc:  # noqa: BLE001 -- any unreadable/foreign file: retrain below
+            warnings.warn(
+                f"{path}: cached inequality network unusable ({exc}); retraining", stacklevel=2
+            )
     # Look the trainer up by module name so tests can observe whether it ran.
-    net = train_inequality_network(
-        **{k: v for k, v in settings.items() if k != "format"}
-    )
+    net = train_inequality_network(**{k: v for k, v in settings.items() if k != "format"})
     blob = {
         "settings_json": json.dumps(settings, sort_keys=True),
         "params": jax.tree.map(np.asarray, serialization.to_state_dict(net.params)),
@@ -410,7 +417,9 @@ def inequality_prior(
             or not all(isinstance(i, (int, np.integer)) and not isinstance(i, bool) for i in p)
             or min(p) < 0
         ):
-            raise ConfigError(f"inequality_prior: pair {k} must be two non-negative indices, got {p}")
+            raise ConfigError(
+                f"inequality_prior: pair {k} must be two non-negative indices, got {p}"
+            )
         if p[0] == p[1]:
             raise ConfigError(f"inequality_prior: pair {k} relates index {p[0]} to itself")
     parent_idx = np.array([p[0] for p in pairs], dtype=np.int32)

@@ -45,7 +45,7 @@ import numpy as np
 from .errors import ConfigError, SimulationError, TreeFileError
 from .tree import Tree
 
-DEFAULT_MAX_SIM_DT = 0.002  # s: upper bound on the simulation step whatever the prior
+DEFAULT_MAX_SIM_DT = 0.005  # s: upper bound on the simulation step whatever the prior
 STABILITY_MARGIN = 1.0  # require omega_max * dt <= this (explicit-spring limit is 2)
 PRIOR_STIFFNESS_HEADROOM = 2.0  # particles may wander a little past the prior box's upper Kp
 

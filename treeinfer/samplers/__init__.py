@@ -14,7 +14,7 @@ tracing, checkpoint callbacks and exact resume; :func:`make_sampler` builds one 
 from __future__ import annotations
 
 import inspect
-from typing import Callable
+from collections.abc import Callable
 
 from ..errors import ConfigError
 from ..gradients import LogDensityFn, ValueAndGradFn
@@ -26,28 +26,28 @@ from .sgld import SGLDInfo, SGLDState, sgld
 from .svgd import SVGDInfo, SVGDState, median_length_scale, nnsvgd, stein_direction, svgd
 
 __all__ = [
-    "SamplingAlgorithm",
     "SAMPLERS",
-    "make_sampler",
-    "run",
-    "RunResult",
-    "iteration_key",
-    "init_key",
-    "svgd",
-    "nnsvgd",
-    "sgld",
-    "sghmc",
-    "mh",
-    "SVGDState",
-    "SVGDInfo",
-    "SGLDState",
-    "SGLDInfo",
-    "SGHMCState",
-    "SGHMCInfo",
-    "RWState",
     "MHInfo",
+    "RWState",
+    "RunResult",
+    "SGHMCInfo",
+    "SGHMCState",
+    "SGLDInfo",
+    "SGLDState",
+    "SVGDInfo",
+    "SVGDState",
+    "SamplingAlgorithm",
+    "init_key",
+    "iteration_key",
+    "make_sampler",
     "median_length_scale",
+    "mh",
+    "nnsvgd",
+    "run",
+    "sghmc",
+    "sgld",
     "stein_direction",
+    "svgd",
 ]
 
 SAMPLERS: dict[str, Callable[..., SamplingAlgorithm]] = {

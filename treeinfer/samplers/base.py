@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import math
 import types
-from typing import Any, Callable, Mapping, NamedTuple
+from collections.abc import Callable, Mapping
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -28,7 +29,7 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["SamplingAlgorithm", "as_schedule", "finite_mean", "count_nonfinite", "check_positions"]
+__all__ = ["SamplingAlgorithm", "as_schedule", "check_positions", "count_nonfinite", "finite_mean"]
 
 
 class SamplingAlgorithm(NamedTuple):
@@ -55,7 +56,9 @@ def as_schedule(value, what: str) -> tuple[Callable[[jax.Array], jax.Array], Any
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ConfigError(f"{what} must be a positive number or a schedule, got {value!r}") from None
+        raise ConfigError(
+            f"{what} must be a positive number or a schedule, got {value!r}"
+        ) from None
     if not (math.isfinite(v) and v > 0):
         raise ConfigError(f"{what} must be a positive number, got {value!r}")
     return (lambda count: jnp.asarray(v)), v

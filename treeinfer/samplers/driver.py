@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import functools
 import time
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -22,7 +23,7 @@ from tqdm.auto import tqdm
 from ..errors import ConfigError
 from .base import SamplingAlgorithm, check_positions
 
-__all__ = ["RunResult", "run", "iteration_key", "init_key"]
+__all__ = ["RunResult", "init_key", "iteration_key", "run"]
 
 _INIT_TAG = np.uint32(0xFFFFFFFF)
 
@@ -98,8 +99,11 @@ def _key_record(rng_key) -> dict:
         return {"seed": int(rng_key)}
     key = rng_key
     if jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key):
-        return {"seed": None, "rng_key_data": np.asarray(jax.random.key_data(key)).tolist(),
-                "rng_impl": str(jax.random.key_impl(key))}
+        return {
+            "seed": None,
+            "rng_key_data": np.asarray(jax.random.key_data(key)).tolist(),
+            "rng_impl": str(jax.random.key_impl(key)),
+        }
     return {"seed": None, "rng_key_data": np.asarray(key).tolist()}
 
 
@@ -148,8 +152,14 @@ def run(
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
             raise ConfigError(f"run: {nm} must be a non-negative integer, got {v!r}")
     if start_iteration > n_iterations:
-        raise ConfigError(f"run: start_iteration={start_iteration} is beyond n_iterations={n_iterations}")
-    for nm, v in (("trace_every", trace_every), ("chunk_size", chunk_size), ("callback_every", callback_every)):
+        raise ConfigError(
+            f"run: start_iteration={start_iteration} is beyond n_iterations={n_iterations}"
+        )
+    for nm, v in (
+        ("trace_every", trace_every),
+        ("chunk_size", chunk_size),
+        ("callback_every", callback_every),
+    ):
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
             raise ConfigError(f"run: {nm} must be a positive integer or None, got {v!r}")
     if callback is not None and callback_every is None:
@@ -166,7 +176,9 @@ def run(
 
     if initial_state is None:
         if start_iteration != 0:
-            raise ConfigError("run: start_iteration > 0 needs the initial_state saved at that iteration")
+            raise ConfigError(
+                "run: start_iteration > 0 needs the initial_state saved at that iteration"
+            )
         if initial_positions is None:
             raise ConfigError("run: give initial_positions [P, D] (or initial_state to resume)")
         state = jax.jit(algorithm.init)(init_key(key), check_positions(initial_positions))
@@ -185,11 +197,19 @@ def run(
     remaining = n_iterations - start_iteration
     if remaining > 0:
         _, info_shape = jax.eval_shape(algorithm.step, iteration_key(key, 0), state)
-        template = tuple((k, jax.ShapeDtypeStruct(v.shape, v.dtype)) for k, v in _scalars(info_shape).items())
+        template = tuple(
+            (k, jax.ShapeDtypeStruct(v.shape, v.dtype)) for k, v in _scalars(info_shape).items()
+        )
         length = min(chunk_size, remaining)
         chunk = _build_chunk(algorithm.step, length, record_trace, template)
-        bar = tqdm(total=n_iterations, initial=start_iteration, disable=not progress,
-                   desc=algorithm.name or "sampling", unit="it", dynamic_ncols=True)
+        bar = tqdm(
+            total=n_iterations,
+            initial=start_iteration,
+            disable=not progress,
+            desc=algorithm.name or "sampling",
+            unit="it",
+            dynamic_ncols=True,
+        )
         it = start_iteration
         try:
             while it < n_iterations:

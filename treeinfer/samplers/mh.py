@@ -15,7 +15,8 @@ with a leading particle axis.
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -24,9 +25,15 @@ from blackjax.mcmc import random_walk
 from blackjax.mcmc.random_walk import RWState
 
 from ..errors import ConfigError
-from .base import SamplingAlgorithm, as_settings_value, check_positions, count_nonfinite, finite_mean
+from .base import (
+    SamplingAlgorithm,
+    as_settings_value,
+    check_positions,
+    count_nonfinite,
+    finite_mean,
+)
 
-__all__ = ["RWState", "MHInfo", "mh"]
+__all__ = ["MHInfo", "RWState", "mh"]
 
 
 class MHInfo(NamedTuple):
@@ -45,7 +52,9 @@ def _sanitize(logdensity: jax.Array) -> jax.Array:
     return jnp.where(jnp.isfinite(logdensity), logdensity, -jnp.inf)
 
 
-def mh(logdensity_fn: Callable[[jax.Array], jax.Array], proposal_scale, name: str = "mh") -> SamplingAlgorithm:
+def mh(
+    logdensity_fn: Callable[[jax.Array], jax.Array], proposal_scale, name: str = "mh"
+) -> SamplingAlgorithm:
     """Random-walk MH on a batched ``logdensity_fn(theta [P, D]) -> [P]``.
 
     Args:
@@ -56,7 +65,9 @@ def mh(logdensity_fn: Callable[[jax.Array], jax.Array], proposal_scale, name: st
     """
     scale = np.asarray(proposal_scale, dtype=np.float64)
     if scale.ndim > 2 or not np.all(np.isfinite(scale)):
-        raise ConfigError(f"mh: proposal_scale must be a finite float, [D] vector or [D, D] matrix, got {scale!r}")
+        raise ConfigError(
+            f"mh: proposal_scale must be a finite float, [D] vector or [D, D] matrix, got {scale!r}"
+        )
     if scale.ndim < 2 and not np.all(scale > 0):
         raise ConfigError(f"mh: proposal_scale must be > 0, got {scale.tolist()}")
     kernel = random_walk.build_rmh()
@@ -64,7 +75,9 @@ def mh(logdensity_fn: Callable[[jax.Array], jax.Array], proposal_scale, name: st
 
     def _check_dim(dim: int):
         if scale.ndim >= 1 and scale.shape[0] != dim:
-            raise ConfigError(f"mh: proposal_scale has {scale.shape[0]} coordinates, theta has {dim}")
+            raise ConfigError(
+                f"mh: proposal_scale has {scale.shape[0]} coordinates, theta has {dim}"
+            )
 
     def init(rng_key, positions) -> RWState:
         del rng_key
@@ -76,7 +89,11 @@ def mh(logdensity_fn: Callable[[jax.Array], jax.Array], proposal_scale, name: st
         x = state.position
         n_chains, dim = x.shape
         _check_dim(dim)
-        sigma = jnp.broadcast_to(jnp.asarray(scale, x.dtype), (dim,)) if scale.ndim < 2 else jnp.asarray(scale, x.dtype)
+        sigma = (
+            jnp.broadcast_to(jnp.asarray(scale, x.dtype), (dim,))
+            if scale.ndim < 2
+            else jnp.asarray(scale, x.dtype)
+        )
         propose = random_walk.normal(sigma)
         key_move, key_accept = jax.random.split(rng_key)
         x_prop = x + jax.vmap(propose)(jax.random.split(key_move, n_chains), x)

@@ -40,7 +40,7 @@ from .base import (
     preconditioned_drift,
 )
 
-__all__ = ["SGHMCState", "SGHMCInfo", "sghmc"]
+__all__ = ["SGHMCInfo", "SGHMCState", "sghmc"]
 
 
 class SGHMCState(NamedTuple):
@@ -93,11 +93,15 @@ def sghmc(
     beta = positive(beta, "sghmc: beta", allow_zero=True)
     temperature = positive(temperature, "sghmc: temperature")
     if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
-        raise ConfigError(f"sghmc: optimizer must be an optax GradientTransformation, got {type(optimizer).__name__}")
+        raise ConfigError(
+            f"sghmc: optimizer must be an optax GradientTransformation, got {type(optimizer).__name__}"
+        )
     if not callable(step_size):
         eps = float(step_size)
         if alpha * eps >= 1.0:
-            raise ConfigError(f"sghmc: need alpha * step_size < 1, got alpha={alpha}, step_size={eps}")
+            raise ConfigError(
+                f"sghmc: need alpha * step_size < 1, got alpha={alpha}, step_size={eps}"
+            )
         if beta > 2 * alpha / (eps * temperature):
             raise ConfigError(
                 f"sghmc: beta={beta} exceeds 2 * alpha / (step_size * temperature) = "
@@ -113,10 +117,14 @@ def sghmc(
 
     def init(rng_key, positions) -> SGHMCState:
         positions = check_positions(positions)
-        momentum = jnp.sqrt(temperature) * jax.random.normal(rng_key, positions.shape, positions.dtype)
+        momentum = jnp.sqrt(temperature) * jax.random.normal(
+            rng_key, positions.shape, positions.dtype
+        )
         logdensity, grad = value_and_grad_fn(positions)
         opt_state = () if optimizer is None else optimizer.init(positions)
-        return SGHMCState(positions, momentum, logdensity, grad, jnp.zeros((), jnp.int32), opt_state)
+        return SGHMCState(
+            positions, momentum, logdensity, grad, jnp.zeros((), jnp.int32), opt_state
+        )
 
     def step(rng_key, state: SGHMCState) -> tuple[SGHMCState, SGHMCInfo]:
         eps = jnp.asarray(schedule(state.step), state.position.dtype)

@@ -35,7 +35,7 @@ from .base import (
     preconditioned_drift,
 )
 
-__all__ = ["SGLDState", "SGLDInfo", "sgld"]
+__all__ = ["SGLDInfo", "SGLDState", "sgld"]
 
 
 class SGLDState(NamedTuple):
@@ -83,7 +83,9 @@ def sgld(
     schedule, step_record = as_schedule(step_size, "sgld: step_size")
     temperature = positive(temperature, "sgld: temperature", allow_zero=True)
     if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
-        raise ConfigError(f"sgld: optimizer must be an optax GradientTransformation, got {type(optimizer).__name__}")
+        raise ConfigError(
+            f"sgld: optimizer must be an optax GradientTransformation, got {type(optimizer).__name__}"
+        )
     integrator = diffusions.overdamped_langevin()
     settings = {
         "step_size": step_record,

@@ -34,7 +34,7 @@ from ..errors import ConfigError
 from ..gradients import ValueAndGradFn
 from .base import SamplingAlgorithm, check_positions, count_nonfinite, finite_mean, positive
 
-__all__ = ["SVGDState", "SVGDInfo", "svgd", "nnsvgd", "median_length_scale", "stein_direction"]
+__all__ = ["SVGDInfo", "SVGDState", "median_length_scale", "nnsvgd", "stein_direction", "svgd"]
 
 
 class SVGDState(NamedTuple):
@@ -118,7 +118,9 @@ def svgd(
         length_scale = positive(length_scale, "svgd: length_scale")
     opt = optax.adam(lr) if optimizer is None else optimizer
     if not isinstance(opt, optax.GradientTransformation):
-        raise ConfigError(f"svgd: optimizer must be an optax GradientTransformation, got {type(opt).__name__}")
+        raise ConfigError(
+            f"svgd: optimizer must be an optax GradientTransformation, got {type(opt).__name__}"
+        )
     settings = {
         "optimizer": "adam" if optimizer is None else "custom",
         "learning_rate": lr if optimizer is None else None,
@@ -135,7 +137,11 @@ def svgd(
     def step(rng_key, state: SVGDState) -> tuple[SVGDState, SVGDInfo]:
         del rng_key  # deterministic
         x = state.position
-        h = median_length_scale(x, min_ls) if length_scale is None else jnp.asarray(length_scale, x.dtype)
+        h = (
+            median_length_scale(x, min_ls)
+            if length_scale is None
+            else jnp.asarray(length_scale, x.dtype)
+        )
         phi = stein_direction(x, state.logdensity_grad, h)
         updates, opt_state = opt.update(-phi, state.opt_state, x)  # optax descends: ascend phi
         x_new = optax.apply_updates(x, updates)

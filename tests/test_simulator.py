@@ -1,0 +1,137 @@
+"""The batched MJX simulator against MuJoCo's C stepping, settling, stability and batching."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from treeinfer.errors import ConfigError, SimulationError
+from treeinfer.examples import example_path
+from treeinfer.simulator import (
+    check_stable_share,
+    make_simulator,
+    settle,
+    settle_reference,
+    simulate,
+    simulate_reference,
+    _c_model,
+)
+from treeinfer.tree import load_tree
+
+T = 60
+DT = 0.02
+
+
+@pytest.fixture(scope="module")
+def three():
+    tree = load_tree(example_path("three_branch"))
+    sim = make_simulator(tree, obs_dt=DT)
+    run = jax.jit(lambda kp, kd, f, g: simulate(sim, kp, kd, f, g))
+    return tree, sim, run
+
+
+def _forces():
+    t = np.arange(T) * DT
+    return np.stack([np.clip(t / 0.6, 0, 1) * 12.0, np.clip(t / 0.3, 0, 1) * 6.0 * (t < 0.8)])
+
+
+# Three parameter sets across the prior box (soft and light, middle, stiff and damped) and one
+# that is far outside it (unstable for this step).
+KP = np.array([[10.0, 20.0, 40.0], [50.0, 150.0, 300.0], [480.0, 450.0, 400.0], [2e6, 2e6, 2e6]])
+KD = np.array([[0.06, 0.06, 0.06], [0.5, 1.0, 2.0], [9.0, 9.0, 9.0], [0.05, 0.05, 0.05]])
+
+
+@pytest.fixture(scope="module")
+def rollout(three):
+    _, _, run = three
+    return run(jnp.asarray(KP), jnp.asarray(KD), jnp.asarray(_forces()), jnp.asarray([1.0, 0.6]))
+
+
+def test_mjx_matches_mujoco_c(three, rollout):
+    """MJX (float32, vmapped) and plain mujoco.mj_step (float64) agree within 1e-4 m."""
+    _, sim, _ = three
+    forces = _forces()
+    for p in range(3):
+        for b, frac in enumerate([1.0, 0.6]):
+            tau_c, tau_dot_c = simulate_reference(sim, KP[p], KD[p], forces[b], grasp_fraction=frac)
+            assert np.max(np.abs(tau_c)) > 0.01  # the branch really moves
+            np.testing.assert_allclose(np.asarray(rollout.tau[p, b]), tau_c, atol=1e-4)
+            np.testing.assert_allclose(np.asarray(rollout.tau_dot[p, b]), tau_dot_c, atol=2e-3)
+
+
+def test_output_shapes_and_rest(rollout):
+    assert rollout.tau.shape == (4, 2, T)
+    assert rollout.tau_dot.shape == (4, 2, T)
+    assert rollout.stable.shape == (4, 2)
+    # tau is measured from the settled rest: it starts at zero
+    np.testing.assert_allclose(np.asarray(rollout.tau[:3, :, 0]), 0.0, atol=1e-6)
+
+
+def test_unstable_entry_is_flagged_and_isolated(rollout):
+    stable = np.asarray(rollout.stable)
+    assert stable[:3].all()
+    assert not stable[3].any()
+    assert np.all(np.asarray(rollout.tau[3]) == 0.0)
+    assert np.all(np.isfinite(np.asarray(rollout.tau)))
+    with pytest.raises(SimulationError, match="unstable"):
+        check_stable_share(stable, 0.1)
+    check_stable_share(stable, 0.5)
+
+
+def test_softer_branch_sags_more_and_settled_state_is_at_rest(three):
+    """The static solve balances gravity: zero torque there, zero motion when released."""
+    import mujoco
+
+    _, sim, _ = three
+    q, ok = settle(sim, jnp.asarray(KP[:3]), jnp.asarray(KD[:3]))
+    assert np.asarray(ok).all()
+    q = np.asarray(q)
+    # the soft set sags more at every inferred joint than the stiff set
+    assert np.all(np.abs(q[0, sim.joint_ids]) > np.abs(q[2, sim.joint_ids]))
+    for p in range(3):
+        m = _c_model(sim, KP[p], KD[p])
+        q_ref = settle_reference(m)
+        np.testing.assert_allclose(q[p], q_ref, atol=2e-5)
+        d = mujoco.MjData(m)
+        d.qpos[:] = q_ref
+        mujoco.mj_forward(m, d)
+        assert np.max(np.abs(d.qacc)) < 1e-6  # at rest: no acceleration
+        start = d.site_xpos[sim.grasp_site].copy()
+        for _ in range(200):
+            mujoco.mj_step(m, d)
+        assert np.max(np.abs(d.site_xpos[sim.grasp_site] - start)) < 1e-8
+
+
+def test_zero_force_keeps_rest(three):
+    _, _, run = three
+    r = run(jnp.asarray(KP[1:2]), jnp.asarray(KD[1:2]), jnp.zeros((2, T)), jnp.asarray([1.0, 0.6]))
+    assert np.max(np.abs(np.asarray(r.tau))) < 1e-5
+
+
+def test_grasp_fraction_changes_lever_arm(rollout):
+    """The same kind of pull nearer the joint moves the grasp point less."""
+    assert np.max(np.asarray(rollout.tau[1, 0])) > np.max(np.asarray(rollout.tau[1, 1]))
+
+
+def test_bad_options():
+    tree = load_tree(example_path("two_branch"))
+    with pytest.raises(ConfigError, match="obs_dt"):
+        make_simulator(tree, obs_dt=-0.01)
+    with pytest.raises(ConfigError, match="substeps"):
+        make_simulator(tree, obs_dt=0.01, substeps=0)
+
+
+def test_substeps_follow_the_stiffest_prior_corner():
+    """A stiffer prior box needs a smaller simulation step."""
+    from dataclasses import replace
+
+    from treeinfer.tree import Bounds
+
+    tree = load_tree(example_path("two_branch"))
+    soft = make_simulator(tree, obs_dt=DT)
+    stiff_tree = replace(tree, bounds={n: Bounds(kp=(5.0, 50000.0)) for n in tree.inferred})
+    stiff = make_simulator(stiff_tree, obs_dt=DT)
+    assert stiff.substeps > soft.substeps
+    assert stiff.sim_dt <= 1.0 / 400.0  # omega_max * dt <= 1 at 2 x 50000 N m/rad on these masses
