@@ -150,8 +150,8 @@ def default_machine_name() -> str:
 
 
 def merge_results(path: Path, section: str, results: dict, summary: dict) -> Path:
-    """Merge ``results`` under ``section`` and the top-level ``summary`` keys into the JSON at
-    ``path`` (written atomically); other sections already there are kept."""
+    """Merge ``results`` into ``section`` (key by key) and the top-level ``summary`` keys into the
+    JSON at ``path`` (written atomically); everything else already there is kept."""
     from treeinfer._io import atomic_write_json
 
     path = Path(path)
@@ -161,7 +161,8 @@ def merge_results(path: Path, section: str, results: dict, summary: dict) -> Pat
             data = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError):
             data = {}
-    data[section] = results
+    old = data.get(section)
+    data[section] = {**old, **results} if isinstance(old, dict) else results
     data.update(summary)
     atomic_write_json(path, _plain(data))
     return path

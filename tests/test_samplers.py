@@ -42,8 +42,8 @@ VG = central_difference(logp)
 
 # Hyperparameters per sampler for the Gaussian test, and particle counts.
 CONFIGS = {
-    "svgd": ({"value_and_grad_fn": VG, "learning_rate": 0.05}, 200, 400),
-    "nnsvgd": ({"value_and_grad_fn": VG, "learning_rate": 0.05}, 200, 400),
+    "svgd": ({"value_and_grad_fn": VG, "learning_rate": 0.05}, 128, 300),
+    "nnsvgd": ({"value_and_grad_fn": VG, "learning_rate": 0.05}, 128, 300),
     "sgld": ({"value_and_grad_fn": VG, "step_size": 0.02}, 1000, 500),
     "sghmc": ({"value_and_grad_fn": VG, "step_size": 0.02, "alpha": 1.5}, 1000, 500),
     "mh": ({"logdensity_fn": logp, "proposal_scale": [0.8, 0.4]}, 1000, 500),

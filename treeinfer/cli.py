@@ -16,6 +16,7 @@ import argparse
 import math
 import sys
 import textwrap
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import replace
@@ -29,16 +30,25 @@ from .errors import ConfigError, OutputExistsError, SimulationError, TreeinferEr
 
 __all__ = [
     "COMMANDS",
+    "INFER_DEFAULTS",
     "Command",
     "add_command_parser",
     "build_parser",
+    "configure_demo",
+    "configure_evaluate",
     "configure_import_bag",
+    "configure_infer",
+    "configure_predict",
     "configure_simulate",
     "configure_tree",
     "default_true_params",
     "main",
     "parse_params",
+    "run_demo",
+    "run_evaluate",
     "run_import_bag",
+    "run_infer",
+    "run_predict",
     "run_simulate",
     "run_tree",
 ]
@@ -799,6 +809,601 @@ def run_import_bag(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# ==== infer =======================================================================================
+# Defaults of `infer` (None in argparse, so that --resume can tell which options were given).
+# kT and eta mirror treeinfer.likelihood.DEFAULT_KT and treeinfer.inference.DEFAULT_ETA (a test
+# checks they agree; importing them here would load JAX for every `--help`).
+INFER_DEFAULTS: dict[str, Any] = {
+    "sampler": "nnsvgd",
+    "particles": 64,
+    "iterations": 200,
+    "kT": 0.05,
+    "seed": 0,
+    "eta": 10.0,
+    "max_unstable_share": 0.5,
+    "checkpoint_every": 25,
+}
+SAMPLER_NAMES = ("nnsvgd", "svgd", "sgld", "sghmc", "mh")
+# options a resumed run takes from its checkpoint's config (argparse dest -> flag)
+_RUN_OPTIONS = {
+    "tree": "--tree", "data": "--data", "out": "--out", "sampler": "--sampler", "particles": "--particles",
+    "iterations": "--iterations", "kT": "--kT", "seed": "--seed", "eta": "--eta",
+    "grasp_fraction": "--grasp-fraction", "checkpoint_every": "--checkpoint-every", "force": "--force",
+}
+
+_INFER_EPILOG = """\
+examples:
+  treeinfer infer --tree two_branch.yaml --data data/train --out runs/nnsvgd
+  treeinfer infer --tree two_branch.yaml --data data/train --out runs/mh --sampler mh \\
+      --particles 32 --iterations 2000 --seed 3
+  treeinfer infer --resume runs/nnsvgd          # continue a killed or interrupted run
+
+Every *.csv in --data is a training trajectory (one time step for all); a true_params.json there
+(as `treeinfer simulate` writes) is marked in the pair plot and compared in summary.json.
+
+The run folder (config.json, tree.yaml, posterior.nc, particles.csv, trace.npz, summary.json,
+plots/) is built aside and appears complete or not at all. While sampling, RUN.partial/ beside
+it holds the config and a checkpoint every --checkpoint-every iterations; after a crash, a kill
+or Ctrl-C, `treeinfer infer --resume RUN` continues from the last checkpoint with the recorded
+settings (refusing if a data file changed) and gives the same particles as an uninterrupted run.
+"""
+
+
+def configure_infer(subparsers) -> argparse.ArgumentParser:
+    d = INFER_DEFAULTS
+    p = add_command_parser(
+        subparsers,
+        "infer",
+        help="infer the posterior of the joints' Kp/Kd from training trajectories",
+        description="Sample the posterior over the stiffness Kp and damping Kd of the tree's inferred "
+        "joints given force-deformation trajectories, with NNSVGD (the default: SVGD with the learned "
+        "parent-stiffer-than-child prior), SVGD, SGLD, SGHMC or Metropolis-Hastings, and write a run "
+        "folder for `treeinfer predict` and `treeinfer evaluate`. Prints the posterior mean and 95% "
+        "interval of every parameter, convergence warnings and the number of unstable particles.",
+        epilog=_INFER_EPILOG,
+    )
+    p.add_argument("--tree", type=Path, help="tree description (YAML/JSON)")
+    p.add_argument("--data", type=Path, metavar="DIR", help="folder of training trajectory CSVs")
+    p.add_argument("--out", type=Path, metavar="RUN", help="run folder to write (must be empty or absent unless --force)")
+    p.add_argument("--sampler", choices=SAMPLER_NAMES, help=f"sampler (default {d['sampler']})")
+    p.add_argument("--particles", type=int, metavar="N", help=f"particles (SVGD) or chains (MCMC), >= 2 (default {d['particles']})")
+    p.add_argument("--iterations", type=int, metavar="N", help=f"sampler iterations, >= 1 (default {d['iterations']})")
+    p.add_argument("--kT", type=float, metavar="X", help=f"likelihood temperature in loss units (m + m/s) per nat; smaller = sharper posterior (default {d['kT']:g})")
+    p.add_argument("--seed", type=int, metavar="S", help=f"seed of the initial particles and the sampler (default {d['seed']})")
+    p.add_argument("--eta", type=float, metavar="X", help=f"NNSVGD inequality-prior slope, nats per unit of log gain a child exceeds its parent (default {d['eta']:g})")
+    p.add_argument("--grasp-fraction", type=float, metavar="F", help="where along the grasped branch the data were recorded, in (0, 1] (default: the tree's grasp)")
+    p.add_argument("--max-unstable-share", type=float, metavar="F", help=f"stop with an error if more than this share of the final particles simulate unstably (default {d['max_unstable_share']:g}); may be changed with --resume")
+    p.add_argument("--checkpoint-every", type=int, metavar="N", help=f"write RUN.partial/checkpoint.npz every N iterations; 0: only at the end of sampling (default {d['checkpoint_every']})")
+    p.add_argument("--resume", type=Path, metavar="RUN", help="continue the interrupted run RUN (all settings come from RUN.partial/config.json)")
+    p.add_argument("--force", action="store_true", default=None, help="replace a non-empty RUN (and discard an interrupted RUN.partial)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def _check_infer_options(o: dict[str, Any]) -> None:
+    """ConfigError naming the flag for any out-of-range option (before anything is read)."""
+    def count(flag, v, minimum, why=""):
+        if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
+            raise ConfigError(f"{flag}: must be an integer >= {minimum}{why}, got {v!r}")
+
+    count("--particles", o["particles"], 2, " (SVGD's kernel needs pairs of particles and a 95% interval needs two)")
+    count("--iterations", o["iterations"], 1)
+    count("--checkpoint-every", o["checkpoint_every"], 0)
+    count("--seed", o["seed"], 0)
+    if not (math.isfinite(o["kT"]) and o["kT"] > 0):
+        raise ConfigError(f"--kT: must be a positive number (loss units per nat), got {o['kT']:g}")
+    if not (math.isfinite(o["eta"]) and o["eta"] > 0):
+        raise ConfigError(f"--eta: must be a positive number, got {o['eta']:g}")
+    g = o["grasp_fraction"]
+    if g is not None and not (math.isfinite(g) and 0.0 < g <= 1.0):
+        raise ConfigError(f"--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got {g:g}")
+    _check_share(o["max_unstable_share"])
+
+
+def _check_share(s) -> None:
+    if s is not None and not (math.isfinite(s) and 0.0 <= s <= 1.0):
+        raise ConfigError(f"--max-unstable-share: must be a fraction in [0, 1], got {s:g}")
+
+
+def _fmt_gain(v: float) -> str:
+    return "nan" if not math.isfinite(v) else f"{v:.4g}"
+
+
+def _print_posterior(summary: dict) -> None:
+    table = summary["posterior"]
+    n_unst = summary["n_unstable"]
+    print(f"posterior ({summary['n_particles']} particles, {n_unst} unstable, excluded): mean and 95% interval")
+    width = max(len(k) for k in table)
+    for lab, s in table.items():
+        print(f"  {lab:<{width}}  {_fmt_gain(s['mean']):>9} {s['unit']:<10} [{_fmt_gain(s['lower'])}, {_fmt_gain(s['upper'])}]")
+
+
+def _print_fit(m: dict | None, what: str) -> None:
+    if not m:
+        return
+    print(f"{what}: 95% band {1000 * m['ci_width']:.3g} mm wide on average, {m['pct_outside']:.1f}% of "
+          f"points outside it, predictive NLL {m['predictive_nll_per_point']:.3g} nats/point")
+
+
+def _print_warnings(warns: Sequence[str]) -> None:
+    if warns:
+        print("convergence warnings:")
+        for w in warns:
+            print(f"  - {w}")
+    else:
+        print("convergence: no warnings")
+
+
+def run_infer(args: argparse.Namespace) -> int:
+    from . import runs
+
+    _prepare_jax()
+    _check_share(args.max_unstable_share)
+    progress = not args.no_progress
+    holder: dict[str, Any] = {}
+    if args.resume is not None:
+        given = [flag for dest, flag in _RUN_OPTIONS.items() if getattr(args, dest) is not None]
+        if given:
+            raise ConfigError(
+                f"--resume takes every setting from {args.resume}{runs.PARTIAL_SUFFIX}/config.json; "
+                f"leave out {', '.join(given)} (only --max-unstable-share and --no-progress may be given)"
+            )
+        run_dir, config = args.resume, None
+    else:
+        missing = [f for f, v in (("--tree", args.tree), ("--data", args.data), ("--out", args.out)) if v is None]
+        if missing:
+            raise ConfigError(f"{', '.join(missing)} required (or --resume RUN to continue an interrupted run)")
+        o = {k: (getattr(args, k) if getattr(args, k) is not None else v) for k, v in INFER_DEFAULTS.items()}
+        o["grasp_fraction"] = args.grasp_fraction
+        _check_infer_options(o)
+        run_dir = args.out
+        config = runs.infer_config(args.tree, args.data, args.out, force=bool(args.force), **o)
+        _say(f"{len(config['data']['files'])} training trajectories from {args.data}; sampling with {o['sampler']} "
+             f"({o['particles']} particles x {o['iterations']} iterations; MJX compiles for a minute or two first)")
+    try:
+        outcome = runs.run_inference(
+            config, resume=args.resume, max_unstable_share=args.max_unstable_share, progress=progress, log=_say,
+            on_checkpointer=lambda cp: holder.__setitem__("cp", cp),
+        )
+    except KeyboardInterrupt:
+        cp = holder.get("cp")
+        if cp is None:
+            _say("interrupted before sampling started; nothing to resume")
+        elif cp.last_iteration is None:
+            _say(f"interrupted before the first checkpoint; `treeinfer infer --resume {run_dir}` starts the "
+                 f"same run again from iteration 0 (settings in {runs.partial_dir(run_dir)}/config.json)")
+        else:
+            _say(f"interrupted; the sampler state after iteration {cp.last_iteration} is kept in {cp.path}.\n"
+                 f"continue with:  treeinfer infer --resume {run_dir}")
+        return EXIT_INTERRUPTED
+    s = outcome.summary
+    _print_posterior(s)
+    _print_fit(s.get("training_metrics"), "fit to the training data")
+    _print_warnings(s["convergence_warnings"])
+    print(f"wrote {run_dir}/ (config.json, tree.yaml, posterior.nc, particles.csv, trace.npz, summary.json, plots/)")
+    return EXIT_OK
+
+
+# ==== predict =====================================================================================
+_PREDICT_EPILOG = """\
+examples:
+  treeinfer predict --run runs/nnsvgd --force data/test/traj_000.csv --out pred/t0
+  treeinfer predict --run runs/nnsvgd --force pull.csv --grasp-fraction 0.5 --out pred/mid
+  treeinfer predict --run runs/nnsvgd --profile 'hold:peak=6,ramp=0.5,hold=1,release=0.5' \\
+      --duration 3 --out pred/hold
+
+FORCE.csv is a trajectory CSV (time,force,displacement[,velocity]: its displacement is drawn as
+ground truth) or a force profile with only time,force columns; its time step must be the run's.
+--profile SPEC samples a profile spec instead (as in `treeinfer simulate --profile`; see its help).
+Writes prediction.csv (time, force, mean, lower, upper [, displacement]; s, N, m), prediction.png
+and config.json. Particles whose simulation is unstable are left out and counted.
+"""
+
+
+def configure_predict(subparsers) -> argparse.ArgumentParser:
+    p = add_command_parser(
+        subparsers,
+        "predict",
+        help="predict the displacement under a force profile, with a 95% posterior band",
+        description="Simulate every posterior particle of a run under a force profile (a CSV or a "
+        "profile spec), optionally grasped at another point of the branch, and write the mean "
+        "displacement with its 95% predictive band (per-time-step KDE over the particles).",
+        epilog=_PREDICT_EPILOG,
+    )
+    p.add_argument("--run", required=True, type=Path, metavar="RUN", help="run folder written by `treeinfer infer`")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--force", dest="force_file", type=Path, metavar="FORCE.csv", help="force profile or trajectory CSV")
+    src.add_argument("--profile", metavar="SPEC", help="force profile spec, e.g. 'ramp:peak=5,ramp=1'")
+    p.add_argument("--duration", type=float, metavar="S", help="s, length of a --profile")
+    p.add_argument("--dt", type=float, metavar="S", help="s, sample step of a --profile (default: the run's)")
+    p.add_argument("--grasp-fraction", type=float, metavar="F", help="where along the grasped branch the force acts, in (0, 1] (default: the run's)")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (must be empty or absent unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder (--force names the force file here)")
+    return p
+
+
+def _check_grasp(g) -> None:
+    if g is not None and not (math.isfinite(g) and 0.0 < g <= 1.0):
+        raise ConfigError(f"--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got {g:g}")
+
+
+def _base_config(command: str, args: argparse.Namespace) -> dict[str, Any]:
+    from . import runs
+
+    options = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
+    options.pop("debug", None)
+    return {"command": command, "versions": runs.versions(), "options": options,
+            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+
+
+def run_predict(args: argparse.Namespace) -> int:
+    from . import runs
+    from ._io import atomic_write_text, check_output_dir, staged_output_dir
+    from .plots import plot_trajectory_bands, save_figure
+
+    _check_grasp(args.grasp_fraction)
+    check_output_dir(args.out, args.overwrite)
+    _prepare_jax()
+    run = runs.load_run(args.run)
+    dt_run = run.sim.obs_dt
+    if args.force_file is not None:
+        if args.duration is not None or args.dt is not None:
+            raise ConfigError("--duration and --dt go with --profile; a force file has its own time column")
+        prof = runs.read_force_profile(args.force_file)
+        if not math.isclose(prof.dt, dt_run, rel_tol=1e-6):
+            raise ConfigError(
+                f"{args.force_file}: time step {prof.dt:g} s differs from the run's {dt_run:g} s "
+                "(the data it was inferred from); resample the force profile to the run's step"
+            )
+    else:
+        from .forces import from_spec
+
+        if args.duration is None:
+            raise ConfigError("--profile needs --duration (seconds)")
+        dt = dt_run if args.dt is None else args.dt
+        if not math.isclose(dt, dt_run, rel_tol=1e-6):
+            raise ConfigError(f"--dt {dt:g} s differs from the run's {dt_run:g} s; leave it out to use the run's step")
+        f = from_spec(args.profile, args.duration, dt)
+        prof = runs.ForceProfile(np.arange(len(f)) * dt, f, None, args.profile)
+    _say(f"simulating {len(run.theta)} particles (the first prediction of a shape compiles for up to a minute)...")
+    pred = runs.predict_run(run.sim, run.theta, prof.force[None], args.grasp_fraction, run.stable)
+    n_bad = int((~pred.valid).sum())
+    lower, upper, mean = pred.lower[0], pred.upper[0], pred.mean[0]
+    cols = ["time", "force", "mean", "lower", "upper"] + (["displacement"] if prof.displacement is not None else [])
+    rows = [prof.time, prof.force, mean, lower, upper] + ([prof.displacement] if prof.displacement is not None else [])
+    lines = [
+        f"# treeinfer {__version__} predict: run {args.run}, force {prof.source}; s, N, m (positive downward)",
+        f"# 95% predictive band over {int(pred.valid.sum())} particles ({n_bad} unstable or invalid, excluded)",
+        ",".join(cols),
+    ] + [",".join(repr(float(v)) for v in r) for r in zip(*rows)]
+    config = _base_config("predict", args)
+    config.update(run=str(Path(args.run).resolve()), force_source=prof.source, dt=float(dt_run), n_steps=len(prof.time),
+                  grasp_fraction=args.grasp_fraction if args.grasp_fraction is not None else run.tree.grasp_fraction,
+                  n_particles=len(run.theta), n_valid=int(pred.valid.sum()), n_excluded=n_bad)
+    with staged_output_dir(args.out, args.overwrite) as stage:
+        atomic_write_text(stage / "prediction.csv", "\n".join(lines) + "\n")
+        fig, _ = plot_trajectory_bands(prof.time, lower, upper, mean, prof.displacement,
+                                       samples=pred.tau[pred.valid, 0],
+                                       title=f"{prof.source}: 95% band, {int(pred.valid.sum())} particles")
+        save_figure(fig, stage / "prediction.png")
+        runs.write_json(stage / "config.json", config)
+    peak = float(np.max(np.abs(mean)))
+    print(f"predicted {len(prof.time)} steps under {prof.source}: peak mean displacement {1000 * peak:.3g} mm, "
+          f"band {1000 * float(np.mean(upper - lower)):.3g} mm wide on average; {n_bad} of {len(run.theta)} particles excluded")
+    if prof.displacement is not None:
+        from .metrics import fraction_outside
+
+        print(f"  {100 * float(fraction_outside(lower, upper, prof.displacement)):.1f}% of the recorded displacement lies outside the band")
+    print(f"wrote {args.out}/ (prediction.csv, prediction.png, config.json)")
+    return EXIT_OK
+
+
+# ==== evaluate ====================================================================================
+_EVALUATE_EPILOG = """\
+examples:
+  treeinfer evaluate --run runs/nnsvgd --data data/test --out eval/nnsvgd
+  treeinfer evaluate --run runs/nnsvgd --data data/real --kfold 5 --out eval/real-5fold
+
+Writes metrics.json, metrics.md and bands.png (95% predictive bands vs the held-out trajectories)
+and config.json. Metrics (treeinfer.metrics.summarize): average 95% band width (m), share of
+ground-truth points outside the band (%), predictive NLL of the held-out points under the
+per-step KDE, the posterior NLL (particle-averaged kT-scaled loss on the held-out data) and,
+if DIR has a true_params.json, the posterior against the true parameters (log space).
+
+--kfold K (the paper's real-to-sim protocol): the trajectories in DIR, in file-name order, are
+split into K contiguous folds; for each fold the posterior is inferred afresh on the other K-1
+folds with the run's sampler settings (sampler, particles, iterations, kT, eta, seed) and
+evaluated on the held-out fold. metrics.json has the per-fold and the mean metrics.
+"""
+
+
+def configure_evaluate(subparsers) -> argparse.ArgumentParser:
+    p = add_command_parser(
+        subparsers,
+        "evaluate",
+        help="held-out metrics of a run (or k-fold cross-validation with its settings)",
+        description="Score a run's posterior on held-out trajectories: 95% band width, share of "
+        "points outside the band, predictive and posterior NLL, posterior vs truth when known; or "
+        "cross-validate the run's settings with --kfold.",
+        epilog=_EVALUATE_EPILOG,
+    )
+    p.add_argument("--run", required=True, type=Path, metavar="RUN", help="run folder written by `treeinfer infer`")
+    p.add_argument("--data", required=True, type=Path, metavar="DIR", help="folder of held-out trajectory CSVs")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (must be empty or absent unless --force)")
+    p.add_argument("--kfold", type=int, metavar="K", help="k-fold cross-validation over DIR's trajectories (K >= 2)")
+    p.add_argument("--grasp-fraction", type=float, metavar="F", help="where along the grasped branch DIR's data were recorded (default: the tree's grasp)")
+    p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
+    return p
+
+
+def _metrics_rows(m: dict) -> list[tuple[str, str]]:
+    rows = [
+        ("95% band width", f"{1000 * m['ci_width']:.4g} mm"),
+        ("ground truth outside the band", f"{m['pct_outside']:.2f} %"),
+        ("predictive NLL", f"{m['predictive_nll_per_point']:.4g} nats/point ({m['n_points']} points)"),
+    ]
+    if m.get("posterior_nll") is not None:
+        rows.append(("posterior NLL", f"{m['posterior_nll']:.4g} nats"))
+    rows.append(("particles used", f"{m['n_valid_particles']} of {m['n_particles']}"))
+    return rows
+
+
+def _metrics_md(title: str, m: dict) -> list[str]:
+    out = [f"## {title}", "", "| metric | value |", "|---|---|"]
+    out += [f"| {a} | {b} |" for a, b in _metrics_rows(m)]
+    if m.get("per_trajectory"):
+        out += ["", "| trajectory | band width [mm] | outside [%] |", "|---|---|---|"]
+        out += [f"| {t['name']} | {1000 * t['ci_width']:.4g} | {t['pct_outside']:.2f} |" for t in m["per_trajectory"]]
+    if m.get("parameters"):
+        out += ["", "| parameter | truth | posterior mean | 95% interval | truth inside |", "|---|---|---|---|---|"]
+        for lab, p in m["parameters"].items():
+            out.append(f"| {lab} | {math.exp(p['truth']):.4g} | {math.exp(p['mean']):.4g} | "
+                       f"[{math.exp(p['lower']):.4g}, {math.exp(p['upper']):.4g}] | {'yes' if p['in_interval'] else 'no'} |")
+    return out + [""]
+
+
+def _print_metrics(m: dict, what: str) -> None:
+    print(f"{what}:")
+    for a, b in _metrics_rows(m):
+        print(f"  {a}: {b}")
+    if m.get("parameters"):
+        inside = sum(p["in_interval"] for p in m["parameters"].values())
+        print(f"  true parameters inside their 95% interval: {inside} of {len(m['parameters'])}"
+              + ("" if m.get("truth_in_joint_region") is None else
+                 f"; inside the joint 95% region: {'yes' if m['truth_in_joint_region'] else 'no'}"))
+
+
+def _band_arrays(preds_and_obs) -> tuple[np.ndarray, ...]:
+    """Stack (prediction, obs) pairs of possibly different lengths into [K, T] arrays (NaN padded)."""
+    rows = [(pr.lower[b], pr.upper[b], pr.mean[b], np.where(ob.mask[b], ob.displacement[b], np.nan), ob.mask[b])
+            for pr, ob in preds_and_obs for b in range(ob.force.shape[0])]
+    t_max = max(len(r[0]) for r in rows)
+    out = np.full((5, len(rows), t_max), np.nan)
+    for k, r in enumerate(rows):
+        for j, a in enumerate(r):
+            a = np.where(r[4], a, np.nan) if j < 4 else a
+            out[j, k, : len(a)] = a
+    return out[0], out[1], out[2], out[3]
+
+
+def write_evaluation(out: Path, metrics: dict, bands, titles: Sequence[str], dt: float, config: dict, force: bool,
+                     md: Sequence[str], extra_files: dict[str, str] | None = None) -> None:
+    """metrics.json, metrics.md, bands.png, config.json (+ extra text files) in a staged folder."""
+    from . import runs
+    from ._io import atomic_write_text, staged_output_dir
+    from .plots import plot_band_grid, save_figure
+
+    lower, upper, mean, gt = bands
+    with staged_output_dir(out, force) as stage:
+        runs.write_json(stage / "metrics.json", metrics)
+        atomic_write_text(stage / "metrics.md", "\n".join(md))
+        t = np.arange(lower.shape[1]) * dt
+        fig, _ = plot_band_grid(t, np.nan_to_num(lower), np.nan_to_num(upper), mean, gt, titles=list(titles),
+                                suptitle="95% predictive band vs held-out trajectories")
+        save_figure(fig, stage / "bands.png")
+        runs.write_json(stage / "config.json", config)
+        for name, text in (extra_files or {}).items():
+            atomic_write_text(stage / name, text)
+
+
+def run_evaluate(args: argparse.Namespace) -> int:
+    from . import runs
+    from ._io import check_output_dir
+    from .trajectories import read_trajectory_dir
+
+    _check_grasp(args.grasp_fraction)
+    check_output_dir(args.out, args.force)
+    _prepare_jax()
+    run = runs.load_run(args.run)
+    trajs = read_trajectory_dir(args.data)
+    dt = trajs[0].dt
+    if not math.isclose(dt, run.sim.obs_dt, rel_tol=1e-6):
+        raise ConfigError(f"{args.data}: trajectories have dt={dt:g} s but run {args.run} was inferred at "
+                          f"dt={run.sim.obs_dt:g} s; resample them to the run's step")
+    truth = runs.read_true_params(run.tree, args.data)
+    config = _base_config("evaluate", args)
+    config.update(run=str(Path(args.run).resolve()), data_files=runs.data_manifest(args.data), dt=dt,
+                  run_options=run.config["options"])
+    if args.kfold is None:
+        m, pred, obs = runs.evaluate_trajectories(run.sim, run.theta, list(run.labels), trajs, run.kT,
+                                                  args.grasp_fraction, truth, run.stable)
+        metrics = {"run": str(args.run), "data": str(args.data), "metrics": m}
+        md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md("held-out metrics", m)
+        write_evaluation(args.out, metrics, _band_arrays([(pred, obs)]), [t.source for t in trajs], dt, config,
+                         args.force, md)
+        _print_metrics(m, f"held-out metrics on {len(trajs)} trajectories of {args.data}")
+        print(f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json)")
+        return EXIT_OK
+
+    runs.kfold_splits(len(trajs), args.kfold)  # K too large: fail before any inference
+    o = run.config["options"]
+    _say(f"{args.kfold}-fold cross-validation on {len(trajs)} trajectories with the run's settings "
+         f"({o['sampler']}, {o['particles']} particles x {o['iterations']} iterations per fold)")
+    results = runs.kfold(run.config, run.tree, trajs, args.kfold, args.grasp_fraction, truth,
+                         progress=not args.no_progress, log=_say)
+    mean, std = runs.mean_metrics([r.metrics for r in results])
+    folds = [{"fold": r.fold, "train": r.train, "test": r.test, "metrics": r.metrics} for r in results]
+    metrics = {"run": str(args.run), "data": str(args.data), "kfold": args.kfold, "folds": folds, "mean": mean, "std": std}
+    md = [f"# treeinfer evaluate --kfold {args.kfold}: settings of `{args.run}` on `{args.data}`", "",
+          "| fold | held out | band width [mm] | outside [%] | predictive NLL [nats/point] | posterior NLL |",
+          "|---|---|---|---|---|---|"]
+    for r in results:
+        m = r.metrics
+        md.append(f"| {r.fold} | {', '.join(r.test)} | {1000 * m['ci_width']:.4g} | {m['pct_outside']:.2f} | "
+                  f"{m['predictive_nll_per_point']:.4g} | {m.get('posterior_nll', float('nan')):.4g} |")
+    md.append(f"| mean | | {1000 * mean['ci_width']:.4g} | {mean['pct_outside']:.2f} | "
+              f"{mean['predictive_nll_per_point']:.4g} | {(mean.get('posterior_nll') or float('nan')):.4g} |")
+    md.append("")
+    for r in results:
+        md += _metrics_md(f"fold {r.fold} (held out: {', '.join(r.test)})", r.metrics)
+    titles = [f"{name} (fold {r.fold})" for r in results for name in r.test]
+    # per-fold observations for the band grid
+    from .trajectories import stack_trajectories
+
+    by_name = {t.source: t for t in trajs}
+    pairs = [(r.prediction, stack_trajectories([by_name[n] for n in r.test])) for r in results]
+    labels = list(run.labels)
+    extra = {f"fold_{r.fold}_particles.csv": runs.particles_csv(r.theta, labels, np.zeros(len(r.theta)), r.prediction.valid)
+             for r in results}
+    write_evaluation(args.out, metrics, _band_arrays(pairs), titles, dt, config, args.force, md, extra)
+    for r in results:
+        _print_metrics(r.metrics, f"fold {r.fold} (held out {', '.join(r.test)})")
+    print(f"mean over {args.kfold} folds: 95% band {1000 * mean['ci_width']:.3g} mm, {mean['pct_outside']:.1f}% outside, "
+          f"predictive NLL {mean['predictive_nll_per_point']:.3g} nats/point")
+    print(f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json, fold_*_particles.csv)")
+    return EXIT_OK
+
+
+# ==== demo ========================================================================================
+_DEMO_EPILOG = """\
+examples:
+  treeinfer demo                       # a few minutes on a laptop CPU
+  treeinfer demo --out my-demo --seed 2
+  treeinfer demo --quick               # tiny sizes: checks the installation in about a minute
+
+Writes DIR/data/train and DIR/data/test (synthetic trajectories with true_params.json, as
+`treeinfer simulate` writes), DIR/run (the run folder of `treeinfer infer`), DIR/evaluation (as
+`treeinfer evaluate` writes, on the unseen test trajectories) and DIR/demo.json.
+"""
+
+
+def configure_demo(subparsers) -> argparse.ArgumentParser:
+    p = add_command_parser(
+        subparsers,
+        "demo",
+        help="end-to-end example on the built-in 2-branch tree (synthetic data, NNSVGD, metrics)",
+        description="Simulate training and unseen test pulls of the built-in two-branch tree with "
+        "known stiffness and damping, infer the posterior with NNSVGD, predict the unseen pulls with "
+        "95% bands and print how well the bands cover them and how close the posterior is to the truth.",
+        epilog=_DEMO_EPILOG,
+    )
+    p.add_argument("--out", type=Path, default=Path("treeinfer-demo"), metavar="DIR", help="output folder")
+    p.add_argument("--quick", action="store_true", help="tiny sizes (seconds of sampling; for tests)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the true parameters, the profiles and the sampler")
+    p.add_argument("--force", action="store_true", help="replace the contents of a non-empty output folder")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def _write_synthetic(out: Path, tree, trajs, specs, true_params: dict, force: bool, what: str) -> None:
+    from ._io import staged_output_dir
+    from .trajectories import write_trajectory
+    from .tree import dump_tree
+
+    with staged_output_dir(out, force) as stage:
+        for tr, spec in zip(trajs, specs):
+            write_trajectory(stage / tr.source, tr, [f"treeinfer {__version__} demo: {what}", f"profile: {spec}"])
+        dump_tree(tree, stage / "tree.yaml")
+        from . import runs
+
+        runs.write_json(stage / "true_params.json", true_params)
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    # Sizes: the whole demo should take a few minutes on a 2-core laptop CPU (tune here).
+    n_train, n_test = 3, 3  # trajectories (training, unseen test)
+    duration, dt = 2.0, 0.02  # s
+    particles, iterations = 24, 100
+    sampler = "nnsvgd"
+    checkpoint_every = 25
+    if args.quick:  # tiny: for tests and a first check of an installation
+        n_train, n_test, duration, particles, iterations, checkpoint_every = 2, 2, 0.8, 8, 3, 0
+
+    from . import runs
+    from ._io import check_output_dir
+    from .forces import DEFAULT_PEAK_RANGE, from_spec, random_specs
+    from .trajectories import Trajectory, validate_trajectory
+    from .tree import load_tree
+
+    if args.seed < 0:
+        raise ConfigError(f"--seed: must be >= 0, got {args.seed}")
+    out: Path = args.out
+    check_output_dir(out, args.force, "demo")
+    _prepare_jax()
+    tree_file = Path(__file__).resolve().parent / "examples" / "two_branch.yaml"
+    tree = load_tree(tree_file)
+    rng_params, rng_profiles = (np.random.default_rng(s) for s in np.random.SeedSequence(args.seed).spawn(2))
+    kp, kd = default_true_params(tree, rng_params)
+    specs = random_specs("mixed", n_train + n_test, duration, DEFAULT_PEAK_RANGE, rng_profiles)
+    forces = np.stack([from_spec(s, duration, dt) for s in specs])
+    _say(f"demo: simulating {n_train} training and {n_test} unseen test pulls of {duration:g} s on '{tree.name}' "
+         f"with {_fmt_params(tree, kp, kd)}")
+    rollout, _ = _simulate_batch(tree, kp, kd, forces, dt, None)
+    if not np.asarray(rollout.stable).all():
+        raise SimulationError("demo: the synthetic pulls blew up; this is a bug in the demo's settings")
+    t = np.arange(forces.shape[1]) * dt
+    trajs = [validate_trajectory(Trajectory(t, forces[i], np.asarray(rollout.tau[0, i], float),
+                                            np.asarray(rollout.tau_dot[0, i], float), f"traj_{i:03d}.csv"))
+             for i in range(len(specs))]
+    true_params = {
+        "labels": tree.parameter_labels(),
+        "kp": {n: float(v) for n, v in zip(tree.inferred, kp)},
+        "kd": {n: float(v) for n, v in zip(tree.inferred, kd)},
+        "theta_log": [float(math.log(v)) for v in np.concatenate([kp, kd])],
+        "units": {"kp": "N m/rad", "kd": "N m s/rad"},
+        "source": f"demo (default_true_params, seed {args.seed})",
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    data_train, data_test = out / "data" / "train", out / "data" / "test"
+    _write_synthetic(data_train, tree, trajs[:n_train], specs[:n_train], true_params, args.force, "training pull")
+    _write_synthetic(data_test, tree, trajs[n_train:], specs[n_train:], true_params, args.force, "unseen test pull")
+
+    config = runs.infer_config(
+        tree_file, data_train, out / "run", sampler=sampler, particles=particles, iterations=iterations,
+        kT=INFER_DEFAULTS["kT"], seed=args.seed, eta=INFER_DEFAULTS["eta"], grasp_fraction=None,
+        max_unstable_share=INFER_DEFAULTS["max_unstable_share"], checkpoint_every=checkpoint_every, force=args.force,
+    )
+    config["via"] = "demo"
+    _say(f"demo: {sampler} with {particles} particles x {iterations} iterations (MJX compiles for a minute or two first)")
+    outcome = runs.run_inference(config, progress=not args.no_progress, log=_say)
+    run = runs.load_run(out / "run")
+    truth = np.concatenate([kp, kd])
+    test = trajs[n_train:]
+    m, pred, obs = runs.evaluate_trajectories(run.sim, run.theta, list(run.labels), test, run.kT, None, truth, run.stable)
+    eval_config = _base_config("evaluate", args)
+    eval_config.update(run=str((out / "run").resolve()), data_files=runs.data_manifest(data_test), dt=dt, via="demo")
+    md = ["# treeinfer demo: NNSVGD posterior on unseen test pulls", ""] + _metrics_md("unseen test trajectories", m)
+    write_evaluation(out / "evaluation", {"run": str(out / "run"), "data": str(data_test), "metrics": m},
+                     _band_arrays([(pred, obs)]), [tr.source for tr in test], dt, eval_config, args.force, md)
+    demo = {
+        "sizes": {"n_train": n_train, "n_test": n_test, "duration_s": duration, "dt_s": dt, "particles": particles,
+                  "iterations": iterations, "sampler": sampler, "quick": bool(args.quick)},
+        "seed": args.seed, "true_params": true_params, "versions": runs.versions(),
+        "posterior": outcome.summary["posterior"], "unseen_test_metrics": m,
+        "convergence_warnings": outcome.summary["convergence_warnings"],
+    }
+    runs.write_json(out / "demo.json", demo)
+
+    print(f"true parameters: {_fmt_params(tree, kp, kd)}")
+    _print_posterior(outcome.summary)
+    _print_metrics(m, f"unseen test trajectories ({n_test})")
+    _print_warnings(outcome.summary["convergence_warnings"])
+    print(f"wrote {out}/ (data/train, data/test, run/, evaluation/, demo.json); see {out}/run/plots and "
+          f"{out}/evaluation/bands.png")
+    return EXIT_OK
+
+
 # ==== the command table and main ==================================================================
 class Command(NamedTuple):
     """A subcommand: ``configure(subparsers) -> parser`` and ``run(args) -> exit code``."""
@@ -811,12 +1416,23 @@ COMMANDS: dict[str, Command] = {
     "tree": Command(configure_tree, run_tree),
     "simulate": Command(configure_simulate, run_simulate),
     "import-bag": Command(configure_import_bag, run_import_bag),
+    "infer": Command(configure_infer, run_infer),
+    "predict": Command(configure_predict, run_predict),
+    "evaluate": Command(configure_evaluate, run_evaluate),
+    "demo": Command(configure_demo, run_demo),
 }
 
 _MAIN_EPILOG = """\
 a typical sim-to-sim session:
   treeinfer tree --kind fractal --depth 1 --base-pitch 10 --out tree.yaml
-  treeinfer simulate --tree tree.yaml --out data --n-traj 8 --seed 1
+  treeinfer simulate --tree tree.yaml --out data/train --n-traj 8 --seed 1
+  treeinfer simulate --tree tree.yaml --out data/test --n-traj 8 --seed 2 \
+      --params-json data/train/true_params.json
+  treeinfer infer --tree tree.yaml --data data/train --out run
+  treeinfer evaluate --run run --data data/test --out eval
+  treeinfer predict --run run --force data/test/traj_000.csv --out pred
+
+or all of it on the built-in example: treeinfer demo
 
 Run `treeinfer COMMAND --help` for a command's options and examples. Errors in your input are
 reported in one line (exit code 2); add --debug to see the traceback.
