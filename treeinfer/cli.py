@@ -1156,7 +1156,7 @@ def _metrics_md(title: str, m: dict) -> list[str]:
         out += ["", "| trajectory | band width [mm] | outside [%] |", "|---|---|---|"]
         out += [f"| {t['name']} | {1000 * t['ci_width']:.4g} | {t['pct_outside']:.2f} |" for t in m["per_trajectory"]]
     if m.get("parameters"):
-        out += ["", "| parameter | truth | posterior mean | 95% interval | truth inside |", "|---|---|---|---|---|"]
+        out += ["", "| parameter | truth | posterior exp(mean log) | 95% interval | truth inside |", "|---|---|---|---|---|"]
         for lab, p in m["parameters"].items():
             out.append(f"| {lab} | {math.exp(p['truth']):.4g} | {math.exp(p['mean']):.4g} | "
                        f"[{math.exp(p['lower']):.4g}, {math.exp(p['upper']):.4g}] | {'yes' if p['in_interval'] else 'no'} |")

@@ -224,13 +224,15 @@ def simulator_for(tree: Tree, obs_dt: float, substeps: int | None = None):
     """:func:`treeinfer.simulator.make_simulator` with a small per-process cache."""
     from .simulator import make_simulator
 
-    key = (tree_to_dict_json(tree_to_dict(tree)), float(obs_dt), substeps)
-    sim = _SIMULATORS.get(key)
+    tree_key = tree_to_dict_json(tree_to_dict(tree))
+    sim = _SIMULATORS.get((tree_key, float(obs_dt), substeps))
     if sim is None:
         sim = make_simulator(tree, obs_dt=float(obs_dt), substeps=substeps)
-        if len(_SIMULATORS) >= _MAX_SIMULATORS:
+        while len(_SIMULATORS) >= _MAX_SIMULATORS:
             _SIMULATORS.pop(next(iter(_SIMULATORS)))
-        _SIMULATORS[key] = sim
+        # under the requested and the resolved step count: a run folder records the resolved one
+        _SIMULATORS[(tree_key, float(obs_dt), substeps)] = sim
+        _SIMULATORS[(tree_key, float(obs_dt), sim.substeps)] = sim
     return sim
 
 
@@ -620,6 +622,8 @@ def run_inference(
         for stale in partial.glob(".*.tmp"):  # a temporary file of a write cut short by a kill
             stale.unlink(missing_ok=True)
         tree = load_tree(partial / "tree.yaml")
+        if tree_to_dict_json(tree_to_dict(tree)) != tree_to_dict_json(config["tree_dict"]):
+            raise ConfigError(f"{partial / 'tree.yaml'}: differs from the tree in config.json (edited?); start a new run")
         trajs = check_data_unchanged(config)
         truth = read_true_params(tree, config["data"]["dir"])
         problem = build_problem(config, tree, trajs)

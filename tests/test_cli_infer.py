@@ -1,0 +1,355 @@
+"""``treeinfer demo / infer / predict / evaluate`` in-process through ``main(argv)``.
+
+One tiny problem for everything (the 2-branch example; ``demo --quick``: 2 training + 2 test
+pulls of 40 steps at 0.02 s, 8 particles, 3 iterations), so that every rollout has one of two
+shapes and the jitted predictions are compiled once per shape. ``demo --quick`` runs first and
+its data feed ``infer`` (same settings: its particles must equal the demo's), ``predict``,
+``evaluate`` and ``evaluate --kfold 2`` (on all 4 pulls). MJX tracing and compiling dominate the
+time (about a minute per inference on a loaded 2-core CPU).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from treeinfer import runs
+from treeinfer.cli import COMMANDS, INFER_DEFAULTS, main
+from treeinfer.errors import TrajectoryFileError
+from treeinfer.trajectories import Trajectory, read_trajectory, read_trajectory_dir, write_trajectory
+
+ROOT = Path(__file__).resolve().parents[1]
+TWO = ROOT / "treeinfer" / "examples" / "two_branch.yaml"
+QUICK = ["--particles", "8", "--iterations", "3", "--checkpoint-every", "0", "--no-progress"]
+
+
+def run(capsys, *argv):
+    rc = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def assert_user_error(rc, err, *fragments):
+    assert rc == 2, err
+    assert "error:" in err and "Traceback" not in err, err
+    for f in fragments:
+        assert f in err, (f, err)
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """``treeinfer demo --quick``: (folder, its stdout)."""
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    buf, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(err):
+        rc = main(["demo", "--quick", "--out", str(out), "--no-progress"])
+    assert rc == 0, err.getvalue()
+    return out, buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def run_dir(demo):
+    """``treeinfer infer`` on the demo's training data with the demo's settings."""
+    out = demo[0].parent / "run"
+    buf, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(err):
+        rc = main(["infer", "--tree", str(TWO), "--data", str(demo[0] / "data" / "train"), "--out", str(out),
+                   "--seed", "0", *QUICK])
+    assert rc == 0, err.getvalue()
+    return out, buf.getvalue()
+
+
+# ---- help ------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "name, options",
+    [
+        ("infer", ["--tree", "--data", "--out", "--sampler", "--particles", "--iterations", "--kT", "--seed", "--eta",
+                   "--grasp-fraction", "--max-unstable-share", "--checkpoint-every", "--resume", "--force", "--no-progress"]),
+        ("predict", ["--run", "--force", "--profile", "--duration", "--grasp-fraction", "--out"]),
+        ("evaluate", ["--run", "--data", "--out", "--kfold", "--grasp-fraction"]),
+        ("demo", ["--out", "--quick", "--seed"]),
+    ],
+)
+def test_help(capsys, name, options):
+    assert name in COMMANDS
+    rc, out, _ = run(capsys, name, "--help")
+    assert rc == 0 and "examples:" in out and f"treeinfer {name}" in out
+    for opt in options:
+        assert opt in out, opt
+
+
+def test_infer_defaults_match_the_library():
+    from treeinfer.inference import DEFAULT_ETA
+    from treeinfer.likelihood import DEFAULT_KT
+
+    assert INFER_DEFAULTS["kT"] == DEFAULT_KT and INFER_DEFAULTS["eta"] == DEFAULT_ETA
+
+
+# ---- demo ------------------------------------------------------------------------------------
+def test_demo_quick(demo):
+    out, stdout = demo
+    assert len(read_trajectory_dir(out / "data" / "train")) == 2 and len(read_trajectory_dir(out / "data" / "test")) == 2
+    for f in ("run/config.json", "run/posterior.nc", "run/plots/bands_train.png", "evaluation/metrics.json",
+              "evaluation/bands.png", "demo.json"):
+        assert (out / f).is_file(), f
+    assert not runs.partial_dir(out / "run").exists()
+    d = json.loads((out / "demo.json").read_text())
+    m = d["unseen_test_metrics"]
+    assert d["sizes"]["quick"] and 0 <= m["pct_outside"] <= 100 and m["ci_width"] > 0
+    assert set(m["parameters"]) == {"Kp[child]", "Kp[parent]", "Kd[child]", "Kd[parent]"}
+    truth = json.loads((out / "data" / "train" / "true_params.json").read_text())
+    for lab, p in m["parameters"].items():  # truth recorded in log space, as the true_params say
+        kind, joint = lab[:2].lower(), lab[3:-1]
+        assert math.isclose(p["truth"], math.log(truth[kind][joint]), rel_tol=1e-12)
+    for text in ("true parameters", "Kp[child]", "95% band", "outside", "inside their 95% interval"):
+        assert text in stdout, text
+
+
+# ---- infer -----------------------------------------------------------------------------------
+def test_infer_run_folder(run_dir, demo):
+    import arviz as az
+
+    out, stdout = run_dir
+    names = {p.name for p in out.iterdir()}
+    assert {"config.json", "tree.yaml", "posterior.nc", "particles.csv", "trace.npz", "summary.json", "plots"} <= names
+    for png in ("trace.png", "pairs.png", "bands_train.png"):
+        assert (out / "plots" / png).read_bytes()[:4] == b"\x89PNG"
+    assert not runs.partial_dir(out).exists()
+    assert not [p for p in out.parent.iterdir() if "staging" in p.name]
+
+    cfg = json.loads((out / "config.json").read_text())
+    data = demo[0] / "data" / "train"
+    assert cfg["seed"] == 0 and cfg["options"]["particles"] == 8 and cfg["options"]["sampler"] == "nnsvgd"
+    assert {"treeinfer", "jax", "mujoco"} <= set(cfg["versions"])
+    assert [f["name"] for f in cfg["data"]["files"]] == sorted(p.name for p in data.glob("*.csv"))
+    for f in cfg["data"]["files"]:
+        assert f["sha256"] == runs.file_sha256(data / f["name"])
+    assert cfg["problem"]["obs_dt"] == pytest.approx(0.02) and cfg["problem"]["kT"] == INFER_DEFAULTS["kT"]
+    assert cfg["posterior_settings"]["n_iterations"] == 3
+
+    with np.load(out / "trace.npz") as z:
+        theta, labels, it = z["theta"], z["labels"].tolist(), z["iterations"]
+        assert z["positions"].shape == (4, 8, 4) and it.tolist() == [0, 1, 2, 3]
+        np.testing.assert_array_equal(z["positions"][-1], theta)
+    assert labels == ["Kp[child]", "Kp[parent]", "Kd[child]", "Kd[parent]"]
+    idata = az.from_netcdf(out / "posterior.nc")
+    post = idata.posterior["theta"]
+    assert list(post.coords["param"].values) == labels and post.shape == (1, 8, 4)
+    np.testing.assert_allclose(post.values[0], theta, rtol=0, atol=0)
+
+    rows = [ln for ln in (out / "particles.csv").read_text().splitlines() if not ln.startswith("#")]
+    assert rows[0].split(",") == ["particle", *labels, "log_density", "stable"]
+    table = np.array([[float(c) for c in r.split(",")[1:5]] for r in rows[1:]])
+    np.testing.assert_allclose(table, np.exp(theta.astype(float)), rtol=1e-12)  # natural units
+
+    s = json.loads((out / "summary.json").read_text())
+    assert {"diagnostics", "convergence_warnings", "n_unstable", "posterior", "training_metrics", "truth"} <= set(s)
+    assert {"ci_width", "pct_outside", "predictive_nll", "posterior_nll"} <= set(s["training_metrics"])
+    stable = np.ones(len(theta), bool)
+    stable[s["unstable_particles"]] = False
+    for lab in labels:  # the printed table: mean of the stable particles' gains, and an interval
+        p = s["posterior"][lab]
+        k = np.exp(theta[stable, labels.index(lab)].astype(float))
+        assert p["mean"] == pytest.approx(k.mean(), rel=1e-6) and p["lower"] <= p["upper"]
+        assert lab in stdout
+    assert "wrote" in stdout and "convergence" in stdout
+    # same data, settings and seed as the demo's run: the same particles
+    with np.load(demo[0] / "run" / "trace.npz") as z:
+        assert np.array_equal(z["theta"], theta)
+
+
+def test_infer_refuses_existing_run(run_dir, demo, capsys):
+    out = run_dir[0]
+    before = (out / "config.json").read_text()
+    rc, _, err = run(capsys, "infer", "--tree", TWO, "--data", demo[0] / "data" / "train", "--out", out, *QUICK)
+    assert_user_error(rc, err, str(out), "--force")
+    assert (out / "config.json").read_text() == before
+
+
+@pytest.mark.parametrize(
+    "extra, fragment",
+    [
+        (["--particles", "1"], "--particles"),
+        (["--iterations", "0"], "--iterations"),
+        (["--kT", "-1"], "--kT"),
+        (["--kT", "nan"], "--kT"),
+        (["--grasp-fraction", "1.5"], "--grasp-fraction"),
+        (["--max-unstable-share", "2"], "--max-unstable-share"),
+        (["--checkpoint-every", "-1"], "--checkpoint-every"),
+    ],
+)
+def test_infer_bad_options(tmp_path, capsys, extra, fragment):
+    data = tmp_path / "data"
+    _write_pulls(data, 0.02, 2)
+    out = tmp_path / "run"
+    rc, _, err = run(capsys, "infer", "--tree", TWO, "--data", data, "--out", out, *extra)
+    assert_user_error(rc, err, fragment)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+
+
+def test_infer_bad_inputs(tmp_path, capsys):
+    data = tmp_path / "data"
+    _write_pulls(data, 0.02, 2)
+    rc, _, err = run(capsys, "infer", "--tree", TWO, "--data", data, "--out", tmp_path / "r", "--sampler", "nuts")
+    assert rc == 2 and "invalid choice" in err and "nnsvgd" in err
+    rc, _, err = run(capsys, "infer", "--tree", TWO, "--data", tmp_path / "none", "--out", tmp_path / "r")
+    assert_user_error(rc, err, "none")
+    rc, _, err = run(capsys, "infer", "--data", data, "--out", tmp_path / "r")
+    assert_user_error(rc, err, "--tree")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+
+
+# ---- predict ---------------------------------------------------------------------------------
+def _prediction(d: Path) -> tuple[list[str], np.ndarray]:
+    lines = [ln for ln in (d / "prediction.csv").read_text().splitlines() if not ln.startswith("#")]
+    return lines[0].split(","), np.array([[float(c) for c in ln.split(",")] for ln in lines[1:]])
+
+
+def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
+    from treeinfer.simulator import simulate_reference
+
+    out = run_dir[0]
+    test_csv = demo[0] / "data" / "test" / "traj_002.csv"
+    rc, stdout, err = run(capsys, "predict", "--run", out, "--force", test_csv, "--out", tmp_path / "p1")
+    assert rc == 0, err
+    cols, a = _prediction(tmp_path / "p1")
+    assert cols == ["time", "force", "mean", "lower", "upper", "displacement"]
+    tr = read_trajectory(test_csv)
+    np.testing.assert_array_equal(a[:, 0], tr.time)
+    np.testing.assert_array_equal(a[:, 1], tr.force)
+    np.testing.assert_array_equal(a[:, 5], tr.displacement)
+    assert np.all(a[:, 3] <= a[:, 2] + 1e-12) and np.all(a[:, 2] <= a[:, 4] + 1e-12)
+    assert (tmp_path / "p1" / "prediction.png").is_file() and "outside the band" in stdout
+    cfg = json.loads((tmp_path / "p1" / "config.json").read_text())
+    assert cfg["command"] == "predict" and cfg["n_particles"] == 8
+
+    # independent reference: the band's mean is the particles' mean rollout in plain MuJoCo (C, float64)
+    loaded = runs.load_run(out)
+    ok = loaded.stable
+    refs = [simulate_reference(loaded.sim, np.exp(th[:2]), np.exp(th[2:]), tr.force)[0]
+            for th in loaded.theta.astype(float)[ok]]
+    np.testing.assert_allclose(a[:, 2], np.mean(refs, axis=0), atol=2e-4 + 2e-3 * np.abs(a[:, 2]).max())
+
+    # a time,force file with the same force gives the same band, without ground truth
+    ff = tmp_path / "force.csv"
+    ff.write_text("# a force profile\ntime,force\n" + "".join(f"{t!r},{f!r}\n" for t, f in zip(tr.time, tr.force)))
+    rc, _, err = run(capsys, "predict", "--run", out, "--force", ff, "--out", tmp_path / "p2")
+    assert rc == 0, err
+    cols2, b = _prediction(tmp_path / "p2")
+    assert cols2 == cols[:5]
+    np.testing.assert_array_equal(b, a[:, :5])
+
+    # a profile spec with the run's step
+    rc, _, err = run(capsys, "predict", "--run", out, "--profile", "ramp:peak=5,ramp=0.4", "--duration", "0.8",
+                     "--out", tmp_path / "p3")
+    assert rc == 0, err
+    _, c = _prediction(tmp_path / "p3")
+    assert c.shape == (40, 5) and c[-1, 1] == 5.0
+
+
+def test_predict_errors(run_dir, tmp_path, capsys):
+    out = run_dir[0]
+    ff = tmp_path / "f.csv"
+    ff.write_text("time,force\n" + "".join(f"{0.01 * i!r},{0.1 * i!r}\n" for i in range(30)))
+    rc, _, err = run(capsys, "predict", "--run", out, "--force", ff, "--out", tmp_path / "p")
+    assert_user_error(rc, err, "time step", "0.02")
+    rc, _, err = run(capsys, "predict", "--run", tmp_path / "missing", "--force", ff, "--out", tmp_path / "p")
+    assert_user_error(rc, err, "missing", "no such run folder")
+    (tmp_path / "norun").mkdir()
+    rc, _, err = run(capsys, "predict", "--run", tmp_path / "norun", "--force", ff, "--out", tmp_path / "p")
+    assert_user_error(rc, err, "no config.json")
+    rc, _, err = run(capsys, "predict", "--run", out, "--profile", "ramp:peak=5,ramp=0.4", "--out", tmp_path / "p")
+    assert_user_error(rc, err, "--duration")
+    assert not (tmp_path / "p").exists()
+
+
+def test_read_force_profile_errors(tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time,newtons\n0,1\n")
+    with pytest.raises(TrajectoryFileError, match="line 1.*expected 'time,force'"):
+        runs.read_force_profile(bad)
+    bad.write_text("time,force\n0,1\n0.01,x\n")
+    with pytest.raises(TrajectoryFileError, match="line 3"):
+        runs.read_force_profile(bad)
+    bad.write_text("time,force\n0,1\n0.01,2\n0.03,3\n")
+    with pytest.raises(TrajectoryFileError, match="uneven time step"):
+        runs.read_force_profile(bad)
+
+
+# ---- evaluate --------------------------------------------------------------------------------
+def test_evaluate_held_out(run_dir, demo, tmp_path, capsys):
+    out = run_dir[0]
+    test = demo[0] / "data" / "test"
+    rc, stdout, err = run(capsys, "evaluate", "--run", out, "--data", test, "--out", tmp_path / "e")
+    assert rc == 0, err
+    for f in ("metrics.json", "metrics.md", "bands.png", "config.json"):
+        assert (tmp_path / "e" / f).is_file(), f
+    m = json.loads((tmp_path / "e" / "metrics.json").read_text())["metrics"]
+    assert {"ci_width", "pct_outside", "predictive_nll", "posterior_nll", "parameters", "per_trajectory"} <= set(m)
+    per = m["per_trajectory"]
+    assert [p["name"] for p in per] == ["traj_002.csv", "traj_003.csv"]
+    # equal-length trajectories: the pooled metrics are the per-trajectory means
+    assert m["ci_width"] == pytest.approx(np.mean([p["ci_width"] for p in per]), rel=1e-5)
+    assert m["pct_outside"] == pytest.approx(np.mean([p["pct_outside"] for p in per]), abs=1e-6)
+    assert m["n_points"] + m["n_degenerate_points"] == 80
+    # the demo evaluated the same particles on the same data
+    dm = json.loads((demo[0] / "evaluation" / "metrics.json").read_text())["metrics"]
+    for k in ("ci_width", "pct_outside", "predictive_nll", "posterior_nll"):
+        assert m[k] == pytest.approx(dm[k], rel=1e-6), k
+    assert "| 95% band width |" in (tmp_path / "e" / "metrics.md").read_text()
+    assert "held-out metrics" in stdout
+
+
+def test_evaluate_kfold(run_dir, demo, tmp_path, capsys):
+    both = tmp_path / "all"
+    both.mkdir()
+    for sub in ("train", "test"):
+        for f in (demo[0] / "data" / sub).glob("*.csv"):
+            shutil.copy(f, both / f.name)
+    shutil.copy(demo[0] / "data" / "train" / "true_params.json", both)
+    rc, _, err = run(capsys, "evaluate", "--run", run_dir[0], "--data", both, "--kfold", "5", "--out", tmp_path / "k")
+    assert_user_error(rc, err, "--kfold 5", "found 4")
+    assert not (tmp_path / "k").exists()
+
+    rc, stdout, err = run(capsys, "evaluate", "--run", run_dir[0], "--data", both, "--kfold", "2", "--out",
+                          tmp_path / "k", "--no-progress")
+    assert rc == 0, err
+    res = json.loads((tmp_path / "k" / "metrics.json").read_text())
+    assert res["kfold"] == 2 and len(res["folds"]) == 2
+    assert [f["test"] for f in res["folds"]] == [["traj_000.csv", "traj_001.csv"], ["traj_002.csv", "traj_003.csv"]]
+    for f in res["folds"]:
+        assert set(f["train"]).isdisjoint(f["test"]) and len(f["train"]) == 2
+        assert {"ci_width", "pct_outside", "predictive_nll", "posterior_nll", "parameters"} <= set(f["metrics"])
+    for k in ("ci_width", "pct_outside", "predictive_nll_per_point", "posterior_nll"):
+        assert res["mean"][k] == pytest.approx(np.mean([f["metrics"][k] for f in res["folds"]]), rel=1e-12)
+    assert (tmp_path / "k" / "fold_2_particles.csv").is_file() and (tmp_path / "k" / "bands.png").is_file()
+    assert "mean over 2 folds" in stdout
+
+
+def test_evaluate_errors(run_dir, tmp_path, capsys):
+    out = run_dir[0]
+    d01 = tmp_path / "dt01"
+    _write_pulls(d01, 0.01, 2)
+    rc, _, err = run(capsys, "evaluate", "--run", out, "--data", d01, "--out", tmp_path / "e")
+    assert_user_error(rc, err, "dt=0.01", "0.02")
+    rc, _, err = run(capsys, "evaluate", "--run", tmp_path / "nope", "--data", d01, "--out", tmp_path / "e")
+    assert_user_error(rc, err, "nope")
+    d02 = tmp_path / "dt02"
+    _write_pulls(d02, 0.02, 2)
+    rc, _, err = run(capsys, "evaluate", "--run", out, "--data", d02, "--kfold", "1", "--out", tmp_path / "e")
+    assert_user_error(rc, err, "K must be an integer >= 2")
+    assert not (tmp_path / "e").exists()
+
+
+def _write_pulls(d: Path, dt: float, n: int) -> None:
+    t = np.arange(40) * dt
+    for i in range(n):
+        f = (3.0 + i) * np.clip(t / 0.3, 0, 1)
+        write_trajectory(d / f"p{i}.csv", Trajectory(t, f, 0.01 * f, None, f"p{i}.csv"))
