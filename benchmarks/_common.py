@@ -168,6 +168,14 @@ def merge_results(path: Path, section: str, results: dict, summary: dict) -> Pat
     return path
 
 
+def read_section(path: Path, section: str) -> dict:
+    """``section`` of the JSON at ``path`` ({} if absent or unreadable)."""
+    try:
+        return dict(json.loads(Path(path).read_text()).get(section) or {})
+    except (OSError, json.JSONDecodeError, AttributeError):
+        return {}
+
+
 def _plain(x):
     if isinstance(x, dict):
         return {str(k): _plain(v) for k, v in x.items()}

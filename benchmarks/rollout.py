@@ -173,7 +173,7 @@ class CRollout:
 
 
 # ---- the benchmark -------------------------------------------------------------------------
-def run_tree(n_branches, batches, n_steps, args, out_rows, record):
+def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: None):
     import jax
     import jax.numpy as jnp
 
@@ -205,6 +205,8 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record):
     info["naive_s_per_particle"] = naive_s
     info["naive_steps_per_s"] = steps_per_rollout / naive_s
     info["naive_settle_s_per_particle"] = info["c_settle_s_per_particle_python"]
+    info["naive_pull_steps_per_s"] = steps_per_rollout / max(naive_s - info["naive_settle_s_per_particle"], 1e-12)
+    record.setdefault("trees", []).append(info)
 
     sim_fn = jax.jit(lambda a, b, f: simulate(sim, a, b, f))
     check = None
@@ -250,6 +252,7 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record):
         row["naive_steps_per_s"] = info["naive_steps_per_s"]
         row["mjx_over_naive"] = mjx_rate / info["naive_steps_per_s"]
         out_rows.append(row)
+        save()
         print(f"   N={n:>6}: MJX {C.fmt_rate(mjx_rate)} steps/s ({tm['median_s'] * 1e3:.1f} ms; lower {t1 - t0:.1f} s, "
               f"compile {t2 - t1:.1f} s) | C rollout {C.fmt_rate(row.get('c_steps_per_s'))} (N={n_c}) | "
               f"naive {C.fmt_rate(info['naive_steps_per_s'])} | MJX/C {row.get('mjx_over_c', float('nan')):.3g}",
@@ -265,12 +268,12 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record):
             row["settle_s"] = ts["median_s"]
             row["settle_share"] = ts["median_s"] / tm["median_s"]
             row["settle_compile_s"] = tcs
+            save()
             print(f"   settle alone at N={n}: {ts['median_s'] * 1e3:.1f} ms = {row['settle_share']:.0%} of the rollout "
                   f"(compile {tcs:.1f} s)", flush=True)
         del compiled, lowered
         jax.clear_caches()
     crun.close()
-    record.setdefault("trees", []).append(info)
 
 
 def main(argv=None) -> int:
@@ -293,6 +296,8 @@ def main(argv=None) -> int:
                    help="skip timing the settle alone at the largest batch")
     p.add_argument("--budget-s", type=float, default=float("inf"), help="stop starting new batches after this")
     p.add_argument("--compile-cache", default=None, help="persistent compilation cache dir (default: off)")
+    p.add_argument("--append", action="store_true",
+                   help="keep rows of other trees/batches already in the JSON (default: replace the section)")
     p.add_argument("--machine", default=None, help="name of the JSON file (default from the device)")
     p.add_argument("--out", default=None, help="JSON path (default experiments/results/benchmarks/<machine>.json)")
     args = p.parse_args(argv)
@@ -315,9 +320,16 @@ def main(argv=None) -> int:
     record["rows"] = rows
     machine = args.machine or C.default_machine_name()
     out = args.out or (C.RESULTS_DIR / f"{machine}.json")
+    previous = C.read_section(out, "rollout") if args.append else {}
+
+    def save():
+        merged = {**record, "rows": _merge_rows(previous.get("rows", []), rows, ("n_branches", "batch")),
+                  "trees": _merge_rows(previous.get("trees", []), record.get("trees", []), ("n_branches",))}
+        C.merge_results(out, "rollout", merged, summary(merged["rows"]))
+
     for nb in trees:
-        run_tree(nb, batches, args.steps, args, rows, record)
-        C.merge_results(out, "rollout", record, summary(rows))
+        run_tree(nb, batches, args.steps, args, rows, record, save)
+        save()
     print("\nparticle-steps/s (N * T * substeps / s); MJX includes the settle; C rollout from settled states")
     C.print_table(
         [{**r, "mjx": C.fmt_rate(r["mjx_steps_per_s"]), "c": C.fmt_rate(r.get("c_steps_per_s")),
@@ -328,6 +340,12 @@ def main(argv=None) -> int:
     )
     print(f"\nwrote {out}")
     return 0
+
+
+def _merge_rows(old: list, new: list, keys: tuple) -> list:
+    """``old`` rows not re-measured in ``new``, then ``new`` (rows matched on ``keys``)."""
+    seen = {tuple(r[k] for k in keys) for r in new}
+    return [r for r in old if tuple(r.get(k) for k in keys) not in seen] + list(new)
 
 
 def summary(rows) -> dict:

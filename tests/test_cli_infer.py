@@ -23,7 +23,12 @@ import pytest
 from treeinfer import runs
 from treeinfer.cli import COMMANDS, INFER_DEFAULTS, main
 from treeinfer.errors import TrajectoryFileError
-from treeinfer.trajectories import Trajectory, read_trajectory, read_trajectory_dir, write_trajectory
+from treeinfer.trajectories import (
+    Trajectory,
+    read_trajectory,
+    read_trajectory_dir,
+    write_trajectory,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 TWO = ROOT / "treeinfer" / "examples" / "two_branch.yaml"

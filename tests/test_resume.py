@@ -115,9 +115,15 @@ def _popen(argv: list[str], cwd: Path) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "treeinfer", *argv], cwd=cwd, env=env, text=True,
         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        # the child gets Python's default Ctrl-C handling even if this process ignores SIGINT
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        # An ignored SIGINT is inherited through exec (e.g. pytest started as a background job)
+        # and Python then keeps ignoring it: give the child the default disposition back. Only in
+        # that case, since preexec_fn is unsafe with threads.
+        preexec_fn=_default_sigint if signal.getsignal(signal.SIGINT) == signal.SIG_IGN else None,  # noqa: PLW1509
     )
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def _checkpoint_iteration(partial: Path) -> int | None:

@@ -51,6 +51,7 @@ import os
 import platform
 import shutil
 import time
+import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -474,7 +475,7 @@ def _open_checkpoint(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
         meta = json.loads(str(arrays.pop("meta")))
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such checkpoint") from None
-    except (OSError, ValueError, KeyError) as e:  # truncated / foreign file
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:  # truncated / foreign file
         raise ConfigError(f"{path}: not a readable treeinfer checkpoint ({e})") from None
     if meta.get("format") != CHECKPOINT_FORMAT:
         raise ConfigError(f"{path}: checkpoint format {meta.get('format')!r}, expected {CHECKPOINT_FORMAT}")
@@ -1004,7 +1005,7 @@ def load_run(run_dir: str | os.PathLike) -> LoadedRun:
         with np.load(run_dir / "trace.npz", allow_pickle=False) as z:
             theta, ld = z["theta"], z["final_log_density"]
             labels = tuple(str(s) for s in z["labels"])
-    except (OSError, ValueError, KeyError) as e:
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
         raise ConfigError(f"{run_dir / 'trace.npz'}: unreadable ({e})") from None
     if list(labels) != tree.parameter_labels():
         raise ConfigError(f"{run_dir}: trace.npz labels {list(labels)} do not match tree.yaml {tree.parameter_labels()}")

@@ -1,0 +1,220 @@
+"""Speed levers, each measured against the library's own simulator in one run.
+
+    python -m benchmarks.levers                    # all levers, platform defaults
+    python -m benchmarks.levers --only precision,loops --batch 64
+
+* ``precision``: float32 (default) against float64 (``JAX_ENABLE_X64=1``, in a subprocess), both
+  checked against MuJoCo C (``simulate_reference``, float64) on the three-branch example under
+  the standard problem's three profiles; and their rollout times at ``--batch`` parameter sets.
+* ``loops``: ``benchmarks.variants.simulate_variant``: ``lax.scan`` unroll of the observation
+  loop, full unroll of the substep loop, and MuJoCo's Euler integrator (implicit damping)
+  instead of ``implicitfast``; compile and run time at ``--batch`` x 3 profiles, and the largest
+  difference from ``simulate``.
+* ``donation``: one jitted NNSVGD step of the standard problem with the state donated
+  (``donate_argnums``) or not.
+* ``cache``: the standard problem's ``make_problem`` + ``infer`` (``--cache-iterations``) in two
+  fresh processes sharing an empty persistent compilation cache (cold, then warm).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks import _common as C
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _standard_inputs(n_steps: int):
+    from benchmarks.inference import EXAMPLES
+    from treeinfer.cli import default_true_params
+    from treeinfer.forces import profile_set
+    from treeinfer.tree import load_tree
+
+    tree = load_tree(EXAMPLES / "three_branch.yaml")
+    forces = profile_set("mixed", n=3, duration=n_steps * 0.01, dt=0.01, seed=0)[:, :n_steps]
+    kp_true, kd_true = default_true_params(tree, np.random.default_rng(0))
+    return tree, forces, kp_true, kd_true
+
+
+def precision_child(batch: int, n_steps: int, n_check: int, reps: int) -> dict:
+    """Errors against C and the rollout time at the current JAX precision."""
+    import jax
+    import jax.numpy as jnp
+
+    from benchmarks.rollout import sample_gains
+    from treeinfer.simulator import make_simulator, simulate, simulate_reference
+
+    tree, forces, _, _ = _standard_inputs(n_steps)
+    sim = make_simulator(tree, obs_dt=0.01)
+    kp, kd = sample_gains(tree, max(batch, n_check), seed=11)
+    dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    run = jax.jit(lambda a, b, f: simulate(sim, a, b, f))
+    f = jnp.asarray(forces, dtype)
+    ck = run(jnp.asarray(kp[:n_check], dtype), jnp.asarray(kd[:n_check], dtype), f)
+    err_tau, err_vel, scale = 0.0, 0.0, 0.0
+    for i in range(n_check):
+        for b in range(forces.shape[0]):
+            tau, vel = simulate_reference(sim, kp[i], kd[i], forces[b])
+            err_tau = max(err_tau, float(np.max(np.abs(np.asarray(ck.tau[i, b], float) - tau))))
+            err_vel = max(err_vel, float(np.max(np.abs(np.asarray(ck.tau_dot[i, b], float) - vel))))
+            scale = max(scale, float(np.max(np.abs(tau))))
+    a, b_ = jnp.asarray(kp[:batch], dtype), jnp.asarray(kd[:batch], dtype)
+    t0 = time.perf_counter()
+    compiled = run.lower(a, b_, f).compile()
+    t_compile = time.perf_counter() - t0
+    C.block(compiled(a, b_, f))
+    tm = C.time_calls(lambda: compiled(a, b_, f), reps=reps, min_time_s=1.0)
+    steps = batch * forces.shape[0] * n_steps * sim.substeps
+    return {"dtype": str(np.dtype(dtype)), "max_abs_tau_error_m": err_tau, "max_abs_tau_dot_error_m_s": err_vel,
+            "max_abs_tau_m": scale, "n_checked": n_check * forces.shape[0], "batch": batch,
+            "rollout_s": tm["median_s"], "steps_per_s": steps / tm["median_s"], "compile_s": t_compile,
+            "all_stable": bool(np.all(np.asarray(ck.stable)))}
+
+
+def lever_precision(args) -> dict:
+    out = {"float32": precision_child(args.batch, args.steps, args.n_check, args.reps)}
+    env = {**os.environ, "JAX_ENABLE_X64": "1", "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    code = (f"import json; from benchmarks.levers import precision_child; "
+            f"print(json.dumps(precision_child({args.batch}, {args.steps}, {args.n_check}, {args.reps})))")
+    proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True)
+    if proc.returncode == 0:
+        out["float64"] = json.loads(proc.stdout.strip().splitlines()[-1])
+    else:
+        out["float64"] = {"error": proc.stderr[-2000:]}
+    for k, v in out.items():
+        if "error" not in v:
+            print(f"   {k}: |tau - C| <= {v['max_abs_tau_error_m']:.2e} m, |tau_dot - C| <= "
+                  f"{v['max_abs_tau_dot_error_m_s']:.2e} m/s (max tau {v['max_abs_tau_m']:.3f} m); "
+                  f"{C.fmt_rate(v['steps_per_s'])} steps/s at N={v['batch']}x3, compile {v['compile_s']:.1f} s", flush=True)
+        else:
+            print(f"   {k}: failed: {v['error'][-300:]}", flush=True)
+    return out
+
+
+def lever_loops(args) -> dict:
+    import jax
+    import jax.numpy as jnp
+
+    from benchmarks.rollout import sample_gains
+    from benchmarks.variants import simulate_variant, with_integrator
+    from treeinfer.simulator import make_simulator, simulate
+
+    tree, forces, _, _ = _standard_inputs(args.steps)
+    sim = make_simulator(tree, obs_dt=0.01)
+    kp, kd = sample_gains(tree, args.batch, seed=5)
+    a, b, f = (jnp.asarray(x, jnp.float32) for x in (kp, kd, forces))
+    steps = args.batch * forces.shape[0] * args.steps * sim.substeps
+    variants = [("simulate (library)", lambda s: (lambda x, y, z: simulate(s, x, y, z)), sim)]
+    for name, kw in [("variant, defaults", {}), ("scan unroll=2", {"unroll_outer": 2}),
+                     ("scan unroll=5", {"unroll_outer": 5}), ("substeps unrolled", {"unroll_inner": True})]:
+        variants.append((name, (lambda kw: lambda s: (lambda x, y, z: simulate_variant(s, x, y, z, **kw)))(kw), sim))
+    variants.append(("euler integrator", lambda s: (lambda x, y, z: simulate(s, x, y, z)), with_integrator(sim, "euler")))
+    rows, ref = [], None
+    for name, make, s in variants:
+        if time.perf_counter() - args.t_start > args.budget_s:
+            rows.append({"variant": name, "skipped": "budget"})
+            continue
+        fn = jax.jit(make(s))
+        t0 = time.perf_counter()
+        compiled = fn.lower(a, b, f).compile()
+        t_compile = time.perf_counter() - t0
+        out = C.block(compiled(a, b, f))
+        tau = np.asarray(out.tau)
+        if ref is None:
+            ref = tau
+        tm = C.time_calls(lambda: compiled(a, b, f), reps=args.reps, min_time_s=1.0)
+        row = {"variant": name, "compile_s": t_compile, "rollout_s": tm["median_s"], "steps_per_s": steps / tm["median_s"],
+               "max_abs_diff_from_library_m": float(np.max(np.abs(tau - ref))), "all_stable": bool(np.all(np.asarray(out.stable)))}
+        rows.append(row)
+        print(f"   {name:<22} {C.fmt_rate(row['steps_per_s'])} steps/s ({tm['median_s'] * 1e3:.1f} ms), "
+              f"compile {t_compile:.1f} s, max |diff| {row['max_abs_diff_from_library_m']:.1e} m", flush=True)
+        del compiled, fn, out
+        jax.clear_caches()
+    return {"batch": args.batch, "n_profiles": forces.shape[0], "n_steps": args.steps, "substeps": sim.substeps,
+            "rows": rows}
+
+
+def lever_donation(args) -> dict:
+    from benchmarks.inference import make_standard_problem, step_time
+
+    problem = make_standard_problem(n_steps=args.steps)[0]
+    out = {}
+    for donate in (False, True):
+        r = step_time(problem, args.particles, args.reps, donate=donate)
+        out["donated" if donate else "not_donated"] = r
+        print(f"   donate={donate}: {r['step_ms']:.1f} ms/it (compile {r['compile_s']:.1f} s)", flush=True)
+    return out
+
+
+def lever_cache(args) -> dict:
+    out = {}
+    with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as tmp:
+        env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+        for label in ("cold", "warm"):
+            js = Path(tmp) / f"{label}.json"
+            cmd = [sys.executable, "-m", "benchmarks.inference", "--no-scaling", "--particles", str(args.particles),
+                   "--iterations", str(args.cache_iterations), "--steps", str(args.steps), "--compile-cache", cache,
+                   "--out", str(js)]
+            t0 = time.perf_counter()
+            proc = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True)
+            wall = time.perf_counter() - t0
+            if proc.returncode != 0:
+                out[label] = {"error": proc.stderr[-2000:]}
+                continue
+            s = json.loads(js.read_text())["inference"]["standard"]
+            out[label] = {"process_wall_s": wall, "make_problem_s": s["make_problem_s"], "infer_s": s["infer_s"],
+                          "time_to_posterior_s": s["time_to_posterior_s"], "compiles": s["compiles_total"],
+                          "cache_hits": s["compilation_cache_hits"], "iteration_ms": s["iteration_ms_steady"]}
+            print(f"   {label}: make_problem + infer({args.cache_iterations} it) = {s['time_to_posterior_s']:.1f} s "
+                  f"(process {wall:.1f} s), compiles {s['compiles_total']}, cache hits {s['compilation_cache_hits']}",
+                  flush=True)
+    return out
+
+
+LEVERS = {"precision": lever_precision, "loops": lever_loops, "donation": lever_donation, "cache": lever_cache}
+
+
+def main(argv=None) -> int:
+    import jax
+
+    on_gpu = jax.devices()[0].platform == "gpu"
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--only", default=",".join(LEVERS), help=f"comma list of {list(LEVERS)}")
+    p.add_argument("--batch", type=int, default=1664 if on_gpu else 16,
+                   help="parameter sets per rollout (1664 = one standard NNSVGD iteration's rows)")
+    p.add_argument("--steps", type=int, default=300)
+    p.add_argument("--particles", type=int, default=128 if on_gpu else 8)
+    p.add_argument("--n-check", type=int, default=4, help="parameter sets compared with C")
+    p.add_argument("--cache-iterations", type=int, default=20)
+    p.add_argument("--reps", type=int, default=5)
+    p.add_argument("--budget-s", type=float, default=float("inf"))
+    p.add_argument("--machine", default=None)
+    p.add_argument("--out", default=None)
+    args = p.parse_args(argv)
+    args.t_start = time.perf_counter()
+    record = {"machine": C.machine_info(), "settings": {k: v for k, v in vars(args).items() if k != "t_start"}}
+    print(f"machine: {record['machine']}", flush=True)
+    out = args.out or (C.RESULTS_DIR / f"{args.machine or C.default_machine_name()}.json")
+    for name in args.only.split(","):
+        if time.perf_counter() - args.t_start > args.budget_s:
+            record[name] = {"skipped": "budget"}
+            continue
+        print(f"lever: {name}", flush=True)
+        record[name] = LEVERS[name](args)
+        C.merge_results(out, "levers", record, {})
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
