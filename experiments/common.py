@@ -457,20 +457,9 @@ def _load_cached(path: Path, key: str) -> PosteriorRun | None:
 
 
 def posterior(problem, sampler: str, cfg: StudyConfig, seed: int, cache: Path | None, progress: bool) -> PosteriorRun:
-    """Run ``sampler`` on ``problem`` with the study's particles and iterations, or load the
-    identical run from ``cache``.
-
-    Same particles, key and hyperparameters as :func:`treeinfer.inference.infer` (particles
-    uniform in the prior box from ``seed``, key ``jax.random.key(seed)``, the library's
-    ``SAMPLER_DEFAULTS`` plus ``cfg.sampler_options``); we drive the sampler through the same
-    public pieces (``make_algorithm``, ``initial_particles``, ``samplers.run``) rather than
-    ``infer`` itself only because ``infer`` re-simulates the final particles un-jitted to get their
-    log-density (one to two minutes per call on this CPU), which the final sampler state already
-    holds."""
-    import jax
-
-    from treeinfer import samplers
-    from treeinfer.inference import SAMPLER_DEFAULTS, initial_particles, make_algorithm
+    """:func:`treeinfer.inference.infer` with the study's particles, iterations and sampler
+    options, or the identical run loaded from ``cache`` (see :func:`posterior_key`)."""
+    from treeinfer.inference import infer
 
     options = dict(cfg.sampler_options.get(sampler, {}))
     key, desc = posterior_key(problem, sampler, cfg.n_particles, cfg.n_iterations, seed, options)
@@ -479,20 +468,14 @@ def posterior(problem, sampler: str, cfg: StudyConfig, seed: int, cache: Path | 
         hit = _load_cached(path, key)
         if hit is not None:
             return hit
-    algorithm = make_algorithm(problem, sampler, **options)
-    theta0 = initial_particles(problem, cfg.n_particles, seed)
-    result = samplers.run(algorithm, jax.random.key(int(seed)), theta0, cfg.n_iterations, progress=progress)
-    settings = {
-        **desc,
-        "sampler_options": {**SAMPLER_DEFAULTS[sampler], **options},
-        "run": result.settings,
-    }
+    post = infer(problem, sampler, n_particles=cfg.n_particles, n_iterations=cfg.n_iterations, seed=seed, progress=progress, **options)
+    settings = {**desc, "infer": post.settings}
     run = PosteriorRun(
-        np.asarray(result.final_positions, float),
-        np.asarray(result.final_state.logdensity, float),
-        np.asarray(result.trace_logdensity, float),
-        np.asarray(result.trace_iterations),
-        float(result.elapsed_s),
+        np.asarray(post.theta, float),
+        np.asarray(post.log_density, float),
+        np.asarray(post.run.trace_logdensity, float),
+        np.asarray(post.run.trace_iterations),
+        float(post.run.elapsed_s),
         False,
         settings,
         key,
@@ -800,14 +783,26 @@ def write_results(ctx: Context, record: dict, markdown: str, figures: dict[str, 
         **record,
         "figures": sorted(figures),
         "wall_time_s": time.perf_counter() - t0,
+        "cpu_time_s": cpu_seconds(),
     }
-    md = markdown + f"\n\nWall time: {record['wall_time_s']:.0f} s (seed {ctx.seed}).\n"
+    md = markdown + (
+        f"\n\nWall time: {record['wall_time_s']:.0f} s, process CPU time {record['cpu_time_s']:.0f} s "
+        f"(seed {ctx.seed}; {record['versions'].get('jax_backend', '?')} backend).\n"
+    )
     with staged_output_dir(ctx.out, force=True, what="results") as stage:
         for name, fig in figures.items():
             save_figure(fig, stage / name)
         atomic_write_json(stage / "results.json", record)
         atomic_write_text(stage / "results.md", md)
     return ctx.out
+
+
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process so far (all threads)."""
+    import resource
+
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return float(ru.ru_utime + ru.ru_stime)
 
 
 def progress_bar(ctx: Context, total: int):

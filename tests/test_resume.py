@@ -162,6 +162,8 @@ def _particles(run: Path) -> np.ndarray:
         return z["theta"]
 
 
+# Popen forks a JAX process (to exec at once, so JAX's fork warning does not apply here).
+@pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")
 def test_sigkill_sigint_resume_bit_identical(tmp_path, capsys):
     data = tmp_path / "data"
     _write_data(data)
