@@ -178,24 +178,53 @@ def standard(args) -> dict:
     return out
 
 
-def step_time(problem, n_particles: int, reps: int, donate: bool = False, min_time_s: float = 0.5) -> dict:
-    """Compile time and median wall time of one jitted NNSVGD step for ``n_particles``."""
+def step_state(problem, n_particles: int, mesh=None, method: str = "shard_map"):
+    """(algorithm, state) for timing NNSVGD steps: the state ``init`` would give, except log p and
+    grad zero (they only feed the first direction), so no separate compile of ``init`` is needed.
+    With ``mesh``, the particle axis is sharded over it (``treeinfer.sharding``)."""
     import jax
     import jax.numpy as jnp
 
     from treeinfer.inference import initial_particles, make_algorithm
 
+    if mesh is not None:
+        from treeinfer import sharding
+
+        problem = sharding.shard_problem(problem, mesh, method)
     algorithm = make_algorithm(problem, "nnsvgd")
     theta0 = initial_particles(problem, n_particles, seed=0)
     shapes = jax.eval_shape(algorithm.init, jax.random.key(0), theta0)
-    # the state init would give, except log p and grad zero (they only feed the first direction)
     state = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)._replace(position=theta0)
+    if mesh is not None:
+        from jax.sharding import NamedSharding
+        from jax.sharding import PartitionSpec as P
+
+        split, whole = sharding.particle_sharding(mesh), NamedSharding(mesh, P())
+        state = jax.tree.map(
+            lambda x: jax.device_put(x, split if x.ndim and x.shape[0] == n_particles else whole), state)
+    return algorithm, state
+
+
+def step_time(problem, n_particles: int, reps: int, donate: bool = False, min_time_s: float = 0.5,
+              mesh=None, n_final: int = 0, method: str = "shard_map") -> dict:
+    """Compile time and median wall time of one jitted NNSVGD step for ``n_particles``
+    (sharded over ``mesh`` if given); ``n_final`` > 0 also returns the positions after that
+    many further steps from the same start (for comparing sharded and unsharded runs)."""
+    import jax
+
+    algorithm, state0 = step_state(problem, n_particles, mesh, method)
     step = jax.jit(algorithm.step, donate_argnums=(1,) if donate else ())
     key = jax.random.key(1)
     t0 = time.perf_counter()
-    compiled = step.lower(key, state).compile()
+    compiled = step.lower(key, state0).compile()
     t_compile = time.perf_counter() - t0
-    state, _ = C.block(compiled(key, state))
+    out = {}
+    if n_final:
+        s = state0
+        for _ in range(n_final):
+            s, _ = compiled(key, s)
+        out["final_positions"] = np.asarray(s.position)
+    state, _ = C.block(compiled(key, state0))
     times = []
     t_start = time.perf_counter()
     while len(times) < reps or time.perf_counter() - t_start < min_time_s:
@@ -205,7 +234,7 @@ def step_time(problem, n_particles: int, reps: int, donate: bool = False, min_ti
         if len(times) >= 50:
             break
     return {"compile_s": t_compile, "step_ms": 1e3 * float(np.median(times)), "reps": len(times),
-            "n_nonfinite": int(info.n_nonfinite)}
+            "n_nonfinite": int(info.n_nonfinite), **out}
 
 
 def scaling(args) -> dict:

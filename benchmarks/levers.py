@@ -12,6 +12,10 @@
   difference from ``simulate``.
 * ``donation``: one jitted NNSVGD step of the standard problem with the state donated
   (``donate_argnums``) or not.
+* ``profile``: one vmapped ``mjx.step`` of the example tree: kernel-launching ops in the
+  optimised HLO, XLA's cost model (flops, bytes) and its wall time at several batch sizes;
+* ``xla_flags``: the library's rollout at ``--batch`` under XLA GPU flag variants (command
+  buffers / CUDA graphs off, and extended to while loops), each in a fresh process;
 * ``cache``: the standard problem's ``make_problem`` + ``infer`` (``--cache-iterations``) in two
   fresh processes sharing an empty persistent compilation cache (cold, then warm).
 """
@@ -181,7 +185,99 @@ def lever_cache(args) -> dict:
     return out
 
 
-LEVERS = {"precision": lever_precision, "loops": lever_loops, "donation": lever_donation, "cache": lever_cache}
+def lever_profile(args) -> dict:
+    """What one ``mjx.step`` of the 3-branch example costs: XLA kernels, cost-model flops and
+    bytes, and wall time of a single vmapped step at several batch sizes."""
+    import re
+
+    import jax
+    import jax.numpy as jnp
+    from mujoco import mjx
+
+    from treeinfer.simulator import make_simulator
+
+    tree, _, _, _ = _standard_inputs(args.steps)
+    sim = make_simulator(tree, obs_dt=0.01)
+    model = sim.model
+    rows = []
+    for n in args.profile_batches:
+        data = jax.vmap(lambda _: mjx.make_data(model))(jnp.arange(n))
+        step = jax.jit(jax.vmap(lambda d: mjx.step(model, d)))
+        compiled = step.lower(data).compile()
+        hlo = compiled.as_text()
+        kernels = len(re.findall(r"= \S+ (?:fusion|custom-call|convolution|dot|copy|transpose|reduce|scatter|gather)\(", hlo))
+        loops = hlo.count(" while(")
+        cost = compiled.cost_analysis()
+        cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+        flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
+        nbytes = float(cost.get("bytes accessed", float("nan"))) if cost else float("nan")
+        C.block(compiled(data))
+        tm = C.time_calls(lambda: compiled(data), reps=args.reps, min_time_s=0.5)
+        row = {"batch": n, "kernels_in_hlo": kernels, "while_loops": loops, "flops_per_step": flops,
+               "bytes_per_step": nbytes, "bytes_per_particle_step": nbytes / n, "step_us": 1e6 * tm["median_s"],
+               "effective_GB_s": nbytes / tm["median_s"] / 1e9}
+        rows.append(row)
+        print(f"   N={n:>6}: one mjx.step {row['step_us']:.1f} us; {kernels} kernel ops in HLO, {loops} while loops; "
+              f"cost model {flops / n:.0f} flop and {nbytes / n:.0f} B per particle-step "
+              f"-> {row['effective_GB_s']:.0f} GB/s", flush=True)
+    return {"rows": rows, "nbody": sim.mj_model.nbody, "nv": sim.mj_model.nv}
+
+
+XLA_FLAG_VARIANTS = {
+    "default": "",
+    "no command buffers": "--xla_gpu_enable_command_buffer=",
+    "command buffers incl. while/conditional": "--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL",
+}
+
+
+def rollout_time_child(batch: int, n_steps: int, reps: int) -> dict:
+    """Compile and time the library's ``simulate`` on the 3-branch example (for flag variants)."""
+    import jax
+    import jax.numpy as jnp
+
+    from benchmarks.rollout import sample_gains
+    from treeinfer.simulator import make_simulator, simulate
+
+    tree, forces, _, _ = _standard_inputs(n_steps)
+    sim = make_simulator(tree, obs_dt=0.01)
+    kp, kd = sample_gains(tree, batch, seed=5)
+    a, b, f = (jnp.asarray(x, jnp.float32) for x in (kp, kd, forces))
+    fn = jax.jit(lambda x, y, z: simulate(sim, x, y, z))
+    t0 = time.perf_counter()
+    compiled = fn.lower(a, b, f).compile()
+    t_compile = time.perf_counter() - t0
+    C.block(compiled(a, b, f))
+    tm = C.time_calls(lambda: compiled(a, b, f), reps=reps, min_time_s=1.0)
+    steps = batch * forces.shape[0] * n_steps * sim.substeps
+    return {"compile_s": t_compile, "rollout_s": tm["median_s"], "steps_per_s": steps / tm["median_s"],
+            "us_per_step": 1e6 * tm["median_s"] / (n_steps * sim.substeps)}
+
+
+def lever_xla_flags(args) -> dict:
+    out = {}
+    for name, flags in XLA_FLAG_VARIANTS.items():
+        if time.perf_counter() - args.t_start > args.budget_s:
+            out[name] = {"skipped": "budget"}
+            continue
+        env = {**os.environ, "XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") + " " + flags).strip(),
+               "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+        code = (f"import json; from benchmarks.levers import rollout_time_child; "
+                f"print(json.dumps(rollout_time_child({args.batch}, {args.steps}, {args.reps})))")
+        proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True)
+        if proc.returncode == 0:
+            r = json.loads(proc.stdout.strip().splitlines()[-1])
+            out[name] = {"xla_flags": flags, **r}
+            print(f"   {name:<40} {r['rollout_s'] * 1e3:.1f} ms at N={args.batch}x3 ({r['us_per_step']:.1f} us per step), "
+                  f"compile {r['compile_s']:.1f} s", flush=True)
+        else:
+            out[name] = {"xla_flags": flags, "error": proc.stderr[-1500:]}
+            print(f"   {name:<40} failed: {proc.stderr.strip().splitlines()[-1][:200] if proc.stderr.strip() else '?'}",
+                  flush=True)
+    return out
+
+
+LEVERS = {"precision": lever_precision, "loops": lever_loops, "donation": lever_donation, "cache": lever_cache,
+          "profile": lever_profile, "xla_flags": lever_xla_flags}
 
 
 def main(argv=None) -> int:
@@ -196,6 +292,8 @@ def main(argv=None) -> int:
     p.add_argument("--particles", type=int, default=128 if on_gpu else 8)
     p.add_argument("--n-check", type=int, default=4, help="parameter sets compared with C")
     p.add_argument("--cache-iterations", type=int, default=20)
+    p.add_argument("--profile-batches", type=lambda t: [int(x) for x in t.split(",")],
+                   default=[1, 4992, 131072] if on_gpu else [1, 64])
     p.add_argument("--reps", type=int, default=5)
     p.add_argument("--budget-s", type=float, default=float("inf"))
     p.add_argument("--machine", default=None)

@@ -546,6 +546,19 @@ def metrics_for(pred: Predictions, theta: np.ndarray, data: SyntheticData, probl
     return m
 
 
+def interval_metrics(pred: Predictions, gt: np.ndarray, cfg: StudyConfig) -> dict:
+    """CI width, % outside and predictive NLL of the test predictions against another ground
+    truth ``gt [n_test, T]`` (e.g. the noise-free displacement in the noise study)."""
+    from treeinfer.metrics import summarize
+
+    try:
+        m = summarize(pred.test_tau, gt, valid=pred.valid, level=cfg.level)
+    except (SimulationError, ConfigError) as e:
+        return {"error": str(e)}
+    keys = ("ci_width", "pct_outside", "fraction_outside", "predictive_nll", "predictive_nll_per_point", "n_points")
+    return {k: m[k] for k in keys}
+
+
 def parameter_metrics(problem, theta: np.ndarray, data: SyntheticData, cfg: StudyConfig, valid) -> dict:
     """Posterior ``theta [P, D]`` vs the truth in log space (``parameters``,
     ``truth_in_joint_region``, ``mean_abs_log_error``, ``n_params_in_interval``)."""
@@ -619,16 +632,21 @@ def bands_for(pred: Predictions, data: SyntheticData, idx: Sequence[int], level:
     return Bands(lo, hi, mean, gt, samples)
 
 
-def band_grid(rows: dict[str, Bands], dt: float, level: float, col_labels: Sequence[str], title: str):
-    """Rows = conditions, columns = test trajectories (paper Fig. 3/5/6 layout)."""
+def band_grid(rows: dict[str, Bands], dt: float, level: float, col_labels: Sequence[str], title: str, transpose: bool = False):
+    """Rows = conditions, columns = test trajectories (paper Fig. 3/5 layout); ``transpose``
+    puts the conditions in columns instead (Fig. 6: one column per grasp location)."""
     from treeinfer.plots import plot_band_grid
 
     names = list(rows)
-    stack = lambda f: np.stack([getattr(rows[n], f) for n in names])  # noqa: E731
-    t = np.arange(stack("lower").shape[-1]) * dt
+    stack = lambda f: np.stack([getattr(rows[n], f) for n in names])  # noqa: E731  [K, k, ...]
+    arrays = [stack(f) for f in ("lower", "upper", "mean", "gt", "samples")]
+    row_labels, col_labels = names, list(col_labels)
+    if transpose:
+        arrays = [np.swapaxes(a, 0, 1) for a in arrays]
+        row_labels, col_labels = col_labels, row_labels
+    t = np.arange(arrays[0].shape[-1]) * dt
     fig, _ = plot_band_grid(
-        t, stack("lower"), stack("upper"), stack("mean"), stack("gt"), stack("samples"),
-        row_labels=names, col_labels=list(col_labels), suptitle=title,
+        t, *arrays, row_labels=row_labels, col_labels=col_labels, suptitle=title,
         ylabel=f"displacement [m] ({level:.0%} band, grey)",
     )
     return fig

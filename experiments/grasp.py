@@ -83,7 +83,7 @@ def run(argv=None) -> int:
     figures = {
         "bands.png": C.band_grid(
             bands, cfg.dt, cfg.level, [f"profile {i}" for i in range(n_cols)],
-            f"Trained at grasp {data.tree.grasp_fraction:g} l; 95% bands at unseen locations",
+            f"Trained at grasp {data.tree.grasp_fraction:g} l; 95% bands at other locations", transpose=True,
         ),
         "metrics.png": C.metric_figure([c["name"] for c in conditions], [c["metrics"] for c in conditions], "Unseen grasp locations"),
     }
@@ -113,12 +113,12 @@ def _markdown(cfg, data, problem, conditions, post) -> str:
     )
     return "\n\n".join([
         "# (d) Unseen grasp locations (paper Fig. 6)",
-        C.config_line(cfg, data, problem, f"{cfg.n_test_per_location} unseen test profiles x {len(cfg.grasp_locations)} locations")
+        C.config_line(cfg, data, problem, f"{len(data.test)} unseen test ({cfg.n_test_per_location} profiles x {len(cfg.grasp_locations)} locations)")
         + f"; trained at grasp fraction {data.tree.grasp_fraction:g} of branch `{data.tree.grasp_branch}`, no noise.",
         table,
         post_line,
-        "Figures: `bands.png` (rows: test grasp locations as fractions of the branch length l; columns: "
-        "unseen force profiles), `metrics.png`.",
+        "Figures: `bands.png` (columns: test grasp locations as fractions of the branch length l from its "
+        "parent joint; rows: unseen force profiles), `metrics.png`.",
         C.METRIC_NOTES,
     ])
 

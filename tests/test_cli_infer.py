@@ -244,7 +244,7 @@ def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
 
     # a time,force file with the same force gives the same band, without ground truth
     ff = tmp_path / "force.csv"
-    ff.write_text("# a force profile\ntime,force\n" + "".join(f"{t!r},{f!r}\n" for t, f in zip(tr.time, tr.force)))
+    ff.write_text("# a force profile\ntime,force\n" + "".join(f"{float(t)!r},{float(f)!r}\n" for t, f in zip(tr.time, tr.force)))
     rc, _, err = run(capsys, "predict", "--run", out, "--force", ff, "--out", tmp_path / "p2")
     assert rc == 0, err
     cols2, b = _prediction(tmp_path / "p2")
@@ -358,3 +358,45 @@ def _write_pulls(d: Path, dt: float, n: int) -> None:
     for i in range(n):
         f = (3.0 + i) * np.clip(t / 0.3, 0, 1)
         write_trajectory(d / f"p{i}.csv", Trajectory(t, f, 0.01 * f, None, f"p{i}.csv"))
+
+
+def test_infer_too_many_unstable_keeps_the_sampler_state(demo, tmp_path, monkeypatch, capsys):
+    """More unstable final particles than --max-unstable-share: exit 2, no run folder, and the
+    sampler state kept for `--resume --max-unstable-share`. Sampling and the training rollout are
+    replaced by stand-ins (this is about the bookkeeping, not the simulator)."""
+    import jax.numpy as jnp
+    import optax
+
+    from treeinfer import inference
+    from treeinfer.samplers import RunResult, SVGDState
+
+    theta = np.tile(np.log([50.0, 100.0, 1.0, 1.0]), (8, 1)).astype(np.float32)
+    ld = np.full(8, -1.0, np.float32)
+
+    def fake_infer(problem, sampler, n_particles, n_iterations, seed, progress, callback, callback_every,
+                   initial_state, start_iteration):
+        calls.append((initial_state is not None, start_iteration))
+        state = SVGDState(jnp.asarray(theta), jnp.asarray(ld), jnp.zeros_like(jnp.asarray(theta)),
+                          optax.adam(0.05).init(jnp.asarray(theta)))  # NNSVGD's state structure
+        result = RunResult(theta, state, theta[None], ld[None], np.array([0]), {}, {"start_iteration": 0}, 0.0)
+        return inference.Posterior(theta, np.exp(theta[:, :2]), np.exp(theta[:, 2:]), ld, problem.labels, result, {})
+
+    calls = []
+    stable = np.array([True, True, True, False, False, False, False, False])
+    monkeypatch.setattr(inference, "infer", fake_infer)
+    monkeypatch.setattr(runs, "_training_fit", lambda *a: {"stable": stable, "prediction": None, "metrics": None})
+    out = tmp_path / "run"
+    rc, _, err = run(capsys, "infer", "--tree", TWO, "--data", demo[0] / "data" / "train", "--out", out, *QUICK)
+    assert_user_error(rc, err, "62% of", "--max-unstable-share", f"--resume {out}")
+    assert not out.exists()
+    partial = runs.partial_dir(out)
+    assert runs.read_checkpoint_info(partial / runs.CHECKPOINT_FILE)["iteration"] == 3
+    # a larger limit on --resume writes the run from the kept state, without sampling again
+    rc, stdout, err = run(capsys, "infer", "--resume", out, "--max-unstable-share", "0.7", "--no-progress")
+    assert rc == 0, err
+    assert calls == [(False, 0), (True, 3)] and not partial.exists()
+    s = json.loads((out / "summary.json").read_text())
+    assert s["n_unstable"] == 5 and s["unstable_particles"] == [3, 4, 5, 6, 7]
+    cfg = json.loads((out / "config.json").read_text())
+    assert cfg["options"]["max_unstable_share"] == 0.7
+    assert "5 unstable" in stdout

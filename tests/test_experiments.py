@@ -207,6 +207,7 @@ def test_noise(baseline_run, tmp_path, cache):
     assert noisy["noise"]["level"] == 0.05 and noisy["noise"]["sigma_force_N"] > 0
     assert not noisy["inference"]["from_cache"]
     assert "sigma_F" in (tmp_path / "results.md").read_text()
+    assert noisy["metrics_vs_clean_truth"]["ci_width"] == noisy["metrics"]["ci_width"]  # same bands
 
 
 def test_grasp_and_seed_reproducibility(baseline_run, tmp_path, cache):

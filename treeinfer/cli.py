@@ -1004,7 +1004,7 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
     p = add_command_parser(
         subparsers,
         "predict",
-        help="predict the displacement under a force profile, with a 95% posterior band",
+        help="predict the displacement under a force profile, with a 95%% posterior band",
         description="Simulate every posterior particle of a run under a force profile (a CSV or a "
         "profile spec), optionally grasped at another point of the branch, and write the mean "
         "displacement with its 95% predictive band (per-time-step KDE over the particles).",
@@ -1016,7 +1016,7 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
     src.add_argument("--profile", metavar="SPEC", help="force profile spec, e.g. 'ramp:peak=5,ramp=1'")
     p.add_argument("--duration", type=float, metavar="S", help="s, length of a --profile")
     p.add_argument("--dt", type=float, metavar="S", help="s, sample step of a --profile (default: the run's)")
-    p.add_argument("--grasp-fraction", type=float, metavar="F", help="where along the grasped branch the force acts, in (0, 1] (default: the run's)")
+    p.add_argument("--grasp-fraction", type=float, metavar="F", help="where along the grasped branch the force acts, in (0, 1] (default: where the run's training data were recorded)")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (must be empty or absent unless --overwrite)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder (--force names the force file here)")
     return p
@@ -1066,7 +1066,8 @@ def run_predict(args: argparse.Namespace) -> int:
         f = from_spec(args.profile, args.duration, dt)
         prof = runs.ForceProfile(np.arange(len(f)) * dt, f, None, args.profile)
     _say(f"simulating {len(run.theta)} particles (the first prediction of a shape compiles for up to a minute)...")
-    pred = runs.predict_run(run.sim, run.theta, prof.force[None], args.grasp_fraction, run.stable)
+    grasp = args.grasp_fraction if args.grasp_fraction is not None else run.grasp_fraction
+    pred = runs.predict_run(run.sim, run.theta, prof.force[None], grasp, run.stable)
     n_bad = int((~pred.valid).sum())
     lower, upper, mean = pred.lower[0], pred.upper[0], pred.mean[0]
     cols = ["time", "force", "mean", "lower", "upper"] + (["displacement"] if prof.displacement is not None else [])
@@ -1078,7 +1079,7 @@ def run_predict(args: argparse.Namespace) -> int:
     ] + [",".join(repr(float(v)) for v in r) for r in zip(*rows)]
     config = _base_config("predict", args)
     config.update(run=str(Path(args.run).resolve()), force_source=prof.source, dt=float(dt_run), n_steps=len(prof.time),
-                  grasp_fraction=args.grasp_fraction if args.grasp_fraction is not None else run.tree.grasp_fraction,
+                  grasp_fraction=grasp if grasp is not None else run.tree.grasp_fraction,
                   n_particles=len(run.theta), n_valid=int(pred.valid.sum()), n_excluded=n_bad)
     with staged_output_dir(args.out, args.overwrite) as stage:
         atomic_write_text(stage / "prediction.csv", "\n".join(lines) + "\n")
@@ -1131,7 +1132,7 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, type=Path, metavar="DIR", help="folder of held-out trajectory CSVs")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (must be empty or absent unless --force)")
     p.add_argument("--kfold", type=int, metavar="K", help="k-fold cross-validation over DIR's trajectories (K >= 2)")
-    p.add_argument("--grasp-fraction", type=float, metavar="F", help="where along the grasped branch DIR's data were recorded (default: the tree's grasp)")
+    p.add_argument("--grasp-fraction", type=float, metavar="F", help="where along the grasped branch DIR's data were recorded (default: as the run's training data)")
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
     return p
@@ -1222,12 +1223,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
         raise ConfigError(f"{args.data}: trajectories have dt={dt:g} s but run {args.run} was inferred at "
                           f"dt={run.sim.obs_dt:g} s; resample them to the run's step")
     truth = runs.read_true_params(run.tree, args.data)
+    grasp = args.grasp_fraction if args.grasp_fraction is not None else run.grasp_fraction
     config = _base_config("evaluate", args)
     config.update(run=str(Path(args.run).resolve()), data_files=runs.data_manifest(args.data), dt=dt,
-                  run_options=run.config["options"])
+                  grasp_fraction=grasp if grasp is not None else run.tree.grasp_fraction, run_options=run.config["options"])
     if args.kfold is None:
         m, pred, obs = runs.evaluate_trajectories(run.sim, run.theta, list(run.labels), trajs, run.kT,
-                                                  args.grasp_fraction, truth, run.stable)
+                                                  grasp, truth, run.stable)
         metrics = {"run": str(args.run), "data": str(args.data), "metrics": m}
         md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md("held-out metrics", m)
         write_evaluation(args.out, metrics, _band_arrays([(pred, obs)]), [t.source for t in trajs], dt, config,
@@ -1240,7 +1242,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     o = run.config["options"]
     _say(f"{args.kfold}-fold cross-validation on {len(trajs)} trajectories with the run's settings "
          f"({o['sampler']}, {o['particles']} particles x {o['iterations']} iterations per fold)")
-    results = runs.kfold(run.config, run.tree, trajs, args.kfold, args.grasp_fraction, truth,
+    results = runs.kfold(run.config, run.tree, trajs, args.kfold, grasp, truth,
                          progress=not args.no_progress, log=_say)
     mean, std = runs.mean_metrics([r.metrics for r in results])
     folds = [{"fold": r.fold, "train": r.train, "test": r.test, "metrics": r.metrics} for r in results]
@@ -1426,7 +1428,7 @@ _MAIN_EPILOG = """\
 a typical sim-to-sim session:
   treeinfer tree --kind fractal --depth 1 --base-pitch 10 --out tree.yaml
   treeinfer simulate --tree tree.yaml --out data/train --n-traj 8 --seed 1
-  treeinfer simulate --tree tree.yaml --out data/test --n-traj 8 --seed 2 \
+  treeinfer simulate --tree tree.yaml --out data/test --n-traj 8 --seed 2 \\
       --params-json data/train/true_params.json
   treeinfer infer --tree tree.yaml --data data/train --out run
   treeinfer evaluate --run run --data data/test --out eval

@@ -51,6 +51,7 @@ import os
 import platform
 import shutil
 import time
+import warnings
 import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -665,11 +666,13 @@ def run_inference(
     fit = _training_fit(problem, posterior, config)
     from .simulator import check_stable_share
 
-    check_stable_share(
-        fit["stable"], o["max_unstable_share"],
-        f"the {o['particles']} final particles (limit set by --max-unstable-share; the sampler state "
-        f"is kept in {partial}, --resume {run_dir} --max-unstable-share X writes the run anyway)",
-    )
+    try:
+        check_stable_share(fit["stable"], o["max_unstable_share"], f"the {o['particles']} final particles")
+    except SimulationError as e:
+        raise SimulationError(
+            f"{e} (the limit is --max-unstable-share). The sampler state is kept in {partial}: "
+            f"`treeinfer infer --resume {run_dir} --max-unstable-share X` writes the run anyway"
+        ) from None
     summary = _run_summary(problem, posterior, config, trace, fit, truth)
     config = {**config, "posterior_settings": posterior.settings, "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     save_run(run_dir, tree=tree, config=config, posterior=posterior, problem=problem, trace=trace, fit=fit,
@@ -932,7 +935,10 @@ def save_run(
             idata = to_inference_data(posterior.theta, labels, log_density=posterior.log_density, sampler=sampler, attrs=attrs)
         else:
             attrs["trace_iterations"] = ",".join(str(i) for i in trace["iterations"])
-            idata = to_inference_data(trace["positions"], labels, log_density=trace["log_density"], sampler=sampler, attrs=attrs)
+            with warnings.catch_warnings():  # short runs: ArviZ suspects chains and draws swapped
+                warnings.filterwarnings("ignore", "More chains", UserWarning)
+                idata = to_inference_data(trace["positions"], labels, log_density=trace["log_density"],
+                                          sampler=sampler, attrs=attrs)
         save_inference_data(idata, stage / "posterior.nc")
         atomic_write_text(stage / "particles.csv", particles_csv(posterior.theta, labels, posterior.log_density, stable))
         arrays = {
@@ -971,7 +977,8 @@ class LoadedRun(NamedTuple):
     path: the run folder. tree: its tree. config: config.json. theta: [P, D] final particles
     (log Kp, log Kd; float32 as sampled). labels: theta's columns. log_density: [P].
     stable: [P] stable on the training data. sim: the simulator at the recorded obs_dt/substeps.
-    kT: the likelihood temperature. summary: summary.json.
+    kT: the likelihood temperature. summary: summary.json. grasp_fraction: where the training
+    data were recorded (``--grasp-fraction`` of the run; None: the tree's grasp).
     """
 
     path: Path
@@ -984,6 +991,7 @@ class LoadedRun(NamedTuple):
     sim: Any
     kT: float
     summary: dict
+    grasp_fraction: float | None
 
 
 def load_run(run_dir: str | os.PathLike) -> LoadedRun:
@@ -1015,7 +1023,8 @@ def load_run(run_dir: str | os.PathLike) -> LoadedRun:
         stable[np.asarray(summary["unstable_particles"], int)] = False
     p = config["problem"]
     sim = simulator_for(tree, p["obs_dt"], p["substeps"])
-    return LoadedRun(run_dir, tree, config, theta, labels, ld, stable, sim, float(p["kT"]), summary)
+    return LoadedRun(run_dir, tree, config, theta, labels, ld, stable, sim, float(p["kT"]), summary,
+                     config["options"].get("grasp_fraction"))
 
 
 # ==== force files =================================================================================

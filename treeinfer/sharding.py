@@ -96,7 +96,21 @@ def shard_particles(theta, mesh: Mesh | None = None) -> jax.Array:
     return jax.make_array_from_callback(host.shape, particle_sharding(mesh), lambda idx: host[idx])
 
 
-def shard_value_and_grad(value_and_grad: ValueAndGradFn, mesh: Mesh | None = None) -> ValueAndGradFn:
+def _constrained(fn, mesh: Mesh):
+    """``fn`` with its particle axis constrained to be split over ``mesh`` at input and output;
+    XLA's SPMD partitioner splits the (row-independent) work in between."""
+    split = particle_sharding(mesh)
+
+    def wrapped(theta):
+        _check_divisible(theta.shape[0], mesh, "sharded evaluation")
+        out = fn(jax.lax.with_sharding_constraint(theta, split))
+        return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, split), out)
+
+    return wrapped
+
+
+def shard_value_and_grad(value_and_grad: ValueAndGradFn, mesh: Mesh | None = None,
+                         method: str = "shard_map") -> ValueAndGradFn:
     """``value_and_grad(theta [P, D]) -> ([P], [P, D])`` evaluated per device on its block of
     particles (``shard_map``): each device runs the simulator once, on its own particles'
     P/n * (2D + 1) finite-difference rows. Jittable; P must be a multiple of the device count.
@@ -104,6 +118,9 @@ def shard_value_and_grad(value_and_grad: ValueAndGradFn, mesh: Mesh | None = Non
     ``check_vma=False``: the wrapped function is per-device code with no collectives, and MJX's
     loops mix device-varying and replicated carries, which the check would reject."""
     mesh = particle_mesh() if mesh is None else mesh
+    if method == "gspmd":
+        return _constrained(value_and_grad, mesh)
+    _check_method(method)
     mapped = jax.shard_map(value_and_grad, mesh=mesh, in_specs=P(AXIS), out_specs=(P(AXIS), P(AXIS)),
                            check_vma=False)
 
@@ -114,9 +131,17 @@ def shard_value_and_grad(value_and_grad: ValueAndGradFn, mesh: Mesh | None = Non
     return sharded
 
 
-def shard_log_density(log_density: LogDensityFn, mesh: Mesh | None = None) -> LogDensityFn:
+def _check_method(method: str) -> None:
+    if method not in ("shard_map", "gspmd"):
+        raise ConfigError(f"sharding method: expected 'shard_map' or 'gspmd', got {method!r}")
+
+
+def shard_log_density(log_density: LogDensityFn, mesh: Mesh | None = None, method: str = "shard_map") -> LogDensityFn:
     """``log_density(theta [P, D]) -> [P]`` evaluated per device on its block of particles."""
     mesh = particle_mesh() if mesh is None else mesh
+    if method == "gspmd":
+        return _constrained(log_density, mesh)
+    _check_method(method)
     mapped = jax.shard_map(log_density, mesh=mesh, in_specs=P(AXIS), out_specs=P(AXIS), check_vma=False)
 
     def sharded(theta):
@@ -126,14 +151,17 @@ def shard_log_density(log_density: LogDensityFn, mesh: Mesh | None = None) -> Lo
     return sharded
 
 
-def shard_problem(problem, mesh: Mesh | None = None):
+def shard_problem(problem, mesh: Mesh | None = None, method: str = "shard_map"):
     """A copy of a :class:`~treeinfer.inference.Problem` whose ``value_and_grad`` and
-    ``log_density`` run sharded over ``mesh`` (everything else shared with ``problem``)."""
+    ``log_density`` run sharded over ``mesh`` (everything else shared with ``problem``).
+
+    ``method``: ``"shard_map"`` (explicit per-device programs) or ``"gspmd"`` (sharding
+    constraints on the particle axis; XLA partitions the row-independent simulator work)."""
     mesh = particle_mesh() if mesh is None else mesh
     return dataclasses.replace(
         problem,
-        value_and_grad=shard_value_and_grad(problem.value_and_grad, mesh),
-        log_density=shard_log_density(problem.log_density, mesh),
+        value_and_grad=shard_value_and_grad(problem.value_and_grad, mesh, method),
+        log_density=shard_log_density(problem.log_density, mesh, method),
         settings={**problem.settings, "sharded_over_devices": int(mesh.shape[AXIS])},
     )
 
