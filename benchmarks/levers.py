@@ -3,9 +3,11 @@
     python -m benchmarks.levers                    # all levers, platform defaults
     python -m benchmarks.levers --only precision,loops --batch 64
 
-* ``precision``: float32 (default) against float64 (``JAX_ENABLE_X64=1``, in a subprocess), both
-  checked against MuJoCo C (``simulate_reference``, float64) on the three-branch example under
-  the standard problem's three profiles; and their rollout times at ``--batch`` parameter sets.
+* ``precision``: float32 (default), float32 with ``JAX_DEFAULT_MATMUL_PRECISION=highest`` (no
+  TF32 matrix units on GPU) and float64 (``JAX_ENABLE_X64=1``), each in a fresh process, checked
+  against MuJoCo C (``simulate_reference``, float64) on the three-branch example under the
+  standard problem's three profiles, inside a batch of ``--batch`` parameter sets and alone;
+  and their rollout times at that batch.
 * ``loops``: ``benchmarks.variants.simulate_variant``: ``lax.scan`` unroll of the observation
   loop, full unroll of the substep loop, and MuJoCo's Euler integrator (implicit damping)
   instead of ``implicitfast``; compile and run time at ``--batch`` x 3 profiles, and the largest
@@ -51,7 +53,10 @@ def _standard_inputs(n_steps: int):
 
 
 def precision_child(batch: int, n_steps: int, n_check: int, reps: int) -> dict:
-    """Errors against C and the rollout time at the current JAX precision."""
+    """Errors against C and the rollout time at this process's JAX precision settings.
+
+    The first ``n_check`` parameter sets are checked inside the large batch (that is where XLA
+    picks its large-batch kernels) and again as a batch of their own (batch-size consistency)."""
     import jax
     import jax.numpy as jnp
 
@@ -64,44 +69,56 @@ def precision_child(batch: int, n_steps: int, n_check: int, reps: int) -> dict:
     dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     run = jax.jit(lambda a, b, f: simulate(sim, a, b, f))
     f = jnp.asarray(forces, dtype)
-    ck = run(jnp.asarray(kp[:n_check], dtype), jnp.asarray(kd[:n_check], dtype), f)
-    err_tau, err_vel, scale = 0.0, 0.0, 0.0
-    for i in range(n_check):
-        for b in range(forces.shape[0]):
-            tau, vel = simulate_reference(sim, kp[i], kd[i], forces[b])
-            err_tau = max(err_tau, float(np.max(np.abs(np.asarray(ck.tau[i, b], float) - tau))))
-            err_vel = max(err_vel, float(np.max(np.abs(np.asarray(ck.tau_dot[i, b], float) - vel))))
-            scale = max(scale, float(np.max(np.abs(tau))))
     a, b_ = jnp.asarray(kp[:batch], dtype), jnp.asarray(kd[:batch], dtype)
     t0 = time.perf_counter()
     compiled = run.lower(a, b_, f).compile()
     t_compile = time.perf_counter() - t0
-    C.block(compiled(a, b_, f))
+    big = C.block(compiled(a, b_, f))
+    small = run(jnp.asarray(kp[:n_check], dtype), jnp.asarray(kd[:n_check], dtype), f)
+    err_tau, err_vel, scale = 0.0, 0.0, 0.0
+    for i in range(n_check):
+        for j in range(forces.shape[0]):
+            tau, vel = simulate_reference(sim, kp[i], kd[i], forces[j])
+            err_tau = max(err_tau, float(np.max(np.abs(np.asarray(big.tau[i, j], float) - tau))))
+            err_vel = max(err_vel, float(np.max(np.abs(np.asarray(big.tau_dot[i, j], float) - vel))))
+            scale = max(scale, float(np.max(np.abs(tau))))
+    batch_diff = float(np.max(np.abs(np.asarray(big.tau[:n_check], float) - np.asarray(small.tau, float))))
     tm = C.time_calls(lambda: compiled(a, b_, f), reps=reps, min_time_s=1.0)
     steps = batch * forces.shape[0] * n_steps * sim.substeps
-    return {"dtype": str(np.dtype(dtype)), "max_abs_tau_error_m": err_tau, "max_abs_tau_dot_error_m_s": err_vel,
-            "max_abs_tau_m": scale, "n_checked": n_check * forces.shape[0], "batch": batch,
+    return {"dtype": str(np.dtype(dtype)), "matmul_precision": str(jax.config.jax_default_matmul_precision),
+            "max_abs_tau_error_m": err_tau, "max_abs_tau_dot_error_m_s": err_vel, "max_abs_tau_m": scale,
+            "n_checked": n_check * forces.shape[0], "batch": batch,
+            "max_abs_tau_diff_batch_vs_alone_m": batch_diff,
             "rollout_s": tm["median_s"], "steps_per_s": steps / tm["median_s"], "compile_s": t_compile,
-            "all_stable": bool(np.all(np.asarray(ck.stable)))}
+            "all_stable": bool(np.all(np.asarray(big.stable[:n_check])))}
+
+
+PRECISION_VARIANTS = {
+    "float32": {},
+    "float32, matmul precision highest": {"JAX_DEFAULT_MATMUL_PRECISION": "highest"},
+    "float64": {"JAX_ENABLE_X64": "1"},
+}
 
 
 def lever_precision(args) -> dict:
-    out = {"float32": precision_child(args.batch, args.steps, args.n_check, args.reps)}
-    env = {**os.environ, "JAX_ENABLE_X64": "1", "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
-    code = (f"import json; from benchmarks.levers import precision_child; "
-            f"print(json.dumps(precision_child({args.batch}, {args.steps}, {args.n_check}, {args.reps})))")
-    proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True)
-    if proc.returncode == 0:
-        out["float64"] = json.loads(proc.stdout.strip().splitlines()[-1])
-    else:
-        out["float64"] = {"error": proc.stderr[-2000:]}
-    for k, v in out.items():
-        if "error" not in v:
-            print(f"   {k}: |tau - C| <= {v['max_abs_tau_error_m']:.2e} m, |tau_dot - C| <= "
-                  f"{v['max_abs_tau_dot_error_m_s']:.2e} m/s (max tau {v['max_abs_tau_m']:.3f} m); "
-                  f"{C.fmt_rate(v['steps_per_s'])} steps/s at N={v['batch']}x3, compile {v['compile_s']:.1f} s", flush=True)
-        else:
-            print(f"   {k}: failed: {v['error'][-300:]}", flush=True)
+    out = {}
+    for name, extra in PRECISION_VARIANTS.items():
+        if time.perf_counter() - args.t_start > args.budget_s:
+            out[name] = {"skipped": "budget"}
+            continue
+        env = {**os.environ, **extra, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+        code = (f"import json; from benchmarks.levers import precision_child; "
+                f"print(json.dumps(precision_child({args.batch}, {args.steps}, {args.n_check}, {args.reps})))")
+        proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True)
+        if proc.returncode != 0:
+            out[name] = {"error": proc.stderr[-2000:]}
+            print(f"   {name}: failed: {proc.stderr.strip()[-300:]}", flush=True)
+            continue
+        v = out[name] = json.loads(proc.stdout.strip().splitlines()[-1])
+        print(f"   {name:<34}: |tau - C| <= {v['max_abs_tau_error_m']:.2e} m, |tau_dot - C| <= "
+              f"{v['max_abs_tau_dot_error_m_s']:.2e} m/s (max tau {v['max_abs_tau_m']:.3f} m), "
+              f"batch {v['batch']} vs alone {v['max_abs_tau_diff_batch_vs_alone_m']:.1e} m; "
+              f"{C.fmt_rate(v['steps_per_s'])} steps/s at N={v['batch']}x3, compile {v['compile_s']:.1f} s", flush=True)
     return out
 
 

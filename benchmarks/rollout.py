@@ -218,6 +218,10 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
         idx = np.arange(n) % POOL
         kp = jnp.asarray(kp_pool[idx], jnp.float32)
         kd = jnp.asarray(kd_pool[idx], jnp.float32)
+        if args.shard and jax.device_count() > 1 and n % jax.device_count() == 0:
+            from treeinfer.sharding import shard_particles
+
+            kp, kd = shard_particles(kp), shard_particles(kd)  # XLA splits the batch over devices
         fj = jnp.asarray(forces, jnp.float32)
         t0 = time.perf_counter()
         lowered = sim_fn.lower(kp, kd, fj)
@@ -240,6 +244,7 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
         tm = C.time_calls(lambda: compiled(kp, kd, fj), reps=args.reps, min_time_s=args.min_time_s)
         mjx_rate = n * steps_per_rollout / tm["median_s"]
         row = {"n_branches": n_branches, "batch": n, "mjx_s": tm["median_s"], "mjx_steps_per_s": mjx_rate,
+               "mjx_devices": len(kp.sharding.device_set),
                "lower_s": t1 - t0, "compile_s": t2 - t1, "mjx_reps": tm["reps"],
                "all_stable": bool(np.all(np.asarray(out.stable)))}
         del out
@@ -296,6 +301,9 @@ def main(argv=None) -> int:
                    help="skip timing the settle alone at the largest batch")
     p.add_argument("--budget-s", type=float, default=float("inf"), help="stop starting new batches after this")
     p.add_argument("--compile-cache", default=None, help="persistent compilation cache dir (default: off)")
+    p.add_argument("--shard", action="store_true",
+                   help="split the parameter sets over all JAX devices (e.g. CPU cores exposed with "
+                        "XLA_FLAGS=--xla_force_host_platform_device_count=N)")
     p.add_argument("--append", action="store_true",
                    help="keep rows of other trees/batches already in the JSON (default: replace the section)")
     p.add_argument("--machine", default=None, help="name of the JSON file (default from the device)")

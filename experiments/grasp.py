@@ -83,7 +83,7 @@ def run(argv=None) -> int:
     figures = {
         "bands.png": C.band_grid(
             bands, cfg.dt, cfg.level, [f"profile {i}" for i in range(n_cols)],
-            f"Trained at grasp {data.tree.grasp_fraction:g} l; 95% bands at other locations", transpose=True,
+            f"Trained at grasp {data.tree.grasp_fraction:g} l; 95% bands at the test locations", transpose=True,
         ),
         "metrics.png": C.metric_figure([c["name"] for c in conditions], [c["metrics"] for c in conditions], "Unseen grasp locations"),
     }

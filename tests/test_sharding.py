@@ -50,16 +50,22 @@ theta0 = jax.random.normal(jax.random.key(0), (16, 3))
 """
 
 
-def test_sharded_svgd_gives_the_same_particles():
-    res = run_two_devices(CHEAP_TARGET + """
+@pytest.mark.parametrize("method", ["gspmd", "shard_map"])
+def test_sharded_svgd_gives_the_same_particles(method):
+    res = run_two_devices(CHEAP_TARGET + f"""
+method = {method!r}
+""" + """
 from treeinfer.samplers import run, svgd
 plain = run(svgd(vg, learning_rate=0.05), 7, theta0, 25, progress=False)
 rows_plain = sorted(set(rows)); rows.clear()
-alg = svgd(S.shard_value_and_grad(vg, mesh), learning_rate=0.05)
+alg = svgd(S.shard_value_and_grad(vg, mesh, method), learning_rate=0.05)
 sharded = run(alg, 7, S.shard_particles(theta0, mesh), 25, progress=False)
 rows_sharded = sorted(set(rows))
 pos = sharded.final_state.position
 hlo = jax.jit(alg.step).lower(jax.random.key(0), sharded.final_state).compile().as_text()
+import re
+hlo_vg = jax.jit(S.shard_value_and_grad(vg, mesh, method)).lower(S.shard_particles(theta0, mesh)).compile().as_text()
+leading = sorted({int(n) for n in re.findall(r"f32\[(\d+)[,\]]", hlo_vg)})
 a, b = np.asarray(plain.final_positions), np.asarray(sharded.final_positions)
 print(json.dumps(dict(
     max_abs=float(np.max(np.abs(a - b))), bitwise=bool(np.array_equal(a, b)),
@@ -67,6 +73,7 @@ print(json.dumps(dict(
     n_shards=len(pos.addressable_shards), shard_rows=[s.data.shape[0] for s in pos.addressable_shards],
     rows_plain=rows_plain, rows_sharded=rows_sharded,
     collectives=hlo.count("all-gather") + hlo.count("all-reduce") + hlo.count("all-to-all"),
+    leading=leading,
 )))
 """)
     assert res["moved"] > 0.1  # the run did something
@@ -74,7 +81,12 @@ print(json.dumps(dict(
     assert res["max_abs"] <= 1e-5, res
     # positions stay split between iterations, and each device differenced only its own 8 particles
     assert res["n_shards"] == 2 and res["shard_rows"] == [8, 8]
-    assert res["rows_plain"] == [16 * 7] and res["rows_sharded"] == [8 * 7]
+    assert res["rows_plain"] == [16 * 7]
+    # shard_map traces the per-device function (8 particles x 7 rows); GSPMD traces the global
+    # program once and XLA splits it (checked by the shard count above)
+    assert res["rows_sharded"] == ([8 * 7] if method == "shard_map" else [16 * 7])
+    # the compiled per-device gradient program holds only local sizes: 8 particles, 56 FD rows
+    assert 56 in res["leading"] and not {16, 112} & set(res["leading"]), res["leading"]
     # the Stein term's coupling of all particles is done by XLA collectives inside the step
     assert res["collectives"] > 0
 

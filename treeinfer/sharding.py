@@ -13,10 +13,15 @@ or, piece by piece (what :func:`infer_sharded` does):
 
 How the work is split:
 
-* ``value_and_grad`` (the batched central difference of the likelihood plus the priors) runs
-  under :func:`jax.shard_map` with particles split along the mesh axis: a device holding P/n
-  particles builds their P/n * (2D + 1) perturbed rows and calls the simulator once on them.
-  Rows are independent, so no communication is needed here.
+* ``value_and_grad`` (the batched central difference of the likelihood plus the priors) gets
+  its particle axis split along the mesh: a device holding P/n particles builds their
+  P/n * (2D + 1) perturbed rows and simulates them. Rows are independent, so no communication
+  is needed here. Two ways, same result: ``method="gspmd"`` (default) puts sharding constraints
+  on the particle axis at the function's input and output and lets XLA's SPMD partitioner split
+  the batched simulator; ``method="shard_map"`` writes the per-device program explicitly with
+  :func:`jax.shard_map`. Why GSPMD is the default: with jax/jaxlib 0.11.2 on two H200s, XLA's GPU
+  compiler crashed (segmentation fault in ``backend_compile_and_load``) on the ``shard_map``
+  version of the MJX likelihood, while the GSPMD version compiled and ran (CPU: both work).
 * The Stein direction ``phi(x_i) = 1/P sum_j k(x_j, x_i) grad_j + grad_{x_j} k(x_j, x_i)`` and
   the median-heuristic bandwidth need every particle. The sampler step is jitted with sharded
   operands, so XLA's SPMD partitioner inserts the collectives (all-gather of particles/gradients,
@@ -110,7 +115,7 @@ def _constrained(fn, mesh: Mesh):
 
 
 def shard_value_and_grad(value_and_grad: ValueAndGradFn, mesh: Mesh | None = None,
-                         method: str = "shard_map") -> ValueAndGradFn:
+                         method: str = "gspmd") -> ValueAndGradFn:
     """``value_and_grad(theta [P, D]) -> ([P], [P, D])`` evaluated per device on its block of
     particles (``shard_map``): each device runs the simulator once, on its own particles'
     P/n * (2D + 1) finite-difference rows. Jittable; P must be a multiple of the device count.
@@ -136,7 +141,7 @@ def _check_method(method: str) -> None:
         raise ConfigError(f"sharding method: expected 'shard_map' or 'gspmd', got {method!r}")
 
 
-def shard_log_density(log_density: LogDensityFn, mesh: Mesh | None = None, method: str = "shard_map") -> LogDensityFn:
+def shard_log_density(log_density: LogDensityFn, mesh: Mesh | None = None, method: str = "gspmd") -> LogDensityFn:
     """``log_density(theta [P, D]) -> [P]`` evaluated per device on its block of particles."""
     mesh = particle_mesh() if mesh is None else mesh
     if method == "gspmd":
@@ -151,7 +156,7 @@ def shard_log_density(log_density: LogDensityFn, mesh: Mesh | None = None, metho
     return sharded
 
 
-def shard_problem(problem, mesh: Mesh | None = None, method: str = "shard_map"):
+def shard_problem(problem, mesh: Mesh | None = None, method: str = "gspmd"):
     """A copy of a :class:`~treeinfer.inference.Problem` whose ``value_and_grad`` and
     ``log_density`` run sharded over ``mesh`` (everything else shared with ``problem``).
 

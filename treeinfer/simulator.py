@@ -24,7 +24,7 @@ Joint model: each hinge has ``stiffness = Kp``, ``damping = Kd`` and ``springref
 passive torque is ``-Kp * psi - Kd * psi_dot`` about the geometric rest angle, the paper's PD
 controller with zero target. Integrator: ``implicitfast`` (damping implicit, so any Kd in the
 prior is stable); the step is chosen from the stiffest corner of the prior box so that
-``omega_max * dt <= 1`` (explicit springs are stable for ``omega * dt < 2``).
+``omega_max * dt <= 1.5`` at twice the box's upper Kp (explicit springs are stable for ``omega * dt < 2``).
 
 Instability: a parameter set whose state becomes non-finite, whose joint speed exceeds
 ``max_joint_speed`` or whose displacement exceeds ``max_displacement`` (or that fails to
@@ -46,7 +46,7 @@ from .errors import ConfigError, SimulationError, TreeFileError
 from .tree import Tree
 
 DEFAULT_MAX_SIM_DT = 0.005  # s: upper bound on the simulation step whatever the prior
-STABILITY_MARGIN = 1.0  # require omega_max * dt <= this (explicit-spring limit is 2)
+STABILITY_MARGIN = 1.5  # require omega_max * dt <= this (explicit-spring limit is 2)
 PRIOR_STIFFNESS_HEADROOM = 2.0  # particles may wander a little past the prior box's upper Kp
 
 
