@@ -164,6 +164,7 @@ def _particles(run: Path) -> np.ndarray:
 
 # Popen forks a JAX process (to exec at once, so JAX's fork warning does not apply here).
 @pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")
+@pytest.mark.slow  # three processes that each trace MJX: ~3-5 minutes on a shared 2-core CPU
 def test_sigkill_sigint_resume_bit_identical(tmp_path, capsys):
     data = tmp_path / "data"
     _write_data(data)
