@@ -45,6 +45,18 @@ import numpy as np
 from .errors import ConfigError, SimulationError, TreeFileError
 from .tree import Tree
 
+def _import_mjx_quietly() -> None:
+    """MJX prints 'Failed to import warp' on import when the optional Warp backend is absent;
+    we use the JAX backend only, so that line is noise for users."""
+    import contextlib
+    import io
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        from mujoco import mjx  # noqa: F401
+
+
+_import_mjx_quietly()
+
 DEFAULT_MAX_SIM_DT = 0.005  # s: upper bound on the simulation step whatever the prior
 STABILITY_MARGIN = 1.5  # require omega_max * dt <= this (explicit-spring limit is 2)
 PRIOR_STIFFNESS_HEADROOM = 2.0  # particles may wander a little past the prior box's upper Kp
