@@ -402,7 +402,10 @@ class PosteriorRun(NamedTuple):
     key: str
 
 
+@functools.lru_cache(maxsize=1)
 def _source_digest() -> str:
+    """Hash of the posterior-deciding treeinfer sources, read once per process (the code this
+    process runs, even if the files change while it runs)."""
     h = hashlib.sha256()
     pkg = ROOT / "treeinfer"
     for name in _POSTERIOR_MODULES:

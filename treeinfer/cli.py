@@ -1325,7 +1325,7 @@ def _write_synthetic(out: Path, tree, trajs, specs, true_params: dict, force: bo
 def run_demo(args: argparse.Namespace) -> int:
     # Sizes: the whole demo should take a few minutes on a 2-core laptop CPU (tune here).
     n_train, n_test = 3, 3  # trajectories (training, unseen test)
-    duration, dt = 2.0, 0.02  # s
+    duration, dt = 1.6, 0.02  # s
     particles, iterations = 24, 100
     sampler = "nnsvgd"
     checkpoint_every = 25
