@@ -24,7 +24,7 @@ STUDIES = ("baselines", "nn_prior", "noise", "grasp")
 
 def execute(name: str, monkeypatch, timeout: int = 1200, **env: str) -> nbformat.NotebookNode:
     """Run notebook ``name`` in a fresh kernel (which inherits this environment) from its folder."""
-    for k, v in {"JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg", **env}.items():
+    for k, v in {"JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT), **env}.items():
         monkeypatch.setenv(k, v)
     nb = nbformat.read(NOTEBOOKS / name, as_version=4)
     NotebookClient(nb, timeout=timeout, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}).execute()
