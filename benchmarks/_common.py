@@ -38,7 +38,7 @@ def machine_info() -> dict:
     except OSError:
         load = None
     return {
-        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "host_cpu": cpu,
         "host_cores": os.cpu_count(),
         "load_average_at_start": load,

@@ -275,7 +275,7 @@ def main(argv=None) -> int:
     import jax
 
     on_gpu = jax.devices()[0].platform == "gpu"
-    ints = lambda s: [int(x) for x in s.split(",") if x]  # noqa: E731
+    ints = lambda s: [int(x) for x in s.split(",") if x]
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--particles", type=int, default=128)
     p.add_argument("--iterations", type=int, default=200)

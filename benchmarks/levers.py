@@ -25,6 +25,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import subprocess
@@ -109,7 +110,7 @@ def lever_precision(args) -> dict:
         env = {**os.environ, **extra, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
         code = (f"import json; from benchmarks.levers import precision_child; "
                 f"print(json.dumps(precision_child({args.batch}, {args.steps}, {args.n_check}, {args.reps})))")
-        proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True)
+        proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True, check=False)
         if proc.returncode != 0:
             out[name] = {"error": proc.stderr[-2000:]}
             print(f"   {name}: failed: {proc.stderr.strip()[-300:]}", flush=True)
@@ -135,17 +136,18 @@ def lever_loops(args) -> dict:
     kp, kd = sample_gains(tree, args.batch, seed=5)
     a, b, f = (jnp.asarray(x, jnp.float32) for x in (kp, kd, forces))
     steps = args.batch * forces.shape[0] * args.steps * sim.substeps
-    variants = [("simulate (library)", lambda s: (lambda x, y, z: simulate(s, x, y, z)), sim)]
+    # (name, simulator function of (sim, kp, kd, forces), simulator)
+    variants = [("simulate (library)", simulate, sim)]
     for name, kw in [("variant, defaults", {}), ("scan unroll=2", {"unroll_outer": 2}),
                      ("scan unroll=5", {"unroll_outer": 5}), ("substeps unrolled", {"unroll_inner": True})]:
-        variants.append((name, (lambda kw: lambda s: (lambda x, y, z: simulate_variant(s, x, y, z, **kw)))(kw), sim))
-    variants.append(("euler integrator", lambda s: (lambda x, y, z: simulate(s, x, y, z)), with_integrator(sim, "euler")))
+        variants.append((name, functools.partial(simulate_variant, **kw), sim))
+    variants.append(("euler integrator", simulate, with_integrator(sim, "euler")))
     rows, ref = [], None
-    for name, make, s in variants:
+    for name, sim_fn, s in variants:
         if time.perf_counter() - args.t_start > args.budget_s:
             rows.append({"variant": name, "skipped": "budget"})
             continue
-        fn = jax.jit(make(s))
+        fn = jax.jit(functools.partial(sim_fn, s))
         t0 = time.perf_counter()
         compiled = fn.lower(a, b, f).compile()
         t_compile = time.perf_counter() - t0
@@ -153,7 +155,7 @@ def lever_loops(args) -> dict:
         tau = np.asarray(out.tau)
         if ref is None:
             ref = tau
-        tm = C.time_calls(lambda: compiled(a, b, f), reps=args.reps, min_time_s=1.0)
+        tm = C.time_calls(functools.partial(compiled, a, b, f), reps=args.reps, min_time_s=1.0)
         row = {"variant": name, "compile_s": t_compile, "rollout_s": tm["median_s"], "steps_per_s": steps / tm["median_s"],
                "max_abs_diff_from_library_m": float(np.max(np.abs(tau - ref))), "all_stable": bool(np.all(np.asarray(out.stable)))}
         rows.append(row)
@@ -187,7 +189,7 @@ def lever_cache(args) -> dict:
                    "--iterations", str(args.cache_iterations), "--steps", str(args.steps), "--compile-cache", cache,
                    "--out", str(js)]
             t0 = time.perf_counter()
-            proc = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True)
+            proc = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, check=False)
             wall = time.perf_counter() - t0
             if proc.returncode != 0:
                 out[label] = {"error": proc.stderr[-2000:]}
@@ -229,7 +231,7 @@ def lever_profile(args) -> dict:
         flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
         nbytes = float(cost.get("bytes accessed", float("nan"))) if cost else float("nan")
         C.block(compiled(data))
-        tm = C.time_calls(lambda: compiled(data), reps=args.reps, min_time_s=0.5)
+        tm = C.time_calls(functools.partial(compiled, data), reps=args.reps, min_time_s=0.5)
         row = {"batch": n, "kernels_in_hlo": kernels, "while_loops": loops, "flops_per_step": flops,
                "bytes_per_step": nbytes, "bytes_per_particle_step": nbytes / n, "step_us": 1e6 * tm["median_s"],
                "effective_GB_s": nbytes / tm["median_s"] / 1e9}
@@ -280,7 +282,7 @@ def lever_xla_flags(args) -> dict:
                "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
         code = (f"import json; from benchmarks.levers import rollout_time_child; "
                 f"print(json.dumps(rollout_time_child({args.batch}, {args.steps}, {args.reps})))")
-        proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True)
+        proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True, check=False)
         if proc.returncode == 0:
             r = json.loads(proc.stdout.strip().splitlines()[-1])
             out[name] = {"xla_flags": flags, **r}

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import functools
 import os
 import sys
 import time
@@ -241,7 +242,7 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
             print(f"   check: |MJX - C ref| = {check['max_abs_mjx_minus_reference_m']:.2e} m, "
                   f"|rollout - C ref| = {check['max_abs_rollout_minus_reference_m']:.2e} m "
                   f"(max tau {check['max_abs_tau_reference_m']:.3f} m)", flush=True)
-        tm = C.time_calls(lambda: compiled(kp, kd, fj), reps=args.reps, min_time_s=args.min_time_s)
+        tm = C.time_calls(functools.partial(compiled, kp, kd, fj), reps=args.reps, min_time_s=args.min_time_s)
         mjx_rate = n * steps_per_rollout / tm["median_s"]
         row = {"n_branches": n_branches, "batch": n, "mjx_s": tm["median_s"], "mjx_steps_per_s": mjx_rate,
                "mjx_devices": len(kp.sharding.device_set),
@@ -251,7 +252,7 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
         n_c = min(n, args.c_max_batch)
         if n_c >= 1:
             crun.run(min(n_c, crun.chunk))  # warm-up
-            tc = C.time_calls(lambda: crun.run(n_c), reps=args.reps, min_time_s=args.min_time_s)
+            tc = C.time_calls(functools.partial(crun.run, n_c), reps=args.reps, min_time_s=args.min_time_s)
             row.update({"c_batch": n_c, "c_s": tc["median_s"], "c_steps_per_s": n_c * steps_per_rollout / tc["median_s"]})
             row["mjx_over_c"] = mjx_rate / row["c_steps_per_s"]
         row["naive_steps_per_s"] = info["naive_steps_per_s"]
@@ -269,7 +270,7 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
             cs = st.lower(kp, kd).compile()
             tcs = time.perf_counter() - t0
             C.block(cs(kp, kd))
-            ts = C.time_calls(lambda: cs(kp, kd), reps=args.reps, min_time_s=args.min_time_s)
+            ts = C.time_calls(functools.partial(cs, kp, kd), reps=args.reps, min_time_s=args.min_time_s)
             row["settle_s"] = ts["median_s"]
             row["settle_share"] = ts["median_s"] / tm["median_s"]
             row["settle_compile_s"] = tcs

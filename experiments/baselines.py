@@ -21,9 +21,9 @@ from pathlib import Path
 if __package__ in (None, ""):  # `python experiments/baselines.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from experiments import common as C  # noqa: E402
+from experiments import common as C
 
 STUDY = "baselines"
 EPILOG = """\
@@ -113,9 +113,11 @@ def _markdown(cfg, data, problem, conditions) -> str:
         table,
         "Posterior means of ln K with 95% marginal intervals:",
         params,
-        "Figures: `bands.png` (rows: samplers; columns: unseen test trajectories), `metrics.png`, "
-        "`pairs.png`, `trace_<sampler>.png`. Sampler time is the sampler's own wall time when it "
-        "ran (compilation included; a cached posterior keeps the time of the run that made it).",
+        (
+            "Figures: `bands.png` (rows: samplers; columns: unseen test trajectories), `metrics.png`, "
+            "`pairs.png`, `trace_<sampler>.png`. Sampler time is the sampler's own wall time when it "
+            "ran (compilation included; a cached posterior keeps the time of the run that made it)."
+        ),
         C.METRIC_NOTES,
     ])
 

@@ -37,9 +37,10 @@ import math
 import platform
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -47,9 +48,9 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as `python experiments/<study>.py` from anywhere
     sys.path.insert(0, str(ROOT))
 
-from treeinfer import __version__  # noqa: E402
-from treeinfer._io import atomic_save, atomic_write_json, atomic_write_text, staged_output_dir  # noqa: E402
-from treeinfer.errors import ConfigError, OutputExistsError, SimulationError, TreeinferError  # noqa: E402
+from treeinfer import __version__
+from treeinfer._io import atomic_save, atomic_write_json, atomic_write_text, staged_output_dir
+from treeinfer.errors import ConfigError, OutputExistsError, SimulationError, TreeinferError
 
 EXAMPLES = ROOT / "treeinfer" / "examples"
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -165,6 +166,8 @@ def _check_config(cfg: StudyConfig) -> None:
     for name in ("n_train", "n_test", "n_iterations"):
         if getattr(cfg, name) < 1:
             raise ConfigError(f"{name}: must be at least 1, got {getattr(cfg, name)}")
+    if cfg.grasp_locations and not (1 <= cfg.n_test_per_location <= cfg.n_test):
+        raise ConfigError(f"n_test_per_location: must be in 1..n_test ({cfg.n_test}), got {cfg.n_test_per_location}")
     if cfg.n_particles < 2:
         raise ConfigError(f"n_particles: need at least 2 for a predictive distribution, got {cfg.n_particles}")
 
@@ -367,8 +370,8 @@ def add_relative_noise(data: SyntheticData, level: float, seed: int) -> tuple[Sy
     info = {"level": level, "sigma_force_N": sf, "sigma_displacement_m": sx}
     if level == 0:
         return data, info
-    rng = np.random.default_rng([int(seed), 0x5EED, int(round(level * 1e6))])
-    noisy = lambda ts: [add_noise(t, sf, sx, rng)._replace(source=t.source) for t in ts]  # noqa: E731
+    rng = np.random.default_rng([int(seed), 0x5EED, round(level * 1e6)])
+    noisy = lambda ts: [add_noise(t, sf, sx, rng)._replace(source=t.source) for t in ts]
     return data._replace(train=noisy(data.train), test=noisy(data.test)), info
 
 
@@ -484,13 +487,12 @@ def posterior(problem, sampler: str, cfg: StudyConfig, seed: int, cache: Path | 
         key,
     )
     if path is not None:
-        with atomic_save(path) as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(
-                    f, theta=run.theta, log_density=run.log_density, trace_logdensity=run.trace_logdensity,
-                    trace_iterations=run.trace_iterations, elapsed_s=run.elapsed_s,
-                    settings=json.dumps(settings, sort_keys=True, default=str),
-                )
+        with atomic_save(path) as tmp, open(tmp, "wb") as f:
+            np.savez(
+                f, theta=run.theta, log_density=run.log_density, trace_logdensity=run.trace_logdensity,
+                trace_iterations=run.trace_iterations, elapsed_s=run.elapsed_s,
+                settings=json.dumps(settings, sort_keys=True, default=str),
+            )
     return run
 
 
@@ -543,8 +545,8 @@ def metrics_for(pred: Predictions, theta: np.ndarray, data: SyntheticData, probl
         m.update(parameter_metrics(problem, theta, data, cfg, theta_ok))
     except (SimulationError, ConfigError) as e:
         return {"error": str(e), "n_valid_particles": int(pred.valid.sum()), "n_particles": int(pred.valid.size)}
-    m["n_test_trajectories"] = int(len(idx))
-    m["n_train_trajectories"] = int(len(data.train))
+    m["n_test_trajectories"] = len(idx)
+    m["n_train_trajectories"] = len(data.train)
     m["posterior_nll_per_point"] = m["posterior_nll"] / float(pred.train_tau.shape[1] * pred.train_tau.shape[2])
     return m
 
@@ -641,7 +643,7 @@ def band_grid(rows: dict[str, Bands], dt: float, level: float, col_labels: Seque
     from treeinfer.plots import plot_band_grid
 
     names = list(rows)
-    stack = lambda f: np.stack([getattr(rows[n], f) for n in names])  # noqa: E731  [K, k, ...]
+    stack = lambda f: np.stack([getattr(rows[n], f) for n in names])
     arrays = [stack(f) for f in ("lower", "upper", "mean", "gt", "samples")]
     row_labels, col_labels = names, list(col_labels)
     if transpose:

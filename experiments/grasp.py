@@ -23,9 +23,9 @@ from pathlib import Path
 if __package__ in (None, ""):  # `python experiments/grasp.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from experiments import common as C  # noqa: E402
+from experiments import common as C
 
 STUDY = "grasp"
 EPILOG = """\
@@ -117,8 +117,10 @@ def _markdown(cfg, data, problem, conditions, post) -> str:
         + f"; trained at grasp fraction {data.tree.grasp_fraction:g} of branch `{data.tree.grasp_branch}`, no noise.",
         table,
         post_line,
-        "Figures: `bands.png` (columns: test grasp locations as fractions of the branch length l from its "
-        "parent joint; rows: unseen force profiles), `metrics.png`.",
+        (
+            "Figures: `bands.png` (columns: test grasp locations as fractions of the branch length l from its "
+            "parent joint; rows: unseen force profiles), `metrics.png`."
+        ),
         C.METRIC_NOTES,
     ])
 

@@ -19,9 +19,9 @@ from pathlib import Path
 if __package__ in (None, ""):  # `python experiments/nn_prior.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from experiments import common as C  # noqa: E402
+from experiments import common as C
 
 STUDY = "nn_prior"
 PAPER_TABLE_I = {

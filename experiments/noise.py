@@ -23,9 +23,9 @@ from pathlib import Path
 if __package__ in (None, ""):  # `python experiments/noise.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from experiments import common as C  # noqa: E402
+from experiments import common as C
 
 STUDY = "noise"
 EPILOG = """\
@@ -95,8 +95,10 @@ def run(argv=None) -> int:
     }
     record = {
         "data": C.data_record(clean, problem),
-        "noise_definition": "sigma_F = level * max|F|, sigma_x = level * max|x| over the clean training and test "
-        "trajectories; white Gaussian, added to training and test force and displacement",
+        "noise_definition": (
+            "sigma_F = level * max|F|, sigma_x = level * max|x| over the clean training and test "
+            "trajectories; white Gaussian, added to training and test force and displacement"
+        ),
         "conditions": conditions,
         "metric_notes": C.METRIC_NOTES,
     }
@@ -123,15 +125,21 @@ def _markdown(cfg, data, problem, conditions) -> str:
     return "\n\n".join([
         "# (c) Robustness to Gaussian noise on force and displacement (paper Fig. 5)",
         C.config_line(cfg, data, problem) + "; NNSVGD at every level.",
-        "Noise: sigma_F = s * max|F| and sigma_x = s * max|x|, maxima over the clean training and test "
-        "trajectories; added to training and test trajectories; the metrics compare the bands with "
-        "the noisy test displacement.",
+        (
+            "Noise: sigma_F = s * max|F| and sigma_x = s * max|x|, maxima over the clean training and test "
+            "trajectories; added to training and test trajectories; the metrics compare the bands with "
+            "the noisy test displacement."
+        ),
         table,
-        "The same bands against the noise-free test displacement (did the posterior recover the "
-        "motion underneath the noise?):",
+        (
+            "The same bands against the noise-free test displacement (did the posterior recover the "
+            "motion underneath the noise?):"
+        ),
         clean_table,
-        "Figures: `bands.png` (rows: noise levels; columns: unseen test trajectories; red: the noisy "
-        "ground truth), `metrics.png`.",
+        (
+            "Figures: `bands.png` (rows: noise levels; columns: unseen test trajectories; red: the noisy "
+            "ground truth), `metrics.png`."
+        ),
         C.METRIC_NOTES,
     ])
 

@@ -7,7 +7,7 @@ through an XLA collective inside the same jitted step (never through the host).
 
 or, piece by piece (what :func:`infer_sharded` does):
 
-    sharded = shard_problem(problem, mesh)          # value_and_grad / log_density via shard_map
+    sharded = shard_problem(problem, mesh)          # value_and_grad / log_density split by particle
     theta0 = shard_particles(initial_particles(problem, 1024), mesh)
     posterior = infer(sharded, "nnsvgd", n_particles=1024, initial_theta=theta0)
 
@@ -29,12 +29,15 @@ How the work is split:
   contains them and that positions stay sharded between iterations.
 
 Reproducibility: with the same seed, a sharded run gives the same particles as an unsharded
-one to float32 rounding (not bit for bit: the partitioned Stein sum adds in another order);
-``tests/test_sharding.py`` checks this on two CPU devices.
+one to float32 rounding, not guaranteed bit for bit (per-device programs see a smaller batch and
+XLA may round differently; on two CPU devices a cheap target gave identical bits, the MJX
+likelihood agreed to ~1e-5 relative); ``tests/test_sharding.py`` checks this on two CPU devices.
 
 Multi-host: start every process with ``jax.distributed.initialize()`` (see ``BENCHMARKS.md``),
 then ``particle_mesh()`` spans all processes' devices and :func:`shard_particles` builds the
-global array from the (identical, seeded) host copy each process holds.
+global array from the (identical, seeded) host copy each process holds. Untested; the sampler
+driver's host copies (``np.asarray`` of positions and trace) would need
+``jax.experimental.multihost_utils.process_allgather`` there.
 """
 
 from __future__ import annotations
@@ -172,11 +175,12 @@ def shard_problem(problem, mesh: Mesh | None = None, method: str = "gspmd"):
 
 
 def infer_sharded(problem, sampler: str = "nnsvgd", n_particles: int = 64, seed: int = 0, mesh: Mesh | None = None,
-                  **infer_options):
+                  method: str = "gspmd", **infer_options):
     """:func:`treeinfer.infer` with particles sharded over ``mesh`` (default: all devices).
 
     Same initial particles and keys as the unsharded ``infer`` with this seed, so the result
-    matches it to float32 rounding. ``n_particles`` must be a multiple of the device count."""
+    matches it to float32 rounding. ``n_particles`` must be a multiple of the device count;
+    ``method`` as in :func:`shard_problem`; other options go to ``infer``."""
     from .inference import check_count, infer, initial_particles
 
     mesh = particle_mesh() if mesh is None else mesh
@@ -187,5 +191,5 @@ def infer_sharded(problem, sampler: str = "nnsvgd", n_particles: int = 64, seed:
     else:
         infer_options.pop("initial_theta", None)
         theta0 = initial_particles(problem, n_particles, seed)
-    return infer(shard_problem(problem, mesh), sampler, n_particles=n_particles, seed=seed,
+    return infer(shard_problem(problem, mesh, method), sampler, n_particles=n_particles, seed=seed,
                  initial_theta=shard_particles(theta0, mesh), **infer_options)
