@@ -317,8 +317,11 @@ def velocity(tau: jax.Array, dt: float) -> jax.Array:
     return velocity_from_displacement(tau, dt)
 
 
-def _pull_one(sim: Simulator, model, qpos_rest, forces, site_local):
-    """One rollout: displacement [T] of C under ``forces`` [T] (N, downward), and a stable flag."""
+def _pull_one(sim: Simulator, model, qpos_rest, forces, site_local, unroll_outer: int = 1, unroll_inner=1):
+    """One rollout: displacement [T] of C under ``forces`` [T] (N, downward), and a stable flag.
+
+    ``unroll_outer``/``unroll_inner`` unroll the observation scan and the substep loop (speed
+    levers measured in ``benchmarks/levers.py``; the defaults keep both loops rolled)."""
     from mujoco import mjx
 
     sid, bid = sim.grasp_site, sim.grasp_body
@@ -346,17 +349,21 @@ def _pull_one(sim: Simulator, model, qpos_rest, forces, site_local):
             return dd, jnp.where(k == 0, dd.site_xpos[sid], c)
 
         # one traced mjx.step per rollout (MJX compiles slowly; a split first step doubles it)
-        d, c = jax.lax.fori_loop(0, sim.substeps, sub, (d, c_rest))
+        inner = {} if unroll_inner == 1 else {"unroll": unroll_inner}
+        d, c = jax.lax.fori_loop(0, sim.substeps, sub, (d, c_rest), **inner)
         ok = ok & jnp.all(jnp.isfinite(d.qpos)) & jnp.all(jnp.abs(d.qvel) < sim.max_joint_speed)
         return (d, ok), c
 
-    (_, ok), cs = jax.lax.scan(observe, (data, jnp.bool_(True)), forces.astype(gdir.dtype))
+    (_, ok), cs = jax.lax.scan(observe, (data, jnp.bool_(True)), forces.astype(gdir.dtype), unroll=unroll_outer)
     tau = (cs - c_rest) @ gdir
     ok = ok & jnp.all(jnp.isfinite(tau)) & jnp.all(jnp.abs(tau) < sim.max_displacement)
     return tau, ok
 
 
-def simulate(sim: Simulator, kp: jax.Array, kd: jax.Array, forces: jax.Array, grasp_fraction=None) -> Rollout:
+def simulate(
+    sim: Simulator, kp: jax.Array, kd: jax.Array, forces: jax.Array, grasp_fraction=None,
+    unroll_outer: int = 1, unroll_inner=1,
+) -> Rollout:
     """Roll out P parameter sets under B force profiles in one batched call.
 
     Args:
@@ -367,6 +374,8 @@ def simulate(sim: Simulator, kp: jax.Array, kd: jax.Array, forces: jax.Array, gr
         ``forces[:, t]`` acts from ``t * obs_dt`` to ``(t + 1) * obs_dt``.
       grasp_fraction: None (the tree's), a scalar, or [B]: where along the grasped branch the
         force acts, as a fraction of its length from its parent joint.
+      unroll_outer, unroll_inner: loop unrolling of the observation scan / substep loop
+        (``True`` unrolls the substeps fully: faster steps, much longer compile).
 
     Returns:
       :class:`Rollout` with ``tau``, ``tau_dot`` [P, B, T] and ``stable`` [P, B].
@@ -385,7 +394,9 @@ def simulate(sim: Simulator, kp: jax.Array, kd: jax.Array, forces: jax.Array, gr
     def per_params(kp_i, kd_i):
         model = with_gains(sim, kp_i, kd_i)
         qpos_rest, settled = settle_one(sim, model)
-        tau, ok = jax.vmap(lambda f, s: _pull_one(sim, model, qpos_rest, f, s))(forces, site_local)
+        tau, ok = jax.vmap(
+            lambda f, s: _pull_one(sim, model, qpos_rest, f, s, unroll_outer, unroll_inner)
+        )(forces, site_local)
         return tau, ok & settled
 
     tau, ok = jax.vmap(per_params)(kp, kd)
