@@ -65,7 +65,8 @@ class SimulateCounter:
         self._lik.simulate = self._orig
 
 
-def make_standard_problem(tree=None, n_traj: int = 3, n_steps: int = 300, dt: float = 0.01, seed: int = 0):
+def make_standard_problem(tree=None, n_traj: int = 3, n_steps: int = 300, dt: float = 0.01, seed: int = 0,
+                          backend: str = "fused"):
     """(problem, theta_true [D]) for ``tree`` (default: the built-in three-branch example)."""
     from treeinfer.cli import default_true_params
     from treeinfer.forces import profile_set
@@ -75,7 +76,7 @@ def make_standard_problem(tree=None, n_traj: int = 3, n_steps: int = 300, dt: fl
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml") if tree is None else tree
-    sim = make_simulator(tree, obs_dt=dt)
+    sim = make_simulator(tree, obs_dt=dt, backend=backend)
     kp, kd = default_true_params(tree, np.random.default_rng(seed))
     forces = profile_set("mixed", n=n_traj, duration=n_steps * dt, dt=dt, seed=seed)[:, :n_steps]
     t = np.arange(n_steps) * dt
@@ -99,7 +100,7 @@ def standard(args) -> dict:
     try:
         with compiles:
             t0 = time.perf_counter()
-            problem, theta_true = make_standard_problem(n_steps=args.steps)
+            problem, theta_true = make_standard_problem(n_steps=args.steps, backend=args.backend)
             t_problem = time.perf_counter() - t0
             d = problem.dim
             marks: list[tuple[int, float, int]] = []
@@ -121,6 +122,7 @@ def standard(args) -> dict:
     first_chunk_s = marks[0][1] - t1 if marks else float("nan")
     rows = P_rows = args.particles * (2 * d + 1)
     out.update({
+        "backend": problem.sim.backend,
         "dim": d,
         "substeps": problem.sim.substeps,
         "n_steps": args.steps,
@@ -168,7 +170,7 @@ def standard(args) -> dict:
         "mean_logdensity_last": float(ml[-1]) if len(ml) else None,
         "mean_logdensity_change_last_tenth": float(ml[-1] - ml[-1 - tail]) if len(ml) > tail else None,
     })
-    print(f"standard problem (R=3, P={args.particles}, 3 x {args.steps} steps, substeps {problem.sim.substeps}): "
+    print(f"standard problem ({problem.sim.backend} backend, R=3, P={args.particles}, 3 x {args.steps} steps, substeps {problem.sim.substeps}): "
           f"make_problem {t_problem:.1f} s, infer {t_infer:.1f} s ({args.iterations} it), "
           f"steady {1e3 * it_s:.1f} ms/it, compiles {compiles.n} (steady chunks: {out['compiles_during_steady_chunks']}), "
           f"simulate calls/it {out['simulator_calls_per_iteration']} on {out['simulator_rows_per_call']} rows, "
@@ -249,14 +251,14 @@ def scaling(args) -> dict:
     for p in args.scale_p:
         if over_budget():
             break
-        std_problem = std_problem or make_standard_problem(n_steps=args.steps)[0]
+        std_problem = std_problem or make_standard_problem(n_steps=args.steps, backend=args.backend)[0]
         r = step_time(std_problem, p, args.reps)
         out["P"].append({"n_particles": p, **r, "rows": p * (2 * std_problem.dim + 1)})
         print(f"   P={p:>5}: {r['step_ms']:.1f} ms/it (compile {r['compile_s']:.1f} s)", flush=True)
     for n in args.scale_r:
         if over_budget():
             break
-        prob = make_standard_problem(tree=bench_tree(n), n_steps=args.steps)[0]
+        prob = make_standard_problem(tree=bench_tree(n), n_steps=args.steps, backend=args.backend)[0]
         r = step_time(prob, args.particles, args.reps)
         out["R"].append({"R": n, "substeps": prob.sim.substeps, **r, "rows": args.particles * (2 * prob.dim + 1)})
         print(f"   R={n} (chain, substeps {prob.sim.substeps}): {r['step_ms']:.1f} ms/it (compile {r['compile_s']:.1f} s)",
@@ -264,7 +266,7 @@ def scaling(args) -> dict:
     for t in args.scale_t:
         if over_budget():
             break
-        prob = make_standard_problem(n_steps=t)[0]
+        prob = make_standard_problem(n_steps=t, backend=args.backend)[0]
         r = step_time(prob, args.particles, args.reps)
         out["T"].append({"n_steps": t, **r})
         print(f"   T={t:>5}: {r['step_ms']:.1f} ms/it (compile {r['compile_s']:.1f} s)", flush=True)
@@ -278,6 +280,7 @@ def main(argv=None) -> int:
     ints = lambda s: [int(x) for x in s.split(",") if x]
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--particles", type=int, default=128)
+    p.add_argument("--backend", default="fused", choices=["fused", "mjx"], help="simulator backend")
     p.add_argument("--iterations", type=int, default=200)
     p.add_argument("--chunk", type=int, default=None, help="driver chunk (default: iterations / 2)")
     p.add_argument("--steps", type=int, default=300, help="trajectory length T (observation steps)")

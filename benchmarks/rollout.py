@@ -181,13 +181,13 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
     from treeinfer.simulator import make_simulator, settle, simulate, simulate_reference
 
     tree = bench_tree(n_branches)
-    sim = make_simulator(tree, obs_dt=args.obs_dt)
+    sim = make_simulator(tree, obs_dt=args.obs_dt, backend=args.backend)
     forces = pull_profile(n_steps, sim.obs_dt)
     kp_pool, kd_pool = sample_gains(tree, POOL, seed=n_branches)
     steps_per_rollout = n_steps * sim.substeps
-    info = {"n_branches": n_branches, "nq": sim.mj_model.nq, "nbody": sim.mj_model.nbody, "substeps": sim.substeps,
+    info = {"n_branches": n_branches, "backend": sim.backend, "nq": sim.mj_model.nq, "nbody": sim.mj_model.nbody, "substeps": sim.substeps,
             "sim_dt": sim.sim_dt, "obs_dt": sim.obs_dt, "n_steps": n_steps, "steps_per_rollout": steps_per_rollout}
-    print(f"\n== {n_branches}-branch chain: nq={sim.mj_model.nq}, substeps={sim.substeps}, T={n_steps} "
+    print(f"\n== {n_branches}-branch chain, {sim.backend} backend: nq={sim.mj_model.nq}, substeps={sim.substeps}, T={n_steps} "
           f"({steps_per_rollout} physics steps per rollout)", flush=True)
 
     # native C paths
@@ -244,7 +244,7 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
                   f"(max tau {check['max_abs_tau_reference_m']:.3f} m)", flush=True)
         tm = C.time_calls(functools.partial(compiled, kp, kd, fj), reps=args.reps, min_time_s=args.min_time_s)
         mjx_rate = n * steps_per_rollout / tm["median_s"]
-        row = {"n_branches": n_branches, "batch": n, "mjx_s": tm["median_s"], "mjx_steps_per_s": mjx_rate,
+        row = {"n_branches": n_branches, "backend": sim.backend, "batch": n, "mjx_s": tm["median_s"], "mjx_steps_per_s": mjx_rate,
                "mjx_devices": len(kp.sharding.device_set),
                "lower_s": t1 - t0, "compile_s": t2 - t1, "mjx_reps": tm["reps"],
                "all_stable": bool(np.all(np.asarray(out.stable)))}
@@ -288,6 +288,8 @@ def main(argv=None) -> int:
     on_gpu = jax.devices()[0].platform == "gpu"
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--trees", default="1,3,6", help="branch counts of the chains")
+    p.add_argument("--backend", default="fused", choices=["fused", "mjx"],
+                   help="simulator backend (the mjx_* columns of the JSON hold its figures)")
     p.add_argument("--batches", default=None,
                    help="batch sizes (parameter sets); default 1..131072 on GPU, 1..1024 on CPU")
     p.add_argument("--steps", type=int, default=300, help="observation steps T per rollout")
@@ -332,8 +334,8 @@ def main(argv=None) -> int:
     previous = C.read_section(out, "rollout") if args.append else {}
 
     def save():
-        merged = {**record, "rows": _merge_rows(previous.get("rows", []), rows, ("n_branches", "batch")),
-                  "trees": _merge_rows(previous.get("trees", []), record.get("trees", []), ("n_branches",))}
+        merged = {**record, "rows": _merge_rows(previous.get("rows", []), rows, ("n_branches", "backend", "batch")),
+                  "trees": _merge_rows(previous.get("trees", []), record.get("trees", []), ("n_branches", "backend"))}
         C.merge_results(out, "rollout", merged, summary(merged["rows"]))
 
     for nb in trees:
@@ -352,9 +354,11 @@ def main(argv=None) -> int:
 
 
 def _merge_rows(old: list, new: list, keys: tuple) -> list:
-    """``old`` rows not re-measured in ``new``, then ``new`` (rows matched on ``keys``)."""
-    seen = {tuple(r[k] for k in keys) for r in new}
-    return [r for r in old if tuple(r.get(k) for k in keys) not in seen] + list(new)
+    """``old`` rows not re-measured in ``new``, then ``new`` (rows matched on ``keys``; rows from
+    before the fused backend existed are MJX rows)."""
+    key = lambda r: tuple(r.get(k, "mjx" if k == "backend" else None) for k in keys)
+    seen = {key(r) for r in new}
+    return [r for r in old if key(r) not in seen] + list(new)
 
 
 def summary(rows) -> dict:
@@ -367,12 +371,15 @@ def summary(rows) -> dict:
     ratio = None
     if both:
         pref = [r for r in both if r["n_branches"] == 3] or both
+        pref = [r for r in pref if r.get("backend") == "fused"] or pref
         top = max(pref, key=lambda r: r["batch"])
         ratio = {"value": top["mjx_over_c"], "n_branches": top["n_branches"], "batch": top["batch"],
+                 "backend": top.get("backend", "mjx"),
                  "c_batch": top["c_batch"]}
     return {
         "rollout_steps_per_s_max": best["mjx_steps_per_s"],
-        "rollout_steps_per_s_max_at": {"n_branches": best["n_branches"], "batch": best["batch"]},
+        "rollout_steps_per_s_max_at": {"n_branches": best["n_branches"], "batch": best["batch"],
+                                       "backend": best.get("backend", "mjx")},
         "mjx_over_mujoco_rollout_ratio": None if ratio is None else ratio["value"],
         "mjx_over_mujoco_rollout_ratio_at": ratio,
     }

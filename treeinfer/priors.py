@@ -139,7 +139,7 @@ def smoothed_box(
 
 _FORMS = ("linear", "step")
 _ACTIVATIONS = {"softplus": nn.softplus, "tanh": nn.tanh, "sigmoid": nn.sigmoid, "gelu": nn.gelu}
-_CACHE_FORMAT = 1
+_CACHE_FORMAT = 2  # 2: the cache key and the fit leave out the box and eta (see _fit_settings)
 
 
 def inequality_target(parent, child, eta: float, form: str = "linear"):
@@ -303,14 +303,26 @@ def train_inequality_network(
     return InequalityNet(params=params, settings=settings, final_loss=loss)
 
 
+# In normalised units the training problem does not depend on the box or on eta: with
+# u = 2 (x - low) / (high - low) - 1 the scaled targets are -max(u_c - u_p, 0) / 2 (linear) or
+# -[u_p < u_c] (step). So one fit serves every box and eta (Kp and Kd share it), keyed and
+# cached without them; the box and eta only map inputs and outputs in _apply_net.
+_BOX_SETTINGS = ("box_low", "box_high", "eta")
+
+
+def _fit_settings(settings: dict) -> dict:
+    return {k: v for k, v in settings.items() if k not in _BOX_SETTINGS}
+
+
+def _normalised_target(u_parent, u_child, form: str):
+    scale = 0.5 if form == "linear" else 1.0  # = 1 / _output_scale in normalised units
+    return scale * inequality_target(u_parent, u_child, 1.0, form)
+
+
 def _fit(settings: dict):
     key_data, key_init = jax.random.split(jax.random.key(settings["seed"]))
-    low, high = settings["box_low"], settings["box_high"]
-    x = jax.random.uniform(key_data, (settings["n_samples"], 2), minval=low, maxval=high)
-    y = inequality_target(x[:, 0], x[:, 1], settings["eta"], settings["form"]) / _output_scale(
-        settings
-    )
-    u = 2.0 * (x - low) / (high - low) - 1.0
+    u = jax.random.uniform(key_data, (settings["n_samples"], 2), minval=-1.0, maxval=1.0)
+    y = _normalised_target(u[:, 0], u[:, 1], settings["form"])
     model = _MLP(settings["hidden"], settings["activation"])
     params = model.init(key_init, u[:1])["params"]
     schedule = optax.cosine_decay_schedule(settings["learning_rate"], settings["steps"], alpha=1e-2)
@@ -332,6 +344,10 @@ def _fit(settings: dict):
 
     params, loss = train(params)
     return params, float(loss)
+
+
+def _fit_key(settings: dict) -> str:
+    return _settings_key(_fit_settings(settings))
 
 
 def default_cache_dir() -> Path:
@@ -361,7 +377,8 @@ def load_or_train_inequality_network(
     """:func:`train_inequality_network` with a disk cache.
 
     The cache file is ``<cache_dir>/inequality_net-<hash>.msgpack`` where the
-    hash covers every training setting, so any change retrains. Weights are
+    hash covers every setting of the normalised fit (not the box or eta, which
+    only rescale it), so any change to those retrains. Weights are
     written atomically (flax msgpack); an unreadable or mismatching file is
     retrained and overwritten (with a warning). ``cache_dir`` defaults to
     :func:`default_cache_dir`. The returned net has ``loaded=True`` when it
@@ -371,12 +388,12 @@ def load_or_train_inequality_network(
         box_low, box_high, eta, form, hidden, activation, n_samples, steps, learning_rate, seed
     )
     cache_dir = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
-    path = cache_dir / f"inequality_net-{_settings_key(settings)}.msgpack"
+    path = cache_dir / f"inequality_net-{_fit_key(settings)}.msgpack"
     if path.is_file():
         try:
             blob = serialization.msgpack_restore(path.read_bytes())
             stored = json.loads(blob["settings_json"])
-            if stored != settings:
+            if stored != _fit_settings(settings):
                 raise ValueError("stored settings differ from the requested ones")
             params = jax.tree.map(jnp.asarray, blob["params"])
             return InequalityNet(params, settings, float(blob["final_loss"]), str(path), True)
@@ -387,7 +404,7 @@ def load_or_train_inequality_network(
     # Look the trainer up by module name so tests can observe whether it ran.
     net = train_inequality_network(**{k: v for k, v in settings.items() if k != "format"})
     blob = {
-        "settings_json": json.dumps(settings, sort_keys=True),
+        "settings_json": json.dumps(_fit_settings(settings), sort_keys=True),
         "params": jax.tree.map(np.asarray, serialization.to_state_dict(net.params)),
         "final_loss": net.final_loss,
     }
