@@ -141,7 +141,8 @@ def lever_loops(args) -> dict:
     for name, kw in [("variant, defaults", {}), ("scan unroll=2", {"unroll_outer": 2}),
                      ("scan unroll=5", {"unroll_outer": 5}), ("substeps unrolled", {"unroll_inner": True})]:
         variants.append((name, functools.partial(simulate_variant, **kw), sim))
-    variants.append(("euler integrator", simulate, with_integrator(sim, "euler")))
+    variants.append(("mjx backend", simulate, make_simulator(tree, obs_dt=0.01, backend="mjx")))
+    variants.append(("mjx, euler integrator", simulate, with_integrator(sim, "euler")))
     rows, ref = [], None
     for name, sim_fn, s in variants:
         if time.perf_counter() - args.t_start > args.budget_s:
@@ -204,42 +205,59 @@ def lever_cache(args) -> dict:
     return out
 
 
-def lever_profile(args) -> dict:
-    """What one ``mjx.step`` of the 3-branch example costs: XLA kernels, cost-model flops and
-    bytes, and wall time of a single vmapped step at several batch sizes."""
+def _hlo_profile(compiled, n: int, reps: int) -> dict:
+    """Kernel-launching ops, while loops, XLA's cost model and wall time of a compiled step."""
     import re
 
+    hlo = compiled.as_text()
+    kernels = len(re.findall(r"= \S+ (?:fusion|custom-call|convolution|dot|copy|transpose|reduce|scatter|gather)\(", hlo))
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
+    nbytes = float(cost.get("bytes accessed", float("nan"))) if cost else float("nan")
+    return {"kernels_in_hlo": kernels, "while_loops": hlo.count(" while("), "flops_per_step": flops,
+            "bytes_per_step": nbytes, "bytes_per_particle_step": nbytes / n, "flops_per_particle_step": flops / n}
+
+
+def lever_profile(args) -> dict:
+    """What one physics step of the 3-branch example costs on each backend (``mjx.step`` and the
+    fused hinge-tree step): XLA kernels, cost-model flops and bytes, and wall time of a single
+    vmapped step at several batch sizes."""
     import jax
     import jax.numpy as jnp
-    from mujoco import mjx
 
-    from treeinfer.simulator import make_simulator
+    from treeinfer import hinge_dynamics as hd
+    from treeinfer.simulator import _mjx, make_simulator
 
+    mjx = _mjx()
     tree, _, _, _ = _standard_inputs(args.steps)
     sim = make_simulator(tree, obs_dt=0.01)
-    model = sim.model
+    model, t, nv = sim.model, sim.hinge_tree, sim.mj_model.nv
+    stiff = [float(x) for x in sim.mj_model.jnt_stiffness[sim.mj_model.dof_jntid]]
+    damp = [float(x) for x in sim.mj_model.dof_damping]
+
+    def fused_step(q, v, kp):
+        out = hd.step(t, q, v, [kp] + stiff[1:], damp, [0.0] * nv, sim.sim_dt, sim.grasp_body, (0.5, 0.0, 0.0),
+                      (0.0, 0.0, -5.0), (0.1, 0.0, 0.0))
+        return out.qpos, out.qvel
+
     rows = []
     for n in args.profile_batches:
         data = jax.vmap(lambda _: mjx.make_data(model))(jnp.arange(n))
-        step = jax.jit(jax.vmap(lambda d: mjx.step(model, d)))
-        compiled = step.lower(data).compile()
-        hlo = compiled.as_text()
-        kernels = len(re.findall(r"= \S+ (?:fusion|custom-call|convolution|dot|copy|transpose|reduce|scatter|gather)\(", hlo))
-        loops = hlo.count(" while(")
-        cost = compiled.cost_analysis()
-        cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-        flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
-        nbytes = float(cost.get("bytes accessed", float("nan"))) if cost else float("nan")
-        C.block(compiled(data))
-        tm = C.time_calls(functools.partial(compiled, data), reps=args.reps, min_time_s=0.5)
-        row = {"batch": n, "kernels_in_hlo": kernels, "while_loops": loops, "flops_per_step": flops,
-               "bytes_per_step": nbytes, "bytes_per_particle_step": nbytes / n, "step_us": 1e6 * tm["median_s"],
-               "effective_GB_s": nbytes / tm["median_s"] / 1e9}
-        rows.append(row)
-        print(f"   N={n:>6}: one mjx.step {row['step_us']:.1f} us; {kernels} kernel ops in HLO, {loops} while loops; "
-              f"cost model {flops / n:.0f} flop and {nbytes / n:.0f} B per particle-step "
-              f"-> {row['effective_GB_s']:.0f} GB/s", flush=True)
-    return {"rows": rows, "nbody": sim.mj_model.nbody, "nv": sim.mj_model.nv}
+        q = jnp.zeros((n, nv)) + 0.1
+        inputs = {"mjx.step": (jax.jit(jax.vmap(lambda d: mjx.step(model, d))), (data,)),
+                  "fused step": (jax.jit(jax.vmap(fused_step)), (q, q, jnp.full((n,), 50.0)))}
+        for name, (fn, xs) in inputs.items():
+            compiled = fn.lower(*xs).compile()
+            row = {"backend_step": name, "batch": n, **_hlo_profile(compiled, n, args.reps)}
+            C.block(compiled(*xs))
+            tm = C.time_calls(functools.partial(compiled, *xs), reps=args.reps, min_time_s=0.5)
+            row.update(step_us=1e6 * tm["median_s"], effective_GB_s=row["bytes_per_step"] / tm["median_s"] / 1e9)
+            rows.append(row)
+            print(f"   N={n:>6} {name:<10}: {row['step_us']:.1f} us; {row['kernels_in_hlo']} kernel ops in HLO, "
+                  f"{row['while_loops']} while loops; cost model {row['flops_per_particle_step']:.0f} flop and "
+                  f"{row['bytes_per_particle_step']:.0f} B per particle-step", flush=True)
+    return {"rows": rows, "nbody": sim.mj_model.nbody, "nv": nv}
 
 
 XLA_FLAG_VARIANTS = {

@@ -489,7 +489,8 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--noise-force", type=float, default=0.0, metavar="SIGMA", help="N, Gaussian noise added to the force")
     p.add_argument("--noise-displacement", type=float, default=0.0, metavar="SIGMA", help="m, Gaussian noise added to the displacement")
     p.add_argument("--grasp-fraction", type=float, metavar="F", help="grasp point along the grasped branch, in (0, 1] (default: the tree's)")
-    p.add_argument("--max-sim-dt", type=float, default=None, help="s, upper bound on the simulation step (default 0.002)")
+    p.add_argument("--max-sim-dt", type=float, default=None, help="s, upper bound on the simulation step (default 0.005)")
+    p.add_argument("--backend", choices=("auto", "fused", "mjx"), default="auto", help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)")
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     return p
 
@@ -658,7 +659,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     assert forces.shape[1] == n_t
     check_output_dir(args.out, args.force)  # fail before the (slow) simulation
 
-    rollout, sim = _simulate_batch(tree, kp, kd, forces, args.dt, args.max_sim_dt)
+    rollout, sim = _simulate_batch(tree, kp, kd, forces, args.dt, args.max_sim_dt, args.backend)
     names = [f"traj_{i:03d}.csv" for i in range(len(specs))]
     stable = np.asarray(rollout.stable)[0]
     if not stable.all():
@@ -702,15 +703,16 @@ def _fmt_params(tree, kp, kd) -> str:
     return ", ".join(f"{lab}={v:.4g}" for lab, v in zip(tree.parameter_labels(), np.concatenate([kp, kd])))
 
 
-def _simulate_batch(tree, kp, kd, forces, dt, max_sim_dt):
+def _simulate_batch(tree, kp, kd, forces, dt, max_sim_dt, backend="auto"):
     """One batched rollout: P = 1 parameter set x B profiles."""
     _prepare_jax()
     import jax
 
     from .simulator import DEFAULT_MAX_SIM_DT, make_simulator, simulate
 
-    sim = make_simulator(_sim_tree(tree, kp), obs_dt=dt, max_sim_dt=max_sim_dt or DEFAULT_MAX_SIM_DT)
-    _say(f"simulating {forces.shape[0]} trajectories (the first run with new shapes compiles for up to a minute; cached afterwards)...")
+    sim = make_simulator(_sim_tree(tree, kp), obs_dt=dt, max_sim_dt=max_sim_dt or DEFAULT_MAX_SIM_DT, backend=backend)
+    slow = " (MJX compiles for up to a minute on new shapes; cached afterwards)" if sim.backend == "mjx" else ""
+    _say(f"simulating {forces.shape[0]} trajectories{slow}...")
     run = jax.jit(lambda a, b, f: simulate(sim, a, b, f))
     rollout = run(np.asarray(kp)[None], np.asarray(kd)[None], np.asarray(forces))
     return jax.device_get(rollout), sim
@@ -771,7 +773,7 @@ def _simulate_config(args, tree, specs, n_t, sim) -> dict[str, Any]:
         "n_steps": n_t,
         "dt": args.dt,
         "profiles": specs,
-        "simulation": {"substeps": sim.substeps, "sim_dt": sim.sim_dt},
+        "simulation": {"substeps": sim.substeps, "sim_dt": sim.sim_dt, "backend": sim.backend},
     }
 
 
@@ -822,6 +824,7 @@ INFER_DEFAULTS: dict[str, Any] = {
     "eta": 10.0,
     "max_unstable_share": 0.5,
     "checkpoint_every": 25,
+    "backend": "auto",
 }
 SAMPLER_NAMES = ("nnsvgd", "svgd", "sgld", "sghmc", "mh")
 # options a resumed run takes from its checkpoint's config (argparse dest -> flag)
@@ -829,6 +832,7 @@ _RUN_OPTIONS = {
     "tree": "--tree", "data": "--data", "out": "--out", "sampler": "--sampler", "particles": "--particles",
     "iterations": "--iterations", "kT": "--kT", "seed": "--seed", "eta": "--eta",
     "grasp_fraction": "--grasp-fraction", "checkpoint_every": "--checkpoint-every", "force": "--force",
+    "backend": "--backend",
 }
 
 _INFER_EPILOG = """\
@@ -876,6 +880,7 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=int, metavar="N", help=f"write RUN.partial/checkpoint.npz every N iterations; 0: only at the end of sampling (default {d['checkpoint_every']})")
     p.add_argument("--resume", type=Path, metavar="RUN", help="continue the interrupted run RUN (all settings come from RUN.partial/config.json)")
     p.add_argument("--force", action="store_true", default=None, help="replace a non-empty RUN (and discard an interrupted RUN.partial)")
+    p.add_argument("--backend", choices=("auto", "fused", "mjx"), help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -959,7 +964,7 @@ def run_infer(args: argparse.Namespace) -> int:
         run_dir = args.out
         config = runs.infer_config(args.tree, args.data, args.out, force=bool(args.force), **o)
         _say(f"{len(config['data']['files'])} training trajectories from {args.data}; sampling with {o['sampler']} "
-             f"({o['particles']} particles x {o['iterations']} iterations; MJX compiles for a minute or two first)")
+             f"({o['particles']} particles x {o['iterations']} iterations)")
     try:
         outcome = runs.run_inference(
             config, resume=args.resume, max_unstable_share=args.max_unstable_share, progress=progress, log=_say,
@@ -1377,7 +1382,7 @@ def run_demo(args: argparse.Namespace) -> int:
         max_unstable_share=INFER_DEFAULTS["max_unstable_share"], checkpoint_every=checkpoint_every, force=args.force,
     )
     config["via"] = "demo"
-    _say(f"demo: {sampler} with {particles} particles x {iterations} iterations (MJX compiles for a minute or two first)")
+    _say(f"demo: {sampler} with {particles} particles x {iterations} iterations")
     outcome = runs.run_inference(config, progress=not args.no_progress, log=_say)
     run = runs.load_run(out / "run")
     truth = np.concatenate([kp, kd])

@@ -120,6 +120,7 @@ def make_problem(
     model_file=None,
     sim: Simulator | None = None,
     nn_seed: int = 0,
+    backend: str = "auto",
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
@@ -131,6 +132,7 @@ def make_problem(
         (exact gradients through MJX; slower to compile, for checks).
       rel_step: finite-difference step in log units (default ~5e-3 for float32).
       grasp_fraction: where the training data were recorded (None: the tree's grasp).
+      backend: simulator backend when ``sim`` is not given (see :func:`make_simulator`).
     """
     kT = check_kT(kT)
     if gradient not in ("fd", "autodiff"):
@@ -140,7 +142,8 @@ def make_problem(
     obs = trajectories if isinstance(trajectories, Observations) else stack_trajectories(list(trajectories))
     if sim is None:
         kwargs = {} if max_sim_dt is None else {"max_sim_dt": max_sim_dt}
-        sim = make_simulator(tree, obs_dt=float(obs.dt), substeps=substeps, model_file=model_file, **kwargs)
+        sim = make_simulator(tree, obs_dt=float(obs.dt), substeps=substeps, model_file=model_file, backend=backend,
+                             **kwargs)
     loglik = boltzmann_log_likelihood(sim, obs, kT, grasp_fraction)
     prior_terms = [box_prior(tree, prior_sigma, prior_space)]
     nn = nn_inequality_prior(tree, eta=eta, seed=nn_seed) if nn_prior else None
@@ -160,7 +163,7 @@ def make_problem(
     lo, hi = tree.bounds_array()
     settings = dict(
         kT=kT, nn_prior=bool(nn is not None), eta=eta, prior_sigma=prior_sigma, prior_space=prior_space,
-        gradient=gradient, rel_step=rel_step, substeps=sim.substeps, sim_dt=sim.sim_dt, obs_dt=sim.obs_dt,
+        gradient=gradient, rel_step=rel_step, backend=sim.backend, substeps=sim.substeps, sim_dt=sim.sim_dt, obs_dt=sim.obs_dt,
         grasp_fraction=grasp_fraction if grasp_fraction is not None else tree.grasp_fraction,
         n_trajectories=int(obs.force.shape[0]), n_steps=int(obs.force.shape[1]), nn_seed=nn_seed,
     )

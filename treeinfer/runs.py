@@ -231,19 +231,20 @@ _SIMULATORS: dict[tuple, Any] = {}
 _MAX_SIMULATORS = 8
 
 
-def simulator_for(tree: Tree, obs_dt: float, substeps: int | None = None):
+def simulator_for(tree: Tree, obs_dt: float, substeps: int | None = None, backend: str = "auto"):
     """:func:`treeinfer.simulator.make_simulator` with a small per-process cache."""
     from .simulator import make_simulator
 
     tree_key = tree_to_dict_json(tree_to_dict(tree))
-    sim = _SIMULATORS.get((tree_key, float(obs_dt), substeps))
+    sim = _SIMULATORS.get((tree_key, float(obs_dt), substeps, backend))
     if sim is None:
-        sim = make_simulator(tree, obs_dt=float(obs_dt), substeps=substeps)
+        sim = make_simulator(tree, obs_dt=float(obs_dt), substeps=substeps, backend=backend)
         while len(_SIMULATORS) >= _MAX_SIMULATORS:
             _SIMULATORS.pop(next(iter(_SIMULATORS)))
-        # under the requested and the resolved step count: a run folder records the resolved one
-        _SIMULATORS[(tree_key, float(obs_dt), substeps)] = sim
-        _SIMULATORS[(tree_key, float(obs_dt), sim.substeps)] = sim
+        # under the requested and the resolved settings: a run folder records the resolved ones
+        for b in {backend, sim.backend}:
+            _SIMULATORS[(tree_key, float(obs_dt), substeps, b)] = sim
+            _SIMULATORS[(tree_key, float(obs_dt), sim.substeps, b)] = sim
     return sim
 
 
@@ -264,6 +265,7 @@ def infer_config(
     checkpoint_every: int,
     force: bool = False,
     command: str = "infer",
+    backend: str = "auto",
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
     sampler settings are added by :func:`run_inference` once the problem is built."""
@@ -278,6 +280,7 @@ def infer_config(
         "sampler": sampler,
         "particles": int(particles),
         "iterations": int(iterations),
+        "backend": str(backend),
         "kT": float(kT),
         "seed": int(seed),
         "eta": float(eta),
@@ -345,7 +348,7 @@ def build_problem(config: dict, tree: Tree, trajectories: Sequence[Trajectory] |
     o = config["options"]
     obs = trajectories if isinstance(trajectories, Observations) else stack_trajectories(list(trajectories))
     substeps = (config.get("problem") or {}).get("substeps")
-    sim = simulator_for(tree, float(obs.dt), substeps)
+    sim = simulator_for(tree, float(obs.dt), substeps, (config.get("problem") or {}).get("backend", o.get("backend", "auto")))
     problem = make_problem(
         tree, obs, kT=o["kT"], nn_prior=(o["sampler"] == "nnsvgd"), eta=o["eta"],
         grasp_fraction=o["grasp_fraction"], sim=sim,
@@ -1031,7 +1034,7 @@ def load_run(run_dir: str | os.PathLike) -> LoadedRun:
     if summary.get("unstable_particles"):
         stable[np.asarray(summary["unstable_particles"], int)] = False
     p = config["problem"]
-    sim = simulator_for(tree, p["obs_dt"], p["substeps"])
+    sim = simulator_for(tree, p["obs_dt"], p["substeps"], p.get("backend", "auto"))  # runs before 0.2: auto
     return LoadedRun(run_dir, tree, config, theta, labels, ld, stable, sim, float(p["kT"]), summary,
                      config["options"].get("grasp_fraction"))
 

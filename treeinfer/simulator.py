@@ -34,6 +34,7 @@ so it never affects other entries.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -45,17 +46,16 @@ import numpy as np
 from .errors import ConfigError, SimulationError, TreeFileError
 from .tree import Tree
 
-def _import_mjx_quietly() -> None:
-    """MJX prints 'Failed to import warp' on import when the optional Warp backend is absent;
-    we use the JAX backend only, so that line is noise for users."""
+def _mjx():
+    """``mujoco.mjx``, imported on first use: the fused backend never needs it, and importing it
+    costs ~1 s. MJX prints 'Failed to import warp' when the optional Warp backend is absent; we
+    use its JAX implementation only, so that line is noise for users."""
     import contextlib
     import io
 
     with contextlib.redirect_stdout(io.StringIO()):
-        from mujoco import mjx  # noqa: F401
-
-
-_import_mjx_quietly()
+        from mujoco import mjx
+    return mjx
 
 BACKENDS = ("auto", "fused", "mjx")
 DEFAULT_MAX_SIM_DT = 0.005  # s: upper bound on the simulation step whatever the prior
@@ -83,7 +83,7 @@ class Simulator:
 
     Attributes:
       mj_model: the MuJoCo C model (reference path, exports).
-      model: the MJX model (device arrays).
+      model: the MJX model (device arrays; built on first use).
       joint_names: names of the inferred joints (order of the Kp/Kd columns).
       joint_ids, dof_ids: their MuJoCo joint and dof indices.
       grasp_body, grasp_site: indices of the grasped body and the grasp-point site.
@@ -97,7 +97,6 @@ class Simulator:
     """
 
     mj_model: object
-    model: object
     joint_names: tuple[str, ...]
     joint_ids: np.ndarray
     dof_ids: np.ndarray
@@ -116,6 +115,17 @@ class Simulator:
     hinge_tree: object = None
     extra: dict = field(default_factory=dict)
 
+    @functools.cached_property
+    def model(self):
+        # eager even when first touched inside a jit trace: the cached arrays must be concrete
+        with jax.ensure_compile_time_eval():
+            return _mjx().put_model(self.mj_model)
+
+    @property
+    def dtype(self):
+        """Float type of the rollout: float32, or float64 when ``jax_enable_x64`` is on."""
+        return jnp.asarray(0.0).dtype
+
     @property
     def n_joints(self) -> int:
         return len(self.joint_ids)
@@ -126,7 +136,7 @@ class Simulator:
 
     def grasp_point(self, fraction) -> jax.Array:
         """Grasp point in the grasped body's frame for a fraction of the branch length."""
-        f = jnp.asarray(fraction, dtype=self.model.site_pos.dtype)
+        f = jnp.asarray(fraction, dtype=self.dtype)
         return jnp.asarray(self.grasp_start) + f[..., None] * jnp.asarray(self.grasp_end - self.grasp_start)
 
 
@@ -184,7 +194,6 @@ def make_simulator(
         is several times faster and compiles in seconds (``BENCHMARKS.md``).
     """
     import mujoco
-    from mujoco import mjx
 
     from .export import GRASP_SITE, to_mjmodel
 
@@ -234,7 +243,6 @@ def make_simulator(
                 raise TreeFileError(f"model: {e}; use backend='mjx'") from None
     return Simulator(
         mj_model=mj_model,
-        model=mjx.put_model(mj_model),
         joint_names=tuple(tree.inferred),
         joint_ids=joint_ids,
         dof_ids=dof_ids,
@@ -293,7 +301,7 @@ def _static_torque(model, data, qpos):
     Gravity's joint torque is the recursive Newton-Euler bias at zero velocity (kinematics,
     com_pos, rne): a third of what a full forward pass traces, which keeps MJX's compile short.
     Hinge joints only (checked in :func:`make_simulator`), so ``nq == nv``."""
-    from mujoco import mjx
+    mjx = _mjx()
 
     d = data.replace(qpos=qpos, qvel=jnp.zeros_like(data.qvel))
     d = mjx.rne(model, mjx.com_pos(model, mjx.kinematics(model, d)))
@@ -308,7 +316,7 @@ def settle_one(sim: Simulator, model) -> tuple[jax.Array, jax.Array]:
     residuals per iteration run as one vmapped evaluation, which compiles several times faster
     than ``jax.jacfwd`` through MJX and converges to the same point (the residual, not the
     Jacobian, decides where Newton stops)."""
-    from mujoco import mjx
+    mjx = _mjx()
 
     data = mjx.make_data(model)
     nq = sim.mj_model.nq
@@ -346,7 +354,7 @@ def _pull_one(sim: Simulator, model, qpos_rest, forces, site_local, unroll_outer
 
     ``unroll_outer``/``unroll_inner`` unroll the observation scan and the substep loop (speed
     levers measured in ``benchmarks/levers.py``; the defaults keep both loops rolled)."""
-    from mujoco import mjx
+    mjx = _mjx()
 
     sid, bid = sim.grasp_site, sim.grasp_body
     model = model.replace(site_pos=model.site_pos.at[sid].set(site_local))
@@ -481,13 +489,13 @@ def simulate(
     forces = jnp.atleast_2d(forces)
     n_profiles = forces.shape[0]
     if grasp_fraction is None:
-        site_local = jnp.asarray(sim.model.site_pos[sim.grasp_site])
+        site_local = jnp.asarray(sim.mj_model.site_pos[sim.grasp_site], sim.dtype)
         site_local = jnp.broadcast_to(site_local, (n_profiles, 3))
     else:
-        frac = jnp.broadcast_to(jnp.asarray(grasp_fraction, sim.model.site_pos.dtype), (n_profiles,))
+        frac = jnp.broadcast_to(jnp.asarray(grasp_fraction, sim.dtype), (n_profiles,))
         site_local = sim.grasp_point(frac)
 
-    dtype = sim.model.site_pos.dtype
+    dtype = sim.dtype
 
     def per_params(kp_i, kd_i):
         if sim.backend == "fused":
@@ -510,7 +518,7 @@ def simulate(
 def settle(sim: Simulator, kp: jax.Array, kd: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Settled joint angles [P, nq] and convergence flags [P] for P parameter sets."""
     if sim.backend == "fused":
-        dtype = sim.model.site_pos.dtype
+        dtype = sim.dtype
         return jax.vmap(lambda a, b: _fused_settle_one(sim, a.astype(dtype), b.astype(dtype), dtype))(
             jnp.atleast_2d(kp), jnp.atleast_2d(kd)
         )
