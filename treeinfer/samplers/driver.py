@@ -55,6 +55,20 @@ class RunResult(NamedTuple):
     elapsed_s: float
 
 
+def to_host(x) -> np.ndarray:
+    """A device array as NumPy. An array sharded over several hosts (``jax.distributed``) is
+    gathered from every process first, so each process gets the whole array."""
+    if isinstance(x, jax.Array) and not x.is_fully_addressable:
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    return np.asarray(x)
+
+
+def _addressable(tree) -> bool:
+    return all(not isinstance(x, jax.Array) or x.is_fully_addressable for x in jax.tree.leaves(tree))
+
+
 def iteration_key(rng_key, i):
     """Key of 0-based iteration ``i``."""
     return jax.random.fold_in(rng_key, i)
@@ -189,8 +203,8 @@ def run(
     record_trace = trace_every is not None
     trace_pos, trace_ld, trace_it = [], [], []
     if record_trace and start_iteration == 0:
-        trace_pos.append(np.asarray(state.position))
-        trace_ld.append(np.asarray(state.logdensity))
+        trace_pos.append(to_host(state.position))
+        trace_ld.append(to_host(state.logdensity))
         trace_it.append(0)
 
     diagnostics: dict[str, list] = {}
@@ -216,15 +230,15 @@ def run(
                 stop = min((it // chunk_size + 1) * chunk_size, n_iterations)
                 state, (scalars, trace) = chunk(state, key, jnp.int32(it), jnp.int32(stop))
                 n_done = stop - it
-                scalars = {k: np.asarray(v)[:n_done] for k, v in scalars.items()}
+                scalars = {k: to_host(v)[:n_done] for k, v in scalars.items()}
                 for k, v in scalars.items():
                     diagnostics.setdefault(k, []).append(v)
                 if record_trace:
                     counts = np.arange(it + 1, stop + 1)
                     keep = np.nonzero(counts % trace_every == 0)[0]
                     if keep.size:
-                        trace_pos.append(np.asarray(trace[0])[keep])
-                        trace_ld.append(np.asarray(trace[1])[keep])
+                        trace_pos.append(to_host(trace[0])[keep])
+                        trace_ld.append(to_host(trace[1])[keep])
                         trace_it.extend(counts[keep].tolist())
                 it = stop
                 postfix = {}
@@ -245,8 +259,8 @@ def run(
         trace_positions = np.concatenate([t if t.ndim == 3 else t[None] for t in trace_pos])
         trace_logdensity = np.concatenate([t if t.ndim == 2 else t[None] for t in trace_ld])
     else:
-        trace_positions = np.zeros((0, n_particles, dim), np.asarray(state.position).dtype)
-        trace_logdensity = np.zeros((0, n_particles), np.asarray(state.logdensity).dtype)
+        trace_positions = np.zeros((0, n_particles, dim), to_host(state.position).dtype)
+        trace_logdensity = np.zeros((0, n_particles), to_host(state.logdensity).dtype)
     settings = {
         "sampler": algorithm.name,
         "hyperparameters": dict(algorithm.settings),
@@ -259,8 +273,8 @@ def run(
         "chunk_size": int(chunk_size),
     }
     return RunResult(
-        final_positions=np.asarray(state.position),
-        final_state=state,
+        final_positions=to_host(state.position),
+        final_state=jax.tree.map(to_host, state) if not _addressable(state) else state,
         trace_positions=trace_positions,
         trace_logdensity=trace_logdensity,
         trace_iterations=np.asarray(trace_it, dtype=np.int64),
