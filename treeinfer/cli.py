@@ -1328,10 +1328,10 @@ def _write_synthetic(out: Path, tree, trajs, specs, true_params: dict, force: bo
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    # Sizes: the whole demo should take a few minutes on a 2-core laptop CPU (tune here).
+    # Sizes: the whole demo should take about a minute on a 2-core laptop CPU (tune here).
     n_train, n_test = 3, 3  # trajectories (training, unseen test)
-    duration, dt = 1.6, 0.02  # s
-    particles, iterations = 24, 100
+    duration, dt = 2.0, 0.02  # s
+    particles, iterations = 32, 300
     sampler = "nnsvgd"
     checkpoint_every = 25
     if args.quick:  # tiny: for tests and a first check of an installation
