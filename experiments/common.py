@@ -705,7 +705,7 @@ def data_record(data: SyntheticData, problem) -> dict:
         "n_steps": int(data.train[0].n_steps),
         "dt_s": float(data.train[0].dt),
         "ground_truth": "plain MuJoCo C (float64), treeinfer.simulator.simulate_reference",
-        "inference_simulator": {"engine": "MJX (float32)", "substeps": problem.sim.substeps, "sim_dt_s": problem.sim.sim_dt},
+        "inference_simulator": {"engine": f"{problem.sim.backend} ({np.dtype(problem.sim.dtype).name})", "substeps": problem.sim.substeps, "sim_dt_s": problem.sim.sim_dt},
         "problem": problem.settings,
     }
 
@@ -787,7 +787,7 @@ def config_line(cfg: StudyConfig, data: SyntheticData, problem, test: str | None
         f"size `{cfg.size}`: tree `{data.tree.name}` (R = {data.tree.n_inferred}), {cfg.n_particles} particles, "
         f"{cfg.n_iterations} iterations, {len(data.train)} training and {test} "
         f"trajectories of {data.train[0].n_steps} samples at {cfg.dt:g} s, kT = {problem.kT:g}, "
-        f"MJX {problem.sim.substeps} substeps of {problem.sim.sim_dt * 1e3:.3g} ms"
+        f"{problem.sim.backend} simulator, {problem.sim.substeps} substeps of {problem.sim.sim_dt * 1e3:.3g} ms"
     )
 
 
