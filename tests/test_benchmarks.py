@@ -32,7 +32,7 @@ def setup():
     return tree, sim, kp, kd, forces, refs
 
 
-def test_mjx_rollout_tiny_batch(benchmark, setup):
+def test_batched_rollout_tiny_batch(benchmark, setup):
     _, sim, kp, kd, forces, refs = setup
     run = jax.jit(lambda a, b, f: simulate(sim, a, b, f))
     args = (jnp.asarray(kp, jnp.float32), jnp.asarray(kd, jnp.float32), jnp.asarray(forces, jnp.float32))
