@@ -36,7 +36,7 @@ def __dir__():
 
 
 def enable_compilation_cache(path: str | None = None) -> str:
-    """Keep compiled XLA programs on disk so a second run (or test session) skips MJX's
+    """Keep compiled XLA programs on disk so a second run (or test session) skips the simulator's
     long compile. ``path`` defaults to ``$TREEINFER_JAX_CACHE`` or ``~/.cache/treeinfer/jax``."""
     import os
 

@@ -133,7 +133,7 @@ def _refuse_existing(paths: Sequence[Path], force: bool) -> None:
 
 
 def _prepare_jax() -> None:
-    """Persistent XLA cache: MJX compiles slowly, a second run with the same shapes skips it."""
+    """Persistent XLA cache: a second run with the same shapes skips compiling (MJX takes a minute)."""
     import treeinfer
 
     treeinfer.enable_compilation_cache()
@@ -467,7 +467,7 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
         "simulate",
         help="simulate synthetic force-deformation trajectories with known parameters",
         description="Sim-to-sim ground truth: pull the tree's grasp point down with a set of force "
-        "profiles using known (or drawn) joint stiffness and damping, in one batched MJX "
+        "profiles using known (or drawn) joint stiffness and damping, in one batched "
         "simulation, and write the trajectories in treeinfer's CSV format with the true parameters.",
         epilog=_SIMULATE_EPILOG,
     )
@@ -1451,7 +1451,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="treeinfer",
         description=textwrap.fill(
             "Infer the stiffness and damping of tree-branch joints from robot "
-            "force-deformation trajectories, with a batched MuJoCo MJX simulator.",
+            "force-deformation trajectories, with a batched MuJoCo simulator in JAX (a fused hinge-tree step, or MJX).",
             width=_WIDTH,
         ),
         epilog=_MAIN_EPILOG,

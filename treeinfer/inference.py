@@ -129,7 +129,7 @@ def make_problem(
       nn_prior: add the learned inequality prior (NNSVGD's target); False gives SVGD's.
       eta: inequality penalty slope (nats per unit of log-gain the child exceeds its parent).
       gradient: ``"fd"`` (central differences, the paper's black-box route) or ``"autodiff"``
-        (exact gradients through MJX; slower to compile, for checks).
+        (exact gradients through the simulator; slower to compile, for checks).
       rel_step: finite-difference step in log units (default ~5e-3 for float32).
       grasp_fraction: where the training data were recorded (None: the tree's grasp).
       backend: simulator backend when ``sim`` is not given (see :func:`make_simulator`).

@@ -226,7 +226,7 @@ def tree_to_dict_json(d) -> str:
 # ==== simulators ==================================================================================
 # Compiled simulators by (tree, obs_dt, substeps). A Simulator is immutable and is a *static*
 # jit argument hashed by identity, so handing the same object to every predict() in a process
-# reuses the traced and compiled rollout instead of re-tracing MJX (tens of seconds).
+# reuses the traced and compiled rollout instead of re-tracing the simulator (seconds; tens of seconds with MJX).
 _SIMULATORS: dict[tuple, Any] = {}
 _MAX_SIMULATORS = 8
 
@@ -353,7 +353,7 @@ def build_problem(config: dict, tree: Tree, trajectories: Sequence[Trajectory] |
         tree, obs, kT=o["kT"], nn_prior=(o["sampler"] == "nnsvgd"), eta=o["eta"],
         grasp_fraction=o["grasp_fraction"], sim=sim,
     )
-    # infer() evaluates log_density once at the end: jitted, MJX is traced and compiled once
+    # infer() evaluates log_density once at the end: jitted, the simulator is traced and compiled once
     # (op-by-op it costs tens of seconds); MH samples with the same function.
     return dataclasses.replace(problem, log_density=jax.jit(problem.log_density))
 
