@@ -419,14 +419,19 @@ def static_torque(t: HingeTree, q, stiffness, qpos_spring):
 
 
 class StepOutput(NamedTuple):
-    qpos: jax.Array
-    qvel: jax.Array
+    """Tuples of scalars; the caller decides the loop-carry layout. Stacked (``jnp.stack``), XLA
+    fuses a concatenate that recomputes shared terms per output component; as separate scalars
+    it emits one multi-output loop but carries nv buffers. ``benchmarks/carry_probe.py`` (bare
+    step loop) and ``BENCHMARKS.md`` (whole rollouts) measure both."""
+
+    qpos: tuple  # nv joint angles after the step
+    qvel: tuple  # nv joint speeds after the step
     lever: tuple  # world (C - com) at the start of this step, for the next step's torque
     site: tuple  # world grasp point at the start of this step
 
 
 def step(t: HingeTree, qpos, qvel, stiffness, damping, qpos_spring, dt, body: int, site_local, force, lever):
-    """One ``implicitfast`` step of one particle.
+    """One ``implicitfast`` step of one particle; ``qpos``, ``qvel``: sequences of nv scalars.
 
     ``force`` is the world force applied at body ``body``'s centre of mass with torque
     ``lever x force``: ``lever`` comes from the previous step's kinematics, as when a MuJoCo
@@ -446,9 +451,4 @@ def step(t: HingeTree, qpos, qvel, stiffness, damping, qpos_spring, dt, body: in
     qacc = solve_tree(t, mass_matrix(t, kin), diag, smooth)
     v_new = [add(v[i], mul(dt, qacc[i])) for i in range(nv)]
     q_new = [add(q[i], mul(dt, v_new[i])) for i in range(nv)]
-    return StepOutput(
-        qpos=jnp.stack([jnp.asarray(x) for x in q_new]),
-        qvel=jnp.stack([jnp.asarray(x) for x in v_new]),
-        lever=vsub(site, kin.com[body]),
-        site=site,
-    )
+    return StepOutput(qpos=tuple(q_new), qvel=tuple(v_new), lever=vsub(site, kin.com[body]), site=site)

@@ -450,7 +450,11 @@ def _fused_pull_one(sim: Simulator, kp, kd, qpos_rest, forces, site_local, unrol
             q, v, lever, c = st
             out = hd.step(t, q, v, stiffness, damping, spring, dt, bid, site_local, force, lever)
             c = tuple(jnp.where(k == 0, a, b) for a, b in zip(out.site, c))
-            return out.qpos, out.qvel, tuple(jnp.asarray(x, dtype) for x in out.lever), c
+            # Stacked [nv] carries: carrying nv separate scalars makes XLA emit one multi-output
+            # loop (1.3x faster for 6 joints at N = 131072 on an H100) but costs more per loop
+            # iteration at the standard problem's size (26 ms vs 19 ms per NNSVGD iteration).
+            stack = lambda xs: jnp.stack([jnp.asarray(x, dtype) for x in xs])
+            return stack(out.qpos), stack(out.qvel), tuple(jnp.asarray(x, dtype) for x in out.lever), c
 
         inner = {} if unroll_inner == 1 else {"unroll": unroll_inner}
         c0 = tuple(jnp.asarray(x, dtype) for x in c_rest)
