@@ -1,6 +1,7 @@
 """Smoothed box prior and neural-network inequality prior."""
 
 import math
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -260,3 +261,23 @@ def test_corrupt_cache_is_retrained(tmp_path):
         again = load_or_train_inequality_network(**settings, cache_dir=tmp_path)
     assert not again.loaded
     assert load_or_train_inequality_network(**settings, cache_dir=tmp_path).loaded
+
+
+def test_bundled_default_network_loads_and_matches_a_fresh_fit(tmp_path, monkeypatch):
+    """The package ships the default-settings fit (a fresh install skips training). It must be
+    what training with the current code and defaults gives, or it is stale."""
+    bundled = list(priors.BUNDLED_NETS.glob("inequality_net-*.msgpack"))
+    assert len(bundled) == 1
+
+    def boom(*a, **k):
+        raise AssertionError("trained although the default fit is bundled")
+
+    monkeypatch.setattr(priors, "train_inequality_network", boom)
+    net = load_or_train_inequality_network(-2.0, 7.0, eta=10.0, cache_dir=tmp_path)  # empty cache
+    assert net.loaded and Path(net.cache_path).parent == priors.BUNDLED_NETS
+    monkeypatch.undo()
+    fresh = train_inequality_network(-2.0, 7.0, eta=10.0)
+    x = jnp.linspace(-2.0, 7.0, 41)
+    parent, child = jnp.meshgrid(x, x)
+    # same procedure and seed; float32 training on another machine may round differently
+    np.testing.assert_allclose(net(parent, child), fresh(parent, child), atol=1e-3 * 10.0 * 9.0)

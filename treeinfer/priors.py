@@ -350,6 +350,11 @@ def _fit_key(settings: dict) -> str:
     return _settings_key(_fit_settings(settings))
 
 
+# Fits shipped with the package, made by ``python -m treeinfer.priors`` (the default settings):
+# read like cache files, so a fresh install skips training. Any other setting trains and caches.
+BUNDLED_NETS = Path(__file__).resolve().parent / "data"
+
+
 def default_cache_dir() -> Path:
     """``$TREEINFER_CACHE`` if set, else ``~/.cache/treeinfer``."""
     env = os.environ.get("TREEINFER_CACHE")
@@ -389,6 +394,8 @@ def load_or_train_inequality_network(
     )
     cache_dir = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
     path = cache_dir / f"inequality_net-{_fit_key(settings)}.msgpack"
+    if not path.is_file() and (BUNDLED_NETS / path.name).is_file():
+        path = BUNDLED_NETS / path.name  # the default fit ships with the package (3 s of training)
     if path.is_file():
         try:
             blob = serialization.msgpack_restore(path.read_bytes())
@@ -456,3 +463,28 @@ def inequality_prior(
         return jnp.sum(y, axis=-1)
 
     return logdensity
+
+
+def _write_bundled_default() -> Path:
+    """Train the inequality network with the default settings and store it in
+    :data:`BUNDLED_NETS` (run by maintainers when the training code or defaults change)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        net = load_or_train_inequality_network(0.0, 1.0, cache_dir=tmp)
+        if net.loaded:  # came from BUNDLED_NETS already: retrain to refresh it
+            net = train_inequality_network(0.0, 1.0)
+            blob = {"settings_json": json.dumps(_fit_settings(net.settings), sort_keys=True),
+                    "params": jax.tree.map(np.asarray, serialization.to_state_dict(net.params)),
+                    "final_loss": net.final_loss}
+            target = BUNDLED_NETS / f"inequality_net-{_fit_key(net.settings)}.msgpack"
+            atomic_write_bytes(target, serialization.msgpack_serialize(blob))
+            return target
+        BUNDLED_NETS.mkdir(exist_ok=True)
+        target = BUNDLED_NETS / Path(net.cache_path).name
+        target.write_bytes(Path(net.cache_path).read_bytes())
+        return target
+
+
+if __name__ == "__main__":
+    print(_write_bundled_default())

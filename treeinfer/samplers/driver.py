@@ -108,6 +108,51 @@ def _build_chunk(step, length: int, record_trace: bool, scalar_template: tuple):
     return jax.jit(chunk)
 
 
+_COMPILED: dict = {}  # (jitted chunk, argument signature) -> executable; a few, for resumed runs
+
+
+def _signature(args) -> tuple:
+    leaves, treedef = jax.tree.flatten(args)
+    return (treedef, tuple((np.shape(x), str(getattr(x, "dtype", type(x))), str(getattr(x, "sharding", None)))
+                           for x in leaves))
+
+
+def _compiled(jitted, args):
+    """``jitted`` compiled for ``args`` (arrays or shape structs), kept for repeated runs."""
+    key = (jitted, _signature(args))
+    if key not in _COMPILED:
+        while len(_COMPILED) >= 8:
+            _COMPILED.pop(next(iter(_COMPILED)))
+        _COMPILED[key] = jitted.lower(*args).compile()
+    return _COMPILED[key]
+
+
+def _single_device(tree) -> bool:
+    devices = set()
+    for x in jax.tree.leaves(tree):
+        if isinstance(x, jax.Array):
+            devices |= set(x.sharding.device_set)
+    return len(devices) <= 1
+
+
+def _initial_state_and_chunk(init, init_args, chunk, state_shapes, key):
+    """Run ``init`` and compile the scan chunk. Both programs hold the whole finite-difference
+    simulator, and compiling them dominates a run's start-up; XLA compiles without the GIL, so
+    on one device they compile side by side in two threads (on several devices the chunk is
+    compiled after ``init`` has run, so that it sees the state's real shardings)."""
+    if chunk is None:
+        return init(*init_args), None
+    if not _single_device(init_args):
+        state = init(*init_args)
+        return state, _compiled(chunk, (state, key, jnp.int32(0), jnp.int32(0)))
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        init_exe = pool.submit(lambda: init.lower(*init_args).compile())
+        chunk_exe = pool.submit(_compiled, chunk, (state_shapes, key, jnp.int32(0), jnp.int32(0)))
+        return init_exe.result()(*init_args), chunk_exe.result()
+
+
 def _key_record(rng_key) -> dict:
     if isinstance(rng_key, (int, np.integer)):
         return {"seed": int(rng_key)}
@@ -157,9 +202,9 @@ def run(
         the result equals the uninterrupted run.
 
     The step is traced twice (shape inference and compilation) and the chunk
-    compiled once; ``init`` is compiled separately. Compiled chunks of the
-    last few (algorithm, chunk length) pairs are cached, so a resumed run of
-    the same algorithm object does not recompile.
+    compiled once; ``init`` is compiled beside it, in a second thread. Compiled
+    chunks of the last few (algorithm, chunk length, shapes) are cached, so a
+    resumed run of the same algorithm object does not recompile.
     """
     t0 = time.perf_counter()
     for nm, v in (("n_iterations", n_iterations), ("start_iteration", start_iteration)):
@@ -188,6 +233,7 @@ def run(
     key_record = _key_record(rng_key)
     key = jax.random.key(int(rng_key)) if isinstance(rng_key, (int, np.integer)) else rng_key
 
+    init_args = None
     if initial_state is None:
         if start_iteration != 0:
             raise ConfigError(
@@ -195,20 +241,17 @@ def run(
             )
         if initial_positions is None:
             raise ConfigError("run: give initial_positions [P, D] (or initial_state to resume)")
-        state = jax.jit(algorithm.init)(init_key(key), check_positions(initial_positions))
+        init_args = (init_key(key), check_positions(initial_positions))
+        init = jax.jit(algorithm.init)
+        state = init.eval_shape(*init_args)  # shapes now; values once init is compiled below
     else:
         state = initial_state
     n_particles, dim = state.position.shape
 
     record_trace = trace_every is not None
-    trace_pos, trace_ld, trace_it = [], [], []
-    if record_trace and start_iteration == 0:
-        trace_pos.append(to_host(state.position))
-        trace_ld.append(to_host(state.logdensity))
-        trace_it.append(0)
-
     diagnostics: dict[str, list] = {}
     remaining = n_iterations - start_iteration
+    chunk = None
     if remaining > 0:
         _, info_shape = jax.eval_shape(algorithm.step, iteration_key(key, 0), state)
         template = tuple(
@@ -216,6 +259,18 @@ def run(
         )
         length = min(chunk_size, remaining)
         chunk = _build_chunk(algorithm.step, length, record_trace, template)
+    if init_args is not None:
+        state, chunk = _initial_state_and_chunk(init, init_args, chunk, state, key)
+    elif chunk is not None:
+        chunk = _compiled(chunk, (state, key, jnp.int32(0), jnp.int32(0)))
+
+    trace_pos, trace_ld, trace_it = [], [], []
+    if record_trace and start_iteration == 0:
+        trace_pos.append(to_host(state.position))
+        trace_ld.append(to_host(state.logdensity))
+        trace_it.append(0)
+
+    if remaining > 0:
         bar = tqdm(
             total=n_iterations,
             initial=start_iteration,
