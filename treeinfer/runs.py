@@ -347,8 +347,8 @@ def build_problem(config: dict, tree: Tree, trajectories: Sequence[Trajectory] |
 
     o = config["options"]
     obs = trajectories if isinstance(trajectories, Observations) else stack_trajectories(list(trajectories))
-    substeps = (config.get("problem") or {}).get("substeps")
-    sim = simulator_for(tree, float(obs.dt), substeps, (config.get("problem") or {}).get("backend", o.get("backend", "auto")))
+    recorded = config.get("problem") or {}  # a resumed run: the settings it was built with
+    sim = simulator_for(tree, float(obs.dt), recorded.get("substeps"), recorded.get("backend", o.get("backend", "auto")))
     problem = make_problem(
         tree, obs, kT=o["kT"], nn_prior=(o["sampler"] == "nnsvgd"), eta=o["eta"],
         grasp_fraction=o["grasp_fraction"], sim=sim,
@@ -1034,7 +1034,7 @@ def load_run(run_dir: str | os.PathLike) -> LoadedRun:
     if summary.get("unstable_particles"):
         stable[np.asarray(summary["unstable_particles"], int)] = False
     p = config["problem"]
-    sim = simulator_for(tree, p["obs_dt"], p["substeps"], p.get("backend", "auto"))  # runs before 0.2: auto
+    sim = simulator_for(tree, p["obs_dt"], p["substeps"], p.get("backend", "auto"))  # folders from before backends existed: auto
     return LoadedRun(run_dir, tree, config, theta, labels, ld, stable, sim, float(p["kT"]), summary,
                      config["options"].get("grasp_fraction"))
 
