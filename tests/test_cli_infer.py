@@ -138,6 +138,13 @@ def test_infer_run_folder(run_dir, demo):
         assert f["sha256"] == runs.file_sha256(data / f["name"])
     assert cfg["problem"]["obs_dt"] == pytest.approx(0.02) and cfg["problem"]["kT"] == INFER_DEFAULTS["kT"]
     assert cfg["posterior_settings"]["n_iterations"] == 3
+    # the simulator backend is recorded (requested and resolved) and honoured when the run is loaded
+    assert cfg["options"]["backend"] == "auto" and cfg["problem"]["backend"] == "fused"
+    assert runs.load_run(out).sim.backend == "fused"
+    mjx_cfg = json.loads(json.dumps(cfg))
+    mjx_cfg["problem"]["backend"] = "mjx"
+    assert runs.simulator_for(runs.load_tree(out / "tree.yaml"), mjx_cfg["problem"]["obs_dt"],
+                              mjx_cfg["problem"]["substeps"], mjx_cfg["problem"]["backend"]).backend == "mjx"
 
     with np.load(out / "trace.npz") as z:
         theta, labels, it = z["theta"], z["labels"].tolist(), z["iterations"]
