@@ -17,13 +17,9 @@ def main(batches):
         t, nv = sim.hinge_tree, sim.mj_model.nv
 
         def step_tuple(q, v, kp):
-            qs, vs = list(q), list(v)
-            kin = hd.kinematics(t, qs)
-            rhs = hd.bias_minus_applied(t, kin, vs, sim.grasp_body, (0.0, 0.0, -5.0), (0.0, 0.5, 0.0))
-            smooth = [hd.sub(hd.sub(hd.mul(-kp, qs[i]), hd.mul(0.5, vs[i])), rhs[i]) for i in range(nv)]
-            qacc = hd.solve_tree(t, hd.mass_matrix(t, kin), [0.5 * sim.sim_dt] * nv, smooth)
-            vn = tuple(vs[i] + sim.sim_dt * qacc[i] for i in range(nv))
-            return tuple(qs[i] + sim.sim_dt * vn[i] for i in range(nv)), vn
+            out = hd.step(t, q, v, [kp] * nv, [0.5] * nv, [0.0] * nv, sim.sim_dt, sim.grasp_body,
+                          (0.5, 0.0, 0.0), (0.0, 0.0, -5.0), (0.1, 0.0, 0.0))
+            return out.qpos, out.qvel
 
         def step_stack(q, v, kp):
             qn, vn = step_tuple(tuple(q[i] for i in range(nv)), tuple(v[i] for i in range(nv)), kp)
