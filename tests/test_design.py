@@ -1,0 +1,170 @@
+"""treeinfer.design: EIG estimators against closed forms, and the simulator-backed ranking."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from treeinfer import design
+from treeinfer.errors import ConfigError
+
+
+# ---- a linear-Gaussian model: y_c = A_c theta + eps, theta ~ N(mu, Sigma) -------------------------
+def _exact_particles(mu, cov, n, seed=0):
+    """n samples whose mean and covariance (ddof=1) are exactly mu and cov."""
+    rng = np.random.default_rng(seed)
+    z = rng.standard_normal((n, len(mu)))
+    z -= z.mean(0)
+    z = z @ np.linalg.inv(np.linalg.cholesky(np.cov(z, rowvar=False))).T
+    return mu + z @ np.linalg.cholesky(cov).T
+
+
+def _linear_model(seed=0, d=3, t=5, c=4):
+    rng = np.random.default_rng(seed)
+    mu = rng.normal(size=d)
+    b = rng.normal(size=(d, d))
+    cov = 0.05 * (b @ b.T + d * np.eye(d))
+    # candidates of growing strength: A_c = k_c * A0_c
+    a = rng.normal(size=(c, t, d)) * np.array([0.02, 0.05, 0.1, 0.2])[:c, None, None]
+    return mu, cov, a
+
+
+def _linear_forward(a):
+    a = jnp.asarray(a, jnp.float32)
+
+    def forward(theta):
+        tau = jnp.einsum("ctd,nd->nct", a, theta)
+        return tau, jnp.ones(tau.shape[:2], bool)
+
+    return forward
+
+
+def _closed_form(cov, a, sigma):
+    """Conjugate update: EIG = 0.5 (log det Sigma - log det Sigma_post), Sigma_post^-1 = Sigma^-1 + F."""
+    out, posts = [], []
+    for ac in a:
+        post = np.linalg.inv(np.linalg.inv(cov) + ac.T @ ac / sigma**2)
+        out.append(0.5 * (np.linalg.slogdet(cov)[1] - np.linalg.slogdet(post)[1]))
+        posts.append(post)
+    return np.array(out), np.array(posts)
+
+
+def test_laplace_eig_matches_linear_gaussian_closed_form():
+    mu, cov, a = _linear_model()
+    sigma = 0.01
+    theta = _exact_particles(mu, cov, 200)
+    sub = jnp.asarray(theta[:16], jnp.float32)
+    jac, ok = design.fd_jacobian(_linear_forward(a), sub, rel_step=1e-2)
+    np.testing.assert_allclose(np.asarray(jac[3]), np.moveaxis(a, 0, 0), rtol=2e-3, atol=1e-5)
+    eig = np.asarray(design.laplace_eig(jac, design.particle_covariance(theta), sigma, ok))
+    ref, _ = _closed_form(cov, a, sigma)
+    assert np.all(np.diff(ref) > 0)  # the model has a clear ranking to get right
+    np.testing.assert_allclose(eig, ref, rtol=2e-3)
+
+
+def test_target_variance_matches_conjugate_posterior():
+    mu, cov, a = _linear_model(seed=1)
+    sigma = 0.01
+    g = np.random.default_rng(5).normal(size=(7, 3)) * 0.1  # target sensitivity [T', D]
+    theta = _exact_particles(mu, cov, 100, seed=2)
+    jac, ok = design.fd_jacobian(_linear_forward(a), jnp.asarray(theta[:8], jnp.float32), rel_step=1e-2)
+    jac_t = jnp.broadcast_to(jnp.asarray(g, jnp.float32), (8,) + g.shape)
+    before, after = design.target_variance(jac, jac_t, cov, sigma, ok)
+    _, posts = _closed_form(cov, a, sigma)
+    ref_before = np.mean(np.einsum("td,de,te->t", g, cov, g))
+    ref_after = np.array([np.mean(np.einsum("td,de,te->t", g, p, g)) for p in posts])
+    np.testing.assert_allclose(np.asarray(before), ref_before, rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(after), ref_after, rtol=2e-3)
+
+
+def test_nested_mc_eig_matches_closed_form_when_eig_is_small():
+    mu, cov, a = _linear_model(seed=3)
+    sigma = 0.2  # EIG below 2 nats: far below log P, where the nested estimate is accurate
+    theta = _exact_particles(mu, cov, 2000, seed=4)
+    ref, _ = _closed_form(cov, a, sigma)
+    assert ref.max() < 2.0 and np.all(np.diff(ref) > 0)
+    eig = np.asarray(design.nested_mc_eig(_linear_forward(a), jnp.asarray(theta, jnp.float32), sigma,
+                                          jax.random.key(0)))
+    np.testing.assert_allclose(eig, ref, atol=0.06, rtol=0.05)
+    assert np.all(eig <= np.log(len(theta)) + 1e-4)
+
+
+# ---- the simulator: a 1-joint tree --------------------------------------------------------------
+@pytest.fixture(scope="module")
+def one_joint():
+    from treeinfer.generators import chain
+    from treeinfer.simulator import make_simulator
+
+    tree = chain(1, lengths=0.6, radii=0.015)
+    sim = make_simulator(tree, obs_dt=0.02)
+    rng = np.random.default_rng(0)
+    theta = np.log([40.0, 0.8]) + np.array([0.3, 0.5]) * rng.standard_normal((24, 2))
+    return sim, theta.astype(np.float32)
+
+
+def test_fd_sensitivities_match_forward_mode_autodiff(one_joint):
+    """The batched central differences agree with jax.jacfwd through the simulator."""
+    sim, theta = one_joint
+    forces = design.candidate_forces([design.Candidate(1.0, 4.0, "hold")], 0.6, sim.obs_dt)
+    fwd = design.simulator_forward(sim, forces, np.array([1.0], np.float32))
+    pts = jnp.asarray(theta[:2])
+    jac, ok = jax.jit(lambda t: design.fd_jacobian(fwd, t, rel_step=5e-3))(pts)
+    ref = jax.jacfwd(lambda t: fwd(t[None])[0][0, 0])
+    for i in range(2):
+        r = np.asarray(ref(pts[i]))  # [T, D]
+        scale = np.max(np.abs(r))
+        assert bool(ok[i, 0])
+        np.testing.assert_allclose(np.asarray(jac[i, 0]), r, atol=2e-3 * scale)
+
+
+def test_stronger_pull_scores_higher_on_one_joint(one_joint):
+    sim, theta = one_joint
+    cands = design.candidate_grid([1.0], [0.02, 5.0])
+    s = design.score_candidates(sim, theta, cands, sigma_x=0.002, duration=0.6, n_particles=8)
+    assert s.best.peak_force == 5.0
+    assert s.score[0] > s.score[1] + 1.0  # nats: a 250x harder pull is far more informative
+    assert np.all(s.stable_share == 1.0)
+    assert s.settings["cost_rollouts"] == 8 * 4 * 2
+    d = s.to_dict()
+    json.dumps(d)
+    assert [r["rank"] for r in d["candidates"]] == [1, 2]
+    assert "EIG" in s.table()
+    # the target variant ranks the same way and reports a narrower band after the strong pull
+    tgt = design.parse_target("grasp=0.5,peak=3")
+    st = design.score_candidates(sim, theta, cands, sigma_x=0.002, duration=0.6, n_particles=8, target=tgt)
+    assert st.best.peak_force == 5.0
+    assert np.all(st.band_std_after <= st.band_std_before * (1 + 1e-6))
+    assert st.band_std_after[0] < st.band_std_after[1]
+    json.dumps(st.to_dict())
+    fig, axes = design.plot_scores(st)
+    assert len(axes) == 1
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+
+
+def test_candidates_targets_and_directions_are_checked(one_joint):
+    sim, theta = one_joint
+    cands = design.candidate_grid([0.5, 1.0], [2.0, 4.0], ["ramp", "step"])
+    assert len(cands) == 8 and cands[0] == design.Candidate(0.5, 2.0, "ramp", None)
+    f = design.candidate_forces(cands, 1.0, 0.02)
+    assert f.shape == (8, 50) and np.isclose(f[0].max(), 2.0)
+    t = design.parse_target("grasp=0.5, peak=5, kind=hold")
+    assert t == design.Target(0.5, 5.0, "hold", None)
+    for bad in ("grasp=0.5", "grasp=2,peak=5", "peak=5,grasp=x", "where=1,peak=2", "grasp=0.5,peak=5,kind=zig"):
+        with pytest.raises(ConfigError, match="--target"):
+            design.parse_target(bad)
+    with pytest.raises(ConfigError, match="grasp_fraction"):
+        design.candidate_grid([0.0], [1.0])
+    with pytest.raises(ConfigError, match="direction"):
+        design.candidate_grid([1.0], [1.0], directions=[(0, 0, 0)])
+    if not design._accepts_direction():
+        c = design.candidate_grid([1.0], [1.0], directions=[(1, 0, 0)])
+        with pytest.raises(ConfigError, match="direction"):
+            design.score_candidates(sim, theta, c, 0.002, 0.6)
+    with pytest.raises(ConfigError, match="sigma_x"):
+        design.score_candidates(sim, theta, cands, 0.0, 0.6)
+    with pytest.raises(ConfigError, match="theta"):
+        design.score_candidates(sim, theta[:, :1], cands, 0.002, 0.6)
