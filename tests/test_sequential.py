@@ -102,14 +102,15 @@ def _chain_problems(levels=2, kT=0.05, duration=0.4, dt=0.02):
     tree = chain(2, lengths=[0.6, 0.5], radii=[0.02, 0.014], angles_deg=[10.0, -10.0], levels=levels,
                  bounds={"kp": [5.0, 500.0], "kd": [0.05, 10.0]})
     sim = make_simulator(tree, obs_dt=dt)
-    kp, kd = np.array([[80.0, 30.0][-levels:]]), np.array([[1.5, 0.6][-levels:]])
+    kp = np.array([[{"branch0": 80.0, "branch1": 30.0}[j] for j in tree.inferred]])  # parent stiffer
+    kd = np.array([[{"branch0": 1.5, "branch1": 0.6}[j] for j in tree.inferred]])
     specs = ["ramp:peak=3,ramp=0.2,start=0.02", "hold:peak=6,ramp=0.1,hold=0.1,release=0.1,start=0.02"]
     forces = np.stack([from_spec(s, duration, dt) for s in specs])
     r = simulate(sim, jnp.asarray(kp), jnp.asarray(kd), jnp.asarray(forces))
     t = np.arange(forces.shape[1]) * dt
     trajs = [validate_trajectory(Trajectory(t, forces[i], np.asarray(r.tau[0, i], float),
                                             np.asarray(r.tau_dot[0, i], float), f"pull{i}")) for i in range(2)]
-    kw = dict(nn_prior=False, sim=sim, kT=kT)
+    kw = {"nn_prior": False, "sim": sim, "kT": kT}
     # A: the ramp-hold-release pull (informs Kp and Kd); B: the slow ramp (mostly Kp)
     return make_problem(tree, trajs[1:], **kw), make_problem(tree, trajs[:1], **kw), make_problem(tree, trajs, **kw)
 
@@ -170,16 +171,17 @@ def test_two_joint_chain_a_then_b_agrees_with_a_and_b_svgd():
     of the particles (SVGD leaves about one particle in 50 stranded in a low-density region, which
     would dominate a plain std): means within 0.35 of the joint posterior's std + 0.03, stds within
     a factor 1.5. A's posterior is box-wide in the parent's gains (tip pulls barely see them), so
-    those keep the box (``uninformed``); the child's gains carry over. About 2 min on 2 cores."""
+    those may keep the box (``uninformed``); the child's gains carry over. About 3 min on 2 loaded
+    cores (measured: mean offsets <= 0.2 std, std ratios 0.83-1.40)."""
     from treeinfer.inference import infer
 
     prob_a, prob_b, prob_ab = _chain_problems()
-    kw = dict(sampler="svgd", n_particles=48, n_iterations=400, progress=False)
+    kw = {"sampler": "svgd", "n_particles": 48, "n_iterations": 400, "progress": False}
     post_a = infer(prob_a, seed=1, **kw)
     post_ab = infer(prob_ab, seed=2, **kw)
     prior = sequential.prior_from_particles(post_a.theta, post_a.labels, prob_b.labels, valid=post_a.valid,
                                             box=(prob_a.lower, prob_a.upper))
-    assert "Kp[branch1]" in prior.shared
+    assert "Kp[branch1]" in prior.shared  # the grasped joint's stiffness is well identified by A
     post_seq = infer(sequential.with_prior(prob_b, prior.log_density), seed=3, **kw)
     m_ab, s_ab = _trimmed(post_ab.theta[post_ab.valid])
     m_seq, s_seq = _trimmed(post_seq.theta[post_seq.valid])
