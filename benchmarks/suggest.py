@@ -68,7 +68,8 @@ def main(argv=None) -> int:
 
     variants = [("eig", None)] + ([("target", parse_target(args.target))] if args.target else [])
     for name, target in variants:
-        call = lambda seed: score_candidates(sim, theta, cands, 0.002, args.duration, n_particles=args.design_particles,
+        call = lambda seed, target=target: score_candidates(
+            sim, theta, cands, 0.002, args.duration, n_particles=args.design_particles,
                                              target=target, seed=seed)
         t0 = time.perf_counter()
         s = call(0)

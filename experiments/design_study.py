@@ -44,7 +44,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from experiments.common import (  # noqa: E402
+from experiments.common import (
     RESULTS,
     check_out,
     cpu_seconds,
@@ -90,12 +90,12 @@ class DesignConfig:
 
 
 SIZES = {
-    "tiny": dict(tree="two_branch", duration=0.6, seeds=2, grasp_fractions=(0.4, 1.0), peak_forces=(1.0, 6.0),
-                 profile_kinds=("hold",), n_particles=8, n_iterations=10, design_particles=8),
+    "tiny": {"tree": "two_branch", "duration": 0.6, "seeds": 2, "grasp_fractions": (0.4, 1.0), "peak_forces": (1.0, 6.0),
+                 "profile_kinds": ("hold",), "n_particles": 8, "n_iterations": 10, "design_particles": 8},
     "cpu": {},
-    "full": dict(dt=0.01, duration=2.0, seeds=20, grasp_fractions=tuple(np.round(np.linspace(0.1, 1.0, 10), 2)),
-                 peak_forces=(2.0, 4.0, 6.0, 8.0, 10.0), profile_kinds=("ramp", "hold", "step"), n_particles=128,
-                 n_iterations=300, design_particles=64),
+    "full": {"dt": 0.01, "duration": 2.0, "seeds": 20, "grasp_fractions": tuple(np.round(np.linspace(0.1, 1.0, 10), 2)),
+                 "peak_forces": (2.0, 4.0, 6.0, 8.0, 10.0), "profile_kinds": ("ramp", "hold", "step"), "n_particles": 128,
+                 "n_iterations": 300, "design_particles": 64},
 }
 
 
@@ -155,7 +155,7 @@ def run_seed(cfg: DesignConfig, tree, sim, seed: int, quiet: bool) -> dict:
 
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence([int(seed), 0xDE51]).spawn(6)]
     kp, kd = default_true_params(tree, streams[0])
-    t_steps = int(round(cfg.duration / cfg.dt))
+    t_steps = round(cfg.duration / cfg.dt)
     kT = suggest_kT(cfg.noise_mm * 1e-3, t_steps, cfg.dt)
     first = Candidate(1.0, cfg.first_peak, "hold")
     traj1 = _pull(sim, kp, kd, first, cfg, streams[1], "first")
@@ -263,11 +263,11 @@ def _markdown(cfg: DesignConfig, summary: dict, seeds: list[dict], wall: float) 
     lines = [
         f"# Design study ({cfg.size}): which second pull?",
         "",
-        f"Tree `{cfg.tree}`, {cfg.seeds} seeds, displacement noise {cfg.noise_mm:g} mm, first pull: "
+        (f"Tree `{cfg.tree}`, {cfg.seeds} seeds, displacement noise {cfg.noise_mm:g} mm, first pull: "
         f"ramp-hold-release {cfg.first_peak:g} N at the tip; NNSVGD {cfg.n_particles} particles x "
         f"{cfg.n_iterations} iterations; candidates: grasp {list(cfg.grasp_fractions)} x peak "
         f"{list(cfg.peak_forces)} N x {list(cfg.profile_kinds)}; held-out: {cfg.heldout_peak:g} N hold at grasp "
-        f"{cfg.heldout_grasp:g}. dt {cfg.dt:g} s, {cfg.duration:g} s pulls.",
+        f"{cfg.heldout_grasp:g}. dt {cfg.dt:g} s, {cfg.duration:g} s pulls."),
         "",
         "## Posterior std (log units), median over seeds",
         "",
@@ -284,9 +284,9 @@ def _markdown(cfg: DesignConfig, summary: dict, seeds: list[dict], wall: float) 
         "## Targets",
         "",
         f"- Worst-identified parameter after pull 1 (per seed): {', '.join(summary['worst_parameter_per_seed'])}.",
-        f"- Median shrink of its std: design {m['design']:.3f}, repeat {m['repeat']:.3f}, random {m['random']:.3f} "
+        (f"- Median shrink of its std: design {m['design']:.3f}, repeat {m['repeat']:.3f}, random {m['random']:.3f} "
         f"(log units); design / repeat = {summary['design_vs_repeat_shrink_ratio']:.2f} "
-        f"(target >= 2: **{'met' if summary['target_2x_more_shrink_than_repeat'] else 'not met'}**).",
+        f"(target >= 2: **{'met' if summary['target_2x_more_shrink_than_repeat'] else 'not met'}**)."),
         f"- Design pull never widens the held-out band: **{'yes' if summary['design_never_widens_band'] else 'no'}**"
         + (f" (wider at seeds {summary['seeds_where_design_widens_band']})" if summary["seeds_where_design_widens_band"]
            else "") + ".",

@@ -77,6 +77,11 @@ def test_target_variance_matches_conjugate_posterior():
     ref_after = np.array([np.mean(np.einsum("td,de,te->t", g, p, g)) for p in posts])
     np.testing.assert_allclose(np.asarray(before), ref_before, rtol=1e-4)
     np.testing.assert_allclose(np.asarray(after), ref_after, rtol=2e-3)
+    # one parameter's variance: the unit vector as the target's sensitivity
+    e = jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32)[2][None, None], (8, 1, 3))
+    before, after = design.target_variance(jac, e, cov, sigma, ok)
+    np.testing.assert_allclose(np.asarray(before), cov[2, 2], rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(after), posts[:, 2, 2], rtol=2e-3)
 
 
 def test_nested_mc_eig_matches_closed_form_when_eig_is_small():
@@ -138,6 +143,12 @@ def test_stronger_pull_scores_higher_on_one_joint(one_joint):
     assert np.all(st.band_std_after <= st.band_std_before * (1 + 1e-6))
     assert st.band_std_after[0] < st.band_std_after[1]
     json.dumps(st.to_dict())
+    sp = design.score_candidates(sim, theta, cands, sigma_x=0.002, duration=0.6, n_particles=8, parameter="worst")
+    assert sp.settings["parameter"] == "Kd[branch0]"  # the particles' widest coordinate
+    assert sp.best.peak_force == 5.0 and np.all(sp.band_std_after <= sp.band_std_before * (1 + 1e-6))
+    assert "std after" in sp.table()
+    with pytest.raises(ConfigError, match="parameter"):
+        design.score_candidates(sim, theta, cands, 0.002, 0.6, parameter="Kp[nope]")
     fig, axes = design.plot_scores(st)
     assert len(axes) == 1
     import matplotlib.pyplot as plt

@@ -376,9 +376,10 @@ def simulator_forward(sim: Simulator, forces, grasp_fraction, direction=None) ->
 
 
 @partial(jax.jit, static_argnums=(0, 6))
-def _laplace_scores(sim, theta, cov, forces, grasp, direction, rel_step, sigma_x, target):
+def _laplace_scores(sim, theta, cov, forces, grasp, direction, rel_step, sigma_x, target, onehot=None):
     """One compiled program: the FD sensitivities of all candidates (and the target) at all
-    subsampled particles in one ``simulate`` call, and the scores."""
+    subsampled particles in one ``simulate`` call, and the scores. ``onehot`` [D]: score the
+    variance reduction of that parameter instead (its sensitivity is the unit vector)."""
     if target is not None:  # the target rides along as one more profile of the same batch
         t_forces, t_grasp, t_dir = target
         forces = jnp.concatenate([forces, t_forces[None]], 0)
@@ -386,6 +387,9 @@ def _laplace_scores(sim, theta, cov, forces, grasp, direction, rel_step, sigma_x
         if direction is not None:
             direction = jnp.concatenate([direction, t_dir[None]], 0)
     jac, ok = fd_jacobian(simulator_forward(sim, forces, grasp, direction), theta, rel_step)
+    if onehot is not None:
+        g = jnp.broadcast_to(onehot.astype(jac.dtype), (jac.shape[0], 1, jac.shape[-1]))
+        return jnp.stack(target_variance(jac, g, cov, sigma_x, ok)), jnp.mean(ok, 0)
     if target is None:
         return laplace_eig(jac, cov, sigma_x, ok), jnp.mean(ok, 0)
     ok_t = ok[:, -1:]
@@ -404,11 +408,12 @@ def _nmc_scores(sim, theta, forces, grasp, direction, sigma_x, key):
 class Suggestions(NamedTuple):
     """Candidates ranked by score (best first).
 
-    candidates: the C candidates, best first. score: [C] nats (objective ``"eig"``) or m^2 of
-    predictive variance removed (``"target"``). stable_share: [C] share of the subsampled
-    particles whose rollouts of that candidate were all stable. band_std_before,
-    band_std_after: [C] m, the target's linearised predictive std before/after (``"target"``
-    only, else None). settings: estimator, sigma_x, particle counts, rel_step, duration, dt,
+    candidates: the C candidates, best first. score: [C] nats (objective ``"eig"``), m^2 of
+    predictive variance removed (``"target"``) or log units^2 of one parameter's variance
+    removed (``"parameter"``). stable_share: [C] share of the subsampled particles whose
+    rollouts of that candidate were all stable. band_std_before, band_std_after: [C] the
+    target's linearised predictive std (m) or the parameter's std (log units) before/after
+    (None for ``"eig"``). settings: estimator, sigma_x, particle counts, rel_step, duration, dt,
     cost in rollouts, target. specs: [C] the force-profile spec of each candidate.
     """
 
@@ -431,27 +436,30 @@ class Suggestions(NamedTuple):
             row = {"rank": i + 1, **c.to_dict(), "spec": self.specs[i], "score": _num(self.score[i]),
                    "stable_share": _num(self.stable_share[i])}
             if self.band_std_after is not None:
-                row["band_std_before_m"] = _num(self.band_std_before[i])
-                row["band_std_after_m"] = _num(self.band_std_after[i])
+                unit = "log" if self.settings.get("objective") == "parameter" else "m"
+                row[f"std_before_{unit}"] = _num(self.band_std_before[i])
+                row[f"std_after_{unit}"] = _num(self.band_std_after[i])
             rows.append(row)
         return {"settings": self.settings, "candidates": rows}
 
     def table(self, top: int | None = None) -> str:
         """Plain-text ranked table (the ``top`` best rows; all by default)."""
-        tgt = self.band_std_after is not None
-        unit = "var cut [mm^2]" if tgt else "EIG [nats]"
-        head = f"{'rank':>4}  {'grasp':>6}  {'peak [N]':>8}  {'kind':>7}  {'direction':>18}  {unit:>14}"
-        head += f"  {'band std [mm]':>13}" if tgt else ""
+        obj = self.settings.get("objective", "eig")
+        tgt = obj != "eig"
+        unit, after, scale = {"eig": ("EIG [nats]", "", 1.0), "target": ("var cut [mm^2]", "band std [mm]", 1e3),
+                              "parameter": ("var cut [log^2]", "std after", 1.0)}[obj]
+        head = f"{'rank':>4}  {'grasp':>6}  {'peak [N]':>8}  {'kind':>7}  {'direction':>18}  {unit:>15}"
+        head += f"  {after:>13}" if tgt else ""
         head += f"  {'stable':>6}"
         lines = [head]
         n = len(self.candidates) if top is None else min(top, len(self.candidates))
         for i in range(n):
             c = self.candidates[i]
             d = "gravity" if c.direction is None else "(" + ",".join(f"{v:.2f}" for v in c.direction) + ")"
-            s = self.score[i] * (1e6 if tgt else 1.0)
-            line = f"{i + 1:>4}  {c.grasp_fraction:>6.3g}  {c.peak_force:>8.3g}  {c.profile_kind:>7}  {d:>18}  {s:>14.4g}"
+            s = self.score[i] * scale**2
+            line = f"{i + 1:>4}  {c.grasp_fraction:>6.3g}  {c.peak_force:>8.3g}  {c.profile_kind:>7}  {d:>18}  {s:>15.4g}"
             if tgt:
-                line += f"  {1e3 * self.band_std_after[i]:>13.3g}"
+                line += f"  {scale * self.band_std_after[i]:>13.3g}"
             lines.append(line + f"  {self.stable_share[i]:>6.0%}")
         return "\n".join(lines)
 
@@ -471,6 +479,7 @@ def score_candidates(
     valid=None,
     n_particles: int = 32,
     target: Target | None = None,
+    parameter: str | None = None,
     estimator: str = "laplace",
     rel_step: float | None = None,
     seed: int = 0,
@@ -486,6 +495,10 @@ def score_candidates(
       n_particles: M, size of the seeded subsample the sensitivities are taken at (all
         particles still give the covariance); nested MC uses all valid particles.
       target: score by the reduction of this manipulation's predictive variance instead of EIG.
+      parameter: score by the expected reduction of one parameter's posterior variance (log
+        units^2, linearised as for ``target``): a label such as ``"Kd[branch1]"``, or
+        ``"worst"`` for the parameter with the largest particle std now. ``band_std_*`` then
+        hold that parameter's std before/after. No extra rollouts.
       estimator: ``"laplace"`` (default) or ``"nmc"`` (nested Monte Carlo; EIG only).
       rel_step: central-difference step in log units (default ``eps ** (1/3)``).
       seed: seeds the subsample and the nested-MC noise.
@@ -496,8 +509,10 @@ def score_candidates(
         raise ConfigError(f"sigma_x: must be a positive number of metres, got {sigma_x!r}")
     if estimator not in ("laplace", "nmc"):
         raise ConfigError(f"estimator: expected 'laplace' or 'nmc', got {estimator!r}")
-    if estimator == "nmc" and target is not None:
-        raise ConfigError("estimator 'nmc' scores the EIG only; use 'laplace' with a target")
+    if estimator == "nmc" and (target is not None or parameter is not None):
+        raise ConfigError("estimator 'nmc' scores the EIG only; use 'laplace' with a target or parameter")
+    if target is not None and parameter is not None:
+        raise ConfigError("give a target or a parameter to score by, not both")
     if isinstance(n_particles, bool) or not isinstance(n_particles, (int, np.integer)) or n_particles < 2:
         raise ConfigError(f"n_particles: must be an integer >= 2, got {n_particles!r}")
     if not candidates:
@@ -511,6 +526,14 @@ def score_candidates(
         ok &= np.asarray(valid, bool)
     pts = theta[ok]
     cov = particle_covariance(pts)
+    labels = [f"Kp[{n}]" for n in sim.joint_names] + [f"Kd[{n}]" for n in sim.joint_names]
+    onehot = None
+    if parameter is not None:
+        if parameter == "worst":
+            parameter = labels[int(np.argmax(np.diag(cov)))]
+        if parameter not in labels:
+            raise ConfigError(f"parameter: expected 'worst' or one of {labels}, got {parameter!r}")
+        onehot = jnp.asarray(np.eye(len(labels))[labels.index(parameter)], sim.dtype)
     forces = candidate_forces(candidates, duration, sim.obs_dt)
     grasp = np.asarray([c.grasp_fraction for c in candidates], np.float32)
     direction = _directions_array(candidates + ([target.candidate()] if target else []), sim)
@@ -527,11 +550,11 @@ def score_candidates(
             tgt = (jnp.asarray(tf, dtype), jnp.asarray(target.grasp_fraction, dtype), td)
         h = default_rel_step(dtype) if rel_step is None else float(rel_step)
         out, share = _laplace_scores(sim, jnp.asarray(sub, dtype), jnp.asarray(cov, dtype), jnp.asarray(forces, dtype),
-                                     jnp.asarray(grasp, dtype), c_dir, h, float(sigma_x), tgt)
+                                     jnp.asarray(grasp, dtype), c_dir, h, float(sigma_x), tgt, onehot)
         out, share = np.asarray(out, float), np.asarray(share, float)
         d = pts.shape[1]
         cost = m * 2 * d * (len(candidates) + (1 if target else 0))
-        if target is None:
+        if target is None and onehot is None:
             score, before, after = out, None, None
         else:
             before, after = out
@@ -546,10 +569,14 @@ def score_candidates(
         before = after = None
         cost = m * len(candidates)
     order = np.argsort(np.where(np.isfinite(score), -score, np.inf), kind="stable")
+    objective = "eig" if target is None else "target"
+    objective = "parameter" if parameter is not None else objective
     settings = {
-        "objective": "eig" if target is None else "target",
+        "objective": objective,
         "estimator": estimator,
-        "score_units": "nats" if target is None else "m^2 (mean predictive variance removed)",
+        "score_units": {"eig": "nats", "target": "m^2 (mean predictive variance removed)",
+                        "parameter": "log units^2 (posterior variance removed)"}[objective],
+        "parameter": parameter,
         "sigma_x_m": float(sigma_x),
         "n_posterior_particles": len(pts),
         "n_particles_used": int(m),
@@ -587,8 +614,11 @@ def plot_scores(suggestions: Suggestions):
     groups = sorted({(c.profile_kind, c.direction) for c in cands}, key=str)
     fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 3.4), squeeze=False)
     axes = axes[0]
-    tgt = suggestions.settings["objective"] == "target"
-    scale, ylabel = (1e6, "predictive variance removed [mm$^2$]") if tgt else (1.0, "expected information gain [nats]")
+    scale, ylabel = {
+        "eig": (1.0, "expected information gain [nats]"),
+        "target": (1e6, "predictive variance removed [mm$^2$]"),
+        "parameter": (1.0, f"variance of {suggestions.settings.get('parameter')} removed [log$^2$]"),
+    }[suggestions.settings.get("objective", "eig")]
     forces = sorted({c.peak_force for c in cands})
     cmap = plt.get_cmap("viridis")
     for ax, (kind, direction) in zip(axes, groups):
