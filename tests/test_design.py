@@ -179,3 +179,37 @@ def test_candidates_targets_and_directions_are_checked(one_joint):
         design.score_candidates(sim, theta, cands, 0.0, 0.6)
     with pytest.raises(ConfigError, match="theta"):
         design.score_candidates(sim, theta[:, :1], cands, 0.002, 0.6)
+
+
+# ---- a run folder as the starting point (and as the next run's prior) ---------------------------------
+@pytest.mark.slow
+def test_suggest_for_run_and_prior_from_run(tmp_path):
+    """``treeinfer demo --quick`` makes a run folder; rank 4 candidates from it (files written),
+    and fit its posterior as a prior for the same tree. Slow: the demo runs inference (1-4 min)."""
+    import contextlib
+    import io
+
+    from treeinfer.cli import main
+    from treeinfer.errors import OutputExistsError
+    from treeinfer.runs import load_run
+    from treeinfer.sequential import prior_from_run
+
+    demo = tmp_path / "demo"
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        assert main(["demo", "--quick", "--out", str(demo), "--no-progress"]) == 0
+    run = load_run(demo / "run")
+    sigma, where = design.noise_sigma_of_run(run.config)
+    assert 1e-5 < sigma < 0.05 and "kT" in where
+    s = design.suggest_for_run(demo / "run", grasp_fractions=[0.5, 1.0], peak_forces=[1.0, 5.0],
+                               n_particles=4, out=tmp_path / "sugg")
+    assert len(s.candidates) == 4 and s.settings["sigma_x_from"].startswith("derived")
+    saved = json.loads((tmp_path / "sugg" / "suggestions.json").read_text())
+    assert saved["candidates"][0]["score"] == pytest.approx(float(s.score[0]))
+    assert (tmp_path / "sugg" / "suggestions.png").stat().st_size > 0
+    with pytest.raises(OutputExistsError):
+        design.suggest_for_run(demo / "run", grasp_fractions=[1.0], peak_forces=[1.0], n_particles=4,
+                               out=tmp_path / "sugg")
+    prior = prior_from_run(demo / "run", run.labels)
+    assert set(prior.shared) | set(prior.box_only) == set(run.labels)
+    v = np.asarray(prior.log_density(jnp.asarray(run.theta[:3])))
+    assert v.shape == (3,) and np.all(np.isfinite(v))
