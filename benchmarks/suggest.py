@@ -27,16 +27,26 @@ if str(ROOT) not in sys.path:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.suggest", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.suggest", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--tree", default="two_branch", help="example name (default two_branch)")
-    p.add_argument("--candidates", type=int, default=100, help="number of candidates (a ~square grid)")
+    p.add_argument(
+        "--candidates", type=int, default=100, help="number of candidates (a ~square grid)"
+    )
     p.add_argument("--particles", type=int, default=64, help="posterior particles")
-    p.add_argument("--design-particles", type=int, default=32, help="particles the sensitivities are taken at")
+    p.add_argument(
+        "--design-particles", type=int, default=32, help="particles the sensitivities are taken at"
+    )
     p.add_argument("--duration", type=float, default=1.0)
     p.add_argument("--dt", type=float, default=0.02)
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--target", default=None, help="also time the target variant, e.g. grasp=0.5,peak=5")
-    p.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
+    p.add_argument(
+        "--target", default=None, help="also time the target variant, e.g. grasp=0.5,peak=5"
+    )
+    p.add_argument(
+        "--no-cache", action="store_true", help="do not use the persistent compilation cache"
+    )
     args = p.parse_args(argv)
 
     t_start = time.perf_counter()
@@ -55,22 +65,39 @@ def main(argv=None) -> int:
     sim = make_simulator(tree, obs_dt=args.dt)
     lo, hi = (np.log(b) for b in tree.bounds_array())
     rng = np.random.default_rng(0)
-    theta = (0.5 * (lo + hi) + 0.15 * (hi - lo) * rng.standard_normal((args.particles, len(lo)))).astype(np.float32)
+    theta = (
+        0.5 * (lo + hi) + 0.15 * (hi - lo) * rng.standard_normal((args.particles, len(lo)))
+    ).astype(np.float32)
     n_g = int(np.ceil(np.sqrt(args.candidates)))
     n_f = int(np.ceil(args.candidates / n_g))
-    cands = candidate_grid(np.linspace(0.1, 1.0, n_g), np.linspace(1.0, 10.0, n_f))[: args.candidates]
+    cands = candidate_grid(np.linspace(0.1, 1.0, n_g), np.linspace(1.0, 10.0, n_f))[
+        : args.candidates
+    ]
     setup_s = time.perf_counter() - t_start
     info = machine_info()
-    print(f"{info['device_kind']} ({info['host_cores']} cores, load {info['load_average_at_start']}), "
-          f"jax {info['jax']}, {sim.backend} backend, {sim.substeps} substeps")
-    print(f"{args.tree}: D = {theta.shape[1]}, {len(cands)} candidates, {args.particles} particles "
-          f"({args.design_particles} for the sensitivities), T = {round(args.duration / args.dt)}; setup {setup_s:.1f} s")
+    print(
+        f"{info['device_kind']} ({info['host_cores']} cores, "
+        f"load {info['load_average_at_start']}), "
+        f"jax {info['jax']}, {sim.backend} backend, {sim.substeps} substeps"
+    )
+    print(
+        f"{args.tree}: D = {theta.shape[1]}, {len(cands)} candidates, {args.particles} particles "
+        f"({args.design_particles} for the sensitivities), T = {round(args.duration / args.dt)}; "
+        f"setup {setup_s:.1f} s"
+    )
 
     variants = [("eig", None)] + ([("target", parse_target(args.target))] if args.target else [])
     for name, target in variants:
         call = lambda seed, target=target: score_candidates(
-            sim, theta, cands, 0.002, args.duration, n_particles=args.design_particles,
-                                             target=target, seed=seed)
+            sim,
+            theta,
+            cands,
+            0.002,
+            args.duration,
+            n_particles=args.design_particles,
+            target=target,
+            seed=seed,
+        )
         t0 = time.perf_counter()
         s = call(0)
         first = time.perf_counter() - t0
@@ -79,9 +106,14 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             call(r + 1)
             warm.append(time.perf_counter() - t0)
-        print(f"{name:>6}: first call {first:.2f} s (trace + compile + run), warm median {statistics.median(warm):.2f} s "
-              f"over {args.repeats}; {s.settings['cost_rollouts']} rollouts per call; best {s.best}")
-    print(f"total process time {time.perf_counter() - t_start:.1f} s (jax devices: {jax.devices()})")
+        print(
+            f"{name:>6}: first call {first:.2f} s (trace + compile + run), "
+            f"warm median {statistics.median(warm):.2f} s "
+            f"over {args.repeats}; {s.settings['cost_rollouts']} rollouts per call; best {s.best}"
+        )
+    print(
+        f"total process time {time.perf_counter() - t_start:.1f} s (jax devices: {jax.devices()})"
+    )
     return 0
 
 

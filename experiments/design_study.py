@@ -13,7 +13,8 @@ float64, inference with the batched simulator):
 3. **Four second pulls**, each a new noisy recording: ``design`` (ranked first by EIG),
    ``design_worst`` (ranked first by the expected variance reduction of the parameter with the
    largest std after pull 1, ``score_candidates(..., parameter="worst")``), ``repeat`` (the
-   first pull again, fresh noise), ``random`` (a seeded uniform pick among the candidates). For each, the posterior of both pulls together (same sampler settings, seed).
+   first pull again, fresh noise), ``random`` (a seeded uniform pick among the candidates).
+   For each, the posterior of both pulls together (same sampler settings, seed).
 4. Report the posterior std (log units) of every parameter after pull 1 and after each second
    pull, and the width of the 95% predictive band at a held-out manipulation (a ramp-hold-release
    of ``heldout_peak`` N at grasp fraction ``heldout_grasp``, not among the candidates),
@@ -91,19 +92,49 @@ class DesignConfig:
 
 
 SIZES = {
-    "tiny": {"tree": "two_branch", "duration": 0.6, "seeds": 2, "grasp_fractions": (0.4, 1.0), "peak_forces": (1.0, 6.0),
-                 "profile_kinds": ("hold",), "n_particles": 8, "n_iterations": 10, "design_particles": 8},
-    "cpu": {"profile_kinds": ("ramp", "hold", "step"), "n_particles": 32, "n_iterations": 200, "design_particles": 32},
-    "full": {"dt": 0.01, "duration": 2.0, "seeds": 20, "grasp_fractions": tuple(np.round(np.linspace(0.1, 1.0, 10), 2)),
-                 "peak_forces": (2.0, 4.0, 6.0, 8.0, 10.0), "profile_kinds": ("ramp", "hold", "step"), "n_particles": 128,
-                 "n_iterations": 300, "design_particles": 64},
+    "tiny": {
+        "tree": "two_branch",
+        "duration": 0.6,
+        "seeds": 2,
+        "grasp_fractions": (0.4, 1.0),
+        "peak_forces": (1.0, 6.0),
+        "profile_kinds": ("hold",),
+        "n_particles": 8,
+        "n_iterations": 10,
+        "design_particles": 8,
+    },
+    "cpu": {
+        "profile_kinds": ("ramp", "hold", "step"),
+        "n_particles": 24,
+        "n_iterations": 120,
+        "design_particles": 24,
+    },
+    "full": {
+        "dt": 0.01,
+        "duration": 2.0,
+        "seeds": 20,
+        "grasp_fractions": tuple(np.round(np.linspace(0.1, 1.0, 10), 2)),
+        "peak_forces": (2.0, 4.0, 6.0, 8.0, 10.0),
+        "profile_kinds": ("ramp", "hold", "step"),
+        "n_particles": 128,
+        "n_iterations": 300,
+        "design_particles": 64,
+    },
 }
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python experiments/design_study.py", description=__doc__.split("\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--size", choices=tuple(SIZES), default="cpu", help="tiny, cpu (5 seeds) or full (20 seeds, GPU)")
+    p = argparse.ArgumentParser(
+        prog="python experiments/design_study.py",
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--size",
+        choices=tuple(SIZES),
+        default="cpu",
+        help="tiny, cpu (5 seeds) or full (20 seeds, GPU)",
+    )
     p.add_argument("--seeds", type=int, default=None, help="override the number of seeds")
     p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
     p.add_argument("--particles", type=int, default=None, help="override NNSVGD's particle count")
@@ -118,7 +149,7 @@ def _say(quiet: bool, msg: str) -> None:
         print(f"[{STUDY}] {msg}", file=sys.stderr, flush=True)
 
 
-# ==== one seed =======================================================================================
+# ==== one seed ====================================================================================
 def _pull(sim, kp, kd, cand, cfg: DesignConfig, rng, name: str):
     """A noisy recording of candidate ``cand`` (ground truth from MuJoCo C)."""
     from treeinfer.design import candidate_forces
@@ -163,8 +194,11 @@ def _runner(tree, sim, kT: float, cfg: DesignConfig, n_pulls: int):
         problem = make_problem(tree, obs, kT=kT, sim=sim, grasp_fraction=grasp)
         alg = make_algorithm(problem, "nnsvgd")
         state = alg.init(init_key(key), theta0)
-        state, _ = jax.lax.scan(lambda st, i: (alg.step(iteration_key(key, i), st)[0], None), state,
-                                jax.numpy.arange(cfg.n_iterations))
+        state, _ = jax.lax.scan(
+            lambda st, i: (alg.step(iteration_key(key, i), st)[0], None),
+            state,
+            jax.numpy.arange(cfg.n_iterations),
+        )
         return state.position, state.logdensity
 
     _RUNNERS[key_] = run
@@ -178,12 +212,21 @@ def _posterior(tree, sim, trajs, grasp, kT, cfg: DesignConfig, seed: int) -> _Po
     from treeinfer.trajectories import stack_trajectories
 
     obs = stack_trajectories(trajs)
-    template = make_problem(tree, obs, kT=kT, sim=sim, nn_prior=False)  # box only: for the initial particles
+    template = make_problem(
+        tree, obs, kT=kT, sim=sim, nn_prior=False
+    )  # box only: for the initial particles
     theta0 = initial_particles(template, cfg.n_particles, seed)
     run = _runner(tree, sim, kT, cfg, len(trajs))
     f32 = lambda a: np.asarray(a, np.float32)
-    theta, ld = run(theta0, jax.random.key(int(seed)), f32(obs.force), f32(obs.displacement), f32(obs.velocity),
-                    np.asarray(obs.mask), f32(grasp))
+    theta, ld = run(
+        theta0,
+        jax.random.key(int(seed)),
+        f32(obs.force),
+        f32(obs.displacement),
+        f32(obs.velocity),
+        np.asarray(obs.mask),
+        f32(grasp),
+    )
     return _Post(theta, ld)
 
 
@@ -203,7 +246,10 @@ def run_seed(cfg: DesignConfig, tree, sim, seed: int, quiet: bool) -> dict:
     from treeinfer.design import Candidate, candidate_forces, candidate_grid, score_candidates
     from treeinfer.likelihood import suggest_kT
 
-    streams = [np.random.default_rng(s) for s in np.random.SeedSequence([int(seed), 0xDE51]).spawn(3 + len(CONDITIONS))]
+    streams = [
+        np.random.default_rng(s)
+        for s in np.random.SeedSequence([int(seed), 0xDE51]).spawn(3 + len(CONDITIONS))
+    ]
     kp, kd = default_true_params(tree, streams[0])
     t_steps = round(cfg.duration / cfg.dt)
     kT = suggest_kT(cfg.noise_mm * 1e-3, t_steps, cfg.dt)
@@ -214,14 +260,38 @@ def run_seed(cfg: DesignConfig, tree, sim, seed: int, quiet: bool) -> dict:
     _say(quiet, f"seed {seed}: posterior 1 in {time.perf_counter() - t0:.0f} s")
     cands = candidate_grid(cfg.grasp_fractions, cfg.peak_forces, cfg.profile_kinds)
     t0 = time.perf_counter()
-    sugg = score_candidates(sim, post1.theta, cands, cfg.noise_mm * 1e-3, cfg.duration, valid=post1.valid,
-                            n_particles=cfg.design_particles, seed=seed)
+    sugg = score_candidates(
+        sim,
+        post1.theta,
+        cands,
+        cfg.noise_mm * 1e-3,
+        cfg.duration,
+        valid=post1.valid,
+        n_particles=cfg.design_particles,
+        seed=seed,
+    )
     t_design = time.perf_counter() - t0
-    sugg_worst = score_candidates(sim, post1.theta, cands, cfg.noise_mm * 1e-3, cfg.duration, valid=post1.valid,
-                                  n_particles=cfg.design_particles, seed=seed, parameter="worst")
+    sugg_worst = score_candidates(
+        sim,
+        post1.theta,
+        cands,
+        cfg.noise_mm * 1e-3,
+        cfg.duration,
+        valid=post1.valid,
+        n_particles=cfg.design_particles,
+        seed=seed,
+        parameter="worst",
+    )
     pick = cands[int(streams[2].integers(len(cands)))]
-    seconds = {"design": sugg.best, "design_worst": sugg_worst.best, "repeat": first, "random": pick}
-    held_force = candidate_forces([Candidate(cfg.heldout_grasp, cfg.heldout_peak, "hold")], cfg.duration, cfg.dt)[0]
+    seconds = {
+        "design": sugg.best,
+        "design_worst": sugg_worst.best,
+        "repeat": first,
+        "random": pick,
+    }
+    held_force = candidate_forces(
+        [Candidate(cfg.heldout_grasp, cfg.heldout_peak, "hold")], cfg.duration, cfg.dt
+    )[0]
     out = {
         "seed": seed,
         "true_theta": np.log(np.concatenate([kp, kd])).tolist(),
@@ -240,7 +310,9 @@ def run_seed(cfg: DesignConfig, tree, sim, seed: int, quiet: bool) -> dict:
             "second_pull": None if cand is None else cand.to_dict(),
             "mean": th.mean(0).tolist(),
             "std": th.std(0, ddof=1).tolist(),
-            "band_width_m": _band_width(sim, post.theta, v, held_force, cfg.heldout_grasp, cfg.level),
+            "band_width_m": _band_width(
+                sim, post.theta, v, held_force, cfg.heldout_grasp, cfg.level
+            ),
             "n_valid": int(v.sum()),
         }
 
@@ -250,16 +322,25 @@ def run_seed(cfg: DesignConfig, tree, sim, seed: int, quiet: bool) -> dict:
         traj2 = _pull(sim, kp, kd, cand, cfg, streams[3 + i], f"second_{cond}")
         t0 = time.perf_counter()
         post = _posterior(tree, sim, [traj1, traj2], [1.0, cand.grasp_fraction], kT, cfg, seed)
-        _say(quiet, f"seed {seed}: {cond} ({cand.grasp_fraction:g}, {cand.peak_force:g} N, {cand.profile_kind}) "
-                    f"in {time.perf_counter() - t0:.0f} s")
+        _say(
+            quiet,
+            f"seed {seed}: {cond} ({cand.grasp_fraction:g}, {cand.peak_force:g} N, "
+            f"{cand.profile_kind}) "
+            f"in {time.perf_counter() - t0:.0f} s",
+        )
         record(cond, post, cand)
     return out, sugg
 
 
-# ==== summary ========================================================================================
+# ==== summary =====================================================================================
 def summarise(seeds: list[dict], labels) -> dict:
-    std = {s: np.array([r["stages"][s]["std"] for r in seeds]) for s in ("first",) + CONDITIONS}  # [S, D]
-    band = {s: np.array([r["stages"][s]["band_width_m"] for r in seeds]) for s in ("first",) + CONDITIONS}
+    std = {
+        s: np.array([r["stages"][s]["std"] for r in seeds]) for s in ("first",) + CONDITIONS
+    }  # [S, D]
+    band = {
+        s: np.array([r["stages"][s]["band_width_m"] for r in seeds])
+        for s in ("first",) + CONDITIONS
+    }
     worst = np.argmax(std["first"], axis=1)  # per seed: the worst-identified parameter after pull 1
     rows = np.arange(len(seeds))
     shrink = {c: std["first"][rows, worst] - std[c][rows, worst] for c in CONDITIONS}
@@ -280,7 +361,9 @@ def summarise(seeds: list[dict], labels) -> dict:
         "band_width_m_per_seed": {s: v.tolist() for s, v in band.items()},
         "median_band_width_m": {s: float(np.median(v)) for s, v in band.items()},
         "design_never_widens_band": bool(np.all(band["design"] <= band["first"])),
-        "seeds_where_design_widens_band": [r["seed"] for r, a, b in zip(seeds, band["design"], band["first"]) if a > b],
+        "seeds_where_design_widens_band": [
+            r["seed"] for r, a, b in zip(seeds, band["design"], band["first"]) if a > b
+        ],
     }
 
 
@@ -295,7 +378,12 @@ def _figures(summary: dict, sugg):
     x = np.arange(len(labels))
     wbar = 0.8 / len(stages)
     for i, s in enumerate(stages):
-        ax.bar(x + (i - (len(stages) - 1) / 2) * wbar, summary["median_std"][s], wbar, label="after pull 1" if s == "first" else f"+ {s}")
+        ax.bar(
+            x + (i - (len(stages) - 1) / 2) * wbar,
+            summary["median_std"][s],
+            wbar,
+            label="after pull 1" if s == "first" else f"+ {s}",
+        )
     ax.set_xticks(x, labels, rotation=20)
     ax.set_ylabel("posterior std [log units] (median over seeds)")
     ax.legend(fontsize=8)
@@ -305,7 +393,13 @@ def _figures(summary: dict, sugg):
     bw = summary["band_width_m_per_seed"]
     for j in range(len(bw["first"])):
         ax2.plot(range(len(stages)), [1e3 * bw[s][j] for s in stages], "o-", color="0.6", lw=0.8)
-    ax2.plot(range(len(stages)), [1e3 * summary["median_band_width_m"][s] for s in stages], "k*-", ms=10, label="median")
+    ax2.plot(
+        range(len(stages)),
+        [1e3 * summary["median_band_width_m"][s] for s in stages],
+        "k*-",
+        ms=10,
+        label="median",
+    )
     ax2.set_xticks(range(len(stages)), ["pull 1"] + [f"+{c}" for c in CONDITIONS], rotation=15)
     ax2.set_ylabel("held-out 95% band width [mm]")
     ax2.set_yscale("log")
@@ -321,11 +415,16 @@ def _markdown(cfg: DesignConfig, summary: dict, seeds: list[dict], wall: float) 
     lines = [
         f"# Design study ({cfg.size}): which second pull?",
         "",
-        (f"Tree `{cfg.tree}`, {cfg.seeds} seeds, displacement noise {cfg.noise_mm:g} mm, first pull: "
-        f"ramp-hold-release {cfg.first_peak:g} N at the tip; NNSVGD {cfg.n_particles} particles x "
-        f"{cfg.n_iterations} iterations; candidates: grasp {list(cfg.grasp_fractions)} x peak "
-        f"{list(cfg.peak_forces)} N x {list(cfg.profile_kinds)}; held-out: {cfg.heldout_peak:g} N hold at grasp "
-        f"{cfg.heldout_grasp:g}. dt {cfg.dt:g} s, {cfg.duration:g} s pulls."),
+        (
+            f"Tree `{cfg.tree}`, {cfg.seeds} seeds, displacement noise {cfg.noise_mm:g} mm, "
+            "first pull: "
+            f"ramp-hold-release {cfg.first_peak:g} N at the tip; "
+            f"NNSVGD {cfg.n_particles} particles x "
+            f"{cfg.n_iterations} iterations; candidates: grasp {list(cfg.grasp_fractions)} x peak "
+            f"{list(cfg.peak_forces)} N x {list(cfg.profile_kinds)}; "
+            f"held-out: {cfg.heldout_peak:g} N hold at grasp "
+            f"{cfg.heldout_grasp:g}. dt {cfg.dt:g} s, {cfg.duration:g} s pulls."
+        ),
         "",
         "## Posterior std (log units), median over seeds",
         "",
@@ -341,38 +440,65 @@ def _markdown(cfg: DesignConfig, summary: dict, seeds: list[dict], wall: float) 
         "",
         "## Targets",
         "",
-        f"- Worst-identified parameter after pull 1 (per seed): {', '.join(summary['worst_parameter_per_seed'])}.",
-        (f"- Median shrink of its std: design {m['design']:.3f}, design_worst {m['design_worst']:.3f}, "
-        f"repeat {m['repeat']:.3f}, random {m['random']:.3f} (log units); design / repeat = "
-        f"{summary['design_vs_repeat_shrink_ratio']:.2f} (target >= 2: "
-        f"**{'met' if summary['target_2x_more_shrink_than_repeat'] else 'not met'}**); design_worst / repeat = "
-        f"{summary['design_worst_vs_repeat_shrink_ratio']:.2f} "
-        f"(**{'met' if summary['design_worst_target_2x'] else 'not met'}**)."),
-        (f"- design_worst never widens the held-out band: "
-        f"**{'yes' if summary['design_worst_never_widens_band'] else 'no'}**."),
-        f"- Design pull never widens the held-out band: **{'yes' if summary['design_never_widens_band'] else 'no'}**"
-        + (f" (wider at seeds {summary['seeds_where_design_widens_band']})" if summary["seeds_where_design_widens_band"]
-           else "") + ".",
+        (
+            "- Worst-identified parameter after pull 1 (per seed): "
+            f"{', '.join(summary['worst_parameter_per_seed'])}."
+        ),
+        (
+            f"- Median shrink of its std: design {m['design']:.3f}, "
+            f"design_worst {m['design_worst']:.3f}, "
+            f"repeat {m['repeat']:.3f}, random {m['random']:.3f} (log units); design / repeat = "
+            f"{summary['design_vs_repeat_shrink_ratio']:.2f} (target >= 2: "
+            f"**{'met' if summary['target_2x_more_shrink_than_repeat'] else 'not met'}**); "
+            "design_worst / repeat = "
+            f"{summary['design_worst_vs_repeat_shrink_ratio']:.2f} "
+            f"(**{'met' if summary['design_worst_target_2x'] else 'not met'}**)."
+        ),
+        (
+            f"- design_worst never widens the held-out band: "
+            f"**{'yes' if summary['design_worst_never_widens_band'] else 'no'}**."
+        ),
+        "- Design pull never widens the held-out band: "
+        f"**{'yes' if summary['design_never_widens_band'] else 'no'}**"
+        + (
+            f" (wider at seeds {summary['seeds_where_design_widens_band']})"
+            if summary["seeds_where_design_widens_band"]
+            else ""
+        )
+        + ".",
         "",
         "## Second pulls chosen",
         "",
-        "| seed | design (grasp, N, kind) | design_worst (parameter) | random | EIG of best [nats] | scoring [s] |",
+        (
+            "| seed | design (grasp, N, kind) | design_worst (parameter) | random "
+            "| EIG of best [nats] | scoring [s] |"
+        ),
         "|---|---|---|---|---|---|",
     ]
     fmt = lambda c: f"{c['grasp_fraction']:g}, {c['peak_force']:g}, {c['profile_kind']}"
     for r in seeds:
         st = r["stages"]
-        lines.append(f"| {r['seed']} | {fmt(st['design']['second_pull'])} | {fmt(st['design_worst']['second_pull'])} "
-                     f"({r['design_worst_parameter']}) | {fmt(st['random']['second_pull'])} | "
-                     f"{r['design_top5'][0]['score']:.2f} | {r['design_seconds']:.1f} |")
+        lines.append(
+            f"| {r['seed']} | {fmt(st['design']['second_pull'])} "
+            f"| {fmt(st['design_worst']['second_pull'])} "
+            f"({r['design_worst_parameter']}) | {fmt(st['random']['second_pull'])} | "
+            f"{r['design_top5'][0]['score']:.2f} | {r['design_seconds']:.1f} |"
+        )
     lines += ["", f"Wall time {wall:.0f} s, process CPU time {cpu_seconds():.0f} s.", ""]
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    over = {k: v for k, v in (("seeds", args.seeds), ("n_particles", args.particles),
-                              ("n_iterations", args.iterations)) if v is not None}
+    over = {
+        k: v
+        for k, v in (
+            ("seeds", args.seeds),
+            ("n_particles", args.particles),
+            ("n_iterations", args.iterations),
+        )
+        if v is not None
+    }
     cfg = DesignConfig(size=args.size, **{**SIZES[args.size], **over})
     out = args.out or (RESULTS / "full" / STUDY if args.size == "full" else RESULTS / STUDY)
     check_out(out)
@@ -393,9 +519,16 @@ def main(argv=None) -> int:
     summary = summarise(seeds, tree.parameter_labels())
     wall = time.perf_counter() - t0
     record = {
-        "study": STUDY, "size": cfg.size, "first_seed": args.seed, "config": dataclasses.asdict(cfg),
-        "versions": versions(), "command": " ".join(["experiments/design_study.py"] + list(argv or sys.argv[1:])),
-        "summary": summary, "seeds": seeds, "wall_time_s": wall, "cpu_time_s": cpu_seconds(),
+        "study": STUDY,
+        "size": cfg.size,
+        "first_seed": args.seed,
+        "config": dataclasses.asdict(cfg),
+        "versions": versions(),
+        "command": " ".join(["experiments/design_study.py"] + list(argv or sys.argv[1:])),
+        "summary": summary,
+        "seeds": seeds,
+        "wall_time_s": wall,
+        "cpu_time_s": cpu_seconds(),
     }
     figures = _figures(summary, first_sugg)
     with staged_output_dir(out, force=True, what="results") as stage:

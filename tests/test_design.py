@@ -11,7 +11,7 @@ from treeinfer import design
 from treeinfer.errors import ConfigError
 
 
-# ---- a linear-Gaussian model: y_c = A_c theta + eps, theta ~ N(mu, Sigma) -------------------------
+# ---- a linear-Gaussian model: y_c = A_c theta + eps, theta ~ N(mu, Sigma) ------------------------
 def _exact_particles(mu, cov, n, seed=0):
     """n samples whose mean and covariance (ddof=1) are exactly mu and cov."""
     rng = np.random.default_rng(seed)
@@ -42,7 +42,8 @@ def _linear_forward(a):
 
 
 def _closed_form(cov, a, sigma):
-    """Conjugate update: EIG = 0.5 (log det Sigma - log det Sigma_post), Sigma_post^-1 = Sigma^-1 + F."""
+    """Conjugate update: EIG = 0.5 (log det Sigma - log det Sigma_post),
+    Sigma_post^-1 = Sigma^-1 + F."""
     out, posts = [], []
     for ac in a:
         post = np.linalg.inv(np.linalg.inv(cov) + ac.T @ ac / sigma**2)
@@ -69,7 +70,9 @@ def test_target_variance_matches_conjugate_posterior():
     sigma = 0.01
     g = np.random.default_rng(5).normal(size=(7, 3)) * 0.1  # target sensitivity [T', D]
     theta = _exact_particles(mu, cov, 100, seed=2)
-    jac, ok = design.fd_jacobian(_linear_forward(a), jnp.asarray(theta[:8], jnp.float32), rel_step=1e-2)
+    jac, ok = design.fd_jacobian(
+        _linear_forward(a), jnp.asarray(theta[:8], jnp.float32), rel_step=1e-2
+    )
     jac_t = jnp.broadcast_to(jnp.asarray(g, jnp.float32), (8,) + g.shape)
     before, after = design.target_variance(jac, jac_t, cov, sigma, ok)
     _, posts = _closed_form(cov, a, sigma)
@@ -90,8 +93,11 @@ def test_nested_mc_eig_matches_closed_form_when_eig_is_small():
     theta = _exact_particles(mu, cov, 2000, seed=4)
     ref, _ = _closed_form(cov, a, sigma)
     assert ref.max() < 2.0 and np.all(np.diff(ref) > 0)
-    eig = np.asarray(design.nested_mc_eig(_linear_forward(a), jnp.asarray(theta, jnp.float32), sigma,
-                                          jax.random.key(0)))
+    eig = np.asarray(
+        design.nested_mc_eig(
+            _linear_forward(a), jnp.asarray(theta, jnp.float32), sigma, jax.random.key(0)
+        )
+    )
     np.testing.assert_allclose(eig, ref, atol=0.06, rtol=0.05)
     assert np.all(eig <= np.log(len(theta)) + 1e-4)
 
@@ -138,14 +144,20 @@ def test_stronger_pull_scores_higher_on_one_joint(one_joint):
     assert "EIG" in s.table()
     # the target variant ranks the same way and reports a narrower band after the strong pull
     tgt = design.parse_target("grasp=0.5,peak=3")
-    st = design.score_candidates(sim, theta, cands, sigma_x=0.002, duration=0.6, n_particles=8, target=tgt)
+    st = design.score_candidates(
+        sim, theta, cands, sigma_x=0.002, duration=0.6, n_particles=8, target=tgt
+    )
     assert st.best.peak_force == 5.0
     assert np.all(st.band_std_after <= st.band_std_before * (1 + 1e-6))
     assert st.band_std_after[0] < st.band_std_after[1]
     json.dumps(st.to_dict())
-    sp = design.score_candidates(sim, theta, cands, sigma_x=0.002, duration=0.6, n_particles=8, parameter="worst")
+    sp = design.score_candidates(
+        sim, theta, cands, sigma_x=0.002, duration=0.6, n_particles=8, parameter="worst"
+    )
     assert sp.settings["parameter"] == "Kd[branch0]"  # the particles' widest coordinate
-    assert sp.best.peak_force == 5.0 and np.all(sp.band_std_after <= sp.band_std_before * (1 + 1e-6))
+    assert sp.best.peak_force == 5.0 and np.all(
+        sp.band_std_after <= sp.band_std_before * (1 + 1e-6)
+    )
     assert "std after" in sp.table()
     with pytest.raises(ConfigError, match="parameter"):
         design.score_candidates(sim, theta, cands, 0.002, 0.6, parameter="Kp[nope]")
@@ -164,7 +176,13 @@ def test_candidates_targets_and_directions_are_checked(one_joint):
     assert f.shape == (8, 50) and np.isclose(f[0].max(), 2.0)
     t = design.parse_target("grasp=0.5, peak=5, kind=hold")
     assert t == design.Target(0.5, 5.0, "hold", None)
-    for bad in ("grasp=0.5", "grasp=2,peak=5", "peak=5,grasp=x", "where=1,peak=2", "grasp=0.5,peak=5,kind=zig"):
+    for bad in (
+        "grasp=0.5",
+        "grasp=2,peak=5",
+        "peak=5,grasp=x",
+        "where=1,peak=2",
+        "grasp=0.5,peak=5,kind=zig",
+    ):
         with pytest.raises(ConfigError, match="--target"):
             design.parse_target(bad)
     with pytest.raises(ConfigError, match="grasp_fraction"):
@@ -181,7 +199,7 @@ def test_candidates_targets_and_directions_are_checked(one_joint):
         design.score_candidates(sim, theta[:, :1], cands, 0.002, 0.6)
 
 
-# ---- a run folder as the starting point (and as the next run's prior) ---------------------------------
+# ---- a run folder as the starting point (and as the next run's prior) ----------------------------
 @pytest.mark.slow
 def test_suggest_for_run_and_prior_from_run(tmp_path):
     """``treeinfer demo --quick`` makes a run folder; rank 4 candidates from it (files written),
@@ -200,15 +218,25 @@ def test_suggest_for_run_and_prior_from_run(tmp_path):
     run = load_run(demo / "run")
     sigma, where = design.noise_sigma_of_run(run.config)
     assert 1e-5 < sigma < 0.05 and "kT" in where
-    s = design.suggest_for_run(demo / "run", grasp_fractions=[0.5, 1.0], peak_forces=[1.0, 5.0],
-                               n_particles=4, out=tmp_path / "sugg")
+    s = design.suggest_for_run(
+        demo / "run",
+        grasp_fractions=[0.5, 1.0],
+        peak_forces=[1.0, 5.0],
+        n_particles=4,
+        out=tmp_path / "sugg",
+    )
     assert len(s.candidates) == 4 and s.settings["sigma_x_from"].startswith("derived")
     saved = json.loads((tmp_path / "sugg" / "suggestions.json").read_text())
     assert saved["candidates"][0]["score"] == pytest.approx(float(s.score[0]))
     assert (tmp_path / "sugg" / "suggestions.png").stat().st_size > 0
     with pytest.raises(OutputExistsError):
-        design.suggest_for_run(demo / "run", grasp_fractions=[1.0], peak_forces=[1.0], n_particles=4,
-                               out=tmp_path / "sugg")
+        design.suggest_for_run(
+            demo / "run",
+            grasp_fractions=[1.0],
+            peak_forces=[1.0],
+            n_particles=4,
+            out=tmp_path / "sugg",
+        )
     prior = prior_from_run(demo / "run", run.labels)
     assert set(prior.shared) | set(prior.box_only) == set(run.labels)
     v = np.asarray(prior.log_density(jnp.asarray(run.theta[:3])))

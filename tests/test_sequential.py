@@ -40,15 +40,21 @@ def test_conjugate_gaussian_a_then_b_equals_a_and_b():
     def post(hs, ys):  # closed-form conjugate posterior
         prec = np.linalg.inv(s0) + sum(h.T @ h for h in hs) / sigma**2
         cov = np.linalg.inv(prec)
-        return cov @ (np.linalg.solve(s0, m0) + sum(h.T @ y for h, y in zip(hs, ys)) / sigma**2), cov
+        return cov @ (
+            np.linalg.solve(s0, m0) + sum(h.T @ y for h, y in zip(hs, ys)) / sigma**2
+        ), cov
 
     m_a, c_a = post([h_a], [y_a])
     m_ab, c_ab = post([h_a, h_b], [y_a, y_b])
     labels = ("x", "y", "z")
-    prior = sequential.prior_from_particles(_exact_particles(m_a, c_a, 500), labels, labels, n_components=1)
+    prior = sequential.prior_from_particles(
+        _exact_particles(m_a, c_a, 500), labels, labels, n_components=1
+    )
     assert prior.shared == labels and prior.box_only == ()
-    lik_b = lambda t: -jnp.sum((jnp.asarray(y_b, jnp.float32) - t @ jnp.asarray(h_b.T, jnp.float32)) ** 2, -1) / (
-        2 * sigma**2)
+    lik_b = lambda t: (
+        -jnp.sum((jnp.asarray(y_b, jnp.float32) - t @ jnp.asarray(h_b.T, jnp.float32)) ** 2, -1)
+        / (2 * sigma**2)
+    )
     m_seq, c_seq = _gaussian_of(lambda t: prior.log_density(t) + lik_b(t), d)
     np.testing.assert_allclose(m_seq, m_ab, rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(c_seq, c_ab, rtol=1e-4, atol=1e-6)
@@ -58,38 +64,54 @@ def test_shared_labels_get_the_exact_marginal():
     rng = np.random.default_rng(2)
     mu, b = rng.normal(size=3), rng.normal(size=(3, 3))
     cov = b @ b.T + np.eye(3)
-    prior = sequential.prior_from_particles(_exact_particles(mu, cov, 300), ("a", "b", "c"), ("d", "c", "a"),
-                                            n_components=1)
+    prior = sequential.prior_from_particles(
+        _exact_particles(mu, cov, 300), ("a", "b", "c"), ("d", "c", "a"), n_components=1
+    )
     assert prior.shared == ("c", "a") and prior.columns == (1, 2) and prior.box_only == ("d",)
     theta_new = rng.normal(size=(6, 3))
-    ref = scipy.stats.multivariate_normal(mu[[2, 0]], cov[np.ix_([2, 0], [2, 0])]).logpdf(theta_new[:, [1, 2]])
-    np.testing.assert_allclose(np.asarray(prior.log_density(jnp.asarray(theta_new, jnp.float32))), ref, rtol=1e-4)
+    ref = scipy.stats.multivariate_normal(mu[[2, 0]], cov[np.ix_([2, 0], [2, 0])]).logpdf(
+        theta_new[:, [1, 2]]
+    )
+    np.testing.assert_allclose(
+        np.asarray(prior.log_density(jnp.asarray(theta_new, jnp.float32))), ref, rtol=1e-4
+    )
     with pytest.raises(ConfigError, match="shares no parameter"):
         sequential.map_labels(("a",), ("b",))
 
 
 def test_em_recovers_a_two_component_mixture_and_bic_prefers_one_for_a_gaussian():
     rng = np.random.default_rng(3)
-    x = np.concatenate([rng.normal([0, 0], 0.3, size=(420, 2)), rng.normal([3, 1], [0.5, 0.2], size=(180, 2))])
+    x = np.concatenate(
+        [rng.normal([0, 0], 0.3, size=(420, 2)), rng.normal([3, 1], [0.5, 0.2], size=(180, 2))]
+    )
     gm = sequential.fit_gaussian_mixture(x, seed=0)
     assert gm.n_components == 2
     order = np.argsort(gm.means[:, 0])
     np.testing.assert_allclose(gm.weights[order], [0.7, 0.3], atol=0.03)
     np.testing.assert_allclose(gm.means[order], [[0, 0], [3, 1]], atol=0.08)
-    np.testing.assert_allclose(np.sqrt(np.diagonal(gm.covariances[order], axis1=1, axis2=2)),
-                               [[0.3, 0.3], [0.5, 0.2]], rtol=0.15)
+    np.testing.assert_allclose(
+        np.sqrt(np.diagonal(gm.covariances[order], axis1=1, axis2=2)),
+        [[0.3, 0.3], [0.5, 0.2]],
+        rtol=0.15,
+    )
     # the mixture density is normalised: compare with scipy's on a grid of points
     pts = rng.normal(size=(5, 2))
-    ref = np.log(sum(w * scipy.stats.multivariate_normal(m, c).pdf(pts)
-                     for w, m, c in zip(gm.weights, gm.means, gm.covariances)))
-    np.testing.assert_allclose(np.asarray(gm.log_density()(jnp.asarray(pts, jnp.float32))), ref, rtol=1e-4)
+    ref = np.log(
+        sum(
+            w * scipy.stats.multivariate_normal(m, c).pdf(pts)
+            for w, m, c in zip(gm.weights, gm.means, gm.covariances)
+        )
+    )
+    np.testing.assert_allclose(
+        np.asarray(gm.log_density()(jnp.asarray(pts, jnp.float32))), ref, rtol=1e-4
+    )
     single = sequential.fit_gaussian_mixture(rng.normal(size=(200, 3)), seed=0)
     assert single.n_components == 1
     with pytest.raises(ConfigError, match="do not vary"):
         sequential.fit_gaussian_mixture(np.ones((10, 2)))
 
 
-# ---- a 2-joint chain: A then B against A and B ----------------------------------------------------
+# ---- a 2-joint chain: A then B against A and B ---------------------------------------------------
 def _chain_problems(levels=2, kT=0.05, duration=0.4, dt=0.02):
     """Problems of pull A, pull B and both, on a 2-joint chain (``levels`` joints inferred from
     the tip), with noise-free data from the batched simulator at known gains."""
@@ -99,24 +121,50 @@ def _chain_problems(levels=2, kT=0.05, duration=0.4, dt=0.02):
     from treeinfer.simulator import make_simulator, simulate
     from treeinfer.trajectories import Trajectory, validate_trajectory
 
-    tree = chain(2, lengths=[0.6, 0.5], radii=[0.02, 0.014], angles_deg=[10.0, -10.0], levels=levels,
-                 bounds={"kp": [5.0, 500.0], "kd": [0.05, 10.0]})
+    tree = chain(
+        2,
+        lengths=[0.6, 0.5],
+        radii=[0.02, 0.014],
+        angles_deg=[10.0, -10.0],
+        levels=levels,
+        bounds={"kp": [5.0, 500.0], "kd": [0.05, 10.0]},
+    )
     sim = make_simulator(tree, obs_dt=dt)
-    kp = np.array([[{"branch0": 80.0, "branch1": 30.0}[j] for j in tree.inferred]])  # parent stiffer
+    kp = np.array(
+        [[{"branch0": 80.0, "branch1": 30.0}[j] for j in tree.inferred]]
+    )  # parent stiffer
     kd = np.array([[{"branch0": 1.5, "branch1": 0.6}[j] for j in tree.inferred]])
-    specs = ["ramp:peak=3,ramp=0.2,start=0.02", "hold:peak=6,ramp=0.1,hold=0.1,release=0.1,start=0.02"]
+    specs = [
+        "ramp:peak=3,ramp=0.2,start=0.02",
+        "hold:peak=6,ramp=0.1,hold=0.1,release=0.1,start=0.02",
+    ]
     forces = np.stack([from_spec(s, duration, dt) for s in specs])
     r = simulate(sim, jnp.asarray(kp), jnp.asarray(kd), jnp.asarray(forces))
     t = np.arange(forces.shape[1]) * dt
-    trajs = [validate_trajectory(Trajectory(t, forces[i], np.asarray(r.tau[0, i], float),
-                                            np.asarray(r.tau_dot[0, i], float), f"pull{i}")) for i in range(2)]
+    trajs = [
+        validate_trajectory(
+            Trajectory(
+                t,
+                forces[i],
+                np.asarray(r.tau[0, i], float),
+                np.asarray(r.tau_dot[0, i], float),
+                f"pull{i}",
+            )
+        )
+        for i in range(2)
+    ]
     kw = {"nn_prior": False, "sim": sim, "kT": kT}
     # A: the ramp-hold-release pull (informs Kp and Kd); B: the slow ramp (mostly Kp)
-    return make_problem(tree, trajs[1:], **kw), make_problem(tree, trajs[:1], **kw), make_problem(tree, trajs, **kw)
+    return (
+        make_problem(tree, trajs[1:], **kw),
+        make_problem(tree, trajs[:1], **kw),
+        make_problem(tree, trajs, **kw),
+    )
 
 
 def _grid_posterior(logdensity, lower, upper, n=70):
-    """Posterior on a 2-D grid, zoomed once onto mean +- 7 std: (points [n*n, 2], weights, mean, std)."""
+    """Posterior on a 2-D grid, zoomed once onto mean +- 7 std:
+    (points [n*n, 2], weights, mean, std, grid step)."""
     logdensity = jax.jit(logdensity)
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
     for _ in range(2):
@@ -147,7 +195,9 @@ def test_chain_a_then_b_equals_a_and_b_on_a_grid():
     prior = prior_from_particles(draws, prob_a.labels, prob_b.labels, box=(lo, hi))
     assert prior.shared == prob_b.labels and prior.uninformed == ()
     _, _, m_ab, s_ab, _ = _grid_posterior(prob_ab.log_density, lo, hi)
-    _, _, m_seq, s_seq, _ = _grid_posterior(with_prior(prob_b, prior.log_density).log_density, lo, hi)
+    _, _, m_seq, s_seq, _ = _grid_posterior(
+        with_prior(prob_b, prior.log_density).log_density, lo, hi
+    )
     _, _, m_b, s_b, _ = _grid_posterior(prob_b.log_density, lo, hi)
     print("A", m_a, s_a, "\nB", m_b, s_b, "\nA+B", m_ab, s_ab, "\nA->B", m_seq, s_seq)
     np.testing.assert_array_less(np.abs(m_seq - m_ab), 0.2 * s_ab)
@@ -179,13 +229,29 @@ def test_two_joint_chain_a_then_b_agrees_with_a_and_b_svgd():
     kw = {"sampler": "svgd", "n_particles": 48, "n_iterations": 400, "progress": False}
     post_a = infer(prob_a, seed=1, **kw)
     post_ab = infer(prob_ab, seed=2, **kw)
-    prior = sequential.prior_from_particles(post_a.theta, post_a.labels, prob_b.labels, valid=post_a.valid,
-                                            box=(prob_a.lower, prob_a.upper))
+    prior = sequential.prior_from_particles(
+        post_a.theta,
+        post_a.labels,
+        prob_b.labels,
+        valid=post_a.valid,
+        box=(prob_a.lower, prob_a.upper),
+    )
     assert "Kp[branch1]" in prior.shared  # the grasped joint's stiffness is well identified by A
     post_seq = infer(sequential.with_prior(prob_b, prior.log_density), seed=3, **kw)
     m_ab, s_ab = _trimmed(post_ab.theta[post_ab.valid])
     m_seq, s_seq = _trimmed(post_seq.theta[post_seq.valid])
-    print("uninformed", prior.uninformed, "\nA+B mean", m_ab, "std", s_ab, "\nA->B mean", m_seq, "std", s_seq)
+    print(
+        "uninformed",
+        prior.uninformed,
+        "\nA+B mean",
+        m_ab,
+        "std",
+        s_ab,
+        "\nA->B mean",
+        m_seq,
+        "std",
+        s_seq,
+    )
     assert np.all(np.abs(m_seq - m_ab) <= 0.35 * s_ab + 0.03), (m_seq, m_ab, s_ab)
     ratio = s_seq / s_ab
     assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), ratio

@@ -108,7 +108,7 @@ STANDARD_TIMING: dict[str, dict[str, float]] = {
 }
 
 
-# ==== candidates ====================================================================================
+# ==== candidates ==================================================================================
 class Candidate(NamedTuple):
     """One candidate pull.
 
@@ -152,7 +152,10 @@ def _check_candidate(c: Candidate, where: str = "candidate") -> Candidate:
     if not (isinstance(f, (int, float, np.floating)) and math.isfinite(f)):
         raise ConfigError(f"{where}: peak_force must be a finite number of newtons, got {f!r}")
     if c.profile_kind not in STANDARD_TIMING:
-        raise ConfigError(f"{where}: profile_kind must be one of {sorted(STANDARD_TIMING)}, got {c.profile_kind!r}")
+        raise ConfigError(
+            f"{where}: profile_kind must be one of {sorted(STANDARD_TIMING)}, "
+            f"got {c.profile_kind!r}"
+        )
     return Candidate(float(g), float(f), c.profile_kind, _check_direction(c.direction, where))
 
 
@@ -165,8 +168,11 @@ def candidate_grid(
     """Every combination of the given grasp fractions, peak forces (N), kinds and directions
     (None: along gravity only), in that nesting order (directions innermost)."""
     dirs = [None] if directions is None or len(directions) == 0 else list(directions)
-    for name, seq in (("grasp_fractions", grasp_fractions), ("peak_forces", peak_forces),
-                      ("profile_kinds", profile_kinds)):
+    for name, seq in (
+        ("grasp_fractions", grasp_fractions),
+        ("peak_forces", peak_forces),
+        ("profile_kinds", profile_kinds),
+    ):
         if len(seq) == 0:
             raise ConfigError(f"candidates: {name} is empty")
     return [
@@ -200,8 +206,10 @@ class Target(NamedTuple):
 
     def describe(self) -> str:
         d = "" if self.direction is None else f" along {list(self.direction)}"
-        return (f"displacement at grasp fraction {self.grasp_fraction:g} under a {self.profile_kind} "
-                f"pull of {self.peak_force:g} N{d}")
+        return (
+            f"displacement at grasp fraction {self.grasp_fraction:g} under a {self.profile_kind} "
+            f"pull of {self.peak_force:g} N{d}"
+        )
 
 
 _TARGET_KEYS = {"grasp": "grasp_fraction", "peak": "peak_force", "kind": "profile_kind"}
@@ -224,19 +232,23 @@ def parse_target(text: str) -> Target:
         fields[key] = val
     missing = [k for k, v in _TARGET_KEYS.items() if v not in fields and k != "kind"]
     if missing:
-        raise ConfigError(f"{where}: missing {', '.join(missing)} (expected grasp=G,peak=F[,kind=K])")
+        raise ConfigError(
+            f"{where}: missing {', '.join(missing)} (expected grasp=G,peak=F[,kind=K])"
+        )
     c = _check_candidate(Candidate(**fields), where)
     return Target(*c)
 
 
-# ==== estimators (generic in the forward model) ====================================================
+# ==== estimators (generic in the forward model) ===================================================
 def particle_covariance(theta, valid=None) -> np.ndarray:
     """[D, D] covariance (``ddof=1``) of the valid particles ``theta [P, D]``."""
     theta = np.asarray(theta, float)
     if valid is not None:
         theta = theta[np.asarray(valid, bool)]
     if theta.ndim != 2 or theta.shape[0] < 2:
-        raise ConfigError(f"particles: need at least 2 valid particles [P, D], got shape {theta.shape}")
+        raise ConfigError(
+            f"particles: need at least 2 valid particles [P, D], got shape {theta.shape}"
+        )
     return np.atleast_2d(np.cov(theta, rowvar=False))
 
 
@@ -280,7 +292,7 @@ def _weighted_mean(x, ok):
 
 
 def laplace_eig(jac: jax.Array, cov, sigma_x: float, ok=None) -> jax.Array:
-    """``0.5 * mean_m log det(I + S^T F_mc S)`` [C] nats, ``F = J^T J / sigma_x^2``, ``S S^T = cov``.
+    """``0.5 mean_m log det(I + S^T F_mc S)`` [C] nats; ``F = J^T J / sigma_x^2``, ``S S^T = cov``.
 
     jac: [M, C, T, D] m per log unit; cov: [D, D]; ok: [M, C] (particles left out of the mean
     where False; default all). ``det(I + Sigma F) = det(I + S^T F S)``, the symmetric form."""
@@ -307,14 +319,20 @@ def target_variance(jac: jax.Array, jac_target: jax.Array, cov, sigma_x: float, 
     gs = jnp.einsum("mtd,de->mte", jac_target, s)  # [M, T', D]
     before = jnp.mean(jnp.sum(gs**2, -1), -1)  # [M]
     # G S (I + A)^-1 S^T G^T, by a solve (I + A is SPD and well conditioned)
-    gs_t = jnp.broadcast_to(jnp.swapaxes(gs, -1, -2)[:, None], a.shape[:3] + gs.shape[1:2])  # [M, C, D, T']
+    gs_t = jnp.broadcast_to(
+        jnp.swapaxes(gs, -1, -2)[:, None], a.shape[:3] + gs.shape[1:2]
+    )  # [M, C, D, T']
     sol = jnp.linalg.solve(eye + a, gs_t)
     after = jnp.mean(jnp.einsum("mte,mcet->mct", gs, sol), -1)  # [M, C]
     ok = jnp.ones(after.shape, bool) if ok is None else jnp.asarray(ok)
-    return _weighted_mean(jnp.broadcast_to(before[:, None], after.shape), ok), _weighted_mean(after, ok)
+    return _weighted_mean(jnp.broadcast_to(before[:, None], after.shape), ok), _weighted_mean(
+        after, ok
+    )
 
 
-def nested_mc_eig(forward: ForwardFn, theta: jax.Array, sigma_x: float, key: jax.Array) -> jax.Array:
+def nested_mc_eig(
+    forward: ForwardFn, theta: jax.Array, sigma_x: float, key: jax.Array
+) -> jax.Array:
     """Prior-contrastive nested Monte Carlo EIG [C] nats with the particles as prior samples.
 
     ``mean_n [log p(y_n | theta_n) - log mean_m p(y_n | theta_m)]``, ``y_n = tau(theta_n) + eps_n``;
@@ -325,7 +343,9 @@ def nested_mc_eig(forward: ForwardFn, theta: jax.Array, sigma_x: float, key: jax
     return nested_mc_eig_from_rollouts(tau, ok, sigma_x, key)
 
 
-def nested_mc_eig_from_rollouts(tau: jax.Array, ok: jax.Array, sigma_x: float, key: jax.Array) -> jax.Array:
+def nested_mc_eig_from_rollouts(
+    tau: jax.Array, ok: jax.Array, sigma_x: float, key: jax.Array
+) -> jax.Array:
     """:func:`nested_mc_eig` given the rollouts ``tau [P, C, T]`` m and ``ok [P, C]``."""
     eps = sigma_x * jax.random.normal(key, tau.shape, tau.dtype)
     y = tau + eps
@@ -338,7 +358,9 @@ def nested_mc_eig_from_rollouts(tau: jax.Array, ok: jax.Array, sigma_x: float, k
     okc = ok.T  # [C, P]
     log_lik = jnp.where(okc[:, None, :], log_lik, -jnp.inf)
     n_ok = jnp.sum(okc, -1).astype(tau.dtype)
-    log_marg = jax.scipy.special.logsumexp(log_lik, axis=-1) - jnp.log(jnp.maximum(n_ok, 1.0))[:, None]
+    log_marg = (
+        jax.scipy.special.logsumexp(log_lik, axis=-1) - jnp.log(jnp.maximum(n_ok, 1.0))[:, None]
+    )
     own = -jnp.sum(eps**2, -1).T / (2 * sigma_x**2)  # [C, N]: log p(y_n | theta_n)
     per = jnp.where(okc, own - log_marg, 0.0)
     return jnp.where(n_ok > 0, jnp.sum(per, -1) / jnp.maximum(n_ok, 1.0), jnp.nan)
@@ -378,7 +400,9 @@ def simulator_forward(sim: Simulator, forces, grasp_fraction, direction=None) ->
 
 
 @partial(jax.jit, static_argnums=(0, 6))
-def _laplace_scores(sim, theta, cov, forces, grasp, direction, rel_step, sigma_x, target, onehot=None):
+def _laplace_scores(
+    sim, theta, cov, forces, grasp, direction, rel_step, sigma_x, target, onehot=None
+):
     """One compiled program: the FD sensitivities of all candidates (and the target) at all
     subsampled particles in one ``simulate`` call, and the scores. ``onehot`` [D]: score the
     variance reduction of that parameter instead (its sensitivity is the unit vector)."""
@@ -406,7 +430,7 @@ def _nmc_scores(sim, theta, forces, grasp, direction, sigma_x, key):
     return nested_mc_eig_from_rollouts(tau, ok, sigma_x, key), jnp.mean(ok, 0)
 
 
-# ==== the ranked table ==============================================================================
+# ==== the ranked table ============================================================================
 class Suggestions(NamedTuple):
     """Candidates ranked by score (best first).
 
@@ -435,8 +459,13 @@ class Suggestions(NamedTuple):
         """JSON-serialisable: settings and one row per candidate (rank order)."""
         rows = []
         for i, c in enumerate(self.candidates):
-            row = {"rank": i + 1, **c.to_dict(), "spec": self.specs[i], "score": _num(self.score[i]),
-                   "stable_share": _num(self.stable_share[i])}
+            row = {
+                "rank": i + 1,
+                **c.to_dict(),
+                "spec": self.specs[i],
+                "score": _num(self.score[i]),
+                "stable_share": _num(self.stable_share[i]),
+            }
             if self.band_std_after is not None:
                 unit = "log" if self.settings.get("objective") == "parameter" else "m"
                 row[f"std_before_{unit}"] = _num(self.band_std_before[i])
@@ -448,18 +477,29 @@ class Suggestions(NamedTuple):
         """Plain-text ranked table (the ``top`` best rows; all by default)."""
         obj = self.settings.get("objective", "eig")
         tgt = obj != "eig"
-        unit, after, scale = {"eig": ("EIG [nats]", "", 1.0), "target": ("var cut [mm^2]", "band std [mm]", 1e3),
-                              "parameter": ("var cut [log^2]", "std after", 1.0)}[obj]
-        head = f"{'rank':>4}  {'grasp':>6}  {'peak [N]':>8}  {'kind':>7}  {'direction':>18}  {unit:>15}"
+        unit, after, scale = {
+            "eig": ("EIG [nats]", "", 1.0),
+            "target": ("var cut [mm^2]", "band std [mm]", 1e3),
+            "parameter": ("var cut [log^2]", "std after", 1.0),
+        }[obj]
+        head = f"{'rank':>4}  {'grasp':>6}  {'peak [N]':>8}  {'kind':>7}  {'direction':>18}"
+        head += f"  {unit:>15}"
         head += f"  {after:>13}" if tgt else ""
         head += f"  {'stable':>6}"
         lines = [head]
         n = len(self.candidates) if top is None else min(top, len(self.candidates))
         for i in range(n):
             c = self.candidates[i]
-            d = "gravity" if c.direction is None else "(" + ",".join(f"{v:.2f}" for v in c.direction) + ")"
+            d = (
+                "gravity"
+                if c.direction is None
+                else "(" + ",".join(f"{v:.2f}" for v in c.direction) + ")"
+            )
             s = self.score[i] * scale**2
-            line = f"{i + 1:>4}  {c.grasp_fraction:>6.3g}  {c.peak_force:>8.3g}  {c.profile_kind:>7}  {d:>18}  {s:>15.4g}"
+            line = (
+                f"{i + 1:>4}  {c.grasp_fraction:>6.3g}  {c.peak_force:>8.3g}  {c.profile_kind:>7}"
+            )
+            line += f"  {d:>18}  {s:>15.4g}"
             if tgt:
                 line += f"  {scale * self.band_std_after[i]:>13.3g}"
             lines.append(line + f"  {self.stable_share[i]:>6.0%}")
@@ -512,17 +552,25 @@ def score_candidates(
     if estimator not in ("laplace", "nmc"):
         raise ConfigError(f"estimator: expected 'laplace' or 'nmc', got {estimator!r}")
     if estimator == "nmc" and (target is not None or parameter is not None):
-        raise ConfigError("estimator 'nmc' scores the EIG only; use 'laplace' with a target or parameter")
+        raise ConfigError(
+            "estimator 'nmc' scores the EIG only; use 'laplace' with a target or parameter"
+        )
     if target is not None and parameter is not None:
         raise ConfigError("give a target or a parameter to score by, not both")
-    if isinstance(n_particles, bool) or not isinstance(n_particles, (int, np.integer)) or n_particles < 2:
+    if (
+        isinstance(n_particles, bool)
+        or not isinstance(n_particles, (int, np.integer))
+        or n_particles < 2
+    ):
         raise ConfigError(f"n_particles: must be an integer >= 2, got {n_particles!r}")
     if not candidates:
         raise ConfigError("candidates: none given")
     candidates = [_check_candidate(Candidate(*c)) for c in candidates]
     theta = np.asarray(theta, np.float32)
     if theta.ndim != 2 or theta.shape[1] != 2 * sim.n_joints:
-        raise ConfigError(f"theta: expected [P, {2 * sim.n_joints}] (log Kp, log Kd), got {theta.shape}")
+        raise ConfigError(
+            f"theta: expected [P, {2 * sim.n_joints}] (log Kp, log Kd), got {theta.shape}"
+        )
     ok = np.all(np.isfinite(theta), axis=1)
     if valid is not None:
         ok &= np.asarray(valid, bool)
@@ -551,8 +599,18 @@ def score_candidates(
             td = jnp.zeros(3, dtype) if direction is None else jnp.asarray(direction[-1], dtype)
             tgt = (jnp.asarray(tf, dtype), jnp.asarray(target.grasp_fraction, dtype), td)
         h = default_rel_step(dtype) if rel_step is None else float(rel_step)
-        out, share = _laplace_scores(sim, jnp.asarray(sub, dtype), jnp.asarray(cov, dtype), jnp.asarray(forces, dtype),
-                                     jnp.asarray(grasp, dtype), c_dir, h, float(sigma_x), tgt, onehot)
+        out, share = _laplace_scores(
+            sim,
+            jnp.asarray(sub, dtype),
+            jnp.asarray(cov, dtype),
+            jnp.asarray(forces, dtype),
+            jnp.asarray(grasp, dtype),
+            c_dir,
+            h,
+            float(sigma_x),
+            tgt,
+            onehot,
+        )
         out, share = np.asarray(out, float), np.asarray(share, float)
         d = pts.shape[1]
         cost = m * 2 * d * (len(candidates) + (1 if target else 0))
@@ -565,8 +623,15 @@ def score_candidates(
     else:
         m, h = len(pts), None
         key = jax.random.key(int(seed))
-        score, share = _nmc_scores(sim, jnp.asarray(pts, dtype), jnp.asarray(forces, dtype), jnp.asarray(grasp, dtype),
-                                   c_dir, float(sigma_x), key)
+        score, share = _nmc_scores(
+            sim,
+            jnp.asarray(pts, dtype),
+            jnp.asarray(forces, dtype),
+            jnp.asarray(grasp, dtype),
+            c_dir,
+            float(sigma_x),
+            key,
+        )
         score, share = np.asarray(score, float), np.asarray(share, float)
         before = after = None
         cost = m * len(candidates)
@@ -576,8 +641,11 @@ def score_candidates(
     settings = {
         "objective": objective,
         "estimator": estimator,
-        "score_units": {"eig": "nats", "target": "m^2 (mean predictive variance removed)",
-                        "parameter": "log units^2 (posterior variance removed)"}[objective],
+        "score_units": {
+            "eig": "nats",
+            "target": "m^2 (mean predictive variance removed)",
+            "parameter": "log units^2 (posterior variance removed)",
+        }[objective],
         "parameter": parameter,
         "sigma_x_m": float(sigma_x),
         "n_posterior_particles": len(pts),
@@ -588,8 +656,13 @@ def score_candidates(
         "n_candidates": len(candidates),
         "cost_rollouts": int(cost),
         "seed": int(seed),
-        "target": None if target is None else {**target.candidate().to_dict(), "description": target.describe(),
-                                                "spec": candidate_spec(target.candidate(), duration)},
+        "target": None
+        if target is None
+        else {
+            **target.candidate().to_dict(),
+            "description": target.describe(),
+            "spec": candidate_spec(target.candidate(), duration),
+        },
         "standard_timing": STANDARD_TIMING,
     }
     specs = [candidate_spec(c, duration) for c in candidates]
@@ -605,7 +678,7 @@ def score_candidates(
     )
 
 
-# ==== plot ==========================================================================================
+# ==== plot ========================================================================================
 def plot_scores(suggestions: Suggestions):
     """Score over grasp fraction, one line per peak force, one panel per (kind, direction).
 
@@ -619,19 +692,27 @@ def plot_scores(suggestions: Suggestions):
     scale, ylabel = {
         "eig": (1.0, "expected information gain [nats]"),
         "target": (1e6, "predictive variance removed [mm$^2$]"),
-        "parameter": (1.0, f"variance of {suggestions.settings.get('parameter')} removed [log$^2$]"),
+        "parameter": (
+            1.0,
+            f"variance of {suggestions.settings.get('parameter')} removed [log$^2$]",
+        ),
     }[suggestions.settings.get("objective", "eig")]
     forces = sorted({c.peak_force for c in cands})
     cmap = plt.get_cmap("viridis")
     for ax, (kind, direction) in zip(axes, groups):
         for j, f in enumerate(forces):
-            rows = [(c.grasp_fraction, s) for c, s in zip(cands, suggestions.score)
-                    if c.profile_kind == kind and c.direction == direction and c.peak_force == f]
+            rows = [
+                (c.grasp_fraction, s)
+                for c, s in zip(cands, suggestions.score)
+                if c.profile_kind == kind and c.direction == direction and c.peak_force == f
+            ]
             if not rows:
                 continue
             rows.sort()
             g, s = np.asarray(rows, float).T
-            ax.plot(g, s * scale, "o-", ms=3, color=cmap(j / max(1, len(forces) - 1)), label=f"{f:g} N")
+            ax.plot(
+                g, s * scale, "o-", ms=3, color=cmap(j / max(1, len(forces) - 1)), label=f"{f:g} N"
+            )
         b = suggestions.best
         if b.profile_kind == kind and b.direction == direction:
             ax.plot([b.grasp_fraction], [suggestions.score[0] * scale], "r*", ms=12, label="best")
@@ -662,8 +743,12 @@ def noise_sigma_of_run(config: dict) -> tuple[float, str]:
     try:
         kT, dt, t = float(p["kT"]), float(p["obs_dt"]), int(p["n_steps"])
     except (KeyError, TypeError, ValueError):
-        raise ConfigError("run config: no noise model and no kT/obs_dt/n_steps to derive one from; give sigma_x") from None
-    return kT / (math.sqrt(t) * (1.0 + 1.0 / (math.sqrt(2.0) * dt))), "derived from kT (suggest_kT inverted)"
+        raise ConfigError(
+            "run config: no noise model and no kT/obs_dt/n_steps to derive one from; give sigma_x"
+        ) from None
+    return kT / (
+        math.sqrt(t) * (1.0 + 1.0 / (math.sqrt(2.0) * dt))
+    ), "derived from kT (suggest_kT inverted)"
 
 
 def suggest_for_run(
@@ -700,14 +785,32 @@ def suggest_for_run(
         p = run.config.get("problem", {})
         duration = float(p.get("n_steps", 0)) * run.sim.obs_dt
         if not duration > 0:
-            raise ConfigError(f"{run_dir}: cannot tell the pull duration from the run; give duration")
+            raise ConfigError(
+                f"{run_dir}: cannot tell the pull duration from the run; give duration"
+            )
     if isinstance(target, str):
         target = parse_target(target)
     cands = candidate_grid(grasp_fractions, peak_forces, profile_kinds, directions)
-    sugg = score_candidates(run.sim, run.theta, cands, float(sigma_x), float(duration), valid=run.stable,
-                            n_particles=n_particles, target=target, parameter=parameter, seed=seed)
-    sugg = sugg._replace(settings={**sugg.settings, "run": str(Path(run_dir).resolve()), "sigma_x_from": noise_from,
-                                   "labels": list(run.labels)})
+    sugg = score_candidates(
+        run.sim,
+        run.theta,
+        cands,
+        float(sigma_x),
+        float(duration),
+        valid=run.stable,
+        n_particles=n_particles,
+        target=target,
+        parameter=parameter,
+        seed=seed,
+    )
+    sugg = sugg._replace(
+        settings={
+            **sugg.settings,
+            "run": str(Path(run_dir).resolve()),
+            "sigma_x_from": noise_from,
+            "labels": list(run.labels),
+        }
+    )
     if out is not None:
         from .plots import save_figure
 

@@ -96,8 +96,14 @@ class GaussianMixture(NamedTuple):
         if missing:
             raise ConfigError(f"mixture: no coordinate(s) {missing}; it has {list(self.labels)}")
         idx = np.array([self.labels.index(lab) for lab in labels], int)
-        return GaussianMixture(self.weights, self.means[:, idx], self.covariances[:, idx][:, :, idx],
-                               tuple(labels), float("nan"), float("nan"))
+        return GaussianMixture(
+            self.weights,
+            self.means[:, idx],
+            self.covariances[:, idx][:, :, idx],
+            tuple(labels),
+            float("nan"),
+            float("nan"),
+        )
 
     def log_density(self, columns: Sequence[int] | None = None):
         """Log-density term ``theta [N, D'] -> [N]`` of the mixture on ``theta[:, columns]``
@@ -112,8 +118,12 @@ class GaussianMixture(NamedTuple):
             theta = jnp.asarray(theta)
             x = theta if cols is None else theta[:, cols]
             if x.shape[-1] != dim:
-                raise ConfigError(f"fitted prior: expects {dim} coordinates, got theta of shape {theta.shape}")
-            comp = jax.vmap(lambda m, c: multivariate_normal.logpdf(x, m, c))(mu.astype(x.dtype), cov.astype(x.dtype))
+                raise ConfigError(
+                    f"fitted prior: expects {dim} coordinates, got theta of shape {theta.shape}"
+                )
+            comp = jax.vmap(lambda m, c: multivariate_normal.logpdf(x, m, c))(
+                mu.astype(x.dtype), cov.astype(x.dtype)
+            )
             return logsumexp(comp + w[:, None].astype(x.dtype), axis=0)
 
         return logdensity
@@ -129,12 +139,16 @@ class GaussianMixture(NamedTuple):
         }
 
 
-# ==== EM ===========================================================================================
+# ==== EM ==========================================================================================
 def _logpdf_np(x, mean, cov):
     """log N(x; mean, cov) [N] (numpy, Cholesky)."""
     lc = np.linalg.cholesky(cov)
     z = np.linalg.solve(lc, (x - mean).T)
-    return -0.5 * np.sum(z**2, 0) - np.sum(np.log(np.diag(lc))) - 0.5 * x.shape[1] * math.log(2 * math.pi)
+    return (
+        -0.5 * np.sum(z**2, 0)
+        - np.sum(np.log(np.diag(lc)))
+        - 0.5 * x.shape[1] * math.log(2 * math.pi)
+    )
 
 
 def _n_params(k: int, d: int) -> int:
@@ -153,7 +167,9 @@ def _em(x: np.ndarray, k: int, reg: np.ndarray, n_iter: int, tol: float, rng: np
     weights = np.full(k, 1.0 / k)
     prev = -np.inf
     for _ in range(n_iter):
-        logp = np.stack([np.log(weights[j]) + _logpdf_np(x, means[j], covs[j]) for j in range(k)], 1)
+        logp = np.stack(
+            [np.log(weights[j]) + _logpdf_np(x, means[j], covs[j]) for j in range(k)], 1
+        )
         top = logp.max(1, keepdims=True)
         norm = top[:, 0] + np.log(np.exp(logp - top).sum(1))
         ll = float(norm.mean())
@@ -200,14 +216,21 @@ def fit_gaussian_mixture(
     if len(labels) != d:
         raise ConfigError(f"particles: {d} columns but {len(labels)} labels")
     if n_components is not None:
-        if isinstance(n_components, bool) or not isinstance(n_components, (int, np.integer)) or n_components < 1:
+        if (
+            isinstance(n_components, bool)
+            or not isinstance(n_components, (int, np.integer))
+            or n_components < 1
+        ):
             raise ConfigError(f"n_components: must be a positive integer, got {n_components!r}")
         ks = [int(n_components)]
     else:
         ks = [k for k in range(1, int(max_components) + 1) if k == 1 or n >= 2 * _n_params(k, d)]
     var = np.var(x, 0)
     if np.any(var <= 0):
-        raise ConfigError(f"particles: coordinate(s) {np.nonzero(var <= 0)[0].tolist()} do not vary; cannot fit a density")
+        raise ConfigError(
+            f"particles: coordinate(s) {np.nonzero(var <= 0)[0].tolist()} do not vary; "
+            "cannot fit a density"
+        )
     reg = np.diag(reg_covar * var)
     rng = np.random.default_rng(seed)
     best = None
@@ -226,8 +249,10 @@ def fit_gaussian_mixture(
     return GaussianMixture(np.asarray(w), np.asarray(m), np.asarray(c), labels, ll, float(bic))
 
 
-# ==== the sequential prior ===========================================================================
-def map_labels(labels_prev: Sequence[str], labels_new: Sequence[str]) -> tuple[list[str], list[int], list[str]]:
+# ==== the sequential prior ========================================================================
+def map_labels(
+    labels_prev: Sequence[str], labels_new: Sequence[str]
+) -> tuple[list[str], list[int], list[str]]:
     """``(shared, columns, box_only)``: the labels of the new run that the earlier run also
     inferred (new-run order), their column indices in the new theta, and the new labels that keep
     the box prior alone. Raises :class:`ConfigError` when the runs share no parameter."""
@@ -235,7 +260,8 @@ def map_labels(labels_prev: Sequence[str], labels_new: Sequence[str]) -> tuple[l
     shared = [lab for lab in labels_new if lab in prev]
     if not shared:
         raise ConfigError(
-            f"prior run: shares no parameter with this run (earlier: {list(labels_prev)}; now: {list(labels_new)})"
+            f"prior run: shares no parameter with this run (earlier: {list(labels_prev)}; "
+            f"now: {list(labels_new)})"
         )
     cols = [list(labels_new).index(lab) for lab in shared]
     return shared, cols, [lab for lab in labels_new if lab not in prev]
@@ -280,7 +306,9 @@ class SequentialPrior(NamedTuple):
 UNINFORMED_SHARE = 0.8  # a marginal this wide (share of the box's uniform std) counts as uninformed
 
 
-def uninformed_labels(theta, labels: Sequence[str], lower, upper, share: float = UNINFORMED_SHARE) -> list[str]:
+def uninformed_labels(
+    theta, labels: Sequence[str], lower, upper, share: float = UNINFORMED_SHARE
+) -> list[str]:
     """Labels whose particle std is at least ``share`` of the std of a uniform on the box
     ``[lower, upper]`` (``(upper - lower) / sqrt(12)``): the earlier data left them at the prior.
 
@@ -312,24 +340,38 @@ def prior_from_particles(
     :func:`fit_gaussian_mixture`."""
     theta = np.asarray(theta_prev, float)
     if theta.ndim != 2 or theta.shape[1] != len(labels_prev):
-        raise ConfigError(f"prior run: particles of shape {theta.shape} do not match {len(labels_prev)} labels")
+        raise ConfigError(
+            f"prior run: particles of shape {theta.shape} do not match {len(labels_prev)} labels"
+        )
     ok = np.all(np.isfinite(theta), 1)
     if valid is not None:
         ok &= np.asarray(valid, bool)
     shared, cols, box_only = map_labels(labels_prev, labels_new)
     uninformed: list[str] = []
     if box is not None:
-        uninformed = [lab for lab in uninformed_labels(theta[ok], labels_prev, *box, share=uninformed_share)
-                      if lab in shared]
+        uninformed = [
+            lab
+            for lab in uninformed_labels(theta[ok], labels_prev, *box, share=uninformed_share)
+            if lab in shared
+        ]
         if len(uninformed) == len(shared):
-            raise ConfigError(f"prior run: its posterior is as wide as the prior box in every shared parameter "
-                              f"({uninformed}); it carries no information to pass on")
+            raise ConfigError(
+                f"prior run: its posterior is as wide as the prior box in every shared parameter "
+                f"({uninformed}); it carries no information to pass on"
+            )
         keep = [i for i, lab in enumerate(shared) if lab not in uninformed]
         shared, cols = [shared[i] for i in keep], [cols[i] for i in keep]
         box_only = [lab for lab in labels_new if lab not in shared]
     full = fit_gaussian_mixture(theta[ok], labels=labels_prev, **fit_options)
-    return SequentialPrior(full.marginal(shared), full, tuple(shared), tuple(cols), tuple(box_only), int(ok.sum()),
-                           tuple(uninformed))
+    return SequentialPrior(
+        full.marginal(shared),
+        full,
+        tuple(shared),
+        tuple(cols),
+        tuple(box_only),
+        int(ok.sum()),
+        tuple(uninformed),
+    )
 
 
 def prior_from_run(run_dir, labels_new: Sequence[str], **fit_options) -> SequentialPrior:
@@ -340,12 +382,15 @@ def prior_from_run(run_dir, labels_new: Sequence[str], **fit_options) -> Sequent
     run = load_run(run_dir)
     lo, hi = run.tree.bounds_array()
     box = (np.log(lo), np.log(hi))
-    return prior_from_particles(run.theta, run.labels, labels_new, valid=run.stable, box=box, **fit_options)
+    return prior_from_particles(
+        run.theta, run.labels, labels_new, valid=run.stable, box=box, **fit_options
+    )
 
 
 def with_prior(problem, *terms):
-    """``problem`` with extra prior log-density ``terms`` (each ``theta [N, D] -> [N]``, differentiable)
-    added to its target: a new :class:`~treeinfer.inference.Problem` whose ``value_and_grad``,
+    """``problem`` with extra prior log-density ``terms`` (each ``theta [N, D] -> [N]``,
+    differentiable) added to its target: a new :class:`~treeinfer.inference.Problem` whose
+    ``value_and_grad``,
     ``log_density`` and ``log_prior`` include them (exact autodiff gradients for the terms)."""
     if not terms:
         return problem
@@ -357,7 +402,10 @@ def with_prior(problem, *terms):
         (a, ga), (b, gb) = base_vg(theta), extra_vg(theta)
         return mask_nonfinite(a + b, ga + gb)
 
-    settings = {**problem.settings, "extra_prior_terms": problem.settings.get("extra_prior_terms", 0) + len(terms)}
+    settings = {
+        **problem.settings,
+        "extra_prior_terms": problem.settings.get("extra_prior_terms", 0) + len(terms),
+    }
     return dataclasses.replace(
         problem,
         value_and_grad=value_and_grad,
