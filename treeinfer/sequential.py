@@ -390,8 +390,8 @@ def prior_from_run(run_dir, labels_new: Sequence[str], **fit_options) -> Sequent
 def with_prior(problem, *terms):
     """``problem`` with extra prior log-density ``terms`` (each ``theta [N, D] -> [N]``,
     differentiable) added to its target: a new :class:`~treeinfer.inference.Problem` whose
-    ``value_and_grad``,
-    ``log_density`` and ``log_prior`` include them (exact autodiff gradients for the terms)."""
+    ``value_and_grad``, ``log_density`` and ``log_prior`` include them (exact autodiff gradients
+    for the terms)."""
     if not terms:
         return problem
     extra = combine(*terms)
