@@ -57,8 +57,8 @@ def main(argv=None) -> int:
     import jax
 
     from benchmarks._common import machine_info
+    from treeinfer import make_simulator
     from treeinfer.design import candidate_grid, parse_target, score_candidates
-    from treeinfer.simulator import make_simulator
     from treeinfer.tree import load_tree
 
     tree = load_tree(ROOT / "treeinfer" / "examples" / f"{args.tree}.yaml")

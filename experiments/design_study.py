@@ -242,7 +242,10 @@ def _band_width(sim, theta, valid, force, grasp, level) -> float:
 
 
 def run_seed(cfg: DesignConfig, tree, sim, seed: int, quiet: bool) -> dict:
-    from treeinfer.cli import default_true_params
+    try:  # the application-layer refactor moves it to treeinfer.synthetic
+        from treeinfer.synthetic import default_true_params
+    except ImportError:
+        from treeinfer.cli import default_true_params
     from treeinfer.design import Candidate, candidate_forces, candidate_grid, score_candidates
     from treeinfer.likelihood import suggest_kT
 
@@ -503,9 +506,9 @@ def main(argv=None) -> int:
     out = args.out or (RESULTS / "full" / STUDY if args.size == "full" else RESULTS / STUDY)
     check_out(out)
     setup_jax()
+    from treeinfer import make_simulator
     from treeinfer._io import atomic_write_json, atomic_write_text, staged_output_dir
     from treeinfer.plots import save_figure
-    from treeinfer.simulator import make_simulator
     from treeinfer.tree import load_tree
 
     t0 = time.perf_counter()

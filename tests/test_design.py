@@ -105,8 +105,8 @@ def test_nested_mc_eig_matches_closed_form_when_eig_is_small():
 # ---- the simulator: a 1-joint tree --------------------------------------------------------------
 @pytest.fixture(scope="module")
 def one_joint():
+    from treeinfer import make_simulator
     from treeinfer.generators import chain
-    from treeinfer.simulator import make_simulator
 
     tree = chain(1, lengths=0.6, radii=0.015)
     sim = make_simulator(tree, obs_dt=0.02)

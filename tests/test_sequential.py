@@ -115,10 +115,10 @@ def test_em_recovers_a_two_component_mixture_and_bic_prefers_one_for_a_gaussian(
 def _chain_problems(levels=2, kT=0.05, duration=0.4, dt=0.02):
     """Problems of pull A, pull B and both, on a 2-joint chain (``levels`` joints inferred from
     the tip), with noise-free data from the batched simulator at known gains."""
+    from treeinfer import make_simulator, simulate
     from treeinfer.forces import from_spec
     from treeinfer.generators import chain
     from treeinfer.inference import make_problem
-    from treeinfer.simulator import make_simulator, simulate
     from treeinfer.trajectories import Trajectory, validate_trajectory
 
     tree = chain(

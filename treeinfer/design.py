@@ -71,7 +71,11 @@ from .errors import ConfigError
 from .forces import format_spec, from_spec
 from .gradients import default_rel_step
 from .likelihood import gains_from_theta
-from .simulator import Simulator, simulate
+
+try:  # the application-layer refactor moves the simulator to treeinfer.sim
+    from .sim import Simulator, simulate
+except ImportError:
+    from .simulator import Simulator, simulate
 
 __all__ = [
     "STANDARD_TIMING",
