@@ -175,7 +175,7 @@ def _runner(tree, sim, kT: float, cfg: DesignConfig, n_pulls: int):
     """NNSVGD on ``n_pulls`` recordings, compiled once and reused for every seed and condition.
 
     The same problem (:func:`treeinfer.inference.make_problem`), algorithm
-    (:func:`treeinfer.inference.make_algorithm`), initial particles and per-iteration keys as
+    (``Problem.sampler`` / ``inference.make_algorithm``), initial particles and per-iteration keys as
     :func:`treeinfer.inference.infer`, but the recordings are arguments of one jitted
     ``lax.scan`` instead of constants closed over, so that a new data set does not recompile
     (on a 2-core CPU a compile costs more than the run)."""
@@ -184,7 +184,8 @@ def _runner(tree, sim, kT: float, cfg: DesignConfig, n_pulls: int):
         return _RUNNERS[key_]
     import jax
 
-    from treeinfer.inference import make_algorithm, make_problem
+    from treeinfer import inference
+    from treeinfer.inference import make_problem
     from treeinfer.samplers import init_key, iteration_key
     from treeinfer.trajectories import Observations
 
@@ -192,7 +193,10 @@ def _runner(tree, sim, kT: float, cfg: DesignConfig, n_pulls: int):
     def run(theta0, key, force, disp, vel, mask, grasp):
         obs = Observations(force, disp, vel, mask, float(cfg.dt))
         problem = make_problem(tree, obs, kT=kT, sim=sim, grasp_fraction=grasp)
-        alg = make_algorithm(problem, "nnsvgd")
+        if hasattr(problem, "sampler"):  # after the refactor: Problem.sampler(name)
+            alg = problem.sampler("nnsvgd")
+        else:
+            alg = inference.make_algorithm(problem, "nnsvgd")
         state = alg.init(init_key(key), theta0)
         state, _ = jax.lax.scan(
             lambda st, i: (alg.step(iteration_key(key, i), st)[0], None),
