@@ -7,7 +7,7 @@ paper's metrics on unseen test trajectories (:func:`evaluate`), and a results fo
 
 Sim-to-sim protocol (paper, "Sim-to-sim"):
 
-* **Ground truth** comes from plain MuJoCo (C, float64: :func:`treeinfer.simulator.simulate_reference`),
+* **Ground truth** comes from plain MuJoCo (C, float64: :func:`treeinfer.sim.reference.simulate_reference`),
   an execution path independent of the batched MJX simulator (float32) that inference uses; only
   the force-deformation trajectories pass from one to the other. True parameters are drawn by
   :func:`treeinfer.cli.default_true_params` (log-uniform in the middle third of the prior box,
@@ -51,13 +51,14 @@ if str(ROOT) not in sys.path:  # run as `python experiments/<study>.py` from any
 from treeinfer import __version__
 from treeinfer._io import atomic_save, atomic_write_json, atomic_write_text, staged_output_dir
 from treeinfer.errors import ConfigError, OutputExistsError, SimulationError, TreeinferError
+from treeinfer.samplers import REGISTRY, SAMPLER_NAMES, sampler_options
 
 EXAMPLES = ROOT / "treeinfer" / "examples"
 RESULTS = Path(__file__).resolve().parent / "results"
 SIZES = ("tiny", "cpu", "full")
 STUDIES = ("baselines", "nn_prior", "noise", "grasp")
-ALL_SAMPLERS = ("nnsvgd", "svgd", "sghmc", "sgld", "mh")
-SAMPLER_NAMES = {"nnsvgd": "NNSVGD", "svgd": "SVGD", "sghmc": "SGHMC", "sgld": "SGLD", "mh": "MH"}
+ALL_SAMPLERS = SAMPLER_NAMES  # the registry's samplers, in its order
+SAMPLER_LABELS = {name: name.upper() for name in REGISTRY}  # table and figure labels
 
 # Modules whose code decides a posterior; a change to any of them invalidates the posterior cache.
 _POSTERIOR_MODULES = (
@@ -82,7 +83,7 @@ class StudyConfig:
       n_particles, n_iterations: the same for every sampler (paper: "all hyper-parameters ...
         similar across the algorithms").
       samplers: the samplers run (one condition each, except in the noise and grasp studies).
-      sampler_options: per-sampler overrides of :data:`treeinfer.inference.SAMPLER_DEFAULTS`.
+      sampler_options: per-sampler overrides of :data:`treeinfer.samplers.REGISTRY` defaults.
       kT, eta: likelihood temperature and inequality-prior slope (None: the library default).
       noise_levels: relative noise sigma (noise study; see :func:`add_relative_noise`).
       grasp_locations, n_test_per_location: grasp study, test fractions of the branch length.
@@ -308,7 +309,7 @@ def seed_streams(seed: int) -> dict[str, np.random.Generator]:
 
 def reference_trajectory(sim, kp, kd, force: np.ndarray, dt: float, source: str, grasp_fraction=None):
     """Ground truth of one pull from plain MuJoCo (float64), as a Trajectory."""
-    from treeinfer.sim import simulate_reference
+    from treeinfer.sim.reference import simulate_reference
     from treeinfer.trajectories import Trajectory, validate_trajectory
 
     tau, tau_dot = simulate_reference(sim, kp, kd, force, grasp_fraction)
@@ -429,12 +430,11 @@ def _data_digest(problem) -> str:
 
 def posterior_key(problem, sampler: str, n_particles: int, n_iterations: int, seed: int, options: dict) -> tuple[str, dict]:
     """Cache key and its description: everything that determines the sampler's output."""
-    from treeinfer.inference import SAMPLER_DEFAULTS
     from treeinfer.tree import tree_to_dict
 
     desc = {
         "sampler": sampler,
-        "sampler_options": {**SAMPLER_DEFAULTS[sampler], **options},
+        "sampler_options": sampler_options(sampler, **options),
         "n_particles": int(n_particles),
         "n_iterations": int(n_iterations),
         "seed": int(seed),
@@ -704,7 +704,7 @@ def data_record(data: SyntheticData, problem) -> dict:
         "test_grasp_fractions": [float(g) for g in data.test_grasp],
         "n_steps": int(data.train[0].n_steps),
         "dt_s": float(data.train[0].dt),
-        "ground_truth": "plain MuJoCo C (float64), treeinfer.simulator.simulate_reference",
+        "ground_truth": "plain MuJoCo C (float64), treeinfer.sim.reference.simulate_reference",
         "inference_simulator": {"engine": f"{problem.sim.backend} ({np.dtype(problem.sim.dtype).name})", "substeps": problem.sim.substeps, "sim_dt_s": problem.sim.sim_dt},
         "problem": problem.settings,
     }
