@@ -70,6 +70,7 @@ from ._io import (
     staged_output_dir,
 )
 from .errors import ConfigError, OutputExistsError, SimulationError, TrajectoryFileError
+from .samplers import sampler_options, sampler_spec
 from .trajectories import (
     Observations,
     Trajectory,
@@ -350,7 +351,7 @@ def build_problem(config: dict, tree: Tree, trajectories: Sequence[Trajectory] |
     recorded = config.get("problem") or {}  # a resumed run: the settings it was built with
     sim = simulator_for(tree, float(obs.dt), recorded.get("substeps"), recorded.get("backend", o.get("backend", "auto")))
     problem = make_problem(
-        tree, obs, kT=o["kT"], nn_prior=(o["sampler"] == "nnsvgd"), eta=o["eta"],
+        tree, obs, kT=o["kT"], nn_prior=sampler_spec(o["sampler"]).nn_prior, eta=o["eta"],
         grasp_fraction=o["grasp_fraction"], sim=sim,
     )
     # infer() evaluates log_density once at the end: jitted, the simulator is traced and compiled once
@@ -359,10 +360,8 @@ def build_problem(config: dict, tree: Tree, trajectories: Sequence[Trajectory] |
 
 
 def sampler_settings(config: dict) -> dict:
-    from .inference import SAMPLER_DEFAULTS
-
     name = config["options"]["sampler"]
-    return {"name": name, "options": dict(SAMPLER_DEFAULTS[name])}
+    return {"name": name, "options": sampler_options(name)}
 
 
 # ==== checkpoints =================================================================================
@@ -441,10 +440,8 @@ def _zero_log_density(theta):
 def state_template(problem, sampler: str, theta0, **sampler_options):
     """Shapes and structure of ``sampler``'s state for particles like ``theta0 [P, D]``, without
     touching the simulator (the target is swapped for a zero function in ``jax.eval_shape``)."""
-    from .inference import make_algorithm
-
     dummy = dataclasses.replace(problem, value_and_grad=_zero_value_and_grad, log_density=_zero_log_density)
-    algorithm = make_algorithm(dummy, sampler, **sampler_options)
+    algorithm = dummy.sampler(sampler, **sampler_options)
     return jax.eval_shape(algorithm.init, jax.random.key(0), jnp.asarray(theta0))
 
 
@@ -853,7 +850,7 @@ def _bandwidths(positions: np.ndarray) -> np.ndarray:
 def _diagnostics(sampler: str, trace: dict, labels) -> tuple[str, dict, list[str]]:
     from .diagnostics import convergence_warnings, mcmc_diagnostics, svgd_diagnostics
 
-    kind = "svgd" if sampler in ("svgd", "nnsvgd") else "mcmc"
+    kind = sampler_spec(sampler).family
     try:
         if kind == "svgd":
             diag = svgd_diagnostics(trace["log_density"], _bandwidths(trace["positions"]))
@@ -943,7 +940,7 @@ def save_run(
         dump_tree(tree, stage / "tree.yaml")
         attrs = {"treeinfer_version": __version__, "theta": "natural log of Kp [N m/rad] then Kd [N m s/rad]",
                  "seed": int(config["options"]["seed"]), "n_iterations": int(config["options"]["iterations"])}
-        if sampler in ("svgd", "nnsvgd"):
+        if sampler_spec(sampler).family == "svgd":
             idata = to_inference_data(posterior.theta, labels, log_density=posterior.log_density, sampler=sampler, attrs=attrs)
         else:
             attrs["trace_iterations"] = ",".join(str(i) for i in trace["iterations"])
@@ -963,7 +960,7 @@ def save_run(
         write_json(stage / "summary.json", summary)
 
         plots = stage / "plots"
-        bw = _bandwidths(trace["positions"]) if sampler in ("svgd", "nnsvgd") else None
+        bw = _bandwidths(trace["positions"]) if sampler_spec(sampler).family == "svgd" else None
         fig, _ = plot_trace(trace["log_density"], bw, iterations=trace["iterations"], title=f"{sampler}: log density")
         save_figure(fig, plots / "trace.png")
         ok = stable & np.all(np.isfinite(posterior.theta), axis=1)
