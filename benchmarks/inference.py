@@ -68,11 +68,11 @@ class SimulateCounter:
 def make_standard_problem(tree=None, n_traj: int = 3, n_steps: int = 300, dt: float = 0.01, seed: int = 0,
                           backend: str = "fused"):
     """(problem, theta_true [D]) for ``tree`` (default: the built-in three-branch example)."""
-    from treeinfer.cli import default_true_params
     from treeinfer.forces import profile_set
     from treeinfer.inference import make_problem
     from treeinfer.sim import make_simulator
     from treeinfer.sim.reference import simulate_reference
+    from treeinfer.synthetic import default_true_params
     from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 

@@ -43,8 +43,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _standard_inputs(n_steps: int):
     from benchmarks.inference import EXAMPLES
-    from treeinfer.cli import default_true_params
     from treeinfer.forces import profile_set
+    from treeinfer.synthetic import default_true_params
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml")

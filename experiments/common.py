@@ -10,7 +10,7 @@ Sim-to-sim protocol (paper, "Sim-to-sim"):
 * **Ground truth** comes from plain MuJoCo (C, float64: :func:`treeinfer.sim.reference.simulate_reference`),
   an execution path independent of the batched MJX simulator (float32) that inference uses; only
   the force-deformation trajectories pass from one to the other. True parameters are drawn by
-  :func:`treeinfer.cli.default_true_params` (log-uniform in the middle third of the prior box,
+  :func:`treeinfer.synthetic.default_true_params` (log-uniform in the middle third of the prior box,
   parent >= child), as ``treeinfer simulate`` does.
 * **Training and test sets** use different force profiles drawn from independent seed streams
   (``numpy.random.SeedSequence(seed).spawn``): the test trajectories are never seen by inference.
@@ -324,8 +324,8 @@ def make_data(cfg: StudyConfig, seed: int) -> SyntheticData:
 
     The grasp study's test set is its first ``n_test_per_location`` test profiles pulled at each
     of ``cfg.grasp_locations``; every other study's is ``n_test`` profiles at the tree's grasp."""
-    from treeinfer.cli import default_true_params
     from treeinfer.forces import from_spec, random_specs
+    from treeinfer.synthetic import default_true_params
 
     tree, sim = _simulator(str(tree_path(cfg.tree)), float(cfg.dt))
     rng = seed_streams(seed)

@@ -19,7 +19,6 @@ import textwrap
 import time
 import traceback
 from collections.abc import Callable, Sequence
-from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -41,9 +40,7 @@ __all__ = [
     "configure_predict",
     "configure_simulate",
     "configure_tree",
-    "default_true_params",
     "main",
-    "parse_params",
     "run_demo",
     "run_evaluate",
     "run_import_bag",
@@ -62,7 +59,6 @@ _WIDTH = 88  # help text width
 TREE_SUFFIXES = (".yaml", ".yml", ".json")
 # Default true parameters of `simulate`: a log-uniform draw inside this window of each joint's
 # log prior box (fractions of its width), away from the edges where the smoothed box prior bites.
-TRUE_PARAMS_WINDOW = (1.0 / 3.0, 2.0 / 3.0)
 
 
 # ---- shared helpers ---------------------------------------------------------------------------
@@ -495,101 +491,6 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
     return p
 
 
-def _depth(tree, name: str) -> int:
-    return len(tree.ancestors(name))
-
-
-def default_true_params(tree, rng: np.random.Generator, window: tuple[float, float] = TRUE_PARAMS_WINDOW) -> tuple[np.ndarray, np.ndarray]:
-    """Documented default ground truth: (kp [R] N m/rad, kd [R] N m s/rad).
-
-    For Kp and for Kd separately, R fractions ``u`` are drawn uniformly in ``window`` (of the log
-    prior box's width), sorted in decreasing order and given to the inferred joints from the
-    root-most down (by depth), then mapped into each joint's box: ``lo * (hi / lo) ** u``. So
-    every ancestor gets a fraction at least as large as its descendants', and, with one shared
-    box, ``parent >= child`` for both Kp and Kd (the inequality prior's assumption).
-    """
-    lo, hi = tree.bounds_array()
-    r = tree.n_inferred
-    order = sorted(range(r), key=lambda j: _depth(tree, tree.inferred[j]))  # root-most first
-    out = np.empty(2 * r)
-    for block in (0, 1):  # Kp, then Kd
-        u = np.sort(rng.uniform(window[0], window[1], size=r))[::-1]
-        for rank, j in enumerate(order):
-            k = block * r + j
-            out[k] = lo[k] * (hi[k] / lo[k]) ** u[rank]
-    return out[:r], out[r:]
-
-
-def _check_params(values: Sequence[float], labels: Sequence[str], where: str) -> np.ndarray:
-    if len(values) != len(labels):
-        raise ConfigError(
-            f"{where}: expected {len(labels)} numbers, in the order {', '.join(labels)}; got {len(values)}"
-        )
-    out = np.empty(len(labels))
-    for i, (v, lab) in enumerate(zip(values, labels)):
-        try:
-            f = float(v)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{where}: {lab} must be a number, got {v!r}") from None
-        if not (math.isfinite(f) and f > 0):
-            raise ConfigError(f"{where}: {lab} must be a positive finite number, got {v!r}")
-        out[i] = f
-    return out
-
-
-def parse_params(tree, params: Sequence[float] | None = None, params_json: Path | None = None) -> np.ndarray | None:
-    """The true parameter vector [2R] (Kp of each inferred joint, then Kd; natural units) from a
-    list or a JSON file, or None when neither is given.
-
-    The JSON may be a ``true_params.json`` (``{"kp": {joint: value}, "kd": {joint: value}}``),
-    ``{"theta_log": [2R natural logs]}`` or a plain list of 2R numbers."""
-    import json
-
-    labels = tree.parameter_labels()
-    if params is not None:
-        return _check_params(params, labels, "--params")
-    if params_json is None:
-        return None
-    where = f"--params-json {params_json}"
-    try:
-        d = json.loads(Path(params_json).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"{where}: no such file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{where}: cannot read: {e}") from None
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"{where}, line {e.lineno}: invalid JSON: {e.msg}") from None
-    if isinstance(d, list):
-        return _check_params(d, labels, where)
-    if not isinstance(d, dict):
-        raise ConfigError(f"{where}: expected an object with 'kp' and 'kd' (or 'theta_log'), or a list")
-    if "kp" in d or "kd" in d:
-        vals = []
-        for key in ("kp", "kd"):
-            m = d.get(key)
-            if not isinstance(m, dict):
-                raise ConfigError(f"{where}: field '{key}' must map joint names to values, got {m!r}")
-            missing = [n for n in tree.inferred if n not in m]
-            extra = sorted(set(m) - set(tree.inferred))
-            if missing or extra:
-                raise ConfigError(
-                    f"{where}: field '{key}' must give exactly the inferred joints {list(tree.inferred)}"
-                    + (f"; missing {missing}" if missing else "") + (f"; not inferred: {extra}" if extra else "")
-                )
-            vals += [m[n] for n in tree.inferred]
-        return _check_params(vals, labels, where)
-    if "theta_log" in d:
-        t = d["theta_log"]
-        if not isinstance(t, list) or len(t) != len(labels):
-            raise ConfigError(f"{where}: field 'theta_log' must be a list of {len(labels)} numbers ({', '.join(labels)})")
-        try:
-            vals = [math.exp(float(x)) for x in t]
-        except (TypeError, ValueError, OverflowError):
-            raise ConfigError(f"{where}: field 'theta_log' must hold numbers, got {t!r}") from None
-        return _check_params(vals, labels, where)
-    raise ConfigError(f"{where}: expected fields 'kp' and 'kd' (or 'theta_log'), found {sorted(d)}")
-
-
 def _check_simulate_args(args: argparse.Namespace) -> int:
     """Validate the numeric options; returns T."""
     from .forces import n_steps
@@ -623,20 +524,11 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
         ) from None
 
 
-def _sim_tree(tree, kp: np.ndarray):
-    """The tree with each Kp prior box widened to contain the true Kp: the simulator picks its
-    step from the stiffest corner of the box, so true values above it must still be stable."""
-    from .tree import Bounds
-
-    bounds = {
-        n: Bounds(kp=(b.kp[0], max(b.kp[1], float(k))), kd=b.kd) for (n, b), k in zip(tree.bounds.items(), kp)
-    }
-    return replace(tree, bounds=bounds)
-
-
 def run_simulate(args: argparse.Namespace) -> int:
     from ._io import atomic_write_json, check_output_dir, staged_output_dir
     from .forces import from_spec, random_specs
+    from .synthetic import default_true_params, parse_params, simulate_batch, synthetic_trajectories
+    from .trajectories import TRUE_PARAMS_FILE, true_params_record, write_true_params
     from .tree import dump_tree, load_tree
 
     n_t = _check_simulate_args(args)
@@ -659,7 +551,8 @@ def run_simulate(args: argparse.Namespace) -> int:
     assert forces.shape[1] == n_t
     check_output_dir(args.out, args.force)  # fail before the (slow) simulation
 
-    rollout, sim = _simulate_batch(tree, kp, kd, forces, args.dt, args.max_sim_dt, args.backend)
+    _prepare_jax()
+    rollout, sim = simulate_batch(tree, kp, kd, forces, args.dt, args.max_sim_dt, args.backend, _say)
     names = [f"traj_{i:03d}.csv" for i in range(len(specs))]
     stable = np.asarray(rollout.stable)[0]
     if not stable.all():
@@ -669,25 +562,33 @@ def run_simulate(args: argparse.Namespace) -> int:
             f"with {_fmt_params(tree, kp, kd)}: lower the peak forces (--peak-range), the step "
             "(--max-sim-dt) or check the parameters and the tree's units"
         )
-    trajs = _trajectories(tree, rollout, forces, args, specs, names, rng_noise)
-
-    labels = tree.parameter_labels()
-    true_params = {
-        "labels": labels,
-        "kp": {n: float(v) for n, v in zip(tree.inferred, kp)},
-        "kd": {n: float(v) for n, v in zip(tree.inferred, kd)},
-        "theta_log": [float(math.log(v)) for v in np.concatenate([kp, kd])],
-        "units": {"kp": "N m/rad", "kd": "N m s/rad", "theta_log": "natural log of kp, kd"},
-        "source": "drawn (default_true_params)" if drawn else ("--params" if args.params is not None else str(args.params_json)),
-    }
+    trajs = synthetic_trajectories(
+        rollout, forces, args.dt, names, args.noise_force, args.noise_displacement, rng_noise
+    )
+    comments = [
+        [
+            f"treeinfer {__version__} simulate: synthetic ground truth",
+            f"tree: {tree.name} ({args.tree}); grasp: {tree.grasp_branch} "
+            f"at fraction {tree.grasp_fraction:g}",
+            f"profile: {spec}",
+            f"noise: force sigma {args.noise_force:g} N, "
+            f"displacement sigma {args.noise_displacement:g} m",
+        ]
+        for spec in specs
+    ]
+    source = (
+        "drawn (default_true_params)" if drawn
+        else ("--params" if args.params is not None else str(args.params_json))
+    )
+    true_params = true_params_record(tree, kp, kd, source)
     config = _simulate_config(args, tree, specs, n_t, sim)
     with staged_output_dir(args.out, args.force) as stage:
         from .trajectories import write_trajectory
 
-        for name, (traj, comments) in zip(names, trajs):
-            write_trajectory(stage / name, traj, comments)
+        for name, traj, lines in zip(names, trajs, comments):
+            write_trajectory(stage / name, traj, lines)
         dump_tree(tree, stage / "tree.yaml")
-        atomic_write_json(stage / "true_params.json", true_params)
+        write_true_params(stage / TRUE_PARAMS_FILE, true_params)
         atomic_write_json(stage / "config.json", config)
     print(
         f"simulated {len(specs)} trajectories of {n_t} samples (dt {args.dt:g} s, {sim.substeps} "
@@ -701,50 +602,6 @@ def run_simulate(args: argparse.Namespace) -> int:
 
 def _fmt_params(tree, kp, kd) -> str:
     return ", ".join(f"{lab}={v:.4g}" for lab, v in zip(tree.parameter_labels(), np.concatenate([kp, kd])))
-
-
-def _simulate_batch(tree, kp, kd, forces, dt, max_sim_dt, backend="auto"):
-    """One batched rollout: P = 1 parameter set x B profiles."""
-    _prepare_jax()
-    import jax
-
-    from .sim import DEFAULT_MAX_SIM_DT, make_simulator, simulate
-
-    sim = make_simulator(_sim_tree(tree, kp), obs_dt=dt, max_sim_dt=max_sim_dt or DEFAULT_MAX_SIM_DT, backend=backend)
-    slow = " (MJX compiles for up to a minute on new shapes; cached afterwards)" if sim.backend == "mjx" else ""
-    _say(f"simulating {forces.shape[0]} trajectories{slow}...")
-    run = jax.jit(lambda a, b, f: simulate(sim, a, b, f))
-    rollout = run(np.asarray(kp)[None], np.asarray(kd)[None], np.asarray(forces))
-    return jax.device_get(rollout), sim
-
-
-def _trajectories(tree, rollout, forces, args, specs, names, rng_noise):
-    """[(Trajectory, comment lines)] validated before anything is written."""
-    from .trajectories import Trajectory, add_noise, validate_trajectory
-
-    t = np.arange(forces.shape[1], dtype=float) * args.dt
-    out = []
-    for i, spec in enumerate(specs):
-        tau = np.asarray(rollout.tau[0, i], dtype=float)
-        vel = np.asarray(rollout.tau_dot[0, i], dtype=float)
-        traj = Trajectory(t, forces[i].copy(), tau, vel, names[i])
-        if args.noise_force > 0 or args.noise_displacement > 0:
-            traj = add_noise(traj, args.noise_force, args.noise_displacement, rng_noise)
-            if args.noise_displacement == 0:  # the clean velocity is still the displacement's
-                traj = traj._replace(velocity=vel)
-            traj = traj._replace(source=names[i])
-        try:
-            traj = validate_trajectory(traj)
-        except TreeinferError as e:
-            raise SimulationError(f"simulated trajectory is implausible: {e}") from None
-        comments = [
-            f"treeinfer {__version__} simulate: synthetic ground truth",
-            f"tree: {tree.name} ({args.tree}); grasp: {tree.grasp_branch} at fraction {tree.grasp_fraction:g}",
-            f"profile: {spec}",
-            f"noise: force sigma {args.noise_force:g} N, displacement sigma {args.noise_displacement:g} m",
-        ]
-        out.append((traj, comments))
-    return out
 
 
 def _simulate_config(args, tree, specs, n_t, sim) -> dict[str, Any]:
@@ -1315,16 +1172,14 @@ def configure_demo(subparsers) -> argparse.ArgumentParser:
 
 def _write_synthetic(out: Path, tree, trajs, specs, true_params: dict, force: bool, what: str) -> None:
     from ._io import staged_output_dir
-    from .trajectories import write_trajectory
+    from .trajectories import TRUE_PARAMS_FILE, write_trajectory, write_true_params
     from .tree import dump_tree
 
     with staged_output_dir(out, force) as stage:
         for tr, spec in zip(trajs, specs):
             write_trajectory(stage / tr.source, tr, [f"treeinfer {__version__} demo: {what}", f"profile: {spec}"])
         dump_tree(tree, stage / "tree.yaml")
-        from . import runs
-
-        runs.write_json(stage / "true_params.json", true_params)
+        write_true_params(stage / TRUE_PARAMS_FILE, true_params)
 
 
 def run_demo(args: argparse.Namespace) -> int:
@@ -1340,7 +1195,8 @@ def run_demo(args: argparse.Namespace) -> int:
     from . import runs
     from ._io import check_output_dir
     from .forces import DEFAULT_PEAK_RANGE, from_spec, random_specs
-    from .trajectories import Trajectory, validate_trajectory
+    from .synthetic import default_true_params, simulate_batch, synthetic_trajectories
+    from .trajectories import true_params_record
     from .tree import load_tree
 
     if args.seed < 0:
@@ -1356,21 +1212,13 @@ def run_demo(args: argparse.Namespace) -> int:
     forces = np.stack([from_spec(s, duration, dt) for s in specs])
     _say(f"demo: simulating {n_train} training and {n_test} unseen test pulls of {duration:g} s on '{tree.name}' "
          f"with {_fmt_params(tree, kp, kd)}")
-    rollout, _ = _simulate_batch(tree, kp, kd, forces, dt, None)
+    rollout, _ = simulate_batch(tree, kp, kd, forces, dt, None, log=_say)
     if not np.asarray(rollout.stable).all():
         raise SimulationError("demo: the synthetic pulls blew up; this is a bug in the demo's settings")
-    t = np.arange(forces.shape[1]) * dt
-    trajs = [validate_trajectory(Trajectory(t, forces[i], np.asarray(rollout.tau[0, i], float),
-                                            np.asarray(rollout.tau_dot[0, i], float), f"traj_{i:03d}.csv"))
-             for i in range(len(specs))]
-    true_params = {
-        "labels": tree.parameter_labels(),
-        "kp": {n: float(v) for n, v in zip(tree.inferred, kp)},
-        "kd": {n: float(v) for n, v in zip(tree.inferred, kd)},
-        "theta_log": [float(math.log(v)) for v in np.concatenate([kp, kd])],
-        "units": {"kp": "N m/rad", "kd": "N m s/rad"},
-        "source": f"demo (default_true_params, seed {args.seed})",
-    }
+    trajs = synthetic_trajectories(rollout, forces, dt, [f"traj_{i:03d}.csv" for i in range(len(specs))])
+    true_params = true_params_record(
+        tree, kp, kd, f"demo (default_true_params, seed {args.seed})", log_units=False
+    )
     out.mkdir(parents=True, exist_ok=True)
     data_train, data_test = out / "data" / "train", out / "data" / "test"
     _write_synthetic(data_train, tree, trajs[:n_train], specs[:n_train], true_params, args.force, "training pull")

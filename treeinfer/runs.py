@@ -72,12 +72,14 @@ from ._io import (
 from .errors import ConfigError, OutputExistsError, SimulationError, TrajectoryFileError
 from .samplers import sampler_options, sampler_spec
 from .trajectories import (
+    TRUE_PARAMS_FILE,
     Observations,
     Trajectory,
     read_trajectory_dir,
     stack_trajectories,
     validate_trajectory,
 )
+from .trajectories import read_true_params as read_true_params_file
 from .tree import Tree, dump_tree, load_tree, tree_to_dict
 
 __all__ = [
@@ -126,7 +128,6 @@ RUN_FORMAT = 1
 CHECKPOINT_FORMAT = 1
 CHECKPOINT_FILE = "checkpoint.npz"
 PARTIAL_SUFFIX = ".partial"
-TRUE_PARAMS_FILE = "true_params.json"
 LEVEL = 0.95  # credible / predictive interval mass everywhere in the run folder
 UNITS = {"Kp": "N m/rad", "Kd": "N m s/rad"}
 
@@ -316,9 +317,7 @@ def read_true_params(tree: Tree, data_dir: str | os.PathLike) -> np.ndarray | No
     path = Path(data_dir) / TRUE_PARAMS_FILE
     if not path.is_file():
         return None
-    from .cli import parse_params  # the one parser of true_params.json
-
-    return parse_params(tree, params_json=path)
+    return read_true_params_file(tree, path, where=f"--params-json {path}")
 
 
 def check_data_unchanged(config: dict) -> list[Trajectory]:
