@@ -61,7 +61,7 @@ def run(argv=None) -> int:
     t0 = time.perf_counter()
     bar = C.progress_bar(ctx, 2 + len(cfg.samplers))
     C.say(ctx, "simulating ground truth (plain MuJoCo)")
-    data = C.make_data(cfg, seed)
+    data = C.make_data(cfg, seed, ctx.sims)
     bar.update()
 
     problems: dict[bool, object] = {}

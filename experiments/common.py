@@ -34,7 +34,6 @@ import hashlib
 import importlib.metadata
 import json
 import math
-import platform
 import sys
 import time
 from collections.abc import Sequence
@@ -213,6 +212,7 @@ class Context(NamedTuple):
     cache: Path | None
     out: Path
     progress: bool
+    sims: Any = None  # the study's treeinfer.runs.SimulatorCache
 
 
 def context_from_args(study: str, args: argparse.Namespace, **overrides) -> Context:
@@ -227,7 +227,9 @@ def context_from_args(study: str, args: argparse.Namespace, **overrides) -> Cont
         cache = default_cache_dir() / "posteriors"
     out = args.out if args.out is not None else RESULTS / study
     check_out(out)
-    return Context(cfg, int(args.seed), cache, Path(out), not args.quiet)
+    from treeinfer.runs import SimulatorCache
+
+    return Context(cfg, int(args.seed), cache, Path(out), not args.quiet, SimulatorCache())
 
 
 def check_out(out: Path) -> None:
@@ -281,24 +283,19 @@ class SyntheticData(NamedTuple):
     test_specs: list
 
     def true_params(self) -> dict:
-        labels = self.tree.parameter_labels()
-        return {
-            "labels": labels,
-            "kp": {n: float(v) for n, v in zip(self.tree.inferred, self.kp)},
-            "kd": {n: float(v) for n, v in zip(self.tree.inferred, self.kd)},
-            "theta_log": [float(v) for v in self.theta],
-            "units": {"kp": "N m/rad", "kd": "N m s/rad", "theta_log": "natural log of kp, kd"},
-        }
+        from treeinfer.trajectories import true_params_record
+
+        return true_params_record(self.tree, self.kp, self.kd, "experiments (default_true_params)")
 
 
-@functools.lru_cache(maxsize=4)
-def _simulator(path: str, dt: float):
-    """One simulator per (tree, dt) in a process: jitted predictions are cached on its identity."""
-    from treeinfer.sim import make_simulator
+def _simulator(path: str, dt: float, sims=None):
+    """The tree and its simulator from ``sims`` (a :class:`treeinfer.runs.SimulatorCache`, one
+    per study: jitted predictions are cached on the simulator's identity)."""
+    from treeinfer.runs import SimulatorCache
     from treeinfer.tree import load_tree
 
     tree = load_tree(path)
-    return tree, make_simulator(tree, obs_dt=dt)
+    return tree, (SimulatorCache() if sims is None else sims).get(tree, dt)
 
 
 def seed_streams(seed: int) -> dict[str, np.random.Generator]:
@@ -319,7 +316,7 @@ def reference_trajectory(sim, kp, kd, force: np.ndarray, dt: float, source: str,
     return validate_trajectory(Trajectory(t, np.asarray(force, float), tau, tau_dot, source))
 
 
-def make_data(cfg: StudyConfig, seed: int) -> SyntheticData:
+def make_data(cfg: StudyConfig, seed: int, sims=None) -> SyntheticData:
     """Ground truth, training set and unseen test set of ``cfg`` (see the module docstring).
 
     The grasp study's test set is its first ``n_test_per_location`` test profiles pulled at each
@@ -327,7 +324,7 @@ def make_data(cfg: StudyConfig, seed: int) -> SyntheticData:
     from treeinfer.forces import from_spec, random_specs
     from treeinfer.synthetic import default_true_params
 
-    tree, sim = _simulator(str(tree_path(cfg.tree)), float(cfg.dt))
+    tree, sim = _simulator(str(tree_path(cfg.tree)), float(cfg.dt), sims)
     rng = seed_streams(seed)
     kp, kd = default_true_params(tree, rng["params"])
     train_specs = random_specs(cfg.profile_kind, cfg.n_train, cfg.duration, cfg.peak_range, rng["train"])
@@ -513,8 +510,8 @@ class Predictions(NamedTuple):
 def predict_all(problem, theta: np.ndarray, data: SyntheticData) -> Predictions:
     """One batched prediction of ``theta`` on the training and test forces (one compiled shape
     per size: the grasp fraction is always passed per profile)."""
+    from treeinfer.evaluation import rollout_loglik
     from treeinfer.inference import predict
-    from treeinfer.likelihood import trajectory_loss
     from treeinfer.sim import Rollout
 
     n_train = len(data.train)
@@ -523,8 +520,7 @@ def predict_all(problem, theta: np.ndarray, data: SyntheticData) -> Predictions:
     r = predict(data.sim, theta, forces, grasp_fraction=grasp)
     tau, tau_dot, stable = (np.asarray(a) for a in (r.tau, r.tau_dot, r.stable))
     train = Rollout(tau[:, :n_train], tau_dot[:, :n_train], stable[:, :n_train])
-    loss = np.asarray(trajectory_loss(train, problem.obs), float)
-    ll = np.where(train.stable, -loss / problem.kT, -np.inf)
+    ll = rollout_loglik(train, problem.obs, problem.kT, dtype=float)
     return Predictions(tau[:, :n_train], tau[:, n_train:], stable.all(axis=1), ll)
 
 
@@ -677,20 +673,9 @@ def pair_figure(sets: dict[str, np.ndarray], labels: Sequence[str], truth: np.nd
 
 # ==== results =========================================================================================
 def versions() -> dict:
-    out = {"python": platform.python_version(), "platform": platform.platform(), "treeinfer": __version__}
-    for pkg in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy", "blackjax", "optax"):
-        try:
-            out[pkg] = importlib.metadata.version(pkg)
-        except importlib.metadata.PackageNotFoundError:
-            out[pkg] = None
-    try:
-        import jax
+    from treeinfer.runs import versions as run_versions
 
-        out["jax_backend"] = jax.default_backend()
-        out["jax_devices"] = [str(d) for d in jax.devices()]
-    except Exception:  # recording versions must never fail a study
-        pass
-    return out
+    return run_versions(extended=True)
 
 
 def data_record(data: SyntheticData, problem) -> dict:

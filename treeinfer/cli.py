@@ -825,7 +825,7 @@ def run_infer(args: argparse.Namespace) -> int:
     try:
         outcome = runs.run_inference(
             config, resume=args.resume, max_unstable_share=args.max_unstable_share, progress=progress, log=_say,
-            on_checkpointer=lambda cp: holder.__setitem__("cp", cp),
+            on_checkpointer=lambda cp: holder.__setitem__("cp", cp), cache=runs.SimulatorCache(),
         )
     except KeyboardInterrupt:
         cp = holder.get("cp")
@@ -901,17 +901,19 @@ def _base_config(command: str, args: argparse.Namespace) -> dict[str, Any]:
 def run_predict(args: argparse.Namespace) -> int:
     from . import runs
     from ._io import atomic_write_text, check_output_dir, staged_output_dir
+    from .evaluation import predict_run
     from .plots import plot_trajectory_bands, save_figure
+    from .trajectories import ForceProfile, read_force_profile
 
     _check_grasp(args.grasp_fraction)
     check_output_dir(args.out, args.overwrite)
     _prepare_jax()
-    run = runs.load_run(args.run)
+    run = runs.load_run(args.run, runs.SimulatorCache())
     dt_run = run.sim.obs_dt
     if args.force_file is not None:
         if args.duration is not None or args.dt is not None:
             raise ConfigError("--duration and --dt go with --profile; a force file has its own time column")
-        prof = runs.read_force_profile(args.force_file)
+        prof = read_force_profile(args.force_file)
         if not math.isclose(prof.dt, dt_run, rel_tol=1e-6):
             raise ConfigError(
                 f"{args.force_file}: time step {prof.dt:g} s differs from the run's {dt_run:g} s "
@@ -926,10 +928,10 @@ def run_predict(args: argparse.Namespace) -> int:
         if not math.isclose(dt, dt_run, rel_tol=1e-6):
             raise ConfigError(f"--dt {dt:g} s differs from the run's {dt_run:g} s; leave it out to use the run's step")
         f = from_spec(args.profile, args.duration, dt)
-        prof = runs.ForceProfile(np.arange(len(f)) * dt, f, None, args.profile)
+        prof = ForceProfile(np.arange(len(f)) * dt, f, None, args.profile)
     _say(f"simulating {len(run.theta)} particles (the first prediction of a shape compiles for up to a minute)...")
     grasp = args.grasp_fraction if args.grasp_fraction is not None else run.grasp_fraction
-    pred = runs.predict_run(run.sim, run.theta, prof.force[None], grasp, run.stable)
+    pred = predict_run(run.sim, run.theta, prof.force[None], grasp, run.stable)
     n_bad = int((~pred.valid).sum())
     lower, upper, mean = pred.lower[0], pred.upper[0], pred.mean[0]
     cols = ["time", "force", "mean", "lower", "upper"] + (["displacement"] if prof.displacement is not None else [])
@@ -1037,48 +1039,23 @@ def _print_metrics(m: dict, what: str) -> None:
                  f"; inside the joint 95% region: {'yes' if m['truth_in_joint_region'] else 'no'}"))
 
 
-def _band_arrays(preds_and_obs) -> tuple[np.ndarray, ...]:
-    """Stack (prediction, obs) pairs of possibly different lengths into [K, T] arrays (NaN padded)."""
-    rows = [(pr.lower[b], pr.upper[b], pr.mean[b], np.where(ob.mask[b], ob.displacement[b], np.nan), ob.mask[b])
-            for pr, ob in preds_and_obs for b in range(ob.force.shape[0])]
-    t_max = max(len(r[0]) for r in rows)
-    out = np.full((5, len(rows), t_max), np.nan)
-    for k, r in enumerate(rows):
-        for j, a in enumerate(r):
-            a = np.where(r[4], a, np.nan) if j < 4 else a
-            out[j, k, : len(a)] = a
-    return out[0], out[1], out[2], out[3]
-
-
-def write_evaluation(out: Path, metrics: dict, bands, titles: Sequence[str], dt: float, config: dict, force: bool,
-                     md: Sequence[str], extra_files: dict[str, str] | None = None) -> None:
-    """metrics.json, metrics.md, bands.png, config.json (+ extra text files) in a staged folder."""
-    from . import runs
-    from ._io import atomic_write_text, staged_output_dir
-    from .plots import plot_band_grid, save_figure
-
-    lower, upper, mean, gt = bands
-    with staged_output_dir(out, force) as stage:
-        runs.write_json(stage / "metrics.json", metrics)
-        atomic_write_text(stage / "metrics.md", "\n".join(md))
-        t = np.arange(lower.shape[1]) * dt
-        fig, _ = plot_band_grid(t, np.nan_to_num(lower), np.nan_to_num(upper), mean, gt, titles=list(titles),
-                                suptitle="95% predictive band vs held-out trajectories")
-        save_figure(fig, stage / "bands.png")
-        runs.write_json(stage / "config.json", config)
-        for name, text in (extra_files or {}).items():
-            atomic_write_text(stage / name, text)
-
-
 def run_evaluate(args: argparse.Namespace) -> int:
     from . import runs
     from ._io import check_output_dir
+    from .evaluation import (
+        band_arrays,
+        evaluate_trajectories,
+        kfold_splits,
+        mean_metrics,
+        write_evaluation,
+    )
     from .trajectories import read_trajectory_dir
 
     _check_grasp(args.grasp_fraction)
     check_output_dir(args.out, args.force)
     _prepare_jax()
-    run = runs.load_run(args.run)
+    cache = runs.SimulatorCache()  # this command's simulators (the run's, and k-fold's)
+    run = runs.load_run(args.run, cache)
     trajs = read_trajectory_dir(args.data)
     dt = trajs[0].dt
     if not math.isclose(dt, run.sim.obs_dt, rel_tol=1e-6):
@@ -1090,23 +1067,23 @@ def run_evaluate(args: argparse.Namespace) -> int:
     config.update(run=str(Path(args.run).resolve()), data_files=runs.data_manifest(args.data), dt=dt,
                   grasp_fraction=grasp if grasp is not None else run.tree.grasp_fraction, run_options=run.config["options"])
     if args.kfold is None:
-        m, pred, obs = runs.evaluate_trajectories(run.sim, run.theta, list(run.labels), trajs, run.kT,
+        m, pred, obs = evaluate_trajectories(run.sim, run.theta, list(run.labels), trajs, run.kT,
                                                   grasp, truth, run.stable)
         metrics = {"run": str(args.run), "data": str(args.data), "metrics": m}
         md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md("held-out metrics", m)
-        write_evaluation(args.out, metrics, _band_arrays([(pred, obs)]), [t.source for t in trajs], dt, config,
+        write_evaluation(args.out, metrics, band_arrays([(pred, obs)]), [t.source for t in trajs], dt, config,
                          args.force, md)
         _print_metrics(m, f"held-out metrics on {len(trajs)} trajectories of {args.data}")
         print(f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json)")
         return EXIT_OK
 
-    runs.kfold_splits(len(trajs), args.kfold)  # K too large: fail before any inference
+    kfold_splits(len(trajs), args.kfold)  # K too large: fail before any inference
     o = run.config["options"]
     _say(f"{args.kfold}-fold cross-validation on {len(trajs)} trajectories with the run's settings "
          f"({o['sampler']}, {o['particles']} particles x {o['iterations']} iterations per fold)")
     results = runs.kfold(run.config, run.tree, trajs, args.kfold, grasp, truth,
-                         progress=not args.no_progress, log=_say)
-    mean, std = runs.mean_metrics([r.metrics for r in results])
+                         progress=not args.no_progress, log=_say, cache=cache)
+    mean, std = mean_metrics([r.metrics for r in results])
     folds = [{"fold": r.fold, "train": r.train, "test": r.test, "metrics": r.metrics} for r in results]
     metrics = {"run": str(args.run), "data": str(args.data), "kfold": args.kfold, "folds": folds, "mean": mean, "std": std}
     md = [f"# treeinfer evaluate --kfold {args.kfold}: settings of `{args.run}` on `{args.data}`", "",
@@ -1130,7 +1107,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     labels = list(run.labels)
     extra = {f"fold_{r.fold}_particles.csv": runs.particles_csv(r.theta, labels, np.zeros(len(r.theta)), r.prediction.valid)
              for r in results}
-    write_evaluation(args.out, metrics, _band_arrays(pairs), titles, dt, config, args.force, md, extra)
+    write_evaluation(args.out, metrics, band_arrays(pairs), titles, dt, config, args.force, md, extra)
     for r in results:
         _print_metrics(r.metrics, f"fold {r.fold} (held out {', '.join(r.test)})")
     print(f"mean over {args.kfold} folds: 95% band {1000 * mean['ci_width']:.3g} mm, {mean['pct_outside']:.1f}% outside, "
@@ -1194,6 +1171,7 @@ def run_demo(args: argparse.Namespace) -> int:
 
     from . import runs
     from ._io import check_output_dir
+    from .evaluation import band_arrays, evaluate_trajectories, write_evaluation
     from .forces import DEFAULT_PEAK_RANGE, from_spec, random_specs
     from .synthetic import default_true_params, simulate_batch, synthetic_trajectories
     from .trajectories import true_params_record
@@ -1231,16 +1209,17 @@ def run_demo(args: argparse.Namespace) -> int:
     )
     config["via"] = "demo"
     _say(f"demo: {sampler} with {particles} particles x {iterations} iterations")
-    outcome = runs.run_inference(config, progress=not args.no_progress, log=_say)
-    run = runs.load_run(out / "run")
+    cache = runs.SimulatorCache()
+    outcome = runs.run_inference(config, progress=not args.no_progress, log=_say, cache=cache)
+    run = runs.load_run(out / "run", cache)
     truth = np.concatenate([kp, kd])
     test = trajs[n_train:]
-    m, pred, obs = runs.evaluate_trajectories(run.sim, run.theta, list(run.labels), test, run.kT, None, truth, run.stable)
+    m, pred, obs = evaluate_trajectories(run.sim, run.theta, list(run.labels), test, run.kT, None, truth, run.stable)
     eval_config = _base_config("evaluate", args)
     eval_config.update(run=str((out / "run").resolve()), data_files=runs.data_manifest(data_test), dt=dt, via="demo")
     md = ["# treeinfer demo: NNSVGD posterior on unseen test pulls", ""] + _metrics_md("unseen test trajectories", m)
     write_evaluation(out / "evaluation", {"run": str(out / "run"), "data": str(data_test), "metrics": m},
-                     _band_arrays([(pred, obs)]), [tr.source for tr in test], dt, eval_config, args.force, md)
+                     band_arrays([(pred, obs)]), [tr.source for tr in test], dt, eval_config, args.force, md)
     demo = {
         "sizes": {"n_train": n_train, "n_test": n_test, "duration_s": duration, "dt_s": dt, "particles": particles,
                   "iterations": iterations, "sampler": sampler, "quick": bool(args.quick)},

@@ -583,3 +583,64 @@ def write_true_params(path: str | os.PathLike, record: dict) -> Path:
     from ._io import atomic_write_json
 
     return atomic_write_json(Path(path), record)
+
+
+# ==== force-profile files (treeinfer predict --force) ==========================================
+class ForceProfile(NamedTuple):
+    """A force profile to predict: ``time [T]`` s, ``force [T]`` N (downward); ``displacement
+    [T]`` m when the file also recorded the response (drawn as ground truth), else None."""
+
+    time: np.ndarray
+    force: np.ndarray
+    displacement: np.ndarray | None
+    source: str
+
+    @property
+    def dt(self) -> float:
+        return float((self.time[-1] - self.time[0]) / (len(self.time) - 1))
+
+
+def read_force_profile(path: str | os.PathLike) -> ForceProfile:
+    """A trajectory CSV (``time,force,displacement[,velocity]``) or a ``time,force`` CSV.
+
+    The two-column form is checked like a trajectory (uniform increasing time in s, forces in N)
+    and errors name the file and line."""
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except OSError as e:
+        raise TrajectoryFileError(f"{path}: cannot read force file ({e.strerror or e})") from None
+    except UnicodeDecodeError as e:
+        raise TrajectoryFileError(f"{path}: not UTF-8 text (byte {e.start})") from None
+    lines = [(n, ln.rstrip("\r")) for n, ln in enumerate(text.split("\n"), start=1)]
+    body = [(n, ln) for n, ln in lines if ln.strip() and not ln.strip().startswith("#")]
+    if not body:
+        raise TrajectoryFileError(f"{path}: file is empty (expected a header 'time,force' or 'time,force,displacement')")
+    header = [c.strip().strip('"').strip("'").lower() for c in body[0][1].split(",")]
+    if "displacement" in header:
+        tr = read_trajectory(path)
+        return ForceProfile(tr.time, tr.force, tr.displacement, path.name)
+    if sorted(header) != ["force", "time"]:
+        raise TrajectoryFileError(
+            f"{path}, line {body[0][0]}: header {header}; expected 'time,force' (a force profile) or "
+            "'time,force,displacement[,velocity]' (a trajectory)"
+        )
+    rows, where_line = [], []
+    for n, ln in body[1:]:
+        cells = ln.split(",")
+        if len(cells) != 2:
+            raise TrajectoryFileError(f"{path}, line {n}: row has {len(cells)} cell(s) but the header has 2 columns")
+        try:
+            vals = [float(c) for c in cells]
+        except ValueError:
+            raise TrajectoryFileError(f"{path}, line {n}: non-numeric value in {ln.strip()!r}") from None
+        if not all(math.isfinite(v) for v in vals):
+            raise TrajectoryFileError(f"{path}, line {n}: NaN/inf not allowed")
+        rows.append(vals)
+        where_line.append(n)
+    if not rows:
+        raise TrajectoryFileError(f"{path}: header only, no data rows")
+    a = np.asarray(rows, float)
+    col = {name: a[:, j] for j, name in enumerate(header)}
+    tr = validate_trajectory(Trajectory(col["time"], col["force"], np.zeros(len(a)), None, str(path)))
+    return ForceProfile(tr.time, tr.force, None, path.name)
