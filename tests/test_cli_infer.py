@@ -393,7 +393,7 @@ def test_infer_too_many_unstable_keeps_the_sampler_state(demo, tmp_path, monkeyp
     calls = []
     stable = np.array([True, True, True, False, False, False, False, False])
     monkeypatch.setattr(inference, "infer", fake_infer)
-    monkeypatch.setattr(runs, "_training_fit", lambda *a: {"stable": stable, "prediction": None, "metrics": None})
+    monkeypatch.setattr(runs.service, "_training_fit", lambda *a: {"stable": stable, "prediction": None, "metrics": None})
     out = tmp_path / "run"
     rc, _, err = run(capsys, "infer", "--tree", TWO, "--data", demo[0] / "data" / "train", "--out", out, *QUICK)
     assert_user_error(rc, err, "62% of", "--max-unstable-share", f"--resume {out}")
