@@ -61,7 +61,7 @@ SAMPLER_LABELS = {name: name.upper() for name in REGISTRY}  # table and figure l
 
 # Modules whose code decides a posterior; a change to any of them invalidates the posterior cache.
 _POSTERIOR_MODULES = (
-    "inference.py", "likelihood.py", "simulator.py", "priors.py", "gradients.py", "tree.py",
+    "inference.py", "likelihood.py", "sim", "priors.py", "gradients.py", "tree.py",
     "export.py", "trajectories.py", "samplers",
 )
 

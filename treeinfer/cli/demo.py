@@ -86,7 +86,7 @@ def run_demo(args: argparse.Namespace) -> int:
     out: Path = args.out
     check_output_dir(out, args.force, "demo")
     _prepare_jax()
-    tree_file = Path(__file__).resolve().parent / "examples" / "two_branch.yaml"
+    tree_file = Path(__file__).resolve().parents[1] / "examples" / "two_branch.yaml"
     tree = load_tree(tree_file)
     rng_params, rng_profiles = (np.random.default_rng(s) for s in np.random.SeedSequence(args.seed).spawn(2))
     kp, kd = default_true_params(tree, rng_params)

@@ -12,6 +12,13 @@ import numpy as np
 from .. import runs
 from .._io import check_output_dir
 from ..errors import ConfigError
+from ..evaluation import (
+    band_arrays,
+    evaluate_trajectories,
+    kfold_splits,
+    mean_metrics,
+    write_evaluation,
+)
 from ..trajectories import read_trajectory_dir, stack_trajectories
 from .common import (
     COMMAND_HELP,
@@ -65,14 +72,6 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
-    from .evaluation import (
-        band_arrays,
-        evaluate_trajectories,
-        kfold_splits,
-        mean_metrics,
-        write_evaluation,
-    )
-
     _check_grasp(args.grasp_fraction)
     check_output_dir(args.out, args.force)
     _prepare_jax()
