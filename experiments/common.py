@@ -675,7 +675,9 @@ def pair_figure(sets: dict[str, np.ndarray], labels: Sequence[str], truth: np.nd
 def versions() -> dict:
     from treeinfer.runs import versions as run_versions
 
-    return run_versions(extended=True)
+    v = run_versions(extended=True)
+    v["mujoco-mjx"] = v.pop("mujoco_mjx")  # results.json spells it as the distribution does
+    return v
 
 
 def data_record(data: SyntheticData, problem) -> dict:
