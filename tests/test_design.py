@@ -262,3 +262,65 @@ def test_suggest_for_run_and_prior_from_run(tmp_path):
     assert set(prior.shared) | set(prior.box_only) == set(run.labels)
     v = np.asarray(prior.log_density(jnp.asarray(run.theta[:3])))
     assert v.shape == (3,) and np.all(np.isfinite(v))
+
+    # the command line: `treeinfer suggest` and `treeinfer infer --prior-from`
+    def cli(*argv):
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            rc = main(list(argv))
+        return rc, out.getvalue(), err.getvalue()
+
+    rc, out, err = cli(
+        "suggest",
+        "--run",
+        str(demo / "run"),
+        "--grasp-fractions",
+        "0.5,1",
+        "--peak-forces",
+        "1,5",
+        "--particles",
+        "4",
+        "--target",
+        "grasp=0.7,peak=3",
+    )
+    assert rc == 0, err
+    assert (
+        "rank" in out
+        and "band std" in out
+        and (demo / "run" / "suggest" / "suggestions.png").exists()
+    )
+    rc, _, err = cli("suggest", "--run", str(demo / "run"), "--target", "grasp=2,peak=3")
+    assert rc == 2 and "--target" in err and "Traceback" not in err
+    tree = demo / "run" / "tree.yaml"
+    quick = ["--particles", "8", "--iterations", "3", "--checkpoint-every", "0", "--no-progress"]
+    rc, _, err = cli(
+        "infer",
+        "--tree",
+        str(tree),
+        "--data",
+        str(demo / "data" / "train"),
+        "--out",
+        str(tmp_path / "day2"),
+        "--prior-from",
+        str(demo / "run"),
+        *quick,
+    )
+    assert rc == 0, err
+    cfg = json.loads((tmp_path / "day2" / "config.json").read_text())
+    assert cfg["options"]["prior_from"] == str((demo / "run").resolve())
+    assert set(cfg["problem"]["prior_from"]["shared"]) | set(
+        cfg["problem"]["prior_from"]["box_only"]
+    ) == set(run.labels)
+    rc, _, err = cli(
+        "infer",
+        "--tree",
+        str(tree),
+        "--data",
+        str(demo / "data" / "train"),
+        "--out",
+        str(tmp_path / "day3"),
+        "--prior-from",
+        str(tmp_path),
+        *quick,
+    )
+    assert rc == 2 and "--prior-from" in err

@@ -36,6 +36,7 @@ COMMAND_HELP: dict[str, str] = {
     "predict": "predict the displacement under a force profile, with a 95%% posterior band",
     "evaluate": "held-out metrics of a run (or k-fold cross-validation with its settings)",
     "demo": "end-to-end example on the built-in 2-branch tree (synthetic data, NNSVGD, metrics)",
+    "suggest": "rank candidate next pulls by expected information gain for a run's posterior",
 }
 
 

@@ -49,6 +49,7 @@ _RUN_OPTIONS = {
     "checkpoint_every": "--checkpoint-every",
     "force": "--force",
     "backend": "--backend",
+    "prior_from": "--prior-from",
 }
 
 _INFER_EPILOG = """\
@@ -57,6 +58,7 @@ examples:
   treeinfer infer --tree two_branch.yaml --data data/train --out runs/mh --sampler mh \\
       --particles 32 --iterations 2000 --seed 3
   treeinfer infer --resume runs/nnsvgd          # continue a killed or interrupted run
+  treeinfer infer --tree two_branch.yaml --data data/day2 --out runs/day2 --prior-from runs/nnsvgd
 
 Every *.csv in --data is a training trajectory (one time step for all); a true_params.json there
 (as `treeinfer simulate` writes) is marked in the pair plot and compared in summary.json.
@@ -155,6 +157,13 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "--backend",
         choices=("auto", "fused", "mjx"),
         help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
+    )
+    p.add_argument(
+        "--prior-from",
+        type=Path,
+        metavar="RUN",
+        help="an earlier run whose posterior becomes this run's prior on the joints both infer "
+        "(a Gaussian mixture fitted to its particles; the box prior stays for the others)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p

@@ -64,7 +64,9 @@ class RunConfig:
     Attributes: tree, data, out (absolute paths as strings); sampler (a registry name);
     particles (>= 2); iterations (>= 1); backend ("auto", "fused", "mjx"); kT (loss units per
     nat, > 0); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction (None or in
-    (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end only); force.
+    (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end only); force;
+    prior_from (None or an earlier run folder, absolute: its posterior becomes this run's prior on
+    the joints both infer, :mod:`treeinfer.sequential`).
     """
 
     tree: str
@@ -81,6 +83,7 @@ class RunConfig:
     max_unstable_share: float = 0.5
     checkpoint_every: int = 25
     force: bool = False
+    prior_from: str | None = None
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 -- frozen: normalise once
@@ -113,6 +116,14 @@ class RunConfig:
         for k in ("tree", "data", "out"):
             set_(k, str(getattr(self, k)))
         set_("force", bool(self.force))
+        if self.prior_from is not None:
+            prior = Path(self.prior_from)
+            if str(self.prior_from) and not (prior / "config.json").is_file():
+                raise ConfigError(
+                    f"--prior-from: {prior} is not a run folder (no config.json); give a folder "
+                    "`treeinfer infer` wrote"
+                )
+            set_("prior_from", str(prior.resolve()) if str(self.prior_from) else None)
 
     def to_json(self) -> dict:
         """``config.json``'s ``"options"`` object."""
@@ -147,6 +158,7 @@ def infer_config(
     force: bool = False,
     command: str = "infer",
     backend: str = "auto",
+    prior_from: str | os.PathLike | None = None,
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
     sampler settings are added by :func:`run_inference` once the problem is built."""
@@ -169,6 +181,7 @@ def infer_config(
         max_unstable_share=max_unstable_share,
         checkpoint_every=checkpoint_every,
         force=force,
+        prior_from=None if prior_from is None else str(prior_from),
     ).to_json()
     return {
         "command": command,

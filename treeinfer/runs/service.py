@@ -79,6 +79,13 @@ def build_problem(
         grasp_fraction=o["grasp_fraction"],
         sim=sim,
     )
+    if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints
+        from ..sequential import prior_from_run, with_prior
+
+        prior = prior_from_run(o["prior_from"], problem.labels)
+        problem = with_prior(problem, prior.log_density)
+        settings = {**problem.settings, "prior_from": {"run": o["prior_from"], **prior.to_dict()}}
+        problem = dataclasses.replace(problem, settings=settings)
     # infer() evaluates log_density once at the end: jitted, the simulator is traced and compiled once
     # (op-by-op it costs tens of seconds); MH samples with the same function.
     return dataclasses.replace(problem, log_density=jax.jit(problem.log_density))

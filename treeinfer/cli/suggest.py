@@ -1,0 +1,175 @@
+"""``treeinfer suggest``: rank candidate next pulls for a run's posterior (treeinfer.design)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..design import STANDARD_TIMING, parse_target, suggest_for_run
+from ..errors import ConfigError
+from .common import COMMAND_HELP, EXIT_OK, _floats, _prepare_jax, _say, add_command_parser
+
+# ==== suggest =====================================================================================
+_SUGGEST_EPILOG = """\
+examples:
+  treeinfer suggest --run runs/nnsvgd
+  treeinfer suggest --run runs/nnsvgd --grasp-fractions 0.2,0.4,0.6,0.8,1 --peak-forces 2,5,8 \\
+      --profile-kinds ramp,hold,step --out runs/nnsvgd/suggest
+  treeinfer suggest --run runs/nnsvgd --target grasp=0.5,peak=5       # shrink that band most
+  treeinfer suggest --run runs/nnsvgd --parameter worst               # the widest parameter
+
+Score: the expected information gain about log Kp, log Kd (nats), by the Laplace/Fisher
+approximation 0.5 E[log det(I + Sigma J^T J / sigma_x^2)] over the posterior particles, with the
+displacement sensitivities J by central differences (all candidates x particles in one batched
+simulator call: particles x 2D x candidates rollouts). With --target grasp=G,peak=F[,kind=K]:
+the expected reduction of the linearised predictive variance of that manipulation; with
+--parameter: of one parameter's posterior variance. sigma_x: the run's noise model, else the
+noise its kT stands for (see --sigma-x). Writes suggestions.json and suggestions.png to --out
+(default RUN/suggest).
+"""
+
+
+def _words(text: str) -> list[str]:
+    return [w for w in text.replace(" ", ",").split(",") if w]
+
+
+def _directions(text: str) -> list:
+    """``'down;1,0,0'`` -> [None, (1, 0, 0)]: 'down' (along gravity) or x,y,z, separated by ';'."""
+    out = []
+    for item in filter(None, (s.strip() for s in text.split(";"))):
+        if item in ("down", "gravity"):
+            out.append(None)
+            continue
+        try:
+            v = tuple(float(x) for x in item.split(","))
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"direction {item!r}: expected x,y,z or 'down'"
+            ) from None
+        if len(v) != 3:
+            raise argparse.ArgumentTypeError(f"direction {item!r}: expected 3 numbers")
+        out.append(v)
+    return out
+
+
+def configure_suggest(subparsers) -> argparse.ArgumentParser:
+    p = add_command_parser(
+        subparsers,
+        "suggest",
+        help=COMMAND_HELP["suggest"],
+        description="Rank candidate next pulls (grasp point x peak force x profile kind x "
+        "direction) by how much they are expected to teach about the joints' gains, or to "
+        "narrow a stated prediction, given a finished run's posterior.",
+        epilog=_SUGGEST_EPILOG,
+    )
+    p.add_argument(
+        "--run", required=True, type=Path, metavar="RUN", help="run folder of `treeinfer infer`"
+    )
+    p.add_argument(
+        "--grasp-fractions",
+        type=_floats,
+        default=[0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0],
+        metavar="G,...",
+        help="candidate grasp points, fractions of the grasped branch",
+    )
+    p.add_argument(
+        "--peak-forces",
+        type=_floats,
+        default=[2.0, 4.0, 6.0, 8.0],
+        metavar="N,...",
+        help="candidate peak forces (N)",
+    )
+    p.add_argument(
+        "--profile-kinds",
+        type=_words,
+        default=["ramp"],
+        metavar="KIND,...",
+        help=f"candidate profile shapes, of {', '.join(STANDARD_TIMING)} (standard timing)",
+    )
+    p.add_argument(
+        "--directions",
+        type=_directions,
+        default=None,
+        metavar="D;...",
+        help="candidate pull directions, 'down' or x,y,z separated by ';' (needs a simulator "
+        "with direction support)",
+    )
+    goal = p.add_mutually_exclusive_group()
+    goal.add_argument(
+        "--target",
+        default=None,
+        metavar="grasp=G,peak=F[,kind=K]",
+        help="score by the predictive-variance reduction of this manipulation",
+    )
+    goal.add_argument(
+        "--parameter",
+        default=None,
+        metavar="LABEL|worst",
+        help="score by the variance reduction of one parameter, e.g. Kd[branch1]",
+    )
+    p.add_argument(
+        "--sigma-x",
+        type=float,
+        default=None,
+        metavar="M",
+        help="displacement noise std in m (default: the run's noise model or its kT)",
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="s per candidate pull (default: the run's training trajectory length)",
+    )
+    p.add_argument(
+        "--particles",
+        type=int,
+        default=32,
+        metavar="M",
+        help="posterior particles the sensitivities are taken at",
+    )
+    p.add_argument("--top", type=int, default=10, help="rows of the ranked table to print")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="folder for suggestions.json/png (default RUN/suggest)",
+    )
+    p.add_argument("--force", action="store_true", help="overwrite an earlier suggestions.json")
+    return p
+
+
+def run_suggest(args: argparse.Namespace) -> int:
+    target = parse_target(args.target) if args.target else None
+    if args.sigma_x is not None and not args.sigma_x > 0:
+        raise ConfigError(f"--sigma-x: must be a positive number of metres, got {args.sigma_x}")
+    _prepare_jax()
+    out = args.out if args.out is not None else args.run / "suggest"
+    _say(f"scoring candidates for {args.run} ...")
+    sugg = suggest_for_run(
+        args.run,
+        grasp_fractions=args.grasp_fractions,
+        peak_forces=args.peak_forces,
+        profile_kinds=args.profile_kinds,
+        directions=args.directions,
+        target=target,
+        parameter=args.parameter,
+        sigma_x=args.sigma_x,
+        duration=args.duration,
+        n_particles=args.particles,
+        seed=args.seed,
+        out=out,
+        force=args.force,
+    )
+    s = sugg.settings
+    print(
+        f"{s['n_candidates']} candidates, objective {s['objective']}"
+        + (f" ({s['target']['description']})" if s.get("target") else "")
+        + f"; sigma_x {1e3 * s['sigma_x_m']:.3g} mm ({s['sigma_x_from']}); "
+        f"{s['cost_rollouts']} rollouts"
+    )
+    print(sugg.table(args.top))
+    print(f"best: {sugg.specs[0]} at grasp fraction {sugg.best.grasp_fraction:g}")
+    print(f"wrote {out / 'suggestions.json'} and {out / 'suggestions.png'}")
+    return EXIT_OK
