@@ -206,3 +206,133 @@ def test_writer_error_on_a_full_disk_names_the_file(tmp_path, monkeypatch):
     Usage.free = 1 << 30
     with pytest.raises(RuntimeError, match="HDF error"), atomic_save(target):
         raise RuntimeError("NetCDF: HDF error")
+
+
+# ---- run-folder integrity (issue 14, items 5 and 7) ------------------------------------------
+from treeinfer.errors import ConfigError
+from treeinfer.integrity import (
+    check_partial,
+    load_npz,
+    record_checksums,
+    validate_checkpoint_file,
+    validate_run_config,
+    validate_summary,
+    verify_run,
+)
+
+
+def _fake_run(tmp_path: Path) -> tuple[Path, dict]:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "tree.yaml").write_text("branches:\n  - {name: child, length: 0.6}\n")
+    (run / "posterior.nc").write_bytes(b"\x89HDF\r\n" + bytes(range(200)))
+    (run / "particles.csv").write_text("particle,Kp[child]\n0,10.0\n")
+    return run, {"integrity": record_checksums(run)}
+
+
+def test_verify_run_accepts_an_untouched_run(tmp_path):
+    run, config = _fake_run(tmp_path)
+    assert set(config["integrity"]["files"]) == {"tree.yaml", "posterior.nc", "particles.csv"}
+    assert verify_run(run, config) == []
+
+
+def test_edited_tree_is_refused_or_noted(tmp_path):
+    run, config = _fake_run(tmp_path)
+    (run / "tree.yaml").write_text("branches:\n  - {name: child, length: 0.9}\n")  # 0.6 -> 0.9 m
+    with pytest.raises(ConfigError, match=r"tree.yaml was edited after the run.*--allow-modified"):
+        verify_run(run, config)
+    notes = verify_run(run, config, allow_modified=True)
+    assert len(notes) == 1 and "tree.yaml was edited" in notes[0]
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncate", "delete"])
+def test_damaged_or_missing_posterior_is_refused(tmp_path, damage):
+    run, config = _fake_run(tmp_path)
+    p = run / "posterior.nc"
+    if damage == "garbage":
+        p.write_bytes(b"not a netcdf file")
+    elif damage == "truncate":
+        p.write_bytes(p.read_bytes()[:50])
+    else:
+        p.unlink()
+    pattern = "posterior.nc is missing" if damage == "delete" else "posterior.nc is damaged"
+    with pytest.raises(ConfigError, match=pattern):
+        verify_run(run, config)
+
+
+def test_run_without_checksums_gets_a_note(tmp_path):
+    run, _ = _fake_run(tmp_path)
+    notes = verify_run(run, {"format": 1})
+    assert "no checksums recorded" in notes[0]
+
+
+GOOD_CONFIG = {
+    "format": 1, "command": "infer",
+    "options": {"sampler": "nnsvgd", "particles": 8, "iterations": 4, "seed": 0, "kT": 0.05,
+                "max_unstable_share": 0.1, "checkpoint_every": 2, "grasp_fraction": None},
+    "problem": {"kT": 0.05, "obs_dt": 0.01, "substeps": 2, "backend": "fused"},
+    "tree_dict": {}, "config_hash": "ab", "sampler": {},
+    "data": {"dir": "/d", "files": [{"name": "a.csv", "sha256": "00"}]},
+}
+
+
+@pytest.mark.parametrize(
+    "edit, pattern",
+    [
+        (lambda c: c.pop("problem"), r"field 'problem': missing"),
+        (lambda c: c["problem"].__setitem__("kT", "0.05"), r"field 'problem.kT': expected a positive number, got '0.05'"),
+        (lambda c: c["options"].__setitem__("particles", True), r"field 'options.particles': expected an integer >= 1"),
+        (lambda c: c["data"]["files"].append("x"), r"field 'data.files\[1\]'"),
+        (lambda c: c["problem"].__setitem__("substeps", 0), r"field 'problem.substeps': expected an integer >= 1"),
+    ],
+)
+def test_validate_run_config(edit, pattern):
+    import copy
+
+    assert validate_run_config(GOOD_CONFIG, "run/config.json", resumable=True)
+    bad = copy.deepcopy(GOOD_CONFIG)
+    edit(bad)
+    with pytest.raises(ConfigError, match=r"run/config.json, " + pattern):
+        validate_run_config(bad, "run/config.json", resumable=True)
+
+
+def test_validate_summary_indices():
+    assert validate_summary({"unstable_particles": [0, 7]}, "s.json", 8)
+    with pytest.raises(ConfigError, match=r"s.json, field 'unstable_particles\[1\]': 99 is not a particle index in \[0, 8\)"):
+        validate_summary({"unstable_particles": [0, 99]}, "s.json", 8)
+    with pytest.raises(ConfigError, match="unstable_particles\\[0\\]': -1"):
+        validate_summary({"unstable_particles": [-1]}, "s.json", 8)
+    with pytest.raises(ConfigError, match="fit.status"):
+        validate_summary({"fit": {"status": "great"}}, "s.json", 8)
+
+
+def test_empty_and_foreign_checkpoints(tmp_path):
+    import numpy as np
+
+    ck = tmp_path / "checkpoint.npz"
+    ck.write_bytes(b"")
+    with pytest.raises(ConfigError, match="checkpoint is empty"):
+        validate_checkpoint_file(ck)
+    with pytest.raises(ConfigError, match=r"checkpoint.npz: .* is empty"):
+        load_npz(ck, "checkpoint")
+    ck.write_bytes(b"garbage!")
+    with pytest.raises(ConfigError, match="not a checkpoint"):
+        validate_checkpoint_file(ck)
+    np.savez(ck, a=np.arange(3))
+    ck.write_bytes(ck.read_bytes()[:40])  # truncated zip
+    validate_checkpoint_file(ck)  # looks like a zip ...
+    with pytest.raises(ConfigError, match="unreadable checkpoint"):  # ... but np.load fails cleanly
+        load_npz(ck, "checkpoint")
+
+
+def test_check_partial_says_why(tmp_path):
+    import copy
+
+    partial = tmp_path / "RUN.partial"
+    partial.mkdir()
+    (partial / "tree.yaml").write_text("x")
+    assert "has no config.json" in check_partial(partial)
+    (partial / "config.json").write_text(json.dumps(copy.deepcopy(GOOD_CONFIG)))
+    assert check_partial(partial) is None
+    (partial / "checkpoint.npz").write_bytes(b"")
+    assert "checkpoint is empty" in check_partial(partial)
