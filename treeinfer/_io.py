@@ -292,9 +292,10 @@ def clean_stale_staging(path: str | os.PathLike, log: Callable[[str], None] | No
     """Tidy what killed writers of the output folder ``path`` left beside it; return messages.
 
     A staging folder of a live process is left alone (reported). Of a dead one: a *complete*
-    staging folder (its marker says so) whose destination is missing is moved into place (the
-    kill fell between the two renames of the publish step), a displaced previous result
-    (``.old``) is put back if the destination is missing, everything else is removed.
+    staging folder (its marker says so) is moved into place if the destination is missing (the
+    kill fell between the two renames of the publish step), else kept at ``NAME.complete-PID``;
+    a displaced previous result (``.old``) is put back if the destination is missing; an
+    unfinished staging folder is removed.
     """
     path = Path(path)
     msgs: list[str] = []
@@ -313,6 +314,11 @@ def clean_stale_staging(path: str | os.PathLike, log: Callable[[str], None] | No
             if not path.exists() and p.name.endswith(STAGING_SUFFIX) and _stage_complete(p):
                 os.replace(p, path)
                 msgs.append(f"{path}: recovered the finished result a killed process left in {p.name}")
+            elif p.name.endswith(STAGING_SUFFIX) and _stage_complete(p):
+                kept = path.with_name(f"{path.name}{COMPLETE_INFIX}{pid}")
+                os.replace(p, kept)
+                msgs.append(f"{path}: a killed process finished a newer result than this one; it is "
+                            f"kept, complete, in {kept}")
             elif not path.exists() and (p.name.endswith(OLD_SUFFIX) or ".old-" in p.name):
                 os.replace(p, path)
                 msgs.append(f"{path}: put back the previous result a killed process had moved to {p.name}")
