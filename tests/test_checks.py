@@ -252,3 +252,27 @@ def test_fit_prior_back_when_data_have_no_effect(tree):
     theta[:, :3] = np.log(np.array([*TRUE_KP, TRUE_KD[0]])) + 0.05 * np.random.default_rng(1).standard_normal((256, 3))
     v = fit_checks(theta=theta, lower=lo, upper=hi, labels=tree.parameter_labels())
     assert v.status == "warning" and "barely narrowed Kd[parent]" in v.reasons[0]
+
+
+def test_fit_verdict_from_run_and_preflight(tree, clean):
+    from types import SimpleNamespace
+
+    from treeinfer.checks import fit_verdict_from_run, preflight
+    from treeinfer.trajectories import stack_trajectories
+
+    obs = stack_trajectories(clean)
+    lo, hi = _box(tree)
+    problem = SimpleNamespace(obs=obs, lower=lo, upper=hi, labels=tuple(tree.parameter_labels()))
+    rng = np.random.default_rng(0)
+    theta = np.log(np.array([*TRUE_KP, *TRUE_KD])) + 0.05 * rng.standard_normal((32, 4))
+    pred = SimpleNamespace(mean=obs.displacement + SIGMA * rng.standard_normal(obs.displacement.shape))
+    fit = {"stable": np.ones(32, bool), "prediction": pred, "metrics": {"fraction_outside": 0.03}}
+    v = fit_verdict_from_run(problem, SimpleNamespace(theta=theta), fit, noise_sigma=SIGMA)
+    assert v.status == "ok", v
+    pred.mean = 100 * obs.displacement  # a cm-type misfit
+    v = fit_verdict_from_run(problem, SimpleNamespace(theta=theta), fit, noise_sigma=SIGMA)
+    assert v.status == "poor_fit" and v.as_dict()["measures"]["residual_to_noise"] > 10
+    fit["prediction"] = None
+    assert fit_verdict_from_run(problem, SimpleNamespace(theta=theta), fit).status == "poor_fit"
+    errors, warnings = preflight(tree, [clean[0], clean[0]._replace(source="dup.csv")])
+    assert [e.check for e in errors] == ["duplicate"] and warnings == []

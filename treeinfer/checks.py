@@ -27,13 +27,15 @@ than the prior (the data had no effect). It returns a :class:`FitVerdict` with `
 of ``ok | warning | poor_fit`` and the reasons. The command line ends a ``poor_fit`` run with
 exit code 4 (:data:`POOR_FIT_EXIT_CODE`) unless ``--allow-poor-fit``.
 
-Static compliance (the lever-arm estimate). A downward force ``f`` at the grasp point ``p``
-loads hinge ``j`` (world position ``o_j``, unit axis ``a_j``) with the torque ``f * s_j``,
-where ``s_j = g_hat . (a_j x (p - o_j))`` is the downward motion of ``p`` per radian of that
-joint. With small rotations and springs ``Kp_j`` the grasp point moves ``f * sum_j s_j^2 / Kp_j``
-down: compliance ``C = sum_j s_j^2 / Kp_j`` (m/N). Gravity's own (geometric) stiffness and
-dynamics are left out: they change C by far less than the factors of 10 flagged here. The test
-suite checks it against MuJoCo's settled rest poses (tests/test_checks.py).
+Static compliance. A downward force ``f`` at the grasp point moves it ``f * C`` down once the
+tree has settled, with ``C = s K^-1 s^T``: ``s`` the grasp site's Jacobian along gravity and
+``K`` the joint stiffness matrix (springs plus gravity's geometric stiffness), both taken from
+plain MuJoCo at the rest pose the branch sags to under its own weight
+(:func:`static_compliance`). With stiff joints ``C`` reduces to the lever-arm sum
+``sum_j s_j^2 / Kp_j`` (:func:`lever_arm_compliance`); with soft ones the sag changes the lever
+arms several-fold, hence the settled form. Dynamics are left out: the flagged factors (3x to
+1000x outside the prior box's range) are far beyond what a pull's inertia and damping change.
+tests/test_checks.py checks ``C`` against settled MJX rollouts.
 """
 
 from __future__ import annotations
@@ -56,10 +58,12 @@ __all__ = [
     "data_checks",
     "errors_of",
     "fit_checks",
+    "fit_verdict_from_run",
     "format_findings",
     "grasp_reach",
     "lever_arm_compliance",
     "noise_from_kT",
+    "preflight",
     "static_compliance",
 ]
 
@@ -551,3 +555,46 @@ def fit_checks(
                             f"{NO_EFFECT:.0%} of the prior's)")
     status = "poor_fit" if poor else "warning" if warn else "ok"
     return FitVerdict(status, poor + warn, m)
+
+
+# ---- glue for the run layer ------------------------------------------------------------------
+def preflight(tree: Tree, trajectories: Sequence, paths: Sequence | None = None,
+              tree_file: str | os.PathLike | None = None,
+              grasp_fraction: float | None = None) -> tuple[list[Finding], list[Finding]]:
+    """(errors, warnings) of :func:`data_checks`, for ``infer`` to print before sampling: it
+    stops with exit code 2 on errors, prints warnings and goes on."""
+    found = data_checks(tree, trajectories, paths=paths, grasp_fraction=grasp_fraction,
+                        tree_file=tree_file)
+    return errors_of(found), [f for f in found if f.severity != "error"]
+
+
+def fit_verdict_from_run(problem, posterior, fit: dict, noise_sigma: float | None = None,
+                         level: float = 0.95) -> FitVerdict:
+    """:func:`fit_checks` on what :func:`treeinfer.runs.run_inference` has at hand.
+
+    Args:
+      problem: the inference problem (``obs`` [B, T] training data, ``lower``/``upper`` log
+        prior box [D], ``labels``). posterior: ``theta`` [P, D] log gains.
+      fit: the run's training fit: ``stable`` [P], ``prediction`` (``mean`` [B, T] m; None if
+        too few particles were stable), ``metrics`` (``fraction_outside``).
+      noise_sigma: the fitted displacement noise (m) if the noise model has one; None: the
+        residual test is skipped (kT is a temperature the user chose, not a measured noise, so
+        the sigma it implies is no yardstick for residuals).
+    """
+    pred = fit.get("prediction")
+    metrics = fit.get("metrics") or {}
+    residuals = mask = None
+    if pred is not None:
+        residuals = np.asarray(pred.mean, float) - np.asarray(problem.obs.displacement, float)
+        mask = np.asarray(problem.obs.mask, bool)
+    frac = metrics.get("fraction_outside")
+    verdict = fit_checks(
+        residuals=residuals, mask=mask, noise_sigma=noise_sigma,
+        fraction_outside=None if frac is None else float(frac), level=level,
+        theta=np.asarray(posterior.theta, float), lower=problem.lower, upper=problem.upper,
+        labels=list(problem.labels), valid=np.asarray(fit.get("stable"), bool)
+        if fit.get("stable") is not None else None)
+    if pred is None:
+        return FitVerdict("poor_fit", ["too few stable particles to judge the training fit",
+                                       *verdict.reasons], verdict.measures)
+    return verdict
