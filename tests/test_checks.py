@@ -276,3 +276,17 @@ def test_fit_verdict_from_run_and_preflight(tree, clean):
     assert fit_verdict_from_run(problem, SimpleNamespace(theta=theta), fit).status == "poor_fit"
     errors, warnings = preflight(tree, [clean[0], clean[0]._replace(source="dup.csv")])
     assert [e.check for e in errors] == ["duplicate"] and warnings == []
+
+
+def test_simulation_cost_check(tree):
+    import dataclasses
+
+    from treeinfer.checks import simulation_cost_check
+    from treeinfer.tree import Bounds
+
+    assert simulation_cost_check(tree, 0.01) == []
+    twig = dataclasses.replace(tree.branch("child"), length=0.1, radius=0.003)
+    stiff = dataclasses.replace(tree, branches=(tree.branches[0], twig),
+                                bounds={n: Bounds(kp=(5.0, 1e8)) for n in tree.inferred})
+    f = simulation_cost_check(stiff, 0.01, "t.yaml")
+    assert f and f[0].severity == "error" and "simulation steps per 0.01 s sample" in f[0].message

@@ -64,6 +64,7 @@ __all__ = [
     "lever_arm_compliance",
     "noise_from_kT",
     "preflight",
+    "simulation_cost_check",
     "static_compliance",
 ]
 
@@ -152,7 +153,8 @@ def static_compliance(tree: Tree, kp: dict[str, float] | None = None,
     import mujoco
 
     from .export import GRASP_SITE, to_mjmodel
-    from .simulator import settle_reference
+
+    settle_reference = _sim_attr("settle_reference")
 
     kp = kp or {}
     m = to_mjmodel(tree)
@@ -190,6 +192,48 @@ def static_compliance(tree: Tree, kp: dict[str, float] | None = None,
     except np.linalg.LinAlgError:
         return math.inf
     return float(s @ np.linalg.solve(kmat, s))
+
+
+def _sim_attr(name: str):
+    """``name`` from the simulator package (``treeinfer.sim`` after the restructuring, else
+    ``treeinfer.simulator``)."""
+    import importlib
+
+    for mod in ("treeinfer.sim.reference", "treeinfer.sim", "treeinfer.simulator"):
+        try:
+            m = importlib.import_module(mod)
+        except ImportError:
+            continue
+        if hasattr(m, name):
+            return getattr(m, name)
+    raise ImportError(f"treeinfer has no simulator attribute {name!r}")
+
+
+MAX_SUBSTEPS = 2000  # simulation steps per observation beyond which a run cannot finish
+
+
+def simulation_cost_check(tree: Tree, obs_dt: float, tree_file: str | os.PathLike | None = None,
+                          max_substeps: int = MAX_SUBSTEPS) -> list[Finding]:
+    """An error if the prior box's stiffest corner needs more than ``max_substeps`` simulation
+    steps per observation (the simulator's own rule, :func:`choose_substeps`): a tiny twig with
+    a huge Kp bound would otherwise run for days. Names the Kp bound to lower."""
+    import mujoco
+
+    from .export import to_mjmodel
+
+    choose_substeps = _sim_attr("choose_substeps")
+    m = to_mjmodel(tree)
+    ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n) for n in tree.inferred]
+    kp_max = [tree.bounds[n].kp[1] for n in tree.inferred]
+    n = int(choose_substeps(m, ids, kp_max, float(obs_dt)))
+    if n <= max_substeps:
+        return []
+    name = str(tree_file) if tree_file is not None else f"tree '{tree.name}'"
+    return [Finding("error", name, "simulation-cost",
+                    f"the prior box's upper Kp bounds ({', '.join(f'{k:g}' for k in kp_max)} N m/rad) on "
+                    f"branches this light need {n} simulation steps per {obs_dt:g} s sample (limit "
+                    f"{max_substeps}); lower inference.prior.kp's upper bound or check the branch "
+                    "masses")]
 
 
 def compliance_range(tree: Tree, grasp_fraction: float | None = None) -> tuple[float, float]:
@@ -565,6 +609,8 @@ def preflight(tree: Tree, trajectories: Sequence, paths: Sequence | None = None,
     stops with exit code 2 on errors, prints warnings and goes on."""
     found = data_checks(tree, trajectories, paths=paths, grasp_fraction=grasp_fraction,
                         tree_file=tree_file)
+    if trajectories:
+        found += simulation_cost_check(tree, float(trajectories[0].dt), tree_file)
     return errors_of(found), [f for f in found if f.severity != "error"]
 
 
