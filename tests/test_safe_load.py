@@ -208,3 +208,26 @@ def test_scale_warnings():
     w = tree_scale_warnings(tree, "t.yaml")
     assert len(w) == 1 and "length 8 m is unusually long" in w[0]
     assert tree_scale_warnings(tree_from_dict(BASE, "t.yaml")) == []
+
+
+def test_list_data_files_names_what_it_skips(tmp_path):
+    from treeinfer.safe_load import list_data_files
+
+    (tmp_path / "b.csv").write_text("x")
+    (tmp_path / "a.csv").write_text("x")
+    (tmp_path / "UP.CSV").write_text("x")
+    (tmp_path / "gone.csv").symlink_to(tmp_path / "missing.csv")
+    (tmp_path / "dir.csv").mkdir()
+    (tmp_path / "notes.txt").write_text("x")
+    if hasattr(os, "mkfifo"):
+        os.mkfifo(tmp_path / "pipe.csv")
+    files, skipped = list_data_files(tmp_path)
+    assert [p.name for p in files] == ["a.csv", "b.csv"]
+    text = "\n".join(skipped)
+    assert "UP.CSV: not read: the suffix must be '.csv' in lower case" in text
+    assert "gone.csv: not read: broken symbolic link" in text
+    assert "dir.csv: not read: it is a folder" in text
+    if hasattr(os, "mkfifo"):
+        assert "pipe.csv: not read: it is a FIFO" in text
+    with pytest.raises(ConfigError, match="no such folder"):
+        list_data_files(tmp_path / "nope")

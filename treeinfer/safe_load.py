@@ -48,6 +48,7 @@ __all__ = [
     "MAX_DEPTH",
     "MAX_NODES",
     "boolean",
+    "list_data_files",
     "load_file",
     "loads_json",
     "loads_yaml",
@@ -403,3 +404,38 @@ def boolean(value: Any, fld: str, source: str | None = None,
     if isinstance(value, bool):
         return value
     raise error(f"{_loc(source, fld)}: expected true or false, got {value!r}")
+
+
+def list_data_files(directory: str | os.PathLike, suffix: str = ".csv",
+                    error: type[TreeinferError] = ConfigError) -> tuple[list[Path], list[str]]:
+    """The regular ``*{suffix}`` files of ``directory`` (sorted), and one sentence for every
+    entry that looks like data but will not be read, naming it: a FIFO, device, folder or broken
+    symbolic link with that suffix, or a file whose suffix differs only in case (``.CSV``).
+
+    Never opens a file (a FIFO cannot block it). ``error`` for a missing folder.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise error(f"{directory}: no such folder")
+    files, skipped = [], []
+    for p in sorted(directory.iterdir()):
+        name = p.name
+        if not name.lower().endswith(suffix.lower()):
+            continue
+        if not name.endswith(suffix):
+            skipped.append(f"{p}: not read: the suffix must be '{suffix}' in lower case; rename it")
+            continue
+        try:
+            st = os.stat(p)
+        except FileNotFoundError:
+            skipped.append(f"{p}: not read: broken symbolic link")
+            continue
+        except OSError as e:
+            skipped.append(f"{p}: not read: {e.strerror or e}")
+            continue
+        kind = _kind_of(st.st_mode)
+        if kind is not None:
+            skipped.append(f"{p}: not read: it is {kind}, not a regular file")
+            continue
+        files.append(p)
+    return files, skipped
