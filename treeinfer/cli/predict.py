@@ -62,14 +62,18 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--grasp-fraction", type=float, metavar="F", help="where along the grasped branch the force acts, in (0, 1] (default: where the run's training data were recorded)")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (must be empty or absent unless --overwrite)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder (--force names the force file here)")
+    p.add_argument("--allow-modified", action="store_true", help="use the run even if its files changed since `infer` wrote them (checksums in its config.json); recorded in the output")
     return p
 
 
 def run_predict(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
-    check_output_dir(args.out, args.overwrite)
+    inputs = [args.run, args.force_file]
+    check_output_dir(args.out, args.overwrite, "prediction", inputs=inputs)
     _prepare_jax()
-    run = runs.load_run(args.run, runs.SimulatorCache())
+    run = runs.load_run(args.run, runs.SimulatorCache(), allow_modified=args.allow_modified)
+    for note in run.notes:
+        _say(f"warning: {note}")
     dt_run = run.sim.obs_dt
     if args.force_file is not None:
         if args.duration is not None or args.dt is not None:
@@ -104,8 +108,9 @@ def run_predict(args: argparse.Namespace) -> int:
     config = _base_config("predict", args)
     config.update(run=str(Path(args.run).resolve()), force_source=prof.source, dt=float(dt_run), n_steps=len(prof.time),
                   grasp_fraction=grasp if grasp is not None else run.tree.grasp_fraction,
-                  n_particles=len(run.theta), n_valid=int(pred.valid.sum()), n_excluded=n_bad)
-    with staged_output_dir(args.out, args.overwrite) as stage:
+                  n_particles=len(run.theta), n_valid=int(pred.valid.sum()), n_excluded=n_bad,
+                  integrity_notes=list(run.notes), run_fit_status=run.summary.get("status"))
+    with staged_output_dir(args.out, args.overwrite, "prediction", inputs=inputs) as stage:
         atomic_write_text(stage / "prediction.csv", "\n".join(lines) + "\n")
         fig, _ = plot_trajectory_bands(prof.time, lower, upper, mean, prof.displacement,
                                        samples=pred.tau[pred.valid, 0],
