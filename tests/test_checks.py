@@ -38,7 +38,7 @@ def tree():
 def clean(tree):
     """Three simulated pulls (2 s at 50 Hz) with 1 mm displacement noise and a velocity column
     differentiated from the noisy displacement, as `treeinfer simulate` writes them."""
-    from treeinfer.simulator import make_simulator, simulate
+    make_simulator, simulate = _sim()
 
     sim = make_simulator(tree, obs_dt=DT)
     forces = np.stack([ramp_hold(p, 0.4, 0.6, 0.4, 2.0, DT) for p in (3.0, 4.0, 2.0)])
@@ -53,6 +53,15 @@ def clean(tree):
         x[0] = 0.0
         out.append(Trajectory(t, forces[b].astype(float), x, velocity_from_displacement(x, DT), f"pull{b}.csv"))
     return out
+
+
+def _sim():
+    """make_simulator, simulate from treeinfer.sim (or treeinfer.simulator before the split)."""
+    try:
+        from treeinfer.sim import make_simulator, simulate
+    except ImportError:
+        from treeinfer.simulator import make_simulator, simulate
+    return make_simulator, simulate
 
 
 def _checks(tree, trajs, **kw):
@@ -70,7 +79,7 @@ def test_static_compliance_matches_a_settled_mujoco_pull(tree):
     """Independent reference: the MJX/fused rollout's displacement after a slow 0.5 N ramp has
     settled, divided by the force, at a soft, a stiff and a mixed corner of the box."""
     from treeinfer.forces import ramp
-    from treeinfer.simulator import make_simulator, simulate
+    make_simulator, simulate = _sim()
 
     sim = make_simulator(tree, obs_dt=0.01)
     f = ramp(0.5, 1.0, 4.0, 0.01)

@@ -89,7 +89,7 @@ def require_regular_file(path: str | os.PathLike, what: str = "file",
     except FileNotFoundError:
         if os.path.islink(path):
             raise error(f"{path}: {what} is a broken symbolic link") from None
-        raise error(f"{path}: no such file ({what})") from None
+        raise error(f"{path}: no such file; cannot read {what}") from None
     except OSError as e:
         raise error(f"{path}: cannot read {what} ({e.strerror or e})") from None
     kind = _kind_of(st.st_mode)
