@@ -66,7 +66,7 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
-    from .evaluation import (
+    from ..evaluation import (
         band_arrays,
         evaluate_trajectories,
         kfold_splits,
