@@ -419,3 +419,61 @@ def test_stale_staging_is_always_tidied(tmp_path):
                 (st / _io.OUTPUT_MARKER).write_text(json.dumps({"complete": True}))
         clean_stale_staging(out)
         assert find_staging(out) == [] and (out / "r.txt").is_file()
+
+
+# ---- 8. corrupted data sets end to end through `treeinfer infer` ---------------------------------
+def _write_set(d: Path, trajs) -> Path:
+    from treeinfer.trajectories import write_trajectory
+
+    d.mkdir(parents=True)
+    for t in trajs:
+        write_trajectory(d / t.source, t)
+    return d
+
+
+E2E_ERRORS = ["mm", "kN", "swapped", "offset", "sign", "vel-negated", "vel-zero", "vel-random",
+              "all-zero", "duplicate", "mixed"]
+
+
+def test_infer_refuses_certainly_wrong_data_before_sampling(tmp_path, clean, capsys):
+    """Every certainly-wrong data set: exit 2 before any sampling, the file and the evidence
+    named; the data folder untouched. (Warning-level cases are judged after sampling, by the fit
+    verdict: test_infer_poor_fit_exit_code.)"""
+    from treeinfer.cli import main
+
+    tree = str(example_path("two_branch"))
+    rng = np.random.default_rng(8)
+    silent = []
+    for kind in E2E_ERRORS:
+        trajs = list(clean)
+        if kind == "duplicate":
+            trajs.append(trajs[0]._replace(source="copy.csv"))
+        elif kind == "mixed":
+            trajs[1] = trajs[1]._replace(displacement=100 * trajs[1].displacement, velocity=None)
+        else:
+            trajs[0] = CORRUPTIONS[kind](trajs[0], rng)
+        data = _write_set(tmp_path / kind, trajs)
+        before = sorted(p.name for p in data.iterdir())
+        rc = main(["infer", "--tree", tree, "--data", str(data), "--out", str(tmp_path / f"run-{kind}"),
+                   "--particles", "4", "--iterations", "2", "--no-progress"])
+        err = capsys.readouterr().err
+        if rc == 0:
+            silent.append(kind)
+        # the reader's own unit limits or the plausibility checks: either names the file
+        assert rc == 2 and str(data) in err, (kind, rc, err[-800:])
+        assert sorted(p.name for p in data.iterdir()) == before
+        assert not (tmp_path / f"run-{kind}").exists()
+    assert silent == []
+
+
+def test_infer_never_writes_into_its_own_data(tmp_path, clean, capsys):
+    """The issue's `infer --data s_copy --out s_copy --force`: refused, the CSVs stay."""
+    from treeinfer.cli import main
+
+    data = _write_set(tmp_path / "s_copy", clean)
+    (data / ".treeinfer-output").write_text('{"writer": "treeinfer", "complete": true}')
+    rc = main(["infer", "--tree", str(example_path("two_branch")), "--data", str(data), "--out", str(data),
+               "--force", "--particles", "4", "--iterations", "2", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "input of this command" in err
+    assert sorted(p.name for p in data.glob("*.csv")) == sorted(t.source for t in clean)
