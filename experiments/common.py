@@ -61,7 +61,7 @@ SAMPLER_LABELS = {name: name.upper() for name in REGISTRY}  # table and figure l
 
 # Modules whose code decides a posterior; a change to any of them invalidates the posterior cache.
 _POSTERIOR_MODULES = (
-    "inference.py", "likelihood.py", "simulator.py", "priors.py", "gradients.py", "tree.py",
+    "inference.py", "likelihood.py", "sim", "priors.py", "gradients.py", "tree.py",
     "export.py", "trajectories.py", "samplers",
 )
 
@@ -675,7 +675,9 @@ def pair_figure(sets: dict[str, np.ndarray], labels: Sequence[str], truth: np.nd
 def versions() -> dict:
     from treeinfer.runs import versions as run_versions
 
-    return run_versions(extended=True)
+    v = run_versions(extended=True)
+    v["mujoco-mjx"] = v.pop("mujoco_mjx")  # results.json spells it as the distribution does
+    return v
 
 
 def data_record(data: SyntheticData, problem) -> dict:

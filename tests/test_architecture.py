@@ -13,7 +13,8 @@ import treeinfer
 
 ROOT = Path(treeinfer.__file__).resolve().parent
 MODULES = sorted(
-    m.name for m in pkgutil.walk_packages([str(ROOT)], prefix="treeinfer.")
+    m.name
+    for m in pkgutil.walk_packages([str(ROOT)], prefix="treeinfer.")
     if not m.name.startswith("treeinfer.examples.")
 )
 
@@ -48,8 +49,8 @@ def _imports(name: str) -> set[str]:
 def test_nothing_in_the_package_imports_the_cli():
     offenders = {
         m: sorted(i for i in _imports(m) if i == "treeinfer.cli" or i.startswith("treeinfer.cli."))
-        for m in MODULES if not (m == "treeinfer.cli" or m.startswith("treeinfer.cli.")
-                                 or m == "treeinfer.__main__")
+        for m in MODULES
+        if not (m == "treeinfer.cli" or m.startswith("treeinfer.cli.") or m == "treeinfer.__main__")
     }
     assert not {m: v for m, v in offenders.items() if v}
 
@@ -68,8 +69,13 @@ def test_every_module_imports_alone():
         "print('\\n'.join(bad)); sys.exit(1 if bad else 0)\n"
     )
     mods = [m for m in MODULES if m != "treeinfer.__main__"]
-    r = subprocess.run([sys.executable, "-c", code, *mods], capture_output=True, text=True,
-                       cwd=ROOT.parent, timeout=600)
+    r = subprocess.run(
+        [sys.executable, "-c", code, *mods],
+        capture_output=True,
+        text=True,
+        cwd=ROOT.parent,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stdout + r.stderr
 
 
@@ -90,7 +96,7 @@ def test_no_import_cycles_between_modules():
             if is_parent(m, n) or n == "treeinfer":
                 continue
             if state.get(n) == 1:
-                cycles.append(stack[stack.index(n):] + [n] if n in stack else [m, n])
+                cycles.append(stack[stack.index(n) :] + [n] if n in stack else [m, n])
             elif state.get(n) is None:
                 visit(n, stack + [n])
         state[m] = 2

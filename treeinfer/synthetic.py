@@ -108,7 +108,8 @@ def simulate_batch(
     )
     slow = (
         " (MJX compiles for up to a minute on new shapes; cached afterwards)"
-        if sim.backend == "mjx" else ""
+        if sim.backend == "mjx"
+        else ""
     )
     log(f"simulating {forces.shape[0]} trajectories{slow}...")
     run = jax.jit(lambda a, b, f: simulate(sim, a, b, f))

@@ -58,7 +58,9 @@ class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaults
         return super()._get_help_string(action)
 
 
-def add_command_parser(subparsers, name: str, help: str, description: str, epilog: str) -> argparse.ArgumentParser:
+def add_command_parser(
+    subparsers, name: str, help: str, description: str, epilog: str
+) -> argparse.ArgumentParser:
     """A subcommand parser with the shared options (``--debug``) and help layout."""
     return subparsers.add_parser(
         name,
@@ -76,7 +78,9 @@ def _floats(text: str) -> list[float]:
     try:
         vals = [float(p) for p in parts]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers like '1.0,2.5', got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated numbers like '1.0,2.5', got {text!r}"
+        ) from None
     if not vals:
         raise argparse.ArgumentTypeError(f"expected at least one number, got {text!r}")
     if not all(math.isfinite(v) for v in vals):
@@ -104,7 +108,9 @@ def _refuse_existing(paths: Sequence[Path], force: bool) -> None:
         if p.exists() and p.is_dir():
             raise OutputExistsError(f"{p}: is a folder, expected a file name")
         if p.exists() and not force:
-            raise OutputExistsError(f"{p}: file exists; choose another name or pass --force to replace it")
+            raise OutputExistsError(
+                f"{p}: file exists; choose another name or pass --force to replace it"
+            )
 
 
 def _prepare_jax() -> None:
@@ -116,11 +122,11 @@ def _say(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-
-
 # ---- shared printers and checks ---------------------------------------------------------------
 def _fmt_params(tree, kp, kd) -> str:
-    return ", ".join(f"{lab}={v:.4g}" for lab, v in zip(tree.parameter_labels(), np.concatenate([kp, kd])))
+    return ", ".join(
+        f"{lab}={v:.4g}" for lab, v in zip(tree.parameter_labels(), np.concatenate([kp, kd]))
+    )
 
 
 def _check_share(s) -> None:
@@ -135,17 +141,23 @@ def _fmt_gain(v: float) -> str:
 def _print_posterior(summary: dict) -> None:
     table = summary["posterior"]
     n_unst = summary["n_unstable"]
-    print(f"posterior ({summary['n_particles']} particles, {n_unst} unstable, excluded): mean and 95% interval")
+    print(
+        f"posterior ({summary['n_particles']} particles, {n_unst} unstable, excluded): mean and 95% interval"
+    )
     width = max(len(k) for k in table)
     for lab, s in table.items():
-        print(f"  {lab:<{width}}  {_fmt_gain(s['mean']):>9} {s['unit']:<10} [{_fmt_gain(s['lower'])}, {_fmt_gain(s['upper'])}]")
+        print(
+            f"  {lab:<{width}}  {_fmt_gain(s['mean']):>9} {s['unit']:<10} [{_fmt_gain(s['lower'])}, {_fmt_gain(s['upper'])}]"
+        )
 
 
 def _print_fit(m: dict | None, what: str) -> None:
     if not m:
         return
-    print(f"{what}: 95% band {1000 * m['ci_width']:.3g} mm wide on average, {m['pct_outside']:.1f}% of "
-          f"points outside it, predictive NLL {m['predictive_nll_per_point']:.3g} nats/point")
+    print(
+        f"{what}: 95% band {1000 * m['ci_width']:.3g} mm wide on average, {m['pct_outside']:.1f}% of "
+        f"points outside it, predictive NLL {m['predictive_nll_per_point']:.3g} nats/point"
+    )
 
 
 def _print_warnings(warns: Sequence[str]) -> None:
@@ -159,23 +171,36 @@ def _print_warnings(warns: Sequence[str]) -> None:
 
 def _check_grasp(g) -> None:
     if g is not None and not (math.isfinite(g) and 0.0 < g <= 1.0):
-        raise ConfigError(f"--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got {g:g}")
+        raise ConfigError(
+            f"--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got {g:g}"
+        )
 
 
 def _base_config(command: str, args: argparse.Namespace) -> dict[str, Any]:
     from ..runs import versions  # here, not at the top: `treeinfer --help` must not load JAX
 
-    options = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
+    options = {
+        k: (str(v) if isinstance(v, Path) else v)
+        for k, v in vars(args).items()
+        if not k.startswith("_")
+    }
     options.pop("debug", None)
-    return {"command": command, "versions": versions(), "options": options,
-            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    return {
+        "command": command,
+        "versions": versions(),
+        "options": options,
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
 
 
 def _metrics_rows(m: dict) -> list[tuple[str, str]]:
     rows = [
         ("95% band width", f"{1000 * m['ci_width']:.4g} mm"),
         ("ground truth outside the band", f"{m['pct_outside']:.2f} %"),
-        ("predictive NLL", f"{m['predictive_nll_per_point']:.4g} nats/point ({m['n_points']} points)"),
+        (
+            "predictive NLL",
+            f"{m['predictive_nll_per_point']:.4g} nats/point ({m['n_points']} points)",
+        ),
     ]
     if m.get("posterior_nll") is not None:
         rows.append(("posterior NLL", f"{m['posterior_nll']:.4g} nats"))
@@ -188,12 +213,21 @@ def _metrics_md(title: str, m: dict) -> list[str]:
     out += [f"| {a} | {b} |" for a, b in _metrics_rows(m)]
     if m.get("per_trajectory"):
         out += ["", "| trajectory | band width [mm] | outside [%] |", "|---|---|---|"]
-        out += [f"| {t['name']} | {1000 * t['ci_width']:.4g} | {t['pct_outside']:.2f} |" for t in m["per_trajectory"]]
+        out += [
+            f"| {t['name']} | {1000 * t['ci_width']:.4g} | {t['pct_outside']:.2f} |"
+            for t in m["per_trajectory"]
+        ]
     if m.get("parameters"):
-        out += ["", "| parameter | truth | posterior exp(mean log) | 95% interval | truth inside |", "|---|---|---|---|---|"]
+        out += [
+            "",
+            "| parameter | truth | posterior exp(mean log) | 95% interval | truth inside |",
+            "|---|---|---|---|---|",
+        ]
         for lab, p in m["parameters"].items():
-            out.append(f"| {lab} | {math.exp(p['truth']):.4g} | {math.exp(p['mean']):.4g} | "
-                       f"[{math.exp(p['lower']):.4g}, {math.exp(p['upper']):.4g}] | {'yes' if p['in_interval'] else 'no'} |")
+            out.append(
+                f"| {lab} | {math.exp(p['truth']):.4g} | {math.exp(p['mean']):.4g} | "
+                f"[{math.exp(p['lower']):.4g}, {math.exp(p['upper']):.4g}] | {'yes' if p['in_interval'] else 'no'} |"
+            )
     return out + [""]
 
 
@@ -203,6 +237,11 @@ def _print_metrics(m: dict, what: str) -> None:
         print(f"  {a}: {b}")
     if m.get("parameters"):
         inside = sum(p["in_interval"] for p in m["parameters"].values())
-        print(f"  true parameters inside their 95% interval: {inside} of {len(m['parameters'])}"
-              + ("" if m.get("truth_in_joint_region") is None else
-                 f"; inside the joint 95% region: {'yes' if m['truth_in_joint_region'] else 'no'}"))
+        print(
+            f"  true parameters inside their 95% interval: {inside} of {len(m['parameters'])}"
+            + (
+                ""
+                if m.get("truth_in_joint_region") is None
+                else f"; inside the joint 95% region: {'yes' if m['truth_in_joint_region'] else 'no'}"
+            )
+        )

@@ -1,5 +1,4 @@
-"""``treeinfer import-bag``: cut a ROS bag into trajectory CSVs (:func:`treeinfer.bags.import_bag`).
-"""
+"""``treeinfer import-bag``: cut a ROS bag into trajectory CSVs (:func:`treeinfer.bags.import_bag`)."""
 
 from __future__ import annotations
 

@@ -31,14 +31,24 @@ from .common import (
 # Defaults of `infer` (None in argparse, so that --resume can tell which options were given):
 # those of the run configuration.
 INFER_DEFAULTS: dict[str, Any] = {
-    f.name: f.default for f in fields(RunConfig) if f.default is not MISSING
-    and f.name not in ("grasp_fraction", "force")
+    f.name: f.default
+    for f in fields(RunConfig)
+    if f.default is not MISSING and f.name not in ("grasp_fraction", "force")
 }
 # options a resumed run takes from its checkpoint's config (argparse dest -> flag)
 _RUN_OPTIONS = {
-    "tree": "--tree", "data": "--data", "out": "--out", "sampler": "--sampler", "particles": "--particles",
-    "iterations": "--iterations", "kT": "--kT", "seed": "--seed", "eta": "--eta",
-    "grasp_fraction": "--grasp-fraction", "checkpoint_every": "--checkpoint-every", "force": "--force",
+    "tree": "--tree",
+    "data": "--data",
+    "out": "--out",
+    "sampler": "--sampler",
+    "particles": "--particles",
+    "iterations": "--iterations",
+    "kT": "--kT",
+    "seed": "--seed",
+    "eta": "--eta",
+    "grasp_fraction": "--grasp-fraction",
+    "checkpoint_every": "--checkpoint-every",
+    "force": "--force",
     "backend": "--backend",
 }
 
@@ -75,19 +85,78 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--tree", type=Path, help="tree description (YAML/JSON)")
     p.add_argument("--data", type=Path, metavar="DIR", help="folder of training trajectory CSVs")
-    p.add_argument("--out", type=Path, metavar="RUN", help="run folder to write (must be empty or absent unless --force)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        metavar="RUN",
+        help="run folder to write (must be empty or absent unless --force)",
+    )
     p.add_argument("--sampler", choices=SAMPLER_NAMES, help=f"sampler (default {d['sampler']})")
-    p.add_argument("--particles", type=int, metavar="N", help=f"particles (SVGD) or chains (MCMC), >= 2 (default {d['particles']})")
-    p.add_argument("--iterations", type=int, metavar="N", help=f"sampler iterations, >= 1 (default {d['iterations']})")
-    p.add_argument("--kT", type=float, metavar="X", help=f"likelihood temperature in loss units (m + m/s) per nat; smaller = sharper posterior (default {d['kT']:g})")
-    p.add_argument("--seed", type=int, metavar="S", help=f"seed of the initial particles and the sampler (default {d['seed']})")
-    p.add_argument("--eta", type=float, metavar="X", help=f"NNSVGD inequality-prior slope, nats per unit of log gain a child exceeds its parent (default {d['eta']:g})")
-    p.add_argument("--grasp-fraction", type=float, metavar="F", help="where along the grasped branch the data were recorded, in (0, 1] (default: the tree's grasp)")
-    p.add_argument("--max-unstable-share", type=float, metavar="F", help=f"stop with an error if more than this share of the final particles simulate unstably (default {d['max_unstable_share']:g}); may be changed with --resume")
-    p.add_argument("--checkpoint-every", type=int, metavar="N", help=f"write RUN.partial/checkpoint.npz every N iterations; 0: only at the end of sampling (default {d['checkpoint_every']})")
-    p.add_argument("--resume", type=Path, metavar="RUN", help="continue the interrupted run RUN (all settings come from RUN.partial/config.json)")
-    p.add_argument("--force", action="store_true", default=None, help="replace a non-empty RUN (and discard an interrupted RUN.partial)")
-    p.add_argument("--backend", choices=("auto", "fused", "mjx"), help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)")
+    p.add_argument(
+        "--particles",
+        type=int,
+        metavar="N",
+        help=f"particles (SVGD) or chains (MCMC), >= 2 (default {d['particles']})",
+    )
+    p.add_argument(
+        "--iterations",
+        type=int,
+        metavar="N",
+        help=f"sampler iterations, >= 1 (default {d['iterations']})",
+    )
+    p.add_argument(
+        "--kT",
+        type=float,
+        metavar="X",
+        help=f"likelihood temperature in loss units (m + m/s) per nat; smaller = sharper posterior (default {d['kT']:g})",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        metavar="S",
+        help=f"seed of the initial particles and the sampler (default {d['seed']})",
+    )
+    p.add_argument(
+        "--eta",
+        type=float,
+        metavar="X",
+        help=f"NNSVGD inequality-prior slope, nats per unit of log gain a child exceeds its parent (default {d['eta']:g})",
+    )
+    p.add_argument(
+        "--grasp-fraction",
+        type=float,
+        metavar="F",
+        help="where along the grasped branch the data were recorded, in (0, 1] (default: the tree's grasp)",
+    )
+    p.add_argument(
+        "--max-unstable-share",
+        type=float,
+        metavar="F",
+        help=f"stop with an error if more than this share of the final particles simulate unstably (default {d['max_unstable_share']:g}); may be changed with --resume",
+    )
+    p.add_argument(
+        "--checkpoint-every",
+        type=int,
+        metavar="N",
+        help=f"write RUN.partial/checkpoint.npz every N iterations; 0: only at the end of sampling (default {d['checkpoint_every']})",
+    )
+    p.add_argument(
+        "--resume",
+        type=Path,
+        metavar="RUN",
+        help="continue the interrupted run RUN (all settings come from RUN.partial/config.json)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        default=None,
+        help="replace a non-empty RUN (and discard an interrupted RUN.partial)",
+    )
+    p.add_argument(
+        "--backend",
+        choices=("auto", "fused", "mjx"),
+        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--allow-poor-fit", action="store_true", help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 otherwise); the verdict stays in summary.json")
     p.add_argument("--allow-implausible-data", action="store_true", help="sample even if the plausibility checks find errors in the data (wrong units, swapped columns, duplicates ...); they are printed and recorded in summary.json")
@@ -114,20 +183,36 @@ def run_infer(args: argparse.Namespace) -> int:
             )
         run_dir, config = args.resume, None
     else:
-        missing = [f for f, v in (("--tree", args.tree), ("--data", args.data), ("--out", args.out)) if v is None]
+        missing = [
+            f
+            for f, v in (("--tree", args.tree), ("--data", args.data), ("--out", args.out))
+            if v is None
+        ]
         if missing:
-            raise ConfigError(f"{', '.join(missing)} required (or --resume RUN to continue an interrupted run)")
-        o = {k: (getattr(args, k) if getattr(args, k) is not None else v) for k, v in INFER_DEFAULTS.items()}
+            raise ConfigError(
+                f"{', '.join(missing)} required (or --resume RUN to continue an interrupted run)"
+            )
+        o = {
+            k: (getattr(args, k) if getattr(args, k) is not None else v)
+            for k, v in INFER_DEFAULTS.items()
+        }
         o["grasp_fraction"] = args.grasp_fraction
         _check_infer_options(o)
         run_dir = args.out
         config = runs.infer_config(args.tree, args.data, args.out, force=bool(args.force), **o)
-        _say(f"{len(config['data']['files'])} training trajectories from {args.data}; sampling with {o['sampler']} "
-             f"({o['particles']} particles x {o['iterations']} iterations)")
+        _say(
+            f"{len(config['data']['files'])} training trajectories from {args.data}; sampling with {o['sampler']} "
+            f"({o['particles']} particles x {o['iterations']} iterations)"
+        )
     try:
         outcome = runs.run_inference(
-            config, resume=args.resume, max_unstable_share=args.max_unstable_share, progress=progress, log=_say,
-            on_checkpointer=lambda cp: holder.__setitem__("cp", cp), cache=runs.SimulatorCache(),
+            config,
+            resume=args.resume,
+            max_unstable_share=args.max_unstable_share,
+            progress=progress,
+            log=_say,
+            on_checkpointer=lambda cp: holder.__setitem__("cp", cp),
+            cache=runs.SimulatorCache(),
             allow_implausible_data=args.allow_implausible_data,
         )
     except KeyboardInterrupt:
@@ -135,11 +220,15 @@ def run_infer(args: argparse.Namespace) -> int:
         if cp is None:
             _say("interrupted before sampling started; nothing to resume")
         elif cp.last_iteration is None:
-            _say(f"interrupted before the first checkpoint; `treeinfer infer --resume {run_dir}` starts the "
-                 f"same run again from iteration 0 (settings in {runs.partial_dir(run_dir)}/config.json)")
+            _say(
+                f"interrupted before the first checkpoint; `treeinfer infer --resume {run_dir}` starts the "
+                f"same run again from iteration 0 (settings in {runs.partial_dir(run_dir)}/config.json)"
+            )
         else:
-            _say(f"interrupted; the sampler state after iteration {cp.last_iteration} is kept in {cp.path}.\n"
-                 f"continue with:  treeinfer infer --resume {run_dir}")
+            _say(
+                f"interrupted; the sampler state after iteration {cp.last_iteration} is kept in {cp.path}.\n"
+                f"continue with:  treeinfer infer --resume {run_dir}"
+            )
         return EXIT_INTERRUPTED
     s = outcome.summary
     _print_posterior(s)
@@ -148,9 +237,13 @@ def run_infer(args: argparse.Namespace) -> int:
     fit = s.get("fit") or {}
     status = fit.get("status", "ok")
     print(f"fit verdict: {status}" + "".join(f"\n  - {r}" for r in fit.get("reasons", [])))
-    print(f"wrote {run_dir}/ (config.json, tree.yaml, posterior.nc, particles.csv, trace.npz, summary.json, plots/)")
+    print(
+        f"wrote {run_dir}/ (config.json, tree.yaml, posterior.nc, particles.csv, trace.npz, summary.json, plots/)"
+    )
     if status == "poor_fit" and not args.allow_poor_fit:
-        _say(f"poor fit: the posterior in {run_dir} does not explain the training data (reasons above); "
-             "exit code 4 (--allow-poor-fit to accept it)")
+        _say(
+            f"poor fit: the posterior in {run_dir} does not explain the training data (reasons above); "
+            "exit code 4 (--allow-poor-fit to accept it)"
+        )
         return EXIT_POOR_FIT
     return EXIT_OK

@@ -88,7 +88,6 @@ poor fit (summary.json "fit"; --allow-poor-fit makes that exit 0); 130 interrupt
 """
 
 
-
 def _command_of(argv: Sequence[str]) -> str | None:
     """The command named in ``argv`` (its first non-option word; the global options are flags)."""
     return next((a for a in argv if not a.startswith("-")), None)
@@ -129,7 +128,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser = build_parser(_command_of(argv), lazy=True)
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help, --version, or a usage error (argparse printed it)
-        return e.code if isinstance(e.code, int) else (EXIT_OK if e.code is None else EXIT_USER_ERROR)
+        return (
+            e.code if isinstance(e.code, int) else (EXIT_OK if e.code is None else EXIT_USER_ERROR)
+        )
     debug = bool(getattr(args, "debug", False))
     try:
         rc = args._run(args)

@@ -76,25 +76,85 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
         epilog=_SIMULATE_EPILOG,
     )
     p.add_argument("--tree", required=True, type=Path, help="tree description (YAML/JSON)")
-    p.add_argument("--out", required=True, type=Path, help="output folder (must be empty or absent unless --force)")
-    p.add_argument("--n-traj", type=int, default=None, help="number of trajectories (default 8; with --profile: one per spec)")
-    p.add_argument("--seed", type=int, default=0, help="seed for the true parameters, profiles and noise")
+    p.add_argument(
+        "--out",
+        required=True,
+        type=Path,
+        help="output folder (must be empty or absent unless --force)",
+    )
+    p.add_argument(
+        "--n-traj",
+        type=int,
+        default=None,
+        help="number of trajectories (default 8; with --profile: one per spec)",
+    )
+    p.add_argument(
+        "--seed", type=int, default=0, help="seed for the true parameters, profiles and noise"
+    )
     gp = p.add_mutually_exclusive_group()
-    gp.add_argument("--params", type=_floats, metavar="KP1,..,KPR,KD1,..,KDR", help="true parameters, N m/rad then N m s/rad")
-    gp.add_argument("--params-json", type=Path, metavar="FILE", help="true parameters from a true_params.json")
+    gp.add_argument(
+        "--params",
+        type=_floats,
+        metavar="KP1,..,KPR,KD1,..,KDR",
+        help="true parameters, N m/rad then N m s/rad",
+    )
+    gp.add_argument(
+        "--params-json", type=Path, metavar="FILE", help="true parameters from a true_params.json"
+    )
     p.add_argument("--duration", type=float, default=3.0, help="s per trajectory")
     p.add_argument("--dt", type=float, default=0.01, help="s between samples")
     gf = p.add_mutually_exclusive_group()
-    gf.add_argument("--profiles", choices=SET_KINDS, default=None, help="kind of random profile set (default mixed: ramp and ramp-hold-release alternately)")
-    gf.add_argument("--profile", action="append", metavar="SPEC", help="explicit profile spec, repeatable (one trajectory each)")
-    p.add_argument(
-        "--peak-range", type=_pair, default=DEFAULT_PEAK_RANGE, metavar="LO,HI", help=f"N, range of the random peaks (default {DEFAULT_PEAK_RANGE[0]:g},{DEFAULT_PEAK_RANGE[1]:g})"
+    gf.add_argument(
+        "--profiles",
+        choices=SET_KINDS,
+        default=None,
+        help="kind of random profile set (default mixed: ramp and ramp-hold-release alternately)",
     )
-    p.add_argument("--noise-force", type=float, default=0.0, metavar="SIGMA", help="N, Gaussian noise added to the force")
-    p.add_argument("--noise-displacement", type=float, default=0.0, metavar="SIGMA", help="m, Gaussian noise added to the displacement")
-    p.add_argument("--grasp-fraction", type=float, metavar="F", help="grasp point along the grasped branch, in (0, 1] (default: the tree's)")
-    p.add_argument("--max-sim-dt", type=float, default=None, help="s, upper bound on the simulation step (default 0.005)")
-    p.add_argument("--backend", choices=("auto", "fused", "mjx"), default="auto", help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)")
+    gf.add_argument(
+        "--profile",
+        action="append",
+        metavar="SPEC",
+        help="explicit profile spec, repeatable (one trajectory each)",
+    )
+    p.add_argument(
+        "--peak-range",
+        type=_pair,
+        default=DEFAULT_PEAK_RANGE,
+        metavar="LO,HI",
+        help=f"N, range of the random peaks (default {DEFAULT_PEAK_RANGE[0]:g},{DEFAULT_PEAK_RANGE[1]:g})",
+    )
+    p.add_argument(
+        "--noise-force",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="N, Gaussian noise added to the force",
+    )
+    p.add_argument(
+        "--noise-displacement",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="m, Gaussian noise added to the displacement",
+    )
+    p.add_argument(
+        "--grasp-fraction",
+        type=float,
+        metavar="F",
+        help="grasp point along the grasped branch, in (0, 1] (default: the tree's)",
+    )
+    p.add_argument(
+        "--max-sim-dt",
+        type=float,
+        default=None,
+        help="s, upper bound on the simulation step (default 0.005)",
+    )
+    p.add_argument(
+        "--backend",
+        choices=("auto", "fused", "mjx"),
+        default="auto",
+        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
+    )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     return p
 
@@ -105,18 +165,29 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
         if not (math.isfinite(v) and v > 0):
             raise ConfigError(f"{flag}: must be a positive number of seconds, got {v:g}")
     if args.dt >= MAX_DT:
-        raise ConfigError(f"--dt: {args.dt:g} s is too coarse for a pull (must be below {MAX_DT:g} s)")
+        raise ConfigError(
+            f"--dt: {args.dt:g} s is too coarse for a pull (must be below {MAX_DT:g} s)"
+        )
     if args.n_traj is not None and args.n_traj < 1:
         raise ConfigError(f"--n-traj: must be at least 1, got {args.n_traj}")
     if args.profile and args.n_traj is not None and args.n_traj != len(args.profile):
-        raise ConfigError(f"--n-traj {args.n_traj} disagrees with the {len(args.profile)} --profile spec(s) (one trajectory each)")
-    for flag, v in (("--noise-force", args.noise_force), ("--noise-displacement", args.noise_displacement)):
+        raise ConfigError(
+            f"--n-traj {args.n_traj} disagrees with the {len(args.profile)} --profile spec(s) (one trajectory each)"
+        )
+    for flag, v in (
+        ("--noise-force", args.noise_force),
+        ("--noise-displacement", args.noise_displacement),
+    ):
         if not (math.isfinite(v) and v >= 0):
             raise ConfigError(f"{flag}: must be >= 0, got {v:g}")
     if args.grasp_fraction is not None and not (0.0 < args.grasp_fraction <= 1.0):
-        raise ConfigError(f"--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got {args.grasp_fraction:g}")
+        raise ConfigError(
+            f"--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got {args.grasp_fraction:g}"
+        )
     if args.max_sim_dt is not None and not (math.isfinite(args.max_sim_dt) and args.max_sim_dt > 0):
-        raise ConfigError(f"--max-sim-dt: must be a positive number of seconds, got {args.max_sim_dt:g}")
+        raise ConfigError(
+            f"--max-sim-dt: must be a positive number of seconds, got {args.max_sim_dt:g}"
+        )
     lo, hi = args.peak_range
     if lo > hi:
         raise ConfigError(f"--peak-range: LO must not exceed HI, got {lo:g},{hi:g}")
@@ -145,14 +216,18 @@ def run_simulate(args: argparse.Namespace) -> int:
     if args.profile:
         specs = list(args.profile)
     else:
-        specs = random_specs(args.profiles or "mixed", args.n_traj or 8, args.duration, args.peak_range, rng_profiles)
+        specs = random_specs(
+            args.profiles or "mixed", args.n_traj or 8, args.duration, args.peak_range, rng_profiles
+        )
     forces = np.stack([from_spec(s, args.duration, args.dt) for s in specs])  # [B, T]
     assert forces.shape[1] == n_t
     inputs = [args.tree, getattr(args, "params_json", None)]
     check_output_dir(args.out, args.force, inputs=inputs)  # fail before the (slow) simulation
 
     _prepare_jax()
-    rollout, sim = simulate_batch(tree, kp, kd, forces, args.dt, args.max_sim_dt, args.backend, _say)
+    rollout, sim = simulate_batch(
+        tree, kp, kd, forces, args.dt, args.max_sim_dt, args.backend, _say
+    )
     names = [f"traj_{i:03d}.csv" for i in range(len(specs))]
     stable = np.asarray(rollout.stable)[0]
     if not stable.all():
@@ -177,13 +252,13 @@ def run_simulate(args: argparse.Namespace) -> int:
         for spec in specs
     ]
     source = (
-        "drawn (default_true_params)" if drawn
+        "drawn (default_true_params)"
+        if drawn
         else ("--params" if args.params is not None else str(args.params_json))
     )
     true_params = true_params_record(tree, kp, kd, source)
     config = _simulate_config(args, tree, specs, n_t, sim)
     with staged_output_dir(args.out, args.force, inputs=inputs) as stage:
-
         for name, traj, lines in zip(names, trajs, comments):
             write_trajectory(stage / name, traj, lines)
         dump_tree(tree, stage / "tree.yaml")
@@ -195,12 +270,18 @@ def run_simulate(args: argparse.Namespace) -> int:
     )
     print(f"  true parameters: {_fmt_params(tree, kp, kd)}")
     peak = float(np.max(np.abs(np.asarray(rollout.tau))))
-    print(f"  largest displacement {peak:.3g} m; wrote {args.out}/ ({names[0]} .. {names[-1]}, tree.yaml, true_params.json, config.json)")
+    print(
+        f"  largest displacement {peak:.3g} m; wrote {args.out}/ ({names[0]} .. {names[-1]}, tree.yaml, true_params.json, config.json)"
+    )
     return EXIT_OK
 
 
 def _simulate_config(args, tree, specs, n_t, sim) -> dict[str, Any]:
-    options = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
+    options = {
+        k: (str(v) if isinstance(v, Path) else v)
+        for k, v in vars(args).items()
+        if not k.startswith("_")
+    }
     options.pop("debug", None)
     options.update(  # the values actually used
         n_traj=len(specs),

@@ -1,5 +1,4 @@
-"""``treeinfer tree``: write, generate or convert a tree description (and its MJCF/URDF).
-"""
+"""``treeinfer tree``: write, generate or convert a tree description (and its MJCF/URDF)."""
 
 from __future__ import annotations
 
@@ -83,37 +82,96 @@ def configure_tree(subparsers) -> argparse.ArgumentParser:
         "MJCF and URDF models, and print a short summary (branches, inferred joints, grasp).",
         epilog=_TREE_EPILOG,
     )
-    p.add_argument("--out", required=True, type=Path, help="tree file to write (.yaml, .yml or .json)")
-    p.add_argument("--kind", choices=_TREE_KINDS, help="generator (default: explicit with --from, else fractal)")
-    p.add_argument("--from", dest="source", type=Path, metavar="FILE", help="existing tree file to convert or re-generate")
-    p.add_argument("--mjcf", type=Path, metavar="FILE", help="also write the MuJoCo MJCF model (.xml)")
+    p.add_argument(
+        "--out", required=True, type=Path, help="tree file to write (.yaml, .yml or .json)"
+    )
+    p.add_argument(
+        "--kind",
+        choices=_TREE_KINDS,
+        help="generator (default: explicit with --from, else fractal)",
+    )
+    p.add_argument(
+        "--from",
+        dest="source",
+        type=Path,
+        metavar="FILE",
+        help="existing tree file to convert or re-generate",
+    )
+    p.add_argument(
+        "--mjcf", type=Path, metavar="FILE", help="also write the MuJoCo MJCF model (.xml)"
+    )
     p.add_argument("--urdf", type=Path, metavar="FILE", help="also write the URDF model (.urdf)")
     p.add_argument("--force", action="store_true", help="replace existing output files")
 
     g = p.add_argument_group("grasp and inference (all kinds)")
     g.add_argument("--name", dest="tree_name", metavar="NAME", help="the tree's name")
-    g.add_argument("--grasp", metavar="BRANCH", help="grasped branch (fractal, lsystem, explicit; a chain is grasped at its tip)")
-    g.add_argument("--grasp-fraction", type=float, metavar="F", help="where along the grasped branch, in (0, 1]")
-    g.add_argument("--levels", type=int, metavar="N", help="inferred joints from the grasped branch up (default: the whole path)")
-    g.add_argument("--kp-bounds", type=_pair, metavar="LO,HI", help="prior box of every inferred Kp, N m/rad")
-    g.add_argument("--kd-bounds", type=_pair, metavar="LO,HI", help="prior box of every inferred Kd, N m s/rad")
-    g.add_argument("--base-position", type=_triple, metavar="X,Y,Z", help="m, where the root branch starts")
-    g.add_argument("--base-pitch", type=float, metavar="DEG", help="root elevation above horizontal, deg (90 = vertical)")
-    g.add_argument("--base-yaw", type=float, metavar="DEG", help="root heading about the vertical, deg")
+    g.add_argument(
+        "--grasp",
+        metavar="BRANCH",
+        help="grasped branch (fractal, lsystem, explicit; a chain is grasped at its tip)",
+    )
+    g.add_argument(
+        "--grasp-fraction",
+        type=float,
+        metavar="F",
+        help="where along the grasped branch, in (0, 1]",
+    )
+    g.add_argument(
+        "--levels",
+        type=int,
+        metavar="N",
+        help="inferred joints from the grasped branch up (default: the whole path)",
+    )
+    g.add_argument(
+        "--kp-bounds", type=_pair, metavar="LO,HI", help="prior box of every inferred Kp, N m/rad"
+    )
+    g.add_argument(
+        "--kd-bounds", type=_pair, metavar="LO,HI", help="prior box of every inferred Kd, N m s/rad"
+    )
+    g.add_argument(
+        "--base-position", type=_triple, metavar="X,Y,Z", help="m, where the root branch starts"
+    )
+    g.add_argument(
+        "--base-pitch",
+        type=float,
+        metavar="DEG",
+        help="root elevation above horizontal, deg (90 = vertical)",
+    )
+    g.add_argument(
+        "--base-yaw", type=float, metavar="DEG", help="root heading about the vertical, deg"
+    )
 
     c = p.add_argument_group("chain")
     c.add_argument("--n", type=int, help="number of branches")
-    c.add_argument("--lengths", type=_floats, metavar="L[,L...]", help="m, one for all or one per branch (root first)")
-    c.add_argument("--radii", type=_floats, metavar="R[,R...]", help="m, one for all or one per branch")
-    c.add_argument("--angles", type=_floats, metavar="DEG[,DEG...]", help="fork angles, deg, one for all or one per branch")
+    c.add_argument(
+        "--lengths",
+        type=_floats,
+        metavar="L[,L...]",
+        help="m, one for all or one per branch (root first)",
+    )
+    c.add_argument(
+        "--radii", type=_floats, metavar="R[,R...]", help="m, one for all or one per branch"
+    )
+    c.add_argument(
+        "--angles",
+        type=_floats,
+        metavar="DEG[,DEG...]",
+        help="fork angles, deg, one for all or one per branch",
+    )
 
     f = p.add_argument_group("fractal")
     f.add_argument("--depth", type=int, help="fork levels (0: one branch)")
     f.add_argument("--branching", type=int, help="children per fork")
-    f.add_argument("--length-ratio", type=float, help="child / parent length (lsystem: per bracket depth)")
-    f.add_argument("--fork-angles", type=_floats, metavar="DEG,DEG...", help="fork angle of each child, deg")
+    f.add_argument(
+        "--length-ratio", type=float, help="child / parent length (lsystem: per bracket depth)"
+    )
+    f.add_argument(
+        "--fork-angles", type=_floats, metavar="DEG,DEG...", help="fork angle of each child, deg"
+    )
     f.add_argument("--base-length", type=float, metavar="M", help="root length, m")
-    f.add_argument("--base-radius", type=float, metavar="M", help="root radius, m (fractal, lsystem)")
+    f.add_argument(
+        "--base-radius", type=float, metavar="M", help="root radius, m (fractal, lsystem)"
+    )
 
     ls = p.add_argument_group("lsystem")
     ls.add_argument("--axiom", help="start string, e.g. F")
@@ -138,7 +196,9 @@ def _parse_rules(items: Sequence[str]) -> dict[str, Any]:
         sym, eq, succ = item.partition("=")
         sym = sym.strip()
         if not eq or len(sym) != 1:
-            raise ConfigError(f"--rule {item!r}: expected SYMBOL=SUCCESSOR with a one-character symbol, e.g. 'F=FF-[-F+F]'")
+            raise ConfigError(
+                f"--rule {item!r}: expected SYMBOL=SUCCESSOR with a one-character symbol, e.g. 'F=FF-[-F+F]'"
+            )
         prob: float | None = None
         head, colon, tail = succ.partition(":")
         if colon:
@@ -171,7 +231,9 @@ def _tree_settings(args: argparse.Namespace, kind: str) -> dict[str, Any]:
             continue
         if kind not in kinds:
             flag = "--" + dest.replace("_", "-") if dest != "tree_name" else "--name"
-            raise ConfigError(f"{flag} does not apply to --kind {kind} (it is for: {', '.join(sorted(kinds))})")
+            raise ConfigError(
+                f"{flag} does not apply to --kind {kind} (it is for: {', '.join(sorted(kinds))})"
+            )
         if dest == "rule":
             value = _parse_rules(value)
         elif dest in ("lengths", "radii", "angles") and len(value) == 1:
@@ -204,7 +266,11 @@ def _convert(tree, settings: dict[str, Any], source: Path):
         d["grasp"]["branch"] = settings["grasp"]
     if "grasp_fraction" in settings:
         d["grasp"]["fraction"] = settings["grasp_fraction"]
-    for key, fld in (("base_position", "position"), ("base_pitch_deg", "pitch_deg"), ("base_yaw_deg", "yaw_deg")):
+    for key, fld in (
+        ("base_position", "position"),
+        ("base_pitch_deg", "pitch_deg"),
+        ("base_yaw_deg", "yaw_deg"),
+    ):
         if key in settings:
             d["base"][fld] = list(settings[key]) if key == "base_position" else settings[key]
     first = tree.bounds[tree.inferred[0]]
@@ -236,8 +302,10 @@ def _summary(tree, path: Path) -> str:
     lines.append(f"  parameters: {', '.join(tree.parameter_labels())}")
     boxes = {(tree.bounds[n].kp, tree.bounds[n].kd) for n in tree.inferred}
     if len(boxes) == 1:
-        (kp, kd), = boxes
-        lines.append(f"  prior box: Kp in [{kp[0]:g}, {kp[1]:g}] N m/rad, Kd in [{kd[0]:g}, {kd[1]:g}] N m s/rad")
+        ((kp, kd),) = boxes
+        lines.append(
+            f"  prior box: Kp in [{kp[0]:g}, {kp[1]:g}] N m/rad, Kd in [{kd[0]:g}, {kd[1]:g}] N m s/rad"
+        )
     else:
         lines.append("  prior box: per joint (see the file)")
     return "\n".join(lines)
@@ -284,12 +352,20 @@ def run_tree(args: argparse.Namespace) -> int:
     _refuse_existing(targets, args.force)
 
     if generator_cfg is not None and kind != "explicit":
-        gen.dump_generated(generator_cfg, out, comment=f"Written by treeinfer {__version__}: treeinfer tree --kind {kind}")
+        gen.dump_generated(
+            generator_cfg,
+            out,
+            comment=f"Written by treeinfer {__version__}: treeinfer tree --kind {kind}",
+        )
     else:
         d = tree_to_dict(tree)
         if generator_cfg is not None:
             d["generator"] = generator_cfg
-        text = json.dumps(d, indent=2) + "\n" if out.suffix.lower() == ".json" else yaml.safe_dump(d, sort_keys=False)
+        text = (
+            json.dumps(d, indent=2) + "\n"
+            if out.suffix.lower() == ".json"
+            else yaml.safe_dump(d, sort_keys=False)
+        )
         atomic_write_text(out, text)
     print(_summary(tree, out))
     if mjcf is not None:

@@ -67,7 +67,9 @@ def flatten_state(state) -> tuple[dict[str, np.ndarray], list[dict]]:
     return arrays, specs
 
 
-def unflatten_state(arrays: dict[str, np.ndarray], specs: list[dict], template, where: str = "checkpoint"):
+def unflatten_state(
+    arrays: dict[str, np.ndarray], specs: list[dict], template, where: str = "checkpoint"
+):
     """Inverse of :func:`flatten_state` onto ``template``'s structure (a state or its
     ``jax.eval_shape``); every leaf's kind, shape and dtype must match."""
     t_leaves, treedef = jax.tree_util.tree_flatten(template)
@@ -84,7 +86,11 @@ def unflatten_state(arrays: dict[str, np.ndarray], specs: list[dict], template, 
                 raise ConfigError(f"{where}: state array {i} should be a random key")
             leaves.append(jax.random.wrap_key_data(jnp.asarray(a), impl=spec["impl"]))
             continue
-        if spec.get("kind") != "array" or tuple(a.shape) != tuple(t.shape) or a.dtype != np.dtype(t.dtype):
+        if (
+            spec.get("kind") != "array"
+            or tuple(a.shape) != tuple(t.shape)
+            or a.dtype != np.dtype(t.dtype)
+        ):
             raise ConfigError(
                 f"{where}: state array {i} is {a.dtype}{list(a.shape)}, expected "
                 f"{np.dtype(t.dtype)}{list(t.shape)} (different particles count or sampler?)"
@@ -104,7 +110,9 @@ def _zero_log_density(theta):
 def state_template(problem, sampler: str, theta0, **sampler_options):
     """Shapes and structure of ``sampler``'s state for particles like ``theta0 [P, D]``, without
     touching the simulator (the target is swapped for a zero function in ``jax.eval_shape``)."""
-    dummy = dataclasses.replace(problem, value_and_grad=_zero_value_and_grad, log_density=_zero_log_density)
+    dummy = dataclasses.replace(
+        problem, value_and_grad=_zero_value_and_grad, log_density=_zero_log_density
+    )
     algorithm = dummy.sampler(sampler, **sampler_options)
     return jax.eval_shape(algorithm.init, jax.random.key(0), jnp.asarray(theta0))
 
@@ -159,11 +167,15 @@ def _open_checkpoint(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:  # truncated / foreign file
         raise ConfigError(f"{path}: not a readable treeinfer checkpoint ({e})") from None
     if meta.get("format") != CHECKPOINT_FORMAT:
-        raise ConfigError(f"{path}: checkpoint format {meta.get('format')!r}, expected {CHECKPOINT_FORMAT}")
+        raise ConfigError(
+            f"{path}: checkpoint format {meta.get('format')!r}, expected {CHECKPOINT_FORMAT}"
+        )
     for key, kind in (("config_hash", str), ("iteration", int), ("leaves", list)):
         if not isinstance(meta.get(key), kind) or isinstance(meta.get(key), bool):
-            raise ConfigError(f"{path}: checkpoint field 'meta.{key}' is missing or malformed "
-                              f"({meta.get(key)!r}); delete the checkpoint to restart from iteration 0")
+            raise ConfigError(
+                f"{path}: checkpoint field 'meta.{key}' is missing or malformed "
+                f"({meta.get(key)!r}); delete the checkpoint to restart from iteration 0"
+            )
     return meta, arrays
 
 
@@ -172,7 +184,9 @@ def read_checkpoint_info(path: str | os.PathLike) -> dict:
     return _open_checkpoint(Path(path))[0]
 
 
-def load_checkpoint(path: str | os.PathLike, template, expected_hash: str | None = None) -> Checkpoint:
+def load_checkpoint(
+    path: str | os.PathLike, template, expected_hash: str | None = None
+) -> Checkpoint:
     """Read a checkpoint onto ``template`` (see :func:`state_template`); refuse one written for
     another config (``expected_hash``)."""
     path = Path(path)
@@ -194,12 +208,20 @@ class Checkpointer:
     """The driver's ``callback(iteration, state)``: writes ``checkpoint.npz`` atomically and
     keeps the coarse trace (the state at every checkpoint) that goes with it."""
 
-    def __init__(self, path: str | os.PathLike, config_hash: str, previous: Checkpoint | None = None):
+    def __init__(
+        self, path: str | os.PathLike, config_hash: str, previous: Checkpoint | None = None
+    ):
         self.path = Path(path)
         self.config_hash = config_hash
-        self.iterations: list[int] = [] if previous is None else [int(i) for i in previous.trace_iterations]
-        self.positions: list[np.ndarray] = [] if previous is None else list(previous.trace_positions)
-        self.logdensity: list[np.ndarray] = [] if previous is None else list(previous.trace_logdensity)
+        self.iterations: list[int] = (
+            [] if previous is None else [int(i) for i in previous.trace_iterations]
+        )
+        self.positions: list[np.ndarray] = (
+            [] if previous is None else list(previous.trace_positions)
+        )
+        self.logdensity: list[np.ndarray] = (
+            [] if previous is None else list(previous.trace_logdensity)
+        )
         self.last_iteration: int | None = None if previous is None else previous.iteration
 
     def __call__(self, iteration: int, state) -> None:
@@ -209,7 +231,11 @@ class Checkpointer:
             self.positions.append(np.asarray(state.position))
             self.logdensity.append(np.asarray(state.logdensity))
         save_checkpoint(
-            self.path, iteration, state, self.config_hash, self.iterations,
+            self.path,
+            iteration,
+            state,
+            self.config_hash,
+            self.iterations,
             np.stack(self.positions) if self.positions else None,
             np.stack(self.logdensity) if self.logdensity else None,
         )

@@ -29,6 +29,7 @@ from .provenance import data_manifest, file_sha256, versions
 
 RUN_FORMAT = 1
 
+
 def _count(flag: str, v, minimum: int, why: str = "") -> int:
     if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < minimum:
         raise ConfigError(f"{flag}: must be an integer >= {minimum}{why}, got {v!r}")
@@ -84,10 +85,15 @@ class RunConfig:
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)
         sampler_spec(self.sampler)
-        set_("particles", _count(
-            "--particles", self.particles, 2,
-            " (SVGD's kernel needs pairs of particles and a 95% interval needs two)",
-        ))
+        set_(
+            "particles",
+            _count(
+                "--particles",
+                self.particles,
+                2,
+                " (SVGD's kernel needs pairs of particles and a 95% interval needs two)",
+            ),
+        )
         set_("iterations", _count("--iterations", self.iterations, 1))
         set_("checkpoint_every", _count("--checkpoint-every", self.checkpoint_every, 0))
         set_("seed", _count("--seed", self.seed, 0))
@@ -101,7 +107,9 @@ class RunConfig:
         set_("grasp_fraction", None if g is None else float(g))
         set_("max_unstable_share", check_share(self.max_unstable_share))
         if self.backend not in BACKENDS:
-            raise ConfigError(f"--backend: must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
+            raise ConfigError(
+                f"--backend: must be one of {', '.join(BACKENDS)}, got {self.backend!r}"
+            )
         for k in ("tree", "data", "out"):
             set_(k, str(getattr(self, k)))
         set_("force", bool(self.force))
@@ -147,10 +155,20 @@ def infer_config(
     files = data_manifest(data_dir) if data_dir.is_dir() else []
     trajs = read_trajectory_dir(data_dir)  # clear errors for a missing folder / bad file
     options = RunConfig(
-        tree=str(tree_path.resolve()), data=str(data_dir.resolve()), out=str(out.resolve()),
-        sampler=sampler, particles=particles, iterations=iterations, backend=str(backend), kT=kT,
-        seed=seed, eta=eta, grasp_fraction=grasp_fraction, max_unstable_share=max_unstable_share,
-        checkpoint_every=checkpoint_every, force=force,
+        tree=str(tree_path.resolve()),
+        data=str(data_dir.resolve()),
+        out=str(out.resolve()),
+        sampler=sampler,
+        particles=particles,
+        iterations=iterations,
+        backend=str(backend),
+        kT=kT,
+        seed=seed,
+        eta=eta,
+        grasp_fraction=grasp_fraction,
+        max_unstable_share=max_unstable_share,
+        checkpoint_every=checkpoint_every,
+        force=force,
     ).to_json()
     return {
         "command": command,
@@ -159,8 +177,12 @@ def infer_config(
         "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "options": options,
         "seed": int(seed),
-        "tree": {"file": str(tree_path.resolve()), "sha256": file_sha256(tree_path), "name": tree.name,
-                 "labels": tree.parameter_labels()},
+        "tree": {
+            "file": str(tree_path.resolve()),
+            "sha256": file_sha256(tree_path),
+            "name": tree.name,
+            "labels": tree.parameter_labels(),
+        },
         "tree_dict": tree_to_dict(tree),
         "data": {
             "dir": str(data_dir.resolve()),
@@ -169,7 +191,11 @@ def infer_config(
             "n_steps": [t.n_steps for t in trajs],
             "true_params": TRUE_PARAMS_FILE if (data_dir / TRUE_PARAMS_FILE).is_file() else None,
         },
-        "checkpoint": {"every": int(checkpoint_every), "dir": str(partial_dir(out).resolve()), "file": CHECKPOINT_FILE},
+        "checkpoint": {
+            "every": int(checkpoint_every),
+            "dir": str(partial_dir(out).resolve()),
+            "file": CHECKPOINT_FILE,
+        },
     }
 
 
@@ -192,8 +218,11 @@ def check_data_unchanged(config: dict) -> list[Trajectory]:
     missing = sorted(set(then) - set(now))
     added = sorted(set(now) - set(then))
     if changed or missing or added:
-        parts = ([f"changed: {', '.join(changed)}"] if changed else []) + (
-            [f"missing: {', '.join(missing)}"] if missing else []) + ([f"new: {', '.join(added)}"] if added else [])
+        parts = (
+            ([f"changed: {', '.join(changed)}"] if changed else [])
+            + ([f"missing: {', '.join(missing)}"] if missing else [])
+            + ([f"new: {', '.join(added)}"] if added else [])
+        )
         raise ConfigError(
             f"{d}: the training data differ from the run's (sha256 in config.json; {'; '.join(parts)}); "
             "restore the original files, or start a new run without --resume"

@@ -1,5 +1,4 @@
-"""The run folder ``RUN/``: summaries, save (staged, atomic) and load.
-"""
+"""The run folder ``RUN/``: summaries, save (staged, atomic) and load."""
 
 from __future__ import annotations
 
@@ -103,10 +102,17 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
     if truth is not None:
         from ..metrics import posterior_vs_truth
 
-        chk = posterior_vs_truth(np.exp(np.asarray(posterior.theta, float)), truth, LEVEL, stable, log=True)
+        chk = posterior_vs_truth(
+            np.exp(np.asarray(posterior.theta, float)), truth, LEVEL, stable, log=True
+        )
         summary["truth"] = {
-            lab: {"truth": float(truth[j]), "log_mean": float(chk.mean[j]), "log_truth": float(np.log(truth[j])),
-                  "in_interval": bool(chk.in_marginal[j]), "rel_error_log": float(chk.rel_error[j])}
+            lab: {
+                "truth": float(truth[j]),
+                "log_mean": float(chk.mean[j]),
+                "log_truth": float(np.log(truth[j])),
+                "in_interval": bool(chk.in_marginal[j]),
+                "rel_error_log": float(chk.rel_error[j]),
+            }
             for j, lab in enumerate(problem.labels)
         }
         summary["truth_in_joint_region"] = chk.in_joint
@@ -122,12 +128,23 @@ def particles_csv(theta, labels, log_density, stable) -> str:
     """One row per particle: ``particle``, the labels in natural units, ``log_density``, ``stable``."""
     theta = np.asarray(theta, float)
     lines = [
-        (f"# treeinfer {__version__}: posterior particles; Kp in {UNITS['Kp']}, Kd in {UNITS['Kd']}; "
-         "log_density of the whole target (-inf: unstable simulation)"),
+        (
+            f"# treeinfer {__version__}: posterior particles; Kp in {UNITS['Kp']}, Kd in {UNITS['Kd']}; "
+            "log_density of the whole target (-inf: unstable simulation)"
+        ),
         ",".join(["particle", *labels, "log_density", "stable"]),
     ]
     for i, row in enumerate(np.exp(theta)):
-        lines.append(",".join([str(i), *(_csv_float(v) for v in row), _csv_float(log_density[i]), str(bool(stable[i])).lower()]))
+        lines.append(
+            ",".join(
+                [
+                    str(i),
+                    *(_csv_float(v) for v in row),
+                    _csv_float(log_density[i]),
+                    str(bool(stable[i])).lower(),
+                ]
+            )
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -159,22 +176,44 @@ def save_run(
     stable = np.asarray(fit["stable"], bool)
     with staged_output_dir(run_dir, force, "run", inputs=inputs, log=log) as stage:
         dump_tree(tree, stage / "tree.yaml")
-        attrs = {"treeinfer_version": __version__, "theta": "natural log of Kp [N m/rad] then Kd [N m s/rad]",
-                 "seed": int(config["options"]["seed"]), "n_iterations": int(config["options"]["iterations"])}
+        attrs = {
+            "treeinfer_version": __version__,
+            "theta": "natural log of Kp [N m/rad] then Kd [N m s/rad]",
+            "seed": int(config["options"]["seed"]),
+            "n_iterations": int(config["options"]["iterations"]),
+        }
         if sampler_spec(sampler).family == "svgd":
-            idata = to_inference_data(posterior.theta, labels, log_density=posterior.log_density, sampler=sampler, attrs=attrs)
+            idata = to_inference_data(
+                posterior.theta,
+                labels,
+                log_density=posterior.log_density,
+                sampler=sampler,
+                attrs=attrs,
+            )
         else:
             attrs["trace_iterations"] = ",".join(str(i) for i in trace["iterations"])
             with warnings.catch_warnings():  # short runs: ArviZ suspects chains and draws swapped
                 warnings.filterwarnings("ignore", "More chains", UserWarning)
-                idata = to_inference_data(trace["positions"], labels, log_density=trace["log_density"],
-                                          sampler=sampler, attrs=attrs)
+                idata = to_inference_data(
+                    trace["positions"],
+                    labels,
+                    log_density=trace["log_density"],
+                    sampler=sampler,
+                    attrs=attrs,
+                )
         save_inference_data(idata, stage / "posterior.nc")
-        atomic_write_text(stage / "particles.csv", particles_csv(posterior.theta, labels, posterior.log_density, stable))
+        atomic_write_text(
+            stage / "particles.csv",
+            particles_csv(posterior.theta, labels, posterior.log_density, stable),
+        )
         arrays = {
-            "positions": trace["positions"], "log_density": trace["log_density"], "iterations": trace["iterations"],
-            "theta": np.asarray(posterior.theta), "final_log_density": np.asarray(posterior.log_density),
-            "labels": np.asarray(labels), "diag_iterations": trace["diag_iterations"],
+            "positions": trace["positions"],
+            "log_density": trace["log_density"],
+            "iterations": trace["iterations"],
+            "theta": np.asarray(posterior.theta),
+            "final_log_density": np.asarray(posterior.log_density),
+            "labels": np.asarray(labels),
+            "diag_iterations": trace["diag_iterations"],
             **{f"diag_{k}": v for k, v in trace["diagnostics"].items()},
         }
         atomic_write_bytes(stage / "trace.npz", _npz_bytes(arrays))
@@ -184,12 +223,21 @@ def save_run(
 
         plots = stage / "plots"
         bw = _bandwidths(trace["positions"]) if sampler_spec(sampler).family == "svgd" else None
-        fig, _ = plot_trace(trace["log_density"], bw, iterations=trace["iterations"], title=f"{sampler}: log density")
+        fig, _ = plot_trace(
+            trace["log_density"],
+            bw,
+            iterations=trace["iterations"],
+            title=f"{sampler}: log density",
+        )
         save_figure(fig, plots / "trace.png")
         ok = stable & np.all(np.isfinite(posterior.theta), axis=1)
         t10 = None if truth is None else np.log10(np.asarray(truth, float))
-        fig, _ = pair_plot(np.asarray(posterior.theta, float)[ok] / np.log(10.0), [f"log10 {lab}" for lab in labels],
-                           truth=t10, title=f"posterior ({int(ok.sum())} stable particles)")
+        fig, _ = pair_plot(
+            np.asarray(posterior.theta, float)[ok] / np.log(10.0),
+            [f"log10 {lab}" for lab in labels],
+            truth=t10,
+            title=f"posterior ({int(ok.sum())} stable particles)",
+        )
         save_figure(fig, plots / "pairs.png")
         pred = fit["prediction"]
         if pred is not None:
@@ -197,8 +245,15 @@ def save_run(
             gt = np.where(obs.mask, obs.displacement, np.nan)
             t = np.arange(obs.force.shape[1]) * float(obs.dt)
             names = [f["name"] for f in config["data"]["files"]]
-            fig, _ = plot_band_grid(t, pred.lower, pred.upper, pred.mean, gt, titles=names,
-                                    suptitle="95% predictive band vs training trajectories")
+            fig, _ = plot_band_grid(
+                t,
+                pred.lower,
+                pred.upper,
+                pred.mean,
+                gt,
+                titles=names,
+                suptitle="95% predictive band vs training trajectories",
+            )
             save_figure(fig, plots / "bands_train.png")
     return Path(run_dir)
 
@@ -238,13 +293,21 @@ def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None,
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        hint = f"; an interrupted run waits in {partial_dir(run_dir)} (--resume)" if partial_dir(run_dir).is_dir() else ""
+        hint = (
+            f"; an interrupted run waits in {partial_dir(run_dir)} (--resume)"
+            if partial_dir(run_dir).is_dir()
+            else ""
+        )
         raise ConfigError(f"{run_dir}: no such run folder{hint}")
     if not (run_dir / "config.json").is_file():
-        raise ConfigError(f"{run_dir}: not a treeinfer run (no config.json); give the folder `treeinfer infer --out` wrote")
+        raise ConfigError(
+            f"{run_dir}: not a treeinfer run (no config.json); give the folder `treeinfer infer --out` wrote"
+        )
     config = read_json(run_dir / "config.json", "the run's config")
     if config.get("command") not in ("infer", "demo") or config.get("format") != RUN_FORMAT:
-        raise ConfigError(f"{run_dir / 'config.json'}: not a treeinfer run config (command {config.get('command')!r})")
+        raise ConfigError(
+            f"{run_dir / 'config.json'}: not a treeinfer run config (command {config.get('command')!r})"
+        )
     validate_run_config(config, run_dir / "config.json")
     notes = tuple(verify_run(run_dir, config, allow_modified))
     for name in ("tree.yaml", "trace.npz"):
@@ -258,13 +321,33 @@ def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None,
     except KeyError as e:
         raise ConfigError(f"{run_dir / 'trace.npz'}: unreadable (no array {e})") from None
     if list(labels) != tree.parameter_labels():
-        raise ConfigError(f"{run_dir}: trace.npz labels {list(labels)} do not match tree.yaml {tree.parameter_labels()}")
-    summary = read_json(run_dir / "summary.json", "the run's summary") if (run_dir / "summary.json").is_file() else {}
+        raise ConfigError(
+            f"{run_dir}: trace.npz labels {list(labels)} do not match tree.yaml {tree.parameter_labels()}"
+        )
+    summary = (
+        read_json(run_dir / "summary.json", "the run's summary")
+        if (run_dir / "summary.json").is_file()
+        else {}
+    )
     validate_summary(summary, run_dir / "summary.json", len(theta))
     stable = np.isfinite(ld)
     if summary.get("unstable_particles"):
         stable[np.asarray(summary["unstable_particles"], int)] = False
     p = config["problem"]
-    sim = simulator_for(tree, p["obs_dt"], p["substeps"], p.get("backend", "auto"), cache)  # folders from before backends existed: auto
-    return LoadedRun(run_dir, tree, config, theta, labels, ld, stable, sim, float(p["kT"]), summary,
-                     config["options"].get("grasp_fraction"), notes)
+    sim = simulator_for(
+        tree, p["obs_dt"], p["substeps"], p.get("backend", "auto"), cache
+    )  # folders from before backends existed: auto
+    return LoadedRun(
+        run_dir,
+        tree,
+        config,
+        theta,
+        labels,
+        ld,
+        stable,
+        sim,
+        float(p["kT"]),
+        summary,
+        config["options"].get("grasp_fraction"),
+        notes,
+    )

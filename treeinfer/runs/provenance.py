@@ -61,8 +61,12 @@ def versions(extended: bool = False) -> dict:
         "python": platform.python_version(),
     }
     if extended:
-        out.update(platform=platform.platform(), jaxlib=_dist_version("jaxlib"),
-                   blackjax=_dist_version("blackjax"), optax=_dist_version("optax"))
+        out.update(
+            platform=platform.platform(),
+            jaxlib=_dist_version("jaxlib"),
+            blackjax=_dist_version("blackjax"),
+            optax=_dist_version("optax"),
+        )
         try:
             out["jax_backend"] = jax.default_backend()
             out["jax_devices"] = [str(d) for d in jax.devices()]

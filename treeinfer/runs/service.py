@@ -58,12 +58,27 @@ def build_problem(
     from ..inference import make_problem
 
     o = config["options"]
-    obs = trajectories if isinstance(trajectories, Observations) else stack_trajectories(list(trajectories))
+    obs = (
+        trajectories
+        if isinstance(trajectories, Observations)
+        else stack_trajectories(list(trajectories))
+    )
     recorded = config.get("problem") or {}  # a resumed run: the settings it was built with
-    sim = simulator_for(tree, float(obs.dt), recorded.get("substeps"), recorded.get("backend", o.get("backend", "auto")), cache)
+    sim = simulator_for(
+        tree,
+        float(obs.dt),
+        recorded.get("substeps"),
+        recorded.get("backend", o.get("backend", "auto")),
+        cache,
+    )
     problem = make_problem(
-        tree, obs, kT=o["kT"], nn_prior=sampler_spec(o["sampler"]).nn_prior, eta=o["eta"],
-        grasp_fraction=o["grasp_fraction"], sim=sim,
+        tree,
+        obs,
+        kT=o["kT"],
+        nn_prior=sampler_spec(o["sampler"]).nn_prior,
+        eta=o["eta"],
+        grasp_fraction=o["grasp_fraction"],
+        sim=sim,
     )
     # infer() evaluates log_density once at the end: jitted, the simulator is traced and compiled once
     # (op-by-op it costs tens of seconds); MH samples with the same function.
@@ -208,22 +223,31 @@ def run_inference(
         run_dir, partial = _resume_paths(resume)
         config = read_json(partial / "config.json", "the interrupted run's config")
         if config.get("format") != RUN_FORMAT or "config_hash" not in config:
-            raise ConfigError(f"{partial / 'config.json'}: not a treeinfer run config (format {config.get('format')!r})")
+            raise ConfigError(
+                f"{partial / 'config.json'}: not a treeinfer run config (format {config.get('format')!r})"
+            )
         validate_run_config(config, partial / "config.json", resumable=True)
         if config_hash(config) != config["config_hash"]:
-            raise ConfigError(f"{partial / 'config.json'}: was edited (its hash no longer matches); start a new run")
+            raise ConfigError(
+                f"{partial / 'config.json'}: was edited (its hash no longer matches); start a new run"
+            )
         check_output_dir(run_dir, config["options"]["force"], "run", inputs=_inputs(config))
         clean_stale_staging(run_dir, log)
         for stale in partial.glob(".*.tmp"):  # a temporary file of a write cut short by a kill
             stale.unlink(missing_ok=True)
         tree = load_tree(partial / "tree.yaml")
         if tree_to_dict_json(tree_to_dict(tree)) != tree_to_dict_json(config["tree_dict"]):
-            raise ConfigError(f"{partial / 'tree.yaml'}: differs from the tree in config.json (edited?); start a new run")
+            raise ConfigError(
+                f"{partial / 'tree.yaml'}: differs from the tree in config.json (edited?); start a new run"
+            )
         trajs = check_data_unchanged(config)
         truth = read_true_params(tree, config["data"]["dir"])
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
         problem = build_problem(config, tree, trajs, cache)
-        if _jsonable(problem.settings) != _jsonable(config["problem"]) or sampler_settings(config) != config["sampler"]:
+        if (
+            _jsonable(problem.settings) != _jsonable(config["problem"])
+            or sampler_settings(config) != config["sampler"]
+        ):
             raise ConfigError(
                 f"{partial}: this treeinfer derives other problem or sampler settings from the run's "
                 f"options than the interrupted run did (recorded {config['problem']}, now {problem.settings}); "
@@ -247,8 +271,14 @@ def run_inference(
     if on_checkpointer is not None:
         on_checkpointer(checkpointer)
     posterior = infer(
-        problem, o["sampler"], n_particles=o["particles"], n_iterations=o["iterations"], seed=o["seed"],
-        progress=progress, callback=checkpointer if every else None, callback_every=every,
+        problem,
+        o["sampler"],
+        n_particles=o["particles"],
+        n_iterations=o["iterations"],
+        seed=o["seed"],
+        progress=progress,
+        callback=checkpointer if every else None,
+        callback_every=every,
         initial_state=None if previous is None else previous.state,
         start_iteration=0 if previous is None else previous.iteration,
     )
@@ -261,7 +291,9 @@ def run_inference(
     from ..sim import check_stable_share
 
     try:
-        check_stable_share(fit["stable"], o["max_unstable_share"], f"the {o['particles']} final particles")
+        check_stable_share(
+            fit["stable"], o["max_unstable_share"], f"the {o['particles']} final particles"
+        )
     except SimulationError as e:
         raise SimulationError(
             f"{e} (the limit is --max-unstable-share). The sampler state is kept in {partial}: "
@@ -274,9 +306,25 @@ def run_inference(
     summary["fit"] = verdict.as_dict()
     summary["status"] = verdict.status
     summary["data_checks"] = data_findings
-    config = {**config, "posterior_settings": posterior.settings, "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-    save_run(run_dir, tree=tree, config=config, posterior=posterior, problem=problem, trace=trace, fit=fit,
-             summary=summary, truth=truth, force=o["force"], inputs=_inputs(config), log=log)
+    config = {
+        **config,
+        "posterior_settings": posterior.settings,
+        "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    save_run(
+        run_dir,
+        tree=tree,
+        config=config,
+        posterior=posterior,
+        problem=problem,
+        trace=trace,
+        fit=fit,
+        summary=summary,
+        truth=truth,
+        force=o["force"],
+        inputs=_inputs(config),
+        log=log,
+    )
     shutil.rmtree(partial, ignore_errors=True)
     return InferOutcome(run_dir, config, summary, posterior)
 
@@ -292,7 +340,10 @@ def _fitted_noise(problem) -> float | None:
 
 
 def infer_posterior(
-    config: dict, tree: Tree, trajectories, progress: bool = True,
+    config: dict,
+    tree: Tree,
+    trajectories,
+    progress: bool = True,
     cache: SimulatorCache | None = None,
 ):
     """(problem, posterior) for ``config``'s settings on ``trajectories`` (no run folder): the
@@ -301,8 +352,14 @@ def infer_posterior(
 
     problem = build_problem(config, tree, trajectories, cache)
     o = config["options"]
-    posterior = infer(problem, o["sampler"], n_particles=o["particles"], n_iterations=o["iterations"],
-                      seed=o["seed"], progress=progress)
+    posterior = infer(
+        problem,
+        o["sampler"],
+        n_particles=o["particles"],
+        n_iterations=o["iterations"],
+        seed=o["seed"],
+        progress=progress,
+    )
     return problem, posterior
 
 
@@ -337,9 +394,17 @@ class FoldResult(NamedTuple):
     prediction: Prediction
 
 
-def kfold(config: dict, tree: Tree, trajectories: Sequence[Trajectory], k: int, grasp_fraction=None, truth=None,
-          progress: bool = True, log: Callable[[str], None] = lambda m: None,
-          cache: SimulatorCache | None = None) -> list[FoldResult]:
+def kfold(
+    config: dict,
+    tree: Tree,
+    trajectories: Sequence[Trajectory],
+    k: int,
+    grasp_fraction=None,
+    truth=None,
+    progress: bool = True,
+    log: Callable[[str], None] = lambda m: None,
+    cache: SimulatorCache | None = None,
+) -> list[FoldResult]:
     """The paper's real-to-sim protocol: for each of ``k`` folds, infer on the other folds with
     ``config``'s sampler settings and evaluate on the held-out fold."""
     trajectories = list(trajectories)
@@ -350,9 +415,28 @@ def kfold(config: dict, tree: Tree, trajectories: Sequence[Trajectory], k: int, 
     for i, (tr, te) in enumerate(splits, start=1):
         train = [trajectories[j] for j in tr]
         test = [trajectories[j] for j in te]
-        log(f"fold {i}/{k}: inferring on {len(train)} trajectories, holding out {', '.join(t.source for t in test)}")
+        log(
+            f"fold {i}/{k}: inferring on {len(train)} trajectories, holding out {', '.join(t.source for t in test)}"
+        )
         problem, post = infer_posterior(cfg, tree, train, progress, cache)
-        m, pred, _ = evaluate_trajectories(problem.sim, post.theta, list(problem.labels), test, problem.kT,
-                                           grasp_fraction, truth, np.isfinite(post.log_density))
-        out.append(FoldResult(i, [t.source for t in train], [t.source for t in test], m, np.asarray(post.theta), pred))
+        m, pred, _ = evaluate_trajectories(
+            problem.sim,
+            post.theta,
+            list(problem.labels),
+            test,
+            problem.kT,
+            grasp_fraction,
+            truth,
+            np.isfinite(post.log_density),
+        )
+        out.append(
+            FoldResult(
+                i,
+                [t.source for t in train],
+                [t.source for t in test],
+                m,
+                np.asarray(post.theta),
+                pred,
+            )
+        )
     return out

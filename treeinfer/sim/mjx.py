@@ -65,7 +65,13 @@ def settle_one(sim: Simulator, model) -> tuple[jax.Array, jax.Array]:
     q0 = jnp.zeros(nq, dtype=data.qpos.dtype)
     f = jax.vmap(lambda q: _static_torque(model, data, q))
     eps = jnp.asarray(1e-3, q0.dtype)
-    probes = jnp.concatenate([jnp.zeros((1, nq), q0.dtype), eps * jnp.eye(nq, dtype=q0.dtype), -eps * jnp.eye(nq, dtype=q0.dtype)])
+    probes = jnp.concatenate(
+        [
+            jnp.zeros((1, nq), q0.dtype),
+            eps * jnp.eye(nq, dtype=q0.dtype),
+            -eps * jnp.eye(nq, dtype=q0.dtype),
+        ]
+    )
 
     def newton(carry, i):
         q, r_first, _ = carry
@@ -77,14 +83,17 @@ def settle_one(sim: Simulator, model) -> tuple[jax.Array, jax.Array]:
 
     zero = jnp.zeros(sim.mj_model.nv, q0.dtype)
     # One traced residual (inside the scan): MJX compiles slowly, so nothing is traced twice.
-    (q, r_first, r_last), _ = jax.lax.scan(newton, (q0, zero, zero), jnp.arange(sim.settle_iterations))
+    (q, r_first, r_last), _ = jax.lax.scan(
+        newton, (q0, zero, zero), jnp.arange(sim.settle_iterations)
+    )
     scale = 1.0 + jnp.max(jnp.abs(r_first))
     ok = jnp.all(jnp.isfinite(q)) & (jnp.max(jnp.abs(r_last)) <= sim.settle_tolerance * scale)
     return q, ok
 
 
-
-def pull_one(sim: Simulator, model, qpos_rest, forces, site_local, unroll_outer: int = 1, unroll_inner=1):
+def pull_one(
+    sim: Simulator, model, qpos_rest, forces, site_local, unroll_outer: int = 1, unroll_inner=1
+):
     """One rollout: displacement [T] of C under ``forces`` [T] (N, downward), and a stable flag.
 
     ``unroll_outer``/``unroll_inner`` unroll the observation scan and the substep loop (speed
@@ -121,7 +130,9 @@ def pull_one(sim: Simulator, model, qpos_rest, forces, site_local, unroll_outer:
         ok = ok & jnp.all(jnp.isfinite(d.qpos)) & jnp.all(jnp.abs(d.qvel) < sim.max_joint_speed)
         return (d, ok), c
 
-    (_, ok), cs = jax.lax.scan(observe, (data, jnp.bool_(True)), forces.astype(gdir.dtype), unroll=unroll_outer)
+    (_, ok), cs = jax.lax.scan(
+        observe, (data, jnp.bool_(True)), forces.astype(gdir.dtype), unroll=unroll_outer
+    )
     tau = (cs - c_rest) @ gdir
     ok = ok & jnp.all(jnp.isfinite(tau)) & jnp.all(jnp.abs(tau) < sim.max_displacement)
     return tau, ok

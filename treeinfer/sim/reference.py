@@ -23,7 +23,9 @@ def _c_model(sim: Simulator, kp, kd, grasp_fraction=None):
         m.jnt_stiffness[j] = a
         m.dof_damping[d] = b
     if grasp_fraction is not None:
-        m.site_pos[sim.grasp_site] = sim.grasp_start + float(grasp_fraction) * (sim.grasp_end - sim.grasp_start)
+        m.site_pos[sim.grasp_site] = sim.grasp_start + float(grasp_fraction) * (
+            sim.grasp_end - sim.grasp_start
+        )
     return m
 
 
@@ -54,7 +56,9 @@ def settle_reference(m, iterations: int = 50, tol: float = 1e-10) -> np.ndarray:
     return q
 
 
-def simulate_reference(sim: Simulator, kp, kd, force, grasp_fraction=None) -> tuple[np.ndarray, np.ndarray]:
+def simulate_reference(
+    sim: Simulator, kp, kd, force, grasp_fraction=None
+) -> tuple[np.ndarray, np.ndarray]:
     """One rollout in plain MuJoCo (``mujoco.mj_step``, float64): tau [T], tau_dot [T].
 
     Same settle, force application and observation timing as :func:`treeinfer.sim.simulate`; used as the
