@@ -56,9 +56,13 @@ def _hostile_tree_texts(rng: np.random.Generator) -> list[tuple[str, str]]:
     y = yaml.safe_dump(BASE, sort_keys=False)
     depth = int(rng.integers(100, 100_000))
     out = [
-        ("alias-bomb.yaml", "\n".join(
-            [f"a0: &a0 [{', '.join(['x'] * 9)}]"] + [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 9)}]"
-                                                      for i in range(1, 9)])),
+        (
+            "alias-bomb.yaml",
+            "\n".join(
+                [f"a0: &a0 [{', '.join(['x'] * 9)}]"]
+                + [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 9)}]" for i in range(1, 9)]
+            ),
+        ),
         ("deep.yaml", "[" * depth),
         ("deep.json", "[" * depth + "]" * depth),
         ("dup.yaml", y.replace("  length: 0.6\n", "  length: 0.6\n  length: 0.9\n", 1)),
@@ -66,8 +70,14 @@ def _hostile_tree_texts(rng: np.random.Generator) -> list[tuple[str, str]]:
         ("null.yaml", y.replace("name: child", "name: null", 1)),
         ("recursive.yaml", "a: &a [*a]\n"),
     ]
-    for key, val in [("density", 1e-12), ("radius", 1e-300), ("name", "world"), ("length", 600.0),
-                     ("kp", 1e300), ("density", float(10 ** rng.uniform(6, 300)))]:
+    for key, val in [
+        ("density", 1e-12),
+        ("radius", 1e-300),
+        ("name", "world"),
+        ("length", 600.0),
+        ("kp", 1e300),
+        ("density", float(10 ** rng.uniform(6, 300))),
+    ]:
         d = copy.deepcopy(BASE)
         d["branches"][1][key] = val
         out.append((f"branch-{key}.json", json.dumps(d)))
@@ -109,8 +119,11 @@ def test_special_files_as_inputs(tmp_path):
     for path in (fifo, Path("/dev/zero"), tmp_path):
         if not path.exists():
             continue
-        for fn in (lambda p=path: load_tree(p), lambda p=path: load_file(p),
-                   lambda p=path: file_digest(p)):
+        for fn in (
+            lambda p=path: load_tree(p),
+            lambda p=path: load_file(p),
+            lambda p=path: file_digest(p),
+        ):
             kind, val = _run_with_timeout(fn, 5.0)
             assert kind == "user", (path, kind, val)
 
@@ -145,13 +158,19 @@ CORRUPTIONS = {
     "mm": lambda t, r: t._replace(displacement=1000 * t.displacement, velocity=None),
     "kN": lambda t, r: t._replace(force=t.force / 1000),
     "swapped": lambda t, r: t._replace(force=t.displacement, displacement=t.force, velocity=None),
-    "offset": lambda t, r: t._replace(displacement=t.displacement + r.uniform(0.3, 2.0), velocity=None),
+    "offset": lambda t, r: t._replace(
+        displacement=t.displacement + r.uniform(0.3, 2.0), velocity=None
+    ),
     "sign": lambda t, r: t._replace(force=-t.force),
     "vel-negated": lambda t, r: t._replace(velocity=-t.velocity),
     "vel-zero": lambda t, r: t._replace(velocity=0 * t.velocity),
-    "vel-random": lambda t, r: t._replace(velocity=r.standard_normal(t.velocity.shape) * t.velocity.std()),
+    "vel-random": lambda t, r: t._replace(
+        velocity=r.standard_normal(t.velocity.shape) * t.velocity.std()
+    ),
     "minutes": lambda t, r: t._replace(time=t.time / 60, velocity=None),
-    "all-zero": lambda t, r: t._replace(force=0 * t.force, displacement=0 * t.displacement, velocity=None),
+    "all-zero": lambda t, r: t._replace(
+        force=0 * t.force, displacement=0 * t.displacement, velocity=None
+    ),
     "stiff-20000": None,  # built in the test (needs the tree)
     "duplicate": None,
     "mixed": None,
@@ -169,7 +188,9 @@ def test_corrupted_data_never_pass_silently(tree, clean):
     for k in range(n_cases):
         kind = names[k % len(names)]
         trajs = list(clean)
-        which = sorted(rng.choice(len(clean), size=int(rng.integers(1, len(clean) + 1)), replace=False))
+        which = sorted(
+            rng.choice(len(clean), size=int(rng.integers(1, len(clean) + 1)), replace=False)
+        )
         if kind == "stiff-20000":
             c = static_compliance(tree, {"child": 20000.0, "parent": 20000.0})
             trajs = [t._replace(displacement=c * t.force, velocity=None) for t in trajs]
@@ -213,7 +234,9 @@ def test_output_folders_never_lose_data(tmp_path, monkeypatch):
             with staged_output_dir(out, force=True) as stage:
                 (stage / "result.txt").write_text(f"result {k}")
                 if mode == "writer":
-                    raise OSError(errno.ENOSPC, "No space left on device", str(stage / "posterior.nc"))
+                    raise OSError(
+                        errno.ENOSPC, "No space left on device", str(stage / "posterior.nc")
+                    )
             current = f"result {k}"
         except OutputWriteError as e:
             msg = str(e)
@@ -240,8 +263,11 @@ def test_damaged_run_folders_are_refused(tmp_path):
     rng = np.random.default_rng(3)
     run = tmp_path / "run"
     run.mkdir()
-    files = {"tree.yaml": yaml.safe_dump(BASE).encode(), "posterior.nc": rng.bytes(4000),
-             "particles.csv": b"particle,Kp[child]\n" + b"0,1.0\n" * 50}
+    files = {
+        "tree.yaml": yaml.safe_dump(BASE).encode(),
+        "posterior.nc": rng.bytes(4000),
+        "particles.csv": b"particle,Kp[child]\n" + b"0,1.0\n" * 50,
+    }
     accepted = 0
     for k in range(N):
         for name, data in files.items():
@@ -271,11 +297,23 @@ def test_damaged_run_folders_are_refused(tmp_path):
 def test_damaged_configs_and_summaries_are_clean_errors():
     rng = np.random.default_rng(4)
     good = {
-        "format": 1, "command": "infer",
-        "options": {"sampler": "nnsvgd", "particles": 8, "iterations": 4, "seed": 0, "kT": 0.05,
-                    "max_unstable_share": 0.1, "checkpoint_every": 2, "grasp_fraction": None},
-        "problem": {"kT": 0.05, "obs_dt": 0.01, "substeps": 2}, "tree_dict": {},
-        "config_hash": "ab", "sampler": {}, "data": {"dir": "/d", "files": [{"name": "a", "sha256": "0"}]},
+        "format": 1,
+        "command": "infer",
+        "options": {
+            "sampler": "nnsvgd",
+            "particles": 8,
+            "iterations": 4,
+            "seed": 0,
+            "kT": 0.05,
+            "max_unstable_share": 0.1,
+            "checkpoint_every": 2,
+            "grasp_fraction": None,
+        },
+        "problem": {"kT": 0.05, "obs_dt": 0.01, "substeps": 2},
+        "tree_dict": {},
+        "config_hash": "ab",
+        "sampler": {},
+        "data": {"dir": "/d", "files": [{"name": "a", "sha256": "0"}]},
     }
     junk = [None, "0.05", True, [], {}, -1, 0, float("nan"), 1e400, "x" * 10]
     internal = 0
@@ -333,10 +371,25 @@ def test_tree_from_any_parsed_document_is_a_tree_or_a_user_error():
     for _ in range(N * 5):
         d = copy.deepcopy(BASE)
         b = d["branches"][int(rng.integers(len(d["branches"])))]
-        key = str(rng.choice(["length", "radius", "density", "kp", "kd", "name", "parent", "attach",
-                              "angle_deg", "fixed"]))
+        key = str(
+            rng.choice(
+                [
+                    "length",
+                    "radius",
+                    "density",
+                    "kp",
+                    "kd",
+                    "name",
+                    "parent",
+                    "attach",
+                    "angle_deg",
+                    "fixed",
+                ]
+            )
+        )
         b[key] = [None, True, False, "yes", 0, -1, 1e-300, 1e300, [], {}, "world", "a\nb", 3][
-            int(rng.integers(13))]
+            int(rng.integers(13))
+        ]
         try:
             tree_from_dict(d, "t.yaml")
         except TreeFileError:
@@ -347,7 +400,9 @@ def test_tree_from_any_parsed_document_is_a_tree_or_a_user_error():
 
 
 # ---- 6. hostile bags ---------------------------------------------------------------------------
-INJECTED = "evil/msg/X(__import__('pathlib').Path(chr(47).join(['', 'tmp', MARK])).touch() or object)"
+INJECTED = (
+    "evil/msg/X(__import__('pathlib').Path(chr(47).join(['', 'tmp', MARK])).touch() or object)"
+)
 
 
 def _ros2_bag_with_type(path: Path, msgtype: str, msgdef: str) -> Path:

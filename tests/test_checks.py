@@ -51,7 +51,11 @@ def clean(tree):
         t = np.arange(forces.shape[1]) * DT
         x = tau[b] + SIGMA * rng.standard_normal(t.shape)
         x[0] = 0.0
-        out.append(Trajectory(t, forces[b].astype(float), x, velocity_from_displacement(x, DT), f"pull{b}.csv"))
+        out.append(
+            Trajectory(
+                t, forces[b].astype(float), x, velocity_from_displacement(x, DT), f"pull{b}.csv"
+            )
+        )
     return out
 
 
@@ -69,7 +73,9 @@ def _checks(tree, trajs, **kw):
 
 
 def _only(findings, check, severity=None):
-    hits = [f for f in findings if f.check == check and (severity is None or f.severity == severity)]
+    hits = [
+        f for f in findings if f.check == check and (severity is None or f.severity == severity)
+    ]
     assert hits, f"no '{check}' finding in {findings}"
     return hits
 
@@ -79,6 +85,7 @@ def test_static_compliance_matches_a_settled_mujoco_pull(tree):
     """Independent reference: the MJX/fused rollout's displacement after a slow 0.5 N ramp has
     settled, divided by the force, at a soft, a stiff and a mixed corner of the box."""
     from treeinfer.forces import ramp
+
     make_simulator, simulate = _sim()
 
     sim = make_simulator(tree, obs_dt=0.01)
@@ -105,10 +112,13 @@ def _map(trajs, fn, which=None):
 
 
 def test_displacement_in_cm_and_mm(tree, clean):
-    cm = _checks(tree, _map(clean, lambda t: t._replace(displacement=100 * t.displacement, velocity=None)))
+    cm = _checks(
+        tree, _map(clean, lambda t: t._replace(displacement=100 * t.displacement, velocity=None))
+    )
     assert len(_only(cm, "scale")) == 3 and "displacement is in cm" in _only(cm, "scale")[0].message
-    mm = _checks(tree, _map(clean, lambda t: t._replace(displacement=1000 * t.displacement,
-                                                          velocity=None)))
+    mm = _checks(
+        tree, _map(clean, lambda t: t._replace(displacement=1000 * t.displacement, velocity=None))
+    )
     assert errors_of(mm), mm
 
 
@@ -119,21 +129,31 @@ def test_force_in_kN(tree, clean):
 
 
 def test_swapped_columns(tree, clean):
-    f = _checks(tree, _map(clean, lambda t: t._replace(force=t.displacement, displacement=t.force,
-                                                        velocity=None)))
+    f = _checks(
+        tree,
+        _map(
+            clean, lambda t: t._replace(force=t.displacement, displacement=t.force, velocity=None)
+        ),
+    )
     assert "columns were swapped" in _only(f, "scale", "error")[0].message
     assert _only(f, "reach", "error")
 
 
 def test_offset_displacement(tree, clean):
-    f = _checks(tree, _map(clean, lambda t: t._replace(displacement=t.displacement + 1.9, velocity=None)))
+    f = _checks(
+        tree, _map(clean, lambda t: t._replace(displacement=t.displacement + 1.9, velocity=None))
+    )
     hits = _only(f, "rest", "error")
     assert "starts at 1.9 m" in hits[0].message
 
 
 def test_mixed_units_between_files(tree, clean):
-    f = _checks(tree, _map(clean, lambda t: t._replace(displacement=100 * t.displacement, velocity=None),
-                           which={1}))
+    f = _checks(
+        tree,
+        _map(
+            clean, lambda t: t._replace(displacement=100 * t.displacement, velocity=None), which={1}
+        ),
+    )
     hits = _only(f, "mixed-units", "error")
     assert [h.file for h in hits] == ["pull1.csv"]
 
@@ -148,7 +168,10 @@ def test_sign_mismatch(tree, clean):
     [
         (lambda t, rng: -t.velocity, "opposite sign"),
         (lambda t, rng: np.zeros_like(t.velocity), "all zero"),
-        (lambda t, rng: rng.standard_normal(t.velocity.shape) * np.std(t.velocity), "does not follow"),
+        (
+            lambda t, rng: rng.standard_normal(t.velocity.shape) * np.std(t.velocity),
+            "does not follow",
+        ),
         (lambda t, rng: t.velocity * 100.0, "100x the slope"),
     ],
 )
@@ -182,7 +205,9 @@ def test_duplicates(tree, clean, tmp_path):
 
 
 def test_all_zero(tree, clean):
-    z = clean[0]._replace(force=0 * clean[0].force, displacement=0 * clean[0].displacement, velocity=None)
+    z = clean[0]._replace(
+        force=0 * clean[0].force, displacement=0 * clean[0].displacement, velocity=None
+    )
     assert _only(_checks(tree, [z]), "all-zero", "error")
     z = clean[0]._replace(displacement=0 * clean[0].displacement, velocity=None)
     assert "displacement is zero" in _only(_checks(tree, [z]), "all-zero")[0].message
@@ -191,7 +216,9 @@ def test_all_zero(tree, clean):
 def test_stiffness_outside_the_prior_box(tree, clean):
     """Quasi-static data of a tree at Kp = 20000 (40x the box's upper bound)."""
     c = static_compliance(tree, dict(zip(tree.inferred, (20000.0, 20000.0))))
-    trajs = _map(clean, lambda t: t._replace(displacement=c * (t.force - t.force[0]), velocity=None))
+    trajs = _map(
+        clean, lambda t: t._replace(displacement=c * (t.force - t.force[0]), velocity=None)
+    )
     hits = _only(_checks(tree, trajs), "scale", "warning")
     assert "stiffer than the prior box allows" in hits[0].message
 
@@ -220,8 +247,15 @@ def test_fit_ok_for_a_concentrated_posterior_in_the_box(tree):
     lo, hi = _box(tree)
     rng = np.random.default_rng(0)
     theta = np.log(np.array([*TRUE_KP, *TRUE_KD])) + 0.05 * rng.standard_normal((64, 4))
-    v = fit_checks(residuals=SIGMA * rng.standard_normal((3, 100)), noise_sigma=SIGMA,
-                   fraction_outside=0.04, theta=theta, lower=lo, upper=hi, labels=tree.parameter_labels())
+    v = fit_checks(
+        residuals=SIGMA * rng.standard_normal((3, 100)),
+        noise_sigma=SIGMA,
+        fraction_outside=0.04,
+        theta=theta,
+        lower=lo,
+        upper=hi,
+        labels=tree.parameter_labels(),
+    )
     assert v.status == "ok" and v.reasons == []
 
 
@@ -241,10 +275,14 @@ def test_fit_posterior_at_the_prior_edge(tree):
     """Kp = 20000 data with the default box: particles pile up beyond the upper Kp bound."""
     lo, hi = _box(tree)
     rng = np.random.default_rng(0)
-    theta = np.column_stack([hi[0] + 0.3 + 0.1 * rng.standard_normal(64),
-                             hi[1] - 0.01 * rng.random(64),
-                             np.log(1.0) + 0.1 * rng.standard_normal(64),
-                             np.log(2.0) + 0.1 * rng.standard_normal(64)])
+    theta = np.column_stack(
+        [
+            hi[0] + 0.3 + 0.1 * rng.standard_normal(64),
+            hi[1] - 0.01 * rng.random(64),
+            np.log(1.0) + 0.1 * rng.standard_normal(64),
+            np.log(2.0) + 0.1 * rng.standard_normal(64),
+        ]
+    )
     v = fit_checks(theta=theta, lower=lo, upper=hi, labels=tree.parameter_labels())
     assert v.status == "poor_fit"
     assert any("Kp[child]" in r and "upper bound" in r for r in v.reasons)
@@ -258,7 +296,9 @@ def test_fit_prior_back_when_data_have_no_effect(tree):
     v = fit_checks(theta=theta, lower=lo, upper=hi, labels=tree.parameter_labels())
     assert v.status == "poor_fit" and "the data had no effect" in v.reasons[0]
     # only one parameter uninformed: a warning
-    theta[:, :3] = np.log(np.array([*TRUE_KP, TRUE_KD[0]])) + 0.05 * np.random.default_rng(1).standard_normal((256, 3))
+    theta[:, :3] = np.log(np.array([*TRUE_KP, TRUE_KD[0]])) + 0.05 * np.random.default_rng(
+        1
+    ).standard_normal((256, 3))
     v = fit_checks(theta=theta, lower=lo, upper=hi, labels=tree.parameter_labels())
     assert v.status == "warning" and "barely narrowed Kd[parent]" in v.reasons[0]
 
@@ -274,7 +314,9 @@ def test_fit_verdict_from_run_and_preflight(tree, clean):
     problem = SimpleNamespace(obs=obs, lower=lo, upper=hi, labels=tuple(tree.parameter_labels()))
     rng = np.random.default_rng(0)
     theta = np.log(np.array([*TRUE_KP, *TRUE_KD])) + 0.05 * rng.standard_normal((32, 4))
-    pred = SimpleNamespace(mean=obs.displacement + SIGMA * rng.standard_normal(obs.displacement.shape))
+    pred = SimpleNamespace(
+        mean=obs.displacement + SIGMA * rng.standard_normal(obs.displacement.shape)
+    )
     fit = {"stable": np.ones(32, bool), "prediction": pred, "metrics": {"fraction_outside": 0.03}}
     v = fit_verdict_from_run(problem, SimpleNamespace(theta=theta), fit, noise_sigma=SIGMA)
     assert v.status == "ok", v
@@ -295,7 +337,10 @@ def test_simulation_cost_check(tree):
 
     assert simulation_cost_check(tree, 0.01) == []
     twig = dataclasses.replace(tree.branch("child"), length=0.1, radius=0.003)
-    stiff = dataclasses.replace(tree, branches=(tree.branches[0], twig),
-                                bounds={n: Bounds(kp=(5.0, 1e8)) for n in tree.inferred})
+    stiff = dataclasses.replace(
+        tree,
+        branches=(tree.branches[0], twig),
+        bounds={n: Bounds(kp=(5.0, 1e8)) for n in tree.inferred},
+    )
     f = simulation_cost_check(stiff, 0.01, "t.yaml")
     assert f and f[0].severity == "error" and "simulation steps per 0.01 s sample" in f[0].message

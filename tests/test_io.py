@@ -24,7 +24,16 @@ from treeinfer._io import (
     is_treeinfer_output,
     staged_output_dir,
 )
-from treeinfer.errors import OutputExistsError
+from treeinfer.errors import ConfigError, OutputExistsError
+from treeinfer.integrity import (
+    check_partial,
+    load_npz,
+    record_checksums,
+    validate_checkpoint_file,
+    validate_run_config,
+    validate_summary,
+    verify_run,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -102,7 +111,9 @@ def test_failed_final_rename_keeps_the_finished_result(tmp_path, monkeypatch, ex
         return real(src, dst)
 
     monkeypatch.setattr(_io.os, "replace", busy)
-    with pytest.raises(OutputWriteError, match="Device or resource busy.*nothing is lost: it is complete in") as ei:
+    with pytest.raises(
+        OutputWriteError, match="Device or resource busy.*nothing is lost: it is complete in"
+    ) as ei:
         _write(out, "finished", force=True)
     kept = Path(str(ei.value).split("complete in ")[1].split(";")[0])
     assert kept.is_dir() and (kept / "result.txt").read_text() == "finished"
@@ -187,7 +198,10 @@ def test_disk_full_names_the_file(tmp_path, monkeypatch):
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(_io.os, "fsync", full)
-    with pytest.raises(OutputWriteError, match=r"posterior.nc: cannot write \(No space left on device; the disk is full\)"):
+    with pytest.raises(
+        OutputWriteError,
+        match=r"posterior.nc: cannot write \(No space left on device; the disk is full\)",
+    ):
         atomic_write_bytes(target, b"x" * 10)
     assert list(tmp_path.iterdir()) == []
 
@@ -209,16 +223,6 @@ def test_writer_error_on_a_full_disk_names_the_file(tmp_path, monkeypatch):
 
 
 # ---- run-folder integrity (issue 14, items 5 and 7) ------------------------------------------
-from treeinfer.errors import ConfigError
-from treeinfer.integrity import (
-    check_partial,
-    load_npz,
-    record_checksums,
-    validate_checkpoint_file,
-    validate_run_config,
-    validate_summary,
-    verify_run,
-)
 
 
 def _fake_run(tmp_path: Path) -> tuple[Path, dict]:
@@ -267,11 +271,22 @@ def test_run_without_checksums_gets_a_note(tmp_path):
 
 
 GOOD_CONFIG = {
-    "format": 1, "command": "infer",
-    "options": {"sampler": "nnsvgd", "particles": 8, "iterations": 4, "seed": 0, "kT": 0.05,
-                "max_unstable_share": 0.1, "checkpoint_every": 2, "grasp_fraction": None},
+    "format": 1,
+    "command": "infer",
+    "options": {
+        "sampler": "nnsvgd",
+        "particles": 8,
+        "iterations": 4,
+        "seed": 0,
+        "kT": 0.05,
+        "max_unstable_share": 0.1,
+        "checkpoint_every": 2,
+        "grasp_fraction": None,
+    },
     "problem": {"kT": 0.05, "obs_dt": 0.01, "substeps": 2, "backend": "fused"},
-    "tree_dict": {}, "config_hash": "ab", "sampler": {},
+    "tree_dict": {},
+    "config_hash": "ab",
+    "sampler": {},
     "data": {"dir": "/d", "files": [{"name": "a.csv", "sha256": "00"}]},
 }
 
@@ -280,10 +295,19 @@ GOOD_CONFIG = {
     "edit, pattern",
     [
         (lambda c: c.pop("problem"), r"field 'problem': missing"),
-        (lambda c: c["problem"].__setitem__("kT", "0.05"), r"field 'problem.kT': expected a positive number, got '0.05'"),
-        (lambda c: c["options"].__setitem__("particles", True), r"field 'options.particles': expected an integer >= 1"),
+        (
+            lambda c: c["problem"].__setitem__("kT", "0.05"),
+            r"field 'problem.kT': expected a positive number, got '0.05'",
+        ),
+        (
+            lambda c: c["options"].__setitem__("particles", True),
+            r"field 'options.particles': expected an integer >= 1",
+        ),
         (lambda c: c["data"]["files"].append("x"), r"field 'data.files\[1\]'"),
-        (lambda c: c["problem"].__setitem__("substeps", 0), r"field 'problem.substeps': expected an integer >= 1"),
+        (
+            lambda c: c["problem"].__setitem__("substeps", 0),
+            r"field 'problem.substeps': expected an integer >= 1",
+        ),
     ],
 )
 def test_validate_run_config(edit, pattern):
@@ -298,7 +322,10 @@ def test_validate_run_config(edit, pattern):
 
 def test_validate_summary_indices():
     assert validate_summary({"unstable_particles": [0, 7]}, "s.json", 8)
-    with pytest.raises(ConfigError, match=r"s.json, field 'unstable_particles\[1\]': 99 is not a particle index in \[0, 8\)"):
+    with pytest.raises(
+        ConfigError,
+        match=r"s.json, field 'unstable_particles\[1\]': 99 is not a particle index in \[0, 8\)",
+    ):
         validate_summary({"unstable_particles": [0, 99]}, "s.json", 8)
     with pytest.raises(ConfigError, match="unstable_particles\\[0\\]': -1"):
         validate_summary({"unstable_particles": [-1]}, "s.json", 8)

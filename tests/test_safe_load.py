@@ -53,7 +53,9 @@ def test_alias_count_limit_and_recursive_alias():
         loads_yaml("a: &a [*a]\n", "x.yaml")
 
 
-@pytest.mark.parametrize("deep", ["[" * 100_000, "a:\n" + "".join(" " * i + "b:\n" for i in range(1, 200))])
+@pytest.mark.parametrize(
+    "deep", ["[" * 100_000, "a:\n" + "".join(" " * i + "b:\n" for i in range(1, 200))]
+)
 def test_deep_yaml_is_a_clean_error(deep):
     with pytest.raises(ConfigError, match="deeper than 64"):
         loads_yaml(deep, "deep.yaml")
@@ -67,7 +69,9 @@ def test_deep_json_is_a_clean_error():
 
 
 def test_duplicate_keys_name_the_line():
-    with pytest.raises(ConfigError, match=r"t.yaml, line 3: .*duplicate key 'b' \(first at line 2\)"):
+    with pytest.raises(
+        ConfigError, match=r"t.yaml, line 3: .*duplicate key 'b' \(first at line 2\)"
+    ):
         loads_yaml("a: 1\nb: 2\nb: 3\n", "t.yaml")
     with pytest.raises(ConfigError, match=r"t.json, line 3: duplicate key 'b'"):
         loads_json('{"a": 1,\n "b": 2,\n "b": 3}', "t.json")
@@ -144,16 +148,23 @@ def _tree_yaml(tmp_path, text: str):
 def test_tree_yaml_bool_and_null_fields(tmp_path):
     text = yaml.safe_dump(BASE, sort_keys=False)
     p = _tree_yaml(tmp_path, text.replace("length: 0.6", "length: yes", 1))
-    with pytest.raises(TreeFileError, match=r"t.yaml: branches\[1\] \('child'\): length: expected a "
-                                            r"positive number, got True"):
+    with pytest.raises(
+        TreeFileError,
+        match=r"t.yaml: branches\[1\] \('child'\): length: expected a "
+        r"positive number, got True",
+    ):
         load_tree(p)
     p = _tree_yaml(tmp_path, text.replace("name: child", "name: null", 1))
-    with pytest.raises(TreeFileError, match=r"branches\[1\].name: expected a name \(text\), got None"):
+    with pytest.raises(
+        TreeFileError, match=r"branches\[1\].name: expected a name \(text\), got None"
+    ):
         load_tree(p)
 
 
 def test_tree_duplicate_key(tmp_path):
-    text = yaml.safe_dump(BASE, sort_keys=False).replace("  length: 0.6\n", "  length: 0.6\n  length: 0.9\n", 1)
+    text = yaml.safe_dump(BASE, sort_keys=False).replace(
+        "  length: 0.6\n", "  length: 0.6\n  length: 0.9\n", 1
+    )
     with pytest.raises(TreeFileError, match=r"t.yaml, line \d+: .*duplicate key 'length'"):
         load_tree(_tree_yaml(tmp_path, text))
 
@@ -169,7 +180,10 @@ def _with_branch(**changes):
     [
         ({"density": 1e-12}, r"branches\[1\] \('child'\): density: 1e-12 kg/m\^3 is outside"),
         ({"radius": 1e-300}, r"branches\[1\] \('child'\): radius 1e-300 m is outside"),
-        ({"length": 600.0, "radius": 0.02}, r"length 600 m is longer than 50 m; looks like millimetres"),
+        (
+            {"length": 600.0, "radius": 0.02},
+            r"length 600 m is longer than 50 m; looks like millimetres",
+        ),
         ({"kp": 1e300}, r"kp: 1e\+300 N m/rad is outside the plausible range"),
     ],
 )
@@ -181,7 +195,9 @@ def test_degenerate_branch_values(changes, pattern):
 def test_absurd_prior_bounds_are_clean_errors():
     d = yaml.safe_load(yaml.safe_dump(BASE))
     d.setdefault("inference", {}).setdefault("prior", {})["kp"] = [1e-300, 1e300]
-    with pytest.raises(TreeFileError, match=r"t.yaml: inference.prior.kp\[0\]: 1e-300 N m/rad is outside"):
+    with pytest.raises(
+        TreeFileError, match=r"t.yaml: inference.prior.kp\[0\]: 1e-300 N m/rad is outside"
+    ):
         tree_from_dict(d, "t.yaml")
 
 
@@ -191,7 +207,9 @@ def test_reserved_and_generated_names():
         tree_from_dict(d, "t.yaml")
     d = yaml.safe_load(yaml.safe_dump(BASE))
     d["branches"].append({"name": "child_geom", "parent": "child", "length": 0.2, "radius": 0.01})
-    with pytest.raises(TreeFileError, match="'child_geom' clashes with the name generated for branch 'child'"):
+    with pytest.raises(
+        TreeFileError, match="'child_geom' clashes with the name generated for branch 'child'"
+    ):
         tree_from_dict(d, "t.yaml")
 
 
@@ -199,7 +217,9 @@ def test_mass_floor_is_checked_independently_of_field_limits():
     # every field within its own limits, but the body is far lighter than MIN_MASS
     d = _with_branch(radius=1.0e-4, length=1.0e-3, density=1.0)
     d["branches"][1].pop("angle_deg", None)
-    with pytest.raises(TreeFileError, match=r"\('child'\): mass .* below 1e-09 kg: a degenerate body"):
+    with pytest.raises(
+        TreeFileError, match=r"\('child'\): mass .* below 1e-09 kg: a degenerate body"
+    ):
         tree_from_dict(d, "t.yaml")
 
 

@@ -78,11 +78,14 @@ def _reader_class():
                 if not valid_topic(c.topic):
                     raise TrajectoryFileError(
                         f"{self.paths[0]}: topic name {c.topic[:80]!r} is not a valid ROS topic; "
-                        "refusing a bag that may have been crafted")
+                        "refusing a bag that may have been crafted"
+                    )
                 if not valid_msgtype(c.msgtype):
                     raise TrajectoryFileError(
-                        f"{self.paths[0]}: topic {c.topic}: message type {c.msgtype[:80]!r} is not a "
-                        "valid ROS type name; refusing a bag that may have been crafted")
+                        f"{self.paths[0]}: topic {c.topic}: message type "
+                        f"{c.msgtype[:80]!r} is not a "
+                        "valid ROS type name; refusing a bag that may have been crafted"
+                    )
             ts = _builtin_store(self.is2)
             for c in connections:
                 if c.msgtype not in KNOWN_TYPES or not c.digest:
@@ -98,7 +101,8 @@ def _reader_class():
                     raise TrajectoryFileError(
                         f"{self.paths[0]}: topic {c.topic}: the bag's definition of {c.msgtype} "
                         f"differs from the standard one (hash {digest[:20]}..., expected "
-                        f"{have[:20]}...); treeinfer decodes only the standard message types")
+                        f"{have[:20]}...); treeinfer decodes only the standard message types"
+                    )
             self.connections = connections
             self.typestore = ts
 

@@ -126,8 +126,9 @@ def _lever_terms(tree: Tree, grasp_fraction: float | None = None) -> list[tuple[
     return out
 
 
-def lever_arm_compliance(tree: Tree, kp: dict[str, float] | None = None,
-                         grasp_fraction: float | None = None) -> float:
+def lever_arm_compliance(
+    tree: Tree, kp: dict[str, float] | None = None, grasp_fraction: float | None = None
+) -> float:
     """Small-rotation compliance (m/N) at the *unloaded geometric* pose, ignoring gravity:
     ``sum_j s_j^2 / Kp_j`` (module docstring). ``kp``: stiffness of inferred joints by name
     (N m/rad); other joints use the tree's fixed gains."""
@@ -139,8 +140,9 @@ def lever_arm_compliance(tree: Tree, kp: dict[str, float] | None = None,
     return total
 
 
-def static_compliance(tree: Tree, kp: dict[str, float] | None = None,
-                      grasp_fraction: float | None = None) -> float:
+def static_compliance(
+    tree: Tree, kp: dict[str, float] | None = None, grasp_fraction: float | None = None
+) -> float:
     """Quasi-static compliance (m/N) of the grasp point along gravity at the tree's settled
     rest pose, gravity's stiffness included: ``s K^-1 s^T`` with ``s = g_hat . J_site`` (the
     site Jacobian) and ``K`` the Jacobian of the static joint torque (springs + gravity), both
@@ -212,8 +214,12 @@ def _sim_attr(name: str):
 MAX_SUBSTEPS = 2000  # simulation steps per observation beyond which a run cannot finish
 
 
-def simulation_cost_check(tree: Tree, obs_dt: float, tree_file: str | os.PathLike | None = None,
-                          max_substeps: int = MAX_SUBSTEPS) -> list[Finding]:
+def simulation_cost_check(
+    tree: Tree,
+    obs_dt: float,
+    tree_file: str | os.PathLike | None = None,
+    max_substeps: int = MAX_SUBSTEPS,
+) -> list[Finding]:
     """An error if the prior box's stiffest corner needs more than ``max_substeps`` simulation
     steps per observation (the simulator's own rule, :func:`choose_substeps`): a tiny twig with
     a huge Kp bound would otherwise run for days. Names the Kp bound to lower."""
@@ -229,11 +235,17 @@ def simulation_cost_check(tree: Tree, obs_dt: float, tree_file: str | os.PathLik
     if n <= max_substeps:
         return []
     name = str(tree_file) if tree_file is not None else f"tree '{tree.name}'"
-    return [Finding("error", name, "simulation-cost",
-                    f"the prior box's upper Kp bounds ({', '.join(f'{k:g}' for k in kp_max)} N m/rad) on "
-                    f"branches this light need {n} simulation steps per {obs_dt:g} s sample (limit "
-                    f"{max_substeps}); lower inference.prior.kp's upper bound or check the branch "
-                    "masses")]
+    return [
+        Finding(
+            "error",
+            name,
+            "simulation-cost",
+            f"the prior box's upper Kp bounds ({', '.join(f'{k:g}' for k in kp_max)} N m/rad) on "
+            f"branches this light need {n} simulation steps per {obs_dt:g} s sample (limit "
+            f"{max_substeps}); lower inference.prior.kp's upper bound or check the branch "
+            "masses",
+        )
+    ]
 
 
 def compliance_range(tree: Tree, grasp_fraction: float | None = None) -> tuple[float, float]:
@@ -293,14 +305,17 @@ def _sha256(path) -> str | None:
 
 def _scale_causes(c: float, c_stiff: float, c_soft: float) -> list[str]:
     """Unit mistakes that would bring the compliance ``c`` (m/N) into the tree's range."""
+
     def fits(x):
         return c_stiff / SCALE_WARN <= x <= c_soft * SCALE_WARN
 
     out = []
     if fits(1.0 / c):
         out.append("the force and displacement columns were swapped")
-    for factor, what in ((100.0, "displacement is in cm (not m)"),
-                         (1000.0, "displacement is in mm (not m), or force in kN (not N)")):
+    for factor, what in (
+        (100.0, "displacement is in cm (not m)"),
+        (1000.0, "displacement is in mm (not m), or force in kN (not N)"),
+    ):
         if fits(c / factor):
             out.append(what)
     return out
@@ -345,37 +360,67 @@ def data_checks(
         dt = float(t.dt)
         fmax, xrange = float(np.max(np.abs(f))), float(np.ptp(x))
         if fmax <= ZERO_ATOL and float(np.max(np.abs(x))) <= ZERO_ATOL:
-            out.append(Finding("error", name, "all-zero",
-                               "force and displacement are all zero: nothing to learn from "
-                               "(the posterior would be the prior)"))
+            out.append(
+                Finding(
+                    "error",
+                    name,
+                    "all-zero",
+                    "force and displacement are all zero: nothing to learn from "
+                    "(the posterior would be the prior)",
+                )
+            )
             continue
         if fmax <= ZERO_ATOL:
-            out.append(Finding("error", name, "all-zero",
-                               f"force is zero throughout while the displacement spans {xrange:.3g} m: "
-                               "the force column is missing or was not recorded"))
+            out.append(
+                Finding(
+                    "error",
+                    name,
+                    "all-zero",
+                    f"force is zero throughout while the displacement spans {xrange:.3g} m: "
+                    "the force column is missing or was not recorded",
+                )
+            )
             continue
         if float(np.max(np.abs(x))) <= ZERO_ATOL:
-            out.append(Finding("error", name, "all-zero",
-                               f"displacement is zero throughout while the force reaches {fmax:.3g} N: "
-                               "the displacement column is missing or was not recorded"))
+            out.append(
+                Finding(
+                    "error",
+                    name,
+                    "all-zero",
+                    f"displacement is zero throughout while the force reaches {fmax:.3g} N: "
+                    "the displacement column is missing or was not recorded",
+                )
+            )
             continue
 
         # reach: the grasp point cannot move further than its lever arm allows
         xmax = float(np.max(np.abs(x)))
         if xmax > 2.0 * reach:
-            out.append(Finding("error", name, "reach",
-                               f"displacement reaches {xmax:.3g} m but the grasp point is {reach:.3g} m "
-                               f"from the nearest hinge and cannot move more than {2 * reach:.3g} m: "
-                               "displacement in cm/mm, swapped columns, or an offset?"))
+            out.append(
+                Finding(
+                    "error",
+                    name,
+                    "reach",
+                    f"displacement reaches {xmax:.3g} m but the grasp point is {reach:.3g} m "
+                    f"from the nearest hinge and cannot move more than {2 * reach:.3g} m: "
+                    "displacement in cm/mm, swapped columns, or an offset?",
+                )
+            )
 
         # rest: displacement from the rest position starts near 0 when the force does
         x0 = float(x[0])
         if abs(x0) > max(REST_FRACTION * max(xrange, 1e-12), REST_MIN):
             sev = "error" if abs(f[0]) <= REST_FORCE * fmax else "warning"
-            out.append(Finding(sev, name, "rest",
-                               f"displacement starts at {x0:.3g} m (its range is {xrange:.3g} m) while "
-                               f"the force starts at {f[0]:.3g} N: displacement must be measured from "
-                               "the branch's rest position (subtract the first sample?)"))
+            out.append(
+                Finding(
+                    sev,
+                    name,
+                    "rest",
+                    f"displacement starts at {x0:.3g} m (its range is {xrange:.3g} m) while "
+                    f"the force starts at {f[0]:.3g} N: displacement must be measured from "
+                    "the branch's rest position (subtract the first sample?)",
+                )
+            )
 
         # sign and scale through the quasi-static compliance
         c = _compliance(f, x)
@@ -383,30 +428,51 @@ def data_checks(
             comps[i] = c
             corr = float(np.corrcoef(f, x)[0, 1]) if np.ptp(x) > 0 else 0.0
             if c < 0 and corr < -0.3:
-                out.append(Finding("error", name, "sign",
-                                   f"displacement moves against the force (correlation {corr:.2f}, slope "
-                                   f"{c:.3g} m/N): both are positive downward; flip the sign of one "
-                                   "column (e.g. --force-sign -1 on import-bag)"))
+                out.append(
+                    Finding(
+                        "error",
+                        name,
+                        "sign",
+                        f"displacement moves against the force (correlation {corr:.2f}, slope "
+                        f"{c:.3g} m/N): both are positive downward; flip the sign of one "
+                        "column (e.g. --force-sign -1 on import-bag)",
+                    )
+                )
             elif c > 0:
                 if c > c_soft * SCALE_WARN:
                     r = c / c_soft
                     causes = _scale_causes(c, c_stiff, c_soft)
                     sev = "error" if r > SCALE_ERROR or causes else "warning"
-                    hint = ("; ".join(causes) if causes else
-                            "displacement in cm or mm instead of m, or force in kN instead of N?")
-                    out.append(Finding(sev, name, "scale",
-                                       f"displacement per newton is {c:.3g} m/N, {_ratio_text(r)} more than "
-                                       f"the tree allows at the softest prior stiffness ({c_soft:.3g} m/N, "
-                                       f"Kp at the prior box's lower bounds); it would fit if: {hint}"))
+                    hint = (
+                        "; ".join(causes)
+                        if causes
+                        else "displacement in cm or mm instead of m, or force in kN instead of N?"
+                    )
+                    out.append(
+                        Finding(
+                            sev,
+                            name,
+                            "scale",
+                            f"displacement per newton is {c:.3g} m/N, {_ratio_text(r)} more than "
+                            f"the tree allows at the softest prior stiffness ({c_soft:.3g} m/N, "
+                            f"Kp at the prior box's lower bounds); it would fit if: {hint}",
+                        )
+                    )
                 elif c < c_stiff / SCALE_WARN:
                     r = c_stiff / c
                     sev = "error" if r > SCALE_ERROR * 10 else "warning"
-                    out.append(Finding(sev, name, "scale",
-                                       f"displacement per newton is {c:.3g} m/N, {_ratio_text(r)} less than "
-                                       f"the tree gives at the stiffest prior stiffness ({c_stiff:.3g} m/N, "
-                                       "Kp at the prior box's upper bounds): the branch may be stiffer than "
-                                       "the prior box allows (widen inference.prior.kp), or displacement "
-                                       "is in km / force in mN?"))
+                    out.append(
+                        Finding(
+                            sev,
+                            name,
+                            "scale",
+                            f"displacement per newton is {c:.3g} m/N, {_ratio_text(r)} less than "
+                            f"the tree gives at the stiffest prior stiffness ({c_stiff:.3g} m/N, "
+                            "Kp at the prior box's upper bounds): the branch may be stiffer than "
+                            "the prior box allows (widen inference.prior.kp), or displacement "
+                            "is in km / force in mN?",
+                        )
+                    )
 
         # velocity column against the displacement it should be the slope of
         if t.velocity is not None:
@@ -423,17 +489,32 @@ def data_checks(
                     if float(np.max(np.abs(v))) <= ZERO_ATOL:
                         why = "the velocity column is all zero"
                     elif scaled_fit > VELOCITY_MISMATCH:
-                        why = "the velocity column does not follow the displacement (noise or another signal?)"
+                        why = (
+                            "the velocity column does not follow the displacement "
+                            "(noise or another signal?)"
+                        )
                     elif a < -0.5 and abs(abs(a) - 1) < 0.3:
                         why = "the velocity column has the opposite sign"
                     elif abs(a) > 3 or (0 < abs(a) < 1 / 3):
-                        why = (f"the velocity column is {1 / a if a else float('inf'):.3g}x the slope of "
-                               "the displacement (another unit, or time in other units?)")
+                        why = (
+                            "the velocity column is "
+                            f"{1 / a if a else float('inf'):.3g}x the slope of "
+                            "the displacement (another unit, or time in other units?)"
+                        )
                     else:
-                        why = "the velocity column does not follow the displacement (noise or another signal?)"
-                    out.append(Finding("error", name, "velocity",
-                                       f"{why}: integrated, it misses the displacement by {mis:.0%} of its "
-                                       "RMS; drop the column to differentiate the displacement instead"))
+                        why = (
+                            "the velocity column does not follow the displacement "
+                            "(noise or another signal?)"
+                        )
+                    out.append(
+                        Finding(
+                            "error",
+                            name,
+                            "velocity",
+                            f"{why}: integrated, it misses the displacement by {mis:.0%} of its "
+                            "RMS; drop the column to differentiate the displacement instead",
+                        )
+                    )
 
         # time unit: a branch grasp point does not move at metres per second
         if len(x) >= 3:
@@ -442,10 +523,16 @@ def data_checks(
             k = min(10, len(x) - 1)
             speed_k = float(np.max(np.abs(x[k:] - x[:-k]))) / (k * dt)
             if speed_k > MAX_BRANCH_SPEED:
-                out.append(Finding("warning", name, "time-unit",
-                                   f"the grasp point moves at {speed_k:.3g} m/s (steps of {dt:.3g} s; peak "
-                                   f"single-step {speed:.3g} m/s), implausibly fast for a branch pull: "
-                                   "is time in minutes instead of seconds (or displacement not in metres)?"))
+                out.append(
+                    Finding(
+                        "warning",
+                        name,
+                        "time-unit",
+                        f"the grasp point moves at {speed_k:.3g} m/s (steps of {dt:.3g} s; peak "
+                        f"single-step {speed:.3g} m/s), implausibly fast for a branch pull: "
+                        "is time in minutes instead of seconds (or displacement not in metres)?",
+                    )
+                )
 
     # mixed units between files
     if len(comps) >= 2:
@@ -454,10 +541,16 @@ def data_checks(
             if c > 0 and med > 0 and max(c / med, med / c) > MIXED_RATIO:
                 name = _label(trajectories[i], paths, i)
                 r = c / med
-                out.append(Finding("error", name, "mixed-units",
-                                   f"displacement per newton {c:.3g} m/N is {_ratio_text(max(r, 1 / r))} "
-                                   f"{'more' if r > 1 else 'less'} than the other files' median ({med:.3g} "
-                                   "m/N): one file in other units (cm vs m, kN vs N)?"))
+                out.append(
+                    Finding(
+                        "error",
+                        name,
+                        "mixed-units",
+                        f"displacement per newton {c:.3g} m/N is {_ratio_text(max(r, 1 / r))} "
+                        f"{'more' if r > 1 else 'less'} than the other files' median ({med:.3g} "
+                        "m/N): one file in other units (cm vs m, kN vs N)?",
+                    )
+                )
 
     # duplicates: identical bytes or identical arrays
     seen: dict[str, int] = {}
@@ -467,17 +560,33 @@ def data_checks(
         if p is not None and Path(p).is_file():
             digest = _sha256(p)
             key = f"file:{digest}" if digest else None
-        arr_key = "arr:" + hashlib.sha256(np.ascontiguousarray(np.stack(
-            [np.asarray(t.force, float), np.asarray(t.displacement, float)])).tobytes()).hexdigest()
+        arr_key = (
+            "arr:"
+            + hashlib.sha256(
+                np.ascontiguousarray(
+                    np.stack([np.asarray(t.force, float), np.asarray(t.displacement, float)])
+                ).tobytes()
+            ).hexdigest()
+        )
         for k in (key, arr_key):
             if k is None:
                 continue
             if k in seen:
                 j = seen[k]
-                what = "byte-identical to" if k.startswith("file:") else "has the same force and displacement as"
-                out.append(Finding("error", _label(t, paths, i), "duplicate",
-                                   f"{what} {_label(trajectories[j], paths, j)}: the same recording twice "
-                                   "counts its evidence twice (overconfident posterior); remove one"))
+                what = (
+                    "byte-identical to"
+                    if k.startswith("file:")
+                    else "has the same force and displacement as"
+                )
+                out.append(
+                    Finding(
+                        "error",
+                        _label(t, paths, i),
+                        "duplicate",
+                        f"{what} {_label(trajectories[j], paths, j)}: the same recording twice "
+                        "counts its evidence twice (overconfident posterior); remove one",
+                    )
+                )
                 break
             seen[k] = i
     return out
@@ -499,7 +608,11 @@ class FitVerdict(NamedTuple):
     measures: dict
 
     def as_dict(self) -> dict:
-        return {"status": self.status, "reasons": list(self.reasons), "measures": dict(self.measures)}
+        return {
+            "status": self.status,
+            "reasons": list(self.reasons),
+            "measures": dict(self.measures),
+        }
 
 
 RESIDUAL_WARN, RESIDUAL_POOR = 3.0, 10.0  # RMS residual / noise sigma
@@ -545,9 +658,15 @@ def fit_checks(
         if ok.any():
             rms = float(np.sqrt(np.mean(r[ok] ** 2)))
             ratio = rms / float(noise_sigma)
-            m["residual_rms_m"], m["noise_sigma_m"], m["residual_to_noise"] = rms, float(noise_sigma), ratio
-            msg = (f"training residuals (RMS {rms:.3g} m) are {ratio:.3g}x the noise scale "
-                   f"({noise_sigma:.3g} m): the model does not explain the data")
+            m["residual_rms_m"], m["noise_sigma_m"], m["residual_to_noise"] = (
+                rms,
+                float(noise_sigma),
+                ratio,
+            )
+            msg = (
+                f"training residuals (RMS {rms:.3g} m) are {ratio:.3g}x the noise scale "
+                f"({noise_sigma:.3g} m): the model does not explain the data"
+            )
             if ratio > RESIDUAL_POOR:
                 poor.append(msg)
             elif ratio > RESIDUAL_WARN:
@@ -555,8 +674,11 @@ def fit_checks(
     if fraction_outside is not None and math.isfinite(fraction_outside):
         expected = 1.0 - level
         m["fraction_outside"] = float(fraction_outside)
-        msg = (f"{fraction_outside:.1%} of training points lie outside the {level:.0%} predictive band "
-               f"(about {expected:.0%} expected)")
+        msg = (
+            f"{fraction_outside:.1%} of training points lie outside the {level:.0%} "
+            "predictive band "
+            f"(about {expected:.0%} expected)"
+        )
         if fraction_outside > OUTSIDE_POOR:
             poor.append(msg)
         elif fraction_outside > OUTSIDE_WARN * expected:
@@ -584,38 +706,51 @@ def fit_checks(
                     if share >= EDGE_SHARE:
                         edge[lab] = side
                         beyond = med[j] < lo[j] if side == "lower" else med[j] > hi[j]
-                        msg = (f"{lab}: {share:.0%} of the posterior sits at or beyond the prior box's "
-                               f"{side} bound ({math.exp(bound):.4g}; median {math.exp(med[j]):.4g}): the "
-                               f"data may lie outside the prior; widen inference.prior")
+                        msg = (
+                            f"{lab}: {share:.0%} of the posterior sits at or beyond the "
+                            f"prior box's {side} bound ({math.exp(bound):.4g}; "
+                            f"median {math.exp(med[j]):.4g}): the "
+                            f"data may lie outside the prior; widen inference.prior"
+                        )
                         (poor if beyond else warn).append(msg)
             m["at_prior_edge"] = edge
             flat = [lab for lab, r in zip(labels, ratio) if r > NO_EFFECT]
             if flat and len(flat) == len(labels):
-                poor.append(f"the posterior is as wide as the prior for every parameter (std ratio "
-                            f"{float(ratio.min()):.2f}-{float(ratio.max()):.2f}): the data had no effect "
-                            "(kT far too large, or no force/displacement signal?)")
+                poor.append(
+                    f"the posterior is as wide as the prior for every parameter (std ratio "
+                    f"{float(ratio.min()):.2f}-{float(ratio.max()):.2f}): the data had no effect "
+                    "(kT far too large, or no force/displacement signal?)"
+                )
             elif flat:
-                warn.append(f"the data barely narrowed {', '.join(flat)} (posterior std > "
-                            f"{NO_EFFECT:.0%} of the prior's)")
+                warn.append(
+                    f"the data barely narrowed {', '.join(flat)} (posterior std > "
+                    f"{NO_EFFECT:.0%} of the prior's)"
+                )
     status = "poor_fit" if poor else "warning" if warn else "ok"
     return FitVerdict(status, poor + warn, m)
 
 
 # ---- glue for the run layer ------------------------------------------------------------------
-def preflight(tree: Tree, trajectories: Sequence, paths: Sequence | None = None,
-              tree_file: str | os.PathLike | None = None,
-              grasp_fraction: float | None = None) -> tuple[list[Finding], list[Finding]]:
+def preflight(
+    tree: Tree,
+    trajectories: Sequence,
+    paths: Sequence | None = None,
+    tree_file: str | os.PathLike | None = None,
+    grasp_fraction: float | None = None,
+) -> tuple[list[Finding], list[Finding]]:
     """(errors, warnings) of :func:`data_checks`, for ``infer`` to print before sampling: it
     stops with exit code 2 on errors, prints warnings and goes on."""
-    found = data_checks(tree, trajectories, paths=paths, grasp_fraction=grasp_fraction,
-                        tree_file=tree_file)
+    found = data_checks(
+        tree, trajectories, paths=paths, grasp_fraction=grasp_fraction, tree_file=tree_file
+    )
     if trajectories:
         found += simulation_cost_check(tree, float(trajectories[0].dt), tree_file)
     return errors_of(found), [f for f in found if f.severity != "error"]
 
 
-def fit_verdict_from_run(problem, posterior, fit: dict, noise_sigma: float | None = None,
-                         level: float = 0.95) -> FitVerdict:
+def fit_verdict_from_run(
+    problem, posterior, fit: dict, noise_sigma: float | None = None, level: float = 0.95
+) -> FitVerdict:
     """:func:`fit_checks` on what :func:`treeinfer.runs.run_inference` has at hand.
 
     Args:
@@ -635,12 +770,21 @@ def fit_verdict_from_run(problem, posterior, fit: dict, noise_sigma: float | Non
         mask = np.asarray(problem.obs.mask, bool)
     frac = metrics.get("fraction_outside")
     verdict = fit_checks(
-        residuals=residuals, mask=mask, noise_sigma=noise_sigma,
-        fraction_outside=None if frac is None else float(frac), level=level,
-        theta=np.asarray(posterior.theta, float), lower=problem.lower, upper=problem.upper,
-        labels=list(problem.labels), valid=np.asarray(fit.get("stable"), bool)
-        if fit.get("stable") is not None else None)
+        residuals=residuals,
+        mask=mask,
+        noise_sigma=noise_sigma,
+        fraction_outside=None if frac is None else float(frac),
+        level=level,
+        theta=np.asarray(posterior.theta, float),
+        lower=problem.lower,
+        upper=problem.upper,
+        labels=list(problem.labels),
+        valid=np.asarray(fit.get("stable"), bool) if fit.get("stable") is not None else None,
+    )
     if pred is None:
-        return FitVerdict("poor_fit", ["too few stable particles to judge the training fit",
-                                       *verdict.reasons], verdict.measures)
+        return FitVerdict(
+            "poor_fit",
+            ["too few stable particles to judge the training fit", *verdict.reasons],
+            verdict.measures,
+        )
     return verdict

@@ -77,8 +77,12 @@ def _recorded_files(recorded: Mapping | None) -> dict | None:
     return dict(files)
 
 
-def verify_run(run_dir: str | os.PathLike, recorded: Mapping | None,
-               allow_modified: bool = False, names: Iterable[str] | None = None) -> list[str]:
+def verify_run(
+    run_dir: str | os.PathLike,
+    recorded: Mapping | None,
+    allow_modified: bool = False,
+    names: Iterable[str] | None = None,
+) -> list[str]:
     """Check the run folder's files against their recorded checksums.
 
     Args:
@@ -96,8 +100,12 @@ def verify_run(run_dir: str | os.PathLike, recorded: Mapping | None,
     run_dir = Path(run_dir)
     files = _recorded_files(recorded)
     if files is None:
-        return [(f"{run_dir}: no checksums recorded (a run from an older treeinfer); its files "
-                 "were not verified")]
+        return [
+            (
+                f"{run_dir}: no checksums recorded (a run from an older treeinfer); its files "
+                "were not verified"
+            )
+        ]
     wanted = list(files) if names is None else [n for n in names if n in files]
     problems = []
     for name in wanted:
@@ -113,15 +121,22 @@ def verify_run(run_dir: str | os.PathLike, recorded: Mapping | None,
             continue
         if not isinstance(rec, Mapping) or now[ALGORITHM] != rec.get(ALGORITHM):
             size = f"{rec.get('bytes')} -> {now['bytes']} bytes" if isinstance(rec, Mapping) else ""
-            what = "was edited" if name.endswith((".yaml", ".yml", ".json", ".csv")) else "is damaged or was replaced"
-            problems.append(f"{name} {what} after the run (sha256 differs from config.json; {size})")
+            what = (
+                "was edited"
+                if name.endswith((".yaml", ".yml", ".json", ".csv"))
+                else "is damaged or was replaced"
+            )
+            problems.append(
+                f"{name} {what} after the run (sha256 differs from config.json; {size})"
+            )
     if not problems:
         return []
     if not allow_modified:
         raise ConfigError(
             f"{run_dir}: the run folder changed since it was written: {'; '.join(problems)}. "
             "Predictions from it would not come from the posterior that was inferred; run infer "
-            "again, or pass --allow-modified to use it anyway (recorded in the output)")
+            "again, or pass --allow-modified to use it anyway (recorded in the output)"
+        )
     return [f"{run_dir}: used with --allow-modified although {p}" for p in problems]
 
 
@@ -183,9 +198,18 @@ def _check(d: Mapping, path: Path, dotted: str, kind: str, optional: bool = Fals
     else:  # pragma: no cover -- programming error
         raise ValueError(kind)
     if bad:
-        expected = {"positive": "a positive number", "nonneg": "a number >= 0", "number": "a number",
-                    "int": "an integer", "count": "an integer >= 0", "posint": "an integer >= 1",
-                    "str": "text", "bool": "true or false", "dict": "an object", "list": "a list"}[kind]
+        expected = {
+            "positive": "a positive number",
+            "nonneg": "a number >= 0",
+            "number": "a number",
+            "int": "an integer",
+            "count": "an integer >= 0",
+            "posint": "an integer >= 1",
+            "str": "text",
+            "bool": "true or false",
+            "dict": "an object",
+            "list": "a list",
+        }[kind]
         raise ConfigError(f"{loc}: expected {expected}, got {v!r}")
     return v
 
@@ -202,9 +226,15 @@ def validate_run_config(config: Any, path: str | os.PathLike, resumable: bool = 
     _check(config, path, "format", "int")
     _check(config, path, "command", "str")
     _check(config, path, "options", "dict")
-    for k, kind in (("sampler", "str"), ("particles", "posint"), ("iterations", "count"),
-                    ("seed", "int"), ("kT", "positive"), ("max_unstable_share", "nonneg"),
-                    ("checkpoint_every", "count")):
+    for k, kind in (
+        ("sampler", "str"),
+        ("particles", "posint"),
+        ("iterations", "count"),
+        ("seed", "int"),
+        ("kT", "positive"),
+        ("max_unstable_share", "nonneg"),
+        ("checkpoint_every", "count"),
+    ):
         _check(config, path, f"options.{k}", kind)
     _check(config, path, "options.grasp_fraction", "positive", optional=True)
     _check(config, path, "problem", "dict")
@@ -219,9 +249,14 @@ def validate_run_config(config: Any, path: str | os.PathLike, resumable: bool = 
         _check(config, path, "data.dir", "str")
         files = _check(config, path, "data.files", "list")
         for i, f in enumerate(files):
-            if not isinstance(f, Mapping) or not isinstance(f.get("name"), str) or not isinstance(
-                    f.get(ALGORITHM), str):
-                raise ConfigError(f"{path}, field 'data.files[{i}]': expected {{name, sha256}}, got {f!r}")
+            if (
+                not isinstance(f, Mapping)
+                or not isinstance(f.get("name"), str)
+                or not isinstance(f.get(ALGORITHM), str)
+            ):
+                raise ConfigError(
+                    f"{path}, field 'data.files[{i}]': expected {{name, sha256}}, got {f!r}"
+                )
     if "integrity" in config:
         _recorded_files(config)
     return dict(config)
@@ -238,12 +273,15 @@ def validate_summary(summary: Any, path: str | os.PathLike, n_particles: int) ->
         if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < n_particles:
             raise ConfigError(
                 f"{path}, field 'unstable_particles[{i}]': {v!r} is not a particle index in "
-                f"[0, {n_particles}) (the run has {n_particles} particles)")
+                f"[0, {n_particles}) (the run has {n_particles} particles)"
+            )
     _check(summary, path, "n_unstable", "count", optional=True)
     _check(summary, path, "posterior", "dict", optional=True)
     status = _get(summary, "fit.status")
     if status is not _MISSING and status not in ("ok", "warning", "poor_fit"):
-        raise ConfigError(f"{path}, field 'fit.status': expected ok, warning or poor_fit, got {status!r}")
+        raise ConfigError(
+            f"{path}, field 'fit.status': expected ok, warning or poor_fit, got {status!r}"
+        )
     return dict(summary)
 
 
@@ -252,8 +290,10 @@ def validate_checkpoint_file(path: str | os.PathLike) -> Path:
     path = require_regular_file(path, "checkpoint", ConfigError)
     size = path.stat().st_size
     if size == 0:
-        raise ConfigError(f"{path}: checkpoint is empty (0 bytes; a write cut short?); the run "
-                          "cannot continue from it: delete it to restart from iteration 0")
+        raise ConfigError(
+            f"{path}: checkpoint is empty (0 bytes; a write cut short?); the run "
+            "cannot continue from it: delete it to restart from iteration 0"
+        )
     with open(path, "rb") as f:
         magic = f.read(4)
     if magic[:2] != b"PK":
@@ -291,8 +331,10 @@ def check_partial(partial: str | os.PathLike) -> str | None:
         return f"{partial} does not exist"
     cfg = partial / "config.json"
     if not cfg.is_file():
-        return (f"{partial} has no config.json (the run stopped before it was written, e.g. on a "
-                "full disk); it cannot be resumed: delete it, or pass --force to start over")
+        return (
+            f"{partial} has no config.json (the run stopped before it was written, e.g. on a "
+            "full disk); it cannot be resumed: delete it, or pass --force to start over"
+        )
     if cfg.stat().st_size == 0:
         return f"{cfg} is empty; it cannot be resumed: delete {partial} or pass --force"
     from .safe_load import load_file

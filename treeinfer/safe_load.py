@@ -76,8 +76,9 @@ def _kind_of(mode: int) -> str | None:
     return "not a regular file"
 
 
-def require_regular_file(path: str | os.PathLike, what: str = "file",
-                         error: type[TreeinferError] = ConfigError) -> Path:
+def require_regular_file(
+    path: str | os.PathLike, what: str = "file", error: type[TreeinferError] = ConfigError
+) -> Path:
     """Return ``path`` if it names an existing regular file (symlinks followed).
 
     Raises ``error`` for a missing file, a broken symlink, a folder, a FIFO, a device or a
@@ -98,9 +99,12 @@ def require_regular_file(path: str | os.PathLike, what: str = "file",
     return path
 
 
-def read_regular_file(path: str | os.PathLike, what: str = "file",
-                      error: type[TreeinferError] = ConfigError,
-                      max_bytes: int = MAX_BYTES) -> bytes:
+def read_regular_file(
+    path: str | os.PathLike,
+    what: str = "file",
+    error: type[TreeinferError] = ConfigError,
+    max_bytes: int = MAX_BYTES,
+) -> bytes:
     """The bytes of a regular file of at most ``max_bytes``; refuses FIFOs and devices without
     blocking (``O_NONBLOCK`` open, then ``fstat`` on the descriptor)."""
     path = Path(path)
@@ -115,8 +119,10 @@ def read_regular_file(path: str | os.PathLike, what: str = "file",
         if kind is not None:  # swapped after the stat above
             raise error(f"{path}: {what} is {kind}, not a regular file")
         if st.st_size > max_bytes:
-            raise error(f"{path}: {what} is {st.st_size} bytes; more than the limit of {max_bytes} "
-                        "bytes for this kind of file")
+            raise error(
+                f"{path}: {what} is {st.st_size} bytes; more than the limit of {max_bytes} "
+                "bytes for this kind of file"
+            )
         if hasattr(os, "set_blocking"):
             os.set_blocking(fd, True)
         chunks, total = [], 0
@@ -130,7 +136,9 @@ def read_regular_file(path: str | os.PathLike, what: str = "file",
             chunks.append(block)
         return b"".join(chunks)
     except OSError as e:
-        io = " (I/O error: failing disk or unreadable network file?)" if e.errno == errno.EIO else ""
+        io = (
+            " (I/O error: failing disk or unreadable network file?)" if e.errno == errno.EIO else ""
+        )
         raise error(f"{path}: cannot read {what} ({e.strerror or e}){io}") from None
     finally:
         os.close(fd)
@@ -158,13 +166,18 @@ def _yaml_loader_class():
                 if self._aliases > self.max_aliases:
                     ev = self.peek_event()
                     raise yaml.composer.ComposerError(
-                        None, None, f"more than {self.max_aliases} aliases (alias bomb?)", ev.start_mark)
+                        None,
+                        None,
+                        f"more than {self.max_aliases} aliases (alias bomb?)",
+                        ev.start_mark,
+                    )
                 return super().compose_node(parent, index)
             self._depth += 1
             if self._depth > self.max_depth:
                 ev = self.peek_event()
                 raise yaml.composer.ComposerError(
-                    None, None, f"nested deeper than {self.max_depth} levels", ev.start_mark)
+                    None, None, f"nested deeper than {self.max_depth} levels", ev.start_mark
+                )
             try:
                 return super().compose_node(parent, index)
             finally:
@@ -183,9 +196,11 @@ def _yaml_loader_class():
                         continue  # the base class reports unhashable keys
                     if key in seen:
                         raise yaml.constructor.ConstructorError(
-                            None, None,
+                            None,
+                            None,
                             f"duplicate key {key!r} (first at line {seen[key].line + 1})",
-                            key_node.start_mark)
+                            key_node.start_mark,
+                        )
                     seen[key] = key_node.start_mark
             return super().construct_mapping(node, deep=deep)
 
@@ -207,7 +222,9 @@ def _expanded_size(node, limit: int) -> int:
         if isinstance(n, yaml.ScalarNode):
             memo[id(n)] = 1
             continue
-        kids = ([c for kv in n.value for c in kv] if isinstance(n, yaml.MappingNode) else list(n.value))
+        kids = (
+            [c for kv in n.value for c in kv] if isinstance(n, yaml.MappingNode) else list(n.value)
+        )
         if done:
             active.discard(id(n))
             total = 1
@@ -229,9 +246,14 @@ def _expanded_size(node, limit: int) -> int:
     return memo[id(node)]
 
 
-def loads_yaml(text: str, source: str = "<yaml>", error: type[TreeinferError] = ConfigError,
-               max_depth: int = MAX_DEPTH, max_aliases: int = MAX_ALIASES,
-               max_nodes: int = MAX_NODES) -> Any:
+def loads_yaml(
+    text: str,
+    source: str = "<yaml>",
+    error: type[TreeinferError] = ConfigError,
+    max_depth: int = MAX_DEPTH,
+    max_aliases: int = MAX_ALIASES,
+    max_nodes: int = MAX_NODES,
+) -> Any:
     """Parse one YAML document with the limits of this module; errors name ``source`` and line."""
     import yaml
 
@@ -247,11 +269,15 @@ def loads_yaml(text: str, source: str = "<yaml>", error: type[TreeinferError] = 
             return None
         size = _expanded_size(node, max_nodes)
         if size < 0:
-            raise error(f"{source}: the document contains itself through an alias (recursive "
-                        "structure); refusing to load it")
+            raise error(
+                f"{source}: the document contains itself through an alias (recursive "
+                "structure); refusing to load it"
+            )
         if size > max_nodes:
-            raise error(f"{source}: the document expands to more than {max_nodes} nodes "
-                        "(aliases repeated many times: an alias bomb?); refusing to load it")
+            raise error(
+                f"{source}: the document expands to more than {max_nodes} nodes "
+                "(aliases repeated many times: an alias bomb?); refusing to load it"
+            )
         return loader.construct_document(node)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
@@ -307,8 +333,12 @@ def _key_line(text: str, key: str, nth: int) -> int | None:
     return None
 
 
-def loads_json(text: str, source: str = "<json>", error: type[TreeinferError] = ConfigError,
-               max_depth: int = MAX_DEPTH) -> Any:
+def loads_json(
+    text: str,
+    source: str = "<json>",
+    error: type[TreeinferError] = ConfigError,
+    max_depth: int = MAX_DEPTH,
+) -> Any:
     """Parse JSON refusing duplicate keys, NaN/Infinity literals and deep nesting."""
     deepest, line = _json_depth(text, max_depth)
     if deepest > max_depth:
@@ -340,10 +370,16 @@ def loads_json(text: str, source: str = "<json>", error: type[TreeinferError] = 
 
 
 # ---- files -----------------------------------------------------------------------------------
-def load_file(path: str | os.PathLike, what: str = "file",
-              error: type[TreeinferError] = ConfigError, fmt: str | None = None,
-              max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH,
-              max_aliases: int = MAX_ALIASES, max_nodes: int = MAX_NODES) -> Any:
+def load_file(
+    path: str | os.PathLike,
+    what: str = "file",
+    error: type[TreeinferError] = ConfigError,
+    fmt: str | None = None,
+    max_bytes: int = MAX_BYTES,
+    max_depth: int = MAX_DEPTH,
+    max_aliases: int = MAX_ALIASES,
+    max_nodes: int = MAX_NODES,
+) -> Any:
     """Read a YAML or JSON file safely (see the module docstring).
 
     Args:
@@ -368,14 +404,29 @@ def _loc(source: str | None, fld: str) -> str:
     return f"{source}: {fld}" if source else fld
 
 
-def number(value: Any, fld: str, source: str | None = None,
-           error: type[TreeinferError] = ConfigError, finite: bool = True) -> float:
+def number(
+    value: Any,
+    fld: str,
+    source: str | None = None,
+    error: type[TreeinferError] = ConfigError,
+    finite: bool = True,
+) -> float:
     """``value`` as a float; refuses booleans (YAML ``yes``/``no``), None, strings and NaN/inf."""
-    if isinstance(value, bool) or value is None or isinstance(value, str) or not isinstance(
-            value, (int, float)) and not hasattr(value, "__float__"):
-        raise error(f"{_loc(source, fld)}: expected a number, got {value!r}"
-                    + (" (YAML reads yes/no/on/off as booleans; write a number)"
-                       if isinstance(value, bool) else ""))
+    if (
+        isinstance(value, bool)
+        or value is None
+        or isinstance(value, str)
+        or not isinstance(value, (int, float))
+        and not hasattr(value, "__float__")
+    ):
+        raise error(
+            f"{_loc(source, fld)}: expected a number, got {value!r}"
+            + (
+                " (YAML reads yes/no/on/off as booleans; write a number)"
+                if isinstance(value, bool)
+                else ""
+            )
+        )
     try:
         v = float(value)
     except (TypeError, ValueError, OverflowError):
@@ -385,29 +436,39 @@ def number(value: Any, fld: str, source: str | None = None,
     return v
 
 
-def string(value: Any, fld: str, source: str | None = None,
-           error: type[TreeinferError] = ConfigError, allow_int: bool = True) -> str:
+def string(
+    value: Any,
+    fld: str,
+    source: str | None = None,
+    error: type[TreeinferError] = ConfigError,
+    allow_int: bool = True,
+) -> str:
     """``value`` as a str; refuses None (YAML ``null``/``~``), booleans, floats, lists, maps.
     Integers are accepted (and converted) with ``allow_int``."""
     if isinstance(value, str):
         return value
     if allow_int and isinstance(value, int) and not isinstance(value, bool):
         return str(value)
-    hint = " (YAML reads null/~ as nothing and yes/no/on/off as booleans: quote it)" if (
-        value is None or isinstance(value, bool)) else ""
+    hint = (
+        " (YAML reads null/~ as nothing and yes/no/on/off as booleans: quote it)"
+        if (value is None or isinstance(value, bool))
+        else ""
+    )
     raise error(f"{_loc(source, fld)}: expected a name (text), got {value!r}{hint}")
 
 
-def boolean(value: Any, fld: str, source: str | None = None,
-            error: type[TreeinferError] = ConfigError) -> bool:
+def boolean(
+    value: Any, fld: str, source: str | None = None, error: type[TreeinferError] = ConfigError
+) -> bool:
     """``value`` if it is a real boolean (``true``/``false``); refuses 0/1, strings and None."""
     if isinstance(value, bool):
         return value
     raise error(f"{_loc(source, fld)}: expected true or false, got {value!r}")
 
 
-def list_data_files(directory: str | os.PathLike, suffix: str = ".csv",
-                    error: type[TreeinferError] = ConfigError) -> tuple[list[Path], list[str]]:
+def list_data_files(
+    directory: str | os.PathLike, suffix: str = ".csv", error: type[TreeinferError] = ConfigError
+) -> tuple[list[Path], list[str]]:
     """The regular ``*{suffix}`` files of ``directory`` (sorted), and one sentence for every
     entry that looks like data but will not be read, naming it: a FIFO, device, folder or broken
     symbolic link with that suffix, or a file whose suffix differs only in case (``.CSV``).
