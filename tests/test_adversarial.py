@@ -486,8 +486,19 @@ def _write_set(d: Path, trajs) -> Path:
     return d
 
 
-E2E_ERRORS = ["mm", "kN", "swapped", "offset", "sign", "vel-negated", "vel-zero", "vel-random",
-              "all-zero", "duplicate", "mixed"]
+E2E_ERRORS = [
+    "mm",
+    "kN",
+    "swapped",
+    "offset",
+    "sign",
+    "vel-negated",
+    "vel-zero",
+    "vel-random",
+    "all-zero",
+    "duplicate",
+    "mixed",
+]
 
 
 def test_infer_refuses_certainly_wrong_data_before_sampling(tmp_path, clean, capsys):
@@ -509,8 +520,22 @@ def test_infer_refuses_certainly_wrong_data_before_sampling(tmp_path, clean, cap
             trajs[0] = CORRUPTIONS[kind](trajs[0], rng)
         data = _write_set(tmp_path / kind, trajs)
         before = sorted(p.name for p in data.iterdir())
-        rc = main(["infer", "--tree", tree, "--data", str(data), "--out", str(tmp_path / f"run-{kind}"),
-                   "--particles", "4", "--iterations", "2", "--no-progress"])
+        rc = main(
+            [
+                "infer",
+                "--tree",
+                tree,
+                "--data",
+                str(data),
+                "--out",
+                str(tmp_path / f"run-{kind}"),
+                "--particles",
+                "4",
+                "--iterations",
+                "2",
+                "--no-progress",
+            ]
+        )
         err = capsys.readouterr().err
         if rc == 0:
             silent.append(kind)
@@ -527,8 +552,23 @@ def test_infer_never_writes_into_its_own_data(tmp_path, clean, capsys):
 
     data = _write_set(tmp_path / "s_copy", clean)
     (data / ".treeinfer-output").write_text('{"writer": "treeinfer", "complete": true}')
-    rc = main(["infer", "--tree", str(example_path("two_branch")), "--data", str(data), "--out", str(data),
-               "--force", "--particles", "4", "--iterations", "2", "--no-progress"])
+    rc = main(
+        [
+            "infer",
+            "--tree",
+            str(example_path("two_branch")),
+            "--data",
+            str(data),
+            "--out",
+            str(data),
+            "--force",
+            "--particles",
+            "4",
+            "--iterations",
+            "2",
+            "--no-progress",
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 2 and "input of this command" in err
     assert sorted(p.name for p in data.glob("*.csv")) == sorted(t.source for t in clean)

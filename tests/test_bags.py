@@ -374,7 +374,8 @@ def test_existing_output_refused_unless_force(tmp_path):
     assert [p.name for p in out.iterdir()] == ["old.csv"]
     (out / ".treeinfer-output").write_text('{"writer": "treeinfer", "complete": true}')
     paths = import_bag(bag, out, force=True)
-    assert sorted(p.name for p in out.iterdir()) == sorted([".treeinfer-output"] + [p.name for p in paths])
+    expected = sorted([".treeinfer-output"] + [p.name for p in paths])
+    assert sorted(p.name for p in out.iterdir()) == expected
 
 
 # ----------------------------------------------------------------------------- pull splitting
