@@ -572,3 +572,38 @@ def test_infer_never_writes_into_its_own_data(tmp_path, clean, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and "input of this command" in err
     assert sorted(p.name for p in data.glob("*.csv")) == sorted(t.source for t in clean)
+
+
+@pytest.mark.slow  # one tiny inference (compiles the simulator): ~1 minute on 2 shared cores
+def test_infer_poor_fit_exit_code(tmp_path, clean, capsys):
+    """Displacement in cm (only a warning before sampling): the fit verdict is poor_fit, the
+    exit code 4 and summary.json says so; --allow-poor-fit exits 0 with the same verdict."""
+    from treeinfer.cli import main
+
+    cm = [t._replace(displacement=100 * t.displacement, velocity=None) for t in clean[2:3]]
+    data = _write_set(tmp_path / "cm", cm)
+    args = ["infer", "--tree", str(example_path("two_branch")), "--data", str(data),
+            "--particles", "4", "--iterations", "3", "--no-progress"]  # fmt: skip
+    rc = main([*args, "--out", str(tmp_path / "run")])
+    out, err = capsys.readouterr()
+    assert rc == 4, err[-2000:]
+    assert "warning:" in err and "displacement is in cm" in err  # the data check, before sampling
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["status"] == "poor_fit" == summary["fit"]["status"]
+    assert "fit verdict: poor_fit" in out and "exit code 4" in err
+    assert summary["data_checks"] and "cm" in " ".join(summary["data_checks"])
+    rc = main([*args, "--out", str(tmp_path / "run2"), "--allow-poor-fit"])
+    assert rc == 0, capsys.readouterr().err[-2000:]
+    # the finished run verifies; an edited tree.yaml is refused by predict, then allowed
+    run = tmp_path / "run"
+    cfg = json.loads((run / "config.json").read_text())
+    assert set(cfg["integrity"]["files"]) >= {"tree.yaml", "posterior.nc", "particles.csv"}
+    text = (run / "tree.yaml").read_text()
+    (run / "tree.yaml").write_text(text.replace("length: 0.6", "length: 0.9"))
+    pred = ["predict", "--run", str(run), "--profile", "ramp:peak=2,ramp=0.2", "--duration", "0.4"]
+    rc = main([*pred, "--out", str(tmp_path / "p")])
+    assert rc == 2 and "tree.yaml was edited" in capsys.readouterr().err
+    rc = main([*pred, "--out", str(tmp_path / "p"), "--allow-modified"])
+    assert rc == 0, capsys.readouterr().err[-2000:]
+    notes = json.loads((tmp_path / "p" / "config.json").read_text())["integrity_notes"]
+    assert notes and "tree.yaml was edited" in notes[0]
