@@ -324,7 +324,8 @@ def test_fit_verdict_from_run_and_preflight(tree, clean):
     v = fit_verdict_from_run(problem, SimpleNamespace(theta=theta), fit, noise_sigma=SIGMA)
     assert v.status == "poor_fit" and v.as_dict()["measures"]["residual_to_noise"] > 10
     fit["prediction"] = None
-    assert fit_verdict_from_run(problem, SimpleNamespace(theta=theta), fit).status == "poor_fit"
+    v = fit_verdict_from_run(problem, SimpleNamespace(theta=theta), fit)
+    assert v.status == "warning" and "too few stable particles" in v.reasons[0]
     errors, warnings = preflight(tree, [clean[0], clean[0]._replace(source="dup.csv")])
     assert [e.check for e in errors] == ["duplicate"] and warnings == []
 

@@ -781,9 +781,10 @@ def fit_verdict_from_run(
         labels=list(problem.labels),
         valid=np.asarray(fit.get("stable"), bool) if fit.get("stable") is not None else None,
     )
-    if pred is None:
+    if pred is None:  # the unstable-share limit already judged this; do not fail twice
+        status = verdict.status if verdict.status == "poor_fit" else "warning"
         return FitVerdict(
-            "poor_fit",
+            status,
             ["too few stable particles to judge the training fit", *verdict.reasons],
             verdict.measures,
         )
