@@ -576,18 +576,20 @@ def test_infer_never_writes_into_its_own_data(tmp_path, clean, capsys):
 
 @pytest.mark.slow  # one tiny inference (compiles the simulator): ~1 minute on 2 shared cores
 def test_infer_poor_fit_exit_code(tmp_path, clean, capsys):
-    """Displacement in cm (only a warning before sampling): the fit verdict is poor_fit, the
-    exit code 4 and summary.json says so; --allow-poor-fit exits 0 with the same verdict."""
+    """Displacement in cm sampled anyway (--allow-implausible-data: the data errors are printed
+    and recorded): the fit verdict is poor_fit, the exit code 4 and summary.json says so;
+    --allow-poor-fit exits 0 with the same verdict."""
     from treeinfer.cli import main
 
     cm = [t._replace(displacement=100 * t.displacement, velocity=None) for t in clean[2:3]]
     data = _write_set(tmp_path / "cm", cm)
     args = ["infer", "--tree", str(example_path("two_branch")), "--data", str(data),
-            "--particles", "4", "--iterations", "3", "--no-progress"]  # fmt: skip
+            "--particles", "4", "--iterations", "3", "--no-progress",
+            "--allow-implausible-data"]  # fmt: skip
     rc = main([*args, "--out", str(tmp_path / "run")])
     out, err = capsys.readouterr()
     assert rc == 4, err[-2000:]
-    assert "warning:" in err and "displacement is in cm" in err  # the data check, before sampling
+    assert "error:" in err and "displacement is in cm" in err  # the data check, before sampling
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["status"] == "poor_fit" == summary["fit"]["status"]
     assert "fit verdict: poor_fit" in out and "exit code 4" in err
