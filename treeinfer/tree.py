@@ -50,9 +50,10 @@ MIN_MASS = 1.0e-9  # kg; far above MuJoCo's mjMINVAL, so float32 rollouts stay w
 MIN_INERTIA = 1.0e-14  # kg m^2, principal inertia about the centre of mass
 KP_RANGE = (1.0e-6, 1.0e8)  # N m/rad: every prior bound and fixed gain must lie inside
 KD_RANGE = (1.0e-8, 1.0e6)  # N m s/rad
-# Names the generated MJCF/URDF models use themselves: a branch of that name would clash
-# (``world`` is MuJoCo's body 0; the others are the URDF export's links and joints).
-RESERVED_NAMES = frozenset({"world", "worldbody", "base_link", "base_fixed"})
+# Names the generated models use themselves: ``world`` is MuJoCo's body 0 (a branch of that
+# name cannot be compiled). The URDF export's own ``base_link``/``base_fixed`` are refused by
+# :func:`treeinfer.urdf.to_urdf`, since a tree using them still simulates.
+RESERVED_NAMES = frozenset({"world"})
 # suffixes of generated element names: branch ``b`` makes geom ``b_geom`` (MJCF) and
 # ``b_visual`` / ``b_collision`` (URDF); a branch named like that would shadow one of them.
 _GENERATED_SUFFIXES = ("_geom", "_visual", "_collision")
@@ -394,8 +395,8 @@ def _validate_branches(branches: tuple[Branch, ...]) -> None:
             raise TreeFileError(f"{w}duplicate branch name")
         if b.name.lower() in RESERVED_NAMES:
             raise TreeFileError(
-                f"branches[{i}].name: '{b.name}' is reserved (the simulator's and URDF export's own "
-                "bodies use it); rename the branch")
+                f"branches[{i}].name: '{b.name}' is reserved (MuJoCo's world body); rename the "
+                "branch")
         _positive(b.length, "length", w)
         _positive(b.radius, "radius", w)
         if b.length > MAX_BRANCH_LENGTH:
