@@ -474,3 +474,138 @@ def test_stale_staging_is_always_tidied(tmp_path):
                 (st / _io.OUTPUT_MARKER).write_text(json.dumps({"complete": True}))
         clean_stale_staging(out)
         assert find_staging(out) == [] and (out / "r.txt").is_file()
+
+
+# ---- 8. corrupted data sets end to end through `treeinfer infer` ---------------------------------
+def _write_set(d: Path, trajs) -> Path:
+    from treeinfer.trajectories import write_trajectory
+
+    d.mkdir(parents=True)
+    for t in trajs:
+        write_trajectory(d / t.source, t)
+    return d
+
+
+# (displacement in mm is refused by the trajectory reader itself, so it never reaches infer)
+E2E_ERRORS = [
+    "kN",
+    "swapped",
+    "offset",
+    "sign",
+    "vel-negated",
+    "vel-zero",
+    "vel-random",
+    "all-zero",
+    "duplicate",
+    "mixed",
+]
+
+
+def test_infer_refuses_certainly_wrong_data_before_sampling(tmp_path, clean, capsys):
+    """Every certainly-wrong data set: exit 2 before any sampling, the file and the evidence
+    named; the data folder untouched. (Warning-level cases are judged after sampling, by the fit
+    verdict: test_infer_poor_fit_exit_code.)"""
+    from treeinfer.cli import main
+
+    tree = str(example_path("two_branch"))
+    rng = np.random.default_rng(8)
+    silent = []
+    for kind in E2E_ERRORS:
+        trajs = list(clean)
+        if kind == "duplicate":
+            trajs.append(trajs[0]._replace(source="copy.csv"))
+        elif kind == "mixed":
+            trajs[2] = trajs[2]._replace(displacement=100 * trajs[2].displacement, velocity=None)
+        else:
+            trajs[0] = CORRUPTIONS[kind](trajs[0], rng)
+        data = _write_set(tmp_path / kind, trajs)
+        before = sorted(p.name for p in data.iterdir())
+        rc = main(
+            [
+                "infer",
+                "--tree",
+                tree,
+                "--data",
+                str(data),
+                "--out",
+                str(tmp_path / f"run-{kind}"),
+                "--particles",
+                "4",
+                "--iterations",
+                "2",
+                "--no-progress",
+            ]
+        )
+        err = capsys.readouterr().err
+        if rc == 0:
+            silent.append(kind)
+        # the reader's own unit limits or the plausibility checks: either names the file
+        assert rc == 2 and str(data) in err, (kind, rc, err[-800:])
+        assert sorted(p.name for p in data.iterdir()) == before
+        assert not (tmp_path / f"run-{kind}").exists()
+    assert silent == []
+
+
+def test_infer_never_writes_into_its_own_data(tmp_path, clean, capsys):
+    """The issue's `infer --data s_copy --out s_copy --force`: refused, the CSVs stay."""
+    from treeinfer.cli import main
+
+    data = _write_set(tmp_path / "s_copy", clean)
+    (data / ".treeinfer-output").write_text('{"writer": "treeinfer", "complete": true}')
+    rc = main(
+        [
+            "infer",
+            "--tree",
+            str(example_path("two_branch")),
+            "--data",
+            str(data),
+            "--out",
+            str(data),
+            "--force",
+            "--particles",
+            "4",
+            "--iterations",
+            "2",
+            "--no-progress",
+        ]
+    )
+    err = capsys.readouterr().err
+    assert rc == 2 and "input of this command" in err
+    assert sorted(p.name for p in data.glob("*.csv")) == sorted(t.source for t in clean)
+
+
+@pytest.mark.slow  # one tiny inference (compiles the simulator): ~1 minute on 2 shared cores
+def test_infer_poor_fit_exit_code(tmp_path, clean, capsys):
+    """Displacement in cm sampled anyway (--allow-implausible-data: the data errors are printed
+    and recorded): the fit verdict is poor_fit, the exit code 4 and summary.json says so;
+    --allow-poor-fit exits 0 with the same verdict."""
+    from treeinfer.cli import main
+
+    cm = [t._replace(displacement=100 * t.displacement, velocity=None) for t in clean[2:3]]
+    data = _write_set(tmp_path / "cm", cm)
+    args = ["infer", "--tree", str(example_path("two_branch")), "--data", str(data),
+            "--particles", "4", "--iterations", "3", "--no-progress",
+            "--allow-implausible-data"]  # fmt: skip
+    rc = main([*args, "--out", str(tmp_path / "run")])
+    out, err = capsys.readouterr()
+    assert rc == 4, err[-2000:]
+    assert "error:" in err and "displacement is in cm" in err  # the data check, before sampling
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["status"] == "poor_fit" == summary["fit"]["status"]
+    assert "fit verdict: poor_fit" in out and "exit code 4" in err
+    assert summary["data_checks"] and "cm" in " ".join(summary["data_checks"])
+    rc = main([*args, "--out", str(tmp_path / "run2"), "--allow-poor-fit"])
+    assert rc == 0, capsys.readouterr().err[-2000:]
+    # the finished run verifies; an edited tree.yaml is refused by predict, then allowed
+    run = tmp_path / "run"
+    cfg = json.loads((run / "config.json").read_text())
+    assert set(cfg["integrity"]["files"]) >= {"tree.yaml", "posterior.nc", "particles.csv"}
+    text = (run / "tree.yaml").read_text()
+    (run / "tree.yaml").write_text(text.replace("length: 0.6", "length: 0.9"))
+    pred = ["predict", "--run", str(run), "--profile", "ramp:peak=2,ramp=0.2", "--duration", "0.4"]
+    rc = main([*pred, "--out", str(tmp_path / "p")])
+    assert rc == 2 and "tree.yaml was edited" in capsys.readouterr().err
+    rc = main([*pred, "--out", str(tmp_path / "p"), "--allow-modified"])
+    assert rc == 0, capsys.readouterr().err[-2000:]
+    notes = json.loads((tmp_path / "p" / "config.json").read_text())["integrity_notes"]
+    assert notes and "tree.yaml was edited" in notes[0]

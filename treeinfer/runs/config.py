@@ -83,7 +83,7 @@ class RunConfig:
     force: bool = False
 
     def __post_init__(self):
-        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 -- frozen: normalise once
+        set_ = lambda k, v: object.__setattr__(self, k, v)
         sampler_spec(self.sampler)
         set_(
             "particles",
