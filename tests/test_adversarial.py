@@ -609,3 +609,26 @@ def test_infer_poor_fit_exit_code(tmp_path, clean, capsys):
     assert rc == 0, capsys.readouterr().err[-2000:]
     notes = json.loads((tmp_path / "p" / "config.json").read_text())["integrity_notes"]
     assert notes and "tree.yaml was edited" in notes[0]
+
+
+def test_infer_names_data_files_it_skips(tmp_path, clean, capsys):
+    """A FIFO, a broken link and an upper-case .CSV in the data folder are named (and the FIFO
+    never blocks); the run is refused here only because of a duplicate, before sampling."""
+    from treeinfer.cli import main
+
+    data = _write_set(tmp_path / "d", [*clean[:2], clean[0]._replace(source="dup.csv")])
+    (data / "UP.CSV").write_text("x")
+    (data / "gone.csv").symlink_to(tmp_path / "missing.csv")
+    if hasattr(os, "mkfifo"):
+        os.mkfifo(data / "pipe.csv")
+    kind, rc = _run_with_timeout(
+        lambda: main(["infer", "--tree", str(example_path("two_branch")), "--data", str(data),
+                      "--out", str(tmp_path / "run"), "--no-progress"]),  # fmt: skip
+        60.0,
+    )
+    err = capsys.readouterr().err
+    assert kind == "ok" and rc == 2, (kind, rc, err[-1500:])
+    assert "dup.csv" in err and ("byte-identical" in err or "same force and displacement" in err)
+    assert "UP.CSV: not read" in err and "gone.csv: not read: broken symbolic link" in err
+    if hasattr(os, "mkfifo"):
+        assert "pipe.csv: not read: it is a FIFO" in err

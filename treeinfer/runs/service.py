@@ -101,25 +101,38 @@ def _inputs(config: dict) -> list[str]:
     return [p for p in (o.get("tree"), o.get("data")) if p]
 
 
-def _data_checks(config: dict, tree: Tree, trajs, log: Callable[[str], None],
-                 allow_implausible_data: bool) -> list[str]:
+def _data_checks(
+    config: dict, tree: Tree, trajs, log: Callable[[str], None], allow_implausible_data: bool
+) -> list[str]:
     """Plausibility checks before sampling (:mod:`treeinfer.checks`): errors stop the run unless
-    ``allow_implausible_data``; warnings are logged. Returns every finding as text (for
-    summary.json)."""
+    ``allow_implausible_data``; warnings are logged, and so are entries of the data folder that
+    are not read (FIFOs, broken links, ``.CSV``). Returns every finding as text (summary.json)."""
     from ..checks import format_findings, preflight
+    from ..safe_load import list_data_files
 
     o = config["options"]
     data_dir = Path(config["data"]["dir"])
+    _, skipped = list_data_files(data_dir)
+    skipped = [f"warning: {m}" for m in skipped]
     paths = [data_dir / f["name"] for f in config["data"]["files"]]
-    errors, warns = preflight(tree, trajs, paths if len(paths) == len(trajs) else None,
-                              tree_file=o.get("tree"), grasp_fraction=o.get("grasp_fraction"))
+    errors, warns = preflight(
+        tree,
+        trajs,
+        paths if len(paths) == len(trajs) else None,
+        tree_file=o.get("tree"),
+        grasp_fraction=o.get("grasp_fraction"),
+    )
     if errors and not allow_implausible_data:
         raise TrajectoryFileError(
-            "the training data are implausible for this tree:\n" + format_findings(errors + warns)
-            + "\nfix the data (or the tree), or pass --allow-implausible-data to sample anyway")
+            "the training data are implausible for this tree:\n"
+            + "\n".join([format_findings(errors + warns), *skipped])
+            + "\nfix the data (or the tree), or pass --allow-implausible-data to sample anyway"
+        )
     for f in errors + warns:
         log(str(f))
-    return [str(f) for f in errors + warns]
+    for m in skipped:
+        log(m)
+    return [str(f) for f in errors + warns] + skipped
 
 
 def _prepare_fresh(config: dict, log: Callable[[str], None]):
