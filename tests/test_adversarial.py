@@ -632,3 +632,17 @@ def test_infer_names_data_files_it_skips(tmp_path, clean, capsys):
     assert "UP.CSV: not read" in err and "gone.csv: not read: broken symbolic link" in err
     if hasattr(os, "mkfifo"):
         assert "pipe.csv: not read: it is a FIFO" in err
+
+
+def test_import_bag_never_replaces_the_folder_holding_the_bag(tmp_path, capsys):
+    from test_bags import write_bag
+
+    from treeinfer.cli import main
+
+    out = tmp_path / "rec"
+    out.mkdir()
+    (out / ".treeinfer-output").write_text('{"writer": "treeinfer", "complete": true}')
+    bag = write_bag(out / "a.bag", ros="ros1")
+    rc = main(["import-bag", str(bag), "--out", str(out), "--force"])
+    assert rc == 2 and "input of this command" in capsys.readouterr().err
+    assert bag.is_file()
