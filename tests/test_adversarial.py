@@ -646,3 +646,14 @@ def test_import_bag_never_replaces_the_folder_holding_the_bag(tmp_path, capsys):
     rc = main(["import-bag", str(bag), "--out", str(out), "--force"])
     assert rc == 2 and "input of this command" in capsys.readouterr().err
     assert bag.is_file()
+
+
+def test_absurdly_small_kT_is_a_clear_option_error(tmp_path, clean, capsys):
+    """--kT 1e-300 used to blame the simulation step and suggest a simulate-only option."""
+    from treeinfer.cli import main
+
+    data = _write_set(tmp_path / "d", clean[:2])
+    rc = main(["infer", "--tree", str(example_path("two_branch")), "--data", str(data),
+               "--out", str(tmp_path / "run"), "--kT", "1e-300", "--no-progress"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 2 and "--kT: 1e-300 is so small" in err and "max-sim-dt" not in err
