@@ -91,15 +91,18 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
+    p.add_argument("--allow-modified", action="store_true", help="use the run even if its files changed since `infer` wrote them (checksums in its config.json); recorded in the output")
     return p
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
-    check_output_dir(args.out, args.force)
+    check_output_dir(args.out, args.force, "evaluation", inputs=[args.run, args.data])
     _prepare_jax()
     cache = runs.SimulatorCache()  # this command's simulators (the run's, and k-fold's)
-    run = runs.load_run(args.run, cache)
+    run = runs.load_run(args.run, cache, allow_modified=args.allow_modified)
+    for note in run.notes:
+        _say(f"warning: {note}")
     trajs = read_trajectory_dir(args.data)
     dt = trajs[0].dt
     if not math.isclose(dt, run.sim.obs_dt, rel_tol=1e-6):
@@ -116,6 +119,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
         dt=dt,
         grasp_fraction=grasp if grasp is not None else run.tree.grasp_fraction,
         run_options=run.config["options"],
+        integrity_notes=list(run.notes),
+        run_fit_status=run.summary.get("status"),
     )
     if args.kfold is None:
         m, pred, obs = evaluate_trajectories(

@@ -36,6 +36,10 @@ def _count(flag: str, v, minimum: int, why: str = "") -> int:
     return int(v)
 
 
+# float32 log-densities: losses of ~1e-3 or more over kT must stay below ~1e38
+MIN_KT = 1e-30
+
+
 def _positive(flag: str, v, what: str = "a positive number") -> float:
     """The one "positive finite number" check of the run options."""
     try:
@@ -86,7 +90,7 @@ class RunConfig:
     prior_from: str | None = None
 
     def __post_init__(self):
-        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 -- frozen: normalise once
+        set_ = lambda k, v: object.__setattr__(self, k, v)
         sampler_spec(self.sampler)
         set_(
             "particles",
@@ -101,6 +105,12 @@ class RunConfig:
         set_("checkpoint_every", _count("--checkpoint-every", self.checkpoint_every, 0))
         set_("seed", _count("--seed", self.seed, 0))
         set_("kT", _positive("--kT", self.kT, "a positive number (loss units per nat)"))
+        if self.kT < MIN_KT:  # the log-likelihood -L/kT would overflow float32 to -inf everywhere
+            raise ConfigError(
+                f"--kT: {self.kT:g} is so small that every particle's log-likelihood -L/kT "
+                f"overflows (below {MIN_KT:g}); a loss of L costs L/kT nats: typical values are "
+                "1e-3 to 10 (see treeinfer.likelihood.suggest_kT)"
+            )
         set_("eta", _positive("--eta", self.eta))
         g = self.grasp_fraction
         if g is not None and not (math.isfinite(g) and 0.0 < g <= 1.0):
