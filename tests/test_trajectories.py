@@ -136,7 +136,7 @@ BAD_CASES = {
         "looks like millimetres, expected metres",
     ),
     "time in ms": (csv_text(dt=10.0), 4, "looks like milliseconds, expected seconds"),
-    "time step of 1 s": (csv_text(n=50, dt=1.0), 4, "looks like milliseconds"),
+    "time step of 2 s": (csv_text(n=50, dt=2.0), 4, "looks like milliseconds"),
     "force too large": (_replace_line(csv_text(), 4, "0.01,25000,0.001"), 4, "implausible"),
     "velocity in mm/s": (
         csv_text(cols=("time", "force", "displacement", "velocity")).replace(
