@@ -15,8 +15,8 @@ applied, in order:
    one not to be trusted);
 3. force and displacement to newtons and metres from the unit table;
 4. ``tare``: subtract the mean force over the rest samples at the start;
-5. ``trim``: drop idle samples at the start and end (force at rest and displacement still),
-   keeping one rest sample on each side;
+5. ``trim``: drop idle samples at the start and end (force at rest and displacement still,
+   widened to the foot of the ramps), keeping one rest sample on each side;
 6. ``zero_displacement``: ``"first"`` subtracts the first sample's displacement; ``"contact"``
    drops the approach before the force rises and measures from the last rest sample;
 7. a sign check: force and displacement should rise together (warns otherwise).
@@ -43,10 +43,10 @@ from .errors import ConfigError, TrajectoryFileError, where
 from .pulls import (
     PULLS_FILE,
     PullSpec,
-    spec_to_dict,
     parse_direction,
     pulls_from_dict,
     read_pulls,
+    spec_to_dict,
     write_pulls,
 )
 from .trajectories import (
@@ -453,8 +453,17 @@ def convert_file(
                 f"{path}: nothing happens in this recording (force and displacement at rest "
                 "throughout); nothing to import"
             )
-        lo = max(0, int(first_active[0]) - 1)
-        hi = min(f.size, int(last_active[-1]) + 2)
+        # widen to the foot of the ramps (as bags.find_pulls): the first samples of a slow
+        # ramp sit below the threshold but are already part of the push
+        a = np.abs(f - np.median(f[:3]))
+        s = int(first_active[0])
+        while s > 0 and a[s - 1] < a[s]:
+            s -= 1
+        a = np.abs(f - np.median(f[-3:]))
+        e = int(last_active[-1])
+        while e < f.size - 1 and a[e + 1] < a[e]:
+            e += 1
+        lo, hi = max(0, s - 1), min(f.size, e + 2)
         if lo > 0 or hi < f.size:
             steps.append(
                 f"trim: dropped {lo} idle sample(s) at the start and {f.size - hi} at the end "
@@ -464,7 +473,10 @@ def convert_file(
         active = np.flatnonzero(np.abs(f[lo:hi] - np.median(f[lo:lo + 3])) > thr)
         if active.size == 0:
             raise TrajectoryFileError(f"{path}: no contact found: the force never rises")
-        c = lo + max(0, int(active[0]) - 1)
+        a = np.abs(f - np.median(f[lo:lo + 3]))
+        c = lo + int(active[0])
+        while c > lo and a[c - 1] < a[c]:  # back to the foot of the ramp: the last rest sample
+            c -= 1
         if c > lo:
             steps.append(
                 f"zero displacement at contact: dropped {c - lo} approach sample(s) before the "
