@@ -151,8 +151,12 @@ def test_zero_at_contact(tmp_path):
                     [[r(a), r(b), r(c)] for a, b, c in zip(t, f, x)])
     traj, steps = convert_file(src, zero_displacement="contact")
     assert any("approach sample" in s for s in steps)
-    assert traj.displacement[0] == 0.0 and traj.force[0] == 0.0
-    assert traj.n_steps == f.size - 6  # 6 approach samples; the ramp starts at rest
+    assert any("after the force returns to rest" in s for s in steps)
+    assert traj.displacement[0] == pytest.approx(0.0, abs=1e-12) and traj.force[0] == 0.0
+    # 6 approach samples dropped (the ramp starts at rest), and the 5 after the release
+    assert traj.n_steps == f.size - 6 - 5
+    # contact position from the loaded samples: the spring line through the origin
+    np.testing.assert_allclose(traj.displacement, traj.force / 200.0, atol=1e-12)
 
 
 def test_sign_check_warns(tmp_path):

@@ -18,7 +18,9 @@ applied, in order:
 5. ``trim``: drop idle samples at the start and end (force at rest and displacement still,
    widened to the foot of the ramps), keeping one rest sample on each side;
 6. ``zero_displacement``: ``"first"`` subtracts the first sample's displacement; ``"contact"``
-   drops the approach before the force rises and measures from the last rest sample;
+   keeps only the samples in contact (from the last rest sample before the force rises to the
+   first after it returns to rest) and measures from the contact position (a line through the
+   first loaded samples extrapolated to zero force; the last rest sample if too few);
 7. a sign check: force and displacement should rise together (warns otherwise).
 
 Errors raise :class:`~treeinfer.errors.TrajectoryFileError` naming the file and line.
@@ -469,27 +471,49 @@ def convert_file(
                 f"trim: dropped {lo} idle sample(s) at the start and {f.size - hi} at the end "
                 "(one rest sample kept on each side)"
             )
+    x_contact = None
     if zero_displacement == "contact":
-        active = np.flatnonzero(np.abs(f[lo:hi] - np.median(f[lo:lo + 3])) > thr)
+        base = np.median(f[lo:lo + 3])
+        a = np.abs(f - base)
+        active = lo + np.flatnonzero(a[lo:hi] > thr)
         if active.size == 0:
             raise TrajectoryFileError(f"{path}: no contact found: the force never rises")
-        a = np.abs(f - np.median(f[lo:lo + 3]))
-        c = lo + int(active[0])
+        c = int(active[0])
         while c > lo and a[c - 1] < a[c]:  # back to the foot of the ramp: the last rest sample
             c -= 1
+        e = int(active[-1])
+        while e < hi - 1 and a[e + 1] < a[e]:  # forward to the foot of the release
+            e += 1
         if c > lo:
             steps.append(
-                f"zero displacement at contact: dropped {c - lo} approach sample(s) before the "
-                f"force rises (t = {t[c] - t[0]:g} s)"
+                f"contact: dropped {c - lo} approach sample(s) before the force rises "
+                f"(t = {t[c] - t[0]:g} s)"
             )
-        lo = c
+        if e + 1 < hi:
+            steps.append(
+                f"contact: dropped {hi - e - 1} sample(s) after the force returns to rest "
+                "(contact lost: displacement no longer the branch's)"
+            )
+        # Contact lies between two samples; a line through the first loaded samples
+        # (threshold .. 30% of the peak) extrapolated to zero force locates it.
+        peak = c + int(np.argmax(a[c:e + 1]))
+        rise = np.arange(c, peak + 1)
+        sel = rise[(a[rise] > thr) & (a[rise] <= 0.3 * a[peak])]
+        if sel.size >= 3 and np.ptp(f[sel]) > 0:
+            _, icpt = np.polyfit(f[sel] - base, x[sel], 1)
+            x_contact = float(icpt)
+            steps.append(
+                f"contact position from a line through {sel.size} early loaded samples "
+                f"extrapolated to zero force: {x_contact:.6g} m"
+            )
+        lo, hi = c, e + 1
     t, f, x = t[lo:hi], f[lo:hi], x[lo:hi]
     if t.size < MIN_ROWS:
         raise TrajectoryFileError(
             f"{path}: only {t.size} sample(s) left after trimming; at least {MIN_ROWS} needed"
         )
     if zero_displacement is not None:
-        x0 = float(x[0])
+        x0 = float(x[0]) if x_contact is None else x_contact
         x = x - x0
         what = "the first sample" if zero_displacement == "first" else "contact"
         steps.append(f"displacement measured from {what} (subtracted {x0:.6g} m)")
