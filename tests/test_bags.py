@@ -535,9 +535,11 @@ def test_real_bag_without_tare_mistakes_the_blip(tmp_path):
     bag = write_real_bag(tmp_path / "real.bag")
     # the 0.8 N offset puts the whole record above the 0.44 N threshold: one "pull" from the
     # first sample, which has no rest before it
-    with pytest.warns(UserWarning, match="no rest pose before it"):
-        with pytest.raises(TrajectoryFileError, match="no pull found"):
-            import_bag(bag, tmp_path / "out", tare=False)
+    with (
+        pytest.warns(UserWarning, match="no rest pose before it"),
+        pytest.raises(TrajectoryFileError, match="no pull found"),
+    ):
+        import_bag(bag, tmp_path / "out", tare=False)
 
 
 def test_joint_states_only_bag_says_what_is_missing(tmp_path):
