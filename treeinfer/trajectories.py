@@ -46,6 +46,7 @@ __all__ = [
     "stack_trajectories",
     "validate_trajectory",
     "velocity_from_displacement",
+    "write_band_csv",
     "write_provenance",
     "write_trajectory",
 ]
@@ -361,6 +362,51 @@ def write_trajectory(
     out = [",".join(names)]
     # repr() gives the shortest string that parses back to the same float64.
     out.extend(",".join(repr(float(v)) for v in row) for row in zip(*cols))
+    return atomic_write_text(path, "\n".join(out) + "\n")
+
+
+BAND_COLUMNS = ("time", "force", "recorded", "mean", "lower", "upper")
+
+
+def write_band_csv(
+    path: str | os.PathLike,
+    time,
+    force,
+    recorded,
+    mean,
+    lower,
+    upper,
+    predictive_lower=None,
+    predictive_upper=None,
+) -> Path:
+    """Write one recording's prediction as CSV, header first, for users' own plots and scores.
+
+    Columns ``time,force,recorded,mean,lower,upper`` (s, N, m, m, m, m): ``lower``/``upper``
+    bound the 95% band over the parameters; with ``predictive_lower``/``predictive_upper``
+    (the band including observation noise) two more columns of those names follow.
+    ``recorded`` may be ``None`` (a force profile without displacement): an empty column.
+    """
+    cols = [time, force, recorded, mean, lower, upper]
+    names = list(BAND_COLUMNS)
+    if predictive_lower is not None or predictive_upper is not None:
+        if predictive_lower is None or predictive_upper is None:
+            raise ConfigError("write_band_csv: give both predictive_lower and predictive_upper")
+        cols += [predictive_lower, predictive_upper]
+        names += ["predictive_lower", "predictive_upper"]
+    n = len(np.asarray(time))
+    arrs = []
+    for name, c in zip(names, cols):
+        if c is None:
+            arrs.append([None] * n)
+            continue
+        a = np.asarray(c, dtype=float).reshape(-1)
+        if a.shape[0] != n:
+            raise ConfigError(f"write_band_csv: column '{name}' has {a.shape[0]} values, time {n}")
+        arrs.append(a)
+    out = [",".join(names)]
+    out.extend(
+        ",".join("" if v is None else repr(float(v)) for v in row) for row in zip(*arrs)
+    )
     return atomic_write_text(path, "\n".join(out) + "\n")
 
 
