@@ -40,6 +40,7 @@ __all__ = [
     "Observations",
     "Trajectory",
     "add_noise",
+    "band_csv_text",
     "ground_truth_velocity",
     "read_trajectory",
     "read_trajectory_dir",
@@ -368,8 +369,7 @@ def write_trajectory(
 BAND_COLUMNS = ("time", "force", "recorded", "mean", "lower", "upper")
 
 
-def write_band_csv(
-    path: str | os.PathLike,
+def band_csv_text(
     time,
     force,
     recorded,
@@ -378,36 +378,42 @@ def write_band_csv(
     upper,
     predictive_lower=None,
     predictive_upper=None,
-) -> Path:
-    """Write one recording's prediction as CSV, header first, for users' own plots and scores.
+) -> str:
+    """One recording's prediction as CSV text, header first, for users' own plots and scores.
 
     Columns ``time,force,recorded,mean,lower,upper`` (s, N, m, m, m, m): ``lower``/``upper``
     bound the 95% band over the parameters; with ``predictive_lower``/``predictive_upper``
     (the band including observation noise) two more columns of those names follow.
-    ``recorded`` may be ``None`` (a force profile without displacement): an empty column.
+    ``recorded`` may be ``None`` (a force profile without displacement): an empty column;
+    NaN (padding) is written as an empty cell too.
     """
     cols = [time, force, recorded, mean, lower, upper]
     names = list(BAND_COLUMNS)
     if predictive_lower is not None or predictive_upper is not None:
         if predictive_lower is None or predictive_upper is None:
-            raise ConfigError("write_band_csv: give both predictive_lower and predictive_upper")
+            raise ConfigError("band CSV: give both predictive_lower and predictive_upper")
         cols += [predictive_lower, predictive_upper]
         names += ["predictive_lower", "predictive_upper"]
     n = len(np.asarray(time))
     arrs = []
     for name, c in zip(names, cols):
         if c is None:
-            arrs.append([None] * n)
+            arrs.append(np.full(n, np.nan))
             continue
         a = np.asarray(c, dtype=float).reshape(-1)
         if a.shape[0] != n:
-            raise ConfigError(f"write_band_csv: column '{name}' has {a.shape[0]} values, time {n}")
+            raise ConfigError(f"band CSV: column '{name}' has {a.shape[0]} values, time {n}")
         arrs.append(a)
     out = [",".join(names)]
     out.extend(
-        ",".join("" if v is None else repr(float(v)) for v in row) for row in zip(*arrs)
+        ",".join(repr(float(v)) if math.isfinite(v) else "" for v in row) for row in zip(*arrs)
     )
-    return atomic_write_text(path, "\n".join(out) + "\n")
+    return "\n".join(out) + "\n"
+
+
+def write_band_csv(path: str | os.PathLike, *columns, **kwargs) -> Path:
+    """Write :func:`band_csv_text` atomically to ``path`` (same arguments)."""
+    return atomic_write_text(path, band_csv_text(*columns, **kwargs))
 
 
 PROVENANCE_FILE = "import.json"
