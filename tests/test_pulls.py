@@ -12,6 +12,7 @@ from treeinfer.pulls import (
     PullSpec,
     ResolvedPull,
     check_same_pull,
+    data_grasp_fractions,
     load_data_pulls,
     parse_direction,
     parse_tree_pull,
@@ -146,3 +147,17 @@ def test_check_same_pull():
     assert "traj_000.csv" in msg and "fraction 0.5 instead of 1" in msg
     msg = check_same_pull(a, ResolvedPull("b", 1.0, np.array([1.0, 0, 0]), "horizontal"))
     assert "direction horizontal instead of down" in msg
+
+
+def test_data_grasp_fractions(tmp_path, tree):
+    assert data_grasp_fractions(tmp_path, tree, ["a.csv"]) is None
+    write_pulls(tmp_path / "pulls.yaml", {"a.csv": PullSpec("tip", 0.5), "b.csv": PullSpec()})
+    np.testing.assert_allclose(data_grasp_fractions(tmp_path, tree, ["a.csv", "b.csv"]),
+                               [0.5, 0.7])
+    write_pulls(tmp_path / "pulls.yaml", {"a.csv": PullSpec("stem", 0.5)})
+    with pytest.raises(ConfigError, match="a.csv was grasped on branch 'stem'"):
+        data_grasp_fractions(tmp_path, tree, ["a.csv"])
+    assert data_grasp_fractions(tmp_path, tree, ["a.csv"], any_branch=True)[0] == 0.5
+    write_pulls(tmp_path / "pulls.yaml", {"a.csv": PullSpec(direction="horizontal")})
+    with pytest.raises(ConfigError, match="pulled horizontal, but this model pulls only down"):
+        data_grasp_fractions(tmp_path, tree, ["a.csv"])

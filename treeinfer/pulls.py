@@ -53,6 +53,7 @@ __all__ = [
     "PullsFile",
     "ResolvedPull",
     "check_same_pull",
+    "data_grasp_fractions",
     "load_data_pulls",
     "parse_direction",
     "parse_tree_pull",
@@ -480,6 +481,43 @@ def load_data_pulls(
     if files is None:
         files = sorted(p.name for p in data_dir.glob("*.csv") if p.is_file())
     return resolve_pulls(files, tree, sidecar, default_direction)
+
+
+def data_grasp_fractions(
+    data_dir: str | os.PathLike,
+    tree,
+    sources: Sequence[str],
+    any_branch: bool = False,
+    any_direction: bool = False,
+) -> np.ndarray | None:
+    """Per-trajectory grasp fractions [B] from a data folder's ``pulls.yaml`` (``None`` if the
+    folder has none), for a simulator that takes one fraction per profile.
+
+    Args:
+        sources: the trajectories' file names, in the order they are stacked.
+        any_branch, any_direction: whether the caller's simulator supports grasp branches other
+            than the tree's and directions other than ``down``; if not, such pulls are refused.
+
+    Raises:
+        ConfigError: naming the file and what the simulator cannot do.
+    """
+    side = Path(data_dir) / PULLS_FILE
+    if not side.is_file():
+        return None
+    resolved = load_data_pulls(data_dir, tree, [Path(s).name for s in sources])
+    down = pull_direction(tree, tree.grasp_branch, "down")
+    for name, r in zip(sources, resolved):
+        if not any_branch and r.branch != tree.grasp_branch:
+            raise ConfigError(
+                f"{side}: {Path(name).name} was grasped on branch '{r.branch}', but this model "
+                f"pulls only on the tree's grasp branch '{tree.grasp_branch}'"
+            )
+        if not any_direction and float(r.direction @ down) < 1.0 - 1e-9:
+            raise ConfigError(
+                f"{side}: {Path(name).name} was pulled {r.label}, but this model pulls only "
+                "down (along gravity)"
+            )
+    return np.asarray([r.fraction for r in resolved], float)
 
 
 def stack_resolved(resolved: Sequence[ResolvedPull], tree=None):
