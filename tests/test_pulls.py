@@ -161,3 +161,21 @@ def test_data_grasp_fractions(tmp_path, tree):
     write_pulls(tmp_path / "pulls.yaml", {"a.csv": PullSpec(direction="horizontal")})
     with pytest.raises(ConfigError, match="pulled horizontal, but this model pulls only down"):
         data_grasp_fractions(tmp_path, tree, ["a.csv"])
+
+
+def test_pull_leverage_flags_pushes_along_the_hinge_axes():
+    from treeinfer.examples import example_path
+    from treeinfer.pulls import check_pull_moves, pull_leverage
+    from treeinfer.tree import load_tree, world_frames
+
+    three = load_tree(example_path("three_branch"))  # every hinge bends in the x-z plane
+    r = resolve_pull(PullSpec(direction="horizontal"), three)
+    np.testing.assert_allclose(r.direction, [0, 1, 0], atol=1e-12)
+    assert "acts along the axes of all its hinges" in check_pull_moves(three, r, "a.csv")
+    down = resolve_pull(PullSpec(), three)
+    assert check_pull_moves(three, down) is None
+    # independent figure: the root hinge's lever for a downward pull at the tip is the
+    # horizontal distance from the root joint to the grasp point
+    o, rot = world_frames(three)["branch2"]
+    tip = o + rot[:, 0] * three.branch("branch2").length
+    assert pull_leverage(three, down) >= abs(tip[0] - three.base_position[0]) - 1e-12

@@ -52,12 +52,14 @@ __all__ = [
     "PullSpec",
     "PullsFile",
     "ResolvedPull",
+    "check_pull_moves",
     "check_same_pull",
     "data_grasp_fractions",
     "load_data_pulls",
     "parse_direction",
     "parse_tree_pull",
     "pull_direction",
+    "pull_leverage",
     "pull_spec",
     "pulls_from_dict",
     "read_pulls",
@@ -410,7 +412,8 @@ def resolve_pull(
         tree: :class:`treeinfer.tree.Tree`.
         default: the sidecar's ``default`` entry.
         default_direction: the tree file's ``pull.direction``; ``None``: ``getattr(tree,
-            "pull_direction", "down")``.
+            "pull_direction",
+    "pull_leverage", "down")``.
 
     Raises:
         ConfigError: unknown branch, grasp point outside the branch, bad direction.
@@ -517,6 +520,9 @@ def data_grasp_fractions(
                 f"{side}: {Path(name).name} was pulled {r.label}, but this model pulls only "
                 "down (along gravity)"
             )
+        stuck = check_pull_moves(tree, r, f"{side}: {Path(name).name}")
+        if stuck is not None:
+            raise ConfigError(stuck)
     return np.asarray([r.fraction for r in resolved], float)
 
 
@@ -531,6 +537,41 @@ def stack_resolved(resolved: Sequence[ResolvedPull], tree=None):
     fractions = np.asarray([r.fraction for r in resolved], float)
     directions = np.asarray([r.direction for r in resolved], float).reshape(len(resolved), 3)
     return branches, fractions, directions
+
+
+def pull_leverage(tree, pull: ResolvedPull) -> float:
+    """Largest joint torque per newton [m] the pull exerts at the rest geometry (metres).
+
+    Each jointed branch on the path to the root is a hinge about its frame's y-axis at its
+    joint; a pull ``F d`` at the grasp point C exerts ``axis . ((C - joint) x d)`` on it. Zero
+    means the direction runs along every hinge axis (or through every joint): the hinge model
+    cannot move under it (e.g. a horizontal push across a branch whose hinges all bend in its
+    vertical plane)."""
+    from .tree import world_frames
+
+    frames = world_frames(tree)
+    origin, rot = frames[pull.branch]
+    c = origin + rot[:, 0] * pull.fraction * tree.branch(pull.branch).length
+    best = 0.0
+    for name in tree.ancestors(pull.branch):
+        if tree.branch(name).fixed:
+            continue
+        o, r = frames[name]
+        best = max(best, abs(float(r[:, 1] @ np.cross(c - o, pull.direction))))
+    return best
+
+
+def check_pull_moves(tree, pull: ResolvedPull, what: str = "pull", rtol: float = 1e-6):
+    """A message if ``pull`` cannot bend any hinge of the model (see :func:`pull_leverage`),
+    else ``None``; callers refuse the data set or warn."""
+    scale = max(tree.total_length(), 1e-12)
+    if pull_leverage(tree, pull) > rtol * scale:
+        return None
+    return (
+        f"{what}: a pull {pull.label} on branch '{pull.branch}' acts along the axes of all its "
+        "hinges (each branch bends about one axis only), so the model predicts no displacement; "
+        "pull in the branches' bending plane, or give the tree joints that bend that way"
+    )
 
 
 def check_same_pull(
