@@ -157,7 +157,12 @@ def test_data_grasp_fractions(tmp_path, tree):
     write_pulls(tmp_path / "pulls.yaml", {"a.csv": PullSpec("stem", 0.5)})
     with pytest.raises(ConfigError, match="a.csv was grasped on branch 'stem'"):
         data_grasp_fractions(tmp_path, tree, ["a.csv"])
-    assert data_grasp_fractions(tmp_path, tree, ["a.csv"], any_branch=True)[0] == 0.5
+    # pulling a vertical stem straight down bends no hinge: refused whatever the simulator
+    with pytest.raises(ConfigError, match="acts along the axes of all its hinges"):
+        data_grasp_fractions(tmp_path, tree, ["a.csv"], any_branch=True)
+    write_pulls(tmp_path / "pulls.yaml", {"a.csv": PullSpec("stem", 0.5, direction=(1, 0, 0))})
+    got = data_grasp_fractions(tmp_path, tree, ["a.csv"], any_branch=True, any_direction=True)
+    assert got[0] == 0.5
     write_pulls(tmp_path / "pulls.yaml", {"a.csv": PullSpec(direction="horizontal")})
     with pytest.raises(ConfigError, match="pulled horizontal, but this model pulls only down"):
         data_grasp_fractions(tmp_path, tree, ["a.csv"])
