@@ -73,12 +73,14 @@ def import_logs(folder: Path, stem: Stem, tree, seed: int):
 
 def stretch_sampler(logp, x0, steps, rng, a=2.0):
     """Goodman & Weare (2010) stretch move, two halves updated in turn. ``logp``: [W, D] -> [W].
-    Returns the chain [steps, W, D]."""
+    Returns the chain [steps, W, D] and its log densities [steps, W] (walkers that start where
+    the density is zero move to the first finite proposal)."""
     x = np.array(x0, float)
     w, d = x.shape
     lp = logp(x)
     half = w // 2
     chain = np.empty((steps, w, d))
+    lps = np.empty((steps, w))
     for s in range(steps):
         for sl, other in ((slice(0, half), slice(half, w)), (slice(half, w), slice(0, half))):
             xs, xo = x[sl], x[other]
@@ -87,13 +89,17 @@ def stretch_sampler(logp, x0, steps, rng, a=2.0):
             partner = xo[rng.integers(0, xo.shape[0], n)]
             prop = partner + z[:, None] * (xs - partner)
             lp_prop = logp(prop)
-            accept = np.log(rng.uniform(size=n)) < (d - 1) * np.log(z) + lp_prop - lp[sl]
+            with np.errstate(invalid="ignore"):  # -inf - -inf: both outside, reject
+                delta = np.where(np.isfinite(lp[sl]), lp_prop - lp[sl],
+                                 np.where(np.isfinite(lp_prop), np.inf, -np.inf))
+            accept = np.log(rng.uniform(size=n)) < (d - 1) * np.log(z) + delta
             xs[accept] = prop[accept]
             lp_s = lp[sl].copy()
             lp_s[accept] = lp_prop[accept]
             x[sl], lp[sl] = xs, lp_s
         chain[s] = x
-    return chain
+        lps[s] = lp
+    return chain, lps
 
 
 def fold(sim, tree, trajs, pulls, heights, test: int, args, rng):
@@ -146,9 +152,10 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args, rng):
         x0[:, :r] = np.sort(x0[:, :r], axis=1)  # so ascending order puts parents above children
     x0[:, nk] = np.log(1e-3) + 0.1 * rng.standard_normal(args.walkers)
     t0 = time.time()
-    chain = stretch_sampler(logp, x0, args.steps, rng)
+    chain, lps = stretch_sampler(logp, x0, args.steps, rng)
     wall = time.time() - t0
     post = chain[args.steps // 2 :].reshape(-1, nk + 1)
+    post = post[np.isfinite(lps[args.steps // 2 :].reshape(-1))]  # walkers still outside: out
     post = post[rng.choice(post.shape[0], min(args.draws, post.shape[0]), replace=False)]
 
     held = trajs[test]
