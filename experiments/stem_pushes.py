@@ -41,7 +41,7 @@ import numpy as np
 from treeinfer._io import atomic_write_text
 from treeinfer.csv_import import import_csv
 from treeinfer.pulls import load_data_pulls, stack_resolved
-from treeinfer.simulator import make_simulator
+from treeinfer.sim import make_simulator
 from treeinfer.static import static_rollout
 from treeinfer.synthetic_stem import (
     Stem,
@@ -60,11 +60,22 @@ def import_logs(folder: Path, stem: Stem, tree, seed: int):
     raw = write_stem_logs(folder / "raw", stem, seed=seed)
     for path, push in raw:
         k = min(int(push.height / link), len(tree.branches) - 1)
-        import_csv([path], folder / "data", time="millis", force="load_g",
-                   displacement="pos_mm", units="time=ms,force=gf,displacement=mm", dt=0.5,
-                   tare=True, zero_displacement="contact", trim=True,
-                   grasp_branch=f"link{k}", grasp_distance=push.height - k * link,
-                   direction="horizontal", tree=tree)
+        import_csv(
+            [path],
+            folder / "data",
+            time="millis",
+            force="load_g",
+            displacement="pos_mm",
+            units="time=ms,force=gf,displacement=mm",
+            dt=0.5,
+            tare=True,
+            zero_displacement="contact",
+            trim=True,
+            grasp_branch=f"link{k}",
+            grasp_distance=push.height - k * link,
+            direction="horizontal",
+            tree=tree,
+        )
     names = [p.stem + ".csv" for p, _ in raw]
     trajs = [read_trajectory(folder / "data" / n) for n in names]
     pulls = load_data_pulls(folder / "data", tree, names)
@@ -90,8 +101,11 @@ def stretch_sampler(logp, x0, steps, rng, a=2.0):
             prop = partner + z[:, None] * (xs - partner)
             lp_prop = logp(prop)
             with np.errstate(invalid="ignore"):  # -inf - -inf: both outside, reject
-                delta = np.where(np.isfinite(lp[sl]), lp_prop - lp[sl],
-                                 np.where(np.isfinite(lp_prop), np.inf, -np.inf))
+                delta = np.where(
+                    np.isfinite(lp[sl]),
+                    lp_prop - lp[sl],
+                    np.where(np.isfinite(lp_prop), np.inf, -np.inf),
+                )
             accept = np.log(rng.uniform(size=n)) < (d - 1) * np.log(z) + delta
             xs[accept] = prop[accept]
             lp_s = lp[sl].copy()
@@ -123,14 +137,22 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args, rng):
         if shape is None:
             return jnp.exp(theta[:, :r])
         return jnp.exp(theta[:, :1]) * jnp.asarray(shape)[None, :]
+
     x_obs = jnp.asarray(obs.displacement)
     mask = jnp.asarray(obs.mask, x_obs.dtype)
 
     @jax.jit
     def loglik(theta):
-        roll = static_rollout(sim, gains(theta), obs.force, grasp_fraction=fr,
-                              direction=di, grasp_branch=list(br), tree=tree,
-                              iterations=args.newton)
+        roll = static_rollout(
+            sim,
+            gains(theta),
+            obs.force,
+            grasp_fraction=fr,
+            direction=di,
+            grasp_branch=list(br),
+            tree=tree,
+            iterations=args.newton,
+        )
         sigma = jnp.exp(theta[:, nk])[:, None, None]
         res = (roll.tau - x_obs) / sigma
         ll = jnp.sum(mask * (-0.5 * res**2 - jnp.log(sigma)), axis=(1, 2))
@@ -140,7 +162,9 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args, rng):
         # every walker is evaluated (clipped into the box) so the batch shape never changes
         # and the static solve compiles once per fold
         inside = np.all((theta > box_lo) & (theta < box_hi), axis=1)
-        if args.ordered and not args.tied:  # parent joints at least as stiff as their children (treeinfer's
+        if (
+            args.ordered and not args.tied
+        ):  # parent joints at least as stiff as their children (treeinfer's
             # inequality prior, here as a hard constraint); pairs index tree.inferred
             for parent, child in tree.inferred_pairs():
                 inside &= theta[:, parent] >= theta[:, child]
@@ -148,7 +172,9 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args, rng):
         return np.where(inside, ll, -np.inf)
 
     x0 = rng.uniform(box_lo, box_hi, size=(args.walkers, nk + 1))
-    if args.ordered and not args.tied:  # start inside the constraint: a chain is inferred grasp branch first,
+    if (
+        args.ordered and not args.tied
+    ):  # start inside the constraint: a chain is inferred grasp branch first,
         x0[:, :r] = np.sort(x0[:, :r], axis=1)  # so ascending order puts parents above children
     x0[:, nk] = np.log(1e-3) + 0.1 * rng.standard_normal(args.walkers)
     t0 = time.time()
@@ -160,9 +186,16 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args, rng):
 
     held = trajs[test]
     pb = pulls[test]
-    roll = static_rollout(sim, gains(jnp.asarray(post)), held.force[None],
-                          grasp_fraction=pb.fraction, direction=pb.direction,
-                          grasp_branch=[pb.branch], tree=tree, iterations=args.newton)
+    roll = static_rollout(
+        sim,
+        gains(jnp.asarray(post)),
+        held.force[None],
+        grasp_fraction=pb.fraction,
+        direction=pb.direction,
+        grasp_branch=[pb.branch],
+        tree=tree,
+        iterations=args.newton,
+    )
     tau = np.asarray(roll.tau[:, 0])  # [S, T]
     ok = np.asarray(roll.stable[:, 0])
     tau, sig = tau[ok], np.exp(post[ok, nk])
@@ -171,8 +204,11 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args, rng):
     mean = tau.mean(axis=0)
     inside = float(np.mean((held.displacement >= lower) & (held.displacement <= upper)))
     rmse = float(np.sqrt(np.mean((mean - held.displacement) ** 2)))
-    ei = fit_cantilever([trajs[i].force for i in train], [trajs[i].displacement for i in train],
-                        [heights[i] for i in train])
+    ei = fit_cantilever(
+        [trajs[i].force for i in train],
+        [trajs[i].displacement for i in train],
+        [heights[i] for i in train],
+    )
     cant = cantilever_displacement(held.force, heights[test], ei)
     rmse_c = float(np.sqrt(np.mean((cant - held.displacement) ** 2)))
     return {
@@ -197,10 +233,17 @@ def main(argv=None):
     ap.add_argument("--newton", type=int, default=12, help="Newton iterations per sample")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--links", type=int, default=3, help="hinged links in the chain (3)")
-    ap.add_argument("--tied", action="store_true",
-                    help="one stiffness scale, Kp_j proportional to d_j^4 / l_j (taper-tied)")
-    ap.add_argument("--ordered", action=argparse.BooleanOptionalAction, default=True,
-                    help="parent joints at least as stiff as children (default on)")
+    ap.add_argument(
+        "--tied",
+        action="store_true",
+        help="one stiffness scale, Kp_j proportional to d_j^4 / l_j (taper-tied)",
+    )
+    ap.add_argument(
+        "--ordered",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="parent joints at least as stiff as children (default on)",
+    )
     ap.add_argument("--out", default="experiments/results/stem_pushes")
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
@@ -212,17 +255,30 @@ def main(argv=None):
     results = [fold(sim, tree, trajs, pulls, heights, k, args, rng) for k in range(3)]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "results.json", json.dumps(
-        {"folds": results, "stem": stem._asdict(), "args": vars(args)}, indent=2) + "\n")
-    lines_note = ("one scale, Kp ~ d^4/l (tied)" if args.tied else
-                  "parent >= child stiffness" if args.ordered else "independent stiffnesses")
-    lines = ["| held-out height (m) | inside 95% band | RMSE static (mm) | RMSE cantilever (mm) |",
-             "|---|---|---|---|"]
+    atomic_write_text(
+        out / "results.json",
+        json.dumps({"folds": results, "stem": stem._asdict(), "args": vars(args)}, indent=2) + "\n",
+    )
+    lines_note = (
+        "one scale, Kp ~ d^4/l (tied)"
+        if args.tied
+        else "parent >= child stiffness"
+        if args.ordered
+        else "independent stiffnesses"
+    )
+    lines = [
+        "| held-out height (m) | inside 95% band | RMSE static (mm) | RMSE cantilever (mm) |",
+        "|---|---|---|---|",
+    ]
     for r in results:
-        lines.append(f"| {r['held_out_height_m']:.2f} | {r['inside_95_band']:.0%} | "
-                     f"{1e3 * r['rmse_static_m']:.3f} | {1e3 * r['rmse_cantilever_m']:.3f} |")
-    lines.append(f"\n{args.links} links, {args.walkers} walkers x {args.steps} steps, {lines_note}, "
-                 f"seed {args.seed}")
+        lines.append(
+            f"| {r['held_out_height_m']:.2f} | {r['inside_95_band']:.0%} | "
+            f"{1e3 * r['rmse_static_m']:.3f} | {1e3 * r['rmse_cantilever_m']:.3f} |"
+        )
+    lines.append(
+        f"\n{args.links} links, {args.walkers} walkers x {args.steps} steps, {lines_note}, "
+        f"seed {args.seed}"
+    )
     atomic_write_text(out / "results.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 

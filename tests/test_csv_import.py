@@ -56,7 +56,10 @@ def test_unit_table_against_definitions():
     assert DISPLACEMENT_UNITS == {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
     assert TIME_UNITS == {"s": 1.0, "ms": 0.001}
     assert parse_units("time=ms, force=GF,displacement=mm") == {
-        "time": "ms", "force": "gf", "displacement": "mm"}
+        "time": "ms",
+        "force": "gf",
+        "displacement": "mm",
+    }
     for bad in ("force=stone", "mass=kg", "time"):
         with pytest.raises(ConfigError):
             parse_units(bad)
@@ -64,15 +67,28 @@ def test_unit_table_against_definitions():
 
 @pytest.mark.parametrize(
     "funit, dunit, tunit",
-    [("gf", "mm", "ms"), ("lbf", "in", "s"), ("kgf", "cm", "ms"), ("mN", "m", "s"),
-     ("kN", "mm", "s"), ("N", "m", "s")],
+    [
+        ("gf", "mm", "ms"),
+        ("lbf", "in", "s"),
+        ("kgf", "cm", "ms"),
+        ("mN", "m", "s"),
+        ("kN", "mm", "s"),
+        ("N", "m", "s"),
+    ],
 )
 def test_units_convert(tmp_path, funit, dunit, tunit):
     t, f, x = ramp()
     rows = zip(t / TIME_UNITS[tunit], f / FORCE_UNITS[funit], x / DISPLACEMENT_UNITS[dunit])
-    src = write_log(tmp_path / "log.csv", ["Time", "Load", "Pos"], [[r(v) for v in row] for row in rows])
-    traj, steps = convert_file(src, time="Time", force="load", displacement=2,
-                               units={"time": tunit, "force": funit, "displacement": dunit})
+    src = write_log(
+        tmp_path / "log.csv", ["Time", "Load", "Pos"], [[r(v) for v in row] for row in rows]
+    )
+    traj, steps = convert_file(
+        src,
+        time="Time",
+        force="load",
+        displacement=2,
+        units={"time": tunit, "force": funit, "displacement": dunit},
+    )
     np.testing.assert_allclose(traj.force, f, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(traj.displacement, x, rtol=1e-12, atol=1e-15)
     assert traj.dt == pytest.approx(0.5)
@@ -94,8 +110,9 @@ def test_wraparound_unwrapped_and_reported(tmp_path):
     wrap = [s for s in steps if "wraps around" in s]
     assert wrap and "log.csv, line" in wrap[0] and "unwrapped 1" in wrap[0]
     # with --dt the time column is replaced and the wrap still reported
-    traj2, steps2 = convert_file(src, time="t", force="f", displacement="x", units="time=ms",
-                                 dt=0.5)
+    traj2, steps2 = convert_file(
+        src, time="t", force="f", displacement="x", units="time=ms", dt=0.5
+    )
     np.testing.assert_allclose(traj2.time, t - t[0], atol=1e-12)
     assert any("wraps around" in s for s in steps2)
     assert any("uniform time base" in s for s in steps2)
@@ -105,8 +122,9 @@ def test_jitter_resampled_and_missing_time(tmp_path):
     t, f, x = ramp()
     rng = np.random.default_rng(0)
     tj = t + rng.uniform(-0.02, 0.02, t.size)
-    src = write_log(tmp_path / "j.csv", ["t", "f", "x"],
-                    [[r(a), r(b), r(c)] for a, b, c in zip(tj, f, x)])
+    src = write_log(
+        tmp_path / "j.csv", ["t", "f", "x"], [[r(a), r(b), r(c)] for a, b, c in zip(tj, f, x)]
+    )
     traj, steps = convert_file(src, time="t", force="f", displacement="x")
     assert any("jitter" in s for s in steps)
     np.testing.assert_allclose(np.diff(traj.time), np.diff(traj.time)[0], rtol=1e-9)
@@ -126,8 +144,11 @@ def test_tare_trim_zero(tmp_path):
     x = x + 0.002  # stepper position not zero at the start
     rng = np.random.default_rng(1)
     f_noisy = f + 0.01 * rng.standard_normal(f.size)
-    src = write_log(tmp_path / "p.csv", ["time", "force", "displacement"],
-                    [[r(a), r(b), r(c)] for a, b, c in zip(t, f_noisy, x)])
+    src = write_log(
+        tmp_path / "p.csv",
+        ["time", "force", "displacement"],
+        [[r(a), r(b), r(c)] for a, b, c in zip(t, f_noisy, x)],
+    )
     raw, _ = convert_file(src)
     assert raw.force[0] == pytest.approx(0.8, abs=0.05)
     traj, steps = convert_file(src, tare=True, trim=True, zero_displacement="first")
@@ -147,8 +168,11 @@ def test_tare_trim_zero(tmp_path):
 def test_zero_at_contact(tmp_path):
     t, f, x = ramp(idle=6)
     x = x + np.concatenate([np.linspace(-0.01, 0, 6), np.zeros(x.size - 6)])  # approach
-    src = write_log(tmp_path / "c.csv", ["time", "force", "displacement"],
-                    [[r(a), r(b), r(c)] for a, b, c in zip(t, f, x)])
+    src = write_log(
+        tmp_path / "c.csv",
+        ["time", "force", "displacement"],
+        [[r(a), r(b), r(c)] for a, b, c in zip(t, f, x)],
+    )
     traj, steps = convert_file(src, zero_displacement="contact")
     assert any("approach sample" in s for s in steps)
     assert any("after the force returns to rest" in s for s in steps)
@@ -161,8 +185,11 @@ def test_zero_at_contact(tmp_path):
 
 def test_sign_check_warns(tmp_path):
     t, f, x = ramp()
-    src = write_log(tmp_path / "s.csv", ["time", "force", "displacement"],
-                    [[r(a), r(b), r(-c)] for a, b, c in zip(t, f, x)])
+    src = write_log(
+        tmp_path / "s.csv",
+        ["time", "force", "displacement"],
+        [[r(a), r(b), r(-c)] for a, b, c in zip(t, f, x)],
+    )
     with pytest.warns(UserWarning, match="opposite directions"):
         _, steps = convert_file(src)
     assert any(s.startswith("WARNING") for s in steps)
@@ -174,15 +201,29 @@ def test_sign_check_warns(tmp_path):
 @pytest.mark.parametrize(
     "text, kwargs, message",
     [
-        ("time,force,disp\n0,1,2\n", {"displacement": "x"}, "line 1: no displacement column named 'x'"),
+        (
+            "time,force,disp\n0,1,2\n",
+            {"displacement": "x"},
+            "line 1: no displacement column named 'x'",
+        ),
         ("time,force,x\n0,1,2\n", {"displacement": 5}, "column index 5 is out of range"),
-        ("time,force,x\n0,1,2\n0.5,abc,3\n1,2,3\n", {"displacement": "x"},
-         "line 3, column 'force' (force): non-numeric value 'abc'"),
-        ("# c\ntime,force,x\n0,1,2\n0.5,,3\n1,2,3\n", {"displacement": "x"}, "line 4, column 'force'"),
+        (
+            "time,force,x\n0,1,2\n0.5,abc,3\n1,2,3\n",
+            {"displacement": "x"},
+            "line 3, column 'force' (force): non-numeric value 'abc'",
+        ),
+        (
+            "# c\ntime,force,x\n0,1,2\n0.5,,3\n1,2,3\n",
+            {"displacement": "x"},
+            "line 4, column 'force'",
+        ),
         ("time,force,x\n0,1,2\n0.5,1\n", {"displacement": "x"}, "line 3: row has 2 cell(s)"),
         ("time,force,x\n0,1,2\n0.5,1,2\n", {"displacement": "x"}, "only 2 data row(s)"),
-        ("time,force,x\n0,1,2\n0.5,1,2\n0.4,1,2\n0.9,1,2\n", {"displacement": "x"},
-         "goes backwards at"),
+        (
+            "time,force,x\n0,1,2\n0.5,1,2\n0.4,1,2\n0.9,1,2\n",
+            {"displacement": "x"},
+            "goes backwards at",
+        ),
     ],
 )
 def test_errors_name_file_and_line(tmp_path, text, kwargs, message):
@@ -200,17 +241,33 @@ def test_import_writes_folder_sidecar_and_provenance(tmp_path, capsys):
     t, f, x = ramp()
     srcs = []
     for name, scale in (("low", 1.0), ("mid", 2.0)):
-        rows = [[r(a), r(b / FORCE_UNITS["gf"]), r(scale * c * 1000)] for a, b, c in
-                zip(t, f, x)]
-        srcs.append(write_log(tmp_path / f"{name}.txt", ["t", "gf", "mm"], rows,
-                              comments=["logger v1"]))
+        rows = [[r(a), r(b / FORCE_UNITS["gf"]), r(scale * c * 1000)] for a, b, c in zip(t, f, x)]
+        srcs.append(
+            write_log(tmp_path / f"{name}.txt", ["t", "gf", "mm"], rows, comments=["logger v1"])
+        )
     out = tmp_path / "data"
-    res = import_csv([srcs[0]], out, time="t", force="gf", displacement="mm",
-                     units="force=gf,displacement=mm", grasp_branch="stem", grasp_distance=0.1,
-                     direction="horizontal")
-    res2 = import_csv([srcs[1]], out, time="t", force="gf", displacement="mm",
-                      units="force=gf,displacement=mm", grasp_branch="stem",
-                      grasp_fraction=0.5, direction="1,0,0")
+    res = import_csv(
+        [srcs[0]],
+        out,
+        time="t",
+        force="gf",
+        displacement="mm",
+        units="force=gf,displacement=mm",
+        grasp_branch="stem",
+        grasp_distance=0.1,
+        direction="horizontal",
+    )
+    res2 = import_csv(
+        [srcs[1]],
+        out,
+        time="t",
+        force="gf",
+        displacement="mm",
+        units="force=gf,displacement=mm",
+        grasp_branch="stem",
+        grasp_fraction=0.5,
+        direction="1,0,0",
+    )
     assert [p.name for p in res.paths + res2.paths] == ["low.csv", "mid.csv"]
     side = read_pulls(out / "pulls.yaml")
     assert side.pulls["low.csv"].distance == 0.1 and side.pulls["low.csv"].direction == "horizontal"

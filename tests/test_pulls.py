@@ -76,7 +76,9 @@ def test_horizontal_is_perpendicular_to_branch(tree):
     axis = world_frames(tree)["tip"][1][:, 0]
     h = pull_direction(tree, "tip", "horizontal")
     assert abs(h @ axis) < 1e-12 and abs(h[2]) < 1e-12
-    np.testing.assert_allclose(h, np.cross([0, 0, 1], axis) / np.linalg.norm(np.cross([0, 0, 1], axis)))
+    np.testing.assert_allclose(
+        h, np.cross([0, 0, 1], axis) / np.linalg.norm(np.cross([0, 0, 1], axis))
+    )
 
 
 @pytest.mark.parametrize(
@@ -152,8 +154,7 @@ def test_check_same_pull():
 def test_data_grasp_fractions(tmp_path, tree):
     assert data_grasp_fractions(tmp_path, tree, ["a.csv"]) is None
     write_pulls(tmp_path / "pulls.yaml", {"a.csv": PullSpec("tip", 0.5), "b.csv": PullSpec()})
-    np.testing.assert_allclose(data_grasp_fractions(tmp_path, tree, ["a.csv", "b.csv"]),
-                               [0.5, 0.7])
+    np.testing.assert_allclose(data_grasp_fractions(tmp_path, tree, ["a.csv", "b.csv"]), [0.5, 0.7])
     write_pulls(tmp_path / "pulls.yaml", {"a.csv": PullSpec("stem", 0.5)})
     with pytest.raises(ConfigError, match="a.csv was grasped on branch 'stem'"):
         data_grasp_fractions(tmp_path, tree, ["a.csv"])

@@ -12,7 +12,8 @@ from scipy.optimize import brentq
 from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
 from treeinfer.pulls import pull_direction
-from treeinfer.simulator import _c_model, make_simulator, settle_reference, simulate
+from treeinfer.sim import make_simulator, simulate
+from treeinfer.sim.reference import _c_model, settle_reference
 from treeinfer.static import (
     damping_note,
     natural_periods,
@@ -27,8 +28,12 @@ G = 9.81
 
 
 def one_joint(pitch_deg: float):
-    tree = make_tree([Branch("b", None, 0.8, 0.02)], grasp_branch="b", grasp_fraction=1.0,
-                     base_pitch_deg=pitch_deg)
+    tree = make_tree(
+        [Branch("b", None, 0.8, 0.02)],
+        grasp_branch="b",
+        grasp_fraction=1.0,
+        base_pitch_deg=pitch_deg,
+    )
     return tree, make_simulator(tree, obs_dt=0.5, backend="fused")
 
 
@@ -60,12 +65,14 @@ def test_one_joint_vertical_stem_pushed_sideways():
     f = np.array([0.0, 2.0, 8.0, 20.0])
 
     def psi(force):
-        return brentq(lambda p: kp * p - force * a * math.cos(p) - m * G * c * math.sin(p),
-                      -1.2, 1.2)
+        return brentq(
+            lambda p: kp * p - force * a * math.cos(p) - m * G * c * math.sin(p), -1.2, 1.2
+        )
 
     want = np.array([a * math.sin(psi(x)) for x in f])
-    r = static_rollout(sim, jnp.array([[kp]]), f[None], grasp_fraction=a / 0.8,
-                       direction=[1.0, 0.0, 0.0])
+    r = static_rollout(
+        sim, jnp.array([[kp]]), f[None], grasp_fraction=a / 0.8, direction=[1.0, 0.0, 0.0]
+    )
     np.testing.assert_allclose(np.asarray(r.tau[0, 0]), want, rtol=2e-4, atol=1e-6)
     # 'horizontal' for a vertical stem is its hinge's bending direction (here -x): by symmetry
     # the same displacement along it
@@ -112,16 +119,23 @@ def test_three_joints_match_slow_dynamic_pull_down(three):
     _, sim = three
     t = 0.1 * np.arange(120)
     forces = np.stack([np.clip(t / 6.0, 0, 1) * 10.0, np.clip(t / 6.0, 0, 1) * 4.0])
-    dyn = simulate(sim, jnp.asarray(KP3[None]), jnp.full((1, 3), 9.0), jnp.asarray(forces),
-                   jnp.asarray([1.0, 0.5]))
+    dyn = simulate(
+        sim,
+        jnp.asarray(KP3[None]),
+        jnp.full((1, 3), 9.0),
+        jnp.asarray(forces),
+        jnp.asarray([1.0, 0.5]),
+    )
     st = static_rollout(sim, jnp.asarray(KP3[None]), forces, grasp_fraction=[1.0, 0.5])
     assert np.asarray(st.stable).all() and np.asarray(dyn.stable).all()
     assert float(st.tau[0, 0, -1]) > 0.02
-    np.testing.assert_allclose(np.asarray(st.tau[0, :, -1]), np.asarray(dyn.tau[0, :, -1]),
-                               atol=2e-4)
+    np.testing.assert_allclose(
+        np.asarray(st.tau[0, :, -1]), np.asarray(dyn.tau[0, :, -1]), atol=2e-4
+    )
     # quasi-static all along the slow ramp too (the branch follows the force)
-    np.testing.assert_allclose(np.asarray(st.tau[0, 0, 70:]), np.asarray(dyn.tau[0, 0, 70:]),
-                               atol=5e-4)
+    np.testing.assert_allclose(
+        np.asarray(st.tau[0, 0, 70:]), np.asarray(dyn.tau[0, 0, 70:]), atol=5e-4
+    )
 
 
 def test_three_joints_sideways_match_mujoco_c(three):
@@ -130,8 +144,13 @@ def test_three_joints_sideways_match_mujoco_c(three):
     h = pull_direction(tree, tree.grasp_branch, "horizontal")
     push = np.array([1.0, 0.3, 0.2]) / np.linalg.norm([1.0, 0.3, 0.2])
     force = np.concatenate([np.linspace(0, 6.0, 40), np.full(40, 6.0)])
-    st = static_rollout(sim, jnp.asarray(KP3[None]), np.stack([force, force]),
-                        grasp_fraction=0.8, direction=np.stack([h, push]))
+    st = static_rollout(
+        sim,
+        jnp.asarray(KP3[None]),
+        np.stack([force, force]),
+        grasp_fraction=0.8,
+        direction=np.stack([h, push]),
+    )
     for b, d in enumerate((h, push)):
         ref = _c_pull(sim, KP3, np.full(3, 9.0), force, d, 0.8)
         np.testing.assert_allclose(float(st.tau[0, b, -1]), ref[-1], atol=2e-4)
@@ -143,9 +162,14 @@ def test_three_joints_sideways_match_mujoco_c(three):
 def test_several_branches_and_flags(three):
     tree, sim = three
     f = np.tile(np.linspace(0, 5, 6), (3, 1))
-    r = static_rollout(sim, jnp.asarray(np.stack([KP3, 2 * KP3])), f,
-                       grasp_fraction=[1.0, 1.0, 0.5],
-                       grasp_branch=["branch2", "branch1", "branch2"], tree=tree)
+    r = static_rollout(
+        sim,
+        jnp.asarray(np.stack([KP3, 2 * KP3])),
+        f,
+        grasp_fraction=[1.0, 1.0, 0.5],
+        grasp_branch=["branch2", "branch1", "branch2"],
+        tree=tree,
+    )
     assert r.tau.shape == (2, 3, 6) and np.asarray(r.stable).all()
     tau = np.asarray(r.tau)
     np.testing.assert_allclose(tau[:, :, 0], 0.0, atol=1e-6)
@@ -185,8 +209,9 @@ def test_parameter_layout(three):
     kp, kd = only.gains(jnp.asarray(theta))
     np.testing.assert_allclose(np.asarray(kp), [[10, 20, 30]], rtol=1e-6)
     np.testing.assert_allclose(np.asarray(kd), [[2, 2, 2]], rtol=1e-6)
-    np.testing.assert_allclose(np.asarray(only.full_theta(jnp.asarray(theta)))[0, 3:],
-                               np.log(2.0), rtol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(only.full_theta(jnp.asarray(theta)))[0, 3:], np.log(2.0), rtol=1e-6
+    )
     np.testing.assert_allclose(only.lower, np.log([5.0] * 3))
     default_kd = parameter_layout(tree, ["kp"]).fixed_kd
     np.testing.assert_allclose(default_kd, math.sqrt(0.05 * 10.0))

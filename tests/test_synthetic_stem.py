@@ -48,16 +48,26 @@ def test_tapered_compliance_matches_solve_bvp():
 def test_push_and_logs_through_import_csv(tmp_path):
     stem = Stem()
     logs = write_stem_logs(tmp_path / "raw", stem, heights=(0.2,), seed=3)
-    (path, push), = logs
+    ((path, push),) = logs
     text = path.read_text().splitlines()
     assert text[0] == "millis,load_g,pos_mm"
     ms = np.array([int(line.split(",")[0]) for line in text[1:]])
     assert np.any(np.diff(ms) < 0)  # the counter wraps during the push
-    res = import_csv([path], tmp_path / "data", time="millis", force="load_g",
-                     displacement="pos_mm", units="time=ms,force=gf,displacement=mm",
-                     dt=0.5, tare=True, zero_displacement="contact", trim=True,
-                     grasp_branch="link1", grasp_distance=0.2 - stem.height / 3,
-                     direction="horizontal")
+    res = import_csv(
+        [path],
+        tmp_path / "data",
+        time="millis",
+        force="load_g",
+        displacement="pos_mm",
+        units="time=ms,force=gf,displacement=mm",
+        dt=0.5,
+        tare=True,
+        zero_displacement="contact",
+        trim=True,
+        grasp_branch="link1",
+        grasp_distance=0.2 - stem.height / 3,
+        direction="horizontal",
+    )
     steps = res.steps[path.stem + ".csv"]
     assert any("wraps around" in s for s in steps) and any(s.startswith("tare") for s in steps)
     traj = read_trajectory(res.paths[0])
@@ -72,8 +82,7 @@ def test_push_and_logs_through_import_csv(tmp_path):
 def test_cantilever_fit_recovers_ei():
     stem = Stem(base_diameter=0.008, tip_diameter=0.008)
     pushes = [push_recording(stem, h) for h in (0.1, 0.3)]
-    ei = fit_cantilever([p.force for p in pushes], [p.displacement for p in pushes],
-                        [0.1, 0.3])
+    ei = fit_cantilever([p.force for p in pushes], [p.displacement for p in pushes], [0.1, 0.3])
     assert ei == pytest.approx(float(stem.ei(0)), rel=1e-9)
     x = cantilever_displacement(pushes[0].force, 0.1, ei)
     np.testing.assert_allclose(x, pushes[0].displacement, atol=1e-12)

@@ -122,9 +122,7 @@ def _unit_key(table: Mapping[str, float], unit: str, quantity: str) -> str:
     lower = {k.lower(): k for k in table}
     if unit.lower() in lower and unit not in ("MN",):  # "MN" (meganewton) is not "mN"
         return lower[unit.lower()]
-    raise ConfigError(
-        f"units: unknown {quantity} unit {unit!r}; known: {', '.join(table)}"
-    )
+    raise ConfigError(f"units: unknown {quantity} unit {unit!r}; known: {', '.join(table)}")
 
 
 def parse_units(units: str | Mapping[str, str] | None) -> dict[str, str]:
@@ -247,9 +245,7 @@ def read_columns(
     ncols = len(cells)
     wanted = {q: c for q, c in columns.items() if c is not None}
     index = {q: _pick(c, header, ncols, path, first_line, q) for q, c in wanted.items()}
-    names = {
-        q: (header[i] if header is not None else f"#{i}") for q, i in index.items()
-    }
+    names = {q: (header[i] if header is not None else f"#{i}") for q, i in index.items()}
     data_rows = rows[1:] if header is not None else rows
     vals = {q: [] for q in index}
     lines = []
@@ -403,8 +399,9 @@ def convert_file(
         )
     if time is None and dt is None:
         raise ConfigError(f"{path}: no time column given; give dt (--dt) to build a time base")
-    cols = read_columns(path, {"time": time, "force": force, "displacement": displacement},
-                        delimiter)
+    cols = read_columns(
+        path, {"time": time, "force": force, "displacement": displacement}, delimiter
+    )
     steps = [
         f"read {cols.lines.size} rows of {path.name}: "
         + ", ".join(f"{q} <- column '{c}'" for q, c in cols.names.items())
@@ -439,8 +436,7 @@ def convert_file(
         offset = float(np.mean(f[:n_rest]))
         f = f - offset
         steps.append(
-            f"tare: subtracted {offset:.6g} N (mean force over the first {n_rest} samples, "
-            "at rest)"
+            f"tare: subtracted {offset:.6g} N (mean force over the first {n_rest} samples, at rest)"
         )
         thr = _threshold(f)
     lo, hi = 0, f.size
@@ -473,7 +469,7 @@ def convert_file(
             )
     x_contact = None
     if zero_displacement == "contact":
-        base = np.median(f[lo:lo + 3])
+        base = np.median(f[lo : lo + 3])
         a = np.abs(f - base)
         active = lo + np.flatnonzero(a[lo:hi] > thr)
         if active.size == 0:
@@ -496,7 +492,7 @@ def convert_file(
             )
         # Contact lies between two samples; a line through the first loaded samples
         # (threshold .. 30% of the peak) extrapolated to zero force locates it.
-        peak = c + int(np.argmax(a[c:e + 1]))
+        peak = c + int(np.argmax(a[c : e + 1]))
         rise = np.arange(c, peak + 1)
         sel = rise[(a[rise] > thr) & (a[rise] <= 0.3 * a[peak])]
         if sel.size >= 3 and np.ptp(f[sel]) > 0:
@@ -593,13 +589,16 @@ def import_csv(
     dists = _per_source(grasp_distance, n, "grasp_distance")
     dirs = (
         [direction] * n
-        if direction is None or isinstance(direction, str)
+        if direction is None
+        or isinstance(direction, str)
         or (len(direction) == 3 and not isinstance(direction[0], (str, list, tuple)))
         else _per_source(direction, n, "direction")
     )
     if any(a is not None for a in fracs) and any(b is not None for b in dists):
-        raise ConfigError("give either grasp_fraction (--grasp-fraction) or grasp_distance "
-                          "(--grasp-distance), not both")
+        raise ConfigError(
+            "give either grasp_fraction (--grasp-fraction) or grasp_distance "
+            "(--grasp-distance), not both"
+        )
     names = [s.stem + ".csv" for s in sources]
     dup = sorted({m for m in names if names.count(m) > 1})
     if dup:
@@ -625,16 +624,28 @@ def import_csv(
     merged.update(specs)
     # validate the sidecar before converting (cheap, and nothing is written on error)
     pulls_from_dict(
-        {"default": spec_to_dict(existing.default) if existing else None,
-         "pulls": {k: spec_to_dict(v) for k, v in merged.items()}},
-        tree, str(side),
+        {
+            "default": spec_to_dict(existing.default) if existing else None,
+            "pulls": {k: spec_to_dict(v) for k, v in merged.items()},
+        },
+        tree,
+        str(side),
     )
     results = []
     for src in sources:
         results.append(
-            convert_file(src, time=time, force=force, displacement=displacement, units=units,
-                         dt=dt, tare=tare, zero_displacement=zero_displacement, trim=trim,
-                         delimiter=delimiter)
+            convert_file(
+                src,
+                time=time,
+                force=force,
+                displacement=displacement,
+                units=units,
+                dt=dt,
+                tare=tare,
+                zero_displacement=zero_displacement,
+                trim=trim,
+                delimiter=delimiter,
+            )
         )
     out.mkdir(parents=True, exist_ok=True)
     paths, steps = [], {}
@@ -653,11 +664,21 @@ def import_csv(
             prov = {}
     files = prov.setdefault("files", {})
     options = {
-        "time": time, "force": force, "displacement": displacement, "units": parse_units(units),
-        "dt": dt, "tare": tare, "zero_displacement": zero_displacement, "trim": trim,
+        "time": time,
+        "force": force,
+        "displacement": displacement,
+        "units": parse_units(units),
+        "dt": dt,
+        "tare": tare,
+        "zero_displacement": zero_displacement,
+        "trim": trim,
     }
     for m, src in zip(names, sources):
-        files[m] = {"tool": "treeinfer import-csv", "source": str(src), "options": options,
-                    "steps": steps[m]}
+        files[m] = {
+            "tool": "treeinfer import-csv",
+            "source": str(src),
+            "options": options,
+            "steps": steps[m],
+        }
     atomic_write_text(prov_path, json.dumps(prov, indent=2, sort_keys=True) + "\n")
     return ImportResult(paths, side, steps)

@@ -189,7 +189,9 @@ def pull_spec(entry: Any, source: str = PULLS_FILE, name: str = "entry") -> Pull
         )
     branch = entry.get("branch")
     if branch is not None and (not isinstance(branch, str) or not branch):
-        raise ConfigError(f"{_where(source, name, 'branch')}: expected a branch name, got {branch!r}")
+        raise ConfigError(
+            f"{_where(source, name, 'branch')}: expected a branch name, got {branch!r}"
+        )
     fraction = distance = None
     if entry.get("fraction") is not None:
         fraction = _number(entry["fraction"], _where(source, name, "fraction"))
@@ -220,10 +222,14 @@ def parse_tree_pull(value: Any, source: str = "<tree>") -> str | tuple[float, fl
     if value is None:
         return "down"
     if not isinstance(value, Mapping):
-        raise ConfigError(f"{source}: pull: expected a mapping like {{direction: down}}, got {value!r}")
+        raise ConfigError(
+            f"{source}: pull: expected a mapping like {{direction: down}}, got {value!r}"
+        )
     bad = set(value) - {"direction"}
     if bad:
-        raise ConfigError(f"{source}: pull: unknown field(s) {sorted(map(str, bad))}; allowed: direction")
+        raise ConfigError(
+            f"{source}: pull: unknown field(s) {sorted(map(str, bad))}; allowed: direction"
+        )
     if value.get("direction") is None:
         return "down"
     return parse_direction(value["direction"], f"{source}: pull: field 'direction'")
@@ -273,7 +279,9 @@ def pulls_from_dict(d: Any, tree=None, source: str = PULLS_FILE) -> PullsFile:
     if d is None:
         d = {}
     if not isinstance(d, Mapping):
-        raise ConfigError(f"{source}: expected a mapping with 'default' and 'pulls' at the top level")
+        raise ConfigError(
+            f"{source}: expected a mapping with 'default' and 'pulls' at the top level"
+        )
     bad = set(d) - _TOP_KEYS
     if bad:
         raise ConfigError(
@@ -460,8 +468,12 @@ def resolve_pulls(
         name = Path(f).name
         out.append(
             resolve_pull(
-                sidecar.pulls.get(name), tree, sidecar.default, default_direction,
-                sidecar.source, f"pulls.{name}" if name in sidecar.pulls else "default",
+                sidecar.pulls.get(name),
+                tree,
+                sidecar.default,
+                default_direction,
+                sidecar.source,
+                f"pulls.{name}" if name in sidecar.pulls else "default",
             )
         )
     return out

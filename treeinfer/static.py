@@ -8,7 +8,7 @@ the *static model* replaces the rollout: for every force sample ``f_t`` it solve
 
 (spring, gravity, and the point force ``f_t`` along the unit direction ``d`` at the grasp point
 C, whose generalised force is the transpose of C's positional Jacobian times the force), by the
-clipped Newton iteration of the simulator's settle solver (:func:`treeinfer.simulator.settle`)
+clipped Newton iteration of the simulator's settle solver (:func:`treeinfer.sim.settle`)
 with exact Jacobians from ``jax.jacfwd``. The samples are independent (no time stepping), so
 they are solved in one ``vmap`` over particles x profiles x samples. The observed displacement
 is ``tau_t = (C(q_t) - C(q_rest)) . d``. Only stiffness is identified; damping is not
@@ -31,9 +31,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import hinge_dynamics as hd
 from .errors import ConfigError
-from .simulator import Rollout, Simulator, velocity
+from .sim import Rollout, Simulator, velocity
+from .sim import fused as hd
 
 __all__ = [
     "PARAMETERS",
@@ -80,8 +80,10 @@ def _grasp_bodies(sim: Simulator, n: int, grasp_branch, tree) -> tuple[int, ...]
             raise ConfigError(f"grasp_branch: no body named '{name}' in the model")
         out.append(int(b))
     if tree is None and any(b != sim.grasp_body for b in out):
-        raise ConfigError("grasp_branch: pass the tree to pull on branches other than the grasp "
-                          "branch (their lengths set the grasp points)")
+        raise ConfigError(
+            "grasp_branch: pass the tree to pull on branches other than the grasp "
+            "branch (their lengths set the grasp points)"
+        )
     return tuple(out)
 
 
@@ -98,7 +100,7 @@ def static_rollout(
     """Equilibrium displacement of the grasp point under each force sample (no dynamics).
 
     Args:
-        sim: from :func:`treeinfer.simulator.make_simulator` with the fused backend (any tree
+        sim: from :func:`treeinfer.sim.make_simulator` with the fused backend (any tree
             treeinfer builds). ``sim.obs_dt`` is used only for ``tau_dot``.
         kp: [P, R] N m/rad, stiffness of the inferred joints (damping plays no role).
         forces: [B, T] N, force along ``direction`` at the grasp point.
@@ -110,7 +112,7 @@ def static_rollout(
         iterations: Newton iterations per sample (default ``sim.settle_iterations``).
 
     Returns:
-        :class:`~treeinfer.simulator.Rollout`: ``tau`` [P, B, T] m along the direction from
+        :class:`~treeinfer.sim.Rollout`: ``tau`` [P, B, T] m along the direction from
         the gravity-settled rest, ``tau_dot`` its finite-difference derivative (the same scheme
         as recorded data), ``stable`` [P, B] False where an equilibrium was not found.
     """
@@ -133,8 +135,15 @@ def static_rollout(
     starts, ends = jnp.asarray(np.asarray(starts), dtype), jnp.asarray(np.asarray(ends), dtype)
     if grasp_fraction is None:
         tree_site = np.asarray(sim.mj_model.site_pos[sim.grasp_site], float)
-        sites = jnp.asarray(np.asarray([tree_site if body == sim.grasp_body else e for body, e
-                                        in zip(bodies, np.asarray(ends))]), dtype)
+        sites = jnp.asarray(
+            np.asarray(
+                [
+                    tree_site if body == sim.grasp_body else e
+                    for body, e in zip(bodies, np.asarray(ends))
+                ]
+            ),
+            dtype,
+        )
     else:
         frac = jnp.broadcast_to(jnp.asarray(grasp_fraction, dtype), (b,))
         sites = starts + frac[:, None] * (ends - starts)
@@ -210,7 +219,9 @@ def _static_group(sim: Simulator, body: int, n_iter: int, kp, forces, sites, dir
             zero = jnp.zeros(nv, dtype)
             (q, r_first, r_last), _ = jax.lax.scan(newton, (q0, zero, zero), jnp.arange(n_iter))
             scale = 1.0 + jnp.max(jnp.abs(r_first))
-            ok = jnp.all(jnp.isfinite(q)) & (jnp.max(jnp.abs(r_last)) <= sim.settle_tolerance * scale)
+            ok = jnp.all(jnp.isfinite(q)) & (
+                jnp.max(jnp.abs(r_last)) <= sim.settle_tolerance * scale
+            )
             return q, ok
 
         zero = jnp.zeros(nv, dtype)
@@ -247,7 +258,7 @@ def natural_periods(sim: Simulator, kp) -> np.ndarray:
 
     import mujoco
 
-    from .simulator import settle_reference
+    from .sim.reference import settle_reference
 
     m = copy.deepcopy(sim.mj_model)
     for j, k in zip(sim.joint_ids, np.asarray(kp, float).reshape(-1)):
@@ -359,8 +370,9 @@ class ParameterLayout(NamedTuple):
         """``[..., D]`` -> the full ``[..., 2R]`` (log Kp, log Kd) layout other code expects."""
         if self.infers_damping:
             return theta
-        kd = jnp.broadcast_to(jnp.log(jnp.asarray(self.fixed_kd, theta.dtype)),
-                              theta.shape[:-1] + (self.n_joints,))
+        kd = jnp.broadcast_to(
+            jnp.log(jnp.asarray(self.fixed_kd, theta.dtype)), theta.shape[:-1] + (self.n_joints,)
+        )
         return jnp.concatenate([theta, kd], axis=-1)
 
 
@@ -377,7 +389,9 @@ def parse_parameters(value, source: str = "inference.parameters") -> tuple[str, 
     if bad:
         raise ConfigError(f"{source}: unknown parameter(s) {bad}; allowed: kp, kd")
     if "kp" not in names:
-        raise ConfigError(f"{source}: stiffness (kp) must be inferred; damping alone is not supported")
+        raise ConfigError(
+            f"{source}: stiffness (kp) must be inferred; damping alone is not supported"
+        )
     if len(set(names)) != len(names):
         raise ConfigError(f"{source}: duplicate entries in {names}")
     return tuple(p for p in PARAMETERS if p in names)
@@ -408,7 +422,9 @@ def parameter_layout(tree, parameters=PARAMETERS, fixed_kd=None) -> ParameterLay
 def damping_note(layout: ParameterLayout | None = None, model_kind: str = "static") -> str:
     """The line a report prints about damping when it is not identified."""
     if model_kind == "static":
-        return "damping (Kd): not identified (static model: equilibria carry no damping information)"
+        return (
+            "damping (Kd): not identified (static model: equilibria carry no damping information)"
+        )
     if layout is not None and not layout.infers_damping:
         vals = ", ".join(f"{v:.3g}" for v in layout.fixed_kd)
         return f"damping (Kd): not inferred, held at [{vals}] N m s/rad"

@@ -112,8 +112,11 @@ def push_recording(
     t_push = travel / speed
     total = idle + t_push + hold + t_push + idle
     t = dt * np.arange(int(total / dt) + 1)
-    s = np.interp(t, [0, idle, idle + t_push, idle + t_push + hold, idle + 2 * t_push + hold,
-                      total], [0, 0, travel, travel, 0, 0])
+    s = np.interp(
+        t,
+        [0, idle, idle + t_push, idle + t_push + hold, idle + 2 * t_push + hold, total],
+        [0, 0, travel, travel, 0, 0],
+    )
     x = np.clip(s - gap, 0.0, None)
     return StemPush(t, x / c, x, s, float(height))
 
@@ -172,8 +175,13 @@ def stem_tree(stem: Stem | None = None, n_links: int = 3, kp_bounds=(0.05, 50.0)
         r = float(stem.diameter((i + 0.5) * length)) / 2
         branches.append(Branch(f"link{i}", None if i == 0 else f"link{i - 1}", length, r))
     return make_tree(
-        branches, grasp_branch=f"link{n_links - 1}", grasp_fraction=1.0, levels=n_links,
-        bounds=Bounds(kp=tuple(kp_bounds)), name="stem", base_pitch_deg=90.0,
+        branches,
+        grasp_branch=f"link{n_links - 1}",
+        grasp_fraction=1.0,
+        levels=n_links,
+        bounds=Bounds(kp=tuple(kp_bounds)),
+        name="stem",
+        base_pitch_deg=90.0,
         density=stem.density,
     )
 
