@@ -292,3 +292,33 @@ def test_import_writes_folder_sidecar_and_provenance(tmp_path, capsys):
     with pytest.raises(ConfigError, match="zero vector"):
         import_csv([srcs[0]], tmp_path / "o3", direction="0,0,0")
     assert not (tmp_path / "o3").exists()
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def test_cli_import_csv(tmp_path, capsys):
+    from treeinfer.cli.main import main
+
+    t, f, x = ramp(f_rest=0.5)
+    rows = [[r(1000 * a), r(b / FORCE_UNITS["gf"]), r(1000 * c)] for a, b, c in zip(t, f, x)]
+    src = write_log(tmp_path / "log.csv", ["ms", "g", "mm"], rows)
+    out = tmp_path / "d"
+    argv = ["import-csv", str(src), "--out", str(out), "--time", "ms", "--force-column", "g",
+            "--displacement", "mm", "--units", "time=ms,force=gf,displacement=mm", "--tare",
+            "--trim", "--grasp-fraction", "0.5", "--direction", "horizontal"]
+    assert main(argv) == 0
+    stdout = capsys.readouterr().out
+    assert "force: gf -> N" in stdout and "tare: subtracted" in stdout and "trim:" in stdout
+    assert read_pulls(out / "pulls.yaml").pulls["log.csv"].fraction == 0.5
+    assert read_trajectory(out / "log.csv").force.max() == pytest.approx(3.0, abs=1e-6)
+    assert main(argv) == 2  # same name again: refused ...
+    assert "already holds" in capsys.readouterr().err
+    assert main(argv + ["--force"]) == 0  # ... unless --force (overwrite, as everywhere)
+    capsys.readouterr()
+    bad = ["import-csv", str(src), "--out", str(tmp_path / "e"), "--time", "ms"]
+    bad += ["--force-column", "g", "--displacement", "nope"]
+    assert main(bad) == 2
+    err = capsys.readouterr().err
+    assert "log.csv, line 1: no displacement column named 'nope'" in err
+    assert "Traceback" not in err

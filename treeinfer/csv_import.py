@@ -290,10 +290,19 @@ def _robust_sd(x: np.ndarray) -> float:
 
 
 def _rest_length(f: np.ndarray, threshold: float) -> int:
-    """Number of leading samples within ``threshold`` of the first few samples' median."""
+    """Number of leading samples at rest: up to the foot of the first ramp (the last sample
+    before |f - rest| starts rising towards the first sample above ``threshold``)."""
     base = float(np.median(f[: max(3, min(10, f.size // 20))]))
-    active = np.flatnonzero(np.abs(f - base) > threshold)
-    return int(active[0]) if active.size else int(f.size)
+    a = np.abs(f - base)
+    active = np.flatnonzero(a > threshold)
+    if not active.size:
+        return int(f.size)
+    n = int(active[0])
+    if n == 0:
+        return 0
+    while n > 0 and a[n - 1] < a[n]:  # the slow start of a ramp is below the threshold
+        n -= 1
+    return n + 1
 
 
 def _threshold(f: np.ndarray) -> float:
