@@ -594,3 +594,20 @@ def test_sideways_pull_projection_distance_and_sidecar(tmp_path):
     assert np.all(trd.displacement >= 0)
     with pytest.warns(UserWarning, match="opposite directions"):
         import_bag(bag, tmp_path / "w", direction=(-1, 0, 0), force_axis=(1, 0, 0), dt=0.05)
+
+
+def test_cli_cleaning_options(tmp_path, capsys):
+    from treeinfer.pulls import read_pulls
+
+    bag = write_real_bag(tmp_path / "real.bag")
+    parser = configure_parser(argparse.ArgumentParser())
+    argv = [str(bag), "--out", str(tmp_path / "o"), "--dt", "source", "--grasp-fraction", "0.5"]
+    paths = run_from_args(parser.parse_args(argv))
+    out = capsys.readouterr().out
+    assert "note: tare: subtracted the force at rest, 0.8 N" in out
+    assert "a blip, skipped" in out and "resampling" not in out
+    assert read_trajectory(paths[0]).dt == pytest.approx(0.1, rel=1e-6)
+    assert read_pulls(tmp_path / "o" / "pulls.yaml").pulls[paths[0].name].fraction == 0.5
+    argv = [str(bag), "--out", str(tmp_path / "p"), "--no-tare", "--min-peak-fraction", "0"]
+    with pytest.raises(TrajectoryFileError, match="no pull found"):
+        run_from_args(parser.parse_args(argv))
