@@ -351,10 +351,11 @@ def test_evaluate_and_predict_use_each_recordings_grasp_point(run_dir, demo, tmp
     rc, _, err = run(capsys, "evaluate", "--run", out, "--data", data, "--out", tmp_path / "e")
     assert rc == 0, err
     cfg = json.loads((tmp_path / "e" / "config.json").read_text())
-    assert cfg["grasp_fraction"] == [0.5, 1.0]  # traj_003 keeps the tree's grasp (the tip)
+    g = load_tree(TWO).grasp_fraction
+    assert cfg["grasp_fraction"] == [0.5, g]  # traj_003 keeps the tree's grasp point
     rc, _, err = run(capsys, "evaluate", "--run", out, "--data", data, "--out", tmp_path / "e2",
                      "--grasp-fraction", "1.0")
-    assert_user_error(rc, err, "pulls.yaml records these pulls at 0.5, 1")
+    assert_user_error(rc, err, f"pulls.yaml records these pulls at 0.5, {g:g}")
     # predict: at its own point the recording is compared; at another, a loud warning and no
     # comparison ('recorded' empty)
     rec = data / "traj_002.csv"
