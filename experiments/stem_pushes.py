@@ -248,7 +248,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     stem = Stem()
-    tree = stem_tree(stem, n_links=args.links)
+    tree = stem_tree(stem, n_links=args.links, kp_bounds=(0.05, 50.0))  # the committed runs' prior
     sim = make_simulator(tree, obs_dt=0.5, backend="fused")
     with tempfile.TemporaryDirectory() as tmp:
         trajs, pulls, heights = import_logs(Path(tmp), stem, tree, args.seed)

@@ -221,3 +221,15 @@ def test_parameter_layout(three):
             parse_parameters(bad)
     assert "not identified" in damping_note(only, "static")
     assert "held at" in damping_note(only, "dynamic")
+
+
+def test_quasi_static_notice_on_the_stem():
+    """The synthetic stem pushes (0.5 s samples) are quasi-static for the 3-link chain."""
+    from treeinfer.static import quasi_static_notice
+    from treeinfer.synthetic_stem import Stem, stem_tree
+
+    tree = stem_tree(Stem())
+    sim = make_simulator(tree, obs_dt=0.5, backend="fused")
+    msg = quasi_static_notice(tree, sim, 0.5)
+    assert msg is not None and "quasi-static" in msg
+    assert quasi_static_notice(tree, sim, 1e-4) is None

@@ -43,6 +43,7 @@ __all__ = [
     "natural_periods",
     "parameter_layout",
     "parse_parameters",
+    "quasi_static_notice",
     "static_rollout",
     "suggest_static",
 ]
@@ -293,8 +294,8 @@ def suggest_static(dt: float, sim: Simulator, kp, ratio: float = QUASI_STATIC_RA
 
     Args:
         dt: s, the data's sample interval.
-        kp: [R] stiffness at which to judge (use the prior box's lower corner: the softest
-            plausible branch has the longest period, so the suggestion is conservative).
+        kp: [R] stiffness at which to judge (e.g. the prior box's geometric centre, see
+            :func:`quasi_static_notice`; softer branches have longer periods).
 
     Returns:
         ``None`` when the data resolve the branch's motion, else the message.
@@ -305,10 +306,20 @@ def suggest_static(dt: float, sim: Simulator, kp, ratio: float = QUASI_STATIC_RA
         return None
     return (
         f"samples are {dt:g} s apart, {dt / slowest:.0f}x the branch's slowest natural period "
-        f"({slowest:.3g} s at the softest stiffness of the prior): the data are quasi-static and "
+        f"({slowest:.3g} s at the stiffness judged): the data are quasi-static and "
         "carry no information on damping or inertia; use the static model "
         "(--model-kind static), which infers stiffness only"
     )
+
+
+def quasi_static_notice(tree, sim: Simulator, dt: float) -> str | None:
+    """:func:`suggest_static` at the geometric centre of ``tree``'s stiffness prior box: the
+    message ``infer`` prints for quasi-static data, or ``None``. (The box's softest corner is
+    often near buckling for upright stems, where the period diverges; its centre is the prior's
+    typical branch.)"""
+    lo, hi = tree.bounds_array()
+    r = tree.n_inferred
+    return suggest_static(dt, sim, np.sqrt(lo[:r] * hi[:r]))
 
 
 # ----------------------------------------------------------------------------- parameter layout

@@ -163,7 +163,7 @@ def write_stem_logs(
     return out
 
 
-def stem_tree(stem: Stem | None = None, n_links: int = 3, kp_bounds=(0.05, 50.0)):
+def stem_tree(stem: Stem | None = None, n_links: int = 3, kp_bounds=(0.5, 100.0)):
     """A vertical chain of ``n_links`` equal hinged links approximating ``stem`` (radii from the
     taper at each link's middle), every joint inferred: the hinge model to fit to pushes."""
     from .tree import Bounds, Branch, make_tree
