@@ -46,6 +46,7 @@ from treeinfer.static import static_rollout
 from treeinfer.synthetic_stem import (
     Stem,
     cantilever_displacement,
+    compliance,
     fit_cantilever,
     stem_tree,
     write_stem_logs,
@@ -225,6 +226,46 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args, rng):
     }
 
 
+def analytic_table(stem: Stem, heights=(0.12, 0.24, 0.36)) -> list[str]:
+    """Model error alone (no noise, no sampling): leave-one-height-out relative error of the
+    held-out compliance for one-scale models fitted to the other two heights' true compliances.
+    Hinge chains use the small-deflection compliance ``sum_j (h - z_j)^2 / K_j`` over hinges
+    below h, with ``K_j = E I(z) / l`` (taper-tied); "midpoints" puts each hinge at its
+    segment's middle (a beam segment replaced by a hinge there is exact to second order)."""
+    hs = np.asarray(heights)
+    c_true = np.array([compliance(stem, h) for h in hs])
+
+    def chain(joints, stiff):
+        return lambda h: sum((h - z) ** 2 / k for z, k in zip(joints, stiff) if z < h)
+
+    def loo(model):
+        g = np.array([model(h) for h in hs])
+        errs = []
+        for k in range(len(hs)):
+            tr = [i for i in range(len(hs)) if i != k]
+            scale = np.sum(g[tr] * c_true[tr]) / np.sum(g[tr] ** 2)  # least squares c ~ scale g
+            errs.append(scale * g[k] / c_true[k] - 1.0)
+        return errs
+
+    rows = [("uniform cantilever (1 parameter)", loo(lambda h: h**3 / 3.0))]
+    for n, where in ((3, "bases"), (3, "midpoints"), (8, "midpoints")):
+        step = stem.height / n
+        joints = [(i + (0.5 if where == "midpoints" else 0.0)) * step for i in range(n)]
+        mids = [z + (0.0 if where == "midpoints" else step / 2) for z in joints]
+        rows.append(
+            (
+                f"{n} hinges at segment {where}, taper-tied (1 parameter)",
+                loo(chain(joints, [float(stem.ei(m)) / step for m in mids])),
+            )
+        )
+    head = "| model | " + " | ".join(f"held out {h:.2f} m" for h in hs) + " |"
+    out = [head, "|---" * (len(hs) + 1) + "|"]
+    out += [
+        f"| {name} | " + " | ".join(f"{100 * e:+.1f}%" for e in errs) + " |" for name, errs in rows
+    ]
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--steps", type=int, default=800)
@@ -245,9 +286,15 @@ def main(argv=None):
         help="parent joints at least as stiff as children (default on)",
     )
     ap.add_argument("--out", default="experiments/results/stem_pushes")
+    ap.add_argument(
+        "--analytic", action="store_true", help="print the model-error table (no sampling) and exit"
+    )
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     stem = Stem()
+    if args.analytic:
+        print("\n".join(analytic_table(stem)))
+        return
     tree = stem_tree(stem, n_links=args.links, kp_bounds=(0.05, 50.0))  # the committed runs' prior
     sim = make_simulator(tree, obs_dt=0.5, backend="fused")
     with tempfile.TemporaryDirectory() as tmp:
