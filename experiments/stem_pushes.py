@@ -45,6 +45,7 @@ from treeinfer.sim import make_simulator
 from treeinfer.static import static_rollout
 from treeinfer.synthetic_stem import (
     Stem,
+    branch_at_height,
     cantilever_displacement,
     compliance,
     fit_cantilever,
@@ -57,10 +58,9 @@ LOG_SIGMA = (np.log(1e-5), np.log(1e-2))  # m
 
 
 def import_logs(folder: Path, stem: Stem, tree, seed: int):
-    link = stem.height / len(tree.branches)
     raw = write_stem_logs(folder / "raw", stem, seed=seed)
     for path, push in raw:
-        k = min(int(push.height / link), len(tree.branches) - 1)
+        branch, distance = branch_at_height(tree, push.height)
         import_csv(
             [path],
             folder / "data",
@@ -72,8 +72,8 @@ def import_logs(folder: Path, stem: Stem, tree, seed: int):
             tare=True,
             zero_displacement="contact",
             trim=True,
-            grasp_branch=f"link{k}",
-            grasp_distance=push.height - k * link,
+            grasp_branch=branch,
+            grasp_distance=distance,
             direction="horizontal",
             tree=tree,
         )
@@ -117,7 +117,7 @@ def stretch_sampler(logp, x0, steps, rng, a=2.0):
     return chain, lps
 
 
-def fold(sim, tree, trajs, pulls, heights, test: int, args, rng):
+def fold(sim, tree, trajs, pulls, heights, test: int, args, rng, stem: Stem):
     train = [i for i in range(len(trajs)) if i != test]
     obs = stack_trajectories([trajs[i] for i in train])
     br, fr, di = stack_resolved([pulls[i] for i in train], tree)
@@ -127,9 +127,13 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args, rng):
     box_hi = np.concatenate([np.log(hi[:r]), [LOG_SIGMA[1]]])
     shape = None
     if args.tied:  # one stiffness scale: Kp_j = s * d_j^4 / l_j (beam-like, from the taper)
-        d = np.array([2 * tree.branch(n).radius for n in tree.inferred])
-        length = np.array([tree.branch(n).length for n in tree.inferred])
-        shape = d**4 / length / np.max(d**4 / length)
+        # K_j = E I(z_j) / segment at each hinge's height z_j (segments of equal length)
+        from treeinfer.tree import world_frames
+
+        frames = world_frames(tree)
+        z = np.array([frames[n][0][2] - tree.base_position[2] for n in tree.inferred])
+        ei = np.array([float(stem.ei(h)) for h in z])
+        shape = ei / ei.max()
         box_lo = np.array([np.log(lo[0]), LOG_SIGMA[0]])
         box_hi = np.array([np.log(hi[0]) + np.log(1.0 / shape.min()), LOG_SIGMA[1]])
     nk = 1 if args.tied else r
@@ -295,11 +299,11 @@ def main(argv=None):
     if args.analytic:
         print("\n".join(analytic_table(stem)))
         return
-    tree = stem_tree(stem, n_links=args.links, kp_bounds=(0.05, 50.0))  # the committed runs' prior
+    tree = stem_tree(stem, n_links=args.links, kp_bounds=(0.05, 50.0), hinges=args.hinges)
     sim = make_simulator(tree, obs_dt=0.5, backend="fused")
     with tempfile.TemporaryDirectory() as tmp:
         trajs, pulls, heights = import_logs(Path(tmp), stem, tree, args.seed)
-    results = [fold(sim, tree, trajs, pulls, heights, k, args, rng) for k in range(3)]
+    results = [fold(sim, tree, trajs, pulls, heights, k, args, rng, stem) for k in range(3)]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(
@@ -323,8 +327,8 @@ def main(argv=None):
             f"{1e3 * r['rmse_static_m']:.3f} | {1e3 * r['rmse_cantilever_m']:.3f} |"
         )
     lines.append(
-        f"\n{args.links} links, {args.walkers} walkers x {args.steps} steps, {lines_note}, "
-        f"seed {args.seed}"
+        f"\n{args.links} links (hinges at segment {args.hinges}), {args.walkers} walkers x "
+        f"{args.steps} steps, {lines_note}, seed {args.seed}"
     )
     atomic_write_text(out / "results.md", "\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -93,3 +93,16 @@ def test_stem_tree():
     assert tree.inferred == ("link2", "link1", "link0")
     assert tree.base_pitch_deg == 90.0
     assert sum(b.length for b in tree.branches) == pytest.approx(0.4)
+
+
+def test_stem_tree_midpoint_hinges_and_branch_at_height():
+    from treeinfer.synthetic_stem import branch_at_height
+
+    stem = Stem()
+    tree = stem_tree(stem, n_links=3, hinges="midpoints")
+    seg = stem.height / 3
+    assert tree.inferred == ("link2", "link1", "link0") and tree.branch("stub").fixed
+    assert [b.length for b in tree.branches] == pytest.approx([seg / 2, seg, seg, seg / 2])
+    assert branch_at_height(tree, 0.12) == ("link0", pytest.approx(0.12 - seg / 2))
+    assert branch_at_height(tree, 0.36) == ("link2", pytest.approx(0.36 - 2.5 * seg))
+    assert branch_at_height(stem_tree(stem), 0.24) == ("link1", pytest.approx(0.24 - seg))

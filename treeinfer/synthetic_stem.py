@@ -40,6 +40,7 @@ __all__ = [
     "compliance",
     "fit_cantilever",
     "push_recording",
+    "branch_at_height",
     "stem_tree",
     "write_stem_logs",
 ]
@@ -163,17 +164,36 @@ def write_stem_logs(
     return out
 
 
-def stem_tree(stem: Stem | None = None, n_links: int = 3, kp_bounds=(0.5, 100.0)):
-    """A vertical chain of ``n_links`` equal hinged links approximating ``stem`` (radii from the
-    taper at each link's middle), every joint inferred: the hinge model to fit to pushes."""
+def stem_tree(
+    stem: Stem | None = None,
+    n_links: int = 3,
+    kp_bounds=(0.5, 100.0),
+    hinges: str = "bases",
+):
+    """A vertical chain of ``n_links`` hinges approximating ``stem``, every joint inferred: the
+    hinge model to fit to pushes. The stem is cut into ``n_links`` equal segments;
+    ``hinges="bases"`` puts each hinge at its segment's base (links = segments);
+    ``"midpoints"`` at its segment's middle (a fixed stub of half a segment at the ground, a
+    half-length top link): a beam segment replaced by a hinge at its middle with
+    ``K = E I / l`` reproduces the beam's deflection to second order (see
+    ``experiments/stem_pushes.py --analytic``). Radii follow the taper at each link's middle."""
     from .tree import Bounds, Branch, make_tree
 
+    if hinges not in ("bases", "midpoints"):
+        raise ConfigError(f"hinges: expected 'bases' or 'midpoints', got {hinges!r}")
     stem = Stem() if stem is None else stem
-    length = stem.height / n_links
-    branches = []
-    for i in range(n_links):
-        r = float(stem.diameter((i + 0.5) * length)) / 2
-        branches.append(Branch(f"link{i}", None if i == 0 else f"link{i - 1}", length, r))
+    seg = stem.height / n_links
+    if hinges == "bases":
+        spans = [(i * seg, (i + 1) * seg, False) for i in range(n_links)]
+    else:
+        cuts = [0.0] + [(i + 0.5) * seg for i in range(n_links)] + [stem.height]
+        spans = [(a, b, k == 0) for k, (a, b) in enumerate(zip(cuts[:-1], cuts[1:]))]
+    branches, parent = [], None
+    for k, (a, b, fixed) in enumerate(spans):
+        name = "stub" if fixed else f"link{k - (1 if hinges == 'midpoints' else 0)}"
+        r = float(stem.diameter((a + b) / 2)) / 2
+        branches.append(Branch(name, parent, b - a, r, fixed=fixed))
+        parent = name
     return make_tree(
         branches,
         grasp_branch=f"link{n_links - 1}",
@@ -184,6 +204,24 @@ def stem_tree(stem: Stem | None = None, n_links: int = 3, kp_bounds=(0.5, 100.0)
         base_pitch_deg=90.0,
         density=stem.density,
     )
+
+
+def branch_at_height(tree, height: float) -> tuple[str, float]:
+    """(jointed branch, distance from its joint) of the point at ``height`` m up a vertical
+    chain such as :func:`stem_tree` builds (the topmost jointed branch starting below it)."""
+    from .tree import world_frames
+
+    frames = world_frames(tree)
+    base_z = float(tree.base_position[2])
+    best = None
+    for b in tree.branches:
+        z0 = float(frames[b.name][0][2]) - base_z
+        if not b.fixed and z0 <= height + 1e-12:
+            if best is None or z0 > best[1]:
+                best = (b.name, z0)
+    if best is None:
+        raise ConfigError(f"height {height} m: no jointed branch starts below it")
+    return best[0], height - best[1]
 
 
 def cantilever_displacement(force, height, ei):
