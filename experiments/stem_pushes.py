@@ -279,6 +279,12 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--links", type=int, default=3, help="hinged links in the chain (3)")
     ap.add_argument(
+        "--hinges",
+        choices=("bases", "midpoints"),
+        default="bases",
+        help="hinge at each segment's base (default) or middle",
+    )
+    ap.add_argument(
         "--tied",
         action="store_true",
         help="one stiffness scale, Kp_j proportional to d_j^4 / l_j (taper-tied)",
