@@ -317,7 +317,7 @@ def main(argv=None):
         json.dumps({"folds": results, "stem": stem._asdict(), "args": vars(args)}, indent=2) + "\n",
     )
     lines_note = (
-        "one scale, Kp ~ d^4/l (tied)"
+        "one scale, Kp = s EI(z_hinge) / segment (tied)"
         if args.tied
         else "parent >= child stiffness"
         if args.ordered
