@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
@@ -187,6 +188,10 @@ def expected_segments(dt=0.01, lead_in=0.25):
     return segs
 
 
+def provenance(folder):
+    return json.loads((Path(folder) / "import.json").read_text())
+
+
 def check_pulls(paths, dt=0.01):
     assert len(paths) == 2
     assert all(p.is_file() for p in paths)
@@ -213,8 +218,9 @@ def test_ros1_posestamped(tmp_path):
     assert [p.name for p in paths] == ["session_pull001.csv", "session_pull002.csv"]
     assert [p.parent for p in paths] == [tmp_path / "out"] * 2
     check_pulls(paths)
-    text = paths[0].read_text()
-    assert "force_topic=/ft_sensor/wrench" in text and "time_source=header" in text
+    prov = provenance(tmp_path / "out")
+    assert prov["force_topic"] == "/ft_sensor/wrench" and prov["time_source"] == "header"
+    assert paths[0].read_text().startswith("time,force,displacement\n")
     assert len(read_trajectory_dir(tmp_path / "out")) == 2
 
 
@@ -223,7 +229,7 @@ def test_ros2_sqlite_tf_with_child_frame_and_force_sign(tmp_path):
     bag = write_bag(tmp_path / "rec2", pose="tf", force_on_robot=True)
     paths = import_bag(bag, tmp_path / "out", tf_child_frame="/tool0", force_sign=-1)
     check_pulls(paths)
-    assert "tf_child_frame=tool0" in paths[0].read_text()
+    assert provenance(tmp_path / "out")["tf_child_frame"] == "tool0"
 
 
 def test_ros2_mcap_posestamped_and_single_tf_frame_autodetect(tmp_path):
@@ -264,7 +270,8 @@ def test_threshold_above_peak_finds_no_pull_with_hint(tmp_path):
 
 def test_wrong_force_sign_gives_negative_forces(tmp_path):
     bag = write_bag(tmp_path / "a.bag", ros="ros1")
-    paths = import_bag(bag, tmp_path / "out", force_sign=-1)
+    with pytest.warns(UserWarning, match="opposite directions .*check --force-sign"):
+        paths = import_bag(bag, tmp_path / "out", force_sign=-1)
     assert read_trajectory(paths[0]).force.min() < -9.0
 
 
@@ -273,8 +280,7 @@ def test_zero_header_stamps_use_bag_time_and_recording_starting_mid_pull(tmp_pat
     with pytest.warns(UserWarning, match="pull 1 starts at the first common sample"):
         paths = import_bag(bag, tmp_path / "out")
     assert len(paths) == 1  # the first pull has no rest pose and is skipped
-    text = paths[0].read_text()
-    assert "time_source=bag" in text
+    assert provenance(tmp_path / "out")["time_source"] == "bag"
     tr = read_trajectory(paths[0])
     t_abs0, n = expected_segments()[1]
     assert tr.n_steps == n
@@ -374,8 +380,9 @@ def test_existing_output_refused_unless_force(tmp_path):
     assert [p.name for p in out.iterdir()] == ["old.csv"]
     (out / ".treeinfer-output").write_text('{"writer": "treeinfer", "complete": true}')
     paths = import_bag(bag, out, force=True)
-    expected = sorted([".treeinfer-output"] + [p.name for p in paths])
-    assert sorted(p.name for p in out.iterdir()) == expected
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [p.name for p in paths] + [".treeinfer-output", "import.json", "pulls.yaml"]
+    )
 
 
 # ----------------------------------------------------------------------------- pull splitting
@@ -396,3 +403,217 @@ def test_find_pulls_ignores_spikes_widens_to_ramp_feet_and_clips_lead_in():
     assert find_pulls(-f, 1.0, 3, 4) == pulls  # |force|
     assert find_pulls(np.full(5, 2.0), 1.0, 3, 2)[0] == (0, 0, 5)  # no rest before
     assert find_pulls(f, threshold=5.0, min_samples=1, lead_samples=4) == []
+
+
+# ----------------------------------------------------------------------------- real-bag cleaning
+
+REAL_PULLS = [(1.5, 3.0, 8.0), (6.5, 3.0, 5.0)]  # (start s, length s, peak N)
+REAL_DURATION = 10.5
+OFFSET = 0.8  # N, biased rest force
+BLIP = (4.9, 1.2, 0.9)  # a 1.2 s noise blip of 0.9 N above rest
+
+
+def real_force(t):
+    t = np.asarray(t, float)
+    f = np.zeros_like(t)
+    for ts, length, peak in REAL_PULLS:
+        inside = (t >= ts) & (t <= ts + length)
+        f = np.where(inside, peak * np.sin(np.pi * (t - ts) / length) ** 2, f)
+    return f
+
+
+def _fill(ts, msgtype, **values):
+    """A message of type ``name`` with every field zero/empty except ``values`` (nested too)."""
+    import dataclasses
+
+    cls = ts.types[msgtype]
+    kw = {}
+    for fld in dataclasses.fields(cls):
+        if fld.name.startswith("__"):
+            continue
+        if fld.name in values:
+            kw[fld.name] = values[fld.name]
+        elif fld.type.startswith("list["):
+            kw[fld.name] = []
+        elif "__msg__" in fld.type:
+            kw[fld.name] = _fill(ts, fld.type.replace("__msg__", "/msg/").replace("__", "/"))
+        elif fld.type == "str":
+            kw[fld.name] = ""
+        else:
+            kw[fld.name] = 0
+    return cls(**kw)
+
+
+def write_real_bag(path, ros="ros1", kind="wrench", pose_hz=10.0, sideways=False,
+                   on_robot=False):
+    """A bag like the real Kinova recordings: pose at ``pose_hz`` (PoseStamped ``/tool_pose``),
+    joint states, and the force as ``kind``: "wrench" (WrenchStamped 100 Hz with a rest offset
+    and a noise blip), "kortex" (BaseCyclic_Feedback 100 Hz: force and tool pose), or "none"."""
+    from treeinfer.bags import kortex_typestore
+
+    ts = kortex_typestore(ros == "ros1")
+    ser = ts.serialize_ros1 if ros == "ros1" else ts.serialize_cdr
+    T = ts.types
+    axis = np.array([1.0, 0.0, 0.0]) if sideways else np.array([0.0, 0.0, -1.0])
+    q = T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
+    writer = Writer1(path) if ros == "ros1" else Writer2(path, version=9)
+    msgs = []
+    with writer:
+        kw = {"typestore": ts}
+        c_js = writer.add_connection("/joint_states", "sensor_msgs/msg/JointState", **kw)
+        c_pose = writer.add_connection("/tool_pose", "geometry_msgs/msg/PoseStamped", **kw)
+        if kind == "wrench":
+            c_f = writer.add_connection("/wrench", "geometry_msgs/msg/WrenchStamped", **kw)
+        elif kind == "kortex":
+            c_f = writer.add_connection("/my_gen3/base_feedback",
+                                        "kortex_driver/msg/BaseCyclic_Feedback", **kw)
+        sign = -1.0 if on_robot else 1.0
+        for t in np.arange(0.0, REAL_DURATION, 1.0 / pose_hz):
+            t_ns = EPOCH_NS + round(t * 1e9)
+            p = np.array([0.4, 0.01 * t, Z_REST]) + COMPLIANCE * real_force(t) * axis
+            msg = T["geometry_msgs/msg/PoseStamped"](
+                header=_header(ts, ros, t_ns, "base_link"),
+                pose=T["geometry_msgs/msg/Pose"](
+                    position=T["geometry_msgs/msg/Point"](x=p[0], y=p[1], z=p[2]),
+                    orientation=q))
+            msgs.append((t_ns, c_pose, ser(msg, "geometry_msgs/msg/PoseStamped")))
+            js = _fill(ts, "sensor_msgs/msg/JointState",
+                       header=_header(ts, ros, t_ns, "base_link"), name=["j1"],
+                       position=np.array([0.1]), velocity=np.array([0.0]),
+                       effort=np.array([1.0]))
+            msgs.append((t_ns, c_js, ser(js, "sensor_msgs/msg/JointState")))
+        for t in np.arange(0.005, REAL_DURATION, 0.01):
+            if kind == "none":
+                break
+            t_ns = EPOCH_NS + round(t * 1e9)
+            fmag = real_force(t)
+            if kind == "wrench":
+                fmag = fmag + OFFSET + (BLIP[2] if BLIP[0] <= t <= BLIP[0] + BLIP[1] else 0.0)
+            fv = sign * fmag * axis
+            p = np.array([0.4, 0.01 * t, Z_REST]) + COMPLIANCE * real_force(t) * axis
+            if kind == "wrench":
+                V3 = T["geometry_msgs/msg/Vector3"]
+                msg = T["geometry_msgs/msg/WrenchStamped"](
+                    header=_header(ts, ros, t_ns, "base_link"),
+                    wrench=T["geometry_msgs/msg/Wrench"](
+                        force=V3(x=fv[0], y=fv[1], z=fv[2]), torque=V3(x=0.0, y=0.0, z=0.0)))
+                msgs.append((t_ns, c_f, ser(msg, "geometry_msgs/msg/WrenchStamped")))
+            else:
+                base = _fill(ts, "kortex_driver/msg/BaseFeedback",
+                             tool_external_wrench_force_x=fv[0],
+                             tool_external_wrench_force_y=fv[1],
+                             tool_external_wrench_force_z=fv[2],
+                             tool_pose_x=p[0], tool_pose_y=p[1], tool_pose_z=p[2])
+                msg = _fill(ts, "kortex_driver/msg/BaseCyclic_Feedback", base=base)
+                msgs.append((t_ns, c_f, ser(msg, "kortex_driver/msg/BaseCyclic_Feedback")))
+        for t_ns, conn, raw in sorted(msgs, key=lambda m: m[0]):
+            writer.write(conn, t_ns, raw)
+    return path
+
+
+def test_real_bag_tare_blip_and_upsampling_notice(tmp_path):
+    bag = write_real_bag(tmp_path / "real.bag")
+    notes = []
+    with pytest.warns(UserWarning) as rec:
+        paths = import_bag(bag, tmp_path / "out", notices=notes)
+    text = " ".join(str(w.message) for w in rec)
+    assert "/tool_pose has one message every 0.1 s" in text and "--dt 0.1" in text
+    assert "a blip, skipped" in text
+    assert len(paths) == 2
+    tare = [n for n in notes if n.startswith("tare")]
+    assert tare and "0.8" in tare[0]
+    for path, (start, length, peak) in zip(paths, REAL_PULLS):
+        tr = read_trajectory(path)
+        assert tr.force.max() == pytest.approx(peak, abs=0.02)
+        # the onset is found at the foot of the ramp, not 0.4 s late mid-ramp
+        assert np.all(tr.force[: round(0.25 / 0.01)] < 0.05)
+        onset = tr.time[np.flatnonzero(tr.force > 0.02)[0]]
+        assert onset == pytest.approx(0.25 + 0.05, abs=0.03)  # sin^2 ramp passes 0.02 N at 0.05 s
+        assert tr.displacement.max() == pytest.approx(COMPLIANCE * peak, rel=0.02)
+    assert provenance(tmp_path / "out")["options"]["tare_offset_N"] == pytest.approx(0.8, abs=0.01)
+    # dt=None keeps the slower stream's rate: no upsampling notice
+    notes2 = []
+    paths2 = import_bag(bag, tmp_path / "out2", dt=None, notices=notes2)
+    assert read_trajectory(paths2[0]).dt == pytest.approx(0.1, rel=1e-6)
+    assert not any("resampling" in n for n in notes2)
+
+
+def test_real_bag_without_tare_mistakes_the_blip(tmp_path):
+    bag = write_real_bag(tmp_path / "real.bag")
+    # the 0.8 N offset puts the whole record above the 0.44 N threshold: one "pull" from the
+    # first sample, which has no rest before it
+    with (
+        pytest.warns(UserWarning, match="no rest pose before it"),
+        pytest.raises(TrajectoryFileError, match="no pull found"),
+    ):
+        import_bag(bag, tmp_path / "out", tare=False)
+
+
+def test_joint_states_only_bag_says_what_is_missing(tmp_path):
+    bag = write_real_bag(tmp_path / "js.bag", kind="none")
+    with pytest.raises(TrajectoryFileError) as e:
+        import_bag(bag, tmp_path / "out")
+    msg = str(e.value)
+    assert "no force at the end effector" in msg
+    assert "joint states/torques (/joint_states)" in msg and "/tool_pose" in msg
+    assert "WrenchStamped" in msg and "kortex_driver" in msg
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("ros", ["ros1", "ros2"])
+def test_kortex_feedback_as_force_and_pose(tmp_path, ros):
+    bag = write_real_bag(tmp_path / ("k.bag" if ros == "ros1" else "k2"), ros=ros,
+                         kind="kortex", on_robot=True)
+    paths = import_bag(bag, tmp_path / "out", force_sign=-1)
+    prov = provenance(tmp_path / "out")
+    assert prov["force_topic"] == "/my_gen3/base_feedback" and prov["time_source"] == "bag"
+    assert prov["pose_topic"] == "/my_gen3/base_feedback"
+    assert len(paths) == 2
+    tr = read_trajectory(paths[0])
+    assert tr.force.max() == pytest.approx(REAL_PULLS[0][2], abs=0.02)
+    np.testing.assert_allclose(tr.displacement, COMPLIANCE * tr.force, atol=2e-4)
+    # the PoseStamped stream may be chosen for the position instead
+    paths2 = import_bag(bag, tmp_path / "out2", force_sign=-1, pose_topic="/tool_pose",
+                        dt=0.1)
+    assert provenance(tmp_path / "out2")["pose_topic"] == "/tool_pose"
+    assert read_trajectory(paths2[0]).displacement.max() == pytest.approx(
+        COMPLIANCE * REAL_PULLS[0][2], rel=0.03)
+
+
+def test_sideways_pull_projection_distance_and_sidecar(tmp_path):
+    from treeinfer.pulls import read_pulls
+
+    bag = write_real_bag(tmp_path / "side.bag", kind="kortex", sideways=True)
+    paths = import_bag(bag, tmp_path / "p", direction=(1, 0, 0), dt=0.05,
+                       grasp_branch="b", grasp_fraction=0.5)
+    tr = read_trajectory(paths[0])
+    assert tr.force.max() == pytest.approx(REAL_PULLS[0][2], abs=0.02)
+    np.testing.assert_allclose(tr.displacement, COMPLIANCE * tr.force, atol=2e-4)
+    side = read_pulls(tmp_path / "p" / "pulls.yaml")
+    assert side.pulls[paths[0].name].direction == (1.0, 0.0, 0.0)
+    assert side.pulls[paths[0].name].fraction == 0.5
+    paths_d = import_bag(bag, tmp_path / "d", direction=(1, 0, 0), dt=0.05,
+                         displacement="distance")
+    trd = read_trajectory(paths_d[0])
+    # distance from the rest pose includes the slow y drift (0.01 m/s) that projection ignores
+    assert np.all(trd.displacement >= np.abs(tr.displacement) - 1e-12)
+    assert np.all(trd.displacement >= 0)
+    with pytest.warns(UserWarning, match="opposite directions"):
+        import_bag(bag, tmp_path / "w", direction=(-1, 0, 0), force_axis=(1, 0, 0), dt=0.05)
+
+
+def test_cli_cleaning_options(tmp_path, capsys):
+    from treeinfer.pulls import read_pulls
+
+    bag = write_real_bag(tmp_path / "real.bag")
+    parser = configure_parser(argparse.ArgumentParser())
+    argv = [str(bag), "--out", str(tmp_path / "o"), "--dt", "source", "--grasp-fraction", "0.5"]
+    paths = run_from_args(parser.parse_args(argv))
+    out = capsys.readouterr().out
+    assert "note: tare: subtracted the force at rest, 0.8 N" in out
+    assert "a blip, skipped" in out and "resampling" not in out
+    assert read_trajectory(paths[0]).dt == pytest.approx(0.1, rel=1e-6)
+    assert read_pulls(tmp_path / "o" / "pulls.yaml").pulls[paths[0].name].fraction == 0.5
+    argv = [str(bag), "--out", str(tmp_path / "p"), "--no-tare", "--min-peak-fraction", "0"]
+    with pytest.raises(TrajectoryFileError, match="no pull found"):
+        run_from_args(parser.parse_args(argv))

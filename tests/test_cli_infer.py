@@ -79,7 +79,7 @@ def run_dir(demo):
     [
         ("infer", ["--tree", "--data", "--out", "--sampler", "--particles", "--iterations", "--kT", "--seed", "--eta",
                    "--grasp-fraction", "--max-unstable-share", "--checkpoint-every", "--resume", "--force", "--no-progress"]),
-        ("predict", ["--run", "--force", "--profile", "--duration", "--grasp-fraction", "--out"]),
+        ("predict", ["--run", "--force-csv", "--profile", "--duration", "--grasp-fraction", "--out", "--force"]),
         ("evaluate", ["--run", "--data", "--out", "--kfold", "--grasp-fraction"]),
         ("demo", ["--out", "--quick", "--seed"]),
     ],
@@ -222,8 +222,9 @@ def test_infer_bad_inputs(tmp_path, capsys):
 
 # ---- predict ---------------------------------------------------------------------------------
 def _prediction(d: Path) -> tuple[list[str], np.ndarray]:
-    lines = [ln for ln in (d / "prediction.csv").read_text().splitlines() if not ln.startswith("#")]
-    return lines[0].split(","), np.array([[float(c) for c in ln.split(",")] for ln in lines[1:]])
+    lines = (d / "prediction.csv").read_text().splitlines()
+    assert lines[0].startswith("time,")  # header first: pandas/csv readers parse it as is
+    return lines[0].split(","), np.array([[float(c) if c else np.nan for c in ln.split(",")] for ln in lines[1:]])
 
 
 def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
@@ -231,10 +232,11 @@ def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
 
     out = run_dir[0]
     test_csv = demo[0] / "data" / "test" / "traj_002.csv"
-    rc, stdout, err = run(capsys, "predict", "--run", out, "--force", test_csv, "--out", tmp_path / "p1")
+    rc, stdout, err = run(capsys, "predict", "--run", out, "--force-csv", test_csv, "--out", tmp_path / "p1")
     assert rc == 0, err
     cols, a = _prediction(tmp_path / "p1")
-    assert cols == ["time", "force", "mean", "lower", "upper", "displacement"]
+    assert cols == ["time", "force", "recorded", "mean", "lower", "upper"]
+    a = a[:, [0, 1, 3, 4, 5, 2]]  # the old column order: time, force, mean, lower, upper, displacement
     tr = read_trajectory(test_csv)
     np.testing.assert_array_equal(a[:, 0], tr.time)
     np.testing.assert_array_equal(a[:, 1], tr.force)
@@ -254,30 +256,37 @@ def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
     # a time,force file with the same force gives the same band, without ground truth
     ff = tmp_path / "force.csv"
     ff.write_text("# a force profile\ntime,force\n" + "".join(f"{float(t)!r},{float(f)!r}\n" for t, f in zip(tr.time, tr.force)))
+    # (the old spelling `--force FILE` still works, with a deprecation warning)
     rc, _, err = run(capsys, "predict", "--run", out, "--force", ff, "--out", tmp_path / "p2")
     assert rc == 0, err
+    assert "deprecated" in err and "--force-csv" in err
     cols2, b = _prediction(tmp_path / "p2")
-    assert cols2 == cols[:5]
-    np.testing.assert_array_equal(b, a[:, :5])
+    assert cols2 == cols and np.all(np.isnan(b[:, 2]))  # no recording: 'recorded' empty
+    np.testing.assert_array_equal(b[:, [0, 1, 3, 4, 5]], a[:, :5])
+    # --force alone means overwrite, as everywhere
+    rc, _, err = run(capsys, "predict", "--run", out, "--force-csv", ff, "--out", tmp_path / "p2")
+    assert_user_error(rc, err, "--force")
+    rc, _, err = run(capsys, "predict", "--run", out, "--force-csv", ff, "--out", tmp_path / "p2", "--force")
+    assert rc == 0, err
 
     # a profile spec with the run's step
     rc, _, err = run(capsys, "predict", "--run", out, "--profile", "ramp:peak=5,ramp=0.4", "--duration", "0.8",
                      "--out", tmp_path / "p3")
     assert rc == 0, err
     _, c = _prediction(tmp_path / "p3")
-    assert c.shape == (40, 5) and c[-1, 1] == 5.0
+    assert c.shape == (40, 6) and c[-1, 1] == 5.0
 
 
 def test_predict_errors(run_dir, tmp_path, capsys):
     out = run_dir[0]
     ff = tmp_path / "f.csv"
     ff.write_text("time,force\n" + "".join(f"{0.01 * i!r},{0.1 * i!r}\n" for i in range(30)))
-    rc, _, err = run(capsys, "predict", "--run", out, "--force", ff, "--out", tmp_path / "p")
+    rc, _, err = run(capsys, "predict", "--run", out, "--force-csv", ff, "--out", tmp_path / "p")
     assert_user_error(rc, err, "time step", "0.02")
-    rc, _, err = run(capsys, "predict", "--run", tmp_path / "missing", "--force", ff, "--out", tmp_path / "p")
+    rc, _, err = run(capsys, "predict", "--run", tmp_path / "missing", "--force-csv", ff, "--out", tmp_path / "p")
     assert_user_error(rc, err, "missing", "no such run folder")
     (tmp_path / "norun").mkdir()
-    rc, _, err = run(capsys, "predict", "--run", tmp_path / "norun", "--force", ff, "--out", tmp_path / "p")
+    rc, _, err = run(capsys, "predict", "--run", tmp_path / "norun", "--force-csv", ff, "--out", tmp_path / "p")
     assert_user_error(rc, err, "no config.json")
     rc, _, err = run(capsys, "predict", "--run", out, "--profile", "ramp:peak=5,ramp=0.4", "--out", tmp_path / "p")
     assert_user_error(rc, err, "--duration")
@@ -319,6 +328,47 @@ def test_evaluate_held_out(run_dir, demo, tmp_path, capsys):
         assert m[k] == pytest.approx(dm[k], rel=1e-6), k
     assert "| 95% band width |" in (tmp_path / "e" / "metrics.md").read_text()
     assert "held-out metrics" in stdout
+    # per recording: a CSV any reader parses (header first), the band around the mean
+    import csv
+
+    with open(tmp_path / "e" / "traj_002_prediction.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == ["time", "force", "recorded", "mean", "lower", "upper"]
+    tr = read_trajectory(test / "traj_002.csv")
+    np.testing.assert_array_equal([float(r["recorded"]) for r in rows], tr.displacement)
+    assert all(float(r["lower"]) <= float(r["mean"]) + 1e-12 <= float(r["upper"]) + 2e-12 for r in rows)
+
+
+def test_evaluate_and_predict_use_each_recordings_grasp_point(run_dir, demo, tmp_path, capsys):
+    import shutil
+
+    from treeinfer.pulls import PullSpec, write_pulls
+
+    out = run_dir[0]
+    data = tmp_path / "d"
+    shutil.copytree(demo[0] / "data" / "test", data)
+    write_pulls(data / "pulls.yaml", {"traj_002.csv": PullSpec(fraction=0.5)})
+    rc, _, err = run(capsys, "evaluate", "--run", out, "--data", data, "--out", tmp_path / "e")
+    assert rc == 0, err
+    cfg = json.loads((tmp_path / "e" / "config.json").read_text())
+    g = load_tree(TWO).grasp_fraction
+    assert cfg["grasp_fraction"] == [0.5, g]  # traj_003 keeps the tree's grasp point
+    rc, _, err = run(capsys, "evaluate", "--run", out, "--data", data, "--out", tmp_path / "e2",
+                     "--grasp-fraction", "1.0")
+    assert_user_error(rc, err, f"pulls.yaml records these pulls at 0.5, {g:g}")
+    # predict: at its own point the recording is compared; at another, a loud warning and no
+    # comparison ('recorded' empty)
+    rec = data / "traj_002.csv"
+    rc, stdout, err = run(capsys, "predict", "--run", out, "--force-csv", rec, "--out", tmp_path / "p")
+    assert rc == 0, err
+    assert "outside the band" in stdout and "WARNING" not in err
+    assert json.loads((tmp_path / "p" / "config.json").read_text())["grasp_fraction"] == 0.5
+    rc, stdout, err = run(capsys, "predict", "--run", out, "--force-csv", rec, "--out", tmp_path / "q",
+                          "--grasp-fraction", "1.0")
+    assert rc == 0, err
+    assert "WARNING" in err and "fraction 1 instead of 0.5" in err and "outside the band" not in stdout
+    cols, a = _prediction(tmp_path / "q")
+    assert np.all(np.isnan(a[:, cols.index("recorded")]))
 
 
 def test_evaluate_kfold(run_dir, demo, tmp_path, capsys):

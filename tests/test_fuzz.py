@@ -146,7 +146,7 @@ def test_cli_missing_inputs_are_user_errors(tmp_path_factory, capsys, command, v
     tmp = Path(tmp_path_factory.mktemp("cli"))
     args = {
         "infer": ["--tree", str(tmp / "nope.yaml"), "--data", str(tmp), "--out", str(tmp / "run")],
-        "predict": ["--run", str(tmp / "norun"), "--force", str(tmp / "f.csv"), "--out", str(tmp / "p")],
+        "predict": ["--run", str(tmp / "norun"), "--force-csv", str(tmp / "f.csv"), "--out", str(tmp / "p")],
         "evaluate": ["--run", str(tmp / "norun"), "--data", str(tmp), "--out", str(tmp / "e")],
         "simulate": ["--tree", str(tmp / "nope.yaml"), "--out", str(tmp / "s")],
     }[command]

@@ -47,7 +47,7 @@ def csv_text(n=5, dt=0.01, cols=("time", "force", "displacement"), comments=("me
 @pytest.mark.parametrize("velocity", [False, True])
 def test_round_trip_is_exact(tmp_path, velocity):
     traj = make_traj(velocity=velocity)
-    path = write_trajectory(tmp_path / "a.csv", traj, comments=["robot: ur5", "two\nlines"])
+    path = write_trajectory(tmp_path / "a.csv", traj)
     back = read_trajectory(path)
     for name in ("time", "force", "displacement"):
         np.testing.assert_array_equal(getattr(back, name), getattr(traj, name))
@@ -59,8 +59,27 @@ def test_round_trip_is_exact(tmp_path, velocity):
     assert back.n_steps == 40
     assert back.dt == pytest.approx(0.01, rel=1e-12)
     text = path.read_text()
-    assert text.startswith("# robot: ur5\n# two\n# lines\ntime,force,displacement")
+    header = "time,force,displacement" + (",velocity" if velocity else "")
+    assert text.startswith(header + "\n")  # header first: pandas/spreadsheets read it as is
     assert not list(tmp_path.glob(".*tmp"))  # atomic write left no temp file
+
+
+def test_written_csv_parses_with_csv_module_and_comments_still_read(tmp_path):
+    import csv
+
+    traj = make_traj()
+    with pytest.warns(DeprecationWarning, match="ignored"):
+        path = write_trajectory(tmp_path / "a.csv", traj, comments=["robot: ur5"])
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))  # what pandas.read_csv(path) sees: header on line 1
+    assert list(rows[0]) == ["time", "force", "displacement"] and len(rows) == traj.n_steps
+    np.testing.assert_array_equal([float(r["force"]) for r in rows], traj.force)
+    # reading still accepts '#' comments before the header, between rows and at the end
+    lines = path.read_text().splitlines()
+    mixed = ["# before", lines[0], lines[1], "# between", *lines[2:], "# after"]
+    (tmp_path / "m.csv").write_text("\n".join(mixed) + "\n")
+    back = read_trajectory(tmp_path / "m.csv")
+    np.testing.assert_array_equal(back.force, traj.force)
 
 
 def test_reader_accepts_any_column_order_case_crlf_and_blank_lines(tmp_path):
@@ -136,7 +155,7 @@ BAD_CASES = {
         "looks like millimetres, expected metres",
     ),
     "time in ms": (csv_text(dt=10.0), 4, "looks like milliseconds, expected seconds"),
-    "time step of 1 s": (csv_text(n=50, dt=1.0), 4, "looks like milliseconds"),
+    "time step of 2 s": (csv_text(n=50, dt=2.0), 4, "looks like milliseconds"),
     "force too large": (_replace_line(csv_text(), 4, "0.01,25000,0.001"), 4, "implausible"),
     "velocity in mm/s": (
         csv_text(cols=("time", "force", "displacement", "velocity")).replace(
@@ -408,3 +427,19 @@ def test_unmutated_fuzz_seed_loads(tmp_path):
     # the fuzz generator's starting point is valid, so the fuzz tests also exercise loads
     tr = _load_or_user_error(tmp_path, csv_text(n=6).encode())
     assert tr is not None and tr.n_steps == 6
+
+
+def test_band_csv_reads_with_csv_module(tmp_path):
+    import csv
+
+    from treeinfer.trajectories import write_band_csv
+
+    t = np.arange(4) * 0.1
+    path = write_band_csv(tmp_path / "p.csv", t, 2 * t, None, t, t - 1, t + 1, t - 2, t + 2)
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == ["time", "force", "recorded", "mean", "lower", "upper",
+                             "predictive_lower", "predictive_upper"]
+    assert rows[2]["recorded"] == "" and float(rows[2]["upper"]) == pytest.approx(1.2)
+    with pytest.raises(ConfigError, match="column 'mean' has 3 values"):
+        write_band_csv(tmp_path / "q.csv", t, t, t, t[:3], t, t)

@@ -6,13 +6,15 @@ the gravity axis (positive downward), sampled on a uniform time grid.
 
 On disk a trajectory is one CSV file::
 
-    # optional comment lines (metadata), anywhere in the file
     time,force,displacement[,velocity]
     0.00,0.0,0.0
     0.01,0.5,0.0001
     ...
 
-in seconds, newtons, metres (and metres per second). Everything a user can get
+in seconds, newtons, metres (and metres per second). Files written by treeinfer begin with the
+header line, so ``pandas.read_csv``, the ``csv`` module and spreadsheets read them as they are;
+provenance goes beside them (``import.json`` of the importers, a run's ``config.json``).
+Reading also accepts ``#`` comment lines anywhere (before or after the header). Everything a user can get
 wrong in such a file raises :class:`~treeinfer.errors.TrajectoryFileError`
 naming the file, the 1-based line and the problem.
 """
@@ -38,12 +40,15 @@ __all__ = [
     "Observations",
     "Trajectory",
     "add_noise",
+    "band_csv_text",
     "ground_truth_velocity",
     "read_trajectory",
     "read_trajectory_dir",
     "stack_trajectories",
     "validate_trajectory",
     "velocity_from_displacement",
+    "write_band_csv",
+    "write_provenance",
     "write_trajectory",
 ]
 
@@ -54,7 +59,7 @@ OPTIONAL_COLUMNS = ("velocity",)
 MIN_ROWS = 3  # the second-order velocity scheme needs three samples
 DT_REL_TOL = 1e-3  # allowed relative deviation of each time step from the median step
 MAX_FILE_BYTES = 256 * 1024 * 1024  # a trajectory CSV larger than this is not a pull recording
-MAX_DT = 1.0  # s; a branch pull sampled slower than 1 Hz is almost certainly milliseconds
+MAX_DT = 2.0  # s; quasi-static pushes log every 0.1-1 s; 2 s or more is almost surely ms
 MAX_DISPLACEMENT = 5.0  # m
 MAX_FORCE = 1.0e4  # N
 MAX_VELOCITY = 50.0  # m/s
@@ -331,22 +336,94 @@ def write_trajectory(
 ) -> Path:
     """Validate ``traj`` and write it atomically as CSV; floats round-trip exactly.
 
+    The file begins with the header line (no comments), so any CSV reader parses it.
+
     Args:
         path: destination ``.csv``.
         traj: the trajectory; ``velocity`` is written only if not ``None``.
-        comments: metadata lines, written as ``# ...`` before the header.
+        comments: deprecated and ignored: provenance belongs in a JSON file beside the CSVs
+            (see :func:`write_provenance`), not in the CSV where it breaks ``pandas.read_csv``.
     """
+    if comments:
+        import warnings
+
+        warnings.warn(
+            "write_trajectory(comments=...) is ignored: CSVs begin with the header line; "
+            "write provenance with write_provenance()",
+            DeprecationWarning,
+            stacklevel=2,
+        )
     traj = validate_trajectory(traj._replace(source=traj.source or str(path)))
     cols = [traj.time, traj.force, traj.displacement]
     names = list(REQUIRED_COLUMNS)
     if traj.velocity is not None:
         cols.append(traj.velocity)
         names.append("velocity")
-    out = [f"# {c}".rstrip() for comment in comments for c in str(comment).split("\n")]
-    out.append(",".join(names))
+    out = [",".join(names)]
     # repr() gives the shortest string that parses back to the same float64.
     out.extend(",".join(repr(float(v)) for v in row) for row in zip(*cols))
     return atomic_write_text(path, "\n".join(out) + "\n")
+
+
+BAND_COLUMNS = ("time", "force", "recorded", "mean", "lower", "upper")
+
+
+def band_csv_text(
+    time,
+    force,
+    recorded,
+    mean,
+    lower,
+    upper,
+    predictive_lower=None,
+    predictive_upper=None,
+) -> str:
+    """One recording's prediction as CSV text, header first, for users' own plots and scores.
+
+    Columns ``time,force,recorded,mean,lower,upper`` (s, N, m, m, m, m): ``lower``/``upper``
+    bound the 95% band over the parameters; with ``predictive_lower``/``predictive_upper``
+    (the band including observation noise) two more columns of those names follow.
+    ``recorded`` may be ``None`` (a force profile without displacement): an empty column;
+    NaN (padding) is written as an empty cell too.
+    """
+    cols = [time, force, recorded, mean, lower, upper]
+    names = list(BAND_COLUMNS)
+    if predictive_lower is not None or predictive_upper is not None:
+        if predictive_lower is None or predictive_upper is None:
+            raise ConfigError("band CSV: give both predictive_lower and predictive_upper")
+        cols += [predictive_lower, predictive_upper]
+        names += ["predictive_lower", "predictive_upper"]
+    n = len(np.asarray(time))
+    arrs = []
+    for name, c in zip(names, cols):
+        if c is None:
+            arrs.append(np.full(n, np.nan))
+            continue
+        a = np.asarray(c, dtype=float).reshape(-1)
+        if a.shape[0] != n:
+            raise ConfigError(f"band CSV: column '{name}' has {a.shape[0]} values, time {n}")
+        arrs.append(a)
+    out = [",".join(names)]
+    out.extend(
+        ",".join(repr(float(v)) if math.isfinite(v) else "" for v in row) for row in zip(*arrs)
+    )
+    return "\n".join(out) + "\n"
+
+
+def write_band_csv(path: str | os.PathLike, *columns, **kwargs) -> Path:
+    """Write :func:`band_csv_text` atomically to ``path`` (same arguments)."""
+    return atomic_write_text(path, band_csv_text(*columns, **kwargs))
+
+
+PROVENANCE_FILE = "import.json"
+
+
+def write_provenance(directory: str | os.PathLike, entries: dict) -> Path:
+    """Write ``<directory>/import.json``: how the folder's CSVs were made (JSON object; keys are
+    free-form, e.g. ``{"source": ..., "options": {...}, "files": {"a.csv": [steps...]}}``)."""
+    from ._io import atomic_write_json
+
+    return atomic_write_json(Path(directory) / PROVENANCE_FILE, entries)
 
 
 def _check_common_dt(trajs: Sequence[Trajectory], rtol: float, context: str) -> float:

@@ -33,6 +33,7 @@ COMMAND_HELP: dict[str, str] = {
     "tree": "write a tree description (and MJCF/URDF models) from a generator or a tree file",
     "simulate": "simulate synthetic force-deformation trajectories with known parameters",
     "import-bag": "cut a ROS1/ROS2 bag of wrench and pose messages into trajectory CSVs",
+    "import-csv": "convert logger CSVs (any columns and units) into trajectory CSVs + pulls.yaml",
     "infer": "infer the posterior of the joints' Kp/Kd from training trajectories",
     "predict": "predict the displacement under a force profile, with a 95%% posterior band",
     "evaluate": "held-out metrics of a run (or k-fold cross-validation with its settings)",

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import __version__, runs
+from .. import runs
 from .._io import check_output_dir, staged_output_dir
 from ..errors import ConfigError, SimulationError
 from ..evaluation import band_arrays, evaluate_trajectories, write_evaluation
@@ -76,10 +76,8 @@ def _write_synthetic(
     out: Path, tree, trajs, specs, true_params: dict, force: bool, what: str
 ) -> None:
     with staged_output_dir(out, force) as stage:
-        for tr, spec in zip(trajs, specs):
-            write_trajectory(
-                stage / tr.source, tr, [f"treeinfer {__version__} demo: {what}", f"profile: {spec}"]
-            )
+        for tr in trajs:
+            write_trajectory(stage / tr.source, tr)  # header first; provenance: the run's config
         dump_tree(tree, stage / "tree.yaml")
         write_true_params(stage / TRUE_PARAMS_FILE, true_params)
 

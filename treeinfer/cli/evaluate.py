@@ -18,7 +18,8 @@ from ..evaluation import (
     mean_metrics,
     write_evaluation,
 )
-from ..trajectories import read_trajectory_dir, stack_trajectories
+from ..pulls import data_grasp_fractions
+from ..trajectories import band_csv_text, read_trajectory_dir, stack_trajectories
 from .common import (
     COMMAND_HELP,
     EXIT_OK,
@@ -37,8 +38,10 @@ examples:
   treeinfer evaluate --run runs/nnsvgd --data data/test --out eval/nnsvgd
   treeinfer evaluate --run runs/nnsvgd --data data/real --kfold 5 --out eval/real-5fold
 
-Writes metrics.json, metrics.md and bands.png (95% predictive bands vs the held-out trajectories)
-and config.json. Metrics (treeinfer.metrics.summarize): average 95% band width (m), share of
+Writes metrics.json, metrics.md and bands.png (95% predictive bands vs the held-out trajectories),
+config.json and per recording <name>_prediction.csv (time, force, recorded, mean, lower, upper;
+header first). With a pulls.yaml in DIR each recording is predicted at its own grasp point.
+Metrics (treeinfer.metrics.summarize): average 95% band width (m), share of
 ground-truth points outside the band (%), predictive NLL of the held-out points under the
 per-step KDE, the posterior NLL (particle-averaged kT-scaled loss on the held-out data) and,
 if DIR has a true_params.json, the posterior against the true parameters (log space).
@@ -95,6 +98,22 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+def _prediction_csvs(pred, obs, trajs) -> dict[str, str]:
+    """Per recording ``<stem>_prediction.csv``: time, force, recorded, mean, lower, upper."""
+    out = {}
+    for b, t in enumerate(trajs):
+        n = t.n_steps
+        out[f"{Path(t.source).stem}_prediction.csv"] = band_csv_text(
+            np.asarray(t.time) - t.time[0],
+            obs.force[b, :n],
+            obs.displacement[b, :n],
+            pred.mean[b, :n],
+            pred.lower[b, :n],
+            pred.upper[b, :n],
+        )
+    return out
+
+
 def run_evaluate(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
     check_output_dir(args.out, args.force, "evaluation", inputs=[args.run, args.data])
@@ -112,12 +131,23 @@ def run_evaluate(args: argparse.Namespace) -> int:
         )
     truth = runs.read_true_params(run.tree, args.data)
     grasp = args.grasp_fraction if args.grasp_fraction is not None else run.grasp_fraction
+    own = data_grasp_fractions(args.data, run.tree, [t.source for t in trajs])
+    if own is not None:  # each recording at its own grasp point (the folder's pulls.yaml)
+        if args.grasp_fraction is not None and not np.allclose(own, args.grasp_fraction):
+            raise ConfigError(
+                f"--grasp-fraction {args.grasp_fraction:g}: {args.data}/pulls.yaml records these "
+                f"pulls at {', '.join(f'{g:g}' for g in own)}; a prediction at another point is "
+                "not comparable with the recordings (leave --grasp-fraction out)"
+            )
+        grasp = own
     config = _base_config("evaluate", args)
     config.update(
         run=str(Path(args.run).resolve()),
         data_files=runs.data_manifest(args.data),
         dt=dt,
-        grasp_fraction=grasp if grasp is not None else run.tree.grasp_fraction,
+        grasp_fraction=(
+            np.asarray(grasp).tolist() if grasp is not None else run.tree.grasp_fraction
+        ),
         run_options=run.config["options"],
         integrity_notes=list(run.notes),
         run_fit_status=run.summary.get("status"),
@@ -139,12 +169,23 @@ def run_evaluate(args: argparse.Namespace) -> int:
             config,
             args.force,
             md,
+            extra_files=_prediction_csvs(pred, obs, trajs),
         )
         _print_metrics(m, f"held-out metrics on {len(trajs)} trajectories of {args.data}")
-        print(f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json)")
+        print(
+            f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json, "
+            "<recording>_prediction.csv per recording)"
+        )
         return EXIT_OK
 
     kfold_splits(len(trajs), args.kfold)  # K too large: fail before any inference
+    if own is not None:
+        if not np.allclose(own, own[0]):
+            raise ConfigError(
+                f"{args.data}/pulls.yaml: --kfold with recordings at different grasp points is "
+                "not supported yet; evaluate a run on held-out recordings instead"
+            )
+        grasp = float(own[0])
     o = run.config["options"]
     _say(
         f"{args.kfold}-fold cross-validation on {len(trajs)} trajectories with the run's settings "

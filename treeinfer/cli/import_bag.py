@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import warnings
 from pathlib import Path
 
 from ..bags import _triple, import_bag
@@ -42,6 +43,15 @@ def run_import_bag(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _dt_or_source(text: str):
+    if text.strip().lower() == "source":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds or 'source', got {text!r}") from None
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``import-bag`` arguments to ``parser`` (a subcommand parser)."""
     parser.add_argument("bag", help="ROS1 .bag file or ROS2 bag folder")
@@ -51,7 +61,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
         "--pose-topic", help="PoseStamped/TransformStamped/TF topic (auto-detected)"
     )
     parser.add_argument("--tf-child-frame", help="end-effector frame when the pose comes from /tf")
-    parser.add_argument("--dt", type=float, default=0.01, help="output time step in s (0.01)")
+    parser.add_argument(
+        "--dt",
+        type=_dt_or_source,
+        default=0.01,
+        metavar="S|source",
+        help="output time step in s (0.01); 'source': the slower stream's own message interval",
+    )
     parser.add_argument(
         "--gravity-axis",
         type=_triple,
@@ -82,17 +98,69 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
     parser.add_argument(
         "--lead-in", type=float, default=0.25, help="s of rest kept before each pull"
     )
+    parser.add_argument(
+        "--max-upsample",
+        type=float,
+        default=2.0,
+        metavar="R",
+        help="print a notice when --dt is more than R times finer than a stream's rate (2)",
+    )
+    parser.add_argument(
+        "--no-tare",
+        dest="tare",
+        action="store_false",
+        help="keep the force's rest level (default: estimated and subtracted)",
+    )
+    parser.add_argument(
+        "--min-peak-fraction",
+        type=float,
+        default=0.2,
+        metavar="F",
+        help="drop excursions peaking below F of the largest pull as blips (0.2)",
+    )
+    parser.add_argument(
+        "--displacement",
+        choices=("projection", "distance"),
+        default="projection",
+        help="projection on the pull direction (default) or distance from the rest pose",
+    )
+    parser.add_argument(
+        "--direction",
+        type=_triple,
+        default=None,
+        metavar="X,Y,Z",
+        help="pull direction in the pose frame (default: --gravity-axis, a downward pull)",
+    )
+    parser.add_argument("--grasp-branch", metavar="NAME", help="grasped branch (pulls.yaml)")
+    grasp = parser.add_mutually_exclusive_group()
+    grasp.add_argument("--grasp-fraction", type=float, metavar="F", help="grasp point, (0, 1]")
+    grasp.add_argument("--grasp-distance", type=float, metavar="M", help="m from the joint")
     parser.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     return parser
 
 
 def run_from_args(args: argparse.Namespace) -> list[Path]:
-    """Run ``import-bag`` from parsed arguments; prints and returns the written files."""
+    """Run ``import-bag`` from parsed arguments; prints the notices and the written files."""
     from .._io import check_output_dir
 
     # --force never replaces the folder holding the bag itself (issue 14)
     check_output_dir(args.out, args.force, "import-bag output", inputs=[args.bag])
-    paths = import_bag(
+    notices: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        paths = _import(args, notices)
+    for n in notices:
+        print(f"note: {n}")
+    for w in caught:  # warnings that are not notices already (skipped pulls, ...)
+        if str(w.message) not in notices:
+            print(f"warning: {w.message}")
+    for p in paths:
+        print(p)
+    return paths
+
+
+def _import(args: argparse.Namespace, notices: list[str]) -> list[Path]:
+    return import_bag(
         args.bag,
         args.out,
         force_topic=args.force_topic,
@@ -106,7 +174,13 @@ def run_from_args(args: argparse.Namespace) -> list[Path]:
         force_sign=args.force_sign,
         force_axis=args.force_axis,
         lead_in=args.lead_in,
+        tare=args.tare,
+        min_peak_fraction=args.min_peak_fraction,
+        max_upsample=args.max_upsample,
+        displacement=args.displacement,
+        direction=args.direction,
+        grasp_branch=args.grasp_branch,
+        grasp_fraction=args.grasp_fraction,
+        grasp_distance=args.grasp_distance,
+        notices=notices,
     )
-    for p in paths:
-        print(p)
-    return paths

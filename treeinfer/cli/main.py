@@ -1,8 +1,8 @@
 """The ``treeinfer`` command line: the command table, the parser and ``main``.
 
 Each command lives in its own module of :mod:`treeinfer.cli` (``tree``, ``simulate``,
-``import_bag``, ``infer``, ``predict``, ``evaluate``, ``demo``, ``suggest``) as a pair
-``configure_<name>(subparsers) -> parser`` and ``run_<name>(args) -> exit code``; those modules
+``import_bag``, ``import_csv``, ``infer``, ``predict``, ``evaluate``, ``demo``, ``suggest``)
+as a pair ``configure_<name>(subparsers) -> parser`` and ``run_<name>(args) -> exit code``; those modules
 import what they need at their top and are imported only when their command runs, so
 ``treeinfer --help`` loads neither JAX nor MuJoCo. To add a command, write its module, add a
 line to :data:`~treeinfer.cli.common.COMMAND_HELP` and an entry to :data:`COMMANDS`. Commands
@@ -61,6 +61,7 @@ COMMANDS: dict[str, Command] = {
     "tree": _command("tree"),
     "simulate": _command("simulate"),
     "import-bag": _command("import_bag"),
+    "import-csv": _command("import_csv"),
     "infer": _command("infer"),
     "predict": _command("predict"),
     "evaluate": _command("evaluate"),

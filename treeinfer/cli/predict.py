@@ -4,18 +4,20 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from .. import __version__, runs
+from .. import runs
 from .._io import atomic_write_text, check_output_dir, staged_output_dir
 from ..errors import ConfigError
 from ..evaluation import predict_run
 from ..forces import from_spec
 from ..metrics import fraction_outside
 from ..plots import plot_trajectory_bands, save_figure
-from ..trajectories import ForceProfile, read_force_profile
+from ..pulls import PULLS_FILE, ResolvedPull, check_same_pull, load_data_pulls, pull_direction
+from ..trajectories import ForceProfile, band_csv_text, read_force_profile
 from .common import (
     COMMAND_HELP,
     EXIT_OK,
@@ -29,16 +31,19 @@ from .common import (
 # ==== predict =====================================================================================
 _PREDICT_EPILOG = """\
 examples:
-  treeinfer predict --run runs/nnsvgd --force data/test/traj_000.csv --out pred/t0
-  treeinfer predict --run runs/nnsvgd --force pull.csv --grasp-fraction 0.5 --out pred/mid
+  treeinfer predict --run runs/nnsvgd --force-csv data/test/traj_000.csv --out pred/t0
+  treeinfer predict --run runs/nnsvgd --force-csv pull.csv --grasp-fraction 0.5 --out pred/mid
   treeinfer predict --run runs/nnsvgd --profile 'hold:peak=6,ramp=0.5,hold=1,release=0.5' \\
       --duration 3 --out pred/hold
 
 FORCE.csv is a trajectory CSV (time,force,displacement[,velocity]: its displacement is drawn as
 ground truth) or a force profile with only time,force columns; its time step must be the run's.
 --profile SPEC samples a profile spec instead (as in `treeinfer simulate --profile`; see its help).
-Writes prediction.csv (time, force, mean, lower, upper [, displacement]; s, N, m), prediction.png
-and config.json. Particles whose simulation is unstable are left out and counted.
+Writes prediction.csv (time, force, recorded, mean, lower, upper; s, N, m; header first),
+prediction.png and config.json. Particles whose simulation is unstable are left out and counted.
+A recording is predicted at its own grasp point (its folder's pulls.yaml); predicted elsewhere
+(--grasp-fraction), it is not compared: a warning says so and 'recorded' stays empty.
+--force alone replaces a non-empty --out folder, as in every command.
 """
 
 
@@ -59,15 +64,14 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         metavar="RUN",
         help="run folder written by `treeinfer infer`",
     )
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument(
-        "--force",
+    p.add_argument(
+        "--force-csv",
         dest="force_file",
         type=Path,
         metavar="FORCE.csv",
         help="force profile or trajectory CSV",
     )
-    src.add_argument(
+    p.add_argument(
         "--profile", metavar="SPEC", help="force profile spec, e.g. 'ramp:peak=5,ramp=1'"
     )
     p.add_argument("--duration", type=float, metavar="S", help="s, length of a --profile")
@@ -78,19 +82,26 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         "--grasp-fraction",
         type=float,
         metavar="F",
-        help="where along the grasped branch the force acts, in (0, 1] (default: where the run's training data were recorded)",
+        help="where along the grasped branch the force acts, in (0, 1] (default: a recording's "
+        "own grasp point from its folder's pulls.yaml, else where the run's training data were "
+        "recorded)",
     )
     p.add_argument(
         "--out",
         required=True,
         type=Path,
         metavar="DIR",
-        help="output folder (must be empty or absent unless --overwrite)",
+        help="output folder (must be empty or absent unless --force)",
     )
     p.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace a non-empty output folder (--force names the force file here)",
+        "--force",
+        dest="force_flag",
+        nargs="?",
+        const=True,
+        default=False,
+        metavar="FORCE.csv",
+        help="replace a non-empty output folder, as in every command (`--force FILE`, the old "
+        "spelling of --force-csv FILE, still works but is deprecated)",
     )
     p.add_argument(
         "--allow-modified",
@@ -98,13 +109,61 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         help="use the run even if its files changed since `infer` wrote them (checksums in its "
         "config.json); recorded in the output",
     )
+    p.add_argument("--overwrite", action="store_true", help="same as --force")
     return p
+
+
+def _resolve_force_options(args: argparse.Namespace) -> bool:
+    """``--force FILE`` (deprecated) -> ``--force-csv FILE``; returns whether to overwrite."""
+    overwrite = bool(args.overwrite)
+    if isinstance(args.force_flag, str):
+        if args.force_file is not None:
+            raise ConfigError("give the force file once: --force-csv FILE")
+        print(
+            f"warning: `--force {args.force_flag}` is deprecated: write `--force-csv "
+            f"{args.force_flag}`; --force alone means overwrite, as in every other command",
+            file=sys.stderr,
+        )
+        args.force_file = Path(args.force_flag)
+    elif args.force_flag:
+        overwrite = True
+    if (args.force_file is None) == (args.profile is None):
+        raise ConfigError("give exactly one of --force-csv FILE and --profile SPEC")
+    return overwrite
+
+
+def _compare_check(args: argparse.Namespace, run, grasp):
+    """(grasp to predict at, whether the recording may be compared with the prediction).
+
+    A recording is predicted at its own grasp point (its folder's pulls.yaml) unless
+    --grasp-fraction says otherwise; then it is not compared (a loud warning says why)."""
+    path = Path(args.force_file)
+    tree = run.tree
+    own = None
+    if (path.parent / PULLS_FILE).is_file():
+        own = load_data_pulls(path.parent, tree, [path.name])[0]
+        if args.grasp_fraction is None:
+            grasp = own.fraction
+    run_frac = run.grasp_fraction if run.grasp_fraction is not None else tree.grasp_fraction
+    frac = grasp if grasp is not None else run_frac
+    down = pull_direction(tree, tree.grasp_branch, "down")
+    predicted = ResolvedPull(tree.grasp_branch, float(frac), down, "down")
+    recorded = own or ResolvedPull(tree.grasp_branch, float(run_frac), down, "down")
+    problem = check_same_pull(recorded, predicted, str(path))
+    if problem is not None:
+        print(
+            f"WARNING: {problem}; the recording is NOT compared with this prediction "
+            "(prediction.csv leaves 'recorded' empty)",
+            file=sys.stderr,
+        )
+    return grasp, problem is None
 
 
 def run_predict(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
-    inputs = [args.run, args.force_file]
-    check_output_dir(args.out, args.overwrite, "prediction", inputs=inputs)
+    overwrite = _resolve_force_options(args)
+    inputs = [args.run] + ([args.force_file] if args.force_file is not None else [])
+    check_output_dir(args.out, overwrite, "prediction", inputs=inputs)
     _prepare_jax()
     run = runs.load_run(args.run, runs.SimulatorCache(), allow_modified=args.allow_modified)
     for note in run.notes:
@@ -135,20 +194,15 @@ def run_predict(args: argparse.Namespace) -> int:
         f"simulating {len(run.theta)} particles (the first prediction of a shape compiles for up to a minute)..."
     )
     grasp = args.grasp_fraction if args.grasp_fraction is not None else run.grasp_fraction
+    compare = prof.displacement is not None
+    if args.force_file is not None:
+        grasp, same = _compare_check(args, run, grasp)
+        compare = compare and same
     pred = predict_run(run.sim, run.theta, prof.force[None], grasp, run.stable)
     n_bad = int((~pred.valid).sum())
     lower, upper, mean = pred.lower[0], pred.upper[0], pred.mean[0]
-    cols = ["time", "force", "mean", "lower", "upper"] + (
-        ["displacement"] if prof.displacement is not None else []
-    )
-    rows = [prof.time, prof.force, mean, lower, upper] + (
-        [prof.displacement] if prof.displacement is not None else []
-    )
-    lines = [
-        f"# treeinfer {__version__} predict: run {args.run}, force {prof.source}; s, N, m (positive downward)",
-        f"# 95% predictive band over {int(pred.valid.sum())} particles ({n_bad} unstable or invalid, excluded)",
-        ",".join(cols),
-    ] + [",".join(repr(float(v)) for v in r) for r in zip(*rows)]
+    recorded = prof.displacement if compare else None
+    csv_text = band_csv_text(prof.time, prof.force, recorded, mean, lower, upper)
     config = _base_config("predict", args)
     config.update(
         run=str(Path(args.run).resolve()),
@@ -156,20 +210,21 @@ def run_predict(args: argparse.Namespace) -> int:
         dt=float(dt_run),
         n_steps=len(prof.time),
         grasp_fraction=grasp if grasp is not None else run.tree.grasp_fraction,
+        compared_with_recording=bool(compare),
         n_particles=len(run.theta),
         n_valid=int(pred.valid.sum()),
         n_excluded=n_bad,
         integrity_notes=list(run.notes),
         run_fit_status=run.summary.get("status"),
     )
-    with staged_output_dir(args.out, args.overwrite, "prediction", inputs=inputs) as stage:
-        atomic_write_text(stage / "prediction.csv", "\n".join(lines) + "\n")
+    with staged_output_dir(args.out, overwrite, "prediction", inputs=inputs) as stage:
+        atomic_write_text(stage / "prediction.csv", csv_text)
         fig, _ = plot_trajectory_bands(
             prof.time,
             lower,
             upper,
             mean,
-            prof.displacement,
+            recorded,
             samples=pred.tau[pred.valid, 0],
             title=f"{prof.source}: 95% band, {int(pred.valid.sum())} particles",
         )
@@ -180,7 +235,7 @@ def run_predict(args: argparse.Namespace) -> int:
         f"predicted {len(prof.time)} steps under {prof.source}: peak mean displacement {1000 * peak:.3g} mm, "
         f"band {1000 * float(np.mean(upper - lower)):.3g} mm wide on average; {n_bad} of {len(run.theta)} particles excluded"
     )
-    if prof.displacement is not None:
+    if compare:
         print(
             f"  {100 * float(fraction_outside(lower, upper, prof.displacement)):.1f}% of the recorded displacement lies outside the band"
         )

@@ -240,17 +240,6 @@ def run_simulate(args: argparse.Namespace) -> int:
     trajs = synthetic_trajectories(
         rollout, forces, args.dt, names, args.noise_force, args.noise_displacement, rng_noise
     )
-    comments = [
-        [
-            f"treeinfer {__version__} simulate: synthetic ground truth",
-            f"tree: {tree.name} ({args.tree}); grasp: {tree.grasp_branch} "
-            f"at fraction {tree.grasp_fraction:g}",
-            f"profile: {spec}",
-            f"noise: force sigma {args.noise_force:g} N, "
-            f"displacement sigma {args.noise_displacement:g} m",
-        ]
-        for spec in specs
-    ]
     source = (
         "drawn (default_true_params)"
         if drawn
@@ -259,8 +248,8 @@ def run_simulate(args: argparse.Namespace) -> int:
     true_params = true_params_record(tree, kp, kd, source)
     config = _simulate_config(args, tree, specs, n_t, sim)
     with staged_output_dir(args.out, args.force, inputs=inputs) as stage:
-        for name, traj, lines in zip(names, trajs, comments):
-            write_trajectory(stage / name, traj, lines)
+        for name, traj in zip(names, trajs):
+            write_trajectory(stage / name, traj)  # provenance: config.json (specs, noise)
         dump_tree(tree, stage / "tree.yaml")
         write_true_params(stage / TRUE_PARAMS_FILE, true_params)
         atomic_write_json(stage / "config.json", config)

@@ -48,6 +48,21 @@ from .folder import _run_summary, save_run
 from .provenance import config_hash, tree_to_dict_json
 
 
+def _grasp_fractions(o: dict, tree: Tree, trajectories):
+    """The run's --grasp-fraction, else each trajectory's own from its data folder's pulls.yaml
+    (one fraction per trajectory), else None (the tree's grasp point)."""
+    if o.get("grasp_fraction") is not None or not o.get("data"):
+        return o.get("grasp_fraction")
+    if isinstance(trajectories, Observations):
+        return None
+    from ..pulls import data_grasp_fractions
+
+    own = data_grasp_fractions(o["data"], tree, [t.source for t in trajectories])
+    if own is None:
+        return None
+    return float(own[0]) if np.allclose(own, own[0]) else [float(g) for g in own]
+
+
 def build_problem(
     config: dict,
     tree: Tree,
@@ -77,7 +92,7 @@ def build_problem(
         kT=o["kT"],
         nn_prior=sampler_spec(o["sampler"]).nn_prior,
         eta=o["eta"],
-        grasp_fraction=o["grasp_fraction"],
+        grasp_fraction=_grasp_fractions(o, tree, trajectories),
         sim=sim,
     )
     if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints

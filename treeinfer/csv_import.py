@@ -1,0 +1,693 @@
+"""Import a logger's CSV files as treeinfer trajectories (``treeinfer import-csv``).
+
+A load-cell/stepper logger writes columns in its own units (grams-force, millimetres,
+milliseconds), its own time base (a counter that wraps around, jitter) and records idle time
+before and after the push. :func:`import_csv` turns each source file into one standard
+trajectory CSV (seconds, newtons, metres on a uniform grid; :mod:`treeinfer.trajectories`),
+writes the data folder's ``pulls.yaml`` (grasp point and direction, :mod:`treeinfer.pulls`) and
+``import.json`` (what was done to each file), and returns the list of every transformation it
+applied, in order:
+
+1. read the named columns (by header name, case-insensitive, or 0-based index);
+2. time: seconds from the unit table; a backward jump (counter wrap-around) is detected and
+   unwrapped with the median step; uneven steps (jitter) are resampled by linear interpolation
+   onto a uniform grid; ``dt`` instead rebuilds a uniform base ``t = i dt`` (no time column, or
+   one not to be trusted);
+3. force and displacement to newtons and metres from the unit table;
+4. ``tare``: subtract the mean force over the rest samples at the start;
+5. ``trim``: drop idle samples at the start and end (force at rest and displacement still,
+   widened to the foot of the ramps), keeping one rest sample on each side;
+6. ``zero_displacement``: ``"first"`` subtracts the first sample's displacement; ``"contact"``
+   keeps only the samples in contact (from the last rest sample before the force rises to the
+   first after it returns to rest) and measures from the contact position (a line through the
+   first loaded samples extrapolated to zero force; the last rest sample if too few);
+7. a sign check: force and displacement should rise together (warns otherwise).
+
+Errors raise :class:`~treeinfer.errors.TrajectoryFileError` naming the file and line.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import warnings
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from ._io import atomic_write_text
+from .errors import ConfigError, TrajectoryFileError, where
+from .pulls import (
+    PULLS_FILE,
+    PullSpec,
+    parse_direction,
+    pulls_from_dict,
+    read_pulls,
+    spec_to_dict,
+    write_pulls,
+)
+from .trajectories import (
+    DT_REL_TOL,
+    MIN_ROWS,
+    PROVENANCE_FILE,
+    Trajectory,
+    validate_trajectory,
+    write_trajectory,
+)
+
+__all__ = [
+    "DISPLACEMENT_UNITS",
+    "FORCE_UNITS",
+    "TIME_UNITS",
+    "ImportResult",
+    "convert_file",
+    "import_csv",
+    "parse_units",
+    "read_columns",
+]
+
+G0 = 9.80665  # m/s^2, standard gravity (definition of the kilogram-force)
+TIME_UNITS = {"s": 1.0, "ms": 1e-3}
+FORCE_UNITS = {
+    "N": 1.0,
+    "mN": 1e-3,
+    "kN": 1e3,
+    "gf": G0 * 1e-3,
+    "kgf": G0,
+    "lbf": 0.45359237 * G0,  # avoirdupois pound (exact) times standard gravity
+}
+DISPLACEMENT_UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "in": 0.0254}
+_TABLES = {"time": TIME_UNITS, "force": FORCE_UNITS, "displacement": DISPLACEMENT_UNITS}
+DEFAULT_UNITS = {"time": "s", "force": "N", "displacement": "m"}
+ZERO_MODES = ("first", "contact", None)
+REST_FRACTION = 0.05  # activity threshold: this share of the largest |tared force|
+REST_NOISE_FACTOR = 4.0  # ... or this many robust noise standard deviations, whichever is larger
+JITTER_TOL = DT_REL_TOL  # relative step deviation above which times are resampled
+
+
+class ImportResult(NamedTuple):
+    """What :func:`import_csv` wrote.
+
+    Attributes:
+        paths: the trajectory CSVs written, in source order.
+        sidecar: the data folder's ``pulls.yaml``.
+        steps: per written CSV name, the transformations applied, in order (plain sentences).
+    """
+
+    paths: list[Path]
+    sidecar: Path
+    steps: dict[str, list[str]]
+
+    def report(self) -> str:
+        """The steps as printable text, one block per file."""
+        out = []
+        for name, steps in self.steps.items():
+            out.append(f"{name}:")
+            out.extend(f"  - {s}" for s in steps)
+        return "\n".join(out)
+
+
+# ----------------------------------------------------------------------------- units
+
+
+def _unit_key(table: Mapping[str, float], unit: str, quantity: str) -> str:
+    for k in table:
+        if k == unit:
+            return k
+    lower = {k.lower(): k for k in table}
+    if unit.lower() in lower and unit not in ("MN",):  # "MN" (meganewton) is not "mN"
+        return lower[unit.lower()]
+    raise ConfigError(f"units: unknown {quantity} unit {unit!r}; known: {', '.join(table)}")
+
+
+def parse_units(units: str | Mapping[str, str] | None) -> dict[str, str]:
+    """``"time=ms,force=gf,displacement=mm"`` (or a mapping) -> canonical unit names.
+
+    Quantities not given keep s, N, m.
+
+    Raises:
+        ConfigError: unknown quantity or unit, malformed text.
+    """
+    out = dict(DEFAULT_UNITS)
+    if units is None:
+        return out
+    if isinstance(units, str):
+        pairs = {}
+        for part in [p.strip() for p in units.split(",") if p.strip()]:
+            if "=" not in part:
+                raise ConfigError(
+                    f"units: expected quantity=unit pairs like 'time=ms,force=gf', got {part!r}"
+                )
+            k, v = (s.strip() for s in part.split("=", 1))
+            pairs[k] = v
+        units = pairs
+    for k, v in units.items():
+        q = str(k).strip().lower()
+        if q not in _TABLES:
+            raise ConfigError(f"units: unknown quantity {k!r}; expected time, force, displacement")
+        out[q] = _unit_key(_TABLES[q], str(v).strip(), q)
+    return out
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+class _Columns(NamedTuple):
+    values: dict[str, np.ndarray]  # quantity -> [N] raw floats
+    lines: np.ndarray  # [N] 1-based file line of each row
+    names: dict[str, str]  # quantity -> column as found ("force" or "#2")
+
+
+def _sniff_delimiter(sample: str) -> str:
+    try:
+        return csv.Sniffer().sniff(sample, delimiters=",;\t ").delimiter
+    except csv.Error:
+        return ","
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
+def _pick(spec: str | int, header: list[str] | None, ncols: int, path, line, quantity) -> int:
+    """Index of the column ``spec`` (header name, case-insensitive, or 0-based index)."""
+    if isinstance(spec, str):
+        key = spec.strip().strip('"').lower()
+        if header is not None:
+            names = [h.strip().strip('"').lower() for h in header]
+            if key in names:
+                return names.index(key)
+        if not key.lstrip("-").isdigit():
+            found = ", ".join(repr(h) for h in header) if header else "(no header line)"
+            raise TrajectoryFileError(
+                f"{where(path, line)}: no {quantity} column named {spec!r}; columns: {found}"
+            )
+        spec = int(key)
+    if not 0 <= spec < ncols:
+        raise TrajectoryFileError(
+            f"{where(path, line)}: {quantity} column index {spec} is out of range; "
+            f"the file has {ncols} column(s), numbered from 0"
+        )
+    return spec
+
+
+def read_columns(
+    path: str | os.PathLike,
+    columns: Mapping[str, str | int | None],
+    delimiter: str | None = None,
+) -> _Columns:
+    """Read the wanted columns of a logger CSV as floats.
+
+    ``#`` comment lines and blank lines are skipped anywhere; the first other line is a header
+    if any of its cells is not a number. Delimiter: sniffed among ``, ; tab space`` unless given.
+
+    Args:
+        columns: quantity -> column (name or 0-based index), ``None`` to skip.
+
+    Raises:
+        TrajectoryFileError: naming file and line: unreadable, missing column, ragged row,
+            non-numeric or empty cell.
+    """
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except OSError as e:
+        raise TrajectoryFileError(f"{path}: cannot read ({e.strerror or e})") from None
+    except UnicodeDecodeError as e:
+        raise TrajectoryFileError(f"{path}: not UTF-8 text (byte {e.start})") from None
+    rows: list[tuple[int, str]] = []
+    for lineno, line in enumerate(text.split("\n"), start=1):
+        line = line.rstrip("\r")
+        if line.strip() and not line.lstrip().startswith("#"):
+            rows.append((lineno, line))
+    if not rows:
+        raise TrajectoryFileError(f"{path}: no data (only blank or comment lines)")
+    delim = delimiter or _sniff_delimiter("\n".join(r for _, r in rows[:20]))
+
+    def split(line: str) -> list[str]:
+        cells = next(csv.reader(io.StringIO(line), delimiter=delim, skipinitialspace=True))
+        if delim == " ":
+            cells = [c for c in cells if c != ""]
+        return [c.strip() for c in cells]
+
+    first_line, first = rows[0]
+    cells = split(first)
+    header = None if all(_is_number(c) for c in cells) else cells
+    ncols = len(cells)
+    wanted = {q: c for q, c in columns.items() if c is not None}
+    index = {q: _pick(c, header, ncols, path, first_line, q) for q, c in wanted.items()}
+    names = {q: (header[i] if header is not None else f"#{i}") for q, i in index.items()}
+    data_rows = rows[1:] if header is not None else rows
+    vals = {q: [] for q in index}
+    lines = []
+    for lineno, line in data_rows:
+        cells = split(line)
+        if len(cells) != ncols:
+            raise TrajectoryFileError(
+                f"{where(path, lineno)}: row has {len(cells)} cell(s) but the "
+                f"{'header' if header is not None else 'first row'} has {ncols}"
+            )
+        for q, i in index.items():
+            c = cells[i]
+            try:
+                v = float(c)
+            except ValueError:
+                what = "empty cell" if not c else f"non-numeric value {c[:30]!r}"
+                raise TrajectoryFileError(
+                    f"{where(path, lineno)}, column '{names[q]}' ({q}): {what}"
+                ) from None
+            if not math.isfinite(v):
+                raise TrajectoryFileError(
+                    f"{where(path, lineno)}, column '{names[q]}' ({q}): {c!r} (NaN/inf)"
+                )
+            vals[q].append(v)
+        lines.append(lineno)
+    if len(lines) < MIN_ROWS:
+        raise TrajectoryFileError(
+            f"{path}: only {len(lines)} data row(s); at least {MIN_ROWS} are needed"
+        )
+    return _Columns({q: np.asarray(v, float) for q, v in vals.items()}, np.asarray(lines), names)
+
+
+# ----------------------------------------------------------------------------- processing
+
+
+def _robust_sd(x: np.ndarray) -> float:
+    """Noise standard deviation from first differences (MAD; insensitive to slow ramps)."""
+    d = np.diff(x)
+    if d.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
+
+
+def _rest_length(f: np.ndarray, threshold: float) -> int:
+    """Number of leading samples at rest: up to the foot of the first ramp (the last sample
+    before |f - rest| starts rising towards the first sample above ``threshold``)."""
+    base = float(np.median(f[: max(3, min(10, f.size // 20))]))
+    a = np.abs(f - base)
+    active = np.flatnonzero(a > threshold)
+    if not active.size:
+        return int(f.size)
+    n = int(active[0])
+    if n == 0:
+        return 0
+    while n > 0 and a[n - 1] < a[n]:  # the slow start of a ramp is below the threshold
+        n -= 1
+    return n + 1
+
+
+def _threshold(f: np.ndarray) -> float:
+    span = float(np.max(np.abs(f - np.median(f[:3]))))
+    return max(REST_FRACTION * span, REST_NOISE_FACTOR * _robust_sd(f), 1e-12)
+
+
+def _time_base(
+    t_raw: np.ndarray | None,
+    t_unit: str,
+    dt: float | None,
+    n: int,
+    path,
+    lines: np.ndarray,
+    steps: list[str],
+) -> tuple[np.ndarray, bool]:
+    """Seconds [N]; returns (time, uniform). ``uniform`` False means resampling is needed."""
+    if t_raw is None:
+        steps.append(f"no time column: uniform time base t = i * {dt:g} s")
+        return dt * np.arange(n), True
+    t = t_raw * TIME_UNITS[t_unit]
+    if t_unit != "s":
+        steps.append(f"time: {t_unit} -> s (x {TIME_UNITS[t_unit]:g})")
+    d = np.diff(t)
+    back = np.flatnonzero(d <= 0)
+    pos = d[d > 0]
+    if back.size:
+        i = int(back[0]) + 1
+        drop = float(t[i - 1] - t[i])
+        wraps = [int(k) + 1 for k in back if (t[k] - t[k + 1]) > 0.25 * (np.ptp(t) or 1.0)]
+        kind = "wraps around" if wraps else "goes backwards"
+        msg = (
+            f"time column {kind} at {where(path, int(lines[i]))} "
+            f"({t[i - 1]:g} s -> {t[i]:g} s, a drop of {drop:g} s)"
+        )
+        if dt is None:
+            if not wraps or len(wraps) != back.size or pos.size == 0:
+                raise TrajectoryFileError(
+                    f"{msg}; give --dt to rebuild a uniform time base from the sample rate"
+                )
+            step = float(np.median(pos))
+            jumps = np.zeros(n)
+            for k in wraps:
+                jumps[k] = t[k - 1] - t[k] + step
+            t = t + np.cumsum(jumps)
+            steps.append(
+                f"{msg}: counter wrap-around; unwrapped {len(wraps)} time(s) assuming the "
+                f"median step {step:g} s across each wrap"
+            )
+        else:
+            steps.append(f"{msg}: counter wrap-around; time column replaced (see --dt)")
+    if dt is not None:
+        med = float(np.median(pos)) if pos.size else float("nan")
+        note = ""
+        if math.isfinite(med) and abs(med - dt) > 0.05 * dt:
+            note = f" (the time column's median step is {med:g} s)"
+            warnings.warn(f"{path}: --dt {dt:g} s differs from the time column{note}", stacklevel=3)
+        steps.append(f"time column ignored: uniform time base t = i * {dt:g} s{note}")
+        return dt * np.arange(n), True
+    d = np.diff(t)
+    step = float(np.median(d))
+    if step <= 0:
+        raise TrajectoryFileError(f"{path}: time column does not increase")
+    dev = np.abs(d - step) / step
+    if np.any(dev > JITTER_TOL):
+        steps.append(
+            f"time steps vary from {d.min():g} s to {d.max():g} s (jitter; median {step:g} s): "
+            f"resampled by linear interpolation onto a uniform {step:g} s grid"
+        )
+        return t, False
+    return t, True
+
+
+def convert_file(
+    path: str | os.PathLike,
+    *,
+    time: str | int | None = "time",
+    force: str | int = "force",
+    displacement: str | int = "displacement",
+    units: str | Mapping[str, str] | None = None,
+    dt: float | None = None,
+    tare: bool = False,
+    zero_displacement: str | None = "first",
+    trim: bool = False,
+    delimiter: str | None = None,
+) -> tuple[Trajectory, list[str]]:
+    """Convert one logger CSV into a :class:`Trajectory` (see the module docstring).
+
+    Returns:
+        (trajectory in s, N, m on a uniform grid starting at 0, list of steps applied).
+
+    Raises:
+        TrajectoryFileError: naming file and line (columns, cells, time base, too few rows).
+        ConfigError: bad options.
+    """
+    path = Path(path)
+    u = parse_units(units)
+    if dt is not None and not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+        raise ConfigError(f"dt: must be a positive number of seconds, got {dt!r}")
+    if zero_displacement not in ZERO_MODES:
+        raise ConfigError(
+            f"zero_displacement: expected 'first', 'contact' or None, got {zero_displacement!r}"
+        )
+    if time is None and dt is None:
+        raise ConfigError(f"{path}: no time column given; give dt (--dt) to build a time base")
+    cols = read_columns(
+        path, {"time": time, "force": force, "displacement": displacement}, delimiter
+    )
+    steps = [
+        f"read {cols.lines.size} rows of {path.name}: "
+        + ", ".join(f"{q} <- column '{c}'" for q, c in cols.names.items())
+    ]
+    n = cols.lines.size
+    t, uniform = _time_base(cols.values.get("time"), u["time"], dt, n, path, cols.lines, steps)
+    f = cols.values["force"] * FORCE_UNITS[u["force"]]
+    x = cols.values["displacement"] * DISPLACEMENT_UNITS[u["displacement"]]
+    if u["force"] != "N":
+        steps.append(f"force: {u['force']} -> N (x {FORCE_UNITS[u['force']]:.9g})")
+    if u["displacement"] != "m":
+        steps.append(
+            f"displacement: {u['displacement']} -> m (x {DISPLACEMENT_UNITS[u['displacement']]:g})"
+        )
+    if not uniform:
+        step = float(np.median(np.diff(t)))
+        grid = t[0] + step * np.arange(int(np.floor((t[-1] - t[0]) / step + 1e-9)) + 1)
+        f, x = np.interp(grid, t, f), np.interp(grid, t, x)
+        t = grid
+    if t.size < MIN_ROWS:
+        raise TrajectoryFileError(f"{path}: only {t.size} samples after resampling")
+
+    thr = _threshold(f)
+    if tare:
+        n_rest = _rest_length(f, thr)
+        if n_rest < 1:
+            raise TrajectoryFileError(
+                f"{path}: cannot tare: the force is not at rest at the start (first sample "
+                "already above the activity threshold)"
+            )
+        n_rest = min(n_rest, f.size)
+        offset = float(np.mean(f[:n_rest]))
+        f = f - offset
+        steps.append(
+            f"tare: subtracted {offset:.6g} N (mean force over the first {n_rest} samples, at rest)"
+        )
+        thr = _threshold(f)
+    lo, hi = 0, f.size
+    if trim:
+        active_f = np.abs(f - np.median(f[:3])) > thr
+        xthr = max(REST_FRACTION * float(np.ptp(x)), REST_NOISE_FACTOR * _robust_sd(x), 1e-15)
+        first_active = np.flatnonzero(active_f | (np.abs(x - x[0]) > xthr))
+        end_f = np.abs(f - np.median(f[-3:])) > thr
+        last_active = np.flatnonzero(end_f | (np.abs(x - x[-1]) > xthr))
+        if first_active.size == 0:
+            raise TrajectoryFileError(
+                f"{path}: nothing happens in this recording (force and displacement at rest "
+                "throughout); nothing to import"
+            )
+        # widen to the foot of the ramps (as bags.find_pulls): the first samples of a slow
+        # ramp sit below the threshold but are already part of the push
+        a = np.abs(f - np.median(f[:3]))
+        s = int(first_active[0])
+        while s > 0 and a[s - 1] < a[s]:
+            s -= 1
+        a = np.abs(f - np.median(f[-3:]))
+        e = int(last_active[-1])
+        while e < f.size - 1 and a[e + 1] < a[e]:
+            e += 1
+        lo, hi = max(0, s - 1), min(f.size, e + 2)
+        if lo > 0 or hi < f.size:
+            steps.append(
+                f"trim: dropped {lo} idle sample(s) at the start and {f.size - hi} at the end "
+                "(one rest sample kept on each side)"
+            )
+    x_contact = None
+    if zero_displacement == "contact":
+        base = np.median(f[lo : lo + 3])
+        a = np.abs(f - base)
+        active = lo + np.flatnonzero(a[lo:hi] > thr)
+        if active.size == 0:
+            raise TrajectoryFileError(f"{path}: no contact found: the force never rises")
+        c = int(active[0])
+        while c > lo and a[c - 1] < a[c]:  # back to the foot of the ramp: the last rest sample
+            c -= 1
+        e = int(active[-1])
+        while e < hi - 1 and a[e + 1] < a[e]:  # forward to the foot of the release
+            e += 1
+        if c > lo:
+            steps.append(
+                f"contact: dropped {c - lo} approach sample(s) before the force rises "
+                f"(t = {t[c] - t[0]:g} s)"
+            )
+        if e + 1 < hi:
+            steps.append(
+                f"contact: dropped {hi - e - 1} sample(s) after the force returns to rest "
+                "(contact lost: displacement no longer the branch's)"
+            )
+        # Contact lies between two samples; a line through the first loaded samples
+        # (threshold .. 30% of the peak) extrapolated to zero force locates it.
+        peak = c + int(np.argmax(a[c : e + 1]))
+        rise = np.arange(c, peak + 1)
+        sel = rise[(a[rise] > thr) & (a[rise] <= 0.3 * a[peak])]
+        if sel.size >= 3 and np.ptp(f[sel]) > 0:
+            _, icpt = np.polyfit(f[sel] - base, x[sel], 1)
+            x_contact = float(icpt)
+            steps.append(
+                f"contact position from a line through {sel.size} early loaded samples "
+                f"extrapolated to zero force: {x_contact:.6g} m"
+            )
+        lo, hi = c, e + 1
+    t, f, x = t[lo:hi], f[lo:hi], x[lo:hi]
+    if t.size < MIN_ROWS:
+        raise TrajectoryFileError(
+            f"{path}: only {t.size} sample(s) left after trimming; at least {MIN_ROWS} needed"
+        )
+    if zero_displacement is not None:
+        x0 = float(x[0]) if x_contact is None else x_contact
+        x = x - x0
+        what = "the first sample" if zero_displacement == "first" else "contact"
+        steps.append(f"displacement measured from {what} (subtracted {x0:.6g} m)")
+    t = t - t[0]
+    if f.size >= 3 and np.std(f) > 0 and np.std(x) > 0:
+        r = float(np.corrcoef(f, x)[0, 1])
+        if r < 0:
+            msg = (
+                f"{path}: force and displacement move in opposite directions (correlation "
+                f"{r:.2f}); check the sign of the load cell or of the displacement"
+            )
+            warnings.warn(msg, stacklevel=2)
+            steps.append(f"WARNING: {msg.split(': ', 1)[1]}")
+    traj = validate_trajectory(Trajectory(t, f, x, None, path.name))
+    return traj, steps
+
+
+def _per_source(value, n: int, name: str) -> list:
+    if value is None or isinstance(value, (str, int, float)):
+        return [value] * n
+    vals = list(value)
+    if len(vals) != n:
+        raise ConfigError(f"{name}: {len(vals)} value(s) given for {n} source file(s)")
+    return vals
+
+
+def import_csv(
+    sources: Sequence[str | os.PathLike],
+    out: str | os.PathLike,
+    *,
+    time: str | int | None = "time",
+    force: str | int = "force",
+    displacement: str | int = "displacement",
+    units: str | Mapping[str, str] | None = None,
+    dt: float | None = None,
+    tare: bool = False,
+    zero_displacement: str | None = "first",
+    trim: bool = False,
+    grasp_branch: str | None = None,
+    grasp_fraction=None,
+    grasp_distance=None,
+    direction=None,
+    delimiter: str | None = None,
+    overwrite: bool = False,
+    tree=None,
+) -> ImportResult:
+    """Convert logger CSVs into a treeinfer data folder.
+
+    Each source becomes ``<out>/<source stem>.csv``; ``<out>/pulls.yaml`` gets one entry per
+    written file (merged into an existing one, so several calls with different grasp points
+    fill one folder); ``<out>/import.json`` records the source, options and steps per file.
+
+    Args:
+        sources: logger CSV files.
+        out: data folder (created; existing files are kept, same-named CSVs need ``overwrite``).
+        time, force, displacement: columns, by header name (case-insensitive) or 0-based index;
+            ``time=None`` with ``dt``: no time column.
+        units: ``"time=ms,force=gf,displacement=mm"`` or a mapping; see the unit tables.
+        dt: s; rebuild a uniform time base ``i * dt`` (time column missing or unreliable).
+        tare: subtract the rest force at the start.
+        zero_displacement: ``"first"``, ``"contact"`` or ``None`` (keep as logged).
+        trim: drop idle samples at the start and end.
+        grasp_branch, grasp_fraction | grasp_distance: grasp point written to the sidecar
+            (scalars, or one value per source).
+        direction: ``down``, ``horizontal``, a vector or ``"x,y,z"`` (one, or one per source).
+        tree: if given, the sidecar entries are validated against it.
+
+    Returns:
+        :class:`ImportResult` (paths, sidecar, steps per file).
+    """
+    sources = [Path(s) for s in sources]
+    if not sources:
+        raise ConfigError("import-csv: no source files given")
+    n = len(sources)
+    branches = _per_source(grasp_branch, n, "grasp_branch")
+    fracs = _per_source(grasp_fraction, n, "grasp_fraction")
+    dists = _per_source(grasp_distance, n, "grasp_distance")
+    dirs = (
+        [direction] * n
+        if direction is None
+        or isinstance(direction, str)
+        or (len(direction) == 3 and not isinstance(direction[0], (str, list, tuple)))
+        else _per_source(direction, n, "direction")
+    )
+    if any(a is not None for a in fracs) and any(b is not None for b in dists):
+        raise ConfigError(
+            "give either grasp_fraction (--grasp-fraction) or grasp_distance "
+            "(--grasp-distance), not both"
+        )
+    names = [s.stem + ".csv" for s in sources]
+    dup = sorted({m for m in names if names.count(m) > 1})
+    if dup:
+        raise ConfigError(f"import-csv: several sources would be written as {dup}; rename them")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: exists and is not a folder")
+    if not overwrite:
+        clash = [m for m in names if (out / m).exists()]
+        if clash:
+            raise ConfigError(f"{out}: already holds {clash}; pass --force to replace them")
+    specs = {}
+    for m, b, fr, di, dr in zip(names, branches, fracs, dists, dirs):
+        specs[m] = PullSpec(
+            branch=b,
+            fraction=None if fr is None else float(fr),
+            distance=None if di is None else float(di),
+            direction=None if dr is None else parse_direction(dr, f"direction for {m}"),
+        )
+    side = out / PULLS_FILE
+    existing = read_pulls(side, tree) if side.is_file() else None
+    merged = dict(existing.pulls) if existing else {}
+    merged.update(specs)
+    # validate the sidecar before converting (cheap, and nothing is written on error)
+    pulls_from_dict(
+        {
+            "default": spec_to_dict(existing.default) if existing else None,
+            "pulls": {k: spec_to_dict(v) for k, v in merged.items()},
+        },
+        tree,
+        str(side),
+    )
+    results = []
+    for src in sources:
+        results.append(
+            convert_file(
+                src,
+                time=time,
+                force=force,
+                displacement=displacement,
+                units=units,
+                dt=dt,
+                tare=tare,
+                zero_displacement=zero_displacement,
+                trim=trim,
+                delimiter=delimiter,
+            )
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    paths, steps = [], {}
+    for (traj, st), m, src in zip(results, names, sources):
+        p = write_trajectory(out / m, traj._replace(source=m))
+        paths.append(p)
+        steps[m] = st + [f"wrote {m}: {traj.n_steps} samples, dt {traj.dt:g} s"]
+    header = "grasp point and pull direction per trajectory (treeinfer import-csv)"
+    write_pulls(side, merged, existing.default if existing else None, header)
+    prov_path = out / PROVENANCE_FILE
+    prov = {}
+    if prov_path.is_file():
+        try:
+            prov = json.loads(prov_path.read_text())
+        except (OSError, ValueError):
+            prov = {}
+    files = prov.setdefault("files", {})
+    options = {
+        "time": time,
+        "force": force,
+        "displacement": displacement,
+        "units": parse_units(units),
+        "dt": dt,
+        "tare": tare,
+        "zero_displacement": zero_displacement,
+        "trim": trim,
+    }
+    for m, src in zip(names, sources):
+        files[m] = {
+            "tool": "treeinfer import-csv",
+            "source": str(src),
+            "options": options,
+            "steps": steps[m],
+        }
+    atomic_write_text(prov_path, json.dumps(prov, indent=2, sort_keys=True) + "\n")
+    return ImportResult(paths, side, steps)
