@@ -104,7 +104,7 @@ def test_reinit_moves_only_stragglers_next_to_the_bulk():
 
 def _stein_kernel_autodiff(x, y, sx, sy, c=1.0, beta=-0.5):
     """u_p(x, y) from autodiff of the IMQ kernel (independent of the closed form)."""
-    k = lambda a, b: (c**2 + jnp.sum((a - b) ** 2)) ** beta  # noqa: E731
+    k = lambda a, b: (c**2 + jnp.sum((a - b) ** 2)) ** beta
     gx = jax.grad(k, 0)(x, y)
     gy = jax.grad(k, 1)(x, y)
     tr = jnp.trace(jax.jacfwd(jax.grad(k, 0), 1)(x, y))
@@ -202,3 +202,50 @@ def test_reinit_stragglers_in_the_driver_is_exact_on_resume():
     rest = run(alg, 0, None, 40, progress=False, chunk_size=10, reinit_stragglers=pol,
                initial_state=first.final_state, start_iteration=10)
     np.testing.assert_array_equal(rest.final_positions, res.final_positions)
+
+
+# ------------------------------------------------------------------ MCMC draws, prior edge
+
+
+def test_mcmc_draws_discard_warmup_and_thin():
+    S, C, D = 10, 3, 2
+    trace = np.arange(S * C * D, dtype=float).reshape(S, C, D)
+    d = dg.mcmc_draws(trace, 4, thin=2)
+    np.testing.assert_array_equal(d, trace[[4, 6, 8]].reshape(-1, D))
+    np.testing.assert_array_equal(dg.mcmc_draws(trace, 0.5), trace[5:].reshape(-1, D))
+    bad = trace.copy()
+    bad[7, 1, 0] = np.nan
+    assert dg.mcmc_draws(bad, 5).shape == (5 * C - 1, D)
+    for w in (10, -1, 1.0, True):
+        with pytest.raises(ConfigError):
+            dg.mcmc_draws(trace, w)
+    with pytest.raises(ConfigError):
+        dg.mcmc_draws(trace, 0, thin=0)
+
+
+def test_mcmc_summary_uses_every_chain_after_warmup():
+    """AR(1) chains started far away: the post-warm-up draws have the stationary moments."""
+    rng = np.random.default_rng(0)
+    S, C, rho = 2000, 8, 0.5
+    x = np.empty((S, C, 1))
+    x[0] = 50.0
+    for t in range(1, S):
+        x[t] = rho * x[t - 1] + np.sqrt(1 - rho**2) * rng.standard_normal((C, 1))
+    s = dg.mcmc_summary(x, ["a"], warmup=100, thin=2)
+    assert s["n_draws"] == C * (S - 100) // 2 and s["draws"].shape == (s["n_draws"], 1)
+    assert abs(s["draws"].mean()) < 0.1 and s["draws"].std() == pytest.approx(1.0, abs=0.1)
+    p = s["diagnostics"]["parameters"]["a"]
+    assert p["rhat"] < 1.01
+    # ESS of an AR(1) chain: n (1 - rho) / (1 + rho) per chain
+    assert p["ess_bulk"] == pytest.approx(C * (S - 100) / 3, rel=0.25)
+    final_only = x[-1, :, 0]
+    assert final_only.size == C  # what summaries used before: 8 draws
+
+
+def test_prior_edge_mass_flags_piling_up():
+    rng = np.random.default_rng(0)
+    theta = np.column_stack([rng.uniform(0.0, 1.0, 200), rng.normal(1.0, 0.1, 200)])
+    out = dg.prior_edge_mass(theta, [0.0, 0.0], [1.0, 1.0], labels=["a", "b"])
+    assert out["parameters"]["a"] == {"below": 0.0, "above": 0.0}
+    assert out["parameters"]["b"]["above"] == pytest.approx(0.5, abs=0.1)
+    assert len(out["warnings"]) == 1 and out["warnings"][0].startswith("b:")

@@ -43,7 +43,10 @@ __all__ = [
     "find_stragglers",
     "kernel_stein_discrepancy",
     "mcmc_diagnostics",
+    "mcmc_draws",
+    "mcmc_summary",
     "moment_change",
+    "prior_edge_mass",
     "reinit_stragglers",
     "save_inference_data",
     "straggler_mask",
@@ -738,3 +741,108 @@ class ConvergenceCriterion(NamedTuple):
                 return None
             reason += f", KSD {k1:.3g} changed by {100 * rel:.1f}% over {w} iterations"
         return reason
+
+
+# --------------------------------------------------------------------------- MCMC draws
+
+
+def mcmc_draws(trace_positions, warmup, thin: int = 1) -> np.ndarray:
+    """Posterior draws of an MCMC trace: all chains, warm-up discarded, thinned.
+
+    Args:
+      trace_positions: [S, C, D] recorded positions (S trace entries of C chains; treeinfer's
+        ``RunResult.trace_positions``, entry 0 being the initial state on fresh runs).
+      warmup: trace entries discarded at the start: an int (count) or a float in [0, 1)
+        (share of S, e.g. 0.5 = the first half, as :func:`mcmc_diagnostics` ``burn_in``).
+      thin: keep every ``thin``-th entry after the warm-up (>= 1).
+
+    Returns:
+      [N, D] draws, N = C x ceil((S - warmup) / thin) minus rows with a non-finite
+      coordinate (chains stuck in an unstable region); ordered entry by entry, chains within.
+    """
+    x = np.asarray(trace_positions, dtype=float)
+    if x.ndim != 3:
+        raise ConfigError(f"trace_positions: expected shape [S, C, D], got {x.shape}")
+    k = _warmup_count(warmup, x.shape[0])
+    if isinstance(thin, bool) or not isinstance(thin, (int, np.integer)) or thin < 1:
+        raise ConfigError(f"thin: expected a positive integer, got {thin!r}")
+    kept = x[k::thin]
+    if kept.shape[0] == 0:
+        raise ConfigError(
+            f"mcmc_draws: nothing left after a warm-up of {k} of {x.shape[0]} trace entries"
+        )
+    draws = kept.reshape(-1, x.shape[2])
+    return draws[np.all(np.isfinite(draws), axis=1)]
+
+
+def _warmup_count(warmup, n: int) -> int:
+    if isinstance(warmup, bool):
+        raise ConfigError(f"warmup: expected a count or a fraction, got {warmup!r}")
+    if isinstance(warmup, (int, np.integer)):
+        if not 0 <= warmup < n:
+            raise ConfigError(f"warmup: expected 0 <= warmup < {n} trace entries, got {warmup}")
+        return int(warmup)
+    w = float(warmup)
+    if not 0.0 <= w < 1.0:
+        raise ConfigError(f"warmup: a fraction must lie in [0, 1), got {warmup!r}")
+    return math.floor(w * n)
+
+
+def mcmc_summary(trace_positions, labels: Sequence[str] | None = None, *, warmup=0.5,
+                 thin: int = 1, log_density=None) -> dict:
+    """Post-warm-up draws and their R-hat / ESS, for summary.json / particles.csv / evaluate.
+
+    Returns ``{"draws": [N, D] (mcmc_draws), "diagnostics": mcmc_diagnostics(...) on the
+    post-warm-up trace (unthinned: thinning only discards information for R-hat/ESS),
+    "warmup": entries discarded, "thin": thin, "n_draws": N}``.
+    """
+    x = np.asarray(trace_positions, dtype=float)
+    draws = mcmc_draws(x, warmup, thin)
+    k = _warmup_count(warmup, x.shape[0]) if x.ndim == 3 else 0
+    diag = mcmc_diagnostics(x, labels, burn_in=k / x.shape[0], log_density=log_density)
+    return {"draws": draws, "diagnostics": diag, "warmup": k, "thin": int(thin),
+            "n_draws": int(draws.shape[0])}
+
+
+# --------------------------------------------------------------------------- prior edge
+
+MAX_EDGE_SHARE = 0.1  # warn when more than 10% of the particles sit beyond one edge of the box
+
+
+def prior_edge_mass(theta, lower, upper, *, labels: Sequence[str] | None = None,
+                    max_share: float = MAX_EDGE_SHARE) -> dict:
+    """Posterior mass piling up at (or beyond) a prior-box edge.
+
+    The smoothed box prior is flat inside ``[lower, upper]`` and has Gaussian tails outside;
+    mass beyond an edge means the data push against the box: the interval is then set by the
+    tail width (``--prior-tail``), not by the data.
+
+    Args:
+      theta: [P, D] particles or draws (theta units). lower, upper: [D] box.
+      max_share: warn when the share beyond one edge of a parameter exceeds this.
+    Returns:
+      ``{"parameters": {label: {"below": share below lower, "above": share above upper}},
+      "warnings": [...]}`` (shares over finite rows).
+    """
+    x = np.asarray(theta, dtype=float)
+    if x.ndim != 2:
+        raise ConfigError(f"prior_edge_mass: theta must be [P, D], got {x.shape}")
+    x = x[np.all(np.isfinite(x), 1)]
+    lo = np.broadcast_to(np.asarray(lower, float), x.shape[1:])
+    hi = np.broadcast_to(np.asarray(upper, float), x.shape[1:])
+    names = _labels(labels, x.shape[1])
+    params, msgs = {}, []
+    n = max(len(x), 1)
+    for i, name in enumerate(names):
+        below = float(np.sum(x[:, i] < lo[i]) / n)
+        above = float(np.sum(x[:, i] > hi[i]) / n)
+        params[name] = {"below": below, "above": above}
+        for side, share, edge in (("lower", below, lo[i]), ("upper", above, hi[i])):
+            if share > max_share:
+                msgs.append(
+                    f"{name}: {100 * share:.0f}% of the posterior lies beyond the {side} edge of "
+                    f"the prior box ({math.exp(edge):.4g} in natural units): the data push "
+                    "against the box, so this interval reflects the prior's tail width "
+                    "(--prior-tail); widen the box if the value is physically possible"
+                )
+    return {"parameters": params, "warnings": msgs}
