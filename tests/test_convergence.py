@@ -249,3 +249,13 @@ def test_prior_edge_mass_flags_piling_up():
     assert out["parameters"]["a"] == {"below": 0.0, "above": 0.0}
     assert out["parameters"]["b"]["above"] == pytest.approx(0.5, abs=0.1)
     assert len(out["warnings"]) == 1 and out["warnings"][0].startswith("b:")
+
+
+def test_svgd_diagnostics_warn_while_ksd_still_falls():
+    ld = np.tile(np.linspace(-10, -9.99, 50)[:, None], (1, 8))
+    falling = np.linspace(2.0, 0.5, 50)
+    d = dg.svgd_diagnostics(ld, ksd_trace=falling)
+    assert d["ksd_final"] == pytest.approx(0.5) and d["ksd_rel_change"] < -0.1
+    assert any("Stein" in m for m in dg.convergence_warnings(d, "svgd"))
+    flat = dg.svgd_diagnostics(ld, ksd_trace=np.full(50, 0.5))
+    assert not dg.convergence_warnings(flat, "svgd")

@@ -15,6 +15,14 @@ bulk or tail ESS below 100 per chain (Vehtari et al. 2021: total ESS at least
 over the last 10% of iterations; bandwidth collapsed to its floor; more than
 10% of particles with an unstable (non-finite) simulation.
 
+Beyond those (issue 11): :func:`find_stragglers` flags stuck particles (log density far
+below the bulk, or far outside the prior box) with counts and warnings, and
+:func:`reinit_stragglers` / :class:`ReinitStragglers` / :func:`drop_stragglers` are the
+remedies; :func:`kernel_stein_discrepancy` (IMQ kernel, standardised particles) and
+:func:`moment_change` measure SVGD convergence, :class:`ConvergenceCriterion` stops a run
+early; :func:`mcmc_draws` / :func:`mcmc_summary` summarise MCMC runs from the post-warm-up
+trace of all chains; :func:`prior_edge_mass` warns when posterior mass piles up at a box edge.
+
 ArviZ is imported lazily (it is slow to import and prints a FutureWarning
 about its coming 1.0 refactor, which we silence).
 """
@@ -59,6 +67,7 @@ MIN_ESS_PER_CHAIN = 100.0
 MAX_REL_RISE = 0.01
 MAX_UNSTABLE_FRACTION = 0.1
 WINDOW = 0.1  # last 10% of iterations
+MAX_KSD_FALL = 0.1  # KSD still falling by more than 10% over the window: not converged
 
 
 def _arviz():
@@ -256,6 +265,7 @@ def svgd_diagnostics(
     *,
     window: float = WINDOW,
     bandwidth_floor: float | None = None,
+    ksd_trace=None,
 ) -> dict:
     """Plateau and bandwidth checks for SVGD / NNSVGD runs.
 
@@ -266,6 +276,9 @@ def svgd_diagnostics(
       bandwidth_trace: optional ``[n]`` RBF kernel bandwidth per iteration.
       window: trailing fraction of iterations examined (0.1 = last 10%).
       bandwidth_floor: the smallest bandwidth the run allows, if it clamps one.
+      ksd_trace: optional ``[n]`` kernelized Stein discrepancy per iteration (SVGD info
+        ``ksd``); adds ``ksd_final`` and ``ksd_rel_change`` over the window
+        (``(k_end - k_start) / k_start``; clearly negative = still converging).
 
     Returns (plain floats/ints/bools):
       ``mean_log_density`` ``[start, end]`` of the window and ``rel_change``:
@@ -322,6 +335,14 @@ def svgd_diagnostics(
             bandwidth_ratio=b1 / float(bw[0]) if bw[0] != 0 else float("nan"),
             bandwidth_collapsed=bool(collapsed),
         )
+    if ksd_trace is not None:
+        k = np.asarray(ksd_trace, dtype=float)
+        if k.shape != (n,):
+            raise ConfigError(
+                f"ksd_trace: expected shape ({n},) to match the log-density trace, got {k.shape}"
+            )
+        k0, k1 = float(k[start]), float(k[-1])
+        out.update(ksd_final=k1, ksd_rel_change=(k1 - k0) / k0 if k0 > 0 else float("nan"))
     return out
 
 
@@ -336,6 +357,7 @@ def convergence_warnings(
     min_ess_per_chain: float = MIN_ESS_PER_CHAIN,
     max_rel_rise: float = MAX_REL_RISE,
     max_unstable_fraction: float = MAX_UNSTABLE_FRACTION,
+    max_ksd_fall: float = MAX_KSD_FALL,
 ) -> list[str]:
     """Human-readable warnings for a diagnostics dict; empty list = nothing to report.
 
@@ -347,6 +369,7 @@ def convergence_warnings(
       max_rel_rise: warn when the SVGD mean log density rose by more than this
         fraction over the diagnostics window.
       max_unstable_fraction: warn when more than this share of particles is unstable.
+      max_ksd_fall: warn when the SVGD KSD fell by more than this fraction over the window.
     """
     msgs: list[str] = []
     if kind == "mcmc":
@@ -390,6 +413,12 @@ def convergence_warnings(
             msgs.append(
                 "mean log density undefined near the end of the run (all particles unstable?)"
             )
+        krc = diag.get("ksd_rel_change", float("nan"))
+        if np.isfinite(krc) and krc < -max_ksd_fall:
+            msgs.append(
+                f"kernelized Stein discrepancy still falling: {100 * krc:.0f}% over the last "
+                "iterations - particles still moving towards the posterior; run more iterations"
+            )
         P = max(diag["n_particles"], 1)
         if diag["frac_unstable_final"] > max_unstable_fraction:
             msgs.append(
@@ -416,8 +445,9 @@ def convergence_warnings(
 
 Z_MAX = 5.0  # robust z below -Z_MAX: straggler (5 MADs: a Gaussian bulk has P(z < -5) ~ 3e-7)
 FALSE_ALARM = 1e-3  # ... and further below the median than exact posterior draws go (see below)
-MAX_BOX_EXCESS = 0.3  # ... or farther outside the box than this share of its width (3 x the
-#                       default smoothed-box tail width, 0.1 of the width)
+MAX_BOX_EXCESS = 0.5  # ... or farther outside the box than this share of its width (5 x the
+#                       default smoothed-box tail width, 0.1 of the width: prior density e^-12.5
+#                       of the box's; mass merely piling at an edge is prior_edge_mass's job)
 _MAD_TO_SD = 1.4826  # MAD of a normal distribution x 1.4826 = its standard deviation
 
 
