@@ -53,7 +53,7 @@ def make_data(seed: int):
     import jax.numpy as jnp
 
     from treeinfer.examples import example_path
-    from treeinfer.simulator import make_simulator, simulate
+    from treeinfer.sim import make_simulator, simulate
     from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 

@@ -38,7 +38,7 @@ def problem(tree_name: str):
 
     from treeinfer.examples import example_path
     from treeinfer.inference import make_problem
-    from treeinfer.simulator import make_simulator, simulate
+    from treeinfer.sim import make_simulator, simulate
     from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 

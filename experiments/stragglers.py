@@ -33,7 +33,7 @@ def problem():
 
     from treeinfer.examples import example_path
     from treeinfer.inference import make_problem
-    from treeinfer.simulator import make_simulator, simulate
+    from treeinfer.sim import make_simulator, simulate
     from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 
@@ -54,10 +54,10 @@ def run(seeds, n_particles, n_iterations, until, out: Path | None) -> list[dict]
 
     from treeinfer import samplers
     from treeinfer.diagnostics import ReinitStragglers, find_stragglers
-    from treeinfer.inference import initial_particles, make_algorithm
+    from treeinfer.inference import initial_particles
 
     prob = problem()
-    alg = make_algorithm(prob, "svgd")
+    alg = prob.sampler("svgd")
     rows = []
     for seed in seeds:
         theta0 = initial_particles(prob, n_particles, seed)

@@ -276,8 +276,8 @@ def svgd_diagnostics(
       bandwidth_trace: optional ``[n]`` RBF kernel bandwidth per iteration.
       window: trailing fraction of iterations examined (0.1 = last 10%).
       bandwidth_floor: the smallest bandwidth the run allows, if it clamps one.
-      ksd_trace: optional ``[n]`` kernelized Stein discrepancy per iteration (SVGD info
-        ``ksd``); adds ``ksd_final`` and ``ksd_rel_change`` over the window
+      ksd_trace: optional ``[m]`` kernelized Stein discrepancy per iteration (SVGD info
+        ``ksd``; its own length, e.g. without the initial state); adds ``ksd_final`` and ``ksd_rel_change`` over the window
         (``(k_end - k_start) / k_start``; clearly negative = still converging).
 
     Returns (plain floats/ints/bools):
@@ -337,11 +337,10 @@ def svgd_diagnostics(
         )
     if ksd_trace is not None:
         k = np.asarray(ksd_trace, dtype=float)
-        if k.shape != (n,):
-            raise ConfigError(
-                f"ksd_trace: expected shape ({n},) to match the log-density trace, got {k.shape}"
-            )
-        k0, k1 = float(k[start]), float(k[-1])
+        if k.ndim != 1 or k.size < 2:
+            raise ConfigError(f"ksd_trace: expected shape [m >= 2], got {k.shape}")
+        ks = max(k.size - 1 - max(1, math.ceil(window * k.size)), 0)  # its own window
+        k0, k1 = float(k[ks]), float(k[-1])
         out.update(ksd_final=k1, ksd_rel_change=(k1 - k0) / k0 if k0 > 0 else float("nan"))
     return out
 
@@ -776,7 +775,7 @@ class ConvergenceCriterion(NamedTuple):
 # --------------------------------------------------------------------------- MCMC draws
 
 
-def mcmc_draws(trace_positions, warmup, thin: int = 1) -> np.ndarray:
+def mcmc_draws(trace_positions, warmup, thin: int = 1, log_density=None):
     """Posterior draws of an MCMC trace: all chains, warm-up discarded, thinned.
 
     Args:
@@ -786,9 +785,12 @@ def mcmc_draws(trace_positions, warmup, thin: int = 1) -> np.ndarray:
         (share of S, e.g. 0.5 = the first half, as :func:`mcmc_diagnostics` ``burn_in``).
       thin: keep every ``thin``-th entry after the warm-up (>= 1).
 
+      log_density: optional [S, C] log density of the trace entries.
+
     Returns:
       [N, D] draws, N = C x ceil((S - warmup) / thin) minus rows with a non-finite
       coordinate (chains stuck in an unstable region); ordered entry by entry, chains within.
+      With ``log_density``: ``(draws [N, D], log_density [N])``.
     """
     x = np.asarray(trace_positions, dtype=float)
     if x.ndim != 3:
@@ -802,7 +804,13 @@ def mcmc_draws(trace_positions, warmup, thin: int = 1) -> np.ndarray:
             f"mcmc_draws: nothing left after a warm-up of {k} of {x.shape[0]} trace entries"
         )
     draws = kept.reshape(-1, x.shape[2])
-    return draws[np.all(np.isfinite(draws), axis=1)]
+    ok = np.all(np.isfinite(draws), axis=1)
+    if log_density is None:
+        return draws[ok]
+    ld = np.asarray(log_density, dtype=float)
+    if ld.shape != x.shape[:2]:
+        raise ConfigError(f"log_density: expected shape {x.shape[:2]}, got {ld.shape}")
+    return draws[ok], ld[k::thin].reshape(-1)[ok]
 
 
 def _warmup_count(warmup, n: int) -> int:
