@@ -179,6 +179,41 @@ def test_infer_run_folder(run_dir, demo):
         assert np.array_equal(z["theta"], theta)
 
 
+def test_infer_convergence_options(demo, tmp_path, capsys):
+    """Issue 11: stragglers and prior-edge mass reported, warm-up re-init, drop, early stop,
+    --prior-tail; MCMC summaries from every chain's post-warm-up draws."""
+    data = demo[0] / "data" / "train"
+    base = ["infer", "--tree", TWO, "--data", data, "--checkpoint-every", "0", "--no-progress"]
+    rc, out, err = run(capsys, *base, "--out", tmp_path / "svgd", "--sampler", "svgd",
+                       "--particles", "8", "--iterations", "6", "--reinit-stragglers", "3",
+                       "--drop-stragglers", "--stop-when-converged", "--prior-tail", "0.05")
+    assert rc == 0, err
+    s = json.loads((tmp_path / "svgd" / "summary.json").read_text())
+    assert {"n_stragglers", "particles", "n_low_density", "n_outside_box", "warnings"} <= set(
+        s["stragglers"])
+    assert set(s["prior_edge"]["parameters"]) == set(s["posterior"])
+    assert s["stop_reason"] == "max_iterations" and s["n_iterations_done"] == 6
+    cfg = json.loads((tmp_path / "svgd" / "config.json").read_text())
+    assert cfg["options"]["prior_tail"] == 0.05 and cfg["problem"]["prior_sigma"] == 0.05
+    assert cfg["options"]["reinit_stragglers"] == 3 and cfg["options"]["drop_stragglers"]
+
+    rc, out, err = run(capsys, *base, "--out", tmp_path / "mh", "--sampler", "mh",
+                       "--particles", "4", "--iterations", "10", "--mcmc-warmup", "0.5",
+                       "--mcmc-thin", "1")
+    assert rc == 0, err
+    s = json.loads((tmp_path / "mh" / "summary.json").read_text())
+    d = s["posterior_draws"]["mcmc_draws"]
+    with np.load(tmp_path / "mh" / "trace.npz") as z:
+        pos = z["positions"]
+    assert pos.shape[:2] == (11, 4) and d["warmup"] == 5 and d["thin"] == 1
+    assert d["n_draws"] == int(np.all(np.isfinite(pos[5:]), axis=2).sum())
+    rows = [ln for ln in (tmp_path / "mh" / "particles.csv").read_text().splitlines()
+            if not ln.startswith("#")]
+    assert len(rows) - 1 == d["n_draws"]
+    rc, out, err = run(capsys, "infer", "--resume", tmp_path / "mh", "--drop-stragglers")
+    assert_user_error(rc, err, "--drop-stragglers")  # --resume takes every option from the run
+
+
 def test_infer_refuses_existing_run(run_dir, demo, capsys):
     out = run_dir[0]
     before = (out / "config.json").read_text()

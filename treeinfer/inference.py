@@ -229,6 +229,8 @@ def infer(
     initial_state=None,
     start_iteration: int = 0,
     trace_every: int | None = 1,
+    stop_when=None,
+    reinit_stragglers=None,
     **sampler_options,
 ) -> Posterior:
     """Sample the posterior of ``problem`` with one of ``nnsvgd``, ``svgd``, ``sgld``, ``sghmc``, ``mh``.
@@ -237,6 +239,9 @@ def infer(
     particle. Returns a :class:`Posterior`; ``posterior.run.trace`` holds the particle and
     log-density trace. ``callback(iteration, state)`` every ``callback_every`` iterations is
     where checkpoints are written; ``initial_state``/``start_iteration`` resume exactly.
+    ``stop_when`` (e.g. :class:`treeinfer.diagnostics.ConvergenceCriterion`) and
+    ``reinit_stragglers`` (:class:`treeinfer.diagnostics.ReinitStragglers`) go to
+    :func:`treeinfer.samplers.run`.
     """
     check_count(n_particles, "n_particles")
     check_count(n_iterations, "n_iterations")
@@ -249,7 +254,7 @@ def infer(
     result = _samplers.run(
         algorithm, jax.random.key(int(seed)), theta0, n_iterations, progress=progress, callback=callback,
         callback_every=callback_every, initial_state=initial_state, start_iteration=start_iteration,
-        trace_every=trace_every,
+        trace_every=trace_every, stop_when=stop_when, reinit_stragglers=reinit_stragglers,
     )
     theta = np.asarray(result.final_positions)
     # every sampler state carries log p at its positions: no extra (compiled) evaluation

@@ -51,6 +51,12 @@ _RUN_OPTIONS = {
     "force": "--force",
     "backend": "--backend",
     "prior_from": "--prior-from",
+    "prior_tail": "--prior-tail",
+    "reinit_stragglers": "--reinit-stragglers",
+    "drop_stragglers": "--drop-stragglers",
+    "stop_when_converged": "--stop-when-converged",
+    "mcmc_warmup": "--mcmc-warmup",
+    "mcmc_thin": "--mcmc-thin",
 }
 
 _INFER_EPILOG = """\
@@ -166,6 +172,48 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         help="an earlier run whose posterior becomes this run's prior on the joints both infer "
         "(a Gaussian mixture fitted to its particles; the box prior stays for the others)",
     )
+    p.add_argument(
+        "--prior-tail",
+        type=float,
+        metavar="S",
+        help="tail width of the smoothed prior box, as a share of each log-box width; smaller "
+        f"keeps intervals closer to the box (default {d['prior_tail']})",
+    )
+    p.add_argument(
+        "--reinit-stragglers",
+        type=int,
+        metavar="N",
+        help="warm-up remedy: up to iteration N, move stuck particles (log density far below "
+        "the bulk or far outside the box) next to good ones after every chunk; 0: off (default)",
+    )
+    p.add_argument(
+        "--drop-stragglers",
+        action="store_true",
+        default=None,
+        help="leave stuck final particles out of summary.json, particles.csv and the fit "
+        "(they are always counted and warned about)",
+    )
+    p.add_argument(
+        "--stop-when-converged",
+        action="store_true",
+        default=None,
+        help="stop before --iterations once the particles' moments (and SVGD's kernelized "
+        "Stein discrepancy) stop changing; summary.json says why the run stopped",
+    )
+    p.add_argument(
+        "--mcmc-warmup",
+        type=float,
+        metavar="SHARE",
+        help="MCMC samplers: share of the trace discarded as warm-up before the summaries "
+        f"(default {d['mcmc_warmup']})",
+    )
+    p.add_argument(
+        "--mcmc-thin",
+        type=int,
+        metavar="K",
+        help="MCMC samplers: keep every K-th post-warm-up draw of every chain; 0: thin to at "
+        "most 1024 draws (default)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--allow-poor-fit", action="store_true", help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 otherwise); the verdict stays in summary.json")
     p.add_argument("--allow-implausible-data", action="store_true", help="sample even if the plausibility checks find errors in the data (wrong units, swapped columns, duplicates ...); they are printed and recorded in summary.json")
@@ -240,6 +288,8 @@ def run_infer(args: argparse.Namespace) -> int:
             )
         return EXIT_INTERRUPTED
     s = outcome.summary
+    if s.get("stop_reason", "max_iterations") != "max_iterations":
+        _say(f"stopped early: {s['stop_reason']}")
     _print_posterior(s)
     _print_fit(s.get("training_metrics"), "fit to the training data")
     _print_warnings(s["convergence_warnings"])

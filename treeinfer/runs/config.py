@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..inference import DEFAULT_ETA
+from ..inference import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA
 from ..likelihood import DEFAULT_KT
 from ..samplers import sampler_options, sampler_spec
 from ..sim import BACKENDS
@@ -71,6 +71,12 @@ class RunConfig:
     (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end only); force;
     prior_from (None or an earlier run folder, absolute: its posterior becomes this run's prior on
     the joints both infer, :mod:`treeinfer.sequential`).
+    prior_tail (smoothed-box tail width, share of each log-box width, > 0); reinit_stragglers
+    (>= 0: re-initialise stuck particles near the bulk after every chunk up to this iteration;
+    0: off); drop_stragglers (leave stuck final particles out of the summaries);
+    stop_when_converged (stop early, :class:`treeinfer.diagnostics.ConvergenceCriterion`);
+    mcmc_warmup (share of an MCMC trace discarded, in [0, 1)); mcmc_thin (>= 0; 0: thin to at
+    most 1024 post-warm-up draws).
     """
 
     tree: str
@@ -88,6 +94,12 @@ class RunConfig:
     checkpoint_every: int = 25
     force: bool = False
     prior_from: str | None = None
+    prior_tail: float = DEFAULT_PRIOR_SIGMA
+    reinit_stragglers: int = 0
+    drop_stragglers: bool = False
+    stop_when_converged: bool = False
+    mcmc_warmup: float = 0.5
+    mcmc_thin: int = 0
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)
@@ -134,6 +146,15 @@ class RunConfig:
                     "`treeinfer infer` wrote"
                 )
             set_("prior_from", str(prior.resolve()) if str(self.prior_from) else None)
+        set_("prior_tail", _positive("--prior-tail", self.prior_tail))
+        set_("reinit_stragglers", _count("--reinit-stragglers", self.reinit_stragglers, 0))
+        set_("drop_stragglers", bool(self.drop_stragglers))
+        set_("stop_when_converged", bool(self.stop_when_converged))
+        w = float(self.mcmc_warmup)
+        if not 0.0 <= w < 1.0:
+            raise ConfigError(f"--mcmc-warmup: must be a share in [0, 1), got {self.mcmc_warmup!r}")
+        set_("mcmc_warmup", w)
+        set_("mcmc_thin", _count("--mcmc-thin", self.mcmc_thin, 0))
 
     def to_json(self) -> dict:
         """``config.json``'s ``"options"`` object."""
@@ -169,6 +190,7 @@ def infer_config(
     command: str = "infer",
     backend: str = "auto",
     prior_from: str | os.PathLike | None = None,
+    **more,
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
     sampler settings are added by :func:`run_inference` once the problem is built."""
@@ -192,6 +214,7 @@ def infer_config(
         checkpoint_every=checkpoint_every,
         force=force,
         prior_from=None if prior_from is None else str(prior_from),
+        **more,
     ).to_json()
     return {
         "command": command,

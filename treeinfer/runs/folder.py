@@ -69,7 +69,12 @@ def _diagnostics(sampler: str, trace: dict, labels) -> tuple[str, dict, list[str
     kind = sampler_spec(sampler).family
     try:
         if kind == "svgd":
-            diag = svgd_diagnostics(trace["log_density"], _bandwidths(trace["positions"]))
+            ksd = trace.get("diagnostics", {}).get("ksd")
+            diag = svgd_diagnostics(
+                trace["log_density"],
+                _bandwidths(trace["positions"]),
+                ksd_trace=ksd if ksd is not None and len(ksd) >= 2 else None,
+            )
         else:
             diag = mcmc_diagnostics(trace["positions"], labels, log_density=trace["log_density"])
         warns = convergence_warnings(diag, kind)
@@ -80,19 +85,53 @@ def _diagnostics(sampler: str, trace: dict, labels) -> tuple[str, dict, list[str
     return kind, diag, warns
 
 
+def _straggler_and_edge(problem, posterior) -> tuple[dict, dict]:
+    """Stuck particles among the final ones and posterior mass beyond a prior-box edge (issue
+    11): both warn in summary.json's ``convergence_warnings`` and on the CLI."""
+    from ..diagnostics import find_stragglers, prior_edge_mass
+
+    labels = list(problem.labels)
+    # the sampler's own final particles (before --drop-stragglers or MCMC draws replace them)
+    run = posterior.run
+    raw = (np.asarray(run.final_positions), np.asarray(run.final_state.logdensity))
+    rep = find_stragglers(raw[1], raw[0], problem.lower, problem.upper, labels=labels)
+    strag = {
+        "n_stragglers": rep.n_stragglers,
+        "particles": np.flatnonzero(rep.mask).tolist(),
+        "n_low_density": int(rep.low_density.sum()),
+        "n_outside_box": int(rep.outside_box.sum()),
+        "n_nonfinite": int(rep.nonfinite.sum()),
+        "dropped": bool(getattr(posterior, "settings", {}).get("dropped_stragglers", False)),
+        "warnings": [w for w in rep.warnings if "non-finite" not in w],  # n_unstable covers those
+    }
+    edge = prior_edge_mass(posterior.theta, problem.lower, problem.upper, labels=labels)
+    return strag, edge
+
+
 def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
     o = config["options"]
     kind, diag, warns = _diagnostics(o["sampler"], trace, list(problem.labels))
     stable = np.asarray(fit["stable"], bool)
+    strag, edge = _straggler_and_edge(problem, posterior)
+    warns = [*warns, *strag["warnings"], *edge["warnings"]]
     summary = {
         "sampler": o["sampler"],
         "n_particles": o["particles"],
         "n_iterations": o["iterations"],
+        "n_iterations_done": int(posterior.run.settings.get("n_iterations_done", o["iterations"])),
+        "stop_reason": str(getattr(posterior.run, "stop_reason", "max_iterations")),
+        "posterior_draws": {
+            k: posterior.settings[k]
+            for k in ("mcmc_draws", "dropped_stragglers", "n_dropped")
+            if k in posterior.settings
+        },
         "seed": o["seed"],
         "elapsed_s_sampling": trace["elapsed_s"],
         "diagnostics_kind": kind,
         "diagnostics": diag,
         "convergence_warnings": warns,
+        "stragglers": strag,
+        "prior_edge": edge,
         "n_unstable": int((~stable).sum()),
         "unstable_particles": np.flatnonzero(~stable).tolist(),
         "posterior": posterior_table(posterior.theta, problem.labels, stable),

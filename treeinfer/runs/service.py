@@ -5,6 +5,7 @@ cross-validate a run's settings (k-fold). Owns the simulator cache of a command.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import shutil
 import time
@@ -23,6 +24,7 @@ from ..errors import ConfigError, OutputExistsError, SimulationError, Trajectory
 
 # ==== problem and posterior =======================================================================
 from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits
+from ..inference import DEFAULT_PRIOR_SIGMA
 from ..jsonio import jsonable as _jsonable
 from ..jsonio import read_json, write_json
 from ..samplers import sampler_spec
@@ -92,6 +94,7 @@ def build_problem(
         kT=o["kT"],
         nn_prior=sampler_spec(o["sampler"]).nn_prior,
         eta=o["eta"],
+        prior_sigma=o.get("prior_tail", DEFAULT_PRIOR_SIGMA),
         grasp_fraction=_grasp_fractions(o, tree, trajectories),
         sim=sim,
     )
@@ -316,12 +319,15 @@ def run_inference(
         callback_every=every,
         initial_state=None if previous is None else previous.state,
         start_iteration=0 if previous is None else previous.iteration,
+        **_convergence_options(o, problem),
     )
-    if checkpointer.last_iteration != o["iterations"]:
+    done = int(posterior.run.settings.get("n_iterations_done", o["iterations"]))
+    if checkpointer.last_iteration != done:
         # the end state too: if anything below fails (or is interrupted), --resume skips sampling
-        checkpointer(o["iterations"], posterior.run.final_state)
+        checkpointer(done, posterior.run.final_state)
 
     trace = _merged_trace(posterior.run, previous)
+    posterior = _summarised_posterior(posterior, problem, trace, o)
     fit = _training_fit(problem, posterior, config)
     from ..sim import check_stable_share
 
@@ -372,6 +378,57 @@ def _fitted_noise(problem) -> float | None:
         return float(v) if v is not None else None
     except (TypeError, ValueError):
         return None
+
+
+def _convergence_options(o: dict, problem) -> dict:
+    """``stop_when`` / ``reinit_stragglers`` for :func:`~treeinfer.inference.infer` from a run's
+    options (issue 11: --stop-when-converged, --reinit-stragglers N)."""
+    from ..diagnostics import ConvergenceCriterion, ReinitStragglers
+
+    out = {}
+    if o.get("stop_when_converged"):
+        out["stop_when"] = ConvergenceCriterion()
+    if o.get("reinit_stragglers", 0) > 0:
+        out["reinit_stragglers"] = ReinitStragglers(
+            int(o["reinit_stragglers"]), problem.lower, problem.upper
+        )
+    return out
+
+
+MAX_MCMC_DRAWS = 1024  # --mcmc-thin 0: thin the post-warm-up draws to at most this many
+
+
+def _summarised_posterior(posterior, problem, trace: dict, o: dict):
+    """The particles the run's summaries describe (summary.json, particles.csv, the fit).
+
+    MCMC samplers: every chain's post-warm-up trace (``--mcmc-warmup``), thinned
+    (``--mcmc-thin``; 0: to at most MAX_MCMC_DRAWS draws), not only the final states.
+    ``--drop-stragglers``: stuck final particles (SVGD) are left out. The sampler's own
+    final state stays in ``posterior.run``."""
+    from ..diagnostics import find_stragglers, mcmc_draws
+    from ..likelihood import gains_from_theta
+
+    theta, logp, extra = posterior.theta, posterior.log_density, {}
+    pos, ld = np.asarray(trace["positions"]), np.asarray(trace["log_density"])
+    if sampler_spec(o["sampler"]).family == "mcmc" and len(pos) >= 2:
+        warm = math.floor(o.get("mcmc_warmup", 0.5) * len(pos))
+        thin = int(o.get("mcmc_thin", 0))
+        if thin == 0:
+            thin = max(1, math.ceil((len(pos) - warm) * pos.shape[1] / MAX_MCMC_DRAWS))
+        theta, logp = mcmc_draws(pos, warm, thin, log_density=ld)
+        extra = {"mcmc_draws": {"warmup": warm, "thin": thin, "n_draws": int(len(theta))}}
+    elif o.get("drop_stragglers"):
+        rep = find_stragglers(logp, theta, problem.lower, problem.upper)
+        if 0 < rep.n_stragglers < len(theta) - 1:
+            theta, logp = theta[~rep.mask], logp[~rep.mask]
+            extra = {"dropped_stragglers": True, "n_dropped": rep.n_stragglers}
+    if not extra:
+        return posterior
+    kp, kd = gains_from_theta(theta, problem.sim.n_joints)
+    return dataclasses.replace(
+        posterior, theta=np.asarray(theta), kp=np.asarray(kp), kd=np.asarray(kd),
+        log_density=np.asarray(logp), settings={**posterior.settings, **extra},
+    )
 
 
 def infer_posterior(

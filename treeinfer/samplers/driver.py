@@ -20,12 +20,15 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from ..diagnostics import ReinitStragglers, straggler_mask
+from ..diagnostics import reinit_stragglers as _reinit_positions
 from ..errors import ConfigError
 from .base import SamplingAlgorithm, check_positions
 
 __all__ = ["RunResult", "init_key", "iteration_key", "run"]
 
 _INIT_TAG = np.uint32(0xFFFFFFFF)
+_REINIT_TAG = 0x5EED  # straggler re-init after iteration i: fold_in(fold_in(key, tag), i)
 
 
 class RunResult(NamedTuple):
@@ -41,8 +44,11 @@ class RunResult(NamedTuple):
       (``mean_logdensity``, ``bandwidth``, ``mean_acceptance_rate``, ...), for
       iterations ``start_iteration + 1 .. n_iterations``.
     settings: everything needed to reproduce the run (sampler name and
-      hyperparameters, seed or key, iteration counts, shapes).
+      hyperparameters, seed or key, iteration counts, shapes; ``n_iterations_done`` is the
+      completed count, below ``n_iterations`` when ``stop_when`` stopped the run).
     elapsed_s: wall-clock seconds of this call.
+    stop_reason: why the run ended: ``"max_iterations"`` or the reason ``stop_when`` gave
+      (``"converged at iteration ..."``).
     """
 
     final_positions: np.ndarray
@@ -53,6 +59,7 @@ class RunResult(NamedTuple):
     diagnostics: dict
     settings: dict
     elapsed_s: float
+    stop_reason: str = "max_iterations"
 
 
 def to_host(x) -> np.ndarray:
@@ -179,6 +186,8 @@ def run(
     callback_every: int | None = None,
     initial_state=None,
     start_iteration: int = 0,
+    stop_when: Callable[..., str | None] | None = None,
+    reinit_stragglers: ReinitStragglers | None = None,
 ) -> RunResult:
     """Run ``algorithm`` from ``initial_positions [P, D]`` (or a saved state) to ``n_iterations``.
 
@@ -200,6 +209,16 @@ def run(
       initial_state, start_iteration: resume from ``state`` saved after
         ``start_iteration`` iterations of a run with the same ``rng_key``;
         the result equals the uninterrupted run.
+      stop_when: ``stop_when(iteration, positions [P, D], previous_positions [P, D] | None,
+        diagnostics) -> reason | None``, called on the host after every chunk (e.g.
+        :class:`treeinfer.diagnostics.ConvergenceCriterion`); ``previous_positions`` are the
+        particles at the previous chunk end of this call, ``diagnostics`` the per-iteration
+        scalars so far. A reason (str) ends the run there; it is ``result.stop_reason``.
+      reinit_stragglers: a :class:`treeinfer.diagnostics.ReinitStragglers` warm-up remedy:
+        after each chunk ending at or before its ``until``, stragglers are moved next to good
+        particles and their state re-initialised (one extra batched target evaluation, only
+        when some are found); ``diagnostics["n_reinitialised"]`` counts them per iteration.
+        Deterministic (keyed by iteration), so resume stays exact.
 
     The step is traced twice (shape inference and compilation) and the chunk
     compiled once; ``init`` is compiled beside it, in a second thread. Compiled
@@ -221,6 +240,10 @@ def run(
     ):
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
             raise ConfigError(f"run: {nm} must be a positive integer or None, got {v!r}")
+    if stop_when is not None and not callable(stop_when):
+        raise ConfigError(f"run: stop_when must be callable, got {stop_when!r}")
+    if reinit_stragglers is not None and not isinstance(reinit_stragglers, ReinitStragglers):
+        raise ConfigError("run: reinit_stragglers must be a diagnostics.ReinitStragglers")
     if callback is not None and callback_every is None:
         raise ConfigError("run: callback needs callback_every")
     if chunk_size is None:
@@ -270,6 +293,10 @@ def run(
         trace_ld.append(to_host(state.logdensity))
         trace_it.append(0)
 
+    stop_reason = "max_iterations"
+    it = start_iteration
+    previous = None
+    reinit_fn = None
     if remaining > 0:
         bar = tqdm(
             total=n_iterations,
@@ -279,7 +306,6 @@ def run(
             unit="it",
             dynamic_ncols=True,
         )
-        it = start_iteration
         try:
             while it < n_iterations:
                 stop = min((it // chunk_size + 1) * chunk_size, n_iterations)
@@ -296,6 +322,16 @@ def run(
                         trace_ld.append(to_host(trace[1])[keep])
                         trace_it.extend(counts[keep].tolist())
                 it = stop
+                if reinit_stragglers is not None:
+                    n_re = 0
+                    if it <= reinit_stragglers.until:
+                        if reinit_fn is None:
+                            reinit_fn = _straggler_reinit(algorithm.init, reinit_stragglers)
+                        state, n_re = reinit_fn(state, key, jnp.int32(it))
+                        n_re = int(n_re)
+                    counts = np.zeros(n_done, np.int32)
+                    counts[-1] = n_re
+                    diagnostics.setdefault("n_reinitialised", []).append(counts)
                 postfix = {}
                 if "mean_logdensity" in scalars:
                     postfix["logp"] = f"{float(scalars['mean_logdensity'][-1]):.4g}"
@@ -307,6 +343,14 @@ def run(
                 bar.update(n_done)
                 if callback is not None and it % callback_every == 0:
                     callback(it, state)
+                if stop_when is not None and it < n_iterations:
+                    now = to_host(state.position)
+                    so_far = {k: np.concatenate(v) for k, v in diagnostics.items()}
+                    reason = stop_when(it, now, previous, so_far)
+                    previous = now
+                    if reason:
+                        stop_reason = str(reason)
+                        break
         finally:
             bar.close()
 
@@ -321,6 +365,7 @@ def run(
         "hyperparameters": dict(algorithm.settings),
         **key_record,
         "n_iterations": int(n_iterations),
+        "n_iterations_done": int(it),
         "start_iteration": int(start_iteration),
         "n_particles": int(n_particles),
         "dim": int(dim),
@@ -336,4 +381,41 @@ def run(
         diagnostics={k: np.concatenate(v) for k, v in diagnostics.items()},
         settings=settings,
         elapsed_s=time.perf_counter() - t0,
+        stop_reason=stop_reason,
     )
+
+
+def _straggler_reinit(init, policy: ReinitStragglers):
+    """Jitted ``(state, key, iteration) -> (state, n_moved)``: stragglers of ``state`` moved
+    next to good particles, their state rows taken from ``init`` at the new positions (every
+    state leaf whose leading axis is the particle axis; scalars such as step counters are
+    kept). ``init`` (one batched target evaluation) runs only when some particle is flagged."""
+    lower = jnp.asarray(policy.lower)
+    upper = jnp.asarray(policy.upper)
+
+    def apply(state, key, iteration):
+        mask = straggler_mask(
+            state.logdensity, state.position, lower, upper, z_max=policy.z_max,
+            min_gap=policy.min_gap, max_box_excess=policy.max_box_excess,
+        )[0]
+        k = jax.random.fold_in(jax.random.fold_in(key, _REINIT_TAG), iteration)
+        n_particles = state.position.shape[0]
+
+        def move(s):
+            new_pos = _reinit_positions(k, s.position, mask, policy.jitter)
+            fresh = init(jax.random.fold_in(k, 1), new_pos)
+
+            def pick(new, old):
+                if jnp.ndim(old) >= 1 and old.shape[0] == n_particles:
+                    m = mask.reshape((n_particles,) + (1,) * (old.ndim - 1))
+                    return jnp.where(m, new, old)
+                return old
+
+            return jax.tree.map(pick, fresh, s)
+
+        # nothing to move, or nothing good to move them to: leave the state as it is
+        do = jnp.any(mask) & ~jnp.all(mask)
+        state = jax.lax.cond(do, move, lambda s: s, state)
+        return state, jnp.where(do, jnp.sum(mask), 0)
+
+    return jax.jit(apply)

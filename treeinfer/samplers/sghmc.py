@@ -69,7 +69,7 @@ class SGHMCInfo(NamedTuple):
 def sghmc(
     value_and_grad_fn: ValueAndGradFn,
     step_size=1e-2,
-    alpha: float = 1.0,
+    alpha: float = 10.0,
     beta: float = 0.0,
     temperature: float = 1.0,
     optimizer: optax.GradientTransformation | None = None,
@@ -81,7 +81,10 @@ def sghmc(
       value_and_grad_fn: batched ``theta [P, D] -> (log p [P], grad [P, D])``.
       step_size: ``eps`` (time step), a float or a schedule ``step_count -> eps``.
       alpha: friction, ``0 < alpha * eps < 1``; larger mixes like Langevin,
-        smaller keeps more momentum.
+        smaller keeps more momentum. Defaults (eps 1e-2, alpha 10) measured on the built-in
+        examples by ``experiments/sghmc_defaults.py``: with alpha 1 the chains overshoot
+        (log p -515 / -434 at eps 3e-3, 25% unstable at eps 1e-2); alpha 10 travels 0.2-0.7
+        box widths in 200 iterations and reaches the highest log density of the settings tried.
       beta: gradient-noise estimate, ``0 <= beta <= 2 alpha / (eps T)``.
       temperature: ``T`` (> 0).
       optimizer: None (default) for true SGHMC; an optax optimiser replaces
