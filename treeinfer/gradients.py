@@ -230,7 +230,7 @@ def jvp_value_and_grad(logdensity_batch: LogDensityFn) -> ValueAndGradFn:
     likelihood on the fused simulator). Rows are independent, so the tangent ``e_d`` given to
     every row at once returns ``d log p_p / d theta_pd`` for all particles: the D basis tangents
     run in one ``vmap``-ed ``jax.jvp``, sharing one primal rollout (cost measured in
-    ``benchmarks/time_to_posterior.py --gradients-only``).
+    ``python -m benchmarks.gradient_cost``).
 
     Non-finite handling as :func:`central_difference`: a particle whose value or gradient is
     not finite (unstable rollout) gets ``(-inf, 0)``.
