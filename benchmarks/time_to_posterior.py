@@ -107,7 +107,10 @@ def child(args) -> int:
                          "converged": fit.converged.tolist(), "values": fit.values.tolist()}
         problem = problem_with_gradients(problem, args.fast_gradients)
         n_iter = args.fast_iterations
+        options = {} if args.fast_learning_rate is None else {
+            "learning_rate": args.fast_learning_rate}
     else:
+        options = {}
         theta0 = None
         n_iter = args.reference_iterations if mode == "reference" else args.today_iterations
     checks: list = []
@@ -120,7 +123,7 @@ def child(args) -> int:
         checks.append({"iteration": 0, "time": time.time(), "theta": np.asarray(theta0).tolist()})
     posterior = infer(problem, "nnsvgd", n_particles=args.particles, n_iterations=n_iter, seed=0,
                       progress=False, initial_theta=theta0, callback=on_chunk,
-                      callback_every=args.check_every, trace_every=None)
+                      callback_every=args.check_every, trace_every=None, **options)
     marks["infer"] = time.time()
     record.update({"marks": marks, "checks": checks, "n_iterations": n_iter,
                    "gradient": problem.settings["gradient"],
@@ -180,11 +183,16 @@ def main(argv=None) -> int:
     p.add_argument("--starts", type=int, default=6, help="LM starting points")
     p.add_argument("--lm-iterations", type=int, default=25)
     p.add_argument("--laplace-scale", type=float, default=1.0)
+    p.add_argument("--fast-learning-rate", type=float, default=None,
+                   help="NNSVGD Adam learning rate of the fast path (default: the sampler's)")
     p.add_argument("--check-every", type=int, default=10)
     p.add_argument("--tolerance", type=float, default=0.10)
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "gpu", "cuda"])
     p.add_argument("--cores", type=int, default=2, help="pin CPU runs to this many cores")
     p.add_argument("--paths", default="reference,today,fast")
+    p.add_argument("--reference-from", default=None,
+                   help="reuse a reference run saved with --save-reference (same problem)")
+    p.add_argument("--save-reference", default=None, help="write the reference run here")
     p.add_argument("--machine", default=None)
     p.add_argument("--no-write", dest="write", action="store_false")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -196,10 +204,11 @@ def main(argv=None) -> int:
 
     keep = ["particles", "reference_iterations", "today_iterations", "fast_iterations",
             "fast_gradients", "fast_jacobian", "starts", "lm_iterations", "laplace_scale",
-            "check_every"]
+            "check_every", "fast_learning_rate"]
     args.passthrough = []
     for k in keep:
-        args.passthrough += [f"--{k.replace('_', '-')}", str(getattr(args, k))]
+        if getattr(args, k) is not None:
+            args.passthrough += [f"--{k.replace('_', '-')}", str(getattr(args, k))]
     if args.device != "auto":
         os.environ["JAX_PLATFORMS"] = args.device
 
@@ -209,7 +218,15 @@ def main(argv=None) -> int:
     try:
         write_data(workdir)
         warm_nn_prior()
-        runs = {mode: run_child(mode, args, workdir) for mode in args.paths.split(",")}
+        paths = args.paths.split(",")
+        runs = {}
+        if args.reference_from:  # a reference posterior saved by an earlier run (--save-reference)
+            runs["reference"] = json.loads(Path(args.reference_from).read_text())
+            paths = [m for m in paths if m != "reference"]
+        for mode in paths:
+            runs[mode] = run_child(mode, args, workdir)
+        if args.save_reference and "reference" in paths:
+            Path(args.save_reference).write_text(json.dumps(runs["reference"]))
         summary = compare(runs, workdir, args)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
