@@ -37,6 +37,7 @@ __all__ = [
     "combine",
     "combined_value_and_grad",
     "default_rel_step",
+    "jvp_combined_value_and_grad",
     "jvp_value_and_grad",
     "likelihood_value_and_grad",
     "mask_nonfinite",
@@ -267,3 +268,26 @@ def likelihood_value_and_grad(
     if method == "jvp":
         return jvp_value_and_grad(loglik)
     raise ConfigError(f"gradients: expected one of {', '.join(GRADIENT_METHODS)}, got {method!r}")
+
+
+def jvp_combined_value_and_grad(
+    simulator_terms: Sequence[LogDensityFn] = (),
+    autodiff_terms: Sequence[LogDensityFn] = (),
+) -> ValueAndGradFn:
+    """:func:`combined_value_and_grad` with the simulator terms differentiated exactly by
+    forward mode (:func:`jvp_value_and_grad`) instead of central differences; the other terms
+    (priors) by reverse-mode autodiff as there."""
+    simulator_terms, autodiff_terms = tuple(simulator_terms), tuple(autodiff_terms)
+    if not simulator_terms and not autodiff_terms:
+        raise ConfigError("jvp_combined_value_and_grad: give at least one log-density term")
+    parts = []
+    if simulator_terms:
+        parts.append(jvp_value_and_grad(combine(*simulator_terms)))
+    if autodiff_terms:
+        parts.append(autodiff_value_and_grad(combine(*autodiff_terms)))
+
+    def value_and_grad(theta: jax.Array) -> tuple[jax.Array, jax.Array]:
+        out = [vg(theta) for vg in parts]
+        return mask_nonfinite(sum(o[0] for o in out), sum(o[1] for o in out))
+
+    return value_and_grad
