@@ -39,8 +39,9 @@ except ImportError:
 
 
 # The hand-written model of tests/test_hinge_dynamics.py (copied so each file stands alone). It
-# uses what our exports do not: a welded (joint-less) body, joint anchors and axes off the body frame, rotated principal axes, armature, a non-zero spring
-# reference and qpos0, and a sideways gravity component.
+# uses what our exports do not: a welded (joint-less) body, joint anchors and axes off the body
+# frame, rotated principal axes, armature, a non-zero spring reference and qpos0, and a
+# sideways gravity component.
 GENERAL_MJCF = """
 <mujoco>
   <option timestep="0.002" integrator="implicitfast" gravity="0.5 -1 -9.81">
@@ -54,7 +55,8 @@ GENERAL_MJCF = """
       <body name="welded" pos="0.6 0 0" quat="0.7 0 0.7 0">
         <inertial pos="0.1 0 0.02" mass="0.3" diaginertia="0.002 0.001 0.003"/>
         <body name="b" pos="0.2 0.05 0" quat="1 0.2 0 0.1">
-          <joint name="jb" type="hinge" axis="0 0 1" pos="-0.02 0.01 0" stiffness="12" damping="0.2"/>
+          <joint name="jb" type="hinge" axis="0 0 1" pos="-0.02 0.01 0" stiffness="12"
+                 damping="0.2"/>
           <inertial pos="0.25 0 0" mass="0.5" diaginertia="0.01 0.012 0.004"/>
           <site name="grasp" pos="0.5 0 0"/>
         </body>
@@ -153,7 +155,8 @@ def _fused_next_state(m, t, body, force, lever):
     return next_state
 
 
-@pytest.mark.parametrize("name,model", list(_models()), ids=lambda x: x if isinstance(x, str) else "")
+@pytest.mark.parametrize("name,model", list(_models()),
+                         ids=lambda x: x if isinstance(x, str) else "")
 def test_step_state_jacobian_matches_mjd_transitionFD(name, model):
     m = model
     t = hd.from_mjmodel(m)
@@ -171,7 +174,8 @@ def test_step_state_jacobian_matches_mjd_transitionFD(name, model):
             np.testing.assert_allclose(ours, a, atol=1e-6 * max(1.0, np.abs(a).max()))
 
 
-@pytest.mark.parametrize("name,model", list(_models()), ids=lambda x: x if isinstance(x, str) else "")
+@pytest.mark.parametrize("name,model", list(_models()),
+                         ids=lambda x: x if isinstance(x, str) else "")
 def test_step_gain_jacobian_matches_fd_of_mj_step(name, model):
     m = model
     t = hd.from_mjmodel(m)
