@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -162,11 +163,16 @@ def run_child(mode: str, args, workdir: Path) -> dict:
     if args.cores and (os.cpu_count() or 1) > args.cores and shutil.which("taskset"):
         cmd = ["taskset", "-c", f"0-{args.cores - 1}"] + cmd
     print(f"[{mode}] {' '.join(cmd[-8:])}", flush=True)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t_spawn = time.time()
     subprocess.run(cmd, env=env, check=True, cwd=ROOT)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     rec = json.loads(result.read_text())
     rec["t_spawn"] = t_spawn
     rec["wall_s"] = rec["marks"]["infer"] - t_spawn
+    # CPU seconds of the whole child (all threads): robust to other users' load on the box
+    rec["cpu_s"] = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    rec["load_average_after"] = os.getloadavg()
     return rec
 
 
@@ -271,14 +277,16 @@ def compare(runs: dict, workdir: Path, args) -> dict:
         final = band_metrics(sim, rec["final_theta"], forces, truth)
         marks = {k: v - rec["t_spawn"] for k, v in rec["marks"].items()}
         summary[mode] = {
-            "wall_s": rec["wall_s"], "n_iterations": rec["n_iterations"],
+            "wall_s": rec["wall_s"], "cpu_s": rec.get("cpu_s"),
+            "load_average_after": rec.get("load_average_after"), "n_iterations": rec["n_iterations"],
             "gradient": rec["gradient"], "phase_ends_s": marks, "final": final,
             "final_usable": usable(final, ref, args.tolerance),
             "first_usable_iteration": None if first_ok is None else first_ok["iteration"],
             "time_to_posterior_s": None if first_ok is None else first_ok["elapsed_s"],
             "checks": table, **({"map": rec["map"]} if "map" in rec else {}),
         }
-        print(f"{mode}: {rec['n_iterations']} it in {rec['wall_s']:.1f} s from process start "
+        print(f"{mode}: {rec['n_iterations']} it in {rec['wall_s']:.1f} s from process start, "
+              f"{rec.get('cpu_s', float('nan')):.0f} CPU s "
               f"(phases: {', '.join(f'{k} {v:.1f}' for k, v in marks.items())}); final band "
               f"{final['ci_width_m'] * 1e3:.2f} mm, {final['pct_outside']:.1f}% outside; first "
               f"usable: " + ("never" if first_ok is None else
