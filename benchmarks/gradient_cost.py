@@ -33,10 +33,11 @@ def standard_likelihood(n_steps: int = 300, backend: str = "fused"):
     """(log-likelihood ``theta [N, 6] -> [N]``, theta_true [6]) of the standard problem, without
     the NN prior (it is not part of the gradient being timed)."""
     from benchmarks.inference import EXAMPLES
-    from treeinfer.cli import default_true_params
     from treeinfer.forces import profile_set
     from treeinfer.likelihood import DEFAULT_KT, boltzmann_log_likelihood
-    from treeinfer.simulator import make_simulator, simulate_reference
+    from treeinfer.sim import make_simulator
+    from treeinfer.sim.reference import simulate_reference
+    from treeinfer.synthetic import default_true_params
     from treeinfer.trajectories import Trajectory, stack_trajectories
     from treeinfer.tree import load_tree
 

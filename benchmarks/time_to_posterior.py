@@ -52,9 +52,10 @@ N_STEPS, DT = 300, 0.01
 def write_data(folder: Path) -> None:
     """Training and held-out pulls of the standard problem (C reference, noise-free)."""
     from benchmarks.inference import EXAMPLES
-    from treeinfer.cli import default_true_params
     from treeinfer.forces import profile_set
-    from treeinfer.simulator import make_simulator, simulate_reference
+    from treeinfer.sim import make_simulator
+    from treeinfer.sim.reference import simulate_reference
+    from treeinfer.synthetic import default_true_params
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml")
@@ -252,7 +253,7 @@ def main(argv=None) -> int:
 
 def compare(runs: dict, workdir: Path, args) -> dict:
     from benchmarks.inference import EXAMPLES
-    from treeinfer.simulator import make_simulator
+    from treeinfer.sim import make_simulator
     from treeinfer.tree import load_tree
 
     data = np.load(workdir / "data.npz")
@@ -278,7 +279,8 @@ def compare(runs: dict, workdir: Path, args) -> dict:
         marks = {k: v - rec["t_spawn"] for k, v in rec["marks"].items()}
         summary[mode] = {
             "wall_s": rec["wall_s"], "cpu_s": rec.get("cpu_s"),
-            "load_average_after": rec.get("load_average_after"), "n_iterations": rec["n_iterations"],
+            "load_average_after": rec.get("load_average_after"),
+            "n_iterations": rec["n_iterations"],
             "gradient": rec["gradient"], "phase_ends_s": marks, "final": final,
             "final_usable": usable(final, ref, args.tolerance),
             "first_usable_iteration": None if first_ok is None else first_ok["iteration"],

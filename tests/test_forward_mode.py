@@ -28,15 +28,11 @@ from treeinfer.gradients import (
     likelihood_value_and_grad,
 )
 from treeinfer.likelihood import boltzmann_log_likelihood
-from treeinfer.simulator import make_simulator, simulate_reference
+from treeinfer.sim import fused as hd
+from treeinfer.sim import make_simulator
+from treeinfer.sim.reference import simulate_reference
 from treeinfer.trajectories import Trajectory, stack_trajectories
 from treeinfer.tree import load_tree
-
-try:  # the fused step moves to treeinfer.sim.fused in the refactor
-    from treeinfer.sim import fused as hd
-except ImportError:
-    from treeinfer import hinge_dynamics as hd
-
 
 # The hand-written model of tests/test_hinge_dynamics.py (copied so each file stands alone). It
 # uses what our exports do not: a welded (joint-less) body, joint anchors and axes off the body

@@ -23,7 +23,8 @@ from treeinfer.mapfit import (
     latin_hypercube,
     problem_with_gradients,
 )
-from treeinfer.simulator import make_simulator, simulate_reference
+from treeinfer.sim import make_simulator
+from treeinfer.sim.reference import simulate_reference
 from treeinfer.trajectories import Trajectory
 from treeinfer.tree import load_tree
 

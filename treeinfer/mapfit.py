@@ -115,7 +115,7 @@ class MapFit(NamedTuple):
 # ---- residual models of the simulator ------------------------------------------------------
 def _rollout_one(sim, obs, grasp_fraction):
     from .likelihood import gains_from_theta
-    from .simulator import simulate
+    from .sim import simulate
 
     forces = jnp.asarray(obs.force)
 
