@@ -7,6 +7,8 @@ data were made by the MuJoCo C reference (MAP within the Laplace std, the noise-
 
 from __future__ import annotations
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -25,7 +27,7 @@ from treeinfer.mapfit import (
 )
 from treeinfer.sim import make_simulator
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.trajectories import Trajectory
+from treeinfer.trajectories import Trajectory, read_trajectory_dir
 from treeinfer.tree import load_tree
 
 
@@ -156,3 +158,41 @@ def test_two_joint_tree_boltzmann_map_and_jvp_problem():
     v_fd, g_fd = jax.jit(problem.value_and_grad)(theta)
     np.testing.assert_allclose(v, v_fd, rtol=1e-5, atol=1e-4)
     np.testing.assert_allclose(g, g_fd, rtol=0.05, atol=0.05 * np.abs(np.asarray(g_fd)).max())
+
+
+def test_cli_infer_with_laplace_init_and_gradient_choice_recorded(tmp_path, capsys):
+    from treeinfer.cli import main
+    from treeinfer.runs import infer_config
+    from treeinfer.runs.service import build_problem
+    from treeinfer.trajectories import write_trajectory
+
+    tree_file = example_path("two_branch")
+    tree = load_tree(tree_file)
+    sim = make_simulator(tree, obs_dt=0.02)
+    t = np.arange(40) * 0.02
+    data = tmp_path / "data"
+    data.mkdir()
+    for i, peak in enumerate((6.0, 3.0)):
+        f = peak * np.clip(t / 0.3, 0.0, 1.0)
+        tau, tau_dot = simulate_reference(sim, [60.0, 25.0], [0.8, 0.3], f)
+        write_trajectory(data / f"p{i}.csv", Trajectory(t, f, tau, tau_dot, f"p{i}"))
+    out = tmp_path / "run"
+    rc = main(["infer", "--tree", str(tree_file), "--data", str(data), "--out", str(out),
+               "--particles", "4", "--iterations", "2", "--checkpoint-every", "0",
+               "--no-progress", "--init", "laplace"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "Laplace start" in err
+    config = json.loads((out / "config.json").read_text())
+    assert config["options"]["init"] == "laplace" and "gradients" not in config["options"]
+    assert config["problem"]["gradient"] == "fd"
+    # --gradients jvp reaches the problem (and is recorded); the defaults stay out of the options
+    cfg = infer_config(tree_file, data, tmp_path / "other", sampler="svgd", particles=4,
+                       iterations=2, kT=0.05, seed=0, eta=10.0, grasp_fraction=None,
+                       max_unstable_share=0.5, checkpoint_every=0, gradients="jvp")
+    assert cfg["options"]["gradients"] == "jvp" and "init" not in cfg["options"]
+    problem = build_problem(cfg, tree, read_trajectory_dir(data))
+    assert problem.settings["gradient"] == "jvp"
+    rc = main(["infer", "--tree", str(tree_file), "--data", str(data), "--out", str(out),
+               "--gradients", "adjoint"])
+    assert rc == 2 and "--gradients" in capsys.readouterr().err

@@ -12,6 +12,7 @@ from typing import Any
 from .. import runs
 from ..errors import ConfigError
 from ..runs import RunConfig
+from ..runs.config import GRADIENT_CHOICES, INIT_CHOICES
 from ..samplers import SAMPLER_NAMES
 from .common import (
     COMMAND_HELP,
@@ -49,6 +50,8 @@ _RUN_OPTIONS = {
     "checkpoint_every": "--checkpoint-every",
     "force": "--force",
     "backend": "--backend",
+    "gradients": "--gradients",
+    "init": "--init",
 }
 
 _INFER_EPILOG = """\
@@ -155,6 +158,18 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "--backend",
         choices=("auto", "fused", "mjx"),
         help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
+    )
+    p.add_argument(
+        "--gradients",
+        choices=GRADIENT_CHOICES,
+        help="likelihood gradient: 'fd' (central differences, 2D + 1 rollouts per particle; the "
+        "paper's, default) or 'jvp' (exact forward-mode sensitivities of the simulator)",
+    )
+    p.add_argument(
+        "--init",
+        choices=INIT_CHOICES,
+        help="initial particles: 'uniform' in the prior box (the paper's, default) or 'laplace' "
+        "(around a Levenberg-Marquardt MAP fit, so iterations go into the posterior's shape)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p

@@ -28,6 +28,8 @@ from .checkpoint import CHECKPOINT_FILE, partial_dir
 from .provenance import data_manifest, file_sha256, versions
 
 RUN_FORMAT = 1
+GRADIENT_CHOICES = ("fd", "jvp")
+INIT_CHOICES = ("uniform", "laplace")
 
 
 def _count(flag: str, v, minimum: int, why: str = "") -> int:
@@ -81,6 +83,8 @@ class RunConfig:
     max_unstable_share: float = 0.5
     checkpoint_every: int = 25
     force: bool = False
+    gradients: str = "fd"
+    init: str = "uniform"
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 -- frozen: normalise once
@@ -110,13 +114,23 @@ class RunConfig:
             raise ConfigError(
                 f"--backend: must be one of {', '.join(BACKENDS)}, got {self.backend!r}"
             )
+        if self.gradients not in GRADIENT_CHOICES:
+            raise ConfigError(
+                f"--gradients: must be one of {', '.join(GRADIENT_CHOICES)}, got {self.gradients!r}"
+            )
+        if self.init not in INIT_CHOICES:
+            raise ConfigError(f"--init: must be one of {', '.join(INIT_CHOICES)}, got {self.init!r}")
         for k in ("tree", "data", "out"):
             set_(k, str(getattr(self, k)))
         set_("force", bool(self.force))
 
     def to_json(self) -> dict:
-        """``config.json``'s ``"options"`` object."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        """``config.json``'s ``"options"`` object (``gradients``/``init`` only when not default)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        for k, default in (("gradients", "fd"), ("init", "uniform")):
+            if out[k] == default:
+                del out[k]
+        return out
 
     @classmethod
     def from_json(cls, options: dict) -> RunConfig:
@@ -147,6 +161,8 @@ def infer_config(
     force: bool = False,
     command: str = "infer",
     backend: str = "auto",
+    gradients: str = "fd",
+    init: str = "uniform",
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
     sampler settings are added by :func:`run_inference` once the problem is built."""
@@ -169,6 +185,8 @@ def infer_config(
         max_unstable_share=max_unstable_share,
         checkpoint_every=checkpoint_every,
         force=force,
+        gradients=gradients,
+        init=init,
     ).to_json()
     return {
         "command": command,

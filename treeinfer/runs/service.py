@@ -78,6 +78,7 @@ def build_problem(
         eta=o["eta"],
         grasp_fraction=o["grasp_fraction"],
         sim=sim,
+        gradient=o.get("gradients", "fd"),
     )
     # infer() evaluates log_density once at the end: jitted, the simulator is traced and compiled once
     # (op-by-op it costs tens of seconds); MH samples with the same function.
@@ -127,6 +128,24 @@ def _resume_paths(run_arg: str | os.PathLike) -> tuple[Path, Path]:
     if not (partial / "config.json").is_file():
         raise ConfigError(f"{partial}: has no config.json; it is not an interrupted treeinfer run")
     return p, partial
+
+
+def _laplace_start(problem, config: dict, log: Callable[[str], None]):
+    """Particles around a Levenberg–Marquardt MAP fit (``--init laplace``): its Laplace
+    approximation, drawn with the run's seed. The residual Jacobian follows ``--gradients``."""
+    from ..mapfit import fit_problem, laplace_particles
+
+    o = config["options"]
+    jacobian = "jvp" if o.get("gradients", "fd") == "jvp" else "fd"
+    fit = fit_problem(problem, "boltzmann", n_starts=6, seed=o["seed"], jacobian=jacobian,
+                      max_iterations=25)
+    std = np.sqrt(np.diag(fit.cov))
+    log(
+        f"Laplace start: MAP from {len(fit.starts)} starts in {fit.iterations} LM iterations, "
+        "log-gain std " + ", ".join(f"{x:.3g}" for x in std)
+    )
+    return laplace_particles(jax.random.fold_in(jax.random.key(o["seed"]), 0x1A9), fit,
+                             o["particles"])
 
 
 def run_inference(
@@ -212,6 +231,9 @@ def run_inference(
         config["options"]["max_unstable_share"] = float(max_unstable_share)
 
     o = config["options"]
+    theta0 = None
+    if previous is None and o.get("init", "uniform") == "laplace":
+        theta0 = _laplace_start(problem, config, log)
     every = o["checkpoint_every"] or None
     checkpointer = Checkpointer(partial / CHECKPOINT_FILE, config["config_hash"], previous)
     if on_checkpointer is not None:
@@ -227,6 +249,7 @@ def run_inference(
         callback_every=every,
         initial_state=None if previous is None else previous.state,
         start_iteration=0 if previous is None else previous.iteration,
+        **({} if theta0 is None else {"initial_theta": theta0}),
     )
     if checkpointer.last_iteration != o["iterations"]:
         # the end state too: if anything below fails (or is interrupted), --resume skips sampling
@@ -280,6 +303,9 @@ def infer_posterior(
 
     problem = build_problem(config, tree, trajectories, cache)
     o = config["options"]
+    theta0 = None
+    if o.get("init", "uniform") == "laplace":
+        theta0 = _laplace_start(problem, config, lambda msg: None)
     posterior = infer(
         problem,
         o["sampler"],
@@ -287,6 +313,7 @@ def infer_posterior(
         n_iterations=o["iterations"],
         seed=o["seed"],
         progress=progress,
+        **({} if theta0 is None else {"initial_theta": theta0}),
     )
     return problem, posterior
 
