@@ -275,6 +275,9 @@ def compare(runs: dict, workdir: Path, args) -> dict:
             table.append({"iteration": c["iteration"], "elapsed_s": elapsed, **m, "usable": ok})
             if ok and first_ok is None:
                 first_ok = table[-1]
+        print(f"{mode} checks: " + "; ".join(
+            f"it {r['iteration']} {r['elapsed_s']:.0f}s {r['ci_width_m'] * 1e3:.2f}mm "
+            f"{r['pct_outside']:.1f}%{' ok' if r['usable'] else ''}" for r in table), flush=True)
         final = band_metrics(sim, rec["final_theta"], forces, truth)
         marks = {k: v - rec["t_spawn"] for k, v in rec["marks"].items()}
         summary[mode] = {
