@@ -17,7 +17,7 @@ _EXPORTS = {
 _MODULES = {
     "tree", "generators", "export", "urdf", "sim", "likelihood", "priors", "gradients",
     "samplers", "inference", "metrics", "plots", "diagnostics", "trajectories", "bags", "forces",
-    "errors", "examples", "sharding", "runs",
+    "errors", "examples", "sharding", "runs", "mapfit",
 }
 
 
