@@ -123,13 +123,28 @@ def child(args) -> int:
 
     if theta0 is not None:
         checks.append({"iteration": 0, "time": time.time(), "theta": np.asarray(theta0).tolist()})
-    posterior = infer(problem, "nnsvgd", n_particles=args.particles, n_iterations=n_iter, seed=0,
-                      progress=False, initial_theta=theta0, callback=on_chunk,
-                      callback_every=args.check_every, trace_every=None, **options)
+    if mode == "fast" and args.fast_warmup > 0:
+        # Adam's first steps move every coordinate by ~lr whatever its gradient: from particles
+        # already near the posterior that is a kick; ramp the learning rate up instead
+        import optax
+
+        from treeinfer.samplers import nnsvgd, run
+
+        lr = args.fast_learning_rate or 0.1
+        schedule = optax.linear_schedule(lr / 20, lr, args.fast_warmup)
+        algorithm = nnsvgd(problem.value_and_grad, lr, optimizer=optax.adam(schedule))
+        result = run(algorithm, jax.random.key(0), theta0, n_iter, progress=False,
+                     callback=on_chunk, callback_every=args.check_every, trace_every=None)
+        final_theta = np.asarray(result.final_positions)
+    else:
+        posterior = infer(problem, "nnsvgd", n_particles=args.particles, n_iterations=n_iter,
+                          seed=0, progress=False, initial_theta=theta0, callback=on_chunk,
+                          callback_every=args.check_every, trace_every=None, **options)
+        final_theta = np.asarray(posterior.theta)
     marks["infer"] = time.time()
     record.update({"marks": marks, "checks": checks, "n_iterations": n_iter,
                    "gradient": problem.settings["gradient"],
-                   "final_theta": np.asarray(posterior.theta).tolist()})
+                   "final_theta": final_theta.tolist()})
     Path(args.result).write_text(json.dumps(record))
     return 0
 
@@ -192,6 +207,8 @@ def main(argv=None) -> int:
     p.add_argument("--laplace-scale", type=float, default=1.0)
     p.add_argument("--fast-learning-rate", type=float, default=None,
                    help="NNSVGD Adam learning rate of the fast path (default: the sampler's)")
+    p.add_argument("--fast-warmup", type=int, default=0,
+                   help="fast path: ramp Adam's learning rate up over this many iterations")
     p.add_argument("--check-every", type=int, default=10)
     p.add_argument("--tolerance", type=float, default=0.10)
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "gpu", "cuda"])
@@ -211,7 +228,7 @@ def main(argv=None) -> int:
 
     keep = ["particles", "reference_iterations", "today_iterations", "fast_iterations",
             "fast_gradients", "fast_jacobian", "starts", "lm_iterations", "laplace_scale",
-            "check_every", "fast_learning_rate"]
+            "check_every", "fast_learning_rate", "fast_warmup"]
     args.passthrough = []
     for k in keep:
         if getattr(args, k) is not None:
