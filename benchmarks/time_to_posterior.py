@@ -13,8 +13,11 @@ The standard problem (``benchmarks/inference.py``: three-branch example, R = 3, 
   ``--today-iterations`` (200, the paper's setting);
 * ``fast``: Levenberg–Marquardt MAP from ``--starts`` Latin-hypercube points
   (:func:`treeinfer.mapfit.fit_problem`), particles drawn from its Laplace approximation
-  (:func:`treeinfer.mapfit.laplace_particles`), NNSVGD with ``--fast-gradients`` for
-  ``--fast-iterations``.
+  (:func:`treeinfer.mapfit.laplace_particles`, widened ``--laplace-scale`` = 2x), NNSVGD with
+  ``--fast-gradients`` (fd: on the CPU forward mode costs 2.6x central differences,
+  ``benchmarks/gradient_cost.py``) for ``--fast-iterations`` (15), its Adam learning rate ramped
+  up over ``--fast-warmup`` iterations (Adam's first steps move every coordinate by ~lr whatever
+  its gradient, which scatters particles that start near the posterior).
 
 Every ``--check-every`` iterations each run stores its particles and the wall-clock time. A
 posterior is *usable* when, on 3 held-out pulls (noise-free MuJoCo C reference), its 95%
@@ -198,18 +201,18 @@ def main(argv=None) -> int:
     p.add_argument("--particles", type=int, default=128)
     p.add_argument("--reference-iterations", type=int, default=400)
     p.add_argument("--today-iterations", type=int, default=200)
-    p.add_argument("--fast-iterations", type=int, default=60)
+    p.add_argument("--fast-iterations", type=int, default=15)
     p.add_argument("--fast-gradients", default="fd", choices=["fd", "jvp"])
     p.add_argument("--fast-jacobian", default="fd", choices=["fd", "jvp"],
                    help="residual Jacobian of the LM fit")
     p.add_argument("--starts", type=int, default=6, help="LM starting points")
     p.add_argument("--lm-iterations", type=int, default=25)
-    p.add_argument("--laplace-scale", type=float, default=1.0)
+    p.add_argument("--laplace-scale", type=float, default=2.0)
     p.add_argument("--fast-learning-rate", type=float, default=None,
                    help="NNSVGD Adam learning rate of the fast path (default: the sampler's)")
-    p.add_argument("--fast-warmup", type=int, default=0,
+    p.add_argument("--fast-warmup", type=int, default=15,
                    help="fast path: ramp Adam's learning rate up over this many iterations")
-    p.add_argument("--check-every", type=int, default=10)
+    p.add_argument("--check-every", type=int, default=5)
     p.add_argument("--tolerance", type=float, default=0.10)
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "gpu", "cuda"])
     p.add_argument("--cores", type=int, default=2, help="pin CPU runs to this many cores")
