@@ -17,7 +17,7 @@ _EXPORTS = {
 _MODULES = {
     "tree", "generators", "export", "urdf", "sim", "likelihood", "priors", "gradients",
     "samplers", "inference", "metrics", "plots", "diagnostics", "trajectories", "bags", "forces",
-    "errors", "examples", "sharding", "runs",
+    "errors", "examples", "sharding", "runs", "mapfit",
 }
 
 
@@ -35,18 +35,93 @@ def __dir__():
     return sorted(set(globals()) | set(_EXPORTS) | _MODULES)
 
 
-def enable_compilation_cache(path: str | None = None) -> str:
-    """Keep compiled XLA programs on disk so a second run (or test session) skips the simulator's
-    long compile. ``path`` defaults to ``$TREEINFER_JAX_CACHE`` or ``~/.cache/treeinfer/jax``."""
+def _cache_tag() -> str:
+    """``treeinfer-<v>_jax-<v>_jaxlib-<v>``: the compiled-program cache folder of this install.
+
+    A reinstall of the same versions, in any folder, maps to the same tag; JAX's own key hashes
+    each program with its debug info (source paths) stripped, so the entries stay valid there."""
+    return (f"treeinfer-{__version__}_jax-{_installed_version('jax')}"
+            f"_jaxlib-{_installed_version('jaxlib')}")
+
+
+def _installed_version(package: str) -> str:
+    """``package``'s version without importing it (JAX takes a second to import): the
+    ``_version = "..."`` line of its ``version.py``, else the distribution metadata."""
+    import importlib.util
+    import re
+    from pathlib import Path
+
+    try:
+        spec = importlib.util.find_spec(package)
+        folder = Path(next(iter(spec.submodule_search_locations)))
+        found = re.search(r'^_version\s*(?::\s*str)?\s*=\s*"([^"]+)"',
+                          (folder / "version.py").read_text(), re.MULTILINE)
+        if found:
+            return found.group(1)
+    except (AttributeError, ImportError, OSError, StopIteration, TypeError, ValueError):
+        pass
+    from importlib import metadata
+
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+_CACHE_OFF = ("", "0", "off", "none", "false", "no")
+
+
+def enable_compilation_cache(path: str | None = None) -> str | None:
+    """Keep compiled XLA programs on disk so the next process with the same shapes skips
+    compiling (seconds per program on a small CPU).
+
+    ``path`` defaults to ``$TREEINFER_JAX_CACHE`` or ``~/.cache/treeinfer/jax``; programs go to
+    a sub-folder named by :func:`_cache_tag` (treeinfer, jax and jaxlib versions), so an upgrade
+    starts a fresh folder and a reinstall of the same versions reuses it.
+    ``TREEINFER_JAX_CACHE=off`` turns the cache off (returns None). Every program is cached,
+    however short its compile: on a 2-core CPU the many sub-second ones add up.
+
+    Called on ``import treeinfer`` (the cache is on by default). When JAX is not imported yet
+    this only sets the ``JAX_*`` environment defaults JAX reads at import (no JAX import, so
+    ``treeinfer --help`` stays fast); a user's own ``JAX_COMPILATION_CACHE_DIR`` wins."""
     import os
+    import sys
 
-    import jax
+    env = os.environ.get("TREEINFER_JAX_CACHE")
+    path_given = path is not None
+    if path is None and env is not None and env.strip().lower() in _CACHE_OFF:
+        return None
+    if path is None and env is None and os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return os.environ["JAX_COMPILATION_CACHE_DIR"]  # the user's own JAX cache
+    root = path or env or os.path.join(os.path.expanduser("~"), ".cache", "treeinfer", "jax")
+    path = os.path.join(root, _cache_tag())
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError:  # a read-only home: run without the cache rather than fail
+        return None
+    settings = {"jax_compilation_cache_dir": path,
+                "jax_persistent_cache_min_compile_time_secs": 0.0,
+                "jax_persistent_cache_min_entry_size_bytes": 0}
+    explicit = path_given or env is not None
+    for name, value in settings.items():
+        if explicit:
+            os.environ[name.upper()] = str(value)
+        else:
+            os.environ.setdefault(name.upper(), str(value))
+    if "jax" in sys.modules:
+        import jax
 
-    path = path or os.environ.get("TREEINFER_JAX_CACHE") or os.path.join(
-        os.path.expanduser("~"), ".cache", "treeinfer", "jax"
-    )
-    os.makedirs(path, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+        if explicit or jax.config.jax_compilation_cache_dir is None:
+            for name, value in settings.items():
+                jax.config.update(name, value)
     return path
+
+
+def _enable_cache_on_import() -> None:
+    import contextlib
+
+    with contextlib.suppress(Exception):  # never let the cache stop the package importing
+        enable_compilation_cache()
+
+
+_enable_cache_on_import()

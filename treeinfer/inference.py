@@ -27,7 +27,7 @@ import numpy as np
 
 from . import samplers as _samplers
 from .errors import ConfigError
-from .gradients import combine, combined_value_and_grad
+from .gradients import combine, combined_value_and_grad, jvp_combined_value_and_grad
 from .likelihood import DEFAULT_KT, boltzmann_log_likelihood, check_kT, gains_from_theta
 from .priors import inequality_prior, load_or_train_inequality_network, smoothed_box
 from .sim import Rollout, Simulator, make_simulator, simulate
@@ -35,6 +35,7 @@ from .trajectories import Observations, Trajectory, stack_trajectories
 from .tree import Tree
 
 DEFAULT_ETA = 10.0  # nats per unit of log-gain violation (paper: eta >> 0)
+GRADIENTS = ("fd", "jvp", "autodiff")  # how make_problem differentiates the simulator likelihood
 DEFAULT_PRIOR_SIGMA = 0.1  # tail width of the smoothed box, as a share of each log-box width
 
 
@@ -136,15 +137,16 @@ def make_problem(
       kT: likelihood temperature (see :mod:`treeinfer.likelihood` on choosing it).
       nn_prior: add the learned inequality prior (NNSVGD's target); False gives SVGD's.
       eta: inequality penalty slope (nats per unit of log-gain the child exceeds its parent).
-      gradient: ``"fd"`` (central differences, the paper's black-box route) or ``"autodiff"``
-        (exact gradients through the simulator; slower to compile, for checks).
+      gradient: ``"fd"`` (central differences, the paper's black-box route), ``"jvp"`` (exact
+        forward-mode sensitivities of the simulator, :func:`~treeinfer.gradients.jvp_value_and_grad`)
+        or ``"autodiff"`` (exact reverse mode; slow to compile, for checks).
       rel_step: finite-difference step in log units (default ~5e-3 for float32).
       grasp_fraction: where the training data were recorded (None: the tree's grasp).
       backend: simulator backend when ``sim`` is not given (see :func:`make_simulator`).
     """
     kT = check_kT(kT)
-    if gradient not in ("fd", "autodiff"):
-        raise ConfigError(f"gradient: expected 'fd' or 'autodiff', got {gradient!r}")
+    if gradient not in GRADIENTS:
+        raise ConfigError(f"gradient: expected one of {', '.join(GRADIENTS)}, got {gradient!r}")
     if not (isinstance(prior_sigma, (int, float)) and prior_sigma > 0):
         raise ConfigError(f"prior_sigma: must be positive, got {prior_sigma!r}")
     obs = trajectories if isinstance(trajectories, Observations) else stack_trajectories(list(trajectories))
@@ -158,9 +160,13 @@ def make_problem(
     if nn is not None:
         prior_terms.append(nn)
     log_prior = combine(*prior_terms)
-    # the black-box likelihood by central differences (or autodiff, for checks); priors by autodiff
-    black_box, differentiable = ([loglik], [log_prior]) if gradient == "fd" else ([], [loglik, log_prior])
-    value_and_grad = combined_value_and_grad(black_box, differentiable, rel_step=rel_step)
+    # the black-box likelihood by central differences (or forward mode, or reverse-mode autodiff
+    # for checks); priors by autodiff
+    if gradient == "jvp":
+        value_and_grad = jvp_combined_value_and_grad([loglik], [log_prior])
+    else:
+        black_box, differentiable = ([loglik], [log_prior]) if gradient == "fd" else ([], [loglik, log_prior])
+        value_and_grad = combined_value_and_grad(black_box, differentiable, rel_step=rel_step)
 
     lo, hi = tree.bounds_array()
     settings = dict(

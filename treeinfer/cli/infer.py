@@ -12,6 +12,7 @@ from typing import Any
 from .. import runs
 from ..errors import ConfigError
 from ..runs import RunConfig
+from ..runs.config import GRADIENT_CHOICES, INIT_CHOICES
 from ..samplers import SAMPLER_NAMES
 from .common import (
     COMMAND_HELP,
@@ -57,6 +58,8 @@ _RUN_OPTIONS = {
     "stop_when_converged": "--stop-when-converged",
     "mcmc_warmup": "--mcmc-warmup",
     "mcmc_thin": "--mcmc-thin",
+    "gradients": "--gradients",
+    "init": "--init",
 }
 
 _INFER_EPILOG = """\
@@ -213,6 +216,18 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         metavar="K",
         help="MCMC samplers: keep every K-th post-warm-up draw of every chain; 0: thin to at "
         "most 1024 draws (default)",
+    )
+    p.add_argument(
+        "--gradients",
+        choices=GRADIENT_CHOICES,
+        help="likelihood gradient: 'fd' (central differences, 2D + 1 rollouts per particle; the "
+        "paper's, default) or 'jvp' (exact forward-mode sensitivities of the simulator)",
+    )
+    p.add_argument(
+        "--init",
+        choices=INIT_CHOICES,
+        help="initial particles: 'uniform' in the prior box (the paper's, default) or 'laplace' "
+        "(around a Levenberg-Marquardt MAP fit, so iterations go into the posterior's shape)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--allow-poor-fit", action="store_true", help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 otherwise); the verdict stays in summary.json")

@@ -28,6 +28,8 @@ from .checkpoint import CHECKPOINT_FILE, partial_dir
 from .provenance import data_manifest, file_sha256, versions
 
 RUN_FORMAT = 1
+GRADIENT_CHOICES = ("fd", "jvp")
+INIT_CHOICES = ("uniform", "laplace")
 
 
 def _count(flag: str, v, minimum: int, why: str = "") -> int:
@@ -100,6 +102,8 @@ class RunConfig:
     stop_when_converged: bool = False
     mcmc_warmup: float = 0.5
     mcmc_thin: int = 0
+    gradients: str = "fd"
+    init: str = "uniform"
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)
@@ -135,6 +139,12 @@ class RunConfig:
             raise ConfigError(
                 f"--backend: must be one of {', '.join(BACKENDS)}, got {self.backend!r}"
             )
+        if self.gradients not in GRADIENT_CHOICES:
+            raise ConfigError(
+                f"--gradients: must be one of {', '.join(GRADIENT_CHOICES)}, got {self.gradients!r}"
+            )
+        if self.init not in INIT_CHOICES:
+            raise ConfigError(f"--init: must be one of {', '.join(INIT_CHOICES)}, got {self.init!r}")
         for k in ("tree", "data", "out"):
             set_(k, str(getattr(self, k)))
         set_("force", bool(self.force))
@@ -157,8 +167,12 @@ class RunConfig:
         set_("mcmc_thin", _count("--mcmc-thin", self.mcmc_thin, 0))
 
     def to_json(self) -> dict:
-        """``config.json``'s ``"options"`` object."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        """``config.json``'s ``"options"`` object (``gradients``/``init`` only when not default)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        for k, default in (("gradients", "fd"), ("init", "uniform")):
+            if out[k] == default:
+                del out[k]
+        return out
 
     @classmethod
     def from_json(cls, options: dict) -> RunConfig:
@@ -190,6 +204,8 @@ def infer_config(
     command: str = "infer",
     backend: str = "auto",
     prior_from: str | os.PathLike | None = None,
+    gradients: str = "fd",
+    init: str = "uniform",
     **more,
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
@@ -214,6 +230,8 @@ def infer_config(
         checkpoint_every=checkpoint_every,
         force=force,
         prior_from=None if prior_from is None else str(prior_from),
+        gradients=gradients,
+        init=init,
         **more,
     ).to_json()
     return {

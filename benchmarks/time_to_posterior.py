@@ -1,0 +1,336 @@
+"""From process start to a usable posterior: today's path against the fast path, in one run.
+
+    python -m benchmarks.time_to_posterior                      # CPU (2 cores), writes the JSON
+    python -m benchmarks.time_to_posterior --device gpu         # the same on a GPU
+    python -m benchmarks.time_to_posterior --fast-gradients jvp --fast-jacobian jvp
+
+The standard problem (``benchmarks/inference.py``: three-branch example, R = 3, 128 particles,
+3 training pulls x 300 steps, NNSVGD). Each path runs in a **fresh Python process** with an
+**empty compilation cache** (cold start, imports and compilation included), one after the other:
+
+* ``reference``: uniform initialisation, central differences, ``--reference-iterations`` (long);
+* ``today``: today's code path, uniform initialisation in the prior box, central differences,
+  ``--today-iterations`` (200, the paper's setting);
+* ``fast``: Levenberg–Marquardt MAP from ``--starts`` Latin-hypercube points
+  (:func:`treeinfer.mapfit.fit_problem`), particles drawn from its Laplace approximation
+  (:func:`treeinfer.mapfit.laplace_particles`, widened ``--laplace-scale`` = 2x), NNSVGD with
+  ``--fast-gradients`` (fd: on the CPU forward mode costs 2.6x central differences,
+  ``benchmarks/gradient_cost.py``) for ``--fast-iterations`` (15), its Adam learning rate ramped
+  up over ``--fast-warmup`` iterations (Adam's first steps move every coordinate by ~lr whatever
+  its gradient, which scatters particles that start near the posterior).
+
+Every ``--check-every`` iterations each run stores its particles and the wall-clock time. A
+posterior is *usable* when, on 3 held-out pulls (noise-free MuJoCo C reference), its 95%
+predictive band's mean width is within ``--tolerance`` (10%) of the reference run's and its
+share of held-out points outside the band is within 10% of the reference's (or 1 percentage
+point, whichever is larger). The time to posterior of a path is the wall time from its process
+start to the first stored state that is usable. The NN prior is trained (or loaded) once
+before the timed runs, and the training data are written once and read by each run, as a
+user's CSV files would be.
+
+Writes ``time_to_posterior`` and, on a CPU, ``cpu_time_to_posterior_s`` (on a GPU
+``time_to_posterior_cold_with_imports_s``) into ``experiments/results/benchmarks/<machine>.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+N_STEPS, DT = 300, 0.01
+
+
+# ---- data (parent) -----------------------------------------------------------------------------
+def write_data(folder: Path) -> None:
+    """Training and held-out pulls of the standard problem (C reference, noise-free)."""
+    from benchmarks.inference import EXAMPLES
+    from treeinfer.forces import profile_set
+    from treeinfer.sim import make_simulator
+    from treeinfer.sim.reference import simulate_reference
+    from treeinfer.synthetic import default_true_params
+    from treeinfer.tree import load_tree
+
+    tree = load_tree(EXAMPLES / "three_branch.yaml")
+    sim = make_simulator(tree, obs_dt=DT)
+    kp, kd = default_true_params(tree, np.random.default_rng(0))
+    out = {"kp": kp, "kd": kd}
+    for name, seed in (("train", 0), ("test", 1)):
+        forces = profile_set("mixed", n=3, duration=N_STEPS * DT, dt=DT, seed=seed)[:, :N_STEPS]
+        ref = [simulate_reference(sim, kp, kd, f) for f in forces]
+        out[f"{name}_force"] = forces
+        out[f"{name}_tau"] = np.stack([r[0] for r in ref])
+        out[f"{name}_tau_dot"] = np.stack([r[1] for r in ref])
+    np.savez(folder / "data.npz", **out)
+
+
+def warm_nn_prior() -> None:
+    from benchmarks.inference import EXAMPLES
+    from treeinfer.inference import nn_inequality_prior
+    from treeinfer.tree import load_tree
+
+    nn_inequality_prior(load_tree(EXAMPLES / "three_branch.yaml"))
+
+
+# ---- one timed run (child) ---------------------------------------------------------------------
+def child(args) -> int:
+    import jax
+
+    from benchmarks.inference import EXAMPLES
+    from treeinfer.inference import infer, make_problem
+    from treeinfer.trajectories import Trajectory
+    from treeinfer.tree import load_tree
+
+    marks = {"imports": time.time()}
+    data = np.load(Path(args.workdir) / "data.npz")
+    tree = load_tree(EXAMPLES / "three_branch.yaml")
+    t = np.arange(N_STEPS) * DT
+    trajs = [Trajectory(t, f, tau, tau_dot, f"pull{i}") for i, (f, tau, tau_dot) in
+             enumerate(zip(data["train_force"], data["train_tau"], data["train_tau_dot"]))]
+    problem = make_problem(tree, trajs)
+    marks["problem"] = time.time()
+    mode = args.child
+    record: dict = {"mode": mode}
+    if mode == "fast":
+        from treeinfer.mapfit import fit_problem, laplace_particles, problem_with_gradients
+
+        fit = fit_problem(problem, "boltzmann", n_starts=args.starts, seed=0,
+                          jacobian=args.fast_jacobian, max_iterations=args.lm_iterations)
+        theta0 = laplace_particles(jax.random.key(0), fit, args.particles, scale=args.laplace_scale)
+        marks["map_fit"] = time.time()
+        record["map"] = {"theta": fit.theta.tolist(), "iterations": fit.iterations,
+                         "converged": fit.converged.tolist(), "values": fit.values.tolist()}
+        problem = problem_with_gradients(problem, args.fast_gradients)
+        n_iter = args.fast_iterations
+        options = {} if args.fast_learning_rate is None else {
+            "learning_rate": args.fast_learning_rate}
+    else:
+        options = {}
+        theta0 = None
+        n_iter = args.reference_iterations if mode == "reference" else args.today_iterations
+    checks: list = []
+
+    def on_chunk(iteration, state):
+        theta = np.asarray(jax.block_until_ready(state.position))
+        checks.append({"iteration": int(iteration), "time": time.time(), "theta": theta.tolist()})
+
+    if theta0 is not None:
+        checks.append({"iteration": 0, "time": time.time(), "theta": np.asarray(theta0).tolist()})
+    if mode == "fast" and args.fast_warmup > 0:
+        # Adam's first steps move every coordinate by ~lr whatever its gradient: from particles
+        # already near the posterior that is a kick; ramp the learning rate up instead
+        import optax
+
+        from treeinfer.samplers import nnsvgd, run
+
+        lr = args.fast_learning_rate or 0.1
+        schedule = optax.linear_schedule(lr / 20, lr, args.fast_warmup)
+        algorithm = nnsvgd(problem.value_and_grad, lr, optimizer=optax.adam(schedule))
+        result = run(algorithm, jax.random.key(0), theta0, n_iter, progress=False,
+                     callback=on_chunk, callback_every=args.check_every, trace_every=None)
+        final_theta = np.asarray(result.final_positions)
+    else:
+        posterior = infer(problem, "nnsvgd", n_particles=args.particles, n_iterations=n_iter,
+                          seed=0, progress=False, initial_theta=theta0, callback=on_chunk,
+                          callback_every=args.check_every, trace_every=None, **options)
+        final_theta = np.asarray(posterior.theta)
+    marks["infer"] = time.time()
+    record.update({"marks": marks, "checks": checks, "n_iterations": n_iter,
+                   "gradient": problem.settings["gradient"],
+                   "final_theta": final_theta.tolist()})
+    Path(args.result).write_text(json.dumps(record))
+    return 0
+
+
+# ---- comparison (parent) -----------------------------------------------------------------------
+def band_metrics(sim, theta, forces, truth) -> dict:
+    """95% predictive band of particles ``theta`` on ``forces`` against noise-free ``truth``."""
+    from treeinfer.inference import predict
+    from treeinfer.metrics import summarize
+
+    roll = predict(sim, np.asarray(theta, np.float32), forces)
+    s = summarize(roll.tau, truth, valid=np.all(np.asarray(roll.stable), axis=1))
+    return {"ci_width_m": s["ci_width"], "pct_outside": s["pct_outside"],
+            "n_valid": s["n_valid_particles"]}
+
+
+def usable(m: dict, ref: dict, tol: float) -> bool:
+    width_ok = abs(m["ci_width_m"] - ref["ci_width_m"]) <= tol * ref["ci_width_m"]
+    out_ok = abs(m["pct_outside"] - ref["pct_outside"]) <= max(tol * ref["pct_outside"], 1.0)
+    return bool(width_ok and out_ok)
+
+
+def run_child(mode: str, args, workdir: Path) -> dict:
+    result = workdir / f"{mode}.json"
+    cache = workdir / f"cache-{mode}"
+    env = {**os.environ, "TREEINFER_JAX_CACHE": str(cache), "PYTHONPATH": str(ROOT)}
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    if args.device != "auto":
+        env["JAX_PLATFORMS"] = args.device
+    cmd = [sys.executable, "-m", "benchmarks.time_to_posterior", "--child", mode,
+           "--workdir", str(workdir), "--result", str(result)] + args.passthrough
+    if args.cores and (os.cpu_count() or 1) > args.cores and shutil.which("taskset"):
+        cmd = ["taskset", "-c", f"0-{args.cores - 1}"] + cmd
+    print(f"[{mode}] {' '.join(cmd[-8:])}", flush=True)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t_spawn = time.time()
+    subprocess.run(cmd, env=env, check=True, cwd=ROOT)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    rec = json.loads(result.read_text())
+    rec["t_spawn"] = t_spawn
+    rec["wall_s"] = rec["marks"]["infer"] - t_spawn
+    # CPU seconds of the whole child (all threads): robust to other users' load on the box
+    rec["cpu_s"] = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    rec["load_average_after"] = os.getloadavg()
+    return rec
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--particles", type=int, default=128)
+    p.add_argument("--reference-iterations", type=int, default=400)
+    p.add_argument("--today-iterations", type=int, default=200)
+    p.add_argument("--fast-iterations", type=int, default=15)
+    p.add_argument("--fast-gradients", default="fd", choices=["fd", "jvp"])
+    p.add_argument("--fast-jacobian", default="fd", choices=["fd", "jvp"],
+                   help="residual Jacobian of the LM fit")
+    p.add_argument("--starts", type=int, default=6, help="LM starting points")
+    p.add_argument("--lm-iterations", type=int, default=25)
+    p.add_argument("--laplace-scale", type=float, default=2.0)
+    p.add_argument("--fast-learning-rate", type=float, default=None,
+                   help="NNSVGD Adam learning rate of the fast path (default: the sampler's)")
+    p.add_argument("--fast-warmup", type=int, default=15,
+                   help="fast path: ramp Adam's learning rate up over this many iterations")
+    p.add_argument("--check-every", type=int, default=5)
+    p.add_argument("--tolerance", type=float, default=0.10)
+    p.add_argument("--device", default="auto", choices=["auto", "cpu", "gpu", "cuda"])
+    p.add_argument("--cores", type=int, default=2, help="pin CPU runs to this many cores")
+    p.add_argument("--paths", default="reference,today,fast")
+    p.add_argument("--reference-from", default=None,
+                   help="reuse a reference run saved with --save-reference (same problem)")
+    p.add_argument("--save-reference", default=None, help="write the reference run here")
+    p.add_argument("--machine", default=None)
+    p.add_argument("--no-write", dest="write", action="store_false")
+    p.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--result", default=None, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.child:
+        return child(args)
+
+    keep = ["particles", "reference_iterations", "today_iterations", "fast_iterations",
+            "fast_gradients", "fast_jacobian", "starts", "lm_iterations", "laplace_scale",
+            "check_every", "fast_learning_rate", "fast_warmup"]
+    args.passthrough = []
+    for k in keep:
+        if getattr(args, k) is not None:
+            args.passthrough += [f"--{k.replace('_', '-')}", str(getattr(args, k))]
+    if args.device != "auto":
+        os.environ["JAX_PLATFORMS"] = args.device
+
+    from benchmarks import _common as C
+
+    workdir = Path(tempfile.mkdtemp(prefix="ttp-"))
+    try:
+        write_data(workdir)
+        warm_nn_prior()
+        paths = args.paths.split(",")
+        runs = {}
+        if args.reference_from:  # a reference posterior saved by an earlier run (--save-reference)
+            runs["reference"] = json.loads(Path(args.reference_from).read_text())
+            paths = [m for m in paths if m != "reference"]
+        for mode in paths:
+            runs[mode] = run_child(mode, args, workdir)
+        if args.save_reference and "reference" in paths:
+            Path(args.save_reference).write_text(json.dumps(runs["reference"]))
+        summary = compare(runs, workdir, args)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+    info = C.machine_info()
+    summary["machine"] = info
+    if args.write:
+        machine = args.machine or C.default_machine_name()
+        key = ("cpu_time_to_posterior_s" if info["platform"] == "cpu"
+               else "time_to_posterior_cold_with_imports_s")
+        headline = summary.get("fast", {}).get("time_to_posterior_s")
+        top = {key: headline} if headline is not None else {}
+        path = C.merge_results(C.RESULTS_DIR / f"{machine}.json", "time_to_posterior",
+                               summary, top)
+        print(f"wrote {path}")
+    return 0
+
+
+def compare(runs: dict, workdir: Path, args) -> dict:
+    from benchmarks.inference import EXAMPLES
+    from treeinfer.sim import make_simulator
+    from treeinfer.tree import load_tree
+
+    data = np.load(workdir / "data.npz")
+    sim = make_simulator(load_tree(EXAMPLES / "three_branch.yaml"), obs_dt=DT)
+    forces, truth = data["test_force"], data["test_tau"]
+    ref = band_metrics(sim, runs["reference"]["final_theta"], forces, truth)
+    print(f"reference ({runs['reference']['n_iterations']} it): band width "
+          f"{ref['ci_width_m'] * 1e3:.2f} mm, {ref['pct_outside']:.1f}% outside", flush=True)
+    summary: dict = {"reference": {**ref, "n_iterations": runs["reference"]["n_iterations"],
+                                   "wall_s": runs["reference"]["wall_s"]},
+                     "tolerance": args.tolerance, "n_particles": args.particles}
+    for mode in [m for m in runs if m != "reference"]:
+        rec = runs[mode]
+        first_ok, table = None, []
+        for c in rec["checks"]:
+            m = band_metrics(sim, c["theta"], forces, truth)
+            ok = usable(m, ref, args.tolerance)
+            elapsed = c["time"] - rec["t_spawn"]
+            table.append({"iteration": c["iteration"], "elapsed_s": elapsed, **m, "usable": ok})
+            if ok and first_ok is None:
+                first_ok = table[-1]
+        print(f"{mode} checks: " + "; ".join(
+            f"it {r['iteration']} {r['elapsed_s']:.0f}s {r['ci_width_m'] * 1e3:.2f}mm "
+            f"{r['pct_outside']:.1f}%{' ok' if r['usable'] else ''}" for r in table), flush=True)
+        final = band_metrics(sim, rec["final_theta"], forces, truth)
+        marks = {k: v - rec["t_spawn"] for k, v in rec["marks"].items()}
+        summary[mode] = {
+            "wall_s": rec["wall_s"], "cpu_s": rec.get("cpu_s"),
+            "load_average_after": rec.get("load_average_after"),
+            "n_iterations": rec["n_iterations"],
+            "gradient": rec["gradient"], "phase_ends_s": marks, "final": final,
+            "final_usable": usable(final, ref, args.tolerance),
+            "first_usable_iteration": None if first_ok is None else first_ok["iteration"],
+            "time_to_posterior_s": None if first_ok is None else first_ok["elapsed_s"],
+            "checks": table, **({"map": rec["map"]} if "map" in rec else {}),
+        }
+        print(f"{mode}: {rec['n_iterations']} it in {rec['wall_s']:.1f} s from process start, "
+              f"{rec.get('cpu_s', float('nan')):.0f} CPU s "
+              f"(phases: {', '.join(f'{k} {v:.1f}' for k, v in marks.items())}); final band "
+              f"{final['ci_width_m'] * 1e3:.2f} mm, {final['pct_outside']:.1f}% outside; first "
+              f"usable: " + ("never" if first_ok is None else
+                             f"iteration {first_ok['iteration']} at {first_ok['elapsed_s']:.1f} s"),
+              flush=True)
+    if "today" in summary and "fast" in summary:
+        fast_t = summary["fast"]["time_to_posterior_s"]
+        today_fixed = summary["today"]["wall_s"]
+        today_first = summary["today"]["time_to_posterior_s"]
+        if fast_t:
+            summary["speedup_vs_today_fixed"] = today_fixed / fast_t
+            print(f"today's code ({summary['today']['n_iterations']} it): {today_fixed:.1f} s; "
+                  f"fast path: {fast_t:.1f} s; ratio {today_fixed / fast_t:.2f}x", flush=True)
+            if today_first:
+                summary["speedup_vs_today_first_usable"] = today_first / fast_t
+                print(f"(today's first usable state at {today_first:.1f} s: ratio "
+                      f"{today_first / fast_t:.2f}x)", flush=True)
+    return summary
+
+
+if __name__ == "__main__":
+    sys.exit(main())
