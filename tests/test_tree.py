@@ -325,3 +325,49 @@ def test_inferred_pairs_branching_and_fixed():
     assert tree.children("weld") == ("x", "y")
     # default inference skips the welded branch on the way up
     assert make_tree(br, "x", levels=2).inferred == ("x", "root")
+
+
+# ---- the data set's pull direction and the inferred gains ---------------------------------------
+@pytest.mark.parametrize("suffix", [".yaml", ".json"])
+@pytest.mark.parametrize("direction", ["horizontal", [1.0, 0.5, 0.0]])
+def test_pull_and_parameters_round_trip(tmp_path, suffix, direction):
+    d = _base_dict()
+    assert tree_from_dict(d).pull_direction == "down"
+    assert tree_from_dict(d).parameters == ("kp", "kd")
+    assert "pull" not in tree_to_dict(tree_from_dict(d))  # defaults are not written
+    d["pull"] = {"direction": direction}
+    d["inference"]["parameters"] = ["kp"]
+    tree = tree_from_dict(d)
+    expected = direction if isinstance(direction, str) else tuple(direction)
+    assert tree.pull_direction == expected
+    assert tree.parameters == ("kp",)
+    back = load_tree(dump_tree(tree, tmp_path / f"tree{suffix}"))
+    assert back == tree
+    assert back.pull_direction == expected and back.parameters == ("kp",)
+
+
+@pytest.mark.parametrize(
+    "pull, needle",
+    [
+        ({"direction": "sideways"}, "pull: field 'direction'"),
+        ({"direction": [0, 0, 0]}, "pull: field 'direction'"),
+        ({"dir": "down"}, "unknown field"),
+        ("down", "expected a mapping"),
+    ],
+)
+def test_bad_pull_raises_tree_file_error_naming_the_file(tmp_path, pull, needle):
+    d = _base_dict()
+    d["pull"] = pull
+    path = tmp_path / "bad_tree.json"
+    path.write_text(json.dumps(d))
+    with pytest.raises(TreeFileError) as e:
+        load_tree(path)
+    assert str(path) in str(e.value) and needle in str(e.value)
+
+
+@pytest.mark.parametrize("params", [["kd"], ["kp", "stiffness"], "", ["kp", "kp"]])
+def test_bad_parameters_raise_tree_file_error(params):
+    d = _base_dict()
+    d["inference"]["parameters"] = params
+    with pytest.raises(TreeFileError, match="inference.parameters"):
+        tree_from_dict(d, source="t.yaml")

@@ -114,6 +114,11 @@ class Tree:
     density: float = DEFAULT_DENSITY
     fixed_kp: float = DEFAULT_FIXED_KP
     fixed_kd: float = DEFAULT_FIXED_KD
+    # the data set's default pull direction (``pull: {direction: ...}``): "down", "horizontal"
+    # or a world vector (x, y, z) of any non-zero length (see treeinfer.pulls)
+    pull_direction: str | tuple[float, float, float] = "down"
+    # gains the samplers move (``inference: {parameters: [kp]}``): ("kp", "kd") or ("kp",)
+    parameters: tuple[str, ...] = ("kp", "kd")
 
     # ---- lookups -------------------------------------------------------------------------
     @property
@@ -483,7 +488,9 @@ def tree_scale_warnings(tree: Tree, source: str = "") -> list[str]:
 _BRANCH_KEYS = {
     "name", "parent", "length", "radius", "angle_deg", "azimuth_deg", "attach", "density", "kp", "kd", "fixed",
 }
-_TOP_KEYS = {"name", "branches", "base", "gravity", "density", "grasp", "inference", "fixed", "generator"}
+_TOP_KEYS = {
+    "name", "branches", "base", "gravity", "density", "grasp", "inference", "fixed", "generator", "pull",
+}
 
 
 def _no_unknown(m: Any, allowed: set[str], fld: str, pre: str) -> None:
@@ -565,9 +572,24 @@ def tree_from_dict(d: Any, source: str = "<dict>") -> Tree:
     inf = d.get("inference", {}) or {}
     if not isinstance(inf, dict):
         raise TreeFileError(f"{pre}inference: expected a mapping")
-    bad = set(inf) - {"joints", "levels", "prior"}
+    bad = set(inf) - {"joints", "levels", "prior", "parameters"}
     if bad:
-        raise TreeFileError(f"{pre}inference: unknown field(s) {sorted(bad)}; allowed: joints, levels, prior")
+        raise TreeFileError(
+            f"{pre}inference: unknown field(s) {sorted(bad)}; allowed: joints, levels, prior, parameters"
+        )
+    from .errors import ConfigError
+    from .pulls import parse_tree_pull
+
+    try:
+        pull_direction = parse_tree_pull(d.get("pull"), source)
+        parameters: tuple[str, ...] = ("kp", "kd")
+        if inf.get("parameters") is not None:
+            from .static import parse_parameters  # imports jax: only when the key is given
+
+            parameters = parse_parameters(inf["parameters"], f"{source}: inference.parameters")
+    except ConfigError as e:
+        msg = str(e)
+        raise TreeFileError(msg if msg.startswith(pre) else f"{pre}{msg}") from None
     levels = inf.get("levels", 1)
     joints = inf.get("joints")
     if joints is not None and (not isinstance(joints, list) or not all(isinstance(j, str) for j in joints)):
@@ -611,6 +633,8 @@ def tree_from_dict(d: Any, source: str = "<dict>") -> Tree:
             density=_positive(d.get("density", DEFAULT_DENSITY), "density"),
             fixed_kp=_positive(fixed.get("kp", DEFAULT_FIXED_KP), "fixed.kp"),
             fixed_kd=_positive(fixed.get("kd", DEFAULT_FIXED_KD), "fixed.kd"),
+            pull_direction=pull_direction,
+            parameters=parameters,
         )
     except TreeFileError as e:
         msg = str(e)
@@ -635,7 +659,7 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
         if b.fixed:
             rb["fixed"] = True
         branches.append(rb)
-    return {
+    out = {
         "name": tree.name,
         "base": {"position": list(tree.base_position), "pitch_deg": tree.base_pitch_deg, "yaw_deg": tree.base_yaw_deg},
         "gravity": list(tree.gravity),
@@ -650,6 +674,13 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
             },
         },
     }
+    # written only when not the default, so that older trees' files (and hashes) are unchanged
+    if tree.parameters != ("kp", "kd"):
+        out["inference"]["parameters"] = list(tree.parameters)
+    if tree.pull_direction != "down":
+        pd = tree.pull_direction
+        out["pull"] = {"direction": pd if isinstance(pd, str) else [float(x) for x in pd]}
+    return out
 
 
 def read_tree_file(path: str | Path) -> Any:
