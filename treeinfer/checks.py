@@ -350,6 +350,10 @@ def data_checks(
     tname = str(tree_file) if tree_file is not None else f"tree '{tree.name}'"
     out += [Finding("warning", tname, "tree-scale", w) for w in tree_scale_warnings(tree)]
     c_stiff, c_soft = compliance_range(tree, grasp_fraction)
+    # the compliance range is that of a pull down at the tree's grasp: no scale check for other
+    # pull directions (the tree file's pull.direction), or where a down pull cannot move the
+    # grasp point (a vertical stem: its compliance along gravity is zero)
+    scale_ok = c_soft > 0 and c_stiff > 0 and getattr(tree, "pull_direction", "down") == "down"
     reach = grasp_reach(tree, grasp_fraction)
     comps: dict[int, float] = {}
 
@@ -438,7 +442,7 @@ def data_checks(
                         "column (e.g. --force-sign -1 on import-bag)",
                     )
                 )
-            elif c > 0:
+            elif c > 0 and scale_ok:
                 if c > c_soft * SCALE_WARN:
                     r = c / c_soft
                     causes = _scale_causes(c, c_stiff, c_soft)

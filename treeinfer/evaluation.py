@@ -39,16 +39,18 @@ class Prediction(NamedTuple):
 
 
 def predict_run(
-    sim, theta, forces, grasp_fraction=None, particle_ok=None, level: float = LEVEL
+    sim, theta, forces, grasp_fraction=None, particle_ok=None, level: float = LEVEL, model=None
 ) -> Prediction:
     """Simulate every particle ``theta [P, D]`` under ``forces [B, T]`` and summarise the band;
-    unstable particles are excluded (``valid``). Needs two valid particles."""
+    unstable particles are excluded (``valid``). Needs two valid particles. ``model``: the
+    run's :class:`treeinfer.static.Model` (None: the dynamic model of ``[log Kp, log Kd]``)."""
     from .inference import predict
     from .metrics import predictive_interval
 
     theta = np.asarray(theta)
     rollout = jax.device_get(
-        predict(sim, theta, np.atleast_2d(np.asarray(forces, np.float32)), grasp_fraction)
+        predict(sim, theta, np.atleast_2d(np.asarray(forces, np.float32)), grasp_fraction,
+                model=model)
     )
     stable = np.asarray(rollout.stable).all(axis=-1)
     valid = stable & (
@@ -92,6 +94,7 @@ def evaluate_trajectories(
     grasp_fraction=None,
     truth=None,
     particle_ok=None,
+    model=None,
 ) -> tuple[dict, Prediction, Observations]:
     """Held-out metrics of particles ``theta`` on ``trajectories`` (:func:`treeinfer.metrics.summarize`
     with the posterior NLL of the held-out data, per-trajectory CI width / % outside and, with
@@ -104,7 +107,9 @@ def evaluate_trajectories(
             f"the trajectories have dt={obs.dt:g} s but the run was inferred at dt={sim.obs_dt:g} s; "
             "resample them to the run's step"
         )
-    pred = predict_run(sim, theta, obs.force, grasp_fraction, particle_ok)
+    pred = predict_run(sim, theta, obs.force, grasp_fraction, particle_ok, model=model)
+    if truth is not None:  # stiffness only: theta holds the first D of the 2R true gains
+        truth = np.asarray(truth, float)[: np.shape(theta)[-1]]
     ll = _per_trajectory_loglik(pred, obs, kT)
     m = summarize(
         pred.tau,
@@ -144,7 +149,8 @@ def _training_fit(problem, posterior, config) -> dict:
     rollout_pred = None
     try:
         rollout_pred = predict_run(
-            sim, posterior.theta, problem.obs.force, config["options"]["grasp_fraction"], pred_ok
+            sim, posterior.theta, problem.obs.force, config["options"]["grasp_fraction"], pred_ok,
+            model=getattr(problem, "model", None),
         )
     except SimulationError:
         pass  # too few stable particles: the stable-share check reports it

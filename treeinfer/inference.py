@@ -51,6 +51,8 @@ class Problem:
       value_and_grad: ``theta [P, D] -> (log p [P], grad [P, D])`` of the whole target.
       log_density: ``theta [P, D] -> [P]``, the whole target (for MH and metrics).
       settings: what built it (recorded next to results).
+      model: None (the dynamic rollout of theta = [log Kp, log Kd]) or the
+        :class:`treeinfer.static.Model` (static model, or stiffness only) theta is mapped by.
     """
 
     tree: Tree
@@ -66,6 +68,7 @@ class Problem:
     log_density: Callable
     nn_prior: bool
     settings: dict = field(default_factory=dict)
+    model: Any = None  # treeinfer.static.Model when not the dynamic model of [log Kp, log Kd]
 
     @property
     def dim(self) -> int:
@@ -80,9 +83,13 @@ class Problem:
         )
 
 
-def box_prior(tree: Tree, prior_sigma: float = DEFAULT_PRIOR_SIGMA, prior_space: str = "log"):
-    """Smoothed box over the inferred joints' gains as a theta-space log-density."""
+def box_prior(tree: Tree, prior_sigma: float = DEFAULT_PRIOR_SIGMA, prior_space: str = "log",
+              layout=None):
+    """Smoothed box over the inferred joints' gains as a theta-space log-density (``layout``:
+    a :class:`treeinfer.static.ParameterLayout`, for stiffness only)."""
     lo, hi = tree.bounds_array()
+    if layout is not None:
+        lo, hi = np.exp(layout.lower), np.exp(layout.upper)
     if prior_space == "log":
         llo, lhi = np.log(lo), np.log(hi)
         return smoothed_box(llo, lhi, prior_sigma * (lhi - llo))
@@ -93,7 +100,8 @@ def box_prior(tree: Tree, prior_sigma: float = DEFAULT_PRIOR_SIGMA, prior_space:
     raise ConfigError(f"prior_space: expected 'log' or 'linear', got {prior_space!r}")
 
 
-def nn_inequality_prior(tree: Tree, eta: float = DEFAULT_ETA, form: str = "linear", seed: int = 0, cache_dir=None):
+def nn_inequality_prior(tree: Tree, eta: float = DEFAULT_ETA, form: str = "linear", seed: int = 0, cache_dir=None,
+                        kinds: Sequence[str] = ("Kp", "Kd")):
     """The learned inequality prior on every inferred parent-child pair, for Kp and for Kd.
 
     One network per gain kind (their log ranges differ), trained over that kind's log box
@@ -105,6 +113,8 @@ def nn_inequality_prior(tree: Tree, eta: float = DEFAULT_ETA, form: str = "linea
     lo, hi = np.log(tree.bounds_array()[0]), np.log(tree.bounds_array()[1])
     terms = []
     for kind, cols in (("Kp", slice(0, r)), ("Kd", slice(r, 2 * r))):
+        if kind not in kinds:
+            continue
         a, b = float(lo[cols].min()), float(hi[cols].max())
         pad = 0.5 * (b - a)  # cover the smoothed box's tails too
         net = load_or_train_inequality_network(a - pad, b + pad, eta=eta, form=form, seed=seed, cache_dir=cache_dir)
@@ -130,6 +140,9 @@ def make_problem(
     sim: Simulator | None = None,
     nn_seed: int = 0,
     backend: str = "auto",
+    model_kind: str = "dynamic",
+    direction=None,
+    grasp_branch=None,
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
@@ -143,6 +156,12 @@ def make_problem(
       rel_step: finite-difference step in log units (default ~5e-3 for float32).
       grasp_fraction: where the training data were recorded (None: the tree's grasp).
       backend: simulator backend when ``sim`` is not given (see :func:`make_simulator`).
+      model_kind: ``"dynamic"`` (the rollout) or ``"static"`` (the equilibrium under each force
+        sample, stiffness only: :mod:`treeinfer.static`). ``tree.parameters == ("kp",)``
+        (``inference: {parameters: [kp]}``) infers stiffness only with either model, damping
+        held at :func:`treeinfer.static.tree_layout`'s value; theta is then ``[log Kp]``.
+      direction, grasp_branch: the static model's pull directions ([3] or [B, 3], default the
+        tree's ``pull.direction``) and grasped branches (None or B names).
     """
     kT = check_kT(kT)
     if gradient not in GRADIENTS:
@@ -154,9 +173,19 @@ def make_problem(
         kwargs = {} if max_sim_dt is None else {"max_sim_dt": max_sim_dt}
         sim = make_simulator(tree, obs_dt=float(obs.dt), substeps=substeps, model_file=model_file, backend=backend,
                              **kwargs)
-    loglik = boltzmann_log_likelihood(sim, obs, kT, grasp_fraction)
-    prior_terms = [box_prior(tree, prior_sigma, prior_space)]
-    nn = nn_inequality_prior(tree, eta=eta, seed=nn_seed) if nn_prior else None
+    from .static import model_for
+
+    model = model_for(tree, model_kind, direction, grasp_branch)
+    tree = model.tree
+    layout = model.layout
+    if model.kind == "dynamic" and layout.infers_damping:
+        model = None  # the paper's model: theta = [log Kp, log Kd], as before
+        loglik = boltzmann_log_likelihood(sim, obs, kT, grasp_fraction)
+    else:
+        loglik = _model_log_likelihood(sim, model, obs, kT, grasp_fraction)
+    prior_terms = [box_prior(tree, prior_sigma, prior_space, None if model is None else layout)]
+    kinds = ("Kp", "Kd") if layout.infers_damping else ("Kp",)
+    nn = nn_inequality_prior(tree, eta=eta, seed=nn_seed, kinds=kinds) if nn_prior else None
     if nn is not None:
         prior_terms.append(nn)
     log_prior = combine(*prior_terms)
@@ -175,12 +204,35 @@ def make_problem(
         grasp_fraction=grasp_fraction if grasp_fraction is not None else tree.grasp_fraction,
         n_trajectories=int(obs.force.shape[0]), n_steps=int(obs.force.shape[1]), nn_seed=nn_seed,
     )
+    if model is not None:  # recorded only when not the default (older runs' settings unchanged)
+        settings["model_kind"] = model.kind
+        settings["parameters"] = list(layout.parameters)
+        if not layout.infers_damping:
+            settings["fixed_kd"] = [float(v) for v in layout.fixed_kd]
     return Problem(
-        tree=tree, sim=sim, obs=obs, kT=kT, labels=tuple(tree.parameter_labels()),
-        lower=np.log(lo), upper=np.log(hi), log_likelihood=loglik, log_prior=log_prior,
-        value_and_grad=value_and_grad, log_density=combine(loglik, log_prior), nn_prior=nn is not None,
-        settings=settings,
+        tree=tree, sim=sim, obs=obs, kT=kT, labels=tuple(layout.labels),
+        lower=np.asarray(layout.lower), upper=np.asarray(layout.upper), log_likelihood=loglik,
+        log_prior=log_prior, value_and_grad=value_and_grad, log_density=combine(loglik, log_prior),
+        nn_prior=nn is not None, settings=settings, model=model,
     )
+
+
+def _model_log_likelihood(sim: Simulator, model, obs: Observations, kT: float, grasp_fraction=None):
+    """:func:`~treeinfer.likelihood.boltzmann_log_likelihood` of a :class:`treeinfer.static.Model`
+    (static model, or stiffness only): ``theta [N, D] -> [N]``."""
+    import math
+
+    from .likelihood import log_likelihood_from_rollout
+    from .static import model_rollout
+
+    if not math.isclose(float(obs.dt), sim.obs_dt, rel_tol=1e-6):
+        raise ConfigError(f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s")
+    forces = jnp.asarray(obs.force)
+
+    def loglik(theta: jax.Array) -> jax.Array:
+        return log_likelihood_from_rollout(model_rollout(sim, model, theta, forces, grasp_fraction), obs, kT)
+
+    return loglik
 
 
 def initial_particles(problem: Problem, n_particles: int, seed: int = 0) -> jax.Array:
@@ -265,7 +317,9 @@ def infer(
     theta = np.asarray(result.final_positions)
     # every sampler state carries log p at its positions: no extra (compiled) evaluation
     logp = np.asarray(result.final_state.logdensity)
-    kp, kd = gains_from_theta(theta, problem.sim.n_joints)
+    kp, kd = (
+        gains_from_theta(theta, problem.sim.n_joints) if problem.model is None else problem.model.layout.gains(theta)
+    )
     settings = {
         "problem": problem.settings,
         "sampler": name,
@@ -283,21 +337,34 @@ def predict(
     theta,
     forces,
     grasp_fraction=None,
+    model=None,
 ) -> Rollout:
     """Simulate every particle ``theta [P, D]`` under ``forces [B, T]``: :class:`Rollout` [P, B, T].
 
     ``grasp_fraction`` (scalar or [B]) predicts at another point of the grasped branch.
+    ``model``: the run's :class:`treeinfer.static.Model` (static model or stiffness only; a
+    problem's own by default), None for the dynamic model of ``[log Kp, log Kd]``.
     Particles whose rollout is unstable have ``stable = False``; drop them before summarising."""
-    sim = sim_or_problem.sim if isinstance(sim_or_problem, Problem) else sim_or_problem
+    if isinstance(sim_or_problem, Problem):
+        sim, model = sim_or_problem.sim, (sim_or_problem.model if model is None else model)
+    else:
+        sim = sim_or_problem
     theta = jnp.atleast_2d(jnp.asarray(theta))
-    if theta.shape[-1] != 2 * sim.n_joints:
-        raise ConfigError(f"theta: expected {2 * sim.n_joints} columns (log Kp, log Kd per joint), got {theta.shape[-1]}")
+    want = 2 * sim.n_joints if model is None else model.layout.dim
+    if theta.shape[-1] != want:
+        what = "log Kp, log Kd per joint" if model is None else ", ".join(model.labels)
+        raise ConfigError(f"theta: expected {want} columns ({what}), got {theta.shape[-1]}")
     if grasp_fraction is not None:
         g = np.asarray(grasp_fraction, float)
         if np.any(~np.isfinite(g)) or np.any(g <= 0) or np.any(g > 1):
             raise ConfigError(f"grasp_fraction: must be in (0, 1], got {g.tolist()}")
-    kp, kd = gains_from_theta(theta, sim.n_joints)
-    return _predict_jit(sim, kp, kd, jnp.atleast_2d(jnp.asarray(forces)), grasp_fraction)
+    forces = jnp.atleast_2d(jnp.asarray(forces))
+    if model is not None and model.kind == "static":
+        from .static import model_rollout
+
+        return model_rollout(sim, model, theta, forces, grasp_fraction)  # jitted inside
+    kp, kd = gains_from_theta(theta, sim.n_joints) if model is None else model.layout.gains(theta)
+    return _predict_jit(sim, kp, kd, forces, grasp_fraction)
 
 
 @partial(jax.jit, static_argnums=0)

@@ -36,17 +36,27 @@ from .sim import Rollout, Simulator, velocity
 from .sim import fused as hd
 
 __all__ = [
+    "MODEL_KINDS",
+    "Model",
     "PARAMETERS",
     "QUASI_STATIC_RATIO",
     "ParameterLayout",
     "damping_note",
     "natural_periods",
     "parameter_layout",
+    "model_for",
+    "model_rollout",
+    "model_with_pulls",
+    "parse_model_kind",
     "parse_parameters",
     "quasi_static_notice",
+    "run_tree",
     "static_rollout",
     "suggest_static",
+    "tree_layout",
 ]
+
+MODEL_KINDS = ("dynamic", "static")
 
 PARAMETERS = ("kp", "kd")
 QUASI_STATIC_RATIO = 5.0  # sample interval / slowest natural period above which data are static
@@ -440,3 +450,117 @@ def damping_note(layout: ParameterLayout | None = None, model_kind: str = "stati
         vals = ", ".join(f"{v:.3g}" for v in layout.fixed_kd)
         return f"damping (Kd): not inferred, held at [{vals}] N m s/rad"
     return ""
+
+
+# ----------------------------------------------------------------------------- model of a run
+
+
+def parse_model_kind(value, source: str = "--model-kind") -> str:
+    """``dynamic`` (the rollout, the default) or ``static`` (equilibria, stiffness only)."""
+    kind = "dynamic" if value is None else str(value).strip().lower()
+    if kind not in MODEL_KINDS:
+        raise ConfigError(f"{source}: expected one of {', '.join(MODEL_KINDS)}, got {value!r}")
+    return kind
+
+
+def run_tree(tree, model_kind: str = "dynamic"):
+    """The tree a run infers: with the static model, stiffness only (``parameters: [kp]``), so
+    that the run folder's ``tree.yaml`` and its parameter labels say what was inferred."""
+    import dataclasses
+
+    if parse_model_kind(model_kind) == "static" and tuple(tree.parameters) != ("kp",):
+        return dataclasses.replace(tree, parameters=("kp",))
+    return tree
+
+
+def tree_layout(tree) -> ParameterLayout:
+    """:func:`parameter_layout` of ``tree.parameters``; damping, when not inferred, is held at
+    each joint's own ``kd`` in the tree file where given, else at its prior box's geometric
+    mean."""
+    joints = tuple(tree.inferred)
+    lo, hi = (np.asarray([tree.bounds[n].kd[i] for n in joints], float) for i in (0, 1))
+    own = [tree.branch(n).kd for n in joints]
+    fixed = np.asarray([k if k is not None else math.sqrt(a * b) for k, a, b in zip(own, lo, hi)])
+    return parameter_layout(tree, getattr(tree, "parameters", PARAMETERS), fixed_kd=fixed)
+
+
+class Model(NamedTuple):
+    """How a run maps its particles to predicted displacements.
+
+    Attributes:
+        kind: ``"dynamic"`` (time-stepped rollout) or ``"static"`` (:func:`static_rollout`).
+        layout: the theta layout (:func:`tree_layout`).
+        tree: the tree (static model: lengths of grasped branches, pull directions).
+        direction: None (along gravity) or [3] / [B, 3] world vectors (static model only).
+        grasp_branch: None (the tree's) or B names (static model only).
+    """
+
+    kind: str
+    layout: ParameterLayout
+    tree: object = None
+    direction: object = None
+    grasp_branch: object = None
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        return tuple(self.layout.labels)
+
+
+def model_for(tree, model_kind: str = "dynamic", direction=None, grasp_branch=None) -> Model:
+    """The :class:`Model` of a run from its tree and ``--model-kind``. The static model pulls
+    along ``direction`` (default: the tree file's ``pull.direction``, resolved on the grasp
+    branch by :func:`treeinfer.pulls.pull_direction`)."""
+    kind = parse_model_kind(model_kind)
+    tree = run_tree(tree, kind)
+    if kind == "static" and direction is None:
+        from .pulls import pull_direction
+
+        direction = pull_direction(tree, tree.grasp_branch, getattr(tree, "pull_direction", "down"))
+    return Model(kind, tree_layout(tree), tree, direction, grasp_branch)
+
+
+def model_rollout(sim: Simulator, model: Model | None, theta, forces, grasp_fraction=None):
+    """Predicted :class:`~treeinfer.sim.Rollout` [P, B, T] of particles ``theta [P, D]`` (the
+    model's layout; the full ``[log Kp, log Kd]`` when ``model`` is None) under ``forces
+    [B, T]`` N. The dynamic model runs :func:`treeinfer.sim.simulate`, the static one
+    :func:`static_rollout` (Kd plays no role there)."""
+    from .sim import simulate
+
+    theta = jnp.atleast_2d(jnp.asarray(theta))
+    if model is None:
+        r = sim.n_joints
+        return simulate(sim, jnp.exp(theta[..., :r]), jnp.exp(theta[..., r:]), forces,
+                        grasp_fraction)
+    kp, kd = model.layout.gains(theta)
+    if model.kind == "static":
+        return static_rollout(sim, kp, forces, grasp_fraction, model.direction,
+                              model.grasp_branch, model.tree)
+    return simulate(sim, kp, kd, forces, grasp_fraction)
+
+
+def model_with_pulls(model: Model, data_dir, sources: Sequence[str], grasp_fraction=None):
+    """The static model with each recording's own pull from ``data_dir``'s ``pulls.yaml``
+    (grasped branch, grasp point, direction: :func:`treeinfer.pulls.load_data_pulls`).
+
+    Args:
+        sources: the trajectories' file names, in stacked order.
+        grasp_fraction: an explicit ``--grasp-fraction`` (overrides the files' points).
+
+    Returns:
+        (model, grasp fractions [B] or ``grasp_fraction``); the model unchanged (and
+        ``grasp_fraction``) when it is not static or the folder has no ``pulls.yaml``.
+    """
+    from pathlib import Path
+
+    from .pulls import PULLS_FILE, load_data_pulls, stack_resolved
+
+    if model is None or model.kind != "static" or data_dir is None:
+        return model, grasp_fraction
+    if not (Path(data_dir) / PULLS_FILE).is_file():
+        return model, grasp_fraction
+    resolved = load_data_pulls(data_dir, model.tree, [Path(s).name for s in sources])
+    branches, fractions, directions = stack_resolved(resolved, model.tree)
+    model = model._replace(direction=directions, grasp_branch=branches)
+    if grasp_fraction is not None:
+        return model, grasp_fraction
+    return model, fractions

@@ -131,7 +131,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
         )
     truth = runs.read_true_params(run.tree, args.data)
     grasp = args.grasp_fraction if args.grasp_fraction is not None else run.grasp_fraction
-    own = data_grasp_fractions(args.data, run.tree, [t.source for t in trajs])
+    static = run.model is not None and run.model.kind == "static"  # any branch and direction
+    own = data_grasp_fractions(args.data, run.tree, [t.source for t in trajs], static, static)
     if own is not None:  # each recording at its own grasp point (the folder's pulls.yaml)
         if args.grasp_fraction is not None and not np.allclose(own, args.grasp_fraction):
             raise ConfigError(
@@ -153,8 +154,12 @@ def run_evaluate(args: argparse.Namespace) -> int:
         run_fit_status=run.summary.get("status"),
     )
     if args.kfold is None:
+        from ..static import model_with_pulls
+
+        model, grasp = model_with_pulls(run.model, args.data, [t.source for t in trajs], grasp)
         m, pred, obs = evaluate_trajectories(
-            run.sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable
+            run.sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable,
+            model=model,
         )
         metrics = {"run": str(args.run), "data": str(args.data), "metrics": m}
         md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md(

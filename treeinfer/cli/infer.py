@@ -58,6 +58,7 @@ _RUN_OPTIONS = {
     "stop_when_converged": "--stop-when-converged",
     "mcmc_warmup": "--mcmc-warmup",
     "mcmc_thin": "--mcmc-thin",
+    "model_kind": "--model-kind",
     "gradients": "--gradients",
     "init": "--init",
 }
@@ -229,6 +230,13 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         help="initial particles: 'uniform' in the prior box (the paper's, default) or 'laplace' "
         "(around a Levenberg-Marquardt MAP fit, so iterations go into the posterior's shape)",
     )
+    p.add_argument(
+        "--model-kind",
+        choices=("dynamic", "static"),
+        help="'dynamic': time-stepped rollouts, Kp and Kd (default); 'static': the equilibrium "
+        "under each force sample, for slow quasi-static pushes: stiffness only, damping not "
+        "identified (infer prints a notice when the data look quasi-static)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--allow-poor-fit", action="store_true", help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 otherwise); the verdict stays in summary.json")
     p.add_argument("--allow-implausible-data", action="store_true", help="sample even if the plausibility checks find errors in the data (wrong units, swapped columns, duplicates ...); they are printed and recorded in summary.json")
@@ -306,6 +314,8 @@ def run_infer(args: argparse.Namespace) -> int:
     if s.get("stop_reason", "max_iterations") != "max_iterations":
         _say(f"stopped early: {s['stop_reason']}")
     _print_posterior(s)
+    if s.get("damping"):
+        print(s["damping"])
     _print_fit(s.get("training_metrics"), "fit to the training data")
     _print_warnings(s["convergence_warnings"])
     fit = s.get("fit") or {}

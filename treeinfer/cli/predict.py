@@ -198,7 +198,7 @@ def run_predict(args: argparse.Namespace) -> int:
     if args.force_file is not None:
         grasp, same = _compare_check(args, run, grasp)
         compare = compare and same
-    pred = predict_run(run.sim, run.theta, prof.force[None], grasp, run.stable)
+    pred = predict_run(run.sim, run.theta, prof.force[None], grasp, run.stable, model=run.model)
     n_bad = int((~pred.valid).sum())
     lower, upper, mean = pred.lower[0], pred.upper[0], pred.mean[0]
     recorded = prof.displacement if compare else None

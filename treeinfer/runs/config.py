@@ -78,7 +78,8 @@ class RunConfig:
     0: off); drop_stragglers (leave stuck final particles out of the summaries);
     stop_when_converged (stop early, :class:`treeinfer.diagnostics.ConvergenceCriterion`);
     mcmc_warmup (share of an MCMC trace discarded, in [0, 1)); mcmc_thin (>= 0; 0: thin to at
-    most 1024 post-warm-up draws).
+    most 1024 post-warm-up draws). model_kind ("dynamic": the rollout; "static": equilibria
+    under each force sample, stiffness only, :mod:`treeinfer.static`).
     """
 
     tree: str
@@ -104,9 +105,13 @@ class RunConfig:
     mcmc_thin: int = 0
     gradients: str = "fd"
     init: str = "uniform"
+    model_kind: str = "dynamic"
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)
+        from ..static import parse_model_kind
+
+        set_("model_kind", parse_model_kind(self.model_kind))
         sampler_spec(self.sampler)
         set_(
             "particles",
@@ -167,9 +172,10 @@ class RunConfig:
         set_("mcmc_thin", _count("--mcmc-thin", self.mcmc_thin, 0))
 
     def to_json(self) -> dict:
-        """``config.json``'s ``"options"`` object (``gradients``/``init`` only when not default)."""
+        """``config.json``'s ``"options"`` object (``gradients``/``init``/``model_kind`` only
+        when not default)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)}
-        for k, default in (("gradients", "fd"), ("init", "uniform")):
+        for k, default in (("gradients", "fd"), ("init", "uniform"), ("model_kind", "dynamic")):
             if out[k] == default:
                 del out[k]
         return out
@@ -210,8 +216,10 @@ def infer_config(
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
     sampler settings are added by :func:`run_inference` once the problem is built."""
+    from ..static import run_tree
+
     tree_path, data_dir, out = Path(tree_path), Path(data_dir), Path(out)
-    tree = load_tree(tree_path)
+    tree = run_tree(load_tree(tree_path), more.get("model_kind", "dynamic"))
     files = data_manifest(data_dir) if data_dir.is_dir() else []
     trajs = read_trajectory_dir(data_dir)  # clear errors for a missing folder / bad file
     options = RunConfig(

@@ -138,8 +138,16 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
         "level": LEVEL,
         "training_metrics": fit["metrics"],
     }
+    model = getattr(problem, "model", None)
+    if model is not None and (model.kind == "static" or not model.layout.infers_damping):
+        from ..static import damping_note
+
+        summary["model_kind"] = model.kind
+        summary["damping"] = damping_note(model.layout, model.kind)
     if truth is not None:
         from ..metrics import posterior_vs_truth
+
+        truth = np.asarray(truth, float)[: np.shape(posterior.theta)[-1]]  # stiffness only: Kp
 
         chk = posterior_vs_truth(
             np.exp(np.asarray(posterior.theta, float)), truth, LEVEL, stable, log=True
@@ -319,6 +327,7 @@ class LoadedRun(NamedTuple):
     summary: dict
     grasp_fraction: float | None
     notes: tuple[str, ...] = ()  # integrity notes (--allow-modified) to record in the output
+    model: Any = None  # treeinfer.static.Model (static model or stiffness only); None: dynamic
 
 
 def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None,
@@ -359,10 +368,15 @@ def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None,
         labels = tuple(str(s) for s in z["labels"])
     except KeyError as e:
         raise ConfigError(f"{run_dir / 'trace.npz'}: unreadable (no array {e})") from None
-    if list(labels) != tree.parameter_labels():
+    from ..static import model_for
+
+    model = model_for(tree, config.get("problem", {}).get("model_kind", "dynamic"))
+    if list(labels) != list(model.labels):
         raise ConfigError(
-            f"{run_dir}: trace.npz labels {list(labels)} do not match tree.yaml {tree.parameter_labels()}"
+            f"{run_dir}: trace.npz labels {list(labels)} do not match tree.yaml {list(model.labels)}"
         )
+    if model.kind == "dynamic" and model.layout.infers_damping:
+        model = None  # the paper's model of [log Kp, log Kd]
     summary = (
         read_json(run_dir / "summary.json", "the run's summary")
         if (run_dir / "summary.json").is_file()
@@ -389,4 +403,5 @@ def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None,
         summary,
         config["options"].get("grasp_fraction"),
         notes,
+        model,
     )

@@ -88,6 +88,20 @@ def build_problem(
         recorded.get("backend", o.get("backend", "auto")),
         cache,
     )
+    kind, static = o.get("model_kind", "dynamic"), {}
+    if kind == "static":  # each recording's own branch, grasp point and direction (pulls.yaml)
+        from ..static import model_for, model_with_pulls
+
+        model, grasp = model_with_pulls(
+            model_for(tree, kind),
+            None if isinstance(trajectories, Observations) else o.get("data"),
+            [] if isinstance(trajectories, Observations) else [t.source for t in trajectories],
+            o.get("grasp_fraction"),
+        )
+        grasp = None if grasp is None else np.asarray(grasp, float).tolist()
+        static = {"direction": model.direction, "grasp_branch": model.grasp_branch}
+    else:
+        grasp = _grasp_fractions(o, tree, trajectories)
     problem = make_problem(
         tree,
         obs,
@@ -95,9 +109,11 @@ def build_problem(
         nn_prior=sampler_spec(o["sampler"]).nn_prior,
         eta=o["eta"],
         prior_sigma=o.get("prior_tail", DEFAULT_PRIOR_SIGMA),
-        grasp_fraction=_grasp_fractions(o, tree, trajectories),
+        grasp_fraction=grasp,
         sim=sim,
         gradient=o.get("gradients", "fd"),
+        model_kind=kind,
+        **static,
     )
     if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints
         from ..sequential import prior_from_run, with_prior
@@ -148,6 +164,9 @@ def _data_checks(
         tree_file=o.get("tree"),
         grasp_fraction=o.get("grasp_fraction"),
     )
+    drop = _checks_not_applicable(config, tree, [f["name"] for f in config["data"]["files"]])
+    errors = [f for f in errors if f.check not in drop]
+    warns = [f for f in warns if f.check not in drop]
     if errors and not allow_implausible_data:
         raise TrajectoryFileError(
             "the training data are implausible for this tree:\n"
@@ -159,6 +178,28 @@ def _data_checks(
     for m in skipped:
         log(m)
     return [str(f) for f in errors + warns] + skipped
+
+
+def _checks_not_applicable(config: dict, tree: Tree, names: Sequence[str]) -> set[str]:
+    """Plausibility checks that do not apply to this run: the simulation cost (the static
+    model does not step time), and the cross-file compliance comparison when the data folder's
+    pulls.yaml puts the recordings at different grasp points or directions (their compliance
+    differs by design, e.g. a stem pushed at three heights)."""
+    drop = set()
+    if config["options"].get("model_kind", "dynamic") == "static":
+        drop.add("simulation-cost")
+    from ..pulls import PULLS_FILE, load_data_pulls
+
+    data_dir = Path(config["data"]["dir"])
+    if names and (data_dir / PULLS_FILE).is_file():
+        try:
+            pulls = load_data_pulls(data_dir, tree, names)
+        except ConfigError:
+            return drop  # the problem build reports a bad sidecar, naming the field
+        keys = {(p.branch, round(p.fraction, 9), tuple(np.round(p.direction, 9))) for p in pulls}
+        if len(keys) > 1:
+            drop.add("mixed-units")
+    return drop
 
 
 def _prepare_fresh(config: dict, log: Callable[[str], None]):
@@ -179,7 +220,9 @@ def _prepare_fresh(config: dict, log: Callable[[str], None]):
                 f"`treeinfer infer --resume {run_dir}`, or pass --force to discard it and start over"
             )
         shutil.rmtree(partial)
-    tree = load_tree(config["options"]["tree"])
+    from ..static import run_tree
+
+    tree = run_tree(load_tree(config["options"]["tree"]), config["options"].get("model_kind"))
     trajs = read_trajectory_dir(config["options"]["data"])
     truth = read_true_params(tree, config["options"]["data"])
     return run_dir, partial, tree, trajs, truth
@@ -218,6 +261,11 @@ def _laplace_start(problem, config: dict, log: Callable[[str], None]):
     from ..mapfit import fit_problem, laplace_particles
 
     o = config["options"]
+    if getattr(problem, "model", None) is not None:
+        raise ConfigError(
+            "--init laplace: supported for the dynamic model of Kp and Kd only; use --init "
+            "uniform with --model-kind static or inference.parameters: [kp]"
+        )
     jacobian = "jvp" if o.get("gradients", "fd") == "jvp" else "fd"
     fit = fit_problem(problem, "boltzmann", n_starts=6, seed=o["seed"], jacobian=jacobian,
                       max_iterations=25)
@@ -271,6 +319,7 @@ def run_inference(
         run_dir, partial, tree, trajs, truth = _prepare_fresh(config, log)
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
         problem = build_problem(config, tree, trajs, cache)
+        _quasi_static_check(problem, config, log)
         config = {**config, "problem": problem.settings, "sampler": sampler_settings(config)}
         config["config_hash"] = config_hash(config)
         partial.mkdir(parents=True)
@@ -400,6 +449,22 @@ def run_inference(
     return InferOutcome(run_dir, config, summary, posterior)
 
 
+def _quasi_static_check(problem, config: dict, log: Callable[[str], None]) -> None:
+    """Log :func:`treeinfer.static.quasi_static_notice` when the dynamic model is asked to fit
+    data sampled far more slowly than the branch's slowest natural period."""
+    if config["options"].get("model_kind", "dynamic") != "dynamic":
+        return
+    from ..static import quasi_static_notice
+
+    try:
+        notice = quasi_static_notice(problem.tree, problem.sim, float(problem.obs.dt))
+    except Exception as e:  # noqa: BLE001 - a notice must never stop a run
+        log(f"note: could not judge whether the data are quasi-static ({type(e).__name__}: {e})")
+        return
+    if notice:
+        log(f"note: {notice}")
+
+
 def _fitted_noise(problem) -> float | None:
     """The displacement noise sigma (m) the noise model fitted, if it has one (settings key
     ``noise_sigma``); None otherwise (then the fit verdict skips the residual test)."""
@@ -454,7 +519,10 @@ def _summarised_posterior(posterior, problem, trace: dict, o: dict):
             extra = {"dropped_stragglers": True, "n_dropped": rep.n_stragglers}
     if not extra:
         return posterior
-    kp, kd = gains_from_theta(theta, problem.sim.n_joints)
+    if getattr(problem, "model", None) is not None:
+        kp, kd = problem.model.layout.gains(np.asarray(theta))
+    else:
+        kp, kd = gains_from_theta(theta, problem.sim.n_joints)
     return dataclasses.replace(
         posterior, theta=np.asarray(theta), kp=np.asarray(kp), kd=np.asarray(kd),
         log_density=np.asarray(logp), settings={**posterior.settings, **extra},
@@ -554,6 +622,7 @@ def kfold(
             grasp_fraction,
             truth,
             np.isfinite(post.log_density),
+            model=problem.model,
         )
         out.append(
             FoldResult(
