@@ -1,0 +1,133 @@
+"""The static model and stiffness-only inference wired through make_problem, the run layer and the
+CLI: quasi-static pushes at three heights -> import-csv -> ``infer --model-kind static`` (two
+heights) -> ``evaluate`` (the third)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from treeinfer.csv_import import import_csv
+from treeinfer.pulls import load_data_pulls, stack_resolved
+from treeinfer.synthetic_stem import Stem, branch_at_height, stem_tree, write_stem_logs
+from treeinfer.tree import Branch, dump_tree, load_tree, make_tree
+
+HELD_OUT = 0.24  # m
+
+
+@pytest.fixture(scope="module")
+def stem_data(tmp_path_factory):
+    """Raw logger CSVs (gf, mm, wrapping ms counter, offsets, noise) imported per height into
+    train/ (0.12, 0.36 m) and test/ (0.24 m), each with its pulls.yaml (branch, distance,
+    horizontal)."""
+    root = tmp_path_factory.mktemp("stem")
+    tree = dataclasses.replace(stem_tree(Stem()), pull_direction="horizontal")
+    dump_tree(tree, root / "stem.yaml")
+    for path, push in write_stem_logs(root / "raw", Stem(), seed=3):
+        branch, dist = branch_at_height(tree, push.height)
+        import_csv(
+            [path], root / ("test" if push.height == HELD_OUT else "train"), time="millis",
+            force="load_g", displacement="pos_mm", units="time=ms,force=gf,displacement=mm",
+            dt=0.5, tare=True, zero_displacement="contact", trim=True, grasp_branch=branch,
+            grasp_distance=dist, direction="horizontal", tree=tree,
+        )
+    return root
+
+
+@pytest.mark.slow
+def test_cli_static_infer_then_evaluate_held_out_height(stem_data, capsys):
+    from treeinfer.cli.main import main
+    from treeinfer.runs import load_run
+    from treeinfer.static import static_rollout
+    from treeinfer.trajectories import read_trajectory_dir
+
+    root = stem_data
+    run = root / "run"
+    rc = main([
+        "infer", "--tree", str(root / "stem.yaml"), "--data", str(root / "train"),
+        "--out", str(run), "--model-kind", "static", "--sampler", "svgd", "--particles", "4",
+        "--iterations", "4", "--kT", "0.002", "--no-progress", "--checkpoint-every", "0",
+        "--allow-poor-fit",
+    ])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    assert "damping (Kd): not identified" in out.out
+    assert "quasi-static" not in out.err  # the notice is for the dynamic model only
+    config = json.loads((run / "config.json").read_text())
+    assert config["options"]["model_kind"] == "static"
+    assert config["problem"]["model_kind"] == "static"
+    assert config["problem"]["parameters"] == ["kp"]
+    assert load_tree(run / "tree.yaml").parameters == ("kp",)
+    summary = json.loads((run / "summary.json").read_text())
+    assert sorted(summary["posterior"]) == sorted(f"Kp[{n}]" for n in ("link0", "link1", "link2"))
+    assert "not identified" in summary["damping"]
+
+    ev = root / "eval"
+    assert main(["evaluate", "--run", str(run), "--data", str(root / "test"),
+                 "--out", str(ev)]) == 0
+    capsys.readouterr()
+    metrics = json.loads((ev / "metrics.json").read_text())["metrics"]
+    assert metrics["per_trajectory"][0]["name"].endswith("push_240mm.csv")
+    csv = np.genfromtxt(ev / "push_240mm_prediction.csv", delimiter=",", names=True)
+
+    # the prediction is the static model's at the held-out recording's own pull (pulls.yaml:
+    # its branch, height and horizontal direction), not at the tree's grasp point
+    loaded = load_run(run)
+    tree = loaded.tree
+    traj = read_trajectory_dir(root / "test")[0]
+    br, fr, di = stack_resolved(load_data_pulls(root / "test", tree, [traj.source]), tree)
+    kp = np.exp(np.asarray(loaded.theta, float))
+    own = static_rollout(loaded.sim, kp, traj.force[None], fr, di, br, tree)
+    np.testing.assert_allclose(csv["mean"], np.asarray(own.tau)[:, 0].mean(0), atol=2e-6)
+    at_tip = static_rollout(loaded.sim, kp, traj.force[None], None, di[0], None, tree)
+    assert np.max(np.abs(csv["mean"] - np.asarray(at_tip.tau)[:, 0].mean(0))) > 1e-4
+    np.testing.assert_allclose(csv["recorded"], traj.displacement, atol=1e-12)
+
+
+def _one_joint_tree(**kw):
+    return make_tree(
+        [Branch("b", None, 0.5, 0.01, kd=0.3)], grasp_branch="b", grasp_fraction=1.0, **kw
+    )
+
+
+def test_stiffness_only_problem_holds_damping_at_the_trees_value():
+    """inference: {parameters: [kp]} with the dynamic model: theta = [log Kp], the likelihood
+    is the full model's at the tree's own Kd (an independent evaluation of the 2R target)."""
+    from treeinfer.inference import make_problem
+    from treeinfer.likelihood import boltzmann_log_likelihood
+    from treeinfer.trajectories import Trajectory
+
+    tree = dataclasses.replace(_one_joint_tree(), parameters=("kp",))
+    dt, n = 0.02, 25
+    t = dt * np.arange(n)
+    force = np.clip(t / 0.2, 0, 1) * 2.0
+    x = 0.01 * np.clip(t / 0.2, 0, 1)
+    traj = Trajectory(t, force, x, np.gradient(x, dt), "syn.csv")
+    problem = make_problem(tree, [traj], nn_prior=False, backend="fused")
+    assert problem.labels == ("Kp[b]",) and problem.dim == 1
+    assert problem.settings["fixed_kd"] == [0.3]
+    full = boltzmann_log_likelihood(problem.sim, problem.obs, problem.kT)
+    theta = np.log([[5.0], [20.0]])
+    got = np.asarray(problem.log_likelihood(theta))
+    ref = np.asarray(full(np.concatenate([theta, np.log(0.3) * np.ones((2, 1))], axis=1)))
+    np.testing.assert_allclose(got, ref, rtol=1e-5)
+    assert got[0] != pytest.approx(got[1])  # the data do depend on Kp
+
+
+def test_quasi_static_notice_logged_for_the_dynamic_model_only():
+    from treeinfer.runs.service import _quasi_static_check
+    from treeinfer.sim import make_simulator
+
+    tree = stem_tree(Stem())
+    sim = make_simulator(tree, obs_dt=0.5, backend="fused")
+    problem = SimpleNamespace(tree=tree, sim=sim, obs=SimpleNamespace(dt=0.5))
+    said = []
+    _quasi_static_check(problem, {"options": {}}, said.append)
+    assert len(said) == 1 and "--model-kind static" in said[0]
+    said.clear()
+    _quasi_static_check(problem, {"options": {"model_kind": "static"}}, said.append)
+    assert said == []
