@@ -73,3 +73,18 @@ def test_analysis_runs_with_some_results(monkeypatch, tmp_path):
     assert f"['{present[0]}']" in text
     nb = execute("analysis.ipynb", monkeypatch, timeout=300, TREEINFER_RESULTS_DIR=str(RESULTS))
     assert "| study | condition |" in outputs_text(nb)
+
+
+@pytest.mark.slow
+def test_real_data_runs(monkeypatch):
+    """Raw 10 Hz logs (gf, mm, wrapping counter, offsets, noise) at three heights -> import_csv
+    -> static-model inference from two heights -> evaluate at the third, at tiny size."""
+    nb = execute("real_data.ipynb", monkeypatch, timeout=600, TREEINFER_NOTEBOOK_SIZE="tiny")
+    text = outputs_text(nb)
+    assert "size 'tiny'" in text
+    assert "force: gf -> N" in text and "tare: subtracted" in text  # import_csv's report
+    assert "exit code 0" in text and "damping (Kd): not identified" in text
+    assert "% of the recorded points inside the 95% band" in text
+    assert "cantilever" in text and "RMSE at 0.24 m" in text
+    images = [o for c in nb.cells for o in c.get("outputs", []) if "image/png" in o.get("data", {})]
+    assert len(images) >= 2  # the imported pushes, the held-out band

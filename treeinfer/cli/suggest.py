@@ -140,10 +140,30 @@ def configure_suggest(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+def _refuse_stiffness_only(run) -> None:
+    """The design scores differentiate the dynamic model in (log Kp, log Kd): refuse runs of the
+    static model or of stiffness only (their particles have no Kd columns)."""
+    import json
+
+    try:
+        problem = json.loads((Path(run) / "config.json").read_text()).get("problem") or {}
+    except (OSError, ValueError, AttributeError):
+        return  # suggest_for_run reports an unreadable run, naming the file
+    kind = problem.get("model_kind", "dynamic")
+    params = problem.get("parameters", ["kp", "kd"])
+    if kind != "dynamic" or params != ["kp", "kd"]:
+        raise ConfigError(
+            f"{run}: a run of the {kind} model inferring {', '.join(params)} only; suggest "
+            "scores pulls for runs of the "
+            "dynamic model of Kp and Kd"
+        )
+
+
 def run_suggest(args: argparse.Namespace) -> int:
     target = parse_target(args.target) if args.target else None
     if args.sigma_x is not None and not args.sigma_x > 0:
         raise ConfigError(f"--sigma-x: must be a positive number of metres, got {args.sigma_x}")
+    _refuse_stiffness_only(args.run)
     _prepare_jax()
     out = args.out if args.out is not None else args.run / "suggest"
     _say(f"scoring candidates for {args.run} ...")
