@@ -45,6 +45,7 @@ import numpy as np
 
 from ._io import atomic_write_text
 from .errors import ConfigError
+from .tree import DIRECTION_WORDS, parse_direction, parse_tree_pull
 
 __all__ = [
     "DIRECTION_WORDS",
@@ -71,7 +72,6 @@ __all__ = [
 ]
 
 PULLS_FILE = "pulls.yaml"
-DIRECTION_WORDS = ("down", "horizontal")
 _ENTRY_KEYS = {"branch", "fraction", "distance", "direction"}
 _TOP_KEYS = {"default", "pulls"}
 VERTICAL_COS = 1.0 - 1e-9  # |axis . up| above this: the branch counts as vertical
@@ -121,40 +121,6 @@ class ResolvedPull(NamedTuple):
 
 def _where(source: str, entry: str, fld: str) -> str:
     return f"{source}: {entry}: field '{fld}'"
-
-
-def parse_direction(value: Any, where: str = "direction") -> str | tuple[float, float, float]:
-    """Validate a direction: ``down``, ``horizontal``, ``[x, y, z]`` or the text ``"x,y,z"``.
-
-    Returns the word (lower case) or the 3-tuple as given (not normalised).
-
-    Raises:
-        ConfigError: naming ``where``: unknown word, wrong length, non-finite or zero vector.
-    """
-    if isinstance(value, str):
-        word = value.strip().lower()
-        if word in DIRECTION_WORDS:
-            return word
-        parts = [p for p in word.replace(",", " ").split() if p]
-        if len(parts) == 3:
-            value = parts
-        else:
-            raise ConfigError(
-                f"{where}: expected 'down', 'horizontal' or a vector [x, y, z], got {value!r}"
-            )
-    if not isinstance(value, (list, tuple, np.ndarray)) or len(value) != 3:
-        raise ConfigError(
-            f"{where}: expected 'down', 'horizontal' or a vector [x, y, z], got {value!r}"
-        )
-    try:
-        vec = tuple(float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{where}: vector components must be numbers, got {value!r}") from None
-    if not all(math.isfinite(v) for v in vec):
-        raise ConfigError(f"{where}: vector components must be finite, got {list(vec)}")
-    if math.hypot(*vec) == 0.0:
-        raise ConfigError(f"{where}: the zero vector has no direction")
-    return vec  # type: ignore[return-value]
 
 
 def _number(value: Any, where: str) -> float:
@@ -211,28 +177,6 @@ def pull_spec(entry: Any, source: str = PULLS_FILE, name: str = "entry") -> Pull
     if entry.get("direction") is not None:
         direction = parse_direction(entry["direction"], _where(source, name, "direction"))
     return PullSpec(branch, fraction, distance, direction)
-
-
-def parse_tree_pull(value: Any, source: str = "<tree>") -> str | tuple[float, float, float]:
-    """Parse a tree file's ``pull:`` mapping; returns its default direction (``"down"`` if absent).
-
-    Hook for :func:`treeinfer.tree.tree_from_dict`: accept the top-level key ``pull`` and store
-    ``parse_tree_pull(d.get("pull"), source)`` on the tree (e.g. ``Tree.pull_direction``).
-    """
-    if value is None:
-        return "down"
-    if not isinstance(value, Mapping):
-        raise ConfigError(
-            f"{source}: pull: expected a mapping like {{direction: down}}, got {value!r}"
-        )
-    bad = set(value) - {"direction"}
-    if bad:
-        raise ConfigError(
-            f"{source}: pull: unknown field(s) {sorted(map(str, bad))}; allowed: direction"
-        )
-    if value.get("direction") is None:
-        return "down"
-    return parse_direction(value["direction"], f"{source}: pull: field 'direction'")
 
 
 def _check_against_tree(spec: PullSpec, tree, source: str, name: str) -> None:

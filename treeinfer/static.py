@@ -34,6 +34,7 @@ import numpy as np
 from .errors import ConfigError
 from .sim import Rollout, Simulator, velocity
 from .sim import fused as hd
+from .tree import PARAMETERS, parse_parameters
 
 __all__ = [
     "MODEL_KINDS",
@@ -58,7 +59,6 @@ __all__ = [
 
 MODEL_KINDS = ("dynamic", "static")
 
-PARAMETERS = ("kp", "kd")
 QUASI_STATIC_RATIO = 5.0  # sample interval / slowest natural period above which data are static
 NEWTON_CLIP = 0.2  # rad per Newton step, as the simulator's settle solver
 
@@ -395,27 +395,6 @@ class ParameterLayout(NamedTuple):
             jnp.log(jnp.asarray(self.fixed_kd, theta.dtype)), theta.shape[:-1] + (self.n_joints,)
         )
         return jnp.concatenate([theta, kd], axis=-1)
-
-
-def parse_parameters(value, source: str = "inference.parameters") -> tuple[str, ...]:
-    """Validate ``inference: {parameters: [...]}``: a list of ``kp``/``kd`` containing ``kp``."""
-    if value is None:
-        return PARAMETERS
-    if isinstance(value, str):
-        value = [v for v in value.replace(",", " ").split() if v]
-    if not isinstance(value, (list, tuple)) or not value:
-        raise ConfigError(f"{source}: expected a list like [kp] or [kp, kd], got {value!r}")
-    names = [str(v).strip().lower() for v in value]
-    bad = [n for n in names if n not in PARAMETERS]
-    if bad:
-        raise ConfigError(f"{source}: unknown parameter(s) {bad}; allowed: kp, kd")
-    if "kp" not in names:
-        raise ConfigError(
-            f"{source}: stiffness (kp) must be inferred; damping alone is not supported"
-        )
-    if len(set(names)) != len(names):
-        raise ConfigError(f"{source}: duplicate entries in {names}")
-    return tuple(p for p in PARAMETERS if p in names)
 
 
 def parameter_layout(tree, parameters=PARAMETERS, fixed_kd=None) -> ParameterLayout:

@@ -20,14 +20,14 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .errors import TreeFileError
+from .errors import ConfigError, TreeFileError
 from .safe_load import load_file, string
 
 # Default prior boxes (natural units). Kp in N m/rad, Kd in N m s/rad. Chosen for branches of
@@ -484,6 +484,89 @@ def tree_scale_warnings(tree: Tree, source: str = "") -> list[str]:
     return out
 
 
+# ---- pull direction and inferred gains (parsed here, the lowest layer; re-exported by
+# treeinfer.pulls and treeinfer.static) -------------------------------------------------------
+DIRECTION_WORDS = ("down", "horizontal")
+PARAMETERS = ("kp", "kd")
+
+
+def parse_direction(value: Any, where: str = "direction") -> str | tuple[float, float, float]:
+    """Validate a direction: ``down``, ``horizontal``, ``[x, y, z]`` or the text ``"x,y,z"``.
+
+    Returns the word (lower case) or the 3-tuple as given (not normalised).
+
+    Raises:
+        ConfigError: naming ``where``: unknown word, wrong length, non-finite or zero vector.
+    """
+    if isinstance(value, str):
+        word = value.strip().lower()
+        if word in DIRECTION_WORDS:
+            return word
+        parts = [p for p in word.replace(",", " ").split() if p]
+        if len(parts) == 3:
+            value = parts
+        else:
+            raise ConfigError(
+                f"{where}: expected 'down', 'horizontal' or a vector [x, y, z], got {value!r}"
+            )
+    if not isinstance(value, (list, tuple, np.ndarray)) or len(value) != 3:
+        raise ConfigError(
+            f"{where}: expected 'down', 'horizontal' or a vector [x, y, z], got {value!r}"
+        )
+    try:
+        vec = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}: vector components must be numbers, got {value!r}") from None
+    if not all(math.isfinite(v) for v in vec):
+        raise ConfigError(f"{where}: vector components must be finite, got {list(vec)}")
+    if math.hypot(*vec) == 0.0:
+        raise ConfigError(f"{where}: the zero vector has no direction")
+    return vec  # type: ignore[return-value]
+
+
+def parse_tree_pull(value: Any, source: str = "<tree>") -> str | tuple[float, float, float]:
+    """Parse a tree file's ``pull:`` mapping; returns its default direction (``"down"`` if absent).
+
+    Hook for :func:`treeinfer.tree.tree_from_dict`: accept the top-level key ``pull`` and store
+    ``parse_tree_pull(d.get("pull"), source)`` on the tree (e.g. ``Tree.pull_direction``).
+    """
+    if value is None:
+        return "down"
+    if not isinstance(value, Mapping):
+        raise ConfigError(
+            f"{source}: pull: expected a mapping like {{direction: down}}, got {value!r}"
+        )
+    bad = set(value) - {"direction"}
+    if bad:
+        raise ConfigError(
+            f"{source}: pull: unknown field(s) {sorted(map(str, bad))}; allowed: direction"
+        )
+    if value.get("direction") is None:
+        return "down"
+    return parse_direction(value["direction"], f"{source}: pull: field 'direction'")
+
+
+def parse_parameters(value, source: str = "inference.parameters") -> tuple[str, ...]:
+    """Validate ``inference: {parameters: [...]}``: a list of ``kp``/``kd`` containing ``kp``."""
+    if value is None:
+        return PARAMETERS
+    if isinstance(value, str):
+        value = [v for v in value.replace(",", " ").split() if v]
+    if not isinstance(value, (list, tuple)) or not value:
+        raise ConfigError(f"{source}: expected a list like [kp] or [kp, kd], got {value!r}")
+    names = [str(v).strip().lower() for v in value]
+    bad = [n for n in names if n not in PARAMETERS]
+    if bad:
+        raise ConfigError(f"{source}: unknown parameter(s) {bad}; allowed: kp, kd")
+    if "kp" not in names:
+        raise ConfigError(
+            f"{source}: stiffness (kp) must be inferred; damping alone is not supported"
+        )
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{source}: duplicate entries in {names}")
+    return tuple(p for p in PARAMETERS if p in names)
+
+
 # ---- file I/O --------------------------------------------------------------------------------
 _BRANCH_KEYS = {
     "name", "parent", "length", "radius", "angle_deg", "azimuth_deg", "attach", "density", "kp", "kd", "fixed",
@@ -577,16 +660,9 @@ def tree_from_dict(d: Any, source: str = "<dict>") -> Tree:
         raise TreeFileError(
             f"{pre}inference: unknown field(s) {sorted(bad)}; allowed: joints, levels, prior, parameters"
         )
-    from .errors import ConfigError
-    from .pulls import parse_tree_pull
-
     try:
         pull_direction = parse_tree_pull(d.get("pull"), source)
-        parameters: tuple[str, ...] = ("kp", "kd")
-        if inf.get("parameters") is not None:
-            from .static import parse_parameters  # imports jax: only when the key is given
-
-            parameters = parse_parameters(inf["parameters"], f"{source}: inference.parameters")
+        parameters = parse_parameters(inf.get("parameters"), f"{source}: inference.parameters")
     except ConfigError as e:
         msg = str(e)
         raise TreeFileError(msg if msg.startswith(pre) else f"{pre}{msg}") from None
