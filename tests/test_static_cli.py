@@ -87,6 +87,14 @@ def test_cli_static_infer_then_evaluate_held_out_height(stem_data, capsys):
     assert np.max(np.abs(csv["mean"] - np.asarray(at_tip.tau)[:, 0].mean(0))) > 1e-4
     np.testing.assert_allclose(csv["recorded"], traj.displacement, atol=1e-12)
 
+    # predict on the same recording: its own pull too, compared with the recording
+    assert main(["predict", "--run", str(run), "--force-csv", str(root / "test" / traj.source),
+                 "--out", str(root / "pred")]) == 0
+    assert "NOT compared" not in capsys.readouterr().err
+    pred = np.genfromtxt(root / "pred" / "prediction.csv", delimiter=",", names=True)
+    np.testing.assert_allclose(pred["mean"], csv["mean"], atol=1e-9)
+    np.testing.assert_allclose(pred["recorded"], traj.displacement, atol=1e-12)
+
 
 def _one_joint_tree(**kw):
     return make_tree(

@@ -195,10 +195,23 @@ def run_predict(args: argparse.Namespace) -> int:
     )
     grasp = args.grasp_fraction if args.grasp_fraction is not None else run.grasp_fraction
     compare = prof.displacement is not None
-    if args.force_file is not None:
+    model = run.model
+    src = None if args.force_file is None else Path(args.force_file)
+    if (
+        src is not None
+        and model is not None
+        and model.kind == "static"
+        and args.grasp_fraction is None
+        and (src.parent / PULLS_FILE).is_file()
+    ):  # the static model: at the recording's own branch, point and direction (pulls.yaml)
+        from ..static import model_with_pulls
+
+        model, own = model_with_pulls(model, src.parent, [src.name])
+        grasp = float(np.asarray(own)[0])
+    elif src is not None:
         grasp, same = _compare_check(args, run, grasp)
         compare = compare and same
-    pred = predict_run(run.sim, run.theta, prof.force[None], grasp, run.stable, model=run.model)
+    pred = predict_run(run.sim, run.theta, prof.force[None], grasp, run.stable, model=model)
     n_bad = int((~pred.valid).sum())
     lower, upper, mean = pred.lower[0], pred.upper[0], pred.mean[0]
     recorded = prof.displacement if compare else None
