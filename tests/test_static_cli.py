@@ -95,6 +95,14 @@ def test_cli_static_infer_then_evaluate_held_out_height(stem_data, capsys):
     np.testing.assert_allclose(pred["mean"], csv["mean"], atol=1e-9)
     np.testing.assert_allclose(pred["recorded"], traj.displacement, atol=1e-12)
 
+    # k-fold with the run's settings on the two training heights: each fold predicts its
+    # held-out height at that recording's own pull
+    assert main(["evaluate", "--run", str(run), "--data", str(root / "train"), "--kfold", "2",
+                 "--out", str(root / "kfold"), "--no-progress"]) == 0
+    capsys.readouterr()
+    folds = json.loads((root / "kfold" / "metrics.json").read_text())["folds"]
+    assert sorted(f["test"][0] for f in folds) == ["push_120mm.csv", "push_360mm.csv"]
+
 
 def _one_joint_tree(**kw):
     return make_tree(

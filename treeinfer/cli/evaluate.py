@@ -184,13 +184,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
         return EXIT_OK
 
     kfold_splits(len(trajs), args.kfold)  # K too large: fail before any inference
-    if own is not None:
-        if not np.allclose(own, own[0]):
-            raise ConfigError(
-                f"{args.data}/pulls.yaml: --kfold with recordings at different grasp points is "
-                "not supported yet; evaluate a run on held-out recordings instead"
-            )
-        grasp = float(own[0])
+    if own is not None:  # each recording at its own point: runs.kfold splits them with the folds
+        grasp = float(own[0]) if np.allclose(own, own[0]) else own
     o = run.config["options"]
     _say(
         f"{args.kfold}-fold cross-validation on {len(trajs)} trajectories with the run's settings "
@@ -206,6 +201,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         log=_say,
         cache=cache,
+        data_dir=args.data,
     )
     mean, std = mean_metrics([r.metrics for r in results])
     folds = [

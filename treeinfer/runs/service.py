@@ -598,13 +598,18 @@ def kfold(
     progress: bool = True,
     log: Callable[[str], None] = lambda m: None,
     cache: SimulatorCache | None = None,
+    data_dir: str | os.PathLike | None = None,
 ) -> list[FoldResult]:
     """The paper's real-to-sim protocol: for each of ``k`` folds, infer on the other folds with
-    ``config``'s sampler settings and evaluate on the held-out fold."""
+    ``config``'s sampler settings and evaluate on the held-out fold.
+
+    ``grasp_fraction``: None, one fraction, or one per trajectory (split with the folds).
+    ``data_dir``: the trajectories' folder (its ``pulls.yaml``; default the run's data)."""
     trajectories = list(trajectories)
     cache = SimulatorCache() if cache is None else cache  # every fold: one simulator
     splits = kfold_splits(len(trajectories), k)
-    cfg = {**config, "options": {**config["options"], "grasp_fraction": grasp_fraction}}
+    options = {**config["options"], **({} if data_dir is None else {"data": str(data_dir)})}
+    per_traj = grasp_fraction is not None and np.ndim(grasp_fraction) == 1
     out = []
     for i, (tr, te) in enumerate(splits, start=1):
         train = [trajectories[j] for j in tr]
@@ -612,17 +617,27 @@ def kfold(
         log(
             f"fold {i}/{k}: inferring on {len(train)} trajectories, holding out {', '.join(t.source for t in test)}"
         )
+        g_train = [float(np.asarray(grasp_fraction)[j]) for j in tr] if per_traj else grasp_fraction
+        g_test = np.asarray(grasp_fraction, float)[te] if per_traj else grasp_fraction
+        cfg = {**config, "options": {**options, "grasp_fraction": g_train}}
         problem, post = infer_posterior(cfg, tree, train, progress, cache)
+        model = problem.model
+        if model is not None and model.kind == "static":  # the held-out recordings' own pulls
+            from ..static import model_with_pulls
+
+            model, g_test = model_with_pulls(
+                model, options.get("data"), [t.source for t in test], g_test
+            )
         m, pred, _ = evaluate_trajectories(
             problem.sim,
             post.theta,
             list(problem.labels),
             test,
             problem.kT,
-            grasp_fraction,
+            g_test,
             truth,
             np.isfinite(post.log_density),
-            model=problem.model,
+            model=model,
         )
         out.append(
             FoldResult(
