@@ -371,3 +371,13 @@ def test_bad_parameters_raise_tree_file_error(params):
     d["inference"]["parameters"] = params
     with pytest.raises(TreeFileError, match="inference.parameters"):
         tree_from_dict(d, source="t.yaml")
+
+
+def test_make_tree_validates_pull_and_parameters():
+    br = [Branch("a", None, 0.5, 0.01)]
+    t = make_tree(br, "a", pull_direction=[0, 1, 0], parameters=["kp"])
+    assert t.pull_direction == (0.0, 1.0, 0.0) and t.parameters == ("kp",)
+    with pytest.raises(TreeFileError, match="pull.direction"):
+        make_tree(br, "a", pull_direction="up")
+    with pytest.raises(TreeFileError, match="inference.parameters"):
+        make_tree(br, "a", parameters=["kd"])

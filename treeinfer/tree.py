@@ -366,6 +366,13 @@ def make_tree(
     for n, bd in bounds.items():
         _bounds_pair(bd.kp, f"inference.prior.{n}.kp")
         _bounds_pair(bd.kd, f"inference.prior.{n}.kd")
+    try:  # the same checks as the file's pull: and inference.parameters
+        if "pull_direction" in kwargs:
+            kwargs["pull_direction"] = parse_direction(kwargs["pull_direction"], "pull.direction")
+        if "parameters" in kwargs:
+            kwargs["parameters"] = parse_parameters(kwargs["parameters"])
+    except ConfigError as e:
+        raise TreeFileError(str(e)) from None
     tree = Tree(
         name=name,
         branches=branches,
