@@ -71,7 +71,7 @@ def make_standard_problem(tree=None, n_traj: int = 3, n_steps: int = 300, dt: fl
     from treeinfer.cli import default_true_params
     from treeinfer.forces import profile_set
     from treeinfer.inference import make_problem
-    from treeinfer.simulator import make_simulator, simulate_reference
+    from treeinfer.sim import make_simulator, simulate_reference
     from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 

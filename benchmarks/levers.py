@@ -62,7 +62,7 @@ def precision_child(batch: int, n_steps: int, n_check: int, reps: int) -> dict:
     import jax.numpy as jnp
 
     from benchmarks.rollout import sample_gains
-    from treeinfer.simulator import make_simulator, simulate, simulate_reference
+    from treeinfer.sim import make_simulator, simulate, simulate_reference
 
     tree, forces, _, _ = _standard_inputs(n_steps)
     sim = make_simulator(tree, obs_dt=0.01)
@@ -129,7 +129,7 @@ def lever_loops(args) -> dict:
 
     from benchmarks.rollout import sample_gains
     from benchmarks.variants import simulate_variant, with_integrator
-    from treeinfer.simulator import make_simulator, simulate
+    from treeinfer.sim import make_simulator, simulate
 
     tree, forces, _, _ = _standard_inputs(args.steps)
     sim = make_simulator(tree, obs_dt=0.01)
@@ -226,8 +226,8 @@ def lever_profile(args) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from treeinfer import hinge_dynamics as hd
-    from treeinfer.simulator import _mjx, make_simulator
+    from treeinfer.sim import fused as hd
+    from treeinfer.sim import _mjx, make_simulator
 
     mjx = _mjx()
     tree, _, _, _ = _standard_inputs(args.steps)
@@ -273,7 +273,7 @@ def rollout_time_child(batch: int, n_steps: int, reps: int) -> dict:
     import jax.numpy as jnp
 
     from benchmarks.rollout import sample_gains
-    from treeinfer.simulator import make_simulator, simulate
+    from treeinfer.sim import make_simulator, simulate
 
     tree, forces, _, _ = _standard_inputs(n_steps)
     sim = make_simulator(tree, obs_dt=0.01)

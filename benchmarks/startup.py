@@ -75,7 +75,7 @@ def main(argv=None) -> int:
 
     from treeinfer.cli import default_true_params
     from treeinfer.forces import profile_set
-    from treeinfer.simulator import make_simulator, simulate_reference
+    from treeinfer.sim import make_simulator, simulate_reference
     from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 

@@ -293,7 +293,7 @@ class SyntheticData(NamedTuple):
 @functools.lru_cache(maxsize=4)
 def _simulator(path: str, dt: float):
     """One simulator per (tree, dt) in a process: jitted predictions are cached on its identity."""
-    from treeinfer.simulator import make_simulator
+    from treeinfer.sim import make_simulator
     from treeinfer.tree import load_tree
 
     tree = load_tree(path)
@@ -308,7 +308,7 @@ def seed_streams(seed: int) -> dict[str, np.random.Generator]:
 
 def reference_trajectory(sim, kp, kd, force: np.ndarray, dt: float, source: str, grasp_fraction=None):
     """Ground truth of one pull from plain MuJoCo (float64), as a Trajectory."""
-    from treeinfer.simulator import simulate_reference
+    from treeinfer.sim import simulate_reference
     from treeinfer.trajectories import Trajectory, validate_trajectory
 
     tau, tau_dot = simulate_reference(sim, kp, kd, force, grasp_fraction)
@@ -515,7 +515,7 @@ def predict_all(problem, theta: np.ndarray, data: SyntheticData) -> Predictions:
     per size: the grasp fraction is always passed per profile)."""
     from treeinfer.inference import predict
     from treeinfer.likelihood import trajectory_loss
-    from treeinfer.simulator import Rollout
+    from treeinfer.sim import Rollout
 
     n_train = len(data.train)
     forces = np.stack([t.force for t in data.train + data.test])

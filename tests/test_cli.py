@@ -241,7 +241,7 @@ def test_tree_refuses_to_overwrite_without_force(capsys, tmp_path):
 # ---- simulate -----------------------------------------------------------------------------------
 def _check_against_reference(folder: Path, tol=1e-5):
     """Every CSV equals a plain-MuJoCo rollout with the recorded true parameters and force."""
-    from treeinfer.simulator import make_simulator, simulate_reference
+    from treeinfer.sim import make_simulator, simulate_reference
 
     tree = load_tree(folder / "tree.yaml")
     tp = json.loads((folder / "true_params.json").read_text())

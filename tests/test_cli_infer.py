@@ -225,7 +225,7 @@ def _prediction(d: Path) -> tuple[list[str], np.ndarray]:
 
 
 def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
-    from treeinfer.simulator import simulate_reference
+    from treeinfer.sim import simulate_reference
 
     out = run_dir[0]
     test_csv = demo[0] / "data" / "test" / "traj_002.csv"

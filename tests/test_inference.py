@@ -17,7 +17,7 @@ from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
 from treeinfer.inference import infer, make_problem, predict
 from treeinfer.likelihood import gains_from_theta, theta_from_gains
-from treeinfer.simulator import make_simulator, simulate
+from treeinfer.sim import make_simulator, simulate
 from treeinfer.trajectories import Trajectory
 from treeinfer.tree import load_tree
 

@@ -9,7 +9,7 @@ import pytest
 
 from treeinfer.errors import ConfigError, SimulationError
 from treeinfer.examples import example_path
-from treeinfer.simulator import (
+from treeinfer.sim import (
     check_stable_share,
     make_simulator,
     settle,

@@ -708,7 +708,7 @@ def _simulate_batch(tree, kp, kd, forces, dt, max_sim_dt, backend="auto"):
     _prepare_jax()
     import jax
 
-    from .simulator import DEFAULT_MAX_SIM_DT, make_simulator, simulate
+    from .sim import DEFAULT_MAX_SIM_DT, make_simulator, simulate
 
     sim = make_simulator(_sim_tree(tree, kp), obs_dt=dt, max_sim_dt=max_sim_dt or DEFAULT_MAX_SIM_DT, backend=backend)
     slow = " (MJX compiles for up to a minute on new shapes; cached afterwards)" if sim.backend == "mjx" else ""
@@ -751,7 +751,7 @@ def _simulate_config(args, tree, specs, n_t, sim) -> dict[str, Any]:
     import jax
     import mujoco
 
-    from .simulator import DEFAULT_MAX_SIM_DT
+    from .sim import DEFAULT_MAX_SIM_DT
 
     options = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
     options.pop("debug", None)

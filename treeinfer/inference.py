@@ -30,7 +30,7 @@ from .errors import ConfigError
 from .gradients import autodiff_value_and_grad, central_difference, combine, mask_nonfinite
 from .likelihood import DEFAULT_KT, boltzmann_log_likelihood, check_kT, gains_from_theta
 from .priors import inequality_prior, load_or_train_inequality_network, smoothed_box
-from .simulator import Rollout, Simulator, make_simulator, simulate
+from .sim import Rollout, Simulator, make_simulator, simulate
 from .trajectories import Observations, Trajectory, stack_trajectories
 from .tree import Tree
 

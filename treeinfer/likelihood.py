@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import ConfigError
-from .simulator import Rollout, Simulator, simulate
+from .sim import Rollout, Simulator, simulate
 from .trajectories import Observations
 
 DEFAULT_KT = 0.05

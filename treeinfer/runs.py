@@ -233,7 +233,7 @@ _MAX_SIMULATORS = 8
 
 def simulator_for(tree: Tree, obs_dt: float, substeps: int | None = None, backend: str = "auto"):
     """:func:`treeinfer.simulator.make_simulator` with a small per-process cache."""
-    from .simulator import make_simulator
+    from .sim import make_simulator
 
     tree_key = tree_to_dict_json(tree_to_dict(tree))
     sim = _SIMULATORS.get((tree_key, float(obs_dt), substeps, backend))
@@ -676,7 +676,7 @@ def run_inference(
 
     trace = _merged_trace(posterior.run, previous)
     fit = _training_fit(problem, posterior, config)
-    from .simulator import check_stable_share
+    from .sim import check_stable_share
 
     try:
         check_stable_share(fit["stable"], o["max_unstable_share"], f"the {o['particles']} final particles")
@@ -764,7 +764,7 @@ def predict_run(sim, theta, forces, grasp_fraction=None, particle_ok=None, level
 def _per_trajectory_loglik(pred: Prediction, obs: Observations, kT: float) -> np.ndarray:
     """[P, B] Boltzmann log-likelihood of each particle on each trajectory (-inf if unstable)."""
     from .likelihood import trajectory_loss
-    from .simulator import Rollout
+    from .sim import Rollout
 
     r = Rollout(jnp.asarray(pred.tau), jnp.asarray(pred.tau_dot), jnp.asarray(np.broadcast_to(pred.stable[:, None], pred.tau.shape[:2])))
     loss = np.asarray(trajectory_loss(r, obs))

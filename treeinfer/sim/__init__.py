@@ -43,8 +43,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import ConfigError, SimulationError, TreeFileError
-from .tree import Tree
+from ..errors import ConfigError, SimulationError, TreeFileError
+from ..tree import Tree
 
 def _mjx():
     """``mujoco.mjx``, imported on first use: the fused backend never needs it, and importing it
@@ -195,7 +195,7 @@ def make_simulator(
     """
     import mujoco
 
-    from .export import GRASP_SITE, to_mjmodel
+    from ..export import GRASP_SITE, to_mjmodel
 
     if not (isinstance(obs_dt, (int, float)) and math.isfinite(obs_dt) and obs_dt > 0):
         raise ConfigError(f"obs_dt: must be a positive number of seconds, got {obs_dt!r}")
@@ -234,7 +234,7 @@ def make_simulator(
     gdir = g / np.linalg.norm(g)
     hinge_tree = None
     if backend in ("auto", "fused"):
-        from .hinge_dynamics import UnsupportedModel, from_mjmodel
+        from .fused import UnsupportedModel, from_mjmodel
 
         try:
             hinge_tree = from_mjmodel(mj_model)
@@ -264,7 +264,7 @@ def _prepare_user_model(model_file, tree: Tree):
     """Load a user's own MJCF or URDF and add the grasp site and contact-free options."""
     import mujoco
 
-    from .export import GRASP_SITE
+    from ..export import GRASP_SITE
 
     try:
         spec = mujoco.MjSpec.from_file(str(model_file))
@@ -344,7 +344,7 @@ def settle_one(sim: Simulator, model) -> tuple[jax.Array, jax.Array]:
 def velocity(tau: jax.Array, dt: float) -> jax.Array:
     """d tau / dt along the last axis: second-order central differences inside, second-order
     one-sided at both ends (``numpy.gradient(..., edge_order=2)``)."""
-    from .trajectories import velocity_from_displacement
+    from ..trajectories import velocity_from_displacement
 
     return velocity_from_displacement(tau, dt)
 
@@ -409,7 +409,7 @@ def _fused_gains(sim: Simulator, kp: jax.Array, kd: jax.Array):
 def _fused_settle_one(sim: Simulator, kp, kd, dtype):
     """:func:`settle_one` for the fused backend: the same clipped Newton iteration and
     convergence test, with the exact Jacobian by forward-mode autodiff (cheap here)."""
-    from . import hinge_dynamics as hd
+    from . import fused as hd
 
     stiffness, _, spring = _fused_gains(sim, kp, kd)
     torque = lambda q: hd.static_torque(sim.hinge_tree, q, stiffness, spring)
@@ -430,7 +430,7 @@ def _fused_settle_one(sim: Simulator, kp, kd, dtype):
 
 def _fused_pull_one(sim: Simulator, kp, kd, qpos_rest, forces, site_local, unroll_outer: int = 1, unroll_inner=1):
     """:func:`_pull_one` for the fused backend: same timing, force and observation."""
-    from . import hinge_dynamics as hd
+    from . import fused as hd
 
     t = sim.hinge_tree
     stiffness, damping, spring = _fused_gains(sim, kp, kd)
