@@ -43,6 +43,7 @@ force signal so that the adaptive steps never straddle one.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -156,7 +157,7 @@ class PlanarTree:
         return self.S.T @ (self.mr * (ep @ self.g))
 
     def _rest(self) -> np.ndarray:
-        fun = lambda q: -self._gravity_q(q) - self.kp * q  # noqa: E731
+        fun = lambda q: -self._gravity_q(q) - self.kp * q
         sol = root(fun, np.zeros(self.nv), method="hybr", options={"xtol": 1e-13})
         if np.max(np.abs(fun(sol.x))) > 1e-10 * (1.0 + np.max(np.abs(self._gravity_q(sol.x)))):
             raise RuntimeError(f"static equilibrium not found: {sol.message}")
@@ -192,13 +193,13 @@ class PlanarTree:
         y = np.concatenate([self.q_rest, np.zeros(self.nv)])
         nv = self.nv
         out = [self.grasp_point(self.q_rest)]
-        for lo, hi in zip(bounds[:-1], bounds[1:]):
+        for lo, hi in itertools.pairwise(bounds):
             if hi == lo:
                 continue
 
             def rhs(t, y, lo=lo, hi=hi):
                 if interp == "linear":  # the sample interval holding t, within this segment
-                    k = min(max(int(math.floor(t / dt)), lo), hi - 1)
+                    k = min(max(math.floor(t / dt), lo), hi - 1)
                     fk = f[k] + (f[k + 1] - f[k]) * (t / dt - k)
                 else:
                     fk = f[lo]
