@@ -14,7 +14,7 @@ from treeinfer.examples import example_path
 from treeinfer.generators import chain
 from treeinfer.sim import make_simulator, simulate, simulate_reference
 from treeinfer.sim.direction import pull_direction
-from treeinfer.tree import Bounds, load_tree, world_frames
+from treeinfer.tree import Bounds, load_tree, tree_from_dict, tree_to_dict, world_frames
 
 DT = 0.02
 
@@ -43,18 +43,34 @@ def test_pull_direction_spellings(two):
 
 
 def test_sideways_push_matches_mujoco_c(two):
-    """A push horizontal and across the branch (out of its bending plane), and a diagonal one,
-    in one batched call, against plain MuJoCo stepping with the same direction."""
+    """Horizontal pushes against plain MuJoCo stepping with the same direction, in one batched
+    call: a diagonal one on the two-branch example (only its in-plane part bends the hinges),
+    a diagonal downward one, and 'horizontal' (across the branch) on the three-branch example's
+    side branch, whose hinge axis is vertical (it forks at 90 degrees azimuth)."""
     tree, sim = two
     forces = np.stack([F.ramp_hold(4.0, 0.3, 0.3, 0.2, 1.2, DT), F.ramp(3.0, 0.5, 1.2, DT)])
-    dirs = np.stack([pull_direction(tree, "horizontal"), pull_direction(tree, [1.0, 1.0, -1.0])])
-    kp, kd = np.array([60.0, 25.0]), np.array([0.5, 0.2])
+    dirs = np.stack([pull_direction(tree, [1.0, 0.5, 0.0]), pull_direction(tree, [1.0, 1.0, -1.0])])
+    kp, kd = np.array([15.0, 8.0]), np.array([0.3, 0.1])
     out = simulate(sim, kp[None], kd[None], jnp.asarray(forces), direction=jnp.asarray(dirs))
     assert bool(out.stable.all())
     for b in range(2):
         expected, _ = simulate_reference(sim, kp, kd, forces[b], direction=dirs[b])
-        assert np.max(np.abs(expected)) > 5e-3
-        np.testing.assert_allclose(np.asarray(out.tau[0, b]), expected, atol=1e-4)
+        assert np.max(np.abs(expected)) > 1e-3
+        np.testing.assert_allclose(np.asarray(out.tau[0, b]), expected, atol=2e-5)
+    # across a branch whose hinge axis is horizontal, a horizontal push bends nothing
+    across = simulate(sim, kp[None], kd[None], jnp.asarray(forces[:1]), direction=pull_direction(tree, "horizontal"))
+    assert float(jnp.max(jnp.abs(across.tau))) < 1e-6
+    d3 = tree_to_dict(load_tree(example_path("three_branch")))
+    d3["grasp"] = {"branch": "side", "fraction": 0.8}
+    d3["inference"] = {"joints": ["side", "branch0"]}
+    side = tree_from_dict(d3)
+    side_sim = make_simulator(side, obs_dt=DT, substeps=8)
+    d = pull_direction(side, "horizontal")
+    kp3, kd3 = np.array([40.0, 300.0]), np.array([0.3, 2.0])
+    out3 = simulate(side_sim, kp3[None], kd3[None], jnp.asarray(forces[:1]), direction=d)
+    expected, _ = simulate_reference(side_sim, kp3, kd3, forces[0], direction=d)
+    assert np.max(np.abs(expected)) > 1e-3
+    np.testing.assert_allclose(np.asarray(out3.tau[0, 0]), expected, atol=2e-5)
     # one direction for every profile broadcasts; 'down' is the default
     down = simulate(sim, kp[None], kd[None], jnp.asarray(forces), direction=pull_direction(tree, "down"))
     default = simulate(sim, kp[None], kd[None], jnp.asarray(forces))

@@ -30,6 +30,12 @@ def pull_direction(tree: Tree, spec="down", branch: str | None = None) -> np.nda
         length, normalised here), also as a string ``"x,y,z"``.
       branch: the grasped branch (None: the tree's).
 
+    A hinge only turns about its axis: a push along the hinge axes of the grasped branch and
+    its ancestors bends nothing (``tau`` stays 0). For a branch forking in a vertical bending
+    plane (``azimuth_deg`` 0) that axis is horizontal and across the branch, i.e. exactly
+    ``"horizontal"``; a sideways push on such a branch needs joints whose axes are not
+    horizontal (branches forking at a non-zero azimuth) or a vertical stem.
+
     Raises:
       ConfigError: an unknown name, a vector that is not 3 finite numbers or is zero.
     """
