@@ -7,12 +7,13 @@ On the standard problem's simulator (built-in three-branch example, three 3 s pu
 
 * **before**: zero-order hold of the forces, the stability step only (the old defaults);
 * **after**: first-order hold and the accuracy-controlled step at the default tolerance
-  (0.1 mm) on those profiles (``make_simulator(..., forces=...)``).
+  (0.1 mm) on those profiles (``make_simulator(..., forces=...)``);
+* **hold_at_after_step**: zero-order hold at the "after" step (isolates the cost per step).
 
 For each: substeps, the step-doubling error estimate on the prior box
 (:func:`treeinfer.sim.accuracy.choose_substeps_for_accuracy`), the time to choose the step, and
 the rollout throughput of ``simulate`` jitted on N parameter sets (log-uniform in the prior box)
-x 3 profiles: observation-steps per second (N * 3 * 300 / wall s, what inference pays per
+x 3 profiles (median of interleaved repetitions): observation-steps per second (N * 3 * 300 / wall s, what inference pays per
 iteration) and physics particle-steps per second (x substeps). The ratio of the two
 configurations' observation-step rates is the throughput cost of the new defaults.
 """
@@ -51,22 +52,30 @@ def main(argv=None) -> dict:
     kp, kd = jnp.asarray(theta[:, :r], jnp.float32), jnp.asarray(theta[:, r:], jnp.float32)
     f = jnp.asarray(forces, jnp.float32)
     out = {"particles": args.particles, "profiles": 3, "steps": n_steps, "obs_dt": dt}
+    built = {}
     for name, kwargs in (("before", {"force_interp": "hold"}), ("after", {"forces": forces})):
         t0 = time.perf_counter()
-        sim = make_simulator(tree, obs_dt=dt, **kwargs)
-        t_make = time.perf_counter() - t0
-        if name == "before":
-            _, est = choose_substeps_for_accuracy(sim, forces, 1.0)  # 1 m: just the estimate
-        else:
-            est = sim.step_info["estimated_error"]
-        run = jax.jit(lambda a, b, s=sim: simulate(s, a, b, f).tau)
-        run(kp, kd).block_until_ready()
-        times = []
-        for _ in range(args.reps):
+        built[name] = (make_simulator(tree, obs_dt=dt, **kwargs), time.perf_counter() - t0)
+    # the per-step cost of the first-order hold: zero-order hold at the "after" step
+    built["hold_at_after_step"] = (
+        make_simulator(tree, obs_dt=dt, force_interp="hold", substeps=built["after"][0].substeps), 0.0
+    )
+    runs = {}
+    for name, (sim, _) in built.items():
+        runs[name] = jax.jit(lambda a, b, s=sim: simulate(s, a, b, f).tau)
+        runs[name](kp, kd).block_until_ready()
+    times = {name: [] for name in runs}
+    for _ in range(args.reps):  # interleaved, so that a busy machine slows every config alike
+        for name, run in runs.items():
             t0 = time.perf_counter()
             run(kp, kd).block_until_ready()
-            times.append(time.perf_counter() - t0)
-        wall = min(times)
+            times[name].append(time.perf_counter() - t0)
+    for name, (sim, t_make) in built.items():
+        if name == "after":
+            est = sim.step_info["estimated_error"]
+        else:
+            _, est = choose_substeps_for_accuracy(sim, forces, 1.0)  # 1 m: just the estimate
+        wall = float(np.median(times[name]))
         obs_rate = args.particles * 3 * n_steps / wall
         out[name] = {
             "force_interp": sim.force_interp,
@@ -74,7 +83,7 @@ def main(argv=None) -> dict:
             "sim_dt_s": sim.sim_dt,
             "estimated_error_m": est,
             "make_simulator_s": round(t_make, 2),
-            "rollout_s": wall,
+            "rollout_s_median": wall,
             "observation_steps_per_s": obs_rate,
             "particle_steps_per_s": obs_rate * sim.substeps,
         }
