@@ -13,8 +13,9 @@ On the standard problem's simulator (built-in three-branch example, three 3 s pu
 For each: substeps, the step-doubling error estimate on the prior box
 (:func:`treeinfer.sim.accuracy.choose_substeps_for_accuracy`), the time to choose the step, and
 the rollout throughput of ``simulate`` jitted on N parameter sets (log-uniform in the prior box)
-x 3 profiles (median of interleaved repetitions): observation-steps per second (N * 3 * 300 / wall s, what inference pays per
-iteration) and physics particle-steps per second (x substeps). The ratio of the two
+x 3 profiles (median of interleaved repetitions): observation-steps per second
+(N * 3 * 300 / wall s, what inference pays per iteration) and physics particle-steps per second
+(x substeps). The ratio of the two
 configurations' observation-step rates is the throughput cost of the new defaults.
 """
 
@@ -58,7 +59,8 @@ def main(argv=None) -> dict:
         built[name] = (make_simulator(tree, obs_dt=dt, **kwargs), time.perf_counter() - t0)
     # the per-step cost of the first-order hold: zero-order hold at the "after" step
     built["hold_at_after_step"] = (
-        make_simulator(tree, obs_dt=dt, force_interp="hold", substeps=built["after"][0].substeps), 0.0
+        make_simulator(tree, obs_dt=dt, force_interp="hold", substeps=built["after"][0].substeps),
+        0.0,
     )
     runs = {}
     for name, (sim, _) in built.items():

@@ -93,7 +93,9 @@ class PlanarTree:
         self.S = np.zeros((nb, self.nv))
         for i, b in enumerate(tree.branches):
             p = parent[i]
-            self.phi0[i] = math.radians(tree.base_pitch_deg if p < 0 else 0.0) + math.radians(b.angle_deg)
+            self.phi0[i] = math.radians(tree.base_pitch_deg if p < 0 else 0.0) + math.radians(
+                b.angle_deg
+            )
             if p >= 0:
                 self.phi0[i] += self.phi0[p]
                 self.S[i] = self.S[p]
@@ -184,7 +186,11 @@ class PlanarTree:
         n = f.size
         if interp == "linear":
             # kinks of the interpolated signal: samples where the slope changes
-            kinks = [k for k in range(1, n - 1) if abs(f[k + 1] - 2 * f[k] + f[k - 1]) > 1e-12 * (1 + abs(f[k]))]
+            kinks = [
+                k
+                for k in range(1, n - 1)
+                if abs(f[k + 1] - 2 * f[k] + f[k - 1]) > 1e-12 * (1 + abs(f[k]))
+            ]
         elif interp == "hold":
             kinks = [k for k in range(1, n) if f[k] != f[k - 1]]
         else:
@@ -206,7 +212,9 @@ class PlanarTree:
                 return np.concatenate([y[nv:], self.acceleration(y[:nv], y[nv:], fk)])
 
             t_eval = np.arange(lo + 1, hi + 1) * dt
-            sol = solve_ivp(rhs, (lo * dt, hi * dt), y, method="DOP853", t_eval=t_eval, rtol=rtol, atol=1e-13)
+            sol = solve_ivp(
+                rhs, (lo * dt, hi * dt), y, method="DOP853", t_eval=t_eval, rtol=rtol, atol=1e-13
+            )
             if not sol.success:
                 raise RuntimeError(sol.message)
             out.extend(self.grasp_point(sol.y[:nv, j]) for j in range(sol.y.shape[1]))

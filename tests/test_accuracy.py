@@ -21,15 +21,9 @@ from planar_chain import PlanarTree
 from treeinfer import forces as F
 from treeinfer.errors import ConfigError
 from treeinfer.generators import chain
-from treeinfer.sim import (
-    DEFAULT_SIM_TOLERANCE,
-    _c_model,
-    make_simulator,
-    settle_reference,
-    simulate,
-    simulate_reference,
-)
+from treeinfer.sim import DEFAULT_SIM_TOLERANCE, make_simulator, simulate
 from treeinfer.sim.accuracy import choose_substeps_for_accuracy, default_tolerance
+from treeinfer.sim.reference import _c_model, settle_reference, simulate_reference
 from treeinfer.tree import Bounds, cylinder_inertia
 
 DT = 0.01
@@ -39,17 +33,24 @@ DURATION = 3.0
 def _chain(n: int, kp_box=(5.0, 500.0), kd_box=(0.05, 10.0)):
     """1 to 3 tapering branches in a vertical plane, grasped at 90% of the last one."""
     return chain(
-        n, [0.8, 0.6, 0.4][-n:], [0.025, 0.015, 0.01][-n:], angles_deg=[10.0, 15.0, -10.0][:n],
-        grasp_fraction=0.9, bounds=Bounds(kp=kp_box, kd=kd_box), base_pitch_deg=5.0,
+        n,
+        [0.8, 0.6, 0.4][-n:],
+        [0.025, 0.015, 0.01][-n:],
+        angles_deg=[10.0, 15.0, -10.0][:n],
+        grasp_fraction=0.9,
+        bounds=Bounds(kp=kp_box, kd=kd_box),
+        base_pitch_deg=5.0,
     )
 
 
 def _profiles():
     """[2, 300] N: a ramp-hold-release (the branch swings back) and a smooth step."""
-    return np.stack([
-        F.ramp_hold(6.0, 0.5, 0.5, 0.3, DURATION, DT, start=0.2),
-        F.smooth_step(4.0, 0.3, DURATION, DT, start=0.1),
-    ])
+    return np.stack(
+        [
+            F.ramp_hold(6.0, 0.5, 0.5, 0.3, DURATION, DT, start=0.2),
+            F.smooth_step(4.0, 0.3, DURATION, DT, start=0.1),
+        ]
+    )
 
 
 # ---- the reference itself ------------------------------------------------------------------
@@ -155,7 +156,9 @@ def test_tolerance_sets_the_step():
     assert coarse < fine
     assert err_coarse <= 1e-3 and err_fine <= 1e-4
     ref = PlanarTree(tree, [5.0], [0.05]).rollout(prof[0], DT)
-    tau = simulate(replace(sim, substeps=coarse), np.array([[5.0]]), np.array([[0.05]]), jnp.asarray(prof)).tau
+    tau = simulate(
+        replace(sim, substeps=coarse), np.array([[5.0]]), np.array([[0.05]]), jnp.asarray(prof)
+    ).tau
     true = np.max(np.abs(np.asarray(tau[0, 0]) - ref))
     assert 0.5 * err_coarse <= true <= 1.25 * err_coarse  # step doubling: a close estimate
     assert default_tolerance(2e-3) == pytest.approx(2e-4)

@@ -12,9 +12,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from treeinfer.sim import fused as hd
 from treeinfer.examples import example_path
 from treeinfer.export import to_mjmodel
+from treeinfer.sim import fused as hd
 from treeinfer.sim import make_simulator
 from treeinfer.tree import load_tree
 

@@ -37,13 +37,36 @@ def _copy(tmp_path: Path) -> Path:
 
 def test_old_run_predict_and_evaluate(tmp_path, capsys):
     root = _copy(tmp_path)
-    rc = main(["predict", "--run", str(root / "run"), "--profile", "ramp:peak=4,ramp=0.5",
-               "--duration", "0.6", "--dt", "0.02", "--out", str(tmp_path / "pred")])
+    rc = main(
+        [
+            "predict",
+            "--run",
+            str(root / "run"),
+            "--profile",
+            "ramp:peak=4,ramp=0.5",
+            "--duration",
+            "0.6",
+            "--dt",
+            "0.02",
+            "--out",
+            str(tmp_path / "pred"),
+        ]
+    )
     out, err = capsys.readouterr()
     assert rc == 0, err
     assert any((tmp_path / "pred").iterdir())
-    rc = main(["evaluate", "--run", str(root / "run"), "--data", str(root / "data"),
-               "--out", str(tmp_path / "eval"), "--no-progress"])
+    rc = main(
+        [
+            "evaluate",
+            "--run",
+            str(root / "run"),
+            "--data",
+            str(root / "data"),
+            "--out",
+            str(tmp_path / "eval"),
+            "--no-progress",
+        ]
+    )
     out, err = capsys.readouterr()
     assert rc == 0, err
     metrics = json.loads((tmp_path / "eval" / "metrics.json").read_text())

@@ -12,8 +12,9 @@ from treeinfer import forces as F
 from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
 from treeinfer.generators import chain
-from treeinfer.sim import make_simulator, simulate, simulate_reference
+from treeinfer.sim import make_simulator, simulate
 from treeinfer.sim.direction import pull_direction
+from treeinfer.sim.reference import simulate_reference
 from treeinfer.tree import Bounds, load_tree, tree_from_dict, tree_to_dict, world_frames
 
 DT = 0.02
@@ -36,7 +37,9 @@ def test_pull_direction_spellings(two):
     np.testing.assert_allclose(pull_direction(tree, "0,2,0"), [0.0, 1.0, 0.0])
     # a vertical stem: 'horizontal' is the base heading, in the stem's bending plane
     stem = chain(2, 0.5, 0.01, base_pitch_deg=90.0, base_yaw_deg=30.0)
-    np.testing.assert_allclose(pull_direction(stem, "horizontal"), [np.cos(np.pi / 6), 0.5, 0.0], atol=1e-12)
+    np.testing.assert_allclose(
+        pull_direction(stem, "horizontal"), [np.cos(np.pi / 6), 0.5, 0.0], atol=1e-12
+    )
     for bad in ("sideways", [0, 0, 0], [1, 2], "1,x,2", [np.nan, 0, 1]):
         with pytest.raises(ConfigError, match="direction"):
             pull_direction(tree, bad)
@@ -58,7 +61,13 @@ def test_sideways_push_matches_mujoco_c(two):
         assert np.max(np.abs(expected)) > 1e-3
         np.testing.assert_allclose(np.asarray(out.tau[0, b]), expected, atol=2e-5)
     # across a branch whose hinge axis is horizontal, a horizontal push bends nothing
-    across = simulate(sim, kp[None], kd[None], jnp.asarray(forces[:1]), direction=pull_direction(tree, "horizontal"))
+    across = simulate(
+        sim,
+        kp[None],
+        kd[None],
+        jnp.asarray(forces[:1]),
+        direction=pull_direction(tree, "horizontal"),
+    )
     assert float(jnp.max(jnp.abs(across.tau))) < 1e-6
     d3 = tree_to_dict(load_tree(example_path("three_branch")))
     d3["grasp"] = {"branch": "side", "fraction": 0.8}
@@ -72,7 +81,9 @@ def test_sideways_push_matches_mujoco_c(two):
     assert np.max(np.abs(expected)) > 1e-3
     np.testing.assert_allclose(np.asarray(out3.tau[0, 0]), expected, atol=2e-5)
     # one direction for every profile broadcasts; 'down' is the default
-    down = simulate(sim, kp[None], kd[None], jnp.asarray(forces), direction=pull_direction(tree, "down"))
+    down = simulate(
+        sim, kp[None], kd[None], jnp.asarray(forces), direction=pull_direction(tree, "down")
+    )
     default = simulate(sim, kp[None], kd[None], jnp.asarray(forces))
     np.testing.assert_allclose(np.asarray(down.tau), np.asarray(default.tau), atol=1e-6)
 
@@ -80,7 +91,11 @@ def test_sideways_push_matches_mujoco_c(two):
 def test_horizontal_push_on_a_vertical_stem_matches_the_lagrangian_reference():
     """In-plane horizontal push on a vertical three-link stem, at the default accuracy."""
     stem = chain(
-        3, [0.3, 0.25, 0.2], [0.012, 0.01, 0.008], base_pitch_deg=90.0, grasp_fraction=0.8,
+        3,
+        [0.3, 0.25, 0.2],
+        [0.012, 0.01, 0.008],
+        base_pitch_deg=90.0,
+        grasp_fraction=0.8,
         bounds=Bounds(kp=(20.0, 60.0), kd=(0.05, 0.2)),
     )
     d = pull_direction(stem, "horizontal")
@@ -97,7 +112,9 @@ def test_profiles_grasp_different_branches_in_one_call():
     """Pulls at two branches (and fractions) in one call equal simulators built for each."""
     tree = load_tree(example_path("three_branch"))
     sim = make_simulator(tree, obs_dt=DT, substeps=4)
-    forces = np.stack([F.ramp(5.0, 0.4, 1.0, DT), F.ramp(8.0, 0.3, 1.0, DT), F.ramp(4.0, 0.5, 1.0, DT)])
+    forces = np.stack(
+        [F.ramp(5.0, 0.4, 1.0, DT), F.ramp(8.0, 0.3, 1.0, DT), F.ramp(4.0, 0.5, 1.0, DT)]
+    )
     branches = ["branch1", tree.grasp_branch, "branch1"]
     fracs = np.array([0.5, 1.0, 0.9])
     kp, kd = np.array([[80.0, 120.0, 300.0]]), np.array([[0.4, 0.8, 2.0]])

@@ -13,11 +13,9 @@ from treeinfer.sim import (
     check_stable_share,
     make_simulator,
     settle,
-    settle_reference,
     simulate,
-    simulate_reference,
-    _c_model,
 )
+from treeinfer.sim.reference import _c_model, settle_reference, simulate_reference
 from treeinfer.tree import load_tree
 
 T = 60

@@ -87,7 +87,9 @@ def representative_forces(obs_dt: float, duration: float = 3.0, n: int = 8) -> n
 
 @functools.partial(jax.jit, static_argnums=(0, 6))
 def _rollout_tau(sim, kp, kd, forces, frac, dirs, grasp_branch, substeps):
-    out = _simulate(sim, kp, kd, forces, frac, direction=dirs, grasp_branch=grasp_branch, substeps=substeps)
+    out = _simulate(
+        sim, kp, kd, forces, frac, direction=dirs, grasp_branch=grasp_branch, substeps=substeps
+    )
     return out.tau, out.stable
 
 
@@ -140,7 +142,11 @@ def choose_substeps_for_accuracy(
     dtype = sim.dtype
     frac = None if grasp_fraction is None else jnp.asarray(grasp_fraction, dtype)
     dirs = None if direction is None else jnp.asarray(direction, dtype)
-    gb = grasp_branch if grasp_branch is None or isinstance(grasp_branch, str) else tuple(grasp_branch)
+    gb = (
+        grasp_branch
+        if grasp_branch is None or isinstance(grasp_branch, str)
+        else tuple(grasp_branch)
+    )
     args = (jnp.asarray(kp, dtype), jnp.asarray(kd, dtype), jnp.asarray(forces, dtype), frac, dirs)
     cache: dict[int, np.ndarray] = {}
 
@@ -175,18 +181,23 @@ def choose_substeps_for_accuracy(
         err, s = best
         why = (
             "the estimate stopped falling (rounding: enable float64 with jax_enable_x64)"
-            if stalled else f"the refinement stops at {max_substeps} substeps per observation"
+            if stalled
+            else f"the refinement stops at {max_substeps} substeps per observation"
         )
         warnings.warn(
-            f"simulation step: could not reach the tolerance {tol:.3g} m: {why}; using {s} substeps "
-            f"({sim.obs_dt / s:.3g} s) with an estimated error of {err:.3g} m",
+            f"simulation step: could not reach the tolerance {tol:.3g} m: {why}; using {s} "
+            f"substeps ({sim.obs_dt / s:.3g} s) with an estimated error of {err:.3g} m",
             stacklevel=2,
         )
     return s, err
 
 
 def with_accurate_step(
-    sim: Simulator, forces=None, tol: float | None = None, max_sim_dt: float = DEFAULT_MAX_SIM_DT, **kwargs
+    sim: Simulator,
+    forces=None,
+    tol: float | None = None,
+    max_sim_dt: float = DEFAULT_MAX_SIM_DT,
+    **kwargs,
 ) -> Simulator:
     """``sim`` with the substeps of :func:`choose_substeps_for_accuracy` (on ``forces``, or on
     :func:`representative_forces` when None) and ``step_info`` recording the tolerance, the

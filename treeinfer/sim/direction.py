@@ -46,7 +46,9 @@ def pull_direction(tree: Tree, spec="down", branch: str | None = None) -> np.nda
         if name == "down":
             return g_hat
         if name == "horizontal":
-            rot = world_frames(tree)[tree.grasp_branch if branch is None else tree.branch(branch).name][1]
+            rot = world_frames(tree)[
+                tree.grasp_branch if branch is None else tree.branch(branch).name
+            ][1]
             axis = rot[:, 0]
             d = np.cross(axis, g_hat)
             if np.linalg.norm(d) < 1e-9:  # a branch along gravity: push along the base heading
