@@ -83,7 +83,7 @@ def main(argv=None) -> dict:
     }
     out = {"noise_sd_m": args.noise, "true": {"kp": TRUE_KP, "kd": TRUE_KD}, "steps": {}}
     for name, sim in sims.items():
-        tau = np.asarray(simulate(sim, [[TRUE_KP]], [[TRUE_KD]], jnp.asarray(prof)).tau[0])
+        tau = np.asarray(simulate(sim, np.array([[TRUE_KP]]), np.array([[TRUE_KD]]), jnp.asarray(prof)).tau[0])
         err = float(np.max(np.abs(tau - truth)))
         loss = float(np.sum((tau - truth) ** 2) / (2 * args.noise**2))
         out["steps"][name] = {
@@ -97,7 +97,7 @@ def main(argv=None) -> dict:
             f"- exact| = {err * 1e3:.3f} mm, summed squared error / (2 sd^2) = {loss:.3f}",
             flush=True,
         )
-    for which, lo, hi in (("kp", 27.0, 33.5), ("kd", 0.15, 0.6)):
+    for which, lo, hi in (("kp", 29.2, 30.8), ("kd", 0.24, 0.36)):
         grid = np.exp(np.linspace(np.log(lo), np.log(hi), args.points))
         kp = grid if which == "kp" else np.full_like(grid, TRUE_KP)
         kd = grid if which == "kd" else np.full_like(grid, TRUE_KD)

@@ -70,7 +70,8 @@ class Rollout(NamedTuple):
     """Simulator output.
 
     Attributes:
-      tau: [P, B, T] m, displacement of the grasp point from its settled rest, positive downward.
+      tau: [P, B, T] m, displacement of the grasp point from its settled rest along the pull
+        direction (positive downward for the default pull along gravity).
       tau_dot: [P, B, T] m/s, its time derivative.
       stable: [P, B] bool; False where the rollout blew up (tau, tau_dot are zero there).
     """
