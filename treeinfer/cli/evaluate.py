@@ -20,6 +20,7 @@ from ..evaluation import (
 )
 from ..trajectories import read_trajectory_dir, stack_trajectories
 from .common import (
+    _RUN_SIM_NOTE,
     COMMAND_HELP,
     EXIT_OK,
     _base_config,
@@ -27,8 +28,12 @@ from .common import (
     _metrics_md,
     _prepare_jax,
     _print_metrics,
+    _print_simulation,
     _say,
     add_command_parser,
+    add_simulation_options,
+    check_simulation_options,
+    simulator_for_run,
 )
 
 # ==== evaluate ====================================================================================
@@ -91,6 +96,7 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
+    add_simulation_options(p, _RUN_SIM_NOTE)
     return p
 
 
@@ -98,6 +104,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
     check_output_dir(args.out, args.force)
     _prepare_jax()
+    check_simulation_options(args)
     cache = runs.SimulatorCache()  # this command's simulators (the run's, and k-fold's)
     run = runs.load_run(args.run, cache)
     trajs = read_trajectory_dir(args.data)
@@ -118,8 +125,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
         run_options=run.config["options"],
     )
     if args.kfold is None:
+        sim = simulator_for_run(run, args, stack_trajectories(trajs).force, grasp, cache)
+        config["simulation"] = runs.simulation_summary(sim)
+        _print_simulation(config["simulation"])
         m, pred, obs = evaluate_trajectories(
-            run.sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable
+            sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable
         )
         metrics = {"run": str(args.run), "data": str(args.data), "metrics": m}
         md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md(

@@ -21,9 +21,11 @@ from .common import (
     _prepare_jax,
     _print_fit,
     _print_posterior,
+    _print_simulation,
     _print_warnings,
     _say,
     add_command_parser,
+    add_simulation_options,
 )
 
 # ==== infer =======================================================================================
@@ -49,6 +51,9 @@ _RUN_OPTIONS = {
     "checkpoint_every": "--checkpoint-every",
     "force": "--force",
     "backend": "--backend",
+    "force_interp": "--force-interp",
+    "max_sim_dt": "--max-sim-dt",
+    "sim_tolerance": "--sim-tolerance",
 }
 
 _INFER_EPILOG = """\
@@ -156,6 +161,7 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         choices=("auto", "fused", "mjx"),
         help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
     )
+    add_simulation_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -227,6 +233,7 @@ def run_infer(args: argparse.Namespace) -> int:
             )
         return EXIT_INTERRUPTED
     s = outcome.summary
+    _print_simulation(s.get("simulation"))
     _print_posterior(s)
     _print_fit(s.get("training_metrics"), "fit to the training data")
     _print_warnings(s["convergence_warnings"])

@@ -17,13 +17,18 @@ from ..metrics import fraction_outside
 from ..plots import plot_trajectory_bands, save_figure
 from ..trajectories import ForceProfile, read_force_profile
 from .common import (
+    _RUN_SIM_NOTE,
     COMMAND_HELP,
     EXIT_OK,
     _base_config,
     _check_grasp,
     _prepare_jax,
+    _print_simulation,
     _say,
     add_command_parser,
+    add_simulation_options,
+    check_simulation_options,
+    simulator_for_run,
 )
 
 # ==== predict =====================================================================================
@@ -92,6 +97,7 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         action="store_true",
         help="replace a non-empty output folder (--force names the force file here)",
     )
+    add_simulation_options(p, _RUN_SIM_NOTE)
     return p
 
 
@@ -99,7 +105,9 @@ def run_predict(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
     check_output_dir(args.out, args.overwrite)
     _prepare_jax()
-    run = runs.load_run(args.run, runs.SimulatorCache())
+    check_simulation_options(args)
+    cache = runs.SimulatorCache()
+    run = runs.load_run(args.run, cache)
     dt_run = run.sim.obs_dt
     if args.force_file is not None:
         if args.duration is not None or args.dt is not None:
@@ -126,7 +134,9 @@ def run_predict(args: argparse.Namespace) -> int:
         f"simulating {len(run.theta)} particles (the first prediction of a shape compiles for up to a minute)..."
     )
     grasp = args.grasp_fraction if args.grasp_fraction is not None else run.grasp_fraction
-    pred = predict_run(run.sim, run.theta, prof.force[None], grasp, run.stable)
+    sim = simulator_for_run(run, args, prof.force[None], grasp, cache)
+    _print_simulation(runs.simulation_summary(sim))
+    pred = predict_run(sim, run.theta, prof.force[None], grasp, run.stable)
     n_bad = int((~pred.valid).sum())
     lower, upper, mean = pred.lower[0], pred.upper[0], pred.mean[0]
     cols = ["time", "force", "mean", "lower", "upper"] + (

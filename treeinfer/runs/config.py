@@ -16,7 +16,7 @@ from ..errors import ConfigError
 from ..inference import DEFAULT_ETA
 from ..likelihood import DEFAULT_KT
 from ..samplers import sampler_options, sampler_spec
-from ..sim import BACKENDS
+from ..sim import BACKENDS, FORCE_INTERPS
 from ..trajectories import (
     TRUE_PARAMS_FILE,
     Trajectory,
@@ -64,7 +64,11 @@ class RunConfig:
     Attributes: tree, data, out (absolute paths as strings); sampler (a registry name);
     particles (>= 2); iterations (>= 1); backend ("auto", "fused", "mjx"); kT (loss units per
     nat, > 0); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction (None or in
-    (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end only); force.
+    (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end only); force;
+    force_interp ("linear": forces interpolated between samples, "hold"; folders written before it
+    existed were simulated with "hold", which their recorded ``problem`` settings say);
+    max_sim_dt (s, None: the simulator's 5 ms) and sim_tolerance (m, None: 0.1 mm), the bounds of
+    the accuracy-controlled simulation step chosen on the training forces.
     """
 
     tree: str
@@ -81,6 +85,9 @@ class RunConfig:
     max_unstable_share: float = 0.5
     checkpoint_every: int = 25
     force: bool = False
+    force_interp: str = "linear"
+    max_sim_dt: float | None = None
+    sim_tolerance: float | None = None
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 -- frozen: normalise once
@@ -110,6 +117,13 @@ class RunConfig:
             raise ConfigError(
                 f"--backend: must be one of {', '.join(BACKENDS)}, got {self.backend!r}"
             )
+        if self.force_interp not in FORCE_INTERPS:
+            raise ConfigError(
+                f"--force-interp: must be one of {', '.join(FORCE_INTERPS)}, got {self.force_interp!r}"
+            )
+        for k, flag in (("max_sim_dt", "--max-sim-dt"), ("sim_tolerance", "--sim-tolerance")):
+            v = getattr(self, k)
+            set_(k, None if v is None else _positive(flag, v, "a positive number"))
         for k in ("tree", "data", "out"):
             set_(k, str(getattr(self, k)))
         set_("force", bool(self.force))
@@ -147,6 +161,9 @@ def infer_config(
     force: bool = False,
     command: str = "infer",
     backend: str = "auto",
+    force_interp: str = "linear",
+    max_sim_dt: float | None = None,
+    sim_tolerance: float | None = None,
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
     sampler settings are added by :func:`run_inference` once the problem is built."""
@@ -169,6 +186,9 @@ def infer_config(
         max_unstable_share=max_unstable_share,
         checkpoint_every=checkpoint_every,
         force=force,
+        force_interp=force_interp,
+        max_sim_dt=max_sim_dt,
+        sim_tolerance=sim_tolerance,
     ).to_json()
     return {
         "command": command,

@@ -63,12 +63,19 @@ def build_problem(
         else stack_trajectories(list(trajectories))
     )
     recorded = config.get("problem") or {}  # a resumed run: the settings it was built with
+    # runs from before force interpolation existed held the force over each sample
+    interp = recorded.get("force_interp", o.get("force_interp", "hold" if recorded else "linear"))
     sim = simulator_for(
         tree,
         float(obs.dt),
         recorded.get("substeps"),
         recorded.get("backend", o.get("backend", "auto")),
         cache,
+        force_interp=interp,
+        max_sim_dt=o.get("max_sim_dt"),
+        sim_tolerance=o.get("sim_tolerance"),
+        forces=np.asarray(obs.force),
+        grasp_fraction=o.get("grasp_fraction"),
     )
     problem = make_problem(
         tree,
