@@ -77,6 +77,8 @@ def build_problem(
         forces=np.asarray(obs.force),
         grasp_fraction=o.get("grasp_fraction"),
     )
+    if recorded.get("sim_step"):  # a resumed run: how its step was chosen, as recorded
+        sim = dataclasses.replace(sim, step_info=dict(recorded["sim_step"]))
     problem = make_problem(
         tree,
         obs,
@@ -197,8 +199,14 @@ def run_inference(
         trajs = check_data_unchanged(config)
         truth = read_true_params(tree, config["data"]["dir"])
         problem = build_problem(config, tree, trajs, cache)
+        # sim_step says how the step was chosen (the rebuilt simulator takes the recorded one);
+        # runs recorded before force interpolation existed rebuild with "hold" (build_problem)
+        now = {k: v for k, v in problem.settings.items() if k != "sim_step"}
+        then = {k: v for k, v in config["problem"].items() if k != "sim_step"}
+        if "force_interp" not in then and now.get("force_interp") == "hold":
+            now.pop("force_interp")
         if (
-            _jsonable(problem.settings) != _jsonable(config["problem"])
+            _jsonable(now) != _jsonable(then)
             or sampler_settings(config) != config["sampler"]
         ):
             raise ConfigError(
