@@ -130,6 +130,8 @@ def make_problem(
     sim: Simulator | None = None,
     nn_seed: int = 0,
     backend: str = "auto",
+    force_interp: str = "linear",
+    sim_tolerance: float | None = None,
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
@@ -143,6 +145,9 @@ def make_problem(
       rel_step: finite-difference step in log units (default ~5e-3 for float32).
       grasp_fraction: where the training data were recorded (None: the tree's grasp).
       backend: simulator backend when ``sim`` is not given (see :func:`make_simulator`).
+      force_interp, sim_tolerance, max_sim_dt: the simulator's force interpolation and step
+        bounds when ``sim`` is not given (then the step is accuracy-controlled on the
+        trajectories' forces; see :func:`make_simulator`).
     """
     kT = check_kT(kT)
     if gradient not in GRADIENTS:
@@ -150,10 +155,12 @@ def make_problem(
     if not (isinstance(prior_sigma, (int, float)) and prior_sigma > 0):
         raise ConfigError(f"prior_sigma: must be positive, got {prior_sigma!r}")
     obs = trajectories if isinstance(trajectories, Observations) else stack_trajectories(list(trajectories))
-    if sim is None:
+    if sim is None:  # the step accuracy-controlled on the training forces (sim_tolerance, m)
         kwargs = {} if max_sim_dt is None else {"max_sim_dt": max_sim_dt}
+        if substeps is None:
+            kwargs.update(forces=np.asarray(obs.force), sim_tolerance=sim_tolerance, grasp_fraction=grasp_fraction)
         sim = make_simulator(tree, obs_dt=float(obs.dt), substeps=substeps, model_file=model_file, backend=backend,
-                             **kwargs)
+                             force_interp=force_interp, **kwargs)
     loglik = boltzmann_log_likelihood(sim, obs, kT, grasp_fraction)
     prior_terms = [box_prior(tree, prior_sigma, prior_space)]
     nn = nn_inequality_prior(tree, eta=eta, seed=nn_seed) if nn_prior else None
@@ -172,6 +179,7 @@ def make_problem(
     settings = dict(
         kT=kT, nn_prior=bool(nn is not None), eta=eta, prior_sigma=prior_sigma, prior_space=prior_space,
         gradient=gradient, rel_step=rel_step, backend=sim.backend, substeps=sim.substeps, sim_dt=sim.sim_dt, obs_dt=sim.obs_dt,
+        force_interp=sim.force_interp, sim_step=dict(sim.step_info),
         grasp_fraction=grasp_fraction if grasp_fraction is not None else tree.grasp_fraction,
         n_trajectories=int(obs.force.shape[0]), n_steps=int(obs.force.shape[1]), nn_seed=nn_seed,
     )

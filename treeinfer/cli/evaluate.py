@@ -21,6 +21,7 @@ from ..evaluation import (
 from ..pulls import data_grasp_fractions
 from ..trajectories import band_csv_text, read_trajectory_dir, stack_trajectories
 from .common import (
+    _RUN_SIM_NOTE,
     COMMAND_HELP,
     EXIT_OK,
     _base_config,
@@ -28,8 +29,12 @@ from .common import (
     _metrics_md,
     _prepare_jax,
     _print_metrics,
+    _print_simulation,
     _say,
     add_command_parser,
+    add_simulation_options,
+    check_simulation_options,
+    simulator_for_run,
 )
 
 # ==== evaluate ====================================================================================
@@ -95,6 +100,7 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
     p.add_argument("--allow-modified", action="store_true", help="use the run even if its files changed since `infer` wrote them (checksums in its config.json); recorded in the output")
+    add_simulation_options(p, _RUN_SIM_NOTE)
     return p
 
 
@@ -118,6 +124,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
     check_output_dir(args.out, args.force, "evaluation", inputs=[args.run, args.data])
     _prepare_jax()
+    check_simulation_options(args)
     cache = runs.SimulatorCache()  # this command's simulators (the run's, and k-fold's)
     run = runs.load_run(args.run, cache, allow_modified=args.allow_modified)
     for note in run.notes:
@@ -153,8 +160,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
         run_fit_status=run.summary.get("status"),
     )
     if args.kfold is None:
+        sim = simulator_for_run(run, args, stack_trajectories(trajs).force, grasp, cache)
+        config["simulation"] = runs.simulation_summary(sim)
+        _print_simulation(config["simulation"])
         m, pred, obs = evaluate_trajectories(
-            run.sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable
+            sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable
         )
         metrics = {"run": str(args.run), "data": str(args.data), "metrics": m}
         md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md(

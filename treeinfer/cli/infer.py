@@ -23,9 +23,11 @@ from .common import (
     _prepare_jax,
     _print_fit,
     _print_posterior,
+    _print_simulation,
     _print_warnings,
     _say,
     add_command_parser,
+    add_simulation_options,
 )
 
 # ==== infer =======================================================================================
@@ -60,6 +62,9 @@ _RUN_OPTIONS = {
     "mcmc_thin": "--mcmc-thin",
     "gradients": "--gradients",
     "init": "--init",
+    "force_interp": "--force-interp",
+    "max_sim_dt": "--max-sim-dt",
+    "sim_tolerance": "--sim-tolerance",
 }
 
 _INFER_EPILOG = """\
@@ -229,6 +234,7 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         help="initial particles: 'uniform' in the prior box (the paper's, default) or 'laplace' "
         "(around a Levenberg-Marquardt MAP fit, so iterations go into the posterior's shape)",
     )
+    add_simulation_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--allow-poor-fit", action="store_true", help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 otherwise); the verdict stays in summary.json")
     p.add_argument("--allow-implausible-data", action="store_true", help="sample even if the plausibility checks find errors in the data (wrong units, swapped columns, duplicates ...); they are printed and recorded in summary.json")
@@ -305,6 +311,7 @@ def run_infer(args: argparse.Namespace) -> int:
     s = outcome.summary
     if s.get("stop_reason", "max_iterations") != "max_iterations":
         _say(f"stopped early: {s['stop_reason']}")
+    _print_simulation(s.get("simulation"))
     _print_posterior(s)
     _print_fit(s.get("training_metrics"), "fit to the training data")
     _print_warnings(s["convergence_warnings"])

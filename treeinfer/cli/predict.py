@@ -19,13 +19,18 @@ from ..plots import plot_trajectory_bands, save_figure
 from ..pulls import PULLS_FILE, ResolvedPull, check_same_pull, load_data_pulls, pull_direction
 from ..trajectories import ForceProfile, band_csv_text, read_force_profile
 from .common import (
+    _RUN_SIM_NOTE,
     COMMAND_HELP,
     EXIT_OK,
     _base_config,
     _check_grasp,
     _prepare_jax,
+    _print_simulation,
     _say,
     add_command_parser,
+    add_simulation_options,
+    check_simulation_options,
+    simulator_for_run,
 )
 
 # ==== predict =====================================================================================
@@ -110,6 +115,7 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         "config.json); recorded in the output",
     )
     p.add_argument("--overwrite", action="store_true", help="same as --force")
+    add_simulation_options(p, _RUN_SIM_NOTE)
     return p
 
 
@@ -165,7 +171,9 @@ def run_predict(args: argparse.Namespace) -> int:
     inputs = [args.run] + ([args.force_file] if args.force_file is not None else [])
     check_output_dir(args.out, overwrite, "prediction", inputs=inputs)
     _prepare_jax()
-    run = runs.load_run(args.run, runs.SimulatorCache(), allow_modified=args.allow_modified)
+    check_simulation_options(args)
+    cache = runs.SimulatorCache()
+    run = runs.load_run(args.run, cache, allow_modified=args.allow_modified)
     for note in run.notes:
         _say(f"warning: {note}")
     dt_run = run.sim.obs_dt
@@ -198,7 +206,9 @@ def run_predict(args: argparse.Namespace) -> int:
     if args.force_file is not None:
         grasp, same = _compare_check(args, run, grasp)
         compare = compare and same
-    pred = predict_run(run.sim, run.theta, prof.force[None], grasp, run.stable)
+    sim = simulator_for_run(run, args, prof.force[None], grasp, cache)
+    _print_simulation(runs.simulation_summary(sim))
+    pred = predict_run(sim, run.theta, prof.force[None], grasp, run.stable)
     n_bad = int((~pred.valid).sum())
     lower, upper, mean = pred.lower[0], pred.upper[0], pred.mean[0]
     recorded = prof.displacement if compare else None

@@ -16,7 +16,7 @@ from ..errors import ConfigError
 from ..inference import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA
 from ..likelihood import DEFAULT_KT
 from ..samplers import sampler_options, sampler_spec
-from ..sim import BACKENDS
+from ..sim import BACKENDS, FORCE_INTERPS
 from ..trajectories import (
     TRUE_PARAMS_FILE,
     Trajectory,
@@ -79,6 +79,10 @@ class RunConfig:
     stop_when_converged (stop early, :class:`treeinfer.diagnostics.ConvergenceCriterion`);
     mcmc_warmup (share of an MCMC trace discarded, in [0, 1)); mcmc_thin (>= 0; 0: thin to at
     most 1024 post-warm-up draws).
+    force_interp ("linear": forces interpolated between samples, "hold"; folders written before it
+    existed were simulated with "hold", which their recorded ``problem`` settings say);
+    max_sim_dt (s, None: the simulator's 5 ms) and sim_tolerance (m, None: 0.1 mm), the bounds of
+    the accuracy-controlled simulation step chosen on the training forces.
     """
 
     tree: str
@@ -104,6 +108,9 @@ class RunConfig:
     mcmc_thin: int = 0
     gradients: str = "fd"
     init: str = "uniform"
+    force_interp: str = "linear"
+    max_sim_dt: float | None = None
+    sim_tolerance: float | None = None
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)
@@ -145,6 +152,13 @@ class RunConfig:
             )
         if self.init not in INIT_CHOICES:
             raise ConfigError(f"--init: must be one of {', '.join(INIT_CHOICES)}, got {self.init!r}")
+        if self.force_interp not in FORCE_INTERPS:
+            raise ConfigError(
+                f"--force-interp: must be one of {', '.join(FORCE_INTERPS)}, got {self.force_interp!r}"
+            )
+        for k, flag in (("max_sim_dt", "--max-sim-dt"), ("sim_tolerance", "--sim-tolerance")):
+            v = getattr(self, k)
+            set_(k, None if v is None else _positive(flag, v, "a positive number"))
         for k in ("tree", "data", "out"):
             set_(k, str(getattr(self, k)))
         set_("force", bool(self.force))
@@ -206,6 +220,9 @@ def infer_config(
     prior_from: str | os.PathLike | None = None,
     gradients: str = "fd",
     init: str = "uniform",
+    force_interp: str = "linear",
+    max_sim_dt: float | None = None,
+    sim_tolerance: float | None = None,
     **more,
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
@@ -232,6 +249,9 @@ def infer_config(
         prior_from=None if prior_from is None else str(prior_from),
         gradients=gradients,
         init=init,
+        force_interp=force_interp,
+        max_sim_dt=max_sim_dt,
+        sim_tolerance=sim_tolerance,
         **more,
     ).to_json()
     return {

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import warnings
 from collections.abc import Sequence
@@ -108,6 +109,38 @@ def _straggler_and_edge(problem, posterior) -> tuple[dict, dict]:
     return strag, edge
 
 
+def simulation_summary(sim) -> dict:
+    """The simulator's step and force convention for summary.json and the CLI output: backend,
+    force interpolation, substeps, step (s) and how it was chosen (tolerance and estimated
+    error of the displacement, m, when accuracy-controlled)."""
+    info = dict(sim.step_info)
+    return {
+        "backend": sim.backend,
+        "force_interp": sim.force_interp,
+        "substeps": int(sim.substeps),
+        "sim_dt_s": float(sim.sim_dt),
+        "step_method": info.get("method"),
+        "sim_tolerance_m": info.get("tolerance"),
+        "estimated_error_m": info.get("estimated_error"),
+        "max_sim_dt_s": info.get("max_sim_dt"),
+    }
+
+
+def simulation_line(sim) -> str:
+    """One line for the CLI: the chosen step and its estimated error."""
+    s = simulation_summary(sim)
+    line = (
+        f"simulation: {s['backend']} backend, forces {s['force_interp']} between samples, "
+        f"{s['substeps']} substeps of {s['sim_dt_s'] * 1e3:.3g} ms"
+    )
+    if s["estimated_error_m"] is not None:
+        line += (
+            f" (estimated displacement error {s['estimated_error_m'] * 1e3:.3g} mm, "
+            f"tolerance {s['sim_tolerance_m'] * 1e3:.3g} mm)"
+        )
+    return line
+
+
 def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
     o = config["options"]
     kind, diag, warns = _diagnostics(o["sampler"], trace, list(problem.labels))
@@ -137,6 +170,7 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
         "posterior": posterior_table(posterior.theta, problem.labels, stable),
         "level": LEVEL,
         "training_metrics": fit["metrics"],
+        "simulation": simulation_summary(problem.sim),
     }
     if truth is not None:
         from ..metrics import posterior_vs_truth
@@ -373,9 +407,17 @@ def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None,
     if summary.get("unstable_particles"):
         stable[np.asarray(summary["unstable_particles"], int)] = False
     p = config["problem"]
+    # folders from before backends existed: auto; from before force interpolation: hold
     sim = simulator_for(
-        tree, p["obs_dt"], p["substeps"], p.get("backend", "auto"), cache
-    )  # folders from before backends existed: auto
+        tree,
+        p["obs_dt"],
+        p["substeps"],
+        p.get("backend", "auto"),
+        cache,
+        force_interp=p.get("force_interp", "hold"),
+    )
+    if p.get("sim_step"):  # how the run's step was chosen (its estimated error), as recorded
+        sim = dataclasses.replace(sim, step_info=dict(p["sim_step"]))
     return LoadedRun(
         run_dir,
         tree,

@@ -81,13 +81,22 @@ def build_problem(
         else stack_trajectories(list(trajectories))
     )
     recorded = config.get("problem") or {}  # a resumed run: the settings it was built with
+    # runs from before force interpolation existed held the force over each sample
+    interp = recorded.get("force_interp", o.get("force_interp", "hold" if recorded else "linear"))
     sim = simulator_for(
         tree,
         float(obs.dt),
         recorded.get("substeps"),
         recorded.get("backend", o.get("backend", "auto")),
         cache,
+        force_interp=interp,
+        max_sim_dt=o.get("max_sim_dt"),
+        sim_tolerance=o.get("sim_tolerance"),
+        forces=np.asarray(obs.force),
+        grasp_fraction=o.get("grasp_fraction"),
     )
+    if recorded.get("sim_step"):  # a resumed run: how its step was chosen, as recorded
+        sim = dataclasses.replace(sim, step_info=dict(recorded["sim_step"]))
     problem = make_problem(
         tree,
         obs,
@@ -308,8 +317,14 @@ def run_inference(
         truth = read_true_params(tree, config["data"]["dir"])
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
         problem = build_problem(config, tree, trajs, cache)
+        # sim_step says how the step was chosen (the rebuilt simulator takes the recorded one);
+        # runs recorded before force interpolation existed rebuild with "hold" (build_problem)
+        now = {k: v for k, v in problem.settings.items() if k != "sim_step"}
+        then = {k: v for k, v in config["problem"].items() if k != "sim_step"}
+        if "force_interp" not in then and now.get("force_interp") == "hold":
+            now.pop("force_interp")
         if (
-            _jsonable(problem.settings) != _jsonable(config["problem"])
+            _jsonable(now) != _jsonable(then)
             or sampler_settings(config) != config["sampler"]
         ):
             raise ConfigError(
