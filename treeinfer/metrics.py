@@ -581,7 +581,11 @@ def summarize(
 #     p(y | D) ~ (1/n) sum_p p_noise(y - tau_p[b, t]; sigma_p)        (valid particles only)
 #
 # (Gaussian or Student-t, :mod:`treeinfer.noise`; sigma_p per particle when sigma_x was
-# inferred, one value otherwise). Its central interval is the PREDICTIVE band (what a new noisy
+# inferred, one value otherwise). Like the parameter band, the finite particle set is smoothed by
+# the same Scott's-rule KDE kernel (bandwidth h): each component's scale is sqrt(sigma_p^2 + h^2)
+# (exact convolution for Gaussian noise; for Student-t a t with that scale, an approximation).
+# So the predictive band is never narrower than the parameter band, and with many particles
+# (h -> 0) it is the exact mixture. Its central interval is the PREDICTIVE band (what a new noisy
 # recording should fall in); the KDE interval of the tau_p alone (:func:`predictive_interval`) is
 # the PARAMETER band (uncertainty of the noise-free displacement). At t = 0, where every particle
 # predicts 0, the predictive band is the noise's own interval, never zero-width.
@@ -610,10 +614,6 @@ def _noise_scale(sigma, n_particles: int, dtype) -> jax.Array:
     return s
 
 
-def _noise_cdf(z, kind: str, df: float):
-    return noise_distribution(kind, 1.0, df).cdf(z)
-
-
 def noisy_predictive_interval(
     pred, sigma, level: float = 0.95, valid=None, kind: str = "gaussian",
     df: float = 4.0, n_iter: int = 60,
@@ -625,9 +625,10 @@ def noisy_predictive_interval(
         particle. kind, df: noise model (:mod:`treeinfer.noise`). valid: ``[P]`` bool.
 
     Returns:
-      ``(lower, upper, mean)`` ``[*S]``: exact quantiles of the mixture
-      ``(1/n) sum_p F_noise((y - pred_p) / sigma_p)`` by bisection, bracketed by the smallest and
-      largest component quantile (the mixture quantile lies between them). Works with P = 1.
+      ``(lower, upper, mean)`` ``[*S]``: quantiles of the mixture
+      ``(1/n) sum_p F_noise((y - pred_p) / sqrt(sigma_p^2 + h^2))`` (h: the parameter band's KDE
+      bandwidth at that step, 0 where degenerate or P = 1) by bisection, bracketed by the smallest
+      and largest component quantile (the mixture quantile lies between them). Works with P = 1.
     """
     _check_level(level)
     pred = jnp.asarray(pred)
@@ -644,19 +645,24 @@ def noisy_predictive_interval(
     return _noisy_interval(pred, eff, s, z, alpha, kind, float(df), int(n_iter))
 
 
+def _kernel_scale(pred, eff, s):
+    """Per (step, particle) scale ``sqrt(sigma_p^2 + h^2)`` [*S, P]: the noise of each particle
+    convolved with the parameter band's KDE kernel (bandwidth h, 0 at degenerate steps or P < 2)."""
+    kde = _kde_1d(pred, eff)
+    h = jnp.where(kde.degenerate | ~jnp.isfinite(kde.bandwidth), 0.0, kde.bandwidth)
+    return jnp.sqrt(jnp.where(eff, s, 1.0) ** 2 + h[..., None] ** 2), kde
+
+
 @functools.partial(jax.jit, static_argnames=("alpha", "kind", "df", "n_iter"))
 def _noisy_interval(pred, eff, s, z, alpha, kind, df, n_iter):
-    n = jnp.sum(eff)
-    w = eff.astype(pred.dtype) / jnp.maximum(n, 1)
-    x = jnp.moveaxis(jnp.where(eff.reshape((-1,) + (1,) * (pred.ndim - 1)), pred, 0.0), 0, -1)
-    s_safe = jnp.where(eff, s, 1.0)  # [P]
-    mean = jnp.sum(w * x, axis=-1)
+    scale, kde = _kernel_scale(pred, eff, s)
+    x, w = kde.points, kde.weights
 
     def cdf(y):
-        return jnp.sum(w * _noise_cdf((y[..., None] - x) / s_safe, kind, df), axis=-1)
+        return jnp.sum(w * noise_distribution(kind, 1.0, df).cdf((y[..., None] - x) / scale), axis=-1)
 
     def quantile(q, zq):
-        comp = x + s_safe * zq
+        comp = x + scale * zq
         lo = jnp.min(jnp.where(eff, comp, jnp.inf), axis=-1)
         hi = jnp.max(jnp.where(eff, comp, -jnp.inf), axis=-1)
         # widen by a hair so that equal components still bracket the root
@@ -672,9 +678,8 @@ def _noisy_interval(pred, eff, s, z, alpha, kind, df, n_iter):
         a, b = jax.lax.fori_loop(0, n_iter, body, (lo, hi))
         return 0.5 * (a + b)
 
-    lower = quantile(alpha, z[0])
-    upper = quantile(1.0 - alpha, z[1])
-    return PredictiveInterval(lower, upper, mean)
+    mean = jnp.sum(w * x, axis=-1)
+    return PredictiveInterval(quantile(alpha, z[0]), quantile(1.0 - alpha, z[1]), mean)
 
 
 def predictive_bands(
@@ -711,7 +716,8 @@ def noisy_predictive_nll(
 ) -> PredictiveNLL:
     """NLL of held-out recordings under the posterior predictive (simulations + noise model).
 
-    Per point ``-log p(y) = -log (1/n) sum_p p_noise(y - pred_p; sigma_p)``, by ``logsumexp``
+    Per point ``-log p(y) = -log (1/n) sum_p p_noise(y - pred_p; sqrt(sigma_p^2 + h^2))`` (the
+    same mixture as :func:`noisy_predictive_interval`), by ``logsumexp``
     over the valid particles; ``total`` sums over all masked-in, finite points (nats), ``mean``
     is per point. Finite for any particle spread (zero included: then it is the noise model's
     own NLL), so it is comparable across runs, samplers and likelihoods that report a noise
@@ -732,12 +738,10 @@ def noisy_predictive_nll(
 
 @functools.partial(jax.jit, static_argnames=("kind", "df"))
 def _noisy_nll(pred, eff, s, gt, m, kind, df):
-    n = jnp.sum(eff)
-    w = eff.astype(pred.dtype) / jnp.maximum(n, 1)
-    x = jnp.moveaxis(jnp.where(eff.reshape((-1,) + (1,) * (pred.ndim - 1)), pred, 0.0), 0, -1)
+    scale, kde = _kernel_scale(pred, eff, s)
     g = jnp.where(m, gt, 0.0)[..., None]
-    lp = residual_log_prob(g - x, jnp.where(eff, s, 1.0), kind, df)  # [*S, P]
-    log_p = logsumexp(lp, b=w, axis=-1)
+    lp = residual_log_prob(g - kde.points, scale, kind, df)  # [*S, P]
+    log_p = logsumexp(lp, b=kde.weights, axis=-1)  # weight 0 drops invalid particles
     total = -jnp.sum(jnp.where(m, log_p, 0.0))
     n_points = jnp.sum(m)
     return PredictiveNLL(total, total / n_points, n_points, jnp.zeros((), n_points.dtype))
