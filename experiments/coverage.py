@@ -45,9 +45,33 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 SIZES = {
-    "tiny": dict(dt=0.02, duration=1.0, n_train=2, n_test=4, warmup=100, samples=100, n_pred=50),
-    "cpu": dict(dt=0.02, duration=2.0, n_train=5, n_test=25, warmup=300, samples=400, n_pred=200),
-    "full": dict(dt=0.01, duration=3.0, n_train=5, n_test=25, warmup=500, samples=1000, n_pred=400),
+    "tiny": {
+        "dt": 0.02,
+        "duration": 1.0,
+        "n_train": 2,
+        "n_test": 4,
+        "warmup": 100,
+        "samples": 100,
+        "n_pred": 50,
+    },
+    "cpu": {
+        "dt": 0.02,
+        "duration": 2.0,
+        "n_train": 5,
+        "n_test": 25,
+        "warmup": 300,
+        "samples": 400,
+        "n_pred": 200,
+    },
+    "full": {
+        "dt": 0.01,
+        "duration": 3.0,
+        "n_train": 5,
+        "n_test": 25,
+        "warmup": 500,
+        "samples": 1000,
+        "n_pred": 400,
+    },
 }
 SIGMA_X = 0.002  # m
 FORCE_LEVEL = 0.02  # share of each pull's peak force
@@ -77,7 +101,14 @@ def make_case(tree_name: str, size: dict, seed: int):
             out.append(add_noise(clean, sf, SIGMA_X, streams[3]))
         return out
 
-    return tree, sim, kp, kd, pulls(size["n_train"], streams[1], "train"), pulls(size["n_test"], streams[2], "test")
+    return (
+        tree,
+        sim,
+        kp,
+        kd,
+        pulls(size["n_train"], streams[1], "train"),
+        pulls(size["n_test"], streams[2], "test"),
+    )
 
 
 def fit(tree, sim, train, size: dict, seed: int):
@@ -103,11 +134,16 @@ def fit(tree, sim, train, size: dict, seed: int):
 
     # best of 8 Adam maximisations from uniform draws in the box (batched: one simulator call)
     key = jax.random.key(seed)
-    theta = jnp.asarray(lower + (upper - lower) * np.asarray(jax.random.uniform(key, (8, lower.size))),
-                        jnp.float32)
+    theta = jnp.asarray(
+        lower + (upper - lower) * np.asarray(jax.random.uniform(key, (8, lower.size))), jnp.float32
+    )
     opt = optax.adam(optax.cosine_decay_schedule(0.05, 400, 0.01))
     state = opt.init(theta)
-    vg = jax.jit(jax.value_and_grad(lambda th: -jnp.sum(jnp.where(jnp.isfinite(v := logdensity(th)), v, -1e30))))
+    vg = jax.jit(
+        jax.value_and_grad(
+            lambda th: -jnp.sum(jnp.where(jnp.isfinite(v := logdensity(th)), v, -1e30))
+        )
+    )
 
     @jax.jit
     def adam_step(theta, state):
@@ -125,8 +161,12 @@ def fit(tree, sim, train, size: dict, seed: int):
         v = logdensity(th[None])[0]
         return -jnp.where(jnp.isfinite(v), v, -1e30)
 
-    mcmc = MCMC(NUTS(potential_fn=potential, target_accept_prob=0.85), num_warmup=size["warmup"],
-                num_samples=size["samples"], progress_bar=False)
+    mcmc = MCMC(
+        NUTS(potential_fn=potential, target_accept_prob=0.85),
+        num_warmup=size["warmup"],
+        num_samples=size["samples"],
+        progress_bar=False,
+    )
     mcmc.run(jax.random.fold_in(key, 1), init_params=start)
     samples = np.asarray(mcmc.get_samples())
     div = int(np.sum(np.asarray(mcmc.get_extra_fields()["diverging"])))
@@ -202,10 +242,23 @@ def main(argv=None) -> int:
 
     treeinfer.enable_compilation_cache()
     size = SIZES[args.size]
-    out = Path(args.out) if args.out else ROOT / "experiments" / "results" / (
-        "coverage" if args.size == "cpu" else f"coverage_{args.size}")
-    results = {"size": args.size, "settings": size, "sigma_x_m": SIGMA_X, "force_noise": FORCE_LEVEL,
-               "seed": args.seed, "device": str(jax.devices()[0]), "trees": {}}
+    out = (
+        Path(args.out)
+        if args.out
+        else ROOT
+        / "experiments"
+        / "results"
+        / ("coverage" if args.size == "cpu" else f"coverage_{args.size}")
+    )
+    results = {
+        "size": args.size,
+        "settings": size,
+        "sigma_x_m": SIGMA_X,
+        "force_noise": FORCE_LEVEL,
+        "seed": args.seed,
+        "device": str(jax.devices()[0]),
+        "trees": {},
+    }
     for name in args.trees.split(","):
         t0 = time.time()
         tree, sim, kp, kd, train, test = make_case(name, size, args.seed)
@@ -216,42 +269,78 @@ def main(argv=None) -> int:
         std = samples.std(axis=0)
         q = np.quantile(samples, [0.025, 0.975], axis=0)
         params = {
-            lab: {"truth": float(np.exp(truth[i])), "posterior_mean": float(np.exp(samples[:, i].mean())),
-                  "log_std": float(std[i]), "crb_log_std": float(crb[i]) if i < len(crb) else None,
-                  "std_over_crb": float(std[i] / crb[i]) if i < len(crb) else None,
-                  "truth_in_95": bool(q[0, i] <= truth[i] <= q[1, i])}
+            lab: {
+                "truth": float(np.exp(truth[i])),
+                "posterior_mean": float(np.exp(samples[:, i].mean())),
+                "log_std": float(std[i]),
+                "crb_log_std": float(crb[i]) if i < len(crb) else None,
+                "std_over_crb": float(std[i] / crb[i]) if i < len(crb) else None,
+                "truth_in_95": bool(q[0, i] <= truth[i] <= q[1, i]),
+            }
             for i, lab in enumerate(labels)
         }
         ev = evaluate(sim, samples, test, size["n_pred"])
-        results["trees"][name] = {"parameters": params, "evaluation": ev, "noise_estimate_m":
-                                  terms.settings["noise_estimate"], "nuts_divergences": div,
-                                  "best_start_logdensity": best_lp, "seconds": time.time() - t0}
-        print(f"{name}: {ev['pct_inside_predictive_band']:.1f}% inside the 95% predictive band "
-              f"({ev['pct_inside_parameter_band']:.1f}% inside the parameter band), NLL "
-              f"{ev['predictive_nll_per_point']:.3f} nats/point, {time.time() - t0:.0f} s", flush=True)
+        results["trees"][name] = {
+            "parameters": params,
+            "evaluation": ev,
+            "noise_estimate_m": terms.settings["noise_estimate"],
+            "nuts_divergences": div,
+            "best_start_logdensity": best_lp,
+            "seconds": time.time() - t0,
+        }
+        print(
+            f"{name}: {ev['pct_inside_predictive_band']:.1f}% inside the 95% predictive band "
+            f"({ev['pct_inside_parameter_band']:.1f}% inside the parameter band), NLL "
+            f"{ev['predictive_nll_per_point']:.3f} nats/point, {time.time() - t0:.0f} s",
+            flush=True,
+        )
         for lab, v in params.items():
-            print(f"  {lab:14s} truth {v['truth']:.4g} mean {v['posterior_mean']:.4g} log-std {v['log_std']:.3g}"
-                  + (f" CRB {v['crb_log_std']:.3g} ratio {v['std_over_crb']:.2f}" if v["crb_log_std"] else "")
-                  + f" in95 {v['truth_in_95']}", flush=True)
+            print(
+                f"  {lab:14s} truth {v['truth']:.4g} mean {v['posterior_mean']:.4g} "
+                f"log-std {v['log_std']:.3g}"
+                + (
+                    f" CRB {v['crb_log_std']:.3g} ratio {v['std_over_crb']:.2f}"
+                    if v["crb_log_std"]
+                    else ""
+                )
+                + f" in95 {v['truth_in_95']}",
+                flush=True,
+            )
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(results, indent=1))
-    lines = [f"# Coverage and CRB ratio, size `{args.size}` (gaussian likelihood, NUTS)\n",
-             f"2 mm displacement + 2% force noise; settings {json.dumps(size)}; seed {args.seed}; "
-             f"device {results['device']}.\n",
-             "| tree | % inside 95% predictive band | % inside parameter band | NLL / point |",
-             "|---|---|---|---|"]
+    lines = [
+        f"# Coverage and CRB ratio, size `{args.size}` (gaussian likelihood, NUTS)\n",
+        (
+            f"2 mm displacement + 2% force noise; settings {json.dumps(size)}; seed {args.seed}; "
+            f"device {results['device']}.\n"
+        ),
+        "| tree | % inside 95% predictive band | % inside parameter band | NLL / point |",
+        "|---|---|---|---|",
+    ]
     for name, rr in results["trees"].items():
         ev = rr["evaluation"]
-        lines.append(f"| {name} | {ev['pct_inside_predictive_band']:.1f} | {ev['pct_inside_parameter_band']:.1f} "
-                     f"| {ev['predictive_nll_per_point']:.3f} |")
-    lines += ["", "| tree | parameter | truth | posterior mean | log std | CRB log std | std / CRB | truth in 95% |",
-              "|---|---|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {name} | {ev['pct_inside_predictive_band']:.1f} "
+            f"| {ev['pct_inside_parameter_band']:.1f} "
+            f"| {ev['predictive_nll_per_point']:.3f} |"
+        )
+    lines += [
+        "",
+        (
+            "| tree | parameter | truth | posterior mean | log std | CRB log std | std / CRB "
+            "| truth in 95% |"
+        ),
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for name, rr in results["trees"].items():
         for lab, v in rr["parameters"].items():
             crb_s = f"{v['crb_log_std']:.3g}" if v["crb_log_std"] else "-"
             ratio = f"{v['std_over_crb']:.2f}" if v["std_over_crb"] else "-"
-            lines.append(f"| {name} | {lab} | {v['truth']:.4g} | {v['posterior_mean']:.4g} | {v['log_std']:.3g} "
-                         f"| {crb_s} | {ratio} | {v['truth_in_95']} |")
+            lines.append(
+                f"| {name} | {lab} | {v['truth']:.4g} | {v['posterior_mean']:.4g} "
+                f"| {v['log_std']:.3g} "
+                f"| {crb_s} | {ratio} | {v['truth_in_95']} |"
+            )
     (out / "results.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {out}")
     return 0

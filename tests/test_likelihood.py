@@ -48,7 +48,9 @@ def setup():
         jnp.asarray(KP_TRUE[None]), jnp.asarray(KD_TRUE[None]), jnp.asarray(forces)
     )
     t = np.arange(T) * DT
-    clean = [Trajectory(t, forces[b], np.asarray(r.tau[0, b], float), None, f"p{b}") for b in range(2)]
+    clean = [
+        Trajectory(t, forces[b], np.asarray(r.tau[0, b], float), None, f"p{b}") for b in range(2)
+    ]
     noisy = [add_noise(c, 0.0, SIGMA, np.random.default_rng(b)) for b, c in enumerate(clean)]
     return tree, sim, noisy
 
@@ -66,8 +68,11 @@ def test_measurement_likelihood_matches_scipy(setup, kind):
     tau = np.asarray(simulate(sim, kp, kd, jnp.asarray(obs.force, jnp.float32)).tau, float)
     res = obs.displacement[None] - tau
     sx = [0.003, 0.0015]
-    ref_pdf = (lambda r, s: stats.norm.logpdf(r, scale=s)) if kind == "gaussian" else (
-        lambda r, s: stats.t.logpdf(r, 4.0, scale=s))
+    ref_pdf = (
+        (lambda r, s: stats.norm.logpdf(r, scale=s))
+        if kind == "gaussian"
+        else (lambda r, s: stats.t.logpdf(r, 4.0, scale=s))
+    )
     # sigma inferred: extra column log sigma_x, one value per row
     ll = measurement_log_likelihood(sim, obs, kind)
     th3 = np.column_stack([theta, np.log(sx)])
@@ -83,8 +88,9 @@ def test_measurement_likelihood_matches_scipy(setup, kind):
 def test_velocity_term_and_padding(setup):
     """Velocity term (own sigma) adds sum log N(v_obs - tau_dot); padded samples never count."""
     _tree, sim, noisy = setup
-    short = noisy[0]._replace(time=noisy[0].time[:30], force=noisy[0].force[:30],
-                              displacement=noisy[0].displacement[:30])
+    short = noisy[0]._replace(
+        time=noisy[0].time[:30], force=noisy[0].force[:30], displacement=noisy[0].displacement[:30]
+    )
     obs = stack_trajectories([short, noisy[1]])
     theta = jnp.asarray(THETA_TRUE[None], jnp.float32)
     kp, kd = gains_from_theta(theta, 2)
@@ -130,7 +136,9 @@ def test_likelihood_terms(setup):
     theta = jnp.asarray(_theta_rows(), jnp.float32)
     # Boltzmann: exactly the paper's term
     b = likelihood_terms(sim, obs, "boltzmann", kT=0.05)
-    np.testing.assert_array_equal(b.log_likelihood(theta), boltzmann_log_likelihood(sim, obs, 0.05)(theta))
+    np.testing.assert_array_equal(
+        b.log_likelihood(theta), boltzmann_log_likelihood(sim, obs, 0.05)(theta)
+    )
     assert b.extra_labels == () and b.kT == 0.05 and b.extra_log_prior is None
     auto = likelihood_terms(sim, obs, "boltzmann", kT="auto")
     assert auto.kT < 0.01 and "kT auto" in auto.description
@@ -142,7 +150,9 @@ def test_likelihood_terms(setup):
     assert g.extra_lower[0] < math.log(est) < g.extra_upper[0]
     th3 = jnp.asarray(np.column_stack([_theta_rows(), [math.log(est), 0.0]]), jnp.float32)
     lp = np.asarray(g.extra_log_prior(th3))
-    np.testing.assert_allclose(lp, stats.norm.logpdf([math.log(est), 0.0], math.log(est), 1.5), rtol=1e-5)
+    np.testing.assert_allclose(
+        lp, stats.norm.logpdf([math.log(est), 0.0], math.log(est), 1.5), rtol=1e-5
+    )
     v, grad = g.value_and_grad(th3)
     assert v.shape == (2,) and grad.shape == (2, 5)
     np.testing.assert_allclose(noise_params_from_theta(th3, 2), [est, 1.0], rtol=1e-5)
@@ -178,10 +188,15 @@ def _band_coverage(sim, n_rep, sigma_x, force_noise, seed):
     the RECORDED forces (what any fit sees). Returns (recordings, simulations) [2 n_rep, T]."""
     rng = np.random.default_rng(seed)
     forces = np.tile(_forces([6.0, 10.0]), (n_rep, 1))
-    rec_f = forces + force_noise * np.abs(forces).max(axis=1, keepdims=True) * rng.standard_normal(forces.shape)
+    rec_f = forces + force_noise * np.abs(forces).max(axis=1, keepdims=True) * rng.standard_normal(
+        forces.shape
+    )
     kp, kd = jnp.asarray(KP_TRUE[None]), jnp.asarray(KD_TRUE[None])
-    tau = np.asarray(jax.jit(lambda f: simulate(sim, kp, kd, f).tau)(
-        jnp.asarray(np.concatenate([forces, rec_f]), jnp.float32)))[0]
+    tau = np.asarray(
+        jax.jit(lambda f: simulate(sim, kp, kd, f).tau)(
+            jnp.asarray(np.concatenate([forces, rec_f]), jnp.float32)
+        )
+    )[0]
     clean, simulated = tau[: 2 * n_rep], tau[2 * n_rep :]
     return clean + sigma_x * rng.standard_normal(clean.shape), simulated
 
@@ -198,7 +213,9 @@ def test_predictive_band_at_truth_covers_95(setup):
     bands = metrics.predictive_bands(pred, SIGMA, 0.95)
     inside = 1.0 - float(metrics.fraction_outside(*bands.predictive[:2], rec))
     assert 0.93 <= inside <= 0.97, inside
-    assert 1.0 - float(metrics.fraction_outside(*bands.parameter[:2], rec, atol=0.0, rtol=0.0)) < 0.05
+    assert (
+        1.0 - float(metrics.fraction_outside(*bands.parameter[:2], rec, atol=0.0, rtol=0.0)) < 0.05
+    )
 
 
 def test_force_noise_enters_through_displacement(setup):
@@ -214,13 +231,20 @@ def test_force_noise_enters_through_displacement(setup):
     _tree, sim, _ = setup
     forces = _forces([6.0, 10.0])
     rng = np.random.default_rng(0)
-    noisy_f = forces + 0.02 * np.abs(forces).max(axis=1, keepdims=True) * rng.standard_normal(forces.shape)
+    noisy_f = forces + 0.02 * np.abs(forces).max(axis=1, keepdims=True) * rng.standard_normal(
+        forces.shape
+    )
     kp, kd = jnp.asarray(KP_TRUE[None]), jnp.asarray(KD_TRUE[None])
     run = jax.jit(lambda f: simulate(sim, kp, kd, f).tau)
-    diff = np.asarray(run(jnp.asarray(noisy_f, jnp.float32)) - run(jnp.asarray(forces, jnp.float32)))[0]
+    diff = np.asarray(
+        run(jnp.asarray(noisy_f, jnp.float32)) - run(jnp.asarray(forces, jnp.float32))
+    )[0]
     rms = float(np.sqrt(np.mean(diff**2)))
     lag1 = min(np.corrcoef(d[:-1], d[1:])[0, 1] for d in diff)
-    print(f"2% force noise -> displacement error rms {rms * 1e3:.3f} mm, lag-1 autocorrelation {lag1:.3f}")
+    print(
+        f"2% force noise -> displacement error rms {rms * 1e3:.3f} mm, "
+        f"lag-1 autocorrelation {lag1:.3f}"
+    )
     assert lag1 > 0.8 and rms > 0.25 * SIGMA
 
     train_rec, train_sim = _band_coverage(sim, 20, SIGMA, 0.02, seed=2)

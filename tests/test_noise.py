@@ -31,7 +31,9 @@ from treeinfer.trajectories import Trajectory, stack_trajectories, velocity_from
 def _smooth_pull(t, amp=0.05, omega=8.0, zeta=0.3):
     """Step response of a damped oscillator (m): smooth, like a branch pulled by a ramp."""
     wd = omega * math.sqrt(1 - zeta**2)
-    return amp * (1 - np.exp(-zeta * omega * t) * (np.cos(wd * t) + zeta * omega / wd * np.sin(wd * t)))
+    return amp * (
+        1 - np.exp(-zeta * omega * t) * (np.cos(wd * t) + zeta * omega / wd * np.sin(wd * t))
+    )
 
 
 def _trajs(sigma, n=4, T=301, dt=0.01, seed=0):
@@ -55,7 +57,9 @@ def test_residual_log_prob_matches_scipy(kind):
     ref = stats.norm.logpdf(r, scale=s) if kind == "gaussian" else stats.t.logpdf(r, 4.0, scale=s)
     np.testing.assert_allclose(got, ref, rtol=1e-5)
     q = noise.standard_quantile(0.975, kind, 4.0)
-    assert q == pytest.approx(stats.norm.ppf(0.975) if kind == "gaussian" else stats.t.ppf(0.975, 4))
+    assert q == pytest.approx(
+        stats.norm.ppf(0.975) if kind == "gaussian" else stats.t.ppf(0.975, 4)
+    )
 
 
 # --------------------------------------------------------------------------- estimation
@@ -118,9 +122,11 @@ def test_kT_rule_matches_gaussian_posterior_width():
     choice = auto_kT(obs)
     a = np.linspace(0.97, 1.03, 601)
     tau = a[:, None, None] * shapes[None]
-    ro = Rollout(jnp.asarray(tau, jnp.float32),
-                 jnp.asarray(velocity_from_displacement(tau, dt), jnp.float32),
-                 jnp.ones(tau.shape[:2], bool))
+    ro = Rollout(
+        jnp.asarray(tau, jnp.float32),
+        jnp.asarray(velocity_from_displacement(tau, dt), jnp.float32),
+        jnp.ones(tau.shape[:2], bool),
+    )
     ll = -np.asarray(trajectory_loss(ro, obs), float).sum(-1) / choice.kT
     w = np.exp(ll - ll.max())
     w /= w.sum()
@@ -200,8 +206,12 @@ def test_joint_sigma_inference_closed_form_with_nuts():
         lp = noise.residual_log_prob(jnp.asarray(y, jnp.float32) - mu, jnp.exp(theta[:, 1:2]))
         return jnp.sum(lp, -1) + prior(theta[:, 1])
 
-    mcmc = MCMC(NUTS(potential_fn=lambda th: -logdensity(th[None])[0]), num_warmup=400,
-                num_samples=1500, progress_bar=False)
+    mcmc = MCMC(
+        NUTS(potential_fn=lambda th: -logdensity(th[None])[0]),
+        num_warmup=400,
+        num_samples=1500,
+        progress_bar=False,
+    )
     mcmc.run(jax.random.key(0), init_params=jnp.zeros(2))
     s = np.asarray(mcmc.get_samples())
 
@@ -210,8 +220,11 @@ def test_joint_sigma_inference_closed_form_with_nuts():
     rss = np.sum((y - a_hat * x) ** 2)
     ls = np.linspace(-3, 1, 4001)
     sig = np.exp(ls)
-    logpost = (-(n - 1) * ls - rss / (2 * sig**2)
-               + stats.norm.logpdf(ls, math.log(0.5), noise.SIGMA_PRIOR_SCALE))
+    logpost = (
+        -(n - 1) * ls
+        - rss / (2 * sig**2)
+        + stats.norm.logpdf(ls, math.log(0.5), noise.SIGMA_PRIOR_SCALE)
+    )
     w = np.exp(logpost - logpost.max())
     w /= w.sum()
     m_ls = np.sum(w * ls)

@@ -134,7 +134,9 @@ def suggest_kT(sigma_displacement: float, n_steps: int, dt: float, omega2: float
     """
     sigma = noise.check_sigma(sigma_displacement, "sigma_displacement")
     if int(n_steps) < 1 or not (dt > 0) or not (omega2 >= 0):
-        raise ConfigError(f"suggest_kT: need n_steps >= 1, dt > 0, omega2 >= 0; got {n_steps}, {dt}, {omega2}")
+        raise ConfigError(
+            f"suggest_kT: need n_steps >= 1, dt > 0, omega2 >= 0; got {n_steps}, {dt}, {omega2}"
+        )
     return float(sigma / math.sqrt(int(n_steps)) * (1.0 + math.sqrt(2.0) * dt * omega2))
 
 
@@ -158,7 +160,7 @@ def signal_omega2(obs: Observations, sigma: float, lag: int = 5) -> float:
 
 
 class KTChoice(NamedTuple):
-    """Result of :func:`auto_kT`: ``kT`` and what it was computed from (``describe()`` prints it)."""
+    """Result of :func:`auto_kT`: ``kT`` and what it was computed from (``describe()``)."""
 
     kT: float
     estimate: noise.NoiseEstimate
@@ -183,11 +185,14 @@ def auto_kT(data, sigma_displacement: float | None = None) -> KTChoice:
     if sigma_displacement is None:
         est = noise.estimate_displacement_noise(obs)
     else:
-        s = noise.check_sigma(sigma_displacement, "noise_displacement", noise.displacement_range(obs))
+        s = noise.check_sigma(
+            sigma_displacement, "noise_displacement", noise.displacement_range(obs)
+        )
         est = noise.NoiseEstimate(s, 0, "given")
     n_steps = int(np.median(np.sum(np.asarray(obs.mask, bool), axis=-1)))
     om2 = signal_omega2(obs, est.sigma)
-    return KTChoice(suggest_kT(est.sigma, n_steps, float(obs.dt), om2), est, n_steps, float(obs.dt), om2)
+    kT = suggest_kT(est.sigma, n_steps, float(obs.dt), om2)
+    return KTChoice(kT, est, n_steps, float(obs.dt), om2)
 
 
 # ----------------------------------------------------------------------------- measurement model
@@ -231,9 +236,13 @@ def measurement_log_likelihood(
         ``rel_step``); False lets JAX differentiate through the simulator (checks only).
     """
     if kind not in noise.NOISE_KINDS:
-        raise ConfigError(f"likelihood: expected one of {', '.join(noise.NOISE_KINDS)}, got {kind!r}")
+        raise ConfigError(
+            f"likelihood: expected one of {', '.join(noise.NOISE_KINDS)}, got {kind!r}"
+        )
     if not math.isclose(float(obs.dt), sim.obs_dt, rel_tol=1e-6):
-        raise ConfigError(f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s")
+        raise ConfigError(
+            f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s"
+        )
     df = noise.check_df(df)
     r = sim.n_joints
     dtype = sim.dtype
@@ -265,7 +274,8 @@ def measurement_log_likelihood(
         lp = noise.residual_log_prob(x_obs - out[:, 0], sx, kind, df)
         total = jnp.sum(jnp.where(mask, lp, 0.0), axis=(-2, -1))
         if use_v:
-            lpv = noise.residual_log_prob(v_obs - out[:, 1], jnp.asarray(sigma_v, out.dtype), kind, df)
+            sv = jnp.asarray(sigma_v, out.dtype)
+            lpv = noise.residual_log_prob(v_obs - out[:, 1], sv, kind, df)
             total = total + jnp.sum(jnp.where(mask, lpv, 0.0), axis=(-2, -1))
         return jnp.where(jnp.isfinite(total), total, -jnp.inf)
 
@@ -338,12 +348,14 @@ def likelihood_terms(
         else:
             kT_value, extra = check_kT(kT), {}
             try:
-                est = noise.estimate_displacement_noise(obs).sigma if sigma_x is None else float(sigma_x)
+                est = (noise.estimate_displacement_noise(obs).sigma if sigma_x is None
+                       else float(sigma_x))
             except ConfigError:
                 est = None
             desc = f"Boltzmann likelihood, kT = {kT_value:g} (fixed)"
         loglik = boltzmann_log_likelihood(sim, obs, kT_value, grasp_fraction)
-        vg = central_difference(loglik, rel_step=rel_step) if gradient == "fd" else autodiff_value_and_grad(loglik)
+        vg = (central_difference(loglik, rel_step=rel_step) if gradient == "fd"
+              else autodiff_value_and_grad(loglik))
         settings = {"likelihood": "boltzmann", "kT": kT_value, "kT_auto": isinstance(kT, str),
                     "noise_displacement": est, **extra}
         return LikelihoodTerms(loglik, vg, (), empty, empty, None, kT_value, est, settings, desc)
@@ -355,7 +367,8 @@ def likelihood_terms(
     vg = autodiff_value_and_grad(loglik)
     noise_name = "Gaussian" if kind == "gaussian" else f"Student-t (df = {df:g})"
     vel = f", velocity noise {sigma_v:g} m/s" if sigma_v is not None else ", velocity term off"
-    settings = {"likelihood": kind, "noise_velocity": sigma_v, "student_t_df": df if kind == "student_t" else None}
+    settings = {"likelihood": kind, "noise_velocity": sigma_v,
+                "student_t_df": df if kind == "student_t" else None}
     if sigma_x is not None:
         sx = noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
         settings.update(noise_displacement=sx, noise_inferred=False)
@@ -363,7 +376,9 @@ def likelihood_terms(
         return LikelihoodTerms(loglik, vg, (), empty, empty, None, None, sx, settings, desc)
     est = noise.estimate_displacement_noise(obs)
     if not (math.isfinite(float(sigma_prior_scale)) and sigma_prior_scale > 0):
-        raise ConfigError(f"sigma_prior_scale: must be a finite positive number, got {sigma_prior_scale!r}")
+        raise ConfigError(
+            f"sigma_prior_scale: must be a finite positive number, got {sigma_prior_scale!r}"
+        )
     prior = noise.log_sigma_prior(est.sigma, sigma_prior_scale)
     col = 2 * sim.n_joints
 
@@ -375,5 +390,7 @@ def likelihood_terms(
                     sigma_prior=f"log sigma_x ~ Normal(log {est.sigma:.4g}, {sigma_prior_scale:g})")
     desc = (f"{noise_name} displacement noise, sigma_x inferred (prior log sigma_x ~ Normal(log "
             f"sigma_hat, {sigma_prior_scale:g}); {est.describe()}){vel}")
-    return LikelihoodTerms(loglik, vg, ("sigma_x",), np.array([centre - 1.0]), np.array([centre + 1.0]),
-                           extra_log_prior, None, None, settings, desc)
+    return LikelihoodTerms(
+        loglik, vg, ("sigma_x",), np.array([centre - 1.0]), np.array([centre + 1.0]),
+        extra_log_prior, None, None, settings, desc,
+    )

@@ -659,7 +659,8 @@ def _noisy_interval(pred, eff, s, z, alpha, kind, df, n_iter):
     x, w = kde.points, kde.weights
 
     def cdf(y):
-        return jnp.sum(w * noise_distribution(kind, 1.0, df).cdf((y[..., None] - x) / scale), axis=-1)
+        unit = noise_distribution(kind, 1.0, df)
+        return jnp.sum(w * unit.cdf((y[..., None] - x) / scale), axis=-1)
 
     def quantile(q, zq):
         comp = x + scale * zq
@@ -731,7 +732,9 @@ def noisy_predictive_nll(
     _require_particles(eff, minimum=1)
     gt = jnp.asarray(gt, pred.dtype)
     if gt.shape != pred.shape[1:]:
-        raise ConfigError(f"gt: expected shape {tuple(pred.shape[1:])} to match pred, got {gt.shape}")
+        raise ConfigError(
+            f"gt: expected shape {tuple(pred.shape[1:])} to match pred, got {gt.shape}"
+        )
     s = _noise_scale(sigma, pred.shape[0], pred.dtype)
     return _noisy_nll(pred, eff, s, gt, _point_mask(gt, mask), kind, float(df))
 

@@ -167,7 +167,10 @@ class NoiseEstimate(NamedTuple):
     method: str
 
     def describe(self) -> str:
-        return f"displacement noise sigma_x ~ {self.sigma * 1e3:.3g} mm ({self.method}, n = {self.n_used})"
+        return (
+            f"displacement noise sigma_x ~ {self.sigma * 1e3:.3g} mm "
+            f"({self.method}, n = {self.n_used})"
+        )
 
 
 def estimate_displacement_noise(data, min_samples: int = MIN_NOISE_SAMPLES) -> NoiseEstimate:
