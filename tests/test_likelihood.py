@@ -258,3 +258,40 @@ def test_force_noise_enters_through_displacement(setup):
 
     assert coverage(SIGMA) < 0.93
     assert 0.92 <= coverage(sigma_fit) <= 0.98
+
+
+def test_ar1_terms_layout_and_value(setup):
+    """ar1: columns [log sigma_x, log sigma_c, logit rho] after the gains; the value is the white
+    + AR(1) density of the residuals (dense scipy MVN reference); marginal scale for the band."""
+    _tree, sim, noisy = setup
+    obs = stack_trajectories(noisy)
+    a = likelihood_terms(sim, obs, "ar1")
+    assert a.extra_labels == ("sigma_x", "sigma_c", "rho") and len(a.extra_lower) == 3
+    noise_cols = np.array([[math.log(0.002), math.log(0.003), math.log(0.9 / 0.1)]] * 2)
+    th = jnp.asarray(np.column_stack([_theta_rows(), noise_cols]), jnp.float32)
+    v, g = jax.jit(a.value_and_grad)(th)
+    assert g.shape == (2, 7) and np.all(np.isfinite(np.asarray(g)))
+    kp, kd = gains_from_theta(th, 2)
+    tau = np.asarray(simulate(sim, kp, kd, jnp.asarray(obs.force, jnp.float32)).tau, float)
+    lag = np.abs(np.subtract.outer(np.arange(T), np.arange(T)))
+    cov = 0.002**2 * np.eye(T) + 0.003**2 * 0.9**lag
+    ref = [
+        sum(
+            stats.multivariate_normal(np.zeros(T), cov).logpdf(obs.displacement[b] - tau[n, b])
+            for b in range(2)
+        )
+        for n in range(2)
+    ]
+    np.testing.assert_allclose(np.asarray(a.log_likelihood(th)), ref, rtol=2e-4)
+    np.testing.assert_allclose(np.asarray(v), ref, rtol=2e-4)  # the likelihood alone
+    assert np.all(np.isfinite(np.asarray(a.extra_log_prior(th))))
+    np.testing.assert_allclose(
+        noise_params_from_theta(th, 2), [math.hypot(0.002, 0.003)] * 2, rtol=1e-5
+    )
+    fixed = likelihood_terms(sim, obs, "ar1", sigma_x=0.002)
+    assert fixed.extra_labels == ("sigma_c", "rho") and fixed.sigma_x == 0.002
+    np.testing.assert_allclose(
+        noise_params_from_theta(th[:, jnp.array([0, 1, 2, 3, 5, 6])], 2, 0.002),
+        [math.hypot(0.002, 0.003)] * 2,
+        rtol=1e-5,
+    )

@@ -242,3 +242,32 @@ def test_joint_sigma_inference_closed_form_with_nuts():
     ga = np.sum(res * x, 1) / sg**2
     gs = -n + np.sum(res**2, 1) / sg**2 - (np.asarray(th[:, 1]) - math.log(0.5)) / 1.5**2
     np.testing.assert_allclose(np.asarray(g), np.stack([ga, gs], 1), rtol=2e-3)
+
+
+def test_ar1_white_kalman_matches_dense_mvn():
+    """The Kalman-filter likelihood of white + AR(1) residuals equals the dense multivariate
+    normal with covariance sigma_w^2 I + sigma_c^2 rho^|i-j| (scipy), padding excluded."""
+    rng = np.random.default_rng(5)
+    T = 40
+    mask = np.ones((2, T), bool)
+    mask[1, 25:] = False  # a shorter trajectory, padded
+    res = rng.normal(0, 0.003, size=(3, 2, T))
+    sw = np.array([0.002, 0.001, 0.003])
+    sc = np.array([0.003, 0.0005, 0.001])
+    rho = np.array([0.95, 0.3, 0.0])
+    got = np.asarray(
+        noise.ar1_white_log_prob(
+            jnp.asarray(res), jnp.asarray(mask), jnp.asarray(sw), jnp.asarray(sc), jnp.asarray(rho)
+        ),
+        float,
+    )
+    lag = np.abs(np.subtract.outer(np.arange(T), np.arange(T)))
+    for n in range(3):
+        ref = 0.0
+        for b in range(2):
+            m = mask[b]
+            cov = sw[n] ** 2 * np.eye(T) + sc[n] ** 2 * rho[n] ** lag
+            ref += stats.multivariate_normal(np.zeros(m.sum()), cov[np.ix_(m, m)]).logpdf(
+                res[n, b, m]
+            )
+        assert got[n] == pytest.approx(ref, rel=2e-4)

@@ -48,6 +48,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpyro.distributions as dist
 
 from . import noise
 from .errors import ConfigError
@@ -198,17 +199,53 @@ def auto_kT(data, sigma_displacement: float | None = None) -> KTChoice:
 # ----------------------------------------------------------------------------- measurement model
 
 
-def noise_params_from_theta(theta, n_joints: int, sigma_x: float | None = None):
-    """Per-row displacement-noise std ``sigma_x [N]`` (m) from ``theta [N, 2R (+1)]``.
+def noise_columns(kind: str, infer_sigma_x: bool) -> tuple[str, ...]:
+    """Labels of theta's noise columns after the 2R gains, for a likelihood ``kind``.
 
-    Column ``2R`` (if present) is ``log sigma_x``; otherwise the fixed ``sigma_x`` is broadcast
-    (None when neither exists, e.g. a Boltzmann run without a noise estimate)."""
+    Values in theta: ``sigma_x`` and ``sigma_c`` as natural logs (of metres), ``rho`` as
+    ``logit(rho)``. gaussian / student_t: ``("sigma_x",)`` or () when sigma_x is given; ar1:
+    ``("sigma_x", "sigma_c", "rho")`` or ``("sigma_c", "rho")``; boltzmann: ()."""
+    if kind == "ar1":
+        return ("sigma_x", "sigma_c", "rho") if infer_sigma_x else ("sigma_c", "rho")
+    if kind in ("gaussian", "student_t"):
+        return ("sigma_x",) if infer_sigma_x else ()
+    return ()
+
+
+def noise_params_from_theta(theta, n_joints: int, sigma_x: float | None = None):
+    """Per-row MARGINAL displacement-noise scale ``[N]`` (m) from ``theta [N, 2R + E]``.
+
+    The layout is read from the number E of noise columns (:func:`noise_columns`): E = 1 is
+    ``log sigma_x``; E = 3 is ``log sigma_x, log sigma_c, logit rho`` and E = 2 ``log sigma_c,
+    logit rho`` with the fixed ``sigma_x`` (ar1: the marginal scale is
+    ``sqrt(sigma_x^2 + sigma_c^2)``); E = 0 broadcasts the fixed ``sigma_x`` (None when there is
+    none, e.g. a Boltzmann run without a noise estimate). This is the scale the predictive band
+    uses (:func:`predictive_noise_kind` gives its distribution)."""
     theta = jnp.atleast_2d(jnp.asarray(theta))
-    if theta.shape[-1] > 2 * n_joints:
-        return jnp.exp(theta[:, 2 * n_joints])
+    c = 2 * n_joints
+    e = theta.shape[-1] - c
+    if e == 1:
+        return jnp.exp(theta[:, c])
+    if e == 3:
+        return jnp.sqrt(jnp.exp(2 * theta[:, c]) + jnp.exp(2 * theta[:, c + 1]))
+    if e == 2:
+        if sigma_x is None:
+            raise ConfigError("noise_params_from_theta: ar1 with a fixed sigma_x needs sigma_x")
+        return jnp.sqrt(float(sigma_x) ** 2 + jnp.exp(2 * theta[:, c]))
+    if e != 0:
+        raise ConfigError(
+            f"theta: expected 2R + 0..3 columns, got {theta.shape[-1]} for R = {n_joints}"
+        )
     if sigma_x is None:
         return None
     return jnp.full(theta.shape[:1], float(sigma_x), theta.dtype)
+
+
+def predictive_noise_kind(kind: str) -> str:
+    """Distribution of one point's noise for the predictive band: ``student_t`` for student_t,
+    ``gaussian`` otherwise (ar1's marginal is Gaussian; Boltzmann runs use the Gaussian with
+    the data estimate)."""
+    return "student_t" if kind == "student_t" else "gaussian"
 
 
 def measurement_log_likelihood(
@@ -228,9 +265,11 @@ def measurement_log_likelihood(
     [+ sum log p_noise(v_obs - tau_dot; sigma_v)]``; ``-inf`` for rows with an unstable rollout.
 
     Args:
-      kind: ``"gaussian"`` or ``"student_t"`` (df ``df``), see :mod:`treeinfer.noise`.
-      sigma_x: m, fixed displacement noise; None: theta has an extra last column ``log sigma_x``
-        (D = 2R + 1), which this term reads (its prior is separate: :func:`likelihood_terms`).
+      kind: ``"gaussian"``, ``"student_t"`` (df ``df``) or ``"ar1"`` (white + AR(1)), see
+        :mod:`treeinfer.noise`.
+      sigma_x: m, fixed displacement noise; None: theta has an extra column ``log sigma_x``.
+        Noise columns follow the 2R gains in the order of :func:`noise_columns` (ar1 always has
+        ``log sigma_c, logit rho``); their priors are separate (:func:`likelihood_terms`).
       sigma_v: m/s, velocity noise; None (default) leaves the velocity out.
       black_box: True wraps the simulator in :func:`finite_difference_jvp` (central differences,
         ``rel_step``); False lets JAX differentiate through the simulator (checks only).
@@ -267,15 +306,20 @@ def measurement_log_likelihood(
     def loglik(theta: jax.Array) -> jax.Array:
         theta = jnp.asarray(theta)
         out = sim_fn(theta[:, : 2 * r])
+        c = 2 * r
         if sigma_x is None:
-            sx = jnp.exp(theta[:, 2 * r])[:, None, None]
+            sx, c = jnp.exp(theta[:, c]), c + 1
         else:
-            sx = jnp.asarray(sigma_x, out.dtype)
-        lp = noise.residual_log_prob(x_obs - out[:, 0], sx, kind, df)
-        total = jnp.sum(jnp.where(mask, lp, 0.0), axis=(-2, -1))
+            sx = jnp.full(theta.shape[:1], sigma_x, out.dtype)
+        if kind == "ar1":
+            sc, rho = jnp.exp(theta[:, c]), jax.nn.sigmoid(theta[:, c + 1])
+            total = noise.ar1_white_log_prob(x_obs - out[:, 0], mask, sx, sc, rho)
+        else:
+            lp = noise.residual_log_prob(x_obs - out[:, 0], sx[:, None, None], kind, df)
+            total = jnp.sum(jnp.where(mask, lp, 0.0), axis=(-2, -1))
         if use_v:
             sv = jnp.asarray(sigma_v, out.dtype)
-            lpv = noise.residual_log_prob(v_obs - out[:, 1], sv, kind, df)
+            lpv = noise.residual_log_prob(v_obs - out[:, 1], sv, predictive_noise_kind(kind), df)
             total = total + jnp.sum(jnp.where(mask, lpv, 0.0), axis=(-2, -1))
         return jnp.where(jnp.isfinite(total), total, -jnp.inf)
 
@@ -326,8 +370,9 @@ def likelihood_terms(
     """The likelihood part of the posterior for one tree + data + likelihood choice.
 
     Args:
-      kind: ``"boltzmann"`` (the paper's loss, ``kT`` a number or ``"auto"``), ``"gaussian"`` or
-        ``"student_t"`` (generative, :mod:`treeinfer.noise`).
+      kind: ``"boltzmann"`` (the paper's loss, ``kT`` a number or ``"auto"``), ``"gaussian"``,
+        ``"student_t"`` or ``"ar1"`` (generative, :mod:`treeinfer.noise`; theta then has the
+        noise columns of :func:`noise_columns` after the gains).
       sigma_x: m. Generative kinds: fixed noise, or None to infer ``log sigma_x`` jointly as
         theta's last column with prior ``Normal(log sigma_hat, sigma_prior_scale)`` centred on
         the data estimate. Boltzmann with ``kT="auto"``: use it instead of the estimate.
@@ -365,32 +410,59 @@ def likelihood_terms(
         sim, obs, kind, sigma_x, sigma_v, df, grasp_fraction, rel_step, black_box=gradient == "fd"
     )
     vg = autodiff_value_and_grad(loglik)
-    noise_name = "Gaussian" if kind == "gaussian" else f"Student-t (df = {df:g})"
+    names = {"gaussian": "Gaussian", "student_t": f"Student-t (df = {df:g})",
+             "ar1": "white + AR(1)"}
     vel = f", velocity noise {sigma_v:g} m/s" if sigma_v is not None else ", velocity term off"
     settings = {"likelihood": kind, "noise_velocity": sigma_v,
                 "student_t_df": df if kind == "student_t" else None}
-    if sigma_x is not None:
-        sx = noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
-        settings.update(noise_displacement=sx, noise_inferred=False)
-        desc = f"{noise_name} displacement noise, sigma_x = {sx * 1e3:.4g} mm (given){vel}"
-        return LikelihoodTerms(loglik, vg, (), empty, empty, None, None, sx, settings, desc)
-    est = noise.estimate_displacement_noise(obs)
     if not (math.isfinite(float(sigma_prior_scale)) and sigma_prior_scale > 0):
         raise ConfigError(
             f"sigma_prior_scale: must be a finite positive number, got {sigma_prior_scale!r}"
         )
-    prior = noise.log_sigma_prior(est.sigma, sigma_prior_scale)
+    labels = noise_columns(kind, sigma_x is None)
+    if sigma_x is not None:
+        sx = noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
+        settings.update(noise_displacement=sx, noise_inferred=False)
+        desc = f"{names[kind]} displacement noise, sigma_x = {sx * 1e3:.4g} mm (given){vel}"
+        if kind != "ar1":
+            return LikelihoodTerms(loglik, vg, (), empty, empty, None, None, sx, settings, desc)
+        est = noise.NoiseEstimate(sx, 0, "given")
+    else:
+        est = noise.estimate_displacement_noise(obs)
+        sx = None
+        settings.update(noise_displacement=None, noise_inferred=True, noise_estimate=est.sigma)
+        desc = (f"{names[kind]} displacement noise, sigma_x inferred (prior log sigma_x ~ "
+                f"Normal(log sigma_hat, {sigma_prior_scale:g}); {est.describe()}){vel}")
+    sigma_prior = noise.log_sigma_prior(est.sigma, sigma_prior_scale)
+    rho_prior = dist.Normal(noise.RHO_PRIOR_LOC, noise.RHO_PRIOR_SCALE)
     col = 2 * sim.n_joints
+    centre = math.log(est.sigma)
+    lower, upper, priors = [], [], []
+    for k, lab in enumerate(labels):
+        if lab == "rho":
+            lower.append(0.0)  # rho 0.5 .. 0.99 for the initial particles
+            upper.append(math.log(0.99 / 0.01))
+            priors.append((col + k, rho_prior.log_prob))
+        else:
+            lower.append(centre - 1.0)
+            upper.append(centre + 1.0)
+            priors.append((col + k, sigma_prior))
 
     def extra_log_prior(theta):
-        return prior(jnp.asarray(theta)[:, col])
+        theta = jnp.asarray(theta)
+        return sum(f(theta[:, j]) for j, f in priors)
 
-    centre = math.log(est.sigma)
-    settings.update(noise_displacement=None, noise_inferred=True, noise_estimate=est.sigma,
-                    sigma_prior=f"log sigma_x ~ Normal(log {est.sigma:.4g}, {sigma_prior_scale:g})")
-    desc = (f"{noise_name} displacement noise, sigma_x inferred (prior log sigma_x ~ Normal(log "
-            f"sigma_hat, {sigma_prior_scale:g}); {est.describe()}){vel}")
+    settings["noise_prior"] = {
+        lab: (f"logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, {noise.RHO_PRIOR_SCALE:g})"
+              if lab == "rho"
+              else f"log {lab} ~ Normal(log {est.sigma:.4g}, {sigma_prior_scale:g})")
+        for lab in labels
+    }
+    if kind == "ar1":
+        desc += (f"; AR(1) component sigma_c, rho inferred (log sigma_c ~ Normal(log sigma_hat, "
+                 f"{sigma_prior_scale:g}), logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, "
+                 f"{noise.RHO_PRIOR_SCALE:g}))")
     return LikelihoodTerms(
-        loglik, vg, ("sigma_x",), np.array([centre - 1.0]), np.array([centre + 1.0]),
-        extra_log_prior, None, None, settings, desc,
+        loglik, vg, labels, np.array(lower), np.array(upper), extra_log_prior, None, sx,
+        settings, desc,
     )
