@@ -295,3 +295,26 @@ def test_ar1_terms_layout_and_value(setup):
         [math.hypot(0.002, 0.003)] * 2,
         rtol=1e-5,
     )
+
+
+def test_terms_plug_into_combined_value_and_grad(setup):
+    """What make_problem will do: black-box Boltzmann by central differences, generative terms
+    (FD custom_jvp inside) with the autodiff terms; both give the likelihood's own gradient."""
+    from treeinfer.gradients import central_difference, combined_value_and_grad
+
+    _tree, sim, noisy = setup
+    obs = stack_trajectories(noisy)
+    theta = jnp.asarray(_theta_rows(), jnp.float32)
+    b = likelihood_terms(sim, obs, "boltzmann", kT=0.05)
+    assert b.black_box and b.log_prior_terms() == []
+    vg = combined_value_and_grad(fd_terms=[b.log_likelihood], rel_step=1e-2)
+    np.testing.assert_allclose(vg(theta)[1], central_difference(b.log_likelihood, 1e-2)(theta)[1])
+    g = likelihood_terms(sim, obs, "gaussian", rel_step=1e-2)
+    assert not g.black_box and len(g.log_prior_terms()) == 1
+    th3 = jnp.concatenate([theta, jnp.full((2, 1), math.log(0.002))], axis=1)
+    vg = combined_value_and_grad(autodiff_terms=[g.log_likelihood, *g.log_prior_terms()])
+    v, grad = vg(th3)
+    v0, g0 = g.value_and_grad(th3)
+    np.testing.assert_allclose(v, v0 + g.extra_log_prior(th3), rtol=1e-6)
+    gp = jax.grad(lambda t: jnp.sum(g.extra_log_prior(t)))(th3)
+    np.testing.assert_allclose(grad, g0 + gp, rtol=1e-5)

@@ -352,6 +352,17 @@ class LikelihoodTerms(NamedTuple):
     settings: dict
     description: str
 
+    @property
+    def black_box(self) -> bool:
+        """True: ``log_likelihood`` must be differenced (``combined_value_and_grad``'s
+        ``fd_terms``: the Boltzmann loss). False: JAX differentiates it (its simulator is wrapped
+        in :func:`finite_difference_jvp`), so it goes with the ``autodiff_terms``."""
+        return self.settings.get("likelihood") == "boltzmann"
+
+    def log_prior_terms(self) -> list:
+        """The extra columns' prior as a list of terms (empty when there are none)."""
+        return [] if self.extra_log_prior is None else [self.extra_log_prior]
+
 
 def likelihood_terms(
     sim: Simulator,
