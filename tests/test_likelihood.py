@@ -318,3 +318,13 @@ def test_terms_plug_into_combined_value_and_grad(setup):
     np.testing.assert_allclose(v, v0 + g.extra_log_prior(th3), rtol=1e-6)
     gp = jax.grad(lambda t: jnp.sum(g.extra_log_prior(t)))(th3)
     np.testing.assert_allclose(grad, g0 + gp, rtol=1e-5)
+
+
+def test_natural_units():
+    from treeinfer.likelihood import natural_units
+
+    th = np.array([[math.log(40.0), math.log(0.5), math.log(0.002), math.log(9.0)]])
+    got = natural_units(th, ["Kp[a]", "Kd[a]", "sigma_c", "rho"])
+    np.testing.assert_allclose(got, [[40.0, 0.5, 0.002, 0.9]])
+    with pytest.raises(ConfigError, match="labels"):
+        natural_units(th, ["Kp[a]"])

@@ -241,6 +241,21 @@ def noise_params_from_theta(theta, n_joints: int, sigma_x: float | None = None):
     return jnp.full(theta.shape[:1], float(sigma_x), theta.dtype)
 
 
+def natural_units(theta, labels) -> np.ndarray:
+    """theta ``[N, D]`` -> the same columns in natural units for reports: ``exp`` of every column
+    (gains, ``sigma_x``, ``sigma_c``: N m/rad, N m s/rad, m) except ``rho`` (``sigmoid`` of its
+    logit). ``labels``: theta's column labels (gains' labels + :func:`noise_columns`)."""
+    theta = np.atleast_2d(np.asarray(theta, float))
+    labels = list(labels)
+    if len(labels) != theta.shape[-1]:
+        raise ConfigError(f"labels: expected {theta.shape[-1]} names, got {len(labels)}")
+    out = np.exp(theta)
+    for j, lab in enumerate(labels):
+        if lab == "rho":
+            out[:, j] = 1.0 / (1.0 + np.exp(-theta[:, j]))
+    return out
+
+
 def predictive_noise_kind(kind: str) -> str:
     """Distribution of one point's noise for the predictive band: ``student_t`` for student_t,
     ``gaussian`` otherwise (ar1's marginal is Gaussian; Boltzmann runs use the Gaussian with
