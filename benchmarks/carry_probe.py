@@ -7,8 +7,8 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks.rollout import bench_tree
-from treeinfer import hinge_dynamics as hd
-from treeinfer.simulator import make_simulator
+from treeinfer.sim import fused as hd
+from treeinfer.sim import make_simulator
 
 
 def main(batches):

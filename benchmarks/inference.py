@@ -68,10 +68,11 @@ class SimulateCounter:
 def make_standard_problem(tree=None, n_traj: int = 3, n_steps: int = 300, dt: float = 0.01, seed: int = 0,
                           backend: str = "fused"):
     """(problem, theta_true [D]) for ``tree`` (default: the built-in three-branch example)."""
-    from treeinfer.cli import default_true_params
     from treeinfer.forces import profile_set
     from treeinfer.inference import make_problem
-    from treeinfer.simulator import make_simulator, simulate_reference
+    from treeinfer.sim import make_simulator
+    from treeinfer.sim.reference import simulate_reference
+    from treeinfer.synthetic import default_true_params
     from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 
@@ -144,9 +145,8 @@ def standard(args) -> dict:
         "device_memory": C.device_memory_mb(),
     })
     # simulator calls per iteration: trace one step abstractly and count simulate calls in it
-    from treeinfer.inference import make_algorithm
 
-    algorithm = make_algorithm(problem, "nnsvgd")
+    algorithm = problem.sampler("nnsvgd")
     counter = SimulateCounter()
     try:
         state = jax.eval_shape(algorithm.init, jax.random.key(0), jax.ShapeDtypeStruct((args.particles, d), np.float32))
@@ -187,13 +187,13 @@ def step_state(problem, n_particles: int, mesh=None, method: str = "shard_map"):
     import jax
     import jax.numpy as jnp
 
-    from treeinfer.inference import initial_particles, make_algorithm
+    from treeinfer.inference import initial_particles
 
     if mesh is not None:
         from treeinfer import sharding
 
         problem = sharding.shard_problem(problem, mesh, method)
-    algorithm = make_algorithm(problem, "nnsvgd")
+    algorithm = problem.sampler("nnsvgd")
     theta0 = initial_particles(problem, n_particles, seed=0)
     shapes = jax.eval_shape(algorithm.init, jax.random.key(0), theta0)
     state = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)._replace(position=theta0)

@@ -43,8 +43,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _standard_inputs(n_steps: int):
     from benchmarks.inference import EXAMPLES
-    from treeinfer.cli import default_true_params
     from treeinfer.forces import profile_set
+    from treeinfer.synthetic import default_true_params
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml")
@@ -62,7 +62,8 @@ def precision_child(batch: int, n_steps: int, n_check: int, reps: int) -> dict:
     import jax.numpy as jnp
 
     from benchmarks.rollout import sample_gains
-    from treeinfer.simulator import make_simulator, simulate, simulate_reference
+    from treeinfer.sim import make_simulator, simulate
+    from treeinfer.sim.reference import simulate_reference
 
     tree, forces, _, _ = _standard_inputs(n_steps)
     sim = make_simulator(tree, obs_dt=0.01)
@@ -129,7 +130,7 @@ def lever_loops(args) -> dict:
 
     from benchmarks.rollout import sample_gains
     from benchmarks.variants import simulate_variant, with_integrator
-    from treeinfer.simulator import make_simulator, simulate
+    from treeinfer.sim import make_simulator, simulate
 
     tree, forces, _, _ = _standard_inputs(args.steps)
     sim = make_simulator(tree, obs_dt=0.01)
@@ -226,10 +227,11 @@ def lever_profile(args) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from treeinfer import hinge_dynamics as hd
-    from treeinfer.simulator import _mjx, make_simulator
+    from treeinfer.sim import fused as hd
+    from treeinfer.sim import make_simulator
+    from treeinfer.sim.mjx import import_mjx
 
-    mjx = _mjx()
+    mjx = import_mjx()
     tree, _, _, _ = _standard_inputs(args.steps)
     sim = make_simulator(tree, obs_dt=0.01)
     model, t, nv = sim.model, sim.hinge_tree, sim.mj_model.nv
@@ -273,7 +275,7 @@ def rollout_time_child(batch: int, n_steps: int, reps: int) -> dict:
     import jax.numpy as jnp
 
     from benchmarks.rollout import sample_gains
-    from treeinfer.simulator import make_simulator, simulate
+    from treeinfer.sim import make_simulator, simulate
 
     tree, forces, _, _ = _standard_inputs(n_steps)
     sim = make_simulator(tree, obs_dt=0.01)

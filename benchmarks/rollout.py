@@ -104,7 +104,7 @@ def c_pool(sim, m, kp, kd):
     """Models with each pool entry's gains, their settled full-physics states, and C rest points."""
     import mujoco
 
-    from treeinfer.simulator import settle_reference
+    from treeinfer.sim.reference import settle_reference
 
     spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
     models, states, c_rest = [], [], []
@@ -178,7 +178,8 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
     import jax
     import jax.numpy as jnp
 
-    from treeinfer.simulator import make_simulator, settle, simulate, simulate_reference
+    from treeinfer.sim import make_simulator, settle, simulate
+    from treeinfer.sim.reference import simulate_reference
 
     tree = bench_tree(n_branches)
     sim = make_simulator(tree, obs_dt=args.obs_dt, backend=args.backend)

@@ -73,9 +73,10 @@ def main(argv=None) -> int:
 
     import numpy as np
 
-    from treeinfer.cli import default_true_params
     from treeinfer.forces import profile_set
-    from treeinfer.simulator import make_simulator, simulate_reference
+    from treeinfer.sim import make_simulator
+    from treeinfer.sim.reference import simulate_reference
+    from treeinfer.synthetic import default_true_params
     from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 

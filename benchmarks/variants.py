@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from treeinfer.simulator import Rollout, Simulator, simulate
+from treeinfer.sim import Rollout, Simulator, simulate
 
 
 def with_integrator(sim: Simulator, integrator: str) -> Simulator:

@@ -61,21 +61,21 @@ def run(argv=None) -> int:
     t0 = time.perf_counter()
     bar = C.progress_bar(ctx, 2 + len(cfg.samplers))
     C.say(ctx, "simulating ground truth (plain MuJoCo)")
-    data = C.make_data(cfg, seed)
+    data = C.make_data(cfg, seed, ctx.sims)
     bar.update()
 
     problems: dict[bool, object] = {}
     conditions, bands, sets, figures = [], {}, {}, {}
     plot_idx = list(range(min(cfg.n_plot, len(data.test))))
     for sampler in cfg.samplers:
-        nn = sampler == "nnsvgd"  # the baselines use the smoothed box prior alone
+        nn = C.REGISTRY[sampler].nn_prior  # the baselines use the smoothed box prior alone
         if nn not in problems:
             problems[nn] = C.make_problem(cfg, data, nn_prior=nn)
         problem = problems[nn]
         C.say(ctx, f"{sampler}: {cfg.n_particles} particles x {cfg.n_iterations} iterations")
         post = C.posterior(problem, sampler, cfg, seed, ctx.cache, ctx.progress)
         pred, m = C.evaluate(problem, post, data, cfg)
-        name = C.SAMPLER_NAMES[sampler]
+        name = C.SAMPLER_LABELS[sampler]
         conditions.append({"name": name, "sampler": sampler, "nn_prior": nn, "metrics": m, "inference": C.inference_record(post)})
         bands[name] = C.bands_for(pred, data, plot_idx, cfg.level)
         sets[name] = post.theta[np.all(np.isfinite(post.theta), axis=1)]

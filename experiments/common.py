@@ -7,10 +7,10 @@ paper's metrics on unseen test trajectories (:func:`evaluate`), and a results fo
 
 Sim-to-sim protocol (paper, "Sim-to-sim"):
 
-* **Ground truth** comes from plain MuJoCo (C, float64: :func:`treeinfer.simulator.simulate_reference`),
+* **Ground truth** comes from plain MuJoCo (C, float64: :func:`treeinfer.sim.reference.simulate_reference`),
   an execution path independent of the batched MJX simulator (float32) that inference uses; only
   the force-deformation trajectories pass from one to the other. True parameters are drawn by
-  :func:`treeinfer.cli.default_true_params` (log-uniform in the middle third of the prior box,
+  :func:`treeinfer.synthetic.default_true_params` (log-uniform in the middle third of the prior box,
   parent >= child), as ``treeinfer simulate`` does.
 * **Training and test sets** use different force profiles drawn from independent seed streams
   (``numpy.random.SeedSequence(seed).spawn``): the test trajectories are never seen by inference.
@@ -34,7 +34,6 @@ import hashlib
 import importlib.metadata
 import json
 import math
-import platform
 import sys
 import time
 from collections.abc import Sequence
@@ -51,17 +50,18 @@ if str(ROOT) not in sys.path:  # run as `python experiments/<study>.py` from any
 from treeinfer import __version__
 from treeinfer._io import atomic_save, atomic_write_json, atomic_write_text, staged_output_dir
 from treeinfer.errors import ConfigError, OutputExistsError, SimulationError, TreeinferError
+from treeinfer.samplers import REGISTRY, SAMPLER_NAMES, sampler_options
 
 EXAMPLES = ROOT / "treeinfer" / "examples"
 RESULTS = Path(__file__).resolve().parent / "results"
 SIZES = ("tiny", "cpu", "full")
 STUDIES = ("baselines", "nn_prior", "noise", "grasp")
-ALL_SAMPLERS = ("nnsvgd", "svgd", "sghmc", "sgld", "mh")
-SAMPLER_NAMES = {"nnsvgd": "NNSVGD", "svgd": "SVGD", "sghmc": "SGHMC", "sgld": "SGLD", "mh": "MH"}
+ALL_SAMPLERS = SAMPLER_NAMES  # the registry's samplers, in its order
+SAMPLER_LABELS = {name: name.upper() for name in REGISTRY}  # table and figure labels
 
 # Modules whose code decides a posterior; a change to any of them invalidates the posterior cache.
 _POSTERIOR_MODULES = (
-    "inference.py", "likelihood.py", "simulator.py", "priors.py", "gradients.py", "tree.py",
+    "inference.py", "likelihood.py", "sim", "priors.py", "gradients.py", "tree.py",
     "export.py", "trajectories.py", "samplers",
 )
 
@@ -82,7 +82,7 @@ class StudyConfig:
       n_particles, n_iterations: the same for every sampler (paper: "all hyper-parameters ...
         similar across the algorithms").
       samplers: the samplers run (one condition each, except in the noise and grasp studies).
-      sampler_options: per-sampler overrides of :data:`treeinfer.inference.SAMPLER_DEFAULTS`.
+      sampler_options: per-sampler overrides of :data:`treeinfer.samplers.REGISTRY` defaults.
       kT, eta: likelihood temperature and inequality-prior slope (None: the library default).
       noise_levels: relative noise sigma (noise study; see :func:`add_relative_noise`).
       grasp_locations, n_test_per_location: grasp study, test fractions of the branch length.
@@ -212,6 +212,7 @@ class Context(NamedTuple):
     cache: Path | None
     out: Path
     progress: bool
+    sims: Any = None  # the study's treeinfer.runs.SimulatorCache
 
 
 def context_from_args(study: str, args: argparse.Namespace, **overrides) -> Context:
@@ -226,7 +227,9 @@ def context_from_args(study: str, args: argparse.Namespace, **overrides) -> Cont
         cache = default_cache_dir() / "posteriors"
     out = args.out if args.out is not None else RESULTS / study
     check_out(out)
-    return Context(cfg, int(args.seed), cache, Path(out), not args.quiet)
+    from treeinfer.runs import SimulatorCache
+
+    return Context(cfg, int(args.seed), cache, Path(out), not args.quiet, SimulatorCache())
 
 
 def check_out(out: Path) -> None:
@@ -280,24 +283,19 @@ class SyntheticData(NamedTuple):
     test_specs: list
 
     def true_params(self) -> dict:
-        labels = self.tree.parameter_labels()
-        return {
-            "labels": labels,
-            "kp": {n: float(v) for n, v in zip(self.tree.inferred, self.kp)},
-            "kd": {n: float(v) for n, v in zip(self.tree.inferred, self.kd)},
-            "theta_log": [float(v) for v in self.theta],
-            "units": {"kp": "N m/rad", "kd": "N m s/rad", "theta_log": "natural log of kp, kd"},
-        }
+        from treeinfer.trajectories import true_params_record
+
+        return true_params_record(self.tree, self.kp, self.kd, "experiments (default_true_params)")
 
 
-@functools.lru_cache(maxsize=4)
-def _simulator(path: str, dt: float):
-    """One simulator per (tree, dt) in a process: jitted predictions are cached on its identity."""
-    from treeinfer.simulator import make_simulator
+def _simulator(path: str, dt: float, sims=None):
+    """The tree and its simulator from ``sims`` (a :class:`treeinfer.runs.SimulatorCache`, one
+    per study: jitted predictions are cached on the simulator's identity)."""
+    from treeinfer.runs import SimulatorCache
     from treeinfer.tree import load_tree
 
     tree = load_tree(path)
-    return tree, make_simulator(tree, obs_dt=dt)
+    return tree, (SimulatorCache() if sims is None else sims).get(tree, dt)
 
 
 def seed_streams(seed: int) -> dict[str, np.random.Generator]:
@@ -308,7 +306,7 @@ def seed_streams(seed: int) -> dict[str, np.random.Generator]:
 
 def reference_trajectory(sim, kp, kd, force: np.ndarray, dt: float, source: str, grasp_fraction=None):
     """Ground truth of one pull from plain MuJoCo (float64), as a Trajectory."""
-    from treeinfer.simulator import simulate_reference
+    from treeinfer.sim.reference import simulate_reference
     from treeinfer.trajectories import Trajectory, validate_trajectory
 
     tau, tau_dot = simulate_reference(sim, kp, kd, force, grasp_fraction)
@@ -318,15 +316,15 @@ def reference_trajectory(sim, kp, kd, force: np.ndarray, dt: float, source: str,
     return validate_trajectory(Trajectory(t, np.asarray(force, float), tau, tau_dot, source))
 
 
-def make_data(cfg: StudyConfig, seed: int) -> SyntheticData:
+def make_data(cfg: StudyConfig, seed: int, sims=None) -> SyntheticData:
     """Ground truth, training set and unseen test set of ``cfg`` (see the module docstring).
 
     The grasp study's test set is its first ``n_test_per_location`` test profiles pulled at each
     of ``cfg.grasp_locations``; every other study's is ``n_test`` profiles at the tree's grasp."""
-    from treeinfer.cli import default_true_params
     from treeinfer.forces import from_spec, random_specs
+    from treeinfer.synthetic import default_true_params
 
-    tree, sim = _simulator(str(tree_path(cfg.tree)), float(cfg.dt))
+    tree, sim = _simulator(str(tree_path(cfg.tree)), float(cfg.dt), sims)
     rng = seed_streams(seed)
     kp, kd = default_true_params(tree, rng["params"])
     train_specs = random_specs(cfg.profile_kind, cfg.n_train, cfg.duration, cfg.peak_range, rng["train"])
@@ -429,12 +427,11 @@ def _data_digest(problem) -> str:
 
 def posterior_key(problem, sampler: str, n_particles: int, n_iterations: int, seed: int, options: dict) -> tuple[str, dict]:
     """Cache key and its description: everything that determines the sampler's output."""
-    from treeinfer.inference import SAMPLER_DEFAULTS
     from treeinfer.tree import tree_to_dict
 
     desc = {
         "sampler": sampler,
-        "sampler_options": {**SAMPLER_DEFAULTS[sampler], **options},
+        "sampler_options": sampler_options(sampler, **options),
         "n_particles": int(n_particles),
         "n_iterations": int(n_iterations),
         "seed": int(seed),
@@ -513,9 +510,9 @@ class Predictions(NamedTuple):
 def predict_all(problem, theta: np.ndarray, data: SyntheticData) -> Predictions:
     """One batched prediction of ``theta`` on the training and test forces (one compiled shape
     per size: the grasp fraction is always passed per profile)."""
+    from treeinfer.evaluation import rollout_loglik
     from treeinfer.inference import predict
-    from treeinfer.likelihood import trajectory_loss
-    from treeinfer.simulator import Rollout
+    from treeinfer.sim import Rollout
 
     n_train = len(data.train)
     forces = np.stack([t.force for t in data.train + data.test])
@@ -523,8 +520,7 @@ def predict_all(problem, theta: np.ndarray, data: SyntheticData) -> Predictions:
     r = predict(data.sim, theta, forces, grasp_fraction=grasp)
     tau, tau_dot, stable = (np.asarray(a) for a in (r.tau, r.tau_dot, r.stable))
     train = Rollout(tau[:, :n_train], tau_dot[:, :n_train], stable[:, :n_train])
-    loss = np.asarray(trajectory_loss(train, problem.obs), float)
-    ll = np.where(train.stable, -loss / problem.kT, -np.inf)
+    ll = rollout_loglik(train, problem.obs, problem.kT, dtype=float)
     return Predictions(tau[:, :n_train], tau[:, n_train:], stable.all(axis=1), ll)
 
 
@@ -677,20 +673,11 @@ def pair_figure(sets: dict[str, np.ndarray], labels: Sequence[str], truth: np.nd
 
 # ==== results =========================================================================================
 def versions() -> dict:
-    out = {"python": platform.python_version(), "platform": platform.platform(), "treeinfer": __version__}
-    for pkg in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy", "blackjax", "optax"):
-        try:
-            out[pkg] = importlib.metadata.version(pkg)
-        except importlib.metadata.PackageNotFoundError:
-            out[pkg] = None
-    try:
-        import jax
+    from treeinfer.runs import versions as run_versions
 
-        out["jax_backend"] = jax.default_backend()
-        out["jax_devices"] = [str(d) for d in jax.devices()]
-    except Exception:  # recording versions must never fail a study
-        pass
-    return out
+    v = run_versions(extended=True)
+    v["mujoco-mjx"] = v.pop("mujoco_mjx")  # results.json spells it as the distribution does
+    return v
 
 
 def data_record(data: SyntheticData, problem) -> dict:
@@ -704,7 +691,7 @@ def data_record(data: SyntheticData, problem) -> dict:
         "test_grasp_fractions": [float(g) for g in data.test_grasp],
         "n_steps": int(data.train[0].n_steps),
         "dt_s": float(data.train[0].dt),
-        "ground_truth": "plain MuJoCo C (float64), treeinfer.simulator.simulate_reference",
+        "ground_truth": "plain MuJoCo C (float64), treeinfer.sim.reference.simulate_reference",
         "inference_simulator": {"engine": f"{problem.sim.backend} ({np.dtype(problem.sim.dtype).name})", "substeps": problem.sim.substeps, "sim_dt_s": problem.sim.sim_dt},
         "problem": problem.settings,
     }

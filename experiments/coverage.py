@@ -79,10 +79,11 @@ FORCE_LEVEL = 0.02  # force noise std, share of the largest peak force of the da
 
 
 def make_case(tree_name: str, size: dict, seed: int, force_level: float = FORCE_LEVEL):
-    from treeinfer.cli import default_true_params
+    from treeinfer.synthetic import default_true_params
     from treeinfer.examples import example_path
     from treeinfer.forces import from_spec, random_specs
-    from treeinfer.simulator import make_simulator, simulate_reference
+    from treeinfer.sim import make_simulator
+    from treeinfer.sim.reference import simulate_reference
     from treeinfer.trajectories import Trajectory, add_noise
     from treeinfer.tree import load_tree
 
@@ -179,7 +180,7 @@ def crb_log_std(sim, kp, kd, train) -> np.ndarray:
 
     from treeinfer.gradients import central_difference_jacobian
     from treeinfer.likelihood import gains_from_theta
-    from treeinfer.simulator import simulate
+    from treeinfer.sim import simulate
     from treeinfer.trajectories import stack_trajectories
 
     obs = stack_trajectories(train)
@@ -207,7 +208,7 @@ def evaluate(sim, samples, test, n_pred: int, kind: str, sigma_x=None, level: fl
         noise_params_from_theta,
         predictive_noise_kind,
     )
-    from treeinfer.simulator import simulate
+    from treeinfer.sim import simulate
     from treeinfer.trajectories import stack_trajectories
 
     obs = stack_trajectories(test)

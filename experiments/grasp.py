@@ -65,7 +65,7 @@ def run(argv=None) -> int:
     t0 = time.perf_counter()
     bar = C.progress_bar(ctx, 3)
     C.say(ctx, "simulating ground truth at every location (plain MuJoCo)")
-    data = C.make_data(cfg, seed)
+    data = C.make_data(cfg, seed, ctx.sims)
     bar.update()
 
     problem = C.make_problem(cfg, data, nn_prior=True)

@@ -48,19 +48,19 @@ def run(argv=None) -> int:
     t0 = time.perf_counter()
     bar = C.progress_bar(ctx, 2 + len(cfg.samplers))
     C.say(ctx, "simulating ground truth (plain MuJoCo)")
-    data = C.make_data(cfg, seed)
+    data = C.make_data(cfg, seed, ctx.sims)
     bar.update()
 
     conditions, bands, sets = [], {}, {}
     plot_idx = list(range(min(cfg.n_plot, len(data.test))))
     problem = None
     for sampler in cfg.samplers:
-        nn = sampler == "nnsvgd"
+        nn = C.REGISTRY[sampler].nn_prior
         problem = C.make_problem(cfg, data, nn_prior=nn)
         C.say(ctx, f"{sampler}: {cfg.n_particles} particles x {cfg.n_iterations} iterations")
         post = C.posterior(problem, sampler, cfg, seed, ctx.cache, ctx.progress)
         pred, m = C.evaluate(problem, post, data, cfg)
-        name = C.SAMPLER_NAMES[sampler]
+        name = C.SAMPLER_LABELS[sampler]
         conditions.append({"name": name, "sampler": sampler, "nn_prior": nn, "metrics": m, "inference": C.inference_record(post)})
         bands[name] = C.bands_for(pred, data, plot_idx, cfg.level)
         sets[name] = post.theta[np.all(np.isfinite(post.theta), axis=1)]

@@ -65,7 +65,7 @@ def run(argv=None) -> int:
     t0 = time.perf_counter()
     bar = C.progress_bar(ctx, 2 + len(cfg.noise_levels))
     C.say(ctx, "simulating ground truth (plain MuJoCo)")
-    clean = C.make_data(cfg, seed)
+    clean = C.make_data(cfg, seed, ctx.sims)
     bar.update()
 
     conditions, bands = [], {}

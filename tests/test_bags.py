@@ -12,7 +12,8 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from treeinfer.bags import configure_parser, find_pulls, import_bag, run_from_args
+from treeinfer.bags import find_pulls, import_bag
+from treeinfer.cli.import_bag import configure_parser, run_from_args
 from treeinfer.errors import OutputExistsError, TrajectoryFileError
 from treeinfer.trajectories import read_trajectory, read_trajectory_dir
 

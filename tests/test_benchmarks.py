@@ -14,7 +14,8 @@ import pytest
 
 from benchmarks.rollout import CRollout, bench_tree, c_pool, rollout_model, sample_gains
 from treeinfer.inference import make_problem
-from treeinfer.simulator import make_simulator, simulate, simulate_reference
+from treeinfer.sim import make_simulator, simulate
+from treeinfer.sim.reference import simulate_reference
 from treeinfer.trajectories import Trajectory
 
 pytestmark = pytest.mark.benchmark

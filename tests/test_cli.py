@@ -24,6 +24,7 @@ from treeinfer import __version__, cli
 from treeinfer import generators as gen
 from treeinfer.cli import COMMANDS, main
 from treeinfer.forces import from_spec
+from treeinfer.synthetic import default_true_params
 from treeinfer.trajectories import read_trajectory, read_trajectory_dir
 from treeinfer.tree import branch_density, load_tree, tree_to_dict
 from treeinfer.urdf import load_model_file
@@ -241,7 +242,8 @@ def test_tree_refuses_to_overwrite_without_force(capsys, tmp_path):
 # ---- simulate -----------------------------------------------------------------------------------
 def _check_against_reference(folder: Path, tol=1e-5):
     """Every CSV equals a plain-MuJoCo rollout with the recorded true parameters and force."""
-    from treeinfer.simulator import make_simulator, simulate_reference
+    from treeinfer.sim import make_simulator
+    from treeinfer.sim.reference import simulate_reference
 
     tree = load_tree(folder / "tree.yaml")
     tp = json.loads((folder / "true_params.json").read_text())
@@ -427,10 +429,10 @@ def test_default_true_params_order_and_window():
     assert tree.inferred == ("branch2", "branch1", "branch0")  # tip first
     lo, hi = tree.bounds_array()
     for seed in range(5):
-        kp, kd = cli.default_true_params(tree, np.random.default_rng(seed))
+        kp, kd = default_true_params(tree, np.random.default_rng(seed))
         u = np.log(np.concatenate([kp, kd]) / lo) / np.log(hi / lo)
         assert np.all((u >= 1 / 3 - 1e-12) & (u <= 2 / 3 + 1e-12))
         assert np.all(np.diff(u[:3]) >= 0) and np.all(np.diff(u[3:]) >= 0)
-    a = cli.default_true_params(tree, np.random.default_rng(0))
-    b = cli.default_true_params(tree, np.random.default_rng(0))
+    a = default_true_params(tree, np.random.default_rng(0))
+    b = default_true_params(tree, np.random.default_rng(0))
     np.testing.assert_array_equal(np.concatenate(a), np.concatenate(b))

@@ -25,10 +25,12 @@ from treeinfer.cli import COMMANDS, INFER_DEFAULTS, main
 from treeinfer.errors import TrajectoryFileError
 from treeinfer.trajectories import (
     Trajectory,
+    read_force_profile,
     read_trajectory,
     read_trajectory_dir,
     write_trajectory,
 )
+from treeinfer.tree import load_tree
 
 ROOT = Path(__file__).resolve().parents[1]
 TWO = ROOT / "treeinfer" / "examples" / "two_branch.yaml"
@@ -143,7 +145,7 @@ def test_infer_run_folder(run_dir, demo):
     assert runs.load_run(out).sim.backend == "fused"
     mjx_cfg = json.loads(json.dumps(cfg))
     mjx_cfg["problem"]["backend"] = "mjx"
-    assert runs.simulator_for(runs.load_tree(out / "tree.yaml"), mjx_cfg["problem"]["obs_dt"],
+    assert runs.simulator_for(load_tree(out / "tree.yaml"), mjx_cfg["problem"]["obs_dt"],
                               mjx_cfg["problem"]["substeps"], mjx_cfg["problem"]["backend"]).backend == "mjx"
 
     with np.load(out / "trace.npz") as z:
@@ -225,7 +227,7 @@ def _prediction(d: Path) -> tuple[list[str], np.ndarray]:
 
 
 def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
-    from treeinfer.simulator import simulate_reference
+    from treeinfer.sim.reference import simulate_reference
 
     out = run_dir[0]
     test_csv = demo[0] / "data" / "test" / "traj_002.csv"
@@ -286,13 +288,13 @@ def test_read_force_profile_errors(tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("time,newtons\n0,1\n")
     with pytest.raises(TrajectoryFileError, match="line 1.*expected 'time,force'"):
-        runs.read_force_profile(bad)
+        read_force_profile(bad)
     bad.write_text("time,force\n0,1\n0.01,x\n")
     with pytest.raises(TrajectoryFileError, match="line 3"):
-        runs.read_force_profile(bad)
+        read_force_profile(bad)
     bad.write_text("time,force\n0,1\n0.01,2\n0.03,3\n")
     with pytest.raises(TrajectoryFileError, match="uneven time step"):
-        runs.read_force_profile(bad)
+        read_force_profile(bad)
 
 
 # ---- evaluate --------------------------------------------------------------------------------
@@ -391,7 +393,7 @@ def test_infer_too_many_unstable_keeps_the_sampler_state(demo, tmp_path, monkeyp
     calls = []
     stable = np.array([True, True, True, False, False, False, False, False])
     monkeypatch.setattr(inference, "infer", fake_infer)
-    monkeypatch.setattr(runs, "_training_fit", lambda *a: {"stable": stable, "prediction": None, "metrics": None})
+    monkeypatch.setattr(runs.service, "_training_fit", lambda *a: {"stable": stable, "prediction": None, "metrics": None})
     out = tmp_path / "run"
     rc, _, err = run(capsys, "infer", "--tree", TWO, "--data", demo[0] / "data" / "train", "--out", out, *QUICK)
     assert_user_error(rc, err, "62% of", "--max-unstable-share", f"--resume {out}")

@@ -12,10 +12,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from treeinfer import hinge_dynamics as hd
 from treeinfer.examples import example_path
 from treeinfer.export import to_mjmodel
-from treeinfer.simulator import make_simulator
+from treeinfer.sim import fused as hd
+from treeinfer.sim import make_simulator
 from treeinfer.tree import load_tree
 
 # A hand-written model that uses what our exports do not: a welded (joint-less) body, joint

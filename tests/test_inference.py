@@ -11,13 +11,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import treeinfer.inference as inference_module
-from treeinfer import metrics
+from treeinfer import metrics, samplers
 from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
 from treeinfer.inference import infer, make_problem, predict
 from treeinfer.likelihood import gains_from_theta, theta_from_gains
-from treeinfer.simulator import make_simulator, simulate
+from treeinfer.sim import make_simulator, simulate
 from treeinfer.trajectories import Trajectory
 from treeinfer.tree import load_tree
 
@@ -131,4 +130,4 @@ def test_bad_arguments(setup):
         predict(problem, THETA_TRUE[:3], trajs[0].force)
     with pytest.raises(ConfigError, match="positive"):
         theta_from_gains([-1.0, 2.0], [1.0, 1.0])
-    assert inference_module.SAMPLER_DEFAULTS.keys() >= {"nnsvgd", "svgd", "sgld", "sghmc", "mh"}
+    assert samplers.REGISTRY.keys() >= {"nnsvgd", "svgd", "sgld", "sghmc", "mh"}

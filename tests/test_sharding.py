@@ -131,7 +131,8 @@ import json
 import numpy as np, jax, jax.numpy as jnp
 from treeinfer.generators import chain
 from treeinfer.inference import make_problem
-from treeinfer.simulator import make_simulator, simulate_reference
+from treeinfer.sim import make_simulator
+from treeinfer.sim.reference import simulate_reference
 from treeinfer.trajectories import Trajectory
 from treeinfer import sharding as S
 

@@ -9,15 +9,13 @@ import pytest
 
 from treeinfer.errors import ConfigError, SimulationError
 from treeinfer.examples import example_path
-from treeinfer.simulator import (
+from treeinfer.sim import (
     check_stable_share,
     make_simulator,
     settle,
-    settle_reference,
     simulate,
-    simulate_reference,
-    _c_model,
 )
+from treeinfer.sim.reference import _c_model, settle_reference, simulate_reference
 from treeinfer.tree import load_tree
 
 T = 60

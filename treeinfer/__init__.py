@@ -9,13 +9,13 @@ _EXPORTS = {
     "Trajectory": "trajectories", "read_trajectory": "trajectories",
     "read_trajectory_dir": "trajectories", "write_trajectory": "trajectories",
     "stack_trajectories": "trajectories",
-    "make_simulator": "simulator", "simulate": "simulator", "Rollout": "simulator",
+    "make_simulator": "sim", "simulate": "sim", "Rollout": "sim",
     "make_problem": "inference", "infer": "inference", "predict": "inference",
     "Problem": "inference", "Posterior": "inference",
     "example_path": "examples",
 }
 _MODULES = {
-    "tree", "generators", "export", "urdf", "simulator", "likelihood", "priors", "gradients",
+    "tree", "generators", "export", "urdf", "sim", "likelihood", "priors", "gradients",
     "samplers", "inference", "metrics", "plots", "diagnostics", "trajectories", "bags", "forces",
     "errors", "examples", "sharding", "runs",
 }

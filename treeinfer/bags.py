@@ -47,12 +47,10 @@ __all__ = [
     "POSE_TYPES",
     "BagStreams",
     "Pull",
-    "configure_parser",
     "find_pulls",
     "import_bag",
     "read_bag_streams",
     "resample",
-    "run_from_args",
 ]
 
 FORCE_TYPES = ("geometry_msgs/msg/WrenchStamped", "geometry_msgs/msg/Wrench")
@@ -483,69 +481,3 @@ def _triple(text: str) -> tuple[float, float, float]:
     if len(vals) != 3:
         raise argparse.ArgumentTypeError(f"expected three numbers like '0,0,-1', got {text!r}")
     return vals  # type: ignore[return-value]
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``import-bag`` arguments to ``parser`` (a subcommand parser)."""
-    parser.add_argument("bag", help="ROS1 .bag file or ROS2 bag folder")
-    parser.add_argument("--out", required=True, help="output folder for the trajectory CSVs")
-    parser.add_argument("--force-topic", help="WrenchStamped/Wrench topic (auto-detected)")
-    parser.add_argument(
-        "--pose-topic", help="PoseStamped/TransformStamped/TF topic (auto-detected)"
-    )
-    parser.add_argument("--tf-child-frame", help="end-effector frame when the pose comes from /tf")
-    parser.add_argument("--dt", type=float, default=0.01, help="output time step in s (0.01)")
-    parser.add_argument(
-        "--gravity-axis",
-        type=_triple,
-        default=(0.0, 0.0, -1.0),
-        help="gravity direction in the pose frame, e.g. '0,0,-1' (default); write "
-        "--gravity-axis=-1,0,0 when the first number is negative",
-    )
-    parser.add_argument(
-        "--force-axis",
-        type=_triple,
-        default=None,
-        help="gravity direction in the wrench frame (default: --gravity-axis)",
-    )
-    parser.add_argument(
-        "--force-sign",
-        type=int,
-        choices=(1, -1),
-        default=1,
-        help="+1: reading is the force on the branch (default); -1: force on the robot",
-    )
-    parser.add_argument(
-        "--rest-force-threshold",
-        type=float,
-        default=None,
-        help="N; default max(5%% of max |force|, 0.2 N)",
-    )
-    parser.add_argument("--min-pull-duration", type=float, default=0.2, help="s (0.2)")
-    parser.add_argument(
-        "--lead-in", type=float, default=0.25, help="s of rest kept before each pull"
-    )
-    parser.add_argument("--force", action="store_true", help="replace a non-empty output folder")
-    return parser
-
-
-def run_from_args(args: argparse.Namespace) -> list[Path]:
-    """Run ``import-bag`` from parsed arguments; prints and returns the written files."""
-    paths = import_bag(
-        args.bag,
-        args.out,
-        force_topic=args.force_topic,
-        pose_topic=args.pose_topic,
-        dt=args.dt,
-        gravity_axis=args.gravity_axis,
-        rest_force_threshold=args.rest_force_threshold,
-        min_pull_duration=args.min_pull_duration,
-        force=args.force,
-        tf_child_frame=args.tf_child_frame,
-        force_sign=args.force_sign,
-        force_axis=args.force_axis,
-        lead_in=args.lead_in,
-    )
-    for p in paths:
-        print(p)
-    return paths

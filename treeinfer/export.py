@@ -16,11 +16,11 @@ import numpy as np
 
 from .tree import (
     Tree,
+    base_rotation,
     branch_density,
     cylinder_inertia,
     local_offset,
     local_rotation,
-    base_rotation,
     quat_from_matrix,
 )
 

@@ -27,10 +27,10 @@ import numpy as np
 
 from . import samplers as _samplers
 from .errors import ConfigError
-from .gradients import autodiff_value_and_grad, central_difference, combine, mask_nonfinite
+from .gradients import combine, combined_value_and_grad
 from .likelihood import DEFAULT_KT, boltzmann_log_likelihood, check_kT, gains_from_theta
 from .priors import inequality_prior, load_or_train_inequality_network, smoothed_box
-from .simulator import Rollout, Simulator, make_simulator, simulate
+from .sim import Rollout, Simulator, make_simulator, simulate
 from .trajectories import Observations, Trajectory, stack_trajectories
 from .tree import Tree
 
@@ -69,6 +69,14 @@ class Problem:
     @property
     def dim(self) -> int:
         return len(self.labels)
+
+    def sampler(self, name: str = "nnsvgd", **options) -> _samplers.SamplingAlgorithm:
+        """The sampler ``name`` (see :data:`treeinfer.samplers.REGISTRY`) wired to this target,
+        with the registry's default options updated by ``options``."""
+        return _samplers.build_sampler(
+            name, value_and_grad_fn=self.value_and_grad, logdensity_fn=self.log_density,
+            box_width=self.upper - self.lower, **options,
+        )
 
 
 def box_prior(tree: Tree, prior_sigma: float = DEFAULT_PRIOR_SIGMA, prior_space: str = "log"):
@@ -150,15 +158,9 @@ def make_problem(
     if nn is not None:
         prior_terms.append(nn)
     log_prior = combine(*prior_terms)
-    if gradient == "fd":
-        lik_vg = central_difference(loglik, rel_step=rel_step)
-    else:
-        lik_vg = autodiff_value_and_grad(loglik)
-    prior_vg = autodiff_value_and_grad(log_prior)
-
-    def value_and_grad(theta):
-        (a, ga), (b, gb) = lik_vg(theta), prior_vg(theta)
-        return mask_nonfinite(a + b, ga + gb)
+    # the black-box likelihood by central differences (or autodiff, for checks); priors by autodiff
+    black_box, differentiable = ([loglik], [log_prior]) if gradient == "fd" else ([], [loglik, log_prior])
+    value_and_grad = combined_value_and_grad(black_box, differentiable, rel_step=rel_step)
 
     lo, hi = tree.bounds_array()
     settings = dict(
@@ -187,37 +189,6 @@ def check_count(n, what: str, minimum: int = 1) -> int:
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < minimum:
         raise ConfigError(f"{what}: must be an integer >= {minimum}, got {n!r}")
     return int(n)
-
-
-# Per-sampler defaults tuned for theta in log units (a prior box a few units wide).
-SAMPLER_DEFAULTS: dict[str, dict[str, Any]] = {
-    "nnsvgd": {"learning_rate": 0.1},
-    "svgd": {"learning_rate": 0.1},
-    # The paper's gradient baselines: "an Adam optimizer with a small learning rate guides the
-    # descent"; the Langevin noise is kept.
-    "sgld": {"step_size": 1e-4, "learning_rate": 0.05},
-    "sghmc": {"step_size": 1e-4, "learning_rate": 0.05, "alpha": 0.1},
-    "mh": {"proposal_scale": 0.05},  # share of each log-box width
-}
-
-
-def make_algorithm(problem: Problem, sampler: str = "nnsvgd", **options) -> _samplers.SamplingAlgorithm:
-    """A sampler by name, wired to ``problem``'s target, with treeinfer's defaults."""
-    import optax
-
-    name = sampler.lower()
-    if name not in _samplers.SAMPLERS:
-        raise ConfigError(f"sampler: unknown '{sampler}'; choose one of {', '.join(_samplers.SAMPLERS)}")
-    opts = {**SAMPLER_DEFAULTS[name], **options}
-    if name in ("svgd", "nnsvgd"):
-        return _samplers.SAMPLERS[name](problem.value_and_grad, learning_rate=opts["learning_rate"])
-    if name in ("sgld", "sghmc"):
-        kw = {"step_size": opts["step_size"], "optimizer": optax.adam(opts["learning_rate"])}
-        if name == "sghmc":
-            kw["alpha"] = opts["alpha"]
-        return _samplers.SAMPLERS[name](problem.value_and_grad, **kw)
-    scale = opts["proposal_scale"] * (problem.upper - problem.lower)
-    return _samplers.mh(problem.log_density, jnp.asarray(scale))
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,9 +241,10 @@ def infer(
     check_count(n_particles, "n_particles")
     check_count(n_iterations, "n_iterations")
     name = sampler.lower()
-    if name == "nnsvgd" and not problem.nn_prior and problem.tree.inferred_pairs():
-        raise ConfigError("sampler 'nnsvgd' needs a problem built with nn_prior=True")
-    algorithm = make_algorithm(problem, name, **sampler_options)
+    spec = _samplers.sampler_spec(name)
+    if spec.nn_prior and not problem.nn_prior and problem.tree.inferred_pairs():
+        raise ConfigError(f"sampler '{name}' needs a problem built with nn_prior=True")
+    algorithm = problem.sampler(name, **sampler_options)
     theta0 = initial_particles(problem, n_particles, seed) if initial_theta is None else jnp.asarray(initial_theta)
     result = _samplers.run(
         algorithm, jax.random.key(int(seed)), theta0, n_iterations, progress=progress, callback=callback,
@@ -286,7 +258,7 @@ def infer(
     settings = {
         "problem": problem.settings,
         "sampler": name,
-        "sampler_options": {**SAMPLER_DEFAULTS[name], **sampler_options},
+        "sampler_options": _samplers.sampler_options(name, **sampler_options),
         "n_particles": n_particles,
         "n_iterations": n_iterations,
         "seed": int(seed),
@@ -329,8 +301,6 @@ __all__ = [
     "infer",
     "predict",
     "initial_particles",
-    "make_algorithm",
     "box_prior",
     "nn_inequality_prior",
-    "SAMPLER_DEFAULTS",
 ]

@@ -53,7 +53,7 @@ import numpyro.distributions as dist
 from . import noise
 from .errors import ConfigError
 from .gradients import autodiff_value_and_grad, central_difference, finite_difference_jvp
-from .simulator import Rollout, Simulator, simulate
+from .sim import Rollout, Simulator, simulate
 from .trajectories import Observations
 
 DEFAULT_KT = 0.05

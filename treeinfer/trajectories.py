@@ -473,3 +473,174 @@ def add_noise(
         velocity=None,
         source=f"{traj.source}+noise(force={sigma_force:g}N,disp={sigma_displacement:g}m)",
     )
+
+
+# ==== true_params.json: the one reader and writer ================================================
+TRUE_PARAMS_FILE = "true_params.json"
+GAIN_UNITS = {"kp": "N m/rad", "kd": "N m s/rad"}
+
+
+def check_positive_params(values: Sequence[float], labels: Sequence[str], where: str) -> np.ndarray:
+    """``values`` as a float array [len(labels)], each a positive finite number (ConfigError
+    naming ``where`` and the label otherwise)."""
+    from .errors import ConfigError
+
+    if len(values) != len(labels):
+        raise ConfigError(
+            f"{where}: expected {len(labels)} numbers, in the order {', '.join(labels)}; "
+            f"got {len(values)}"
+        )
+    out = np.empty(len(labels))
+    for i, (v, lab) in enumerate(zip(values, labels)):
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}: {lab} must be a number, got {v!r}") from None
+        if not (math.isfinite(f) and f > 0):
+            raise ConfigError(f"{where}: {lab} must be a positive finite number, got {v!r}")
+        out[i] = f
+    return out
+
+
+def read_true_params(tree, path: str | os.PathLike, where: str | None = None) -> np.ndarray:
+    """True parameters [2R] (Kp of each inferred joint of ``tree``, then Kd; natural units) from
+    a JSON file: a ``true_params.json`` (``{"kp": {joint: value}, "kd": {joint: value}}``),
+    ``{"theta_log": [2R natural logs]}`` or a plain list of 2R numbers. ``where`` names the file
+    in error messages (default: its path)."""
+    import json
+
+    from .errors import ConfigError
+
+    labels = tree.parameter_labels()
+    where = str(path) if where is None else where
+    try:
+        d = json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{where}: no such file") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{where}: cannot read: {e}") from None
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"{where}, line {e.lineno}: invalid JSON: {e.msg}") from None
+    if isinstance(d, list):
+        return check_positive_params(d, labels, where)
+    if not isinstance(d, dict):
+        raise ConfigError(
+            f"{where}: expected an object with 'kp' and 'kd' (or 'theta_log'), or a list"
+        )
+    if "kp" in d or "kd" in d:
+        vals = []
+        for key in ("kp", "kd"):
+            m = d.get(key)
+            if not isinstance(m, dict):
+                raise ConfigError(
+                    f"{where}: field '{key}' must map joint names to values, got {m!r}"
+                )
+            missing = [n for n in tree.inferred if n not in m]
+            extra = sorted(set(m) - set(tree.inferred))
+            if missing or extra:
+                raise ConfigError(
+                    f"{where}: field '{key}' must give exactly the inferred joints "
+                    f"{list(tree.inferred)}"
+                    + (f"; missing {missing}" if missing else "")
+                    + (f"; not inferred: {extra}" if extra else "")
+                )
+            vals += [m[n] for n in tree.inferred]
+        return check_positive_params(vals, labels, where)
+    if "theta_log" in d:
+        t = d["theta_log"]
+        if not isinstance(t, list) or len(t) != len(labels):
+            raise ConfigError(
+                f"{where}: field 'theta_log' must be a list of {len(labels)} numbers "
+                f"({', '.join(labels)})"
+            )
+        try:
+            vals = [math.exp(float(x)) for x in t]
+        except (TypeError, ValueError, OverflowError):
+            raise ConfigError(f"{where}: field 'theta_log' must hold numbers, got {t!r}") from None
+        return check_positive_params(vals, labels, where)
+    raise ConfigError(
+        f"{where}: expected fields 'kp' and 'kd' (or 'theta_log'), found {sorted(d)}"
+    )
+
+
+def true_params_record(tree, kp, kd, source: str, log_units: bool = True) -> dict:
+    """The ``true_params.json`` object of gains ``kp``, ``kd`` [R] (natural units)."""
+    units = dict(GAIN_UNITS)
+    if log_units:
+        units["theta_log"] = "natural log of kp, kd"
+    return {
+        "labels": tree.parameter_labels(),
+        "kp": {n: float(v) for n, v in zip(tree.inferred, kp)},
+        "kd": {n: float(v) for n, v in zip(tree.inferred, kd)},
+        "theta_log": [float(math.log(v)) for v in np.concatenate([kp, kd])],
+        "units": units,
+        "source": source,
+    }
+
+
+def write_true_params(path: str | os.PathLike, record: dict) -> Path:
+    """Write a :func:`true_params_record` atomically (JSON)."""
+    from ._io import atomic_write_json
+
+    return atomic_write_json(Path(path), record)
+
+
+# ==== force-profile files (treeinfer predict --force) ==========================================
+class ForceProfile(NamedTuple):
+    """A force profile to predict: ``time [T]`` s, ``force [T]`` N (downward); ``displacement
+    [T]`` m when the file also recorded the response (drawn as ground truth), else None."""
+
+    time: np.ndarray
+    force: np.ndarray
+    displacement: np.ndarray | None
+    source: str
+
+    @property
+    def dt(self) -> float:
+        return float((self.time[-1] - self.time[0]) / (len(self.time) - 1))
+
+
+def read_force_profile(path: str | os.PathLike) -> ForceProfile:
+    """A trajectory CSV (``time,force,displacement[,velocity]``) or a ``time,force`` CSV.
+
+    The two-column form is checked like a trajectory (uniform increasing time in s, forces in N)
+    and errors name the file and line."""
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except OSError as e:
+        raise TrajectoryFileError(f"{path}: cannot read force file ({e.strerror or e})") from None
+    except UnicodeDecodeError as e:
+        raise TrajectoryFileError(f"{path}: not UTF-8 text (byte {e.start})") from None
+    lines = [(n, ln.rstrip("\r")) for n, ln in enumerate(text.split("\n"), start=1)]
+    body = [(n, ln) for n, ln in lines if ln.strip() and not ln.strip().startswith("#")]
+    if not body:
+        raise TrajectoryFileError(f"{path}: file is empty (expected a header 'time,force' or 'time,force,displacement')")
+    header = [c.strip().strip('"').strip("'").lower() for c in body[0][1].split(",")]
+    if "displacement" in header:
+        tr = read_trajectory(path)
+        return ForceProfile(tr.time, tr.force, tr.displacement, path.name)
+    if sorted(header) != ["force", "time"]:
+        raise TrajectoryFileError(
+            f"{path}, line {body[0][0]}: header {header}; expected 'time,force' (a force profile) or "
+            "'time,force,displacement[,velocity]' (a trajectory)"
+        )
+    rows, where_line = [], []
+    for n, ln in body[1:]:
+        cells = ln.split(",")
+        if len(cells) != 2:
+            raise TrajectoryFileError(f"{path}, line {n}: row has {len(cells)} cell(s) but the header has 2 columns")
+        try:
+            vals = [float(c) for c in cells]
+        except ValueError:
+            raise TrajectoryFileError(f"{path}, line {n}: non-numeric value in {ln.strip()!r}") from None
+        if not all(math.isfinite(v) for v in vals):
+            raise TrajectoryFileError(f"{path}, line {n}: NaN/inf not allowed")
+        rows.append(vals)
+        where_line.append(n)
+    if not rows:
+        raise TrajectoryFileError(f"{path}: header only, no data rows")
+    a = np.asarray(rows, float)
+    col = {name: a[:, j] for j, name in enumerate(header)}
+    tr = validate_trajectory(Trajectory(col["time"], col["force"], np.zeros(len(a)), None, str(path)))
+    return ForceProfile(tr.time, tr.force, None, path.name)

@@ -8,13 +8,16 @@ target evaluation per step. Gradient samplers take a batched
 Hastings takes a batched ``logdensity_fn(theta [P, D]) -> [P]``.
 
 :func:`run` drives any of them in jitted ``lax.scan`` chunks with progress,
-tracing, checkpoint callbacks and exact resume; :func:`make_sampler` builds one by name.
+tracing, checkpoint callbacks and exact resume; :data:`REGISTRY` lists every sampler (constructor, default options, target kind, whether it
+needs the NN prior); :func:`build_sampler` builds one by name with treeinfer's options and
+:func:`make_sampler` with raw constructor hyperparameters.
 """
 
 from __future__ import annotations
 
 import inspect
 from collections.abc import Callable
+from typing import NamedTuple
 
 from ..errors import ConfigError
 from ..gradients import LogDensityFn, ValueAndGradFn
@@ -26,7 +29,15 @@ from .sgld import SGLDInfo, SGLDState, sgld
 from .svgd import SVGDInfo, SVGDState, median_length_scale, nnsvgd, stein_direction, svgd
 
 __all__ = [
+    "LOG_DENSITY",
+    "REGISTRY",
     "SAMPLERS",
+    "SAMPLER_NAMES",
+    "VALUE_AND_GRAD",
+    "SamplerSpec",
+    "build_sampler",
+    "sampler_options",
+    "sampler_spec",
     "MHInfo",
     "RWState",
     "RunResult",
@@ -50,14 +61,103 @@ __all__ = [
     "svgd",
 ]
 
-SAMPLERS: dict[str, Callable[..., SamplingAlgorithm]] = {
-    "svgd": svgd,
-    "nnsvgd": nnsvgd,
-    "sgld": sgld,
-    "sghmc": sghmc,
-    "mh": mh,
+VALUE_AND_GRAD = "value_and_grad"
+LOG_DENSITY = "log_density"
+
+
+def _svgd_options(opts: dict, box_width) -> dict:
+    return {"learning_rate": opts["learning_rate"]}
+
+
+def _langevin_options(opts: dict, box_width) -> dict:
+    import optax
+
+    return {"step_size": opts["step_size"], "optimizer": optax.adam(opts["learning_rate"])}
+
+
+def _sghmc_options(opts: dict, box_width) -> dict:
+    return {**_langevin_options(opts, box_width), "alpha": opts["alpha"]}
+
+
+def _mh_options(opts: dict, box_width) -> dict:
+    import jax.numpy as jnp
+
+    # proposal_scale is a share of each (log) prior box width [D]
+    return {"proposal_scale": jnp.asarray(opts["proposal_scale"] * box_width)}
+
+
+class SamplerSpec(NamedTuple):
+    """One entry of :data:`REGISTRY`.
+
+    Attributes:
+      constructor: ``ctor(target_fn, **hyperparameters) -> SamplingAlgorithm``.
+      defaults: treeinfer's options, tuned for theta in log units (a prior box a few units wide).
+      target: :data:`VALUE_AND_GRAD` (batched value and gradient) or :data:`LOG_DENSITY`.
+      nn_prior: whether its target includes the learned parent-stiffer-than-child prior.
+      hyperparameters: ``(options, box_width [D]) -> constructor keywords``.
+      family: ``"svgd"`` (interacting particles) or ``"mcmc"`` (one chain per particle).
+    """
+
+    constructor: Callable[..., SamplingAlgorithm]
+    defaults: dict
+    target: str
+    nn_prior: bool
+    hyperparameters: Callable[[dict, object], dict]
+    family: str
+
+
+REGISTRY: dict[str, SamplerSpec] = {
+    "nnsvgd": SamplerSpec(nnsvgd, {"learning_rate": 0.1}, VALUE_AND_GRAD, True, _svgd_options, "svgd"),
+    "svgd": SamplerSpec(svgd, {"learning_rate": 0.1}, VALUE_AND_GRAD, False, _svgd_options, "svgd"),
+    # The paper's gradient baselines: "an Adam optimizer with a small learning rate guides the
+    # descent"; the Langevin noise is kept.
+    "sgld": SamplerSpec(
+        sgld, {"step_size": 1e-4, "learning_rate": 0.05}, VALUE_AND_GRAD, False, _langevin_options,
+        "mcmc",
+    ),
+    "sghmc": SamplerSpec(
+        sghmc, {"step_size": 1e-4, "learning_rate": 0.05, "alpha": 0.1}, VALUE_AND_GRAD, False,
+        _sghmc_options, "mcmc",
+    ),
+    "mh": SamplerSpec(mh, {"proposal_scale": 0.05}, LOG_DENSITY, False, _mh_options, "mcmc"),
 }
+"""THE sampler registry: every sampler treeinfer offers, by name (CLI order)."""
+
+SAMPLER_NAMES: tuple[str, ...] = tuple(REGISTRY)
+
+SAMPLERS: dict[str, Callable[..., SamplingAlgorithm]] = {n: s.constructor for n, s in REGISTRY.items()}
 """Sampler constructors by name. ``mh`` takes a log-density, the others a value-and-grad function."""
+
+
+def sampler_spec(name: str) -> SamplerSpec:
+    """The registry entry of ``name`` (case-insensitive); ConfigError naming the choices."""
+    key = str(name).lower()
+    if key not in REGISTRY:
+        raise ConfigError(f"sampler: unknown '{name}'; choose one of {', '.join(REGISTRY)}")
+    return REGISTRY[key]
+
+
+def sampler_options(name: str, **overrides) -> dict:
+    """The registry's default options of ``name`` updated with ``overrides``."""
+    return {**sampler_spec(name).defaults, **overrides}
+
+
+def build_sampler(
+    name: str,
+    *,
+    value_and_grad_fn: ValueAndGradFn | None = None,
+    logdensity_fn: LogDensityFn | None = None,
+    box_width=None,
+    **options,
+) -> SamplingAlgorithm:
+    """The sampler ``name`` with treeinfer's options (registry defaults updated by ``options``),
+    wired to the target its registry entry asks for. ``box_width`` [D]: the prior box's width in
+    theta units (MH's proposal scale is a share of it)."""
+    spec = sampler_spec(name)
+    hyper = spec.hyperparameters(sampler_options(name, **options), box_width)
+    return make_sampler(
+        name, value_and_grad_fn=value_and_grad_fn, logdensity_fn=logdensity_fn, **hyper
+    )
 
 
 def make_sampler(

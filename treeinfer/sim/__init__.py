@@ -36,26 +36,17 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import ConfigError, SimulationError, TreeFileError
-from .tree import Tree
-
-def _mjx():
-    """``mujoco.mjx``, imported on first use: the fused backend never needs it, and importing it
-    costs ~1 s. MJX prints 'Failed to import warp' when the optional Warp backend is absent; we
-    use its JAX implementation only, so that line is noise for users."""
-    import contextlib
-    import io
-
-    with contextlib.redirect_stdout(io.StringIO()):
-        from mujoco import mjx
-    return mjx
+from ..errors import ConfigError, SimulationError, TreeFileError
+from ..tree import Tree
+from . import mjx as _mjx_backend
+from .mjx import Backend
 
 BACKENDS = ("auto", "fused", "mjx")
 DEFAULT_MAX_SIM_DT = 0.005  # s: upper bound on the simulation step whatever the prior
@@ -92,7 +83,7 @@ class Simulator:
       obs_dt: s between observations. substeps: simulation steps per observation.
       gravity_dir: [3] unit vector along gravity (the "downward" axis).
       backend: ``"fused"`` (MuJoCo's implicitfast step for hinge trees, fused into a few XLA
-        kernels: :mod:`treeinfer.hinge_dynamics`) or ``"mjx"`` (``mjx.step``).
+        kernels: :mod:`treeinfer.sim.fused`) or ``"mjx"`` (``mjx.step``).
       hinge_tree: the fused backend's static model (None for ``"mjx"``).
     """
 
@@ -113,13 +104,12 @@ class Simulator:
     settle_tolerance: float = 1e-3
     backend: str = "mjx"
     hinge_tree: object = None
-    extra: dict = field(default_factory=dict)
 
     @functools.cached_property
     def model(self):
         # eager even when first touched inside a jit trace: the cached arrays must be concrete
         with jax.ensure_compile_time_eval():
-            return _mjx().put_model(self.mj_model)
+            return _mjx_backend.put_model(self.mj_model)
 
     @property
     def dtype(self):
@@ -195,7 +185,7 @@ def make_simulator(
     """
     import mujoco
 
-    from .export import GRASP_SITE, to_mjmodel
+    from ..export import GRASP_SITE, to_mjmodel
 
     if not (isinstance(obs_dt, (int, float)) and math.isfinite(obs_dt) and obs_dt > 0):
         raise ConfigError(f"obs_dt: must be a positive number of seconds, got {obs_dt!r}")
@@ -234,7 +224,7 @@ def make_simulator(
     gdir = g / np.linalg.norm(g)
     hinge_tree = None
     if backend in ("auto", "fused"):
-        from .hinge_dynamics import UnsupportedModel, from_mjmodel
+        from .fused import UnsupportedModel, from_mjmodel
 
         try:
             hinge_tree = from_mjmodel(mj_model)
@@ -264,7 +254,7 @@ def _prepare_user_model(model_file, tree: Tree):
     """Load a user's own MJCF or URDF and add the grasp site and contact-free options."""
     import mujoco
 
-    from .export import GRASP_SITE
+    from ..export import GRASP_SITE
 
     try:
         spec = mujoco.MjSpec.from_file(str(model_file))
@@ -286,113 +276,15 @@ def _prepare_user_model(model_file, tree: Tree):
 
 
 # ---- the batched rollout ----------------------------------------------------------------------
-def with_gains(sim: Simulator, kp: jax.Array, kd: jax.Array):
-    """MJX model with the inferred joints' stiffness ``kp`` [R] and damping ``kd`` [R]."""
-    m = sim.model
-    return m.replace(
-        jnt_stiffness=m.jnt_stiffness.at[sim.joint_ids].set(kp.astype(m.jnt_stiffness.dtype)),
-        dof_damping=m.dof_damping.at[sim.dof_ids].set(kd.astype(m.dof_damping.dtype)),
-    )
-
-
-def _static_torque(model, data, qpos):
-    """Net joint torque at rest [nv]: spring ``-Kp (q - q_spring)`` minus gravity.
-
-    Gravity's joint torque is the recursive Newton-Euler bias at zero velocity (kinematics,
-    com_pos, rne): a third of what a full forward pass traces, which keeps MJX's compile short.
-    Hinge joints only (checked in :func:`make_simulator`), so ``nq == nv``."""
-    mjx = _mjx()
-
-    d = data.replace(qpos=qpos, qvel=jnp.zeros_like(data.qvel))
-    d = mjx.rne(model, mjx.com_pos(model, mjx.kinematics(model, d)))
-    spring = -model.jnt_stiffness[model.dof_jntid] * (qpos - model.qpos_spring)
-    return spring - d.qfrc_bias
-
-
-def settle_one(sim: Simulator, model) -> tuple[jax.Array, jax.Array]:
-    """Gravity-settled joint angles [nq] of one model and whether the solve converged.
-
-    Newton's method with a central-difference Jacobian of the static torque: the nv + 1
-    residuals per iteration run as one vmapped evaluation, which compiles several times faster
-    than ``jax.jacfwd`` through MJX and converges to the same point (the residual, not the
-    Jacobian, decides where Newton stops)."""
-    mjx = _mjx()
-
-    data = mjx.make_data(model)
-    nq = sim.mj_model.nq
-    q0 = jnp.zeros(nq, dtype=data.qpos.dtype)
-    f = jax.vmap(lambda q: _static_torque(model, data, q))
-    eps = jnp.asarray(1e-3, q0.dtype)
-    probes = jnp.concatenate([jnp.zeros((1, nq), q0.dtype), eps * jnp.eye(nq, dtype=q0.dtype), -eps * jnp.eye(nq, dtype=q0.dtype)])
-
-    def newton(carry, i):
-        q, r_first, _ = carry
-        r = f(q[None] + probes)
-        jac = ((r[1 : nq + 1] - r[nq + 1 :]) / (2 * eps)).T
-        dq = jnp.clip(-jnp.linalg.solve(jac, r[0]), -0.2, 0.2)  # clipped: robust far from the root
-        r_first = jnp.where(i == 0, r[0], r_first)
-        return (q + dq, r_first, r[0]), None
-
-    zero = jnp.zeros(sim.mj_model.nv, q0.dtype)
-    # One traced residual (inside the scan): MJX compiles slowly, so nothing is traced twice.
-    (q, r_first, r_last), _ = jax.lax.scan(newton, (q0, zero, zero), jnp.arange(sim.settle_iterations))
-    scale = 1.0 + jnp.max(jnp.abs(r_first))
-    ok = jnp.all(jnp.isfinite(q)) & (jnp.max(jnp.abs(r_last)) <= sim.settle_tolerance * scale)
-    return q, ok
-
-
 def velocity(tau: jax.Array, dt: float) -> jax.Array:
     """d tau / dt along the last axis: second-order central differences inside, second-order
     one-sided at both ends (``numpy.gradient(..., edge_order=2)``)."""
-    from .trajectories import velocity_from_displacement
+    from ..trajectories import velocity_from_displacement
 
     return velocity_from_displacement(tau, dt)
 
 
-def _pull_one(sim: Simulator, model, qpos_rest, forces, site_local, unroll_outer: int = 1, unroll_inner=1):
-    """One rollout: displacement [T] of C under ``forces`` [T] (N, downward), and a stable flag.
-
-    ``unroll_outer``/``unroll_inner`` unroll the observation scan and the substep loop (speed
-    levers measured in ``benchmarks/levers.py``; the defaults keep both loops rolled)."""
-    mjx = _mjx()
-
-    sid, bid = sim.grasp_site, sim.grasp_body
-    model = model.replace(site_pos=model.site_pos.at[sid].set(site_local))
-    gdir = jnp.asarray(sim.gravity_dir, dtype=model.site_pos.dtype)
-    data = mjx.make_data(model).replace(qpos=qpos_rest)
-    data = mjx.kinematics(model, data)
-    data = mjx.com_pos(model, data)
-    c_rest = data.site_xpos[sid]
-    nbody = sim.mj_model.nbody
-
-    def push(d, f):
-        force = f * gdir
-        lever = d.site_xpos[sid] - d.xipos[bid]
-        wrench = jnp.concatenate([force, jnp.cross(lever, force)])
-        return d.replace(xfrc_applied=jnp.zeros((nbody, 6), force.dtype).at[bid].set(wrench))
-
-    def observe(carry, f):
-        d, ok = carry
-
-        def sub(k, dc):
-            dd, c = dc
-            dd = mjx.step(model, push(dd, f))
-            # after the first substep, site_xpos holds C at the start of this interval
-            return dd, jnp.where(k == 0, dd.site_xpos[sid], c)
-
-        # one traced mjx.step per rollout (MJX compiles slowly; a split first step doubles it)
-        inner = {} if unroll_inner == 1 else {"unroll": unroll_inner}
-        d, c = jax.lax.fori_loop(0, sim.substeps, sub, (d, c_rest), **inner)
-        ok = ok & jnp.all(jnp.isfinite(d.qpos)) & jnp.all(jnp.abs(d.qvel) < sim.max_joint_speed)
-        return (d, ok), c
-
-    (_, ok), cs = jax.lax.scan(observe, (data, jnp.bool_(True)), forces.astype(gdir.dtype), unroll=unroll_outer)
-    tau = (cs - c_rest) @ gdir
-    ok = ok & jnp.all(jnp.isfinite(tau)) & jnp.all(jnp.abs(tau) < sim.max_displacement)
-    return tau, ok
-
-
-# ---- the fused backend (treeinfer.hinge_dynamics) ------------------------------------------------
+# ---- the fused backend (treeinfer.sim.fused) ------------------------------------------------
 def _fused_gains(sim: Simulator, kp: jax.Array, kd: jax.Array):
     """Per-dof stiffness, damping and spring reference as elements: the inferred joints' from
     ``kp``/``kd`` [R], the others as Python constants (so they fold into the compiled step)."""
@@ -407,9 +299,9 @@ def _fused_gains(sim: Simulator, kp: jax.Array, kd: jax.Array):
 
 
 def _fused_settle_one(sim: Simulator, kp, kd, dtype):
-    """:func:`settle_one` for the fused backend: the same clipped Newton iteration and
+    """:func:`treeinfer.sim.mjx.settle_one` for the fused backend: the same clipped Newton iteration and
     convergence test, with the exact Jacobian by forward-mode autodiff (cheap here)."""
-    from . import hinge_dynamics as hd
+    from . import fused as hd
 
     stiffness, _, spring = _fused_gains(sim, kp, kd)
     torque = lambda q: hd.static_torque(sim.hinge_tree, q, stiffness, spring)
@@ -428,9 +320,20 @@ def _fused_settle_one(sim: Simulator, kp, kd, dtype):
     return q, ok
 
 
+def _fused_prepare(sim: Simulator, kp, kd, dtype):
+    kp, kd = kp.astype(dtype), kd.astype(dtype)
+    qpos_rest, settled = _fused_settle_one(sim, kp, kd, dtype)
+    return (kp, kd), qpos_rest, settled
+
+
+def _fused_pull(sim: Simulator, gains, qpos_rest, forces, site_local, unroll_outer=1, unroll_inner=1):
+    kp, kd = gains
+    return _fused_pull_one(sim, kp, kd, qpos_rest, forces, site_local, unroll_outer, unroll_inner)
+
+
 def _fused_pull_one(sim: Simulator, kp, kd, qpos_rest, forces, site_local, unroll_outer: int = 1, unroll_inner=1):
-    """:func:`_pull_one` for the fused backend: same timing, force and observation."""
-    from . import hinge_dynamics as hd
+    """:func:`treeinfer.sim.mjx.pull_one` for the fused backend: same timing, force and observation."""
+    from . import fused as hd
 
     t = sim.hinge_tree
     stiffness, damping, spring = _fused_gains(sim, kp, kd)
@@ -468,6 +371,16 @@ def _fused_pull_one(sim: Simulator, kp, kd, qpos_rest, forces, site_local, unrol
     return tau, ok
 
 
+FUSED = Backend("fused", _fused_prepare, _fused_pull)
+_BACKENDS = {"fused": FUSED, "mjx": _mjx_backend.BACKEND}
+
+
+def backend_of(sim: Simulator) -> Backend:
+    """THE backend switch: the :class:`~treeinfer.sim.mjx.Backend` (``prepare``, ``pull``) that
+    steps ``sim`` (``sim.backend``: ``"fused"`` or ``"mjx"``, resolved by :func:`make_simulator`)."""
+    return _BACKENDS[sim.backend]
+
+
 def simulate(
     sim: Simulator, kp: jax.Array, kd: jax.Array, forces: jax.Array, grasp_fraction=None,
     unroll_outer: int = 1, unroll_inner=1,
@@ -500,16 +413,11 @@ def simulate(
         site_local = sim.grasp_point(frac)
 
     dtype = sim.dtype
+    impl = backend_of(sim)
 
     def per_params(kp_i, kd_i):
-        if sim.backend == "fused":
-            kp_i, kd_i = kp_i.astype(dtype), kd_i.astype(dtype)
-            qpos_rest, settled = _fused_settle_one(sim, kp_i, kd_i, dtype)
-            pull = lambda f, s: _fused_pull_one(sim, kp_i, kd_i, qpos_rest, f, s, unroll_outer, unroll_inner)
-        else:
-            model = with_gains(sim, kp_i, kd_i)
-            qpos_rest, settled = settle_one(sim, model)
-            pull = lambda f, s: _pull_one(sim, model, qpos_rest, f, s, unroll_outer, unroll_inner)
+        state, qpos_rest, settled = impl.prepare(sim, kp_i, kd_i, dtype)
+        pull = lambda f, s: impl.pull(sim, state, qpos_rest, f, s, unroll_outer, unroll_inner)
         tau, ok = jax.vmap(pull)(forces, site_local)
         return tau, ok & settled
 
@@ -521,80 +429,10 @@ def simulate(
 
 def settle(sim: Simulator, kp: jax.Array, kd: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Settled joint angles [P, nq] and convergence flags [P] for P parameter sets."""
-    if sim.backend == "fused":
-        dtype = sim.dtype
-        return jax.vmap(lambda a, b: _fused_settle_one(sim, a.astype(dtype), b.astype(dtype), dtype))(
-            jnp.atleast_2d(kp), jnp.atleast_2d(kd)
-        )
-    return jax.vmap(lambda a, b: settle_one(sim, with_gains(sim, a, b)))(jnp.atleast_2d(kp), jnp.atleast_2d(kd))
-
-
-# ---- reference path: plain MuJoCo C ------------------------------------------------------------
-def _c_model(sim: Simulator, kp, kd, grasp_fraction=None):
-    import copy
-
-    m = copy.deepcopy(sim.mj_model)
-    for j, d, a, b in zip(sim.joint_ids, sim.dof_ids, np.asarray(kp, float), np.asarray(kd, float)):
-        m.jnt_stiffness[j] = a
-        m.dof_damping[d] = b
-    if grasp_fraction is not None:
-        m.site_pos[sim.grasp_site] = sim.grasp_start + float(grasp_fraction) * (sim.grasp_end - sim.grasp_start)
-    return m
-
-
-def settle_reference(m, iterations: int = 50, tol: float = 1e-10) -> np.ndarray:
-    """Static equilibrium of a MuJoCo C model by Newton's method with a finite-difference
-    Jacobian (float64), the C twin of :func:`settle_one`."""
-    import mujoco
-
-    d = mujoco.MjData(m)
-
-    def torque(q):
-        d.qpos[:] = q
-        d.qvel[:] = 0
-        mujoco.mj_forward(m, d)
-        return d.qfrc_passive - d.qfrc_bias
-
-    q = np.zeros(m.nq)
-    for _ in range(iterations):
-        r = torque(q)
-        if np.max(np.abs(r)) < tol:
-            break
-        jac = np.zeros((m.nv, m.nq))
-        for k in range(m.nq):
-            e = np.zeros(m.nq)
-            e[k] = 1e-6
-            jac[:, k] = (torque(q + e) - torque(q - e)) / 2e-6
-        q = q + np.clip(-np.linalg.solve(jac, r), -0.2, 0.2)
-    return q
-
-
-def simulate_reference(sim: Simulator, kp, kd, force, grasp_fraction=None) -> tuple[np.ndarray, np.ndarray]:
-    """One rollout in plain MuJoCo (``mujoco.mj_step``, float64): tau [T], tau_dot [T].
-
-    Same settle, force application and observation timing as :func:`simulate`; used as the
-    independent reference in tests and as the naive baseline in benchmarks."""
-    import mujoco
-
-    m = _c_model(sim, kp, kd, grasp_fraction)
-    d = mujoco.MjData(m)
-    d.qpos[:] = settle_reference(m)
-    mujoco.mj_forward(m, d)
-    sid, bid = sim.grasp_site, sim.grasp_body
-    c_rest = d.site_xpos[sid].copy()
-    out = []
-    for f in np.asarray(force, float):
-        for k in range(sim.substeps):
-            fv = f * sim.gravity_dir
-            d.xfrc_applied[:] = 0
-            d.xfrc_applied[bid, :3] = fv
-            d.xfrc_applied[bid, 3:] = np.cross(d.site_xpos[sid] - d.xipos[bid], fv)
-            mujoco.mj_step(m, d)
-            if k == 0:
-                out.append(d.site_xpos[sid].copy())
-    tau = (np.asarray(out) - c_rest) @ sim.gravity_dir
-    tau_dot = np.asarray(velocity(jnp.asarray(tau), sim.obs_dt))
-    return tau, tau_dot
+    impl, dtype = backend_of(sim), sim.dtype
+    return jax.vmap(lambda a, b: impl.prepare(sim, a, b, dtype)[1:])(
+        jnp.atleast_2d(kp), jnp.atleast_2d(kd)
+    )
 
 
 def check_stable_share(stable, max_unstable_share: float, what: str = "particles") -> None:

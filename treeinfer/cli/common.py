@@ -1,0 +1,246 @@
+"""What every command shares: exit codes, the parser layout (``add_command_parser``), argparse
+types, and the printers of posteriors and metrics.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import textwrap
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import treeinfer
+
+from ..errors import ConfigError, OutputExistsError
+
+EXIT_OK = 0
+EXIT_USER_ERROR = 2
+EXIT_INTERNAL_ERROR = 3
+EXIT_INTERRUPTED = 130  # the shell's convention for SIGINT (128 + 2)
+
+_WIDTH = 88  # help text width
+TREE_SUFFIXES = (".yaml", ".yml", ".json")
+
+# One line per command for `treeinfer --help` (here, so that it needs no command module).
+COMMAND_HELP: dict[str, str] = {
+    "tree": "write a tree description (and MJCF/URDF models) from a generator or a tree file",
+    "simulate": "simulate synthetic force-deformation trajectories with known parameters",
+    "import-bag": "cut a ROS1/ROS2 bag of wrench and pose messages into trajectory CSVs",
+    "infer": "infer the posterior of the joints' Kp/Kd from training trajectories",
+    "predict": "predict the displacement under a force profile, with a 95%% posterior band",
+    "evaluate": "held-out metrics of a run (or k-fold cross-validation with its settings)",
+    "demo": "end-to-end example on the built-in 2-branch tree (synthetic data, NNSVGD, metrics)",
+}
+
+
+# ---- shared helpers ---------------------------------------------------------------------------
+_COMMON = argparse.ArgumentParser(add_help=False)
+# SUPPRESS: a subcommand's --debug must not reset a global `treeinfer --debug ...` to False.
+_COMMON.add_argument(
+    "--debug", action="store_true", default=argparse.SUPPRESS, help="show full tracebacks on errors"
+)
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Keep the description/epilog layout and show defaults (where they are not None)."""
+
+    def _get_help_string(self, action):
+        d = action.default
+        if d is None or d is False or d is argparse.SUPPRESS or "%(default)" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
+def add_command_parser(
+    subparsers, name: str, help: str, description: str, epilog: str
+) -> argparse.ArgumentParser:
+    """A subcommand parser with the shared options (``--debug``) and help layout."""
+    return subparsers.add_parser(
+        name,
+        help=help,
+        description=textwrap.fill(description, width=_WIDTH),
+        epilog=epilog,
+        parents=[_COMMON],
+        formatter_class=_Formatter,
+    )
+
+
+def _floats(text: str) -> list[float]:
+    """argparse type: comma-separated numbers, e.g. ``0.5,0.4``."""
+    parts = [p for p in text.replace(" ", ",").split(",") if p]
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated numbers like '1.0,2.5', got {text!r}"
+        ) from None
+    if not vals:
+        raise argparse.ArgumentTypeError(f"expected at least one number, got {text!r}")
+    if not all(math.isfinite(v) for v in vals):
+        raise argparse.ArgumentTypeError(f"numbers must be finite, got {text!r}")
+    return vals
+
+
+def _pair(text: str) -> tuple[float, float]:
+    """argparse type: two comma-separated numbers ``LO,HI``."""
+    vals = _floats(text)
+    if len(vals) != 2:
+        raise argparse.ArgumentTypeError(f"expected two numbers LO,HI, got {text!r}")
+    return (vals[0], vals[1])
+
+
+def _triple(text: str) -> tuple[float, float, float]:
+    vals = _floats(text)
+    if len(vals) != 3:
+        raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z, got {text!r}")
+    return (vals[0], vals[1], vals[2])
+
+
+def _refuse_existing(paths: Sequence[Path], force: bool) -> None:
+    for p in paths:
+        if p.exists() and p.is_dir():
+            raise OutputExistsError(f"{p}: is a folder, expected a file name")
+        if p.exists() and not force:
+            raise OutputExistsError(
+                f"{p}: file exists; choose another name or pass --force to replace it"
+            )
+
+
+def _prepare_jax() -> None:
+    """Persistent XLA cache: a second run with the same shapes skips compiling (MJX takes a minute)."""
+    treeinfer.enable_compilation_cache()
+
+
+def _say(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# ---- shared printers and checks ---------------------------------------------------------------
+def _fmt_params(tree, kp, kd) -> str:
+    return ", ".join(
+        f"{lab}={v:.4g}" for lab, v in zip(tree.parameter_labels(), np.concatenate([kp, kd]))
+    )
+
+
+def _check_share(s) -> None:
+    if s is not None and not (math.isfinite(s) and 0.0 <= s <= 1.0):
+        raise ConfigError(f"--max-unstable-share: must be a fraction in [0, 1], got {s:g}")
+
+
+def _fmt_gain(v: float) -> str:
+    return "nan" if not math.isfinite(v) else f"{v:.4g}"
+
+
+def _print_posterior(summary: dict) -> None:
+    table = summary["posterior"]
+    n_unst = summary["n_unstable"]
+    print(
+        f"posterior ({summary['n_particles']} particles, {n_unst} unstable, excluded): mean and 95% interval"
+    )
+    width = max(len(k) for k in table)
+    for lab, s in table.items():
+        print(
+            f"  {lab:<{width}}  {_fmt_gain(s['mean']):>9} {s['unit']:<10} [{_fmt_gain(s['lower'])}, {_fmt_gain(s['upper'])}]"
+        )
+
+
+def _print_fit(m: dict | None, what: str) -> None:
+    if not m:
+        return
+    print(
+        f"{what}: 95% band {1000 * m['ci_width']:.3g} mm wide on average, {m['pct_outside']:.1f}% of "
+        f"points outside it, predictive NLL {m['predictive_nll_per_point']:.3g} nats/point"
+    )
+
+
+def _print_warnings(warns: Sequence[str]) -> None:
+    if warns:
+        print("convergence warnings:")
+        for w in warns:
+            print(f"  - {w}")
+    else:
+        print("convergence: no warnings")
+
+
+def _check_grasp(g) -> None:
+    if g is not None and not (math.isfinite(g) and 0.0 < g <= 1.0):
+        raise ConfigError(
+            f"--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got {g:g}"
+        )
+
+
+def _base_config(command: str, args: argparse.Namespace) -> dict[str, Any]:
+    from ..runs import versions  # here, not at the top: `treeinfer --help` must not load JAX
+
+    options = {
+        k: (str(v) if isinstance(v, Path) else v)
+        for k, v in vars(args).items()
+        if not k.startswith("_")
+    }
+    options.pop("debug", None)
+    return {
+        "command": command,
+        "versions": versions(),
+        "options": options,
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+
+
+def _metrics_rows(m: dict) -> list[tuple[str, str]]:
+    rows = [
+        ("95% band width", f"{1000 * m['ci_width']:.4g} mm"),
+        ("ground truth outside the band", f"{m['pct_outside']:.2f} %"),
+        (
+            "predictive NLL",
+            f"{m['predictive_nll_per_point']:.4g} nats/point ({m['n_points']} points)",
+        ),
+    ]
+    if m.get("posterior_nll") is not None:
+        rows.append(("posterior NLL", f"{m['posterior_nll']:.4g} nats"))
+    rows.append(("particles used", f"{m['n_valid_particles']} of {m['n_particles']}"))
+    return rows
+
+
+def _metrics_md(title: str, m: dict) -> list[str]:
+    out = [f"## {title}", "", "| metric | value |", "|---|---|"]
+    out += [f"| {a} | {b} |" for a, b in _metrics_rows(m)]
+    if m.get("per_trajectory"):
+        out += ["", "| trajectory | band width [mm] | outside [%] |", "|---|---|---|"]
+        out += [
+            f"| {t['name']} | {1000 * t['ci_width']:.4g} | {t['pct_outside']:.2f} |"
+            for t in m["per_trajectory"]
+        ]
+    if m.get("parameters"):
+        out += [
+            "",
+            "| parameter | truth | posterior exp(mean log) | 95% interval | truth inside |",
+            "|---|---|---|---|---|",
+        ]
+        for lab, p in m["parameters"].items():
+            out.append(
+                f"| {lab} | {math.exp(p['truth']):.4g} | {math.exp(p['mean']):.4g} | "
+                f"[{math.exp(p['lower']):.4g}, {math.exp(p['upper']):.4g}] | {'yes' if p['in_interval'] else 'no'} |"
+            )
+    return out + [""]
+
+
+def _print_metrics(m: dict, what: str) -> None:
+    print(f"{what}:")
+    for a, b in _metrics_rows(m):
+        print(f"  {a}: {b}")
+    if m.get("parameters"):
+        inside = sum(p["in_interval"] for p in m["parameters"].values())
+        print(
+            f"  true parameters inside their 95% interval: {inside} of {len(m['parameters'])}"
+            + (
+                ""
+                if m.get("truth_in_joint_region") is None
+                else f"; inside the joint 95% region: {'yes' if m['truth_in_joint_region'] else 'no'}"
+            )
+        )

@@ -1,0 +1,213 @@
+"""``treeinfer demo``: the whole pipeline on the built-in example (simulate, infer, evaluate)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__, runs
+from .._io import check_output_dir, staged_output_dir
+from ..errors import ConfigError, SimulationError
+from ..evaluation import band_arrays, evaluate_trajectories, write_evaluation
+from ..forces import DEFAULT_PEAK_RANGE, from_spec, random_specs
+from ..synthetic import default_true_params, simulate_batch, synthetic_trajectories
+from ..trajectories import TRUE_PARAMS_FILE, true_params_record, write_trajectory, write_true_params
+from ..tree import dump_tree, load_tree
+from .common import (
+    COMMAND_HELP,
+    EXIT_OK,
+    _base_config,
+    _fmt_params,
+    _metrics_md,
+    _prepare_jax,
+    _print_metrics,
+    _print_posterior,
+    _print_warnings,
+    _say,
+    add_command_parser,
+)
+from .infer import INFER_DEFAULTS
+
+# ==== demo ========================================================================================
+_DEMO_EPILOG = """\
+examples:
+  treeinfer demo                       # a few minutes on a laptop CPU
+  treeinfer demo --out my-demo --seed 2
+  treeinfer demo --quick               # tiny sizes: checks the installation in about a minute
+
+Writes DIR/data/train and DIR/data/test (synthetic trajectories with true_params.json, as
+`treeinfer simulate` writes), DIR/run (the run folder of `treeinfer infer`), DIR/evaluation (as
+`treeinfer evaluate` writes, on the unseen test trajectories) and DIR/demo.json.
+"""
+
+
+def configure_demo(subparsers) -> argparse.ArgumentParser:
+    p = add_command_parser(
+        subparsers,
+        "demo",
+        help=COMMAND_HELP["demo"],
+        description="Simulate training and unseen test pulls of the built-in two-branch tree with "
+        "known stiffness and damping, infer the posterior with NNSVGD, predict the unseen pulls with "
+        "95% bands and print how well the bands cover them and how close the posterior is to the truth.",
+        epilog=_DEMO_EPILOG,
+    )
+    p.add_argument(
+        "--out", type=Path, default=Path("treeinfer-demo"), metavar="DIR", help="output folder"
+    )
+    p.add_argument(
+        "--quick", action="store_true", help="tiny sizes (seconds of sampling; for tests)"
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the true parameters, the profiles and the sampler",
+    )
+    p.add_argument(
+        "--force", action="store_true", help="replace the contents of a non-empty output folder"
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def _write_synthetic(
+    out: Path, tree, trajs, specs, true_params: dict, force: bool, what: str
+) -> None:
+    with staged_output_dir(out, force) as stage:
+        for tr, spec in zip(trajs, specs):
+            write_trajectory(
+                stage / tr.source, tr, [f"treeinfer {__version__} demo: {what}", f"profile: {spec}"]
+            )
+        dump_tree(tree, stage / "tree.yaml")
+        write_true_params(stage / TRUE_PARAMS_FILE, true_params)
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    # Sizes: the whole demo should take about a minute on a 2-core laptop CPU (tune here).
+    n_train, n_test = 3, 3  # trajectories (training, unseen test)
+    duration, dt = 2.0, 0.02  # s
+    particles, iterations = 32, 300
+    sampler = "nnsvgd"
+    checkpoint_every = 25
+    if args.quick:  # tiny: for tests and a first check of an installation
+        n_train, n_test, duration, particles, iterations, checkpoint_every = 2, 2, 0.8, 8, 3, 0
+
+    if args.seed < 0:
+        raise ConfigError(f"--seed: must be >= 0, got {args.seed}")
+    out: Path = args.out
+    check_output_dir(out, args.force, "demo")
+    _prepare_jax()
+    tree_file = Path(__file__).resolve().parents[1] / "examples" / "two_branch.yaml"
+    tree = load_tree(tree_file)
+    rng_params, rng_profiles = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(args.seed).spawn(2)
+    )
+    kp, kd = default_true_params(tree, rng_params)
+    specs = random_specs("mixed", n_train + n_test, duration, DEFAULT_PEAK_RANGE, rng_profiles)
+    forces = np.stack([from_spec(s, duration, dt) for s in specs])
+    _say(
+        f"demo: simulating {n_train} training and {n_test} unseen test pulls of {duration:g} s on '{tree.name}' "
+        f"with {_fmt_params(tree, kp, kd)}"
+    )
+    rollout, _ = simulate_batch(tree, kp, kd, forces, dt, None, log=_say)
+    if not np.asarray(rollout.stable).all():
+        raise SimulationError(
+            "demo: the synthetic pulls blew up; this is a bug in the demo's settings"
+        )
+    trajs = synthetic_trajectories(
+        rollout, forces, dt, [f"traj_{i:03d}.csv" for i in range(len(specs))]
+    )
+    true_params = true_params_record(
+        tree, kp, kd, f"demo (default_true_params, seed {args.seed})", log_units=False
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    data_train, data_test = out / "data" / "train", out / "data" / "test"
+    _write_synthetic(
+        data_train, tree, trajs[:n_train], specs[:n_train], true_params, args.force, "training pull"
+    )
+    _write_synthetic(
+        data_test,
+        tree,
+        trajs[n_train:],
+        specs[n_train:],
+        true_params,
+        args.force,
+        "unseen test pull",
+    )
+
+    config = runs.infer_config(
+        tree_file,
+        data_train,
+        out / "run",
+        sampler=sampler,
+        particles=particles,
+        iterations=iterations,
+        kT=INFER_DEFAULTS["kT"],
+        seed=args.seed,
+        eta=INFER_DEFAULTS["eta"],
+        grasp_fraction=None,
+        max_unstable_share=INFER_DEFAULTS["max_unstable_share"],
+        checkpoint_every=checkpoint_every,
+        force=args.force,
+    )
+    config["via"] = "demo"
+    _say(f"demo: {sampler} with {particles} particles x {iterations} iterations")
+    cache = runs.SimulatorCache()
+    outcome = runs.run_inference(config, progress=not args.no_progress, log=_say, cache=cache)
+    run = runs.load_run(out / "run", cache)
+    truth = np.concatenate([kp, kd])
+    test = trajs[n_train:]
+    m, pred, obs = evaluate_trajectories(
+        run.sim, run.theta, list(run.labels), test, run.kT, None, truth, run.stable
+    )
+    eval_config = _base_config("evaluate", args)
+    eval_config.update(
+        run=str((out / "run").resolve()),
+        data_files=runs.data_manifest(data_test),
+        dt=dt,
+        via="demo",
+    )
+    md = ["# treeinfer demo: NNSVGD posterior on unseen test pulls", ""] + _metrics_md(
+        "unseen test trajectories", m
+    )
+    write_evaluation(
+        out / "evaluation",
+        {"run": str(out / "run"), "data": str(data_test), "metrics": m},
+        band_arrays([(pred, obs)]),
+        [tr.source for tr in test],
+        dt,
+        eval_config,
+        args.force,
+        md,
+    )
+    demo = {
+        "sizes": {
+            "n_train": n_train,
+            "n_test": n_test,
+            "duration_s": duration,
+            "dt_s": dt,
+            "particles": particles,
+            "iterations": iterations,
+            "sampler": sampler,
+            "quick": bool(args.quick),
+        },
+        "seed": args.seed,
+        "true_params": true_params,
+        "versions": runs.versions(),
+        "posterior": outcome.summary["posterior"],
+        "unseen_test_metrics": m,
+        "convergence_warnings": outcome.summary["convergence_warnings"],
+    }
+    runs.write_json(out / "demo.json", demo)
+
+    print(f"true parameters: {_fmt_params(tree, kp, kd)}")
+    _print_posterior(outcome.summary)
+    _print_metrics(m, f"unseen test trajectories ({n_test})")
+    _print_warnings(outcome.summary["convergence_warnings"])
+    print(
+        f"wrote {out}/ (data/train, data/test, run/, evaluation/, demo.json); see {out}/run/plots and "
+        f"{out}/evaluation/bands.png"
+    )
+    return EXIT_OK

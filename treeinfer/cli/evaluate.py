@@ -1,0 +1,214 @@
+"""``treeinfer evaluate``: held-out metrics of a run, or k-fold cross-validation of its settings."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .. import runs
+from .._io import check_output_dir
+from ..errors import ConfigError
+from ..evaluation import (
+    band_arrays,
+    evaluate_trajectories,
+    kfold_splits,
+    mean_metrics,
+    write_evaluation,
+)
+from ..trajectories import read_trajectory_dir, stack_trajectories
+from .common import (
+    COMMAND_HELP,
+    EXIT_OK,
+    _base_config,
+    _check_grasp,
+    _metrics_md,
+    _prepare_jax,
+    _print_metrics,
+    _say,
+    add_command_parser,
+)
+
+# ==== evaluate ====================================================================================
+_EVALUATE_EPILOG = """\
+examples:
+  treeinfer evaluate --run runs/nnsvgd --data data/test --out eval/nnsvgd
+  treeinfer evaluate --run runs/nnsvgd --data data/real --kfold 5 --out eval/real-5fold
+
+Writes metrics.json, metrics.md and bands.png (95% predictive bands vs the held-out trajectories)
+and config.json. Metrics (treeinfer.metrics.summarize): average 95% band width (m), share of
+ground-truth points outside the band (%), predictive NLL of the held-out points under the
+per-step KDE, the posterior NLL (particle-averaged kT-scaled loss on the held-out data) and,
+if DIR has a true_params.json, the posterior against the true parameters (log space).
+
+--kfold K (the paper's real-to-sim protocol): the trajectories in DIR, in file-name order, are
+split into K contiguous folds; for each fold the posterior is inferred afresh on the other K-1
+folds with the run's sampler settings (sampler, particles, iterations, kT, eta, seed) and
+evaluated on the held-out fold. metrics.json has the per-fold and the mean metrics.
+"""
+
+
+def configure_evaluate(subparsers) -> argparse.ArgumentParser:
+    p = add_command_parser(
+        subparsers,
+        "evaluate",
+        help=COMMAND_HELP["evaluate"],
+        description="Score a run's posterior on held-out trajectories: 95% band width, share of "
+        "points outside the band, predictive and posterior NLL, posterior vs truth when known; or "
+        "cross-validate the run's settings with --kfold.",
+        epilog=_EVALUATE_EPILOG,
+    )
+    p.add_argument(
+        "--run",
+        required=True,
+        type=Path,
+        metavar="RUN",
+        help="run folder written by `treeinfer infer`",
+    )
+    p.add_argument(
+        "--data", required=True, type=Path, metavar="DIR", help="folder of held-out trajectory CSVs"
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        type=Path,
+        metavar="DIR",
+        help="output folder (must be empty or absent unless --force)",
+    )
+    p.add_argument(
+        "--kfold",
+        type=int,
+        metavar="K",
+        help="k-fold cross-validation over DIR's trajectories (K >= 2)",
+    )
+    p.add_argument(
+        "--grasp-fraction",
+        type=float,
+        metavar="F",
+        help="where along the grasped branch DIR's data were recorded (default: as the run's training data)",
+    )
+    p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
+    return p
+
+
+def run_evaluate(args: argparse.Namespace) -> int:
+    _check_grasp(args.grasp_fraction)
+    check_output_dir(args.out, args.force)
+    _prepare_jax()
+    cache = runs.SimulatorCache()  # this command's simulators (the run's, and k-fold's)
+    run = runs.load_run(args.run, cache)
+    trajs = read_trajectory_dir(args.data)
+    dt = trajs[0].dt
+    if not math.isclose(dt, run.sim.obs_dt, rel_tol=1e-6):
+        raise ConfigError(
+            f"{args.data}: trajectories have dt={dt:g} s but run {args.run} was inferred at "
+            f"dt={run.sim.obs_dt:g} s; resample them to the run's step"
+        )
+    truth = runs.read_true_params(run.tree, args.data)
+    grasp = args.grasp_fraction if args.grasp_fraction is not None else run.grasp_fraction
+    config = _base_config("evaluate", args)
+    config.update(
+        run=str(Path(args.run).resolve()),
+        data_files=runs.data_manifest(args.data),
+        dt=dt,
+        grasp_fraction=grasp if grasp is not None else run.tree.grasp_fraction,
+        run_options=run.config["options"],
+    )
+    if args.kfold is None:
+        m, pred, obs = evaluate_trajectories(
+            run.sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable
+        )
+        metrics = {"run": str(args.run), "data": str(args.data), "metrics": m}
+        md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md(
+            "held-out metrics", m
+        )
+        write_evaluation(
+            args.out,
+            metrics,
+            band_arrays([(pred, obs)]),
+            [t.source for t in trajs],
+            dt,
+            config,
+            args.force,
+            md,
+        )
+        _print_metrics(m, f"held-out metrics on {len(trajs)} trajectories of {args.data}")
+        print(f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json)")
+        return EXIT_OK
+
+    kfold_splits(len(trajs), args.kfold)  # K too large: fail before any inference
+    o = run.config["options"]
+    _say(
+        f"{args.kfold}-fold cross-validation on {len(trajs)} trajectories with the run's settings "
+        f"({o['sampler']}, {o['particles']} particles x {o['iterations']} iterations per fold)"
+    )
+    results = runs.kfold(
+        run.config,
+        run.tree,
+        trajs,
+        args.kfold,
+        grasp,
+        truth,
+        progress=not args.no_progress,
+        log=_say,
+        cache=cache,
+    )
+    mean, std = mean_metrics([r.metrics for r in results])
+    folds = [
+        {"fold": r.fold, "train": r.train, "test": r.test, "metrics": r.metrics} for r in results
+    ]
+    metrics = {
+        "run": str(args.run),
+        "data": str(args.data),
+        "kfold": args.kfold,
+        "folds": folds,
+        "mean": mean,
+        "std": std,
+    }
+    md = [
+        f"# treeinfer evaluate --kfold {args.kfold}: settings of `{args.run}` on `{args.data}`",
+        "",
+        "| fold | held out | band width [mm] | outside [%] | predictive NLL [nats/point] | posterior NLL |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        m = r.metrics
+        md.append(
+            f"| {r.fold} | {', '.join(r.test)} | {1000 * m['ci_width']:.4g} | {m['pct_outside']:.2f} | "
+            f"{m['predictive_nll_per_point']:.4g} | {m.get('posterior_nll', float('nan')):.4g} |"
+        )
+    md.append(
+        f"| mean | | {1000 * mean['ci_width']:.4g} | {mean['pct_outside']:.2f} | "
+        f"{mean['predictive_nll_per_point']:.4g} | {(mean.get('posterior_nll') or float('nan')):.4g} |"
+    )
+    md.append("")
+    for r in results:
+        md += _metrics_md(f"fold {r.fold} (held out: {', '.join(r.test)})", r.metrics)
+    titles = [f"{name} (fold {r.fold})" for r in results for name in r.test]
+    # per-fold observations for the band grid
+
+    by_name = {t.source: t for t in trajs}
+    pairs = [(r.prediction, stack_trajectories([by_name[n] for n in r.test])) for r in results]
+    labels = list(run.labels)
+    extra = {
+        f"fold_{r.fold}_particles.csv": runs.particles_csv(
+            r.theta, labels, np.zeros(len(r.theta)), r.prediction.valid
+        )
+        for r in results
+    }
+    write_evaluation(
+        args.out, metrics, band_arrays(pairs), titles, dt, config, args.force, md, extra
+    )
+    for r in results:
+        _print_metrics(r.metrics, f"fold {r.fold} (held out {', '.join(r.test)})")
+    print(
+        f"mean over {args.kfold} folds: 95% band {1000 * mean['ci_width']:.3g} mm, {mean['pct_outside']:.1f}% outside, "
+        f"predictive NLL {mean['predictive_nll_per_point']:.3g} nats/point"
+    )
+    print(
+        f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json, fold_*_particles.csv)"
+    )
+    return EXIT_OK

@@ -1,0 +1,236 @@
+"""``treeinfer infer``: sample a posterior and write a run folder, or resume one
+(:mod:`treeinfer.runs.service`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import MISSING, fields
+from pathlib import Path
+from typing import Any
+
+from .. import runs
+from ..errors import ConfigError
+from ..runs import RunConfig
+from ..samplers import SAMPLER_NAMES
+from .common import (
+    COMMAND_HELP,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    _check_share,
+    _prepare_jax,
+    _print_fit,
+    _print_posterior,
+    _print_warnings,
+    _say,
+    add_command_parser,
+)
+
+# ==== infer =======================================================================================
+# Defaults of `infer` (None in argparse, so that --resume can tell which options were given):
+# those of the run configuration.
+INFER_DEFAULTS: dict[str, Any] = {
+    f.name: f.default
+    for f in fields(RunConfig)
+    if f.default is not MISSING and f.name not in ("grasp_fraction", "force")
+}
+# options a resumed run takes from its checkpoint's config (argparse dest -> flag)
+_RUN_OPTIONS = {
+    "tree": "--tree",
+    "data": "--data",
+    "out": "--out",
+    "sampler": "--sampler",
+    "particles": "--particles",
+    "iterations": "--iterations",
+    "kT": "--kT",
+    "seed": "--seed",
+    "eta": "--eta",
+    "grasp_fraction": "--grasp-fraction",
+    "checkpoint_every": "--checkpoint-every",
+    "force": "--force",
+    "backend": "--backend",
+}
+
+_INFER_EPILOG = """\
+examples:
+  treeinfer infer --tree two_branch.yaml --data data/train --out runs/nnsvgd
+  treeinfer infer --tree two_branch.yaml --data data/train --out runs/mh --sampler mh \\
+      --particles 32 --iterations 2000 --seed 3
+  treeinfer infer --resume runs/nnsvgd          # continue a killed or interrupted run
+
+Every *.csv in --data is a training trajectory (one time step for all); a true_params.json there
+(as `treeinfer simulate` writes) is marked in the pair plot and compared in summary.json.
+
+The run folder (config.json, tree.yaml, posterior.nc, particles.csv, trace.npz, summary.json,
+plots/) is built aside and appears complete or not at all. While sampling, RUN.partial/ beside
+it holds the config and a checkpoint every --checkpoint-every iterations; after a crash, a kill
+or Ctrl-C, `treeinfer infer --resume RUN` continues from the last checkpoint with the recorded
+settings (refusing if a data file changed) and gives the same particles as an uninterrupted run.
+"""
+
+
+def configure_infer(subparsers) -> argparse.ArgumentParser:
+    d = INFER_DEFAULTS
+    p = add_command_parser(
+        subparsers,
+        "infer",
+        help=COMMAND_HELP["infer"],
+        description="Sample the posterior over the stiffness Kp and damping Kd of the tree's inferred "
+        "joints given force-deformation trajectories, with NNSVGD (the default: SVGD with the learned "
+        "parent-stiffer-than-child prior), SVGD, SGLD, SGHMC or Metropolis-Hastings, and write a run "
+        "folder for `treeinfer predict` and `treeinfer evaluate`. Prints the posterior mean and 95% "
+        "interval of every parameter, convergence warnings and the number of unstable particles.",
+        epilog=_INFER_EPILOG,
+    )
+    p.add_argument("--tree", type=Path, help="tree description (YAML/JSON)")
+    p.add_argument("--data", type=Path, metavar="DIR", help="folder of training trajectory CSVs")
+    p.add_argument(
+        "--out",
+        type=Path,
+        metavar="RUN",
+        help="run folder to write (must be empty or absent unless --force)",
+    )
+    p.add_argument("--sampler", choices=SAMPLER_NAMES, help=f"sampler (default {d['sampler']})")
+    p.add_argument(
+        "--particles",
+        type=int,
+        metavar="N",
+        help=f"particles (SVGD) or chains (MCMC), >= 2 (default {d['particles']})",
+    )
+    p.add_argument(
+        "--iterations",
+        type=int,
+        metavar="N",
+        help=f"sampler iterations, >= 1 (default {d['iterations']})",
+    )
+    p.add_argument(
+        "--kT",
+        type=float,
+        metavar="X",
+        help=f"likelihood temperature in loss units (m + m/s) per nat; smaller = sharper posterior (default {d['kT']:g})",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        metavar="S",
+        help=f"seed of the initial particles and the sampler (default {d['seed']})",
+    )
+    p.add_argument(
+        "--eta",
+        type=float,
+        metavar="X",
+        help=f"NNSVGD inequality-prior slope, nats per unit of log gain a child exceeds its parent (default {d['eta']:g})",
+    )
+    p.add_argument(
+        "--grasp-fraction",
+        type=float,
+        metavar="F",
+        help="where along the grasped branch the data were recorded, in (0, 1] (default: the tree's grasp)",
+    )
+    p.add_argument(
+        "--max-unstable-share",
+        type=float,
+        metavar="F",
+        help=f"stop with an error if more than this share of the final particles simulate unstably (default {d['max_unstable_share']:g}); may be changed with --resume",
+    )
+    p.add_argument(
+        "--checkpoint-every",
+        type=int,
+        metavar="N",
+        help=f"write RUN.partial/checkpoint.npz every N iterations; 0: only at the end of sampling (default {d['checkpoint_every']})",
+    )
+    p.add_argument(
+        "--resume",
+        type=Path,
+        metavar="RUN",
+        help="continue the interrupted run RUN (all settings come from RUN.partial/config.json)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        default=None,
+        help="replace a non-empty RUN (and discard an interrupted RUN.partial)",
+    )
+    p.add_argument(
+        "--backend",
+        choices=("auto", "fused", "mjx"),
+        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def _check_infer_options(o: dict[str, Any]) -> None:
+    """ConfigError naming the flag for any out-of-range option (before anything is read): the
+    run configuration's own validation."""
+    RunConfig(tree="", data="", out="", **o)
+
+
+def run_infer(args: argparse.Namespace) -> int:
+    _prepare_jax()
+    _check_share(args.max_unstable_share)
+    progress = not args.no_progress
+    holder: dict[str, Any] = {}
+    if args.resume is not None:
+        given = [flag for dest, flag in _RUN_OPTIONS.items() if getattr(args, dest) is not None]
+        if given:
+            raise ConfigError(
+                f"--resume takes every setting from {args.resume}{runs.PARTIAL_SUFFIX}/config.json; "
+                f"leave out {', '.join(given)} (only --max-unstable-share and --no-progress may be given)"
+            )
+        run_dir, config = args.resume, None
+    else:
+        missing = [
+            f
+            for f, v in (("--tree", args.tree), ("--data", args.data), ("--out", args.out))
+            if v is None
+        ]
+        if missing:
+            raise ConfigError(
+                f"{', '.join(missing)} required (or --resume RUN to continue an interrupted run)"
+            )
+        o = {
+            k: (getattr(args, k) if getattr(args, k) is not None else v)
+            for k, v in INFER_DEFAULTS.items()
+        }
+        o["grasp_fraction"] = args.grasp_fraction
+        _check_infer_options(o)
+        run_dir = args.out
+        config = runs.infer_config(args.tree, args.data, args.out, force=bool(args.force), **o)
+        _say(
+            f"{len(config['data']['files'])} training trajectories from {args.data}; sampling with {o['sampler']} "
+            f"({o['particles']} particles x {o['iterations']} iterations)"
+        )
+    try:
+        outcome = runs.run_inference(
+            config,
+            resume=args.resume,
+            max_unstable_share=args.max_unstable_share,
+            progress=progress,
+            log=_say,
+            on_checkpointer=lambda cp: holder.__setitem__("cp", cp),
+            cache=runs.SimulatorCache(),
+        )
+    except KeyboardInterrupt:
+        cp = holder.get("cp")
+        if cp is None:
+            _say("interrupted before sampling started; nothing to resume")
+        elif cp.last_iteration is None:
+            _say(
+                f"interrupted before the first checkpoint; `treeinfer infer --resume {run_dir}` starts the "
+                f"same run again from iteration 0 (settings in {runs.partial_dir(run_dir)}/config.json)"
+            )
+        else:
+            _say(
+                f"interrupted; the sampler state after iteration {cp.last_iteration} is kept in {cp.path}.\n"
+                f"continue with:  treeinfer infer --resume {run_dir}"
+            )
+        return EXIT_INTERRUPTED
+    s = outcome.summary
+    _print_posterior(s)
+    _print_fit(s.get("training_metrics"), "fit to the training data")
+    _print_warnings(s["convergence_warnings"])
+    print(
+        f"wrote {run_dir}/ (config.json, tree.yaml, posterior.nc, particles.csv, trace.npz, summary.json, plots/)"
+    )
+    return EXIT_OK

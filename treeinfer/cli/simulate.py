@@ -1,0 +1,304 @@
+"""``treeinfer simulate``: synthetic trajectories of a tree under force profiles (sim-to-sim
+ground truth), via :mod:`treeinfer.synthetic`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+from typing import Any
+
+import jax
+import mujoco
+import numpy as np
+
+from .. import __version__
+from .._io import atomic_write_json, check_output_dir, staged_output_dir
+from ..errors import ConfigError, SimulationError
+from ..forces import DEFAULT_PEAK_RANGE, SET_KINDS, from_spec, n_steps, random_specs
+from ..sim import DEFAULT_MAX_SIM_DT
+from ..synthetic import default_true_params, parse_params, simulate_batch, synthetic_trajectories
+from ..trajectories import (
+    MAX_DT,
+    TRUE_PARAMS_FILE,
+    true_params_record,
+    write_trajectory,
+    write_true_params,
+)
+from ..tree import dump_tree, load_tree
+from .common import (
+    COMMAND_HELP,
+    EXIT_OK,
+    _floats,
+    _fmt_params,
+    _pair,
+    _prepare_jax,
+    _say,
+    add_command_parser,
+)
+
+# ==== simulate ====================================================================================
+_SIMULATE_EPILOG = """\
+examples:
+  treeinfer simulate --tree two_branch.yaml --out data/train --n-traj 8 --seed 1
+  treeinfer simulate --tree two_branch.yaml --out data/test --n-traj 25 --seed 2 \\
+      --params-json data/train/true_params.json --noise-force 0.2 --noise-displacement 0.002
+  treeinfer simulate --tree two_branch.yaml --out data/one --params 40,80,0.6,1.2 \\
+      --profile 'hold:peak=6,ramp=0.5,hold=1.0,release=0.5'
+
+Output folder: traj_000.csv ... (time,force,displacement,velocity in s, N, m, m/s; the velocity
+column is the simulator's, left out when displacement noise is added, so that readers
+differentiate the noisy displacement as for a recording), tree.yaml (the tree simulated),
+true_params.json (the ground truth) and config.json (every option, the seed, the profile
+specs and the treeinfer version). Nothing is written unless every trajectory simulates.
+
+True parameters: --params lists Kp of every inferred joint, then Kd, in the tree's label order
+(printed by `treeinfer tree --from TREE`); --params-json reads a true_params.json. By default
+they are drawn log-uniformly in the middle third of each joint's log prior box with --seed and
+ordered so that a parent is at least as stiff and as damped as its child (the inequality
+prior's assumption; guaranteed when the joints share one prior box, as by default).
+
+Force profiles (--profile SPEC, repeatable; or a seeded random set of --n-traj, see
+--profiles): ramp:peak=N,ramp=S[,start=S]   hold:peak=N,ramp=S,hold=S,release=S[,start=S]
+release:peak=N,ramp=S,release=S[,start=S]   step:peak=N,rise=S[,start=S]
+"""
+
+
+def configure_simulate(subparsers) -> argparse.ArgumentParser:
+    p = add_command_parser(
+        subparsers,
+        "simulate",
+        help=COMMAND_HELP["simulate"],
+        description="Sim-to-sim ground truth: pull the tree's grasp point down with a set of force "
+        "profiles using known (or drawn) joint stiffness and damping, in one batched "
+        "simulation, and write the trajectories in treeinfer's CSV format with the true parameters.",
+        epilog=_SIMULATE_EPILOG,
+    )
+    p.add_argument("--tree", required=True, type=Path, help="tree description (YAML/JSON)")
+    p.add_argument(
+        "--out",
+        required=True,
+        type=Path,
+        help="output folder (must be empty or absent unless --force)",
+    )
+    p.add_argument(
+        "--n-traj",
+        type=int,
+        default=None,
+        help="number of trajectories (default 8; with --profile: one per spec)",
+    )
+    p.add_argument(
+        "--seed", type=int, default=0, help="seed for the true parameters, profiles and noise"
+    )
+    gp = p.add_mutually_exclusive_group()
+    gp.add_argument(
+        "--params",
+        type=_floats,
+        metavar="KP1,..,KPR,KD1,..,KDR",
+        help="true parameters, N m/rad then N m s/rad",
+    )
+    gp.add_argument(
+        "--params-json", type=Path, metavar="FILE", help="true parameters from a true_params.json"
+    )
+    p.add_argument("--duration", type=float, default=3.0, help="s per trajectory")
+    p.add_argument("--dt", type=float, default=0.01, help="s between samples")
+    gf = p.add_mutually_exclusive_group()
+    gf.add_argument(
+        "--profiles",
+        choices=SET_KINDS,
+        default=None,
+        help="kind of random profile set (default mixed: ramp and ramp-hold-release alternately)",
+    )
+    gf.add_argument(
+        "--profile",
+        action="append",
+        metavar="SPEC",
+        help="explicit profile spec, repeatable (one trajectory each)",
+    )
+    p.add_argument(
+        "--peak-range",
+        type=_pair,
+        default=DEFAULT_PEAK_RANGE,
+        metavar="LO,HI",
+        help=f"N, range of the random peaks (default {DEFAULT_PEAK_RANGE[0]:g},{DEFAULT_PEAK_RANGE[1]:g})",
+    )
+    p.add_argument(
+        "--noise-force",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="N, Gaussian noise added to the force",
+    )
+    p.add_argument(
+        "--noise-displacement",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="m, Gaussian noise added to the displacement",
+    )
+    p.add_argument(
+        "--grasp-fraction",
+        type=float,
+        metavar="F",
+        help="grasp point along the grasped branch, in (0, 1] (default: the tree's)",
+    )
+    p.add_argument(
+        "--max-sim-dt",
+        type=float,
+        default=None,
+        help="s, upper bound on the simulation step (default 0.005)",
+    )
+    p.add_argument(
+        "--backend",
+        choices=("auto", "fused", "mjx"),
+        default="auto",
+        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
+    )
+    p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    return p
+
+
+def _check_simulate_args(args: argparse.Namespace) -> int:
+    """Validate the numeric options; returns T."""
+    for flag, v in (("--dt", args.dt), ("--duration", args.duration)):
+        if not (math.isfinite(v) and v > 0):
+            raise ConfigError(f"{flag}: must be a positive number of seconds, got {v:g}")
+    if args.dt >= MAX_DT:
+        raise ConfigError(
+            f"--dt: {args.dt:g} s is too coarse for a pull (must be below {MAX_DT:g} s)"
+        )
+    if args.n_traj is not None and args.n_traj < 1:
+        raise ConfigError(f"--n-traj: must be at least 1, got {args.n_traj}")
+    if args.profile and args.n_traj is not None and args.n_traj != len(args.profile):
+        raise ConfigError(
+            f"--n-traj {args.n_traj} disagrees with the {len(args.profile)} --profile spec(s) (one trajectory each)"
+        )
+    for flag, v in (
+        ("--noise-force", args.noise_force),
+        ("--noise-displacement", args.noise_displacement),
+    ):
+        if not (math.isfinite(v) and v >= 0):
+            raise ConfigError(f"{flag}: must be >= 0, got {v:g}")
+    if args.grasp_fraction is not None and not (0.0 < args.grasp_fraction <= 1.0):
+        raise ConfigError(
+            f"--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got {args.grasp_fraction:g}"
+        )
+    if args.max_sim_dt is not None and not (math.isfinite(args.max_sim_dt) and args.max_sim_dt > 0):
+        raise ConfigError(
+            f"--max-sim-dt: must be a positive number of seconds, got {args.max_sim_dt:g}"
+        )
+    lo, hi = args.peak_range
+    if lo > hi:
+        raise ConfigError(f"--peak-range: LO must not exceed HI, got {lo:g},{hi:g}")
+    try:
+        return n_steps(args.duration, args.dt)
+    except ConfigError:
+        raise ConfigError(
+            f"--duration {args.duration:g} s at --dt {args.dt:g} s gives {int(args.duration / args.dt)} "
+            "sample(s); at least 3 are needed"
+        ) from None
+
+
+def run_simulate(args: argparse.Namespace) -> int:
+    n_t = _check_simulate_args(args)
+    tree = load_tree(args.tree)
+    if args.grasp_fraction is not None:
+        tree = tree.with_grasp(args.grasp_fraction)
+    seq = np.random.SeedSequence(args.seed)  # independent streams: parameters, profiles, noise
+    rng_params, rng_profiles, rng_noise = (np.random.default_rng(s) for s in seq.spawn(3))
+    theta = parse_params(tree, args.params, args.params_json)
+    drawn = theta is None
+    if drawn:
+        kp, kd = default_true_params(tree, rng_params)
+    else:
+        kp, kd = theta[: tree.n_inferred], theta[tree.n_inferred :]
+    if args.profile:
+        specs = list(args.profile)
+    else:
+        specs = random_specs(
+            args.profiles or "mixed", args.n_traj or 8, args.duration, args.peak_range, rng_profiles
+        )
+    forces = np.stack([from_spec(s, args.duration, args.dt) for s in specs])  # [B, T]
+    assert forces.shape[1] == n_t
+    check_output_dir(args.out, args.force)  # fail before the (slow) simulation
+
+    _prepare_jax()
+    rollout, sim = simulate_batch(
+        tree, kp, kd, forces, args.dt, args.max_sim_dt, args.backend, _say
+    )
+    names = [f"traj_{i:03d}.csv" for i in range(len(specs))]
+    stable = np.asarray(rollout.stable)[0]
+    if not stable.all():
+        bad = [f"{names[i]} ({specs[i]})" for i in np.flatnonzero(~stable)]
+        raise SimulationError(
+            f"the simulation blew up for {len(bad)} of {len(specs)} trajectories: {'; '.join(bad)}; "
+            f"with {_fmt_params(tree, kp, kd)}: lower the peak forces (--peak-range), the step "
+            "(--max-sim-dt) or check the parameters and the tree's units"
+        )
+    trajs = synthetic_trajectories(
+        rollout, forces, args.dt, names, args.noise_force, args.noise_displacement, rng_noise
+    )
+    comments = [
+        [
+            f"treeinfer {__version__} simulate: synthetic ground truth",
+            f"tree: {tree.name} ({args.tree}); grasp: {tree.grasp_branch} "
+            f"at fraction {tree.grasp_fraction:g}",
+            f"profile: {spec}",
+            f"noise: force sigma {args.noise_force:g} N, "
+            f"displacement sigma {args.noise_displacement:g} m",
+        ]
+        for spec in specs
+    ]
+    source = (
+        "drawn (default_true_params)"
+        if drawn
+        else ("--params" if args.params is not None else str(args.params_json))
+    )
+    true_params = true_params_record(tree, kp, kd, source)
+    config = _simulate_config(args, tree, specs, n_t, sim)
+    with staged_output_dir(args.out, args.force) as stage:
+        for name, traj, lines in zip(names, trajs, comments):
+            write_trajectory(stage / name, traj, lines)
+        dump_tree(tree, stage / "tree.yaml")
+        write_true_params(stage / TRUE_PARAMS_FILE, true_params)
+        atomic_write_json(stage / "config.json", config)
+    print(
+        f"simulated {len(specs)} trajectories of {n_t} samples (dt {args.dt:g} s, {sim.substeps} "
+        f"simulation step(s) of {sim.sim_dt:.3g} s each) on tree '{tree.name}'"
+    )
+    print(f"  true parameters: {_fmt_params(tree, kp, kd)}")
+    peak = float(np.max(np.abs(np.asarray(rollout.tau))))
+    print(
+        f"  largest displacement {peak:.3g} m; wrote {args.out}/ ({names[0]} .. {names[-1]}, tree.yaml, true_params.json, config.json)"
+    )
+    return EXIT_OK
+
+
+def _simulate_config(args, tree, specs, n_t, sim) -> dict[str, Any]:
+    options = {
+        k: (str(v) if isinstance(v, Path) else v)
+        for k, v in vars(args).items()
+        if not k.startswith("_")
+    }
+    options.pop("debug", None)
+    options.update(  # the values actually used
+        n_traj=len(specs),
+        profiles=None if args.profile else (args.profiles or "mixed"),
+        max_sim_dt=args.max_sim_dt or DEFAULT_MAX_SIM_DT,
+    )
+    return {
+        "command": "simulate",
+        "treeinfer_version": __version__,
+        "jax_version": jax.__version__,
+        "mujoco_version": mujoco.__version__,
+        "options": options,
+        "seed": args.seed,
+        "seed_streams": "numpy SeedSequence(seed).spawn(3): true parameters, profiles, noise",
+        "tree": tree.name,
+        "grasp": {"branch": tree.grasp_branch, "fraction": tree.grasp_fraction},
+        "n_steps": n_t,
+        "dt": args.dt,
+        "profiles": specs,
+        "simulation": {"substeps": sim.substeps, "sim_dt": sim.sim_dt, "backend": sim.backend},
+    }

@@ -1,0 +1,376 @@
+"""``treeinfer tree``: write, generate or convert a tree description (and its MJCF/URDF)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from .. import __version__
+from .. import generators as gen
+from .._io import atomic_write_text
+from ..errors import ConfigError
+from ..export import to_mjcf
+from ..tree import Bounds, load_tree, tree_from_dict, tree_to_dict, world_frames
+from ..urdf import to_urdf
+from .common import (
+    COMMAND_HELP,
+    EXIT_OK,
+    TREE_SUFFIXES,
+    _floats,
+    _pair,
+    _refuse_existing,
+    _triple,
+    add_command_parser,
+)
+
+# ==== tree ========================================================================================
+_TREE_EPILOG = """\
+examples:
+  treeinfer tree --kind fractal --depth 2 --branching 2 --base-pitch 20 --out fractal.yaml --mjcf fractal.xml
+  treeinfer tree --kind chain --n 3 --lengths 0.7,0.6,0.5 --radii 0.03,0.02,0.014 --out chain.yaml
+  treeinfer tree --kind lsystem --axiom F --rule 'F=F[+F]F[-F]' --iterations 2 --angle 25 --out ls.yaml
+  treeinfer tree --from two_branch.yaml --grasp-fraction 0.5 --out two_branch.json --urdf two_branch.urdf
+  treeinfer tree --from fractal.yaml --kind fractal --depth 3 --out deeper.yaml   # re-generate
+
+Generated trees keep their settings under 'generator:' in the file, so --from FILE --kind KIND
+re-generates with only the given options changed. --kind explicit (the default with --from)
+converts a tree file as it is (YAML <-> JSON by suffix), applying the grasp/inference options.
+"""
+
+# CLI option (argparse dest) -> (generator argument, generator kinds that take it)
+_GENERATOR_OPTIONS: dict[str, tuple[str, frozenset[str]]] = {
+    "n": ("n", frozenset({"chain"})),
+    "lengths": ("lengths", frozenset({"chain"})),
+    "radii": ("radii", frozenset({"chain"})),
+    "angles": ("angles_deg", frozenset({"chain"})),
+    "depth": ("depth", frozenset({"fractal"})),
+    "branching": ("branching", frozenset({"fractal"})),
+    "length_ratio": ("length_ratio", frozenset({"fractal", "lsystem"})),
+    "fork_angles": ("fork_angles_deg", frozenset({"fractal"})),
+    "base_length": ("base_length", frozenset({"fractal"})),
+    "base_radius": ("base_radius", frozenset({"fractal", "lsystem"})),
+    "axiom": ("axiom", frozenset({"lsystem"})),
+    "rule": ("rules", frozenset({"lsystem"})),
+    "iterations": ("iterations", frozenset({"lsystem"})),
+    "angle": ("angle_deg", frozenset({"lsystem"})),
+    "step_length": ("step_length", frozenset({"lsystem"})),
+    "seed": ("seed", frozenset({"lsystem"})),
+    "grasp": ("grasp", frozenset({"fractal", "lsystem", "explicit"})),
+    "grasp_fraction": ("grasp_fraction", frozenset({"chain", "fractal", "lsystem", "explicit"})),
+    "levels": ("levels", frozenset({"chain", "fractal", "lsystem", "explicit"})),
+    "tree_name": ("name", frozenset({"chain", "fractal", "lsystem", "explicit"})),
+    "base_position": ("base_position", frozenset({"chain", "fractal", "lsystem", "explicit"})),
+    "base_pitch": ("base_pitch_deg", frozenset({"chain", "fractal", "lsystem", "explicit"})),
+    "base_yaw": ("base_yaw_deg", frozenset({"chain", "fractal", "lsystem", "explicit"})),
+}
+_TREE_KINDS = ("explicit", "chain", "fractal", "lsystem")
+
+
+def configure_tree(subparsers) -> argparse.ArgumentParser:
+    p = add_command_parser(
+        subparsers,
+        "tree",
+        help=COMMAND_HELP["tree"],
+        description="Build a tree from a generator (chain, fractal, L-system) or an existing tree "
+        "file, write its description (YAML or JSON by the --out suffix) and optionally the MuJoCo "
+        "MJCF and URDF models, and print a short summary (branches, inferred joints, grasp).",
+        epilog=_TREE_EPILOG,
+    )
+    p.add_argument(
+        "--out", required=True, type=Path, help="tree file to write (.yaml, .yml or .json)"
+    )
+    p.add_argument(
+        "--kind",
+        choices=_TREE_KINDS,
+        help="generator (default: explicit with --from, else fractal)",
+    )
+    p.add_argument(
+        "--from",
+        dest="source",
+        type=Path,
+        metavar="FILE",
+        help="existing tree file to convert or re-generate",
+    )
+    p.add_argument(
+        "--mjcf", type=Path, metavar="FILE", help="also write the MuJoCo MJCF model (.xml)"
+    )
+    p.add_argument("--urdf", type=Path, metavar="FILE", help="also write the URDF model (.urdf)")
+    p.add_argument("--force", action="store_true", help="replace existing output files")
+
+    g = p.add_argument_group("grasp and inference (all kinds)")
+    g.add_argument("--name", dest="tree_name", metavar="NAME", help="the tree's name")
+    g.add_argument(
+        "--grasp",
+        metavar="BRANCH",
+        help="grasped branch (fractal, lsystem, explicit; a chain is grasped at its tip)",
+    )
+    g.add_argument(
+        "--grasp-fraction",
+        type=float,
+        metavar="F",
+        help="where along the grasped branch, in (0, 1]",
+    )
+    g.add_argument(
+        "--levels",
+        type=int,
+        metavar="N",
+        help="inferred joints from the grasped branch up (default: the whole path)",
+    )
+    g.add_argument(
+        "--kp-bounds", type=_pair, metavar="LO,HI", help="prior box of every inferred Kp, N m/rad"
+    )
+    g.add_argument(
+        "--kd-bounds", type=_pair, metavar="LO,HI", help="prior box of every inferred Kd, N m s/rad"
+    )
+    g.add_argument(
+        "--base-position", type=_triple, metavar="X,Y,Z", help="m, where the root branch starts"
+    )
+    g.add_argument(
+        "--base-pitch",
+        type=float,
+        metavar="DEG",
+        help="root elevation above horizontal, deg (90 = vertical)",
+    )
+    g.add_argument(
+        "--base-yaw", type=float, metavar="DEG", help="root heading about the vertical, deg"
+    )
+
+    c = p.add_argument_group("chain")
+    c.add_argument("--n", type=int, help="number of branches")
+    c.add_argument(
+        "--lengths",
+        type=_floats,
+        metavar="L[,L...]",
+        help="m, one for all or one per branch (root first)",
+    )
+    c.add_argument(
+        "--radii", type=_floats, metavar="R[,R...]", help="m, one for all or one per branch"
+    )
+    c.add_argument(
+        "--angles",
+        type=_floats,
+        metavar="DEG[,DEG...]",
+        help="fork angles, deg, one for all or one per branch",
+    )
+
+    f = p.add_argument_group("fractal")
+    f.add_argument("--depth", type=int, help="fork levels (0: one branch)")
+    f.add_argument("--branching", type=int, help="children per fork")
+    f.add_argument(
+        "--length-ratio", type=float, help="child / parent length (lsystem: per bracket depth)"
+    )
+    f.add_argument(
+        "--fork-angles", type=_floats, metavar="DEG,DEG...", help="fork angle of each child, deg"
+    )
+    f.add_argument("--base-length", type=float, metavar="M", help="root length, m")
+    f.add_argument(
+        "--base-radius", type=float, metavar="M", help="root radius, m (fractal, lsystem)"
+    )
+
+    ls = p.add_argument_group("lsystem")
+    ls.add_argument("--axiom", help="start string, e.g. F")
+    ls.add_argument(
+        "--rule",
+        action="append",
+        metavar="S=SUCC",
+        help="rewrite rule, repeatable, e.g. 'F=FF-[-F+F]'; stochastic: repeat a symbol with "
+        "probabilities, 'F=0.5:F[+F]' 'F=0.5:F[-F]'",
+    )
+    ls.add_argument("--iterations", type=int, help="rewriting passes")
+    ls.add_argument("--angle", type=float, metavar="DEG", help="turtle turn angle, deg")
+    ls.add_argument("--step-length", type=float, metavar="M", help="length of one F, m")
+    ls.add_argument("--seed", type=int, help="seed for stochastic rules")
+    return p
+
+
+def _parse_rules(items: Sequence[str]) -> dict[str, Any]:
+    """``['F=FF', 'X=0.5:F[+X]', 'X=0.5:F[-X]']`` -> the rules mapping of ``generators.lsystem``."""
+    grouped: dict[str, list[tuple[float | None, str]]] = {}
+    for item in items:
+        sym, eq, succ = item.partition("=")
+        sym = sym.strip()
+        if not eq or len(sym) != 1:
+            raise ConfigError(
+                f"--rule {item!r}: expected SYMBOL=SUCCESSOR with a one-character symbol, e.g. 'F=FF-[-F+F]'"
+            )
+        prob: float | None = None
+        head, colon, tail = succ.partition(":")
+        if colon:
+            try:
+                prob = float(head)
+            except ValueError:
+                prob = None  # a ':' inside an ordinary successor
+            else:
+                succ = tail
+        grouped.setdefault(sym, []).append((prob, succ))
+    rules: dict[str, Any] = {}
+    for sym, alts in grouped.items():
+        if len(alts) == 1 and alts[0][0] is None:
+            rules[sym] = alts[0][1]
+        elif any(pr is None for pr, _ in alts):
+            raise ConfigError(
+                f"--rule: symbol '{sym}' has {len(alts)} rules; give each a probability, e.g. '{sym}=0.5:...'"
+            )
+        else:
+            rules[sym] = [(pr, s) for pr, s in alts]
+    return rules
+
+
+def _tree_settings(args: argparse.Namespace, kind: str) -> dict[str, Any]:
+    """Generator keyword arguments from the options the user gave; refuse ones ``kind`` ignores."""
+    out: dict[str, Any] = {}
+    for dest, (arg, kinds) in _GENERATOR_OPTIONS.items():
+        value = getattr(args, dest)
+        if value is None:
+            continue
+        if kind not in kinds:
+            flag = "--" + dest.replace("_", "-") if dest != "tree_name" else "--name"
+            raise ConfigError(
+                f"{flag} does not apply to --kind {kind} (it is for: {', '.join(sorted(kinds))})"
+            )
+        if dest == "rule":
+            value = _parse_rules(value)
+        elif dest in ("lengths", "radii", "angles") and len(value) == 1:
+            value = value[0]
+        out[arg] = value
+    if args.kp_bounds is not None or args.kd_bounds is not None:
+        out["bounds"] = Bounds(
+            kp=tuple(args.kp_bounds) if args.kp_bounds is not None else Bounds().kp,
+            kd=tuple(args.kd_bounds) if args.kd_bounds is not None else Bounds().kd,
+        )
+    return out
+
+
+def _read_raw(path: Path) -> dict[str, Any]:
+    """The parsed content of a tree file (already validated by ``load_tree``)."""
+    text = path.read_text(encoding="utf-8")
+    d = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+    return d if isinstance(d, dict) else {}
+
+
+def _convert(tree, settings: dict[str, Any], source: Path):
+    """Apply grasp/inference/base options to a loaded tree, through its file representation
+    so that every value is validated exactly like a tree file."""
+
+    d = tree_to_dict(tree)
+    if "name" in settings:
+        d["name"] = settings["name"]
+    if "grasp" in settings:
+        d["grasp"]["branch"] = settings["grasp"]
+    if "grasp_fraction" in settings:
+        d["grasp"]["fraction"] = settings["grasp_fraction"]
+    for key, fld in (
+        ("base_position", "position"),
+        ("base_pitch_deg", "pitch_deg"),
+        ("base_yaw_deg", "yaw_deg"),
+    ):
+        if key in settings:
+            d["base"][fld] = list(settings[key]) if key == "base_position" else settings[key]
+    first = tree.bounds[tree.inferred[0]]
+    if {"grasp", "levels", "bounds"} & set(settings):
+        # the inferred joints (or their box) change: one box for all, from --k?-bounds or the first joint
+        bd = settings.get("bounds", first)
+        d["inference"] = {
+            "levels": settings.get("levels", tree.n_inferred),
+            "prior": {"kp": list(bd.kp), "kd": list(bd.kd)},
+        }
+    return tree_from_dict(d, source=str(source))
+
+
+def _summary(tree, path: Path) -> str:
+    jointed = sum(not b.fixed for b in tree.branches)
+    lines = [
+        f"wrote {path}: tree '{tree.name}', {len(tree.branches)} branches ({jointed} jointed), "
+        + f"total length {tree.total_length():.3g} m"
+    ]
+    g = tree.branch(tree.grasp_branch)
+    frames = world_frames(tree)
+    p0, rot = frames[g.name]
+    c = p0 + rot[:, 0] * g.length * tree.grasp_fraction
+    lines.append(
+        f"  grasp: branch '{g.name}' at fraction {tree.grasp_fraction:.3g} of its length "
+        f"({tree.grasp_fraction * g.length:.3g} m from its joint; rest position {np.round(c, 3).tolist()} m)"
+    )
+    lines.append(f"  inferred joints ({tree.n_inferred}): {', '.join(tree.inferred)}")
+    lines.append(f"  parameters: {', '.join(tree.parameter_labels())}")
+    boxes = {(tree.bounds[n].kp, tree.bounds[n].kd) for n in tree.inferred}
+    if len(boxes) == 1:
+        ((kp, kd),) = boxes
+        lines.append(
+            f"  prior box: Kp in [{kp[0]:g}, {kp[1]:g}] N m/rad, Kd in [{kd[0]:g}, {kd[1]:g}] N m s/rad"
+        )
+    else:
+        lines.append("  prior box: per joint (see the file)")
+    return "\n".join(lines)
+
+
+def run_tree(args: argparse.Namespace) -> int:
+    out: Path = args.out
+    if out.suffix.lower() not in TREE_SUFFIXES:
+        raise ConfigError(f"--out {out}: a tree file must end in {', '.join(TREE_SUFFIXES)}")
+    kind = args.kind or ("explicit" if args.source is not None else "fractal")
+    settings = _tree_settings(args, kind)
+
+    generator_cfg = None  # settings written under generator: (None: a plain tree file)
+    if kind == "explicit":
+        if args.source is None:
+            raise ConfigError("--kind explicit converts a tree file: give it with --from FILE")
+        tree = load_tree(args.source)
+        raw_gen = _read_raw(args.source).get("generator")
+        tree = _convert(tree, settings, args.source) if settings else tree
+        if not settings and isinstance(raw_gen, dict):
+            generator_cfg = raw_gen  # unchanged tree: its recipe still holds
+    else:
+        base: dict[str, Any] = {}
+        if args.source is not None:
+            load_tree(args.source)  # a clear error if the file itself is broken
+            raw_gen = _read_raw(args.source).get("generator")
+            if not isinstance(raw_gen, dict) or raw_gen.get("kind") != kind:
+                found = raw_gen.get("kind") if isinstance(raw_gen, dict) else None
+                raise ConfigError(
+                    f"--from {args.source}: re-generating with --kind {kind} needs the file's "
+                    f"'generator:' settings of kind {kind}, found {found or 'none'}; "
+                    "use --kind explicit to convert the tree as it is"
+                )
+            base = {k: v for k, v in raw_gen.items() if k != "kind"}
+        generator_cfg = gen.describe(kind, **{**base, **settings})
+        tree = gen.generate(generator_cfg)
+
+    # Build every output in memory first: a failing export leaves no file written.
+    mjcf = to_mjcf(tree) if args.mjcf is not None else None
+    urdf = to_urdf(tree) if args.urdf is not None else None
+    targets = [out] + [p for p in (args.mjcf, args.urdf) if p is not None]
+    if len({p.resolve() for p in targets}) != len(targets):
+        raise ConfigError("--out, --mjcf and --urdf must name different files")
+    _refuse_existing(targets, args.force)
+
+    if generator_cfg is not None and kind != "explicit":
+        gen.dump_generated(
+            generator_cfg,
+            out,
+            comment=f"Written by treeinfer {__version__}: treeinfer tree --kind {kind}",
+        )
+    else:
+        d = tree_to_dict(tree)
+        if generator_cfg is not None:
+            d["generator"] = generator_cfg
+        text = (
+            json.dumps(d, indent=2) + "\n"
+            if out.suffix.lower() == ".json"
+            else yaml.safe_dump(d, sort_keys=False)
+        )
+        atomic_write_text(out, text)
+    print(_summary(tree, out))
+    if mjcf is not None:
+        atomic_write_text(args.mjcf, mjcf)
+        print(f"wrote {args.mjcf} (MJCF)")
+    if urdf is not None:
+        atomic_write_text(args.urdf, urdf)
+        print(f"wrote {args.urdf} (URDF)")
+    return EXIT_OK

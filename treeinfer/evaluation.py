@@ -1,0 +1,250 @@
+"""Evaluation of a posterior: predictions of every particle with their band, per-trajectory
+log-likelihood, held-out metrics, k-fold splits and the metrics' mean over folds.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .errors import ConfigError, SimulationError
+from .jsonio import write_json
+from .trajectories import (
+    Observations,
+    Trajectory,
+    stack_trajectories,
+)
+
+LEVEL = 0.95  # credible / predictive interval mass everywhere in the run folder
+
+
+# ==== predictions =================================================================================
+class Prediction(NamedTuple):
+    """Posterior predictive rollouts: ``tau [P, B, T]`` m; ``valid [P]`` particles used (stable
+    here and finite posterior density); ``lower``, ``upper``, ``mean`` ``[B, T]`` m (95% KDE band)."""
+
+    tau: np.ndarray
+    tau_dot: np.ndarray
+    stable: np.ndarray
+    valid: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    mean: np.ndarray
+
+
+def predict_run(
+    sim, theta, forces, grasp_fraction=None, particle_ok=None, level: float = LEVEL
+) -> Prediction:
+    """Simulate every particle ``theta [P, D]`` under ``forces [B, T]`` and summarise the band;
+    unstable particles are excluded (``valid``). Needs two valid particles."""
+    from .inference import predict
+    from .metrics import predictive_interval
+
+    theta = np.asarray(theta)
+    rollout = jax.device_get(
+        predict(sim, theta, np.atleast_2d(np.asarray(forces, np.float32)), grasp_fraction)
+    )
+    stable = np.asarray(rollout.stable).all(axis=-1)
+    valid = stable & (
+        np.ones(len(theta), bool) if particle_ok is None else np.asarray(particle_ok, bool)
+    )
+    if valid.sum() < 2:
+        raise SimulationError(
+            f"only {int(valid.sum())} of {len(theta)} particles give a stable simulation of these forces; "
+            "a predictive band needs at least 2 (are the forces far larger than in training?)"
+        )
+    tau = np.asarray(rollout.tau)
+    lower, upper, mean = (np.asarray(a) for a in predictive_interval(tau, level, valid))
+    return Prediction(tau, np.asarray(rollout.tau_dot), stable, valid, lower, upper, mean)
+
+
+def rollout_loglik(rollout, obs: Observations, kT: float, ok=None, dtype=None) -> np.ndarray:
+    """[P, B] Boltzmann log-likelihood ``-loss / kT`` of each particle's rollout [P, B, T] on each
+    trajectory of ``obs``; -inf where ``ok`` (default ``rollout.stable`` [P, B]) is False.
+    ``dtype``: of the loss before scaling (default: the simulator's)."""
+    from .likelihood import trajectory_loss
+
+    loss = np.asarray(trajectory_loss(rollout, obs), dtype)
+    return np.where(np.asarray(rollout.stable) if ok is None else ok, -loss / kT, -np.inf)
+
+
+def _per_trajectory_loglik(pred: Prediction, obs: Observations, kT: float) -> np.ndarray:
+    """[P, B] Boltzmann log-likelihood of each particle on each trajectory (-inf if unstable)."""
+    from .sim import Rollout
+
+    stable = jnp.asarray(np.broadcast_to(pred.stable[:, None], pred.tau.shape[:2]))
+    r = Rollout(jnp.asarray(pred.tau), jnp.asarray(pred.tau_dot), stable)
+    return rollout_loglik(r, obs, kT, ok=pred.valid[:, None])
+
+
+def evaluate_trajectories(
+    sim,
+    theta,
+    labels,
+    trajectories: Sequence[Trajectory],
+    kT: float,
+    grasp_fraction=None,
+    truth=None,
+    particle_ok=None,
+) -> tuple[dict, Prediction, Observations]:
+    """Held-out metrics of particles ``theta`` on ``trajectories`` (:func:`treeinfer.metrics.summarize`
+    with the posterior NLL of the held-out data, per-trajectory CI width / % outside and, with
+    ``truth [2R]`` in natural units, posterior vs truth in log space)."""
+    from .metrics import ci_width, fraction_outside, summarize
+
+    obs = stack_trajectories(list(trajectories))
+    if not math.isclose(float(obs.dt), sim.obs_dt, rel_tol=1e-6):
+        raise ConfigError(
+            f"the trajectories have dt={obs.dt:g} s but the run was inferred at dt={sim.obs_dt:g} s; "
+            "resample them to the run's step"
+        )
+    pred = predict_run(sim, theta, obs.force, grasp_fraction, particle_ok)
+    ll = _per_trajectory_loglik(pred, obs, kT)
+    m = summarize(
+        pred.tau,
+        obs.displacement,
+        mask=obs.mask,
+        valid=pred.valid,
+        log_likelihood=ll,
+        particles=None if truth is None else np.exp(np.asarray(theta, float)),
+        truth=truth,
+        labels=labels,
+        log_space=True,
+    )
+    m["per_trajectory"] = [
+        {
+            "name": t.source,
+            "ci_width": float(ci_width(pred.lower[b], pred.upper[b], obs.mask[b])),
+            "pct_outside": 100.0
+            * float(
+                fraction_outside(pred.lower[b], pred.upper[b], obs.displacement[b], obs.mask[b])
+            ),
+        }
+        for b, t in enumerate(trajectories)
+    ]
+    m["units"] = {
+        "ci_width": "m",
+        "predictive_nll": "nats",
+        "posterior_nll": "nats (kT-scaled loss)",
+    }
+    return m, pred, obs
+
+
+def _training_fit(problem, posterior, config) -> dict:
+    pred_ok = np.isfinite(posterior.log_density)
+    sim = problem.sim
+    from .metrics import summarize
+
+    rollout_pred = None
+    try:
+        rollout_pred = predict_run(
+            sim, posterior.theta, problem.obs.force, config["options"]["grasp_fraction"], pred_ok
+        )
+    except SimulationError:
+        pass  # too few stable particles: the stable-share check reports it
+    if rollout_pred is None:
+        return {"stable": np.zeros(len(posterior.theta), bool), "prediction": None, "metrics": None}
+    ll = _per_trajectory_loglik(rollout_pred, problem.obs, problem.kT)
+    metrics = summarize(
+        rollout_pred.tau,
+        problem.obs.displacement,
+        mask=problem.obs.mask,
+        valid=rollout_pred.valid,
+        log_likelihood=ll,
+    )
+    return {"stable": rollout_pred.valid, "prediction": rollout_pred, "metrics": metrics}
+
+
+# ==== k-fold cross-validation =====================================================================
+def kfold_splits(n: int, k: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``k`` (train, test) index splits of ``n`` items: contiguous folds in file order, sizes
+    differing by at most one (``numpy.array_split``)."""
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 2:
+        raise ConfigError(f"--kfold: K must be an integer >= 2, got {k!r}")
+    if k > n:
+        raise ConfigError(
+            f"--kfold {k}: needs at least {k} trajectories (one held-out fold each), found {n}"
+        )
+    idx = np.arange(n)
+    folds = np.array_split(idx, k)
+    return [(np.setdiff1d(idx, f), f) for f in folds]
+
+
+def mean_metrics(results: Sequence[dict]) -> tuple[dict, dict]:
+    """Mean and standard deviation (ddof=0) over folds of every numeric top-level metric."""
+    keys = [
+        k for k, v in results[0].items() if isinstance(v, (int, float)) and not isinstance(v, bool)
+    ]
+    mean, std = {}, {}
+    for k in keys:
+        vals = np.array(
+            [r[k] for r in results if isinstance(r.get(k), (int, float)) and r.get(k) is not None],
+            float,
+        )
+        mean[k] = float(np.mean(vals)) if vals.size else None
+        std[k] = float(np.std(vals)) if vals.size else None
+    return mean, std
+
+
+# ==== evaluation output ===========================================================================
+def band_arrays(preds_and_obs) -> tuple[np.ndarray, ...]:
+    """Stack (prediction, obs) pairs of possibly different lengths into [K, T] arrays (NaN padded)."""
+    rows = [
+        (
+            pr.lower[b],
+            pr.upper[b],
+            pr.mean[b],
+            np.where(ob.mask[b], ob.displacement[b], np.nan),
+            ob.mask[b],
+        )
+        for pr, ob in preds_and_obs
+        for b in range(ob.force.shape[0])
+    ]
+    t_max = max(len(r[0]) for r in rows)
+    out = np.full((5, len(rows), t_max), np.nan)
+    for k, r in enumerate(rows):
+        for j, a in enumerate(r):
+            a = np.where(r[4], a, np.nan) if j < 4 else a
+            out[j, k, : len(a)] = a
+    return out[0], out[1], out[2], out[3]
+
+
+def write_evaluation(
+    out: Path,
+    metrics: dict,
+    bands,
+    titles: Sequence[str],
+    dt: float,
+    config: dict,
+    force: bool,
+    md: Sequence[str],
+    extra_files: dict[str, str] | None = None,
+) -> None:
+    """metrics.json, metrics.md, bands.png, config.json (+ extra text files) in a staged folder."""
+    from ._io import atomic_write_text, staged_output_dir
+    from .plots import plot_band_grid, save_figure
+
+    lower, upper, mean, gt = bands
+    with staged_output_dir(out, force) as stage:
+        write_json(stage / "metrics.json", metrics)
+        atomic_write_text(stage / "metrics.md", "\n".join(md))
+        t = np.arange(lower.shape[1]) * dt
+        fig, _ = plot_band_grid(
+            t,
+            np.nan_to_num(lower),
+            np.nan_to_num(upper),
+            mean,
+            gt,
+            titles=list(titles),
+            suptitle="95% predictive band vs held-out trajectories",
+        )
+        save_figure(fig, stage / "bands.png")
+        write_json(stage / "config.json", config)
+        for name, text in (extra_files or {}).items():
+            atomic_write_text(stage / name, text)

@@ -1,0 +1,235 @@
+"""A run's configuration (``config.json``): built and validated once from the options, read
+back from old and new run folders, hashed for resume.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..inference import DEFAULT_ETA
+from ..likelihood import DEFAULT_KT
+from ..samplers import sampler_options, sampler_spec
+from ..sim import BACKENDS
+from ..trajectories import (
+    TRUE_PARAMS_FILE,
+    Trajectory,
+    read_trajectory_dir,
+)
+from ..trajectories import read_true_params as read_true_params_file
+from ..tree import Tree, load_tree, tree_to_dict
+from .checkpoint import CHECKPOINT_FILE, partial_dir
+from .provenance import data_manifest, file_sha256, versions
+
+RUN_FORMAT = 1
+
+
+def _count(flag: str, v, minimum: int, why: str = "") -> int:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < minimum:
+        raise ConfigError(f"{flag}: must be an integer >= {minimum}{why}, got {v!r}")
+    return int(v)
+
+
+def _positive(flag: str, v, what: str = "a positive number") -> float:
+    """The one "positive finite number" check of the run options."""
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{flag}: must be {what}, got {v!r}") from None
+    if not (math.isfinite(f) and f > 0):
+        raise ConfigError(f"{flag}: must be {what}, got {f:g}")
+    return f
+
+
+def check_share(s, flag: str = "--max-unstable-share") -> float | None:
+    if s is not None and not (math.isfinite(s) and 0.0 <= s <= 1.0):
+        raise ConfigError(f"{flag}: must be a fraction in [0, 1], got {s:g}")
+    return None if s is None else float(s)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """The options of one ``treeinfer infer`` run, validated once (ConfigError naming the flag).
+
+    Its JSON form is ``config.json``'s ``"options"`` object (the same keys as before this class
+    existed, so old run folders read back); everything but ``out``, ``force`` and
+    ``max_unstable_share`` enters the resume hash (:func:`~.provenance.config_hash`).
+
+    Attributes: tree, data, out (absolute paths as strings); sampler (a registry name);
+    particles (>= 2); iterations (>= 1); backend ("auto", "fused", "mjx"); kT (loss units per
+    nat, > 0); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction (None or in
+    (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end only); force.
+    """
+
+    tree: str
+    data: str
+    out: str
+    sampler: str = "nnsvgd"
+    particles: int = 64
+    iterations: int = 200
+    backend: str = "auto"
+    kT: float = DEFAULT_KT
+    seed: int = 0
+    eta: float = DEFAULT_ETA
+    grasp_fraction: float | None = None
+    max_unstable_share: float = 0.5
+    checkpoint_every: int = 25
+    force: bool = False
+
+    def __post_init__(self):
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 -- frozen: normalise once
+        sampler_spec(self.sampler)
+        set_(
+            "particles",
+            _count(
+                "--particles",
+                self.particles,
+                2,
+                " (SVGD's kernel needs pairs of particles and a 95% interval needs two)",
+            ),
+        )
+        set_("iterations", _count("--iterations", self.iterations, 1))
+        set_("checkpoint_every", _count("--checkpoint-every", self.checkpoint_every, 0))
+        set_("seed", _count("--seed", self.seed, 0))
+        set_("kT", _positive("--kT", self.kT, "a positive number (loss units per nat)"))
+        set_("eta", _positive("--eta", self.eta))
+        g = self.grasp_fraction
+        if g is not None and not (math.isfinite(g) and 0.0 < g <= 1.0):
+            raise ConfigError(
+                f"--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got {g:g}"
+            )
+        set_("grasp_fraction", None if g is None else float(g))
+        set_("max_unstable_share", check_share(self.max_unstable_share))
+        if self.backend not in BACKENDS:
+            raise ConfigError(
+                f"--backend: must be one of {', '.join(BACKENDS)}, got {self.backend!r}"
+            )
+        for k in ("tree", "data", "out"):
+            set_(k, str(getattr(self, k)))
+        set_("force", bool(self.force))
+
+    def to_json(self) -> dict:
+        """``config.json``'s ``"options"`` object."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def from_json(cls, options: dict) -> RunConfig:
+        """From a ``config.json``'s ``"options"``; folders written before ``backend`` existed get
+        ``"auto"``; keys this version does not know are refused."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise ConfigError(f"config.json options: unknown field(s) {unknown}")
+        return cls(**options)
+
+
+# ==== config ======================================================================================
+def infer_config(
+    tree_path: str | os.PathLike,
+    data_dir: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    sampler: str,
+    particles: int,
+    iterations: int,
+    kT: float,
+    seed: int,
+    eta: float,
+    grasp_fraction: float | None,
+    max_unstable_share: float,
+    checkpoint_every: int,
+    force: bool = False,
+    command: str = "infer",
+    backend: str = "auto",
+) -> dict:
+    """The config of a new run (validated options; data and tree hashed). The problem and
+    sampler settings are added by :func:`run_inference` once the problem is built."""
+    tree_path, data_dir, out = Path(tree_path), Path(data_dir), Path(out)
+    tree = load_tree(tree_path)
+    files = data_manifest(data_dir) if data_dir.is_dir() else []
+    trajs = read_trajectory_dir(data_dir)  # clear errors for a missing folder / bad file
+    options = RunConfig(
+        tree=str(tree_path.resolve()),
+        data=str(data_dir.resolve()),
+        out=str(out.resolve()),
+        sampler=sampler,
+        particles=particles,
+        iterations=iterations,
+        backend=str(backend),
+        kT=kT,
+        seed=seed,
+        eta=eta,
+        grasp_fraction=grasp_fraction,
+        max_unstable_share=max_unstable_share,
+        checkpoint_every=checkpoint_every,
+        force=force,
+    ).to_json()
+    return {
+        "command": command,
+        "format": RUN_FORMAT,
+        "versions": versions(),
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "options": options,
+        "seed": int(seed),
+        "tree": {
+            "file": str(tree_path.resolve()),
+            "sha256": file_sha256(tree_path),
+            "name": tree.name,
+            "labels": tree.parameter_labels(),
+        },
+        "tree_dict": tree_to_dict(tree),
+        "data": {
+            "dir": str(data_dir.resolve()),
+            "files": files,
+            "dt": trajs[0].dt,
+            "n_steps": [t.n_steps for t in trajs],
+            "true_params": TRUE_PARAMS_FILE if (data_dir / TRUE_PARAMS_FILE).is_file() else None,
+        },
+        "checkpoint": {
+            "every": int(checkpoint_every),
+            "dir": str(partial_dir(out).resolve()),
+            "file": CHECKPOINT_FILE,
+        },
+    }
+
+
+def read_true_params(tree: Tree, data_dir: str | os.PathLike) -> np.ndarray | None:
+    """True parameters ``[2R]`` (natural units, label order) from ``DIR/true_params.json``, or None."""
+    path = Path(data_dir) / TRUE_PARAMS_FILE
+    if not path.is_file():
+        return None
+    return read_true_params_file(tree, path, where=f"--params-json {path}")
+
+
+def check_data_unchanged(config: dict) -> list[Trajectory]:
+    """Re-read the run's training data, refusing if any file changed, vanished or appeared."""
+    d = Path(config["data"]["dir"])
+    if not d.is_dir():
+        raise ConfigError(f"{d}: the run's data folder no longer exists; restore it to resume")
+    now = {f["name"]: f["sha256"] for f in data_manifest(d)}
+    then = {f["name"]: f["sha256"] for f in config["data"]["files"]}
+    changed = sorted(n for n in then if n in now and now[n] != then[n])
+    missing = sorted(set(then) - set(now))
+    added = sorted(set(now) - set(then))
+    if changed or missing or added:
+        parts = (
+            ([f"changed: {', '.join(changed)}"] if changed else [])
+            + ([f"missing: {', '.join(missing)}"] if missing else [])
+            + ([f"new: {', '.join(added)}"] if added else [])
+        )
+        raise ConfigError(
+            f"{d}: the training data differ from the run's (sha256 in config.json; {'; '.join(parts)}); "
+            "restore the original files, or start a new run without --resume"
+        )
+    return read_trajectory_dir(d)
+
+
+def sampler_settings(config: dict) -> dict:
+    name = config["options"]["sampler"]
+    return {"name": name, "options": sampler_options(name)}

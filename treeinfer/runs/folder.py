@@ -1,0 +1,335 @@
+"""The run folder ``RUN/``: summaries, save (staged, atomic) and load."""
+
+from __future__ import annotations
+
+import os
+import warnings
+import zipfile
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import __version__
+from .._io import (
+    atomic_write_bytes,
+    atomic_write_text,
+    staged_output_dir,
+)
+from ..errors import ConfigError
+from ..evaluation import LEVEL
+from ..jsonio import read_json, write_json
+from ..samplers import sampler_spec
+from ..tree import Tree, dump_tree, load_tree
+from .cache import SimulatorCache, simulator_for
+from .checkpoint import _npz_bytes, partial_dir
+from .config import RUN_FORMAT
+
+UNITS = {"Kp": "N m/rad", "Kd": "N m s/rad"}
+
+
+# ==== summaries ===================================================================================
+def posterior_table(theta, labels, valid=None, level: float = LEVEL) -> dict:
+    """``{label: {mean, lower, upper, unit}}`` in natural units: the particle mean of the gain and
+    the central ``level`` interval of the per-parameter KDE in log space, mapped back by ``exp``."""
+    from ..metrics import predictive_interval
+
+    theta = np.asarray(theta, float)
+    ok = np.all(np.isfinite(theta), axis=1) & (True if valid is None else np.asarray(valid, bool))
+    out = {}
+    if ok.sum() >= 2:
+        lo, hi, _ = (np.asarray(a) for a in predictive_interval(theta, level, ok))
+    else:
+        lo = hi = np.full(theta.shape[1], np.nan)
+    for j, lab in enumerate(labels):
+        k = np.exp(theta[ok, j])
+        out[lab] = {
+            "mean": float(k.mean()) if k.size else float("nan"),
+            "median": float(np.median(k)) if k.size else float("nan"),
+            "lower": float(np.exp(lo[j])),
+            "upper": float(np.exp(hi[j])),
+            "unit": UNITS[lab.split("[")[0]],
+        }
+    return out
+
+
+def _bandwidths(positions: np.ndarray) -> np.ndarray:
+    from ..samplers import median_length_scale
+
+    if len(positions) == 0:
+        return np.zeros(0)
+    return np.asarray(jax.jit(jax.vmap(median_length_scale))(jnp.asarray(positions)), float)
+
+
+def _diagnostics(sampler: str, trace: dict, labels) -> tuple[str, dict, list[str]]:
+    from ..diagnostics import convergence_warnings, mcmc_diagnostics, svgd_diagnostics
+
+    kind = sampler_spec(sampler).family
+    try:
+        if kind == "svgd":
+            diag = svgd_diagnostics(trace["log_density"], _bandwidths(trace["positions"]))
+        else:
+            diag = mcmc_diagnostics(trace["positions"], labels, log_density=trace["log_density"])
+        warns = convergence_warnings(diag, kind)
+    except ConfigError as e:  # e.g. too short a trace for split R-hat
+        diag, warns = {"error": str(e)}, [f"diagnostics unavailable: {e}"]
+    if trace["resumed_from"] is not None:
+        diag["resumed_from"] = trace["resumed_from"]
+    return kind, diag, warns
+
+
+def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
+    o = config["options"]
+    kind, diag, warns = _diagnostics(o["sampler"], trace, list(problem.labels))
+    stable = np.asarray(fit["stable"], bool)
+    summary = {
+        "sampler": o["sampler"],
+        "n_particles": o["particles"],
+        "n_iterations": o["iterations"],
+        "seed": o["seed"],
+        "elapsed_s_sampling": trace["elapsed_s"],
+        "diagnostics_kind": kind,
+        "diagnostics": diag,
+        "convergence_warnings": warns,
+        "n_unstable": int((~stable).sum()),
+        "unstable_particles": np.flatnonzero(~stable).tolist(),
+        "posterior": posterior_table(posterior.theta, problem.labels, stable),
+        "level": LEVEL,
+        "training_metrics": fit["metrics"],
+    }
+    if truth is not None:
+        from ..metrics import posterior_vs_truth
+
+        chk = posterior_vs_truth(
+            np.exp(np.asarray(posterior.theta, float)), truth, LEVEL, stable, log=True
+        )
+        summary["truth"] = {
+            lab: {
+                "truth": float(truth[j]),
+                "log_mean": float(chk.mean[j]),
+                "log_truth": float(np.log(truth[j])),
+                "in_interval": bool(chk.in_marginal[j]),
+                "rel_error_log": float(chk.rel_error[j]),
+            }
+            for j, lab in enumerate(problem.labels)
+        }
+        summary["truth_in_joint_region"] = chk.in_joint
+    return summary
+
+
+# ==== the run folder ==============================================================================
+def _csv_float(x) -> str:
+    return repr(float(x))
+
+
+def particles_csv(theta, labels, log_density, stable) -> str:
+    """One row per particle: ``particle``, the labels in natural units, ``log_density``, ``stable``."""
+    theta = np.asarray(theta, float)
+    lines = [
+        (
+            f"# treeinfer {__version__}: posterior particles; Kp in {UNITS['Kp']}, Kd in {UNITS['Kd']}; "
+            "log_density of the whole target (-inf: unstable simulation)"
+        ),
+        ",".join(["particle", *labels, "log_density", "stable"]),
+    ]
+    for i, row in enumerate(np.exp(theta)):
+        lines.append(
+            ",".join(
+                [
+                    str(i),
+                    *(_csv_float(v) for v in row),
+                    _csv_float(log_density[i]),
+                    str(bool(stable[i])).lower(),
+                ]
+            )
+        )
+    return "\n".join(lines) + "\n"
+
+
+def save_run(
+    run_dir: str | os.PathLike,
+    *,
+    tree: Tree,
+    config: dict,
+    posterior,
+    problem,
+    trace: dict,
+    fit: dict,
+    summary: dict,
+    truth=None,
+    force: bool = False,
+) -> Path:
+    """Write the run folder (see the module docstring) atomically: built in a staging folder,
+    moved into place at the end."""
+    from ..diagnostics import save_inference_data, to_inference_data
+    from ..plots import pair_plot, plot_band_grid, plot_trace, save_figure
+
+    labels = list(problem.labels)
+    sampler = config["options"]["sampler"]
+    stable = np.asarray(fit["stable"], bool)
+    with staged_output_dir(run_dir, force, "run") as stage:
+        write_json(stage / "config.json", config)
+        dump_tree(tree, stage / "tree.yaml")
+        attrs = {
+            "treeinfer_version": __version__,
+            "theta": "natural log of Kp [N m/rad] then Kd [N m s/rad]",
+            "seed": int(config["options"]["seed"]),
+            "n_iterations": int(config["options"]["iterations"]),
+        }
+        if sampler_spec(sampler).family == "svgd":
+            idata = to_inference_data(
+                posterior.theta,
+                labels,
+                log_density=posterior.log_density,
+                sampler=sampler,
+                attrs=attrs,
+            )
+        else:
+            attrs["trace_iterations"] = ",".join(str(i) for i in trace["iterations"])
+            with warnings.catch_warnings():  # short runs: ArviZ suspects chains and draws swapped
+                warnings.filterwarnings("ignore", "More chains", UserWarning)
+                idata = to_inference_data(
+                    trace["positions"],
+                    labels,
+                    log_density=trace["log_density"],
+                    sampler=sampler,
+                    attrs=attrs,
+                )
+        save_inference_data(idata, stage / "posterior.nc")
+        atomic_write_text(
+            stage / "particles.csv",
+            particles_csv(posterior.theta, labels, posterior.log_density, stable),
+        )
+        arrays = {
+            "positions": trace["positions"],
+            "log_density": trace["log_density"],
+            "iterations": trace["iterations"],
+            "theta": np.asarray(posterior.theta),
+            "final_log_density": np.asarray(posterior.log_density),
+            "labels": np.asarray(labels),
+            "diag_iterations": trace["diag_iterations"],
+            **{f"diag_{k}": v for k, v in trace["diagnostics"].items()},
+        }
+        atomic_write_bytes(stage / "trace.npz", _npz_bytes(arrays))
+        write_json(stage / "summary.json", summary)
+
+        plots = stage / "plots"
+        bw = _bandwidths(trace["positions"]) if sampler_spec(sampler).family == "svgd" else None
+        fig, _ = plot_trace(
+            trace["log_density"],
+            bw,
+            iterations=trace["iterations"],
+            title=f"{sampler}: log density",
+        )
+        save_figure(fig, plots / "trace.png")
+        ok = stable & np.all(np.isfinite(posterior.theta), axis=1)
+        t10 = None if truth is None else np.log10(np.asarray(truth, float))
+        fig, _ = pair_plot(
+            np.asarray(posterior.theta, float)[ok] / np.log(10.0),
+            [f"log10 {lab}" for lab in labels],
+            truth=t10,
+            title=f"posterior ({int(ok.sum())} stable particles)",
+        )
+        save_figure(fig, plots / "pairs.png")
+        pred = fit["prediction"]
+        if pred is not None:
+            obs = problem.obs
+            gt = np.where(obs.mask, obs.displacement, np.nan)
+            t = np.arange(obs.force.shape[1]) * float(obs.dt)
+            names = [f["name"] for f in config["data"]["files"]]
+            fig, _ = plot_band_grid(
+                t,
+                pred.lower,
+                pred.upper,
+                pred.mean,
+                gt,
+                titles=names,
+                suptitle="95% predictive band vs training trajectories",
+            )
+            save_figure(fig, plots / "bands_train.png")
+    return Path(run_dir)
+
+
+class LoadedRun(NamedTuple):
+    """A finished run, ready for :func:`predict_run` / :func:`evaluate_trajectories`.
+
+    path: the run folder. tree: its tree. config: config.json. theta: [P, D] final particles
+    (log Kp, log Kd; float32 as sampled). labels: theta's columns. log_density: [P].
+    stable: [P] stable on the training data. sim: the simulator at the recorded obs_dt/substeps.
+    kT: the likelihood temperature. summary: summary.json. grasp_fraction: where the training
+    data were recorded (``--grasp-fraction`` of the run; None: the tree's grasp).
+    """
+
+    path: Path
+    tree: Tree
+    config: dict
+    theta: np.ndarray
+    labels: tuple[str, ...]
+    log_density: np.ndarray
+    stable: np.ndarray
+    sim: Any
+    kT: float
+    summary: dict
+    grasp_fraction: float | None
+
+
+def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None) -> LoadedRun:
+    """Read a run folder written by :func:`save_run` (ConfigError naming what is missing)."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        hint = (
+            f"; an interrupted run waits in {partial_dir(run_dir)} (--resume)"
+            if partial_dir(run_dir).is_dir()
+            else ""
+        )
+        raise ConfigError(f"{run_dir}: no such run folder{hint}")
+    if not (run_dir / "config.json").is_file():
+        raise ConfigError(
+            f"{run_dir}: not a treeinfer run (no config.json); give the folder `treeinfer infer --out` wrote"
+        )
+    config = read_json(run_dir / "config.json", "the run's config")
+    if config.get("command") not in ("infer", "demo") or config.get("format") != RUN_FORMAT:
+        raise ConfigError(
+            f"{run_dir / 'config.json'}: not a treeinfer run config (command {config.get('command')!r})"
+        )
+    for name in ("tree.yaml", "trace.npz"):
+        if not (run_dir / name).is_file():
+            raise ConfigError(f"{run_dir}: incomplete run folder, {name} is missing")
+    tree = load_tree(run_dir / "tree.yaml")
+    try:
+        with np.load(run_dir / "trace.npz", allow_pickle=False) as z:
+            theta, ld = z["theta"], z["final_log_density"]
+            labels = tuple(str(s) for s in z["labels"])
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
+        raise ConfigError(f"{run_dir / 'trace.npz'}: unreadable ({e})") from None
+    if list(labels) != tree.parameter_labels():
+        raise ConfigError(
+            f"{run_dir}: trace.npz labels {list(labels)} do not match tree.yaml {tree.parameter_labels()}"
+        )
+    summary = (
+        read_json(run_dir / "summary.json", "the run's summary")
+        if (run_dir / "summary.json").is_file()
+        else {}
+    )
+    stable = np.isfinite(ld)
+    if summary.get("unstable_particles"):
+        stable[np.asarray(summary["unstable_particles"], int)] = False
+    p = config["problem"]
+    sim = simulator_for(
+        tree, p["obs_dt"], p["substeps"], p.get("backend", "auto"), cache
+    )  # folders from before backends existed: auto
+    return LoadedRun(
+        run_dir,
+        tree,
+        config,
+        theta,
+        labels,
+        ld,
+        stable,
+        sim,
+        float(p["kT"]),
+        summary,
+        config["options"].get("grasp_fraction"),
+    )
