@@ -189,7 +189,10 @@ def make_problem(
 
     lo, hi = tree.bounds_array()
     kT = terms.kT if terms.kT is not None else (DEFAULT_KT if isinstance(kT, str) else kT)
-    settings = {**terms.settings, **dict(
+    # the paper's mode (Boltzmann, fixed kT, no noise given) records exactly what it did before
+    # issue 11, so older interrupted runs still resume with identical settings
+    paper_mode = terms.black_box and not terms.settings.get("kT_auto") and terms.sigma_x is None
+    settings = {**({} if paper_mode else terms.settings), **dict(
         kT=kT, nn_prior=bool(nn is not None), eta=eta, prior_sigma=prior_sigma, prior_space=prior_space,
         gradient=gradient, rel_step=rel_step, backend=sim.backend, substeps=sim.substeps, sim_dt=sim.sim_dt, obs_dt=sim.obs_dt,
         grasp_fraction=grasp_fraction if grasp_fraction is not None else tree.grasp_fraction,
