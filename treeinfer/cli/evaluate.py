@@ -16,6 +16,7 @@ from ..evaluation import (
     evaluate_trajectories,
     kfold_splits,
     mean_metrics,
+    noise_for,
     write_evaluation,
 )
 from ..pulls import data_grasp_fractions
@@ -163,8 +164,10 @@ def run_evaluate(args: argparse.Namespace) -> int:
         sim = simulator_for_run(run, args, stack_trajectories(trajs).force, grasp, cache)
         config["simulation"] = runs.simulation_summary(sim)
         _print_simulation(config["simulation"])
+        sigma, kind = noise_for(run.theta, run.sim.n_joints, run.config.get("problem"))
         m, pred, obs = evaluate_trajectories(
-            sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable
+            sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable,
+            noise_sigma=sigma, noise_kind=kind,
         )
         metrics = {"run": str(args.run), "data": str(args.data), "metrics": m}
         md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md(

@@ -12,7 +12,7 @@ import numpy as np
 from .. import runs
 from .._io import atomic_write_text, check_output_dir, staged_output_dir
 from ..errors import ConfigError
-from ..evaluation import predict_run
+from ..evaluation import noise_for, predict_run
 from ..forces import from_spec
 from ..metrics import fraction_outside
 from ..plots import plot_trajectory_bands, save_figure
@@ -208,11 +208,25 @@ def run_predict(args: argparse.Namespace) -> int:
         compare = compare and same
     sim = simulator_for_run(run, args, prof.force[None], grasp, cache)
     _print_simulation(runs.simulation_summary(sim))
-    pred = predict_run(sim, run.theta, prof.force[None], grasp, run.stable)
+    sigma, kind = noise_for(run.theta, run.sim.n_joints, run.config.get("problem"))
+    pred = predict_run(
+        sim, run.theta, prof.force[None], grasp, run.stable, noise_sigma=sigma, noise_kind=kind
+    )
     n_bad = int((~pred.valid).sum())
-    lower, upper, mean = pred.lower[0], pred.upper[0], pred.mean[0]
+    mean = pred.mean[0]
+    lower, upper = (a[0] for a in pred.band())  # what a recording is compared with
+    has_noise = pred.predictive_lower is not None
+    band_name = (
+        "predictive band (simulation + fitted noise)"
+        if has_noise
+        else "parameter band (no noise model known)"
+    )
     recorded = prof.displacement if compare else None
-    csv_text = band_csv_text(prof.time, prof.force, recorded, mean, lower, upper)
+    csv_text = band_csv_text(
+        prof.time, prof.force, recorded, mean, pred.lower[0], pred.upper[0],
+        pred.predictive_lower[0] if has_noise else None,
+        pred.predictive_upper[0] if has_noise else None,
+    )
     config = _base_config("predict", args)
     config.update(
         run=str(Path(args.run).resolve()),
@@ -236,7 +250,7 @@ def run_predict(args: argparse.Namespace) -> int:
             mean,
             recorded,
             samples=pred.tau[pred.valid, 0],
-            title=f"{prof.source}: 95% band, {int(pred.valid.sum())} particles",
+            title=f"{prof.source}: 95% {band_name}, {int(pred.valid.sum())} particles",
         )
         save_figure(fig, stage / "prediction.png")
         runs.write_json(stage / "config.json", config)

@@ -15,6 +15,8 @@ import numpy as np
 from ..errors import ConfigError
 from ..inference import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA
 from ..likelihood import DEFAULT_KT
+from ..noise import KINDS as LIKELIHOODS
+from ..noise import check_sigma
 from ..samplers import sampler_options, sampler_spec
 from ..sim import BACKENDS, FORCE_INTERPS
 from ..trajectories import (
@@ -69,7 +71,9 @@ class RunConfig:
 
     Attributes: tree, data, out (absolute paths as strings); sampler (a registry name);
     particles (>= 2); iterations (>= 1); backend ("auto", "fused", "mjx"); kT (loss units per
-    nat, > 0); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction (None or in
+    nat, > 0, or "auto": from the data's noise estimate); likelihood ("boltzmann", "gaussian",
+    "student_t", "ar1": :func:`treeinfer.likelihood.likelihood_terms`); noise_displacement (m,
+    None: inferred / estimated); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction (None or in
     (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end only); force;
     prior_from (None or an earlier run folder, absolute: its posterior becomes this run's prior on
     the joints both infer, :mod:`treeinfer.sequential`).
@@ -111,6 +115,8 @@ class RunConfig:
     force_interp: str = "linear"
     max_sim_dt: float | None = None
     sim_tolerance: float | None = None
+    likelihood: str = "boltzmann"
+    noise_displacement: float | None = None
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)
@@ -127,13 +133,20 @@ class RunConfig:
         set_("iterations", _count("--iterations", self.iterations, 1))
         set_("checkpoint_every", _count("--checkpoint-every", self.checkpoint_every, 0))
         set_("seed", _count("--seed", self.seed, 0))
-        set_("kT", _positive("--kT", self.kT, "a positive number (loss units per nat)"))
-        if self.kT < MIN_KT:  # the log-likelihood -L/kT would overflow float32 to -inf everywhere
+        if not (isinstance(self.kT, str) and self.kT == "auto"):
+            set_("kT", _positive("--kT", self.kT, "a positive number (loss units per nat) or 'auto'"))
+            if self.kT < MIN_KT:  # the log-likelihood -L/kT would overflow float32 to -inf everywhere
+                raise ConfigError(
+                    f"--kT: {self.kT:g} is so small that every particle's log-likelihood -L/kT "
+                    f"overflows (below {MIN_KT:g}); a loss of L costs L/kT nats: typical values are "
+                    "1e-3 to 10 (see treeinfer.likelihood.suggest_kT)"
+                )
+        if self.likelihood not in LIKELIHOODS:
             raise ConfigError(
-                f"--kT: {self.kT:g} is so small that every particle's log-likelihood -L/kT "
-                f"overflows (below {MIN_KT:g}); a loss of L costs L/kT nats: typical values are "
-                "1e-3 to 10 (see treeinfer.likelihood.suggest_kT)"
+                f"--likelihood: must be one of {', '.join(LIKELIHOODS)}, got {self.likelihood!r}"
             )
+        if self.noise_displacement is not None:
+            set_("noise_displacement", check_sigma(self.noise_displacement, "--noise-displacement"))
         set_("eta", _positive("--eta", self.eta))
         g = self.grasp_fraction
         if g is not None and not (math.isfinite(g) and 0.0 < g <= 1.0):
@@ -223,6 +236,8 @@ def infer_config(
     force_interp: str = "linear",
     max_sim_dt: float | None = None,
     sim_tolerance: float | None = None,
+    likelihood: str = "boltzmann",
+    noise_displacement: float | None = None,
     **more,
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
@@ -252,6 +267,8 @@ def infer_config(
         force_interp=force_interp,
         max_sim_dt=max_sim_dt,
         sim_tolerance=sim_tolerance,
+        likelihood=likelihood,
+        noise_displacement=noise_displacement,
         **more,
     ).to_json()
     return {

@@ -23,7 +23,7 @@ from .._io import (
 from ..errors import ConfigError, OutputExistsError, SimulationError, TrajectoryFileError
 
 # ==== problem and posterior =======================================================================
-from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits
+from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits, noise_for
 from ..inference import DEFAULT_PRIOR_SIGMA
 from ..jsonio import jsonable as _jsonable
 from ..jsonio import read_json, write_json
@@ -107,6 +107,8 @@ def build_problem(
         grasp_fraction=_grasp_fractions(o, tree, trajectories),
         sim=sim,
         gradient=o.get("gradients", "fd"),
+        likelihood=o.get("likelihood", "boltzmann"),  # run folders older than issue 11
+        noise_displacement=o.get("noise_displacement"),
     )
     if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints
         from ..sequential import prior_from_run, with_prior
@@ -280,6 +282,8 @@ def run_inference(
         run_dir, partial, tree, trajs, truth = _prepare_fresh(config, log)
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
         problem = build_problem(config, tree, trajs, cache)
+        if problem.noise is not None:
+            log(f"likelihood: {problem.noise.description}")
         config = {**config, "problem": problem.settings, "sampler": sampler_settings(config)}
         config["config_hash"] = config_hash(config)
         partial.mkdir(parents=True)
@@ -569,6 +573,7 @@ def kfold(
             grasp_fraction,
             truth,
             np.isfinite(post.log_density),
+            *noise_for(post.theta, problem.sim.n_joints, problem.settings),
         )
         out.append(
             FoldResult(
