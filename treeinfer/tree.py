@@ -92,6 +92,8 @@ class Tree:
     density: float = DEFAULT_DENSITY
     fixed_kp: float = DEFAULT_FIXED_KP
     fixed_kd: float = DEFAULT_FIXED_KD
+    # the user's own URDF/MJCF (treeinfer.usermodel): the validated ``model:`` section, or None
+    model: dict | None = None
 
     # ---- lookups -------------------------------------------------------------------------
     @property
@@ -376,7 +378,9 @@ def _validate_branches(branches: tuple[Branch, ...]) -> None:
 _BRANCH_KEYS = {
     "name", "parent", "length", "radius", "angle_deg", "azimuth_deg", "attach", "density", "kp", "kd", "fixed",
 }
-_TOP_KEYS = {"name", "branches", "base", "gravity", "density", "grasp", "inference", "fixed", "generator"}
+_TOP_KEYS = {
+    "name", "branches", "base", "gravity", "density", "grasp", "inference", "fixed", "generator", "model",
+}
 
 
 def _no_unknown(m: Any, allowed: set[str], fld: str, pre: str) -> None:
@@ -387,8 +391,9 @@ def _no_unknown(m: Any, allowed: set[str], fld: str, pre: str) -> None:
         raise TreeFileError(f"{pre}{fld}: unknown field(s) {sorted(bad)}; allowed: {sorted(allowed)}")
 
 
-def tree_from_dict(d: Any, source: str = "<dict>") -> Tree:
-    """Build a tree from the parsed file content; errors name ``source`` and the field."""
+def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None = None) -> Tree:
+    """Build a tree from the parsed file content; errors name ``source`` and the field.
+    ``base_dir``: where a relative ``model.file`` lies (the tree file's folder)."""
     pre = f"{source}: "
     if not isinstance(d, dict):
         raise TreeFileError(f"{pre}expected a mapping at the top level, got {type(d).__name__}")
@@ -493,12 +498,21 @@ def tree_from_dict(d: Any, source: str = "<dict>") -> Tree:
             density=_positive(d.get("density", DEFAULT_DENSITY), "density"),
             fixed_kp=_positive(fixed.get("kp", DEFAULT_FIXED_KP), "fixed.kp"),
             fixed_kd=_positive(fixed.get("kd", DEFAULT_FIXED_KD), "fixed.kd"),
+            model=_model_section(d.get("model"), source, base_dir),
         )
     except TreeFileError as e:
         msg = str(e)
         raise TreeFileError(msg if msg.startswith(pre) else f"{pre}{msg}") from None
     except (TypeError, ValueError, AttributeError) as e:
         raise TreeFileError(f"{pre}malformed field: {e}") from None
+
+
+def _model_section(raw: Any, source: str, base_dir) -> dict | None:
+    if raw is None:
+        return None
+    from .usermodel import parse_model_section
+
+    return parse_model_section(raw, source, base_dir)
 
 
 def tree_to_dict(tree: Tree) -> dict[str, Any]:
@@ -517,7 +531,7 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
         if b.fixed:
             rb["fixed"] = True
         branches.append(rb)
-    return {
+    out = {
         "name": tree.name,
         "base": {"position": list(tree.base_position), "pitch_deg": tree.base_pitch_deg, "yaw_deg": tree.base_yaw_deg},
         "gravity": list(tree.gravity),
@@ -532,6 +546,9 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
             },
         },
     }
+    if tree.model is not None:
+        out["model"] = dict(tree.model)
+    return out
 
 
 def load_tree(path: str | Path) -> Tree:
@@ -557,7 +574,7 @@ def load_tree(path: str | Path) -> Tree:
             mark = getattr(e, "problem_mark", None)
             line = f", line {mark.line + 1}" if mark is not None else ""
             raise TreeFileError(f"{path}{line}: invalid YAML: {getattr(e, 'problem', e)}") from None
-    return tree_from_dict(d, source=str(path))
+    return tree_from_dict(d, source=str(path), base_dir=path.parent)
 
 
 def dump_tree(tree: Tree, path: str | Path) -> Path:
