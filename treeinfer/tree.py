@@ -556,6 +556,11 @@ def load_tree(path: str | Path) -> Tree:
     path = Path(path)
     if not path.exists():
         raise TreeFileError(f"{path}: no such file")
+    if path.suffix.lower() in (".urdf", ".xml", ".mjcf"):
+        raise TreeFileError(
+            f"{path}: a URDF/MJCF model, not a tree description; describe it with "
+            f"`treeinfer tree --model {path} --out tree.yaml` (or give it with --model)"
+        )
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as e:

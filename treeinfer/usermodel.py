@@ -109,16 +109,23 @@ def parse_model_section(raw: Any, source: str = "<dict>", base_dir: str | Path |
     return out
 
 
-def attach_model(tree, model_file: str | Path | None = None, repair_inertia: str | None = None):
+def attach_model(
+    tree,
+    model_file: str | Path | None = None,
+    repair_inertia: str | None = None,
+    keep_sha256: bool = False,
+):
     """``tree`` with its ``model:`` section pointing at ``model_file`` (absolute, with its
     sha256), keeping the section's name maps; ``repair_inertia`` (``geometry``/``floor``) set
-    when given. ``model_file`` None keeps the tree's file (and adds its sha256)."""
+    when given. ``model_file`` None keeps the tree's file (and adds its sha256);
+    ``keep_sha256``: the recorded sha256 stays (the file moved, its content must not change)."""
     from dataclasses import replace
 
     sec = dict(tree.model or {})
     if model_file is not None:
         sec["file"] = str(model_file)
-        sec.pop("sha256", None)
+        if not keep_sha256:
+            sec.pop("sha256", None)
     if "file" not in sec:
         raise TreeFileError("--repair-inertia: the tree has no model file (give --model FILE)")
     sec = parse_model_section(sec, "--model", base_dir=Path.cwd())
@@ -373,7 +380,7 @@ def prepare_user_model(tree, model_file=None) -> PreparedModel:
             f"{path}: {len(bad)} link(s) have a degenerate mass or inertia (MuJoCo needs positive "
             f"mass and a positive-definite inertia on moving bodies): {'; '.join(bad[:10])}"
             f"{' ...' if len(bad) > 10 else ''}. Fix the file or repair them with "
-            "--repair-inertia geometry (solid cylinder of the link's geometry) or floor"
+            "geometry (solid cylinder of the link's geometry) or floor"
         )
     report["repaired"] = repaired
 
@@ -481,3 +488,110 @@ def describe_report(report: dict) -> list[str]:
     if report.get("limits_ignored"):
         out.append(f"  joint limits ignored (model: limits: ignore): {report['limits_ignored']}")
     return out
+
+
+def _angles(rel: np.ndarray, d_parent: np.ndarray, d_child: np.ndarray) -> tuple[float, float]:
+    """(angle_deg, azimuth_deg) of a child frame relative to its parent's: exact when ``rel`` is
+    ``rot_x(azimuth) @ rot_y(-angle)`` (trees treeinfer exports), else from the axis directions
+    ``d_parent``, ``d_child`` [3] (parent frame): the fork angle in the best bending plane."""
+    if abs(rel[0, 1]) < 1e-9 and np.allclose(d_child / np.linalg.norm(d_child), rel[:, 0],
+                                             atol=1e-6):
+        return (math.degrees(-math.atan2(rel[0, 2], rel[0, 0])),
+                math.degrees(math.atan2(rel[2, 1], rel[1, 1])))
+    a, c = d_parent / np.linalg.norm(d_parent), d_child / np.linalg.norm(d_child)
+    ang = math.degrees(math.acos(float(np.clip(a @ c, -1, 1))))
+    perp = c - (a @ c) * a
+    az = math.degrees(math.atan2(-perp[1], perp[2])) - 90.0 if np.linalg.norm(perp) > 1e-9 else 0
+    return ang, az
+
+
+def tree_from_model(
+    model_file: str | Path,
+    *,
+    name: str | None = None,
+    grasp: str | None = None,
+    grasp_fraction: float = 1.0,
+    levels: int | None = None,
+    bounds=None,
+    repair_inertia: str | None = None,
+    **tree_kwargs: Any,
+):
+    """A tree description of a user's URDF/MJCF: one branch per link below the first jointed
+    one (named like the link; ``fixed`` where it has no hinge), with its length and radius from
+    the link's axis and cylinder (:func:`link_axis`), its fork angles from the link frames, and a
+    ``model:`` section with the file, its sha256 and the joint names where they differ from the
+    link names. The simulator runs the file itself; the branch geometry is for summaries and
+    default prior scales. ``grasp`` defaults to the last link; ``levels`` to 1."""
+    import mujoco
+
+    from .tree import Branch, make_tree
+
+    path = Path(model_file).resolve()
+    spec = _load_spec(path)
+    m = _probe(spec, path)
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    hinge = mujoco.mjtJoint.mjJNT_HINGE
+    jointed = [any(m.jnt_type[j] == hinge for j in range(m.body_jntadr[i],
+                                                          m.body_jntadr[i] + m.body_jntnum[i]))
+               for i in range(m.nbody)]
+    under = [False] * m.nbody
+    for i in range(1, m.nbody):
+        under[i] = jointed[i] or under[int(m.body_parentid[i])]
+    roots = [i for i in range(1, m.nbody) if under[i] and not under[int(m.body_parentid[i])]]
+    if len(roots) != 1:
+        raise TreeFileError(f"{path}: a tree needs exactly one jointed root link, found "
+                            f"{[m.body(i).name for i in roots]}")
+    joints: dict[str, str] = {}
+    branches, info = [], {}
+    for i in range(1, m.nbody):
+        if not under[i]:
+            continue
+        bname = m.body(i).name
+        ax = link_axis(m, i)
+        if ax is None:
+            raise TreeFileError(f"{path}: link '{bname}' has no cylinder/capsule geom and no child "
+                                "link: its length is unknown")
+        a, e, r = ax
+        length = float(np.linalg.norm(e - a))
+        radius = min(r if r else length / 20, length)
+        hinges = [j for j in range(m.body_jntadr[i], m.body_jntadr[i] + m.body_jntnum[i])
+                  if m.jnt_type[j] == hinge]
+        if hinges and m.joint(hinges[0]).name != bname:
+            joints[bname] = m.joint(hinges[0]).name
+        info[i] = (a, e, length)
+        parent = int(m.body_parentid[i])
+        kw: dict[str, Any] = {}
+        if i != roots[0]:
+            pa, pe, plen = info[parent]
+            rel = d.xmat[parent].reshape(3, 3).T @ d.xmat[i].reshape(3, 3)
+            kw["angle_deg"], kw["azimuth_deg"] = _angles(rel, pe - pa, rel @ (e - a))
+            kw["attach"] = float(np.clip((np.asarray(m.body_pos[i]) - pa) @ (pe - pa) / plen**2,
+                                         1e-6, 1.0))
+        branches.append(Branch(name=bname, parent=None if i == roots[0] else m.body(parent).name,
+                               length=length, radius=radius, fixed=not hinges, **kw))
+    # the root's direction -> base pose
+    ra, re_, _ = info[roots[0]]
+    droot = d.xmat[roots[0]].reshape(3, 3) @ (re_ - ra)
+    droot /= np.linalg.norm(droot)
+    sec = {"file": str(path), "sha256": file_sha256(path)}
+    if joints:
+        sec["joints"] = joints
+    if repair_inertia is not None:
+        sec["repair_inertia"] = repair_inertia
+    tree_kwargs.setdefault("base_position",
+                           tuple(float(x) for x in d.xpos[roots[0]] + d.xmat[roots[0]].reshape(
+                               3, 3) @ ra))
+    tree_kwargs.setdefault("base_pitch_deg", math.degrees(math.asin(float(droot[2]))))
+    tree_kwargs.setdefault("base_yaw_deg", math.degrees(math.atan2(droot[1], droot[0])))
+    tree_kwargs.setdefault("gravity", tuple(float(x) for x in spec.option.gravity))
+    return make_tree(
+        branches,
+        grasp_branch=grasp or branches[-1].name,
+        grasp_fraction=grasp_fraction,
+        levels=levels or 1,
+        bounds=bounds,
+        name=name or path.stem,
+        model=parse_model_section(sec, str(path)),
+        **tree_kwargs,
+    )

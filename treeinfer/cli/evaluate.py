@@ -31,6 +31,7 @@ from .common import (
     _print_simulation,
     _say,
     add_command_parser,
+    add_model_options,
     add_simulation_options,
     check_simulation_options,
     simulator_for_run,
@@ -96,6 +97,7 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
+    add_model_options(p, run=True)
     add_simulation_options(p, _RUN_SIM_NOTE)
     return p
 
@@ -106,7 +108,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     _prepare_jax()
     check_simulation_options(args)
     cache = runs.SimulatorCache()  # this command's simulators (the run's, and k-fold's)
-    run = runs.load_run(args.run, cache)
+    run = runs.load_run(args.run, cache, model_file=args.model)
     trajs = read_trajectory_dir(args.data)
     dt = trajs[0].dt
     if not math.isclose(dt, run.sim.obs_dt, rel_tol=1e-6):

@@ -25,6 +25,8 @@ from .common import (
     _print_warnings,
     _say,
     add_command_parser,
+    add_model_options,
+    print_model_report,
     add_simulation_options,
 )
 
@@ -34,7 +36,8 @@ from .common import (
 INFER_DEFAULTS: dict[str, Any] = {
     f.name: f.default
     for f in fields(RunConfig)
-    if f.default is not MISSING and f.name not in ("grasp_fraction", "force")
+    if f.default is not MISSING
+    and f.name not in ("grasp_fraction", "force", "model", "repair_inertia")
 }
 # options a resumed run takes from its checkpoint's config (argparse dest -> flag)
 _RUN_OPTIONS = {
@@ -54,6 +57,8 @@ _RUN_OPTIONS = {
     "force_interp": "--force-interp",
     "max_sim_dt": "--max-sim-dt",
     "sim_tolerance": "--sim-tolerance",
+    "model": "--model",
+    "repair_inertia": "--repair-inertia",
 }
 
 _INFER_EPILOG = """\
@@ -161,6 +166,7 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         choices=("auto", "fused", "mjx"),
         help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
     )
+    add_model_options(p)
     add_simulation_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -202,7 +208,15 @@ def run_infer(args: argparse.Namespace) -> int:
         o["grasp_fraction"] = args.grasp_fraction
         _check_infer_options(o)
         run_dir = args.out
-        config = runs.infer_config(args.tree, args.data, args.out, force=bool(args.force), **o)
+        config = runs.infer_config(
+            args.tree,
+            args.data,
+            args.out,
+            force=bool(args.force),
+            model=args.model,
+            repair_inertia=args.repair_inertia,
+            **o,
+        )
         _say(
             f"{len(config['data']['files'])} training trajectories from {args.data}; sampling with {o['sampler']} "
             f"({o['particles']} particles x {o['iterations']} iterations)"
@@ -233,6 +247,7 @@ def run_infer(args: argparse.Namespace) -> int:
             )
         return EXIT_INTERRUPTED
     s = outcome.summary
+    print_model_report(s.get("model"))
     _print_simulation(s.get("simulation"))
     _print_posterior(s)
     _print_fit(s.get("training_metrics"), "fit to the training data")

@@ -26,6 +26,7 @@ from .common import (
     _print_simulation,
     _say,
     add_command_parser,
+    add_model_options,
     add_simulation_options,
     check_simulation_options,
     simulator_for_run,
@@ -97,6 +98,7 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         action="store_true",
         help="replace a non-empty output folder (--force names the force file here)",
     )
+    add_model_options(p, run=True)
     add_simulation_options(p, _RUN_SIM_NOTE)
     return p
 
@@ -107,7 +109,7 @@ def run_predict(args: argparse.Namespace) -> int:
     _prepare_jax()
     check_simulation_options(args)
     cache = runs.SimulatorCache()
-    run = runs.load_run(args.run, cache)
+    run = runs.load_run(args.run, cache, model_file=args.model)
     dt_run = run.sim.obs_dt
     if args.force_file is not None:
         if args.duration is not None or args.dt is not None:

@@ -132,6 +132,8 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
         "training_metrics": fit["metrics"],
         "simulation": simulation_summary(problem.sim),
     }
+    if problem.sim.model_report:  # a user's own URDF/MJCF: what was matched, set, repaired
+        summary["model"] = problem.sim.model_report
     if truth is not None:
         from ..metrics import posterior_vs_truth
 
@@ -308,8 +310,12 @@ class LoadedRun(NamedTuple):
     grasp_fraction: float | None
 
 
-def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None) -> LoadedRun:
-    """Read a run folder written by :func:`save_run` (ConfigError naming what is missing)."""
+def load_run(
+    run_dir: str | os.PathLike, cache: SimulatorCache | None = None, model_file=None
+) -> LoadedRun:
+    """Read a run folder written by :func:`save_run` (ConfigError naming what is missing).
+    ``model_file``: where the run's own URDF/MJCF lies now (moved since the run); its sha256
+    must be the recorded one."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         hint = (
@@ -331,6 +337,10 @@ def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None) ->
         if not (run_dir / name).is_file():
             raise ConfigError(f"{run_dir}: incomplete run folder, {name} is missing")
     tree = load_tree(run_dir / "tree.yaml")
+    if model_file is not None:
+        from ..usermodel import attach_model
+
+        tree = attach_model(tree, model_file, keep_sha256=True)
     try:
         with np.load(run_dir / "trace.npz", allow_pickle=False) as z:
             theta, ld = z["theta"], z["final_log_density"]
