@@ -175,6 +175,23 @@ def _probe(spec, path: Path):
         raise TreeFileError(f"{path}: MuJoCo cannot compile this model: {e}") from None
 
 
+def _geom_inertials(spec, path: Path) -> dict[str, tuple[float, np.ndarray]]:
+    """{body name: (mass kg, [3, 3] inertia)} as MuJoCo computes them from the geoms of bodies
+    without an explicit inertial (explicit ones replaced by unit inertials to compile)."""
+    probe = spec.copy()
+    for b in probe.bodies:
+        if b.explicitinertial:
+            b.mass, b.inertia, b.fullinertia = 1.0, [1.0, 1.0, 1.0], [math.nan] * 6
+    probe.compiler.boundmass, probe.compiler.boundinertia = 0.0, 0.0
+    try:
+        m = probe.compile()
+    except Exception as e:  # a geom-derived inertial MuJoCo refuses: its message names the body
+        raise TreeFileError(f"{path}: MuJoCo cannot compile this model: {e}; fix the geoms' "
+                            "mass/density or give the body an <inertial>") from None
+    return {m.body(i).name: (float(m.body_mass[i]), np.diag(m.body_inertia[i]))
+            for i in range(1, m.nbody)}
+
+
 def _quat_z(q) -> np.ndarray:
     import mujoco
 
@@ -363,11 +380,15 @@ def prepare_user_model(tree, model_file=None) -> PreparedModel:
     for i in range(1, probe.nbody):
         moving[i] = moving[i] or moving[int(probe.body_parentid[i])]
     bad, repaired = [], {}
+    from_geoms = _geom_inertials(spec, path)
     for i in range(1, probe.nbody):
         if not moving[i]:
             continue
         b = spec.body(probe.body(i).name)
-        why = _degenerate(float(b.mass), _spec_inertia(b))
+        if b.explicitinertial:
+            why = _degenerate(float(b.mass), _spec_inertia(b))
+        else:  # MuJoCo computes it from the geoms
+            why = _degenerate(*from_geoms[b.name])
         if why is None:
             continue
         if sec.get("repair_inertia") is None:
@@ -379,8 +400,9 @@ def prepare_user_model(tree, model_file=None) -> PreparedModel:
         raise TreeFileError(
             f"{path}: {len(bad)} link(s) have a degenerate mass or inertia (MuJoCo needs positive "
             f"mass and a positive-definite inertia on moving bodies): {'; '.join(bad[:10])}"
-            f"{' ...' if len(bad) > 10 else ''}. Fix the file or repair them with "
-            "geometry (solid cylinder of the link's geometry) or floor"
+            f"{' ...' if len(bad) > 10 else ''}. Fix the file or repair them: --repair-inertia "
+            "(model: {repair_inertia: ...}) geometry (solid cylinder of the link's geometry) "
+            "or floor"
         )
     report["repaired"] = repaired
 
