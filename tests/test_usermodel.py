@@ -65,8 +65,9 @@ def test_repaired_100_joint_model_pulls(big_tree, big_urdf):
     assert len(rep["repaired"]) >= 100 and "solid cylinder" in rep["repaired"]["s1"]
     assert rep["fixed_gains"]["joints"] == sim.mj_model.njnt >= 100
     # the grasp point at rest is where the tree-built model has it
-    np.testing.assert_allclose(_site_world(sim.mj_model), _site_world(to_mjmodel(big_tree)),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        _site_world(sim.mj_model), _site_world(to_mjmodel(big_tree)), atol=1e-9
+    )
     # the repaired inertia is the cylinder's: the same mass matrix as the tree-built model
     # up to the masses' rounding (3 decimals of kg)
     ref = make_simulator(big_tree, obs_dt=0.01, substeps=2)
@@ -88,8 +89,9 @@ def test_floor_repair_compiles(big_tree, big_urdf):
 # ---- a small chain: JAX rollouts, name maps, gains, grasp axis, limits --------------------------
 @pytest.fixture(scope="module")
 def chain():
-    return gen.chain(3, lengths=[0.6, 0.5, 0.4], radii=[0.03, 0.02, 0.015], angles_deg=[0, 20, 20],
-                     levels=2)
+    return gen.chain(
+        3, lengths=[0.6, 0.5, 0.4], radii=[0.03, 0.02, 0.015], angles_deg=[0, 20, 20], levels=2
+    )
 
 
 def _write(tmp_path, text: str, name: str = "m.urdf"):
@@ -130,13 +132,15 @@ def test_explicit_name_map_and_unmatched_error(chain, tmp_path):
     tree = make_tree(branches, grasp_branch=ren[chain.grasp_branch], levels=2)
     with pytest.raises(TreeFileError, match=r"Unmatched branch\(es\) \['branch_0', 'branch_1'"):
         prepare_user_model(attach_model(tree, path))
-    model = {"file": str(path), "joints": {v: k for k, v in ren.items()},
-             "bodies": {v: k for k, v in ren.items()}}
+    model = {
+        "file": str(path),
+        "joints": {v: k for k, v in ren.items()},
+        "bodies": {v: k for k, v in ren.items()},
+    }
     tree = replace(tree, model=model)
     sim = make_simulator(tree, substeps=2)
     assert sim.joint_names == tree.inferred
-    np.testing.assert_allclose(_site_world(sim.mj_model), _site_world(to_mjmodel(chain)),
-                               atol=1e-9)
+    np.testing.assert_allclose(_site_world(sim.mj_model), _site_world(to_mjmodel(chain)), atol=1e-9)
     bad = replace(tree, model={**model, "joints": {"branch_0": "no_such_joint"}})
     with pytest.raises(TreeFileError, match="branch_0 -> joint 'no_such_joint'"):
         prepare_user_model(bad)
@@ -147,8 +151,9 @@ def test_fixed_gains_on_every_other_hinge(chain, tmp_path):
     root = chain.branches[0].name  # not inferred (levels=2 of 3)
     assert root not in chain.inferred
     branches = [replace(b, kp=123.0, kd=4.5) if b.name == root else b for b in chain.branches]
-    tree = attach_model(replace(chain, branches=tuple(branches), fixed_kp=777.0, fixed_kd=7.0),
-                        path)
+    tree = attach_model(
+        replace(chain, branches=tuple(branches), fixed_kp=777.0, fixed_kd=7.0), path
+    )
     m = prepare_user_model(tree).mj_model
     for j in range(m.njnt):
         name = m.joint(j).name
@@ -181,19 +186,22 @@ def test_grasp_along_real_link_axis(tmp_path):
     path = _write(tmp_path, _Z_CHAIN, "z.xml")
     tree = tree_from_model(path, grasp="limb", grasp_fraction=0.5, levels=2)
     assert [b.length for b in tree.branches] == pytest.approx([0.8, 0.5])
-    assert tree.branches[1].angle_deg == pytest.approx(-30.0) and tree.base_pitch_deg == pytest.approx(90)
+    assert tree.branches[1].angle_deg == pytest.approx(
+        -30.0
+    ) and tree.base_pitch_deg == pytest.approx(90)
     sim = make_simulator(tree, substeps=2)
     np.testing.assert_allclose(sim.mj_model.site_pos[sim.grasp_site], [0, 0, 0.25], atol=1e-12)
     # the same tree built by treeinfer (vertical trunk, limb tilted by the same angle)
     own = make_tree(
         [Branch("trunk", None, 0.8, 0.03), Branch("limb", "trunk", 0.5, 0.02, angle_deg=-30.0)],
-        grasp_branch="limb", grasp_fraction=0.5, levels=2, base_pitch_deg=90.0,
+        grasp_branch="limb",
+        grasp_fraction=0.5,
+        levels=2,
+        base_pitch_deg=90.0,
     )
-    np.testing.assert_allclose(_site_world(sim.mj_model), _site_world(to_mjmodel(own)),
-                               atol=1e-9)
+    np.testing.assert_allclose(_site_world(sim.mj_model), _site_world(to_mjmodel(own)), atol=1e-9)
     # a fraction given per profile goes along the same axis
-    np.testing.assert_allclose(np.asarray(sim.branch_point(None, 0.5, 1.0)), [0, 0, 0.5],
-                               atol=1e-6)
+    np.testing.assert_allclose(np.asarray(sim.branch_point(None, 0.5, 1.0)), [0, 0, 0.5], atol=1e-6)
     # an explicit local position wins
     t2 = replace(tree, model={**tree.model, "grasp_position": [0.01, 0.0, 0.4]})
     prep = prepare_user_model(t2)
@@ -201,19 +209,26 @@ def test_grasp_along_real_link_axis(tmp_path):
 
 
 def test_joint_limits_refused_or_ignored(chain, tmp_path):
-    text = to_urdf(chain).replace('lower="-3.141592653589793" upper="3.141592653589793"',
-                                  'lower="-0.5" upper="0.5"', 1)
+    text = to_urdf(chain).replace(
+        'lower="-3.141592653589793" upper="3.141592653589793"', 'lower="-0.5" upper="0.5"', 1
+    )
     path = _write(tmp_path, text)
     root = chain.branches[0].name
-    with pytest.raises(TreeFileError, match=rf"limits the simulator does not model.*{root} \[-0.5, 0.5\]"):
+    with pytest.raises(
+        TreeFileError, match=rf"limits the simulator does not model.*{root} \[-0.5, 0.5\]"
+    ):
         prepare_user_model(attach_model(chain, path))
     tree = attach_model(chain, path)
     prep = prepare_user_model(replace(tree, model={**tree.model, "limits": "ignore"}))
     assert prep.report["limits_ignored"] == [root]
     assert not np.any(prep.mj_model.jnt_limited)
     # treeinfer's own export writes +-pi limits, which never act: accepted silently
-    assert prepare_user_model(attach_model(chain, _write(tmp_path, to_urdf(chain), "ok.urdf"))
-                              ).report["limits_ignored"] == []
+    assert (
+        prepare_user_model(attach_model(chain, _write(tmp_path, to_urdf(chain), "ok.urdf"))).report[
+            "limits_ignored"
+        ]
+        == []
+    )
 
 
 def test_model_section_round_trip_and_changed_file(chain, tmp_path):
@@ -227,3 +242,99 @@ def test_model_section_round_trip_and_changed_file(chain, tmp_path):
         prepare_user_model(back)
     with pytest.raises(TreeFileError, match="URDF/MJCF model, not a tree description"):
         load_tree(path)
+
+
+# ---- the command line -------------------------------------------------------------------------
+@pytest.mark.slow  # ~30 s CPU (tiny infer); over a minute on the shared 2-core machine
+def test_cli_model_tree_simulate_infer_predict(chain, tmp_path, capsys):
+    """tree --model (rounded inertias: error naming a link, then --repair-inertia), simulate and
+    infer from the tree file's model: section, predict with the model file moved (sha256 kept)."""
+    import json
+    import shutil
+
+    from treeinfer.cli import main
+
+    def run(*argv):
+        rc = main([str(a) for a in argv])
+        out, err = capsys.readouterr()
+        return rc, out, err
+
+    urdf = _write(tmp_path, _rounded(to_urdf(chain), 2))
+    rc, _, err = run("tree", "--model", urdf, "--out", tmp_path / "t.yaml")
+    assert rc == 2 and "degenerate mass or inertia" in err and "branch" in err, err
+    rc, _, err = run("tree", "--from", urdf, "--out", tmp_path / "t.yaml")
+    assert rc == 2 and "treeinfer tree --model" in err, err
+    rc, out, err = run(
+        "tree",
+        "--model",
+        urdf,
+        "--repair-inertia",
+        "geometry",
+        "--levels",
+        "1",
+        "--out",
+        tmp_path / "t.yaml",
+    )
+    assert rc == 0, err
+    assert "repaired inertia of 3 link(s)" in err
+    t = load_tree(tmp_path / "t.yaml")
+    assert t.model["repair_inertia"] == "geometry" and t.model["file"] == str(urdf.resolve())
+
+    data = tmp_path / "data"
+    rc, _, err = run(
+        "simulate",
+        "--tree",
+        tmp_path / "t.yaml",
+        "--out",
+        data,
+        "--seed",
+        "1",
+        "--n-traj",
+        "2",
+        "--duration",
+        "0.3",
+        "--dt",
+        "0.01",
+        "--params",
+        "60,1.0",
+    )
+    assert rc == 0, err
+    assert "model: " in err and "repaired inertia" in err
+    assert load_tree(data / "tree.yaml").model == t.model
+
+    run_dir = tmp_path / "run"
+    rc, _, err = run(
+        "infer",
+        "--tree",
+        tmp_path / "t.yaml",
+        "--data",
+        data,
+        "--out",
+        run_dir,
+        "--particles",
+        "4",
+        "--iterations",
+        "2",
+        "--checkpoint-every",
+        "0",
+        "--no-progress",
+    )
+    assert rc == 0, err
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["model"]["sha256"] == t.model["sha256"] and summary["model"]["repaired"]
+    assert json.loads((run_dir / "config.json").read_text())["tree_dict"]["model"] == t.model
+
+    moved = tmp_path / "moved.urdf"
+    shutil.move(urdf, moved)
+    traj = sorted(data.glob("traj_*.csv"))[0]
+    rc, _, err = run("predict", "--run", run_dir, "--force", traj, "--out", tmp_path / "p0")
+    assert rc == 2 and "no such model file" in err, err
+    rc, _, err = run(
+        "predict", "--run", run_dir, "--model", moved, "--force", traj, "--out", tmp_path / "p1"
+    )
+    assert rc == 0, err
+    moved.write_text(to_urdf(chain))
+    rc, _, err = run(
+        "predict", "--run", run_dir, "--model", moved, "--force", traj, "--out", tmp_path / "p2"
+    )
+    assert rc == 2 and "changed since it was recorded" in err, err

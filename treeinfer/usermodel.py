@@ -1,4 +1,4 @@
-"""Bring your own model: a user's URDF or MJCF file prepared for :func:`treeinfer.sim.make_simulator`.
+"""Bring your own model: a user's URDF or MJCF file prepared for the simulator.
 
 The tree description names the inferred joints, the grasped branch and the grasp fraction; its
 ``model:`` section names the file and how the model's names relate to the branch names::
@@ -37,8 +37,16 @@ import numpy as np
 
 from .errors import TreeFileError
 
-MODEL_KEYS = {"file", "sha256", "joints", "bodies", "grasp_position", "repair_inertia", "limits",
-              "gains"}
+MODEL_KEYS = {
+    "file",
+    "sha256",
+    "joints",
+    "bodies",
+    "grasp_position",
+    "repair_inertia",
+    "limits",
+    "gains",
+}
 REPAIRS = ("geometry", "floor")
 LIMIT_POLICIES = ("refuse", "ignore")
 GAIN_POLICIES = ("tree", "model")
@@ -56,31 +64,38 @@ def file_sha256(path: str | Path) -> str:
 def _name_map(v: Any, fld: str, pre: str) -> dict[str, str]:
     if v is None:
         return {}
-    if not isinstance(v, dict) or not all(isinstance(k, str) and isinstance(x, str)
-                                          for k, x in v.items()):
+    if not isinstance(v, dict) or not all(
+        isinstance(k, str) and isinstance(x, str) for k, x in v.items()
+    ):
         raise TreeFileError(f"{pre}model.{fld}: expected a mapping {{branch name: model name}}")
     return dict(v)
 
 
-def parse_model_section(raw: Any, source: str = "<dict>", base_dir: str | Path | None = None
-                        ) -> dict[str, Any]:
+def parse_model_section(
+    raw: Any, source: str = "<dict>", base_dir: str | Path | None = None
+) -> dict[str, Any]:
     """The validated ``model:`` section (``file`` made absolute against ``base_dir``)."""
     pre = f"{source}: "
     if isinstance(raw, str):
         raw = {"file": raw}
     if not isinstance(raw, dict) or "file" not in raw:
-        raise TreeFileError(f"{pre}model: expected a mapping with 'file' (and optional "
-                            f"{sorted(MODEL_KEYS - {'file'})})")
+        raise TreeFileError(
+            f"{pre}model: expected a mapping with 'file' (and optional "
+            f"{sorted(MODEL_KEYS - {'file'})})"
+        )
     bad = set(raw) - MODEL_KEYS
     if bad:
-        raise TreeFileError(f"{pre}model: unknown field(s) {sorted(bad)}; allowed: "
-                            f"{sorted(MODEL_KEYS)}")
+        raise TreeFileError(
+            f"{pre}model: unknown field(s) {sorted(bad)}; allowed: {sorted(MODEL_KEYS)}"
+        )
     path = Path(str(raw["file"]))
     if not path.is_absolute() and base_dir is not None:
         path = Path(base_dir) / path
     if path.suffix.lower() not in MODEL_SUFFIXES:
-        raise TreeFileError(f"{pre}model.file: unknown model file type '{path.suffix}'; "
-                            "expected .urdf or .xml/.mjcf (MJCF)")
+        raise TreeFileError(
+            f"{pre}model.file: unknown model file type '{path.suffix}'; "
+            "expected .urdf or .xml/.mjcf (MJCF)"
+        )
     out: dict[str, Any] = {"file": str(path.resolve()) if base_dir is not None else str(path)}
     if raw.get("sha256") is not None:
         out["sha256"] = str(raw["sha256"])
@@ -95,12 +110,16 @@ def parse_model_section(raw: Any, source: str = "<dict>", base_dir: str | Path |
         except (TypeError, ValueError):
             gp = None
         if gp is None or len(gp) != 3 or not all(math.isfinite(x) for x in gp):
-            raise TreeFileError(f"{pre}model.grasp_position: expected [x, y, z] in metres, got "
-                                f"{raw.get('grasp_position')!r}")
+            raise TreeFileError(
+                f"{pre}model.grasp_position: expected [x, y, z] in metres, got "
+                f"{raw.get('grasp_position')!r}"
+            )
         out["grasp_position"] = gp
-    for k, choices, default in (("repair_inertia", REPAIRS, None),
-                                ("limits", LIMIT_POLICIES, "refuse"),
-                                ("gains", GAIN_POLICIES, "tree")):
+    for k, choices, default in (
+        ("repair_inertia", REPAIRS, None),
+        ("limits", LIMIT_POLICIES, "refuse"),
+        ("gains", GAIN_POLICIES, "tree"),
+    ):
         v = raw.get(k, default)
         if v is not None and v not in choices:
             raise TreeFileError(f"{pre}model.{k}: must be one of {', '.join(choices)}, got {v!r}")
@@ -135,8 +154,9 @@ def attach_model(
     sec.setdefault("sha256", file_sha256(p))
     if repair_inertia is not None:
         if repair_inertia not in REPAIRS:
-            raise TreeFileError(f"--repair-inertia: one of {', '.join(REPAIRS)}, got "
-                                f"{repair_inertia!r}")
+            raise TreeFileError(
+                f"--repair-inertia: one of {', '.join(REPAIRS)}, got {repair_inertia!r}"
+            )
         sec["repair_inertia"] = repair_inertia
     return replace(tree, model=sec)
 
@@ -146,15 +166,17 @@ def _load_spec(path: Path):
     import mujoco
 
     if path.suffix.lower() not in MODEL_SUFFIXES:
-        raise TreeFileError(f"{path}: unknown model file type '{path.suffix}'; expected .urdf or "
-                            ".xml/.mjcf (MJCF)")
+        raise TreeFileError(
+            f"{path}: unknown model file type '{path.suffix}'; expected .urdf or .xml/.mjcf (MJCF)"
+        )
     if not path.is_file():
         raise TreeFileError(f"{path}: no such model file")
     try:
         spec = mujoco.MjSpec.from_file(str(path))
     except Exception as e:  # MuJoCo's own message says what is wrong with the file
-        raise TreeFileError(f"{path}: MuJoCo cannot load this "
-                            f"{MODEL_SUFFIXES[path.suffix.lower()]} file: {e}") from None
+        raise TreeFileError(
+            f"{path}: MuJoCo cannot load this {MODEL_SUFFIXES[path.suffix.lower()]} file: {e}"
+        ) from None
     spec.compiler.fusestatic = False  # fixed links stay bodies (branches may name them)
     return spec
 
@@ -186,10 +208,14 @@ def _geom_inertials(spec, path: Path) -> dict[str, tuple[float, np.ndarray]]:
     try:
         m = probe.compile()
     except Exception as e:  # a geom-derived inertial MuJoCo refuses: its message names the body
-        raise TreeFileError(f"{path}: MuJoCo cannot compile this model: {e}; fix the geoms' "
-                            "mass/density or give the body an <inertial>") from None
-    return {m.body(i).name: (float(m.body_mass[i]), np.diag(m.body_inertia[i]))
-            for i in range(1, m.nbody)}
+        raise TreeFileError(
+            f"{path}: MuJoCo cannot compile this model: {e}; fix the geoms' "
+            "mass/density or give the body an <inertial>"
+        ) from None
+    return {
+        m.body(i).name: (float(m.body_mass[i]), np.diag(m.body_inertia[i]))
+        for i in range(1, m.nbody)
+    }
 
 
 def _quat_z(q) -> np.ndarray:
@@ -259,11 +285,19 @@ def _repair(b, m_probe, bid: int, how: str, density: float) -> str:
         rot = np.stack([x, np.cross(z, x), z], axis=1)
         tensor = rot @ np.diag([it, it, ia]) @ rot.T
         b.mass, b.ipos, b.iquat = mass, (a + e) / 2, [1.0, 0.0, 0.0, 0.0]
-        b.fullinertia = [tensor[0, 0], tensor[1, 1], tensor[2, 2], tensor[0, 1], tensor[0, 2],
-                         tensor[1, 2]]
+        b.fullinertia = [
+            tensor[0, 0],
+            tensor[1, 1],
+            tensor[2, 2],
+            tensor[0, 1],
+            tensor[0, 2],
+            tensor[1, 2],
+        ]
         b.explicitinertial = True
-        return (f"solid cylinder r={r:.4g} m, L={length:.4g} m, mass {mass:.4g} kg "
-                f"(Ixx..Izz {np.round(np.diag(tensor), 9).tolist()} kg m^2)")
+        return (
+            f"solid cylinder r={r:.4g} m, L={length:.4g} m, mass {mass:.4g} kg "
+            f"(Ixx..Izz {np.round(np.diag(tensor), 9).tolist()} kg m^2)"
+        )
     # floor: eigenvalues raised to a 1 cm radius of gyration (or 1e-9 kg m^2)
     if not (math.isfinite(mass) and mass > MIN_MASS):
         mass = 1e-3
@@ -322,8 +356,12 @@ def _match(tree, m, sec, path) -> tuple[dict[str, str], dict[str, str]]:
             if b.name in jnames:
                 j = b.name
             elif body in bnames:
-                hinge = [i for i in range(m.njnt) if m.jnt_bodyid[i] == bnames[body]
-                         and m.jnt_type[i] == mujoco.mjtJoint.mjJNT_HINGE]
+                hinge = [
+                    i
+                    for i in range(m.njnt)
+                    if m.jnt_bodyid[i] == bnames[body]
+                    and m.jnt_type[i] == mujoco.mjtJoint.mjJNT_HINGE
+                ]
                 j = m.joint(hinge[0]).name if len(hinge) == 1 else None
         if body is None or (j is None and not b.fixed):
             missing.append(b.name)
@@ -334,13 +372,17 @@ def _match(tree, m, sec, path) -> tuple[dict[str, str], dict[str, str]]:
     if unknown or missing:
         msg = f"{path}: names of the tree do not match the model."
         if missing:
-            msg += (f" Unmatched branch(es) {missing[:20]}{' ...' if len(missing) > 20 else ''}"
-                    f" ({len(missing)} of {len(tree.branches)}).")
+            msg += (
+                f" Unmatched branch(es) {missing[:20]}{' ...' if len(missing) > 20 else ''}"
+                f" ({len(missing)} of {len(tree.branches)})."
+            )
         if unknown:
             msg += f" Map entries naming nothing: {unknown[:20]}."
-        msg += (f" The model has joints {list(jnames)[:10]}{' ...' if len(jnames) > 10 else ''} "
-                f"and bodies {list(bnames)[:10]}{' ...' if len(bnames) > 10 else ''}; map them "
-                "with model: {joints: {branch: joint}, bodies: {branch: link}}")
+        msg += (
+            f" The model has joints {list(jnames)[:10]}{' ...' if len(jnames) > 10 else ''} "
+            f"and bodies {list(bnames)[:10]}{' ...' if len(bnames) > 10 else ''}; map them "
+            "with model: {joints: {branch: joint}, bodies: {branch: link}}"
+        )
         raise TreeFileError(msg)
     return joints, bodies
 
@@ -368,12 +410,18 @@ def prepare_user_model(tree, model_file=None) -> PreparedModel:
     spec = _load_spec(path)
     digest = file_sha256(path)
     if sec.get("sha256") and sec["sha256"] != digest:
-        raise TreeFileError(f"{path}: the model file changed since it was recorded (sha256 "
-                            f"{digest[:12]}..., recorded {sec['sha256'][:12]}...)")
+        raise TreeFileError(
+            f"{path}: the model file changed since it was recorded (sha256 "
+            f"{digest[:12]}..., recorded {sec['sha256'][:12]}...)"
+        )
     probe = _probe(spec, path)
     joints, bodies = _match(tree, probe, sec, path)
-    report: dict[str, Any] = {"file": str(path), "sha256": digest, "joints": joints,
-                              "bodies": bodies}
+    report: dict[str, Any] = {
+        "file": str(path),
+        "sha256": digest,
+        "joints": joints,
+        "bodies": bodies,
+    }
 
     # inertias of moving links (a joint on the body or an ancestor)
     moving = [bool(probe.body_jntnum[i]) for i in range(probe.nbody)]
@@ -394,8 +442,7 @@ def prepare_user_model(tree, model_file=None) -> PreparedModel:
         if sec.get("repair_inertia") is None:
             bad.append(f"{probe.body(i).name}: {why}")
         else:
-            repaired[probe.body(i).name] = _repair(b, probe, i, sec["repair_inertia"],
-                                                   tree.density)
+            repaired[probe.body(i).name] = _repair(b, probe, i, sec["repair_inertia"], tree.density)
     if bad:
         raise TreeFileError(
             f"{path}: {len(bad)} link(s) have a degenerate mass or inertia (MuJoCo needs positive "
@@ -486,8 +533,9 @@ def prepare_user_model(tree, model_file=None) -> PreparedModel:
     spec.body(g).add_site(name=GRASP_SITE, pos=site_pos, size=[0.01, 0.01, 0.01])
     report["grasp_site"] = [float(x) for x in site_pos]
 
-    spec.option.disableflags |= (mujoco.mjtDisableBit.mjDSBL_CONTACT
-                                 | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+    spec.option.disableflags |= (
+        mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
+    )
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.gravity = np.asarray(tree.gravity, float)
     try:
@@ -499,9 +547,11 @@ def prepare_user_model(tree, model_file=None) -> PreparedModel:
 
 def describe_report(report: dict) -> list[str]:
     """Human-readable lines of a :class:`PreparedModel` report (CLI output)."""
-    out = [f"model: {report['file']} (sha256 {report['sha256'][:12]}...), "
-           f"{len(report['joints'])} joints matched, fixed gains "
-           f"{report['fixed_gains']['mode']} on {report['fixed_gains']['joints']} joints"]
+    out = [
+        f"model: {report['file']} (sha256 {report['sha256'][:12]}...), "
+        f"{len(report['joints'])} joints matched, fixed gains "
+        f"{report['fixed_gains']['mode']} on {report['fixed_gains']['joints']} joints"
+    ]
     if report.get("repaired"):
         out.append(f"  repaired inertia of {len(report['repaired'])} link(s):")
         out += [f"    {k}: {v}" for k, v in list(report["repaired"].items())[:20]]
@@ -516,10 +566,13 @@ def _angles(rel: np.ndarray, d_parent: np.ndarray, d_child: np.ndarray) -> tuple
     """(angle_deg, azimuth_deg) of a child frame relative to its parent's: exact when ``rel`` is
     ``rot_x(azimuth) @ rot_y(-angle)`` (trees treeinfer exports), else from the axis directions
     ``d_parent``, ``d_child`` [3] (parent frame): the fork angle in the best bending plane."""
-    if abs(rel[0, 1]) < 1e-9 and np.allclose(d_child / np.linalg.norm(d_child), rel[:, 0],
-                                             atol=1e-6):
-        return (math.degrees(-math.atan2(rel[0, 2], rel[0, 0])),
-                math.degrees(math.atan2(rel[2, 1], rel[1, 1])))
+    if abs(rel[0, 1]) < 1e-9 and np.allclose(
+        d_child / np.linalg.norm(d_child), rel[:, 0], atol=1e-6
+    ):
+        return (
+            math.degrees(-math.atan2(rel[0, 2], rel[0, 0])),
+            math.degrees(math.atan2(rel[2, 1], rel[1, 1])),
+        )
     a, c = d_parent / np.linalg.norm(d_parent), d_child / np.linalg.norm(d_child)
     ang = math.degrees(math.acos(float(np.clip(a @ c, -1, 1))))
     perp = c - (a @ c) * a
@@ -554,16 +607,22 @@ def tree_from_model(
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
     hinge = mujoco.mjtJoint.mjJNT_HINGE
-    jointed = [any(m.jnt_type[j] == hinge for j in range(m.body_jntadr[i],
-                                                          m.body_jntadr[i] + m.body_jntnum[i]))
-               for i in range(m.nbody)]
+    jointed = [
+        any(
+            m.jnt_type[j] == hinge
+            for j in range(m.body_jntadr[i], m.body_jntadr[i] + m.body_jntnum[i])
+        )
+        for i in range(m.nbody)
+    ]
     under = [False] * m.nbody
     for i in range(1, m.nbody):
         under[i] = jointed[i] or under[int(m.body_parentid[i])]
     roots = [i for i in range(1, m.nbody) if under[i] and not under[int(m.body_parentid[i])]]
     if len(roots) != 1:
-        raise TreeFileError(f"{path}: a tree needs exactly one jointed root link, found "
-                            f"{[m.body(i).name for i in roots]}")
+        raise TreeFileError(
+            f"{path}: a tree needs exactly one jointed root link, found "
+            f"{[m.body(i).name for i in roots]}"
+        )
     joints: dict[str, str] = {}
     branches, info = [], {}
     for i in range(1, m.nbody):
@@ -572,13 +631,18 @@ def tree_from_model(
         bname = m.body(i).name
         ax = link_axis(m, i)
         if ax is None:
-            raise TreeFileError(f"{path}: link '{bname}' has no cylinder/capsule geom and no child "
-                                "link: its length is unknown")
+            raise TreeFileError(
+                f"{path}: link '{bname}' has no cylinder/capsule geom and no child "
+                "link: its length is unknown"
+            )
         a, e, r = ax
         length = float(np.linalg.norm(e - a))
         radius = min(r if r else length / 20, length)
-        hinges = [j for j in range(m.body_jntadr[i], m.body_jntadr[i] + m.body_jntnum[i])
-                  if m.jnt_type[j] == hinge]
+        hinges = [
+            j
+            for j in range(m.body_jntadr[i], m.body_jntadr[i] + m.body_jntnum[i])
+            if m.jnt_type[j] == hinge
+        ]
         if hinges and m.joint(hinges[0]).name != bname:
             joints[bname] = m.joint(hinges[0]).name
         info[i] = (a, e, length)
@@ -588,10 +652,19 @@ def tree_from_model(
             pa, pe, plen = info[parent]
             rel = d.xmat[parent].reshape(3, 3).T @ d.xmat[i].reshape(3, 3)
             kw["angle_deg"], kw["azimuth_deg"] = _angles(rel, pe - pa, rel @ (e - a))
-            kw["attach"] = float(np.clip((np.asarray(m.body_pos[i]) - pa) @ (pe - pa) / plen**2,
-                                         1e-6, 1.0))
-        branches.append(Branch(name=bname, parent=None if i == roots[0] else m.body(parent).name,
-                               length=length, radius=radius, fixed=not hinges, **kw))
+            kw["attach"] = float(
+                np.clip((np.asarray(m.body_pos[i]) - pa) @ (pe - pa) / plen**2, 1e-6, 1.0)
+            )
+        branches.append(
+            Branch(
+                name=bname,
+                parent=None if i == roots[0] else m.body(parent).name,
+                length=length,
+                radius=radius,
+                fixed=not hinges,
+                **kw,
+            )
+        )
     # the root's direction -> base pose
     ra, re_, _ = info[roots[0]]
     droot = d.xmat[roots[0]].reshape(3, 3) @ (re_ - ra)
@@ -601,9 +674,10 @@ def tree_from_model(
         sec["joints"] = joints
     if repair_inertia is not None:
         sec["repair_inertia"] = repair_inertia
-    tree_kwargs.setdefault("base_position",
-                           tuple(float(x) for x in d.xpos[roots[0]] + d.xmat[roots[0]].reshape(
-                               3, 3) @ ra))
+    tree_kwargs.setdefault(
+        "base_position",
+        tuple(float(x) for x in d.xpos[roots[0]] + d.xmat[roots[0]].reshape(3, 3) @ ra),
+    )
     tree_kwargs.setdefault("base_pitch_deg", math.degrees(math.asin(float(droot[2]))))
     tree_kwargs.setdefault("base_yaw_deg", math.degrees(math.atan2(droot[1], droot[0])))
     tree_kwargs.setdefault("gravity", tuple(float(x) for x in spec.option.gravity))

@@ -40,9 +40,9 @@ from .common import (
     _say,
     add_command_parser,
     add_model_options,
-    print_model_report,
     add_simulation_options,
     check_simulation_options,
+    print_model_report,
 )
 
 # ==== simulate ====================================================================================
