@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import warnings
 import zipfile
@@ -369,6 +370,8 @@ def load_run(
         cache,
         force_interp=p.get("force_interp", "hold"),
     )
+    if p.get("sim_step"):  # how the run's step was chosen (its estimated error), as recorded
+        sim = dataclasses.replace(sim, step_info=dict(p["sim_step"]))
     return LoadedRun(
         run_dir,
         tree,

@@ -165,6 +165,13 @@ def choose_substeps_for_accuracy(
 
     s = max(int(sim.substeps), math.ceil(sim.obs_dt / max_sim_dt - 1e-9))
     err = error(s)
+    if not math.isfinite(err):  # nothing simulates stably: refining cannot help; report it
+        warnings.warn(
+            "simulation step: no parameter set of the prior box simulates stably on these "
+            "forces; the accuracy of the step is unknown",
+            stacklevel=2,
+        )
+        return s, err
     best = (err, s)
     stalled = False
     while err > tol and s < max_substeps:
