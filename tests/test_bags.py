@@ -350,13 +350,14 @@ def test_failing_import_leaves_no_output(tmp_path):
         import_bag(bag, tmp_path / "out")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mm.bag"]
 
-    # with force=True an existing folder survives a failed import untouched
+    # with force=True an existing (treeinfer-written) folder survives a failed import untouched
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.csv").write_text("old")
+    (out / ".treeinfer-output").write_text('{"writer": "treeinfer", "complete": true}')
     with pytest.raises(TrajectoryFileError):
         import_bag(bag, out, force=True)
-    assert [p.name for p in out.iterdir()] == ["keep.csv"]
+    assert sorted(p.name for p in out.iterdir()) == [".treeinfer-output", "keep.csv"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mm.bag", "out"]
 
 
@@ -367,8 +368,14 @@ def test_existing_output_refused_unless_force(tmp_path):
     (out / "old.csv").write_text("x")
     with pytest.raises(OutputExistsError):
         import_bag(bag, out)
+    # --force replaces only a folder treeinfer wrote (issue 14): a foreign one stays
+    with pytest.raises(OutputExistsError, match="replaces only folders treeinfer wrote"):
+        import_bag(bag, out, force=True)
+    assert [p.name for p in out.iterdir()] == ["old.csv"]
+    (out / ".treeinfer-output").write_text('{"writer": "treeinfer", "complete": true}')
     paths = import_bag(bag, out, force=True)
-    assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in paths)
+    expected = sorted([".treeinfer-output"] + [p.name for p in paths])
+    assert sorted(p.name for p in out.iterdir()) == expected
 
 
 # ----------------------------------------------------------------------------- pull splitting

@@ -273,7 +273,7 @@ def sim_a(tmp_path_factory):
 
 def test_simulate_writes_a_complete_data_set(sim_a, capsys):
     assert sorted(p.name for p in sim_a.iterdir()) == [
-        "config.json", "traj_000.csv", "traj_001.csv", "tree.yaml", "true_params.json"
+        ".treeinfer-output", "config.json", "traj_000.csv", "traj_001.csv", "tree.yaml", "true_params.json"
     ]
     trajs = read_trajectory_dir(sim_a)
     cfg = json.loads((sim_a / "config.json").read_text())

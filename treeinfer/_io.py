@@ -1,21 +1,94 @@
-"""Atomic file output.
+"""Atomic file output, and the rules that keep output from ever destroying data.
 
 Results are written to a temporary name beside their destination and renamed
 into place, so an interrupted run never leaves a half-written file, and an
 earlier run's results are never overwritten unless the caller asks.
+
+Output folders (:func:`staged_output_dir`):
+
+- are built in a staging folder ``.NAME.PID.XXXX.staging`` next to the destination and carry
+  a marker file ``.treeinfer-output``; ``--force`` (``force=True``) replaces only a folder with
+  that marker (or one a treeinfer from before the marker wrote: a ``config.json`` or
+  ``results.json`` recording treeinfer's version), or an empty one; never a folder holding the
+  inputs of the same command (``inputs=``), never a mount point;
+- are never lost once complete: if the final rename fails (a mount point, a permission, a full
+  disk) the finished folder is kept at ``NAME.complete-PID`` and the error names that path;
+- leave nothing behind on error, and a staging folder left by a killed process is cleaned by
+  the next write to the same destination (:func:`clean_stale_staging`, which the run layer also
+  calls on ``--resume``): an unfinished one is removed, a finished one whose rename was cut
+  short is moved into place, a displaced previous result is put back.
+
+Disk-full and I/O errors while writing become :class:`OutputWriteError` naming the file.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import shutil
 import tempfile
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
-from .errors import OutputExistsError
+from .errors import OutputExistsError, TreeinferError
+
+OUTPUT_MARKER = ".treeinfer-output"
+STAGING_SUFFIX = ".staging"
+OLD_SUFFIX = ".old"
+COMPLETE_INFIX = ".complete-"
+# free space (bytes) below which a writer's non-OSError failure is reported as a full disk
+_NEARLY_FULL = 1 << 20
+
+_ERRNO_HINT = {
+    errno.ENOSPC: "the disk is full",
+    errno.EDQUOT: "the disk quota is exceeded",
+    errno.EIO: "I/O error: failing disk or lost network share?",
+    errno.EROFS: "the file system is read-only",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
+    errno.EBUSY: "device or resource busy (a mount point?)",
+}
+
+
+_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EROFS)
+
+
+class OutputWriteError(TreeinferError):
+    """Writing an output file failed (disk full, I/O error, permissions): names the file."""
+
+
+def output_error(path: str | os.PathLike, e: BaseException, action: str = "write") -> OutputWriteError:
+    """An :class:`OutputWriteError` naming ``path`` for the OSError (or writer error) ``e``."""
+    if isinstance(e, OSError):
+        hint = _ERRNO_HINT.get(e.errno or -1)
+        what = e.strerror or str(e)
+        msg = f"{path}: cannot {action} ({what}{'; ' + hint if hint and hint.lower() != what.lower() else ''})"
+    else:
+        msg = f"{path}: cannot {action} ({type(e).__name__}: {e})"
+        free = _free_bytes(Path(path).parent)
+        if free is not None and free < _NEARLY_FULL:
+            msg += f"; only {free} bytes are free on that disk: it is probably full"
+    return OutputWriteError(msg)
+
+
+def _free_bytes(directory: Path) -> int | None:
+    try:
+        return int(shutil.disk_usage(directory).free)
+    except OSError:
+        return None
+
+
+def _is_disk_trouble(e: BaseException, directory: Path) -> bool:
+    """An OSError, or a writer's own error (netCDF's "HDF error") while the disk is full."""
+    if isinstance(e, OSError):
+        return True
+    if isinstance(e, (RuntimeError, ValueError)):
+        free = _free_bytes(directory)
+        return free is not None and free < _NEARLY_FULL
+    return False
 
 
 def _umask() -> int:
@@ -32,8 +105,11 @@ def _publish_mode(path, directory: bool = False) -> None:
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to ``path`` via a temporary file + ``os.replace``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:
+        raise output_error(path, e) from None
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
@@ -41,9 +117,11 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             os.fsync(f.fileno())
         _publish_mode(tmp)
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as e:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(e, OSError):
+            raise output_error(path, e) from None
         raise
     return path
 
@@ -61,16 +139,21 @@ def atomic_save(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path for a writer that insists on a file name
     (``fig.savefig``, ``InferenceData.to_netcdf``); rename it into place on success."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+        os.close(fd)
+    except OSError as e:
+        raise output_error(path, e) from None
     try:
         yield Path(tmp)
         _publish_mode(tmp)
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as e:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if not isinstance(e, TreeinferError) and isinstance(e, Exception) and _is_disk_trouble(e, path.parent):
+            raise output_error(path, e) from e
         raise
 
 
@@ -86,39 +169,254 @@ def _json_default(o: Any):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def check_output_dir(path: str | os.PathLike, force: bool = False, what: str = "output") -> Path:
-    """Refuse to reuse a non-empty folder unless ``force``; never delete anything here."""
+def _read_json_quietly(path: Path) -> Any:
+    try:
+        if path.is_file() and path.stat().st_size < (1 << 22):
+            return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def is_treeinfer_output(path: str | os.PathLike) -> bool:
+    """True if ``path`` is a folder treeinfer wrote: it has the ``.treeinfer-output`` marker, or
+    (folders from before the marker) a ``config.json``/``results.json`` recording treeinfer's
+    version under ``versions``."""
+    path = Path(path)
+    if (path / OUTPUT_MARKER).is_file():
+        return True
+    for name in ("config.json", "results.json"):
+        d = _read_json_quietly(path / name)
+        if isinstance(d, dict) and isinstance(d.get("versions"), dict) and "treeinfer" in d["versions"]:
+            return True
+    return False
+
+
+def _inside(child: Path, parent: Path) -> bool:
+    try:
+        child.relative_to(parent)
+        return True
+    except ValueError:
+        return False
+
+
+def check_output_dir(
+    path: str | os.PathLike,
+    force: bool = False,
+    what: str = "output",
+    inputs: Iterable[str | os.PathLike] = (),
+) -> Path:
+    """Refuse an output folder that must not be (re)written; never delete anything here.
+
+    Refused: a path that exists and is not a folder; a mount point (it cannot be replaced as a
+    whole); a folder that is, or holds, one of ``inputs`` (the command's own input files or
+    folders); a non-empty folder without ``force``; with ``force``, a non-empty folder that
+    treeinfer did not write (see :func:`is_treeinfer_output`).
+    """
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise OutputExistsError(f"{path}: {what} path exists and is not a folder")
-    if path.is_dir() and any(path.iterdir()) and not force:
+    if path.is_dir() and os.path.ismount(path):
         raise OutputExistsError(
-            f"{path}: {what} folder already holds results; choose another --out or pass --force"
-        )
+            f"{path}: {what} folder is a mount point, which treeinfer cannot replace as a whole; "
+            f"give a folder inside it, e.g. --out {path / 'run'}")
+    real = Path(os.path.realpath(path))
+    for inp in inputs:
+        if inp is None:
+            continue
+        rin = Path(os.path.realpath(inp))
+        if _inside(rin, real):
+            raise OutputExistsError(
+                f"{path}: {what} folder {'is' if rin == real else 'holds'} an input of this command "
+                f"({inp}); writing there would destroy it: choose another --out")
+    if path.is_dir() and any(path.iterdir()):
+        if not force:
+            raise OutputExistsError(
+                f"{path}: {what} folder already holds results; choose another --out or pass --force"
+            )
+        if not is_treeinfer_output(path):
+            raise OutputExistsError(
+                f"{path}: --force replaces only folders treeinfer wrote (with a {OUTPUT_MARKER} "
+                "marker) or empty ones, and this one is neither; delete it yourself if you mean to, "
+                "or choose another --out")
+    return path
+
+
+# ---- staging folders ---------------------------------------------------------------------------
+def _marker_text(complete: bool) -> str:
+    return json.dumps({"writer": "treeinfer", "complete": bool(complete)}) + "\n"
+
+
+def _stage_complete(stage: Path) -> bool:
+    d = _read_json_quietly(stage / OUTPUT_MARKER)
+    return isinstance(d, dict) and d.get("complete") is True
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _sibling_pid(entry: str, name: str) -> int | None:
+    """PID in ``.NAME.PID.XXXX.staging`` / ``.NAME.PID.old`` (None: not ours or no PID)."""
+    rest = entry[len(name) + 2:]
+    head = rest.split(".", 1)[0]
+    return int(head) if head.isdigit() else None
+
+
+def find_staging(path: str | os.PathLike) -> list[Path]:
+    """Staging (``.NAME.*.staging``) and displaced (``.NAME.*.old``, ``.NAME.old-*``) siblings of
+    the output folder ``path``, left by a write in progress or by a killed process."""
+    path = Path(path)
+    parent, name = path.parent, path.name
+    if not parent.is_dir():
+        return []
+    out = []
+    for p in parent.iterdir():
+        n = p.name
+        if not n.startswith(f".{name}.") or not p.is_dir():
+            continue
+        if n.endswith((STAGING_SUFFIX, OLD_SUFFIX)) or n.startswith(f".{name}.old-"):
+            out.append(p)
+    return sorted(out)
+
+
+def clean_stale_staging(path: str | os.PathLike, log: Callable[[str], None] | None = None) -> list[str]:
+    """Tidy what killed writers of the output folder ``path`` left beside it; return messages.
+
+    A staging folder of a live process is left alone (reported). Of a dead one: a *complete*
+    staging folder (its marker says so) is moved into place if the destination is missing (the
+    kill fell between the two renames of the publish step), else kept at ``NAME.complete-PID``;
+    a displaced previous result (``.old``) is put back if the destination is missing; an
+    unfinished staging folder is removed.
+    """
+    path = Path(path)
+    msgs: list[str] = []
+    entries = find_staging(path)
+    # complete stages first, then displaced old results, then the rest
+    entries.sort(key=lambda p: (not (p.name.endswith(STAGING_SUFFIX) and _stage_complete(p)),
+                                not p.name.endswith(OLD_SUFFIX)))
+    for p in entries:
+        pid = _sibling_pid(p.name, path.name)
+        if pid is not None and pid != os.getpid() and _pid_alive(pid):
+            msgs.append(f"{p}: staging folder of running process {pid}; left alone")
+            continue
+        if pid == os.getpid():
+            continue
+        try:
+            if not path.exists() and p.name.endswith(STAGING_SUFFIX) and _stage_complete(p):
+                os.replace(p, path)
+                msgs.append(f"{path}: recovered the finished result a killed process left in {p.name}")
+            elif p.name.endswith(STAGING_SUFFIX) and _stage_complete(p):
+                kept = path.with_name(f"{path.name}{COMPLETE_INFIX}{pid}")
+                os.replace(p, kept)
+                msgs.append(f"{path}: a killed process finished a newer result than this one; it is "
+                            f"kept, complete, in {kept}")
+            elif not path.exists() and (p.name.endswith(OLD_SUFFIX) or ".old-" in p.name):
+                os.replace(p, path)
+                msgs.append(f"{path}: put back the previous result a killed process had moved to {p.name}")
+            else:
+                shutil.rmtree(p)
+                msgs.append(f"{p}: removed a staging folder left by an interrupted process")
+        except OSError as e:
+            msgs.append(f"{p}: stale staging folder could not be tidied ({e.strerror or e}); remove it yourself")
+    if log is not None:
+        for m in msgs:
+            log(m)
+    return msgs
+
+
+def _rescue(stage: Path, path: Path, e: OSError, what: str) -> OutputWriteError:
+    """The final rename failed: keep the finished folder at a visible name and say where."""
+    kept = path.with_name(f"{path.name}{COMPLETE_INFIX}{os.getpid()}")
+    try:
+        os.replace(stage, kept)
+    except OSError:
+        kept = stage
+    hint = _ERRNO_HINT.get(e.errno or -1, "")
+    return OutputWriteError(
+        f"{path}: cannot move the finished {what} into place ({e.strerror or e}"
+        f"{'; ' + hint if hint and hint.lower() != (e.strerror or '').lower() else ''}); "
+        f"nothing is lost: it is complete in {kept}; move or rename it yourself")
+
+
+def publish_staged(stage: Path, path: Path, what: str = "output") -> Path:
+    """Move the complete folder ``stage`` to ``path`` (replacing a previous one), never losing
+    either: on failure the previous result is put back and the new one kept (see _rescue)."""
+    with contextlib.suppress(OSError):
+        (stage / OUTPUT_MARKER).write_text(_marker_text(True), encoding="utf-8")
+    if path.exists() or path.is_symlink():
+        old = path.with_name(f".{path.name}.{os.getpid()}{OLD_SUFFIX}")
+        try:
+            os.replace(path, old)
+        except OSError as e:
+            raise _rescue(stage, path, e, what) from None
+        try:
+            os.replace(stage, path)
+        except OSError as e:
+            with contextlib.suppress(OSError):
+                os.replace(old, path)
+            raise _rescue(stage, path, e, what) from None
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        try:
+            os.replace(stage, path)
+        except OSError as e:
+            raise _rescue(stage, path, e, what) from None
     return path
 
 
 @contextlib.contextmanager
-def staged_output_dir(path: str | os.PathLike, force: bool = False, what: str = "output") -> Iterator[Path]:
+def staged_output_dir(
+    path: str | os.PathLike,
+    force: bool = False,
+    what: str = "output",
+    inputs: Iterable[str | os.PathLike] = (),
+    log: Callable[[str], None] | None = None,
+) -> Iterator[Path]:
     """Build a whole output folder under a temporary sibling and move it into place at the end.
 
     On error the staging folder is removed and ``path`` is left exactly as it was.
-    With ``force`` an existing ``path`` is replaced only after the new one is complete.
+    With ``force`` an existing ``path`` is replaced only after the new one is complete, and only
+    if treeinfer wrote it (see :func:`check_output_dir`; ``inputs`` are never replaced). Stale
+    staging folders of the same destination are tidied first (``log`` gets what was done).
     """
     path = Path(path)
-    check_output_dir(path, force, what)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".staging", dir=path.parent))
-    _publish_mode(stage, directory=True)
+    inputs = tuple(inputs)
+    check_output_dir(path, force, what, inputs)
+    clean_stale_staging(path, log)
+    check_output_dir(path, force, what, inputs)  # a recovered result counts as existing output
+    stage: Path | None = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f".{path.name}.{os.getpid()}.", suffix=STAGING_SUFFIX,
+                                      dir=path.parent))
+        _publish_mode(stage, directory=True)
+        (stage / OUTPUT_MARKER).write_text(_marker_text(False), encoding="utf-8")
+    except OSError as e:
+        if stage is not None:
+            shutil.rmtree(stage, ignore_errors=True)
+        raise output_error(path.parent, e, "create a staging folder in") from None
     try:
         yield stage
-    except BaseException:
+    except BaseException as e:
         shutil.rmtree(stage, ignore_errors=True)
+        if isinstance(e, OSError) and e.errno in _DISK_ERRNOS:
+            raise output_error(getattr(e, "filename", None) or stage, e) from None
         raise
-    if path.exists():
-        old = path.with_name(f".{path.name}.old-{os.getpid()}")
-        os.replace(path, old)
-        os.replace(stage, path)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(stage, path)
+    publish_staged(stage, path, what)
+
+
+def mark_output_dir(path: str | os.PathLike) -> Path:
+    """Put the ``.treeinfer-output`` marker into a folder treeinfer writes in place (not staged),
+    so that a later ``--force`` may replace it."""
+    return atomic_write_text(Path(path) / OUTPUT_MARKER, _marker_text(True))
+
+

@@ -171,20 +171,16 @@ def read_bag_streams(
         TrajectoryFileError: unreadable bag, missing/ambiguous topics or TF frames,
             or streams with fewer than 2 messages.
     """
-    from rosbags.highlevel import AnyReader, AnyReaderError
-    from rosbags.rosbag1 import ReaderError as ReaderError1
-    from rosbags.rosbag2 import ReaderError as ReaderError2
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.highlevel import AnyReaderError
+
+    from .bag_types import open_bag_reader
 
     bag = Path(bag_path)
     if not bag.exists():
         raise TrajectoryFileError(f"{bag}: bag not found")
-    try:
-        # Older ROS2 bags carry no type definitions: fall back to the Humble types.
-        reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
-        reader.open()
-    except (AnyReaderError, ReaderError1, ReaderError2, FileNotFoundError, OSError) as e:
-        raise TrajectoryFileError(f"{bag}: cannot read as a ROS1 or ROS2 bag ({e})") from None
+    # Types come only from rosbags' built-in stores, never from the bag's own definitions
+    # (rosbags would turn those into Python code): see treeinfer.bag_types.
+    reader = open_bag_reader(bag)
     try:
         topics = {name: info.msgtype for name, info in reader.topics.items()}
         ftopic = _select_topic(topics, force_topic, FORCE_TYPES, "force", "--force-topic", bag)

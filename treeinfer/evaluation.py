@@ -231,7 +231,8 @@ def write_evaluation(
     from .plots import plot_band_grid, save_figure
 
     lower, upper, mean, gt = bands
-    with staged_output_dir(out, force) as stage:
+    inputs = [p for p in (config.get("run"), *(config.get("inputs") or ())) if p]
+    with staged_output_dir(out, force, "evaluation", inputs=inputs) as stage:
         write_json(stage / "metrics.json", metrics)
         atomic_write_text(stage / "metrics.md", "\n".join(md))
         t = np.arange(lower.shape[1]) * dt

@@ -3,7 +3,6 @@ atomically; read back with errors naming the file and line."""
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -39,14 +38,11 @@ def write_json(path, obj) -> Path:
 
 
 def read_json(path: Path, what: str) -> dict:
-    try:
-        d = json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such file ({what})") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path}: cannot read {what}: {e}") from None
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"{path}, line {e.lineno}: invalid JSON in {what}: {e.msg}") from None
+    """A JSON object through the safe loader (:mod:`treeinfer.safe_load`: regular files only,
+    size and depth limits, no duplicate keys); ConfigError naming the file and line."""
+    from .safe_load import load_file
+
+    d = load_file(path, what, ConfigError, fmt="json")
     if not isinstance(d, dict):
         raise ConfigError(f"{path}: {what} must be a JSON object")
     return d

@@ -53,6 +53,7 @@ OPTIONAL_COLUMNS = ("velocity",)
 # Plausibility limits: values beyond these almost always mean a wrong unit.
 MIN_ROWS = 3  # the second-order velocity scheme needs three samples
 DT_REL_TOL = 1e-3  # allowed relative deviation of each time step from the median step
+MAX_FILE_BYTES = 256 * 1024 * 1024  # a trajectory CSV larger than this is not a pull recording
 MAX_DT = 1.0  # s; a branch pull sampled slower than 1 Hz is almost certainly milliseconds
 MAX_DISPLACEMENT = 5.0  # m
 MAX_FORCE = 1.0e4  # N
@@ -264,13 +265,11 @@ def read_trajectory(path: str | os.PathLike) -> Trajectory:
         TrajectoryFileError: unreadable file, bad header, bad cell, too few rows,
             non-uniform or non-increasing time, or values in the wrong unit.
     """
+    from .safe_load import read_regular_file
+
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as e:
-        raise TrajectoryFileError(
-            f"{path}: cannot read trajectory file ({e.strerror or e})"
-        ) from None
+    # regular files only: a FIFO would block, /dev/zero would fill memory
+    raw = read_regular_file(path, "trajectory file", TrajectoryFileError, max_bytes=MAX_FILE_BYTES)
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
@@ -507,20 +506,18 @@ def read_true_params(tree, path: str | os.PathLike, where: str | None = None) ->
     a JSON file: a ``true_params.json`` (``{"kp": {joint: value}, "kd": {joint: value}}``),
     ``{"theta_log": [2R natural logs]}`` or a plain list of 2R numbers. ``where`` names the file
     in error messages (default: its path)."""
-    import json
 
     from .errors import ConfigError
 
     labels = tree.parameter_labels()
     where = str(path) if where is None else where
+    from .safe_load import load_file
+
     try:
-        d = json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"{where}: no such file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{where}: cannot read: {e}") from None
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"{where}, line {e.lineno}: invalid JSON: {e.msg}") from None
+        d = load_file(path, "parameter file", ConfigError, fmt="json")
+    except ConfigError as e:
+        msg = str(e)
+        raise ConfigError(msg.replace(str(path), where, 1) if where != str(path) else msg) from None
     if isinstance(d, list):
         return check_positive_params(d, labels, where)
     if not isinstance(d, dict):
@@ -605,11 +602,12 @@ def read_force_profile(path: str | os.PathLike) -> ForceProfile:
 
     The two-column form is checked like a trajectory (uniform increasing time in s, forces in N)
     and errors name the file and line."""
+    from .safe_load import read_regular_file
+
     path = Path(path)
+    raw = read_regular_file(path, "force file", TrajectoryFileError, max_bytes=MAX_FILE_BYTES)
     try:
-        text = path.read_bytes().decode("utf-8-sig")
-    except OSError as e:
-        raise TrajectoryFileError(f"{path}: cannot read force file ({e.strerror or e})") from None
+        text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise TrajectoryFileError(f"{path}: not UTF-8 text (byte {e.start})") from None
     lines = [(n, ln.rstrip("\r")) for n, ln in enumerate(text.split("\n"), start=1)]

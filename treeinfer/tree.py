@@ -20,13 +20,15 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
 from .errors import TreeFileError
+from .safe_load import load_file, string
 
 # Default prior boxes (natural units). Kp in N m/rad, Kd in N m s/rad. Chosen for branches of
 # a few cm radius and up to ~1.5 m: gravity sag of a few degrees to tens of degrees.
@@ -35,6 +37,26 @@ DEFAULT_KD_BOUNDS = (0.05, 10.0)
 DEFAULT_DENSITY = 700.0  # kg/m^3, typical fresh hardwood
 DEFAULT_FIXED_KP = 2000.0
 DEFAULT_FIXED_KD = 20.0
+
+# Plausibility limits: values outside are certainly a mistake (a unit slip or a typo) and would
+# reach MuJoCo as degenerate bodies (mass or inertia below its mjMINVAL = 1e-15), overflow in
+# float32 simulation, or need millions of substeps. Errors name the branch and field.
+MAX_BRANCH_LENGTH = 50.0  # m; a longer single branch is millimetres or centimetres read as metres
+WARN_BRANCH_LENGTH = 5.0  # m; longer branches get a warning from tree_scale_warnings
+MIN_RADIUS = 1.0e-4  # m (0.1 mm)
+MAX_RADIUS = 5.0  # m
+DENSITY_RANGE = (1.0, 1.0e5)  # kg/m^3; wood is 300-1200, lead 11 000
+MIN_MASS = 1.0e-9  # kg; far above MuJoCo's mjMINVAL, so float32 rollouts stay well-posed
+MIN_INERTIA = 1.0e-14  # kg m^2, principal inertia about the centre of mass
+KP_RANGE = (1.0e-6, 1.0e8)  # N m/rad: every prior bound and fixed gain must lie inside
+KD_RANGE = (1.0e-8, 1.0e6)  # N m s/rad
+# Names the generated models use themselves: ``world`` is MuJoCo's body 0 (a branch of that
+# name cannot be compiled). The URDF export's own ``base_link``/``base_fixed`` are refused by
+# :func:`treeinfer.urdf.to_urdf`, since a tree using them still simulates.
+RESERVED_NAMES = frozenset({"world"})
+# suffixes of generated element names: branch ``b`` makes geom ``b_geom`` (MJCF) and
+# ``b_visual`` / ``b_collision`` (URDF); a branch named like that would shadow one of them.
+_GENERATED_SUFFIXES = ("_geom", "_visual", "_collision")
 
 
 @dataclass(frozen=True)
@@ -149,7 +171,7 @@ class Tree:
         b = self.branch(name)
         return (self.fixed_kp if b.kp is None else b.kp, self.fixed_kd if b.kd is None else b.kd)
 
-    def with_grasp(self, fraction: float, branch: str | None = None) -> "Tree":
+    def with_grasp(self, fraction: float, branch: str | None = None) -> Tree:
         _check_fraction(fraction, "grasp.fraction")
         name = self.grasp_branch if branch is None else branch
         self.branch(name)
@@ -226,7 +248,14 @@ def quat_from_matrix(r: np.ndarray) -> np.ndarray:
 
 
 # ---- construction and validation -----------------------------------------------------------
+def _no_bool(v: Any, fld: str, where: str, expected: str) -> None:
+    if isinstance(v, bool):
+        raise TreeFileError(f"{where}{fld}: expected {expected}, got {v!r} "
+                            "(YAML reads yes/no/on/off as booleans; write a number)")
+
+
 def _check_fraction(f: Any, fld: str, where: str = "") -> float:
+    _no_bool(f, fld, where, "a number in (0, 1]")
     try:
         f = float(f)
     except (TypeError, ValueError):
@@ -237,6 +266,7 @@ def _check_fraction(f: Any, fld: str, where: str = "") -> float:
 
 
 def _positive(v: Any, fld: str, where: str = "") -> float:
+    _no_bool(v, fld, where, "a positive number")
     try:
         v = float(v)
     except (TypeError, ValueError):
@@ -247,6 +277,7 @@ def _positive(v: Any, fld: str, where: str = "") -> float:
 
 
 def _finite(v: Any, fld: str, where: str = "") -> float:
+    _no_bool(v, fld, where, "a number")
     try:
         v = float(v)
     except (TypeError, ValueError):
@@ -262,7 +293,21 @@ def _bounds_pair(v: Any, fld: str, where: str = "") -> tuple[float, float]:
     lo, hi = _positive(v[0], fld + "[0]", where), _positive(v[1], fld + "[1]", where)
     if not lo < hi:
         raise TreeFileError(f"{where}{fld}: lower bound {lo} must be below upper bound {hi}")
+    _gain_in_range(lo, fld + "[0]", where)
+    _gain_in_range(hi, fld + "[1]", where)
     return (lo, hi)
+
+
+def _gain_in_range(v: float, fld: str, where: str = "") -> float:
+    """Refuse gains no branch can have (Kp outside KP_RANGE, Kd outside KD_RANGE): they
+    overflow float32 rollouts or need absurd numbers of simulation substeps."""
+    leaf = fld.split(".")[-1].split("[")[0].lower()
+    lo, hi, unit = (*KD_RANGE, "N m s/rad") if leaf == "kd" else (*KP_RANGE, "N m/rad")
+    if not lo <= v <= hi:
+        raise TreeFileError(
+            f"{where}{fld}: {v:g} {unit} is outside the plausible range [{lo:g}, {hi:g}] {unit} "
+            "for a branch joint; check the value and its unit")
+    return v
 
 
 def default_inferred(branches: Iterable[Branch], grasp_branch: str, levels: int) -> tuple[str, ...]:
@@ -327,9 +372,10 @@ def make_tree(
         bounds={n: bounds[n] for n in inferred},
         **kwargs,
     )
-    _positive(tree.density, "density")
-    _positive(tree.fixed_kp, "fixed.kp")
-    _positive(tree.fixed_kd, "fixed.kd")
+    _density_in_range(_positive(tree.density, "density"), "density")
+    _gain_in_range(_positive(tree.fixed_kp, "fixed.kp"), "fixed.kp")
+    _gain_in_range(_positive(tree.fixed_kd, "fixed.kd"), "fixed.kd")
+    _check_masses(tree)
     if len(tree.base_position) != 3 or len(tree.gravity) != 3:
         raise TreeFileError("base.position and gravity must have 3 components")
     g = np.asarray(tree.gravity, float)
@@ -349,8 +395,21 @@ def _validate_branches(branches: tuple[Branch, ...]) -> None:
             raise TreeFileError(f"branches[{i}].name: must be a non-empty name of letters, digits, '_', '-', '.', got {b.name!r}")
         if b.name in seen:
             raise TreeFileError(f"{w}duplicate branch name")
+        if b.name.lower() in RESERVED_NAMES:
+            raise TreeFileError(
+                f"branches[{i}].name: '{b.name}' is reserved (MuJoCo's world body); rename the "
+                "branch")
         _positive(b.length, "length", w)
         _positive(b.radius, "radius", w)
+        if b.length > MAX_BRANCH_LENGTH:
+            raise TreeFileError(
+                f"{w}length {b.length:g} m is longer than {MAX_BRANCH_LENGTH:g} m; "
+                "looks like millimetres or centimetres, expected metres")
+        if not MIN_RADIUS <= b.radius <= MAX_RADIUS:
+            raise TreeFileError(
+                f"{w}radius {b.radius:g} m is outside [{MIN_RADIUS:g}, {MAX_RADIUS:g}] m; "
+                + ("looks like millimetres, expected metres" if b.radius > MAX_RADIUS
+                   else "too thin for a branch (check the unit)"))
         if b.radius > b.length:
             raise TreeFileError(f"{w}radius {b.radius} m exceeds length {b.length} m (units mixed up?)")
         _finite(b.angle_deg, "angle_deg", w)
@@ -358,10 +417,11 @@ def _validate_branches(branches: tuple[Branch, ...]) -> None:
         _check_fraction(b.attach, "attach", w)
         if b.density is not None:
             _positive(b.density, "density", w)
+            _density_in_range(b.density, "density", w)
         if b.kp is not None:
-            _positive(b.kp, "kp", w)
+            _gain_in_range(_positive(b.kp, "kp", w), "kp", w)
         if b.kd is not None:
-            _positive(b.kd, "kd", w)
+            _gain_in_range(_positive(b.kd, "kd", w), "kd", w)
         if b.parent is None:
             roots += 1
         elif b.parent not in seen:
@@ -372,6 +432,53 @@ def _validate_branches(branches: tuple[Branch, ...]) -> None:
         seen.add(b.name)
     if roots != 1:
         raise TreeFileError(f"branches: exactly one root (parent: null) is required, found {roots}")
+    names = {b.name for b in branches}
+    for i, b in enumerate(branches):
+        for suf in _GENERATED_SUFFIXES:
+            if b.name.endswith(suf) and b.name[: -len(suf)] in names:
+                raise TreeFileError(
+                    f"branches[{i}].name: '{b.name}' clashes with the name generated for branch "
+                    f"'{b.name[: -len(suf)]}' ({suf[1:]}); rename the branch")
+
+
+def _density_in_range(v: float, fld: str, where: str = "") -> float:
+    lo, hi = DENSITY_RANGE
+    if not lo <= v <= hi:
+        raise TreeFileError(
+            f"{where}{fld}: {v:g} kg/m^3 is outside the plausible range [{lo:g}, {hi:g}] kg/m^3 "
+            "(wood is about 300-1200); check the value and its unit")
+    return v
+
+
+def _check_masses(tree: Tree) -> None:
+    """Every branch's mass and inertia well above MuJoCo's mjMINVAL (degenerate bodies)."""
+    for i, b in enumerate(tree.branches):
+        w = f"branches[{i}] ('{b.name}'): "
+        m, inertia = cylinder_inertia(b, branch_density(tree, b))
+        if not math.isfinite(m) or m < MIN_MASS:
+            raise TreeFileError(
+                f"{w}mass {m:.3g} kg (density {branch_density(tree, b):g} kg/m^3, radius {b.radius:g} m, "
+                f"length {b.length:g} m) is below {MIN_MASS:g} kg: a degenerate body; check density "
+                "and radius")
+        if not np.all(np.isfinite(inertia)) or float(inertia.min()) < MIN_INERTIA:
+            raise TreeFileError(
+                f"{w}inertia {float(inertia.min()):.3g} kg m^2 about the branch axis is below "
+                f"{MIN_INERTIA:g} kg m^2: a degenerate body; check radius and density")
+
+
+def tree_scale_warnings(tree: Tree, source: str = "") -> list[str]:
+    """Warnings for a tree whose size looks like the wrong unit but is not certainly wrong
+    (a branch longer than WARN_BRANCH_LENGTH m, or thicker than a quarter of its length)."""
+    pre = f"{source}: " if source else ""
+    out = []
+    for i, b in enumerate(tree.branches):
+        if b.length > WARN_BRANCH_LENGTH:
+            out.append(f"{pre}branches[{i}] ('{b.name}'): length {b.length:g} m is unusually long "
+                       "for one branch; are the lengths in metres?")
+        if b.radius > 0.25 * b.length and b.radius > 0.2:
+            out.append(f"{pre}branches[{i}] ('{b.name}'): radius {b.radius:g} m is unusually "
+                       "thick; are the radii in metres?")
+    return out
 
 
 # ---- file I/O --------------------------------------------------------------------------------
@@ -413,14 +520,18 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
         for req in ("name", "length", "radius"):
             if req not in rb:
                 raise TreeFileError(f"{pre}branches[{i}]: missing required field '{req}'")
-        w = f"{pre}branches[{i}] ('{rb['name']}'): "
+        bname = string(rb["name"], f"branches[{i}].name", source, TreeFileError)
+        parent = rb.get("parent")
+        if parent is not None:
+            parent = string(parent, f"branches[{i}].parent", source, TreeFileError)
+        w = f"{pre}branches[{i}] ('{bname}'): "
         fixed = rb.get("fixed", False)
         if not isinstance(fixed, bool):
             raise TreeFileError(f"{w}fixed: expected true/false, got {fixed!r}")
         branches.append(
             Branch(
-                name=str(rb["name"]),
-                parent=None if rb.get("parent") is None else str(rb["parent"]),
+                name=bname,
+                parent=parent,
                 length=_positive(rb["length"], "length", w),
                 radius=_positive(rb["radius"], "radius", w),
                 angle_deg=_finite(rb.get("angle_deg", 0.0), "angle_deg", w),
@@ -441,6 +552,13 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
     if not isinstance(grasp, dict) or "branch" not in grasp:
         raise TreeFileError(f"{pre}grasp: expected a mapping with 'branch' and 'fraction'")
     _no_unknown(grasp, {"branch", "fraction"}, "grasp", pre)
+    string(grasp["branch"], "grasp.branch", source, TreeFileError)
+    if "name" in d:
+        string(d["name"], "name", source, TreeFileError)
+    if "levels" in (d.get("inference") or {}) and isinstance(d["inference"], dict):
+        lv = d["inference"]["levels"]
+        if isinstance(lv, bool) or not isinstance(lv, int):
+            raise TreeFileError(f"{pre}inference.levels: expected a positive integer, got {lv!r}")
     base = d.get("base", {}) or {}
     if not isinstance(base, dict):
         raise TreeFileError(f"{pre}base: expected a mapping with position, pitch_deg, yaw_deg")
@@ -551,35 +669,21 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
     return out
 
 
+def read_tree_file(path: str | Path) -> Any:
+    """The parsed content of a tree file (YAML, or JSON by suffix) through the safe loader:
+    regular files only (no FIFO or device), size/depth/alias limits, no duplicate keys."""
+    return load_file(path, "tree file", TreeFileError)
+
+
 def load_tree(path: str | Path) -> Tree:
     """Read a tree description from YAML (``.yaml``/``.yml``) or JSON (``.json``)."""
     path = Path(path)
-    if not path.exists():
-        raise TreeFileError(f"{path}: no such file")
-    if path.suffix.lower() in (".urdf", ".xml", ".mjcf"):
+    if path.suffix.lower() in (".urdf", ".xml", ".mjcf") and path.is_file():
         raise TreeFileError(
             f"{path}: a URDF/MJCF model, not a tree description; describe it with "
             f"`treeinfer tree --model {path} --out tree.yaml` (or give it with --model)"
         )
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise TreeFileError(f"{path}: cannot read: {e}") from None
-    if path.suffix.lower() == ".json":
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise TreeFileError(f"{path}, line {e.lineno}: invalid JSON: {e.msg}") from None
-    else:
-        import yaml
-
-        try:
-            d = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            mark = getattr(e, "problem_mark", None)
-            line = f", line {mark.line + 1}" if mark is not None else ""
-            raise TreeFileError(f"{path}{line}: invalid YAML: {getattr(e, 'problem', e)}") from None
-    return tree_from_dict(d, source=str(path), base_dir=path.parent)
+    return tree_from_dict(read_tree_file(path), source=str(path), base_dir=path.parent)
 
 
 def dump_tree(tree: Tree, path: str | Path) -> Path:

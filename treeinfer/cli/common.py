@@ -22,6 +22,7 @@ from ..errors import ConfigError, OutputExistsError
 EXIT_OK = 0
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL_ERROR = 3
+EXIT_POOR_FIT = 4  # infer: the fit checks judged the run a poor fit (see --allow-poor-fit)
 EXIT_INTERRUPTED = 130  # the shell's convention for SIGINT (128 + 2)
 
 _WIDTH = 88  # help text width

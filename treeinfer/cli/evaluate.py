@@ -99,16 +99,21 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
     add_model_options(p, run=True)
     add_simulation_options(p, _RUN_SIM_NOTE)
+    p.add_argument("--allow-modified", action="store_true", help="use the run even if its files changed since `infer` wrote them (checksums in its config.json); recorded in the output")
     return p
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
-    check_output_dir(args.out, args.force)
+    check_output_dir(args.out, args.force, "evaluation", inputs=[args.run, args.data])
     _prepare_jax()
     check_simulation_options(args)
     cache = runs.SimulatorCache()  # this command's simulators (the run's, and k-fold's)
-    run = runs.load_run(args.run, cache, model_file=args.model)
+    run = runs.load_run(
+        args.run, cache, allow_modified=args.allow_modified, model_file=args.model
+    )
+    for note in run.notes:
+        _say(f"warning: {note}")
     trajs = read_trajectory_dir(args.data)
     dt = trajs[0].dt
     if not math.isclose(dt, run.sim.obs_dt, rel_tol=1e-6):
@@ -125,6 +130,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
         dt=dt,
         grasp_fraction=grasp if grasp is not None else run.tree.grasp_fraction,
         run_options=run.config["options"],
+        integrity_notes=list(run.notes),
+        run_fit_status=run.summary.get("status"),
     )
     if args.kfold is None:
         sim = simulator_for_run(run, args, stack_trajectories(trajs).force, grasp, cache)

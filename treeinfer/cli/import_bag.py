@@ -88,6 +88,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
 
 def run_from_args(args: argparse.Namespace) -> list[Path]:
     """Run ``import-bag`` from parsed arguments; prints and returns the written files."""
+    from .._io import check_output_dir
+
+    # --force never replaces the folder holding the bag itself (issue 14)
+    check_output_dir(args.out, args.force, "import-bag output", inputs=[args.bag])
     paths = import_bag(
         args.bag,
         args.out,

@@ -17,6 +17,7 @@ from .common import (
     COMMAND_HELP,
     EXIT_INTERRUPTED,
     EXIT_OK,
+    EXIT_POOR_FIT,
     _check_share,
     _prepare_jax,
     _print_fit,
@@ -169,6 +170,8 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     add_model_options(p)
     add_simulation_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--allow-poor-fit", action="store_true", help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 otherwise); the verdict stays in summary.json")
+    p.add_argument("--allow-implausible-data", action="store_true", help="sample even if the plausibility checks find errors in the data (wrong units, swapped columns, duplicates ...); they are printed and recorded in summary.json")
     return p
 
 
@@ -230,6 +233,7 @@ def run_infer(args: argparse.Namespace) -> int:
             log=_say,
             on_checkpointer=lambda cp: holder.__setitem__("cp", cp),
             cache=runs.SimulatorCache(),
+            allow_implausible_data=args.allow_implausible_data,
         )
     except KeyboardInterrupt:
         cp = holder.get("cp")
@@ -252,7 +256,16 @@ def run_infer(args: argparse.Namespace) -> int:
     _print_posterior(s)
     _print_fit(s.get("training_metrics"), "fit to the training data")
     _print_warnings(s["convergence_warnings"])
+    fit = s.get("fit") or {}
+    status = fit.get("status", "ok")
+    print(f"fit verdict: {status}" + "".join(f"\n  - {r}" for r in fit.get("reasons", [])))
     print(
         f"wrote {run_dir}/ (config.json, tree.yaml, posterior.nc, particles.csv, trace.npz, summary.json, plots/)"
     )
+    if status == "poor_fit" and not args.allow_poor_fit:
+        _say(
+            f"poor fit: the posterior in {run_dir} does not explain the training data (reasons above); "
+            "exit code 4 (--allow-poor-fit to accept it)"
+        )
+        return EXIT_POOR_FIT
     return EXIT_OK

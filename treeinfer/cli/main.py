@@ -81,6 +81,10 @@ or all of it on the built-in example: treeinfer demo
 
 Run `treeinfer COMMAND --help` for a command's options and examples. Errors in your input are
 reported in one line (exit code 2); add --debug to see the traceback.
+
+exit codes: 0 success; 2 an error in your input (file, option, implausible data); 3 an internal
+error (a bug: please report it); 4 `infer` finished but its fit checks judged the posterior a
+poor fit (summary.json "fit"; --allow-poor-fit makes that exit 0); 130 interrupted.
 """
 
 

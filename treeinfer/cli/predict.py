@@ -100,16 +100,27 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
     )
     add_model_options(p, run=True)
     add_simulation_options(p, _RUN_SIM_NOTE)
+    p.add_argument(
+        "--allow-modified",
+        action="store_true",
+        help="use the run even if its files changed since `infer` wrote them (checksums in its "
+        "config.json); recorded in the output",
+    )
     return p
 
 
 def run_predict(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
-    check_output_dir(args.out, args.overwrite)
+    inputs = [args.run, args.force_file]
+    check_output_dir(args.out, args.overwrite, "prediction", inputs=inputs)
     _prepare_jax()
     check_simulation_options(args)
     cache = runs.SimulatorCache()
-    run = runs.load_run(args.run, cache, model_file=args.model)
+    run = runs.load_run(
+        args.run, cache, allow_modified=args.allow_modified, model_file=args.model
+    )
+    for note in run.notes:
+        _say(f"warning: {note}")
     dt_run = run.sim.obs_dt
     if args.force_file is not None:
         if args.duration is not None or args.dt is not None:
@@ -162,8 +173,10 @@ def run_predict(args: argparse.Namespace) -> int:
         n_particles=len(run.theta),
         n_valid=int(pred.valid.sum()),
         n_excluded=n_bad,
+        integrity_notes=list(run.notes),
+        run_fit_status=run.summary.get("status"),
     )
-    with staged_output_dir(args.out, args.overwrite) as stage:
+    with staged_output_dir(args.out, args.overwrite, "prediction", inputs=inputs) as stage:
         atomic_write_text(stage / "prediction.csv", "\n".join(lines) + "\n")
         fig, _ = plot_trajectory_bands(
             prof.time,

@@ -223,7 +223,8 @@ def run_simulate(args: argparse.Namespace) -> int:
         )
     forces = np.stack([from_spec(s, args.duration, args.dt) for s in specs])  # [B, T]
     assert forces.shape[1] == n_t
-    check_output_dir(args.out, args.force)  # fail before the (slow) simulation
+    inputs = [args.tree, getattr(args, "params_json", None)]
+    check_output_dir(args.out, args.force, inputs=inputs)  # fail before the (slow) simulation
 
     _prepare_jax()
     rollout, sim = simulate_batch(
@@ -269,7 +270,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     )
     true_params = true_params_record(tree, kp, kd, source)
     config = _simulate_config(args, tree, specs, n_t, sim)
-    with staged_output_dir(args.out, args.force) as stage:
+    with staged_output_dir(args.out, args.force, inputs=inputs) as stage:
         for name, traj, lines in zip(names, trajs, comments):
             write_trajectory(stage / name, traj, lines)
         dump_tree(tree, stage / "tree.yaml")

@@ -258,8 +258,9 @@ def _tree_settings(args: argparse.Namespace, kind: str) -> dict[str, Any]:
 
 def _read_raw(path: Path) -> dict[str, Any]:
     """The parsed content of a tree file (already validated by ``load_tree``)."""
-    text = path.read_text(encoding="utf-8")
-    d = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+    from ..tree import read_tree_file
+
+    d = read_tree_file(path)
     return d if isinstance(d, dict) else {}
 
 

@@ -151,18 +151,31 @@ def save_checkpoint(
 
 
 def _open_checkpoint(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
+    from ..integrity import validate_checkpoint_file
+
+    if not Path(path).exists():
+        raise ConfigError(f"{path}: no such checkpoint")
+    validate_checkpoint_file(path)  # 0-byte, FIFO, foreign file: a clean error naming it
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
         meta = json.loads(str(arrays.pop("meta")))
+        if not isinstance(meta, dict):
+            raise ValueError("meta is not a JSON object")  # noqa: TRY004 -- caught below
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such checkpoint") from None
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:  # truncated / foreign file
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:  # truncated / foreign file
         raise ConfigError(f"{path}: not a readable treeinfer checkpoint ({e})") from None
     if meta.get("format") != CHECKPOINT_FORMAT:
         raise ConfigError(
             f"{path}: checkpoint format {meta.get('format')!r}, expected {CHECKPOINT_FORMAT}"
         )
+    for key, kind in (("config_hash", str), ("iteration", int), ("leaves", list)):
+        if not isinstance(meta.get(key), kind) or isinstance(meta.get(key), bool):
+            raise ConfigError(
+                f"{path}: checkpoint field 'meta.{key}' is missing or malformed "
+                f"({meta.get(key)!r}); delete the checkpoint to restart from iteration 0"
+            )
     return meta, arrays
 
 

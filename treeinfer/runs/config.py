@@ -94,7 +94,7 @@ class RunConfig:
     repair_inertia: str | None = None
 
     def __post_init__(self):
-        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 -- frozen: normalise once
+        set_ = lambda k, v: object.__setattr__(self, k, v)
         sampler_spec(self.sampler)
         set_(
             "particles",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import warnings
-import zipfile
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -196,17 +196,21 @@ def save_run(
     summary: dict,
     truth=None,
     force: bool = False,
+    inputs: Sequence[str | os.PathLike] = (),
+    log=None,
 ) -> Path:
     """Write the run folder (see the module docstring) atomically: built in a staging folder,
-    moved into place at the end."""
+    moved into place at the end. ``inputs`` (the tree file and data folder) are never replaced
+    by ``force``; config.json records the checksums of the files written before it
+    (``config["integrity"]``, see :mod:`treeinfer.integrity`)."""
     from ..diagnostics import save_inference_data, to_inference_data
+    from ..integrity import record_checksums
     from ..plots import pair_plot, plot_band_grid, plot_trace, save_figure
 
     labels = list(problem.labels)
     sampler = config["options"]["sampler"]
     stable = np.asarray(fit["stable"], bool)
-    with staged_output_dir(run_dir, force, "run") as stage:
-        write_json(stage / "config.json", config)
+    with staged_output_dir(run_dir, force, "run", inputs=inputs, log=log) as stage:
         dump_tree(tree, stage / "tree.yaml")
         attrs = {
             "treeinfer_version": __version__,
@@ -250,6 +254,8 @@ def save_run(
         }
         atomic_write_bytes(stage / "trace.npz", _npz_bytes(arrays))
         write_json(stage / "summary.json", summary)
+        # written after the files it checksums: predict/evaluate/--resume verify them
+        write_json(stage / "config.json", {**config, "integrity": record_checksums(stage)})
 
         plots = stage / "plots"
         bw = _bandwidths(trace["positions"]) if sampler_spec(sampler).family == "svgd" else None
@@ -309,14 +315,24 @@ class LoadedRun(NamedTuple):
     kT: float
     summary: dict
     grasp_fraction: float | None
+    notes: tuple[str, ...] = ()  # integrity notes (--allow-modified) to record in the output
 
 
 def load_run(
-    run_dir: str | os.PathLike, cache: SimulatorCache | None = None, model_file=None
+    run_dir: str | os.PathLike,
+    cache: SimulatorCache | None = None,
+    allow_modified: bool = False,
+    model_file=None,
 ) -> LoadedRun:
     """Read a run folder written by :func:`save_run` (ConfigError naming what is missing).
-    ``model_file``: where the run's own URDF/MJCF lies now (moved since the run); its sha256
-    must be the recorded one."""
+
+    The files are checked against the checksums in config.json (:func:`treeinfer.integrity.
+    verify_run`): an edited tree.yaml or a damaged posterior is refused unless
+    ``allow_modified``, which records notes in ``LoadedRun.notes`` instead. ``model_file``:
+    where the run's own URDF/MJCF lies now (moved since the run); its sha256 must be the
+    recorded one."""
+    from ..integrity import load_npz, validate_run_config, validate_summary, verify_run
+
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         hint = (
@@ -334,6 +350,8 @@ def load_run(
         raise ConfigError(
             f"{run_dir / 'config.json'}: not a treeinfer run config (command {config.get('command')!r})"
         )
+    validate_run_config(config, run_dir / "config.json")
+    notes = tuple(verify_run(run_dir, config, allow_modified))
     for name in ("tree.yaml", "trace.npz"):
         if not (run_dir / name).is_file():
             raise ConfigError(f"{run_dir}: incomplete run folder, {name} is missing")
@@ -342,12 +360,12 @@ def load_run(
         from ..usermodel import attach_model
 
         tree = attach_model(tree, model_file, keep_sha256=True)
+    z = load_npz(run_dir / "trace.npz", "trace file")
     try:
-        with np.load(run_dir / "trace.npz", allow_pickle=False) as z:
-            theta, ld = z["theta"], z["final_log_density"]
-            labels = tuple(str(s) for s in z["labels"])
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
-        raise ConfigError(f"{run_dir / 'trace.npz'}: unreadable ({e})") from None
+        theta, ld = z["theta"], z["final_log_density"]
+        labels = tuple(str(s) for s in z["labels"])
+    except KeyError as e:
+        raise ConfigError(f"{run_dir / 'trace.npz'}: unreadable (no array {e})") from None
     if list(labels) != tree.parameter_labels():
         raise ConfigError(
             f"{run_dir}: trace.npz labels {list(labels)} do not match tree.yaml {tree.parameter_labels()}"
@@ -357,6 +375,7 @@ def load_run(
         if (run_dir / "summary.json").is_file()
         else {}
     )
+    validate_summary(summary, run_dir / "summary.json", len(theta))
     stable = np.isfinite(ld)
     if summary.get("unstable_particles"):
         stable[np.asarray(summary["unstable_particles"], int)] = False
@@ -384,4 +403,5 @@ def load_run(
         float(p["kT"]),
         summary,
         config["options"].get("grasp_fraction"),
+        notes,
     )

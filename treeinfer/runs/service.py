@@ -17,8 +17,9 @@ import numpy as np
 
 from .._io import (
     check_output_dir,
+    clean_stale_staging,
 )
-from ..errors import ConfigError, OutputExistsError, SimulationError
+from ..errors import ConfigError, OutputExistsError, SimulationError, TrajectoryFileError
 
 # ==== problem and posterior =======================================================================
 from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits
@@ -109,13 +110,59 @@ class InferOutcome(NamedTuple):
     posterior: Any
 
 
+def _inputs(config: dict) -> list[str]:
+    """The run's input paths, which ``--force`` must never replace."""
+    o = config["options"]
+    return [p for p in (o.get("tree"), o.get("data")) if p]
+
+
+def _data_checks(
+    config: dict, tree: Tree, trajs, log: Callable[[str], None], allow_implausible_data: bool
+) -> list[str]:
+    """Plausibility checks before sampling (:mod:`treeinfer.checks`): errors stop the run unless
+    ``allow_implausible_data``; warnings are logged, and so are entries of the data folder that
+    are not read (FIFOs, broken links, ``.CSV``). Returns every finding as text (summary.json)."""
+    from ..checks import format_findings, preflight
+    from ..safe_load import list_data_files
+
+    o = config["options"]
+    data_dir = Path(config["data"]["dir"])
+    _, skipped = list_data_files(data_dir)
+    skipped = [f"warning: {m}" for m in skipped]
+    paths = [data_dir / f["name"] for f in config["data"]["files"]]
+    errors, warns = preflight(
+        tree,
+        trajs,
+        paths if len(paths) == len(trajs) else None,
+        tree_file=o.get("tree"),
+        grasp_fraction=o.get("grasp_fraction"),
+    )
+    if errors and not allow_implausible_data:
+        raise TrajectoryFileError(
+            "the training data are implausible for this tree:\n"
+            + "\n".join([format_findings(errors + warns), *skipped])
+            + "\nfix the data (or the tree), or pass --allow-implausible-data to sample anyway"
+        )
+    for f in errors + warns:
+        log(str(f))
+    for m in skipped:
+        log(m)
+    return [str(f) for f in errors + warns] + skipped
+
+
 def _prepare_fresh(config: dict, log: Callable[[str], None]):
+    from ..integrity import check_partial
+
     run_dir = Path(config["options"]["out"])
     partial = partial_dir(run_dir)
     force = config["options"]["force"]
-    check_output_dir(run_dir, force, "run")
+    check_output_dir(run_dir, force, "run", inputs=_inputs(config))
+    clean_stale_staging(run_dir, log)
     if partial.exists():
         if not force:
+            why = check_partial(partial)
+            if why is not None:
+                raise OutputExistsError(f"{partial}: an interrupted run is there but {why}")
             raise OutputExistsError(
                 f"{partial}: an interrupted run is waiting there; continue it with "
                 f"`treeinfer infer --resume {run_dir}`, or pass --force to discard it and start over"
@@ -140,8 +187,11 @@ def _resume_paths(run_arg: str | os.PathLike) -> tuple[Path, Path]:
             f"{partial}: no interrupted run to resume (an interrupted `treeinfer infer --out {p}` "
             f"leaves its checkpoint in {partial.name}/)"
         )
-    if not (partial / "config.json").is_file():
-        raise ConfigError(f"{partial}: has no config.json; it is not an interrupted treeinfer run")
+    from ..integrity import check_partial
+
+    why = check_partial(partial)
+    if why is not None:
+        raise ConfigError(f"{partial}: not resumable: {why}")
     return p, partial
 
 
@@ -154,6 +204,7 @@ def run_inference(
     log: Callable[[str], None] = lambda msg: None,
     on_checkpointer: Callable[[Checkpointer], None] | None = None,
     cache: SimulatorCache | None = None,
+    allow_implausible_data: bool = False,
 ) -> InferOutcome:
     """Sample a posterior and write the run folder; or continue an interrupted one (``resume``).
 
@@ -165,6 +216,12 @@ def run_inference(
       on_checkpointer: called with the :class:`Checkpointer` before sampling starts (the CLI
         keeps it to say where a Ctrl-C left the run).
       cache: the command's :class:`SimulatorCache` (a new one if None).
+      allow_implausible_data: sample even if the plausibility checks (:mod:`treeinfer.checks`)
+        find errors in the data (they are logged and recorded in summary.json).
+
+    The summary's ``fit`` (``status`` ok | warning | poor_fit, ``reasons``, ``measures``) judges
+    the training fit (:func:`treeinfer.checks.fit_verdict_from_run`); the CLI exits 4 on
+    ``poor_fit`` unless ``--allow-poor-fit``.
 
     Raises:
       SimulationError: more than ``max_unstable_share`` of the final particles are unstable
@@ -177,25 +234,34 @@ def run_inference(
         if config is None:
             raise ConfigError("run_inference: give a config (new run) or resume=RUN")
         run_dir, partial, tree, trajs, truth = _prepare_fresh(config, log)
+        data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
         problem = build_problem(config, tree, trajs, cache)
         config = {**config, "problem": problem.settings, "sampler": sampler_settings(config)}
         config["config_hash"] = config_hash(config)
         partial.mkdir(parents=True)
-        dump_tree(tree, partial / "tree.yaml")
-        write_json(partial / "config.json", config)  # written last: it marks a resumable run
+        try:
+            dump_tree(tree, partial / "tree.yaml")
+            write_json(partial / "config.json", config)  # written last: it marks a resumable run
+        except BaseException:  # e.g. a full disk: leave no RUN.partial that cannot be resumed
+            shutil.rmtree(partial, ignore_errors=True)
+            raise
         previous = None
     else:
+        from ..integrity import validate_run_config
+
         run_dir, partial = _resume_paths(resume)
         config = read_json(partial / "config.json", "the interrupted run's config")
         if config.get("format") != RUN_FORMAT or "config_hash" not in config:
             raise ConfigError(
                 f"{partial / 'config.json'}: not a treeinfer run config (format {config.get('format')!r})"
             )
+        validate_run_config(config, partial / "config.json", resumable=True)
         if config_hash(config) != config["config_hash"]:
             raise ConfigError(
                 f"{partial / 'config.json'}: was edited (its hash no longer matches); start a new run"
             )
-        check_output_dir(run_dir, config["options"]["force"], "run")
+        check_output_dir(run_dir, config["options"]["force"], "run", inputs=_inputs(config))
+        clean_stale_staging(run_dir, log)
         for stale in partial.glob(".*.tmp"):  # a temporary file of a write cut short by a kill
             stale.unlink(missing_ok=True)
         tree = load_tree(partial / "tree.yaml")
@@ -205,6 +271,7 @@ def run_inference(
             )
         trajs = check_data_unchanged(config)
         truth = read_true_params(tree, config["data"]["dir"])
+        data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
         problem = build_problem(config, tree, trajs, cache)
         # sim_step says how the step was chosen (the rebuilt simulator takes the recorded one);
         # runs recorded before force interpolation existed rebuild with "hold" (build_problem)
@@ -268,6 +335,12 @@ def run_inference(
             f"`treeinfer infer --resume {run_dir} --max-unstable-share X` writes the run anyway"
         ) from None
     summary = _run_summary(problem, posterior, config, trace, fit, truth)
+    from ..checks import fit_verdict_from_run
+
+    verdict = fit_verdict_from_run(problem, posterior, fit, noise_sigma=_fitted_noise(problem))
+    summary["fit"] = verdict.as_dict()
+    summary["status"] = verdict.status
+    summary["data_checks"] = data_findings
     config = {
         **config,
         "posterior_settings": posterior.settings,
@@ -284,9 +357,21 @@ def run_inference(
         summary=summary,
         truth=truth,
         force=o["force"],
+        inputs=_inputs(config),
+        log=log,
     )
     shutil.rmtree(partial, ignore_errors=True)
     return InferOutcome(run_dir, config, summary, posterior)
+
+
+def _fitted_noise(problem) -> float | None:
+    """The displacement noise sigma (m) the noise model fitted, if it has one (settings key
+    ``noise_sigma``); None otherwise (then the fit verdict skips the residual test)."""
+    v = (getattr(problem, "settings", None) or {}).get("noise_sigma")
+    try:
+        return float(v) if v is not None else None
+    except (TypeError, ValueError):
+        return None
 
 
 def infer_posterior(
