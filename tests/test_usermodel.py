@@ -19,7 +19,7 @@ from treeinfer.errors import TreeFileError
 from treeinfer.export import to_mjmodel
 from treeinfer.sim import make_simulator, simulate
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.tree import Branch, dump_tree, load_tree, make_tree
+from treeinfer.tree import Branch, dump_tree, load_tree, make_tree, world_frames
 from treeinfer.urdf import to_urdf
 from treeinfer.usermodel import attach_model, prepare_user_model, tree_from_model
 
@@ -186,11 +186,12 @@ def test_grasp_along_real_link_axis(tmp_path):
     path = _write(tmp_path, _Z_CHAIN, "z.xml")
     tree = tree_from_model(path, grasp="limb", grasp_fraction=0.5, levels=2)
     assert [b.length for b in tree.branches] == pytest.approx([0.8, 0.5])
-    assert tree.branches[1].angle_deg == pytest.approx(
-        -30.0
-    ) and tree.base_pitch_deg == pytest.approx(90)
+    # the description's own geometry (summaries) puts the grasp point where the model has it
+    p0, rot = world_frames(tree)["limb"]
+    described = p0 + rot[:, 0] * 0.5 * tree.branch("limb").length
     sim = make_simulator(tree, substeps=2)
     np.testing.assert_allclose(sim.mj_model.site_pos[sim.grasp_site], [0, 0, 0.25], atol=1e-12)
+    np.testing.assert_allclose(described, _site_world(sim.mj_model), atol=1e-9)
     # the same tree built by treeinfer (vertical trunk, limb tilted by the same angle)
     own = make_tree(
         [Branch("trunk", None, 0.8, 0.03), Branch("limb", "trunk", 0.5, 0.02, angle_deg=-30.0)],
@@ -338,3 +339,15 @@ def test_cli_model_tree_simulate_infer_predict(chain, tmp_path, capsys):
         "predict", "--run", run_dir, "--model", moved, "--force", traj, "--out", tmp_path / "p2"
     )
     assert rc == 2 and "changed since it was recorded" in err, err
+
+
+def test_tree_from_model_reproduces_generated_tree(big_tree, big_urdf):
+    """`tree --model` on treeinfer's own export gives back the generated tree's geometry."""
+    t = tree_from_model(big_urdf, grasp=big_tree.grasp_branch)
+    assert t.names == big_tree.names and "joints" not in t.model
+    for a, b in zip(t.branches, big_tree.branches):
+        assert a.parent == b.parent and a.fixed == b.fixed
+        got = [a.length, a.radius, a.angle_deg, a.azimuth_deg, a.attach]
+        assert got == pytest.approx(
+            [b.length, b.radius, b.angle_deg, b.azimuth_deg, b.attach], abs=1e-9
+        )

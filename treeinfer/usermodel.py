@@ -562,22 +562,29 @@ def describe_report(report: dict) -> list[str]:
     return out
 
 
-def _angles(rel: np.ndarray, d_parent: np.ndarray, d_child: np.ndarray) -> tuple[float, float]:
-    """(angle_deg, azimuth_deg) of a child frame relative to its parent's: exact when ``rel`` is
-    ``rot_x(azimuth) @ rot_y(-angle)`` (trees treeinfer exports), else from the axis directions
-    ``d_parent``, ``d_child`` [3] (parent frame): the fork angle in the best bending plane."""
-    if abs(rel[0, 1]) < 1e-9 and np.allclose(
-        d_child / np.linalg.norm(d_child), rel[:, 0], atol=1e-6
+def _fork(
+    f_parent: np.ndarray, xmat_parent, xmat_child, d_world
+) -> tuple[float, float, np.ndarray]:
+    """(angle_deg, azimuth_deg, child frame [3, 3]) in treeinfer's convention (child frame =
+    parent frame @ rot_x(azimuth) @ rot_y(-angle), x along the branch) for a child link whose
+    axis points along ``d_world`` [3]. Exact frames when the model's own frames already follow
+    the convention (trees treeinfer exports); otherwise the same branch directions, with the
+    bending plane chosen by the direction alone."""
+    from .tree import rot_x, rot_y
+
+    rel = xmat_parent.T @ xmat_child
+    if (
+        np.allclose(xmat_parent, f_parent, atol=1e-9)
+        and np.allclose(xmat_child[:, 0], d_world, atol=1e-6)
+        and abs(rel[0, 1]) < 1e-9
     ):
-        return (
-            math.degrees(-math.atan2(rel[0, 2], rel[0, 0])),
-            math.degrees(math.atan2(rel[2, 1], rel[1, 1])),
-        )
-    a, c = d_parent / np.linalg.norm(d_parent), d_child / np.linalg.norm(d_child)
-    ang = math.degrees(math.acos(float(np.clip(a @ c, -1, 1))))
-    perp = c - (a @ c) * a
-    az = math.degrees(math.atan2(-perp[1], perp[2])) - 90.0 if np.linalg.norm(perp) > 1e-9 else 0
-    return ang, az
+        ang = -math.atan2(rel[0, 2], rel[0, 0])
+        az = math.atan2(rel[2, 1], rel[1, 1])
+        return math.degrees(ang), math.degrees(az), np.asarray(xmat_child, float)
+    v = f_parent.T @ d_world
+    ang = math.acos(float(np.clip(v[0], -1.0, 1.0)))
+    az = math.atan2(-v[1], v[2]) if math.sin(ang) > 1e-9 else 0.0
+    return math.degrees(ang), math.degrees(az), f_parent @ rot_x(az) @ rot_y(-ang)
 
 
 def tree_from_model(
@@ -599,7 +606,7 @@ def tree_from_model(
     default prior scales. ``grasp`` defaults to the last link; ``levels`` to 1."""
     import mujoco
 
-    from .tree import Branch, make_tree
+    from .tree import Branch, make_tree, rot_y, rot_z
 
     path = Path(model_file).resolve()
     spec = _load_spec(path)
@@ -624,7 +631,7 @@ def tree_from_model(
             f"{[m.body(i).name for i in roots]}"
         )
     joints: dict[str, str] = {}
-    branches, info = [], {}
+    branches, info, frames = [], {}, {}
     for i in range(1, m.nbody):
         if not under[i]:
             continue
@@ -647,11 +654,18 @@ def tree_from_model(
             joints[bname] = m.joint(hinges[0]).name
         info[i] = (a, e, length)
         parent = int(m.body_parentid[i])
+        xmat = d.xmat[i].reshape(3, 3)
+        d_world = xmat @ (e - a) / length
         kw: dict[str, Any] = {}
-        if i != roots[0]:
+        if i == roots[0]:
+            pitch = math.degrees(math.asin(float(np.clip(d_world[2], -1, 1))))
+            yaw = math.degrees(math.atan2(d_world[1], d_world[0]))
+            frames[i] = rot_z(math.radians(yaw)) @ rot_y(-math.radians(pitch))
+        else:
             pa, pe, plen = info[parent]
-            rel = d.xmat[parent].reshape(3, 3).T @ d.xmat[i].reshape(3, 3)
-            kw["angle_deg"], kw["azimuth_deg"] = _angles(rel, pe - pa, rel @ (e - a))
+            kw["angle_deg"], kw["azimuth_deg"], frames[i] = _fork(
+                frames[parent], d.xmat[parent].reshape(3, 3), xmat, d_world
+            )
             kw["attach"] = float(
                 np.clip((np.asarray(m.body_pos[i]) - pa) @ (pe - pa) / plen**2, 1e-6, 1.0)
             )
@@ -665,10 +679,7 @@ def tree_from_model(
                 **kw,
             )
         )
-    # the root's direction -> base pose
-    ra, re_, _ = info[roots[0]]
-    droot = d.xmat[roots[0]].reshape(3, 3) @ (re_ - ra)
-    droot /= np.linalg.norm(droot)
+    ra = info[roots[0]][0]
     sec = {"file": str(path), "sha256": file_sha256(path)}
     if joints:
         sec["joints"] = joints
@@ -678,8 +689,8 @@ def tree_from_model(
         "base_position",
         tuple(float(x) for x in d.xpos[roots[0]] + d.xmat[roots[0]].reshape(3, 3) @ ra),
     )
-    tree_kwargs.setdefault("base_pitch_deg", math.degrees(math.asin(float(droot[2]))))
-    tree_kwargs.setdefault("base_yaw_deg", math.degrees(math.atan2(droot[1], droot[0])))
+    tree_kwargs.setdefault("base_pitch_deg", pitch)
+    tree_kwargs.setdefault("base_yaw_deg", yaw)
     tree_kwargs.setdefault("gravity", tuple(float(x) for x in spec.option.gravity))
     return make_tree(
         branches,
