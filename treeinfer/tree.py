@@ -628,7 +628,7 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
 def _model_section(raw: Any, source: str, base_dir) -> dict | None:
     if raw is None:
         return None
-    from .usermodel import parse_model_section
+    from .modelsection import parse_model_section
 
     return parse_model_section(raw, source, base_dir)
 
