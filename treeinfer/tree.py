@@ -114,6 +114,8 @@ class Tree:
     density: float = DEFAULT_DENSITY
     fixed_kp: float = DEFAULT_FIXED_KP
     fixed_kd: float = DEFAULT_FIXED_KD
+    # the user's own URDF/MJCF (treeinfer.usermodel): the validated ``model:`` section, or None
+    model: dict | None = None
 
     # ---- lookups -------------------------------------------------------------------------
     @property
@@ -483,7 +485,9 @@ def tree_scale_warnings(tree: Tree, source: str = "") -> list[str]:
 _BRANCH_KEYS = {
     "name", "parent", "length", "radius", "angle_deg", "azimuth_deg", "attach", "density", "kp", "kd", "fixed",
 }
-_TOP_KEYS = {"name", "branches", "base", "gravity", "density", "grasp", "inference", "fixed", "generator"}
+_TOP_KEYS = {
+    "name", "branches", "base", "gravity", "density", "grasp", "inference", "fixed", "generator", "model",
+}
 
 
 def _no_unknown(m: Any, allowed: set[str], fld: str, pre: str) -> None:
@@ -494,8 +498,9 @@ def _no_unknown(m: Any, allowed: set[str], fld: str, pre: str) -> None:
         raise TreeFileError(f"{pre}{fld}: unknown field(s) {sorted(bad)}; allowed: {sorted(allowed)}")
 
 
-def tree_from_dict(d: Any, source: str = "<dict>") -> Tree:
-    """Build a tree from the parsed file content; errors name ``source`` and the field."""
+def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None = None) -> Tree:
+    """Build a tree from the parsed file content; errors name ``source`` and the field.
+    ``base_dir``: where a relative ``model.file`` lies (the tree file's folder)."""
     pre = f"{source}: "
     if not isinstance(d, dict):
         raise TreeFileError(f"{pre}expected a mapping at the top level, got {type(d).__name__}")
@@ -611,12 +616,21 @@ def tree_from_dict(d: Any, source: str = "<dict>") -> Tree:
             density=_positive(d.get("density", DEFAULT_DENSITY), "density"),
             fixed_kp=_positive(fixed.get("kp", DEFAULT_FIXED_KP), "fixed.kp"),
             fixed_kd=_positive(fixed.get("kd", DEFAULT_FIXED_KD), "fixed.kd"),
+            model=_model_section(d.get("model"), source, base_dir),
         )
     except TreeFileError as e:
         msg = str(e)
         raise TreeFileError(msg if msg.startswith(pre) else f"{pre}{msg}") from None
     except (TypeError, ValueError, AttributeError) as e:
         raise TreeFileError(f"{pre}malformed field: {e}") from None
+
+
+def _model_section(raw: Any, source: str, base_dir) -> dict | None:
+    if raw is None:
+        return None
+    from .modelsection import parse_model_section
+
+    return parse_model_section(raw, source, base_dir)
 
 
 def tree_to_dict(tree: Tree) -> dict[str, Any]:
@@ -635,7 +649,7 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
         if b.fixed:
             rb["fixed"] = True
         branches.append(rb)
-    return {
+    out = {
         "name": tree.name,
         "base": {"position": list(tree.base_position), "pitch_deg": tree.base_pitch_deg, "yaw_deg": tree.base_yaw_deg},
         "gravity": list(tree.gravity),
@@ -650,6 +664,9 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
             },
         },
     }
+    if tree.model is not None:
+        out["model"] = dict(tree.model)
+    return out
 
 
 def read_tree_file(path: str | Path) -> Any:
@@ -661,7 +678,12 @@ def read_tree_file(path: str | Path) -> Any:
 def load_tree(path: str | Path) -> Tree:
     """Read a tree description from YAML (``.yaml``/``.yml``) or JSON (``.json``)."""
     path = Path(path)
-    return tree_from_dict(read_tree_file(path), source=str(path))
+    if path.suffix.lower() in (".urdf", ".xml", ".mjcf") and path.is_file():
+        raise TreeFileError(
+            f"{path}: a URDF/MJCF model, not a tree description; describe it with "
+            f"`treeinfer tree --model {path} --out tree.yaml` (or give it with --model)"
+        )
+    return tree_from_dict(read_tree_file(path), source=str(path), base_dir=path.parent)
 
 
 def dump_tree(tree: Tree, path: str | Path) -> Path:

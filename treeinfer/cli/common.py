@@ -324,3 +324,41 @@ def simulator_for_run(run, args: argparse.Namespace, forces, grasp_fraction, cac
         forces=np.asarray(forces, float),
         grasp_fraction=grasp_fraction,
     )
+
+
+def add_model_options(p: argparse.ArgumentParser, run: bool = False) -> None:
+    """``--model FILE`` (a user's own URDF/MJCF) and, for new trees/runs, ``--repair-inertia``."""
+    if run:
+        p.add_argument(
+            "--model",
+            type=Path,
+            metavar="FILE",
+            help="where the run's own URDF/MJCF model lies now, if it moved (its sha256 must be "
+            "the recorded one); default: the file recorded in the run",
+        )
+        return
+    p.add_argument(
+        "--model",
+        type=Path,
+        metavar="FILE",
+        help="simulate your own URDF (.urdf) or MJCF (.xml) model instead of the tree's "
+        "cylinders; the tree file names the inferred joints, the grasped branch and the "
+        "grasp point, and its model: section maps branch names to joint/link names",
+    )
+    p.add_argument(
+        "--repair-inertia",
+        choices=("geometry", "floor"),
+        default=None,
+        help="repair links with zero or non-positive-definite inertia (as in files rounded to a "
+        "few decimals): 'geometry' (solid cylinder of the link's cylinder geom) or 'floor' "
+        "(eigenvalues raised to a 1 cm radius of gyration); reported and recorded",
+    )
+
+
+def print_model_report(report: dict | None) -> None:
+    """What was matched, set and repaired in a user model (stderr)."""
+    if report:
+        from ..usermodel import describe_report
+
+        for line in describe_report(report):
+            _say(line)

@@ -33,6 +33,7 @@ from .common import (
     _print_simulation,
     _say,
     add_command_parser,
+    add_model_options,
     add_simulation_options,
     check_simulation_options,
     simulator_for_run,
@@ -100,8 +101,9 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
-    p.add_argument("--allow-modified", action="store_true", help="use the run even if its files changed since `infer` wrote them (checksums in its config.json); recorded in the output")
+    add_model_options(p, run=True)
     add_simulation_options(p, _RUN_SIM_NOTE)
+    p.add_argument("--allow-modified", action="store_true", help="use the run even if its files changed since `infer` wrote them (checksums in its config.json); recorded in the output")
     return p
 
 
@@ -127,7 +129,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
     _prepare_jax()
     check_simulation_options(args)
     cache = runs.SimulatorCache()  # this command's simulators (the run's, and k-fold's)
-    run = runs.load_run(args.run, cache, allow_modified=args.allow_modified)
+    run = runs.load_run(
+        args.run, cache, allow_modified=args.allow_modified, model_file=args.model
+    )
     for note in run.notes:
         _say(f"warning: {note}")
     trajs = read_trajectory_dir(args.data)

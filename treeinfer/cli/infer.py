@@ -27,7 +27,9 @@ from .common import (
     _print_warnings,
     _say,
     add_command_parser,
+    add_model_options,
     add_simulation_options,
+    print_model_report,
 )
 
 # ==== infer =======================================================================================
@@ -36,7 +38,8 @@ from .common import (
 INFER_DEFAULTS: dict[str, Any] = {
     f.name: f.default
     for f in fields(RunConfig)
-    if f.default is not MISSING and f.name not in ("grasp_fraction", "force")
+    if f.default is not MISSING
+    and f.name not in ("grasp_fraction", "force", "model", "repair_inertia")
 }
 # options a resumed run takes from its checkpoint's config (argparse dest -> flag)
 _RUN_OPTIONS = {
@@ -67,6 +70,8 @@ _RUN_OPTIONS = {
     "sim_tolerance": "--sim-tolerance",
     "likelihood": "--likelihood",
     "noise_displacement": "--noise-displacement",
+    "model": "--model",
+    "repair_inertia": "--repair-inertia",
 }
 
 
@@ -262,6 +267,7 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         help="initial particles: 'uniform' in the prior box (the paper's, default) or 'laplace' "
         "(around a Levenberg-Marquardt MAP fit, so iterations go into the posterior's shape)",
     )
+    add_model_options(p)
     add_simulation_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--allow-poor-fit", action="store_true", help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 otherwise); the verdict stays in summary.json")
@@ -305,7 +311,15 @@ def run_infer(args: argparse.Namespace) -> int:
         o["grasp_fraction"] = args.grasp_fraction
         _check_infer_options(o)
         run_dir = args.out
-        config = runs.infer_config(args.tree, args.data, args.out, force=bool(args.force), **o)
+        config = runs.infer_config(
+            args.tree,
+            args.data,
+            args.out,
+            force=bool(args.force),
+            model=args.model,
+            repair_inertia=args.repair_inertia,
+            **o,
+        )
         _say(
             f"{len(config['data']['files'])} training trajectories from {args.data}; sampling with {o['sampler']} "
             f"({o['particles']} particles x {o['iterations']} iterations)"
@@ -339,6 +353,7 @@ def run_infer(args: argparse.Namespace) -> int:
     s = outcome.summary
     if s.get("stop_reason", "max_iterations") != "max_iterations":
         _say(f"stopped early: {s['stop_reason']}")
+    print_model_report(s.get("model"))
     _print_simulation(s.get("simulation"))
     _print_posterior(s)
     _print_fit(s.get("training_metrics"), "fit to the training data")

@@ -28,6 +28,7 @@ from .common import (
     _print_simulation,
     _say,
     add_command_parser,
+    add_model_options,
     add_simulation_options,
     check_simulation_options,
     simulator_for_run,
@@ -108,6 +109,8 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         help="replace a non-empty output folder, as in every command (`--force FILE`, the old "
         "spelling of --force-csv FILE, still works but is deprecated)",
     )
+    add_model_options(p, run=True)
+    add_simulation_options(p, _RUN_SIM_NOTE)
     p.add_argument(
         "--allow-modified",
         action="store_true",
@@ -115,7 +118,6 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         "config.json); recorded in the output",
     )
     p.add_argument("--overwrite", action="store_true", help="same as --force")
-    add_simulation_options(p, _RUN_SIM_NOTE)
     return p
 
 
@@ -173,7 +175,9 @@ def run_predict(args: argparse.Namespace) -> int:
     _prepare_jax()
     check_simulation_options(args)
     cache = runs.SimulatorCache()
-    run = runs.load_run(args.run, cache, allow_modified=args.allow_modified)
+    run = runs.load_run(
+        args.run, cache, allow_modified=args.allow_modified, model_file=args.model
+    )
     for note in run.notes:
         _say(f"warning: {note}")
     dt_run = run.sim.obs_dt

@@ -28,6 +28,7 @@ from ..trajectories import (
     write_true_params,
 )
 from ..tree import dump_tree, load_tree
+from ..usermodel import attach_model
 from .common import (
     COMMAND_HELP,
     EXIT_OK,
@@ -38,8 +39,10 @@ from .common import (
     _print_simulation,
     _say,
     add_command_parser,
+    add_model_options,
     add_simulation_options,
     check_simulation_options,
+    print_model_report,
 )
 
 # ==== simulate ====================================================================================
@@ -147,6 +150,7 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
         metavar="F",
         help="grasp point along the grasped branch, in (0, 1] (default: the tree's)",
     )
+    add_model_options(p)
     add_simulation_options(p)
     p.add_argument(
         "--backend",
@@ -199,6 +203,8 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
 def run_simulate(args: argparse.Namespace) -> int:
     n_t = _check_simulate_args(args)
     tree = load_tree(args.tree)
+    if args.model is not None or args.repair_inertia is not None or tree.model is not None:
+        tree = attach_model(tree, args.model, args.repair_inertia)
     if args.grasp_fraction is not None:
         tree = tree.with_grasp(args.grasp_fraction)
     seq = np.random.SeedSequence(args.seed)  # independent streams: parameters, profiles, noise
@@ -233,6 +239,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         force_interp=args.force_interp or "linear",
         sim_tolerance=args.sim_tolerance,
     )
+    print_model_report(sim.model_report)
     names = [f"traj_{i:03d}.csv" for i in range(len(specs))]
     stable = np.asarray(rollout.stable)[0]
     if not stable.all():

@@ -86,7 +86,9 @@ class RunConfig:
     force_interp ("linear": forces interpolated between samples, "hold"; folders written before it
     existed were simulated with "hold", which their recorded ``problem`` settings say);
     max_sim_dt (s, None: the simulator's 5 ms) and sim_tolerance (m, None: 0.1 mm), the bounds of
-    the accuracy-controlled simulation step chosen on the training forces.
+    the accuracy-controlled simulation step chosen on the training forces; model (None or the
+    absolute path of the user's own URDF/MJCF, ``--model``) and repair_inertia (None,
+    ``"geometry"``, ``"floor"``), see :mod:`treeinfer.usermodel`.
     """
 
     tree: str
@@ -117,6 +119,8 @@ class RunConfig:
     sim_tolerance: float | None = None
     likelihood: str = "boltzmann"
     noise_displacement: float | None = None
+    model: str | None = None
+    repair_inertia: str | None = None
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)
@@ -174,6 +178,8 @@ class RunConfig:
             set_(k, None if v is None else _positive(flag, v, "a positive number"))
         for k in ("tree", "data", "out"):
             set_(k, str(getattr(self, k)))
+        if self.model is not None:
+            set_("model", str(self.model))
         set_("force", bool(self.force))
         if self.prior_from is not None:
             prior = Path(self.prior_from)
@@ -213,6 +219,17 @@ class RunConfig:
 
 
 # ==== config ======================================================================================
+def load_run_tree(tree_path, model=None, repair_inertia=None) -> Tree:
+    """The tree of a run: the tree file, with ``--model``/``--repair-inertia`` applied to its
+    ``model:`` section (:func:`treeinfer.usermodel.attach_model`; the file's sha256 recorded)."""
+    tree = load_tree(tree_path)
+    if model is not None or repair_inertia is not None or tree.model is not None:
+        from ..usermodel import attach_model
+
+        tree = attach_model(tree, model, repair_inertia)
+    return tree
+
+
 def infer_config(
     tree_path: str | os.PathLike,
     data_dir: str | os.PathLike,
@@ -238,12 +255,14 @@ def infer_config(
     sim_tolerance: float | None = None,
     likelihood: str = "boltzmann",
     noise_displacement: float | None = None,
+    model: str | os.PathLike | None = None,
+    repair_inertia: str | None = None,
     **more,
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
     sampler settings are added by :func:`run_inference` once the problem is built."""
     tree_path, data_dir, out = Path(tree_path), Path(data_dir), Path(out)
-    tree = load_tree(tree_path)
+    tree = load_run_tree(tree_path, model, repair_inertia)
     files = data_manifest(data_dir) if data_dir.is_dir() else []
     trajs = read_trajectory_dir(data_dir)  # clear errors for a missing folder / bad file
     options = RunConfig(
@@ -269,6 +288,8 @@ def infer_config(
         sim_tolerance=sim_tolerance,
         likelihood=likelihood,
         noise_displacement=noise_displacement,
+        model=None if model is None else str(Path(model).resolve()),
+        repair_inertia=repair_inertia,
         **more,
     ).to_json()
     return {

@@ -176,6 +176,8 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
         "training_metrics": fit["metrics"],
         "simulation": simulation_summary(problem.sim),
     }
+    if problem.sim.model_report:  # a user's own URDF/MJCF: what was matched, set, repaired
+        summary["model"] = problem.sim.model_report
     if truth is not None:
         from ..metrics import posterior_vs_truth
 
@@ -364,13 +366,19 @@ class LoadedRun(NamedTuple):
     notes: tuple[str, ...] = ()  # integrity notes (--allow-modified) to record in the output
 
 
-def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None,
-             allow_modified: bool = False) -> LoadedRun:
+def load_run(
+    run_dir: str | os.PathLike,
+    cache: SimulatorCache | None = None,
+    allow_modified: bool = False,
+    model_file=None,
+) -> LoadedRun:
     """Read a run folder written by :func:`save_run` (ConfigError naming what is missing).
 
     The files are checked against the checksums in config.json (:func:`treeinfer.integrity.
     verify_run`): an edited tree.yaml or a damaged posterior is refused unless
-    ``allow_modified``, which records notes in ``LoadedRun.notes`` instead."""
+    ``allow_modified``, which records notes in ``LoadedRun.notes`` instead. ``model_file``:
+    where the run's own URDF/MJCF lies now (moved since the run); its sha256 must be the
+    recorded one."""
     from ..integrity import load_npz, validate_run_config, validate_summary, verify_run
 
     run_dir = Path(run_dir)
@@ -396,6 +404,10 @@ def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None,
         if not (run_dir / name).is_file():
             raise ConfigError(f"{run_dir}: incomplete run folder, {name} is missing")
     tree = load_tree(run_dir / "tree.yaml")
+    if model_file is not None:
+        from ..usermodel import attach_model
+
+        tree = attach_model(tree, model_file, keep_sha256=True)
     z = load_npz(run_dir / "trace.npz", "trace file")
     try:
         theta, ld = z["theta"], z["final_log_density"]

@@ -45,7 +45,13 @@ from .checkpoint import (
     partial_dir,
     state_template,
 )
-from .config import RUN_FORMAT, check_data_unchanged, read_true_params, sampler_settings
+from .config import (
+    RUN_FORMAT,
+    check_data_unchanged,
+    load_run_tree,
+    read_true_params,
+    sampler_settings,
+)
 from .folder import _run_summary, save_run
 from .provenance import config_hash, tree_to_dict_json
 
@@ -190,7 +196,8 @@ def _prepare_fresh(config: dict, log: Callable[[str], None]):
                 f"`treeinfer infer --resume {run_dir}`, or pass --force to discard it and start over"
             )
         shutil.rmtree(partial)
-    tree = load_tree(config["options"]["tree"])
+    o = config["options"]
+    tree = load_run_tree(o["tree"], o.get("model"), o.get("repair_inertia"))
     trajs = read_trajectory_dir(config["options"]["data"])
     truth = read_true_params(tree, config["options"]["data"])
     return run_dir, partial, tree, trajs, truth

@@ -105,6 +105,9 @@ class Simulator:
       prior_box: (lower [2R], upper [2R]) the tree's prior box (``Tree.bounds_array``), used to
         pick the parameter sets of the accuracy check.
       branches: {branch name: (body index, length in m)} of every body the force may grasp.
+      branch_axes: {body index: (start [3], end [3])} m, link axes of a user model in their
+        body frames (absent: the axis runs along local x from 0 to the branch length).
+      model_report: a user model's preparation report (:mod:`treeinfer.usermodel`), else {}.
       step_info: how ``substeps`` was chosen: ``{"method": "given" | "stability" |
         "accuracy", "stability_substeps": int, "tolerance": m, "estimated_error": m}``.
     """
@@ -131,6 +134,8 @@ class Simulator:
     prior_box: tuple = ()
     branches: dict = field(default_factory=dict)
     step_info: dict = field(default_factory=dict)
+    branch_axes: dict = field(default_factory=dict)
+    model_report: dict = field(default_factory=dict)
 
     @functools.cached_property
     def model(self):
@@ -150,6 +155,16 @@ class Simulator:
     @property
     def sim_dt(self) -> float:
         return self.obs_dt / self.substeps
+
+    def branch_point(self, body, length: float, fraction) -> jax.Array:
+        """[..., 3] point at ``fraction`` [...] of a branch's axis, in its body's frame (``body``
+        None: the grasped body)."""
+        f = jnp.asarray(fraction, dtype=self.dtype)[..., None]
+        bid = self.grasp_body if body is None else int(body)
+        if bid in self.branch_axes:
+            a, e = (jnp.asarray(x, self.dtype) for x in self.branch_axes[bid])
+            return a + f * (e - a)
+        return f * jnp.asarray([length, 0.0, 0.0], self.dtype)
 
     def grasp_point(self, fraction) -> jax.Array:
         """Grasp point in the grasped body's frame for a fraction of the branch length."""
@@ -220,8 +235,9 @@ def make_simulator(
       force_interp: ``"linear"`` (first-order hold between force samples, the default) or
         ``"hold"`` (zero-order hold, each sample held until the next); see :func:`simulate`.
       model_file: a user's own MJCF (``.xml``) or URDF file to simulate instead of exporting
-        ``tree``; it must have hinge joints named like the inferred joints and a body named like
-        the grasp branch whose axis runs along its local x-axis from 0 to the branch length.
+        ``tree`` (default: the tree's ``model:`` section, if any); prepared by
+        :func:`treeinfer.usermodel.prepare_user_model` (name map, fixed gains, grasp axis,
+        inertia and limit checks) with the settings of the tree's ``model:`` section.
       backend: ``"fused"``, ``"mjx"`` or ``"auto"`` (fused when the model is a contact-free
         hinge tree it reproduces, which every tree treeinfer builds is; MJX otherwise). Both
         step the same MuJoCo model and agree with MuJoCo C to float32 rounding; the fused step
@@ -245,7 +261,12 @@ def make_simulator(
         isinstance(sim_tolerance, (int, float)) and math.isfinite(sim_tolerance) and sim_tolerance > 0
     ):
         raise ConfigError(f"sim_tolerance: must be a positive number of metres, got {sim_tolerance!r}")
-    mj_model = to_mjmodel(tree) if model_file is None else _prepare_user_model(model_file, tree)
+    user = None
+    if model_file is not None or tree.model is not None:
+        from ..usermodel import prepare_user_model
+
+        user = prepare_user_model(tree, model_file)
+    mj_model = to_mjmodel(tree) if user is None else user.mj_model
     bad = [mj_model.joint(j).name for j in range(mj_model.njnt) if mj_model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE]
     if bad:
         raise TreeFileError(f"model: only hinge joints are supported, found other joint types: {bad}")
@@ -264,8 +285,9 @@ def make_simulator(
     site = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_SITE, GRASP_SITE)
     if site < 0 or mj_model.site_bodyid[site] != body:
         raise TreeFileError(f"model: no site '{GRASP_SITE}' on body '{tree.grasp_branch}'")
+    axes = {} if user is None else user.axes
     length = tree.branch(tree.grasp_branch).length
-    start, end = np.zeros(3), np.array([length, 0.0, 0.0])
+    start, end = axes.get(tree.grasp_branch, (np.zeros(3), np.array([length, 0.0, 0.0])))
 
     prior_lo, prior_hi = tree.bounds_array()
     kp_max = prior_hi[: tree.n_inferred]
@@ -285,11 +307,14 @@ def make_simulator(
         except UnsupportedModel as e:
             if backend == "fused":
                 raise TreeFileError(f"model: {e}; use backend='mjx'") from None
-    branches = {}
+    branches, branch_axes = {}, {}
     for b in tree.branches:
         i = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_BODY, b.name)
         if i >= 0:
-            branches[b.name] = (int(i), float(b.length))
+            a, e = axes.get(b.name, (np.zeros(3), np.array([b.length, 0.0, 0.0])))
+            branches[b.name] = (int(i), float(np.linalg.norm(e - a)))
+            if b.name in axes:
+                branch_axes[int(i)] = (np.asarray(a, float), np.asarray(e, float))
     sim = Simulator(
         mj_model=mj_model,
         joint_names=tuple(tree.inferred),
@@ -311,6 +336,8 @@ def make_simulator(
         prior_box=(prior_lo, prior_hi),
         branches=branches,
         step_info=step_info,
+        branch_axes=branch_axes,
+        model_report={} if user is None else user.report,
     )
     if step_info["method"] == "stability" and (forces is not None or sim_tolerance is not None):
         from .accuracy import with_accurate_step
@@ -320,31 +347,6 @@ def make_simulator(
             grasp_branch=grasp_branch,
         )
     return sim
-
-
-def _prepare_user_model(model_file, tree: Tree):
-    """Load a user's own MJCF or URDF and add the grasp site and contact-free options."""
-    import mujoco
-
-    from ..export import GRASP_SITE
-
-    try:
-        spec = mujoco.MjSpec.from_file(str(model_file))
-    except Exception as e:  # MuJoCo's own message says what is wrong with the file
-        raise TreeFileError(f"{model_file}: MuJoCo cannot load this model: {e}") from None
-    body = spec.body(tree.grasp_branch)
-    if body is None:
-        raise TreeFileError(f"{model_file}: no body named '{tree.grasp_branch}' (the grasp branch)")
-    if spec.site(GRASP_SITE) is None:
-        length = tree.branch(tree.grasp_branch).length
-        body.add_site(name=GRASP_SITE, pos=[tree.grasp_fraction * length, 0, 0], size=[0.01, 0.01, 0.01])
-    # A contact-free articulated chain: no collision detection, no constraint solver.
-    spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
-    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
-    try:
-        return spec.compile()
-    except Exception as e:
-        raise TreeFileError(f"{model_file}: MuJoCo cannot compile this model: {e}") from None
 
 
 # ---- the batched rollout ----------------------------------------------------------------------
@@ -508,7 +510,7 @@ def simulate(
 def _grasp_groups(sim: Simulator, grasp_branch, n_profiles: int) -> list[tuple[int | None, float, np.ndarray]]:
     """[(body index or None for the sim's own, branch length m, profile indices)] per branch."""
     if grasp_branch is None:
-        return [(None, float(sim.grasp_end[0]), np.arange(n_profiles))]
+        return [(None, float(np.linalg.norm(sim.grasp_end - sim.grasp_start)), np.arange(n_profiles))]
     names = [grasp_branch] * n_profiles if isinstance(grasp_branch, str) else list(grasp_branch)
     if len(names) != n_profiles:
         raise ConfigError(f"grasp_branch: {len(names)} names for {n_profiles} force profiles")
@@ -551,7 +553,7 @@ def _simulate(
             if grasp_fraction is None and body is None:  # the model's own grasp site
                 site_local = jnp.broadcast_to(jnp.asarray(sim.mj_model.site_pos[sim.grasp_site], dtype), (len(idx), 3))
             else:
-                site_local = frac[idx, None] * jnp.asarray([length, 0.0, 0.0], dtype)
+                site_local = sim.branch_point(body, length, frac[idx])
             opts = {"body": body, "substeps": substeps}
             if dirs is None:
                 pull = lambda f, s, o=opts: pull_fn(f, s, unroll_outer, unroll_inner, **o)

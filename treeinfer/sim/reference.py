@@ -77,13 +77,8 @@ def simulate_reference(
     if grasp_branch is None or bid == sim.grasp_body:
         local = np.asarray(m.site_pos[sim.grasp_site], float)
     else:
-        local = np.array(
-            [
-                (sim.grasp_fraction if grasp_fraction is None else float(grasp_fraction)) * length,
-                0,
-                0,
-            ]
-        )
+        frac = sim.grasp_fraction if grasp_fraction is None else float(grasp_fraction)
+        local = np.asarray(sim.branch_point(bid, length, frac), float)
     ddir = np.asarray(sim.gravity_dir if direction is None else direction, float)
     ddir = ddir / np.linalg.norm(ddir)
     grasp = lambda: d.xpos[bid] + d.xmat[bid].reshape(3, 3) @ local  # C from the last kinematics
