@@ -81,22 +81,21 @@ def test_predict_and_evaluate_write_both_bands(gaussian_run, noisy_data, tmp_pat
     test_csv = sorted((noisy_data / "test").glob("*.csv"))[0]
     rc, stdout, err = _main("predict", "--run", out, "--force", test_csv, "--out", tmp_path / "p")
     assert rc == 0, err
-    lines = [ln for ln in (tmp_path / "p" / "prediction.csv").read_text().splitlines()]
-    assert any("PREDICTIVE band" in ln for ln in lines if ln.startswith("#"))
-    rows = [ln for ln in lines if not ln.startswith("#")]
-    cols = rows[0].split(",")
+    lines = (tmp_path / "p" / "prediction.csv").read_text().splitlines()
+    # header first (issue 13); the column names say which band is which
+    cols = lines[0].split(",")
     assert cols == [
         "time",
         "force",
+        "recorded",
         "mean",
         "lower",
         "upper",
         "predictive_lower",
         "predictive_upper",
-        "displacement",
     ]
-    a = np.array([[float(c) for c in r.split(",")] for r in rows[1:]])
-    width_par, width_pred = a[:, 4] - a[:, 3], a[:, 6] - a[:, 5]
+    a = np.array([[float(c) if c else np.nan for c in r.split(",")] for r in lines[1:]])
+    width_par, width_pred = a[:, 5] - a[:, 4], a[:, 7] - a[:, 6]
     assert np.all(width_pred >= width_par - 1e-9) and width_pred[0] > 0.001  # t = 0: the noise
 
     rc, stdout, err = _main(
