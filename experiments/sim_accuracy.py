@@ -83,7 +83,8 @@ def main(argv=None) -> dict:
     }
     out = {"noise_sd_m": args.noise, "true": {"kp": TRUE_KP, "kd": TRUE_KD}, "steps": {}}
     for name, sim in sims.items():
-        tau = np.asarray(simulate(sim, np.array([[TRUE_KP]]), np.array([[TRUE_KD]]), jnp.asarray(prof)).tau[0])
+        kp, kd = np.array([[TRUE_KP]]), np.array([[TRUE_KD]])
+        tau = np.asarray(simulate(sim, kp, kd, jnp.asarray(prof)).tau[0])
         err = float(np.max(np.abs(tau - truth)))
         loss = float(np.sum((tau - truth) ** 2) / (2 * args.noise**2))
         out["steps"][name] = {
