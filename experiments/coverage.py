@@ -79,10 +79,11 @@ FORCE_LEVEL = 0.02  # force noise std, share of the largest peak force of the da
 
 
 def make_case(tree_name: str, size: dict, seed: int, force_level: float = FORCE_LEVEL):
-    from treeinfer.cli import default_true_params
     from treeinfer.examples import example_path
     from treeinfer.forces import from_spec, random_specs
-    from treeinfer.simulator import make_simulator, simulate_reference
+    from treeinfer.sim import make_simulator
+    from treeinfer.sim.reference import simulate_reference
+    from treeinfer.synthetic import default_true_params
     from treeinfer.trajectories import Trajectory, add_noise
     from treeinfer.tree import load_tree
 
@@ -179,7 +180,7 @@ def crb_log_std(sim, kp, kd, train) -> np.ndarray:
 
     from treeinfer.gradients import central_difference_jacobian
     from treeinfer.likelihood import gains_from_theta
-    from treeinfer.simulator import simulate
+    from treeinfer.sim import simulate
     from treeinfer.trajectories import stack_trajectories
 
     obs = stack_trajectories(train)
@@ -207,7 +208,7 @@ def evaluate(sim, samples, test, n_pred: int, kind: str, sigma_x=None, level: fl
         noise_params_from_theta,
         predictive_noise_kind,
     )
-    from treeinfer.simulator import simulate
+    from treeinfer.sim import simulate
     from treeinfer.trajectories import stack_trajectories
 
     obs = stack_trajectories(test)
@@ -317,14 +318,16 @@ def main(argv=None) -> int:
             "seconds": time.time() - t0,
         }
         print(
-            f"{name} ({args.likelihood}): {ev['pct_inside_predictive_band']:.1f}% inside the 95% predictive band "
+            f"{name} ({args.likelihood}): {ev['pct_inside_predictive_band']:.1f}% inside the "
+            f"95% predictive band "
             f"({ev['pct_inside_parameter_band']:.1f}% inside the parameter band), NLL "
             f"{ev['predictive_nll_per_point']:.3f} nats/point, {time.time() - t0:.0f} s",
             flush=True,
         )
         for lab, v in params.items():
             print(
-                f"  {lab:14s} truth {v['truth'] or float('nan'):.4g} mean {v['posterior_mean']:.4g} "
+                f"  {lab:14s} truth {v['truth'] or float('nan'):.4g} "
+                f"mean {v['posterior_mean']:.4g} "
                 f"log-std {v['log_std']:.3g}"
                 + (
                     f" CRB {v['crb_log_std']:.3g} ratio {v['std_over_crb']:.2f}"

@@ -22,7 +22,7 @@ from treeinfer.likelihood import (
     noise_params_from_theta,
     theta_from_gains,
 )
-from treeinfer.simulator import make_simulator, simulate
+from treeinfer.sim import make_simulator, simulate
 from treeinfer.trajectories import Trajectory, add_noise, stack_trajectories
 from treeinfer.tree import load_tree
 

@@ -24,7 +24,7 @@ from treeinfer.likelihood import (
     suggest_kT,
     trajectory_loss,
 )
-from treeinfer.simulator import Rollout
+from treeinfer.sim import Rollout
 from treeinfer.trajectories import Trajectory, stack_trajectories, velocity_from_displacement
 
 
