@@ -36,6 +36,8 @@ COMMAND_HELP: dict[str, str] = {
     "predict": "predict the displacement under a force profile, with a 95%% posterior band",
     "evaluate": "held-out metrics of a run (or k-fold cross-validation with its settings)",
     "demo": "end-to-end example on the built-in 2-branch tree (synthetic data, NNSVGD, metrics)",
+    # issue 11 §4 (calibration branch): one entry for `treeinfer calibrate`
+    "calibrate": "simulation-based calibration: rank histograms, coverage, uniformity test",
 }
 
 

@@ -65,6 +65,7 @@ COMMANDS: dict[str, Command] = {
     "predict": _command("predict"),
     "evaluate": _command("evaluate"),
     "demo": _command("demo"),
+    "calibrate": _command("calibrate"),  # issue 11 §4 (calibration branch)
 }
 
 _MAIN_EPILOG = """\
