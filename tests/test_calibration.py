@@ -118,7 +118,7 @@ def test_tiny_tree_end_to_end(tmp_path):
 
     tree = load_tree("treeinfer/examples/two_branch.yaml")
     cfg = cal.SBCConfig(datasets=3, particles=4, iterations=3, mh_steps=2, n_traj=1,
-                        duration=0.3, chunk=2, seed=5)
+                        duration=0.3, chunk=2, seed=5, test_traj=2, noise_force=0.02)
     seen = []
     res = cal.run_tree_sbc(tree, cfg, progress=lambda a, b: seen.append((a, b)))
     assert seen[-1] == (3, 3)
@@ -132,3 +132,9 @@ def test_tiny_tree_end_to_end(tmp_path):
     assert on_disk["n_datasets"] == 3 and set(on_disk["uniformity"]["parameters"]) == set(
         res.labels)
     assert summary["config"]["options"]["seed"] == 5
+    t = res.info["test_inside_95"]
+    assert 0.0 <= t["predictive"]["median"] <= 1.0
+    # the predictive band contains the parameter band: never fewer points inside
+    assert t["predictive"]["mean"] >= t["parameter"]["mean"] - 1e-12
+    assert set(res.info["crb"]["parameters"]) == set(res.labels)
+    assert all(np.isfinite(v["ratio_median"]) for v in res.info["crb"]["parameters"].values())

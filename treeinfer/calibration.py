@@ -397,6 +397,13 @@ class SBCConfig:
     sampler: ``svgd-mh`` or ``svgd`` (module docstring). particles: P = L draws per data set.
     iterations: SVGD iterations; mh_steps: MH steps per chain after SVGD (svgd-mh).
     chunk: data sets per jitted program call.
+    noise_force: relative force noise (share of the data set's peak |force|) on the RECORDED
+      forces that drive inference (training and test). Not in the inference model (the noise
+      engineer's decision: absorbed by sigma_x), so SBC is exact only at 0; > 0 is a
+      misspecification check (ranks of the gains then show its effect).
+    test_traj: unseen test pulls per data set (fresh profiles, same noise); > 0 adds the share
+      of noisy test points inside the 95% predictive band (simulation + fitted noise,
+      :func:`treeinfer.metrics.noisy_predictive_interval`) and the parameter band.
     """
 
     datasets: int = 20
@@ -419,6 +426,8 @@ class SBCConfig:
     chunk: int = 8
     rel_step: float | None = None
     backend: str = "auto"
+    noise_force: float = 0.0
+    test_traj: int = 0
 
     def check(self) -> SBCConfig:
         from .inference import check_count
@@ -430,6 +439,9 @@ class SBCConfig:
         check_count(self.mh_steps, "mh_steps", 0)
         check_count(self.n_traj, "n_traj", 1)
         check_count(self.chunk, "chunk", 1)
+        check_count(self.test_traj, "test_traj", 0)
+        if not (isinstance(self.noise_force, (int, float)) and 0.0 <= self.noise_force < 1.0):
+            raise ConfigError(f"noise_force: must be a share in [0, 1), got {self.noise_force!r}")
         if self.likelihood not in SBC_LIKELIHOODS:
             raise ConfigError(
                 f"likelihood: calibrate supports {', '.join(SBC_LIKELIHOODS)} (a generative noise "
@@ -622,6 +634,15 @@ def run_tree_sbc(
     unit = _noise.noise_distribution(config.likelihood, 1.0, float(config.student_t_df))
     e = np.asarray(unit.sample(jax.random.fold_in(key, 1), tau.shape))
     x_obs = tau + sigma[:, None, None] * e
+    forces_rec = _record_forces(forces, config.noise_force, rng)
+    test = None
+    if config.test_traj:
+        f_test = np.stack([profile_set("mixed", config.test_traj, config.duration, config.dt,
+                                       seed=rng) for _ in range(n)])
+        tau_t, st_t = _simulate_truths(sim, jnp.asarray(truth), jnp.asarray(f_test), r)
+        e_t = np.asarray(unit.sample(jax.random.fold_in(key, 3), tau_t.shape))
+        x_test = np.asarray(tau_t) + sigma[:, None, None] * e_t
+        test = (_record_forces(f_test, config.noise_force, rng), x_test, np.asarray(st_t))
     t_sim = time.perf_counter() - t0
 
     # initial particles: uniform in the log box; log sigma_x uniform within +-1 of the centre
@@ -642,7 +663,7 @@ def run_tree_sbc(
         m = sl.stop - sl.start
         pad = config.chunk - m  # keep one compiled shape: pad the last chunk by repetition
         idx = np.r_[np.arange(sl.start, sl.stop), np.full(pad, sl.start, int)]
-        out, info = program(keys[idx], jnp.asarray(theta0[idx]), jnp.asarray(forces[idx]),
+        out, info = program(keys[idx], jnp.asarray(theta0[idx]), jnp.asarray(forces_rec[idx]),
                             jnp.asarray(x_obs[idx]))
         draws[sl] = np.asarray(out)[:m]
         infos.append({k: np.asarray(v)[:m] for k, v in info.items()})
@@ -659,7 +680,11 @@ def run_tree_sbc(
         for i in np.flatnonzero(bad_draws):
             med = np.nanmedian(np.where(np.isfinite(draws[i]), draws[i], np.nan), axis=0)
             draws[i] = np.where(np.isfinite(draws[i]), draws[i], med)
+    extra = _crb_ratios(sim, truth, draws, forces_rec, labels, config)
+    if test is not None:
+        extra.update(_predictive_coverage(sim, draws, test, config, infer_sigma))
     summary_info = {
+        **extra,
         "sampler": config.sampler,
         "sampler_note": (
             "SVGD (Adam, RBF median heuristic, box prior only) then P independent random-walk "
@@ -682,6 +707,125 @@ def run_tree_sbc(
         "truth_units": "theta: natural log of Kp (N m/rad), Kd (N m s/rad), sigma_x (m)",
     }
     return summarize_sbc(truth, draws, labels, seed=config.seed, info=summary_info)
+
+
+def _record_forces(forces, share: float, rng: np.random.Generator) -> np.ndarray:
+    """Recorded forces: ``forces [N, B, T]`` plus white noise of std ``share`` times each data
+    set's peak |force| (one sensor, one level per data set)."""
+    if share <= 0:
+        return forces
+    peak = np.max(np.abs(forces), axis=(1, 2), keepdims=True)
+    return forces + share * peak * rng.normal(size=forces.shape)
+
+
+def _rollout_fn(sim, r):
+    from .likelihood import gains_from_theta
+    from .sim import simulate
+
+    def rollout(th, f):  # th [M, >=2R], f [B, T] -> (tau [M, B, T], stable [M, B])
+        kp, kd = gains_from_theta(th[:, : 2 * r], r)
+        ro = simulate(sim, kp, kd, f)
+        return ro.tau, ro.stable
+
+    return rollout
+
+
+def _crb_ratios(sim, truth, draws, forces_rec, labels, config: SBCConfig) -> dict:
+    """Posterior std (log units, over the draws) / Cramer-Rao std at the truth, per parameter:
+    median and quartiles over data sets. Fisher of the gains ``J^T J / sigma^2`` with ``J`` the
+    central-difference sensitivities of the training displacements to the log gains under the
+    recorded forces (:func:`treeinfer.gradients.central_difference_jacobian`); for log sigma_x
+    (Gaussian) the bound is ``1 / sqrt(2 n)`` (n samples; the Fisher matrix is block diagonal).
+    Only for the Gaussian likelihood (None otherwise)."""
+    import jax
+    import jax.numpy as jnp
+
+    from .gradients import central_difference_jacobian
+
+    if config.likelihood != "gaussian":
+        return {"crb": None}
+    r = sim.n_joints
+    rollout = _rollout_fn(sim, r)
+
+    def jac_one(th, f):
+        _, j = central_difference_jacobian(lambda t: rollout(t, f)[0], th[None, : 2 * r],
+                                           rel_step=1e-2)
+        return j[0]  # [B, T, 2R]
+
+    fn = jax.jit(jax.vmap(jac_one))
+    n = truth.shape[0]
+    crb = np.empty((n, truth.shape[1]))
+    for start in range(0, n, config.chunk):
+        sl = slice(start, min(n, start + config.chunk))
+        j = np.asarray(fn(jnp.asarray(truth[sl]), jnp.asarray(forces_rec[sl])), float)
+        j = j.reshape(j.shape[0], -1, 2 * r)
+        sig = (np.exp(truth[sl, 2 * r]) if config.noise_displacement is None
+               else np.full(j.shape[0], config.noise_displacement))
+        for i in range(j.shape[0]):
+            fisher = j[i].T @ j[i] / sig[i] ** 2
+            crb[sl.start + i, : 2 * r] = np.sqrt(np.diag(np.linalg.pinv(fisher)))
+        if config.noise_displacement is None:
+            crb[sl, 2 * r] = 1.0 / math.sqrt(2 * j.shape[1])
+    ratio = np.std(draws, axis=1, ddof=1) / crb
+    q = np.nanpercentile(ratio, [25, 50, 75], axis=0)
+    return {"crb": {
+        "definition": "posterior std of the log parameter over the draws / Cramer-Rao std at "
+        "the truth (Fisher J^T J / sigma^2, J by central differences on the recorded training "
+        "forces; log sigma_x: 1/sqrt(2n)); quartiles over data sets",
+        "parameters": {lab: {"ratio_q25": float(q[0, k]), "ratio_median": float(q[1, k]),
+                             "ratio_q75": float(q[2, k]),
+                             "crb_log_std_median": float(np.median(crb[:, k]))}
+                       for k, lab in enumerate(labels)},
+    }}
+
+
+def _predictive_coverage(sim, draws, test, config: SBCConfig, infer_sigma: bool) -> dict:
+    """Share of noisy unseen test points inside the 95% predictive band (draws' simulations
+    under the recorded test forces + their noise model) and inside the parameter-only band,
+    per data set (median, quartiles, pooled)."""
+    import jax
+    import jax.numpy as jnp
+
+    from .metrics import predictive_bands
+
+    f_test, x_test, st_truth = test
+    r = sim.n_joints
+    fn = jax.jit(jax.vmap(_rollout_fn(sim, r)))
+    n = draws.shape[0]
+    inside_pred = np.full(n, np.nan)
+    inside_par = np.full(n, np.nan)
+    for start in range(0, n, config.chunk):
+        sl = slice(start, min(n, start + config.chunk))
+        tau, stable = fn(jnp.asarray(draws[sl]), jnp.asarray(f_test[sl]))
+        tau, stable = np.asarray(tau), np.asarray(stable)
+        for i in range(tau.shape[0]):
+            d = sl.start + i
+            valid = np.all(stable[i], axis=-1)
+            if valid.sum() < 2 or not np.all(st_truth[d]):
+                continue
+            s = (np.exp(draws[d, :, 2 * r]) if infer_sigma
+                 else float(config.noise_displacement))
+            kind = "student_t" if config.likelihood == "student_t" else "gaussian"
+            bands = predictive_bands(tau[i], s, 0.95, valid, kind, float(config.student_t_df))
+            x = x_test[d]
+            inside_pred[d] = np.mean((x >= np.asarray(bands.predictive.lower))
+                                     & (x <= np.asarray(bands.predictive.upper)))
+            inside_par[d] = np.mean((x >= np.asarray(bands.parameter.lower))
+                                    & (x <= np.asarray(bands.parameter.upper)))
+
+    def stats(v):
+        q = np.nanpercentile(v, [25, 50, 75])
+        return {"mean": float(np.nanmean(v)), "q25": float(q[0]), "median": float(q[1]),
+                "q75": float(q[2]), "n_datasets": int(np.sum(np.isfinite(v)))}
+
+    return {"test_inside_95": {
+        "definition": f"share of the {config.test_traj} noisy unseen test pulls' points inside "
+        "the 95% band per data set; predictive = simulations + fitted noise "
+        "(metrics.predictive_bands), parameter = simulations only",
+        "noise_force_share": config.noise_force,
+        "predictive": stats(inside_pred),
+        "parameter": stats(inside_par),
+    }}
 
 
 def config_record(tree_path, config: SBCConfig) -> dict:
