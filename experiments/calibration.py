@@ -16,8 +16,8 @@ prior ``log sigma_x ~ Normal(log 2 mm, 0.5)``), 5 training and 25 unseen test pu
   sigma_x (see :mod:`treeinfer.noise`). Its SBC ranks show the effect on the gains; its
   predictive coverage is the figure for noisy recordings.
 
-Sampler: SVGD then one random-walk MH chain per particle, all data sets of a chunk in one jitted
-program (:mod:`treeinfer.calibration` says why).
+Sampler: Adam ascent to the mode, then one adaptive random-walk MH chain per particle, all data
+sets of a chunk in one jitted program (:mod:`treeinfer.calibration` says why).
 
     JAX_PLATFORMS=cpu python experiments/calibration.py --size cpu     # committed, minutes
     python experiments/calibration.py --size full --out OUT            # GPU: 256 data sets/tree
@@ -41,14 +41,14 @@ if str(ROOT) not in sys.path:
 
 SIZES = {
     # a smoke size for checking the script (seconds after compilation)
-    "tiny": dict(datasets=4, particles=8, iterations=20, mh_steps=10, n_traj=5, test_traj=25,
-                 duration=1.0, dt=0.02, chunk=4),
+    "tiny": dict(datasets=4, particles=8, iterations=20, mh_warmup=20, mh_steps=10, n_traj=5,
+                 test_traj=25, duration=1.0, dt=0.02, chunk=4),
     # committed CPU size: coarse dt and 2 s pulls as experiments/coverage.py's cpu size
-    "cpu": dict(datasets=24, particles=16, iterations=150, mh_steps=150, n_traj=5, test_traj=25,
-                duration=2.0, dt=0.02, chunk=8),
+    "cpu": dict(datasets=12, particles=16, iterations=80, mh_warmup=400, mh_steps=400,
+                n_traj=5, test_traj=25, duration=2.0, dt=0.02, chunk=12),
     # the set-up on a GPU: >= 200 data sets per tree, 3 s pulls at 10 ms
-    "full": dict(datasets=256, particles=32, iterations=300, mh_steps=300, n_traj=5,
-                 test_traj=25, duration=3.0, dt=0.01, chunk=128),
+    "full": dict(datasets=256, particles=32, iterations=300, mh_warmup=800, mh_steps=800,
+                 n_traj=5, test_traj=25, duration=3.0, dt=0.01, chunk=128),
 }
 CONDITIONS = {"sbc": 0.0, "noisy": 0.02}
 TREES = {"two_branch": "treeinfer/examples/two_branch.yaml",

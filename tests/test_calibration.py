@@ -117,7 +117,7 @@ def test_tiny_tree_end_to_end(tmp_path):
     from treeinfer.tree import load_tree
 
     tree = load_tree("treeinfer/examples/two_branch.yaml")
-    cfg = cal.SBCConfig(datasets=3, particles=4, iterations=3, mh_steps=2, n_traj=1,
+    cfg = cal.SBCConfig(datasets=3, particles=4, iterations=3, mh_warmup=4, mh_steps=2, n_traj=1,
                         duration=0.3, chunk=2, seed=5, test_traj=2, noise_force=0.02)
     seen = []
     res = cal.run_tree_sbc(tree, cfg, progress=lambda a, b: seen.append((a, b)))

@@ -27,7 +27,7 @@ _CALIBRATE_EPILOG = f"""\
 examples:
   treeinfer calibrate --tree two_branch.yaml --out sbc --datasets 20 --particles 16
   treeinfer calibrate --tree two_branch.yaml --out sbc-gpu --datasets 256 --chunk 64 \\
-      --particles 32 --iterations 300 --mh-steps 300 --seed 1
+      --particles 32 --iterations 300 --mh-warmup 400 --mh-steps 400 --seed 1
 
 What it does (Talts et al. 2018): for each of --datasets data sets, draw Kp, Kd of the inferred
 joints from the smoothed box prior (and sigma_x from log sigma_x ~ Normal(log
@@ -37,11 +37,12 @@ inference with that same model, and rank the truth among the --particles posteri
 calibrated posterior gives uniform ranks and central intervals that cover the truth as often as
 their level says ({", ".join(f"{a:.0%}" for a in COVERAGE_LEVELS)} reported).
 
-Sampler: svgd-mh (default) runs SVGD from the prior box, then one random-walk Metropolis chain per
-particle started there (proposal from the particles' covariance, --mh-steps steps): exact
-accept/reject corrects SVGD's approximation, and each chain's final state is one draw. svgd uses
-the final SVGD particles as draws (measures SVGD's own calibration). All data sets of a chunk
-run in one jitted program (--chunk data sets at once: hundreds on a GPU, a few on a CPU).
+Sampler: mh (default) climbs from --particles starts in the prior box to the posterior mode
+with Adam (--iterations, --learning-rate decaying 100x), then runs one random-walk Metropolis
+chain per particle from the mode (--mh-warmup adaptive steps with the chains' ensemble
+covariance, then --mh-steps fixed-proposal steps): each chain's final state is one draw. svgd
+uses the final SVGD particles as draws (measures SVGD's own calibration). All data sets of a
+chunk run in one jitted program (--chunk data sets at once: hundreds on a GPU, a few on a CPU).
 
 Output folder (built aside, appears complete or not at all): sbc_summary.json (uniformity
 p-values per parameter: chi-square on equal bins and Kolmogorov-Smirnov of the fractional ranks,
@@ -79,16 +80,18 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--student-t-df", type=float, default=_D.student_t_df, metavar="DF",
                    help="degrees of freedom for --likelihood student_t")
     p.add_argument("--sampler", choices=SBC_SAMPLERS, default=_D.sampler,
-                   help="svgd-mh: SVGD then one MH chain per particle (near-exact draws); "
-                   "svgd: the SVGD particles themselves")
+                   help="mh: Adam to the mode, then one adaptive random-walk MH chain per "
+                   "particle (near-exact draws); svgd: the SVGD particles themselves")
     p.add_argument("--particles", type=int, default=_D.particles, metavar="P",
                    help="particles = posterior draws L per data set, >= 2")
     p.add_argument("--iterations", type=int, default=_D.iterations, metavar="N",
-                   help="SVGD iterations, >= 1")
+                   help="Adam ascent (mh) or SVGD (svgd) iterations, >= 1")
     p.add_argument("--learning-rate", type=float, default=_D.learning_rate, metavar="X",
-                   help="SVGD Adam learning rate (log units per step)")
+                   help="Adam learning rate (log units per step; mh: decays 100x)")
+    p.add_argument("--mh-warmup", type=int, default=_D.mh_warmup, metavar="N",
+                   help="adaptive MH warm-up steps per chain (mh), discarded")
     p.add_argument("--mh-steps", type=int, default=_D.mh_steps, metavar="N",
-                   help="MH steps per chain after SVGD (svgd-mh)")
+                   help="fixed-proposal MH steps per chain after the warm-up (mh)")
     p.add_argument("--n-traj", type=int, default=_D.n_traj, metavar="B",
                    help="pulls per data set (random 'mixed' force profiles, as `simulate`)")
     p.add_argument("--test-traj", type=int, default=0, metavar="B",
@@ -126,7 +129,8 @@ def _config_from_args(args) -> SBCConfig:
         noise_displacement=args.noise_displacement, noise_prior_center=args.noise_prior_center,
         sigma_prior_scale=args.sigma_prior_scale, student_t_df=args.student_t_df,
         sampler=args.sampler, particles=args.particles, iterations=args.iterations,
-        learning_rate=args.learning_rate, mh_steps=args.mh_steps, n_traj=args.n_traj,
+        learning_rate=args.learning_rate, mh_warmup=args.mh_warmup,
+        mh_steps=args.mh_steps, n_traj=args.n_traj,
         duration=args.duration, dt=args.dt, seed=args.seed, max_sim_dt=args.max_sim_dt,
         chunk=args.chunk, backend=args.backend, test_traj=args.test_traj,
         noise_force=args.noise_force,
