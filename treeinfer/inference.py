@@ -28,7 +28,7 @@ import numpy as np
 from . import samplers as _samplers
 from .errors import ConfigError
 from .gradients import combine, combined_value_and_grad
-from .likelihood import DEFAULT_KT, boltzmann_log_likelihood, check_kT, gains_from_theta
+from .likelihood import DEFAULT_KT, check_kT, gains_from_theta, likelihood_terms
 from .priors import inequality_prior, load_or_train_inequality_network, smoothed_box
 from .sim import Rollout, Simulator, make_simulator, simulate
 from .trajectories import Observations, Trajectory, stack_trajectories
@@ -44,8 +44,13 @@ class Problem:
 
     Attributes:
       tree, sim, obs: the tree, its compiled simulator, the stacked training trajectories.
-      kT: likelihood temperature. labels: ``Kp[j]``..., ``Kd[j]``... (theta's columns).
-      lower, upper: [D] the prior box in theta (log) units.
+      kT: Boltzmann temperature (the value given, or "auto"'s result; for the generative
+        likelihoods only the Boltzmann training-fit report uses it).
+      labels: ``Kp[j]``..., ``Kd[j]``..., then the noise columns (``sigma_x``...; see
+        :func:`treeinfer.likelihood.noise_columns`) of theta.
+      lower, upper: [D] the prior box in theta (log) units (initial box for noise columns).
+      noise: the :class:`~treeinfer.likelihood.LikelihoodTerms` (likelihood kind, fixed or
+        inferred noise, description) -- what predictions need for the predictive band.
       log_likelihood, log_prior: batched terms ``theta [N, D] -> [N]``.
       value_and_grad: ``theta [P, D] -> (log p [P], grad [P, D])`` of the whole target.
       log_density: ``theta [P, D] -> [P]``, the whole target (for MH and metrics).
@@ -65,6 +70,7 @@ class Problem:
     log_density: Callable
     nn_prior: bool
     settings: dict = field(default_factory=dict)
+    noise: Any = None  # treeinfer.likelihood.LikelihoodTerms: the likelihood choice and its noise
 
     @property
     def dim(self) -> int:
@@ -115,7 +121,7 @@ def nn_inequality_prior(tree: Tree, eta: float = DEFAULT_ETA, form: str = "linea
 def make_problem(
     tree: Tree,
     trajectories: Sequence[Trajectory] | Observations,
-    kT: float = DEFAULT_KT,
+    kT: float | str = DEFAULT_KT,
     nn_prior: bool = True,
     eta: float = DEFAULT_ETA,
     prior_sigma: float = DEFAULT_PRIOR_SIGMA,
@@ -129,11 +135,19 @@ def make_problem(
     sim: Simulator | None = None,
     nn_seed: int = 0,
     backend: str = "auto",
+    likelihood: str = "boltzmann",
+    noise_displacement: float | None = None,
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
     Args:
-      kT: likelihood temperature (see :mod:`treeinfer.likelihood` on choosing it).
+      kT: Boltzmann temperature, a number or ``"auto"`` (from the data's noise estimate, see
+        :mod:`treeinfer.likelihood` on choosing it).
+      likelihood: ``"boltzmann"`` (the paper's loss), ``"gaussian"``, ``"student_t"`` or
+        ``"ar1"`` (generative noise models, :mod:`treeinfer.noise`); built by
+        :func:`treeinfer.likelihood.likelihood_terms`.
+      noise_displacement: m, fixed displacement noise sigma_x for the generative likelihoods
+        (None: inferred as an extra column of theta) or the noise used by ``kT="auto"``.
       nn_prior: add the learned inequality prior (NNSVGD's target); False gives SVGD's.
       eta: inequality penalty slope (nats per unit of log-gain the child exceeds its parent).
       gradient: ``"fd"`` (central differences, the paper's black-box route) or ``"autodiff"``
@@ -142,7 +156,8 @@ def make_problem(
       grasp_fraction: where the training data were recorded (None: the tree's grasp).
       backend: simulator backend when ``sim`` is not given (see :func:`make_simulator`).
     """
-    kT = check_kT(kT)
+    if not (isinstance(kT, str) and kT == "auto"):
+        kT = check_kT(kT)
     if gradient not in ("fd", "autodiff"):
         raise ConfigError(f"gradient: expected 'fd' or 'autodiff', got {gradient!r}")
     if not (isinstance(prior_sigma, (int, float)) and prior_sigma > 0):
@@ -152,28 +167,44 @@ def make_problem(
         kwargs = {} if max_sim_dt is None else {"max_sim_dt": max_sim_dt}
         sim = make_simulator(tree, obs_dt=float(obs.dt), substeps=substeps, model_file=model_file, backend=backend,
                              **kwargs)
-    loglik = boltzmann_log_likelihood(sim, obs, kT, grasp_fraction)
-    prior_terms = [box_prior(tree, prior_sigma, prior_space)]
+    terms = likelihood_terms(
+        sim, obs, likelihood, kT=kT, sigma_x=noise_displacement, grasp_fraction=grasp_fraction,
+        gradient=gradient, rel_step=rel_step,
+    )
+    loglik = terms.log_likelihood
+    n_gains = 2 * tree.n_inferred
+    box = box_prior(tree, prior_sigma, prior_space)
+    prior_terms = [box if not terms.extra_labels else (lambda th: box(th[:, :n_gains]))]
+    prior_terms += terms.log_prior_terms()
     nn = nn_inequality_prior(tree, eta=eta, seed=nn_seed) if nn_prior else None
     if nn is not None:
         prior_terms.append(nn)
     log_prior = combine(*prior_terms)
     # the black-box likelihood by central differences (or autodiff, for checks); priors by autodiff
-    black_box, differentiable = ([loglik], [log_prior]) if gradient == "fd" else ([], [loglik, log_prior])
+    if gradient == "fd" and terms.black_box:
+        black_box, differentiable = [loglik], [log_prior]
+    else:  # autodiff, or a generative likelihood (its simulator carries an FD custom_jvp)
+        black_box, differentiable = [], [loglik, log_prior]
     value_and_grad = combined_value_and_grad(black_box, differentiable, rel_step=rel_step)
 
     lo, hi = tree.bounds_array()
-    settings = dict(
+    kT = terms.kT if terms.kT is not None else (DEFAULT_KT if isinstance(kT, str) else kT)
+    # the paper's mode (Boltzmann, fixed kT, no noise given) records exactly what it did before
+    # issue 11, so older interrupted runs still resume with identical settings
+    paper_mode = terms.black_box and not terms.settings.get("kT_auto") and terms.sigma_x is None
+    settings = {**({} if paper_mode else terms.settings), **dict(
         kT=kT, nn_prior=bool(nn is not None), eta=eta, prior_sigma=prior_sigma, prior_space=prior_space,
         gradient=gradient, rel_step=rel_step, backend=sim.backend, substeps=sim.substeps, sim_dt=sim.sim_dt, obs_dt=sim.obs_dt,
         grasp_fraction=grasp_fraction if grasp_fraction is not None else tree.grasp_fraction,
         n_trajectories=int(obs.force.shape[0]), n_steps=int(obs.force.shape[1]), nn_seed=nn_seed,
-    )
+    )}
     return Problem(
-        tree=tree, sim=sim, obs=obs, kT=kT, labels=tuple(tree.parameter_labels()),
-        lower=np.log(lo), upper=np.log(hi), log_likelihood=loglik, log_prior=log_prior,
+        tree=tree, sim=sim, obs=obs, kT=kT, labels=tuple(tree.parameter_labels()) + terms.extra_labels,
+        lower=np.concatenate([np.log(lo), terms.extra_lower]),
+        upper=np.concatenate([np.log(hi), terms.extra_upper]),
+        log_likelihood=loglik, log_prior=log_prior,
         value_and_grad=value_and_grad, log_density=combine(loglik, log_prior), nn_prior=nn is not None,
-        settings=settings,
+        settings=settings, noise=terms,
     )
 
 
@@ -279,8 +310,12 @@ def predict(
     Particles whose rollout is unstable have ``stable = False``; drop them before summarising."""
     sim = sim_or_problem.sim if isinstance(sim_or_problem, Problem) else sim_or_problem
     theta = jnp.atleast_2d(jnp.asarray(theta))
-    if theta.shape[-1] != 2 * sim.n_joints:
-        raise ConfigError(f"theta: expected {2 * sim.n_joints} columns (log Kp, log Kd per joint), got {theta.shape[-1]}")
+    if not 2 * sim.n_joints <= theta.shape[-1] <= 2 * sim.n_joints + 3:
+        raise ConfigError(
+            f"theta: expected {2 * sim.n_joints} columns (log Kp, log Kd per joint) and up to 3 noise "
+            f"columns, got {theta.shape[-1]}"
+        )
+    theta = theta[:, : 2 * sim.n_joints]  # noise columns do not enter the simulation
     if grasp_fraction is not None:
         g = np.asarray(grasp_fraction, float)
         if np.any(~np.isfinite(g)) or np.any(g <= 0) or np.any(g > 1):

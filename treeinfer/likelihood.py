@@ -351,8 +351,9 @@ class LikelihoodTerms(NamedTuple):
     extra_lower, extra_upper: [E] initial-particle box of the extra columns (theta units).
     extra_log_prior: ``theta [N, D] -> [N]`` prior of the extra columns (None if E = 0).
     kT: the Boltzmann temperature used (None for the generative kinds).
-    sigma_x: fixed displacement noise (m) if not inferred: given, or for Boltzmann the data
-      estimate when one could be made (for the predictive band); None otherwise.
+    sigma_x: fixed displacement noise (m) if not inferred: given, or for Boltzmann with
+      ``kT="auto"`` the data estimate (for the predictive band); None otherwise (fixed-kT
+      Boltzmann without a given noise: the paper's mode, parameter bands only).
     settings: JSON-ready record. description: human-readable lines (print them).
     """
 
@@ -418,11 +419,10 @@ def likelihood_terms(
             extra = {"kT_rule": desc, "omega2": choice.omega2}
         else:
             kT_value, extra = check_kT(kT), {}
-            try:
-                est = (noise.estimate_displacement_noise(obs).sigma if sigma_x is None
-                       else float(sigma_x))
-            except ConfigError:
-                est = None
+            # the paper's mode: no noise model unless one is given (then predictive bands use it)
+            est = None if sigma_x is None else noise.check_sigma(
+                sigma_x, "noise_displacement", noise.displacement_range(obs)
+            )
             desc = f"Boltzmann likelihood, kT = {kT_value:g} (fixed)"
         loglik = boltzmann_log_likelihood(sim, obs, kT_value, grasp_fraction)
         vg = (central_difference(loglik, rel_step=rel_step) if gradient == "fd"

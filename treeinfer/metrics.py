@@ -517,6 +517,8 @@ def summarize(
     truth=None,
     labels: Sequence[str] | None = None,
     log_space: bool = False,
+    noise_sigma=None,
+    noise_kind: str = "gaussian",
 ) -> dict:
     """All metrics in one JSON-ready dict (floats, ints, bools, None; nested for parameters).
 
@@ -528,15 +530,30 @@ def summarize(
     ``particles`` and ``truth`` a ``parameters`` dict ``{label: {mean, truth,
     abs_error, rel_error, lower, upper, in_interval}}`` and ``truth_in_joint_region``
     (``None`` if undefined). Arguments as in the functions above.
+
+    With ``noise_sigma`` (scalar or ``[P]`` m; ``noise_kind``) the headline band is the
+    PREDICTIVE band (simulations + noise, :func:`noisy_predictive_interval`): ``ci_width``,
+    ``pct_outside`` and ``predictive_nll*`` (:func:`noisy_predictive_nll`) refer to it, ``band`` is
+    ``"predictive"`` and ``parameter_band`` holds ``ci_width`` / ``pct_outside`` of the
+    parameter-only KDE band. Without it ``band`` is ``"parameter"`` (the KDE band, as before).
     """
     pred = jnp.asarray(pred)
     eff = _effective_valid(pred, valid)
     lower, upper, _ = predictive_interval(pred, level, eff)
     frac = fraction_outside(lower, upper, gt, mask)
-    nll = predictive_nll(pred, gt, mask, eff)
+    pm = _point_mask(np.asarray(gt, float), mask)
+    parameter_band = {"ci_width": _f(ci_width(lower, upper, pm)), "pct_outside": 100.0 * _f(frac)}
+    if noise_sigma is not None:
+        lower, upper, _ = noisy_predictive_interval(pred, noise_sigma, level, eff, noise_kind)
+        frac = fraction_outside(lower, upper, gt, mask)
+        nll = noisy_predictive_nll(pred, gt, noise_sigma, mask, eff, noise_kind)
+    else:
+        nll = predictive_nll(pred, gt, mask, eff)
     out = {
         "level": float(level),
-        "ci_width": _f(ci_width(lower, upper, _point_mask(np.asarray(gt, float), mask))),
+        "band": "predictive" if noise_sigma is not None else "parameter",
+        "parameter_band": parameter_band,
+        "ci_width": _f(ci_width(lower, upper, pm)),
         "fraction_outside": _f(frac),
         "pct_outside": 100.0 * _f(frac),
         "predictive_nll": _f(nll.total),

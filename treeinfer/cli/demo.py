@@ -10,7 +10,7 @@ import numpy as np
 from .. import __version__, runs
 from .._io import check_output_dir, staged_output_dir
 from ..errors import ConfigError, SimulationError
-from ..evaluation import band_arrays, evaluate_trajectories, write_evaluation
+from ..evaluation import band_arrays, evaluate_trajectories, noise_for, write_evaluation
 from ..forces import DEFAULT_PEAK_RANGE, from_spec, random_specs
 from ..synthetic import default_true_params, simulate_batch, synthetic_trajectories
 from ..trajectories import TRUE_PARAMS_FILE, true_params_record, write_trajectory, write_true_params
@@ -159,8 +159,10 @@ def run_demo(args: argparse.Namespace) -> int:
     run = runs.load_run(out / "run", cache)
     truth = np.concatenate([kp, kd])
     test = trajs[n_train:]
+    sigma, kind = noise_for(run.theta, run.sim.n_joints, run.config.get("problem"))
     m, pred, obs = evaluate_trajectories(
-        run.sim, run.theta, list(run.labels), test, run.kT, None, truth, run.stable
+        run.sim, run.theta, list(run.labels), test, run.kT, None, truth, run.stable,
+        noise_sigma=sigma, noise_kind=kind,
     )
     eval_config = _base_config("evaluate", args)
     eval_config.update(

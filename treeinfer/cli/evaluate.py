@@ -16,6 +16,7 @@ from ..evaluation import (
     evaluate_trajectories,
     kfold_splits,
     mean_metrics,
+    noise_for,
     write_evaluation,
 )
 from ..trajectories import read_trajectory_dir, stack_trajectories
@@ -118,8 +119,10 @@ def run_evaluate(args: argparse.Namespace) -> int:
         run_options=run.config["options"],
     )
     if args.kfold is None:
+        sigma, kind = noise_for(run.theta, run.sim.n_joints, run.config.get("problem"))
         m, pred, obs = evaluate_trajectories(
-            run.sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable
+            run.sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable,
+            noise_sigma=sigma, noise_kind=kind,
         )
         metrics = {"run": str(args.run), "data": str(args.data), "metrics": m}
         md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md(

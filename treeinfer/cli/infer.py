@@ -49,7 +49,19 @@ _RUN_OPTIONS = {
     "checkpoint_every": "--checkpoint-every",
     "force": "--force",
     "backend": "--backend",
+    "likelihood": "--likelihood",
+    "noise_displacement": "--noise-displacement",
 }
+
+
+def _kT_arg(s: str):
+    """``--kT``: a number, or ``auto`` (set from the data's noise estimate)."""
+    if s.strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number or 'auto', got {s!r}") from None
 
 _INFER_EPILOG = """\
 examples:
@@ -105,9 +117,25 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--kT",
+        type=_kT_arg,
+        metavar="X|auto",
+        help=f"Boltzmann likelihood temperature in loss units (m + m/s) per nat; smaller = sharper posterior; "
+        f"'auto': from the data's displacement-noise estimate, kT = sigma / sqrt(T) * (1 + sqrt(2) dt omega2), "
+        f"printed (default {d['kT']:g}, the paper-reproduction value; see treeinfer.likelihood)",
+    )
+    p.add_argument(
+        "--likelihood",
+        choices=("boltzmann", "gaussian", "student_t", "ar1"),
+        help="boltzmann: the paper's loss with temperature --kT (default); gaussian: recorded = simulated "
+        "displacement + white noise sigma_x (inferred unless --noise-displacement; calibrated bands); "
+        "student_t: the same with heavy tails (outliers); ar1: white + AR(1) residuals (slow errors, e.g. force noise)",
+    )
+    p.add_argument(
+        "--noise-displacement",
         type=float,
-        metavar="X",
-        help=f"likelihood temperature in loss units (m + m/s) per nat; smaller = sharper posterior (default {d['kT']:g})",
+        metavar="M",
+        help="displacement noise sigma_x in metres for --likelihood gaussian/student_t/ar1 (default: inferred "
+        "jointly, prior centred on the data's estimate) or for --kT auto (default: estimated)",
     )
     p.add_argument(
         "--seed",

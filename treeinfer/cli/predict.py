@@ -11,7 +11,7 @@ import numpy as np
 from .. import __version__, runs
 from .._io import atomic_write_text, check_output_dir, staged_output_dir
 from ..errors import ConfigError
-from ..evaluation import predict_run
+from ..evaluation import noise_for, predict_run
 from ..forces import from_spec
 from ..metrics import fraction_outside
 from ..plots import plot_trajectory_bands, save_figure
@@ -126,18 +126,35 @@ def run_predict(args: argparse.Namespace) -> int:
         f"simulating {len(run.theta)} particles (the first prediction of a shape compiles for up to a minute)..."
     )
     grasp = args.grasp_fraction if args.grasp_fraction is not None else run.grasp_fraction
-    pred = predict_run(run.sim, run.theta, prof.force[None], grasp, run.stable)
+    sigma, kind = noise_for(run.theta, run.sim.n_joints, run.config.get("problem"))
+    pred = predict_run(
+        run.sim, run.theta, prof.force[None], grasp, run.stable, noise_sigma=sigma, noise_kind=kind
+    )
     n_bad = int((~pred.valid).sum())
-    lower, upper, mean = pred.lower[0], pred.upper[0], pred.mean[0]
-    cols = ["time", "force", "mean", "lower", "upper"] + (
-        ["displacement"] if prof.displacement is not None else []
+    mean = pred.mean[0]
+    lower, upper = (a[0] for a in pred.band())  # what a recording is compared with
+    has_noise = pred.predictive_lower is not None
+    band_name = (
+        "predictive band (simulation + fitted noise)" if has_noise else "parameter band (no noise model known)"
     )
-    rows = [prof.time, prof.force, mean, lower, upper] + (
-        [prof.displacement] if prof.displacement is not None else []
-    )
+    cols = ["time", "force", "mean", "lower", "upper"]
+    rows = [prof.time, prof.force, mean, pred.lower[0], pred.upper[0]]
+    if has_noise:
+        cols += ["predictive_lower", "predictive_upper"]
+        rows += [pred.predictive_lower[0], pred.predictive_upper[0]]
+    if prof.displacement is not None:
+        cols.append("displacement")
+        rows.append(prof.displacement)
     lines = [
         f"# treeinfer {__version__} predict: run {args.run}, force {prof.source}; s, N, m (positive downward)",
-        f"# 95% predictive band over {int(pred.valid.sum())} particles ({n_bad} unstable or invalid, excluded)",
+        f"# lower/upper: 95% PARAMETER band over {int(pred.valid.sum())} particles (simulations only; "
+        f"{n_bad} unstable or invalid, excluded)",
+        *(
+            ["# predictive_lower/predictive_upper: 95% PREDICTIVE band (simulations + the fitted "
+             "noise model): where a new recording should fall"]
+            if has_noise
+            else []
+        ),
         ",".join(cols),
     ] + [",".join(repr(float(v)) for v in r) for r in zip(*rows)]
     config = _base_config("predict", args)
@@ -160,7 +177,7 @@ def run_predict(args: argparse.Namespace) -> int:
             mean,
             prof.displacement,
             samples=pred.tau[pred.valid, 0],
-            title=f"{prof.source}: 95% band, {int(pred.valid.sum())} particles",
+            title=f"{prof.source}: 95% {band_name}, {int(pred.valid.sum())} particles",
         )
         save_figure(fig, stage / "prediction.png")
         runs.write_json(stage / "config.json", config)

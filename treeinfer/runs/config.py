@@ -15,6 +15,8 @@ import numpy as np
 from ..errors import ConfigError
 from ..inference import DEFAULT_ETA
 from ..likelihood import DEFAULT_KT
+from ..noise import KINDS as LIKELIHOODS
+from ..noise import check_sigma
 from ..samplers import sampler_options, sampler_spec
 from ..sim import BACKENDS
 from ..trajectories import (
@@ -63,7 +65,9 @@ class RunConfig:
 
     Attributes: tree, data, out (absolute paths as strings); sampler (a registry name);
     particles (>= 2); iterations (>= 1); backend ("auto", "fused", "mjx"); kT (loss units per
-    nat, > 0); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction (None or in
+    nat, > 0, or "auto": from the data's noise estimate); likelihood ("boltzmann", "gaussian",
+    "student_t", "ar1": :func:`treeinfer.likelihood.likelihood_terms`); noise_displacement (m,
+    None: inferred / estimated); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction (None or in
     (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end only); force.
     """
 
@@ -81,6 +85,8 @@ class RunConfig:
     max_unstable_share: float = 0.5
     checkpoint_every: int = 25
     force: bool = False
+    likelihood: str = "boltzmann"
+    noise_displacement: float | None = None
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 -- frozen: normalise once
@@ -97,7 +103,14 @@ class RunConfig:
         set_("iterations", _count("--iterations", self.iterations, 1))
         set_("checkpoint_every", _count("--checkpoint-every", self.checkpoint_every, 0))
         set_("seed", _count("--seed", self.seed, 0))
-        set_("kT", _positive("--kT", self.kT, "a positive number (loss units per nat)"))
+        if not (isinstance(self.kT, str) and self.kT == "auto"):
+            set_("kT", _positive("--kT", self.kT, "a positive number (loss units per nat) or 'auto'"))
+        if self.likelihood not in LIKELIHOODS:
+            raise ConfigError(
+                f"--likelihood: must be one of {', '.join(LIKELIHOODS)}, got {self.likelihood!r}"
+            )
+        if self.noise_displacement is not None:
+            set_("noise_displacement", check_sigma(self.noise_displacement, "--noise-displacement"))
         set_("eta", _positive("--eta", self.eta))
         g = self.grasp_fraction
         if g is not None and not (math.isfinite(g) and 0.0 < g <= 1.0):
@@ -147,6 +160,8 @@ def infer_config(
     force: bool = False,
     command: str = "infer",
     backend: str = "auto",
+    likelihood: str = "boltzmann",
+    noise_displacement: float | None = None,
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
     sampler settings are added by :func:`run_inference` once the problem is built."""
@@ -169,6 +184,8 @@ def infer_config(
         max_unstable_share=max_unstable_share,
         checkpoint_every=checkpoint_every,
         force=force,
+        likelihood=likelihood,
+        noise_displacement=noise_displacement,
     ).to_json()
     return {
         "command": command,

@@ -27,7 +27,7 @@ from .cache import SimulatorCache, simulator_for
 from .checkpoint import _npz_bytes, partial_dir
 from .config import RUN_FORMAT
 
-UNITS = {"Kp": "N m/rad", "Kd": "N m s/rad"}
+UNITS = {"Kp": "N m/rad", "Kd": "N m s/rad", "sigma_x": "m", "sigma_c": "m", "rho": ""}
 
 
 # ==== summaries ===================================================================================
@@ -43,13 +43,17 @@ def posterior_table(theta, labels, valid=None, level: float = LEVEL) -> dict:
         lo, hi, _ = (np.asarray(a) for a in predictive_interval(theta, level, ok))
     else:
         lo = hi = np.full(theta.shape[1], np.nan)
+    from ..likelihood import natural_units
+
+    nat = natural_units(theta[ok], labels) if ok.any() else np.zeros((0, len(labels)))
+    bounds = natural_units(np.stack([lo, hi]), labels)  # monotone maps: interval ends map over
     for j, lab in enumerate(labels):
-        k = np.exp(theta[ok, j])
+        k = nat[:, j]
         out[lab] = {
             "mean": float(k.mean()) if k.size else float("nan"),
             "median": float(np.median(k)) if k.size else float("nan"),
-            "lower": float(np.exp(lo[j])),
-            "upper": float(np.exp(hi[j])),
+            "lower": float(bounds[0, j]),
+            "upper": float(bounds[1, j]),
             "unit": UNITS[lab.split("[")[0]],
         }
     return out
@@ -102,8 +106,9 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
     if truth is not None:
         from ..metrics import posterior_vs_truth
 
+        n_gains = len(truth)  # noise columns (sigma_x ...) have no true value
         chk = posterior_vs_truth(
-            np.exp(np.asarray(posterior.theta, float)), truth, LEVEL, stable, log=True
+            np.exp(np.asarray(posterior.theta, float)[:, :n_gains]), truth, LEVEL, stable, log=True
         )
         summary["truth"] = {
             lab: {
@@ -113,7 +118,7 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
                 "in_interval": bool(chk.in_marginal[j]),
                 "rel_error_log": float(chk.rel_error[j]),
             }
-            for j, lab in enumerate(problem.labels)
+            for j, lab in enumerate(problem.labels[:n_gains])
         }
         summary["truth_in_joint_region"] = chk.in_joint
     return summary
@@ -134,7 +139,9 @@ def particles_csv(theta, labels, log_density, stable) -> str:
         ),
         ",".join(["particle", *labels, "log_density", "stable"]),
     ]
-    for i, row in enumerate(np.exp(theta)):
+    from ..likelihood import natural_units
+
+    for i, row in enumerate(natural_units(theta, labels)):
         lines.append(
             ",".join(
                 [
@@ -226,6 +233,8 @@ def save_run(
         save_figure(fig, plots / "trace.png")
         ok = stable & np.all(np.isfinite(posterior.theta), axis=1)
         t10 = None if truth is None else np.log10(np.asarray(truth, float))
+        if t10 is not None and len(t10) < len(labels):  # noise columns: no true value to mark
+            t10 = np.concatenate([t10, np.full(len(labels) - len(t10), np.nan)])
         fig, _ = pair_plot(
             np.asarray(posterior.theta, float)[ok] / np.log(10.0),
             [f"log10 {lab}" for lab in labels],
@@ -304,7 +313,14 @@ def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None) ->
             labels = tuple(str(s) for s in z["labels"])
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
         raise ConfigError(f"{run_dir / 'trace.npz'}: unreadable ({e})") from None
-    if list(labels) != tree.parameter_labels():
+    from ..likelihood import noise_columns
+
+    gains = tree.parameter_labels()
+    noise_ok = list(labels[len(gains) :]) in (
+        [list(noise_columns(k, True)) for k in ("gaussian", "ar1")]
+        + [list(noise_columns("ar1", False)), []]
+    )
+    if list(labels[: len(gains)]) != gains or not noise_ok:
         raise ConfigError(
             f"{run_dir}: trace.npz labels {list(labels)} do not match tree.yaml {tree.parameter_labels()}"
         )

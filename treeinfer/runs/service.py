@@ -21,7 +21,7 @@ from .._io import (
 from ..errors import ConfigError, OutputExistsError, SimulationError
 
 # ==== problem and posterior =======================================================================
-from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits
+from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits, noise_for
 from ..jsonio import jsonable as _jsonable
 from ..jsonio import read_json, write_json
 from ..samplers import sampler_spec
@@ -78,6 +78,8 @@ def build_problem(
         eta=o["eta"],
         grasp_fraction=o["grasp_fraction"],
         sim=sim,
+        likelihood=o.get("likelihood", "boltzmann"),  # run folders older than issue 11
+        noise_displacement=o.get("noise_displacement"),
     )
     # infer() evaluates log_density once at the end: jitted, the simulator is traced and compiled once
     # (op-by-op it costs tens of seconds); MH samples with the same function.
@@ -162,6 +164,8 @@ def run_inference(
             raise ConfigError("run_inference: give a config (new run) or resume=RUN")
         run_dir, partial, tree, trajs, truth = _prepare_fresh(config, log)
         problem = build_problem(config, tree, trajs, cache)
+        if problem.noise is not None:
+            log(f"likelihood: {problem.noise.description}")
         config = {**config, "problem": problem.settings, "sampler": sampler_settings(config)}
         config["config_hash"] = config_hash(config)
         partial.mkdir(parents=True)
@@ -356,6 +360,7 @@ def kfold(
             grasp_fraction,
             truth,
             np.isfinite(post.log_density),
+            *noise_for(post.theta, problem.sim.n_joints, problem.settings),
         )
         out.append(
             FoldResult(
