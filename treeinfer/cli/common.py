@@ -39,6 +39,7 @@ COMMAND_HELP: dict[str, str] = {
     "evaluate": "held-out metrics of a run (or k-fold cross-validation with its settings)",
     "demo": "end-to-end example on the built-in 2-branch tree (synthetic data, NNSVGD, metrics)",
     "suggest": "rank candidate next pulls by expected information gain for a run's posterior",
+    "calibrate": "simulation-based calibration: rank histograms, coverage, uniformity test",
 }
 
 
