@@ -173,7 +173,9 @@ def usable(m: dict, ref: dict, tol: float) -> bool:
 def run_child(mode: str, args, workdir: Path) -> dict:
     result = workdir / f"{mode}.json"
     cache = workdir / f"cache-{mode}"
-    env = {**os.environ, "TREEINFER_JAX_CACHE": str(cache), "PYTHONPATH": str(ROOT)}
+    # keep an existing PYTHONPATH (packages installed with --target, as on a lent GPU machine)
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    env = {**os.environ, "TREEINFER_JAX_CACHE": str(cache), "PYTHONPATH": path}
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
     if args.device != "auto":
         env["JAX_PLATFORMS"] = args.device

@@ -247,7 +247,11 @@ def _check_against_reference(folder: Path, tol=1e-5):
 
     tree = load_tree(folder / "tree.yaml")
     tp = json.loads((folder / "true_params.json").read_text())
-    sim = make_simulator(tree, 0.01)
+    # the simulator as `simulate` chose it (its step is accuracy-controlled on these profiles)
+    recorded = json.loads((folder / "config.json").read_text())["simulation"]
+    sim = make_simulator(
+        tree, 0.01, substeps=recorded["substeps"], force_interp=recorded["force_interp"]
+    )
     kp = [tp["kp"][n] for n in tree.inferred]
     kd = [tp["kd"][n] for n in tree.inferred]
     for tr in read_trajectory_dir(folder):

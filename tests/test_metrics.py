@@ -237,3 +237,87 @@ def test_summarize_is_json_ready(rng):
     )
     assert s["n_points"] == 8 and s["n_degenerate_points"] == 2
     assert set(s["parameters"]) == {"Kp[b1]", "Kd[b1]"}
+
+
+# --------------------------------------------------------------------------- posterior predictive
+# (simulations + noise model; issue 11)
+
+
+def _mixture_interval(x, s, level, kind="gaussian", df=4.0):
+    """Reference: scipy mixture CDF + brentq; kernel scale sqrt(s^2 + h^2), h from gaussian_kde."""
+    comp = stats.norm if kind == "gaussian" else stats.t(df)
+    s = np.sqrt(s**2 + stats.gaussian_kde(x).covariance[0, 0])
+    cdf = lambda y: np.mean(comp.cdf((y - x) / s))
+    a = 0.5 * (1 - level)
+    lo_b, hi_b = x.min() - 50 * s.max(), x.max() + 50 * s.max()
+    return (optimize.brentq(lambda y: cdf(y) - a, lo_b, hi_b, xtol=1e-12),
+            optimize.brentq(lambda y: cdf(y) - (1 - a), lo_b, hi_b, xtol=1e-12))
+
+
+@pytest.mark.parametrize("kind", ["gaussian", "student_t"])
+def test_noisy_interval_matches_scipy_mixture(rng, kind):
+    x = rng.normal(0.05, 0.004, size=(30, 3))
+    s = rng.uniform(0.001, 0.003, size=30)
+    lo, hi, mean = (np.asarray(a, float) for a in metrics.noisy_predictive_interval(
+        jnp.asarray(x, jnp.float64) if jax.config.jax_enable_x64 else x, s, 0.9, kind=kind))
+    for j in range(3):
+        rl, rh = _mixture_interval(x[:, j], s, 0.9, kind)
+        assert lo[j] == pytest.approx(rl, abs=2e-6) and hi[j] == pytest.approx(rh, abs=2e-6)
+    np.testing.assert_allclose(mean, x.mean(0), rtol=1e-5)
+
+
+def test_predictive_band_at_t0_is_the_noise(rng):
+    """All particles predict 0 at t = 0: the parameter band is zero-width there, the predictive
+    band is the noise's own 95% interval (+-1.96 sigma), never zero-width."""
+    pred = np.concatenate([np.zeros((20, 1)), rng.normal(0.1, 0.01, (20, 4))], axis=1)
+    bands = metrics.predictive_bands(pred, 0.002, 0.95)
+    assert float(bands.parameter.upper[0] - bands.parameter.lower[0]) == 0.0
+    np.testing.assert_allclose(
+        [bands.predictive.lower[0], bands.predictive.upper[0]],
+        [-stats.norm.ppf(0.975) * 0.002, stats.norm.ppf(0.975) * 0.002], rtol=1e-4,
+    )
+    assert np.all(np.asarray(bands.predictive.upper - bands.predictive.lower)
+                  > np.asarray(bands.parameter.upper - bands.parameter.lower))
+
+
+def test_noisy_nll_zero_spread_matches_scipy(rng):
+    """Identical particles (zero spread): finite, equals the noise model's own NLL."""
+    tau = np.tile(rng.normal(0, 0.05, (2, 6)), (8, 1, 1))
+    y = tau[0] + 0.002 * rng.standard_normal((2, 6))
+    nll = metrics.noisy_predictive_nll(tau, y, 0.002)
+    ref = -stats.norm.logpdf(y, tau[0], 0.002)
+    assert np.isfinite(float(nll.total))
+    assert float(nll.total) == pytest.approx(ref.sum(), rel=1e-5)
+    assert float(nll.mean) == pytest.approx(ref.mean(), rel=1e-5) and int(nll.n_points) == 12
+    # the KDE NLL is undefined there (degenerate steps): the old metric skips every point
+    assert int(metrics.predictive_nll(tau, y).n_points) == 0
+
+
+def test_noisy_nll_mixture_matches_logsumexp(rng):
+    from scipy.special import logsumexp
+
+    x = rng.normal(0, 0.01, (16, 5))
+    s = rng.uniform(0.001, 0.004, 16)
+    y = rng.normal(0, 0.01, 5)
+    valid = np.ones(16, bool)
+    valid[3] = False
+    got = metrics.noisy_predictive_nll(x, y, s, valid=valid, kind="student_t", df=5.0)
+    h2 = np.array([stats.gaussian_kde(x[valid, j]).covariance[0, 0] for j in range(5)])
+    lp = stats.t.logpdf(y[None], 5.0, loc=x, scale=np.sqrt(s[:, None] ** 2 + h2))[valid]
+    ref = -(logsumexp(lp, axis=0) - np.log(valid.sum()))
+    assert float(got.total) == pytest.approx(ref.sum(), rel=1e-5)
+
+
+def test_predictive_draws(rng):
+    x = rng.normal(0, 0.01, (4, 3))
+    d = metrics.posterior_predictive_draws(jax.random.key(0), x, np.full(4, 0.002), n_draws=4000)
+    assert d.shape == (4000, 4, 3)
+    np.testing.assert_allclose(np.asarray(d).mean(0), x, atol=3e-4)
+    np.testing.assert_allclose(np.asarray(d).std(0), 0.002, rtol=0.06)
+
+
+def test_noisy_band_bad_sigma():
+    with pytest.raises(ConfigError, match="sigma"):
+        metrics.noisy_predictive_interval(np.zeros((3, 4)), -1.0)
+    with pytest.raises(ConfigError, match="sigma"):
+        metrics.noisy_predictive_interval(np.zeros((3, 4)), np.ones(2))

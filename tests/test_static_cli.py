@@ -134,6 +134,30 @@ def test_stiffness_only_problem_holds_damping_at_the_trees_value():
     assert got[0] != pytest.approx(got[1])  # the data do depend on Kp
 
 
+def test_static_and_stiffness_only_refuse_generative_likelihoods_but_take_kT_auto():
+    """The noise likelihoods are built on the dynamic [log Kp, log Kd] rollout: with the static
+    model or stiffness only they are refused (ConfigError naming the likelihood); Boltzmann with
+    kT="auto" uses the same kT rule as the dynamic model on the same data."""
+    from treeinfer.errors import ConfigError
+    from treeinfer.inference import make_problem
+    from treeinfer.trajectories import Trajectory
+
+    dt, n = 0.02, 25
+    t = dt * np.arange(n)
+    force = np.clip(t / 0.2, 0, 1) * 2.0
+    x = 0.01 * np.clip(t / 0.2, 0, 1) + 1e-4 * np.sin(37 * t)
+    traj = Trajectory(t, force, x, np.gradient(x, dt), "syn.csv")
+    kp_only = dataclasses.replace(_one_joint_tree(), parameters=("kp",))
+    for tree, kind in ((kp_only, "dynamic"), (_one_joint_tree(), "static")):
+        with pytest.raises(ConfigError, match="likelihood: 'gaussian'"):
+            make_problem(tree, [traj], nn_prior=False, backend="fused", model_kind=kind,
+                         likelihood="gaussian")
+    auto = make_problem(kp_only, [traj], kT="auto", nn_prior=False, backend="fused")
+    full = make_problem(_one_joint_tree(), [traj], kT="auto", nn_prior=False, backend="fused")
+    assert auto.dim == 1 and auto.kT == pytest.approx(full.kT)
+    assert np.isfinite(np.asarray(auto.log_likelihood(np.log([[10.0]])))).all()
+
+
 def test_quasi_static_notice_logged_for_the_dynamic_model_only():
     from treeinfer.runs.service import _quasi_static_check
     from treeinfer.sim import make_simulator

@@ -27,7 +27,11 @@ LEVEL = 0.95  # credible / predictive interval mass everywhere in the run folder
 # ==== predictions =================================================================================
 class Prediction(NamedTuple):
     """Posterior predictive rollouts: ``tau [P, B, T]`` m; ``valid [P]`` particles used (stable
-    here and finite posterior density); ``lower``, ``upper``, ``mean`` ``[B, T]`` m (95% KDE band)."""
+    here and finite posterior density); ``lower``, ``upper``, ``mean`` ``[B, T]`` m: the
+    PARAMETER band (95% KDE of the simulations, no noise). ``predictive_lower``,
+    ``predictive_upper`` ``[B, T]`` m: the PREDICTIVE band (simulations + the fitted noise model,
+    never zero-width), None when no noise level is known; ``sigma`` the noise scale used
+    (scalar or ``[P]`` m), ``noise_kind`` its distribution."""
 
     tau: np.ndarray
     tau_dot: np.ndarray
@@ -36,16 +40,44 @@ class Prediction(NamedTuple):
     lower: np.ndarray
     upper: np.ndarray
     mean: np.ndarray
+    predictive_lower: np.ndarray | None = None
+    predictive_upper: np.ndarray | None = None
+    sigma: np.ndarray | float | None = None
+    noise_kind: str = "gaussian"
+
+    def band(self):
+        """``(lower, upper)`` to compare recordings with: predictive if known, else parameter."""
+        if self.predictive_lower is not None:
+            return self.predictive_lower, self.predictive_upper
+        return self.lower, self.upper
+
+
+def noise_for(theta, n_joints: int, settings: dict | None):
+    """``(sigma, kind)`` of a run's noise model for its predictive band: per-particle sigma from
+    theta's noise columns, else the recorded fixed or estimated ``noise_displacement`` (m),
+    else ``(None, "gaussian")`` (runs from before issue 11 without an estimate)."""
+    from .likelihood import noise_params_from_theta, predictive_noise_kind
+
+    settings = settings or {}
+    kind = predictive_noise_kind(settings.get("likelihood", "boltzmann"))
+    fixed = settings.get("noise_displacement")
+    try:
+        sigma = noise_params_from_theta(theta, n_joints, fixed)
+    except ConfigError:
+        sigma = None
+    return (None if sigma is None else np.asarray(sigma, float)), kind
 
 
 def predict_run(
-    sim, theta, forces, grasp_fraction=None, particle_ok=None, level: float = LEVEL, model=None
+    sim, theta, forces, grasp_fraction=None, particle_ok=None, level: float = LEVEL,
+    noise_sigma=None, noise_kind: str = "gaussian", model=None,
 ) -> Prediction:
-    """Simulate every particle ``theta [P, D]`` under ``forces [B, T]`` and summarise the band;
+    """Simulate every particle ``theta [P, D]`` under ``forces [B, T]`` and summarise the bands
+    (parameter band; predictive band too when ``noise_sigma``, scalar or ``[P]`` m, is given);
     unstable particles are excluded (``valid``). Needs two valid particles. ``model``: the
     run's :class:`treeinfer.static.Model` (None: the dynamic model of ``[log Kp, log Kd]``)."""
     from .inference import predict
-    from .metrics import predictive_interval
+    from .metrics import noisy_predictive_interval, predictive_interval
 
     theta = np.asarray(theta)
     rollout = jax.device_get(
@@ -63,7 +95,16 @@ def predict_run(
         )
     tau = np.asarray(rollout.tau)
     lower, upper, mean = (np.asarray(a) for a in predictive_interval(tau, level, valid))
-    return Prediction(tau, np.asarray(rollout.tau_dot), stable, valid, lower, upper, mean)
+    plo = phi = None
+    if noise_sigma is not None:
+        plo, phi, _ = (
+            np.asarray(a)
+            for a in noisy_predictive_interval(tau, noise_sigma, level, valid, noise_kind)
+        )
+    return Prediction(
+        tau, np.asarray(rollout.tau_dot), stable, valid, lower, upper, mean, plo, phi,
+        noise_sigma, noise_kind,
+    )
 
 
 def rollout_loglik(rollout, obs: Observations, kT: float, ok=None, dtype=None) -> np.ndarray:
@@ -94,6 +135,8 @@ def evaluate_trajectories(
     grasp_fraction=None,
     truth=None,
     particle_ok=None,
+    noise_sigma=None,
+    noise_kind: str = "gaussian",
     model=None,
 ) -> tuple[dict, Prediction, Observations]:
     """Held-out metrics of particles ``theta`` on ``trajectories`` (:func:`treeinfer.metrics.summarize`
@@ -107,29 +150,34 @@ def evaluate_trajectories(
             f"the trajectories have dt={obs.dt:g} s but the run was inferred at dt={sim.obs_dt:g} s; "
             "resample them to the run's step"
         )
-    pred = predict_run(sim, theta, obs.force, grasp_fraction, particle_ok, model=model)
-    if truth is not None:  # stiffness only: theta holds the first D of the 2R true gains
-        truth = np.asarray(truth, float)[: np.shape(theta)[-1]]
+    pred = predict_run(
+        sim, theta, obs.force, grasp_fraction, particle_ok, noise_sigma=noise_sigma,
+        noise_kind=noise_kind, model=model,
+    )
     ll = _per_trajectory_loglik(pred, obs, kT)
+    n_gains = 2 * sim.n_joints if model is None else model.layout.dim  # noise: no true value
+    if truth is not None:  # stiffness only: theta holds the first D of the 2R true gains
+        truth = np.asarray(truth, float)[:n_gains]
     m = summarize(
         pred.tau,
         obs.displacement,
         mask=obs.mask,
         valid=pred.valid,
         log_likelihood=ll,
-        particles=None if truth is None else np.exp(np.asarray(theta, float)),
+        particles=None if truth is None else np.exp(np.asarray(theta, float)[:, :n_gains]),
         truth=truth,
-        labels=labels,
+        labels=None if labels is None else list(labels)[:n_gains],
         log_space=True,
+        noise_sigma=noise_sigma,
+        noise_kind=noise_kind,
     )
+    lo_b, hi_b = pred.band()
     m["per_trajectory"] = [
         {
             "name": t.source,
-            "ci_width": float(ci_width(pred.lower[b], pred.upper[b], obs.mask[b])),
+            "ci_width": float(ci_width(lo_b[b], hi_b[b], obs.mask[b])),
             "pct_outside": 100.0
-            * float(
-                fraction_outside(pred.lower[b], pred.upper[b], obs.displacement[b], obs.mask[b])
-            ),
+            * float(fraction_outside(lo_b[b], hi_b[b], obs.displacement[b], obs.mask[b])),
         }
         for b, t in enumerate(trajectories)
     ]
@@ -146,10 +194,12 @@ def _training_fit(problem, posterior, config) -> dict:
     sim = problem.sim
     from .metrics import summarize
 
+    sigma, kind = noise_for(posterior.theta, sim.n_joints, problem.settings)
     rollout_pred = None
     try:
         rollout_pred = predict_run(
             sim, posterior.theta, problem.obs.force, config["options"]["grasp_fraction"], pred_ok,
+            noise_sigma=sigma, noise_kind=kind,
             model=getattr(problem, "model", None),
         )
     except SimulationError:
@@ -163,6 +213,8 @@ def _training_fit(problem, posterior, config) -> dict:
         mask=problem.obs.mask,
         valid=rollout_pred.valid,
         log_likelihood=ll,
+        noise_sigma=sigma,
+        noise_kind=kind,
     )
     return {"stable": rollout_pred.valid, "prediction": rollout_pred, "metrics": metrics}
 
@@ -200,11 +252,12 @@ def mean_metrics(results: Sequence[dict]) -> tuple[dict, dict]:
 
 # ==== evaluation output ===========================================================================
 def band_arrays(preds_and_obs) -> tuple[np.ndarray, ...]:
-    """Stack (prediction, obs) pairs of possibly different lengths into [K, T] arrays (NaN padded)."""
+    """Stack (prediction, obs) pairs of possibly different lengths into [K, T] arrays (NaN padded):
+    the band compared with recordings (:meth:`Prediction.band`: predictive when known)."""
     rows = [
         (
-            pr.lower[b],
-            pr.upper[b],
+            pr.band()[0][b],
+            pr.band()[1][b],
             pr.mean[b],
             np.where(ob.mask[b], ob.displacement[b], np.nan),
             ob.mask[b],
@@ -237,6 +290,12 @@ def write_evaluation(
     from .plots import plot_band_grid, save_figure
 
     lower, upper, mean, gt = bands
+    m = metrics.get("metrics") or metrics.get("mean") or {}
+    which = (
+        "95% predictive band (simulation + fitted noise)"
+        if m.get("band") == "predictive"
+        else "95% parameter band (simulations only, no noise)"
+    )
     inputs = [p for p in (config.get("run"), *(config.get("inputs") or ())) if p]
     with staged_output_dir(out, force, "evaluation", inputs=inputs) as stage:
         write_json(stage / "metrics.json", metrics)
@@ -249,7 +308,7 @@ def write_evaluation(
             mean,
             gt,
             titles=list(titles),
-            suptitle="95% predictive band vs held-out trajectories",
+            suptitle=f"{which} vs held-out trajectories",
         )
         save_figure(fig, stage / "bands.png")
         write_json(stage / "config.json", config)

@@ -28,7 +28,7 @@ import numpy as np
 from . import samplers as _samplers
 from .errors import ConfigError
 from .gradients import combine, combined_value_and_grad, jvp_combined_value_and_grad
-from .likelihood import DEFAULT_KT, boltzmann_log_likelihood, check_kT, gains_from_theta
+from .likelihood import DEFAULT_KT, check_kT, gains_from_theta, likelihood_terms
 from .priors import inequality_prior, load_or_train_inequality_network, smoothed_box
 from .sim import Rollout, Simulator, make_simulator, simulate
 from .trajectories import Observations, Trajectory, stack_trajectories
@@ -45,8 +45,13 @@ class Problem:
 
     Attributes:
       tree, sim, obs: the tree, its compiled simulator, the stacked training trajectories.
-      kT: likelihood temperature. labels: ``Kp[j]``..., ``Kd[j]``... (theta's columns).
-      lower, upper: [D] the prior box in theta (log) units.
+      kT: Boltzmann temperature (the value given, or "auto"'s result; for the generative
+        likelihoods only the Boltzmann training-fit report uses it).
+      labels: ``Kp[j]``..., ``Kd[j]``..., then the noise columns (``sigma_x``...; see
+        :func:`treeinfer.likelihood.noise_columns`) of theta.
+      lower, upper: [D] the prior box in theta (log) units (initial box for noise columns).
+      noise: the :class:`~treeinfer.likelihood.LikelihoodTerms` (likelihood kind, fixed or
+        inferred noise, description) -- what predictions need for the predictive band.
       log_likelihood, log_prior: batched terms ``theta [N, D] -> [N]``.
       value_and_grad: ``theta [P, D] -> (log p [P], grad [P, D])`` of the whole target.
       log_density: ``theta [P, D] -> [P]``, the whole target (for MH and metrics).
@@ -68,6 +73,7 @@ class Problem:
     log_density: Callable
     nn_prior: bool
     settings: dict = field(default_factory=dict)
+    noise: Any = None  # treeinfer.likelihood.LikelihoodTerms: the likelihood choice and its noise
     model: Any = None  # treeinfer.static.Model when not the dynamic model of [log Kp, log Kd]
 
     @property
@@ -126,7 +132,7 @@ def nn_inequality_prior(tree: Tree, eta: float = DEFAULT_ETA, form: str = "linea
 def make_problem(
     tree: Tree,
     trajectories: Sequence[Trajectory] | Observations,
-    kT: float = DEFAULT_KT,
+    kT: float | str = DEFAULT_KT,
     nn_prior: bool = True,
     eta: float = DEFAULT_ETA,
     prior_sigma: float = DEFAULT_PRIOR_SIGMA,
@@ -140,6 +146,10 @@ def make_problem(
     sim: Simulator | None = None,
     nn_seed: int = 0,
     backend: str = "auto",
+    force_interp: str = "linear",
+    sim_tolerance: float | None = None,
+    likelihood: str = "boltzmann",
+    noise_displacement: float | None = None,
     model_kind: str = "dynamic",
     direction=None,
     grasp_branch=None,
@@ -147,7 +157,13 @@ def make_problem(
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
     Args:
-      kT: likelihood temperature (see :mod:`treeinfer.likelihood` on choosing it).
+      kT: Boltzmann temperature, a number or ``"auto"`` (from the data's noise estimate, see
+        :mod:`treeinfer.likelihood` on choosing it).
+      likelihood: ``"boltzmann"`` (the paper's loss), ``"gaussian"``, ``"student_t"`` or
+        ``"ar1"`` (generative noise models, :mod:`treeinfer.noise`); built by
+        :func:`treeinfer.likelihood.likelihood_terms`.
+      noise_displacement: m, fixed displacement noise sigma_x for the generative likelihoods
+        (None: inferred as an extra column of theta) or the noise used by ``kT="auto"``.
       nn_prior: add the learned inequality prior (NNSVGD's target); False gives SVGD's.
       eta: inequality penalty slope (nats per unit of log-gain the child exceeds its parent).
       gradient: ``"fd"`` (central differences, the paper's black-box route), ``"jvp"`` (exact
@@ -156,34 +172,56 @@ def make_problem(
       rel_step: finite-difference step in log units (default ~5e-3 for float32).
       grasp_fraction: where the training data were recorded (None: the tree's grasp).
       backend: simulator backend when ``sim`` is not given (see :func:`make_simulator`).
+      force_interp, sim_tolerance, max_sim_dt: the simulator's force interpolation and step
+        bounds when ``sim`` is not given (then the step is accuracy-controlled on the
+        trajectories' forces; see :func:`make_simulator`).
       model_kind: ``"dynamic"`` (the rollout) or ``"static"`` (the equilibrium under each force
         sample, stiffness only: :mod:`treeinfer.static`). ``tree.parameters == ("kp",)``
         (``inference: {parameters: [kp]}``) infers stiffness only with either model, damping
         held at :func:`treeinfer.static.tree_layout`'s value; theta is then ``[log Kp]``.
       direction, grasp_branch: the static model's pull directions ([3] or [B, 3], default the
-        tree's ``pull.direction``) and grasped branches (None or B names).
+        tree's ``pull.direction``) and grasped branches (None or B names). The static model
+        and stiffness only take the Boltzmann likelihood only (ConfigError otherwise).
     """
-    kT = check_kT(kT)
+    if not (isinstance(kT, str) and kT == "auto"):
+        kT = check_kT(kT)
     if gradient not in GRADIENTS:
         raise ConfigError(f"gradient: expected one of {', '.join(GRADIENTS)}, got {gradient!r}")
     if not (isinstance(prior_sigma, (int, float)) and prior_sigma > 0):
         raise ConfigError(f"prior_sigma: must be positive, got {prior_sigma!r}")
     obs = trajectories if isinstance(trajectories, Observations) else stack_trajectories(list(trajectories))
-    if sim is None:
+    if sim is None:  # the step accuracy-controlled on the training forces (sim_tolerance, m)
         kwargs = {} if max_sim_dt is None else {"max_sim_dt": max_sim_dt}
+        if substeps is None:
+            kwargs.update(forces=np.asarray(obs.force), sim_tolerance=sim_tolerance, grasp_fraction=grasp_fraction)
         sim = make_simulator(tree, obs_dt=float(obs.dt), substeps=substeps, model_file=model_file, backend=backend,
-                             **kwargs)
+                             force_interp=force_interp, **kwargs)
     from .static import model_for
 
     model = model_for(tree, model_kind, direction, grasp_branch)
     tree = model.tree
     layout = model.layout
     if model.kind == "dynamic" and layout.infers_damping:
-        model = None  # the paper's model: theta = [log Kp, log Kd], as before
-        loglik = boltzmann_log_likelihood(sim, obs, kT, grasp_fraction)
-    else:
-        loglik = _model_log_likelihood(sim, model, obs, kT, grasp_fraction)
-    prior_terms = [box_prior(tree, prior_sigma, prior_space, None if model is None else layout)]
+        model = None  # the paper's model: theta = [log Kp, log Kd] (+ noise columns), as before
+    elif likelihood != "boltzmann":
+        # the generative likelihoods are built on the dynamic rollout of [log Kp, log Kd]
+        raise ConfigError(
+            f"likelihood: {likelihood!r} is not available with model_kind={model.kind!r} and "
+            f"parameters {list(layout.parameters)}; use likelihood 'boltzmann' (the default)"
+        )
+    terms = likelihood_terms(
+        sim, obs, likelihood, kT=kT, sigma_x=noise_displacement, grasp_fraction=grasp_fraction,
+        gradient="autodiff" if gradient == "jvp" else gradient, rel_step=rel_step,
+    )
+    if model is None:
+        loglik = terms.log_likelihood
+        n_gains = 2 * tree.n_inferred
+        box = box_prior(tree, prior_sigma, prior_space)
+        prior_terms = [box if not terms.extra_labels else (lambda th: box(th[:, :n_gains]))]
+        prior_terms += terms.log_prior_terms()
+    else:  # Boltzmann (no extra columns) on the model's rollout, at the (possibly auto) kT
+        loglik = _model_log_likelihood(sim, model, obs, terms.kT, grasp_fraction)
+        prior_terms = [box_prior(tree, prior_sigma, prior_space, layout)]
     kinds = ("Kp", "Kd") if layout.infers_damping else ("Kp",)
     nn = nn_inequality_prior(tree, eta=eta, seed=nn_seed, kinds=kinds) if nn_prior else None
     if nn is not None:
@@ -194,26 +232,39 @@ def make_problem(
     if gradient == "jvp":
         value_and_grad = jvp_combined_value_and_grad([loglik], [log_prior])
     else:
-        black_box, differentiable = ([loglik], [log_prior]) if gradient == "fd" else ([], [loglik, log_prior])
+        if gradient == "fd" and terms.black_box:
+            black_box, differentiable = [loglik], [log_prior]
+        else:  # autodiff, or a generative likelihood (its simulator carries an FD custom_jvp)
+            black_box, differentiable = [], [loglik, log_prior]
         value_and_grad = combined_value_and_grad(black_box, differentiable, rel_step=rel_step)
 
     lo, hi = tree.bounds_array()
-    settings = dict(
+    kT = terms.kT if terms.kT is not None else (DEFAULT_KT if isinstance(kT, str) else kT)
+    # the paper's mode (Boltzmann, fixed kT, no noise given) records exactly what it did before
+    # issue 11, so older interrupted runs still resume with identical settings
+    paper_mode = terms.black_box and not terms.settings.get("kT_auto") and terms.sigma_x is None
+    settings = {**({} if paper_mode else terms.settings), **dict(
         kT=kT, nn_prior=bool(nn is not None), eta=eta, prior_sigma=prior_sigma, prior_space=prior_space,
         gradient=gradient, rel_step=rel_step, backend=sim.backend, substeps=sim.substeps, sim_dt=sim.sim_dt, obs_dt=sim.obs_dt,
+        force_interp=sim.force_interp, sim_step=dict(sim.step_info),
         grasp_fraction=grasp_fraction if grasp_fraction is not None else tree.grasp_fraction,
         n_trajectories=int(obs.force.shape[0]), n_steps=int(obs.force.shape[1]), nn_seed=nn_seed,
-    )
+    )}
     if model is not None:  # recorded only when not the default (older runs' settings unchanged)
         settings["model_kind"] = model.kind
         settings["parameters"] = list(layout.parameters)
         if not layout.infers_damping:
             settings["fixed_kd"] = [float(v) for v in layout.fixed_kd]
+        labels, lower, upper = tuple(layout.labels), np.asarray(layout.lower), np.asarray(layout.upper)
+    else:
+        labels = tuple(tree.parameter_labels()) + terms.extra_labels
+        lower = np.concatenate([np.log(lo), terms.extra_lower])
+        upper = np.concatenate([np.log(hi), terms.extra_upper])
     return Problem(
-        tree=tree, sim=sim, obs=obs, kT=kT, labels=tuple(layout.labels),
-        lower=np.asarray(layout.lower), upper=np.asarray(layout.upper), log_likelihood=loglik,
-        log_prior=log_prior, value_and_grad=value_and_grad, log_density=combine(loglik, log_prior),
-        nn_prior=nn is not None, settings=settings, model=model,
+        tree=tree, sim=sim, obs=obs, kT=kT, labels=labels, lower=lower, upper=upper,
+        log_likelihood=loglik, log_prior=log_prior,
+        value_and_grad=value_and_grad, log_density=combine(loglik, log_prior), nn_prior=nn is not None,
+        settings=settings, noise=terms, model=model,
     )
 
 
@@ -350,10 +401,17 @@ def predict(
     else:
         sim = sim_or_problem
     theta = jnp.atleast_2d(jnp.asarray(theta))
-    want = 2 * sim.n_joints if model is None else model.layout.dim
-    if theta.shape[-1] != want:
-        what = "log Kp, log Kd per joint" if model is None else ", ".join(model.labels)
-        raise ConfigError(f"theta: expected {want} columns ({what}), got {theta.shape[-1]}")
+    if model is None:
+        if not 2 * sim.n_joints <= theta.shape[-1] <= 2 * sim.n_joints + 3:
+            raise ConfigError(
+                f"theta: expected {2 * sim.n_joints} columns (log Kp, log Kd per joint) and up to 3 "
+                f"noise columns, got {theta.shape[-1]}"
+            )
+        theta = theta[:, : 2 * sim.n_joints]  # noise columns do not enter the simulation
+    elif theta.shape[-1] != model.layout.dim:
+        raise ConfigError(
+            f"theta: expected {model.layout.dim} columns ({', '.join(model.labels)}), got {theta.shape[-1]}"
+        )
     if grasp_fraction is not None:
         g = np.asarray(grasp_fraction, float)
         if np.any(~np.isfinite(g)) or np.any(g <= 0) or np.any(g > 1):

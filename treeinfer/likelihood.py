@@ -11,24 +11,48 @@ Parameterisation: samplers work on ``theta = [log Kp_1..R, log Kd_1..R]``. Kp an
 orders of magnitude, so a log scale gives every particle the same relative resolution, makes
 one finite-difference step (and one SVGD bandwidth) fit all of them, and keeps gains positive.
 
-Choosing kT: ``kT`` is the loss that costs one nat of log-density, i.e. it sets how sharply the
-data constrain the posterior. A good value is the loss you would expect from measurement noise
-alone at the true parameters: with displacement noise sigma (m) on T samples at step dt,
-``E[L] ~ sigma * sqrt(T) * (1 + 1 / (sqrt(2) * dt))`` (the second term is the finite-difference
-velocity's noise), see :func:`suggest_kT`. Smaller kT gives narrower posteriors (and overconfident
-bands if the model is wrong); larger kT wider ones. The default, ``DEFAULT_KT = 0.05``, is that
-rule for ~1 mm noise on a few hundred 10 ms samples (a clean simulated set-up or a good robot).
+Choosing kT: the log-likelihood is ``-sum_b L_b / kT``, summed over trajectories; kT is a
+temperature *per trajectory loss* (metres + m/s), and the rule below does not depend on the
+number of trajectories B. With white displacement noise sigma (m) on T samples at step dt the
+norm ``||r_b||`` of the noise residual is ``~ sigma sqrt(T)``, so a model change ``delta`` moves
+``L_b`` by ``~ ||delta||^2 / (2 sigma sqrt(T))`` to second order, while the Gaussian measurement
+log-likelihood moves by ``||delta||^2 / (2 sigma^2)``. Equal curvature (posterior widths as under
+the generative Gaussian model, i.e. calibrated) needs
+
+    kT = sigma / sqrt(T) * (1 + sqrt(2) * dt * omega2)        (:func:`suggest_kT`)
+
+where the factor ``(1 + sqrt(2) dt omega2)`` accounts for the velocity term, which counts the same
+noise a second time; ``omega2`` (1/s^2) is the ratio of the signal's mean squared velocity to its
+mean squared displacement (0 drops the correction). ``kT = "auto"`` (:func:`auto_kT`) estimates
+sigma (:func:`treeinfer.noise.estimate_displacement_noise`) and omega2 from the data and applies
+the rule. Example: 2 mm noise, 301 samples at 10 ms, omega2 = 0 gives kT = 1.2e-4.
+
+``DEFAULT_KT = 0.05`` is the paper-reproduction setting used by the studies in ``experiments/``;
+it is NOT tied to a noise level: by the rule it is the temperature for ~0.4-0.9 m of noise, i.e.
+a strongly tempered (wide) posterior. On noisy recordings use ``kT="auto"`` or, better, the
+generative measurement model (``likelihood_terms(kind="gaussian")``), which also infers sigma.
+
+Generative measurement likelihoods (:func:`measurement_log_likelihood`): recorded displacement =
+simulated displacement + i.i.d. noise (Gaussian or Student-t, :mod:`treeinfer.noise`), with
+sigma_x given or inferred as an extra column ``log sigma_x`` of theta. The simulator stays a
+black box: :func:`treeinfer.gradients.finite_difference_jvp` gives it central-difference
+derivatives, while the noise density and the sigma column get exact autodiff gradients.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpyro.distributions as dist
 
+from . import noise
 from .errors import ConfigError
+from .gradients import autodiff_value_and_grad, central_difference, finite_difference_jvp
 from .sim import Rollout, Simulator, simulate
 from .trajectories import Observations
 
@@ -36,8 +60,9 @@ DEFAULT_KT = 0.05
 
 
 def gains_from_theta(theta: jax.Array, n_joints: int) -> tuple[jax.Array, jax.Array]:
-    """``theta [..., 2R]`` (log Kp then log Kd) -> (Kp [..., R] N m/rad, Kd [..., R] N m s/rad)."""
-    return jnp.exp(theta[..., :n_joints]), jnp.exp(theta[..., n_joints:])
+    """``theta [..., 2R (+ extra)]`` (log Kp then log Kd, then e.g. log sigma_x) ->
+    (Kp [..., R] N m/rad, Kd [..., R] N m s/rad). Extra noise columns are ignored."""
+    return jnp.exp(theta[..., :n_joints]), jnp.exp(theta[..., n_joints : 2 * n_joints])
 
 
 def theta_from_gains(kp, kd) -> np.ndarray:
@@ -95,7 +120,375 @@ def check_kT(kT) -> float:
     return kT
 
 
-def suggest_kT(sigma_displacement: float, n_steps: int, dt: float) -> float:
-    """Expected loss of one trajectory at the true parameters under white displacement noise
-    ``sigma`` (m) when velocity is differentiated from displacement (see module docstring)."""
-    return float(sigma_displacement * math.sqrt(n_steps) * (1.0 + 1.0 / (math.sqrt(2.0) * dt)))
+def suggest_kT(sigma_displacement: float, n_steps: int, dt: float, omega2: float = 0.0) -> float:
+    """Boltzmann temperature that matches the Gaussian measurement model's posterior width.
+
+    ``kT = sigma / sqrt(T) * (1 + sqrt(2) * dt * omega2)`` (module docstring: equal curvature of
+    ``-L_b / kT`` and of the Gaussian log-likelihood at the truth). Per trajectory loss; the same
+    value for any number of trajectories.
+
+    Args:
+      sigma_displacement: m, white displacement-noise std.
+      n_steps: samples T per trajectory. dt: s between samples.
+      omega2: 1/s^2, mean squared velocity over mean squared displacement of the signal (the
+        velocity term's share); 0 ignores the velocity term.
+    """
+    sigma = noise.check_sigma(sigma_displacement, "sigma_displacement")
+    if int(n_steps) < 1 or not (dt > 0) or not (omega2 >= 0):
+        raise ConfigError(
+            f"suggest_kT: need n_steps >= 1, dt > 0, omega2 >= 0; got {n_steps}, {dt}, {omega2}"
+        )
+    return float(sigma / math.sqrt(int(n_steps)) * (1.0 + math.sqrt(2.0) * dt * omega2))
+
+
+def signal_omega2(obs: Observations, sigma: float, lag: int = 5) -> float:
+    """``omega2`` for :func:`suggest_kT` from data (1/s^2): mean squared velocity over mean squared
+    displacement, noise power removed. Velocity is the lag-``lag`` central difference
+    ``(x[t+k] - x[t-k]) / (2 k dt)`` (noise variance ``sigma^2 / (2 k^2 dt^2)``, k^2 times less
+    than the 1-step difference), so the subtraction is stable. Clipped at 0."""
+    x = np.asarray(obs.displacement, float)
+    m = np.asarray(obs.mask, bool)
+    k, dt = int(lag), float(obs.dt)
+    if x.shape[-1] <= 2 * k:
+        return 0.0
+    v = (x[:, 2 * k :] - x[:, : -2 * k]) / (2 * k * dt)
+    vm = m[:, 2 * k :] & m[:, : -2 * k]
+    msv = float(np.mean(v[vm] ** 2)) - sigma**2 / (2 * k**2 * dt**2)
+    msx = float(np.mean(x[m] ** 2)) - sigma**2
+    if msx <= 0.0:
+        return 0.0
+    return max(msv, 0.0) / msx
+
+
+class KTChoice(NamedTuple):
+    """Result of :func:`auto_kT`: ``kT`` and what it was computed from (``describe()``)."""
+
+    kT: float
+    estimate: noise.NoiseEstimate
+    n_steps: int
+    dt: float
+    omega2: float
+
+    def describe(self) -> str:
+        return (
+            f"kT auto = {self.kT:.4g}: {self.estimate.describe()}; rule kT = sigma / sqrt(T) * "
+            f"(1 + sqrt(2) dt omega2) with T = {self.n_steps}, dt = {self.dt:g} s, "
+            f"omega2 = {self.omega2:.4g} 1/s^2 (velocity share from the data)"
+        )
+
+
+def auto_kT(data, sigma_displacement: float | None = None) -> KTChoice:
+    """``kT = "auto"``: estimate the displacement noise (unless given) and apply :func:`suggest_kT`.
+
+    ``T`` is the median number of real samples per trajectory. Raises ConfigError when the data
+    are too short to estimate the noise (give ``sigma_displacement`` then)."""
+    obs = noise.as_observations(data)
+    if sigma_displacement is None:
+        est = noise.estimate_displacement_noise(obs)
+    else:
+        s = noise.check_sigma(
+            sigma_displacement, "noise_displacement", noise.displacement_range(obs)
+        )
+        est = noise.NoiseEstimate(s, 0, "given")
+    n_steps = int(np.median(np.sum(np.asarray(obs.mask, bool), axis=-1)))
+    om2 = signal_omega2(obs, est.sigma)
+    kT = suggest_kT(est.sigma, n_steps, float(obs.dt), om2)
+    return KTChoice(kT, est, n_steps, float(obs.dt), om2)
+
+
+# ----------------------------------------------------------------------------- measurement model
+
+
+def noise_columns(kind: str, infer_sigma_x: bool) -> tuple[str, ...]:
+    """Labels of theta's noise columns after the 2R gains, for a likelihood ``kind``.
+
+    Values in theta: ``sigma_x`` and ``sigma_c`` as natural logs (of metres), ``rho`` as
+    ``logit(rho)``. gaussian / student_t: ``("sigma_x",)`` or () when sigma_x is given; ar1:
+    ``("sigma_x", "sigma_c", "rho")`` or ``("sigma_c", "rho")``; boltzmann: ()."""
+    if kind == "ar1":
+        return ("sigma_x", "sigma_c", "rho") if infer_sigma_x else ("sigma_c", "rho")
+    if kind in ("gaussian", "student_t"):
+        return ("sigma_x",) if infer_sigma_x else ()
+    return ()
+
+
+def noise_params_from_theta(theta, n_joints: int, sigma_x: float | None = None):
+    """Per-row MARGINAL displacement-noise scale ``[N]`` (m) from ``theta [N, 2R + E]``.
+
+    The layout is read from the number E of noise columns (:func:`noise_columns`): E = 1 is
+    ``log sigma_x``; E = 3 is ``log sigma_x, log sigma_c, logit rho`` and E = 2 ``log sigma_c,
+    logit rho`` with the fixed ``sigma_x`` (ar1: the marginal scale is
+    ``sqrt(sigma_x^2 + sigma_c^2)``); E = 0 broadcasts the fixed ``sigma_x`` (None when there is
+    none, e.g. a Boltzmann run without a noise estimate). This is the scale the predictive band
+    uses (:func:`predictive_noise_kind` gives its distribution)."""
+    theta = jnp.atleast_2d(jnp.asarray(theta))
+    c = 2 * n_joints
+    e = theta.shape[-1] - c
+    if e == 1:
+        return jnp.exp(theta[:, c])
+    if e == 3:
+        return jnp.sqrt(jnp.exp(2 * theta[:, c]) + jnp.exp(2 * theta[:, c + 1]))
+    if e == 2:
+        if sigma_x is None:
+            raise ConfigError("noise_params_from_theta: ar1 with a fixed sigma_x needs sigma_x")
+        return jnp.sqrt(float(sigma_x) ** 2 + jnp.exp(2 * theta[:, c]))
+    if e != 0:
+        raise ConfigError(
+            f"theta: expected 2R + 0..3 columns, got {theta.shape[-1]} for R = {n_joints}"
+        )
+    if sigma_x is None:
+        return None
+    return jnp.full(theta.shape[:1], float(sigma_x), theta.dtype)
+
+
+def natural_units(theta, labels) -> np.ndarray:
+    """theta ``[N, D]`` -> the same columns in natural units for reports: ``exp`` of every column
+    (gains, ``sigma_x``, ``sigma_c``: N m/rad, N m s/rad, m) except ``rho`` (``sigmoid`` of its
+    logit). ``labels``: theta's column labels (gains' labels + :func:`noise_columns`)."""
+    theta = np.atleast_2d(np.asarray(theta, float))
+    labels = list(labels)
+    if len(labels) != theta.shape[-1]:
+        raise ConfigError(f"labels: expected {theta.shape[-1]} names, got {len(labels)}")
+    out = np.exp(theta)
+    for j, lab in enumerate(labels):
+        if lab == "rho":
+            out[:, j] = 1.0 / (1.0 + np.exp(-theta[:, j]))
+    return out
+
+
+def predictive_noise_kind(kind: str) -> str:
+    """Distribution of one point's noise for the predictive band: ``student_t`` for student_t,
+    ``gaussian`` otherwise (ar1's marginal is Gaussian; Boltzmann runs use the Gaussian with
+    the data estimate)."""
+    return "student_t" if kind == "student_t" else "gaussian"
+
+
+def measurement_log_likelihood(
+    sim: Simulator,
+    obs: Observations,
+    kind: str = "gaussian",
+    sigma_x: float | None = None,
+    sigma_v: float | None = None,
+    df: float = noise.DEFAULT_STUDENT_T_DF,
+    grasp_fraction=None,
+    rel_step: float | None = None,
+    black_box: bool = True,
+):
+    """Generative log-likelihood ``theta [N, D] -> [N]`` (nats): displacement noise model.
+
+    ``log p(D | theta) = sum_{b,t real} log p_noise(x_obs[b,t] - tau[b,t](theta); sigma_x)
+    [+ sum log p_noise(v_obs - tau_dot; sigma_v)]``; ``-inf`` for rows with an unstable rollout.
+
+    Args:
+      kind: ``"gaussian"``, ``"student_t"`` (df ``df``) or ``"ar1"`` (white + AR(1)), see
+        :mod:`treeinfer.noise`.
+      sigma_x: m, fixed displacement noise; None: theta has an extra column ``log sigma_x``.
+        Noise columns follow the 2R gains in the order of :func:`noise_columns` (ar1 always has
+        ``log sigma_c, logit rho``); their priors are separate (:func:`likelihood_terms`).
+      sigma_v: m/s, velocity noise; None (default) leaves the velocity out.
+      black_box: True wraps the simulator in :func:`finite_difference_jvp` (central differences,
+        ``rel_step``); False lets JAX differentiate through the simulator (checks only).
+    """
+    if kind not in noise.NOISE_KINDS:
+        raise ConfigError(
+            f"likelihood: expected one of {', '.join(noise.NOISE_KINDS)}, got {kind!r}"
+        )
+    if not math.isclose(float(obs.dt), sim.obs_dt, rel_tol=1e-6):
+        raise ConfigError(
+            f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s"
+        )
+    df = noise.check_df(df)
+    r = sim.n_joints
+    dtype = sim.dtype
+    forces = jnp.asarray(obs.force, dtype)
+    x_obs = jnp.asarray(obs.displacement, dtype)
+    v_obs = jnp.asarray(obs.velocity, dtype)
+    mask = jnp.asarray(obs.mask, bool)
+    use_v = sigma_v is not None
+    if use_v:
+        sigma_v = noise.check_sigma(sigma_v, "noise_velocity")
+    if sigma_x is not None:
+        sigma_x = noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
+
+    def rollout(theta_gains):  # [M, 2R] -> [M, C, B, T], NaN where unstable
+        kp, kd = gains_from_theta(theta_gains, r)
+        ro = simulate(sim, kp, kd, forces, grasp_fraction)
+        out = jnp.stack([ro.tau, ro.tau_dot], axis=1) if use_v else ro.tau[:, None]
+        return jnp.where(ro.stable[:, None, :, None], out, jnp.nan)
+
+    sim_fn = finite_difference_jvp(rollout, rel_step) if black_box else rollout
+
+    def loglik(theta: jax.Array) -> jax.Array:
+        theta = jnp.asarray(theta)
+        out = sim_fn(theta[:, : 2 * r])
+        c = 2 * r
+        if sigma_x is None:
+            sx, c = jnp.exp(theta[:, c]), c + 1
+        else:
+            sx = jnp.full(theta.shape[:1], sigma_x, out.dtype)
+        if kind == "ar1":
+            sc, rho = jnp.exp(theta[:, c]), jax.nn.sigmoid(theta[:, c + 1])
+            total = noise.ar1_white_log_prob(x_obs - out[:, 0], mask, sx, sc, rho)
+        else:
+            lp = noise.residual_log_prob(x_obs - out[:, 0], sx[:, None, None], kind, df)
+            total = jnp.sum(jnp.where(mask, lp, 0.0), axis=(-2, -1))
+        if use_v:
+            sv = jnp.asarray(sigma_v, out.dtype)
+            lpv = noise.residual_log_prob(v_obs - out[:, 1], sv, predictive_noise_kind(kind), df)
+            total = total + jnp.sum(jnp.where(mask, lpv, 0.0), axis=(-2, -1))
+        return jnp.where(jnp.isfinite(total), total, -jnp.inf)
+
+    return loglik
+
+
+class LikelihoodTerms(NamedTuple):
+    """What :func:`likelihood_terms` builds, ready to plug into ``make_problem``.
+
+    log_likelihood: ``theta [N, D] -> [N]`` nats. value_and_grad: its value and uphill gradient
+      (central differences for Boltzmann; autodiff through the FD-JVP simulator otherwise).
+    extra_labels: labels of theta's extra columns after the 2R gains (``("sigma_x",)`` or ()).
+      The column holds ``log sigma_x`` (sigma_x in m).
+    extra_lower, extra_upper: [E] initial-particle box of the extra columns (theta units).
+    extra_log_prior: ``theta [N, D] -> [N]`` prior of the extra columns (None if E = 0).
+    kT: the Boltzmann temperature used (None for the generative kinds).
+    sigma_x: fixed displacement noise (m) if not inferred: given, or for Boltzmann with
+      ``kT="auto"`` the data estimate (for the predictive band); None otherwise (fixed-kT
+      Boltzmann without a given noise: the paper's mode, parameter bands only).
+    settings: JSON-ready record. description: human-readable lines (print them).
+    """
+
+    log_likelihood: Callable
+    value_and_grad: Callable
+    extra_labels: tuple[str, ...]
+    extra_lower: np.ndarray
+    extra_upper: np.ndarray
+    extra_log_prior: Callable | None
+    kT: float | None
+    sigma_x: float | None
+    settings: dict
+    description: str
+
+    @property
+    def black_box(self) -> bool:
+        """True: ``log_likelihood`` must be differenced (``combined_value_and_grad``'s
+        ``fd_terms``: the Boltzmann loss). False: JAX differentiates it (its simulator is wrapped
+        in :func:`finite_difference_jvp`), so it goes with the ``autodiff_terms``."""
+        return self.settings.get("likelihood") == "boltzmann"
+
+    def log_prior_terms(self) -> list:
+        """The extra columns' prior as a list of terms (empty when there are none)."""
+        return [] if self.extra_log_prior is None else [self.extra_log_prior]
+
+
+def likelihood_terms(
+    sim: Simulator,
+    obs: Observations,
+    kind: str = "boltzmann",
+    *,
+    kT: float | str = DEFAULT_KT,
+    sigma_x: float | None = None,
+    sigma_v: float | None = None,
+    df: float = noise.DEFAULT_STUDENT_T_DF,
+    sigma_prior_scale: float = noise.SIGMA_PRIOR_SCALE,
+    grasp_fraction=None,
+    gradient: str = "fd",
+    rel_step: float | None = None,
+) -> LikelihoodTerms:
+    """The likelihood part of the posterior for one tree + data + likelihood choice.
+
+    Args:
+      kind: ``"boltzmann"`` (the paper's loss, ``kT`` a number or ``"auto"``), ``"gaussian"``,
+        ``"student_t"`` or ``"ar1"`` (generative, :mod:`treeinfer.noise`; theta then has the
+        noise columns of :func:`noise_columns` after the gains).
+      sigma_x: m. Generative kinds: fixed noise, or None to infer ``log sigma_x`` jointly as
+        theta's last column with prior ``Normal(log sigma_hat, sigma_prior_scale)`` centred on
+        the data estimate. Boltzmann with ``kT="auto"``: use it instead of the estimate.
+      sigma_v: m/s, velocity noise for the generative kinds (None: velocity term off).
+      gradient: ``"fd"`` (black box, central differences) or ``"autodiff"`` (through the simulator).
+    """
+    noise.check_kind(kind)
+    if gradient not in ("fd", "autodiff"):
+        raise ConfigError(f"gradient: expected 'fd' or 'autodiff', got {gradient!r}")
+    empty = np.zeros((0,))
+    if kind == "boltzmann":
+        if isinstance(kT, str):
+            if kT != "auto":
+                raise ConfigError(f"kT: expected a positive number or 'auto', got {kT!r}")
+            choice = auto_kT(obs, sigma_x)
+            kT_value, est, desc = choice.kT, choice.estimate.sigma, choice.describe()
+            extra = {"kT_rule": desc, "omega2": choice.omega2}
+        else:
+            kT_value, extra = check_kT(kT), {}
+            # the paper's mode: no noise model unless one is given (then predictive bands use it)
+            est = None if sigma_x is None else noise.check_sigma(
+                sigma_x, "noise_displacement", noise.displacement_range(obs)
+            )
+            desc = f"Boltzmann likelihood, kT = {kT_value:g} (fixed)"
+        loglik = boltzmann_log_likelihood(sim, obs, kT_value, grasp_fraction)
+        vg = (central_difference(loglik, rel_step=rel_step) if gradient == "fd"
+              else autodiff_value_and_grad(loglik))
+        settings = {"likelihood": "boltzmann", "kT": kT_value, "kT_auto": isinstance(kT, str),
+                    "noise_displacement": est, **extra}
+        return LikelihoodTerms(loglik, vg, (), empty, empty, None, kT_value, est, settings, desc)
+
+    df = noise.check_df(df)
+    loglik = measurement_log_likelihood(
+        sim, obs, kind, sigma_x, sigma_v, df, grasp_fraction, rel_step, black_box=gradient == "fd"
+    )
+    vg = autodiff_value_and_grad(loglik)
+    names = {"gaussian": "Gaussian", "student_t": f"Student-t (df = {df:g})",
+             "ar1": "white + AR(1)"}
+    vel = f", velocity noise {sigma_v:g} m/s" if sigma_v is not None else ", velocity term off"
+    settings = {"likelihood": kind, "noise_velocity": sigma_v,
+                "student_t_df": df if kind == "student_t" else None}
+    if not (math.isfinite(float(sigma_prior_scale)) and sigma_prior_scale > 0):
+        raise ConfigError(
+            f"sigma_prior_scale: must be a finite positive number, got {sigma_prior_scale!r}"
+        )
+    labels = noise_columns(kind, sigma_x is None)
+    if sigma_x is not None:
+        sx = noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
+        settings.update(noise_displacement=sx, noise_inferred=False)
+        desc = f"{names[kind]} displacement noise, sigma_x = {sx * 1e3:.4g} mm (given){vel}"
+        if kind != "ar1":
+            return LikelihoodTerms(loglik, vg, (), empty, empty, None, None, sx, settings, desc)
+        est = noise.NoiseEstimate(sx, 0, "given")
+    else:
+        est = noise.estimate_displacement_noise(obs)
+        sx = None
+        settings.update(noise_displacement=None, noise_inferred=True, noise_estimate=est.sigma)
+        desc = (f"{names[kind]} displacement noise, sigma_x inferred (prior log sigma_x ~ "
+                f"Normal(log sigma_hat, {sigma_prior_scale:g}); {est.describe()}){vel}")
+    sigma_prior = noise.log_sigma_prior(est.sigma, sigma_prior_scale)
+    rho_prior = dist.Normal(noise.RHO_PRIOR_LOC, noise.RHO_PRIOR_SCALE)
+    col = 2 * sim.n_joints
+    centre = math.log(est.sigma)
+    lower, upper, priors = [], [], []
+    for k, lab in enumerate(labels):
+        if lab == "rho":
+            lower.append(0.0)  # rho 0.5 .. 0.99 for the initial particles
+            upper.append(math.log(0.99 / 0.01))
+            priors.append((col + k, rho_prior.log_prob))
+        else:
+            lower.append(centre - 1.0)
+            upper.append(centre + 1.0)
+            priors.append((col + k, sigma_prior))
+
+    def extra_log_prior(theta):
+        theta = jnp.asarray(theta)
+        return sum(f(theta[:, j]) for j, f in priors)
+
+    settings["noise_prior"] = {
+        lab: (f"logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, {noise.RHO_PRIOR_SCALE:g})"
+              if lab == "rho"
+              else f"log {lab} ~ Normal(log {est.sigma:.4g}, {sigma_prior_scale:g})")
+        for lab in labels
+    }
+    if kind == "ar1":
+        desc += (f"; AR(1) component sigma_c, rho inferred (log sigma_c ~ Normal(log sigma_hat, "
+                 f"{sigma_prior_scale:g}), logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, "
+                 f"{noise.RHO_PRIOR_SCALE:g}))")
+    return LikelihoodTerms(
+        loglik, vg, labels, np.array(lower), np.array(upper), extra_log_prior, None, sx,
+        settings, desc,
+    )

@@ -298,8 +298,8 @@ def pair_plot(
     finite = {k: v[np.all(np.isfinite(v), axis=1)] for k, v in sets.items()}
     allv = np.concatenate(list(finite.values()))
     lo, hi = allv.min(0), allv.max(0)
-    if tr is not None:
-        lo, hi = np.minimum(lo, tr), np.maximum(hi, tr)
+    if tr is not None:  # NaN entries: no true value (e.g. a noise column), nothing marked
+        lo, hi = np.fmin(lo, tr), np.fmax(hi, tr)
     pad = np.where(hi > lo, 0.05 * (hi - lo), np.maximum(np.abs(lo) * 0.05, 1e-3))
     lo, hi = lo - pad, hi + pad
 
@@ -345,9 +345,9 @@ def pair_plot(
             ax.set_xlim(lo[j], hi[j])
             if j < i:
                 ax.set_ylim(lo[i], hi[i])
-                if tr is not None:
+                if tr is not None and np.isfinite(tr[i]) and np.isfinite(tr[j]):
                     ax.plot(tr[j], tr[i], "o", color=GT_COLOR, ms=5, zorder=5)
-            elif tr is not None:
+            elif tr is not None and np.isfinite(tr[i]):
                 ax.axvline(tr[i], color=GT_COLOR, lw=1.2, zorder=5)
             if i == D - 1:
                 ax.set_xlabel(labels[j])

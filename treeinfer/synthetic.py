@@ -96,15 +96,28 @@ def simulate_batch(
     max_sim_dt: float | None = None,
     backend: str = "auto",
     log: Callable[[str], None] = lambda msg: None,
+    force_interp: str = "linear",
+    sim_tolerance: float | None = None,
+    grasp_fraction=None,
 ):
     """One batched rollout of P = 1 parameter set (``kp``, ``kd`` [R]) under ``forces`` [B, T]
-    (N, sampled every ``dt`` s): ``(Rollout [1, B, T] on the host, Simulator)``."""
+    (N, sampled every ``dt`` s): ``(Rollout [1, B, T] on the host, Simulator)``. The step is
+    accuracy-controlled on these forces (``sim_tolerance`` m, default 0.1 mm; ``max_sim_dt`` s)
+    with the forces interpolated as ``force_interp`` says; ``grasp_fraction`` as in
+    :func:`treeinfer.sim.simulate` (only for choosing the step)."""
     import jax
 
     from .sim import DEFAULT_MAX_SIM_DT, make_simulator, simulate
 
     sim = make_simulator(
-        sim_tree(tree, kp), obs_dt=dt, max_sim_dt=max_sim_dt or DEFAULT_MAX_SIM_DT, backend=backend
+        sim_tree(tree, kp),
+        obs_dt=dt,
+        max_sim_dt=max_sim_dt or DEFAULT_MAX_SIM_DT,
+        backend=backend,
+        force_interp=force_interp,
+        forces=np.asarray(forces, float),
+        sim_tolerance=sim_tolerance,
+        grasp_fraction=grasp_fraction,
     )
     slow = (
         " (MJX compiles for up to a minute on new shapes; cached afterwards)"

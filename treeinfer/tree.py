@@ -119,6 +119,8 @@ class Tree:
     pull_direction: str | tuple[float, float, float] = "down"
     # gains the samplers move (``inference: {parameters: [kp]}``): ("kp", "kd") or ("kp",)
     parameters: tuple[str, ...] = ("kp", "kd")
+    # the user's own URDF/MJCF (treeinfer.usermodel): the validated ``model:`` section, or None
+    model: dict | None = None
 
     # ---- lookups -------------------------------------------------------------------------
     @property
@@ -579,7 +581,7 @@ _BRANCH_KEYS = {
     "name", "parent", "length", "radius", "angle_deg", "azimuth_deg", "attach", "density", "kp", "kd", "fixed",
 }
 _TOP_KEYS = {
-    "name", "branches", "base", "gravity", "density", "grasp", "inference", "fixed", "generator", "pull",
+    "name", "branches", "base", "gravity", "density", "grasp", "inference", "fixed", "generator", "pull", "model",
 }
 
 
@@ -591,8 +593,9 @@ def _no_unknown(m: Any, allowed: set[str], fld: str, pre: str) -> None:
         raise TreeFileError(f"{pre}{fld}: unknown field(s) {sorted(bad)}; allowed: {sorted(allowed)}")
 
 
-def tree_from_dict(d: Any, source: str = "<dict>") -> Tree:
-    """Build a tree from the parsed file content; errors name ``source`` and the field."""
+def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None = None) -> Tree:
+    """Build a tree from the parsed file content; errors name ``source`` and the field.
+    ``base_dir``: where a relative ``model.file`` lies (the tree file's folder)."""
     pre = f"{source}: "
     if not isinstance(d, dict):
         raise TreeFileError(f"{pre}expected a mapping at the top level, got {type(d).__name__}")
@@ -718,12 +721,21 @@ def tree_from_dict(d: Any, source: str = "<dict>") -> Tree:
             fixed_kd=_positive(fixed.get("kd", DEFAULT_FIXED_KD), "fixed.kd"),
             pull_direction=pull_direction,
             parameters=parameters,
+            model=_model_section(d.get("model"), source, base_dir),
         )
     except TreeFileError as e:
         msg = str(e)
         raise TreeFileError(msg if msg.startswith(pre) else f"{pre}{msg}") from None
     except (TypeError, ValueError, AttributeError) as e:
         raise TreeFileError(f"{pre}malformed field: {e}") from None
+
+
+def _model_section(raw: Any, source: str, base_dir) -> dict | None:
+    if raw is None:
+        return None
+    from .modelsection import parse_model_section
+
+    return parse_model_section(raw, source, base_dir)
 
 
 def tree_to_dict(tree: Tree) -> dict[str, Any]:
@@ -763,6 +775,8 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
     if tree.pull_direction != "down":
         pd = tree.pull_direction
         out["pull"] = {"direction": pd if isinstance(pd, str) else [float(x) for x in pd]}
+    if tree.model is not None:
+        out["model"] = dict(tree.model)
     return out
 
 
@@ -775,7 +789,12 @@ def read_tree_file(path: str | Path) -> Any:
 def load_tree(path: str | Path) -> Tree:
     """Read a tree description from YAML (``.yaml``/``.yml``) or JSON (``.json``)."""
     path = Path(path)
-    return tree_from_dict(read_tree_file(path), source=str(path))
+    if path.suffix.lower() in (".urdf", ".xml", ".mjcf") and path.is_file():
+        raise TreeFileError(
+            f"{path}: a URDF/MJCF model, not a tree description; describe it with "
+            f"`treeinfer tree --model {path} --out tree.yaml` (or give it with --model)"
+        )
+    return tree_from_dict(read_tree_file(path), source=str(path), base_dir=path.parent)
 
 
 def dump_tree(tree: Tree, path: str | Path) -> Path:

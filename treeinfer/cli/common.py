@@ -39,6 +39,7 @@ COMMAND_HELP: dict[str, str] = {
     "evaluate": "held-out metrics of a run (or k-fold cross-validation with its settings)",
     "demo": "end-to-end example on the built-in 2-branch tree (synthetic data, NNSVGD, metrics)",
     "suggest": "rank candidate next pulls by expected information gain for a run's posterior",
+    "calibrate": "simulation-based calibration: rank histograms, coverage, uniformity test",
 }
 
 
@@ -247,3 +248,118 @@ def _print_metrics(m: dict, what: str) -> None:
                 else f"; inside the joint 95% region: {'yes' if m['truth_in_joint_region'] else 'no'}"
             )
         )
+
+
+def add_simulation_options(p: argparse.ArgumentParser, default_note: str = "") -> None:
+    """``--force-interp``, ``--max-sim-dt`` and ``--sim-tolerance`` (defaults None: the
+    simulator's, or a run's recorded settings where ``default_note`` says so)."""
+    p.add_argument(
+        "--force-interp",
+        choices=("linear", "hold"),
+        default=None,
+        help="force between samples: 'linear' (interpolated, the default: a sampled force is "
+        "continuous) or 'hold' (each sample held until the next)" + default_note,
+    )
+    p.add_argument(
+        "--max-sim-dt",
+        type=float,
+        default=None,
+        metavar="S",
+        help="s, upper bound on the simulation step (default 0.005)" + default_note,
+    )
+    p.add_argument(
+        "--sim-tolerance",
+        type=float,
+        default=None,
+        metavar="M",
+        help="m, accuracy target of the simulated displacement: the step is refined until its "
+        "estimated error on the force profiles, over the prior box, is below it (default 1e-4)"
+        + default_note,
+    )
+
+
+def check_simulation_options(args: argparse.Namespace) -> None:
+    """ConfigError naming the flag for a non-positive --max-sim-dt or --sim-tolerance."""
+    for flag, v in (("--max-sim-dt", args.max_sim_dt), ("--sim-tolerance", args.sim_tolerance)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise ConfigError(f"{flag}: must be a positive number, got {v:g}")
+
+
+def _print_simulation(sim_summary: dict | None) -> None:
+    """The chosen simulation step and its estimated error (summary.json's ``simulation``)."""
+    if not sim_summary:
+        return
+    s = sim_summary
+    line = (
+        f"simulation: forces {s['force_interp']} between samples, {s['substeps']} substeps of "
+        f"{s['sim_dt_s'] * 1e3:.3g} ms"
+    )
+    if s.get("estimated_error_m") is not None:
+        line += (
+            f", estimated displacement error {s['estimated_error_m'] * 1e3:.3g} mm "
+            f"(tolerance {s['sim_tolerance_m'] * 1e3:.3g} mm)"
+        )
+    _say(line)
+
+
+_RUN_SIM_NOTE = "; default: the run's recorded simulator"
+
+
+def simulator_for_run(run, args: argparse.Namespace, forces, grasp_fraction, cache):
+    """The run's recorded simulator, or, when --force-interp, --max-sim-dt or --sim-tolerance
+    is given, one with those settings whose step is accuracy-controlled on ``forces`` [B, T]."""
+    from .. import runs
+
+    check_simulation_options(args)
+    if args.force_interp is None and args.max_sim_dt is None and args.sim_tolerance is None:
+        return run.sim
+    return runs.simulator_for(
+        run.tree,
+        run.sim.obs_dt,
+        None,
+        run.sim.backend,
+        cache,
+        force_interp=args.force_interp or run.sim.force_interp,
+        max_sim_dt=args.max_sim_dt,
+        sim_tolerance=args.sim_tolerance,
+        forces=np.asarray(forces, float),
+        grasp_fraction=grasp_fraction,
+    )
+
+
+def add_model_options(p: argparse.ArgumentParser, run: bool = False) -> None:
+    """``--model FILE`` (a user's own URDF/MJCF) and, for new trees/runs, ``--repair-inertia``."""
+    if run:
+        p.add_argument(
+            "--model",
+            type=Path,
+            metavar="FILE",
+            help="where the run's own URDF/MJCF model lies now, if it moved (its sha256 must be "
+            "the recorded one); default: the file recorded in the run",
+        )
+        return
+    p.add_argument(
+        "--model",
+        type=Path,
+        metavar="FILE",
+        help="simulate your own URDF (.urdf) or MJCF (.xml) model instead of the tree's "
+        "cylinders; the tree file names the inferred joints, the grasped branch and the "
+        "grasp point, and its model: section maps branch names to joint/link names",
+    )
+    p.add_argument(
+        "--repair-inertia",
+        choices=("geometry", "floor"),
+        default=None,
+        help="repair links with zero or non-positive-definite inertia (as in files rounded to a "
+        "few decimals): 'geometry' (solid cylinder of the link's cylinder geom) or 'floor' "
+        "(eigenvalues raised to a 1 cm radius of gyration); reported and recorded",
+    )
+
+
+def print_model_report(report: dict | None) -> None:
+    """What was matched, set and repaired in a user model (stderr)."""
+    if report:
+        from ..usermodel import describe_report
+
+        for line in describe_report(report):
+            _say(line)

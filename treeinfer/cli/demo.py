@@ -10,7 +10,7 @@ import numpy as np
 from .. import runs
 from .._io import check_output_dir, staged_output_dir
 from ..errors import ConfigError, SimulationError
-from ..evaluation import band_arrays, evaluate_trajectories, write_evaluation
+from ..evaluation import band_arrays, evaluate_trajectories, noise_for, write_evaluation
 from ..forces import DEFAULT_PEAK_RANGE, from_spec, random_specs
 from ..synthetic import default_true_params, simulate_batch, synthetic_trajectories
 from ..trajectories import TRUE_PARAMS_FILE, true_params_record, write_trajectory, write_true_params
@@ -24,9 +24,12 @@ from .common import (
     _prepare_jax,
     _print_metrics,
     _print_posterior,
+    _print_simulation,
     _print_warnings,
     _say,
     add_command_parser,
+    add_simulation_options,
+    check_simulation_options,
 )
 from .infer import INFER_DEFAULTS
 
@@ -68,6 +71,7 @@ def configure_demo(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--force", action="store_true", help="replace the contents of a non-empty output folder"
     )
+    add_simulation_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -109,7 +113,19 @@ def run_demo(args: argparse.Namespace) -> int:
         f"demo: simulating {n_train} training and {n_test} unseen test pulls of {duration:g} s on '{tree.name}' "
         f"with {_fmt_params(tree, kp, kd)}"
     )
-    rollout, _ = simulate_batch(tree, kp, kd, forces, dt, None, log=_say)
+    check_simulation_options(args)
+    interp = args.force_interp or "linear"
+    rollout, _ = simulate_batch(
+        tree,
+        kp,
+        kd,
+        forces,
+        dt,
+        args.max_sim_dt,
+        log=_say,
+        force_interp=interp,
+        sim_tolerance=args.sim_tolerance,
+    )
     if not np.asarray(rollout.stable).all():
         raise SimulationError(
             "demo: the synthetic pulls blew up; this is a bug in the demo's settings"
@@ -149,6 +165,9 @@ def run_demo(args: argparse.Namespace) -> int:
         max_unstable_share=INFER_DEFAULTS["max_unstable_share"],
         checkpoint_every=checkpoint_every,
         force=args.force,
+        force_interp=interp,
+        max_sim_dt=args.max_sim_dt,
+        sim_tolerance=args.sim_tolerance,
     )
     config["via"] = "demo"
     _say(f"demo: {sampler} with {particles} particles x {iterations} iterations")
@@ -157,8 +176,10 @@ def run_demo(args: argparse.Namespace) -> int:
     run = runs.load_run(out / "run", cache)
     truth = np.concatenate([kp, kd])
     test = trajs[n_train:]
+    sigma, kind = noise_for(run.theta, run.sim.n_joints, run.config.get("problem"))
     m, pred, obs = evaluate_trajectories(
-        run.sim, run.theta, list(run.labels), test, run.kT, None, truth, run.stable
+        run.sim, run.theta, list(run.labels), test, run.kT, None, truth, run.stable,
+        noise_sigma=sigma, noise_kind=kind,
     )
     eval_config = _base_config("evaluate", args)
     eval_config.update(
@@ -201,6 +222,7 @@ def run_demo(args: argparse.Namespace) -> int:
     runs.write_json(out / "demo.json", demo)
 
     print(f"true parameters: {_fmt_params(tree, kp, kd)}")
+    _print_simulation(outcome.summary.get("simulation"))
     _print_posterior(outcome.summary)
     _print_metrics(m, f"unseen test trajectories ({n_test})")
     _print_warnings(outcome.summary["convergence_warnings"])

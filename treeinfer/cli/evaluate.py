@@ -16,11 +16,13 @@ from ..evaluation import (
     evaluate_trajectories,
     kfold_splits,
     mean_metrics,
+    noise_for,
     write_evaluation,
 )
 from ..pulls import data_grasp_fractions
 from ..trajectories import band_csv_text, read_trajectory_dir, stack_trajectories
 from .common import (
+    _RUN_SIM_NOTE,
     COMMAND_HELP,
     EXIT_OK,
     _base_config,
@@ -28,8 +30,13 @@ from .common import (
     _metrics_md,
     _prepare_jax,
     _print_metrics,
+    _print_simulation,
     _say,
     add_command_parser,
+    add_model_options,
+    add_simulation_options,
+    check_simulation_options,
+    simulator_for_run,
 )
 
 # ==== evaluate ====================================================================================
@@ -94,6 +101,8 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
+    add_model_options(p, run=True)
+    add_simulation_options(p, _RUN_SIM_NOTE)
     p.add_argument("--allow-modified", action="store_true", help="use the run even if its files changed since `infer` wrote them (checksums in its config.json); recorded in the output")
     return p
 
@@ -118,8 +127,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
     check_output_dir(args.out, args.force, "evaluation", inputs=[args.run, args.data])
     _prepare_jax()
+    check_simulation_options(args)
     cache = runs.SimulatorCache()  # this command's simulators (the run's, and k-fold's)
-    run = runs.load_run(args.run, cache, allow_modified=args.allow_modified)
+    run = runs.load_run(
+        args.run, cache, allow_modified=args.allow_modified, model_file=args.model
+    )
     for note in run.notes:
         _say(f"warning: {note}")
     trajs = read_trajectory_dir(args.data)
@@ -157,9 +169,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
         from ..static import model_with_pulls
 
         model, grasp = model_with_pulls(run.model, args.data, [t.source for t in trajs], grasp)
+        sim = simulator_for_run(run, args, stack_trajectories(trajs).force, grasp, cache)
+        config["simulation"] = runs.simulation_summary(sim)
+        _print_simulation(config["simulation"])
+        sigma, kind = noise_for(run.theta, run.sim.n_joints, run.config.get("problem"))
         m, pred, obs = evaluate_trajectories(
-            run.sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable,
-            model=model,
+            sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable,
+            noise_sigma=sigma, noise_kind=kind, model=model,
         )
         metrics = {"run": str(args.run), "data": str(args.data), "metrics": m}
         md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md(

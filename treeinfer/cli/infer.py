@@ -23,9 +23,13 @@ from .common import (
     _prepare_jax,
     _print_fit,
     _print_posterior,
+    _print_simulation,
     _print_warnings,
     _say,
     add_command_parser,
+    add_model_options,
+    add_simulation_options,
+    print_model_report,
 )
 
 # ==== infer =======================================================================================
@@ -34,7 +38,8 @@ from .common import (
 INFER_DEFAULTS: dict[str, Any] = {
     f.name: f.default
     for f in fields(RunConfig)
-    if f.default is not MISSING and f.name not in ("grasp_fraction", "force")
+    if f.default is not MISSING
+    and f.name not in ("grasp_fraction", "force", "model", "repair_inertia")
 }
 # options a resumed run takes from its checkpoint's config (argparse dest -> flag)
 _RUN_OPTIONS = {
@@ -61,7 +66,24 @@ _RUN_OPTIONS = {
     "model_kind": "--model-kind",
     "gradients": "--gradients",
     "init": "--init",
+    "force_interp": "--force-interp",
+    "max_sim_dt": "--max-sim-dt",
+    "sim_tolerance": "--sim-tolerance",
+    "likelihood": "--likelihood",
+    "noise_displacement": "--noise-displacement",
+    "model": "--model",
+    "repair_inertia": "--repair-inertia",
 }
+
+
+def _kT_arg(s: str):
+    """``--kT``: a number, or ``auto`` (set from the data's noise estimate)."""
+    if s.strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number or 'auto', got {s!r}") from None
 
 _INFER_EPILOG = """\
 examples:
@@ -118,9 +140,25 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--kT",
+        type=_kT_arg,
+        metavar="X|auto",
+        help=f"Boltzmann likelihood temperature in loss units (m + m/s) per nat; smaller = sharper posterior; "
+        f"'auto': from the data's displacement-noise estimate, kT = sigma / sqrt(T) * (1 + sqrt(2) dt omega2), "
+        f"printed (default {d['kT']:g}, the paper-reproduction value; see treeinfer.likelihood)",
+    )
+    p.add_argument(
+        "--likelihood",
+        choices=("boltzmann", "gaussian", "student_t", "ar1"),
+        help="boltzmann: the paper's loss with temperature --kT (default); gaussian: recorded = simulated "
+        "displacement + white noise sigma_x (inferred unless --noise-displacement; calibrated bands); "
+        "student_t: the same with heavy tails (outliers); ar1: white + AR(1) residuals (slow errors, e.g. force noise)",
+    )
+    p.add_argument(
+        "--noise-displacement",
         type=float,
-        metavar="X",
-        help=f"likelihood temperature in loss units (m + m/s) per nat; smaller = sharper posterior (default {d['kT']:g})",
+        metavar="M",
+        help="displacement noise sigma_x in metres for --likelihood gaussian/student_t/ar1 (default: inferred "
+        "jointly, prior centred on the data's estimate) or for --kT auto (default: estimated)",
     )
     p.add_argument(
         "--seed",
@@ -237,6 +275,8 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "under each force sample, for slow quasi-static pushes: stiffness only, damping not "
         "identified (infer prints a notice when the data look quasi-static)",
     )
+    add_model_options(p)
+    add_simulation_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--allow-poor-fit", action="store_true", help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 otherwise); the verdict stays in summary.json")
     p.add_argument("--allow-implausible-data", action="store_true", help="sample even if the plausibility checks find errors in the data (wrong units, swapped columns, duplicates ...); they are printed and recorded in summary.json")
@@ -279,7 +319,15 @@ def run_infer(args: argparse.Namespace) -> int:
         o["grasp_fraction"] = args.grasp_fraction
         _check_infer_options(o)
         run_dir = args.out
-        config = runs.infer_config(args.tree, args.data, args.out, force=bool(args.force), **o)
+        config = runs.infer_config(
+            args.tree,
+            args.data,
+            args.out,
+            force=bool(args.force),
+            model=args.model,
+            repair_inertia=args.repair_inertia,
+            **o,
+        )
         _say(
             f"{len(config['data']['files'])} training trajectories from {args.data}; sampling with {o['sampler']} "
             f"({o['particles']} particles x {o['iterations']} iterations)"
@@ -313,6 +361,8 @@ def run_infer(args: argparse.Namespace) -> int:
     s = outcome.summary
     if s.get("stop_reason", "max_iterations") != "max_iterations":
         _say(f"stopped early: {s['stop_reason']}")
+    print_model_report(s.get("model"))
+    _print_simulation(s.get("simulation"))
     _print_posterior(s)
     if s.get("damping"):
         print(s["damping"])

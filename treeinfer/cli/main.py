@@ -67,6 +67,7 @@ COMMANDS: dict[str, Command] = {
     "evaluate": _command("evaluate"),
     "demo": _command("demo"),
     "suggest": _command("suggest"),
+    "calibrate": _command("calibrate"),
 }
 
 _MAIN_EPILOG = """\

@@ -12,20 +12,26 @@ import numpy as np
 from .. import runs
 from .._io import atomic_write_text, check_output_dir, staged_output_dir
 from ..errors import ConfigError
-from ..evaluation import predict_run
+from ..evaluation import noise_for, predict_run
 from ..forces import from_spec
 from ..metrics import fraction_outside
 from ..plots import plot_trajectory_bands, save_figure
 from ..pulls import PULLS_FILE, ResolvedPull, check_same_pull, load_data_pulls, pull_direction
 from ..trajectories import ForceProfile, band_csv_text, read_force_profile
 from .common import (
+    _RUN_SIM_NOTE,
     COMMAND_HELP,
     EXIT_OK,
     _base_config,
     _check_grasp,
     _prepare_jax,
+    _print_simulation,
     _say,
     add_command_parser,
+    add_model_options,
+    add_simulation_options,
+    check_simulation_options,
+    simulator_for_run,
 )
 
 # ==== predict =====================================================================================
@@ -103,6 +109,8 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         help="replace a non-empty output folder, as in every command (`--force FILE`, the old "
         "spelling of --force-csv FILE, still works but is deprecated)",
     )
+    add_model_options(p, run=True)
+    add_simulation_options(p, _RUN_SIM_NOTE)
     p.add_argument(
         "--allow-modified",
         action="store_true",
@@ -165,7 +173,11 @@ def run_predict(args: argparse.Namespace) -> int:
     inputs = [args.run] + ([args.force_file] if args.force_file is not None else [])
     check_output_dir(args.out, overwrite, "prediction", inputs=inputs)
     _prepare_jax()
-    run = runs.load_run(args.run, runs.SimulatorCache(), allow_modified=args.allow_modified)
+    check_simulation_options(args)
+    cache = runs.SimulatorCache()
+    run = runs.load_run(
+        args.run, cache, allow_modified=args.allow_modified, model_file=args.model
+    )
     for note in run.notes:
         _say(f"warning: {note}")
     dt_run = run.sim.obs_dt
@@ -211,11 +223,28 @@ def run_predict(args: argparse.Namespace) -> int:
     elif src is not None:
         grasp, same = _compare_check(args, run, grasp)
         compare = compare and same
-    pred = predict_run(run.sim, run.theta, prof.force[None], grasp, run.stable, model=model)
+    sim = simulator_for_run(run, args, prof.force[None], grasp, cache)
+    _print_simulation(runs.simulation_summary(sim))
+    sigma, kind = noise_for(run.theta, run.sim.n_joints, run.config.get("problem"))
+    pred = predict_run(
+        sim, run.theta, prof.force[None], grasp, run.stable, noise_sigma=sigma, noise_kind=kind,
+        model=model,
+    )
     n_bad = int((~pred.valid).sum())
-    lower, upper, mean = pred.lower[0], pred.upper[0], pred.mean[0]
+    mean = pred.mean[0]
+    lower, upper = (a[0] for a in pred.band())  # what a recording is compared with
+    has_noise = pred.predictive_lower is not None
+    band_name = (
+        "predictive band (simulation + fitted noise)"
+        if has_noise
+        else "parameter band (no noise model known)"
+    )
     recorded = prof.displacement if compare else None
-    csv_text = band_csv_text(prof.time, prof.force, recorded, mean, lower, upper)
+    csv_text = band_csv_text(
+        prof.time, prof.force, recorded, mean, pred.lower[0], pred.upper[0],
+        pred.predictive_lower[0] if has_noise else None,
+        pred.predictive_upper[0] if has_noise else None,
+    )
     config = _base_config("predict", args)
     config.update(
         run=str(Path(args.run).resolve()),
@@ -239,7 +268,7 @@ def run_predict(args: argparse.Namespace) -> int:
             mean,
             recorded,
             samples=pred.tau[pred.valid, 0],
-            title=f"{prof.source}: 95% band, {int(pred.valid.sum())} particles",
+            title=f"{prof.source}: 95% {band_name}, {int(pred.valid.sum())} particles",
         )
         save_figure(fig, stage / "prediction.png")
         runs.write_json(stage / "config.json", config)

@@ -17,6 +17,7 @@ from .. import __version__
 from .._io import atomic_write_json, check_output_dir, staged_output_dir
 from ..errors import ConfigError, SimulationError
 from ..forces import DEFAULT_PEAK_RANGE, SET_KINDS, from_spec, n_steps, random_specs
+from ..runs import simulation_summary
 from ..sim import DEFAULT_MAX_SIM_DT
 from ..synthetic import default_true_params, parse_params, simulate_batch, synthetic_trajectories
 from ..trajectories import (
@@ -27,6 +28,7 @@ from ..trajectories import (
     write_true_params,
 )
 from ..tree import dump_tree, load_tree
+from ..usermodel import attach_model
 from .common import (
     COMMAND_HELP,
     EXIT_OK,
@@ -34,8 +36,13 @@ from .common import (
     _fmt_params,
     _pair,
     _prepare_jax,
+    _print_simulation,
     _say,
     add_command_parser,
+    add_model_options,
+    add_simulation_options,
+    check_simulation_options,
+    print_model_report,
 )
 
 # ==== simulate ====================================================================================
@@ -143,12 +150,8 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
         metavar="F",
         help="grasp point along the grasped branch, in (0, 1] (default: the tree's)",
     )
-    p.add_argument(
-        "--max-sim-dt",
-        type=float,
-        default=None,
-        help="s, upper bound on the simulation step (default 0.005)",
-    )
+    add_model_options(p)
+    add_simulation_options(p)
     p.add_argument(
         "--backend",
         choices=("auto", "fused", "mjx"),
@@ -184,10 +187,7 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got {args.grasp_fraction:g}"
         )
-    if args.max_sim_dt is not None and not (math.isfinite(args.max_sim_dt) and args.max_sim_dt > 0):
-        raise ConfigError(
-            f"--max-sim-dt: must be a positive number of seconds, got {args.max_sim_dt:g}"
-        )
+    check_simulation_options(args)
     lo, hi = args.peak_range
     if lo > hi:
         raise ConfigError(f"--peak-range: LO must not exceed HI, got {lo:g},{hi:g}")
@@ -203,6 +203,8 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
 def run_simulate(args: argparse.Namespace) -> int:
     n_t = _check_simulate_args(args)
     tree = load_tree(args.tree)
+    if args.model is not None or args.repair_inertia is not None or tree.model is not None:
+        tree = attach_model(tree, args.model, args.repair_inertia)
     if args.grasp_fraction is not None:
         tree = tree.with_grasp(args.grasp_fraction)
     seq = np.random.SeedSequence(args.seed)  # independent streams: parameters, profiles, noise
@@ -226,8 +228,18 @@ def run_simulate(args: argparse.Namespace) -> int:
 
     _prepare_jax()
     rollout, sim = simulate_batch(
-        tree, kp, kd, forces, args.dt, args.max_sim_dt, args.backend, _say
+        tree,
+        kp,
+        kd,
+        forces,
+        args.dt,
+        args.max_sim_dt,
+        args.backend,
+        _say,
+        force_interp=args.force_interp or "linear",
+        sim_tolerance=args.sim_tolerance,
     )
+    print_model_report(sim.model_report)
     names = [f"traj_{i:03d}.csv" for i in range(len(specs))]
     stable = np.asarray(rollout.stable)[0]
     if not stable.all():
@@ -257,6 +269,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         f"simulated {len(specs)} trajectories of {n_t} samples (dt {args.dt:g} s, {sim.substeps} "
         f"simulation step(s) of {sim.sim_dt:.3g} s each) on tree '{tree.name}'"
     )
+    _print_simulation(simulation_summary(sim))
     print(f"  true parameters: {_fmt_params(tree, kp, kd)}")
     peak = float(np.max(np.abs(np.asarray(rollout.tau))))
     print(
@@ -290,5 +303,5 @@ def _simulate_config(args, tree, specs, n_t, sim) -> dict[str, Any]:
         "n_steps": n_t,
         "dt": args.dt,
         "profiles": specs,
-        "simulation": {"substeps": sim.substeps, "sim_dt": sim.sim_dt, "backend": sim.backend},
+        "simulation": {"sim_dt": sim.sim_dt, **simulation_summary(sim)},
     }

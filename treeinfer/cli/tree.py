@@ -27,6 +27,8 @@ from .common import (
     _refuse_existing,
     _triple,
     add_command_parser,
+    add_model_options,
+    print_model_report,
 )
 
 # ==== tree ========================================================================================
@@ -37,6 +39,12 @@ examples:
   treeinfer tree --kind lsystem --axiom F --rule 'F=F[+F]F[-F]' --iterations 2 --angle 25 --out ls.yaml
   treeinfer tree --from two_branch.yaml --grasp-fraction 0.5 --out two_branch.json --urdf two_branch.urdf
   treeinfer tree --from fractal.yaml --kind fractal --depth 3 --out deeper.yaml   # re-generate
+  treeinfer tree --model my_tree.urdf --grasp link_7 --levels 2 --out my_tree.yaml  # your model
+  treeinfer tree --from my_tree.yaml --model my_tree.urdf --repair-inertia geometry --out t.yaml
+
+--model FILE describes your own URDF/MJCF (one branch per link, joint names mapped under
+model:) or, with --from, attaches it to a tree file; the model is checked (names, inertias,
+joint limits, grasp axis) and the file's sha256 recorded.
 
 Generated trees keep their settings under 'generator:' in the file, so --from FILE --kind KIND
 re-generates with only the given options changed. --kind explicit (the default with --from)
@@ -102,6 +110,7 @@ def configure_tree(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--urdf", type=Path, metavar="FILE", help="also write the URDF model (.urdf)")
     p.add_argument("--force", action="store_true", help="replace existing output files")
+    add_model_options(p)
 
     g = p.add_argument_group("grasp and inference (all kinds)")
     g.add_argument("--name", dest="tree_name", metavar="NAME", help="the tree's name")
@@ -315,6 +324,8 @@ def run_tree(args: argparse.Namespace) -> int:
     out: Path = args.out
     if out.suffix.lower() not in TREE_SUFFIXES:
         raise ConfigError(f"--out {out}: a tree file must end in {', '.join(TREE_SUFFIXES)}")
+    if args.model is not None or args.repair_inertia is not None:
+        return _run_tree_model(args)
     kind = args.kind or ("explicit" if args.source is not None else "fractal")
     settings = _tree_settings(args, kind)
 
@@ -374,4 +385,48 @@ def run_tree(args: argparse.Namespace) -> int:
     if urdf is not None:
         atomic_write_text(args.urdf, urdf)
         print(f"wrote {args.urdf} (URDF)")
+    return EXIT_OK
+
+
+def _run_tree_model(args: argparse.Namespace) -> int:
+    """``tree --model FILE``: describe a user's URDF/MJCF (or attach it to ``--from``'s tree),
+    check that it prepares for the simulator, and write the tree file."""
+    from ..usermodel import attach_model, prepare_user_model, tree_from_model
+
+    out: Path = args.out
+    if args.kind not in (None, "explicit"):
+        raise ConfigError(f"--model describes the model file; --kind {args.kind} does not apply")
+    if args.mjcf is not None or args.urdf is not None:
+        raise ConfigError(
+            "--mjcf/--urdf export the tree's own cylinders; with --model the model file itself "
+            "is simulated"
+        )
+    settings = _tree_settings(args, "explicit")
+    if args.source is not None:
+        tree = load_tree(args.source)
+        tree = _convert(tree, settings, args.source) if settings else tree
+        tree = attach_model(tree, args.model, args.repair_inertia)
+    else:
+        if args.model is None:
+            raise ConfigError("--repair-inertia needs the model: give --model FILE")
+        kw = {k: v for k, v in settings.items() if k != "grasp_fraction"}
+        for key in ("base_position", "base_pitch_deg", "base_yaw_deg"):
+            kw.pop(key, None)
+        tree = tree_from_model(
+            args.model,
+            grasp_fraction=settings.get("grasp_fraction", 1.0),
+            repair_inertia=args.repair_inertia,
+            **kw,
+        )
+    _refuse_existing([out], args.force)
+    prepared = prepare_user_model(tree)  # every check now, not at the first simulation
+    d = tree_to_dict(tree)
+    text = (
+        json.dumps(d, indent=2) + "\n"
+        if out.suffix.lower() == ".json"
+        else yaml.safe_dump(d, sort_keys=False)
+    )
+    atomic_write_text(out, text)
+    print(_summary(tree, out))
+    print_model_report(prepared.report)
     return EXIT_OK

@@ -69,7 +69,15 @@ from .config import (
     read_true_params,
     sampler_settings,
 )
-from .folder import LoadedRun, load_run, particles_csv, posterior_table, save_run
+from .folder import (
+    LoadedRun,
+    load_run,
+    particles_csv,
+    posterior_table,
+    save_run,
+    simulation_line,
+    simulation_summary,
+)
 from .provenance import config_hash, data_manifest, file_sha256, versions
 from .service import (
     FoldResult,
@@ -113,6 +121,8 @@ __all__ = [
     "sampler_settings",
     "save_checkpoint",
     "save_run",
+    "simulation_line",
+    "simulation_summary",
     "simulator_for",
     "state_template",
     "unflatten_state",

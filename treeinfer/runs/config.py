@@ -15,8 +15,10 @@ import numpy as np
 from ..errors import ConfigError
 from ..inference import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA
 from ..likelihood import DEFAULT_KT
+from ..noise import KINDS as LIKELIHOODS
+from ..noise import check_sigma
 from ..samplers import sampler_options, sampler_spec
-from ..sim import BACKENDS
+from ..sim import BACKENDS, FORCE_INTERPS
 from ..trajectories import (
     TRUE_PARAMS_FILE,
     Trajectory,
@@ -69,7 +71,9 @@ class RunConfig:
 
     Attributes: tree, data, out (absolute paths as strings); sampler (a registry name);
     particles (>= 2); iterations (>= 1); backend ("auto", "fused", "mjx"); kT (loss units per
-    nat, > 0); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction (None or in
+    nat, > 0, or "auto": from the data's noise estimate); likelihood ("boltzmann", "gaussian",
+    "student_t", "ar1": :func:`treeinfer.likelihood.likelihood_terms`); noise_displacement (m,
+    None: inferred / estimated); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction (None or in
     (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end only); force;
     prior_from (None or an earlier run folder, absolute: its posterior becomes this run's prior on
     the joints both infer, :mod:`treeinfer.sequential`).
@@ -80,6 +84,12 @@ class RunConfig:
     mcmc_warmup (share of an MCMC trace discarded, in [0, 1)); mcmc_thin (>= 0; 0: thin to at
     most 1024 post-warm-up draws). model_kind ("dynamic": the rollout; "static": equilibria
     under each force sample, stiffness only, :mod:`treeinfer.static`).
+    force_interp ("linear": forces interpolated between samples, "hold"; folders written before it
+    existed were simulated with "hold", which their recorded ``problem`` settings say);
+    max_sim_dt (s, None: the simulator's 5 ms) and sim_tolerance (m, None: 0.1 mm), the bounds of
+    the accuracy-controlled simulation step chosen on the training forces; model (None or the
+    absolute path of the user's own URDF/MJCF, ``--model``) and repair_inertia (None,
+    ``"geometry"``, ``"floor"``), see :mod:`treeinfer.usermodel`.
     """
 
     tree: str
@@ -106,6 +116,13 @@ class RunConfig:
     gradients: str = "fd"
     init: str = "uniform"
     model_kind: str = "dynamic"
+    force_interp: str = "linear"
+    max_sim_dt: float | None = None
+    sim_tolerance: float | None = None
+    likelihood: str = "boltzmann"
+    noise_displacement: float | None = None
+    model: str | None = None
+    repair_inertia: str | None = None
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)
@@ -125,13 +142,20 @@ class RunConfig:
         set_("iterations", _count("--iterations", self.iterations, 1))
         set_("checkpoint_every", _count("--checkpoint-every", self.checkpoint_every, 0))
         set_("seed", _count("--seed", self.seed, 0))
-        set_("kT", _positive("--kT", self.kT, "a positive number (loss units per nat)"))
-        if self.kT < MIN_KT:  # the log-likelihood -L/kT would overflow float32 to -inf everywhere
+        if not (isinstance(self.kT, str) and self.kT == "auto"):
+            set_("kT", _positive("--kT", self.kT, "a positive number (loss units per nat) or 'auto'"))
+            if self.kT < MIN_KT:  # the log-likelihood -L/kT would overflow float32 to -inf everywhere
+                raise ConfigError(
+                    f"--kT: {self.kT:g} is so small that every particle's log-likelihood -L/kT "
+                    f"overflows (below {MIN_KT:g}); a loss of L costs L/kT nats: typical values are "
+                    "1e-3 to 10 (see treeinfer.likelihood.suggest_kT)"
+                )
+        if self.likelihood not in LIKELIHOODS:
             raise ConfigError(
-                f"--kT: {self.kT:g} is so small that every particle's log-likelihood -L/kT "
-                f"overflows (below {MIN_KT:g}); a loss of L costs L/kT nats: typical values are "
-                "1e-3 to 10 (see treeinfer.likelihood.suggest_kT)"
+                f"--likelihood: must be one of {', '.join(LIKELIHOODS)}, got {self.likelihood!r}"
             )
+        if self.noise_displacement is not None:
+            set_("noise_displacement", check_sigma(self.noise_displacement, "--noise-displacement"))
         set_("eta", _positive("--eta", self.eta))
         g = self.grasp_fraction
         if g is not None and not (math.isfinite(g) and 0.0 < g <= 1.0):
@@ -150,8 +174,17 @@ class RunConfig:
             )
         if self.init not in INIT_CHOICES:
             raise ConfigError(f"--init: must be one of {', '.join(INIT_CHOICES)}, got {self.init!r}")
+        if self.force_interp not in FORCE_INTERPS:
+            raise ConfigError(
+                f"--force-interp: must be one of {', '.join(FORCE_INTERPS)}, got {self.force_interp!r}"
+            )
+        for k, flag in (("max_sim_dt", "--max-sim-dt"), ("sim_tolerance", "--sim-tolerance")):
+            v = getattr(self, k)
+            set_(k, None if v is None else _positive(flag, v, "a positive number"))
         for k in ("tree", "data", "out"):
             set_(k, str(getattr(self, k)))
+        if self.model is not None:
+            set_("model", str(self.model))
         set_("force", bool(self.force))
         if self.prior_from is not None:
             prior = Path(self.prior_from)
@@ -192,6 +225,17 @@ class RunConfig:
 
 
 # ==== config ======================================================================================
+def load_run_tree(tree_path, model=None, repair_inertia=None) -> Tree:
+    """The tree of a run: the tree file, with ``--model``/``--repair-inertia`` applied to its
+    ``model:`` section (:func:`treeinfer.usermodel.attach_model`; the file's sha256 recorded)."""
+    tree = load_tree(tree_path)
+    if model is not None or repair_inertia is not None or tree.model is not None:
+        from ..usermodel import attach_model
+
+        tree = attach_model(tree, model, repair_inertia)
+    return tree
+
+
 def infer_config(
     tree_path: str | os.PathLike,
     data_dir: str | os.PathLike,
@@ -212,6 +256,13 @@ def infer_config(
     prior_from: str | os.PathLike | None = None,
     gradients: str = "fd",
     init: str = "uniform",
+    force_interp: str = "linear",
+    max_sim_dt: float | None = None,
+    sim_tolerance: float | None = None,
+    likelihood: str = "boltzmann",
+    noise_displacement: float | None = None,
+    model: str | os.PathLike | None = None,
+    repair_inertia: str | None = None,
     **more,
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
@@ -219,7 +270,7 @@ def infer_config(
     from ..static import run_tree
 
     tree_path, data_dir, out = Path(tree_path), Path(data_dir), Path(out)
-    tree = run_tree(load_tree(tree_path), more.get("model_kind", "dynamic"))
+    tree = run_tree(load_run_tree(tree_path, model, repair_inertia), more.get("model_kind", "dynamic"))
     files = data_manifest(data_dir) if data_dir.is_dir() else []
     trajs = read_trajectory_dir(data_dir)  # clear errors for a missing folder / bad file
     options = RunConfig(
@@ -240,6 +291,13 @@ def infer_config(
         prior_from=None if prior_from is None else str(prior_from),
         gradients=gradients,
         init=init,
+        force_interp=force_interp,
+        max_sim_dt=max_sim_dt,
+        sim_tolerance=sim_tolerance,
+        likelihood=likelihood,
+        noise_displacement=noise_displacement,
+        model=None if model is None else str(Path(model).resolve()),
+        repair_inertia=repair_inertia,
         **more,
     ).to_json()
     return {

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import warnings
 from collections.abc import Sequence
@@ -27,7 +28,7 @@ from .cache import SimulatorCache, simulator_for
 from .checkpoint import _npz_bytes, partial_dir
 from .config import RUN_FORMAT
 
-UNITS = {"Kp": "N m/rad", "Kd": "N m s/rad"}
+UNITS = {"Kp": "N m/rad", "Kd": "N m s/rad", "sigma_x": "m", "sigma_c": "m", "rho": ""}
 
 
 # ==== summaries ===================================================================================
@@ -43,13 +44,17 @@ def posterior_table(theta, labels, valid=None, level: float = LEVEL) -> dict:
         lo, hi, _ = (np.asarray(a) for a in predictive_interval(theta, level, ok))
     else:
         lo = hi = np.full(theta.shape[1], np.nan)
+    from ..likelihood import natural_units
+
+    nat = natural_units(theta[ok], labels) if ok.any() else np.zeros((0, len(labels)))
+    bounds = natural_units(np.stack([lo, hi]), labels)  # monotone maps: interval ends map over
     for j, lab in enumerate(labels):
-        k = np.exp(theta[ok, j])
+        k = nat[:, j]
         out[lab] = {
             "mean": float(k.mean()) if k.size else float("nan"),
             "median": float(np.median(k)) if k.size else float("nan"),
-            "lower": float(np.exp(lo[j])),
-            "upper": float(np.exp(hi[j])),
+            "lower": float(bounds[0, j]),
+            "upper": float(bounds[1, j]),
             "unit": UNITS[lab.split("[")[0]],
         }
     return out
@@ -108,6 +113,38 @@ def _straggler_and_edge(problem, posterior) -> tuple[dict, dict]:
     return strag, edge
 
 
+def simulation_summary(sim) -> dict:
+    """The simulator's step and force convention for summary.json and the CLI output: backend,
+    force interpolation, substeps, step (s) and how it was chosen (tolerance and estimated
+    error of the displacement, m, when accuracy-controlled)."""
+    info = dict(sim.step_info)
+    return {
+        "backend": sim.backend,
+        "force_interp": sim.force_interp,
+        "substeps": int(sim.substeps),
+        "sim_dt_s": float(sim.sim_dt),
+        "step_method": info.get("method"),
+        "sim_tolerance_m": info.get("tolerance"),
+        "estimated_error_m": info.get("estimated_error"),
+        "max_sim_dt_s": info.get("max_sim_dt"),
+    }
+
+
+def simulation_line(sim) -> str:
+    """One line for the CLI: the chosen step and its estimated error."""
+    s = simulation_summary(sim)
+    line = (
+        f"simulation: {s['backend']} backend, forces {s['force_interp']} between samples, "
+        f"{s['substeps']} substeps of {s['sim_dt_s'] * 1e3:.3g} ms"
+    )
+    if s["estimated_error_m"] is not None:
+        line += (
+            f" (estimated displacement error {s['estimated_error_m'] * 1e3:.3g} mm, "
+            f"tolerance {s['sim_tolerance_m'] * 1e3:.3g} mm)"
+        )
+    return line
+
+
 def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
     o = config["options"]
     kind, diag, warns = _diagnostics(o["sampler"], trace, list(problem.labels))
@@ -137,6 +174,7 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
         "posterior": posterior_table(posterior.theta, problem.labels, stable),
         "level": LEVEL,
         "training_metrics": fit["metrics"],
+        "simulation": simulation_summary(problem.sim),
     }
     model = getattr(problem, "model", None)
     if model is not None and (model.kind == "static" or not model.layout.infers_damping):
@@ -144,13 +182,17 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
 
         summary["model_kind"] = model.kind
         summary["damping"] = damping_note(model.layout, model.kind)
+    if problem.sim.model_report:  # a user's own URDF/MJCF: what was matched, set, repaired
+        summary["model"] = problem.sim.model_report
     if truth is not None:
         from ..metrics import posterior_vs_truth
 
-        truth = np.asarray(truth, float)[: np.shape(posterior.theta)[-1]]  # stiffness only: Kp
-
+        n_gains = len(truth)  # noise columns (sigma_x ...) have no true value
+        if model is not None:  # stiffness only: theta holds Kp alone
+            n_gains = min(n_gains, model.layout.dim)
+        truth = np.asarray(truth, float)[:n_gains]
         chk = posterior_vs_truth(
-            np.exp(np.asarray(posterior.theta, float)), truth, LEVEL, stable, log=True
+            np.exp(np.asarray(posterior.theta, float)[:, :n_gains]), truth, LEVEL, stable, log=True
         )
         summary["truth"] = {
             lab: {
@@ -160,7 +202,7 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
                 "in_interval": bool(chk.in_marginal[j]),
                 "rel_error_log": float(chk.rel_error[j]),
             }
-            for j, lab in enumerate(problem.labels)
+            for j, lab in enumerate(problem.labels[:n_gains])
         }
         summary["truth_in_joint_region"] = chk.in_joint
     return summary
@@ -181,7 +223,9 @@ def particles_csv(theta, labels, log_density, stable) -> str:
         ),
         ",".join(["particle", *labels, "log_density", "stable"]),
     ]
-    for i, row in enumerate(np.exp(theta)):
+    from ..likelihood import natural_units
+
+    for i, row in enumerate(natural_units(theta, labels)):
         lines.append(
             ",".join(
                 [
@@ -279,6 +323,8 @@ def save_run(
         save_figure(fig, plots / "trace.png")
         ok = stable & np.all(np.isfinite(posterior.theta), axis=1)
         t10 = None if truth is None else np.log10(np.asarray(truth, float))
+        if t10 is not None and len(t10) < len(labels):  # noise columns: no true value to mark
+            t10 = np.concatenate([t10, np.full(len(labels) - len(t10), np.nan)])
         fig, _ = pair_plot(
             np.asarray(posterior.theta, float)[ok] / np.log(10.0),
             [f"log10 {lab}" for lab in labels],
@@ -330,13 +376,19 @@ class LoadedRun(NamedTuple):
     model: Any = None  # treeinfer.static.Model (static model or stiffness only); None: dynamic
 
 
-def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None,
-             allow_modified: bool = False) -> LoadedRun:
+def load_run(
+    run_dir: str | os.PathLike,
+    cache: SimulatorCache | None = None,
+    allow_modified: bool = False,
+    model_file=None,
+) -> LoadedRun:
     """Read a run folder written by :func:`save_run` (ConfigError naming what is missing).
 
     The files are checked against the checksums in config.json (:func:`treeinfer.integrity.
     verify_run`): an edited tree.yaml or a damaged posterior is refused unless
-    ``allow_modified``, which records notes in ``LoadedRun.notes`` instead."""
+    ``allow_modified``, which records notes in ``LoadedRun.notes`` instead. ``model_file``:
+    where the run's own URDF/MJCF lies now (moved since the run); its sha256 must be the
+    recorded one."""
     from ..integrity import load_npz, validate_run_config, validate_summary, verify_run
 
     run_dir = Path(run_dir)
@@ -362,16 +414,28 @@ def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None,
         if not (run_dir / name).is_file():
             raise ConfigError(f"{run_dir}: incomplete run folder, {name} is missing")
     tree = load_tree(run_dir / "tree.yaml")
+    if model_file is not None:
+        from ..usermodel import attach_model
+
+        tree = attach_model(tree, model_file, keep_sha256=True)
     z = load_npz(run_dir / "trace.npz", "trace file")
     try:
         theta, ld = z["theta"], z["final_log_density"]
         labels = tuple(str(s) for s in z["labels"])
     except KeyError as e:
         raise ConfigError(f"{run_dir / 'trace.npz'}: unreadable (no array {e})") from None
+    from ..likelihood import noise_columns
     from ..static import model_for
 
     model = model_for(tree, config.get("problem", {}).get("model_kind", "dynamic"))
-    if list(labels) != list(model.labels):
+    gains = list(model.labels)
+    noise_ok = list(labels[len(gains) :]) in (
+        [list(noise_columns(k, True)) for k in ("gaussian", "ar1")]
+        + [list(noise_columns("ar1", False)), []]
+    )
+    if model.kind == "static" or not model.layout.infers_damping:
+        noise_ok = len(labels) == len(gains)  # Boltzmann only: no noise columns
+    if list(labels[: len(gains)]) != gains or not noise_ok:
         raise ConfigError(
             f"{run_dir}: trace.npz labels {list(labels)} do not match tree.yaml {list(model.labels)}"
         )
@@ -387,9 +451,17 @@ def load_run(run_dir: str | os.PathLike, cache: SimulatorCache | None = None,
     if summary.get("unstable_particles"):
         stable[np.asarray(summary["unstable_particles"], int)] = False
     p = config["problem"]
+    # folders from before backends existed: auto; from before force interpolation: hold
     sim = simulator_for(
-        tree, p["obs_dt"], p["substeps"], p.get("backend", "auto"), cache
-    )  # folders from before backends existed: auto
+        tree,
+        p["obs_dt"],
+        p["substeps"],
+        p.get("backend", "auto"),
+        cache,
+        force_interp=p.get("force_interp", "hold"),
+    )
+    if p.get("sim_step"):  # how the run's step was chosen (its estimated error), as recorded
+        sim = dataclasses.replace(sim, step_info=dict(p["sim_step"]))
     return LoadedRun(
         run_dir,
         tree,

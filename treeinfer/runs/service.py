@@ -23,7 +23,7 @@ from .._io import (
 from ..errors import ConfigError, OutputExistsError, SimulationError, TrajectoryFileError
 
 # ==== problem and posterior =======================================================================
-from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits
+from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits, noise_for
 from ..inference import DEFAULT_PRIOR_SIGMA
 from ..jsonio import jsonable as _jsonable
 from ..jsonio import read_json, write_json
@@ -45,7 +45,13 @@ from .checkpoint import (
     partial_dir,
     state_template,
 )
-from .config import RUN_FORMAT, check_data_unchanged, read_true_params, sampler_settings
+from .config import (
+    RUN_FORMAT,
+    check_data_unchanged,
+    load_run_tree,
+    read_true_params,
+    sampler_settings,
+)
 from .folder import _run_summary, save_run
 from .provenance import config_hash, tree_to_dict_json
 
@@ -81,13 +87,22 @@ def build_problem(
         else stack_trajectories(list(trajectories))
     )
     recorded = config.get("problem") or {}  # a resumed run: the settings it was built with
+    # runs from before force interpolation existed held the force over each sample
+    interp = recorded.get("force_interp", o.get("force_interp", "hold" if recorded else "linear"))
     sim = simulator_for(
         tree,
         float(obs.dt),
         recorded.get("substeps"),
         recorded.get("backend", o.get("backend", "auto")),
         cache,
+        force_interp=interp,
+        max_sim_dt=o.get("max_sim_dt"),
+        sim_tolerance=o.get("sim_tolerance"),
+        forces=np.asarray(obs.force),
+        grasp_fraction=o.get("grasp_fraction"),
     )
+    if recorded.get("sim_step"):  # a resumed run: how its step was chosen, as recorded
+        sim = dataclasses.replace(sim, step_info=dict(recorded["sim_step"]))
     kind, static = o.get("model_kind", "dynamic"), {}
     if kind == "static":  # each recording's own branch, grasp point and direction (pulls.yaml)
         from ..static import model_for, model_with_pulls
@@ -112,6 +127,8 @@ def build_problem(
         grasp_fraction=grasp,
         sim=sim,
         gradient=o.get("gradients", "fd"),
+        likelihood=o.get("likelihood", "boltzmann"),  # run folders older than issue 11
+        noise_displacement=o.get("noise_displacement"),
         model_kind=kind,
         **static,
     )
@@ -222,7 +239,8 @@ def _prepare_fresh(config: dict, log: Callable[[str], None]):
         shutil.rmtree(partial)
     from ..static import run_tree
 
-    tree = run_tree(load_tree(config["options"]["tree"]), config["options"].get("model_kind"))
+    o = config["options"]
+    tree = run_tree(load_run_tree(o["tree"], o.get("model"), o.get("repair_inertia")), o.get("model_kind"))
     trajs = read_trajectory_dir(config["options"]["data"])
     truth = read_true_params(tree, config["options"]["data"])
     return run_dir, partial, tree, trajs, truth
@@ -320,6 +338,8 @@ def run_inference(
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
         problem = build_problem(config, tree, trajs, cache)
         _quasi_static_check(problem, config, log)
+        if problem.noise is not None:
+            log(f"likelihood: {problem.noise.description}")
         config = {**config, "problem": problem.settings, "sampler": sampler_settings(config)}
         config["config_hash"] = config_hash(config)
         partial.mkdir(parents=True)
@@ -357,8 +377,14 @@ def run_inference(
         truth = read_true_params(tree, config["data"]["dir"])
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
         problem = build_problem(config, tree, trajs, cache)
+        # sim_step says how the step was chosen (the rebuilt simulator takes the recorded one);
+        # runs recorded before force interpolation existed rebuild with "hold" (build_problem)
+        now = {k: v for k, v in problem.settings.items() if k != "sim_step"}
+        then = {k: v for k, v in config["problem"].items() if k != "sim_step"}
+        if "force_interp" not in then and now.get("force_interp") == "hold":
+            now.pop("force_interp")
         if (
-            _jsonable(problem.settings) != _jsonable(config["problem"])
+            _jsonable(now) != _jsonable(then)
             or sampler_settings(config) != config["sampler"]
         ):
             raise ConfigError(
@@ -637,6 +663,7 @@ def kfold(
             g_test,
             truth,
             np.isfinite(post.log_density),
+            *noise_for(post.theta, problem.sim.n_joints, problem.settings),
             model=model,
         )
         out.append(

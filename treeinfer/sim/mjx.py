@@ -92,48 +92,76 @@ def settle_one(sim: Simulator, model) -> tuple[jax.Array, jax.Array]:
 
 
 def pull_one(
-    sim: Simulator, model, qpos_rest, forces, site_local, unroll_outer: int = 1, unroll_inner=1
+    sim: Simulator,
+    model,
+    qpos_rest,
+    forces,
+    site_local,
+    unroll_outer: int = 1,
+    unroll_inner=1,
+    direction=None,
+    body: int | None = None,
+    substeps=None,
 ):
-    """One rollout: displacement [T] of C under ``forces`` [T] (N, downward), and a stable flag.
+    """One rollout: displacement [T] of C under ``forces`` [T] (N, along ``direction``), and a
+    stable flag.
 
-    ``unroll_outer``/``unroll_inner`` unroll the observation scan and the substep loop (speed
-    levers measured in ``benchmarks/levers.py``; the defaults keep both loops rolled)."""
+    ``direction``: [3] unit pull direction (None: gravity's). ``body``: MuJoCo index of the
+    grasped body (None: ``sim.grasp_body``); ``site_local`` [3] is C in that body's frame.
+    ``substeps``: a traced step count overriding ``sim.substeps`` (the accuracy check's step
+    doubling runs every candidate through one compiled program). ``unroll_outer``/
+    ``unroll_inner`` unroll the observation scan and the substep loop (speed levers measured in
+    ``benchmarks/levers.py``; the defaults keep both loops rolled)."""
+    from .forcing import force_fraction, next_samples
+
     mjx = import_mjx()
 
-    sid, bid = sim.grasp_site, sim.grasp_body
-    model = model.replace(site_pos=model.site_pos.at[sid].set(site_local))
-    gdir = jnp.asarray(sim.gravity_dir, dtype=model.site_pos.dtype)
+    bid = sim.grasp_body if body is None else body
+    n_sub = sim.substeps if substeps is None else substeps
+    if substeps is not None:
+        model = model.replace(
+            opt=model.opt.replace(
+                timestep=sim.obs_dt / jnp.asarray(substeps, model.opt.timestep.dtype)
+            )
+        )
+    dtype = model.body_pos.dtype
+    ddir = jnp.asarray(sim.gravity_dir if direction is None else direction, dtype=dtype)
+    site_local = jnp.asarray(site_local, dtype)
     data = mjx.make_data(model).replace(qpos=qpos_rest)
     data = mjx.kinematics(model, data)
     data = mjx.com_pos(model, data)
-    c_rest = data.site_xpos[sid]
+    grasp = lambda d: d.xpos[bid] + d.xmat[bid] @ site_local  # C in the world
+    c_rest = grasp(data)
     nbody = sim.mj_model.nbody
 
     def push(d, f):
-        force = f * gdir
-        lever = d.site_xpos[sid] - d.xipos[bid]
+        force = f * ddir
+        lever = grasp(d) - d.xipos[bid]
         wrench = jnp.concatenate([force, jnp.cross(lever, force)])
         return d.replace(xfrc_applied=jnp.zeros((nbody, 6), force.dtype).at[bid].set(wrench))
 
-    def observe(carry, f):
+    def observe(carry, ff):
         d, ok = carry
+        f0, f1 = ff
 
         def sub(k, dc):
             dd, c = dc
+            f = f0 + force_fraction(sim.force_interp, k, n_sub, dtype) * (f1 - f0)
             dd = mjx.step(model, push(dd, f))
-            # after the first substep, site_xpos holds C at the start of this interval
-            return dd, jnp.where(k == 0, dd.site_xpos[sid], c)
+            # after the first substep, the kinematics hold C at the start of this interval
+            return dd, jnp.where(k == 0, grasp(dd), c)
 
         # one traced mjx.step per rollout (MJX compiles slowly; a split first step doubles it)
         inner = {} if unroll_inner == 1 else {"unroll": unroll_inner}
-        d, c = jax.lax.fori_loop(0, sim.substeps, sub, (d, c_rest), **inner)
+        d, c = jax.lax.fori_loop(0, n_sub, sub, (d, c_rest), **inner)
         ok = ok & jnp.all(jnp.isfinite(d.qpos)) & jnp.all(jnp.abs(d.qvel) < sim.max_joint_speed)
         return (d, ok), c
 
+    forces = forces.astype(dtype)
     (_, ok), cs = jax.lax.scan(
-        observe, (data, jnp.bool_(True)), forces.astype(gdir.dtype), unroll=unroll_outer
+        observe, (data, jnp.bool_(True)), (forces, next_samples(forces)), unroll=unroll_outer
     )
-    tau = (cs - c_rest) @ gdir
+    tau = (cs - c_rest) @ ddir
     ok = ok & jnp.all(jnp.isfinite(tau)) & jnp.all(jnp.abs(tau) < sim.max_displacement)
     return tau, ok
 
@@ -149,14 +177,18 @@ def _prepare(sim: Simulator, kp, kd, dtype):
     return model, qpos_rest, settled
 
 
-def _pull(sim: Simulator, model, qpos_rest, forces, site_local, unroll_outer=1, unroll_inner=1):
-    return pull_one(sim, model, qpos_rest, forces, site_local, unroll_outer, unroll_inner)
+def _pull(
+    sim: Simulator, model, qpos_rest, forces, site_local, unroll_outer=1, unroll_inner=1, **kw
+):
+    return pull_one(sim, model, qpos_rest, forces, site_local, unroll_outer, unroll_inner, **kw)
 
 
 class Backend(NamedTuple):
     """A simulator backend: ``prepare(sim, kp [R], kd [R], dtype) -> (state, qpos_rest [nq],
     settled)`` for one parameter set, then ``pull(sim, state, qpos_rest, forces [T],
-    site_local [3], unroll_outer, unroll_inner) -> (tau [T] m, ok)`` per force profile."""
+    site_local [3], unroll_outer, unroll_inner, direction=None, body=None, substeps=None) ->
+    (tau [T] m, ok)`` per force profile (``direction`` [3] unit pull direction, None: gravity's;
+    ``body``: grasped MuJoCo body, None: the simulator's; ``substeps``: a traced step count)."""
 
     name: str
     prepare: object

@@ -57,30 +57,45 @@ def settle_reference(m, iterations: int = 50, tol: float = 1e-10) -> np.ndarray:
 
 
 def simulate_reference(
-    sim: Simulator, kp, kd, force, grasp_fraction=None
+    sim: Simulator, kp, kd, force, grasp_fraction=None, direction=None, grasp_branch=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """One rollout in plain MuJoCo (``mujoco.mj_step``, float64): tau [T], tau_dot [T].
 
-    Same settle, force application and observation timing as :func:`treeinfer.sim.simulate`; used as the
-    independent reference in tests and as the naive baseline in benchmarks."""
+    Same settle, force application, force interpolation (``sim.force_interp``) and observation
+    timing as :func:`simulate`; ``direction`` [3] (None: gravity's) and ``grasp_branch`` (None:
+    the tree's) as there, for one profile. Used as the independent reference in tests and as
+    the naive baseline in benchmarks."""
     import mujoco
 
     m = _c_model(sim, kp, kd, grasp_fraction)
     d = mujoco.MjData(m)
     d.qpos[:] = settle_reference(m)
     mujoco.mj_forward(m, d)
-    sid, bid = sim.grasp_site, sim.grasp_body
-    c_rest = d.site_xpos[sid].copy()
+    bid, length = sim.grasp_body, float(sim.grasp_end[0])
+    if grasp_branch is not None:
+        bid, length = sim.branches[grasp_branch]
+    if grasp_branch is None or bid == sim.grasp_body:
+        local = np.asarray(m.site_pos[sim.grasp_site], float)
+    else:
+        frac = sim.grasp_fraction if grasp_fraction is None else float(grasp_fraction)
+        local = np.asarray(sim.branch_point(bid, length, frac), float)
+    ddir = np.asarray(sim.gravity_dir if direction is None else direction, float)
+    ddir = ddir / np.linalg.norm(ddir)
+    grasp = lambda: d.xpos[bid] + d.xmat[bid].reshape(3, 3) @ local  # C from the last kinematics
+    c_rest = grasp()
+    f = np.asarray(force, float)
+    f_next = np.concatenate([f[1:], f[-1:]])
+    w = 0.0 if sim.force_interp == "hold" else 1.0
     out = []
-    for f in np.asarray(force, float):
+    for f0, f1 in zip(f, f_next):
         for k in range(sim.substeps):
-            fv = f * sim.gravity_dir
+            fv = (f0 + w * (k / sim.substeps) * (f1 - f0)) * ddir
             d.xfrc_applied[:] = 0
             d.xfrc_applied[bid, :3] = fv
-            d.xfrc_applied[bid, 3:] = np.cross(d.site_xpos[sid] - d.xipos[bid], fv)
+            d.xfrc_applied[bid, 3:] = np.cross(grasp() - d.xipos[bid], fv)
             mujoco.mj_step(m, d)
             if k == 0:
-                out.append(d.site_xpos[sid].copy())
-    tau = (np.asarray(out) - c_rest) @ sim.gravity_dir
+                out.append(grasp())
+    tau = (np.asarray(out) - c_rest) @ ddir
     tau_dot = np.asarray(velocity_from_displacement(jnp.asarray(tau), sim.obs_dt))
     return tau, tau_dot

@@ -1,0 +1,301 @@
+"""Measurement-noise models: residual densities, noise estimation from data, checks.
+
+The generative measurement model (``--likelihood gaussian`` / ``student_t``) says
+
+    recorded displacement[b, t] = simulated displacement tau[b, t](theta) + e[b, t],
+    e[b, t] i.i.d. ~ Normal(0, sigma_x)          (gaussian)
+                  or StudentT(df, 0, sigma_x)    (student_t, heavy tails)
+
+over the real (masked-in) samples of every trajectory. Log densities come from
+``numpyro.distributions`` (``Normal``, ``StudentT``), so the constants and the heavy-tail
+algebra are a well-kept library's, not ours.
+
+When to use which:
+
+* ``gaussian`` (default): simulated recordings, or real ones whose residuals look white and
+  without outliers. With ``sigma_x`` inferred, 95% predictive bands then cover ~95% of points.
+* ``ar1``: white noise of std sigma_x PLUS a stationary AR(1) component of std sigma_c and
+  lag-1 correlation rho (``c[t] = rho c[t-1] + sqrt(1 - rho^2) sigma_c xi[t]``), its exact
+  likelihood by a scalar Kalman filter (:func:`ar1_white_log_prob`). Use it when residuals are
+  slow (correlated in time): force noise (see below), drift, unmodelled slow dynamics. sigma_c
+  and rho are always inferred; a point's marginal noise std is ``sqrt(sigma_x^2 + sigma_c^2)``
+  (what the predictive band uses).
+* ``student_t`` (``df = 4`` by default): real recordings with outliers (a slipping gripper,
+  a tracking glitch) or visible model error. A few large residuals then cost ``log`` of their
+  size instead of their square, so they do not drag the gains. ``sigma_x`` is the t scale; the
+  residual standard deviation is ``sigma_x * sqrt(df / (df - 2))`` (df > 2). Residuals that
+  are correlated in time (slow drift) are not modelled by either; the posterior is then too
+  narrow by about sqrt(correlation length in samples); see "Force noise" below.
+
+Force noise (decision: no errors-in-variables term; its effect is absorbed by sigma_x):
+the simulator is driven by the *recorded* force, so force noise reaches the residual only
+through the branch's mechanical low-pass, as a SLOW displacement error. An errors-in-variables
+term would need the noise-free force as B x T latent variables, each costing two black-box
+simulations per gradient: not feasible. Measured on the built-in 2-branch tree
+(``tests/test_likelihood.py::test_force_noise_enters_through_displacement``): 2% white force
+noise moves the simulated displacement by ~1.7-1.9 mm rms (as large as 2 mm displacement
+noise for this compliant branch) with lag-1 autocorrelation 0.95-0.99. Consequences:
+
+* the noise estimator below does not see it (it is in the simulation, not in the recording, and
+  it is low-frequency), so the data estimate is only the displacement noise;
+* inferring sigma_x (the default) absorbs its variance: the fitted sigma_x exceeds the
+  displacement noise, and 95% predictive bands stay calibrated point by point (the test
+  checks 92-98% on unseen pulls, and < 93% with sigma_x fixed at the displacement noise);
+* because the error is slow, with ``gaussian`` the gains' posterior is then somewhat too narrow
+  (fewer independent residuals than samples): ``ar1`` models that correlation.
+
+The velocity term is off by default: recorded velocity is usually differentiated from the
+noisy displacement (noise std ``sigma_x / (sqrt(2) dt)``, i.e. ~70x sigma_x at 10 ms, and
+correlated with the displacement noise), so it adds no information and would count the
+same noise twice. Give ``sigma_v`` only for an independently measured velocity.
+
+Noise estimation (:func:`estimate_displacement_noise`): white noise of std sigma gives second
+differences ``x[t+1] - 2 x[t] + x[t-1]`` of std ``sqrt(6) sigma``; a smooth pull's second
+differences are tiny at 10 ms sampling (acceleration x dt^2). The robust scale (MAD / 0.6745)
+of the second differences over all real samples, divided by sqrt(6), estimates sigma; the
+median ignores the few samples at force kinks. On noise-free data it returns the (small)
+signal curvature instead of 0; that is an upper bound, harmless as a prior centre.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+import numpyro.distributions as dist
+import scipy.stats
+
+from .errors import ConfigError
+from .trajectories import Observations, Trajectory, stack_trajectories
+
+__all__ = [
+    "DEFAULT_STUDENT_T_DF",
+    "KINDS",
+    "MIN_NOISE_SAMPLES",
+    "NOISE_KINDS",
+    "SIGMA_PRIOR_SCALE",
+    "NoiseEstimate",
+    "as_observations",
+    "check_df",
+    "check_kind",
+    "check_sigma",
+    "estimate_displacement_noise",
+    "log_sigma_prior",
+    "noise_distribution",
+    "residual_log_prob",
+    "standard_quantile",
+]
+
+KINDS = ("boltzmann", "gaussian", "student_t", "ar1")  # every likelihood choice
+NOISE_KINDS = ("gaussian", "student_t", "ar1")  # the generative ones (have a noise model)
+# Prior on the AR(1) component's lag-1 correlation: logit(rho) ~ Normal(LOC, SCALE),
+# centred on rho = 0.9 (a slow error at 10-20 ms sampling) and broad (95%: rho in 0.1-0.999).
+RHO_PRIOR_LOC = math.log(0.9 / 0.1)
+RHO_PRIOR_SCALE = 2.0
+DEFAULT_STUDENT_T_DF = 4.0
+# Weakly-informative prior on log sigma_x: Normal(log sigma_hat, 1.5), sigma_hat the data-based
+# estimate. 95% of its mass lies within a factor exp(2.94) ~ 19 of the estimate either way, so
+# it only rules out absurd scales; with hundreds of samples the data decide (posterior std of
+# log sigma ~ 1 / sqrt(2 n)).
+SIGMA_PRIOR_SCALE = 1.5
+MIN_NOISE_SAMPLES = 20  # second differences needed for a noise estimate worth the name
+_MAD_TO_STD = 1.0 / scipy.stats.norm.ppf(0.75)  # 1.4826: MAD of a Gaussian -> its std
+
+
+# --------------------------------------------------------------------------- checks
+
+
+def check_kind(kind: str) -> str:
+    if kind not in KINDS:
+        raise ConfigError(f"likelihood: expected one of {', '.join(KINDS)}, got {kind!r}")
+    return kind
+
+
+def check_df(df) -> float:
+    try:
+        df = float(df)
+    except (TypeError, ValueError):
+        raise ConfigError(f"student_t_df: expected a number > 2, got {df!r}") from None
+    if not math.isfinite(df) or df <= 2.0:
+        raise ConfigError(f"student_t_df: must be finite and > 2 (finite variance), got {df}")
+    return df
+
+
+def check_sigma(value, field: str, data_range: float | None = None) -> float:
+    """A noise standard deviation: finite, > 0 and (with ``data_range``) below the whole range
+    of the data (a sigma larger than everything the sensor recorded is a unit mistake).
+
+    Raises :class:`ConfigError` naming ``field`` (e.g. ``noise_displacement``)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{field}: expected a positive number (metres), got {value!r}") from None
+    if not math.isfinite(v) or v <= 0.0:
+        raise ConfigError(f"{field}: must be a finite positive number (metres), got {v}")
+    if data_range is not None and v > data_range:
+        raise ConfigError(
+            f"{field}: {v:g} is larger than the whole range of the recorded data ({data_range:g}); "
+            "check the units (metres)"
+        )
+    return v
+
+
+def as_observations(data) -> Observations:
+    """Trajectories (sequence) or :class:`Observations` -> :class:`Observations`."""
+    if isinstance(data, Observations):
+        return data
+    if isinstance(data, Trajectory):
+        data = [data]
+    if isinstance(data, Sequence) and data and all(isinstance(t, Trajectory) for t in data):
+        return stack_trajectories(list(data))
+    raise ConfigError("trajectories: expected a list of Trajectory or an Observations batch")
+
+
+def displacement_range(obs: Observations) -> float:
+    """max - min of the recorded displacement over real samples (m)."""
+    x = np.asarray(obs.displacement, float)[np.asarray(obs.mask, bool)]
+    return float(np.max(x) - np.min(x)) if x.size else 0.0
+
+
+# --------------------------------------------------------------------------- estimation
+
+
+class NoiseEstimate(NamedTuple):
+    """A data-based displacement-noise estimate.
+
+    sigma: m, the estimated white-noise standard deviation.
+    n_used: number of second differences it was computed from.
+    method: a one-line description of the estimator.
+    """
+
+    sigma: float
+    n_used: int
+    method: str
+
+    def describe(self) -> str:
+        return (
+            f"displacement noise sigma_x ~ {self.sigma * 1e3:.3g} mm "
+            f"({self.method}, n = {self.n_used})"
+        )
+
+
+def estimate_displacement_noise(data, min_samples: int = MIN_NOISE_SAMPLES) -> NoiseEstimate:
+    """White displacement-noise std (m) from the high-frequency residual of the recordings.
+
+    ``sigma = 1.4826 * median(|d2 - median(d2)|) / sqrt(6)`` with ``d2`` the second differences
+    ``x[t+1] - 2 x[t] + x[t-1]`` of every trajectory at real (masked-in) samples only (see the
+    module docstring for why this works and when it overestimates).
+
+    Args:
+      data: list of :class:`Trajectory` or an :class:`Observations` batch.
+      min_samples: fewest second differences accepted.
+
+    Raises:
+      ConfigError: fewer than ``min_samples`` second differences ("too short to estimate"), or
+        a zero estimate (quantised or noise-free data): give the noise level explicitly then.
+    """
+    obs = as_observations(data)
+    x = np.asarray(obs.displacement, float)
+    m = np.asarray(obs.mask, bool)
+    if x.shape[-1] < 3:
+        d2 = np.zeros((0,))
+    else:
+        d2 = (x[:, 2:] - 2.0 * x[:, 1:-1] + x[:, :-2])[m[:, 2:] & m[:, 1:-1] & m[:, :-2]]
+    if d2.size < min_samples:
+        raise ConfigError(
+            f"trajectories: too short to estimate the displacement noise ({d2.size} second "
+            f"differences, need at least {min_samples}); give the noise level explicitly "
+            "(noise_displacement / --noise-displacement, metres)"
+        )
+    mad = float(np.median(np.abs(d2 - np.median(d2))))
+    sigma = _MAD_TO_STD * mad / math.sqrt(6.0)
+    if not sigma > 0.0:
+        raise ConfigError(
+            "trajectories: cannot estimate the displacement noise: more than half of the second "
+            "differences are zero (quantised or noise-free data); give the noise level explicitly "
+            "(noise_displacement / --noise-displacement, metres)"
+        )
+    return NoiseEstimate(sigma, int(d2.size), "robust MAD of second differences / sqrt(6)")
+
+
+# --------------------------------------------------------------------------- densities
+
+
+def noise_distribution(kind: str, scale, df: float = DEFAULT_STUDENT_T_DF):
+    """The zero-mean residual distribution of ``kind`` with ``scale`` (m) as numpyro object."""
+    if kind == "gaussian":
+        return dist.Normal(0.0, scale)
+    if kind == "student_t":
+        return dist.StudentT(df, 0.0, scale)
+    raise ConfigError(f"noise model: expected one of {', '.join(NOISE_KINDS)}, got {kind!r}")
+
+
+def residual_log_prob(residual, scale, kind: str = "gaussian", df: float = DEFAULT_STUDENT_T_DF):
+    """Elementwise ``log p(residual)`` (nats) under the noise model; shapes broadcast."""
+    return noise_distribution(kind, scale, df).log_prob(residual)
+
+
+def standard_quantile(q: float, kind: str = "gaussian", df: float = DEFAULT_STUDENT_T_DF) -> float:
+    """``q``-quantile of the unit-scale noise distribution (a Python float, from scipy)."""
+    if kind == "gaussian":
+        return float(scipy.stats.norm.ppf(q))
+    if kind == "student_t":
+        return float(scipy.stats.t.ppf(q, df))
+    raise ConfigError(f"noise model: expected one of {', '.join(NOISE_KINDS)}, got {kind!r}")
+
+
+def ar1_white_log_prob(residual, mask, sigma_w, sigma_c, rho):
+    """Exact log-density (nats) of residuals = white N(0, sigma_w) + AR(1) (sigma_c, rho).
+
+    Args:
+      residual: ``[N, B, T]`` m. mask: ``[B, T]`` bool (padding skipped: the filter predicts
+        through it without an update). sigma_w, sigma_c: ``[N]`` m. rho: ``[N]`` in (-1, 1).
+
+    Returns ``[N]``: sum over trajectories of ``sum_t log N(v_t; 0, S_t)`` with the Kalman
+    innovations ``v_t`` and their variances ``S_t`` (prediction error decomposition). A
+    hand-written scalar Kalman filter (a ``lax.scan`` over T) because no installed library offers
+    a batched, masked one in JAX; the per-step densities are numpyro ``Normal``s, and the test
+    checks the total against ``scipy.stats.multivariate_normal`` with the dense covariance.
+    """
+    import jax
+
+    r = jnp.moveaxis(jnp.asarray(residual), -1, 0)  # [T, N, B]
+    m_t = jnp.moveaxis(jnp.asarray(mask, bool), -1, 0)[:, None, :]  # [T, 1, B]
+    sw2 = (jnp.asarray(sigma_w) ** 2)[:, None]
+    sc2 = (jnp.asarray(sigma_c) ** 2)[:, None]
+    rho = jnp.asarray(rho)[:, None]
+    q = (1.0 - rho**2) * sc2
+
+    def step(carry, x):
+        mean, var, total = carry
+        rt, mt = x
+        mp, vp = rho * mean, rho**2 * var + q
+        s = vp + sw2
+        v = rt - mp
+        lp = dist.Normal(0.0, jnp.sqrt(s)).log_prob(v)
+        k = vp / s
+        mean = jnp.where(mt, mp + k * v, mp)
+        var = jnp.where(mt, (1.0 - k) * vp, vp)
+        return (mean, var, total + jnp.where(mt, lp, 0.0)), None
+
+    n, b = r.shape[1], r.shape[2]
+    zero = jnp.zeros((n, b), r.dtype)
+    # stationary start: predicting from (mean 0, var sc2) gives var rho^2 sc2 + q = sc2
+    (_, _, total), _ = jax.lax.scan(step, (zero, zero + sc2, zero), (r, m_t))
+    return jnp.sum(total, axis=-1)
+
+
+def log_sigma_prior(center: float, scale: float = SIGMA_PRIOR_SCALE):
+    """Weakly-informative prior on ``log sigma_x``: ``Normal(log center, scale)`` (numpyro).
+
+    Returns ``logp(log_sigma [N]) -> [N]``."""
+    center = check_sigma(center, "noise prior centre")
+    d = dist.Normal(math.log(center), float(scale))
+
+    def logp(log_sigma):
+        return d.log_prob(jnp.asarray(log_sigma))
+
+    return logp
