@@ -126,7 +126,12 @@ def c_pool(sim, m, kp, kd):
 
 def c_controls(sim, m, bid, forces):
     """[1, T * substeps, nbody * 6] xfrc_applied controls: the pull at the grasp-point body."""
-    f = np.repeat(np.asarray(forces[0], float), sim.substeps)
+    # the force between samples as the simulator applies it (treeinfer.sim.forcing): under the
+    # first-order hold substep j of interval k uses f_k + (j / substeps) (f_{k+1} - f_k)
+    f0 = np.asarray(forces[0], float)
+    f1 = np.concatenate([f0[1:], f0[-1:]])
+    w = np.arange(sim.substeps) / sim.substeps if sim.force_interp == "linear" else np.zeros(sim.substeps)
+    f = (f0[:, None] + w[None, :] * (f1 - f0)[:, None]).reshape(-1)
     ctrl = np.zeros((1, f.size, m.nbody * 6))
     ctrl[0, :, bid * 6 : bid * 6 + 3] = f[:, None] * sim.gravity_dir[None, :]
     return ctrl
