@@ -597,10 +597,10 @@ def data_checks(
 
 
 # ---- after inference -------------------------------------------------------------------------
-def noise_from_kT(kT: float, n_steps: int, dt: float) -> float:
-    """Displacement noise sigma (m) that makes ``kT`` the expected per-trajectory loss: the
-    inverse of :func:`treeinfer.likelihood.suggest_kT`."""
-    return float(kT) / (math.sqrt(n_steps) * (1.0 + 1.0 / (math.sqrt(2.0) * float(dt))))
+def noise_from_kT(kT: float, n_steps: int, dt: float, omega2: float = 0.0) -> float:
+    """Displacement noise sigma (m) for which :func:`treeinfer.likelihood.suggest_kT` gives
+    ``kT``: its inverse, ``sigma = kT sqrt(T) / (1 + sqrt(2) dt omega2)``."""
+    return float(kT) * math.sqrt(n_steps) / (1.0 + math.sqrt(2.0) * float(dt) * float(omega2))
 
 
 class FitVerdict(NamedTuple):
