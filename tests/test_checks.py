@@ -263,7 +263,8 @@ def test_fit_cm_data_is_poor(tree):
     """The issue's cm run: 93.3% of points outside the band."""
     v = fit_checks(fraction_outside=0.933)
     assert v.status == "poor_fit" and "93.3% of training points" in v.reasons[0]
-    v = fit_checks(residuals=np.full((2, 50), 0.05), noise_sigma=noise_from_kT(suggest_kT(2e-3, 50, DT), 50, DT))
+    sigma = noise_from_kT(suggest_kT(2e-3, 50, DT), 50, DT)  # 2 mm
+    v = fit_checks(residuals=np.full((2, 50), 0.05), noise_sigma=sigma)
     assert v.status == "poor_fit" and "x the noise scale" in v.reasons[0]
 
 
