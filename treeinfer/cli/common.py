@@ -250,6 +250,13 @@ def _print_metrics(m: dict, what: str) -> None:
         )
 
 
+def add_run_option(p: argparse.ArgumentParser) -> None:
+    """``--run RUN``: the run folder a command reads; one definition for every command."""
+    p.add_argument(
+        "--run", required=True, type=Path, metavar="RUN", help="run folder written by `treeinfer infer`"
+    )
+
+
 def add_simulation_options(p: argparse.ArgumentParser, default_note: str = "") -> None:
     """``--force-interp``, ``--max-sim-dt`` and ``--sim-tolerance`` (defaults None: the
     simulator's, or a run's recorded settings where ``default_note`` says so)."""

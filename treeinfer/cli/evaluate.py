@@ -34,6 +34,7 @@ from .common import (
     _say,
     add_command_parser,
     add_model_options,
+    add_run_option,
     add_simulation_options,
     check_simulation_options,
     simulator_for_run,
@@ -70,13 +71,7 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
         "cross-validate the run's settings with --kfold.",
         epilog=_EVALUATE_EPILOG,
     )
-    p.add_argument(
-        "--run",
-        required=True,
-        type=Path,
-        metavar="RUN",
-        help="run folder written by `treeinfer infer`",
-    )
+    add_run_option(p)
     p.add_argument(
         "--data", required=True, type=Path, metavar="DIR", help="folder of held-out trajectory CSVs"
     )

@@ -29,6 +29,7 @@ from .common import (
     _say,
     add_command_parser,
     add_model_options,
+    add_run_option,
     add_simulation_options,
     check_simulation_options,
     simulator_for_run,
@@ -63,13 +64,7 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         "displacement with its 95% predictive band (per-time-step KDE over the particles).",
         epilog=_PREDICT_EPILOG,
     )
-    p.add_argument(
-        "--run",
-        required=True,
-        type=Path,
-        metavar="RUN",
-        help="run folder written by `treeinfer infer`",
-    )
+    add_run_option(p)
     p.add_argument(
         "--force-csv",
         dest="force_file",

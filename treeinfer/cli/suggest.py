@@ -7,7 +7,15 @@ from pathlib import Path
 
 from ..design import STANDARD_TIMING, parse_target, suggest_for_run
 from ..errors import ConfigError
-from .common import COMMAND_HELP, EXIT_OK, _floats, _prepare_jax, _say, add_command_parser
+from .common import (
+    COMMAND_HELP,
+    EXIT_OK,
+    _floats,
+    _prepare_jax,
+    _say,
+    add_command_parser,
+    add_run_option,
+)
 
 # ==== suggest =====================================================================================
 _SUGGEST_EPILOG = """\
@@ -62,9 +70,7 @@ def configure_suggest(subparsers) -> argparse.ArgumentParser:
         "narrow a stated prediction, given a finished run's posterior.",
         epilog=_SUGGEST_EPILOG,
     )
-    p.add_argument(
-        "--run", required=True, type=Path, metavar="RUN", help="run folder of `treeinfer infer`"
-    )
+    add_run_option(p)
     p.add_argument(
         "--grasp-fractions",
         type=_floats,
