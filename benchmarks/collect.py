@@ -23,8 +23,12 @@ def collect(out: Path, inputs: list[Path]) -> dict:
             old = data.get(key)
             if key == "rollout" and isinstance(old, dict):
                 merged = {**old, **value}
-                merged["rows"] = _merge_rows(old.get("rows", []), value.get("rows", []), ("n_branches", "batch"))
-                merged["trees"] = _merge_rows(old.get("trees", []), value.get("trees", []), ("n_branches",))
+                merged["rows"] = _merge_rows(
+                    old.get("rows", []), value.get("rows", []), ("n_branches", "batch")
+                )
+                merged["trees"] = _merge_rows(
+                    old.get("trees", []), value.get("trees", []), ("n_branches",)
+                )
                 data[key] = merged
             elif isinstance(old, dict) and isinstance(value, dict):
                 data[key] = {**old, **value}

@@ -46,15 +46,18 @@ def standard_likelihood(n_steps: int = 300, backend: str = "fused"):
     kp, kd = default_true_params(tree, np.random.default_rng(0))
     forces = profile_set("mixed", n=3, duration=n_steps * 0.01, dt=0.01, seed=0)[:, :n_steps]
     t = np.arange(n_steps) * 0.01
-    trajs = [Trajectory(t, f, *simulate_reference(sim, kp, kd, f), f"pull{i}")
-             for i, f in enumerate(forces)]
+    trajs = [
+        Trajectory(t, f, *simulate_reference(sim, kp, kd, f), f"pull{i}")
+        for i, f in enumerate(forces)
+    ]
     loglik = boltzmann_log_likelihood(sim, stack_trajectories(trajs), DEFAULT_KT)
     return loglik, np.concatenate([np.log(kp), np.log(kd)])
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--particles", type=int, default=128)
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--reps", type=int, default=3)
@@ -72,8 +75,11 @@ def main(argv=None) -> int:
     loglik, truth = standard_likelihood(args.steps)
     rng = np.random.default_rng(1)
     theta = jnp.asarray(truth + 0.3 * rng.normal(size=(args.particles, truth.size)), jnp.float32)
-    fns = {"rollout": jax.jit(loglik), "fd": jax.jit(central_difference(loglik)),
-           "jvp": jax.jit(jvp_value_and_grad(loglik))}
+    fns = {
+        "rollout": jax.jit(loglik),
+        "fd": jax.jit(central_difference(loglik)),
+        "jvp": jax.jit(jvp_value_and_grad(loglik)),
+    }
     if args.reverse:
         fns["reverse"] = jax.jit(autodiff_value_and_grad(loglik))
     compile_s, out = {}, {}
@@ -92,22 +98,44 @@ def main(argv=None) -> int:
     g_fd = np.asarray(out["fd"][1])
     for name in fns:
         steady = min(times[name])
-        rec = {"steady_s": steady, "first_call_s": compile_s[name],
-               "rollouts_per_particle": steady / unit}
+        rec = {
+            "steady_s": steady,
+            "first_call_s": compile_s[name],
+            "rollouts_per_particle": steady / unit,
+        }
         if name != "rollout":
             g = np.asarray(out[name][1])
             rec["max_abs_diff_vs_fd"] = float(np.abs(g - g_fd).max())
         results[name] = rec
-        rows.append({"name": name, "steady": f"{steady * 1e3:.1f} ms",
-                     "first": f"{compile_s[name]:.1f} s",
-                     "rollouts": f"{steady / unit:.1f}"})
-    C.print_table(rows, [("name", "gradient"), ("steady", "steady"),
-                         ("first", "compile+first"), ("rollouts", "rollouts/particle")])
+        rows.append(
+            {
+                "name": name,
+                "steady": f"{steady * 1e3:.1f} ms",
+                "first": f"{compile_s[name]:.1f} s",
+                "rollouts": f"{steady / unit:.1f}",
+            }
+        )
+    C.print_table(
+        rows,
+        [
+            ("name", "gradient"),
+            ("steady", "steady"),
+            ("first", "compile+first"),
+            ("rollouts", "rollouts/particle"),
+        ],
+    )
     d = truth.size
     ratio = results["jvp"]["steady_s"] / results["fd"]["steady_s"]
     print(f"jvp / fd time: {ratio:.2f} (target <= 0.5; fd = 2D + 1 = {2 * d + 1} rollouts)")
-    results.update({"n_particles": args.particles, "n_steps": args.steps, "dim": d,
-                    "jvp_over_fd": ratio, "machine": info})
+    results.update(
+        {
+            "n_particles": args.particles,
+            "n_steps": args.steps,
+            "dim": d,
+            "jvp_over_fd": ratio,
+            "machine": info,
+        }
+    )
     if args.write:
         path = C.RESULTS_DIR / f"{args.machine or C.default_machine_name()}.json"
         C.merge_results(path, "gradient_cost", results, {})

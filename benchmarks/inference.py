@@ -65,8 +65,14 @@ class SimulateCounter:
         self._lik.simulate = self._orig
 
 
-def make_standard_problem(tree=None, n_traj: int = 3, n_steps: int = 300, dt: float = 0.01, seed: int = 0,
-                          backend: str = "fused"):
+def make_standard_problem(
+    tree=None,
+    n_traj: int = 3,
+    n_steps: int = 300,
+    dt: float = 0.01,
+    seed: int = 0,
+    backend: str = "fused",
+):
     """(problem, theta_true [D]) for ``tree`` (default: the built-in three-branch example)."""
     from treeinfer.forces import profile_set
     from treeinfer.inference import make_problem
@@ -111,45 +117,63 @@ def standard(args) -> dict:
                 marks.append((it, time.perf_counter(), compiles.n))
 
             t1 = time.perf_counter()
-            posterior = infer(problem, "nnsvgd", n_particles=args.particles, n_iterations=args.iterations, seed=0,
-                              progress=False, callback=on_chunk, callback_every=args.chunk)
+            posterior = infer(
+                problem,
+                "nnsvgd",
+                n_particles=args.particles,
+                n_iterations=args.iterations,
+                seed=0,
+                progress=False,
+                callback=on_chunk,
+                callback_every=args.chunk,
+            )
             t_infer = time.perf_counter() - t1
     finally:
         counter.restore()
     n_sim_traces = counter.calls
-    steady = [(marks[i][0] - marks[i - 1][0], marks[i][1] - marks[i - 1][1], marks[i][2] - marks[i - 1][2])
-              for i in range(1, len(marks))]
+    steady = [
+        (
+            marks[i][0] - marks[i - 1][0],
+            marks[i][1] - marks[i - 1][1],
+            marks[i][2] - marks[i - 1][2],
+        )
+        for i in range(1, len(marks))
+    ]
     it_s = sum(s[1] for s in steady) / max(1, sum(s[0] for s in steady)) if steady else float("nan")
     first_chunk_s = marks[0][1] - t1 if marks else float("nan")
     rows = P_rows = args.particles * (2 * d + 1)
-    out.update({
-        "backend": problem.sim.backend,
-        "dim": d,
-        "substeps": problem.sim.substeps,
-        "n_steps": args.steps,
-        "rows_per_iteration": rows,
-        "simulator_rows_per_call": sorted(set(counter.rows)),
-        "particle_steps_per_iteration": P_rows * 3 * args.steps * problem.sim.substeps,
-        "make_problem_s": t_problem,
-        "infer_s": t_infer,
-        "time_to_posterior_s": t_problem + t_infer,
-        "first_chunk_s_incl_compile": first_chunk_s,
-        "iteration_ms_steady": 1e3 * it_s,
-        "steady_iterations_timed": sum(s[0] for s in steady),
-        "compiles_total": compiles.n,
-        "compile_seconds_total": compiles.seconds,
-        "compiles_during_steady_chunks": sum(s[2] for s in steady),
-        "compilation_cache_hits": compiles.cache_hits,
-        "simulate_traces_total": n_sim_traces,
-        "peak_host_mb": C.peak_host_mb(),
-        "device_memory": C.device_memory_mb(),
-    })
+    out.update(
+        {
+            "backend": problem.sim.backend,
+            "dim": d,
+            "substeps": problem.sim.substeps,
+            "n_steps": args.steps,
+            "rows_per_iteration": rows,
+            "simulator_rows_per_call": sorted(set(counter.rows)),
+            "particle_steps_per_iteration": P_rows * 3 * args.steps * problem.sim.substeps,
+            "make_problem_s": t_problem,
+            "infer_s": t_infer,
+            "time_to_posterior_s": t_problem + t_infer,
+            "first_chunk_s_incl_compile": first_chunk_s,
+            "iteration_ms_steady": 1e3 * it_s,
+            "steady_iterations_timed": sum(s[0] for s in steady),
+            "compiles_total": compiles.n,
+            "compile_seconds_total": compiles.seconds,
+            "compiles_during_steady_chunks": sum(s[2] for s in steady),
+            "compilation_cache_hits": compiles.cache_hits,
+            "simulate_traces_total": n_sim_traces,
+            "peak_host_mb": C.peak_host_mb(),
+            "device_memory": C.device_memory_mb(),
+        }
+    )
     # simulator calls per iteration: trace one step abstractly and count simulate calls in it
 
     algorithm = problem.sampler("nnsvgd")
     counter = SimulateCounter()
     try:
-        state = jax.eval_shape(algorithm.init, jax.random.key(0), jax.ShapeDtypeStruct((args.particles, d), np.float32))
+        state = jax.eval_shape(
+            algorithm.init, jax.random.key(0), jax.ShapeDtypeStruct((args.particles, d), np.float32)
+        )
         counter.calls = 0
         jax.eval_shape(algorithm.step, jax.random.key(0), state)
         out["simulator_calls_per_iteration"] = counter.calls
@@ -161,22 +185,32 @@ def standard(args) -> dict:
     mean = theta[ok].mean(axis=0) if ok.any() else np.full(d, np.nan)
     ml = np.asarray(posterior.run.diagnostics.get("mean_logdensity", []))
     tail = max(1, len(ml) // 10)
-    out.update({
-        "theta_true": theta_true,
-        "posterior_mean_theta": mean,
-        "posterior_sd_theta": theta[ok].std(axis=0) if ok.any() else np.full(d, np.nan),
-        "abs_error_of_mean_log_units": np.abs(mean - theta_true),
-        "finite_particles": int(ok.sum()),
-        "mean_logdensity_last": float(ml[-1]) if len(ml) else None,
-        "mean_logdensity_change_last_tenth": float(ml[-1] - ml[-1 - tail]) if len(ml) > tail else None,
-    })
-    print(f"standard problem ({problem.sim.backend} backend, R=3, P={args.particles}, 3 x {args.steps} steps, substeps {problem.sim.substeps}): "
-          f"make_problem {t_problem:.1f} s, infer {t_infer:.1f} s ({args.iterations} it), "
-          f"steady {1e3 * it_s:.1f} ms/it, compiles {compiles.n} (steady chunks: {out['compiles_during_steady_chunks']}), "
-          f"simulate calls/it {out['simulator_calls_per_iteration']} on {out['simulator_rows_per_call']} rows, "
-          f"host peak {out['peak_host_mb']:.0f} MB, device {out['device_memory']}", flush=True)
-    print(f"   |posterior mean - truth| (log units): {np.round(out['abs_error_of_mean_log_units'], 3).tolist()}, "
-          f"sd {np.round(out['posterior_sd_theta'], 3).tolist()}", flush=True)
+    out.update(
+        {
+            "theta_true": theta_true,
+            "posterior_mean_theta": mean,
+            "posterior_sd_theta": theta[ok].std(axis=0) if ok.any() else np.full(d, np.nan),
+            "abs_error_of_mean_log_units": np.abs(mean - theta_true),
+            "finite_particles": int(ok.sum()),
+            "mean_logdensity_last": float(ml[-1]) if len(ml) else None,
+            "mean_logdensity_change_last_tenth": float(ml[-1] - ml[-1 - tail])
+            if len(ml) > tail
+            else None,
+        }
+    )
+    print(
+        f"standard problem ({problem.sim.backend} backend, R=3, P={args.particles}, 3 x {args.steps} steps, substeps {problem.sim.substeps}): "
+        f"make_problem {t_problem:.1f} s, infer {t_infer:.1f} s ({args.iterations} it), "
+        f"steady {1e3 * it_s:.1f} ms/it, compiles {compiles.n} (steady chunks: {out['compiles_during_steady_chunks']}), "
+        f"simulate calls/it {out['simulator_calls_per_iteration']} on {out['simulator_rows_per_call']} rows, "
+        f"host peak {out['peak_host_mb']:.0f} MB, device {out['device_memory']}",
+        flush=True,
+    )
+    print(
+        f"   |posterior mean - truth| (log units): {np.round(out['abs_error_of_mean_log_units'], 3).tolist()}, "
+        f"sd {np.round(out['posterior_sd_theta'], 3).tolist()}",
+        flush=True,
+    )
     return out
 
 
@@ -203,12 +237,22 @@ def step_state(problem, n_particles: int, mesh=None, method: str = "shard_map"):
 
         split, whole = sharding.particle_sharding(mesh), NamedSharding(mesh, P())
         state = jax.tree.map(
-            lambda x: jax.device_put(x, split if x.ndim and x.shape[0] == n_particles else whole), state)
+            lambda x: jax.device_put(x, split if x.ndim and x.shape[0] == n_particles else whole),
+            state,
+        )
     return algorithm, state
 
 
-def step_time(problem, n_particles: int, reps: int, donate: bool = False, min_time_s: float = 0.5,
-              mesh=None, n_final: int = 0, method: str = "shard_map") -> dict:
+def step_time(
+    problem,
+    n_particles: int,
+    reps: int,
+    donate: bool = False,
+    min_time_s: float = 0.5,
+    mesh=None,
+    n_final: int = 0,
+    method: str = "shard_map",
+) -> dict:
     """Compile time and median wall time of one jitted NNSVGD step for ``n_particles``
     (sharded over ``mesh`` if given); ``n_final`` > 0 also returns the positions after that
     many further steps from the same start (for comparing sharded and unsharded runs)."""
@@ -235,8 +279,13 @@ def step_time(problem, n_particles: int, reps: int, donate: bool = False, min_ti
         times.append(time.perf_counter() - t)
         if len(times) >= 50:
             break
-    return {"compile_s": t_compile, "step_ms": 1e3 * float(np.median(times)), "reps": len(times),
-            "n_nonfinite": int(info.n_nonfinite), **out}
+    return {
+        "compile_s": t_compile,
+        "step_ms": 1e3 * float(np.median(times)),
+        "reps": len(times),
+        "n_nonfinite": int(info.n_nonfinite),
+        **out,
+    }
 
 
 def scaling(args) -> dict:
@@ -251,18 +300,31 @@ def scaling(args) -> dict:
     for p in args.scale_p:
         if over_budget():
             break
-        std_problem = std_problem or make_standard_problem(n_steps=args.steps, backend=args.backend)[0]
+        std_problem = (
+            std_problem or make_standard_problem(n_steps=args.steps, backend=args.backend)[0]
+        )
         r = step_time(std_problem, p, args.reps)
         out["P"].append({"n_particles": p, **r, "rows": p * (2 * std_problem.dim + 1)})
         print(f"   P={p:>5}: {r['step_ms']:.1f} ms/it (compile {r['compile_s']:.1f} s)", flush=True)
     for n in args.scale_r:
         if over_budget():
             break
-        prob = make_standard_problem(tree=bench_tree(n), n_steps=args.steps, backend=args.backend)[0]
+        prob = make_standard_problem(tree=bench_tree(n), n_steps=args.steps, backend=args.backend)[
+            0
+        ]
         r = step_time(prob, args.particles, args.reps)
-        out["R"].append({"R": n, "substeps": prob.sim.substeps, **r, "rows": args.particles * (2 * prob.dim + 1)})
-        print(f"   R={n} (chain, substeps {prob.sim.substeps}): {r['step_ms']:.1f} ms/it (compile {r['compile_s']:.1f} s)",
-              flush=True)
+        out["R"].append(
+            {
+                "R": n,
+                "substeps": prob.sim.substeps,
+                **r,
+                "rows": args.particles * (2 * prob.dim + 1),
+            }
+        )
+        print(
+            f"   R={n} (chain, substeps {prob.sim.substeps}): {r['step_ms']:.1f} ms/it (compile {r['compile_s']:.1f} s)",
+            flush=True,
+        )
     for t in args.scale_t:
         if over_budget():
             break
@@ -278,7 +340,9 @@ def main(argv=None) -> int:
 
     on_gpu = jax.devices()[0].platform == "gpu"
     ints = lambda s: [int(x) for x in s.split(",") if x]
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--particles", type=int, default=128)
     p.add_argument("--backend", default="fused", choices=["fused", "mjx"], help="simulator backend")
     p.add_argument("--iterations", type=int, default=200)
@@ -291,7 +355,9 @@ def main(argv=None) -> int:
     p.add_argument("--scale-t", type=ints, default=[100, 1000] if on_gpu else [])
     p.add_argument("--reps", type=int, default=5)
     p.add_argument("--budget-s", type=float, default=float("inf"))
-    p.add_argument("--compile-cache", default=None, help="persistent compilation cache dir (default: off)")
+    p.add_argument(
+        "--compile-cache", default=None, help="persistent compilation cache dir (default: off)"
+    )
     p.add_argument("--machine", default=None)
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
@@ -301,8 +367,10 @@ def main(argv=None) -> int:
         import treeinfer
 
         treeinfer.enable_compilation_cache(args.compile_cache)
-    record = {"machine": C.machine_info(),
-              "settings": {k: v for k, v in vars(args).items() if k != "t_start"}}
+    record = {
+        "machine": C.machine_info(),
+        "settings": {k: v for k, v in vars(args).items() if k != "t_start"},
+    }
     print(f"machine: {record['machine']}", flush=True)
     machine = args.machine or C.default_machine_name()
     out = args.out or (C.RESULTS_DIR / f"{machine}.json")
@@ -310,8 +378,12 @@ def main(argv=None) -> int:
     if args.standard:
         s = standard(args)
         record["standard"] = s
-        summary = {"nnsvgd_iteration_ms": s["iteration_ms_steady"], "time_to_posterior_s": s["time_to_posterior_s"],
-                   "standard_problem_particles": args.particles, "standard_problem_iterations": args.iterations}
+        summary = {
+            "nnsvgd_iteration_ms": s["iteration_ms_steady"],
+            "time_to_posterior_s": s["time_to_posterior_s"],
+            "standard_problem_particles": args.particles,
+            "standard_problem_iterations": args.iterations,
+        }
         C.merge_results(out, "inference", record, summary)
     if args.scaling and (args.scale_r or args.scale_p or args.scale_t):
         print("scaling (one jitted NNSVGD step):", flush=True)

@@ -82,17 +82,29 @@ def precision_child(batch: int, n_steps: int, n_check: int, reps: int) -> dict:
         for j in range(forces.shape[0]):
             tau, vel = simulate_reference(sim, kp[i], kd[i], forces[j])
             err_tau = max(err_tau, float(np.max(np.abs(np.asarray(big.tau[i, j], float) - tau))))
-            err_vel = max(err_vel, float(np.max(np.abs(np.asarray(big.tau_dot[i, j], float) - vel))))
+            err_vel = max(
+                err_vel, float(np.max(np.abs(np.asarray(big.tau_dot[i, j], float) - vel)))
+            )
             scale = max(scale, float(np.max(np.abs(tau))))
-    batch_diff = float(np.max(np.abs(np.asarray(big.tau[:n_check], float) - np.asarray(small.tau, float))))
+    batch_diff = float(
+        np.max(np.abs(np.asarray(big.tau[:n_check], float) - np.asarray(small.tau, float)))
+    )
     tm = C.time_calls(lambda: compiled(a, b_, f), reps=reps, min_time_s=1.0)
     steps = batch * forces.shape[0] * n_steps * sim.substeps
-    return {"dtype": str(np.dtype(dtype)), "matmul_precision": str(jax.config.jax_default_matmul_precision),
-            "max_abs_tau_error_m": err_tau, "max_abs_tau_dot_error_m_s": err_vel, "max_abs_tau_m": scale,
-            "n_checked": n_check * forces.shape[0], "batch": batch,
-            "max_abs_tau_diff_batch_vs_alone_m": batch_diff,
-            "rollout_s": tm["median_s"], "steps_per_s": steps / tm["median_s"], "compile_s": t_compile,
-            "all_stable": bool(np.all(np.asarray(big.stable[:n_check])))}
+    return {
+        "dtype": str(np.dtype(dtype)),
+        "matmul_precision": str(jax.config.jax_default_matmul_precision),
+        "max_abs_tau_error_m": err_tau,
+        "max_abs_tau_dot_error_m_s": err_vel,
+        "max_abs_tau_m": scale,
+        "n_checked": n_check * forces.shape[0],
+        "batch": batch,
+        "max_abs_tau_diff_batch_vs_alone_m": batch_diff,
+        "rollout_s": tm["median_s"],
+        "steps_per_s": steps / tm["median_s"],
+        "compile_s": t_compile,
+        "all_stable": bool(np.all(np.asarray(big.stable[:n_check]))),
+    }
 
 
 PRECISION_VARIANTS = {
@@ -108,19 +120,35 @@ def lever_precision(args) -> dict:
         if time.perf_counter() - args.t_start > args.budget_s:
             out[name] = {"skipped": "budget"}
             continue
-        env = {**os.environ, **extra, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
-        code = (f"import json; from benchmarks.levers import precision_child; "
-                f"print(json.dumps(precision_child({args.batch}, {args.steps}, {args.n_check}, {args.reps})))")
-        proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True, check=False)
+        env = {
+            **os.environ,
+            **extra,
+            "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+        }
+        code = (
+            f"import json; from benchmarks.levers import precision_child; "
+            f"print(json.dumps(precision_child({args.batch}, {args.steps}, {args.n_check}, {args.reps})))"
+        )
+        proc = subprocess.run(
+            [sys.executable, "-c", code],
+            env=env,
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
         if proc.returncode != 0:
             out[name] = {"error": proc.stderr[-2000:]}
             print(f"   {name}: failed: {proc.stderr.strip()[-300:]}", flush=True)
             continue
         v = out[name] = json.loads(proc.stdout.strip().splitlines()[-1])
-        print(f"   {name:<34}: |tau - C| <= {v['max_abs_tau_error_m']:.2e} m, |tau_dot - C| <= "
-              f"{v['max_abs_tau_dot_error_m_s']:.2e} m/s (max tau {v['max_abs_tau_m']:.3f} m), "
-              f"batch {v['batch']} vs alone {v['max_abs_tau_diff_batch_vs_alone_m']:.1e} m; "
-              f"{C.fmt_rate(v['steps_per_s'])} steps/s at N={v['batch']}x3, compile {v['compile_s']:.1f} s", flush=True)
+        print(
+            f"   {name:<34}: |tau - C| <= {v['max_abs_tau_error_m']:.2e} m, |tau_dot - C| <= "
+            f"{v['max_abs_tau_dot_error_m_s']:.2e} m/s (max tau {v['max_abs_tau_m']:.3f} m), "
+            f"batch {v['batch']} vs alone {v['max_abs_tau_diff_batch_vs_alone_m']:.1e} m; "
+            f"{C.fmt_rate(v['steps_per_s'])} steps/s at N={v['batch']}x3, compile {v['compile_s']:.1f} s",
+            flush=True,
+        )
     return out
 
 
@@ -139,8 +167,12 @@ def lever_loops(args) -> dict:
     steps = args.batch * forces.shape[0] * args.steps * sim.substeps
     # (name, simulator function of (sim, kp, kd, forces), simulator)
     variants = [("simulate (library)", simulate, sim)]
-    for name, kw in [("variant, defaults", {}), ("scan unroll=2", {"unroll_outer": 2}),
-                     ("scan unroll=5", {"unroll_outer": 5}), ("substeps unrolled", {"unroll_inner": True})]:
+    for name, kw in [
+        ("variant, defaults", {}),
+        ("scan unroll=2", {"unroll_outer": 2}),
+        ("scan unroll=5", {"unroll_outer": 5}),
+        ("substeps unrolled", {"unroll_inner": True}),
+    ]:
         variants.append((name, functools.partial(simulate_variant, **kw), sim))
     variants.append(("mjx backend", simulate, make_simulator(tree, obs_dt=0.01, backend="mjx")))
     variants.append(("mjx, euler integrator", simulate, with_integrator(sim, "euler")))
@@ -158,15 +190,29 @@ def lever_loops(args) -> dict:
         if ref is None:
             ref = tau
         tm = C.time_calls(functools.partial(compiled, a, b, f), reps=args.reps, min_time_s=1.0)
-        row = {"variant": name, "compile_s": t_compile, "rollout_s": tm["median_s"], "steps_per_s": steps / tm["median_s"],
-               "max_abs_diff_from_library_m": float(np.max(np.abs(tau - ref))), "all_stable": bool(np.all(np.asarray(out.stable)))}
+        row = {
+            "variant": name,
+            "compile_s": t_compile,
+            "rollout_s": tm["median_s"],
+            "steps_per_s": steps / tm["median_s"],
+            "max_abs_diff_from_library_m": float(np.max(np.abs(tau - ref))),
+            "all_stable": bool(np.all(np.asarray(out.stable))),
+        }
         rows.append(row)
-        print(f"   {name:<22} {C.fmt_rate(row['steps_per_s'])} steps/s ({tm['median_s'] * 1e3:.1f} ms), "
-              f"compile {t_compile:.1f} s, max |diff| {row['max_abs_diff_from_library_m']:.1e} m", flush=True)
+        print(
+            f"   {name:<22} {C.fmt_rate(row['steps_per_s'])} steps/s ({tm['median_s'] * 1e3:.1f} ms), "
+            f"compile {t_compile:.1f} s, max |diff| {row['max_abs_diff_from_library_m']:.1e} m",
+            flush=True,
+        )
         del compiled, fn, out
         jax.clear_caches()
-    return {"batch": args.batch, "n_profiles": forces.shape[0], "n_steps": args.steps, "substeps": sim.substeps,
-            "rows": rows}
+    return {
+        "batch": args.batch,
+        "n_profiles": forces.shape[0],
+        "n_steps": args.steps,
+        "substeps": sim.substeps,
+        "rows": rows,
+    }
 
 
 def lever_donation(args) -> dict:
@@ -177,7 +223,10 @@ def lever_donation(args) -> dict:
     for donate in (False, True):
         r = step_time(problem, args.particles, args.reps, donate=donate)
         out["donated" if donate else "not_donated"] = r
-        print(f"   donate={donate}: {r['step_ms']:.1f} ms/it (compile {r['compile_s']:.1f} s)", flush=True)
+        print(
+            f"   donate={donate}: {r['step_ms']:.1f} ms/it (compile {r['compile_s']:.1f} s)",
+            flush=True,
+        )
     return out
 
 
@@ -187,22 +236,45 @@ def lever_cache(args) -> dict:
         env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
         for label in ("cold", "warm"):
             js = Path(tmp) / f"{label}.json"
-            cmd = [sys.executable, "-m", "benchmarks.inference", "--no-scaling", "--particles", str(args.particles),
-                   "--iterations", str(args.cache_iterations), "--steps", str(args.steps), "--compile-cache", cache,
-                   "--out", str(js)]
+            cmd = [
+                sys.executable,
+                "-m",
+                "benchmarks.inference",
+                "--no-scaling",
+                "--particles",
+                str(args.particles),
+                "--iterations",
+                str(args.cache_iterations),
+                "--steps",
+                str(args.steps),
+                "--compile-cache",
+                cache,
+                "--out",
+                str(js),
+            ]
             t0 = time.perf_counter()
-            proc = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, check=False)
+            proc = subprocess.run(
+                cmd, env=env, cwd=ROOT, capture_output=True, text=True, check=False
+            )
             wall = time.perf_counter() - t0
             if proc.returncode != 0:
                 out[label] = {"error": proc.stderr[-2000:]}
                 continue
             s = json.loads(js.read_text())["inference"]["standard"]
-            out[label] = {"process_wall_s": wall, "make_problem_s": s["make_problem_s"], "infer_s": s["infer_s"],
-                          "time_to_posterior_s": s["time_to_posterior_s"], "compiles": s["compiles_total"],
-                          "cache_hits": s["compilation_cache_hits"], "iteration_ms": s["iteration_ms_steady"]}
-            print(f"   {label}: make_problem + infer({args.cache_iterations} it) = {s['time_to_posterior_s']:.1f} s "
-                  f"(process {wall:.1f} s), compiles {s['compiles_total']}, cache hits {s['compilation_cache_hits']}",
-                  flush=True)
+            out[label] = {
+                "process_wall_s": wall,
+                "make_problem_s": s["make_problem_s"],
+                "infer_s": s["infer_s"],
+                "time_to_posterior_s": s["time_to_posterior_s"],
+                "compiles": s["compiles_total"],
+                "cache_hits": s["compilation_cache_hits"],
+                "iteration_ms": s["iteration_ms_steady"],
+            }
+            print(
+                f"   {label}: make_problem + infer({args.cache_iterations} it) = {s['time_to_posterior_s']:.1f} s "
+                f"(process {wall:.1f} s), compiles {s['compiles_total']}, cache hits {s['compilation_cache_hits']}",
+                flush=True,
+            )
     return out
 
 
@@ -211,13 +283,24 @@ def _hlo_profile(compiled, n: int, reps: int) -> dict:
     import re
 
     hlo = compiled.as_text()
-    kernels = len(re.findall(r"= \S+ (?:fusion|custom-call|convolution|dot|copy|transpose|reduce|scatter|gather)\(", hlo))
+    kernels = len(
+        re.findall(
+            r"= \S+ (?:fusion|custom-call|convolution|dot|copy|transpose|reduce|scatter|gather)\(",
+            hlo,
+        )
+    )
     cost = compiled.cost_analysis()
     cost = cost[0] if isinstance(cost, (list, tuple)) else cost
     flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
     nbytes = float(cost.get("bytes accessed", float("nan"))) if cost else float("nan")
-    return {"kernels_in_hlo": kernels, "while_loops": hlo.count(" while("), "flops_per_step": flops,
-            "bytes_per_step": nbytes, "bytes_per_particle_step": nbytes / n, "flops_per_particle_step": flops / n}
+    return {
+        "kernels_in_hlo": kernels,
+        "while_loops": hlo.count(" while("),
+        "flops_per_step": flops,
+        "bytes_per_step": nbytes,
+        "bytes_per_particle_step": nbytes / n,
+        "flops_per_particle_step": flops / n,
+    }
 
 
 def lever_profile(args) -> dict:
@@ -239,26 +322,45 @@ def lever_profile(args) -> dict:
     damp = [float(x) for x in sim.mj_model.dof_damping]
 
     def fused_step(q, v, kp):
-        out = hd.step(t, q, v, [kp] + stiff[1:], damp, [0.0] * nv, sim.sim_dt, sim.grasp_body, (0.5, 0.0, 0.0),
-                      (0.0, 0.0, -5.0), (0.1, 0.0, 0.0))
+        out = hd.step(
+            t,
+            q,
+            v,
+            [kp] + stiff[1:],
+            damp,
+            [0.0] * nv,
+            sim.sim_dt,
+            sim.grasp_body,
+            (0.5, 0.0, 0.0),
+            (0.0, 0.0, -5.0),
+            (0.1, 0.0, 0.0),
+        )
         return out.qpos, out.qvel
 
     rows = []
     for n in args.profile_batches:
         data = jax.vmap(lambda _: mjx.make_data(model))(jnp.arange(n))
         q = jnp.zeros((n, nv)) + 0.1
-        inputs = {"mjx.step": (jax.jit(jax.vmap(lambda d: mjx.step(model, d))), (data,)),
-                  "fused step": (jax.jit(jax.vmap(fused_step)), (q, q, jnp.full((n,), 50.0)))}
+        inputs = {
+            "mjx.step": (jax.jit(jax.vmap(lambda d: mjx.step(model, d))), (data,)),
+            "fused step": (jax.jit(jax.vmap(fused_step)), (q, q, jnp.full((n,), 50.0))),
+        }
         for name, (fn, xs) in inputs.items():
             compiled = fn.lower(*xs).compile()
             row = {"backend_step": name, "batch": n, **_hlo_profile(compiled, n, args.reps)}
             C.block(compiled(*xs))
             tm = C.time_calls(functools.partial(compiled, *xs), reps=args.reps, min_time_s=0.5)
-            row.update(step_us=1e6 * tm["median_s"], effective_GB_s=row["bytes_per_step"] / tm["median_s"] / 1e9)
+            row.update(
+                step_us=1e6 * tm["median_s"],
+                effective_GB_s=row["bytes_per_step"] / tm["median_s"] / 1e9,
+            )
             rows.append(row)
-            print(f"   N={n:>6} {name:<10}: {row['step_us']:.1f} us; {row['kernels_in_hlo']} kernel ops in HLO, "
-                  f"{row['while_loops']} while loops; cost model {row['flops_per_particle_step']:.0f} flop and "
-                  f"{row['bytes_per_particle_step']:.0f} B per particle-step", flush=True)
+            print(
+                f"   N={n:>6} {name:<10}: {row['step_us']:.1f} us; {row['kernels_in_hlo']} kernel ops in HLO, "
+                f"{row['while_loops']} while loops; cost model {row['flops_per_particle_step']:.0f} flop and "
+                f"{row['bytes_per_particle_step']:.0f} B per particle-step",
+                flush=True,
+            )
     return {"rows": rows, "nbody": sim.mj_model.nbody, "nv": nv}
 
 
@@ -288,8 +390,12 @@ def rollout_time_child(batch: int, n_steps: int, reps: int) -> dict:
     C.block(compiled(a, b, f))
     tm = C.time_calls(lambda: compiled(a, b, f), reps=reps, min_time_s=1.0)
     steps = batch * forces.shape[0] * n_steps * sim.substeps
-    return {"compile_s": t_compile, "rollout_s": tm["median_s"], "steps_per_s": steps / tm["median_s"],
-            "us_per_step": 1e6 * tm["median_s"] / (n_steps * sim.substeps)}
+    return {
+        "compile_s": t_compile,
+        "rollout_s": tm["median_s"],
+        "steps_per_s": steps / tm["median_s"],
+        "us_per_step": 1e6 * tm["median_s"] / (n_steps * sim.substeps),
+    }
 
 
 def lever_xla_flags(args) -> dict:
@@ -298,48 +404,83 @@ def lever_xla_flags(args) -> dict:
         if time.perf_counter() - args.t_start > args.budget_s:
             out[name] = {"skipped": "budget"}
             continue
-        env = {**os.environ, "XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") + " " + flags).strip(),
-               "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
-        code = (f"import json; from benchmarks.levers import rollout_time_child; "
-                f"print(json.dumps(rollout_time_child({args.batch}, {args.steps}, {args.reps})))")
-        proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True, check=False)
+        env = {
+            **os.environ,
+            "XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") + " " + flags).strip(),
+            "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+        }
+        code = (
+            f"import json; from benchmarks.levers import rollout_time_child; "
+            f"print(json.dumps(rollout_time_child({args.batch}, {args.steps}, {args.reps})))"
+        )
+        proc = subprocess.run(
+            [sys.executable, "-c", code],
+            env=env,
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
         if proc.returncode == 0:
             r = json.loads(proc.stdout.strip().splitlines()[-1])
             out[name] = {"xla_flags": flags, **r}
-            print(f"   {name:<40} {r['rollout_s'] * 1e3:.1f} ms at N={args.batch}x3 ({r['us_per_step']:.1f} us per step), "
-                  f"compile {r['compile_s']:.1f} s", flush=True)
+            print(
+                f"   {name:<40} {r['rollout_s'] * 1e3:.1f} ms at N={args.batch}x3 ({r['us_per_step']:.1f} us per step), "
+                f"compile {r['compile_s']:.1f} s",
+                flush=True,
+            )
         else:
             out[name] = {"xla_flags": flags, "error": proc.stderr[-1500:]}
-            print(f"   {name:<40} failed: {proc.stderr.strip().splitlines()[-1][:200] if proc.stderr.strip() else '?'}",
-                  flush=True)
+            print(
+                f"   {name:<40} failed: {proc.stderr.strip().splitlines()[-1][:200] if proc.stderr.strip() else '?'}",
+                flush=True,
+            )
     return out
 
 
-LEVERS = {"precision": lever_precision, "loops": lever_loops, "donation": lever_donation, "cache": lever_cache,
-          "profile": lever_profile, "xla_flags": lever_xla_flags}
+LEVERS = {
+    "precision": lever_precision,
+    "loops": lever_loops,
+    "donation": lever_donation,
+    "cache": lever_cache,
+    "profile": lever_profile,
+    "xla_flags": lever_xla_flags,
+}
 
 
 def main(argv=None) -> int:
     import jax
 
     on_gpu = jax.devices()[0].platform == "gpu"
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--only", default=",".join(LEVERS), help=f"comma list of {list(LEVERS)}")
-    p.add_argument("--batch", type=int, default=1664 if on_gpu else 16,
-                   help="parameter sets per rollout (1664 = one standard NNSVGD iteration's rows)")
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=1664 if on_gpu else 16,
+        help="parameter sets per rollout (1664 = one standard NNSVGD iteration's rows)",
+    )
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--particles", type=int, default=128 if on_gpu else 8)
     p.add_argument("--n-check", type=int, default=4, help="parameter sets compared with C")
     p.add_argument("--cache-iterations", type=int, default=20)
-    p.add_argument("--profile-batches", type=lambda t: [int(x) for x in t.split(",")],
-                   default=[1, 4992, 131072] if on_gpu else [1, 64])
+    p.add_argument(
+        "--profile-batches",
+        type=lambda t: [int(x) for x in t.split(",")],
+        default=[1, 4992, 131072] if on_gpu else [1, 64],
+    )
     p.add_argument("--reps", type=int, default=5)
     p.add_argument("--budget-s", type=float, default=float("inf"))
     p.add_argument("--machine", default=None)
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
     args.t_start = time.perf_counter()
-    record = {"machine": C.machine_info(), "settings": {k: v for k, v in vars(args).items() if k != "t_start"}}
+    record = {
+        "machine": C.machine_info(),
+        "settings": {k: v for k, v in vars(args).items() if k != "t_start"},
+    }
     print(f"machine: {record['machine']}", flush=True)
     out = args.out or (C.RESULTS_DIR / f"{args.machine or C.default_machine_name()}.json")
     for name in args.only.split(","):

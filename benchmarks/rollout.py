@@ -93,7 +93,12 @@ def rollout_model(tree, sim):
     pt.iquat = [1.0, 0.0, 0.0, 0.0]
     pt.mass = 1e-6
     pt.inertia = [1e-12, 1e-12, 1e-12]
-    spec.add_sensor(name="grasp_pos", type=mujoco.mjtSensor.mjSENS_FRAMEPOS, objtype=mujoco.mjtObj.mjOBJ_SITE, objname=GRASP_SITE)
+    spec.add_sensor(
+        name="grasp_pos",
+        type=mujoco.mjtSensor.mjSENS_FRAMEPOS,
+        objtype=mujoco.mjtObj.mjOBJ_SITE,
+        objname=GRASP_SITE,
+    )
     m = spec.compile()
     bid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "grasp_point")
     assert bid > 0 and m.nbody == sim.mj_model.nbody + 1, "grasp_point body was fused away"
@@ -130,7 +135,11 @@ def c_controls(sim, m, bid, forces):
     # first-order hold substep j of interval k uses f_k + (j / substeps) (f_{k+1} - f_k)
     f0 = np.asarray(forces[0], float)
     f1 = np.concatenate([f0[1:], f0[-1:]])
-    w = np.arange(sim.substeps) / sim.substeps if sim.force_interp == "linear" else np.zeros(sim.substeps)
+    w = (
+        np.arange(sim.substeps) / sim.substeps
+        if sim.force_interp == "linear"
+        else np.zeros(sim.substeps)
+    )
     f = (f0[:, None] + w[None, :] * (f1 - f0)[:, None]).reshape(-1)
     ctrl = np.zeros((1, f.size, m.nbody * 6))
     ctrl[0, :, bid * 6 : bid * 6 + 3] = f[:, None] * sim.gravity_dir[None, :]
@@ -162,8 +171,13 @@ class CRollout:
             k = min(self.chunk, n - done)
             idx = [(done + i) % len(self.models) for i in range(k)]
             self.pool.rollout(
-                [self.models[i] for i in idx], self.datas, self.states[idx], self.ctrl,
-                control_spec=self.spec, state=self.state_buf[:k], sensordata=self.sens_buf[:k],
+                [self.models[i] for i in idx],
+                self.datas,
+                self.states[idx],
+                self.ctrl,
+                control_spec=self.spec,
+                state=self.state_buf[:k],
+                sensordata=self.sens_buf[:k],
             )
             done += k
         return self.sens_buf
@@ -191,10 +205,22 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
     forces = pull_profile(n_steps, sim.obs_dt)
     kp_pool, kd_pool = sample_gains(tree, POOL, seed=n_branches)
     steps_per_rollout = n_steps * sim.substeps
-    info = {"n_branches": n_branches, "backend": sim.backend, "nq": sim.mj_model.nq, "nbody": sim.mj_model.nbody, "substeps": sim.substeps,
-            "sim_dt": sim.sim_dt, "obs_dt": sim.obs_dt, "n_steps": n_steps, "steps_per_rollout": steps_per_rollout}
-    print(f"\n== {n_branches}-branch chain, {sim.backend} backend: nq={sim.mj_model.nq}, substeps={sim.substeps}, T={n_steps} "
-          f"({steps_per_rollout} physics steps per rollout)", flush=True)
+    info = {
+        "n_branches": n_branches,
+        "backend": sim.backend,
+        "nq": sim.mj_model.nq,
+        "nbody": sim.mj_model.nbody,
+        "substeps": sim.substeps,
+        "sim_dt": sim.sim_dt,
+        "obs_dt": sim.obs_dt,
+        "n_steps": n_steps,
+        "steps_per_rollout": steps_per_rollout,
+    }
+    print(
+        f"\n== {n_branches}-branch chain, {sim.backend} backend: nq={sim.mj_model.nq}, substeps={sim.substeps}, T={n_steps} "
+        f"({steps_per_rollout} physics steps per rollout)",
+        flush=True,
+    )
 
     # native C paths
     m, bid = rollout_model(tree, sim)
@@ -212,14 +238,19 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
     info["naive_s_per_particle"] = naive_s
     info["naive_steps_per_s"] = steps_per_rollout / naive_s
     info["naive_settle_s_per_particle"] = info["c_settle_s_per_particle_python"]
-    info["naive_pull_steps_per_s"] = steps_per_rollout / max(naive_s - info["naive_settle_s_per_particle"], 1e-12)
+    info["naive_pull_steps_per_s"] = steps_per_rollout / max(
+        naive_s - info["naive_settle_s_per_particle"], 1e-12
+    )
     record.setdefault("trees", []).append(info)
 
     sim_fn = jax.jit(lambda a, b, f: simulate(sim, a, b, f))
     check = None
     for n in batches:
         if time.perf_counter() - args.t_start > args.budget_s:
-            print(f"   budget of {args.budget_s:.0f} s spent: skipping batch {n} and larger", flush=True)
+            print(
+                f"   budget of {args.budget_s:.0f} s spent: skipping batch {n} and larger",
+                flush=True,
+            )
             record.setdefault("skipped", []).append({"n_branches": n_branches, "batch": n})
             continue
         idx = np.arange(n) % POOL
@@ -245,30 +276,53 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
                 "all_stable": bool(np.all(np.asarray(out.stable))),
             }
             info["check"] = check
-            print(f"   check: |MJX - C ref| = {check['max_abs_mjx_minus_reference_m']:.2e} m, "
-                  f"|rollout - C ref| = {check['max_abs_rollout_minus_reference_m']:.2e} m "
-                  f"(max tau {check['max_abs_tau_reference_m']:.3f} m)", flush=True)
-        tm = C.time_calls(functools.partial(compiled, kp, kd, fj), reps=args.reps, min_time_s=args.min_time_s)
+            print(
+                f"   check: |MJX - C ref| = {check['max_abs_mjx_minus_reference_m']:.2e} m, "
+                f"|rollout - C ref| = {check['max_abs_rollout_minus_reference_m']:.2e} m "
+                f"(max tau {check['max_abs_tau_reference_m']:.3f} m)",
+                flush=True,
+            )
+        tm = C.time_calls(
+            functools.partial(compiled, kp, kd, fj), reps=args.reps, min_time_s=args.min_time_s
+        )
         mjx_rate = n * steps_per_rollout / tm["median_s"]
-        row = {"n_branches": n_branches, "backend": sim.backend, "batch": n, "mjx_s": tm["median_s"], "mjx_steps_per_s": mjx_rate,
-               "mjx_devices": len(kp.sharding.device_set),
-               "lower_s": t1 - t0, "compile_s": t2 - t1, "mjx_reps": tm["reps"],
-               "all_stable": bool(np.all(np.asarray(out.stable)))}
+        row = {
+            "n_branches": n_branches,
+            "backend": sim.backend,
+            "batch": n,
+            "mjx_s": tm["median_s"],
+            "mjx_steps_per_s": mjx_rate,
+            "mjx_devices": len(kp.sharding.device_set),
+            "lower_s": t1 - t0,
+            "compile_s": t2 - t1,
+            "mjx_reps": tm["reps"],
+            "all_stable": bool(np.all(np.asarray(out.stable))),
+        }
         del out
         n_c = min(n, args.c_max_batch)
         if n_c >= 1:
             crun.run(min(n_c, crun.chunk))  # warm-up
-            tc = C.time_calls(functools.partial(crun.run, n_c), reps=args.reps, min_time_s=args.min_time_s)
-            row.update({"c_batch": n_c, "c_s": tc["median_s"], "c_steps_per_s": n_c * steps_per_rollout / tc["median_s"]})
+            tc = C.time_calls(
+                functools.partial(crun.run, n_c), reps=args.reps, min_time_s=args.min_time_s
+            )
+            row.update(
+                {
+                    "c_batch": n_c,
+                    "c_s": tc["median_s"],
+                    "c_steps_per_s": n_c * steps_per_rollout / tc["median_s"],
+                }
+            )
             row["mjx_over_c"] = mjx_rate / row["c_steps_per_s"]
         row["naive_steps_per_s"] = info["naive_steps_per_s"]
         row["mjx_over_naive"] = mjx_rate / info["naive_steps_per_s"]
         out_rows.append(row)
         save()
-        print(f"   N={n:>6}: MJX {C.fmt_rate(mjx_rate)} steps/s ({tm['median_s'] * 1e3:.1f} ms; lower {t1 - t0:.1f} s, "
-              f"compile {t2 - t1:.1f} s) | C rollout {C.fmt_rate(row.get('c_steps_per_s'))} (N={n_c}) | "
-              f"naive {C.fmt_rate(info['naive_steps_per_s'])} | MJX/C {row.get('mjx_over_c', float('nan')):.3g}",
-              flush=True)
+        print(
+            f"   N={n:>6}: MJX {C.fmt_rate(mjx_rate)} steps/s ({tm['median_s'] * 1e3:.1f} ms; lower {t1 - t0:.1f} s, "
+            f"compile {t2 - t1:.1f} s) | C rollout {C.fmt_rate(row.get('c_steps_per_s'))} (N={n_c}) | "
+            f"naive {C.fmt_rate(info['naive_steps_per_s'])} | MJX/C {row.get('mjx_over_c', float('nan')):.3g}",
+            flush=True,
+        )
         if args.breakdown and n == max(batches):
             # settle share: the static solve alone at the same batch
             st = jax.jit(lambda a, b: settle(sim, a, b))
@@ -276,13 +330,18 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
             cs = st.lower(kp, kd).compile()
             tcs = time.perf_counter() - t0
             C.block(cs(kp, kd))
-            ts = C.time_calls(functools.partial(cs, kp, kd), reps=args.reps, min_time_s=args.min_time_s)
+            ts = C.time_calls(
+                functools.partial(cs, kp, kd), reps=args.reps, min_time_s=args.min_time_s
+            )
             row["settle_s"] = ts["median_s"]
             row["settle_share"] = ts["median_s"] / tm["median_s"]
             row["settle_compile_s"] = tcs
             save()
-            print(f"   settle alone at N={n}: {ts['median_s'] * 1e3:.1f} ms = {row['settle_share']:.0%} of the rollout "
-                  f"(compile {tcs:.1f} s)", flush=True)
+            print(
+                f"   settle alone at N={n}: {ts['median_s'] * 1e3:.1f} ms = {row['settle_share']:.0%} of the rollout "
+                f"(compile {tcs:.1f} s)",
+                flush=True,
+            )
         del compiled, lowered
         jax.clear_caches()
     crun.close()
@@ -292,31 +351,64 @@ def main(argv=None) -> int:
     import jax
 
     on_gpu = jax.devices()[0].platform == "gpu"
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--trees", default="1,3,6", help="branch counts of the chains")
-    p.add_argument("--backend", default="fused", choices=["fused", "mjx"],
-                   help="simulator backend (the mjx_* columns of the JSON hold its figures)")
-    p.add_argument("--batches", default=None,
-                   help="batch sizes (parameter sets); default 1..131072 on GPU, 1..1024 on CPU")
+    p.add_argument(
+        "--backend",
+        default="fused",
+        choices=["fused", "mjx"],
+        help="simulator backend (the mjx_* columns of the JSON hold its figures)",
+    )
+    p.add_argument(
+        "--batches",
+        default=None,
+        help="batch sizes (parameter sets); default 1..131072 on GPU, 1..1024 on CPU",
+    )
     p.add_argument("--steps", type=int, default=300, help="observation steps T per rollout")
     p.add_argument("--obs-dt", type=float, default=0.01, help="s between observations")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="mujoco.rollout threads")
-    p.add_argument("--c-max-batch", type=int, default=None,
-                   help="largest batch run through mujoco.rollout (its rate is flat in N); default 16384 GPU host, 1024 CPU")
+    p.add_argument(
+        "--c-max-batch",
+        type=int,
+        default=None,
+        help="largest batch run through mujoco.rollout (its rate is flat in N); default 16384 GPU host, 1024 CPU",
+    )
     p.add_argument("--naive-particles", type=int, default=2)
     p.add_argument("--reps", type=int, default=3)
     p.add_argument("--min-time-s", type=float, default=1.0)
-    p.add_argument("--no-breakdown", dest="breakdown", action="store_false",
-                   help="skip timing the settle alone at the largest batch")
-    p.add_argument("--budget-s", type=float, default=float("inf"), help="stop starting new batches after this")
-    p.add_argument("--compile-cache", default=None, help="persistent compilation cache dir (default: off)")
-    p.add_argument("--shard", action="store_true",
-                   help="split the parameter sets over all JAX devices (e.g. CPU cores exposed with "
-                        "XLA_FLAGS=--xla_force_host_platform_device_count=N)")
-    p.add_argument("--append", action="store_true",
-                   help="keep rows of other trees/batches already in the JSON (default: replace the section)")
-    p.add_argument("--machine", default=None, help="name of the JSON file (default from the device)")
-    p.add_argument("--out", default=None, help="JSON path (default experiments/results/benchmarks/<machine>.json)")
+    p.add_argument(
+        "--no-breakdown",
+        dest="breakdown",
+        action="store_false",
+        help="skip timing the settle alone at the largest batch",
+    )
+    p.add_argument(
+        "--budget-s", type=float, default=float("inf"), help="stop starting new batches after this"
+    )
+    p.add_argument(
+        "--compile-cache", default=None, help="persistent compilation cache dir (default: off)"
+    )
+    p.add_argument(
+        "--shard",
+        action="store_true",
+        help="split the parameter sets over all JAX devices (e.g. CPU cores exposed with "
+        "XLA_FLAGS=--xla_force_host_platform_device_count=N)",
+    )
+    p.add_argument(
+        "--append",
+        action="store_true",
+        help="keep rows of other trees/batches already in the JSON (default: replace the section)",
+    )
+    p.add_argument(
+        "--machine", default=None, help="name of the JSON file (default from the device)"
+    )
+    p.add_argument(
+        "--out",
+        default=None,
+        help="JSON path (default experiments/results/benchmarks/<machine>.json)",
+    )
     args = p.parse_args(argv)
     args.t_start = time.perf_counter()
     if args.compile_cache:
@@ -329,9 +421,12 @@ def main(argv=None) -> int:
         args.c_max_batch = 16384 if on_gpu else 1024
     batches = [int(b) for b in args.batches.split(",")]
     trees = [int(t) for t in args.trees.split(",")]
-    record = {"machine": C.machine_info(), "settings": {k: v for k, v in vars(args).items() if k != "t_start"},
-              "definition": "particle-steps/s = N * B * T * substeps / s, B = 1 profile; MJX includes the settle, "
-                            "mujoco.rollout starts from settled states"}
+    record = {
+        "machine": C.machine_info(),
+        "settings": {k: v for k, v in vars(args).items() if k != "t_start"},
+        "definition": "particle-steps/s = N * B * T * substeps / s, B = 1 profile; MJX includes the settle, "
+        "mujoco.rollout starts from settled states",
+    }
     print(f"machine: {record['machine']}", flush=True)
     rows: list[dict] = []
     record["rows"] = rows
@@ -340,20 +435,44 @@ def main(argv=None) -> int:
     previous = C.read_section(out, "rollout") if args.append else {}
 
     def save():
-        merged = {**record, "rows": _merge_rows(previous.get("rows", []), rows, ("n_branches", "backend", "batch")),
-                  "trees": _merge_rows(previous.get("trees", []), record.get("trees", []), ("n_branches", "backend"))}
+        merged = {
+            **record,
+            "rows": _merge_rows(previous.get("rows", []), rows, ("n_branches", "backend", "batch")),
+            "trees": _merge_rows(
+                previous.get("trees", []), record.get("trees", []), ("n_branches", "backend")
+            ),
+        }
         C.merge_results(out, "rollout", merged, summary(merged["rows"]))
 
     for nb in trees:
         run_tree(nb, batches, args.steps, args, rows, record, save)
         save()
-    print("\nparticle-steps/s (N * T * substeps / s); MJX includes the settle; C rollout from settled states")
+    print(
+        "\nparticle-steps/s (N * T * substeps / s); MJX includes the settle; C rollout from settled states"
+    )
     C.print_table(
-        [{**r, "mjx": C.fmt_rate(r["mjx_steps_per_s"]), "c": C.fmt_rate(r.get("c_steps_per_s")),
-          "naive": C.fmt_rate(r["naive_steps_per_s"]), "r_c": f"{r.get('mjx_over_c', float('nan')):.3g}",
-          "r_n": f"{r['mjx_over_naive']:.3g}", "comp": f"{r['lower_s']:.0f}+{r['compile_s']:.0f}"} for r in rows],
-        [("n_branches", "branches"), ("batch", "N"), ("mjx", "MJX"), ("c", "mujoco.rollout"), ("naive", "naive loop"),
-         ("r_c", "MJX/rollout"), ("r_n", "MJX/naive"), ("comp", "lower+compile s")],
+        [
+            {
+                **r,
+                "mjx": C.fmt_rate(r["mjx_steps_per_s"]),
+                "c": C.fmt_rate(r.get("c_steps_per_s")),
+                "naive": C.fmt_rate(r["naive_steps_per_s"]),
+                "r_c": f"{r.get('mjx_over_c', float('nan')):.3g}",
+                "r_n": f"{r['mjx_over_naive']:.3g}",
+                "comp": f"{r['lower_s']:.0f}+{r['compile_s']:.0f}",
+            }
+            for r in rows
+        ],
+        [
+            ("n_branches", "branches"),
+            ("batch", "N"),
+            ("mjx", "MJX"),
+            ("c", "mujoco.rollout"),
+            ("naive", "naive loop"),
+            ("r_c", "MJX/rollout"),
+            ("r_n", "MJX/naive"),
+            ("comp", "lower+compile s"),
+        ],
     )
     print(f"\nwrote {out}")
     return 0
@@ -379,13 +498,20 @@ def summary(rows) -> dict:
         pref = [r for r in both if r["n_branches"] == 3] or both
         pref = [r for r in pref if r.get("backend") == "fused"] or pref
         top = max(pref, key=lambda r: r["batch"])
-        ratio = {"value": top["mjx_over_c"], "n_branches": top["n_branches"], "batch": top["batch"],
-                 "backend": top.get("backend", "mjx"),
-                 "c_batch": top["c_batch"]}
+        ratio = {
+            "value": top["mjx_over_c"],
+            "n_branches": top["n_branches"],
+            "batch": top["batch"],
+            "backend": top.get("backend", "mjx"),
+            "c_batch": top["c_batch"],
+        }
     return {
         "rollout_steps_per_s_max": best["mjx_steps_per_s"],
-        "rollout_steps_per_s_max_at": {"n_branches": best["n_branches"], "batch": best["batch"],
-                                       "backend": best.get("backend", "mjx")},
+        "rollout_steps_per_s_max_at": {
+            "n_branches": best["n_branches"],
+            "batch": best["batch"],
+            "backend": best.get("backend", "mjx"),
+        },
         "mjx_over_mujoco_rollout_ratio": None if ratio is None else ratio["value"],
         "mjx_over_mujoco_rollout_ratio_at": ratio,
     }

@@ -28,8 +28,12 @@ def main(argv=None) -> int:
     from benchmarks.inference import make_standard_problem, step_time
     from treeinfer import sharding
 
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--particles", type=lambda t: [int(x) for x in t.split(",")], default=[128, 1024, 4096])
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--particles", type=lambda t: [int(x) for x in t.split(",")], default=[128, 1024, 4096]
+    )
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--reps", type=int, default=3)
     p.add_argument("--check-steps", type=int, default=3)
@@ -53,25 +57,52 @@ def main(argv=None) -> int:
     v0, g0, v1, g1 = (np.asarray(x, float) for x in (v0, g0, v1, g1))
     ok = np.isfinite(v0) & np.isfinite(v1)
     record["value_and_grad_check"] = {
-        "n_particles": args.particles[0], "finite_both": int(ok.sum()), "finite_differ": int((np.isfinite(v0) != np.isfinite(v1)).sum()),
-        "max_rel_value_diff": float(np.max(np.abs(v0[ok] - v1[ok]) / np.maximum(np.abs(v0[ok]), 1.0))),
-        "max_grad_diff_over_grad_norm": float(np.max(np.linalg.norm(g0[ok] - g1[ok], axis=1)
-                                                      / np.maximum(np.linalg.norm(g0[ok], axis=1), 1e-12))),
+        "n_particles": args.particles[0],
+        "finite_both": int(ok.sum()),
+        "finite_differ": int((np.isfinite(v0) != np.isfinite(v1)).sum()),
+        "max_rel_value_diff": float(
+            np.max(np.abs(v0[ok] - v1[ok]) / np.maximum(np.abs(v0[ok]), 1.0))
+        ),
+        "max_grad_diff_over_grad_norm": float(
+            np.max(
+                np.linalg.norm(g0[ok] - g1[ok], axis=1)
+                / np.maximum(np.linalg.norm(g0[ok], axis=1), 1e-12)
+            )
+        ),
         "bitwise_equal": bool(np.array_equal(v0, v1) and np.array_equal(g0, g1)),
     }
     print(f"   value_and_grad, P={args.particles[0]}: {record['value_and_grad_check']}", flush=True)
     for n in args.particles:
-        a = step_time(problem, n, args.reps, mesh=None, min_time_s=0.0, n_final=args.check_steps)  # plain, device 0
-        b = step_time(problem, n, args.reps, mesh=every, min_time_s=0.0, n_final=args.check_steps, method=args.method)
+        a = step_time(
+            problem, n, args.reps, mesh=None, min_time_s=0.0, n_final=args.check_steps
+        )  # plain, device 0
+        b = step_time(
+            problem,
+            n,
+            args.reps,
+            mesh=every,
+            min_time_s=0.0,
+            n_final=args.check_steps,
+            method=args.method,
+        )
         fa, fb = a.pop("final_positions"), b.pop("final_positions")
-        row = {"n_particles": n, "one_device": a, "all_devices": b, "speedup": a["step_ms"] / b["step_ms"],
-               "max_abs_diff_after_steps": float(np.max(np.abs(fa - fb))), "bitwise_equal": bool(np.array_equal(fa, fb))}
+        row = {
+            "n_particles": n,
+            "one_device": a,
+            "all_devices": b,
+            "speedup": a["step_ms"] / b["step_ms"],
+            "max_abs_diff_after_steps": float(np.max(np.abs(fa - fb))),
+            "bitwise_equal": bool(np.array_equal(fa, fb)),
+        }
         record["rows"].append(row)
         C.merge_results(out, f"sharding_{args.method}", record, {})
-        print(f"   P={n:>5}: 1 device {a['step_ms']:.1f} ms, {n_dev} devices {b['step_ms']:.1f} ms "
-              f"(x{row['speedup']:.2f}); compile {a['compile_s']:.1f} / {b['compile_s']:.1f} s; "
-              f"max |diff| after {args.check_steps} steps {row['max_abs_diff_after_steps']:.1e}"
-              f"{' (bitwise equal)' if row['bitwise_equal'] else ''}", flush=True)
+        print(
+            f"   P={n:>5}: 1 device {a['step_ms']:.1f} ms, {n_dev} devices {b['step_ms']:.1f} ms "
+            f"(x{row['speedup']:.2f}); compile {a['compile_s']:.1f} / {b['compile_s']:.1f} s; "
+            f"max |diff| after {args.check_steps} steps {row['max_abs_diff_after_steps']:.1e}"
+            f"{' (bitwise equal)' if row['bitwise_equal'] else ''}",
+            flush=True,
+        )
     print(f"wrote {out}")
     return 0
 

@@ -39,7 +39,9 @@ class CompileLog(logging.Handler):
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--particles", type=int, default=128)
     p.add_argument("--iterations", type=int, default=200)
     p.add_argument("--steps", type=int, default=300)
@@ -86,7 +88,10 @@ def main(argv=None) -> int:
     kp, kd = default_true_params(tree, np.random.default_rng(0))
     forces = profile_set("mixed", n=3, duration=args.steps * 0.01, dt=0.01, seed=0)[:, : args.steps]
     t = np.arange(args.steps) * 0.01
-    trajs = [Trajectory(t, f, *simulate_reference(sim, kp, kd, f), f"pull{i}") for i, f in enumerate(forces)]
+    trajs = [
+        Trajectory(t, f, *simulate_reference(sim, kp, kd, f), f"pull{i}")
+        for i, f in enumerate(forces)
+    ]
     phase("synthetic_data_c_reference")
     from treeinfer.inference import nn_inequality_prior
 
@@ -95,28 +100,44 @@ def main(argv=None) -> int:
     n_before = len(log.entries)
     problem = make_problem(tree, trajs, sim=sim)
     phase("make_problem")
-    posterior = infer(problem, "nnsvgd", n_particles=args.particles, n_iterations=args.iterations, seed=0,
-                      progress=False)
+    posterior = infer(
+        problem,
+        "nnsvgd",
+        n_particles=args.particles,
+        n_iterations=args.iterations,
+        seed=0,
+        progress=False,
+    )
     phase("infer")
     compiles = log.entries[n_before:]
     compile_s = sum(s for _, s in compiles)
     top = sorted(compiles, key=lambda e: -e[1])[:6]
     total = sum(v for k, v in phases.items())
     result = {
-        "backend": sim.backend, "device": str(jax.devices()[0].device_kind), "phases_s": phases,
-        "total_s": total, "time_to_posterior_s_excluding_imports_and_data": total - phases["imports_before_main"]
-        - phases["imports"] - phases["synthetic_data_c_reference"],
-        "infer_compile_s": compile_s, "infer_compiles": len(compiles),
+        "backend": sim.backend,
+        "device": str(jax.devices()[0].device_kind),
+        "phases_s": phases,
+        "total_s": total,
+        "time_to_posterior_s_excluding_imports_and_data": total
+        - phases["imports_before_main"]
+        - phases["imports"]
+        - phases["synthetic_data_c_reference"],
+        "infer_compile_s": compile_s,
+        "infer_compiles": len(compiles),
         "infer_largest_compiles": [{"name": n, "s": s} for n, s in top],
         "finite_particles": int(np.isfinite(posterior.log_density).sum()),
         "compile_cache": args.compile_cache,
     }
     for k, v in phases.items():
         print(f"{k:>30}: {v:7.2f} s")
-    print(f"{'infer: XLA compilation':>30}: {compile_s:7.2f} s in {len(compiles)} compiles; largest: "
-          + ", ".join(f"{n[:40]} {s:.2f}s" for n, s in top[:3]))
-    print(f"{'total':>30}: {total:7.2f} s; without imports and data generation: "
-          f"{result['time_to_posterior_s_excluding_imports_and_data']:.2f} s")
+    print(
+        f"{'infer: XLA compilation':>30}: {compile_s:7.2f} s in {len(compiles)} compiles; largest: "
+        + ", ".join(f"{n[:40]} {s:.2f}s" for n, s in top[:3])
+    )
+    print(
+        f"{'total':>30}: {total:7.2f} s; without imports and data generation: "
+        f"{result['time_to_posterior_s_excluding_imports_and_data']:.2f} s"
+    )
     if args.out:
         from pathlib import Path
 

@@ -95,8 +95,12 @@ def child(args) -> int:
     data = np.load(Path(args.workdir) / "data.npz")
     tree = load_tree(EXAMPLES / "three_branch.yaml")
     t = np.arange(N_STEPS) * DT
-    trajs = [Trajectory(t, f, tau, tau_dot, f"pull{i}") for i, (f, tau, tau_dot) in
-             enumerate(zip(data["train_force"], data["train_tau"], data["train_tau_dot"]))]
+    trajs = [
+        Trajectory(t, f, tau, tau_dot, f"pull{i}")
+        for i, (f, tau, tau_dot) in enumerate(
+            zip(data["train_force"], data["train_tau"], data["train_tau_dot"])
+        )
+    ]
     problem = make_problem(tree, trajs)
     marks["problem"] = time.time()
     mode = args.child
@@ -104,16 +108,27 @@ def child(args) -> int:
     if mode == "fast":
         from treeinfer.mapfit import fit_problem, laplace_particles, problem_with_gradients
 
-        fit = fit_problem(problem, "boltzmann", n_starts=args.starts, seed=0,
-                          jacobian=args.fast_jacobian, max_iterations=args.lm_iterations)
+        fit = fit_problem(
+            problem,
+            "boltzmann",
+            n_starts=args.starts,
+            seed=0,
+            jacobian=args.fast_jacobian,
+            max_iterations=args.lm_iterations,
+        )
         theta0 = laplace_particles(jax.random.key(0), fit, args.particles, scale=args.laplace_scale)
         marks["map_fit"] = time.time()
-        record["map"] = {"theta": fit.theta.tolist(), "iterations": fit.iterations,
-                         "converged": fit.converged.tolist(), "values": fit.values.tolist()}
+        record["map"] = {
+            "theta": fit.theta.tolist(),
+            "iterations": fit.iterations,
+            "converged": fit.converged.tolist(),
+            "values": fit.values.tolist(),
+        }
         problem = problem_with_gradients(problem, args.fast_gradients)
         n_iter = args.fast_iterations
-        options = {} if args.fast_learning_rate is None else {
-            "learning_rate": args.fast_learning_rate}
+        options = (
+            {} if args.fast_learning_rate is None else {"learning_rate": args.fast_learning_rate}
+        )
     else:
         options = {}
         theta0 = None
@@ -136,18 +151,42 @@ def child(args) -> int:
         lr = args.fast_learning_rate or 0.1
         schedule = optax.linear_schedule(lr / 20, lr, args.fast_warmup)
         algorithm = nnsvgd(problem.value_and_grad, lr, optimizer=optax.adam(schedule))
-        result = run(algorithm, jax.random.key(0), theta0, n_iter, progress=False,
-                     callback=on_chunk, callback_every=args.check_every, trace_every=None)
+        result = run(
+            algorithm,
+            jax.random.key(0),
+            theta0,
+            n_iter,
+            progress=False,
+            callback=on_chunk,
+            callback_every=args.check_every,
+            trace_every=None,
+        )
         final_theta = np.asarray(result.final_positions)
     else:
-        posterior = infer(problem, "nnsvgd", n_particles=args.particles, n_iterations=n_iter,
-                          seed=0, progress=False, initial_theta=theta0, callback=on_chunk,
-                          callback_every=args.check_every, trace_every=None, **options)
+        posterior = infer(
+            problem,
+            "nnsvgd",
+            n_particles=args.particles,
+            n_iterations=n_iter,
+            seed=0,
+            progress=False,
+            initial_theta=theta0,
+            callback=on_chunk,
+            callback_every=args.check_every,
+            trace_every=None,
+            **options,
+        )
         final_theta = np.asarray(posterior.theta)
     marks["infer"] = time.time()
-    record.update({"marks": marks, "checks": checks, "n_iterations": n_iter,
-                   "gradient": problem.settings["gradient"],
-                   "final_theta": final_theta.tolist()})
+    record.update(
+        {
+            "marks": marks,
+            "checks": checks,
+            "n_iterations": n_iter,
+            "gradient": problem.settings["gradient"],
+            "final_theta": final_theta.tolist(),
+        }
+    )
     Path(args.result).write_text(json.dumps(record))
     return 0
 
@@ -160,8 +199,11 @@ def band_metrics(sim, theta, forces, truth) -> dict:
 
     roll = predict(sim, np.asarray(theta, np.float32), forces)
     s = summarize(roll.tau, truth, valid=np.all(np.asarray(roll.stable), axis=1))
-    return {"ci_width_m": s["ci_width"], "pct_outside": s["pct_outside"],
-            "n_valid": s["n_valid_particles"]}
+    return {
+        "ci_width_m": s["ci_width"],
+        "pct_outside": s["pct_outside"],
+        "n_valid": s["n_valid_particles"],
+    }
 
 
 def usable(m: dict, ref: dict, tol: float) -> bool:
@@ -179,8 +221,17 @@ def run_child(mode: str, args, workdir: Path) -> dict:
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
     if args.device != "auto":
         env["JAX_PLATFORMS"] = args.device
-    cmd = [sys.executable, "-m", "benchmarks.time_to_posterior", "--child", mode,
-           "--workdir", str(workdir), "--result", str(result)] + args.passthrough
+    cmd = [
+        sys.executable,
+        "-m",
+        "benchmarks.time_to_posterior",
+        "--child",
+        mode,
+        "--workdir",
+        str(workdir),
+        "--result",
+        str(result),
+    ] + args.passthrough
     if args.cores and (os.cpu_count() or 1) > args.cores and shutil.which("taskset"):
         cmd = ["taskset", "-c", f"0-{args.cores - 1}"] + cmd
     print(f"[{mode}] {' '.join(cmd[-8:])}", flush=True)
@@ -198,29 +249,45 @@ def run_child(mode: str, args, workdir: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--particles", type=int, default=128)
     p.add_argument("--reference-iterations", type=int, default=400)
     p.add_argument("--today-iterations", type=int, default=200)
     p.add_argument("--fast-iterations", type=int, default=15)
     p.add_argument("--fast-gradients", default="fd", choices=["fd", "jvp"])
-    p.add_argument("--fast-jacobian", default="fd", choices=["fd", "jvp"],
-                   help="residual Jacobian of the LM fit")
+    p.add_argument(
+        "--fast-jacobian",
+        default="fd",
+        choices=["fd", "jvp"],
+        help="residual Jacobian of the LM fit",
+    )
     p.add_argument("--starts", type=int, default=6, help="LM starting points")
     p.add_argument("--lm-iterations", type=int, default=25)
     p.add_argument("--laplace-scale", type=float, default=2.0)
-    p.add_argument("--fast-learning-rate", type=float, default=None,
-                   help="NNSVGD Adam learning rate of the fast path (default: the sampler's)")
-    p.add_argument("--fast-warmup", type=int, default=15,
-                   help="fast path: ramp Adam's learning rate up over this many iterations")
+    p.add_argument(
+        "--fast-learning-rate",
+        type=float,
+        default=None,
+        help="NNSVGD Adam learning rate of the fast path (default: the sampler's)",
+    )
+    p.add_argument(
+        "--fast-warmup",
+        type=int,
+        default=15,
+        help="fast path: ramp Adam's learning rate up over this many iterations",
+    )
     p.add_argument("--check-every", type=int, default=5)
     p.add_argument("--tolerance", type=float, default=0.10)
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "gpu", "cuda"])
     p.add_argument("--cores", type=int, default=2, help="pin CPU runs to this many cores")
     p.add_argument("--paths", default="reference,today,fast")
-    p.add_argument("--reference-from", default=None,
-                   help="reuse a reference run saved with --save-reference (same problem)")
+    p.add_argument(
+        "--reference-from",
+        default=None,
+        help="reuse a reference run saved with --save-reference (same problem)",
+    )
     p.add_argument("--save-reference", default=None, help="write the reference run here")
     p.add_argument("--machine", default=None)
     p.add_argument("--no-write", dest="write", action="store_false")
@@ -231,9 +298,20 @@ def main(argv=None) -> int:
     if args.child:
         return child(args)
 
-    keep = ["particles", "reference_iterations", "today_iterations", "fast_iterations",
-            "fast_gradients", "fast_jacobian", "starts", "lm_iterations", "laplace_scale",
-            "check_every", "fast_learning_rate", "fast_warmup"]
+    keep = [
+        "particles",
+        "reference_iterations",
+        "today_iterations",
+        "fast_iterations",
+        "fast_gradients",
+        "fast_jacobian",
+        "starts",
+        "lm_iterations",
+        "laplace_scale",
+        "check_every",
+        "fast_learning_rate",
+        "fast_warmup",
+    ]
     args.passthrough = []
     for k in keep:
         if getattr(args, k) is not None:
@@ -263,12 +341,14 @@ def main(argv=None) -> int:
     summary["machine"] = info
     if args.write:
         machine = args.machine or C.default_machine_name()
-        key = ("cpu_time_to_posterior_s" if info["platform"] == "cpu"
-               else "time_to_posterior_cold_with_imports_s")
+        key = (
+            "cpu_time_to_posterior_s"
+            if info["platform"] == "cpu"
+            else "time_to_posterior_cold_with_imports_s"
+        )
         headline = summary.get("fast", {}).get("time_to_posterior_s")
         top = {key: headline} if headline is not None else {}
-        path = C.merge_results(C.RESULTS_DIR / f"{machine}.json", "time_to_posterior",
-                               summary, top)
+        path = C.merge_results(C.RESULTS_DIR / f"{machine}.json", "time_to_posterior", summary, top)
         print(f"wrote {path}")
     return 0
 
@@ -282,11 +362,20 @@ def compare(runs: dict, workdir: Path, args) -> dict:
     sim = make_simulator(load_tree(EXAMPLES / "three_branch.yaml"), obs_dt=DT)
     forces, truth = data["test_force"], data["test_tau"]
     ref = band_metrics(sim, runs["reference"]["final_theta"], forces, truth)
-    print(f"reference ({runs['reference']['n_iterations']} it): band width "
-          f"{ref['ci_width_m'] * 1e3:.2f} mm, {ref['pct_outside']:.1f}% outside", flush=True)
-    summary: dict = {"reference": {**ref, "n_iterations": runs["reference"]["n_iterations"],
-                                   "wall_s": runs["reference"]["wall_s"]},
-                     "tolerance": args.tolerance, "n_particles": args.particles}
+    print(
+        f"reference ({runs['reference']['n_iterations']} it): band width "
+        f"{ref['ci_width_m'] * 1e3:.2f} mm, {ref['pct_outside']:.1f}% outside",
+        flush=True,
+    )
+    summary: dict = {
+        "reference": {
+            **ref,
+            "n_iterations": runs["reference"]["n_iterations"],
+            "wall_s": runs["reference"]["wall_s"],
+        },
+        "tolerance": args.tolerance,
+        "n_particles": args.particles,
+    }
     for mode in [m for m in runs if m != "reference"]:
         rec = runs[mode]
         first_ok, table = None, []
@@ -297,40 +386,62 @@ def compare(runs: dict, workdir: Path, args) -> dict:
             table.append({"iteration": c["iteration"], "elapsed_s": elapsed, **m, "usable": ok})
             if ok and first_ok is None:
                 first_ok = table[-1]
-        print(f"{mode} checks: " + "; ".join(
-            f"it {r['iteration']} {r['elapsed_s']:.0f}s {r['ci_width_m'] * 1e3:.2f}mm "
-            f"{r['pct_outside']:.1f}%{' ok' if r['usable'] else ''}" for r in table), flush=True)
+        print(
+            f"{mode} checks: "
+            + "; ".join(
+                f"it {r['iteration']} {r['elapsed_s']:.0f}s {r['ci_width_m'] * 1e3:.2f}mm "
+                f"{r['pct_outside']:.1f}%{' ok' if r['usable'] else ''}"
+                for r in table
+            ),
+            flush=True,
+        )
         final = band_metrics(sim, rec["final_theta"], forces, truth)
         marks = {k: v - rec["t_spawn"] for k, v in rec["marks"].items()}
         summary[mode] = {
-            "wall_s": rec["wall_s"], "cpu_s": rec.get("cpu_s"),
+            "wall_s": rec["wall_s"],
+            "cpu_s": rec.get("cpu_s"),
             "load_average_after": rec.get("load_average_after"),
             "n_iterations": rec["n_iterations"],
-            "gradient": rec["gradient"], "phase_ends_s": marks, "final": final,
+            "gradient": rec["gradient"],
+            "phase_ends_s": marks,
+            "final": final,
             "final_usable": usable(final, ref, args.tolerance),
             "first_usable_iteration": None if first_ok is None else first_ok["iteration"],
             "time_to_posterior_s": None if first_ok is None else first_ok["elapsed_s"],
-            "checks": table, **({"map": rec["map"]} if "map" in rec else {}),
+            "checks": table,
+            **({"map": rec["map"]} if "map" in rec else {}),
         }
-        print(f"{mode}: {rec['n_iterations']} it in {rec['wall_s']:.1f} s from process start, "
-              f"{rec.get('cpu_s', float('nan')):.0f} CPU s "
-              f"(phases: {', '.join(f'{k} {v:.1f}' for k, v in marks.items())}); final band "
-              f"{final['ci_width_m'] * 1e3:.2f} mm, {final['pct_outside']:.1f}% outside; first "
-              f"usable: " + ("never" if first_ok is None else
-                             f"iteration {first_ok['iteration']} at {first_ok['elapsed_s']:.1f} s"),
-              flush=True)
+        print(
+            f"{mode}: {rec['n_iterations']} it in {rec['wall_s']:.1f} s from process start, "
+            f"{rec.get('cpu_s', float('nan')):.0f} CPU s "
+            f"(phases: {', '.join(f'{k} {v:.1f}' for k, v in marks.items())}); final band "
+            f"{final['ci_width_m'] * 1e3:.2f} mm, {final['pct_outside']:.1f}% outside; first "
+            f"usable: "
+            + (
+                "never"
+                if first_ok is None
+                else f"iteration {first_ok['iteration']} at {first_ok['elapsed_s']:.1f} s"
+            ),
+            flush=True,
+        )
     if "today" in summary and "fast" in summary:
         fast_t = summary["fast"]["time_to_posterior_s"]
         today_fixed = summary["today"]["wall_s"]
         today_first = summary["today"]["time_to_posterior_s"]
         if fast_t:
             summary["speedup_vs_today_fixed"] = today_fixed / fast_t
-            print(f"today's code ({summary['today']['n_iterations']} it): {today_fixed:.1f} s; "
-                  f"fast path: {fast_t:.1f} s; ratio {today_fixed / fast_t:.2f}x", flush=True)
+            print(
+                f"today's code ({summary['today']['n_iterations']} it): {today_fixed:.1f} s; "
+                f"fast path: {fast_t:.1f} s; ratio {today_fixed / fast_t:.2f}x",
+                flush=True,
+            )
             if today_first:
                 summary["speedup_vs_today_first_usable"] = today_first / fast_t
-                print(f"(today's first usable state at {today_first:.1f} s: ratio "
-                      f"{today_first / fast_t:.2f}x)", flush=True)
+                print(
+                    f"(today's first usable state at {today_first:.1f} s: ratio "
+                    f"{today_first / fast_t:.2f}x)",
+                    flush=True,
+                )
     return summary
 
 

@@ -27,11 +27,15 @@ def with_integrator(sim: Simulator, integrator: str) -> Simulator:
     import mujoco
 
     m = copy.copy(sim.mj_model)
-    m.opt.integrator = {"implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST,
-                        "euler": mujoco.mjtIntegrator.mjINT_EULER}[integrator]
+    m.opt.integrator = {
+        "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST,
+        "euler": mujoco.mjtIntegrator.mjINT_EULER,
+    }[integrator]
     return dataclasses.replace(sim, mj_model=m, backend="mjx", hinge_tree=None)
 
 
-def simulate_variant(sim: Simulator, kp, kd, forces, *, unroll_outer: int = 1, unroll_inner=1) -> Rollout:
+def simulate_variant(
+    sim: Simulator, kp, kd, forces, *, unroll_outer: int = 1, unroll_inner=1
+) -> Rollout:
     """``simulate(sim, kp [P, R], kd [P, R], forces [B, T])`` with the loop knobs above."""
     return simulate(sim, kp, kd, forces, unroll_outer=unroll_outer, unroll_inner=unroll_inner)

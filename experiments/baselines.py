@@ -37,8 +37,8 @@ sizes: tiny (tests), cpu (R=3, 12 particles, 50 iterations, 2 training / 8 test 
 """
 
 
-
 PAPER_SGHMC = {"step_size": 1e-4, "learning_rate": 0.05, "alpha": 0.1}
+
 
 def _samplers(text: str) -> tuple[str, ...]:
     names = tuple(s.strip().lower() for s in text.split(",") if s.strip())
@@ -46,13 +46,20 @@ def _samplers(text: str) -> tuple[str, ...]:
     if bad or not names:
         import argparse
 
-        raise argparse.ArgumentTypeError(f"unknown sampler(s) {bad}; choose from {','.join(C.ALL_SAMPLERS)}")
+        raise argparse.ArgumentTypeError(
+            f"unknown sampler(s) {bad}; choose from {','.join(C.ALL_SAMPLERS)}"
+        )
     return names
 
 
 def build_parser():
     p = C.build_parser(STUDY, __doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1], EPILOG)
-    p.add_argument("--samplers", type=_samplers, default=None, help=f"comma-separated subset (default all: {','.join(C.ALL_SAMPLERS)})")
+    p.add_argument(
+        "--samplers",
+        type=_samplers,
+        default=None,
+        help=f"comma-separated subset (default all: {','.join(C.ALL_SAMPLERS)})",
+    )
     return p
 
 
@@ -61,8 +68,9 @@ def run(argv=None) -> int:
     C.setup_jax()
     # the paper's SGHMC baseline (Adam drift, small step): treeinfer's own SGHMC defaults
     # changed to true SGHMC that moves (issue 11; experiments/sghmc_defaults.py)
-    ctx = C.context_from_args(STUDY, args, samplers=args.samplers,
-                              sampler_options={"sghmc": PAPER_SGHMC})
+    ctx = C.context_from_args(
+        STUDY, args, samplers=args.samplers, sampler_options={"sghmc": PAPER_SGHMC}
+    )
     cfg, seed = ctx.cfg, ctx.seed
     t0 = time.perf_counter()
     bar = C.progress_bar(ctx, 2 + len(cfg.samplers))
@@ -82,7 +90,15 @@ def run(argv=None) -> int:
         post = C.posterior(problem, sampler, cfg, seed, ctx.cache, ctx.progress)
         pred, m = C.evaluate(problem, post, data, cfg)
         name = C.SAMPLER_LABELS[sampler]
-        conditions.append({"name": name, "sampler": sampler, "nn_prior": nn, "metrics": m, "inference": C.inference_record(post)})
+        conditions.append(
+            {
+                "name": name,
+                "sampler": sampler,
+                "nn_prior": nn,
+                "metrics": m,
+                "inference": C.inference_record(post),
+            }
+        )
         bands[name] = C.bands_for(pred, data, plot_idx, cfg.level)
         sets[name] = post.theta[np.all(np.isfinite(post.theta), axis=1)]
         figures[f"trace_{sampler}.png"] = _trace_figure(post, name)
@@ -90,11 +106,23 @@ def run(argv=None) -> int:
 
     problem = next(iter(problems.values()))
     figures["bands.png"] = C.band_grid(
-        bands, cfg.dt, cfg.level, [f"test {i}" for i in plot_idx], "Baselines: 95% predictive bands on unseen test trajectories"
+        bands,
+        cfg.dt,
+        cfg.level,
+        [f"test {i}" for i in plot_idx],
+        "Baselines: 95% predictive bands on unseen test trajectories",
     )
-    figures["metrics.png"] = C.metric_figure([c["name"] for c in conditions], [c["metrics"] for c in conditions], "Baselines")
-    figures["pairs.png"] = C.pair_figure(sets, problem.labels, data.theta, "Posteriors (ln K); truth in red")
-    record = {"data": C.data_record(data, problem), "conditions": conditions, "metric_notes": C.METRIC_NOTES}
+    figures["metrics.png"] = C.metric_figure(
+        [c["name"] for c in conditions], [c["metrics"] for c in conditions], "Baselines"
+    )
+    figures["pairs.png"] = C.pair_figure(
+        sets, problem.labels, data.theta, "Posteriors (ln K); truth in red"
+    )
+    record = {
+        "data": C.data_record(data, problem),
+        "conditions": conditions,
+        "metric_notes": C.METRIC_NOTES,
+    }
     C.write_results(ctx, record, _markdown(cfg, data, problem, conditions), figures, t0)
     bar.update()
     bar.close()
@@ -105,27 +133,40 @@ def run(argv=None) -> int:
 def _trace_figure(post, name: str):
     from treeinfer.plots import plot_trace
 
-    fig, _ = plot_trace(post.trace_logdensity, iterations=post.trace_iterations, title=f"{name}: log posterior density")
+    fig, _ = plot_trace(
+        post.trace_logdensity,
+        iterations=post.trace_iterations,
+        title=f"{name}: log posterior density",
+    )
     return fig
 
 
 def _markdown(cfg, data, problem, conditions) -> str:
-    rows = [[c["name"]] + C.metric_cells(c["metrics"]) + [C.fmt(c["inference"]["sampler_wall_s"], ".0f")] for c in conditions]
+    rows = [
+        [c["name"]]
+        + C.metric_cells(c["metrics"])
+        + [C.fmt(c["inference"]["sampler_wall_s"], ".0f")]
+        for c in conditions
+    ]
     table = C.markdown_table(["sampler"] + C.METRIC_HEADERS + ["sampler time [s]"], rows)
-    params = C.parameter_table([(c["name"], c["metrics"]) for c in conditions], problem.labels, data.theta)
-    return "\n\n".join([
-        "# (a) Baselines: NNSVGD vs SVGD, SGHMC, SGLD, MH (paper Fig. 3)",
-        C.config_line(cfg, data, problem) + ".",
-        table,
-        "Posterior means of ln K with 95% marginal intervals:",
-        params,
-        (
-            "Figures: `bands.png` (rows: samplers; columns: unseen test trajectories), `metrics.png`, "
-            "`pairs.png`, `trace_<sampler>.png`. Sampler time is the sampler's own wall time when it "
-            "ran (compilation included; a cached posterior keeps the time of the run that made it)."
-        ),
-        C.METRIC_NOTES,
-    ])
+    params = C.parameter_table(
+        [(c["name"], c["metrics"]) for c in conditions], problem.labels, data.theta
+    )
+    return "\n\n".join(
+        [
+            "# (a) Baselines: NNSVGD vs SVGD, SGHMC, SGLD, MH (paper Fig. 3)",
+            C.config_line(cfg, data, problem) + ".",
+            table,
+            "Posterior means of ln K with 95% marginal intervals:",
+            params,
+            (
+                "Figures: `bands.png` (rows: samplers; columns: unseen test trajectories), `metrics.png`, "
+                "`pairs.png`, `trace_<sampler>.png`. Sampler time is the sampler's own wall time when it "
+                "ran (compilation included; a cached posterior keeps the time of the run that made it)."
+            ),
+            C.METRIC_NOTES,
+        ]
+    )
 
 
 def main(argv=None) -> int:

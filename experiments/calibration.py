@@ -41,18 +41,50 @@ if str(ROOT) not in sys.path:
 
 SIZES = {
     # a smoke size for checking the script (seconds after compilation)
-    "tiny": dict(datasets=4, particles=8, iterations=20, mh_warmup=20, mh_steps=10, n_traj=5,
-                 test_traj=25, duration=1.0, dt=0.02, chunk=4),
+    "tiny": dict(
+        datasets=4,
+        particles=8,
+        iterations=20,
+        mh_warmup=20,
+        mh_steps=10,
+        n_traj=5,
+        test_traj=25,
+        duration=1.0,
+        dt=0.02,
+        chunk=4,
+    ),
     # committed CPU size: coarse dt and 2 s pulls as experiments/coverage.py's cpu size
-    "cpu": dict(datasets=12, particles=16, iterations=80, mh_warmup=400, mh_steps=400,
-                n_traj=5, test_traj=25, duration=2.0, dt=0.02, chunk=12),
+    "cpu": dict(
+        datasets=12,
+        particles=16,
+        iterations=80,
+        mh_warmup=400,
+        mh_steps=400,
+        n_traj=5,
+        test_traj=25,
+        duration=2.0,
+        dt=0.02,
+        chunk=12,
+    ),
     # the issue's set-up on a GPU: >= 200 data sets per tree, 3 s pulls at 10 ms
-    "full": dict(datasets=256, particles=32, iterations=300, mh_warmup=800, mh_steps=800,
-                 n_traj=5, test_traj=25, duration=3.0, dt=0.01, chunk=128),
+    "full": dict(
+        datasets=256,
+        particles=32,
+        iterations=300,
+        mh_warmup=800,
+        mh_steps=800,
+        n_traj=5,
+        test_traj=25,
+        duration=3.0,
+        dt=0.01,
+        chunk=128,
+    ),
 }
 CONDITIONS = {"sbc": 0.0, "noisy": 0.02}
-TREES = {"two_branch": "treeinfer/examples/two_branch.yaml",
-         "three_branch": "treeinfer/examples/three_branch.yaml"}
+TREES = {
+    "two_branch": "treeinfer/examples/two_branch.yaml",
+    "three_branch": "treeinfer/examples/three_branch.yaml",
+}
 
 
 def _row(tree: str, cond: str, s: dict) -> list[str]:
@@ -77,8 +109,11 @@ def _row(tree: str, cond: str, s: dict) -> list[str]:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--size", choices=tuple(SIZES), default="cpu")
-    p.add_argument("--out", default=None, help="output folder (default "
-                   "experiments/results/calibration for cpu, ..._full for full)")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="output folder (default experiments/results/calibration for cpu, ..._full for full)",
+    )
     p.add_argument("--trees", default="two_branch,three_branch")
     p.add_argument("--conditions", default="sbc,noisy")
     p.add_argument("--seed", type=int, default=0)
@@ -110,20 +145,34 @@ def main(argv=None) -> int:
         if c not in CONDITIONS:
             p.error(f"--conditions: unknown {c!r}; choose from {', '.join(CONDITIONS)}")
 
-    results = {"study": "calibration (issue 11 section 4)", "size": args.size,
-               "seed": args.seed, "versions": versions(extended=True), "runs": {}}
+    results = {
+        "study": "calibration (issue 11 section 4)",
+        "size": args.size,
+        "seed": args.seed,
+        "versions": versions(extended=True),
+        "runs": {},
+    }
     t_all = time.perf_counter()
     with staged_output_dir(out, args.force, "calibration study") as stage:
         for ti, t in enumerate(trees):
             tree = load_tree(ROOT / TREES[t])
             for ci, c in enumerate(conds):
-                cfg = SBCConfig(likelihood="gaussian", noise_prior_center=0.002,
-                                noise_force=CONDITIONS[c], seed=args.seed + 100 * ti + ci,
-                                **size)
+                cfg = SBCConfig(
+                    likelihood="gaussian",
+                    noise_prior_center=0.002,
+                    noise_force=CONDITIONS[c],
+                    seed=args.seed + 100 * ti + ci,
+                    **size,
+                )
                 t0 = time.perf_counter()
                 print(f"[{t} / {c}] {cfg.datasets} data sets ...", flush=True)
-                res = run_tree_sbc(tree, cfg, progress=lambda a, b: print(
-                    f"  {a}/{b} data sets, {time.perf_counter() - t0:.0f} s", flush=True))
+                res = run_tree_sbc(
+                    tree,
+                    cfg,
+                    progress=lambda a, b: print(
+                        f"  {a}/{b} data sets, {time.perf_counter() - t0:.0f} s", flush=True
+                    ),
+                )
                 rec = config_record(TREES[t], cfg)
                 d = stage / f"{t}_{c}"
                 d.mkdir()
@@ -131,16 +180,22 @@ def main(argv=None) -> int:
                 summary = write_outputs(res, d, rec)
                 summary["seconds"] = time.perf_counter() - t0
                 results["runs"][f"{t}_{c}"] = {
-                    "tree": t, "condition": c, "noise_force_share": CONDITIONS[c],
-                    "config": asdict(cfg), "seconds": summary["seconds"],
-                    "uniformity": summary["uniformity"], "coverage": summary["coverage"],
+                    "tree": t,
+                    "condition": c,
+                    "noise_force_share": CONDITIONS[c],
+                    "config": asdict(cfg),
+                    "seconds": summary["seconds"],
+                    "uniformity": summary["uniformity"],
+                    "coverage": summary["coverage"],
                     "info": summary["info"],
                 }
                 verdict = "PASS" if summary["uniformity"]["pass"] else "FAIL"
                 ti95 = summary["info"].get("test_inside_95", {}).get("predictive", {})
-                print(f"  SBC {verdict}; test points inside 95% predictive band: median "
-                      f"{ti95.get('median', float('nan')):.1%}; {summary['seconds']:.0f} s",
-                      flush=True)
+                print(
+                    f"  SBC {verdict}; test points inside 95% predictive band: median "
+                    f"{ti95.get('median', float('nan')):.1%}; {summary['seconds']:.0f} s",
+                    flush=True,
+                )
         results["seconds_total"] = time.perf_counter() - t_all
         atomic_write_json(stage / "results.json", results)
         atomic_write_text(stage / "results.md", _markdown(results))
@@ -165,10 +220,14 @@ def _markdown(results: dict) -> str:
     for key, run in results["runs"].items():
         s = {"uniformity": run["uniformity"], "coverage": run["coverage"], "info": run["info"]}
         lines += _row(run["tree"], run["condition"], s)
-    lines += ["", "Noisy unseen test points inside the 95% band (per data set, then over data "
-              "sets):", "", "| tree | condition | data sets | predictive band: median [q25, q75]"
-              " | pooled mean | parameter band: median | SBC | seconds |", "|---|---|---|---|---|"
-              "---|---|---|"]
+    lines += [
+        "",
+        "Noisy unseen test points inside the 95% band (per data set, then over data sets):",
+        "",
+        "| tree | condition | data sets | predictive band: median [q25, q75]"
+        " | pooled mean | parameter band: median | SBC | seconds |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for key, run in results["runs"].items():
         t = run["info"].get("test_inside_95")
         if not t:
@@ -180,8 +239,13 @@ def _markdown(results: dict) -> str:
             f"{pa['median']:.1%} | {'PASS' if run['uniformity']['pass'] else 'FAIL'} | "
             f"{run['seconds']:.0f} |"
         )
-    lines += ["", "Sampler: " + next(iter(results["runs"].values()))["info"]["sampler_note"]
-              if results["runs"] else "", ""]
+    lines += [
+        "",
+        "Sampler: " + next(iter(results["runs"].values()))["info"]["sampler_note"]
+        if results["runs"]
+        else "",
+        "",
+    ]
     return "\n".join(lines)
 
 

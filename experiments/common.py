@@ -61,8 +61,15 @@ SAMPLER_LABELS = {name: name.upper() for name in REGISTRY}  # table and figure l
 
 # Modules whose code decides a posterior; a change to any of them invalidates the posterior cache.
 _POSTERIOR_MODULES = (
-    "inference.py", "likelihood.py", "sim", "priors.py", "gradients.py", "tree.py",
-    "export.py", "trajectories.py", "samplers",
+    "inference.py",
+    "likelihood.py",
+    "sim",
+    "priors.py",
+    "gradients.py",
+    "tree.py",
+    "export.py",
+    "trajectories.py",
+    "samplers",
 )
 
 
@@ -118,11 +125,36 @@ class StudyConfig:
 # Shared by every study of a size, so that data, posteriors and prediction shapes are shared.
 BASE_SIZES: dict[str, dict[str, Any]] = {
     # the test-suite size: the 2-branch example compiles about twice as fast as the 3-branch one
-    "tiny": dict(tree="two_branch", dt=0.02, duration=0.4, n_train=1, n_test=4, n_particles=6, n_iterations=3, n_plot=2),
+    "tiny": dict(
+        tree="two_branch",
+        dt=0.02,
+        duration=0.4,
+        n_train=1,
+        n_test=4,
+        n_particles=6,
+        n_iterations=3,
+        n_plot=2,
+    ),
     # minutes on a loaded 2-core CPU: compile time dominates (about a minute per sampler program)
-    "cpu": dict(tree="three_branch", dt=0.02, duration=1.0, n_train=2, n_test=8, n_particles=12, n_iterations=50),
+    "cpu": dict(
+        tree="three_branch",
+        dt=0.02,
+        duration=1.0,
+        n_train=2,
+        n_test=8,
+        n_particles=12,
+        n_iterations=50,
+    ),
     # the paper's set-up (R = 3, 5 training and 25 unseen test trajectories), for a GPU
-    "full": dict(tree="three_branch", dt=0.01, duration=3.0, n_train=5, n_test=25, n_particles=128, n_iterations=300),
+    "full": dict(
+        tree="three_branch",
+        dt=0.01,
+        duration=3.0,
+        n_train=5,
+        n_test=25,
+        n_particles=128,
+        n_iterations=300,
+    ),
 }
 
 STUDY_SIZES: dict[str, dict[str, dict[str, Any]]] = {
@@ -160,16 +192,24 @@ def _check_config(cfg: StudyConfig) -> None:
     if bad or not cfg.samplers:
         raise ConfigError(f"samplers: unknown {bad}; choose from {', '.join(ALL_SAMPLERS)}")
     if any(not (0.0 <= s < 1.0) for s in cfg.noise_levels):
-        raise ConfigError(f"noise levels: must be in [0, 1) (relative to each signal's peak), got {cfg.noise_levels}")
+        raise ConfigError(
+            f"noise levels: must be in [0, 1) (relative to each signal's peak), got {cfg.noise_levels}"
+        )
     if any(not (0.0 < g <= 1.0) for g in cfg.grasp_locations):
-        raise ConfigError(f"grasp locations: must be in (0, 1] (fractions of the branch length), got {cfg.grasp_locations}")
+        raise ConfigError(
+            f"grasp locations: must be in (0, 1] (fractions of the branch length), got {cfg.grasp_locations}"
+        )
     for name in ("n_train", "n_test", "n_iterations"):
         if getattr(cfg, name) < 1:
             raise ConfigError(f"{name}: must be at least 1, got {getattr(cfg, name)}")
     if cfg.grasp_locations and not (1 <= cfg.n_test_per_location <= cfg.n_test):
-        raise ConfigError(f"n_test_per_location: must be in 1..n_test ({cfg.n_test}), got {cfg.n_test_per_location}")
+        raise ConfigError(
+            f"n_test_per_location: must be in 1..n_test ({cfg.n_test}), got {cfg.n_test_per_location}"
+        )
     if cfg.n_particles < 2:
-        raise ConfigError(f"n_particles: need at least 2 for a predictive distribution, got {cfg.n_particles}")
+        raise ConfigError(
+            f"n_particles: need at least 2 for a predictive distribution, got {cfg.n_particles}"
+        )
 
 
 def tree_path(name: str) -> Path:
@@ -186,13 +226,37 @@ def build_parser(study: str, description: str, epilog: str = "") -> argparse.Arg
         epilog=epilog,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--size", choices=SIZES, default="cpu", help="tiny (tests), cpu (minutes here) or full (paper scale, GPU); default cpu")
-    p.add_argument("--out", type=Path, default=None, help=f"results folder (default experiments/results/{study}); replaced if it holds an earlier results.json")
-    p.add_argument("--seed", type=int, default=0, help="seed of the true parameters, profiles, noise and samplers (default 0)")
+    p.add_argument(
+        "--size",
+        choices=SIZES,
+        default="cpu",
+        help="tiny (tests), cpu (minutes here) or full (paper scale, GPU); default cpu",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help=f"results folder (default experiments/results/{study}); replaced if it holds an earlier results.json",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the true parameters, profiles, noise and samplers (default 0)",
+    )
     p.add_argument("--particles", type=int, default=None, help="override the size's particle count")
-    p.add_argument("--iterations", type=int, default=None, help="override the size's iteration count")
-    p.add_argument("--cache", type=Path, default=None, help="posterior cache folder (default $TREEINFER_CACHE/posteriors or ~/.cache/treeinfer/posteriors)")
-    p.add_argument("--no-cache", action="store_true", help="neither read nor write cached posteriors")
+    p.add_argument(
+        "--iterations", type=int, default=None, help="override the size's iteration count"
+    )
+    p.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        help="posterior cache folder (default $TREEINFER_CACHE/posteriors or ~/.cache/treeinfer/posteriors)",
+    )
+    p.add_argument(
+        "--no-cache", action="store_true", help="neither read nor write cached posteriors"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -216,7 +280,9 @@ class Context(NamedTuple):
 
 
 def context_from_args(study: str, args: argparse.Namespace, **overrides) -> Context:
-    cfg = study_config(study, args.size, n_particles=args.particles, n_iterations=args.iterations, **overrides)
+    cfg = study_config(
+        study, args.size, n_particles=args.particles, n_iterations=args.iterations, **overrides
+    )
     if args.no_cache:
         cache = None
     elif args.cache is not None:
@@ -238,7 +304,9 @@ def check_out(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise OutputExistsError(f"{out}: output path exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not (out / "results.json").exists():
-        raise OutputExistsError(f"{out}: folder holds other files (no results.json); choose another --out")
+        raise OutputExistsError(
+            f"{out}: folder holds other files (no results.json); choose another --out"
+        )
 
 
 def run_main(fn, argv, study: str) -> int:
@@ -301,17 +369,24 @@ def _simulator(path: str, dt: float, sims=None):
 def seed_streams(seed: int) -> dict[str, np.random.Generator]:
     """Independent generators of one seed: true parameters, training and test profiles."""
     names = ("params", "train", "test")
-    return {n: np.random.default_rng(s) for n, s in zip(names, np.random.SeedSequence(int(seed)).spawn(len(names)))}
+    return {
+        n: np.random.default_rng(s)
+        for n, s in zip(names, np.random.SeedSequence(int(seed)).spawn(len(names)))
+    }
 
 
-def reference_trajectory(sim, kp, kd, force: np.ndarray, dt: float, source: str, grasp_fraction=None):
+def reference_trajectory(
+    sim, kp, kd, force: np.ndarray, dt: float, source: str, grasp_fraction=None
+):
     """Ground truth of one pull from plain MuJoCo (float64), as a Trajectory."""
     from treeinfer.sim.reference import simulate_reference
     from treeinfer.trajectories import Trajectory, validate_trajectory
 
     tau, tau_dot = simulate_reference(sim, kp, kd, force, grasp_fraction)
     if not (np.all(np.isfinite(tau)) and np.max(np.abs(tau)) < sim.max_displacement):
-        raise SimulationError(f"{source}: the ground-truth simulation blew up; lower the peak forces")
+        raise SimulationError(
+            f"{source}: the ground-truth simulation blew up; lower the peak forces"
+        )
     t = np.arange(len(force), dtype=float) * dt
     return validate_trajectory(Trajectory(t, np.asarray(force, float), tau, tau_dot, source))
 
@@ -327,10 +402,16 @@ def make_data(cfg: StudyConfig, seed: int, sims=None) -> SyntheticData:
     tree, sim = _simulator(str(tree_path(cfg.tree)), float(cfg.dt), sims)
     rng = seed_streams(seed)
     kp, kd = default_true_params(tree, rng["params"])
-    train_specs = random_specs(cfg.profile_kind, cfg.n_train, cfg.duration, cfg.peak_range, rng["train"])
-    test_specs = random_specs(cfg.profile_kind, cfg.n_test, cfg.duration, cfg.peak_range, rng["test"])
+    train_specs = random_specs(
+        cfg.profile_kind, cfg.n_train, cfg.duration, cfg.peak_range, rng["train"]
+    )
+    test_specs = random_specs(
+        cfg.profile_kind, cfg.n_test, cfg.duration, cfg.peak_range, rng["test"]
+    )
     train = [
-        reference_trajectory(sim, kp, kd, from_spec(s, cfg.duration, cfg.dt), cfg.dt, f"train_{i:03d}")
+        reference_trajectory(
+            sim, kp, kd, from_spec(s, cfg.duration, cfg.dt), cfg.dt, f"train_{i:03d}"
+        )
         for i, s in enumerate(train_specs)
     ]
     if cfg.grasp_locations:
@@ -341,7 +422,9 @@ def make_data(cfg: StudyConfig, seed: int, sims=None) -> SyntheticData:
     else:
         grasp = np.full(len(test_specs), tree.grasp_fraction)
     test = [
-        reference_trajectory(sim, kp, kd, from_spec(s, cfg.duration, cfg.dt), cfg.dt, f"test_{i:03d}", float(g))
+        reference_trajectory(
+            sim, kp, kd, from_spec(s, cfg.duration, cfg.dt), cfg.dt, f"test_{i:03d}", float(g)
+        )
         for i, (s, g) in enumerate(zip(test_specs, grasp))
     ]
     theta = np.log(np.concatenate([kp, kd]))
@@ -425,7 +508,9 @@ def _data_digest(problem) -> str:
     return h.hexdigest()[:16]
 
 
-def posterior_key(problem, sampler: str, n_particles: int, n_iterations: int, seed: int, options: dict) -> tuple[str, dict]:
+def posterior_key(
+    problem, sampler: str, n_particles: int, n_iterations: int, seed: int, options: dict
+) -> tuple[str, dict]:
     """Cache key and its description: everything that determines the sampler's output."""
     from treeinfer.tree import tree_to_dict
 
@@ -452,14 +537,22 @@ def _load_cached(path: Path, key: str) -> PosteriorRun | None:
         with np.load(path, allow_pickle=False) as z:
             settings = json.loads(str(z["settings"]))
             return PosteriorRun(
-                np.asarray(z["theta"]), np.asarray(z["log_density"]), np.asarray(z["trace_logdensity"]),
-                np.asarray(z["trace_iterations"]), float(z["elapsed_s"]), True, settings, key,
+                np.asarray(z["theta"]),
+                np.asarray(z["log_density"]),
+                np.asarray(z["trace_logdensity"]),
+                np.asarray(z["trace_iterations"]),
+                float(z["elapsed_s"]),
+                True,
+                settings,
+                key,
             )
     except (OSError, KeyError, ValueError):
         return None  # unreadable or from an older layout: recompute
 
 
-def posterior(problem, sampler: str, cfg: StudyConfig, seed: int, cache: Path | None, progress: bool) -> PosteriorRun:
+def posterior(
+    problem, sampler: str, cfg: StudyConfig, seed: int, cache: Path | None, progress: bool
+) -> PosteriorRun:
     """:func:`treeinfer.inference.infer` with the study's particles, iterations and sampler
     options, or the identical run loaded from ``cache`` (see :func:`posterior_key`)."""
     from treeinfer.inference import infer
@@ -471,7 +564,15 @@ def posterior(problem, sampler: str, cfg: StudyConfig, seed: int, cache: Path | 
         hit = _load_cached(path, key)
         if hit is not None:
             return hit
-    post = infer(problem, sampler, n_particles=cfg.n_particles, n_iterations=cfg.n_iterations, seed=seed, progress=progress, **options)
+    post = infer(
+        problem,
+        sampler,
+        n_particles=cfg.n_particles,
+        n_iterations=cfg.n_iterations,
+        seed=seed,
+        progress=progress,
+        **options,
+    )
     settings = {**desc, "infer": post.settings}
     run = PosteriorRun(
         np.asarray(post.theta, float),
@@ -486,8 +587,12 @@ def posterior(problem, sampler: str, cfg: StudyConfig, seed: int, cache: Path | 
     if path is not None:
         with atomic_save(path) as tmp, open(tmp, "wb") as f:
             np.savez(
-                f, theta=run.theta, log_density=run.log_density, trace_logdensity=run.trace_logdensity,
-                trace_iterations=run.trace_iterations, elapsed_s=run.elapsed_s,
+                f,
+                theta=run.theta,
+                log_density=run.log_density,
+                trace_logdensity=run.trace_logdensity,
+                trace_iterations=run.trace_iterations,
+                elapsed_s=run.elapsed_s,
                 settings=json.dumps(settings, sort_keys=True, default=str),
             )
     return run
@@ -524,7 +629,9 @@ def predict_all(problem, theta: np.ndarray, data: SyntheticData) -> Predictions:
     return Predictions(tau[:, :n_train], tau[:, n_train:], stable.all(axis=1), ll)
 
 
-def metrics_for(pred: Predictions, theta: np.ndarray, data: SyntheticData, problem, cfg: StudyConfig, idx=None) -> dict:
+def metrics_for(
+    pred: Predictions, theta: np.ndarray, data: SyntheticData, problem, cfg: StudyConfig, idx=None
+) -> dict:
     """The paper's metrics on test trajectories ``idx`` (default all) plus the posterior against the
     truth, as :func:`treeinfer.metrics.summarize` reports them; ``{"error": ...}`` when fewer than
     two particles simulate stably (no predictive distribution)."""
@@ -534,16 +641,27 @@ def metrics_for(pred: Predictions, theta: np.ndarray, data: SyntheticData, probl
     gt = np.stack([data.test[i].displacement for i in idx])
     try:
         m = summarize(
-            pred.test_tau[:, idx], gt, valid=pred.valid, level=cfg.level, log_likelihood=pred.train_loglik,
-            particles=None, truth=None,
+            pred.test_tau[:, idx],
+            gt,
+            valid=pred.valid,
+            level=cfg.level,
+            log_likelihood=pred.train_loglik,
+            particles=None,
+            truth=None,
         )
         theta_ok = pred.valid & np.all(np.isfinite(pred.train_loglik), axis=1)
         m.update(parameter_metrics(problem, theta, data, cfg, theta_ok))
     except (SimulationError, ConfigError) as e:
-        return {"error": str(e), "n_valid_particles": int(pred.valid.sum()), "n_particles": int(pred.valid.size)}
+        return {
+            "error": str(e),
+            "n_valid_particles": int(pred.valid.sum()),
+            "n_particles": int(pred.valid.size),
+        }
     m["n_test_trajectories"] = len(idx)
     m["n_train_trajectories"] = len(data.train)
-    m["posterior_nll_per_point"] = m["posterior_nll"] / float(pred.train_tau.shape[1] * pred.train_tau.shape[2])
+    m["posterior_nll_per_point"] = m["posterior_nll"] / float(
+        pred.train_tau.shape[1] * pred.train_tau.shape[2]
+    )
     return m
 
 
@@ -556,11 +674,20 @@ def interval_metrics(pred: Predictions, gt: np.ndarray, cfg: StudyConfig) -> dic
         m = summarize(pred.test_tau, gt, valid=pred.valid, level=cfg.level)
     except (SimulationError, ConfigError) as e:
         return {"error": str(e)}
-    keys = ("ci_width", "pct_outside", "fraction_outside", "predictive_nll", "predictive_nll_per_point", "n_points")
+    keys = (
+        "ci_width",
+        "pct_outside",
+        "fraction_outside",
+        "predictive_nll",
+        "predictive_nll_per_point",
+        "n_points",
+    )
     return {k: m[k] for k in keys}
 
 
-def parameter_metrics(problem, theta: np.ndarray, data: SyntheticData, cfg: StudyConfig, valid) -> dict:
+def parameter_metrics(
+    problem, theta: np.ndarray, data: SyntheticData, cfg: StudyConfig, valid
+) -> dict:
     """Posterior ``theta [P, D]`` vs the truth in log space (``parameters``,
     ``truth_in_joint_region``, ``mean_abs_log_error``, ``n_params_in_interval``)."""
     from treeinfer.metrics import posterior_vs_truth
@@ -569,8 +696,12 @@ def parameter_metrics(problem, theta: np.ndarray, data: SyntheticData, cfg: Stud
     labels = list(problem.labels)
     params = {
         lab: {
-            "mean": float(chk.mean[i]), "truth": float(data.theta[i]), "abs_error": float(chk.abs_error[i]),
-            "lower": float(chk.lower[i]), "upper": float(chk.upper[i]), "in_interval": bool(chk.in_marginal[i]),
+            "mean": float(chk.mean[i]),
+            "truth": float(data.theta[i]),
+            "abs_error": float(chk.abs_error[i]),
+            "lower": float(chk.lower[i]),
+            "upper": float(chk.upper[i]),
+            "in_interval": bool(chk.in_marginal[i]),
         }
         for i, lab in enumerate(labels)
     }
@@ -584,13 +715,17 @@ def parameter_metrics(problem, theta: np.ndarray, data: SyntheticData, cfg: Stud
     }
 
 
-def evaluate(problem, run: PosteriorRun, data: SyntheticData, cfg: StudyConfig, groups: dict | None = None) -> tuple[Predictions, dict]:
+def evaluate(
+    problem, run: PosteriorRun, data: SyntheticData, cfg: StudyConfig, groups: dict | None = None
+) -> tuple[Predictions, dict]:
     """Predict with the posterior and compute the metrics, over all test trajectories or per group
     (``{name: test indices}``, e.g. per grasp location)."""
     pred = predict_all(problem, run.theta, data)
     if groups is None:
         return pred, metrics_for(pred, run.theta, data, problem, cfg)
-    return pred, {name: metrics_for(pred, run.theta, data, problem, cfg, idx) for name, idx in groups.items()}
+    return pred, {
+        name: metrics_for(pred, run.theta, data, problem, cfg, idx) for name, idx in groups.items()
+    }
 
 
 def inference_record(run: PosteriorRun) -> dict:
@@ -618,7 +753,9 @@ class Bands(NamedTuple):
     samples: np.ndarray
 
 
-def bands_for(pred: Predictions, data: SyntheticData, idx: Sequence[int], level: float, max_samples: int = 10) -> Bands:
+def bands_for(
+    pred: Predictions, data: SyntheticData, idx: Sequence[int], level: float, max_samples: int = 10
+) -> Bands:
     from treeinfer.metrics import predictive_interval
 
     idx = np.asarray(idx)
@@ -633,7 +770,14 @@ def bands_for(pred: Predictions, data: SyntheticData, idx: Sequence[int], level:
     return Bands(lo, hi, mean, gt, samples)
 
 
-def band_grid(rows: dict[str, Bands], dt: float, level: float, col_labels: Sequence[str], title: str, transpose: bool = False):
+def band_grid(
+    rows: dict[str, Bands],
+    dt: float,
+    level: float,
+    col_labels: Sequence[str],
+    title: str,
+    transpose: bool = False,
+):
     """Rows = conditions, columns = test trajectories (paper Fig. 3/5 layout); ``transpose``
     puts the conditions in columns instead (Fig. 6: one column per grasp location)."""
     from treeinfer.plots import plot_band_grid
@@ -647,7 +791,11 @@ def band_grid(rows: dict[str, Bands], dt: float, level: float, col_labels: Seque
         row_labels, col_labels = col_labels, row_labels
     t = np.arange(arrays[0].shape[-1]) * dt
     fig, _ = plot_band_grid(
-        t, *arrays, row_labels=row_labels, col_labels=col_labels, suptitle=title,
+        t,
+        *arrays,
+        row_labels=row_labels,
+        col_labels=col_labels,
+        suptitle=title,
         ylabel=f"displacement [m] ({level:.0%} band, grey)",
     )
     return fig
@@ -657,8 +805,15 @@ def metric_figure(names: Sequence[str], conditions: Sequence[dict], title: str, 
     """Bars of CI width, % GT outside and predictive NLL per condition (NaN for failed ones)."""
     from treeinfer.plots import metric_bars
 
-    keys = keys or {"95% CI width [m]": "ci_width", "% GT outside": "pct_outside", "NLL / test point [nats]": "predictive_nll_per_point"}
-    values = {lab: [c.get(k, np.nan) if "error" not in c else np.nan for c in conditions] for lab, k in keys.items()}
+    keys = keys or {
+        "95% CI width [m]": "ci_width",
+        "% GT outside": "pct_outside",
+        "NLL / test point [nats]": "predictive_nll_per_point",
+    }
+    values = {
+        lab: [c.get(k, np.nan) if "error" not in c else np.nan for c in conditions]
+        for lab, k in keys.items()
+    }
     fig, _ = metric_bars(list(names), values, separate=True, title=title)
     return fig
 
@@ -692,7 +847,11 @@ def data_record(data: SyntheticData, problem) -> dict:
         "n_steps": int(data.train[0].n_steps),
         "dt_s": float(data.train[0].dt),
         "ground_truth": "plain MuJoCo C (float64), treeinfer.sim.reference.simulate_reference",
-        "inference_simulator": {"engine": f"{problem.sim.backend} ({np.dtype(problem.sim.dtype).name})", "substeps": problem.sim.substeps, "sim_dt_s": problem.sim.sim_dt},
+        "inference_simulator": {
+            "engine": f"{problem.sim.backend} ({np.dtype(problem.sim.dtype).name})",
+            "substeps": problem.sim.substeps,
+            "sim_dt_s": problem.sim.sim_dt,
+        },
         "problem": problem.settings,
     }
 
@@ -735,12 +894,22 @@ def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str
     return "\n".join(lines)
 
 
-METRIC_HEADERS = ["95% CI width [m]", "% GT outside", "NLL / test point", "posterior NLL (train)", "|log error|", "in 95%", "valid particles"]
+METRIC_HEADERS = [
+    "95% CI width [m]",
+    "% GT outside",
+    "NLL / test point",
+    "posterior NLL (train)",
+    "|log error|",
+    "in 95%",
+    "valid particles",
+]
 
 
 def metric_cells(m: dict) -> list[str]:
     if "error" in m:
-        return ["failed"] * (len(METRIC_HEADERS) - 1) + [f"{m.get('n_valid_particles', 0)}/{m.get('n_particles', '?')}"]
+        return ["failed"] * (len(METRIC_HEADERS) - 1) + [
+            f"{m.get('n_valid_particles', 0)}/{m.get('n_particles', '?')}"
+        ]
     return [
         fmt(m["ci_width"], ".3f"),
         fmt(m["pct_outside"], ".1f"),
@@ -752,7 +921,9 @@ def metric_cells(m: dict) -> list[str]:
     ]
 
 
-def parameter_table(conditions: Sequence[tuple[str, dict]], labels: Sequence[str], truth: np.ndarray) -> str:
+def parameter_table(
+    conditions: Sequence[tuple[str, dict]], labels: Sequence[str], truth: np.ndarray
+) -> str:
     """Posterior mean (and 95% interval) of each ln K per condition, truth in the first row."""
     rows = [["truth"] + [fmt(float(t), ".2f") for t in truth]]
     for name, m in conditions:
@@ -765,7 +936,10 @@ def parameter_table(conditions: Sequence[tuple[str, dict]], labels: Sequence[str
             mark = "" if p["in_interval"] else " *"
             cells.append(f"{p['mean']:.2f} [{p['lower']:.2f}, {p['upper']:.2f}]{mark}")
         rows.append([name] + cells)
-    return markdown_table(["ln K"] + list(labels), rows) + "\n\n(* truth outside the 95% marginal interval)"
+    return (
+        markdown_table(["ln K"] + list(labels), rows)
+        + "\n\n(* truth outside the 95% marginal interval)"
+    )
 
 
 def config_line(cfg: StudyConfig, data: SyntheticData, problem, test: str | None = None) -> str:
@@ -778,7 +952,9 @@ def config_line(cfg: StudyConfig, data: SyntheticData, problem, test: str | None
     )
 
 
-def write_results(ctx: Context, record: dict, markdown: str, figures: dict[str, Any], t0: float) -> Path:
+def write_results(
+    ctx: Context, record: dict, markdown: str, figures: dict[str, Any], t0: float
+) -> Path:
     """Write ``results.json`` (record + config + seed + versions + wall time), ``results.md`` and
     the PNG figures into ``ctx.out`` atomically (a staged folder renamed into place)."""
     from treeinfer.plots import save_figure
@@ -789,7 +965,9 @@ def write_results(ctx: Context, record: dict, markdown: str, figures: dict[str, 
         "seed": ctx.seed,
         "config": ctx.cfg.to_dict(),
         "versions": versions(),
-        "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:]) if sys.argv and sys.argv[0] else None,
+        "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:])
+        if sys.argv and sys.argv[0]
+        else None,
         **record,
         "figures": sorted(figures),
         "wall_time_s": time.perf_counter() - t0,
@@ -818,4 +996,11 @@ def cpu_seconds() -> float:
 def progress_bar(ctx: Context, total: int):
     from tqdm.auto import tqdm
 
-    return tqdm(total=total, desc=ctx.cfg.study, unit="step", disable=not ctx.progress, position=None, leave=True)
+    return tqdm(
+        total=total,
+        desc=ctx.cfg.study,
+        unit="step",
+        disable=not ctx.progress,
+        position=None,
+        leave=True,
+    )

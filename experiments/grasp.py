@@ -40,7 +40,9 @@ def _locations(text: str) -> tuple[float, ...]:
     try:
         vals = tuple(float(s) for s in text.split(",") if s.strip())
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated fractions, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated fractions, got {text!r}"
+        ) from None
     if not vals:
         raise argparse.ArgumentTypeError("give at least one location")
     return vals
@@ -49,7 +51,13 @@ def _locations(text: str) -> tuple[float, ...]:
 def build_parser():
     doc = __doc__.split("\n\n")
     p = C.build_parser(STUDY, doc[0] + "\n\n" + doc[1], EPILOG)
-    p.add_argument("--locations", type=_locations, default=None, metavar="F1,F2,..", help="test grasp fractions in (0, 1] (default 0.25,0.5,0.75,1.0)")
+    p.add_argument(
+        "--locations",
+        type=_locations,
+        default=None,
+        metavar="F1,F2,..",
+        help="test grasp fractions in (0, 1] (default 0.25,0.5,0.75,1.0)",
+    )
     return p
 
 
@@ -69,9 +77,15 @@ def run(argv=None) -> int:
     bar.update()
 
     problem = C.make_problem(cfg, data, nn_prior=True)
-    C.say(ctx, f"NNSVGD at grasp {data.tree.grasp_fraction:g}: {cfg.n_particles} particles x {cfg.n_iterations} iterations")
+    C.say(
+        ctx,
+        f"NNSVGD at grasp {data.tree.grasp_fraction:g}: {cfg.n_particles} particles x {cfg.n_iterations} iterations",
+    )
     post = C.posterior(problem, "nnsvgd", cfg, seed, ctx.cache, ctx.progress)
-    groups = {location_name(f): np.flatnonzero(np.isclose(data.test_grasp, f)) for f in cfg.grasp_locations}
+    groups = {
+        location_name(f): np.flatnonzero(np.isclose(data.test_grasp, f))
+        for f in cfg.grasp_locations
+    }
     pred, per_loc = C.evaluate(problem, post, data, cfg, groups)
     bar.update()
 
@@ -82,10 +96,18 @@ def run(argv=None) -> int:
         bands[name] = C.bands_for(pred, data, idx[:n_cols], cfg.level)
     figures = {
         "bands.png": C.band_grid(
-            bands, cfg.dt, cfg.level, [f"profile {i}" for i in range(n_cols)],
-            f"Trained at grasp {data.tree.grasp_fraction:g} l; 95% bands at the test locations", transpose=True,
+            bands,
+            cfg.dt,
+            cfg.level,
+            [f"profile {i}" for i in range(n_cols)],
+            f"Trained at grasp {data.tree.grasp_fraction:g} l; 95% bands at the test locations",
+            transpose=True,
         ),
-        "metrics.png": C.metric_figure([c["name"] for c in conditions], [c["metrics"] for c in conditions], "Unseen grasp locations"),
+        "metrics.png": C.metric_figure(
+            [c["name"] for c in conditions],
+            [c["metrics"] for c in conditions],
+            "Unseen grasp locations",
+        ),
     }
     record = {
         "data": C.data_record(data, problem),
@@ -102,27 +124,40 @@ def run(argv=None) -> int:
 
 
 def _markdown(cfg, data, problem, conditions, post) -> str:
-    rows = [[c["name"]] + C.metric_cells(c["metrics"])[:3] + [C.metric_cells(c["metrics"])[-1]] for c in conditions]
-    table = C.markdown_table(["test location"] + C.METRIC_HEADERS[:3] + [C.METRIC_HEADERS[-1]], rows)
+    rows = [
+        [c["name"]] + C.metric_cells(c["metrics"])[:3] + [C.metric_cells(c["metrics"])[-1]]
+        for c in conditions
+    ]
+    table = C.markdown_table(
+        ["test location"] + C.METRIC_HEADERS[:3] + [C.METRIC_HEADERS[-1]], rows
+    )
     m0 = conditions[0]["metrics"]
     post_line = (
         f"Posterior (shared by all locations): |log error| {C.fmt(m0.get('mean_abs_log_error'), '.2f')}, "
         f"{m0.get('n_params_in_interval', 0)}/{m0.get('n_params', 0)} true parameters in their 95% interval, "
         f"posterior NLL (train) {C.fmt(m0.get('posterior_nll'), '.4g')}."
-        if "error" not in m0 else "Posterior: no stable particles."
+        if "error" not in m0
+        else "Posterior: no stable particles."
     )
-    return "\n\n".join([
-        "# (d) Unseen grasp locations (paper Fig. 6)",
-        C.config_line(cfg, data, problem, f"{len(data.test)} unseen test ({cfg.n_test_per_location} profiles x {len(cfg.grasp_locations)} locations)")
-        + f"; trained at grasp fraction {data.tree.grasp_fraction:g} of branch `{data.tree.grasp_branch}`, no noise.",
-        table,
-        post_line,
-        (
-            "Figures: `bands.png` (columns: test grasp locations as fractions of the branch length l from its "
-            "parent joint; rows: unseen force profiles), `metrics.png`."
-        ),
-        C.METRIC_NOTES,
-    ])
+    return "\n\n".join(
+        [
+            "# (d) Unseen grasp locations (paper Fig. 6)",
+            C.config_line(
+                cfg,
+                data,
+                problem,
+                f"{len(data.test)} unseen test ({cfg.n_test_per_location} profiles x {len(cfg.grasp_locations)} locations)",
+            )
+            + f"; trained at grasp fraction {data.tree.grasp_fraction:g} of branch `{data.tree.grasp_branch}`, no noise.",
+            table,
+            post_line,
+            (
+                "Figures: `bands.png` (columns: test grasp locations as fractions of the branch length l from its "
+                "parent joint; rows: unseen force profiles), `metrics.png`."
+            ),
+            C.METRIC_NOTES,
+        ]
+    )
 
 
 def main(argv=None) -> int:

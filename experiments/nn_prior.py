@@ -61,15 +61,33 @@ def run(argv=None) -> int:
         post = C.posterior(problem, sampler, cfg, seed, ctx.cache, ctx.progress)
         pred, m = C.evaluate(problem, post, data, cfg)
         name = C.SAMPLER_LABELS[sampler]
-        conditions.append({"name": name, "sampler": sampler, "nn_prior": nn, "metrics": m, "inference": C.inference_record(post)})
+        conditions.append(
+            {
+                "name": name,
+                "sampler": sampler,
+                "nn_prior": nn,
+                "metrics": m,
+                "inference": C.inference_record(post),
+            }
+        )
         bands[name] = C.bands_for(pred, data, plot_idx, cfg.level)
         sets[name] = post.theta[np.all(np.isfinite(post.theta), axis=1)]
         bar.update()
 
     figures = {
-        "pairs.png": C.pair_figure(sets, problem.labels, data.theta, "NNSVGD vs SVGD posteriors (ln K); truth in red"),
-        "bands.png": C.band_grid(bands, cfg.dt, cfg.level, [f"test {i}" for i in plot_idx], "95% predictive bands on unseen test trajectories"),
-        "metrics.png": C.metric_figure([c["name"] for c in conditions], [c["metrics"] for c in conditions], "NN prior benefit"),
+        "pairs.png": C.pair_figure(
+            sets, problem.labels, data.theta, "NNSVGD vs SVGD posteriors (ln K); truth in red"
+        ),
+        "bands.png": C.band_grid(
+            bands,
+            cfg.dt,
+            cfg.level,
+            [f"test {i}" for i in plot_idx],
+            "95% predictive bands on unseen test trajectories",
+        ),
+        "metrics.png": C.metric_figure(
+            [c["name"] for c in conditions], [c["metrics"] for c in conditions], "NN prior benefit"
+        ),
     }
     record = {
         "data": C.data_record(data, problem),
@@ -91,18 +109,22 @@ def _markdown(cfg, data, problem, conditions) -> str:
         ["paper (Table I)", "95% CI width", "% GT outside CI", "Nll"],
         [[k, v["ci_width"], v["pct_outside"], v["nll"]] for k, v in PAPER_TABLE_I.items()],
     )
-    params = C.parameter_table([(c["name"], c["metrics"]) for c in conditions], problem.labels, data.theta)
-    return "\n\n".join([
-        "# (b) NN prior benefit: NNSVGD vs SVGD (paper Table I, Fig. 4)",
-        C.config_line(cfg, data, problem) + ".",
-        table,
-        "The paper's Table I (Isaac Gym, 25 unseen test trajectories, its own NLL definition and units):",
-        paper,
-        "Posterior means of ln K with 95% marginal intervals:",
-        params,
-        "Figures: `pairs.png` (Fig. 4: both posteriors, truth in red), `bands.png`, `metrics.png`.",
-        C.METRIC_NOTES,
-    ])
+    params = C.parameter_table(
+        [(c["name"], c["metrics"]) for c in conditions], problem.labels, data.theta
+    )
+    return "\n\n".join(
+        [
+            "# (b) NN prior benefit: NNSVGD vs SVGD (paper Table I, Fig. 4)",
+            C.config_line(cfg, data, problem) + ".",
+            table,
+            "The paper's Table I (Isaac Gym, 25 unseen test trajectories, its own NLL definition and units):",
+            paper,
+            "Posterior means of ln K with 95% marginal intervals:",
+            params,
+            "Figures: `pairs.png` (Fig. 4: both posteriors, truth in red), `bands.png`, `metrics.png`.",
+            C.METRIC_NOTES,
+        ]
+    )
 
 
 def main(argv=None) -> int:

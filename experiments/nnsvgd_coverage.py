@@ -74,8 +74,13 @@ def make_data(seed: int):
     return tree, sim, trajs
 
 
-LEGACY_NET = {"n_samples": 4096, "sharpness": 1.0, "grad_weight": 0.0, "allowed_weight": 1.0,
-              "span": 1.0}  # the training settings of the format-2 bundled network
+LEGACY_NET = {
+    "n_samples": 4096,
+    "sharpness": 1.0,
+    "grad_weight": 0.0,
+    "allowed_weight": 1.0,
+    "span": 1.0,
+}  # the training settings of the format-2 bundled network
 TARGETS = ("svgd", "nnsvgd", "nnsvgd-legacy")
 
 
@@ -94,7 +99,7 @@ def with_inequality_prior(problem, net_kwargs: dict):
     lo, hi = (np.log(b) for b in tree.bounds_array())
     terms = []
     for off in (0, r):
-        a, b = float(lo[off:off + r].min()), float(hi[off:off + r].max())
+        a, b = float(lo[off : off + r].min()), float(hi[off : off + r].max())
         pad = 0.5 * (b - a)
         net = load_or_train_inequality_network(a - pad, b + pad, eta=DEFAULT_ETA, **net_kwargs)
         terms.append(inequality_prior(net, [(p + off, c + off) for p, c in tree.inferred_pairs()]))
@@ -107,8 +112,11 @@ def with_inequality_prior(problem, net_kwargs: dict):
         return mask_nonfinite(a + b, ga + gb)
 
     return dataclasses.replace(
-        problem, value_and_grad=value_and_grad, log_prior=combine(problem.log_prior, term),
-        log_density=combine(problem.log_density, term), nn_prior=True,
+        problem,
+        value_and_grad=value_and_grad,
+        log_prior=combine(problem.log_prior, term),
+        log_density=combine(problem.log_density, term),
+        nn_prior=True,
         settings={**problem.settings, "nn_prior": True, "nn_net": net_kwargs or "default"},
     )
 
@@ -122,16 +130,26 @@ def run(seeds, n_particles: int, n_iterations: int, out: Path | None) -> dict:
     for seed in seeds:
         tree, sim, trajs = make_data(seed)
         base = make_problem(tree, trajs, sim=sim, nn_prior=False)
-        problems = {"svgd": base, "nnsvgd": with_inequality_prior(base, {}),
-                    "nnsvgd-legacy": with_inequality_prior(base, LEGACY_NET)}
+        problems = {
+            "svgd": base,
+            "nnsvgd": with_inequality_prior(base, {}),
+            "nnsvgd-legacy": with_inequality_prior(base, LEGACY_NET),
+        }
         for target in TARGETS:
             t0 = time.perf_counter()
             problem = problems[target]
             sampler = target.split("-")[0]
-            post = infer(problem, sampler, n_particles=n_particles, n_iterations=n_iterations,
-                         seed=seed, progress=False)
-            rep = find_stragglers(post.log_density, post.theta, problem.lower, problem.upper,
-                                  labels=problem.labels)
+            post = infer(
+                problem,
+                sampler,
+                n_particles=n_particles,
+                n_iterations=n_iterations,
+                seed=seed,
+                progress=False,
+            )
+            rep = find_stragglers(
+                post.log_density, post.theta, problem.lower, problem.upper, labels=problem.labels
+            )
             # intervals over all particles (what summaries report today) ...
             lo, hi = np.percentile(post.theta, [2.5, 97.5], axis=0)
             covered = (lo <= truth) & (truth <= hi)
@@ -140,41 +158,56 @@ def run(seeds, n_particles: int, n_iterations: int, out: Path | None) -> dict:
             th = post.theta[keep] if keep.sum() >= 4 else post.theta
             lo_k, hi_k = np.percentile(th, [2.5, 97.5], axis=0)
             covered_kept = (lo_k <= truth) & (truth <= hi_k)
-            rows.append({
-                "seed": int(seed),
-                "sampler": target,
-                "labels": list(problem.labels),
-                "interval_95": np.exp(np.stack([lo, hi], 1)).tolist(),
-                "truth": np.exp(truth).tolist(),
-                "covered": covered.tolist(),
-                "n_covered": int(covered.sum()),
-                "interval_95_without_stragglers": np.exp(np.stack([lo_k, hi_k], 1)).tolist(),
-                "covered_without_stragglers": covered_kept.tolist(),
-                "max_box_excess": float(rep.box_excess.max()),
-                "n_stragglers": rep.n_stragglers,
-                "n_low_density": int(rep.low_density.sum()),
-                "n_outside_box": int(rep.outside_box.sum()),
-                "seconds": round(time.perf_counter() - t0, 1),
-            })
+            rows.append(
+                {
+                    "seed": int(seed),
+                    "sampler": target,
+                    "labels": list(problem.labels),
+                    "interval_95": np.exp(np.stack([lo, hi], 1)).tolist(),
+                    "truth": np.exp(truth).tolist(),
+                    "covered": covered.tolist(),
+                    "n_covered": int(covered.sum()),
+                    "interval_95_without_stragglers": np.exp(np.stack([lo_k, hi_k], 1)).tolist(),
+                    "covered_without_stragglers": covered_kept.tolist(),
+                    "max_box_excess": float(rep.box_excess.max()),
+                    "n_stragglers": rep.n_stragglers,
+                    "n_low_density": int(rep.low_density.sum()),
+                    "n_outside_box": int(rep.outside_box.sum()),
+                    "seconds": round(time.perf_counter() - t0, 1),
+                }
+            )
             r = rows[-1]
             child = problem.labels.index("Kd[branch2]")
-            print(f"seed {seed} {target:13s}: {r['n_covered']}/6 covered; Kd[branch2] 95% "
-                  f"[{r['interval_95'][child][0]:.3g}, {r['interval_95'][child][1]:.3g}] "
-                  f"(truth 0.33) covered={covered[child]}; stragglers {rep.n_stragglers} (low "
-                  f"{r['n_low_density']}, outside {r['n_outside_box']}); "
-                  f"max box excess {r['max_box_excess']:.2f}; "
-                  f"without stragglers {int(covered_kept.sum())}/6; {r['seconds']} s", flush=True)
+            print(
+                f"seed {seed} {target:13s}: {r['n_covered']}/6 covered; Kd[branch2] 95% "
+                f"[{r['interval_95'][child][0]:.3g}, {r['interval_95'][child][1]:.3g}] "
+                f"(truth 0.33) covered={covered[child]}; stragglers {rep.n_stragglers} (low "
+                f"{r['n_low_density']}, outside {r['n_outside_box']}); "
+                f"max box excess {r['max_box_excess']:.2f}; "
+                f"without stragglers {int(covered_kept.sum())}/6; {r['seconds']} s",
+                flush=True,
+            )
     summary = {}
     for sampler in TARGETS:
         rs = [r for r in rows if r["sampler"] == sampler]
         cov = np.array([r["covered"] for r in rs])
-        summary[sampler] = {"covered_per_parameter": cov.sum(0).tolist(), "n_runs": len(rs),
-                            "labels": rs[0]["labels"]}
+        summary[sampler] = {
+            "covered_per_parameter": cov.sum(0).tolist(),
+            "n_runs": len(rs),
+            "labels": rs[0]["labels"],
+        }
     result = {
-        "settings": {"seeds": list(map(int, seeds)), "n_particles": n_particles,
-                     "n_iterations": n_iterations, "kp_true": KP_TRUE.tolist(),
-                     "kd_true": KD_TRUE.tolist(), "dt": DT, "duration": DURATION,
-                     "peaks": list(PEAKS), "noise_m": NOISE_M},
+        "settings": {
+            "seeds": list(map(int, seeds)),
+            "n_particles": n_particles,
+            "n_iterations": n_iterations,
+            "kp_true": KP_TRUE.tolist(),
+            "kd_true": KD_TRUE.tolist(),
+            "dt": DT,
+            "duration": DURATION,
+            "peaks": list(PEAKS),
+            "noise_m": NOISE_M,
+        },
         "runs": rows,
         "summary": summary,
     }
@@ -193,8 +226,9 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     res = run(a.seeds, a.particles, a.iterations, a.out)
     for sampler, s in res["summary"].items():
-        cells = ", ".join(f"{lab} {c}/{s['n_runs']}" for lab, c in
-                          zip(s["labels"], s["covered_per_parameter"]))
+        cells = ", ".join(
+            f"{lab} {c}/{s['n_runs']}" for lab, c in zip(s["labels"], s["covered_per_parameter"])
+        )
         print(f"{sampler}: truth inside 95% interval: {cells}")
     return 0
 

@@ -40,7 +40,9 @@ def _levels(text: str) -> tuple[float, ...]:
     try:
         vals = tuple(float(s) for s in text.split(",") if s.strip())
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated numbers, got {text!r}"
+        ) from None
     if not vals:
         raise argparse.ArgumentTypeError("give at least one level")
     return vals
@@ -49,7 +51,13 @@ def _levels(text: str) -> tuple[float, ...]:
 def build_parser():
     doc = __doc__.split("\n\n")
     p = C.build_parser(STUDY, doc[0] + "\n\n" + doc[1], EPILOG)
-    p.add_argument("--levels", type=_levels, default=None, metavar="S1,S2,..", help="relative noise levels (fractions of each signal's peak)")
+    p.add_argument(
+        "--levels",
+        type=_levels,
+        default=None,
+        metavar="S1,S2,..",
+        help="relative noise levels (fractions of each signal's peak)",
+    )
     return p
 
 
@@ -74,22 +82,39 @@ def run(argv=None) -> int:
     for level in cfg.noise_levels:
         data, noise = C.add_relative_noise(clean, level, seed)
         problem = C.make_problem(cfg, data, nn_prior=True)
-        C.say(ctx, f"{level_name(level)}: NNSVGD, {cfg.n_particles} particles x {cfg.n_iterations} iterations")
+        C.say(
+            ctx,
+            f"{level_name(level)}: NNSVGD, {cfg.n_particles} particles x {cfg.n_iterations} iterations",
+        )
         post = C.posterior(problem, "nnsvgd", cfg, seed, ctx.cache, ctx.progress)
         pred, m = C.evaluate(problem, post, data, cfg)
         name = level_name(level)
         vs_clean = C.interval_metrics(pred, np.stack([t.displacement for t in clean.test]), cfg)
-        conditions.append({
-            "name": name, "noise": noise, "sampler": "nnsvgd", "metrics": m, "metrics_vs_clean_truth": vs_clean,
-            "inference": C.inference_record(post),
-        })
+        conditions.append(
+            {
+                "name": name,
+                "noise": noise,
+                "sampler": "nnsvgd",
+                "metrics": m,
+                "metrics_vs_clean_truth": vs_clean,
+                "inference": C.inference_record(post),
+            }
+        )
         bands[name] = C.bands_for(pred, data, plot_idx, cfg.level)
         bar.update()
 
     figures = {
-        "bands.png": C.band_grid(bands, cfg.dt, cfg.level, [f"test {i}" for i in plot_idx], "NNSVGD under noise: 95% bands vs noisy ground truth"),
+        "bands.png": C.band_grid(
+            bands,
+            cfg.dt,
+            cfg.level,
+            [f"test {i}" for i in plot_idx],
+            "NNSVGD under noise: 95% bands vs noisy ground truth",
+        ),
         "metrics.png": C.metric_figure(
-            [c["name"] for c in conditions], [c["metrics"] for c in conditions], "Robustness to noise",
+            [c["name"] for c in conditions],
+            [c["metrics"] for c in conditions],
+            "Robustness to noise",
             keys={"95% CI width [m]": "ci_width", "% GT outside": "pct_outside"},
         ),
     }
@@ -111,37 +136,48 @@ def run(argv=None) -> int:
 
 def _markdown(cfg, data, problem, conditions) -> str:
     rows = [
-        [c["name"], C.fmt(c["noise"]["sigma_force_N"], ".3g"), C.fmt(1e3 * c["noise"]["sigma_displacement_m"], ".3g")]
+        [
+            c["name"],
+            C.fmt(c["noise"]["sigma_force_N"], ".3g"),
+            C.fmt(1e3 * c["noise"]["sigma_displacement_m"], ".3g"),
+        ]
         + C.metric_cells(c["metrics"])
         for c in conditions
     ]
     table = C.markdown_table(["noise", "sigma_F [N]", "sigma_x [mm]"] + C.METRIC_HEADERS, rows)
     clean_rows = [
-        [c["name"], C.fmt(c["metrics_vs_clean_truth"].get("pct_outside"), ".1f"),
-         C.fmt(c["metrics_vs_clean_truth"].get("predictive_nll_per_point"), ".2f")]
+        [
+            c["name"],
+            C.fmt(c["metrics_vs_clean_truth"].get("pct_outside"), ".1f"),
+            C.fmt(c["metrics_vs_clean_truth"].get("predictive_nll_per_point"), ".2f"),
+        ]
         for c in conditions
     ]
-    clean_table = C.markdown_table(["noise", "% clean GT outside", "NLL / clean test point"], clean_rows)
-    return "\n\n".join([
-        "# (c) Robustness to Gaussian noise on force and displacement (paper Fig. 5)",
-        C.config_line(cfg, data, problem) + "; NNSVGD at every level.",
-        (
-            "Noise: sigma_F = s * max|F| and sigma_x = s * max|x|, maxima over the clean training and test "
-            "trajectories; added to training and test trajectories; the metrics compare the bands with "
-            "the noisy test displacement."
-        ),
-        table,
-        (
-            "The same bands against the noise-free test displacement (did the posterior recover the "
-            "motion underneath the noise?):"
-        ),
-        clean_table,
-        (
-            "Figures: `bands.png` (rows: noise levels; columns: unseen test trajectories; red: the noisy "
-            "ground truth), `metrics.png`."
-        ),
-        C.METRIC_NOTES,
-    ])
+    clean_table = C.markdown_table(
+        ["noise", "% clean GT outside", "NLL / clean test point"], clean_rows
+    )
+    return "\n\n".join(
+        [
+            "# (c) Robustness to Gaussian noise on force and displacement (paper Fig. 5)",
+            C.config_line(cfg, data, problem) + "; NNSVGD at every level.",
+            (
+                "Noise: sigma_F = s * max|F| and sigma_x = s * max|x|, maxima over the clean training and test "
+                "trajectories; added to training and test trajectories; the metrics compare the bands with "
+                "the noisy test displacement."
+            ),
+            table,
+            (
+                "The same bands against the noise-free test displacement (did the posterior recover the "
+                "motion underneath the noise?):"
+            ),
+            clean_table,
+            (
+                "Figures: `bands.png` (rows: noise levels; columns: unseen test trajectories; red: the noisy "
+                "ground truth), `metrics.png`."
+            ),
+            C.METRIC_NOTES,
+        ]
+    )
 
 
 def main(argv=None) -> int:

@@ -51,9 +51,11 @@ def problem(tree_name: str):
     t = np.arange(n) * dt
     forces = np.stack([np.clip(t / 0.4, 0.0, 1.0) * p for p in (5.0, 9.0)])
     roll = jax.jit(lambda a, b, f: simulate(sim, a, b, f))(
-        jnp.asarray(kp[None]), jnp.asarray(kd[None]), jnp.asarray(forces))
-    trajs = [Trajectory(t, forces[b], np.asarray(roll.tau[0, b], float), None, f"p{b}")
-             for b in range(2)]
+        jnp.asarray(kp[None]), jnp.asarray(kd[None]), jnp.asarray(forces)
+    )
+    trajs = [
+        Trajectory(t, forces[b], np.asarray(roll.tau[0, b], float), None, f"p{b}") for b in range(2)
+    ]
     return make_problem(tree, trajs, kT=0.05, sim=sim, nn_prior=False)
 
 
@@ -76,7 +78,7 @@ def measure(prob, settings: dict, n_particles: int, n_iterations: int, seed: int
     tr = res.trace_positions  # [S, C, D]
     width = prob.upper - prob.lower
     travel = np.nanmean(np.abs(tr[-1] - tr[0]) / width)
-    half = tr[tr.shape[0] // 2:]
+    half = tr[tr.shape[0] // 2 :]
     step = np.nanmedian(np.linalg.norm(np.diff(half, axis=0) / width, axis=-1))
     summ = mcmc_summary(tr, prob.labels, warmup=0.5)
     d = summ["diagnostics"]
@@ -109,10 +111,13 @@ def main(argv=None) -> int:
                 continue
             m = measure(prob, settings, a.particles, a.iterations, a.seed)
             out[f"{tree} | {name}"] = {"settings": settings, **m}
-            print(f"{tree:12s} {name:40s} travel {m['mean_travel_box_widths']:.3f} "
-                  f"step {m['median_step_box_widths']:.2e} ESS {m['ess_bulk_min']:.1f} "
-                  f"R-hat {m['rhat_max']:.2f} unstable {m['frac_unstable']:.2f} "
-                  f"logp {m['final_mean_log_density']:.4g} ({m['seconds']} s)", flush=True)
+            print(
+                f"{tree:12s} {name:40s} travel {m['mean_travel_box_widths']:.3f} "
+                f"step {m['median_step_box_widths']:.2e} ESS {m['ess_bulk_min']:.1f} "
+                f"R-hat {m['rhat_max']:.2f} unstable {m['frac_unstable']:.2f} "
+                f"logp {m['final_mean_log_density']:.4g} ({m['seconds']} s)",
+                flush=True,
+            )
     if a.out is not None:
         a.out.mkdir(parents=True, exist_ok=True)
         (a.out / "sghmc_defaults.json").write_text(json.dumps(out, indent=1))

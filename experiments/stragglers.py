@@ -44,8 +44,10 @@ def problem():
     r = jax.jit(lambda kp, kd, f: simulate(sim, kp, kd, f))(
         jnp.asarray(KP_TRUE[None]), jnp.asarray(KD_TRUE[None]), jnp.asarray(forces)
     )
-    trajs = [Trajectory(t, forces[b], np.asarray(r.tau[0, b], float), None, f"train{b}")
-             for b in range(2)]
+    trajs = [
+        Trajectory(t, forces[b], np.asarray(r.tau[0, b], float), None, f"train{b}")
+        for b in range(2)
+    ]
     return make_problem(tree, trajs, kT=0.05, sim=sim, nn_prior=False)
 
 
@@ -62,13 +64,23 @@ def run(seeds, n_particles, n_iterations, until, out: Path | None) -> list[dict]
     for seed in seeds:
         theta0 = initial_particles(prob, n_particles, seed)
         row = {"seed": int(seed)}
-        for name, pol in (("plain", None),
-                          ("reinit", ReinitStragglers(until, prob.lower, prob.upper))):
-            res = samplers.run(alg, jax.random.key(seed), theta0, n_iterations, progress=False,
-                               chunk_size=10, reinit_stragglers=pol)
+        for name, pol in (
+            ("plain", None),
+            ("reinit", ReinitStragglers(until, prob.lower, prob.upper)),
+        ):
+            res = samplers.run(
+                alg,
+                jax.random.key(seed),
+                theta0,
+                n_iterations,
+                progress=False,
+                chunk_size=10,
+                reinit_stragglers=pol,
+            )
             ld = np.asarray(res.final_state.logdensity)
-            rep = find_stragglers(ld, res.final_positions, prob.lower, prob.upper,
-                                  labels=prob.labels)
+            rep = find_stragglers(
+                ld, res.final_positions, prob.lower, prob.upper, labels=prob.labels
+            )
             row[name] = {
                 "n_stragglers": rep.n_stragglers,
                 "log_density_range": [float(np.nanmin(ld)), float(np.nanmax(ld))],
@@ -76,18 +88,31 @@ def run(seeds, n_particles, n_iterations, until, out: Path | None) -> list[dict]
                 "warnings": rep.warnings,
             }
         rows.append(row)
-        print(f"seed {seed}: plain run {row['plain']['n_stragglers']} of {n_particles} stuck "
-              f"(log p {row['plain']['log_density_range'][0]:.4g} .. "
-              f"{row['plain']['log_density_range'][1]:.4g}); with warm-up re-init "
-              f"(moved {row['reinit']['n_reinitialised']}) {row['reinit']['n_stragglers']} "
-              f"stuck (log p {row['reinit']['log_density_range'][0]:.4g} .. "
-              f"{row['reinit']['log_density_range'][1]:.4g})", flush=True)
+        print(
+            f"seed {seed}: plain run {row['plain']['n_stragglers']} of {n_particles} stuck "
+            f"(log p {row['plain']['log_density_range'][0]:.4g} .. "
+            f"{row['plain']['log_density_range'][1]:.4g}); with warm-up re-init "
+            f"(moved {row['reinit']['n_reinitialised']}) {row['reinit']['n_stragglers']} "
+            f"stuck (log p {row['reinit']['log_density_range'][0]:.4g} .. "
+            f"{row['reinit']['log_density_range'][1]:.4g})",
+            flush=True,
+        )
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-        (out / "stragglers.json").write_text(json.dumps(
-            {"settings": {"seeds": list(map(int, seeds)), "n_particles": n_particles,
-                          "n_iterations": n_iterations, "reinit_until": until},
-             "runs": rows}, indent=1))
+        (out / "stragglers.json").write_text(
+            json.dumps(
+                {
+                    "settings": {
+                        "seeds": list(map(int, seeds)),
+                        "n_particles": n_particles,
+                        "n_iterations": n_iterations,
+                        "reinit_until": until,
+                    },
+                    "runs": rows,
+                },
+                indent=1,
+            )
+        )
     return rows
 
 

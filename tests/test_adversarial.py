@@ -622,8 +622,18 @@ def test_infer_names_data_files_it_skips(tmp_path, clean, capsys):
     if hasattr(os, "mkfifo"):
         os.mkfifo(data / "pipe.csv")
     kind, rc = _run_with_timeout(
-        lambda: main(["infer", "--tree", str(example_path("two_branch")), "--data", str(data),
-                      "--out", str(tmp_path / "run"), "--no-progress"]),  # fmt: skip
+        lambda: main(
+            [
+                "infer",
+                "--tree",
+                str(example_path("two_branch")),
+                "--data",
+                str(data),
+                "--out",
+                str(tmp_path / "run"),
+                "--no-progress",
+            ]
+        ),  # fmt: skip
         60.0,
     )
     err = capsys.readouterr().err

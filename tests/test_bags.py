@@ -444,8 +444,7 @@ def _fill(ts, msgtype, **values):
     return cls(**kw)
 
 
-def write_real_bag(path, ros="ros1", kind="wrench", pose_hz=10.0, sideways=False,
-                   on_robot=False):
+def write_real_bag(path, ros="ros1", kind="wrench", pose_hz=10.0, sideways=False, on_robot=False):
     """A bag like the real Kinova recordings: pose at ``pose_hz`` (PoseStamped ``/tool_pose``),
     joint states, and the force as ``kind``: "wrench" (WrenchStamped 100 Hz with a rest offset
     and a noise blip), "kortex" (BaseCyclic_Feedback 100 Hz: force and tool pose), or "none"."""
@@ -465,8 +464,9 @@ def write_real_bag(path, ros="ros1", kind="wrench", pose_hz=10.0, sideways=False
         if kind == "wrench":
             c_f = writer.add_connection("/wrench", "geometry_msgs/msg/WrenchStamped", **kw)
         elif kind == "kortex":
-            c_f = writer.add_connection("/my_gen3/base_feedback",
-                                        "kortex_driver/msg/BaseCyclic_Feedback", **kw)
+            c_f = writer.add_connection(
+                "/my_gen3/base_feedback", "kortex_driver/msg/BaseCyclic_Feedback", **kw
+            )
         sign = -1.0 if on_robot else 1.0
         for t in np.arange(0.0, REAL_DURATION, 1.0 / pose_hz):
             t_ns = EPOCH_NS + round(t * 1e9)
@@ -474,13 +474,19 @@ def write_real_bag(path, ros="ros1", kind="wrench", pose_hz=10.0, sideways=False
             msg = T["geometry_msgs/msg/PoseStamped"](
                 header=_header(ts, ros, t_ns, "base_link"),
                 pose=T["geometry_msgs/msg/Pose"](
-                    position=T["geometry_msgs/msg/Point"](x=p[0], y=p[1], z=p[2]),
-                    orientation=q))
+                    position=T["geometry_msgs/msg/Point"](x=p[0], y=p[1], z=p[2]), orientation=q
+                ),
+            )
             msgs.append((t_ns, c_pose, ser(msg, "geometry_msgs/msg/PoseStamped")))
-            js = _fill(ts, "sensor_msgs/msg/JointState",
-                       header=_header(ts, ros, t_ns, "base_link"), name=["j1"],
-                       position=np.array([0.1]), velocity=np.array([0.0]),
-                       effort=np.array([1.0]))
+            js = _fill(
+                ts,
+                "sensor_msgs/msg/JointState",
+                header=_header(ts, ros, t_ns, "base_link"),
+                name=["j1"],
+                position=np.array([0.1]),
+                velocity=np.array([0.0]),
+                effort=np.array([1.0]),
+            )
             msgs.append((t_ns, c_js, ser(js, "sensor_msgs/msg/JointState")))
         for t in np.arange(0.005, REAL_DURATION, 0.01):
             if kind == "none":
@@ -496,14 +502,21 @@ def write_real_bag(path, ros="ros1", kind="wrench", pose_hz=10.0, sideways=False
                 msg = T["geometry_msgs/msg/WrenchStamped"](
                     header=_header(ts, ros, t_ns, "base_link"),
                     wrench=T["geometry_msgs/msg/Wrench"](
-                        force=V3(x=fv[0], y=fv[1], z=fv[2]), torque=V3(x=0.0, y=0.0, z=0.0)))
+                        force=V3(x=fv[0], y=fv[1], z=fv[2]), torque=V3(x=0.0, y=0.0, z=0.0)
+                    ),
+                )
                 msgs.append((t_ns, c_f, ser(msg, "geometry_msgs/msg/WrenchStamped")))
             else:
-                base = _fill(ts, "kortex_driver/msg/BaseFeedback",
-                             tool_external_wrench_force_x=fv[0],
-                             tool_external_wrench_force_y=fv[1],
-                             tool_external_wrench_force_z=fv[2],
-                             tool_pose_x=p[0], tool_pose_y=p[1], tool_pose_z=p[2])
+                base = _fill(
+                    ts,
+                    "kortex_driver/msg/BaseFeedback",
+                    tool_external_wrench_force_x=fv[0],
+                    tool_external_wrench_force_y=fv[1],
+                    tool_external_wrench_force_z=fv[2],
+                    tool_pose_x=p[0],
+                    tool_pose_y=p[1],
+                    tool_pose_z=p[2],
+                )
                 msg = _fill(ts, "kortex_driver/msg/BaseCyclic_Feedback", base=base)
                 msgs.append((t_ns, c_f, ser(msg, "kortex_driver/msg/BaseCyclic_Feedback")))
         for t_ns, conn, raw in sorted(msgs, key=lambda m: m[0]):
@@ -562,8 +575,9 @@ def test_joint_states_only_bag_says_what_is_missing(tmp_path):
 
 @pytest.mark.parametrize("ros", ["ros1", "ros2"])
 def test_kortex_feedback_as_force_and_pose(tmp_path, ros):
-    bag = write_real_bag(tmp_path / ("k.bag" if ros == "ros1" else "k2"), ros=ros,
-                         kind="kortex", on_robot=True)
+    bag = write_real_bag(
+        tmp_path / ("k.bag" if ros == "ros1" else "k2"), ros=ros, kind="kortex", on_robot=True
+    )
     paths = import_bag(bag, tmp_path / "out", force_sign=-1)
     prov = provenance(tmp_path / "out")
     assert prov["force_topic"] == "/my_gen3/base_feedback" and prov["time_source"] == "bag"
@@ -573,27 +587,27 @@ def test_kortex_feedback_as_force_and_pose(tmp_path, ros):
     assert tr.force.max() == pytest.approx(REAL_PULLS[0][2], abs=0.02)
     np.testing.assert_allclose(tr.displacement, COMPLIANCE * tr.force, atol=2e-4)
     # the PoseStamped stream may be chosen for the position instead
-    paths2 = import_bag(bag, tmp_path / "out2", force_sign=-1, pose_topic="/tool_pose",
-                        dt=0.1)
+    paths2 = import_bag(bag, tmp_path / "out2", force_sign=-1, pose_topic="/tool_pose", dt=0.1)
     assert provenance(tmp_path / "out2")["pose_topic"] == "/tool_pose"
     assert read_trajectory(paths2[0]).displacement.max() == pytest.approx(
-        COMPLIANCE * REAL_PULLS[0][2], rel=0.03)
+        COMPLIANCE * REAL_PULLS[0][2], rel=0.03
+    )
 
 
 def test_sideways_pull_projection_distance_and_sidecar(tmp_path):
     from treeinfer.pulls import read_pulls
 
     bag = write_real_bag(tmp_path / "side.bag", kind="kortex", sideways=True)
-    paths = import_bag(bag, tmp_path / "p", direction=(1, 0, 0), dt=0.05,
-                       grasp_branch="b", grasp_fraction=0.5)
+    paths = import_bag(
+        bag, tmp_path / "p", direction=(1, 0, 0), dt=0.05, grasp_branch="b", grasp_fraction=0.5
+    )
     tr = read_trajectory(paths[0])
     assert tr.force.max() == pytest.approx(REAL_PULLS[0][2], abs=0.02)
     np.testing.assert_allclose(tr.displacement, COMPLIANCE * tr.force, atol=2e-4)
     side = read_pulls(tmp_path / "p" / "pulls.yaml")
     assert side.pulls[paths[0].name].direction == (1.0, 0.0, 0.0)
     assert side.pulls[paths[0].name].fraction == 0.5
-    paths_d = import_bag(bag, tmp_path / "d", direction=(1, 0, 0), dt=0.05,
-                         displacement="distance")
+    paths_d = import_bag(bag, tmp_path / "d", direction=(1, 0, 0), dt=0.05, displacement="distance")
     trd = read_trajectory(paths_d[0])
     # distance from the rest pose includes the slow y drift (0.01 m/s) that projection ignores
     assert np.all(trd.displacement >= np.abs(tr.displacement) - 1e-12)

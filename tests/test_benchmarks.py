@@ -36,7 +36,11 @@ def setup():
 def test_batched_rollout_tiny_batch(benchmark, setup):
     _, sim, kp, kd, forces, refs = setup
     run = jax.jit(lambda a, b, f: simulate(sim, a, b, f))
-    args = (jnp.asarray(kp, jnp.float32), jnp.asarray(kd, jnp.float32), jnp.asarray(forces, jnp.float32))
+    args = (
+        jnp.asarray(kp, jnp.float32),
+        jnp.asarray(kd, jnp.float32),
+        jnp.asarray(forces, jnp.float32),
+    )
     jax.block_until_ready(run(*args))  # compile outside the timing
     out = benchmark(lambda: jax.block_until_ready(run(*args)))
     benchmark.extra_info["particle_steps"] = N_PARTICLES * N_STEPS * sim.substeps
@@ -70,8 +74,12 @@ def test_fd_gradient_evaluation(benchmark, setup):
     tree, sim, kp, kd, forces, refs = setup
     t = np.arange(N_STEPS) * OBS_DT
     tau0, vel0 = refs[0]
-    problem = make_problem(tree, [Trajectory(t, forces[0], tau0, vel0, "pull")], sim=sim, nn_prior=False, kT=0.05)
-    theta = jnp.asarray(np.log(np.stack([np.concatenate([kp[i], kd[i]]) for i in (1, 2)])), jnp.float32)
+    problem = make_problem(
+        tree, [Trajectory(t, forces[0], tau0, vel0, "pull")], sim=sim, nn_prior=False, kT=0.05
+    )
+    theta = jnp.asarray(
+        np.log(np.stack([np.concatenate([kp[i], kd[i]]) for i in (1, 2)])), jnp.float32
+    )
     vg = jax.jit(problem.value_and_grad)
     jax.block_until_ready(vg(theta))
     value, grad = benchmark(lambda: jax.block_until_ready(vg(theta)))

@@ -25,8 +25,11 @@ def _conjugate_study(rng, n_sets=400, n_draws=49, n_obs=5, width=1.0, shift=0.0)
     y = mu[:, None, :] + rng.normal(size=(n_sets, n_obs, d))
     post_mean = y.sum(1) / (n_obs + 1)
     post_std = 1.0 / math.sqrt(n_obs + 1)
-    draws = (post_mean[:, None, :] + shift * post_std
-             + width * post_std * rng.normal(size=(n_sets, n_draws, d)))
+    draws = (
+        post_mean[:, None, :]
+        + shift * post_std
+        + width * post_std * rng.normal(size=(n_sets, n_draws, d))
+    )
     return mu, draws
 
 
@@ -117,20 +120,37 @@ def test_tiny_tree_end_to_end(tmp_path):
     from treeinfer.tree import load_tree
 
     tree = load_tree("treeinfer/examples/two_branch.yaml")
-    cfg = cal.SBCConfig(datasets=3, particles=4, iterations=3, mh_warmup=4, mh_steps=2, n_traj=1,
-                        duration=0.3, chunk=2, seed=5, test_traj=2, noise_force=0.02)
+    cfg = cal.SBCConfig(
+        datasets=3,
+        particles=4,
+        iterations=3,
+        mh_warmup=4,
+        mh_steps=2,
+        n_traj=1,
+        duration=0.3,
+        chunk=2,
+        seed=5,
+        test_traj=2,
+        noise_force=0.02,
+    )
     seen = []
     res = cal.run_tree_sbc(tree, cfg, progress=lambda a, b: seen.append((a, b)))
     assert seen[-1] == (3, 3)
     assert res.draws.shape == (3, 4, 5) and res.labels[-1] == "sigma_x"
     assert np.all(np.isfinite(res.draws))
     summary = cal.write_outputs(res, tmp_path, cal.config_record("two_branch.yaml", cfg))
-    for name in ("sbc_summary.json", "ranks.csv", "draws.npz", "plots/rank_histograms.png",
-                 "plots/coverage.png"):
+    for name in (
+        "sbc_summary.json",
+        "ranks.csv",
+        "draws.npz",
+        "plots/rank_histograms.png",
+        "plots/coverage.png",
+    ):
         assert (tmp_path / name).is_file(), name
     on_disk = json.loads((tmp_path / "sbc_summary.json").read_text())
     assert on_disk["n_datasets"] == 3 and set(on_disk["uniformity"]["parameters"]) == set(
-        res.labels)
+        res.labels
+    )
     assert summary["config"]["options"]["seed"] == 5
     t = res.info["test_inside_95"]
     assert 0.0 <= t["predictive"]["median"] <= 1.0

@@ -67,11 +67,38 @@ def test_version(capsys):
 @pytest.mark.parametrize(
     "name, options",
     [
-        ("tree", ["--out", "--kind", "--from", "--mjcf", "--urdf", "--depth", "--rule", "--grasp-fraction", "--levels"]),
+        (
+            "tree",
+            [
+                "--out",
+                "--kind",
+                "--from",
+                "--mjcf",
+                "--urdf",
+                "--depth",
+                "--rule",
+                "--grasp-fraction",
+                "--levels",
+            ],
+        ),
         (
             "simulate",
-            ["--tree", "--out", "--n-traj", "--seed", "--params", "--params-json", "--duration", "--dt",
-             "--profiles", "--peak-range", "--noise-force", "--noise-displacement", "--grasp-fraction", "--force"],
+            [
+                "--tree",
+                "--out",
+                "--n-traj",
+                "--seed",
+                "--params",
+                "--params-json",
+                "--duration",
+                "--dt",
+                "--profiles",
+                "--peak-range",
+                "--noise-force",
+                "--noise-displacement",
+                "--grasp-fraction",
+                "--force",
+            ],
         ),
         ("import-bag", ["--out", "--force-topic", "--pose-topic", "--dt"]),
     ],
@@ -108,22 +135,30 @@ def _boom(exc):
 
 
 def test_internal_error_exit_3_without_traceback(capsys, monkeypatch, tmp_path):
-    monkeypatch.setitem(COMMANDS, "tree", cli.Command(cli.configure_tree, _boom(ZeroDivisionError("oops"))))
+    monkeypatch.setitem(
+        COMMANDS, "tree", cli.Command(cli.configure_tree, _boom(ZeroDivisionError("oops")))
+    )
     rc, _, err = run(capsys, "tree", "--out", tmp_path / "t.yaml")
     assert rc == 3
     assert "internal error" in err and "oops" in err and "--debug" in err and "Traceback" not in err
     rc, _, err = run(capsys, "--debug", "tree", "--out", tmp_path / "t.yaml")
     assert rc == 3 and "Traceback" in err and "ZeroDivisionError" in err
-    rc, _, err = run(capsys, "tree", "--out", tmp_path / "t.yaml", "--debug")  # after the command too
+    rc, _, err = run(
+        capsys, "tree", "--out", tmp_path / "t.yaml", "--debug"
+    )  # after the command too
     assert rc == 3 and "Traceback" in err
 
 
 def test_interrupt_and_oserror(capsys, monkeypatch, tmp_path):
-    monkeypatch.setitem(COMMANDS, "tree", cli.Command(cli.configure_tree, _boom(KeyboardInterrupt())))
+    monkeypatch.setitem(
+        COMMANDS, "tree", cli.Command(cli.configure_tree, _boom(KeyboardInterrupt()))
+    )
     rc, _, err = run(capsys, "tree", "--out", tmp_path / "t.yaml")
     assert rc == 130 and "interrupted" in err and "Traceback" not in err
     monkeypatch.setitem(
-        COMMANDS, "tree", cli.Command(cli.configure_tree, _boom(PermissionError(13, "Permission denied", "/x/y")))
+        COMMANDS,
+        "tree",
+        cli.Command(cli.configure_tree, _boom(PermissionError(13, "Permission denied", "/x/y"))),
     )
     rc, _, err = run(capsys, "tree", "--out", tmp_path / "t.yaml")
     assert_user_error(rc, err, "/x/y", "Permission denied")
@@ -131,14 +166,34 @@ def test_interrupt_and_oserror(capsys, monkeypatch, tmp_path):
 
 def test_python_m_treeinfer_subprocess(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
-    p = subprocess.run([sys.executable, "-m", "treeinfer", "--help"], capture_output=True, text=True, env=env, cwd=tmp_path, check=False)
+    p = subprocess.run(
+        [sys.executable, "-m", "treeinfer", "--help"],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        check=False,
+    )
     assert p.returncode == 0, p.stderr
     assert "usage: treeinfer" in p.stdout and "simulate" in p.stdout
     bad = tmp_path / "bad.yaml"
     bad.write_text("branches: [\n")
     p = subprocess.run(
-        [sys.executable, "-m", "treeinfer", "tree", "--from", str(bad), "--out", str(tmp_path / "x.yaml")],
-        capture_output=True, text=True, env=env, cwd=tmp_path, check=False,
+        [
+            sys.executable,
+            "-m",
+            "treeinfer",
+            "tree",
+            "--from",
+            str(bad),
+            "--out",
+            str(tmp_path / "x.yaml"),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        check=False,
     )
     assert p.returncode == 2 and "invalid YAML" in p.stderr and "Traceback" not in p.stderr
     assert not (tmp_path / "x.yaml").exists()
@@ -159,17 +214,61 @@ def _check_models(tree, mjcf: Path, urdf: Path):
 @pytest.mark.parametrize(
     "kind, options, reference",
     [
-        ("chain", ["--n", "3", "--lengths", "0.7,0.6,0.5", "--radii", "0.03,0.02,0.014", "--angles", "-10"],
-         lambda: gen.chain(3, [0.7, 0.6, 0.5], [0.03, 0.02, 0.014], -10.0)),
-        ("fractal", ["--depth", "1", "--branching", "3", "--base-pitch", "20", "--levels", "1", "--grasp-fraction", "0.5"],
-         lambda: gen.fractal(1, 3, base_pitch_deg=20.0, levels=1, grasp_fraction=0.5)),
-        ("lsystem", ["--axiom", "F", "--rule", "F=F[+F]F[-F]", "--iterations", "1", "--angle", "30", "--kp-bounds", "10,300"],
-         lambda: gen.lsystem("F", {"F": "F[+F]F[-F]"}, 1, angle_deg=30.0, bounds={"kp": [10, 300]})),
+        (
+            "chain",
+            [
+                "--n",
+                "3",
+                "--lengths",
+                "0.7,0.6,0.5",
+                "--radii",
+                "0.03,0.02,0.014",
+                "--angles",
+                "-10",
+            ],
+            lambda: gen.chain(3, [0.7, 0.6, 0.5], [0.03, 0.02, 0.014], -10.0),
+        ),
+        (
+            "fractal",
+            [
+                "--depth",
+                "1",
+                "--branching",
+                "3",
+                "--base-pitch",
+                "20",
+                "--levels",
+                "1",
+                "--grasp-fraction",
+                "0.5",
+            ],
+            lambda: gen.fractal(1, 3, base_pitch_deg=20.0, levels=1, grasp_fraction=0.5),
+        ),
+        (
+            "lsystem",
+            [
+                "--axiom",
+                "F",
+                "--rule",
+                "F=F[+F]F[-F]",
+                "--iterations",
+                "1",
+                "--angle",
+                "30",
+                "--kp-bounds",
+                "10,300",
+            ],
+            lambda: gen.lsystem(
+                "F", {"F": "F[+F]F[-F]"}, 1, angle_deg=30.0, bounds={"kp": [10, 300]}
+            ),
+        ),
     ],
 )
 def test_tree_generators_write_loadable_tree_and_models(capsys, tmp_path, kind, options, reference):
     out, mjcf, urdf = tmp_path / f"{kind}.yaml", tmp_path / f"{kind}.xml", tmp_path / f"{kind}.urdf"
-    rc, stdout, err = run(capsys, "tree", "--kind", kind, *options, "--out", out, "--mjcf", mjcf, "--urdf", urdf)
+    rc, stdout, err = run(
+        capsys, "tree", "--kind", kind, *options, "--out", out, "--mjcf", mjcf, "--urdf", urdf
+    )
     assert rc == 0, err
     tree = load_tree(out)
     assert tree_to_dict(tree) == tree_to_dict(reference())  # the generator, called directly
@@ -189,19 +288,37 @@ def test_tree_from_converts_and_regenerates(capsys, tmp_path):
     json.loads(out.read_text())  # really JSON
     # plain conversion keeps a generated file's recipe; re-generation changes only what is given
     frac = tmp_path / "f.yaml"
-    assert run(capsys, "tree", "--kind", "fractal", "--depth", "1", "--base-pitch", "15", "--out", frac)[0] == 0
+    assert (
+        run(
+            capsys, "tree", "--kind", "fractal", "--depth", "1", "--base-pitch", "15", "--out", frac
+        )[0]
+        == 0
+    )
     copy = tmp_path / "f.json"
     assert run(capsys, "tree", "--from", frac, "--out", copy)[0] == 0
     assert json.loads(copy.read_text())["generator"]["depth"] == 1
     deeper = tmp_path / "deeper.yaml"
-    rc, _, err = run(capsys, "tree", "--from", frac, "--kind", "fractal", "--depth", "2", "--out", deeper)
+    rc, _, err = run(
+        capsys, "tree", "--from", frac, "--kind", "fractal", "--depth", "2", "--out", deeper
+    )
     assert rc == 0, err
     assert tree_to_dict(load_tree(deeper)) == tree_to_dict(gen.fractal(2, base_pitch_deg=15.0))
 
 
 def test_tree_levels_and_bounds_on_conversion(capsys, tmp_path):
     out = tmp_path / "t.yaml"
-    rc, _, err = run(capsys, "tree", "--from", EXAMPLES / "three_branch.yaml", "--levels", "1", "--kd-bounds", "0.1,5", "--out", out)
+    rc, _, err = run(
+        capsys,
+        "tree",
+        "--from",
+        EXAMPLES / "three_branch.yaml",
+        "--levels",
+        "1",
+        "--kd-bounds",
+        "0.1,5",
+        "--out",
+        out,
+    )
     assert rc == 0, err
     t = load_tree(out)
     assert t.inferred == ("branch2",) and t.bounds["branch2"].kd == (0.1, 5.0)
@@ -212,12 +329,35 @@ def test_tree_levels_and_bounds_on_conversion(capsys, tmp_path):
     [
         (["--kind", "fractal", "--axiom", "F"], ["--axiom does not apply to --kind fractal"]),
         (["--kind", "explicit"], ["--kind explicit", "--from"]),
-        (["--kind", "chain", "--n", "2", "--lengths", "1,2,3", "--radii", "0.01"], ["lengths has 3 values, expected 2"]),
-        (["--kind", "lsystem", "--axiom", "F", "--rule", "FF", "--iterations", "1"], ["--rule 'FF'"]),
-        (["--kind", "lsystem", "--axiom", "F", "--rule", "F=F[+F]", "--rule", "F=F", "--iterations", "1"], ["probability"]),
+        (
+            ["--kind", "chain", "--n", "2", "--lengths", "1,2,3", "--radii", "0.01"],
+            ["lengths has 3 values, expected 2"],
+        ),
+        (
+            ["--kind", "lsystem", "--axiom", "F", "--rule", "FF", "--iterations", "1"],
+            ["--rule 'FF'"],
+        ),
+        (
+            [
+                "--kind",
+                "lsystem",
+                "--axiom",
+                "F",
+                "--rule",
+                "F=F[+F]",
+                "--rule",
+                "F=F",
+                "--iterations",
+                "1",
+            ],
+            ["probability"],
+        ),
         (["--kind", "fractal", "--grasp", "nope"], ["unknown branch 'nope'"]),
         (["--from", "MISSING.yaml"], ["MISSING.yaml", "no such file"]),
-        (["--from", str(EXAMPLES / "two_branch.yaml"), "--kind", "fractal"], ["generator", "--kind explicit"]),
+        (
+            ["--from", str(EXAMPLES / "two_branch.yaml"), "--kind", "fractal"],
+            ["generator", "--kind explicit"],
+        ),
     ],
 )
 def test_tree_errors(capsys, tmp_path, argv, fragments):
@@ -273,11 +413,20 @@ def sim_a(tmp_path_factory):
 
 def test_simulate_writes_a_complete_data_set(sim_a, capsys):
     assert sorted(p.name for p in sim_a.iterdir()) == [
-        ".treeinfer-output", "config.json", "traj_000.csv", "traj_001.csv", "tree.yaml", "true_params.json"
+        ".treeinfer-output",
+        "config.json",
+        "traj_000.csv",
+        "traj_001.csv",
+        "tree.yaml",
+        "true_params.json",
     ]
     trajs = read_trajectory_dir(sim_a)
     cfg = json.loads((sim_a / "config.json").read_text())
-    assert cfg["treeinfer_version"] == __version__ and cfg["seed"] == 1 and cfg["options"]["n_traj"] == 2
+    assert (
+        cfg["treeinfer_version"] == __version__
+        and cfg["seed"] == 1
+        and cfg["options"]["n_traj"] == 2
+    )
     assert len(trajs) == 2
     for tr, spec in zip(trajs, cfg["profiles"]):
         assert tr.n_steps == 60 and tr.dt == pytest.approx(0.01)
@@ -308,8 +457,21 @@ def test_simulate_same_seed_same_files_and_params_json_round_trip(sim_a, capsys,
     # the written parameters fed back in (same seed -> same profiles), with noise on top
     c = tmp_path / "c"
     rc, _, err = run(
-        capsys, "simulate", "--tree", sim_a / "tree.yaml", "--out", c, "--seed", "1", *SIM_ARGS,
-        "--params-json", sim_a / "true_params.json", "--noise-force", "0.1", "--noise-displacement", "0.001",
+        capsys,
+        "simulate",
+        "--tree",
+        sim_a / "tree.yaml",
+        "--out",
+        c,
+        "--seed",
+        "1",
+        *SIM_ARGS,
+        "--params-json",
+        sim_a / "true_params.json",
+        "--noise-force",
+        "0.1",
+        "--noise-displacement",
+        "0.001",
     )
     assert rc == 0, err
     tp_a = json.loads((sim_a / "true_params.json").read_text())
@@ -331,8 +493,22 @@ def test_simulate_explicit_params_and_profiles(capsys, tmp_path):
     d = tmp_path / "d"
     specs = ["hold:peak=5,ramp=0.2,hold=0.1,release=0.1", "step:peak=3,rise=0.1,start=0.1"]
     rc, out, err = run(
-        capsys, "simulate", "--tree", TWO, "--out", d, "--duration", "0.6", "--dt", "0.01",
-        "--params", "30,90,0.4,1.5", "--profile", specs[0], "--profile", specs[1],
+        capsys,
+        "simulate",
+        "--tree",
+        TWO,
+        "--out",
+        d,
+        "--duration",
+        "0.6",
+        "--dt",
+        "0.01",
+        "--params",
+        "30,90,0.4,1.5",
+        "--profile",
+        specs[0],
+        "--profile",
+        specs[1],
     )
     assert rc == 0, err
     tp = json.loads((d / "true_params.json").read_text())
@@ -345,8 +521,20 @@ def test_simulate_explicit_params_and_profiles(capsys, tmp_path):
 def test_simulate_unstable_is_a_clear_error_and_writes_nothing(capsys, tmp_path):
     d = tmp_path / "blown"
     rc, _, err = run(
-        capsys, "simulate", "--tree", TWO, "--out", d, "--duration", "0.6", "--dt", "0.01",
-        "--profile", "ramp:peak=5000,ramp=0.1", "--profile", "step:peak=3,rise=0.1",
+        capsys,
+        "simulate",
+        "--tree",
+        TWO,
+        "--out",
+        d,
+        "--duration",
+        "0.6",
+        "--dt",
+        "0.01",
+        "--profile",
+        "ramp:peak=5000,ramp=0.1",
+        "--profile",
+        "step:peak=3,rise=0.1",
     )
     assert_user_error(rc, err, "blew up", "traj_000.csv", "peak=5000")
     assert "traj_001" not in err
@@ -356,7 +544,9 @@ def test_simulate_unstable_is_a_clear_error_and_writes_nothing(capsys, tmp_path)
 @pytest.fixture
 def bad_tree(tmp_path):
     p = tmp_path / "bad.yaml"
-    p.write_text("name: x\nbranches:\n  - {name: a, parent: null, length: -1, radius: 0.01}\ngrasp: {branch: a}\n")
+    p.write_text(
+        "name: x\nbranches:\n  - {name: a, parent: null, length: -1, radius: 0.01}\ngrasp: {branch: a}\n"
+    )
     return p
 
 
@@ -364,7 +554,10 @@ def bad_tree(tmp_path):
     "extra, fragments",
     [
         (["--tree", "MISSING.yaml"], ["MISSING.yaml", "no such file"]),
-        (["--params", "1,2,3"], ["--params", "expected 4 numbers", "Kp[child], Kp[parent], Kd[child], Kd[parent]"]),
+        (
+            ["--params", "1,2,3"],
+            ["--params", "expected 4 numbers", "Kp[child], Kp[parent], Kd[child], Kd[parent]"],
+        ),
         (["--params", "1,2,-3,4"], ["--params", "Kd[child]", "positive"]),
         (["--params", "1,2,0,4"], ["Kd[child]", "positive"]),
         (["--n-traj", "0"], ["--n-traj"]),
@@ -402,7 +595,9 @@ def test_simulate_params_json_errors(capsys, tmp_path):
         ('{"something": 1}', "'kp' and 'kd'"),
     ]:
         p.write_text(content)
-        rc, _, err = run(capsys, "simulate", "--tree", TWO, "--out", tmp_path / "out", "--params-json", p)
+        rc, _, err = run(
+            capsys, "simulate", "--tree", TWO, "--out", tmp_path / "out", "--params-json", p
+        )
         assert_user_error(rc, err, str(p), fragment)
     assert not (tmp_path / "out").exists()
 
@@ -413,7 +608,9 @@ def test_simulate_refuses_non_empty_out(capsys, tmp_path):
     (out / "old.csv").write_text("keep")
     rc, _, err = run(capsys, "simulate", "--tree", TWO, "--out", out, *SIM_ARGS)
     assert_user_error(rc, err, str(out), "--force")
-    assert [p.name for p in out.iterdir()] == ["old.csv"] and (out / "old.csv").read_text() == "keep"
+    assert [p.name for p in out.iterdir()] == ["old.csv"] and (
+        out / "old.csv"
+    ).read_text() == "keep"
 
 
 def test_default_true_params_order_and_window():

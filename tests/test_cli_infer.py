@@ -67,8 +67,20 @@ def run_dir(demo):
     out = demo[0].parent / "run"
     buf, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(err):
-        rc = main(["infer", "--tree", str(TWO), "--data", str(demo[0] / "data" / "train"), "--out", str(out),
-                   "--seed", "0", *QUICK])
+        rc = main(
+            [
+                "infer",
+                "--tree",
+                str(TWO),
+                "--data",
+                str(demo[0] / "data" / "train"),
+                "--out",
+                str(out),
+                "--seed",
+                "0",
+                *QUICK,
+            ]
+        )
     assert rc == 0, err.getvalue()
     return out, buf.getvalue()
 
@@ -77,9 +89,38 @@ def run_dir(demo):
 @pytest.mark.parametrize(
     "name, options",
     [
-        ("infer", ["--tree", "--data", "--out", "--sampler", "--particles", "--iterations", "--kT", "--seed", "--eta",
-                   "--grasp-fraction", "--max-unstable-share", "--checkpoint-every", "--resume", "--force", "--no-progress"]),
-        ("predict", ["--run", "--force-csv", "--profile", "--duration", "--grasp-fraction", "--out", "--force"]),
+        (
+            "infer",
+            [
+                "--tree",
+                "--data",
+                "--out",
+                "--sampler",
+                "--particles",
+                "--iterations",
+                "--kT",
+                "--seed",
+                "--eta",
+                "--grasp-fraction",
+                "--max-unstable-share",
+                "--checkpoint-every",
+                "--resume",
+                "--force",
+                "--no-progress",
+            ],
+        ),
+        (
+            "predict",
+            [
+                "--run",
+                "--force-csv",
+                "--profile",
+                "--duration",
+                "--grasp-fraction",
+                "--out",
+                "--force",
+            ],
+        ),
         ("evaluate", ["--run", "--data", "--out", "--kfold", "--grasp-fraction"]),
         ("demo", ["--out", "--quick", "--seed"]),
     ],
@@ -102,9 +143,18 @@ def test_infer_defaults_match_the_library():
 # ---- demo ------------------------------------------------------------------------------------
 def test_demo_quick(demo):
     out, stdout = demo
-    assert len(read_trajectory_dir(out / "data" / "train")) == 2 and len(read_trajectory_dir(out / "data" / "test")) == 2
-    for f in ("run/config.json", "run/posterior.nc", "run/plots/bands_train.png", "evaluation/metrics.json",
-              "evaluation/bands.png", "demo.json"):
+    assert (
+        len(read_trajectory_dir(out / "data" / "train")) == 2
+        and len(read_trajectory_dir(out / "data" / "test")) == 2
+    )
+    for f in (
+        "run/config.json",
+        "run/posterior.nc",
+        "run/plots/bands_train.png",
+        "evaluation/metrics.json",
+        "evaluation/bands.png",
+        "demo.json",
+    ):
         assert (out / f).is_file(), f
     assert not runs.partial_dir(out / "run").exists()
     d = json.loads((out / "demo.json").read_text())
@@ -115,7 +165,13 @@ def test_demo_quick(demo):
     for lab, p in m["parameters"].items():  # truth recorded in log space, as the true_params say
         kind, joint = lab[:2].lower(), lab[3:-1]
         assert math.isclose(p["truth"], math.log(truth[kind][joint]), rel_tol=1e-12)
-    for text in ("true parameters", "Kp[child]", "95% band", "outside", "inside their 95% interval"):
+    for text in (
+        "true parameters",
+        "Kp[child]",
+        "95% band",
+        "outside",
+        "inside their 95% interval",
+    ):
         assert text in stdout, text
 
 
@@ -125,7 +181,15 @@ def test_infer_run_folder(run_dir, demo):
 
     out, stdout = run_dir
     names = {p.name for p in out.iterdir()}
-    assert {"config.json", "tree.yaml", "posterior.nc", "particles.csv", "trace.npz", "summary.json", "plots"} <= names
+    assert {
+        "config.json",
+        "tree.yaml",
+        "posterior.nc",
+        "particles.csv",
+        "trace.npz",
+        "summary.json",
+        "plots",
+    } <= names
     for png in ("trace.png", "pairs.png", "bands_train.png"):
         assert (out / "plots" / png).read_bytes()[:4] == b"\x89PNG"
     assert not runs.partial_dir(out).exists()
@@ -133,20 +197,34 @@ def test_infer_run_folder(run_dir, demo):
 
     cfg = json.loads((out / "config.json").read_text())
     data = demo[0] / "data" / "train"
-    assert cfg["seed"] == 0 and cfg["options"]["particles"] == 8 and cfg["options"]["sampler"] == "nnsvgd"
+    assert (
+        cfg["seed"] == 0
+        and cfg["options"]["particles"] == 8
+        and cfg["options"]["sampler"] == "nnsvgd"
+    )
     assert {"treeinfer", "jax", "mujoco"} <= set(cfg["versions"])
     assert [f["name"] for f in cfg["data"]["files"]] == sorted(p.name for p in data.glob("*.csv"))
     for f in cfg["data"]["files"]:
         assert f["sha256"] == runs.file_sha256(data / f["name"])
-    assert cfg["problem"]["obs_dt"] == pytest.approx(0.02) and cfg["problem"]["kT"] == INFER_DEFAULTS["kT"]
+    assert (
+        cfg["problem"]["obs_dt"] == pytest.approx(0.02)
+        and cfg["problem"]["kT"] == INFER_DEFAULTS["kT"]
+    )
     assert cfg["posterior_settings"]["n_iterations"] == 3
     # the simulator backend is recorded (requested and resolved) and honoured when the run is loaded
     assert cfg["options"]["backend"] == "auto" and cfg["problem"]["backend"] == "fused"
     assert runs.load_run(out).sim.backend == "fused"
     mjx_cfg = json.loads(json.dumps(cfg))
     mjx_cfg["problem"]["backend"] = "mjx"
-    assert runs.simulator_for(load_tree(out / "tree.yaml"), mjx_cfg["problem"]["obs_dt"],
-                              mjx_cfg["problem"]["substeps"], mjx_cfg["problem"]["backend"]).backend == "mjx"
+    assert (
+        runs.simulator_for(
+            load_tree(out / "tree.yaml"),
+            mjx_cfg["problem"]["obs_dt"],
+            mjx_cfg["problem"]["substeps"],
+            mjx_cfg["problem"]["backend"],
+        ).backend
+        == "mjx"
+    )
 
     with np.load(out / "trace.npz") as z:
         theta, labels, it = z["theta"], z["labels"].tolist(), z["iterations"]
@@ -164,8 +242,17 @@ def test_infer_run_folder(run_dir, demo):
     np.testing.assert_allclose(table, np.exp(theta.astype(float)), rtol=1e-12)  # natural units
 
     s = json.loads((out / "summary.json").read_text())
-    assert {"diagnostics", "convergence_warnings", "n_unstable", "posterior", "training_metrics", "truth"} <= set(s)
-    assert {"ci_width", "pct_outside", "predictive_nll", "posterior_nll"} <= set(s["training_metrics"])
+    assert {
+        "diagnostics",
+        "convergence_warnings",
+        "n_unstable",
+        "posterior",
+        "training_metrics",
+        "truth",
+    } <= set(s)
+    assert {"ci_width", "pct_outside", "predictive_nll", "posterior_nll"} <= set(
+        s["training_metrics"]
+    )
     stable = np.ones(len(theta), bool)
     stable[s["unstable_particles"]] = False
     for lab in labels:  # the printed table: mean of the stable particles' gains, and an interval
@@ -183,23 +270,62 @@ def test_infer_convergence_options(demo, tmp_path, capsys):
     """Issue 11: stragglers and prior-edge mass reported, warm-up re-init, drop, early stop,
     --prior-tail; MCMC summaries from every chain's post-warm-up draws."""
     data = demo[0] / "data" / "train"
-    base = ["infer", "--tree", TWO, "--data", data, "--checkpoint-every", "0", "--no-progress", "--allow-poor-fit"]
-    rc, out, err = run(capsys, *base, "--out", tmp_path / "svgd", "--sampler", "svgd",
-                       "--particles", "8", "--iterations", "6", "--reinit-stragglers", "3",
-                       "--drop-stragglers", "--stop-when-converged", "--prior-tail", "0.05")
+    base = [
+        "infer",
+        "--tree",
+        TWO,
+        "--data",
+        data,
+        "--checkpoint-every",
+        "0",
+        "--no-progress",
+        "--allow-poor-fit",
+    ]
+    rc, out, err = run(
+        capsys,
+        *base,
+        "--out",
+        tmp_path / "svgd",
+        "--sampler",
+        "svgd",
+        "--particles",
+        "8",
+        "--iterations",
+        "6",
+        "--reinit-stragglers",
+        "3",
+        "--drop-stragglers",
+        "--stop-when-converged",
+        "--prior-tail",
+        "0.05",
+    )
     assert rc == 0, err
     s = json.loads((tmp_path / "svgd" / "summary.json").read_text())
     assert {"n_stragglers", "particles", "n_low_density", "n_outside_box", "warnings"} <= set(
-        s["stragglers"])
+        s["stragglers"]
+    )
     assert set(s["prior_edge"]["parameters"]) == set(s["posterior"])
     assert s["stop_reason"] == "max_iterations" and s["n_iterations_done"] == 6
     cfg = json.loads((tmp_path / "svgd" / "config.json").read_text())
     assert cfg["options"]["prior_tail"] == 0.05 and cfg["problem"]["prior_sigma"] == 0.05
     assert cfg["options"]["reinit_stragglers"] == 3 and cfg["options"]["drop_stragglers"]
 
-    rc, out, err = run(capsys, *base, "--out", tmp_path / "mh", "--sampler", "mh",
-                       "--particles", "4", "--iterations", "10", "--mcmc-warmup", "0.5",
-                       "--mcmc-thin", "1")
+    rc, out, err = run(
+        capsys,
+        *base,
+        "--out",
+        tmp_path / "mh",
+        "--sampler",
+        "mh",
+        "--particles",
+        "4",
+        "--iterations",
+        "10",
+        "--mcmc-warmup",
+        "0.5",
+        "--mcmc-thin",
+        "1",
+    )
     assert rc == 0, err
     s = json.loads((tmp_path / "mh" / "summary.json").read_text())
     d = s["posterior_draws"]["mcmc_draws"]
@@ -207,8 +333,11 @@ def test_infer_convergence_options(demo, tmp_path, capsys):
         pos = z["positions"]
     assert pos.shape[:2] == (11, 4) and d["warmup"] == 5 and d["thin"] == 1
     assert d["n_draws"] == int(np.all(np.isfinite(pos[5:]), axis=2).sum())
-    rows = [ln for ln in (tmp_path / "mh" / "particles.csv").read_text().splitlines()
-            if not ln.startswith("#")]
+    rows = [
+        ln
+        for ln in (tmp_path / "mh" / "particles.csv").read_text().splitlines()
+        if not ln.startswith("#")
+    ]
     assert len(rows) - 1 == d["n_draws"]
     rc, out, err = run(capsys, "infer", "--resume", tmp_path / "mh", "--drop-stragglers")
     assert_user_error(rc, err, "--drop-stragglers")  # --resume takes every option from the run
@@ -217,7 +346,9 @@ def test_infer_convergence_options(demo, tmp_path, capsys):
 def test_infer_refuses_existing_run(run_dir, demo, capsys):
     out = run_dir[0]
     before = (out / "config.json").read_text()
-    rc, _, err = run(capsys, "infer", "--tree", TWO, "--data", demo[0] / "data" / "train", "--out", out, *QUICK)
+    rc, _, err = run(
+        capsys, "infer", "--tree", TWO, "--data", demo[0] / "data" / "train", "--out", out, *QUICK
+    )
     assert_user_error(rc, err, str(out), "--force")
     assert (out / "config.json").read_text() == before
 
@@ -246,9 +377,13 @@ def test_infer_bad_options(tmp_path, capsys, extra, fragment):
 def test_infer_bad_inputs(tmp_path, capsys):
     data = tmp_path / "data"
     _write_pulls(data, 0.02, 2)
-    rc, _, err = run(capsys, "infer", "--tree", TWO, "--data", data, "--out", tmp_path / "r", "--sampler", "nuts")
+    rc, _, err = run(
+        capsys, "infer", "--tree", TWO, "--data", data, "--out", tmp_path / "r", "--sampler", "nuts"
+    )
     assert rc == 2 and "invalid choice" in err and "nnsvgd" in err
-    rc, _, err = run(capsys, "infer", "--tree", TWO, "--data", tmp_path / "none", "--out", tmp_path / "r")
+    rc, _, err = run(
+        capsys, "infer", "--tree", TWO, "--data", tmp_path / "none", "--out", tmp_path / "r"
+    )
     assert_user_error(rc, err, "none")
     rc, _, err = run(capsys, "infer", "--data", data, "--out", tmp_path / "r")
     assert_user_error(rc, err, "--tree")
@@ -259,7 +394,9 @@ def test_infer_bad_inputs(tmp_path, capsys):
 def _prediction(d: Path) -> tuple[list[str], np.ndarray]:
     lines = (d / "prediction.csv").read_text().splitlines()
     assert lines[0].startswith("time,")  # header first: pandas/csv readers parse it as is
-    return lines[0].split(","), np.array([[float(c) if c else np.nan for c in ln.split(",")] for ln in lines[1:]])
+    return lines[0].split(","), np.array(
+        [[float(c) if c else np.nan for c in ln.split(",")] for ln in lines[1:]]
+    )
 
 
 def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
@@ -267,11 +404,15 @@ def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
 
     out = run_dir[0]
     test_csv = demo[0] / "data" / "test" / "traj_002.csv"
-    rc, stdout, err = run(capsys, "predict", "--run", out, "--force-csv", test_csv, "--out", tmp_path / "p1")
+    rc, stdout, err = run(
+        capsys, "predict", "--run", out, "--force-csv", test_csv, "--out", tmp_path / "p1"
+    )
     assert rc == 0, err
     cols, a = _prediction(tmp_path / "p1")
     assert cols == ["time", "force", "recorded", "mean", "lower", "upper"]
-    a = a[:, [0, 1, 3, 4, 5, 2]]  # the old column order: time, force, mean, lower, upper, displacement
+    a = a[
+        :, [0, 1, 3, 4, 5, 2]
+    ]  # the old column order: time, force, mean, lower, upper, displacement
     tr = read_trajectory(test_csv)
     np.testing.assert_array_equal(a[:, 0], tr.time)
     np.testing.assert_array_equal(a[:, 1], tr.force)
@@ -284,13 +425,20 @@ def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
     # independent reference: the band's mean is the particles' mean rollout in plain MuJoCo (C, float64)
     loaded = runs.load_run(out)
     ok = loaded.stable
-    refs = [simulate_reference(loaded.sim, np.exp(th[:2]), np.exp(th[2:]), tr.force)[0]
-            for th in loaded.theta.astype(float)[ok]]
-    np.testing.assert_allclose(a[:, 2], np.mean(refs, axis=0), atol=2e-4 + 2e-3 * np.abs(a[:, 2]).max())
+    refs = [
+        simulate_reference(loaded.sim, np.exp(th[:2]), np.exp(th[2:]), tr.force)[0]
+        for th in loaded.theta.astype(float)[ok]
+    ]
+    np.testing.assert_allclose(
+        a[:, 2], np.mean(refs, axis=0), atol=2e-4 + 2e-3 * np.abs(a[:, 2]).max()
+    )
 
     # a time,force file with the same force gives the same band, without ground truth
     ff = tmp_path / "force.csv"
-    ff.write_text("# a force profile\ntime,force\n" + "".join(f"{float(t)!r},{float(f)!r}\n" for t, f in zip(tr.time, tr.force)))
+    ff.write_text(
+        "# a force profile\ntime,force\n"
+        + "".join(f"{float(t)!r},{float(f)!r}\n" for t, f in zip(tr.time, tr.force))
+    )
     # (the old spelling `--force FILE` still works, with a deprecation warning)
     rc, _, err = run(capsys, "predict", "--run", out, "--force", ff, "--out", tmp_path / "p2")
     assert rc == 0, err
@@ -301,12 +449,24 @@ def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
     # --force alone means overwrite, as everywhere
     rc, _, err = run(capsys, "predict", "--run", out, "--force-csv", ff, "--out", tmp_path / "p2")
     assert_user_error(rc, err, "--force")
-    rc, _, err = run(capsys, "predict", "--run", out, "--force-csv", ff, "--out", tmp_path / "p2", "--force")
+    rc, _, err = run(
+        capsys, "predict", "--run", out, "--force-csv", ff, "--out", tmp_path / "p2", "--force"
+    )
     assert rc == 0, err
 
     # a profile spec with the run's step
-    rc, _, err = run(capsys, "predict", "--run", out, "--profile", "ramp:peak=5,ramp=0.4", "--duration", "0.8",
-                     "--out", tmp_path / "p3")
+    rc, _, err = run(
+        capsys,
+        "predict",
+        "--run",
+        out,
+        "--profile",
+        "ramp:peak=5,ramp=0.4",
+        "--duration",
+        "0.8",
+        "--out",
+        tmp_path / "p3",
+    )
     assert rc == 0, err
     _, c = _prediction(tmp_path / "p3")
     assert c.shape == (40, 6) and c[-1, 1] == 5.0
@@ -318,12 +478,25 @@ def test_predict_errors(run_dir, tmp_path, capsys):
     ff.write_text("time,force\n" + "".join(f"{0.01 * i!r},{0.1 * i!r}\n" for i in range(30)))
     rc, _, err = run(capsys, "predict", "--run", out, "--force-csv", ff, "--out", tmp_path / "p")
     assert_user_error(rc, err, "time step", "0.02")
-    rc, _, err = run(capsys, "predict", "--run", tmp_path / "missing", "--force-csv", ff, "--out", tmp_path / "p")
+    rc, _, err = run(
+        capsys, "predict", "--run", tmp_path / "missing", "--force-csv", ff, "--out", tmp_path / "p"
+    )
     assert_user_error(rc, err, "missing", "no such run folder")
     (tmp_path / "norun").mkdir()
-    rc, _, err = run(capsys, "predict", "--run", tmp_path / "norun", "--force-csv", ff, "--out", tmp_path / "p")
+    rc, _, err = run(
+        capsys, "predict", "--run", tmp_path / "norun", "--force-csv", ff, "--out", tmp_path / "p"
+    )
     assert_user_error(rc, err, "no config.json")
-    rc, _, err = run(capsys, "predict", "--run", out, "--profile", "ramp:peak=5,ramp=0.4", "--out", tmp_path / "p")
+    rc, _, err = run(
+        capsys,
+        "predict",
+        "--run",
+        out,
+        "--profile",
+        "ramp:peak=5,ramp=0.4",
+        "--out",
+        tmp_path / "p",
+    )
     assert_user_error(rc, err, "--duration")
     assert not (tmp_path / "p").exists()
 
@@ -350,7 +523,14 @@ def test_evaluate_held_out(run_dir, demo, tmp_path, capsys):
     for f in ("metrics.json", "metrics.md", "bands.png", "config.json"):
         assert (tmp_path / "e" / f).is_file(), f
     m = json.loads((tmp_path / "e" / "metrics.json").read_text())["metrics"]
-    assert {"ci_width", "pct_outside", "predictive_nll", "posterior_nll", "parameters", "per_trajectory"} <= set(m)
+    assert {
+        "ci_width",
+        "pct_outside",
+        "predictive_nll",
+        "posterior_nll",
+        "parameters",
+        "per_trajectory",
+    } <= set(m)
     per = m["per_trajectory"]
     assert [p["name"] for p in per] == ["traj_002.csv", "traj_003.csv"]
     # equal-length trajectories: the pooled metrics are the per-trajectory means
@@ -371,7 +551,9 @@ def test_evaluate_held_out(run_dir, demo, tmp_path, capsys):
     assert list(rows[0]) == ["time", "force", "recorded", "mean", "lower", "upper"]
     tr = read_trajectory(test / "traj_002.csv")
     np.testing.assert_array_equal([float(r["recorded"]) for r in rows], tr.displacement)
-    assert all(float(r["lower"]) <= float(r["mean"]) + 1e-12 <= float(r["upper"]) + 2e-12 for r in rows)
+    assert all(
+        float(r["lower"]) <= float(r["mean"]) + 1e-12 <= float(r["upper"]) + 2e-12 for r in rows
+    )
 
 
 def test_evaluate_and_predict_use_each_recordings_grasp_point(run_dir, demo, tmp_path, capsys):
@@ -388,20 +570,44 @@ def test_evaluate_and_predict_use_each_recordings_grasp_point(run_dir, demo, tmp
     cfg = json.loads((tmp_path / "e" / "config.json").read_text())
     g = load_tree(TWO).grasp_fraction
     assert cfg["grasp_fraction"] == [0.5, g]  # traj_003 keeps the tree's grasp point
-    rc, _, err = run(capsys, "evaluate", "--run", out, "--data", data, "--out", tmp_path / "e2",
-                     "--grasp-fraction", "1.0")
+    rc, _, err = run(
+        capsys,
+        "evaluate",
+        "--run",
+        out,
+        "--data",
+        data,
+        "--out",
+        tmp_path / "e2",
+        "--grasp-fraction",
+        "1.0",
+    )
     assert_user_error(rc, err, f"pulls.yaml records these pulls at 0.5, {g:g}")
     # predict: at its own point the recording is compared; at another, a loud warning and no
     # comparison ('recorded' empty)
     rec = data / "traj_002.csv"
-    rc, stdout, err = run(capsys, "predict", "--run", out, "--force-csv", rec, "--out", tmp_path / "p")
+    rc, stdout, err = run(
+        capsys, "predict", "--run", out, "--force-csv", rec, "--out", tmp_path / "p"
+    )
     assert rc == 0, err
     assert "outside the band" in stdout and "WARNING" not in err
     assert json.loads((tmp_path / "p" / "config.json").read_text())["grasp_fraction"] == 0.5
-    rc, stdout, err = run(capsys, "predict", "--run", out, "--force-csv", rec, "--out", tmp_path / "q",
-                          "--grasp-fraction", "1.0")
+    rc, stdout, err = run(
+        capsys,
+        "predict",
+        "--run",
+        out,
+        "--force-csv",
+        rec,
+        "--out",
+        tmp_path / "q",
+        "--grasp-fraction",
+        "1.0",
+    )
     assert rc == 0, err
-    assert "WARNING" in err and "fraction 1 instead of 0.5" in err and "outside the band" not in stdout
+    assert (
+        "WARNING" in err and "fraction 1 instead of 0.5" in err and "outside the band" not in stdout
+    )
     cols, a = _prediction(tmp_path / "q")
     assert np.all(np.isnan(a[:, cols.index("recorded")]))
 
@@ -413,22 +619,53 @@ def test_evaluate_kfold(run_dir, demo, tmp_path, capsys):
         for f in (demo[0] / "data" / sub).glob("*.csv"):
             shutil.copy(f, both / f.name)
     shutil.copy(demo[0] / "data" / "train" / "true_params.json", both)
-    rc, _, err = run(capsys, "evaluate", "--run", run_dir[0], "--data", both, "--kfold", "5", "--out", tmp_path / "k")
+    rc, _, err = run(
+        capsys,
+        "evaluate",
+        "--run",
+        run_dir[0],
+        "--data",
+        both,
+        "--kfold",
+        "5",
+        "--out",
+        tmp_path / "k",
+    )
     assert_user_error(rc, err, "--kfold 5", "found 4")
     assert not (tmp_path / "k").exists()
 
-    rc, stdout, err = run(capsys, "evaluate", "--run", run_dir[0], "--data", both, "--kfold", "2", "--out",
-                          tmp_path / "k", "--no-progress")
+    rc, stdout, err = run(
+        capsys,
+        "evaluate",
+        "--run",
+        run_dir[0],
+        "--data",
+        both,
+        "--kfold",
+        "2",
+        "--out",
+        tmp_path / "k",
+        "--no-progress",
+    )
     assert rc == 0, err
     res = json.loads((tmp_path / "k" / "metrics.json").read_text())
     assert res["kfold"] == 2 and len(res["folds"]) == 2
-    assert [f["test"] for f in res["folds"]] == [["traj_000.csv", "traj_001.csv"], ["traj_002.csv", "traj_003.csv"]]
+    assert [f["test"] for f in res["folds"]] == [
+        ["traj_000.csv", "traj_001.csv"],
+        ["traj_002.csv", "traj_003.csv"],
+    ]
     for f in res["folds"]:
         assert set(f["train"]).isdisjoint(f["test"]) and len(f["train"]) == 2
-        assert {"ci_width", "pct_outside", "predictive_nll", "posterior_nll", "parameters"} <= set(f["metrics"])
+        assert {"ci_width", "pct_outside", "predictive_nll", "posterior_nll", "parameters"} <= set(
+            f["metrics"]
+        )
     for k in ("ci_width", "pct_outside", "predictive_nll_per_point", "posterior_nll"):
-        assert res["mean"][k] == pytest.approx(np.mean([f["metrics"][k] for f in res["folds"]]), rel=1e-12)
-    assert (tmp_path / "k" / "fold_2_particles.csv").is_file() and (tmp_path / "k" / "bands.png").is_file()
+        assert res["mean"][k] == pytest.approx(
+            np.mean([f["metrics"][k] for f in res["folds"]]), rel=1e-12
+        )
+    assert (tmp_path / "k" / "fold_2_particles.csv").is_file() and (
+        tmp_path / "k" / "bands.png"
+    ).is_file()
     assert "mean over 2 folds" in stdout
 
 
@@ -438,11 +675,15 @@ def test_evaluate_errors(run_dir, tmp_path, capsys):
     _write_pulls(d01, 0.01, 2)
     rc, _, err = run(capsys, "evaluate", "--run", out, "--data", d01, "--out", tmp_path / "e")
     assert_user_error(rc, err, "dt=0.01", "0.02")
-    rc, _, err = run(capsys, "evaluate", "--run", tmp_path / "nope", "--data", d01, "--out", tmp_path / "e")
+    rc, _, err = run(
+        capsys, "evaluate", "--run", tmp_path / "nope", "--data", d01, "--out", tmp_path / "e"
+    )
     assert_user_error(rc, err, "nope")
     d02 = tmp_path / "dt02"
     _write_pulls(d02, 0.02, 2)
-    rc, _, err = run(capsys, "evaluate", "--run", out, "--data", d02, "--kfold", "1", "--out", tmp_path / "e")
+    rc, _, err = run(
+        capsys, "evaluate", "--run", out, "--data", d02, "--kfold", "1", "--out", tmp_path / "e"
+    )
     assert_user_error(rc, err, "K must be an integer >= 2")
     assert not (tmp_path / "e").exists()
 
@@ -467,26 +708,52 @@ def test_infer_too_many_unstable_keeps_the_sampler_state(demo, tmp_path, monkeyp
     theta = np.tile(np.log([50.0, 100.0, 1.0, 1.0]), (8, 1)).astype(np.float32)
     ld = np.full(8, -1.0, np.float32)
 
-    def fake_infer(problem, sampler, n_particles, n_iterations, seed, progress, callback, callback_every,
-                   initial_state, start_iteration):
+    def fake_infer(
+        problem,
+        sampler,
+        n_particles,
+        n_iterations,
+        seed,
+        progress,
+        callback,
+        callback_every,
+        initial_state,
+        start_iteration,
+    ):
         calls.append((initial_state is not None, start_iteration))
-        state = SVGDState(jnp.asarray(theta), jnp.asarray(ld), jnp.zeros_like(jnp.asarray(theta)),
-                          optax.adam(0.05).init(jnp.asarray(theta)))  # NNSVGD's state structure
-        result = RunResult(theta, state, theta[None], ld[None], np.array([0]), {}, {"start_iteration": 0}, 0.0)
-        return inference.Posterior(theta, np.exp(theta[:, :2]), np.exp(theta[:, 2:]), ld, problem.labels, result, {})
+        state = SVGDState(
+            jnp.asarray(theta),
+            jnp.asarray(ld),
+            jnp.zeros_like(jnp.asarray(theta)),
+            optax.adam(0.05).init(jnp.asarray(theta)),
+        )  # NNSVGD's state structure
+        result = RunResult(
+            theta, state, theta[None], ld[None], np.array([0]), {}, {"start_iteration": 0}, 0.0
+        )
+        return inference.Posterior(
+            theta, np.exp(theta[:, :2]), np.exp(theta[:, 2:]), ld, problem.labels, result, {}
+        )
 
     calls = []
     stable = np.array([True, True, True, False, False, False, False, False])
     monkeypatch.setattr(inference, "infer", fake_infer)
-    monkeypatch.setattr(runs.service, "_training_fit", lambda *a: {"stable": stable, "prediction": None, "metrics": None})
+    monkeypatch.setattr(
+        runs.service,
+        "_training_fit",
+        lambda *a: {"stable": stable, "prediction": None, "metrics": None},
+    )
     out = tmp_path / "run"
-    rc, _, err = run(capsys, "infer", "--tree", TWO, "--data", demo[0] / "data" / "train", "--out", out, *QUICK)
+    rc, _, err = run(
+        capsys, "infer", "--tree", TWO, "--data", demo[0] / "data" / "train", "--out", out, *QUICK
+    )
     assert_user_error(rc, err, "62% of", "--max-unstable-share", f"--resume {out}")
     assert not out.exists()
     partial = runs.partial_dir(out)
     assert runs.read_checkpoint_info(partial / runs.CHECKPOINT_FILE)["iteration"] == 3
     # a larger limit on --resume writes the run from the kept state, without sampling again
-    rc, stdout, err = run(capsys, "infer", "--resume", out, "--max-unstable-share", "0.7", "--no-progress")
+    rc, stdout, err = run(
+        capsys, "infer", "--resume", out, "--max-unstable-share", "0.7", "--no-progress"
+    )
     assert rc == 0, err
     assert calls == [(False, 0), (True, 3)] and not partial.exists()
     s = json.loads((out / "summary.json").read_text())

@@ -19,7 +19,13 @@ from treeinfer.trajectories import add_noise, read_trajectory_dir, write_traject
 ROOT = Path(__file__).resolve().parents[1]
 TWO = ROOT / "treeinfer" / "examples" / "two_branch.yaml"
 QUICK = [
-    "--particles", "8", "--iterations", "3", "--checkpoint-every", "0", "--no-progress",
+    "--particles",
+    "8",
+    "--iterations",
+    "3",
+    "--checkpoint-every",
+    "0",
+    "--no-progress",
     "--allow-poor-fit",
 ]
 SIGMA = 0.002

@@ -27,18 +27,31 @@ print(json.dumps({"dir": jax.config.jax_compilation_cache_dir, "hits": len(hits)
 
 
 def _probe(env_cache: str) -> dict:
-    env = {**os.environ, "TREEINFER_JAX_CACHE": env_cache, "JAX_PLATFORMS": "cpu",
-           "PYTHONPATH": str(ROOT)}
+    env = {
+        **os.environ,
+        "TREEINFER_JAX_CACHE": env_cache,
+        "JAX_PLATFORMS": "cpu",
+        "PYTHONPATH": str(ROOT),
+    }
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
-    out = subprocess.run([sys.executable, "-c", PROBE], env=env, capture_output=True, text=True,
-                         check=True, timeout=300, cwd=ROOT)
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=300,
+        cwd=ROOT,
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def test_cache_tag_names_the_versions():
     tag = treeinfer._cache_tag()
-    assert tag == f"treeinfer-{treeinfer.__version__}_jax-{jax.__version__}_jaxlib-" \
-                  f"{__import__('jaxlib').__version__}"
+    assert (
+        tag == f"treeinfer-{treeinfer.__version__}_jax-{jax.__version__}_jaxlib-"
+        f"{__import__('jaxlib').__version__}"
+    )
 
 
 def test_cache_is_on_by_default_and_a_second_process_hits_it(tmp_path):

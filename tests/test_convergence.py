@@ -21,10 +21,15 @@ def issue_case(seed=0):
     """32 particles of (log Kp, log Kd): 25 good ones with log p in -25 ... -9 near the truth
     (Kd 1.23), 7 stuck at log p ~ -296 with Kd 219 ... 394 (the issue's numbers)."""
     rng = np.random.default_rng(seed)
-    good = np.column_stack([np.log(150.0) + 0.1 * rng.standard_normal(25),
-                            np.log(1.23) + 0.2 * rng.standard_normal(25)])
-    stuck = np.column_stack([np.log(150.0) + 0.1 * rng.standard_normal(7),
-                             np.log(rng.uniform(219.0, 394.0, 7))])
+    good = np.column_stack(
+        [
+            np.log(150.0) + 0.1 * rng.standard_normal(25),
+            np.log(1.23) + 0.2 * rng.standard_normal(25),
+        ]
+    )
+    stuck = np.column_stack(
+        [np.log(150.0) + 0.1 * rng.standard_normal(7), np.log(rng.uniform(219.0, 394.0, 7))]
+    )
     theta = np.concatenate([good, stuck])
     ld = np.concatenate([rng.uniform(-25.0, -9.0, 25), -296.0 + rng.uniform(-2.0, 2.0, 7)])
     perm = rng.permutation(32)
@@ -115,8 +120,9 @@ def test_ksd_closed_form_matches_autodiff():
     rng = np.random.default_rng(0)
     x = rng.standard_normal((7, 3))
     s = rng.standard_normal((7, 3))
-    u = np.array([[_stein_kernel_autodiff(x[i], x[j], s[i], s[j]) for j in range(7)]
-                  for i in range(7)])
+    u = np.array(
+        [[_stein_kernel_autodiff(x[i], x[j], s[i], s[j]) for j in range(7)] for i in range(7)]
+    )
     want = np.sqrt(u.mean())
     got = float(dg.kernel_stein_discrepancy(x, s, standardise=False))
     assert got == pytest.approx(want, rel=1e-5)
@@ -194,13 +200,23 @@ def test_reinit_stragglers_in_the_driver_is_exact_on_resume():
     assert rep.n_stragglers == 0
     # without the remedy they stay and are reported
     plain = run(alg, 0, x0, 40, progress=False, chunk_size=10)
-    rep = dg.find_stragglers(plain.final_state.logdensity, plain.final_positions, pol.lower,
-                             pol.upper)
+    rep = dg.find_stragglers(
+        plain.final_state.logdensity, plain.final_positions, pol.lower, pol.upper
+    )
     assert rep.n_stragglers == 6
     # resume from iteration 10 reproduces the uninterrupted run
     first = run(alg, 0, x0, 10, progress=False, chunk_size=10, reinit_stragglers=pol)
-    rest = run(alg, 0, None, 40, progress=False, chunk_size=10, reinit_stragglers=pol,
-               initial_state=first.final_state, start_iteration=10)
+    rest = run(
+        alg,
+        0,
+        None,
+        40,
+        progress=False,
+        chunk_size=10,
+        reinit_stragglers=pol,
+        initial_state=first.final_state,
+        start_iteration=10,
+    )
     np.testing.assert_array_equal(rest.final_positions, res.final_positions)
 
 

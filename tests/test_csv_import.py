@@ -304,9 +304,26 @@ def test_cli_import_csv(tmp_path, capsys):
     rows = [[r(1000 * a), r(b / FORCE_UNITS["gf"]), r(1000 * c)] for a, b, c in zip(t, f, x)]
     src = write_log(tmp_path / "log.csv", ["ms", "g", "mm"], rows)
     out = tmp_path / "d"
-    argv = ["import-csv", str(src), "--out", str(out), "--time", "ms", "--force-column", "g",
-            "--displacement", "mm", "--units", "time=ms,force=gf,displacement=mm", "--tare",
-            "--trim", "--grasp-fraction", "0.5", "--direction", "horizontal"]
+    argv = [
+        "import-csv",
+        str(src),
+        "--out",
+        str(out),
+        "--time",
+        "ms",
+        "--force-column",
+        "g",
+        "--displacement",
+        "mm",
+        "--units",
+        "time=ms,force=gf,displacement=mm",
+        "--tare",
+        "--trim",
+        "--grasp-fraction",
+        "0.5",
+        "--direction",
+        "horizontal",
+    ]
     assert main(argv) == 0
     stdout = capsys.readouterr().out
     assert "force: gf -> N" in stdout and "tare: subtracted" in stdout and "trim:" in stdout

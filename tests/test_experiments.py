@@ -25,9 +25,18 @@ from experiments import common as C
 ROOT = Path(__file__).resolve().parents[1]
 PNG = b"\x89PNG\r\n\x1a\n"
 METRIC_KEYS = {
-    "ci_width", "pct_outside", "fraction_outside", "predictive_nll", "predictive_nll_per_point",
-    "posterior_nll", "parameters", "mean_abs_log_error", "n_params_in_interval", "n_valid_particles",
-    "n_particles", "n_test_trajectories",
+    "ci_width",
+    "pct_outside",
+    "fraction_outside",
+    "predictive_nll",
+    "predictive_nll_per_point",
+    "posterior_nll",
+    "parameters",
+    "mean_abs_log_error",
+    "n_params_in_interval",
+    "n_valid_particles",
+    "n_particles",
+    "n_test_trajectories",
 }
 
 
@@ -66,7 +75,9 @@ def test_grasp_test_set_repeats_profiles_at_each_location():
     cfg = C.study_config("grasp", "tiny")
     data = C.make_data(cfg, 0)
     k = cfg.n_test_per_location
-    assert len(data.test) == k * len(cfg.grasp_locations) == cfg.n_test  # same prediction shape as the others
+    assert (
+        len(data.test) == k * len(cfg.grasp_locations) == cfg.n_test
+    )  # same prediction shape as the others
     np.testing.assert_array_equal(data.test_grasp, np.repeat(cfg.grasp_locations, k))
     for i in range(k):
         same = [data.test[j * k + i] for j in range(len(cfg.grasp_locations))]
@@ -88,11 +99,15 @@ def test_relative_noise_has_the_documented_sigma():
     assert info["sigma_force_N"] == pytest.approx(level * f_peak)
     assert info["sigma_displacement_m"] == pytest.approx(level * x_peak)
     df = np.concatenate([n.force - c.force for n, c in zip(noisy.train + noisy.test, trajs)])
-    dx = np.concatenate([n.displacement - c.displacement for n, c in zip(noisy.train + noisy.test, trajs)])
+    dx = np.concatenate(
+        [n.displacement - c.displacement for n, c in zip(noisy.train + noisy.test, trajs)]
+    )
     # sample std of n ~ 100 Gaussian draws: within 30% of sigma with overwhelming probability
     assert np.std(df) == pytest.approx(info["sigma_force_N"], rel=0.3)
     assert np.std(dx) == pytest.approx(info["sigma_displacement_m"], rel=0.3)
-    assert all(t.velocity is None for t in noisy.train)  # differentiated from the noisy displacement
+    assert all(
+        t.velocity is None for t in noisy.train
+    )  # differentiated from the noisy displacement
     again, _ = C.add_relative_noise(clean, level, seed=0)
     np.testing.assert_array_equal(again.train[0].force, noisy.train[0].force)
     same, zero = C.add_relative_noise(clean, 0.0, seed=0)
@@ -125,7 +140,10 @@ def test_help(module, capsys):
 def test_script_runs_from_the_shell():
     out = subprocess.run(
         [sys.executable, str(ROOT / "experiments" / "grasp.py"), "--help"],
-        check=False, capture_output=True, text=True, timeout=120,
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert out.returncode == 0, out.stderr
     assert "--locations" in out.stdout
@@ -146,7 +164,9 @@ def cache(tmp_path_factory):
 
 
 def run_study(module, out: Path, cache: Path, *extra: str) -> dict:
-    rc = module.main(["--size", "tiny", "--out", str(out), "--cache", str(cache), "--quiet", *extra])
+    rc = module.main(
+        ["--size", "tiny", "--out", str(out), "--cache", str(cache), "--quiet", *extra]
+    )
     assert rc == 0
     return json.loads((out / "results.json").read_text())
 
@@ -180,7 +200,13 @@ def baseline_run(tmp_path_factory, cache):
 
 def test_baselines(baseline_run):
     out, r = baseline_run
-    check_folder(r, out, "baselines", {"bands.png", "metrics.png", "pairs.png", "trace_nnsvgd.png", "trace_svgd.png"}, 2)
+    check_folder(
+        r,
+        out,
+        "baselines",
+        {"bands.png", "metrics.png", "pairs.png", "trace_nnsvgd.png", "trace_svgd.png"},
+        2,
+    )
     assert [c["sampler"] for c in r["conditions"]] == ["nnsvgd", "svgd"]
     assert [c["nn_prior"] for c in r["conditions"]] == [True, False]
     inf = r["conditions"][0]["inference"]
@@ -204,7 +230,9 @@ def test_noise(baseline_run, tmp_path, cache):
     r = run_study(noise, tmp_path, cache)
     check_folder(r, tmp_path, "noise", {"bands.png", "metrics.png"}, 2)
     zero, noisy = r["conditions"]
-    assert zero["noise"]["sigma_force_N"] == 0 and zero["inference"]["from_cache"]  # the clean NNSVGD
+    assert (
+        zero["noise"]["sigma_force_N"] == 0 and zero["inference"]["from_cache"]
+    )  # the clean NNSVGD
     assert noisy["noise"]["level"] == 0.05 and noisy["noise"]["sigma_force_N"] > 0
     assert not noisy["inference"]["from_cache"]
     assert "sigma_F" in (tmp_path / "results.md").read_text()

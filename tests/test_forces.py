@@ -127,15 +127,20 @@ def test_piecewise_linear_checks_knots():
 
 # ---- specs ----------------------------------------------------------------------------------
 def test_from_spec_matches_direct_calls():
-    np.testing.assert_array_equal(F.from_spec("ramp:peak=20,ramp=1.0", DUR, DT), F.ramp(20, 1.0, DUR, DT))
+    np.testing.assert_array_equal(
+        F.from_spec("ramp:peak=20,ramp=1.0", DUR, DT), F.ramp(20, 1.0, DUR, DT)
+    )
     np.testing.assert_array_equal(
         F.from_spec(" HOLD : peak=15, ramp=0.5, hold=1.0, release=0.5, start=0.1 ", DUR, DT),
         F.ramp_hold(15, 0.5, 1.0, 0.5, DUR, DT, start=0.1),
     )
     np.testing.assert_array_equal(
-        F.from_spec("release:peak=3,ramp=0.2,release=0.3", DUR, DT), F.ramp_release(3, 0.2, 0.3, DUR, DT)
+        F.from_spec("release:peak=3,ramp=0.2,release=0.3", DUR, DT),
+        F.ramp_release(3, 0.2, 0.3, DUR, DT),
     )
-    np.testing.assert_array_equal(F.from_spec("step:peak=4,rise=0.2,start=1", DUR, DT), F.smooth_step(4, 0.2, DUR, DT, 1.0))
+    np.testing.assert_array_equal(
+        F.from_spec("step:peak=4,rise=0.2,start=1", DUR, DT), F.smooth_step(4, 0.2, DUR, DT, 1.0)
+    )
 
 
 def test_parse_spec_values():
@@ -203,7 +208,9 @@ def test_profile_set_seed_reproducibility(kind):
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
     g1, g2 = np.random.default_rng(5), np.random.default_rng(5)
-    np.testing.assert_array_equal(F.profile_set(kind, 3, 1.0, DT, seed=g1), F.profile_set(kind, 3, 1.0, DT, seed=g2))
+    np.testing.assert_array_equal(
+        F.profile_set(kind, 3, 1.0, DT, seed=g1), F.profile_set(kind, 3, 1.0, DT, seed=g2)
+    )
     if kind != "mixed":
         assert {F.parse_spec(s).kind for s in F.random_specs(kind, 3, 1.0, seed=1)} == {kind}
 

@@ -144,15 +144,27 @@ def _fused_next_state(m, t, body, force, lever):
     spring = m.qpos_spring[m.jnt_qposadr[m.dof_jntid]]
 
     def next_state(q, v, kp, kd):
-        out = hd.step(t, q, v, kp, kd, jnp.asarray(spring), m.opt.timestep, body,
-                      (0.1, 0.0, 0.0), tuple(force), tuple(lever))
+        out = hd.step(
+            t,
+            q,
+            v,
+            kp,
+            kd,
+            jnp.asarray(spring),
+            m.opt.timestep,
+            body,
+            (0.1, 0.0, 0.0),
+            tuple(force),
+            tuple(lever),
+        )
         return jnp.concatenate([jnp.stack(out.qpos), jnp.stack(out.qvel)])
 
     return next_state
 
 
-@pytest.mark.parametrize("name,model", list(_models()),
-                         ids=lambda x: x if isinstance(x, str) else "")
+@pytest.mark.parametrize(
+    "name,model", list(_models()), ids=lambda x: x if isinstance(x, str) else ""
+)
 def test_step_state_jacobian_matches_mjd_transitionFD(name, model):
     m = model
     t = hd.from_mjmodel(m)
@@ -170,8 +182,9 @@ def test_step_state_jacobian_matches_mjd_transitionFD(name, model):
             np.testing.assert_allclose(ours, a, atol=1e-6 * max(1.0, np.abs(a).max()))
 
 
-@pytest.mark.parametrize("name,model", list(_models()),
-                         ids=lambda x: x if isinstance(x, str) else "")
+@pytest.mark.parametrize(
+    "name,model", list(_models()), ids=lambda x: x if isinstance(x, str) else ""
+)
 def test_step_gain_jacobian_matches_fd_of_mj_step(name, model):
     m = model
     t = hd.from_mjmodel(m)

@@ -106,9 +106,24 @@ option_values = st.one_of(
     st.sampled_from(["0", "-1", "nan", "inf", "1e9", "0.5", "2", "1,2", "a", ""]),
 )
 TREE_OPTIONS = [
-    "--depth", "--branching", "--length-ratio", "--fork-angles", "--base-length", "--base-radius",
-    "--levels", "--grasp-fraction", "--kp-bounds", "--kd-bounds", "--n", "--lengths", "--radii",
-    "--angles", "--iterations", "--angle", "--step-length", "--seed",
+    "--depth",
+    "--branching",
+    "--length-ratio",
+    "--fork-angles",
+    "--base-length",
+    "--base-radius",
+    "--levels",
+    "--grasp-fraction",
+    "--kp-bounds",
+    "--kd-bounds",
+    "--n",
+    "--lengths",
+    "--radii",
+    "--angles",
+    "--iterations",
+    "--angle",
+    "--step-length",
+    "--seed",
 ]
 
 
@@ -141,12 +156,22 @@ def test_cli_tree_fuzz(tmp_path_factory, capsys, kind, options):
 
 
 @FUZZ
-@given(st.sampled_from(["infer", "predict", "evaluate", "simulate"]), st.lists(option_values, max_size=3))
+@given(
+    st.sampled_from(["infer", "predict", "evaluate", "simulate"]),
+    st.lists(option_values, max_size=3),
+)
 def test_cli_missing_inputs_are_user_errors(tmp_path_factory, capsys, command, values):
     tmp = Path(tmp_path_factory.mktemp("cli"))
     args = {
         "infer": ["--tree", str(tmp / "nope.yaml"), "--data", str(tmp), "--out", str(tmp / "run")],
-        "predict": ["--run", str(tmp / "norun"), "--force-csv", str(tmp / "f.csv"), "--out", str(tmp / "p")],
+        "predict": [
+            "--run",
+            str(tmp / "norun"),
+            "--force-csv",
+            str(tmp / "f.csv"),
+            "--out",
+            str(tmp / "p"),
+        ],
         "evaluate": ["--run", str(tmp / "norun"), "--data", str(tmp), "--out", str(tmp / "e")],
         "simulate": ["--tree", str(tmp / "nope.yaml"), "--out", str(tmp / "s")],
     }[command]

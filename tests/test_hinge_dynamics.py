@@ -55,7 +55,9 @@ def _models():
         yield name, to_mjmodel(load_tree(example_path(name)))
 
 
-@pytest.mark.parametrize("name,model", list(_models()), ids=lambda x: x if isinstance(x, str) else "")
+@pytest.mark.parametrize(
+    "name,model", list(_models()), ids=lambda x: x if isinstance(x, str) else ""
+)
 def test_one_step_matches_mj_step(name, model):
     m = model
     t = hd.from_mjmodel(m)
@@ -78,7 +80,9 @@ def test_one_step_matches_mj_step(name, model):
             kin = hd.kinematics(t, [q[i] for i in range(m.nv)])
             for b in range(1, m.nbody):
                 np.testing.assert_allclose(np.asarray(kin.com[b], float), d.xipos[b], atol=1e-12)
-                np.testing.assert_allclose(np.asarray(kin.rot[b], float), d.xmat[b].reshape(3, 3), atol=1e-12)
+                np.testing.assert_allclose(
+                    np.asarray(kin.rot[b], float), d.xmat[b].reshape(3, 3), atol=1e-12
+                )
             full = np.zeros((m.nv, m.nv))
             mujoco.mj_fullM(m, full, d.qM) if hasattr(d, "qM") else mujoco.mj_fullM(m, d, full)
             ours = np.zeros_like(full)
@@ -87,8 +91,19 @@ def test_one_step_matches_mj_step(name, model):
             np.testing.assert_allclose(ours + np.diag(m.dof_armature), full, atol=1e-12)
 
             spring = m.qpos_spring[m.jnt_qposadr[m.dof_jntid]]
-            out = hd.step(t, q, v, jnp.asarray(kp), jnp.asarray(kd), jnp.asarray(spring), m.opt.timestep,
-                          body, (0.1, 0.0, 0.0), tuple(force), tuple(lever))
+            out = hd.step(
+                t,
+                q,
+                v,
+                jnp.asarray(kp),
+                jnp.asarray(kd),
+                jnp.asarray(spring),
+                m.opt.timestep,
+                body,
+                (0.1, 0.0, 0.0),
+                tuple(force),
+                tuple(lever),
+            )
             site_body = d.xpos[body] + d.xmat[body].reshape(3, 3) @ np.array([0.1, 0.0, 0.0])
             np.testing.assert_allclose(np.asarray(out.site, float), site_body, atol=1e-12)
             mujoco.mj_step(m, d)

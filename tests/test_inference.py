@@ -42,14 +42,19 @@ def setup():
     )
     assert bool(np.asarray(r.stable).all())
     t = np.arange(T) * DT
-    trajs = [Trajectory(t, forces[b], np.asarray(r.tau[0, b], float), None, f"train{b}") for b in range(2)]
+    trajs = [
+        Trajectory(t, forces[b], np.asarray(r.tau[0, b], float), None, f"train{b}")
+        for b in range(2)
+    ]
     problem = make_problem(tree, trajs, kT=0.05, sim=sim)
     return tree, sim, trajs, problem
 
 
 def test_truth_is_a_likelihood_maximum(setup):
     *_, problem = setup
-    ll = np.asarray(jax.jit(problem.log_likelihood)(jnp.asarray(np.stack([THETA_TRUE, THETA_TRUE + 0.3]))))
+    ll = np.asarray(
+        jax.jit(problem.log_likelihood)(jnp.asarray(np.stack([THETA_TRUE, THETA_TRUE + 0.3])))
+    )
     assert ll[0] > -0.5  # loss ~0 at the truth (float32 round-off only)
     assert ll[1] < ll[0] - 5.0
 
@@ -77,10 +82,15 @@ def test_one_simulator_call_per_gradient(setup, monkeypatch):
 def test_central_differences_match_mjx_autodiff(setup):
     """Black-box central differences agree with exact gradients through MJX (jax.grad)."""
     tree, sim, trajs, _ = setup
-    short = [Trajectory(t.time[:25], t.force[:25], t.displacement[:25], None, t.source) for t in trajs]
+    short = [
+        Trajectory(t.time[:25], t.force[:25], t.displacement[:25], None, t.source) for t in trajs
+    ]
     fd = make_problem(tree, short, kT=0.05, sim=sim, nn_prior=False, gradient="fd", rel_step=1e-2)
     ad = make_problem(tree, short, kT=0.05, sim=sim, nn_prior=False, gradient="autodiff")
-    theta = jnp.asarray(np.stack([THETA_TRUE + [0.2, -0.1, 0.1, -0.2], THETA_TRUE + [-0.3, 0.2, -0.2, 0.1]]), jnp.float32)
+    theta = jnp.asarray(
+        np.stack([THETA_TRUE + [0.2, -0.1, 0.1, -0.2], THETA_TRUE + [-0.3, 0.2, -0.2, 0.1]]),
+        jnp.float32,
+    )
     v_fd, g_fd = jax.jit(fd.value_and_grad)(theta)
     v_ad, g_ad = jax.jit(ad.value_and_grad)(theta)
     np.testing.assert_allclose(np.asarray(v_fd), np.asarray(v_ad), rtol=1e-5)
@@ -92,7 +102,15 @@ def test_central_differences_match_mjx_autodiff(setup):
 
 def test_nnsvgd_recovers_truth_and_covers_training_data(setup):
     tree, sim, trajs, problem = setup
-    post = infer(problem, "nnsvgd", n_particles=16, n_iterations=80, seed=3, progress=False, learning_rate=0.1)
+    post = infer(
+        problem,
+        "nnsvgd",
+        n_particles=16,
+        n_iterations=80,
+        seed=3,
+        progress=False,
+        learning_rate=0.1,
+    )
     assert post.valid.all()
     check = metrics.posterior_vs_truth(post.theta, THETA_TRUE)
     assert check.in_joint is not False and bool(np.all(check.in_marginal)), check

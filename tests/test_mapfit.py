@@ -57,10 +57,17 @@ def test_linear_gaussian_map_and_laplace_are_exact(jacobian):
     post_cov = np.linalg.inv(prec)
     post_mean = post_cov @ (a.T @ y / sigma**2 + np.linalg.solve(s0, m0))
     with jax.enable_x64(True):
-        model = ResidualModel(lambda th: (((jnp.asarray(a) @ th - y) / sigma)[None], True),
-                              "gaussian")
-        fit = fit_map(model, _gaussian_prior(m0, s0), -3 * np.ones(3), 3 * np.ones(3),
-                      n_starts=4, jacobian=jacobian)
+        model = ResidualModel(
+            lambda th: (((jnp.asarray(a) @ th - y) / sigma)[None], True), "gaussian"
+        )
+        fit = fit_map(
+            model,
+            _gaussian_prior(m0, s0),
+            -3 * np.ones(3),
+            3 * np.ones(3),
+            n_starts=4,
+            jacobian=jacobian,
+        )
         draws = np.asarray(laplace_particles(jax.random.key(0), fit, 40000, box_precision=False))
     assert fit.converged.all()
     np.testing.assert_allclose(fit.theta, post_mean, atol=1e-7)
@@ -76,8 +83,12 @@ def test_unknown_sigma_map_is_the_closed_form():
     beta = np.linalg.lstsq(a, y, rcond=None)[0]
     rss = float(np.sum((a @ beta - y) ** 2))
     with jax.enable_x64(True):
-        model = ResidualModel(lambda th: ((jnp.asarray(a) @ th - y)[None], True),
-                              "gaussian_log_sigma", n_obs=len(y), log_sigma_guess=0.0)
+        model = ResidualModel(
+            lambda th: ((jnp.asarray(a) @ th - y)[None], True),
+            "gaussian_log_sigma",
+            n_obs=len(y),
+            log_sigma_guess=0.0,
+        )
         fit = fit_map(model, None, -3 * np.ones(3), 3 * np.ones(3), n_starts=3)
     # flat priors on theta and log sigma: MAP at least squares with sigma^2 = RSS / N
     np.testing.assert_allclose(fit.theta[:3], beta, atol=1e-6)
@@ -91,8 +102,9 @@ def test_sum_of_norms_minimum_is_least_squares():
     a, y, _ = _linear_toy(seed=2)
     beta = np.linalg.lstsq(a, y, rcond=None)[0]
     with jax.enable_x64(True):
-        model = ResidualModel(lambda th: ((jnp.asarray(a) @ th - y)[None], True), "norm",
-                              scale=0.05)
+        model = ResidualModel(
+            lambda th: ((jnp.asarray(a) @ th - y)[None], True), "norm", scale=0.05
+        )
         fit = fit_map(model, None, -3 * np.ones(3), 3 * np.ones(3), n_starts=3)
     np.testing.assert_allclose(fit.theta, beta, atol=1e-6)
     assert np.all(np.linalg.eigvalsh(fit.hessian) > 0)
@@ -177,9 +189,26 @@ def test_cli_infer_with_laplace_init_and_gradient_choice_recorded(tmp_path, caps
         tau, tau_dot = simulate_reference(sim, [60.0, 25.0], [0.8, 0.3], f)
         write_trajectory(data / f"p{i}.csv", Trajectory(t, f, tau, tau_dot, f"p{i}"))
     out = tmp_path / "run"
-    rc = main(["infer", "--tree", str(tree_file), "--data", str(data), "--out", str(out),
-               "--particles", "4", "--iterations", "2", "--checkpoint-every", "0",
-               "--no-progress", "--init", "laplace"])
+    rc = main(
+        [
+            "infer",
+            "--tree",
+            str(tree_file),
+            "--data",
+            str(data),
+            "--out",
+            str(out),
+            "--particles",
+            "4",
+            "--iterations",
+            "2",
+            "--checkpoint-every",
+            "0",
+            "--no-progress",
+            "--init",
+            "laplace",
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 0, err
     assert "Laplace start" in err
@@ -187,12 +216,35 @@ def test_cli_infer_with_laplace_init_and_gradient_choice_recorded(tmp_path, caps
     assert config["options"]["init"] == "laplace" and "gradients" not in config["options"]
     assert config["problem"]["gradient"] == "fd"
     # --gradients jvp reaches the problem (and is recorded); the defaults stay out of the options
-    cfg = infer_config(tree_file, data, tmp_path / "other", sampler="svgd", particles=4,
-                       iterations=2, kT=0.05, seed=0, eta=10.0, grasp_fraction=None,
-                       max_unstable_share=0.5, checkpoint_every=0, gradients="jvp")
+    cfg = infer_config(
+        tree_file,
+        data,
+        tmp_path / "other",
+        sampler="svgd",
+        particles=4,
+        iterations=2,
+        kT=0.05,
+        seed=0,
+        eta=10.0,
+        grasp_fraction=None,
+        max_unstable_share=0.5,
+        checkpoint_every=0,
+        gradients="jvp",
+    )
     assert cfg["options"]["gradients"] == "jvp" and "init" not in cfg["options"]
     problem = build_problem(cfg, tree, read_trajectory_dir(data))
     assert problem.settings["gradient"] == "jvp"
-    rc = main(["infer", "--tree", str(tree_file), "--data", str(data), "--out", str(out),
-               "--gradients", "adjoint"])
+    rc = main(
+        [
+            "infer",
+            "--tree",
+            str(tree_file),
+            "--data",
+            str(data),
+            "--out",
+            str(out),
+            "--gradients",
+            "adjoint",
+        ]
+    )
     assert rc == 2 and "--gradients" in capsys.readouterr().err

@@ -250,16 +250,22 @@ def _mixture_interval(x, s, level, kind="gaussian", df=4.0):
     cdf = lambda y: np.mean(comp.cdf((y - x) / s))
     a = 0.5 * (1 - level)
     lo_b, hi_b = x.min() - 50 * s.max(), x.max() + 50 * s.max()
-    return (optimize.brentq(lambda y: cdf(y) - a, lo_b, hi_b, xtol=1e-12),
-            optimize.brentq(lambda y: cdf(y) - (1 - a), lo_b, hi_b, xtol=1e-12))
+    return (
+        optimize.brentq(lambda y: cdf(y) - a, lo_b, hi_b, xtol=1e-12),
+        optimize.brentq(lambda y: cdf(y) - (1 - a), lo_b, hi_b, xtol=1e-12),
+    )
 
 
 @pytest.mark.parametrize("kind", ["gaussian", "student_t"])
 def test_noisy_interval_matches_scipy_mixture(rng, kind):
     x = rng.normal(0.05, 0.004, size=(30, 3))
     s = rng.uniform(0.001, 0.003, size=30)
-    lo, hi, mean = (np.asarray(a, float) for a in metrics.noisy_predictive_interval(
-        jnp.asarray(x, jnp.float64) if jax.config.jax_enable_x64 else x, s, 0.9, kind=kind))
+    lo, hi, mean = (
+        np.asarray(a, float)
+        for a in metrics.noisy_predictive_interval(
+            jnp.asarray(x, jnp.float64) if jax.config.jax_enable_x64 else x, s, 0.9, kind=kind
+        )
+    )
     for j in range(3):
         rl, rh = _mixture_interval(x[:, j], s, 0.9, kind)
         assert lo[j] == pytest.approx(rl, abs=2e-6) and hi[j] == pytest.approx(rh, abs=2e-6)
@@ -274,10 +280,13 @@ def test_predictive_band_at_t0_is_the_noise(rng):
     assert float(bands.parameter.upper[0] - bands.parameter.lower[0]) == 0.0
     np.testing.assert_allclose(
         [bands.predictive.lower[0], bands.predictive.upper[0]],
-        [-stats.norm.ppf(0.975) * 0.002, stats.norm.ppf(0.975) * 0.002], rtol=1e-4,
+        [-stats.norm.ppf(0.975) * 0.002, stats.norm.ppf(0.975) * 0.002],
+        rtol=1e-4,
     )
-    assert np.all(np.asarray(bands.predictive.upper - bands.predictive.lower)
-                  > np.asarray(bands.parameter.upper - bands.parameter.lower))
+    assert np.all(
+        np.asarray(bands.predictive.upper - bands.predictive.lower)
+        > np.asarray(bands.parameter.upper - bands.parameter.lower)
+    )
 
 
 def test_noisy_nll_zero_spread_matches_scipy(rng):

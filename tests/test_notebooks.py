@@ -27,7 +27,9 @@ def execute(name: str, monkeypatch, timeout: int = 1200, **env: str) -> nbformat
     for k, v in {"JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT), **env}.items():
         monkeypatch.setenv(k, v)
     nb = nbformat.read(NOTEBOOKS / name, as_version=4)
-    NotebookClient(nb, timeout=timeout, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}).execute()
+    NotebookClient(
+        nb, timeout=timeout, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}
+    ).execute()
     return nb
 
 
@@ -36,7 +38,11 @@ def outputs_text(nb) -> str:
     for cell in nb.cells:
         for out in cell.get("outputs", []):
             parts.append(out.get("text", ""))
-            parts.extend(str(v) for k, v in out.get("data", {}).items() if k in ("text/plain", "text/markdown"))
+            parts.extend(
+                str(v)
+                for k, v in out.get("data", {}).items()
+                if k in ("text/plain", "text/markdown")
+            )
     return "\n".join(parts)
 
 
@@ -44,7 +50,11 @@ def test_notebooks_are_stored_without_outputs():
     for path in NOTEBOOKS.glob("*.ipynb"):
         nb = nbformat.read(path, as_version=4)
         nbformat.validate(nb)
-        assert all(not c.get("outputs") and c.get("execution_count") is None for c in nb.cells if c.cell_type == "code"), path
+        assert all(
+            not c.get("outputs") and c.get("execution_count") is None
+            for c in nb.cells
+            if c.cell_type == "code"
+        ), path
 
 
 def test_walkthrough_runs(monkeypatch):
@@ -66,7 +76,9 @@ def test_analysis_runs_without_results(monkeypatch, tmp_path):
 def test_analysis_runs_with_some_results(monkeypatch, tmp_path):
     present = [s for s in STUDIES if (RESULTS / s / "results.json").exists()]
     if not present:
-        pytest.skip("no committed results in experiments/results (run python experiments/<study>.py --size cpu)")
+        pytest.skip(
+            "no committed results in experiments/results (run python experiments/<study>.py --size cpu)"
+        )
     shutil.copytree(RESULTS / present[0], tmp_path / present[0])
     nb = execute("analysis.ipynb", monkeypatch, timeout=300, TREEINFER_RESULTS_DIR=str(tmp_path))
     text = outputs_text(nb)

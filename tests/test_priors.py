@@ -263,12 +263,17 @@ def test_cache_second_call_loads(tmp_path, monkeypatch):
     np.testing.assert_array_equal(first(x, x[::-1]), second(x, x[::-1]))
 
     # the box and eta only rescale the normalised fit: another box and eta load the same weights
-    other = load_or_train_inequality_network(**{**settings, "eta": 4.0, "box_low": 0.0, "box_high": 6.0},
-                                             cache_dir=tmp_path)
+    other = load_or_train_inequality_network(
+        **{**settings, "eta": 4.0, "box_low": 0.0, "box_high": 6.0}, cache_dir=tmp_path
+    )
     assert other.loaded
     # same normalised inputs (x -> 2x + 2 maps [-1, 2] onto [0, 6]), outputs scaled by eta * width
-    np.testing.assert_allclose(other(2 * x + 2, 2 * x[::-1] + 2), first(x, x[::-1]) * (4.0 * 6.0) / (3.0 * 3.0),
-                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        other(2 * x + 2, 2 * x[::-1] + 2),
+        first(x, x[::-1]) * (4.0 * 6.0) / (3.0 * 3.0),
+        rtol=1e-5,
+        atol=1e-6,
+    )
     # a different fit setting is a different key -> trains (here: the patched trainer raises)
     with pytest.raises(AssertionError, match="retrained"):
         load_or_train_inequality_network(**{**settings, "hidden": 9}, cache_dir=tmp_path)

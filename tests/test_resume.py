@@ -64,8 +64,15 @@ def _state():
 
 def test_flatten_roundtrip_with_keys(tmp_path):
     state = _state()
-    path = runs.save_checkpoint(tmp_path / "c.npz", 12, state, "abc", [4, 8, 12],
-                                np.zeros((3, 3, 2), np.float32), np.zeros((3, 3), np.float32))
+    path = runs.save_checkpoint(
+        tmp_path / "c.npz",
+        12,
+        state,
+        "abc",
+        [4, 8, 12],
+        np.zeros((3, 3, 2), np.float32),
+        np.zeros((3, 3), np.float32),
+    )
     template = jax.eval_shape(lambda: state)
     ck = runs.load_checkpoint(path, template, "abc")
     assert ck.iteration == 12 and ck.trace_iterations.tolist() == [4, 8, 12]
@@ -74,8 +81,12 @@ def test_flatten_roundtrip_with_keys(tmp_path):
         if jax.dtypes.issubdtype(b.dtype, jax.dtypes.prng_key):
             assert jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key)
             # the restored keys draw the same numbers (the key data is the independent check)
-            np.testing.assert_array_equal(np.asarray(jax.random.key_data(a)), np.asarray(jax.random.key_data(b)))
-            np.testing.assert_array_equal(jax.vmap(jax.random.normal)(a), jax.vmap(jax.random.normal)(b))
+            np.testing.assert_array_equal(
+                np.asarray(jax.random.key_data(a)), np.asarray(jax.random.key_data(b))
+            )
+            np.testing.assert_array_equal(
+                jax.vmap(jax.random.normal)(a), jax.vmap(jax.random.normal)(b)
+            )
         else:
             assert a.dtype == b.dtype
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -106,15 +117,35 @@ def _write_data(d: Path) -> None:
 
 
 def _args(data: Path, out: Path) -> list[str]:
-    return ["infer", "--tree", str(TWO), "--data", str(data), "--out", str(out), "--particles", "8",
-            "--iterations", str(N_ITER), "--checkpoint-every", str(EVERY), "--seed", "3", "--no-progress"]
+    return [
+        "infer",
+        "--tree",
+        str(TWO),
+        "--data",
+        str(data),
+        "--out",
+        str(out),
+        "--particles",
+        "8",
+        "--iterations",
+        str(N_ITER),
+        "--checkpoint-every",
+        str(EVERY),
+        "--seed",
+        "3",
+        "--no-progress",
+    ]
 
 
 def _popen(argv: list[str], cwd: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
     return subprocess.Popen(
-        [sys.executable, "-m", "treeinfer", *argv], cwd=cwd, env=env, text=True,
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        [sys.executable, "-m", "treeinfer", *argv],
+        cwd=cwd,
+        env=env,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
         # An ignored SIGINT is inherited through exec (e.g. pytest started as a background job)
         # and Python then keeps ignoring it: give the child the default disposition back. Only in
         # that case, since preexec_fn is unsafe with threads.
@@ -186,7 +217,10 @@ def test_sigkill_sigint_resume_bit_identical(tmp_path, capsys):
     assert {"config.json", "tree.yaml", runs.CHECKPOINT_FILE} <= _final_names(partial)
     cfg = json.loads((partial / "config.json").read_text())
     assert cfg["options"]["iterations"] == N_ITER and cfg["seed"] == 3
-    assert runs.read_checkpoint_info(partial / runs.CHECKPOINT_FILE)["config_hash"] == cfg["config_hash"]
+    assert (
+        runs.read_checkpoint_info(partial / runs.CHECKPOINT_FILE)["config_hash"]
+        == cfg["config_hash"]
+    )
 
     # 2. resume, interrupted by a real SIGINT after a later checkpoint
     proc = _popen(["infer", "--resume", str(run), "--no-progress"], tmp_path)
@@ -216,7 +250,10 @@ def test_sigkill_sigint_resume_bit_identical(tmp_path, capsys):
     with np.load(run / "trace.npz") as z:
         it = z["iterations"].tolist()
     assert it[-1] == N_ITER and set(range(interrupted_at, N_ITER + 1)) <= set(it) and 0 not in it
-    assert json.loads((run / "summary.json").read_text())["diagnostics"]["resumed_from"] == interrupted_at
+    assert (
+        json.loads((run / "summary.json").read_text())["diagnostics"]["resumed_from"]
+        == interrupted_at
+    )
 
 
 def test_resume_errors(tmp_path, capsys):

@@ -22,11 +22,22 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def run_two_devices(code: str) -> dict:
     """Run ``code`` on two CPU devices; it must print one JSON object on its last line."""
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu",
-           "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    env = {
+        **os.environ,
+        "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+        "JAX_PLATFORMS": "cpu",
+        "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+    }
     prelude = "import jax\nassert jax.device_count() == 2, jax.devices()\n"
-    proc = subprocess.run([sys.executable, "-c", prelude + textwrap.dedent(code)], env=env, cwd=ROOT,
-                          capture_output=True, text=True, timeout=600, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-c", prelude + textwrap.dedent(code)],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
     assert proc.returncode == 0, proc.stderr[-4000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -52,9 +63,12 @@ theta0 = jax.random.normal(jax.random.key(0), (16, 3))
 
 @pytest.mark.parametrize("method", ["gspmd", "shard_map"])
 def test_sharded_svgd_gives_the_same_particles(method):
-    res = run_two_devices(CHEAP_TARGET + f"""
+    res = run_two_devices(
+        CHEAP_TARGET
+        + f"""
 method = {method!r}
-""" + r"""
+"""
+        + r"""
 from treeinfer.samplers import run, svgd
 plain = run(svgd(vg, learning_rate=0.05), 7, theta0, 25, progress=False)
 rows_plain = sorted(set(rows)); rows.clear()
@@ -75,7 +89,8 @@ print(json.dumps(dict(
     collectives=hlo.count("all-gather") + hlo.count("all-reduce") + hlo.count("all-to-all"),
     leading=leading,
 )))
-""")
+"""
+    )
     assert res["moved"] > 0.1  # the run did something
     # float32 tolerance; on this CPU the runs have also been bit-identical (recorded, not required)
     assert res["max_abs"] <= 1e-5, res
@@ -92,7 +107,9 @@ print(json.dumps(dict(
 
 
 def test_infer_sharded_matches_infer_for_svgd_and_mh():
-    res = run_two_devices(CHEAP_TARGET + """
+    res = run_two_devices(
+        CHEAP_TARGET
+        + """
 from types import SimpleNamespace
 from treeinfer.inference import Problem, infer
 logp = banana
@@ -115,7 +132,8 @@ try:
 except Exception as e:
     out["uneven"] = f"{type(e).__name__}: {e}"
 print(json.dumps(out))
-""")
+"""
+    )
     for sampler in ("svgd", "mh"):
         assert res[sampler]["moved"] > 0.05, res
         assert res[sampler]["max_abs"] <= 1e-5, res
@@ -154,4 +172,3 @@ print(json.dumps(dict(v=np.asarray(v0).tolist(), dv=float(np.max(np.abs(v0 - v1)
     assert res["shards"] == 2
     assert res["dv"] <= 1e-5 * max(1.0, max(abs(x) for x in res["v"]))
     assert res["dg"] <= 1e-4 * res["g"]
-

@@ -147,4 +147,6 @@ def test_substeps_follow_the_stiffest_prior_corner():
     stiff_tree = replace(tree, bounds={n: Bounds(kp=(5.0, 50000.0)) for n in tree.inferred})
     stiff = make_simulator(stiff_tree, obs_dt=DT)
     assert stiff.substeps > soft.substeps
-    assert stiff.sim_dt <= 1.5 / 1000.0  # omega_max * dt <= 1.5; omega_max > 1000 rad/s at 2 x 50000 N m/rad
+    assert (
+        stiff.sim_dt <= 1.5 / 1000.0
+    )  # omega_max * dt <= 1.5; omega_max > 1000 rad/s at 2 x 50000 N m/rad

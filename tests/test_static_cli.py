@@ -30,10 +30,20 @@ def stem_data(tmp_path_factory):
     for path, push in write_stem_logs(root / "raw", Stem(), seed=3):
         branch, dist = branch_at_height(tree, push.height)
         import_csv(
-            [path], root / ("test" if push.height == HELD_OUT else "train"), time="millis",
-            force="load_g", displacement="pos_mm", units="time=ms,force=gf,displacement=mm",
-            dt=0.5, tare=True, zero_displacement="contact", trim=True, grasp_branch=branch,
-            grasp_distance=dist, direction="horizontal", tree=tree,
+            [path],
+            root / ("test" if push.height == HELD_OUT else "train"),
+            time="millis",
+            force="load_g",
+            displacement="pos_mm",
+            units="time=ms,force=gf,displacement=mm",
+            dt=0.5,
+            tare=True,
+            zero_displacement="contact",
+            trim=True,
+            grasp_branch=branch,
+            grasp_distance=dist,
+            direction="horizontal",
+            tree=tree,
         )
     return root
 
@@ -47,12 +57,31 @@ def test_cli_static_infer_then_evaluate_held_out_height(stem_data, capsys):
 
     root = stem_data
     run = root / "run"
-    rc = main([
-        "infer", "--tree", str(root / "stem.yaml"), "--data", str(root / "train"),
-        "--out", str(run), "--model-kind", "static", "--sampler", "svgd", "--particles", "4",
-        "--iterations", "4", "--kT", "0.002", "--no-progress", "--checkpoint-every", "0",
-        "--allow-poor-fit",
-    ])
+    rc = main(
+        [
+            "infer",
+            "--tree",
+            str(root / "stem.yaml"),
+            "--data",
+            str(root / "train"),
+            "--out",
+            str(run),
+            "--model-kind",
+            "static",
+            "--sampler",
+            "svgd",
+            "--particles",
+            "4",
+            "--iterations",
+            "4",
+            "--kT",
+            "0.002",
+            "--no-progress",
+            "--checkpoint-every",
+            "0",
+            "--allow-poor-fit",
+        ]
+    )
     out = capsys.readouterr()
     assert rc == 0, out.err
     assert "damping (Kd): not identified" in out.out
@@ -67,8 +96,9 @@ def test_cli_static_infer_then_evaluate_held_out_height(stem_data, capsys):
     assert "not identified" in summary["damping"]
 
     ev = root / "eval"
-    assert main(["evaluate", "--run", str(run), "--data", str(root / "test"),
-                 "--out", str(ev)]) == 0
+    assert (
+        main(["evaluate", "--run", str(run), "--data", str(root / "test"), "--out", str(ev)]) == 0
+    )
     capsys.readouterr()
     metrics = json.loads((ev / "metrics.json").read_text())["metrics"]
     assert metrics["per_trajectory"][0]["name"].endswith("push_240mm.csv")
@@ -88,8 +118,20 @@ def test_cli_static_infer_then_evaluate_held_out_height(stem_data, capsys):
     np.testing.assert_allclose(csv["recorded"], traj.displacement, atol=1e-12)
 
     # predict on the same recording: its own pull too, compared with the recording
-    assert main(["predict", "--run", str(run), "--force-csv", str(root / "test" / traj.source),
-                 "--out", str(root / "pred")]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                "--run",
+                str(run),
+                "--force-csv",
+                str(root / "test" / traj.source),
+                "--out",
+                str(root / "pred"),
+            ]
+        )
+        == 0
+    )
     assert "NOT compared" not in capsys.readouterr().err
     pred = np.genfromtxt(root / "pred" / "prediction.csv", delimiter=",", names=True)
     np.testing.assert_allclose(pred["mean"], csv["mean"], atol=1e-9)
@@ -97,8 +139,23 @@ def test_cli_static_infer_then_evaluate_held_out_height(stem_data, capsys):
 
     # k-fold with the run's settings on the two training heights: each fold predicts its
     # held-out height at that recording's own pull
-    assert main(["evaluate", "--run", str(run), "--data", str(root / "train"), "--kfold", "2",
-                 "--out", str(root / "kfold"), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--run",
+                str(run),
+                "--data",
+                str(root / "train"),
+                "--kfold",
+                "2",
+                "--out",
+                str(root / "kfold"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     folds = json.loads((root / "kfold" / "metrics.json").read_text())["folds"]
     assert sorted(f["test"][0] for f in folds) == ["push_120mm.csv", "push_360mm.csv"]
@@ -150,8 +207,14 @@ def test_static_and_stiffness_only_refuse_generative_likelihoods_but_take_kT_aut
     kp_only = dataclasses.replace(_one_joint_tree(), parameters=("kp",))
     for tree, kind in ((kp_only, "dynamic"), (_one_joint_tree(), "static")):
         with pytest.raises(ConfigError, match="likelihood: 'gaussian'"):
-            make_problem(tree, [traj], nn_prior=False, backend="fused", model_kind=kind,
-                         likelihood="gaussian")
+            make_problem(
+                tree,
+                [traj],
+                nn_prior=False,
+                backend="fused",
+                model_kind=kind,
+                likelihood="gaussian",
+            )
     auto = make_problem(kp_only, [traj], kT="auto", nn_prior=False, backend="fused")
     full = make_problem(_one_joint_tree(), [traj], kT="auto", nn_prior=False, backend="fused")
     assert auto.dim == 1 and auto.kT == pytest.approx(full.kT)

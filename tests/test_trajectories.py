@@ -438,8 +438,16 @@ def test_band_csv_reads_with_csv_module(tmp_path):
     path = write_band_csv(tmp_path / "p.csv", t, 2 * t, None, t, t - 1, t + 1, t - 2, t + 2)
     with open(path, newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert list(rows[0]) == ["time", "force", "recorded", "mean", "lower", "upper",
-                             "predictive_lower", "predictive_upper"]
+    assert list(rows[0]) == [
+        "time",
+        "force",
+        "recorded",
+        "mean",
+        "lower",
+        "upper",
+        "predictive_lower",
+        "predictive_upper",
+    ]
     assert rows[2]["recorded"] == "" and float(rows[2]["upper"]) == pytest.approx(1.2)
     with pytest.raises(ConfigError, match="column 'mean' has 3 values"):
         write_band_csv(tmp_path / "q.csv", t, t, t, t[:3], t, t)

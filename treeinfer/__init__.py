@@ -4,20 +4,49 @@ __version__ = "0.1.0"
 
 # The public API, imported lazily so `treeinfer --help` does not pay for JAX and MuJoCo.
 _EXPORTS = {
-    "load_tree": "tree", "dump_tree": "tree", "make_tree": "tree", "Tree": "tree", "Branch": "tree",
+    "load_tree": "tree",
+    "dump_tree": "tree",
+    "make_tree": "tree",
+    "Tree": "tree",
+    "Branch": "tree",
     "Bounds": "tree",
-    "Trajectory": "trajectories", "read_trajectory": "trajectories",
-    "read_trajectory_dir": "trajectories", "write_trajectory": "trajectories",
+    "Trajectory": "trajectories",
+    "read_trajectory": "trajectories",
+    "read_trajectory_dir": "trajectories",
+    "write_trajectory": "trajectories",
     "stack_trajectories": "trajectories",
-    "make_simulator": "sim", "simulate": "sim", "Rollout": "sim",
-    "make_problem": "inference", "infer": "inference", "predict": "inference",
-    "Problem": "inference", "Posterior": "inference",
+    "make_simulator": "sim",
+    "simulate": "sim",
+    "Rollout": "sim",
+    "make_problem": "inference",
+    "infer": "inference",
+    "predict": "inference",
+    "Problem": "inference",
+    "Posterior": "inference",
     "example_path": "examples",
 }
 _MODULES = {
-    "tree", "generators", "export", "urdf", "sim", "likelihood", "priors", "gradients",
-    "samplers", "inference", "metrics", "plots", "diagnostics", "trajectories", "bags", "forces",
-    "errors", "examples", "sharding", "runs", "mapfit",
+    "tree",
+    "generators",
+    "export",
+    "urdf",
+    "sim",
+    "likelihood",
+    "priors",
+    "gradients",
+    "samplers",
+    "inference",
+    "metrics",
+    "plots",
+    "diagnostics",
+    "trajectories",
+    "bags",
+    "forces",
+    "errors",
+    "examples",
+    "sharding",
+    "runs",
+    "mapfit",
 }
 
 
@@ -40,8 +69,10 @@ def _cache_tag() -> str:
 
     A reinstall of the same versions, in any folder, maps to the same tag; JAX's own key hashes
     each program with its debug info (source paths) stripped, so the entries stay valid there."""
-    return (f"treeinfer-{__version__}_jax-{_installed_version('jax')}"
-            f"_jaxlib-{_installed_version('jaxlib')}")
+    return (
+        f"treeinfer-{__version__}_jax-{_installed_version('jax')}"
+        f"_jaxlib-{_installed_version('jaxlib')}"
+    )
 
 
 def _installed_version(package: str) -> str:
@@ -54,8 +85,11 @@ def _installed_version(package: str) -> str:
     try:
         spec = importlib.util.find_spec(package)
         folder = Path(next(iter(spec.submodule_search_locations)))
-        found = re.search(r'^_version\s*(?::\s*str)?\s*=\s*"([^"]+)"',
-                          (folder / "version.py").read_text(), re.MULTILINE)
+        found = re.search(
+            r'^_version\s*(?::\s*str)?\s*=\s*"([^"]+)"',
+            (folder / "version.py").read_text(),
+            re.MULTILINE,
+        )
         if found:
             return found.group(1)
     except (AttributeError, ImportError, OSError, StopIteration, TypeError, ValueError):
@@ -99,9 +133,11 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
         os.makedirs(path, exist_ok=True)
     except OSError:  # a read-only home: run without the cache rather than fail
         return None
-    settings = {"jax_compilation_cache_dir": path,
-                "jax_persistent_cache_min_compile_time_secs": 0.0,
-                "jax_persistent_cache_min_entry_size_bytes": 0}
+    settings = {
+        "jax_compilation_cache_dir": path,
+        "jax_persistent_cache_min_compile_time_secs": 0.0,
+        "jax_persistent_cache_min_entry_size_bytes": 0,
+    }
     explicit = path_given or env is not None
     for name, value in settings.items():
         if explicit:

@@ -60,7 +60,9 @@ class OutputWriteError(TreeinferError):
     """Writing an output file failed (disk full, I/O error, permissions): names the file."""
 
 
-def output_error(path: str | os.PathLike, e: BaseException, action: str = "write") -> OutputWriteError:
+def output_error(
+    path: str | os.PathLike, e: BaseException, action: str = "write"
+) -> OutputWriteError:
     """An :class:`OutputWriteError` naming ``path`` for the OSError (or writer error) ``e``."""
     if isinstance(e, OSError):
         hint = _ERRNO_HINT.get(e.errno or -1)
@@ -131,7 +133,9 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
 
 
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
-    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
+    return atomic_write_text(
+        path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n"
+    )
 
 
 @contextlib.contextmanager
@@ -152,7 +156,11 @@ def atomic_save(path: str | os.PathLike) -> Iterator[Path]:
     except BaseException as e:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
-        if not isinstance(e, TreeinferError) and isinstance(e, Exception) and _is_disk_trouble(e, path.parent):
+        if (
+            not isinstance(e, TreeinferError)
+            and isinstance(e, Exception)
+            and _is_disk_trouble(e, path.parent)
+        ):
             raise output_error(path, e) from e
         raise
 
@@ -187,7 +195,11 @@ def is_treeinfer_output(path: str | os.PathLike) -> bool:
         return True
     for name in ("config.json", "results.json"):
         d = _read_json_quietly(path / name)
-        if isinstance(d, dict) and isinstance(d.get("versions"), dict) and "treeinfer" in d["versions"]:
+        if (
+            isinstance(d, dict)
+            and isinstance(d.get("versions"), dict)
+            and "treeinfer" in d["versions"]
+        ):
             return True
     return False
 
@@ -219,7 +231,8 @@ def check_output_dir(
     if path.is_dir() and os.path.ismount(path):
         raise OutputExistsError(
             f"{path}: {what} folder is a mount point, which treeinfer cannot replace as a whole; "
-            f"give a folder inside it, e.g. --out {path / 'run'}")
+            f"give a folder inside it, e.g. --out {path / 'run'}"
+        )
     real = Path(os.path.realpath(path))
     for inp in inputs:
         if inp is None:
@@ -228,7 +241,8 @@ def check_output_dir(
         if _inside(rin, real):
             raise OutputExistsError(
                 f"{path}: {what} folder {'is' if rin == real else 'holds'} an input of this command "
-                f"({inp}); writing there would destroy it: choose another --out")
+                f"({inp}); writing there would destroy it: choose another --out"
+            )
     if path.is_dir() and any(path.iterdir()):
         if not force:
             raise OutputExistsError(
@@ -238,7 +252,8 @@ def check_output_dir(
             raise OutputExistsError(
                 f"{path}: --force replaces only folders treeinfer wrote (with a {OUTPUT_MARKER} "
                 "marker) or empty ones, and this one is neither; delete it yourself if you mean to, "
-                "or choose another --out")
+                "or choose another --out"
+            )
     return path
 
 
@@ -266,7 +281,7 @@ def _pid_alive(pid: int) -> bool:
 
 def _sibling_pid(entry: str, name: str) -> int | None:
     """PID in ``.NAME.PID.XXXX.staging`` / ``.NAME.PID.old`` (None: not ours or no PID)."""
-    rest = entry[len(name) + 2:]
+    rest = entry[len(name) + 2 :]
     head = rest.split(".", 1)[0]
     return int(head) if head.isdigit() else None
 
@@ -288,7 +303,9 @@ def find_staging(path: str | os.PathLike) -> list[Path]:
     return sorted(out)
 
 
-def clean_stale_staging(path: str | os.PathLike, log: Callable[[str], None] | None = None) -> list[str]:
+def clean_stale_staging(
+    path: str | os.PathLike, log: Callable[[str], None] | None = None
+) -> list[str]:
     """Tidy what killed writers of the output folder ``path`` left beside it; return messages.
 
     A staging folder of a live process is left alone (reported). Of a dead one: a *complete*
@@ -301,8 +318,12 @@ def clean_stale_staging(path: str | os.PathLike, log: Callable[[str], None] | No
     msgs: list[str] = []
     entries = find_staging(path)
     # complete stages first, then displaced old results, then the rest
-    entries.sort(key=lambda p: (not (p.name.endswith(STAGING_SUFFIX) and _stage_complete(p)),
-                                not p.name.endswith(OLD_SUFFIX)))
+    entries.sort(
+        key=lambda p: (
+            not (p.name.endswith(STAGING_SUFFIX) and _stage_complete(p)),
+            not p.name.endswith(OLD_SUFFIX),
+        )
+    )
     for p in entries:
         pid = _sibling_pid(p.name, path.name)
         if pid is not None and pid != os.getpid() and _pid_alive(pid):
@@ -313,20 +334,28 @@ def clean_stale_staging(path: str | os.PathLike, log: Callable[[str], None] | No
         try:
             if not path.exists() and p.name.endswith(STAGING_SUFFIX) and _stage_complete(p):
                 os.replace(p, path)
-                msgs.append(f"{path}: recovered the finished result a killed process left in {p.name}")
+                msgs.append(
+                    f"{path}: recovered the finished result a killed process left in {p.name}"
+                )
             elif p.name.endswith(STAGING_SUFFIX) and _stage_complete(p):
                 kept = path.with_name(f"{path.name}{COMPLETE_INFIX}{pid}")
                 os.replace(p, kept)
-                msgs.append(f"{path}: a killed process finished a newer result than this one; it is "
-                            f"kept, complete, in {kept}")
+                msgs.append(
+                    f"{path}: a killed process finished a newer result than this one; it is "
+                    f"kept, complete, in {kept}"
+                )
             elif not path.exists() and (p.name.endswith(OLD_SUFFIX) or ".old-" in p.name):
                 os.replace(p, path)
-                msgs.append(f"{path}: put back the previous result a killed process had moved to {p.name}")
+                msgs.append(
+                    f"{path}: put back the previous result a killed process had moved to {p.name}"
+                )
             else:
                 shutil.rmtree(p)
                 msgs.append(f"{p}: removed a staging folder left by an interrupted process")
         except OSError as e:
-            msgs.append(f"{p}: stale staging folder could not be tidied ({e.strerror or e}); remove it yourself")
+            msgs.append(
+                f"{p}: stale staging folder could not be tidied ({e.strerror or e}); remove it yourself"
+            )
     if log is not None:
         for m in msgs:
             log(m)
@@ -344,7 +373,8 @@ def _rescue(stage: Path, path: Path, e: OSError, what: str) -> OutputWriteError:
     return OutputWriteError(
         f"{path}: cannot move the finished {what} into place ({e.strerror or e}"
         f"{'; ' + hint if hint and hint.lower() != (e.strerror or '').lower() else ''}); "
-        f"nothing is lost: it is complete in {kept}; move or rename it yourself")
+        f"nothing is lost: it is complete in {kept}; move or rename it yourself"
+    )
 
 
 def publish_staged(stage: Path, path: Path, what: str = "output") -> Path:
@@ -396,8 +426,11 @@ def staged_output_dir(
     stage: Path | None = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        stage = Path(tempfile.mkdtemp(prefix=f".{path.name}.{os.getpid()}.", suffix=STAGING_SUFFIX,
-                                      dir=path.parent))
+        stage = Path(
+            tempfile.mkdtemp(
+                prefix=f".{path.name}.{os.getpid()}.", suffix=STAGING_SUFFIX, dir=path.parent
+            )
+        )
         _publish_mode(stage, directory=True)
         (stage / OUTPUT_MARKER).write_text(_marker_text(False), encoding="utf-8")
     except OSError as e:
@@ -418,5 +451,3 @@ def mark_output_dir(path: str | os.PathLike) -> Path:
     """Put the ``.treeinfer-output`` marker into a folder treeinfer writes in place (not staged),
     so that a later ``--force`` may replace it."""
     return atomic_write_text(Path(path) / OUTPUT_MARKER, _marker_text(True))
-
-

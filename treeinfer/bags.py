@@ -556,7 +556,9 @@ def read_kortex_streams(
             f"(it is {topics.get(feedback_topic, 'missing')})"
         )
     if pose_topic is not None and topics.get(pose_topic) not in (
-        "geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/TransformStamped", KORTEX_TYPE,
+        "geometry_msgs/msg/PoseStamped",
+        "geometry_msgs/msg/TransformStamped",
+        KORTEX_TYPE,
     ):
         raise TrajectoryFileError(
             f"{bag}: pose topic '{pose_topic}' has type {topics.get(pose_topic, '(missing)')}; "
@@ -580,8 +582,13 @@ def read_kortex_streams(
             if conn.topic == feedback_topic:
                 b = msg.base
                 f_t.append(t_bag)
-                f_v.append((b.tool_external_wrench_force_x, b.tool_external_wrench_force_y,
-                            b.tool_external_wrench_force_z))
+                f_v.append(
+                    (
+                        b.tool_external_wrench_force_x,
+                        b.tool_external_wrench_force_y,
+                        b.tool_external_wrench_force_z,
+                    )
+                )
             if conn.topic == pose_topic:
                 p_t.append(t_bag)
                 if conn.msgtype == KORTEX_TYPE:
@@ -603,8 +610,17 @@ def read_kortex_streams(
     ft, fv = _sorted_unique(np.asarray(f_t, np.int64), np.asarray(f_v, float))
     pt, pv = _sorted_unique(np.asarray(p_t, np.int64), np.asarray(p_v, float))
     origin = int(min(ft[0], pt[0]))
-    return BagStreams((ft - origin) * 1e-9, fv, (pt - origin) * 1e-9, pv, origin,
-                      feedback_topic, pose_topic, "", "bag")
+    return BagStreams(
+        (ft - origin) * 1e-9,
+        fv,
+        (pt - origin) * 1e-9,
+        pv,
+        origin,
+        feedback_topic,
+        pose_topic,
+        "",
+        "bag",
+    )
 
 
 # ----------------------------------------------------------------------------- cleaning
@@ -745,9 +761,12 @@ def import_bag(
     d_pose = g_pose if direction is None else _unit(direction, "direction")
     d_force = d_pose if force_axis is None else _unit(force_axis, "force_axis")
     sidecar_dir = "down" if direction is None or np.allclose(d_pose, g_pose) else d_pose
-    spec = PullSpec(grasp_branch, grasp_fraction, grasp_distance,
-                    sidecar_dir if isinstance(sidecar_dir, str)
-                    else tuple(float(v) for v in sidecar_dir))
+    spec = PullSpec(
+        grasp_branch,
+        grasp_fraction,
+        grasp_distance,
+        sidecar_dir if isinstance(sidecar_dir, str) else tuple(float(v) for v in sidecar_dir),
+    )
 
     bag = Path(bag_path)
     check_output_dir(out_dir, force=force, what="import-bag output")  # fail before reading
@@ -879,26 +898,39 @@ def import_bag(
                 "lead_in_samples": int(p.start - p.lead),
                 "peak_force": float(np.max(np.abs(fk))),
             }
-        write_pulls(stage / PULLS_FILE, {name: spec for name in files},
-                    header=f"grasp point and pull direction per pull (import-bag {bag.name})")
-        write_provenance(stage, {
-            "tool": "treeinfer import-bag",
-            "source": bag.name,
-            "force_topic": s.force_topic,
-            "pose_topic": s.pose_topic,
-            "tf_child_frame": s.pose_frame,
-            "time_source": s.time_source,
-            "options": {
-                "dt": dt, "force_sign": force_sign, "force_axis": d_force.tolist(),
-                "gravity_axis": g_pose.tolist(), "direction": d_pose.tolist(),
-                "displacement": displacement, "tare": tare, "tare_offset_N": offset,
-                "threshold_N": thr, "min_pull_duration": min_pull_duration,
-                "lead_in": lead_in, "min_peak_fraction": min_peak_fraction,
+        write_pulls(
+            stage / PULLS_FILE,
+            {name: spec for name in files},
+            header=f"grasp point and pull direction per pull (import-bag {bag.name})",
+        )
+        write_provenance(
+            stage,
+            {
+                "tool": "treeinfer import-bag",
+                "source": bag.name,
+                "force_topic": s.force_topic,
+                "pose_topic": s.pose_topic,
+                "tf_child_frame": s.pose_frame,
+                "time_source": s.time_source,
+                "options": {
+                    "dt": dt,
+                    "force_sign": force_sign,
+                    "force_axis": d_force.tolist(),
+                    "gravity_axis": g_pose.tolist(),
+                    "direction": d_pose.tolist(),
+                    "displacement": displacement,
+                    "tare": tare,
+                    "tare_offset_N": offset,
+                    "threshold_N": thr,
+                    "min_pull_duration": min_pull_duration,
+                    "lead_in": lead_in,
+                    "min_peak_fraction": min_peak_fraction,
+                },
+                "source_intervals_s": {"force": f_int, "pose": p_int},
+                "notices": list(notes),
+                "files": files,
             },
-            "source_intervals_s": {"force": f_int, "pose": p_int},
-            "notices": list(notes),
-            "files": files,
-        })
+        )
     return written
 
 

@@ -99,8 +99,11 @@ def sbc_ranks(truth, draws, rng: np.random.Generator | None = None) -> np.ndarra
     """
     truth = np.asarray(truth, float)
     draws = np.asarray(draws, float)
-    if truth.ndim != 2 or draws.ndim != 3 or draws.shape[0] != truth.shape[0] or (
-        draws.shape[2] != truth.shape[1]
+    if (
+        truth.ndim != 2
+        or draws.ndim != 3
+        or draws.shape[0] != truth.shape[0]
+        or (draws.shape[2] != truth.shape[1])
     ):
         raise ConfigError(
             f"sbc_ranks: expected truth [N, D] and draws [N, L, D], got {truth.shape}, "
@@ -146,9 +149,7 @@ def default_bins(n_datasets: int, n_draws: int) -> int:
     return int(max(2, min(20, n_draws + 1, n_datasets // 5)))
 
 
-def rank_uniformity(
-    u, labels: Sequence[str], n_bins: int, alpha: float = ALPHA
-) -> dict:
+def rank_uniformity(u, labels: Sequence[str], n_bins: int, alpha: float = ALPHA) -> dict:
     """Uniformity tests of the fractional ranks of each parameter.
 
     Tests (both exact under calibration, since ``u`` is continuous uniform): Pearson chi-square
@@ -215,8 +216,14 @@ class SBCResult:
 
 
 def summarize_sbc(
-    truth, draws, labels: Sequence[str], levels: Sequence[float] = COVERAGE_LEVELS,
-    n_bins: int | None = None, alpha: float = ALPHA, seed: int = 0, info: dict | None = None,
+    truth,
+    draws,
+    labels: Sequence[str],
+    levels: Sequence[float] = COVERAGE_LEVELS,
+    n_bins: int | None = None,
+    alpha: float = ALPHA,
+    seed: int = 0,
+    info: dict | None = None,
 ) -> SBCResult:
     """Ranks, fractional ranks, coverage and uniformity tests of ``draws [N, L, D]`` against
     ``truth [N, D]`` (ties and the fractional spread use ``seed``)."""
@@ -233,8 +240,15 @@ def summarize_sbc(
     u = fractional_ranks(ranks, draws.shape[1], rng)
     n_bins = default_bins(truth.shape[0], draws.shape[1]) if n_bins is None else int(n_bins)
     return SBCResult(
-        truth, draws, ranks, u, labels, tuple(float(a) for a in levels),
-        rank_coverage(u, levels), rank_uniformity(u, labels, n_bins, alpha), dict(info or {}),
+        truth,
+        draws,
+        ranks,
+        u,
+        labels,
+        tuple(float(a) for a in levels),
+        rank_coverage(u, levels),
+        rank_uniformity(u, labels, n_bins, alpha),
+        dict(info or {}),
     )
 
 
@@ -246,9 +260,16 @@ def coverage_table(result: SBCResult, band_level: float = 0.99) -> list[dict]:
     for k, a in enumerate(result.levels):
         lo, hi = binomial_band(n, a, band_level)
         for j, lab in enumerate(result.labels):
-            rows.append({"level": a, "parameter": lab, "observed": float(result.coverage[k, j]),
-                         "band_lower": lo / n, "band_upper": hi / n,
-                         "inside_band": bool(lo / n <= result.coverage[k, j] <= hi / n)})
+            rows.append(
+                {
+                    "level": a,
+                    "parameter": lab,
+                    "observed": float(result.coverage[k, j]),
+                    "band_lower": lo / n,
+                    "band_upper": hi / n,
+                    "inside_band": bool(lo / n <= result.coverage[k, j] <= hi / n),
+                }
+            )
     return rows
 
 
@@ -291,8 +312,9 @@ def plot_rank_histograms(result: SBCResult, path=None, band_level: float = 0.99)
         t = result.uniformity["parameters"][lab]
         ax.axhspan(lo, hi, color="0.85", label=f"{band_level:.0%} band (uniform)")
         ax.axhline(n / nb, color="0.5", lw=0.8)
-        ax.bar((np.arange(nb) + 0.5) / nb, t["counts"], width=1.0 / nb, color="C0",
-               edgecolor="white")
+        ax.bar(
+            (np.arange(nb) + 0.5) / nb, t["counts"], width=1.0 / nb, color="C0", edgecolor="white"
+        )
         ax.set_xlim(0, 1)
         ax.set_title(f"{lab}\np(chi2) {t['p_chi2']:.3g}, p(KS) {t['p_ks']:.3g}", fontsize=8)
         ax.set_xlabel(f"fractional rank (L = {result.n_draws})", fontsize=8)
@@ -301,8 +323,10 @@ def plot_rank_histograms(result: SBCResult, path=None, band_level: float = 0.99)
         axes[j // ncol][j % ncol].axis("off")
     axes[0][0].legend(fontsize=7, loc="lower left")
     verdict = "PASS" if result.uniformity["pass"] else "FAIL"
-    fig.suptitle(f"SBC rank histograms, N = {n}: {verdict} at "
-                 f"{result.uniformity['alpha']:g} (Bonferroni)", fontsize=9)
+    fig.suptitle(
+        f"SBC rank histograms, N = {n}: {verdict} at {result.uniformity['alpha']:g} (Bonferroni)",
+        fontsize=9,
+    )
     fig.tight_layout()
     if path is not None:
         fig.savefig(path, dpi=120)
@@ -361,8 +385,13 @@ def write_outputs(result: SBCResult, directory, config: dict | None = None) -> d
     atomic_write_text(directory / "ranks.csv", "\n".join(lines) + "\n")
     with atomic_save(directory / "draws.npz") as tmp:
         with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, truth=result.truth, draws=result.draws, ranks=result.ranks,
-                                labels=np.asarray(result.labels))
+            np.savez_compressed(
+                fh,
+                truth=result.truth,
+                draws=result.draws,
+                ranks=result.ranks,
+                labels=np.asarray(result.labels),
+            )
     plot_rank_histograms(result, directory / "plots" / "rank_histograms.png")
     plot_coverage(result, directory / "plots" / "coverage.png")
     return summary
@@ -510,8 +539,11 @@ def _build_program(sim, tree, config: SBCConfig, dim: int):
     lo, hi = np.log(tree.bounds_array()[0]), np.log(tree.bounds_array()[1])
     box = smoothed_box(lo, hi, config.prior_sigma * (hi - lo))
     infer_sigma = config.noise_displacement is None
-    sigma_prior = (_noise.log_sigma_prior(config.noise_prior_center, config.sigma_prior_scale)
-                   if infer_sigma else None)
+    sigma_prior = (
+        _noise.log_sigma_prior(config.noise_prior_center, config.sigma_prior_scale)
+        if infer_sigma
+        else None
+    )
     kind, df = config.likelihood, float(config.student_t_df)
     n_mh = int(config.mh_steps)
     n_warm = int(config.mh_warmup)
@@ -539,8 +571,9 @@ def _build_program(sim, tree, config: SBCConfig, dim: int):
         if config.sampler == "svgd":
             algo = svgd(vg, learning_rate=config.learning_rate)
             state = algo.init(key, theta0)
-            state, _ = jax.lax.scan(lambda s_, _: algo.step(key, s_), state, None,
-                                    length=config.iterations)
+            state, _ = jax.lax.scan(
+                lambda s_, _: algo.step(key, s_), state, None, length=config.iterations
+            )
             x, ld = state.position, state.logdensity
             info = {"mh_acceptance": jnp.zeros(()), "mode_logdensity": jnp.max(ld)}
         else:
@@ -561,8 +594,9 @@ def _build_program(sim, tree, config: SBCConfig, dim: int):
             upd, st = opt.update(-g, st, th)
             return (optax.apply_updates(th, upd), st), None
 
-        (th, _), _ = jax.lax.scan(ascend, (theta0, opt.init(theta0)), None,
-                                  length=config.iterations)
+        (th, _), _ = jax.lax.scan(
+            ascend, (theta0, opt.init(theta0)), None, length=config.iterations
+        )
         ld0 = logp(th)
         ld0 = jnp.where(jnp.isfinite(ld0), ld0, -jnp.inf)
         best = th[jnp.argmax(ld0)]
@@ -586,8 +620,13 @@ def _build_program(sim, tree, config: SBCConfig, dim: int):
             ok = jnp.log(jax.random.uniform(kb, lds.shape, xs.dtype)) < ldp - lds
             rate = jnp.mean(ok)
             log_s = log_s + adapt * 0.5 * (rate - 0.25)
-            return (jnp.where(ok[:, None], xp, xs), jnp.where(ok, ldp, lds), chol, log_s,
-                    n_acc + rate), None
+            return (
+                jnp.where(ok[:, None], xp, xs),
+                jnp.where(ok, ldp, lds),
+                chol,
+                log_s,
+                n_acc + rate,
+            ), None
 
         def run(carry, keys, adapt):
             return jax.lax.scan(lambda c, k: mh_step(c, k, adapt), carry, keys)[0]
@@ -596,18 +635,25 @@ def _build_program(sim, tree, config: SBCConfig, dim: int):
             c = jnp.cov(xs.T) + 1e-12 * jnp.eye(dim)
             return jnp.linalg.cholesky(c)
 
-        carry = (x, ld, 0.01 * jnp.eye(dim, dtype=x.dtype), jnp.zeros((), x.dtype),
-                 jnp.zeros(()))
+        carry = (x, ld, 0.01 * jnp.eye(dim, dtype=x.dtype), jnp.zeros((), x.dtype), jnp.zeros(()))
         n_phase = max(1, n_warm // _WARMUP_PHASES)
         for i, kw in enumerate(jax.random.split(k1, _WARMUP_PHASES)):
             if i > 0:
-                carry = (carry[0], carry[1], ensemble_chol(carry[0]),
-                         jnp.asarray(math.log(2.38 / math.sqrt(dim)), x.dtype), carry[4])
+                carry = (
+                    carry[0],
+                    carry[1],
+                    ensemble_chol(carry[0]),
+                    jnp.asarray(math.log(2.38 / math.sqrt(dim)), x.dtype),
+                    carry[4],
+                )
             carry = run(carry, jax.random.split(kw, n_phase), 1.0)
         carry = (carry[0], carry[1], ensemble_chol(carry[0]), carry[3], jnp.zeros(()))
         x, ld, _, log_s, n_acc = run(carry, jax.random.split(k2, n_mh), 0.0)
-        info = {"mh_acceptance": n_acc / max(n_mh, 1), "mode_logdensity": jnp.max(ld0),
-                "mh_log_scale": log_s}
+        info = {
+            "mh_acceptance": n_acc / max(n_mh, 1),
+            "mode_logdensity": jnp.max(ld0),
+            "mh_log_scale": log_s,
+        }
         return x, ld, info
 
     return jax.jit(jax.vmap(one))
@@ -629,7 +675,9 @@ def _simulate_truths(sim, truth, forces, r):
 
 
 def run_tree_sbc(
-    tree, config: SBCConfig, progress: Callable[[int, int], None] | None = None,
+    tree,
+    config: SBCConfig,
+    progress: Callable[[int, int], None] | None = None,
     log: Callable[[str], None] = lambda msg: None,
 ) -> SBCResult:
     """SBC of ``tree``'s posterior under ``config`` (see :class:`SBCConfig`).
@@ -656,13 +704,20 @@ def run_tree_sbc(
     labels = _labels(tree, infer_sigma)
     dim = len(labels)
     truth = draw_truths(tree, config, rng, n)
-    forces = np.stack([profile_set("mixed", config.n_traj, config.duration, config.dt, seed=rng)
-                       for _ in range(n)])
+    forces = np.stack(
+        [
+            profile_set("mixed", config.n_traj, config.duration, config.dt, seed=rng)
+            for _ in range(n)
+        ]
+    )
     # one simulator for all data sets, stable up to the stiffest drawn truth
     kp_max = np.max(np.exp(truth[:, :r]), axis=0)
-    sim = make_simulator(sim_tree(tree, kp_max), obs_dt=config.dt,
-                         max_sim_dt=config.max_sim_dt or DEFAULT_MAX_SIM_DT,
-                         backend=config.backend)
+    sim = make_simulator(
+        sim_tree(tree, kp_max),
+        obs_dt=config.dt,
+        max_sim_dt=config.max_sim_dt or DEFAULT_MAX_SIM_DT,
+        backend=config.backend,
+    )
     t0 = time.perf_counter()
     tau, stable = _simulate_truths(sim, jnp.asarray(truth), jnp.asarray(forces), r)
     tau, stable = np.asarray(tau), np.asarray(stable)
@@ -678,10 +733,11 @@ def run_tree_sbc(
         t2, s2 = _simulate_truths(sim, jnp.asarray(truth[bad]), jnp.asarray(forces[bad]), r)
         tau[bad], stable[bad] = np.asarray(t2), np.asarray(s2)
     if not np.all(stable):
-        raise ConfigError("calibrate: prior draws keep giving unstable simulations; lower "
-                          "--max-sim-dt or narrow the prior box")
-    sigma = (np.exp(truth[:, 2 * r]) if infer_sigma
-             else np.full(n, float(config.noise_displacement)))
+        raise ConfigError(
+            "calibrate: prior draws keep giving unstable simulations; lower "
+            "--max-sim-dt or narrow the prior box"
+        )
+    sigma = np.exp(truth[:, 2 * r]) if infer_sigma else np.full(n, float(config.noise_displacement))
     key = jax.random.key(config.seed)
     unit = _noise.noise_distribution(config.likelihood, 1.0, float(config.student_t_df))
     e = np.asarray(unit.sample(jax.random.fold_in(key, 1), tau.shape))
@@ -689,8 +745,12 @@ def run_tree_sbc(
     forces_rec = _record_forces(forces, config.noise_force, rng)
     test = None
     if config.test_traj:
-        f_test = np.stack([profile_set("mixed", config.test_traj, config.duration, config.dt,
-                                       seed=rng) for _ in range(n)])
+        f_test = np.stack(
+            [
+                profile_set("mixed", config.test_traj, config.duration, config.dt, seed=rng)
+                for _ in range(n)
+            ]
+        )
         tau_t, st_t = _simulate_truths(sim, jnp.asarray(truth), jnp.asarray(f_test), r)
         e_t = np.asarray(unit.sample(jax.random.fold_in(key, 3), tau_t.shape))
         x_test = np.asarray(tau_t) + sigma[:, None, None] * e_t
@@ -715,8 +775,12 @@ def run_tree_sbc(
         m = sl.stop - sl.start
         pad = config.chunk - m  # keep one compiled shape: pad the last chunk by repetition
         idx = np.r_[np.arange(sl.start, sl.stop), np.full(pad, sl.start, int)]
-        out, info = program(keys[idx], jnp.asarray(theta0[idx]), jnp.asarray(forces_rec[idx]),
-                            jnp.asarray(x_obs[idx]))
+        out, info = program(
+            keys[idx],
+            jnp.asarray(theta0[idx]),
+            jnp.asarray(forces_rec[idx]),
+            jnp.asarray(x_obs[idx]),
+        )
         draws[sl] = np.asarray(out)[:m]
         infos.append({k: np.asarray(v)[:m] for k, v in info.items()})
         if t_first is None:
@@ -727,8 +791,10 @@ def run_tree_sbc(
     info = {k: np.concatenate([d[k] for d in infos]) for k in infos[0]}
     bad_draws = ~np.all(np.isfinite(draws), axis=(1, 2))
     if np.any(bad_draws):
-        log(f"warning: {int(bad_draws.sum())} data sets gave non-finite draws; they are ranked "
-            "with their finite draws replaced by the data set's median")
+        log(
+            f"warning: {int(bad_draws.sum())} data sets gave non-finite draws; they are ranked "
+            "with their finite draws replaced by the data set's median"
+        )
         for i in np.flatnonzero(bad_draws):
             med = np.nanmedian(np.where(np.isfinite(draws[i]), draws[i], np.nan), axis=0)
             draws[i] = np.where(np.isfinite(draws[i]), draws[i], med)
@@ -742,13 +808,16 @@ def run_tree_sbc(
             "Adam ascent of P starts (box prior), then P random-walk MH chains from the best "
             "mode; warm-up in phases with the chains' ensemble covariance and a scale tuned to "
             "25% acceptance; draws = final chain states after mh_steps fixed-proposal steps"
-            if config.sampler == "mh" else "final SVGD particles as draws"
+            if config.sampler == "mh"
+            else "final SVGD particles as draws"
         ),
         "n_redrawn_unstable_truths": int(n_redrawn),
         "n_nonfinite_final": int(np.sum(info["n_nonfinite"])),
-        "mh_acceptance_mean": float(np.mean(info["mh_acceptance"])) if config.sampler == "mh"
+        "mh_acceptance_mean": float(np.mean(info["mh_acceptance"]))
+        if config.sampler == "mh"
         else None,
-        "mh_acceptance_min": float(np.min(info["mh_acceptance"])) if config.sampler == "mh"
+        "mh_acceptance_min": float(np.min(info["mh_acceptance"]))
+        if config.sampler == "mh"
         else None,
         "seconds_simulate_data": t_sim,
         "seconds_inference": t_inf,
@@ -800,8 +869,9 @@ def _crb_ratios(sim, truth, draws, forces_rec, labels, config: SBCConfig) -> dic
     rollout = _rollout_fn(sim, r)
 
     def jac_one(th, f):
-        _, j = central_difference_jacobian(lambda t: rollout(t, f)[0], th[None, : 2 * r],
-                                           rel_step=1e-2)
+        _, j = central_difference_jacobian(
+            lambda t: rollout(t, f)[0], th[None, : 2 * r], rel_step=1e-2
+        )
         return j[0]  # [B, T, 2R]
 
     fn = jax.jit(jax.vmap(jac_one))
@@ -811,8 +881,11 @@ def _crb_ratios(sim, truth, draws, forces_rec, labels, config: SBCConfig) -> dic
         sl = slice(start, min(n, start + config.chunk))
         j = np.asarray(fn(jnp.asarray(truth[sl]), jnp.asarray(forces_rec[sl])), float)
         j = j.reshape(j.shape[0], -1, 2 * r)
-        sig = (np.exp(truth[sl, 2 * r]) if config.noise_displacement is None
-               else np.full(j.shape[0], config.noise_displacement))
+        sig = (
+            np.exp(truth[sl, 2 * r])
+            if config.noise_displacement is None
+            else np.full(j.shape[0], config.noise_displacement)
+        )
         for i in range(j.shape[0]):
             fisher = j[i].T @ j[i] / sig[i] ** 2
             crb[sl.start + i, : 2 * r] = np.sqrt(np.diag(np.linalg.pinv(fisher)))
@@ -820,15 +893,22 @@ def _crb_ratios(sim, truth, draws, forces_rec, labels, config: SBCConfig) -> dic
             crb[sl, 2 * r] = 1.0 / math.sqrt(2 * j.shape[1])
     ratio = np.std(draws, axis=1, ddof=1) / crb
     q = np.nanpercentile(ratio, [25, 50, 75], axis=0)
-    return {"crb": {
-        "definition": "posterior std of the log parameter over the draws / Cramer-Rao std at "
-        "the truth (Fisher J^T J / sigma^2, J by central differences on the recorded training "
-        "forces; log sigma_x: 1/sqrt(2n)); quartiles over data sets",
-        "parameters": {lab: {"ratio_q25": float(q[0, k]), "ratio_median": float(q[1, k]),
-                             "ratio_q75": float(q[2, k]),
-                             "crb_log_std_median": float(np.median(crb[:, k]))}
-                       for k, lab in enumerate(labels)},
-    }}
+    return {
+        "crb": {
+            "definition": "posterior std of the log parameter over the draws / Cramer-Rao std at "
+            "the truth (Fisher J^T J / sigma^2, J by central differences on the recorded training "
+            "forces; log sigma_x: 1/sqrt(2n)); quartiles over data sets",
+            "parameters": {
+                lab: {
+                    "ratio_q25": float(q[0, k]),
+                    "ratio_median": float(q[1, k]),
+                    "ratio_q75": float(q[2, k]),
+                    "crb_log_std_median": float(np.median(crb[:, k])),
+                }
+                for k, lab in enumerate(labels)
+            },
+        }
+    }
 
 
 def _predictive_coverage(sim, draws, test, config: SBCConfig, infer_sigma: bool) -> dict:
@@ -855,34 +935,47 @@ def _predictive_coverage(sim, draws, test, config: SBCConfig, infer_sigma: bool)
             valid = np.all(stable[i], axis=-1)
             if valid.sum() < 2 or not np.all(st_truth[d]):
                 continue
-            s = (np.exp(draws[d, :, 2 * r]) if infer_sigma
-                 else float(config.noise_displacement))
+            s = np.exp(draws[d, :, 2 * r]) if infer_sigma else float(config.noise_displacement)
             kind = "student_t" if config.likelihood == "student_t" else "gaussian"
             bands = predictive_bands(tau[i], s, 0.95, valid, kind, float(config.student_t_df))
             x = x_test[d]
-            inside_pred[d] = np.mean((x >= np.asarray(bands.predictive.lower))
-                                     & (x <= np.asarray(bands.predictive.upper)))
-            inside_par[d] = np.mean((x >= np.asarray(bands.parameter.lower))
-                                    & (x <= np.asarray(bands.parameter.upper)))
+            inside_pred[d] = np.mean(
+                (x >= np.asarray(bands.predictive.lower))
+                & (x <= np.asarray(bands.predictive.upper))
+            )
+            inside_par[d] = np.mean(
+                (x >= np.asarray(bands.parameter.lower)) & (x <= np.asarray(bands.parameter.upper))
+            )
 
     def stats(v):
         q = np.nanpercentile(v, [25, 50, 75])
-        return {"mean": float(np.nanmean(v)), "q25": float(q[0]), "median": float(q[1]),
-                "q75": float(q[2]), "n_datasets": int(np.sum(np.isfinite(v)))}
+        return {
+            "mean": float(np.nanmean(v)),
+            "q25": float(q[0]),
+            "median": float(q[1]),
+            "q75": float(q[2]),
+            "n_datasets": int(np.sum(np.isfinite(v))),
+        }
 
-    return {"test_inside_95": {
-        "definition": f"share of the {config.test_traj} noisy unseen test pulls' points inside "
-        "the 95% band per data set; predictive = simulations + fitted noise "
-        "(metrics.predictive_bands), parameter = simulations only",
-        "noise_force_share": config.noise_force,
-        "predictive": stats(inside_pred),
-        "parameter": stats(inside_par),
-    }}
+    return {
+        "test_inside_95": {
+            "definition": f"share of the {config.test_traj} noisy unseen test pulls' points inside "
+            "the 95% band per data set; predictive = simulations + fitted noise "
+            "(metrics.predictive_bands), parameter = simulations only",
+            "noise_force_share": config.noise_force,
+            "predictive": stats(inside_pred),
+            "parameter": stats(inside_par),
+        }
+    }
 
 
 def config_record(tree_path, config: SBCConfig) -> dict:
     """``config.json`` content: every option, the seed and versions."""
     from .runs.provenance import versions
 
-    return {"command": "calibrate", "tree": str(tree_path), "options": asdict(config),
-            "versions": versions(extended=True)}
+    return {
+        "command": "calibrate",
+        "tree": str(tree_path),
+        "options": asdict(config),
+        "versions": versions(extended=True),
+    }

@@ -574,14 +574,13 @@ def find_stragglers(
         if v is not None and not (np.isfinite(v) and v >= 0):
             raise ConfigError(f"find_stragglers: {nm} must be a finite number >= 0, got {v!r}")
     names = _labels(labels, x.shape[1])
-    out = straggler_mask(ld, x, lo, hi, z_max=z_max, min_gap=min_gap,
-                         max_box_excess=max_box_excess)
+    out = straggler_mask(ld, x, lo, hi, z_max=z_max, min_gap=min_gap, max_box_excess=max_box_excess)
     mask, low, nonfin, outside, z, excess = (np.asarray(a) for a in out)
     P = ld.shape[0]
     msgs = []
     bulk = ~mask & np.isfinite(ld)
     if low.any():
-        bulk_txt = (f"{ld[bulk].min():.4g} ... {ld[bulk].max():.4g}" if bulk.any() else "none")
+        bulk_txt = f"{ld[bulk].min():.4g} ... {ld[bulk].max():.4g}" if bulk.any() else "none"
         msgs.append(
             f"{int(low.sum())} of {P} particles are stuck: log density {ld[low].min():.4g} ... "
             f"{ld[low].max():.4g} against {bulk_txt} for the rest (robust z < -{z_max:g}); "
@@ -602,8 +601,15 @@ def find_stragglers(
             "(unstable simulation)"
         )
     return StragglerReport(
-        mask=mask, low_density=low, nonfinite=nonfin, outside_box=outside, robust_z=z,
-        box_excess=excess, n_stragglers=int(mask.sum()), n_particles=P, warnings=msgs,
+        mask=mask,
+        low_density=low,
+        nonfinite=nonfin,
+        outside_box=outside,
+        robust_z=z,
+        box_excess=excess,
+        n_stragglers=int(mask.sum()),
+        n_particles=P,
+        warnings=msgs,
     )
 
 
@@ -668,8 +674,9 @@ class ReinitStragglers(NamedTuple):
 # every coordinate whatever the parameter units.
 
 
-def kernel_stein_discrepancy(theta, grad, *, c: float = 1.0, beta: float = -0.5,
-                             standardise: bool = True):
+def kernel_stein_discrepancy(
+    theta, grad, *, c: float = 1.0, beta: float = -0.5, standardise: bool = True
+):
     """IMQ kernelized Stein discrepancy of particles against the target whose score they carry.
 
     Args:
@@ -764,7 +771,7 @@ class ConvergenceCriterion(NamedTuple):
             w = self.window
             if k.size < 2 * w:
                 return None
-            k0, k1 = np.nanmean(k[-2 * w:-w]), np.nanmean(k[-w:])
+            k0, k1 = np.nanmean(k[-2 * w : -w]), np.nanmean(k[-w:])
             rel = abs(k1 - k0) / max(abs(k0), 1e-12)
             if not rel < self.ksd_rtol:
                 return None
@@ -826,8 +833,14 @@ def _warmup_count(warmup, n: int) -> int:
     return math.floor(w * n)
 
 
-def mcmc_summary(trace_positions, labels: Sequence[str] | None = None, *, warmup=0.5,
-                 thin: int = 1, log_density=None) -> dict:
+def mcmc_summary(
+    trace_positions,
+    labels: Sequence[str] | None = None,
+    *,
+    warmup=0.5,
+    thin: int = 1,
+    log_density=None,
+) -> dict:
     """Post-warm-up draws and their R-hat / ESS, for summary.json / particles.csv / evaluate.
 
     Returns ``{"draws": [N, D] (mcmc_draws), "diagnostics": mcmc_diagnostics(...) on the
@@ -838,8 +851,13 @@ def mcmc_summary(trace_positions, labels: Sequence[str] | None = None, *, warmup
     draws = mcmc_draws(x, warmup, thin)
     k = _warmup_count(warmup, x.shape[0]) if x.ndim == 3 else 0
     diag = mcmc_diagnostics(x, labels, burn_in=k / x.shape[0], log_density=log_density)
-    return {"draws": draws, "diagnostics": diag, "warmup": k, "thin": int(thin),
-            "n_draws": int(draws.shape[0])}
+    return {
+        "draws": draws,
+        "diagnostics": diag,
+        "warmup": k,
+        "thin": int(thin),
+        "n_draws": int(draws.shape[0]),
+    }
 
 
 # --------------------------------------------------------------------------- prior edge
@@ -847,8 +865,9 @@ def mcmc_summary(trace_positions, labels: Sequence[str] | None = None, *, warmup
 MAX_EDGE_SHARE = 0.1  # warn when more than 10% of the particles sit beyond one edge of the box
 
 
-def prior_edge_mass(theta, lower, upper, *, labels: Sequence[str] | None = None,
-                    max_share: float = MAX_EDGE_SHARE) -> dict:
+def prior_edge_mass(
+    theta, lower, upper, *, labels: Sequence[str] | None = None, max_share: float = MAX_EDGE_SHARE
+) -> dict:
     """Posterior mass piling up at (or beyond) a prior-box edge.
 
     The smoothed box prior is flat inside ``[lower, upper]`` and has Gaussian tails outside;

@@ -69,8 +69,15 @@ def noise_for(theta, n_joints: int, settings: dict | None):
 
 
 def predict_run(
-    sim, theta, forces, grasp_fraction=None, particle_ok=None, level: float = LEVEL,
-    noise_sigma=None, noise_kind: str = "gaussian", model=None,
+    sim,
+    theta,
+    forces,
+    grasp_fraction=None,
+    particle_ok=None,
+    level: float = LEVEL,
+    noise_sigma=None,
+    noise_kind: str = "gaussian",
+    model=None,
 ) -> Prediction:
     """Simulate every particle ``theta [P, D]`` under ``forces [B, T]`` and summarise the bands
     (parameter band; predictive band too when ``noise_sigma``, scalar or ``[P]`` m, is given);
@@ -81,8 +88,9 @@ def predict_run(
 
     theta = np.asarray(theta)
     rollout = jax.device_get(
-        predict(sim, theta, np.atleast_2d(np.asarray(forces, np.float32)), grasp_fraction,
-                model=model)
+        predict(
+            sim, theta, np.atleast_2d(np.asarray(forces, np.float32)), grasp_fraction, model=model
+        )
     )
     stable = np.asarray(rollout.stable).all(axis=-1)
     valid = stable & (
@@ -102,8 +110,17 @@ def predict_run(
             for a in noisy_predictive_interval(tau, noise_sigma, level, valid, noise_kind)
         )
     return Prediction(
-        tau, np.asarray(rollout.tau_dot), stable, valid, lower, upper, mean, plo, phi,
-        noise_sigma, noise_kind,
+        tau,
+        np.asarray(rollout.tau_dot),
+        stable,
+        valid,
+        lower,
+        upper,
+        mean,
+        plo,
+        phi,
+        noise_sigma,
+        noise_kind,
     )
 
 
@@ -151,8 +168,14 @@ def evaluate_trajectories(
             "resample them to the run's step"
         )
     pred = predict_run(
-        sim, theta, obs.force, grasp_fraction, particle_ok, noise_sigma=noise_sigma,
-        noise_kind=noise_kind, model=model,
+        sim,
+        theta,
+        obs.force,
+        grasp_fraction,
+        particle_ok,
+        noise_sigma=noise_sigma,
+        noise_kind=noise_kind,
+        model=model,
     )
     ll = _per_trajectory_loglik(pred, obs, kT)
     n_gains = 2 * sim.n_joints if model is None else model.layout.dim  # noise: no true value
@@ -198,8 +221,13 @@ def _training_fit(problem, posterior, config) -> dict:
     rollout_pred = None
     try:
         rollout_pred = predict_run(
-            sim, posterior.theta, problem.obs.force, config["options"]["grasp_fraction"], pred_ok,
-            noise_sigma=sigma, noise_kind=kind,
+            sim,
+            posterior.theta,
+            problem.obs.force,
+            config["options"]["grasp_fraction"],
+            pred_ok,
+            noise_sigma=sigma,
+            noise_kind=kind,
             model=getattr(problem, "model", None),
         )
     except SimulationError:

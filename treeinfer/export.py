@@ -42,7 +42,11 @@ def to_mjcf(tree: Tree, timestep: float = 0.002, integrator: str = "implicitfast
     root = ET.Element("mujoco", model=tree.name)
     ET.SubElement(root, "compiler", angle="radian", autolimits="true")
     opt = ET.SubElement(
-        root, "option", timestep=f"{timestep:.10g}", integrator=integrator, gravity=_fmt(tree.gravity)
+        root,
+        "option",
+        timestep=f"{timestep:.10g}",
+        integrator=integrator,
+        gravity=_fmt(tree.gravity),
     )
     # A contact-free articulated chain: skip collision detection and the constraint solver.
     ET.SubElement(opt, "flag", contact="disable", constraint="disable")
@@ -51,25 +55,57 @@ def to_mjcf(tree: Tree, timestep: float = 0.002, integrator: str = "implicitfast
     for b in tree.branches:
         parent_el = world if b.parent is None else bodies[b.parent]
         if b.parent is None:
-            pos, rot = np.asarray(tree.base_position, float), base_rotation(tree) @ local_rotation(b)
+            pos, rot = (
+                np.asarray(tree.base_position, float),
+                base_rotation(tree) @ local_rotation(b),
+            )
         else:
             pos, rot = local_offset(tree, b), local_rotation(b)
-        body = ET.SubElement(parent_el, "body", name=b.name, pos=_fmt(pos), quat=_fmt(quat_from_matrix(rot)))
+        body = ET.SubElement(
+            parent_el, "body", name=b.name, pos=_fmt(pos), quat=_fmt(quat_from_matrix(rot))
+        )
         bodies[b.name] = body
         if not b.fixed:
             kp, kd = tree.fixed_gains(b.name)
             ET.SubElement(
-                body, "joint", name=b.name, type="hinge", axis="0 1 0", pos="0 0 0",
-                stiffness=f"{kp:.10g}", damping=f"{kd:.10g}", springref="0",
+                body,
+                "joint",
+                name=b.name,
+                type="hinge",
+                axis="0 1 0",
+                pos="0 0 0",
+                stiffness=f"{kp:.10g}",
+                damping=f"{kd:.10g}",
+                springref="0",
             )
         mass, inertia = cylinder_inertia(b, branch_density(tree, b))
-        ET.SubElement(body, "inertial", pos=_fmt([b.length / 2, 0, 0]), mass=f"{mass:.10g}", diaginertia=_fmt(inertia))
         ET.SubElement(
-            body, "geom", name=f"{b.name}_geom", type="cylinder", fromto=_fmt([0, 0, 0, b.length, 0, 0]),
-            size=f"{b.radius:.10g}", contype="0", conaffinity="0", mass="0", rgba=_WOOD_RGBA,
+            body,
+            "inertial",
+            pos=_fmt([b.length / 2, 0, 0]),
+            mass=f"{mass:.10g}",
+            diaginertia=_fmt(inertia),
+        )
+        ET.SubElement(
+            body,
+            "geom",
+            name=f"{b.name}_geom",
+            type="cylinder",
+            fromto=_fmt([0, 0, 0, b.length, 0, 0]),
+            size=f"{b.radius:.10g}",
+            contype="0",
+            conaffinity="0",
+            mass="0",
+            rgba=_WOOD_RGBA,
         )
         if b.name == tree.grasp_branch:
-            ET.SubElement(body, "site", name=GRASP_SITE, pos=_fmt([tree.grasp_fraction * b.length, 0, 0]), size="0.01")
+            ET.SubElement(
+                body,
+                "site",
+                name=GRASP_SITE,
+                pos=_fmt([tree.grasp_fraction * b.length, 0, 0]),
+                size="0.01",
+            )
     ET.indent(root)
     return ET.tostring(root, encoding="unicode")
 

@@ -128,7 +128,9 @@ def piecewise_linear(
     if not (np.all(np.isfinite(xp)) and np.all(np.isfinite(fp))):
         raise ConfigError("piecewise_linear: knots must be finite")
     if np.any(np.diff(xp) <= 0):
-        raise ConfigError(f"piecewise_linear: knot times must be strictly increasing, got {xp.tolist()}")
+        raise ConfigError(
+            f"piecewise_linear: knot times must be strictly increasing, got {xp.tolist()}"
+        )
     return np.interp(sample_times(duration, dt), xp, fp)
 
 
@@ -143,7 +145,9 @@ def _check_start(start: float, duration: float, where: str) -> float:
 
 
 # ---- shapes ---------------------------------------------------------------------------------
-def ramp(peak: float, ramp_time: float, duration: float, dt: float, start: float = 0.0) -> np.ndarray:
+def ramp(
+    peak: float, ramp_time: float, duration: float, dt: float, start: float = 0.0
+) -> np.ndarray:
     """[T] N: 0 until ``start``, linear rise to ``peak`` (N) at ``start + ramp_time`` (s), then
     ``peak`` to the end."""
     where = "ramp"
@@ -182,13 +186,20 @@ def ramp_hold(
 
 
 def ramp_release(
-    peak: float, ramp_time: float, release_time: float, duration: float, dt: float, start: float = 0.0
+    peak: float,
+    ramp_time: float,
+    release_time: float,
+    duration: float,
+    dt: float,
+    start: float = 0.0,
 ) -> np.ndarray:
     """[T] N: a triangle, :func:`ramp_hold` with ``hold_time = 0``."""
     return ramp_hold(peak, ramp_time, 0.0, release_time, duration, dt, start)
 
 
-def smooth_step(peak: float, rise_time: float, duration: float, dt: float, start: float = 0.0) -> np.ndarray:
+def smooth_step(
+    peak: float, rise_time: float, duration: float, dt: float, start: float = 0.0
+) -> np.ndarray:
     """[T] N: ``peak * (3 s^2 - 2 s^3)`` with ``s = clip((t - start) / rise_time, 0, 1)``: a rise
     from 0 to ``peak`` over ``rise_time`` s with zero slope at both ends, then held."""
     where = "smooth_step"
@@ -232,7 +243,8 @@ class ProfileSpec(NamedTuple):
 
 def _spec_help() -> str:
     return "; ".join(
-        f"{k}:" + ",".join(f"{p}=..." for p in keys if p not in _OPTIONAL_KEYS)
+        f"{k}:"
+        + ",".join(f"{p}=..." for p in keys if p not in _OPTIONAL_KEYS)
         + "".join(f"[,{p}=...]" for p in keys if p in _OPTIONAL_KEYS)
         for k, keys in SPEC_KEYS.items()
     )
@@ -246,7 +258,9 @@ def parse_spec(spec: str) -> ProfileSpec:
         value that is not a number; the message quotes the spec and names the key.
     """
     if not isinstance(spec, str) or not spec.strip():
-        raise ConfigError(f"force profile spec: expected 'kind:key=value,...', got {spec!r}; forms: {_spec_help()}")
+        raise ConfigError(
+            f"force profile spec: expected 'kind:key=value,...', got {spec!r}; forms: {_spec_help()}"
+        )
     text = spec.strip()
     kind, sep, rest = text.partition(":")
     kind = kind.strip().lower()
@@ -261,7 +275,9 @@ def parse_spec(spec: str) -> ProfileSpec:
         key, eq, value = item.partition("=")
         key = key.strip().lower()
         if not eq or not key:
-            raise ConfigError(f"force profile spec {spec!r}: expected key=value, got {item.strip()!r}")
+            raise ConfigError(
+                f"force profile spec {spec!r}: expected key=value, got {item.strip()!r}"
+            )
         if key not in allowed:
             raise ConfigError(
                 f"force profile spec {spec!r}: unknown key '{key}' for kind '{kind}'; "
@@ -276,13 +292,17 @@ def parse_spec(spec: str) -> ProfileSpec:
                 f"force profile spec {spec!r}: key '{key}' must be a number, got {value.strip()!r}"
             ) from None
         if not math.isfinite(v):
-            raise ConfigError(f"force profile spec {spec!r}: key '{key}' must be finite, got {value.strip()!r}")
+            raise ConfigError(
+                f"force profile spec {spec!r}: key '{key}' must be finite, got {value.strip()!r}"
+            )
         params[key] = v
     missing = [k for k in allowed if k not in params and k not in _OPTIONAL_KEYS]
     if missing:
         raise ConfigError(
             f"force profile spec {spec!r}: missing key(s) {', '.join(missing)} for kind '{kind}' "
-            f"(form: {kind}:" + ",".join(f"{k}=..." for k in allowed if k not in _OPTIONAL_KEYS) + ")"
+            f"(form: {kind}:"
+            + ",".join(f"{k}=..." for k in allowed if k not in _OPTIONAL_KEYS)
+            + ")"
         )
     return ProfileSpec(kind, params)
 
@@ -291,11 +311,17 @@ def format_spec(kind: str, **params: float) -> str:
     """The spec string of ``kind`` with ``params`` (spec keys); ``parse_spec`` reads it back
     exactly (values are written with ``repr``)."""
     if kind not in SPEC_KEYS:
-        raise ConfigError(f"force profile: unknown kind '{kind}'; choose one of {sorted(SPEC_KEYS)}")
+        raise ConfigError(
+            f"force profile: unknown kind '{kind}'; choose one of {sorted(SPEC_KEYS)}"
+        )
     bad = sorted(set(params) - set(SPEC_KEYS[kind]))
     if bad:
-        raise ConfigError(f"force profile '{kind}': unknown key(s) {bad}; allowed: {list(SPEC_KEYS[kind])}")
-    return f"{kind}:" + ",".join(f"{k}={float(params[k])!r}" for k in SPEC_KEYS[kind] if k in params)
+        raise ConfigError(
+            f"force profile '{kind}': unknown key(s) {bad}; allowed: {list(SPEC_KEYS[kind])}"
+        )
+    return f"{kind}:" + ",".join(
+        f"{k}={float(params[k])!r}" for k in SPEC_KEYS[kind] if k in params
+    )
 
 
 def from_spec(spec: str | ProfileSpec, duration: float, dt: float) -> np.ndarray:
@@ -333,7 +359,9 @@ def _check_peak_range(peak_range) -> tuple[float, float]:
     try:
         lo, hi = (float(v) for v in peak_range)
     except (TypeError, ValueError):
-        raise ConfigError(f"peak_range: expected two numbers (low, high) in N, got {peak_range!r}") from None
+        raise ConfigError(
+            f"peak_range: expected two numbers (low, high) in N, got {peak_range!r}"
+        ) from None
     if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
         raise ConfigError(f"peak_range: expected finite low <= high in N, got ({lo:g}, {hi:g})")
     return lo, hi
@@ -379,4 +407,6 @@ def profile_set(
     seed: int | np.random.Generator | None = 0,
 ) -> np.ndarray:
     """[n, T] N: the profiles of :func:`random_specs` (same arguments) sampled every ``dt`` s."""
-    return np.stack([from_spec(s, duration, dt) for s in random_specs(kind, n, duration, peak_range, seed)])
+    return np.stack(
+        [from_spec(s, duration, dt) for s in random_specs(kind, n, duration, peak_range, seed)]
+    )

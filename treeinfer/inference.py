@@ -84,13 +84,17 @@ class Problem:
         """The sampler ``name`` (see :data:`treeinfer.samplers.REGISTRY`) wired to this target,
         with the registry's default options updated by ``options``."""
         return _samplers.build_sampler(
-            name, value_and_grad_fn=self.value_and_grad, logdensity_fn=self.log_density,
-            box_width=self.upper - self.lower, **options,
+            name,
+            value_and_grad_fn=self.value_and_grad,
+            logdensity_fn=self.log_density,
+            box_width=self.upper - self.lower,
+            **options,
         )
 
 
-def box_prior(tree: Tree, prior_sigma: float = DEFAULT_PRIOR_SIGMA, prior_space: str = "log",
-              layout=None):
+def box_prior(
+    tree: Tree, prior_sigma: float = DEFAULT_PRIOR_SIGMA, prior_space: str = "log", layout=None
+):
     """Smoothed box over the inferred joints' gains as a theta-space log-density (``layout``:
     a :class:`treeinfer.static.ParameterLayout`, for stiffness only)."""
     lo, hi = tree.bounds_array()
@@ -106,8 +110,14 @@ def box_prior(tree: Tree, prior_sigma: float = DEFAULT_PRIOR_SIGMA, prior_space:
     raise ConfigError(f"prior_space: expected 'log' or 'linear', got {prior_space!r}")
 
 
-def nn_inequality_prior(tree: Tree, eta: float = DEFAULT_ETA, form: str = "linear", seed: int = 0, cache_dir=None,
-                        kinds: Sequence[str] = ("Kp", "Kd")):
+def nn_inequality_prior(
+    tree: Tree,
+    eta: float = DEFAULT_ETA,
+    form: str = "linear",
+    seed: int = 0,
+    cache_dir=None,
+    kinds: Sequence[str] = ("Kp", "Kd"),
+):
     """The learned inequality prior on every inferred parent-child pair, for Kp and for Kd.
 
     One network per gain kind (their log ranges differ), trained over that kind's log box
@@ -123,7 +133,9 @@ def nn_inequality_prior(tree: Tree, eta: float = DEFAULT_ETA, form: str = "linea
             continue
         a, b = float(lo[cols].min()), float(hi[cols].max())
         pad = 0.5 * (b - a)  # cover the smoothed box's tails too
-        net = load_or_train_inequality_network(a - pad, b + pad, eta=eta, form=form, seed=seed, cache_dir=cache_dir)
+        net = load_or_train_inequality_network(
+            a - pad, b + pad, eta=eta, form=form, seed=seed, cache_dir=cache_dir
+        )
         off = 0 if kind == "Kp" else r
         terms.append(inequality_prior(net, [(p + off, c + off) for p, c in pairs]))
     return combine(*terms)
@@ -189,13 +201,28 @@ def make_problem(
         raise ConfigError(f"gradient: expected one of {', '.join(GRADIENTS)}, got {gradient!r}")
     if not (isinstance(prior_sigma, (int, float)) and prior_sigma > 0):
         raise ConfigError(f"prior_sigma: must be positive, got {prior_sigma!r}")
-    obs = trajectories if isinstance(trajectories, Observations) else stack_trajectories(list(trajectories))
+    obs = (
+        trajectories
+        if isinstance(trajectories, Observations)
+        else stack_trajectories(list(trajectories))
+    )
     if sim is None:  # the step accuracy-controlled on the training forces (sim_tolerance, m)
         kwargs = {} if max_sim_dt is None else {"max_sim_dt": max_sim_dt}
         if substeps is None:
-            kwargs.update(forces=np.asarray(obs.force), sim_tolerance=sim_tolerance, grasp_fraction=grasp_fraction)
-        sim = make_simulator(tree, obs_dt=float(obs.dt), substeps=substeps, model_file=model_file, backend=backend,
-                             force_interp=force_interp, **kwargs)
+            kwargs.update(
+                forces=np.asarray(obs.force),
+                sim_tolerance=sim_tolerance,
+                grasp_fraction=grasp_fraction,
+            )
+        sim = make_simulator(
+            tree,
+            obs_dt=float(obs.dt),
+            substeps=substeps,
+            model_file=model_file,
+            backend=backend,
+            force_interp=force_interp,
+            **kwargs,
+        )
     from .static import model_for
 
     model = model_for(tree, model_kind, direction, grasp_branch)
@@ -210,8 +237,14 @@ def make_problem(
             f"parameters {list(layout.parameters)}; use likelihood 'boltzmann' (the default)"
         )
     terms = likelihood_terms(
-        sim, obs, likelihood, kT=kT, sigma_x=noise_displacement, grasp_fraction=grasp_fraction,
-        gradient="autodiff" if gradient == "jvp" else gradient, rel_step=rel_step,
+        sim,
+        obs,
+        likelihood,
+        kT=kT,
+        sigma_x=noise_displacement,
+        grasp_fraction=grasp_fraction,
+        gradient="autodiff" if gradient == "jvp" else gradient,
+        rel_step=rel_step,
     )
     if model is None:
         loglik = terms.log_likelihood
@@ -243,28 +276,58 @@ def make_problem(
     # the paper's mode (Boltzmann, fixed kT, no noise given) records exactly what it did before
     # issue 11, so older interrupted runs still resume with identical settings
     paper_mode = terms.black_box and not terms.settings.get("kT_auto") and terms.sigma_x is None
-    settings = {**({} if paper_mode else terms.settings), **dict(
-        kT=kT, nn_prior=bool(nn is not None), eta=eta, prior_sigma=prior_sigma, prior_space=prior_space,
-        gradient=gradient, rel_step=rel_step, backend=sim.backend, substeps=sim.substeps, sim_dt=sim.sim_dt, obs_dt=sim.obs_dt,
-        force_interp=sim.force_interp, sim_step=dict(sim.step_info),
-        grasp_fraction=grasp_fraction if grasp_fraction is not None else tree.grasp_fraction,
-        n_trajectories=int(obs.force.shape[0]), n_steps=int(obs.force.shape[1]), nn_seed=nn_seed,
-    )}
+    settings = {
+        **({} if paper_mode else terms.settings),
+        **dict(
+            kT=kT,
+            nn_prior=bool(nn is not None),
+            eta=eta,
+            prior_sigma=prior_sigma,
+            prior_space=prior_space,
+            gradient=gradient,
+            rel_step=rel_step,
+            backend=sim.backend,
+            substeps=sim.substeps,
+            sim_dt=sim.sim_dt,
+            obs_dt=sim.obs_dt,
+            force_interp=sim.force_interp,
+            sim_step=dict(sim.step_info),
+            grasp_fraction=grasp_fraction if grasp_fraction is not None else tree.grasp_fraction,
+            n_trajectories=int(obs.force.shape[0]),
+            n_steps=int(obs.force.shape[1]),
+            nn_seed=nn_seed,
+        ),
+    }
     if model is not None:  # recorded only when not the default (older runs' settings unchanged)
         settings["model_kind"] = model.kind
         settings["parameters"] = list(layout.parameters)
         if not layout.infers_damping:
             settings["fixed_kd"] = [float(v) for v in layout.fixed_kd]
-        labels, lower, upper = tuple(layout.labels), np.asarray(layout.lower), np.asarray(layout.upper)
+        labels, lower, upper = (
+            tuple(layout.labels),
+            np.asarray(layout.lower),
+            np.asarray(layout.upper),
+        )
     else:
         labels = tuple(tree.parameter_labels()) + terms.extra_labels
         lower = np.concatenate([np.log(lo), terms.extra_lower])
         upper = np.concatenate([np.log(hi), terms.extra_upper])
     return Problem(
-        tree=tree, sim=sim, obs=obs, kT=kT, labels=labels, lower=lower, upper=upper,
-        log_likelihood=loglik, log_prior=log_prior,
-        value_and_grad=value_and_grad, log_density=combine(loglik, log_prior), nn_prior=nn is not None,
-        settings=settings, noise=terms, model=model,
+        tree=tree,
+        sim=sim,
+        obs=obs,
+        kT=kT,
+        labels=labels,
+        lower=lower,
+        upper=upper,
+        log_likelihood=loglik,
+        log_prior=log_prior,
+        value_and_grad=value_and_grad,
+        log_density=combine(loglik, log_prior),
+        nn_prior=nn is not None,
+        settings=settings,
+        noise=terms,
+        model=model,
     )
 
 
@@ -277,11 +340,15 @@ def _model_log_likelihood(sim: Simulator, model, obs: Observations, kT: float, g
     from .static import model_rollout
 
     if not math.isclose(float(obs.dt), sim.obs_dt, rel_tol=1e-6):
-        raise ConfigError(f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s")
+        raise ConfigError(
+            f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s"
+        )
     forces = jnp.asarray(obs.force)
 
     def loglik(theta: jax.Array) -> jax.Array:
-        return log_likelihood_from_rollout(model_rollout(sim, model, theta, forces, grasp_fraction), obs, kT)
+        return log_likelihood_from_rollout(
+            model_rollout(sim, model, theta, forces, grasp_fraction), obs, kT
+        )
 
     return loglik
 
@@ -359,17 +426,32 @@ def infer(
     if spec.nn_prior and not problem.nn_prior and problem.tree.inferred_pairs():
         raise ConfigError(f"sampler '{name}' needs a problem built with nn_prior=True")
     algorithm = problem.sampler(name, **sampler_options)
-    theta0 = initial_particles(problem, n_particles, seed) if initial_theta is None else jnp.asarray(initial_theta)
+    theta0 = (
+        initial_particles(problem, n_particles, seed)
+        if initial_theta is None
+        else jnp.asarray(initial_theta)
+    )
     result = _samplers.run(
-        algorithm, jax.random.key(int(seed)), theta0, n_iterations, progress=progress, callback=callback,
-        callback_every=callback_every, initial_state=initial_state, start_iteration=start_iteration,
-        trace_every=trace_every, stop_when=stop_when, reinit_stragglers=reinit_stragglers,
+        algorithm,
+        jax.random.key(int(seed)),
+        theta0,
+        n_iterations,
+        progress=progress,
+        callback=callback,
+        callback_every=callback_every,
+        initial_state=initial_state,
+        start_iteration=start_iteration,
+        trace_every=trace_every,
+        stop_when=stop_when,
+        reinit_stragglers=reinit_stragglers,
     )
     theta = np.asarray(result.final_positions)
     # every sampler state carries log p at its positions: no extra (compiled) evaluation
     logp = np.asarray(result.final_state.logdensity)
     kp, kd = (
-        gains_from_theta(theta, problem.sim.n_joints) if problem.model is None else problem.model.layout.gains(theta)
+        gains_from_theta(theta, problem.sim.n_joints)
+        if problem.model is None
+        else problem.model.layout.gains(theta)
     )
     settings = {
         "problem": problem.settings,

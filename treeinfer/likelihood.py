@@ -69,7 +69,9 @@ def theta_from_gains(kp, kd) -> np.ndarray:
     """Inverse of :func:`gains_from_theta` (numpy, for configs and true parameters)."""
     kp, kd = np.asarray(kp, float), np.asarray(kd, float)
     if np.any(~np.isfinite(kp)) or np.any(~np.isfinite(kd)) or np.any(kp <= 0) or np.any(kd <= 0):
-        raise ConfigError(f"Kp and Kd must be finite and positive, got Kp={kp.tolist()}, Kd={kd.tolist()}")
+        raise ConfigError(
+            f"Kp and Kd must be finite and positive, got Kp={kp.tolist()}, Kd={kd.tolist()}"
+        )
     return np.concatenate([np.log(kp), np.log(kd)], axis=-1)
 
 
@@ -89,7 +91,9 @@ def log_likelihood_from_rollout(rollout: Rollout, obs: Observations, kT: float) 
     return jnp.where(jnp.all(rollout.stable, axis=-1), ll, -jnp.inf)
 
 
-def boltzmann_log_likelihood(sim: Simulator, obs: Observations, kT: float = DEFAULT_KT, grasp_fraction=None):
+def boltzmann_log_likelihood(
+    sim: Simulator, obs: Observations, kT: float = DEFAULT_KT, grasp_fraction=None
+):
     """Batched log-likelihood ``theta [N, 2R] -> [N]``: one simulator call for all N rows.
 
     Args:
@@ -100,7 +104,9 @@ def boltzmann_log_likelihood(sim: Simulator, obs: Observations, kT: float = DEFA
     """
     check_kT(kT)
     if not math.isclose(float(obs.dt), sim.obs_dt, rel_tol=1e-6):
-        raise ConfigError(f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s")
+        raise ConfigError(
+            f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s"
+        )
     forces = jnp.asarray(obs.force)
 
     def loglik(theta: jax.Array) -> jax.Array:
@@ -420,15 +426,25 @@ def likelihood_terms(
         else:
             kT_value, extra = check_kT(kT), {}
             # the paper's mode: no noise model unless one is given (then predictive bands use it)
-            est = None if sigma_x is None else noise.check_sigma(
-                sigma_x, "noise_displacement", noise.displacement_range(obs)
+            est = (
+                None
+                if sigma_x is None
+                else noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
             )
             desc = f"Boltzmann likelihood, kT = {kT_value:g} (fixed)"
         loglik = boltzmann_log_likelihood(sim, obs, kT_value, grasp_fraction)
-        vg = (central_difference(loglik, rel_step=rel_step) if gradient == "fd"
-              else autodiff_value_and_grad(loglik))
-        settings = {"likelihood": "boltzmann", "kT": kT_value, "kT_auto": isinstance(kT, str),
-                    "noise_displacement": est, **extra}
+        vg = (
+            central_difference(loglik, rel_step=rel_step)
+            if gradient == "fd"
+            else autodiff_value_and_grad(loglik)
+        )
+        settings = {
+            "likelihood": "boltzmann",
+            "kT": kT_value,
+            "kT_auto": isinstance(kT, str),
+            "noise_displacement": est,
+            **extra,
+        }
         return LikelihoodTerms(loglik, vg, (), empty, empty, None, kT_value, est, settings, desc)
 
     df = noise.check_df(df)
@@ -436,11 +452,17 @@ def likelihood_terms(
         sim, obs, kind, sigma_x, sigma_v, df, grasp_fraction, rel_step, black_box=gradient == "fd"
     )
     vg = autodiff_value_and_grad(loglik)
-    names = {"gaussian": "Gaussian", "student_t": f"Student-t (df = {df:g})",
-             "ar1": "white + AR(1)"}
+    names = {
+        "gaussian": "Gaussian",
+        "student_t": f"Student-t (df = {df:g})",
+        "ar1": "white + AR(1)",
+    }
     vel = f", velocity noise {sigma_v:g} m/s" if sigma_v is not None else ", velocity term off"
-    settings = {"likelihood": kind, "noise_velocity": sigma_v,
-                "student_t_df": df if kind == "student_t" else None}
+    settings = {
+        "likelihood": kind,
+        "noise_velocity": sigma_v,
+        "student_t_df": df if kind == "student_t" else None,
+    }
     if not (math.isfinite(float(sigma_prior_scale)) and sigma_prior_scale > 0):
         raise ConfigError(
             f"sigma_prior_scale: must be a finite positive number, got {sigma_prior_scale!r}"
@@ -457,8 +479,10 @@ def likelihood_terms(
         est = noise.estimate_displacement_noise(obs)
         sx = None
         settings.update(noise_displacement=None, noise_inferred=True, noise_estimate=est.sigma)
-        desc = (f"{names[kind]} displacement noise, sigma_x inferred (prior log sigma_x ~ "
-                f"Normal(log sigma_hat, {sigma_prior_scale:g}); {est.describe()}){vel}")
+        desc = (
+            f"{names[kind]} displacement noise, sigma_x inferred (prior log sigma_x ~ "
+            f"Normal(log sigma_hat, {sigma_prior_scale:g}); {est.describe()}){vel}"
+        )
     sigma_prior = noise.log_sigma_prior(est.sigma, sigma_prior_scale)
     rho_prior = dist.Normal(noise.RHO_PRIOR_LOC, noise.RHO_PRIOR_SCALE)
     col = 2 * sim.n_joints
@@ -479,16 +503,28 @@ def likelihood_terms(
         return sum(f(theta[:, j]) for j, f in priors)
 
     settings["noise_prior"] = {
-        lab: (f"logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, {noise.RHO_PRIOR_SCALE:g})"
-              if lab == "rho"
-              else f"log {lab} ~ Normal(log {est.sigma:.4g}, {sigma_prior_scale:g})")
+        lab: (
+            f"logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, {noise.RHO_PRIOR_SCALE:g})"
+            if lab == "rho"
+            else f"log {lab} ~ Normal(log {est.sigma:.4g}, {sigma_prior_scale:g})"
+        )
         for lab in labels
     }
     if kind == "ar1":
-        desc += (f"; AR(1) component sigma_c, rho inferred (log sigma_c ~ Normal(log sigma_hat, "
-                 f"{sigma_prior_scale:g}), logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, "
-                 f"{noise.RHO_PRIOR_SCALE:g}))")
+        desc += (
+            f"; AR(1) component sigma_c, rho inferred (log sigma_c ~ Normal(log sigma_hat, "
+            f"{sigma_prior_scale:g}), logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, "
+            f"{noise.RHO_PRIOR_SCALE:g}))"
+        )
     return LikelihoodTerms(
-        loglik, vg, labels, np.array(lower), np.array(upper), extra_log_prior, None, sx,
-        settings, desc,
+        loglik,
+        vg,
+        labels,
+        np.array(lower),
+        np.array(upper),
+        extra_log_prior,
+        None,
+        sx,
+        settings,
+        desc,
     )

@@ -152,8 +152,9 @@ def gaussian_residuals(sim, obs, sigma: float | None = None, grasp_fraction=None
     """Gaussian displacement noise: ``r = (tau_sim - tau_obs) / sigma`` ([B, T], masked) for a
     known ``sigma`` (m), or with ``sigma=None`` the raw differences and ``log sigma`` fitted as
     an extra last column of theta (``kind="gaussian_log_sigma"``)."""
-    if sigma is not None and not (isinstance(sigma, (int, float)) and math.isfinite(sigma)
-                                  and sigma > 0):
+    if sigma is not None and not (
+        isinstance(sigma, (int, float)) and math.isfinite(sigma) and sigma > 0
+    ):
         raise ConfigError(f"sigma: must be a positive number of metres, got {sigma!r}")
     rollout = _rollout_one(sim, obs, grasp_fraction)
     mask = np.asarray(obs.mask, float)
@@ -168,14 +169,19 @@ def gaussian_residuals(sim, obs, sigma: float | None = None, grasp_fraction=None
     if sigma is not None:
         return ResidualModel(residuals, "gaussian")
     spread = float(np.std(disp[mask > 0])) if mask.any() else 1.0
-    return ResidualModel(residuals, "gaussian_log_sigma", n_obs=int(mask.sum()),
-                         log_sigma_guess=math.log(max(0.05 * spread, 1e-6)))
+    return ResidualModel(
+        residuals,
+        "gaussian_log_sigma",
+        n_obs=int(mask.sum()),
+        log_sigma_guess=math.log(max(0.05 * spread, 1e-6)),
+    )
 
 
 # ---- value, gradient and Gauss-Newton curvature --------------------------------------------
 def _jacobian(residual_fn, theta, method: str, rel_step: float | None):
     """(r [G, K], ok, J [G, K, D]) at ``theta [D]``."""
     if method == "jvp":
+
         def with_aux(th):
             r, ok = residual_fn(th)
             return r, (r, ok)
@@ -285,8 +291,9 @@ def fit_map(
     if jacobian not in ("jvp", "fd"):
         raise ConfigError(f"jacobian: expected 'jvp' or 'fd', got {jacobian!r}")
     if model.kind not in KINDS:
-        raise ConfigError(f"residual model kind: expected one of {', '.join(KINDS)}, got "
-                          f"{model.kind!r}")
+        raise ConfigError(
+            f"residual model kind: expected one of {', '.join(KINDS)}, got {model.kind!r}"
+        )
     lower, upper = np.asarray(lower, float), np.asarray(upper, float)
     if lower.shape != upper.shape or lower.ndim != 1 or np.any(~(upper > lower)):
         raise ConfigError("lower/upper: need two [D] arrays with upper > lower")
@@ -300,8 +307,7 @@ def fit_map(
     if model.kind == "gaussian_log_sigma":
         starts = np.concatenate([starts, np.full((len(starts), 1), model.log_sigma_guess)], 1)
     dtype = jnp.asarray(0.0).dtype
-    terms = jax.jit(jax.vmap(
-        lambda th: _terms_one(model, log_prior, jacobian, rel_step, th)))
+    terms = jax.jit(jax.vmap(lambda th: _terms_one(model, log_prior, jacobian, rel_step, th)))
 
     def evaluate(theta):
         f, g, h = terms(jnp.asarray(theta, dtype))
@@ -332,7 +338,11 @@ def fit_map(
         small = np.max(np.abs(steps), axis=1) < tolerance
         flat = accept & ((f - ft) < tolerance * (1.0 + np.abs(f)))
         theta[accept], f[accept], g[accept], h[accept] = (
-            trial[accept], ft[accept], gt[accept], ht[accept])
+            trial[accept],
+            ft[accept],
+            gt[accept],
+            ht[accept],
+        )
         lam = np.where(accept, np.maximum(lam / 3.0, 1e-9), lam * 4.0)
         newly = ~done & (flat | small)
         converged |= newly
@@ -343,14 +353,36 @@ def fit_map(
     if not np.isfinite(f[best]):
         from .errors import SimulationError
 
-        raise SimulationError("fit_map: every starting point gave an unstable simulation; narrow "
-                              "the prior box or check the data's units")
+        raise SimulationError(
+            "fit_map: every starting point gave an unstable simulation; narrow "
+            "the prior box or check the data's units"
+        )
     hess = 0.5 * (h[best] + h[best].T)
     cov = _inverse_psd(hess)
-    settings = {"n_starts": len(starts), "seed": seed, "jacobian": jacobian, "kind": model.kind,
-                "max_iterations": max_iterations, "tolerance": tolerance, "max_step": max_step}
-    return MapFit(theta[best].copy(), cov, hess, float(f[best]), starts, theta, f, converged,
-                  iterations, lower, upper, lower.size, settings)
+    settings = {
+        "n_starts": len(starts),
+        "seed": seed,
+        "jacobian": jacobian,
+        "kind": model.kind,
+        "max_iterations": max_iterations,
+        "tolerance": tolerance,
+        "max_step": max_step,
+    }
+    return MapFit(
+        theta[best].copy(),
+        cov,
+        hess,
+        float(f[best]),
+        starts,
+        theta,
+        f,
+        converged,
+        iterations,
+        lower,
+        upper,
+        lower.size,
+        settings,
+    )
 
 
 def _inverse_psd(h: np.ndarray) -> np.ndarray:
@@ -361,8 +393,9 @@ def _inverse_psd(h: np.ndarray) -> np.ndarray:
     return (v / np.maximum(w, floor)) @ v.T
 
 
-def laplace_particles(key, fit: MapFit, n: int, scale: float = 1.0,
-                      box_precision: bool = True) -> jax.Array:
+def laplace_particles(
+    key, fit: MapFit, n: int, scale: float = 1.0, box_precision: bool = True
+) -> jax.Array:
     """``[n, D]`` draws of the Laplace approximation ``N(fit.theta, scale^2 cov)``.
 
     ``box_precision=True`` adds the precision ``12 / width^2`` of the uniform over the prior box
@@ -385,8 +418,9 @@ def laplace_particles(key, fit: MapFit, n: int, scale: float = 1.0,
 
 
 # ---- treeinfer problems ------------------------------------------------------------------------
-def fit_problem(problem, likelihood: str = "boltzmann", sigma: float | None = None, **options
-                ) -> MapFit:
+def fit_problem(
+    problem, likelihood: str = "boltzmann", sigma: float | None = None, **options
+) -> MapFit:
     """:func:`fit_map` on a :class:`treeinfer.inference.Problem`: its simulator, data, kT, prior
     and box. ``likelihood="gaussian"`` uses displacement noise ``sigma`` (m; None: fitted)."""
     gf = problem.settings.get("grasp_fraction")
@@ -410,13 +444,15 @@ def problem_with_gradients(problem, method: str = "jvp") -> Any:
 
     from .gradients import autodiff_value_and_grad, likelihood_value_and_grad, mask_nonfinite
 
-    lik_vg = likelihood_value_and_grad(problem.log_likelihood, method,
-                                       problem.settings.get("rel_step"))
+    lik_vg = likelihood_value_and_grad(
+        problem.log_likelihood, method, problem.settings.get("rel_step")
+    )
     prior_vg = autodiff_value_and_grad(problem.log_prior)
 
     def value_and_grad(theta):
         (a, ga), (b, gb) = lik_vg(theta), prior_vg(theta)
         return mask_nonfinite(a + b, ga + gb)
 
-    return dataclasses.replace(problem, value_and_grad=value_and_grad,
-                               settings={**problem.settings, "gradient": method})
+    return dataclasses.replace(
+        problem, value_and_grad=value_and_grad, settings={**problem.settings, "gradient": method}
+    )

@@ -632,8 +632,13 @@ def _noise_scale(sigma, n_particles: int, dtype) -> jax.Array:
 
 
 def noisy_predictive_interval(
-    pred, sigma, level: float = 0.95, valid=None, kind: str = "gaussian",
-    df: float = 4.0, n_iter: int = 60,
+    pred,
+    sigma,
+    level: float = 0.95,
+    valid=None,
+    kind: str = "gaussian",
+    df: float = 4.0,
+    n_iter: int = 60,
 ) -> PredictiveInterval:
     """Central ``level`` interval of the posterior predictive (simulations + noise).
 
@@ -657,8 +662,9 @@ def noisy_predictive_interval(
     _require_particles(eff, minimum=1)
     s = _noise_scale(sigma, pred.shape[0], pred.dtype)
     alpha = 0.5 * (1.0 - float(level))
-    z = jnp.asarray([standard_quantile(alpha, kind, df), standard_quantile(1 - alpha, kind, df)],
-                    pred.dtype)
+    z = jnp.asarray(
+        [standard_quantile(alpha, kind, df), standard_quantile(1 - alpha, kind, df)], pred.dtype
+    )
     return _noisy_interval(pred, eff, s, z, alpha, kind, float(df), int(n_iter))
 
 
@@ -701,7 +707,12 @@ def _noisy_interval(pred, eff, s, z, alpha, kind, df, n_iter):
 
 
 def predictive_bands(
-    pred, sigma, level: float = 0.95, valid=None, kind: str = "gaussian", df: float = 4.0,
+    pred,
+    sigma,
+    level: float = 0.95,
+    valid=None,
+    kind: str = "gaussian",
+    df: float = 4.0,
 ) -> PredictiveBands:
     """Parameter band (KDE of the simulations, :func:`predictive_interval`) AND predictive band
     (simulations + noise, :func:`noisy_predictive_interval`), clearly named. ``pred [P, *S]``,
@@ -713,7 +724,13 @@ def predictive_bands(
 
 
 def posterior_predictive_draws(
-    key, pred, sigma, n_draws: int = 1, valid=None, kind: str = "gaussian", df: float = 4.0,
+    key,
+    pred,
+    sigma,
+    n_draws: int = 1,
+    valid=None,
+    kind: str = "gaussian",
+    df: float = 4.0,
 ) -> jax.Array:
     """Draws of recordings from the posterior predictive: ``[n_draws, P_valid, *S]`` (m).
 
@@ -730,7 +747,13 @@ def posterior_predictive_draws(
 
 
 def noisy_predictive_nll(
-    pred, gt, sigma, mask=None, valid=None, kind: str = "gaussian", df: float = 4.0,
+    pred,
+    gt,
+    sigma,
+    mask=None,
+    valid=None,
+    kind: str = "gaussian",
+    df: float = 4.0,
 ) -> PredictiveNLL:
     """NLL of held-out recordings under the posterior predictive (simulations + noise model).
 

@@ -232,8 +232,20 @@ def _output_scale(settings) -> float:
 
 
 def _training_settings(
-    box_low, box_high, eta, form, hidden, activation, n_samples, steps, learning_rate, seed,
-    sharpness=None, grad_weight=None, allowed_weight=None, span=None,
+    box_low,
+    box_high,
+    eta,
+    form,
+    hidden,
+    activation,
+    n_samples,
+    steps,
+    learning_rate,
+    seed,
+    sharpness=None,
+    grad_weight=None,
+    allowed_weight=None,
+    span=None,
 ) -> dict:
     def num(name, v):
         try:
@@ -346,8 +358,20 @@ def train_inequality_network(
     ``FLAT_MEAN_TOLERANCE`` x eta over the whole allowed side (tests/test_priors.py).
     """
     settings = _training_settings(
-        box_low, box_high, eta, form, hidden, activation, n_samples, steps, learning_rate, seed,
-        sharpness, grad_weight, allowed_weight, span,
+        box_low,
+        box_high,
+        eta,
+        form,
+        hidden,
+        activation,
+        n_samples,
+        steps,
+        learning_rate,
+        seed,
+        sharpness,
+        grad_weight,
+        allowed_weight,
+        span,
     )
     params, loss = _fit(settings)
     return InequalityNet(params=params, settings=settings, final_loss=loss)
@@ -463,8 +487,20 @@ def load_or_train_inequality_network(
     came from the cache.
     """
     settings = _training_settings(
-        box_low, box_high, eta, form, hidden, activation, n_samples, steps, learning_rate, seed,
-        sharpness, grad_weight, allowed_weight, span,
+        box_low,
+        box_high,
+        eta,
+        form,
+        hidden,
+        activation,
+        n_samples,
+        steps,
+        learning_rate,
+        seed,
+        sharpness,
+        grad_weight,
+        allowed_weight,
+        span,
     )
     cache_dir = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
     path = cache_dir / f"inequality_net-{_fit_key(settings)}.msgpack"
@@ -548,9 +584,11 @@ def _write_bundled_default() -> Path:
         net = load_or_train_inequality_network(0.0, 1.0, cache_dir=tmp)
         if net.loaded:  # came from BUNDLED_NETS already: retrain to refresh it
             net = train_inequality_network(0.0, 1.0)
-            blob = {"settings_json": json.dumps(_fit_settings(net.settings), sort_keys=True),
-                    "params": jax.tree.map(np.asarray, serialization.to_state_dict(net.params)),
-                    "final_loss": net.final_loss}
+            blob = {
+                "settings_json": json.dumps(_fit_settings(net.settings), sort_keys=True),
+                "params": jax.tree.map(np.asarray, serialization.to_state_dict(net.params)),
+                "final_loss": net.final_loss,
+            }
             target = BUNDLED_NETS / f"inequality_net-{_fit_key(net.settings)}.msgpack"
             atomic_write_bytes(target, serialization.msgpack_serialize(blob))
             return target

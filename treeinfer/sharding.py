@@ -117,8 +117,9 @@ def _constrained(fn, mesh: Mesh):
     return wrapped
 
 
-def shard_value_and_grad(value_and_grad: ValueAndGradFn, mesh: Mesh | None = None,
-                         method: str = "gspmd") -> ValueAndGradFn:
+def shard_value_and_grad(
+    value_and_grad: ValueAndGradFn, mesh: Mesh | None = None, method: str = "gspmd"
+) -> ValueAndGradFn:
     """``value_and_grad(theta [P, D]) -> ([P], [P, D])`` evaluated per device on its block of
     particles (``shard_map``): each device runs the simulator once, on its own particles'
     P/n * (2D + 1) finite-difference rows. Jittable; P must be a multiple of the device count.
@@ -129,8 +130,9 @@ def shard_value_and_grad(value_and_grad: ValueAndGradFn, mesh: Mesh | None = Non
     if method == "gspmd":
         return _constrained(value_and_grad, mesh)
     _check_method(method)
-    mapped = jax.shard_map(value_and_grad, mesh=mesh, in_specs=P(AXIS), out_specs=(P(AXIS), P(AXIS)),
-                           check_vma=False)
+    mapped = jax.shard_map(
+        value_and_grad, mesh=mesh, in_specs=P(AXIS), out_specs=(P(AXIS), P(AXIS)), check_vma=False
+    )
 
     def sharded(theta):
         _check_divisible(theta.shape[0], mesh, "value_and_grad")
@@ -144,13 +146,17 @@ def _check_method(method: str) -> None:
         raise ConfigError(f"sharding method: expected 'shard_map' or 'gspmd', got {method!r}")
 
 
-def shard_log_density(log_density: LogDensityFn, mesh: Mesh | None = None, method: str = "gspmd") -> LogDensityFn:
+def shard_log_density(
+    log_density: LogDensityFn, mesh: Mesh | None = None, method: str = "gspmd"
+) -> LogDensityFn:
     """``log_density(theta [P, D]) -> [P]`` evaluated per device on its block of particles."""
     mesh = particle_mesh() if mesh is None else mesh
     if method == "gspmd":
         return _constrained(log_density, mesh)
     _check_method(method)
-    mapped = jax.shard_map(log_density, mesh=mesh, in_specs=P(AXIS), out_specs=P(AXIS), check_vma=False)
+    mapped = jax.shard_map(
+        log_density, mesh=mesh, in_specs=P(AXIS), out_specs=P(AXIS), check_vma=False
+    )
 
     def sharded(theta):
         _check_divisible(theta.shape[0], mesh, "log_density")
@@ -174,8 +180,15 @@ def shard_problem(problem, mesh: Mesh | None = None, method: str = "gspmd"):
     )
 
 
-def infer_sharded(problem, sampler: str = "nnsvgd", n_particles: int = 64, seed: int = 0, mesh: Mesh | None = None,
-                  method: str = "gspmd", **infer_options):
+def infer_sharded(
+    problem,
+    sampler: str = "nnsvgd",
+    n_particles: int = 64,
+    seed: int = 0,
+    mesh: Mesh | None = None,
+    method: str = "gspmd",
+    **infer_options,
+):
     """:func:`treeinfer.infer` with particles sharded over ``mesh`` (default: all devices).
 
     Same initial particles and keys as the unsharded ``infer`` with this seed, so the result
@@ -191,5 +204,11 @@ def infer_sharded(problem, sampler: str = "nnsvgd", n_particles: int = 64, seed:
     else:
         infer_options.pop("initial_theta", None)
         theta0 = initial_particles(problem, n_particles, seed)
-    return infer(shard_problem(problem, mesh, method), sampler, n_particles=n_particles, seed=seed,
-                 initial_theta=shard_particles(theta0, mesh), **infer_options)
+    return infer(
+        shard_problem(problem, mesh, method),
+        sampler,
+        n_particles=n_particles,
+        seed=seed,
+        initial_theta=shard_particles(theta0, mesh),
+        **infer_options,
+    )

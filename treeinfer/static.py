@@ -508,12 +508,14 @@ def model_rollout(sim: Simulator, model: Model | None, theta, forces, grasp_frac
     theta = jnp.atleast_2d(jnp.asarray(theta))
     if model is None:
         r = sim.n_joints
-        return simulate(sim, jnp.exp(theta[..., :r]), jnp.exp(theta[..., r:]), forces,
-                        grasp_fraction)
+        return simulate(
+            sim, jnp.exp(theta[..., :r]), jnp.exp(theta[..., r:]), forces, grasp_fraction
+        )
     kp, kd = model.layout.gains(theta)
     if model.kind == "static":
-        return static_rollout(sim, kp, forces, grasp_fraction, model.direction,
-                              model.grasp_branch, model.tree)
+        return static_rollout(
+            sim, kp, forces, grasp_fraction, model.direction, model.grasp_branch, model.tree
+        )
     return simulate(sim, kp, kd, forces, grasp_fraction)
 
 

@@ -632,9 +632,7 @@ def read_true_params(tree, path: str | os.PathLike, where: str | None = None) ->
         except (TypeError, ValueError, OverflowError):
             raise ConfigError(f"{where}: field 'theta_log' must hold numbers, got {t!r}") from None
         return check_positive_params(vals, labels, where)
-    raise ConfigError(
-        f"{where}: expected fields 'kp' and 'kd' (or 'theta_log'), found {sorted(d)}"
-    )
+    raise ConfigError(f"{where}: expected fields 'kp' and 'kd' (or 'theta_log'), found {sorted(d)}")
 
 
 def true_params_record(tree, kp, kd, source: str, log_units: bool = True) -> dict:
@@ -690,7 +688,9 @@ def read_force_profile(path: str | os.PathLike) -> ForceProfile:
     lines = [(n, ln.rstrip("\r")) for n, ln in enumerate(text.split("\n"), start=1)]
     body = [(n, ln) for n, ln in lines if ln.strip() and not ln.strip().startswith("#")]
     if not body:
-        raise TrajectoryFileError(f"{path}: file is empty (expected a header 'time,force' or 'time,force,displacement')")
+        raise TrajectoryFileError(
+            f"{path}: file is empty (expected a header 'time,force' or 'time,force,displacement')"
+        )
     header = [c.strip().strip('"').strip("'").lower() for c in body[0][1].split(",")]
     if "displacement" in header:
         tr = read_trajectory(path)
@@ -704,11 +704,15 @@ def read_force_profile(path: str | os.PathLike) -> ForceProfile:
     for n, ln in body[1:]:
         cells = ln.split(",")
         if len(cells) != 2:
-            raise TrajectoryFileError(f"{path}, line {n}: row has {len(cells)} cell(s) but the header has 2 columns")
+            raise TrajectoryFileError(
+                f"{path}, line {n}: row has {len(cells)} cell(s) but the header has 2 columns"
+            )
         try:
             vals = [float(c) for c in cells]
         except ValueError:
-            raise TrajectoryFileError(f"{path}, line {n}: non-numeric value in {ln.strip()!r}") from None
+            raise TrajectoryFileError(
+                f"{path}, line {n}: non-numeric value in {ln.strip()!r}"
+            ) from None
         if not all(math.isfinite(v) for v in vals):
             raise TrajectoryFileError(f"{path}, line {n}: NaN/inf not allowed")
         rows.append(vals)
@@ -717,5 +721,7 @@ def read_force_profile(path: str | os.PathLike) -> ForceProfile:
         raise TrajectoryFileError(f"{path}: header only, no data rows")
     a = np.asarray(rows, float)
     col = {name: a[:, j] for j, name in enumerate(header)}
-    tr = validate_trajectory(Trajectory(col["time"], col["force"], np.zeros(len(a)), None, str(path)))
+    tr = validate_trajectory(
+        Trajectory(col["time"], col["force"], np.zeros(len(a)), None, str(path))
+    )
     return ForceProfile(tr.time, tr.force, None, path.name)

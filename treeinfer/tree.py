@@ -168,8 +168,12 @@ class Tree:
 
     def bounds_array(self) -> tuple[np.ndarray, np.ndarray]:
         """Prior box as (lower [2R], upper [2R]) in natural units, ordered like the labels."""
-        lo = [self.bounds[n].kp[0] for n in self.inferred] + [self.bounds[n].kd[0] for n in self.inferred]
-        hi = [self.bounds[n].kp[1] for n in self.inferred] + [self.bounds[n].kd[1] for n in self.inferred]
+        lo = [self.bounds[n].kp[0] for n in self.inferred] + [
+            self.bounds[n].kd[0] for n in self.inferred
+        ]
+        hi = [self.bounds[n].kp[1] for n in self.inferred] + [
+            self.bounds[n].kd[1] for n in self.inferred
+        ]
         return np.asarray(lo, float), np.asarray(hi, float)
 
     def fixed_gains(self, name: str) -> tuple[float, float]:
@@ -255,8 +259,10 @@ def quat_from_matrix(r: np.ndarray) -> np.ndarray:
 # ---- construction and validation -----------------------------------------------------------
 def _no_bool(v: Any, fld: str, where: str, expected: str) -> None:
     if isinstance(v, bool):
-        raise TreeFileError(f"{where}{fld}: expected {expected}, got {v!r} "
-                            "(YAML reads yes/no/on/off as booleans; write a number)")
+        raise TreeFileError(
+            f"{where}{fld}: expected {expected}, got {v!r} "
+            "(YAML reads yes/no/on/off as booleans; write a number)"
+        )
 
 
 def _check_fraction(f: Any, fld: str, where: str = "") -> float:
@@ -266,7 +272,9 @@ def _check_fraction(f: Any, fld: str, where: str = "") -> float:
     except (TypeError, ValueError):
         raise TreeFileError(f"{where}{fld}: expected a number in (0, 1], got {f!r}") from None
     if not (0.0 < f <= 1.0) or math.isnan(f):
-        raise TreeFileError(f"{where}{fld}: must be in (0, 1] (a fraction of the branch length), got {f}")
+        raise TreeFileError(
+            f"{where}{fld}: must be in (0, 1] (a fraction of the branch length), got {f}"
+        )
     return f
 
 
@@ -311,7 +319,8 @@ def _gain_in_range(v: float, fld: str, where: str = "") -> float:
     if not lo <= v <= hi:
         raise TreeFileError(
             f"{where}{fld}: {v:g} {unit} is outside the plausible range [{lo:g}, {hi:g}] {unit} "
-            "for a branch joint; check the value and its unit")
+            "for a branch joint; check the value and its unit"
+        )
     return v
 
 
@@ -342,7 +351,9 @@ def make_tree(
     _validate_branches(branches)
     names = [b.name for b in branches]
     if grasp_branch not in names:
-        raise TreeFileError(f"grasp.branch: unknown branch '{grasp_branch}'; the tree has: {', '.join(names)}")
+        raise TreeFileError(
+            f"grasp.branch: unknown branch '{grasp_branch}'; the tree has: {', '.join(names)}"
+        )
     grasp_fraction = _check_fraction(grasp_fraction, "grasp.fraction")
     if inferred is None:
         if not isinstance(levels, int) or levels < 1:
@@ -350,12 +361,18 @@ def make_tree(
         inferred = default_inferred(branches, grasp_branch, levels)
     inferred = tuple(inferred)
     if not inferred:
-        raise TreeFileError("inference.joints: no joint to infer (every branch on the chain is fixed?)")
+        raise TreeFileError(
+            "inference.joints: no joint to infer (every branch on the chain is fixed?)"
+        )
     for n in inferred:
         if n not in names:
-            raise TreeFileError(f"inference.joints: unknown branch '{n}'; the tree has: {', '.join(names)}")
+            raise TreeFileError(
+                f"inference.joints: unknown branch '{n}'; the tree has: {', '.join(names)}"
+            )
         if next(b for b in branches if b.name == n).fixed:
-            raise TreeFileError(f"inference.joints: branch '{n}' is fixed (welded) and has no joint to infer")
+            raise TreeFileError(
+                f"inference.joints: branch '{n}' is fixed (welded) and has no joint to infer"
+            )
     if len(set(inferred)) != len(inferred):
         raise TreeFileError(f"inference.joints: duplicate names in {list(inferred)}")
     if bounds is None:
@@ -403,27 +420,41 @@ def _validate_branches(branches: tuple[Branch, ...]) -> None:
     roots = 0
     for i, b in enumerate(branches):
         w = f"branches[{i}] ('{b.name}'): "
-        if not isinstance(b.name, str) or not b.name or not b.name.replace("_", "").replace("-", "").replace(".", "").isalnum():
-            raise TreeFileError(f"branches[{i}].name: must be a non-empty name of letters, digits, '_', '-', '.', got {b.name!r}")
+        if (
+            not isinstance(b.name, str)
+            or not b.name
+            or not b.name.replace("_", "").replace("-", "").replace(".", "").isalnum()
+        ):
+            raise TreeFileError(
+                f"branches[{i}].name: must be a non-empty name of letters, digits, '_', '-', '.', got {b.name!r}"
+            )
         if b.name in seen:
             raise TreeFileError(f"{w}duplicate branch name")
         if b.name.lower() in RESERVED_NAMES:
             raise TreeFileError(
                 f"branches[{i}].name: '{b.name}' is reserved (MuJoCo's world body); rename the "
-                "branch")
+                "branch"
+            )
         _positive(b.length, "length", w)
         _positive(b.radius, "radius", w)
         if b.length > MAX_BRANCH_LENGTH:
             raise TreeFileError(
                 f"{w}length {b.length:g} m is longer than {MAX_BRANCH_LENGTH:g} m; "
-                "looks like millimetres or centimetres, expected metres")
+                "looks like millimetres or centimetres, expected metres"
+            )
         if not MIN_RADIUS <= b.radius <= MAX_RADIUS:
             raise TreeFileError(
                 f"{w}radius {b.radius:g} m is outside [{MIN_RADIUS:g}, {MAX_RADIUS:g}] m; "
-                + ("looks like millimetres, expected metres" if b.radius > MAX_RADIUS
-                   else "too thin for a branch (check the unit)"))
+                + (
+                    "looks like millimetres, expected metres"
+                    if b.radius > MAX_RADIUS
+                    else "too thin for a branch (check the unit)"
+                )
+            )
         if b.radius > b.length:
-            raise TreeFileError(f"{w}radius {b.radius} m exceeds length {b.length} m (units mixed up?)")
+            raise TreeFileError(
+                f"{w}radius {b.radius} m exceeds length {b.length} m (units mixed up?)"
+            )
         _finite(b.angle_deg, "angle_deg", w)
         _finite(b.azimuth_deg, "azimuth_deg", w)
         _check_fraction(b.attach, "attach", w)
@@ -450,7 +481,8 @@ def _validate_branches(branches: tuple[Branch, ...]) -> None:
             if b.name.endswith(suf) and b.name[: -len(suf)] in names:
                 raise TreeFileError(
                     f"branches[{i}].name: '{b.name}' clashes with the name generated for branch "
-                    f"'{b.name[: -len(suf)]}' ({suf[1:]}); rename the branch")
+                    f"'{b.name[: -len(suf)]}' ({suf[1:]}); rename the branch"
+                )
 
 
 def _density_in_range(v: float, fld: str, where: str = "") -> float:
@@ -458,7 +490,8 @@ def _density_in_range(v: float, fld: str, where: str = "") -> float:
     if not lo <= v <= hi:
         raise TreeFileError(
             f"{where}{fld}: {v:g} kg/m^3 is outside the plausible range [{lo:g}, {hi:g}] kg/m^3 "
-            "(wood is about 300-1200); check the value and its unit")
+            "(wood is about 300-1200); check the value and its unit"
+        )
     return v
 
 
@@ -471,11 +504,13 @@ def _check_masses(tree: Tree) -> None:
             raise TreeFileError(
                 f"{w}mass {m:.3g} kg (density {branch_density(tree, b):g} kg/m^3, radius {b.radius:g} m, "
                 f"length {b.length:g} m) is below {MIN_MASS:g} kg: a degenerate body; check density "
-                "and radius")
+                "and radius"
+            )
         if not np.all(np.isfinite(inertia)) or float(inertia.min()) < MIN_INERTIA:
             raise TreeFileError(
                 f"{w}inertia {float(inertia.min()):.3g} kg m^2 about the branch axis is below "
-                f"{MIN_INERTIA:g} kg m^2: a degenerate body; check radius and density")
+                f"{MIN_INERTIA:g} kg m^2: a degenerate body; check radius and density"
+            )
 
 
 def tree_scale_warnings(tree: Tree, source: str = "") -> list[str]:
@@ -485,11 +520,15 @@ def tree_scale_warnings(tree: Tree, source: str = "") -> list[str]:
     out = []
     for i, b in enumerate(tree.branches):
         if b.length > WARN_BRANCH_LENGTH:
-            out.append(f"{pre}branches[{i}] ('{b.name}'): length {b.length:g} m is unusually long "
-                       "for one branch; are the lengths in metres?")
+            out.append(
+                f"{pre}branches[{i}] ('{b.name}'): length {b.length:g} m is unusually long "
+                "for one branch; are the lengths in metres?"
+            )
         if b.radius > 0.25 * b.length and b.radius > 0.2:
-            out.append(f"{pre}branches[{i}] ('{b.name}'): radius {b.radius:g} m is unusually "
-                       "thick; are the radii in metres?")
+            out.append(
+                f"{pre}branches[{i}] ('{b.name}'): radius {b.radius:g} m is unusually "
+                "thick; are the radii in metres?"
+            )
     return out
 
 
@@ -578,10 +617,30 @@ def parse_parameters(value, source: str = "inference.parameters") -> tuple[str, 
 
 # ---- file I/O --------------------------------------------------------------------------------
 _BRANCH_KEYS = {
-    "name", "parent", "length", "radius", "angle_deg", "azimuth_deg", "attach", "density", "kp", "kd", "fixed",
+    "name",
+    "parent",
+    "length",
+    "radius",
+    "angle_deg",
+    "azimuth_deg",
+    "attach",
+    "density",
+    "kp",
+    "kd",
+    "fixed",
 }
 _TOP_KEYS = {
-    "name", "branches", "base", "gravity", "density", "grasp", "inference", "fixed", "generator", "pull", "model",
+    "name",
+    "branches",
+    "base",
+    "gravity",
+    "density",
+    "grasp",
+    "inference",
+    "fixed",
+    "generator",
+    "pull",
+    "model",
 }
 
 
@@ -590,7 +649,9 @@ def _no_unknown(m: Any, allowed: set[str], fld: str, pre: str) -> None:
         raise TreeFileError(f"{pre}{fld}: expected a mapping with {sorted(allowed)}, got {m!r}")
     bad = set(m) - allowed
     if bad:
-        raise TreeFileError(f"{pre}{fld}: unknown field(s) {sorted(bad)}; allowed: {sorted(allowed)}")
+        raise TreeFileError(
+            f"{pre}{fld}: unknown field(s) {sorted(bad)}; allowed: {sorted(allowed)}"
+        )
 
 
 def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None = None) -> Tree:
@@ -601,7 +662,9 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
         raise TreeFileError(f"{pre}expected a mapping at the top level, got {type(d).__name__}")
     unknown = set(d) - _TOP_KEYS
     if unknown:
-        raise TreeFileError(f"{pre}unknown top-level field(s) {sorted(unknown)}; allowed: {sorted(_TOP_KEYS)}")
+        raise TreeFileError(
+            f"{pre}unknown top-level field(s) {sorted(unknown)}; allowed: {sorted(_TOP_KEYS)}"
+        )
     raw = d.get("branches")
     if not isinstance(raw, list) or not raw:
         raise TreeFileError(f"{pre}branches: expected a non-empty list of branches")
@@ -611,7 +674,9 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
             raise TreeFileError(f"{pre}branches[{i}]: expected a mapping, got {rb!r}")
         unknown = set(rb) - _BRANCH_KEYS
         if unknown:
-            raise TreeFileError(f"{pre}branches[{i}]: unknown field(s) {sorted(unknown)}; allowed: {sorted(_BRANCH_KEYS)}")
+            raise TreeFileError(
+                f"{pre}branches[{i}]: unknown field(s) {sorted(unknown)}; allowed: {sorted(_BRANCH_KEYS)}"
+            )
         for req in ("name", "length", "radius"):
             if req not in rb:
                 raise TreeFileError(f"{pre}branches[{i}]: missing required field '{req}'")
@@ -632,7 +697,9 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
                 angle_deg=_finite(rb.get("angle_deg", 0.0), "angle_deg", w),
                 azimuth_deg=_finite(rb.get("azimuth_deg", 0.0), "azimuth_deg", w),
                 attach=_check_fraction(rb.get("attach", 1.0), "attach", w),
-                density=None if rb.get("density") is None else _positive(rb["density"], "density", w),
+                density=None
+                if rb.get("density") is None
+                else _positive(rb["density"], "density", w),
                 kp=None if rb.get("kp") is None else _positive(rb["kp"], "kp", w),
                 kd=None if rb.get("kd") is None else _positive(rb["kd"], "kd", w),
                 fixed=fixed,
@@ -678,13 +745,19 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
         raise TreeFileError(msg if msg.startswith(pre) else f"{pre}{msg}") from None
     levels = inf.get("levels", 1)
     joints = inf.get("joints")
-    if joints is not None and (not isinstance(joints, list) or not all(isinstance(j, str) for j in joints)):
-        raise TreeFileError(f"{pre}inference.joints: expected a list of branch names, got {joints!r}")
+    if joints is not None and (
+        not isinstance(joints, list) or not all(isinstance(j, str) for j in joints)
+    ):
+        raise TreeFileError(
+            f"{pre}inference.joints: expected a list of branch names, got {joints!r}"
+        )
     prior = inf.get("prior", {}) or {}
     _no_unknown(prior, {"kp", "kd", "joints"}, "inference.prior", pre)
     per_joint_raw = prior.get("joints", {}) or {}
     if not isinstance(per_joint_raw, dict):
-        raise TreeFileError(f"{pre}inference.prior.joints: expected a mapping {{joint: {{kp: [lo, hi], kd: [lo, hi]}}}}")
+        raise TreeFileError(
+            f"{pre}inference.prior.joints: expected a mapping {{joint: {{kp: [lo, hi], kd: [lo, hi]}}}}"
+        )
     for n, pj in per_joint_raw.items():
         _no_unknown(pj, {"kp", "kd"}, f"inference.prior.joints.{n}", pre)
     try:
@@ -694,7 +767,13 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
         )
         per_joint = prior.get("joints", {}) or {}
         bounds_map: dict[str, Bounds] = {}
-        tmp_inferred = tuple(joints) if joints is not None else default_inferred(branches, str(grasp["branch"]), int(levels)) if str(grasp["branch"]) in {b.name for b in branches} else ()
+        tmp_inferred = (
+            tuple(joints)
+            if joints is not None
+            else default_inferred(branches, str(grasp["branch"]), int(levels))
+            if str(grasp["branch"]) in {b.name for b in branches}
+            else ()
+        )
         for n in tmp_inferred:
             pj = per_joint.get(n, {})
             bounds_map[n] = Bounds(
@@ -703,7 +782,9 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
             )
         unknown_pj = set(per_joint) - set(tmp_inferred)
         if unknown_pj:
-            raise TreeFileError(f"inference.prior.joints: bounds given for joint(s) {sorted(unknown_pj)} that are not inferred")
+            raise TreeFileError(
+                f"inference.prior.joints: bounds given for joint(s) {sorted(unknown_pj)} that are not inferred"
+            )
         return make_tree(
             branches,
             grasp_branch=str(grasp["branch"]),
@@ -712,7 +793,9 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
             levels=levels,
             bounds=bounds_map,
             name=str(d.get("name", "tree")),
-            base_position=tuple(_finite(x, "base.position") for x in base.get("position", (0.0, 0.0, 0.0))),
+            base_position=tuple(
+                _finite(x, "base.position") for x in base.get("position", (0.0, 0.0, 0.0))
+            ),
             base_pitch_deg=_finite(base.get("pitch_deg", 0.0), "base.pitch_deg"),
             base_yaw_deg=_finite(base.get("yaw_deg", 0.0), "base.yaw_deg"),
             gravity=tuple(_finite(x, "gravity") for x in d.get("gravity", (0.0, 0.0, -9.81))),
@@ -742,7 +825,12 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
     """The file representation of ``tree`` (round-trips through :func:`tree_from_dict`)."""
     branches = []
     for b in tree.branches:
-        rb: dict[str, Any] = {"name": b.name, "parent": b.parent, "length": b.length, "radius": b.radius}
+        rb: dict[str, Any] = {
+            "name": b.name,
+            "parent": b.parent,
+            "length": b.length,
+            "radius": b.radius,
+        }
         for k in ("angle_deg", "azimuth_deg"):
             if getattr(b, k) != 0.0:
                 rb[k] = getattr(b, k)
@@ -756,7 +844,11 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
         branches.append(rb)
     out = {
         "name": tree.name,
-        "base": {"position": list(tree.base_position), "pitch_deg": tree.base_pitch_deg, "yaw_deg": tree.base_yaw_deg},
+        "base": {
+            "position": list(tree.base_position),
+            "pitch_deg": tree.base_pitch_deg,
+            "yaw_deg": tree.base_yaw_deg,
+        },
         "gravity": list(tree.gravity),
         "density": tree.density,
         "fixed": {"kp": tree.fixed_kp, "kd": tree.fixed_kd},
@@ -765,7 +857,10 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
         "inference": {
             "joints": list(tree.inferred),
             "prior": {
-                "joints": {n: {"kp": list(tree.bounds[n].kp), "kd": list(tree.bounds[n].kd)} for n in tree.inferred}
+                "joints": {
+                    n: {"kp": list(tree.bounds[n].kp), "kd": list(tree.bounds[n].kd)}
+                    for n in tree.inferred
+                }
             },
         },
     }

@@ -63,76 +63,185 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         epilog=_CALIBRATE_EPILOG,
     )
     p.add_argument("--tree", type=Path, required=True, help="tree description (YAML/JSON)")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR",
-                   help="output folder (must be empty or absent unless --force)")
-    p.add_argument("--datasets", type=int, default=_D.datasets, metavar="N",
-                   help="simulated data sets (>= 200 for the uniformity target)")
-    p.add_argument("--likelihood", choices=SBC_LIKELIHOODS, default=_D.likelihood,
-                   help="noise model the data are simulated with AND inferred with "
-                   "(as `treeinfer infer --likelihood`)")
-    p.add_argument("--noise-displacement", type=float, default=None, metavar="M",
-                   help="displacement noise sigma_x in metres, fixed and known to inference "
-                   "(default: drawn from its prior and inferred jointly, as `infer` does)")
-    p.add_argument("--noise-prior-center", type=float, default=_D.noise_prior_center,
-                   metavar="M", help="m, centre of the sigma_x prior when it is inferred")
-    p.add_argument("--sigma-prior-scale", type=float, default=_D.sigma_prior_scale,
-                   metavar="S", help="std of the log sigma_x prior when it is inferred")
-    p.add_argument("--student-t-df", type=float, default=_D.student_t_df, metavar="DF",
-                   help="degrees of freedom for --likelihood student_t")
-    p.add_argument("--sampler", choices=SBC_SAMPLERS, default=_D.sampler,
-                   help="mh: Adam to the mode, then one adaptive random-walk MH chain per "
-                   "particle (near-exact draws); svgd: the SVGD particles themselves")
-    p.add_argument("--particles", type=int, default=_D.particles, metavar="P",
-                   help="particles = posterior draws L per data set, >= 2")
-    p.add_argument("--iterations", type=int, default=_D.iterations, metavar="N",
-                   help="Adam ascent (mh) or SVGD (svgd) iterations, >= 1")
-    p.add_argument("--learning-rate", type=float, default=_D.learning_rate, metavar="X",
-                   help="Adam learning rate (log units per step; mh: decays 100x)")
-    p.add_argument("--mh-warmup", type=int, default=_D.mh_warmup, metavar="N",
-                   help="adaptive MH warm-up steps per chain (mh), discarded")
-    p.add_argument("--mh-steps", type=int, default=_D.mh_steps, metavar="N",
-                   help="fixed-proposal MH steps per chain after the warm-up (mh)")
-    p.add_argument("--n-traj", type=int, default=_D.n_traj, metavar="B",
-                   help="pulls per data set (random 'mixed' force profiles, as `simulate`)")
-    p.add_argument("--test-traj", type=int, default=0, metavar="B",
-                   help="unseen test pulls per data set: adds the share of noisy test points "
-                   "inside the 95%% predictive band (0: none)")
-    p.add_argument("--noise-force", type=float, default=0.0, metavar="SHARE",
-                   help="relative force noise (share of each data set's peak force) on the "
-                   "recorded forces; not in the inference model, so SBC is exact only at 0")
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="output folder (must be empty or absent unless --force)",
+    )
+    p.add_argument(
+        "--datasets",
+        type=int,
+        default=_D.datasets,
+        metavar="N",
+        help="simulated data sets (>= 200 for the uniformity target)",
+    )
+    p.add_argument(
+        "--likelihood",
+        choices=SBC_LIKELIHOODS,
+        default=_D.likelihood,
+        help="noise model the data are simulated with AND inferred with "
+        "(as `treeinfer infer --likelihood`)",
+    )
+    p.add_argument(
+        "--noise-displacement",
+        type=float,
+        default=None,
+        metavar="M",
+        help="displacement noise sigma_x in metres, fixed and known to inference "
+        "(default: drawn from its prior and inferred jointly, as `infer` does)",
+    )
+    p.add_argument(
+        "--noise-prior-center",
+        type=float,
+        default=_D.noise_prior_center,
+        metavar="M",
+        help="m, centre of the sigma_x prior when it is inferred",
+    )
+    p.add_argument(
+        "--sigma-prior-scale",
+        type=float,
+        default=_D.sigma_prior_scale,
+        metavar="S",
+        help="std of the log sigma_x prior when it is inferred",
+    )
+    p.add_argument(
+        "--student-t-df",
+        type=float,
+        default=_D.student_t_df,
+        metavar="DF",
+        help="degrees of freedom for --likelihood student_t",
+    )
+    p.add_argument(
+        "--sampler",
+        choices=SBC_SAMPLERS,
+        default=_D.sampler,
+        help="mh: Adam to the mode, then one adaptive random-walk MH chain per "
+        "particle (near-exact draws); svgd: the SVGD particles themselves",
+    )
+    p.add_argument(
+        "--particles",
+        type=int,
+        default=_D.particles,
+        metavar="P",
+        help="particles = posterior draws L per data set, >= 2",
+    )
+    p.add_argument(
+        "--iterations",
+        type=int,
+        default=_D.iterations,
+        metavar="N",
+        help="Adam ascent (mh) or SVGD (svgd) iterations, >= 1",
+    )
+    p.add_argument(
+        "--learning-rate",
+        type=float,
+        default=_D.learning_rate,
+        metavar="X",
+        help="Adam learning rate (log units per step; mh: decays 100x)",
+    )
+    p.add_argument(
+        "--mh-warmup",
+        type=int,
+        default=_D.mh_warmup,
+        metavar="N",
+        help="adaptive MH warm-up steps per chain (mh), discarded",
+    )
+    p.add_argument(
+        "--mh-steps",
+        type=int,
+        default=_D.mh_steps,
+        metavar="N",
+        help="fixed-proposal MH steps per chain after the warm-up (mh)",
+    )
+    p.add_argument(
+        "--n-traj",
+        type=int,
+        default=_D.n_traj,
+        metavar="B",
+        help="pulls per data set (random 'mixed' force profiles, as `simulate`)",
+    )
+    p.add_argument(
+        "--test-traj",
+        type=int,
+        default=0,
+        metavar="B",
+        help="unseen test pulls per data set: adds the share of noisy test points "
+        "inside the 95%% predictive band (0: none)",
+    )
+    p.add_argument(
+        "--noise-force",
+        type=float,
+        default=0.0,
+        metavar="SHARE",
+        help="relative force noise (share of each data set's peak force) on the "
+        "recorded forces; not in the inference model, so SBC is exact only at 0",
+    )
     p.add_argument("--duration", type=float, default=_D.duration, help="s per pull")
     p.add_argument("--dt", type=float, default=_D.dt, help="s between samples")
-    p.add_argument("--seed", type=int, default=_D.seed, metavar="S",
-                   help="seed of the truths, profiles, noise, initial particles and sampler")
-    p.add_argument("--max-sim-dt", type=float, default=None,
-                   help="s, upper bound on the simulation step (default 0.005)")
-    p.add_argument("--chunk", type=int, default=_D.chunk, metavar="C",
-                   help="data sets per jitted program call (GPU: 64-256; CPU: a few)")
-    p.add_argument("--backend", choices=("auto", "fused", "mjx"), default="auto",
-                   help="simulator backend (as `simulate`/`infer`)")
-    p.add_argument("--force", action="store_true",
-                   help="replace an existing output folder")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=_D.seed,
+        metavar="S",
+        help="seed of the truths, profiles, noise, initial particles and sampler",
+    )
+    p.add_argument(
+        "--max-sim-dt",
+        type=float,
+        default=None,
+        help="s, upper bound on the simulation step (default 0.005)",
+    )
+    p.add_argument(
+        "--chunk",
+        type=int,
+        default=_D.chunk,
+        metavar="C",
+        help="data sets per jitted program call (GPU: 64-256; CPU: a few)",
+    )
+    p.add_argument(
+        "--backend",
+        choices=("auto", "fused", "mjx"),
+        default="auto",
+        help="simulator backend (as `simulate`/`infer`)",
+    )
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
     return p
 
 
 def _config_from_args(args) -> SBCConfig:
-    if args.max_sim_dt is not None and not (math.isfinite(args.max_sim_dt)
-                                            and args.max_sim_dt > 0):
+    if args.max_sim_dt is not None and not (math.isfinite(args.max_sim_dt) and args.max_sim_dt > 0):
         raise ConfigError(
-            f"--max-sim-dt: must be a positive number of seconds, got {args.max_sim_dt:g}")
-    for flag, v in (("--noise-displacement", args.noise_displacement),
-                    ("--noise-prior-center", args.noise_prior_center)):
+            f"--max-sim-dt: must be a positive number of seconds, got {args.max_sim_dt:g}"
+        )
+    for flag, v in (
+        ("--noise-displacement", args.noise_displacement),
+        ("--noise-prior-center", args.noise_prior_center),
+    ):
         if v is not None and not (math.isfinite(v) and v > 0):
             raise ConfigError(f"{flag}: must be a finite positive number (metres), got {v:g}")
     cfg = SBCConfig(
-        datasets=args.datasets, likelihood=args.likelihood,
-        noise_displacement=args.noise_displacement, noise_prior_center=args.noise_prior_center,
-        sigma_prior_scale=args.sigma_prior_scale, student_t_df=args.student_t_df,
-        sampler=args.sampler, particles=args.particles, iterations=args.iterations,
-        learning_rate=args.learning_rate, mh_warmup=args.mh_warmup,
-        mh_steps=args.mh_steps, n_traj=args.n_traj,
-        duration=args.duration, dt=args.dt, seed=args.seed, max_sim_dt=args.max_sim_dt,
-        chunk=args.chunk, backend=args.backend, test_traj=args.test_traj,
+        datasets=args.datasets,
+        likelihood=args.likelihood,
+        noise_displacement=args.noise_displacement,
+        noise_prior_center=args.noise_prior_center,
+        sigma_prior_scale=args.sigma_prior_scale,
+        student_t_df=args.student_t_df,
+        sampler=args.sampler,
+        particles=args.particles,
+        iterations=args.iterations,
+        learning_rate=args.learning_rate,
+        mh_warmup=args.mh_warmup,
+        mh_steps=args.mh_steps,
+        n_traj=args.n_traj,
+        duration=args.duration,
+        dt=args.dt,
+        seed=args.seed,
+        max_sim_dt=args.max_sim_dt,
+        chunk=args.chunk,
+        backend=args.backend,
+        test_traj=args.test_traj,
         noise_force=args.noise_force,
     )
     try:
@@ -150,12 +259,18 @@ def run_calibrate(args: argparse.Namespace) -> int:
     tree = load_tree(args.tree)
     check_output_dir(args.out, args.force, "calibration")
     _prepare_jax()
-    _say(f"calibrate: {cfg.datasets} data sets of {cfg.n_traj} pulls on '{tree.name}', "
-         f"{cfg.likelihood} noise "
-         + (f"sigma_x = {cfg.noise_displacement:g} m (given)" if cfg.noise_displacement
-            else f"sigma_x inferred (prior centre {cfg.noise_prior_center:g} m)")
-         + f", sampler {cfg.sampler}, {cfg.particles} draws per data set")
+    _say(
+        f"calibrate: {cfg.datasets} data sets of {cfg.n_traj} pulls on '{tree.name}', "
+        f"{cfg.likelihood} noise "
+        + (
+            f"sigma_x = {cfg.noise_displacement:g} m (given)"
+            if cfg.noise_displacement
+            else f"sigma_x inferred (prior centre {cfg.noise_prior_center:g} m)"
+        )
+        + f", sampler {cfg.sampler}, {cfg.particles} draws per data set"
+    )
     with tqdm(total=cfg.datasets, desc="data sets", unit="set") as bar:
+
         def progress(done, total):
             bar.update(done - bar.n)
 
@@ -167,17 +282,25 @@ def run_calibrate(args: argparse.Namespace) -> int:
         summary = write_outputs(result, stage, record)
     u = summary["uniformity"]
     for lab, t in u["parameters"].items():
-        _say(f"  {lab:>14}: p(chi2) {t['p_chi2']:.3g}  p(KS) {t['p_ks']:.3g}  "
-             f"{'ok' if t['pass'] else 'NOT UNIFORM'}")
+        _say(
+            f"  {lab:>14}: p(chi2) {t['p_chi2']:.3g}  p(KS) {t['p_ks']:.3g}  "
+            f"{'ok' if t['pass'] else 'NOT UNIFORM'}"
+        )
     k95 = [r for r in summary["coverage"] if r["level"] == 0.95]
-    _say("  95% interval coverage: " + ", ".join(f"{r['parameter']} {r['observed']:.0%}"
-                                                 for r in k95))
+    _say(
+        "  95% interval coverage: "
+        + ", ".join(f"{r['parameter']} {r['observed']:.0%}" for r in k95)
+    )
     t = summary["info"].get("test_inside_95")
     if t:
-        _say(f"  unseen noisy test points inside the 95% predictive band: median "
-             f"{t['predictive']['median']:.1%} (parameter-only band "
-             f"{t['parameter']['median']:.1%})")
-    _say(f"uniformity at {u['alpha']:g} (Bonferroni, per-parameter p > "
-         f"{u['per_parameter_threshold']:.2g}): {'PASS' if u['pass'] else 'FAIL'}; "
-         f"wrote {args.out}")
+        _say(
+            f"  unseen noisy test points inside the 95% predictive band: median "
+            f"{t['predictive']['median']:.1%} (parameter-only band "
+            f"{t['parameter']['median']:.1%})"
+        )
+    _say(
+        f"uniformity at {u['alpha']:g} (Bonferroni, per-parameter p > "
+        f"{u['per_parameter_threshold']:.2g}): {'PASS' if u['pass'] else 'FAIL'}; "
+        f"wrote {args.out}"
+    )
     return EXIT_OK

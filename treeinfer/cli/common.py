@@ -253,7 +253,11 @@ def _print_metrics(m: dict, what: str) -> None:
 def add_run_option(p: argparse.ArgumentParser) -> None:
     """``--run RUN``: the run folder a command reads; one definition for every command."""
     p.add_argument(
-        "--run", required=True, type=Path, metavar="RUN", help="run folder written by `treeinfer infer`"
+        "--run",
+        required=True,
+        type=Path,
+        metavar="RUN",
+        help="run folder written by `treeinfer infer`",
     )
 
 

@@ -178,8 +178,16 @@ def run_demo(args: argparse.Namespace) -> int:
     test = trajs[n_train:]
     sigma, kind = noise_for(run.theta, run.sim.n_joints, run.config.get("problem"))
     m, pred, obs = evaluate_trajectories(
-        run.sim, run.theta, list(run.labels), test, run.kT, None, truth, run.stable,
-        noise_sigma=sigma, noise_kind=kind,
+        run.sim,
+        run.theta,
+        list(run.labels),
+        test,
+        run.kT,
+        None,
+        truth,
+        run.stable,
+        noise_sigma=sigma,
+        noise_kind=kind,
     )
     eval_config = _base_config("evaluate", args)
     eval_config.update(

@@ -98,7 +98,11 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
     add_model_options(p, run=True)
     add_simulation_options(p, _RUN_SIM_NOTE)
-    p.add_argument("--allow-modified", action="store_true", help="use the run even if its files changed since `infer` wrote them (checksums in its config.json); recorded in the output")
+    p.add_argument(
+        "--allow-modified",
+        action="store_true",
+        help="use the run even if its files changed since `infer` wrote them (checksums in its config.json); recorded in the output",
+    )
     return p
 
 
@@ -124,9 +128,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     _prepare_jax()
     check_simulation_options(args)
     cache = runs.SimulatorCache()  # this command's simulators (the run's, and k-fold's)
-    run = runs.load_run(
-        args.run, cache, allow_modified=args.allow_modified, model_file=args.model
-    )
+    run = runs.load_run(args.run, cache, allow_modified=args.allow_modified, model_file=args.model)
     for note in run.notes:
         _say(f"warning: {note}")
     trajs = read_trajectory_dir(args.data)
@@ -169,8 +171,17 @@ def run_evaluate(args: argparse.Namespace) -> int:
         _print_simulation(config["simulation"])
         sigma, kind = noise_for(run.theta, run.sim.n_joints, run.config.get("problem"))
         m, pred, obs = evaluate_trajectories(
-            sim, run.theta, list(run.labels), trajs, run.kT, grasp, truth, run.stable,
-            noise_sigma=sigma, noise_kind=kind, model=model,
+            sim,
+            run.theta,
+            list(run.labels),
+            trajs,
+            run.kT,
+            grasp,
+            truth,
+            run.stable,
+            noise_sigma=sigma,
+            noise_kind=kind,
+            model=model,
         )
         metrics = {"run": str(args.run), "data": str(args.data), "metrics": m}
         md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md(

@@ -83,7 +83,10 @@ def _kT_arg(s: str):
     try:
         return float(s)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number or 'auto', got {s!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected a positive number or 'auto', got {s!r}"
+        ) from None
+
 
 _INFER_EPILOG = """\
 examples:
@@ -278,8 +281,16 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     add_model_options(p)
     add_simulation_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--allow-poor-fit", action="store_true", help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 otherwise); the verdict stays in summary.json")
-    p.add_argument("--allow-implausible-data", action="store_true", help="sample even if the plausibility checks find errors in the data (wrong units, swapped columns, duplicates ...); they are printed and recorded in summary.json")
+    p.add_argument(
+        "--allow-poor-fit",
+        action="store_true",
+        help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 otherwise); the verdict stays in summary.json",
+    )
+    p.add_argument(
+        "--allow-implausible-data",
+        action="store_true",
+        help="sample even if the plausibility checks find errors in the data (wrong units, swapped columns, duplicates ...); they are printed and recorded in summary.json",
+    )
     return p
 
 

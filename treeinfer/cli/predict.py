@@ -170,9 +170,7 @@ def run_predict(args: argparse.Namespace) -> int:
     _prepare_jax()
     check_simulation_options(args)
     cache = runs.SimulatorCache()
-    run = runs.load_run(
-        args.run, cache, allow_modified=args.allow_modified, model_file=args.model
-    )
+    run = runs.load_run(args.run, cache, allow_modified=args.allow_modified, model_file=args.model)
     for note in run.notes:
         _say(f"warning: {note}")
     dt_run = run.sim.obs_dt
@@ -222,7 +220,13 @@ def run_predict(args: argparse.Namespace) -> int:
     _print_simulation(runs.simulation_summary(sim))
     sigma, kind = noise_for(run.theta, run.sim.n_joints, run.config.get("problem"))
     pred = predict_run(
-        sim, run.theta, prof.force[None], grasp, run.stable, noise_sigma=sigma, noise_kind=kind,
+        sim,
+        run.theta,
+        prof.force[None],
+        grasp,
+        run.stable,
+        noise_sigma=sigma,
+        noise_kind=kind,
         model=model,
     )
     n_bad = int((~pred.valid).sum())
@@ -236,7 +240,12 @@ def run_predict(args: argparse.Namespace) -> int:
     )
     recorded = prof.displacement if compare else None
     csv_text = band_csv_text(
-        prof.time, prof.force, recorded, mean, pred.lower[0], pred.upper[0],
+        prof.time,
+        prof.force,
+        recorded,
+        mean,
+        pred.lower[0],
+        pred.upper[0],
         pred.predictive_lower[0] if has_noise else None,
         pred.predictive_upper[0] if has_noise else None,
     )

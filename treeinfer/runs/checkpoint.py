@@ -164,7 +164,13 @@ def _open_checkpoint(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
             raise ValueError("meta is not a JSON object")  # noqa: TRY004 -- caught below
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such checkpoint") from None
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:  # truncated / foreign file
+    except (
+        OSError,
+        ValueError,
+        KeyError,
+        EOFError,
+        zipfile.BadZipFile,
+    ) as e:  # truncated / foreign file
         raise ConfigError(f"{path}: not a readable treeinfer checkpoint ({e})") from None
     if meta.get("format") != CHECKPOINT_FORMAT:
         raise ConfigError(

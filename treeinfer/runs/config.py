@@ -143,8 +143,12 @@ class RunConfig:
         set_("checkpoint_every", _count("--checkpoint-every", self.checkpoint_every, 0))
         set_("seed", _count("--seed", self.seed, 0))
         if not (isinstance(self.kT, str) and self.kT == "auto"):
-            set_("kT", _positive("--kT", self.kT, "a positive number (loss units per nat) or 'auto'"))
-            if self.kT < MIN_KT:  # the log-likelihood -L/kT would overflow float32 to -inf everywhere
+            set_(
+                "kT", _positive("--kT", self.kT, "a positive number (loss units per nat) or 'auto'")
+            )
+            if (
+                self.kT < MIN_KT
+            ):  # the log-likelihood -L/kT would overflow float32 to -inf everywhere
                 raise ConfigError(
                     f"--kT: {self.kT:g} is so small that every particle's log-likelihood -L/kT "
                     f"overflows (below {MIN_KT:g}); a loss of L costs L/kT nats: typical values are "
@@ -173,7 +177,9 @@ class RunConfig:
                 f"--gradients: must be one of {', '.join(GRADIENT_CHOICES)}, got {self.gradients!r}"
             )
         if self.init not in INIT_CHOICES:
-            raise ConfigError(f"--init: must be one of {', '.join(INIT_CHOICES)}, got {self.init!r}")
+            raise ConfigError(
+                f"--init: must be one of {', '.join(INIT_CHOICES)}, got {self.init!r}"
+            )
         if self.force_interp not in FORCE_INTERPS:
             raise ConfigError(
                 f"--force-interp: must be one of {', '.join(FORCE_INTERPS)}, got {self.force_interp!r}"
@@ -270,7 +276,9 @@ def infer_config(
     from ..static import run_tree
 
     tree_path, data_dir, out = Path(tree_path), Path(data_dir), Path(out)
-    tree = run_tree(load_run_tree(tree_path, model, repair_inertia), more.get("model_kind", "dynamic"))
+    tree = run_tree(
+        load_run_tree(tree_path, model, repair_inertia), more.get("model_kind", "dynamic")
+    )
     files = data_manifest(data_dir) if data_dir.is_dir() else []
     trajs = read_trajectory_dir(data_dir)  # clear errors for a missing folder / bad file
     options = RunConfig(

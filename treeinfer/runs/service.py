@@ -240,7 +240,9 @@ def _prepare_fresh(config: dict, log: Callable[[str], None]):
     from ..static import run_tree
 
     o = config["options"]
-    tree = run_tree(load_run_tree(o["tree"], o.get("model"), o.get("repair_inertia")), o.get("model_kind"))
+    tree = run_tree(
+        load_run_tree(o["tree"], o.get("model"), o.get("repair_inertia")), o.get("model_kind")
+    )
     trajs = read_trajectory_dir(config["options"]["data"])
     truth = read_true_params(tree, config["options"]["data"])
     return run_dir, partial, tree, trajs, truth
@@ -285,15 +287,20 @@ def _laplace_start(problem, config: dict, log: Callable[[str], None]):
             "uniform with --model-kind static or inference.parameters: [kp]"
         )
     jacobian = "jvp" if o.get("gradients", "fd") == "jvp" else "fd"
-    fit = fit_problem(problem, "boltzmann", n_starts=6, seed=o["seed"], jacobian=jacobian,
-                      max_iterations=25)
+    fit = fit_problem(
+        problem, "boltzmann", n_starts=6, seed=o["seed"], jacobian=jacobian, max_iterations=25
+    )
     std = np.sqrt(np.diag(fit.cov))
     log(
         f"Laplace start: MAP from {len(fit.starts)} starts in {fit.iterations} LM iterations, "
         "log-gain std " + ", ".join(f"{x:.3g}" for x in std)
     )
-    return laplace_particles(jax.random.fold_in(jax.random.key(o["seed"]), 0x1A9), fit,
-                             o["particles"], scale=LAPLACE_SCALE)
+    return laplace_particles(
+        jax.random.fold_in(jax.random.key(o["seed"]), 0x1A9),
+        fit,
+        o["particles"],
+        scale=LAPLACE_SCALE,
+    )
 
 
 def run_inference(
@@ -383,10 +390,7 @@ def run_inference(
         then = {k: v for k, v in config["problem"].items() if k != "sim_step"}
         if "force_interp" not in then and now.get("force_interp") == "hold":
             now.pop("force_interp")
-        if (
-            _jsonable(now) != _jsonable(then)
-            or sampler_settings(config) != config["sampler"]
-        ):
+        if _jsonable(now) != _jsonable(then) or sampler_settings(config) != config["sampler"]:
             raise ConfigError(
                 f"{partial}: this treeinfer derives other problem or sampler settings from the run's "
                 f"options than the interrupted run did (recorded {config['problem']}, now {problem.settings}); "
@@ -550,8 +554,12 @@ def _summarised_posterior(posterior, problem, trace: dict, o: dict):
     else:
         kp, kd = gains_from_theta(theta, problem.sim.n_joints)
     return dataclasses.replace(
-        posterior, theta=np.asarray(theta), kp=np.asarray(kp), kd=np.asarray(kd),
-        log_density=np.asarray(logp), settings={**posterior.settings, **extra},
+        posterior,
+        theta=np.asarray(theta),
+        kp=np.asarray(kp),
+        kd=np.asarray(kd),
+        log_density=np.asarray(logp),
+        settings={**posterior.settings, **extra},
     )
 
 

@@ -110,12 +110,18 @@ class SamplerSpec(NamedTuple):
 
 
 REGISTRY: dict[str, SamplerSpec] = {
-    "nnsvgd": SamplerSpec(nnsvgd, {"learning_rate": 0.1}, VALUE_AND_GRAD, True, _svgd_options, "svgd"),
+    "nnsvgd": SamplerSpec(
+        nnsvgd, {"learning_rate": 0.1}, VALUE_AND_GRAD, True, _svgd_options, "svgd"
+    ),
     "svgd": SamplerSpec(svgd, {"learning_rate": 0.1}, VALUE_AND_GRAD, False, _svgd_options, "svgd"),
     # The paper's gradient baselines: "an Adam optimizer with a small learning rate guides the
     # descent"; the Langevin noise is kept.
     "sgld": SamplerSpec(
-        sgld, {"step_size": 1e-4, "learning_rate": 0.05}, VALUE_AND_GRAD, False, _langevin_options,
+        sgld,
+        {"step_size": 1e-4, "learning_rate": 0.05},
+        VALUE_AND_GRAD,
+        False,
+        _langevin_options,
         "mcmc",
     ),
     # SGHMC: step 1e-2 with heavy friction (alpha * eps = 0.1), no Adam. Measured by
@@ -123,8 +129,12 @@ REGISTRY: dict[str, SamplerSpec] = {
     # travel 0.21 / 0.70 box widths on two_branch / three_branch (the former defaults, step 1e-4
     # with Adam 0.05 and alpha 0.1: 0.019 / 0.019) and reach log p -23 / -61 (former -166 / -242).
     "sghmc": SamplerSpec(
-        sghmc, {"step_size": 1e-2, "alpha": 10.0, "learning_rate": None}, VALUE_AND_GRAD, False,
-        _sghmc_options, "mcmc",
+        sghmc,
+        {"step_size": 1e-2, "alpha": 10.0, "learning_rate": None},
+        VALUE_AND_GRAD,
+        False,
+        _sghmc_options,
+        "mcmc",
     ),
     "mh": SamplerSpec(mh, {"proposal_scale": 0.05}, LOG_DENSITY, False, _mh_options, "mcmc"),
 }
@@ -132,7 +142,9 @@ REGISTRY: dict[str, SamplerSpec] = {
 
 SAMPLER_NAMES: tuple[str, ...] = tuple(REGISTRY)
 
-SAMPLERS: dict[str, Callable[..., SamplingAlgorithm]] = {n: s.constructor for n, s in REGISTRY.items()}
+SAMPLERS: dict[str, Callable[..., SamplingAlgorithm]] = {
+    n: s.constructor for n, s in REGISTRY.items()
+}
 """Sampler constructors by name. ``mh`` takes a log-density, the others a value-and-grad function."""
 
 

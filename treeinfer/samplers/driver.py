@@ -73,7 +73,9 @@ def to_host(x) -> np.ndarray:
 
 
 def _addressable(tree) -> bool:
-    return all(not isinstance(x, jax.Array) or x.is_fully_addressable for x in jax.tree.leaves(tree))
+    return all(
+        not isinstance(x, jax.Array) or x.is_fully_addressable for x in jax.tree.leaves(tree)
+    )
 
 
 def iteration_key(rng_key, i):
@@ -120,8 +122,13 @@ _COMPILED: dict = {}  # (jitted chunk, argument signature) -> executable; a few,
 
 def _signature(args) -> tuple:
     leaves, treedef = jax.tree.flatten(args)
-    return (treedef, tuple((np.shape(x), str(getattr(x, "dtype", type(x))), str(getattr(x, "sharding", None)))
-                           for x in leaves))
+    return (
+        treedef,
+        tuple(
+            (np.shape(x), str(getattr(x, "dtype", type(x))), str(getattr(x, "sharding", None)))
+            for x in leaves
+        ),
+    )
 
 
 def _compiled(jitted, args):
@@ -395,8 +402,13 @@ def _straggler_reinit(init, policy: ReinitStragglers):
 
     def apply(state, key, iteration):
         mask = straggler_mask(
-            state.logdensity, state.position, lower, upper, z_max=policy.z_max,
-            min_gap=policy.min_gap, max_box_excess=policy.max_box_excess,
+            state.logdensity,
+            state.position,
+            lower,
+            upper,
+            z_max=policy.z_max,
+            min_gap=policy.min_gap,
+            max_box_excess=policy.max_box_excess,
         )[0]
         k = jax.random.fold_in(jax.random.fold_in(key, _REINIT_TAG), iteration)
         n_particles = state.position.shape[0]

@@ -156,8 +156,9 @@ def svgd(
             mean_logdensity=finite_mean(logdensity),
             grad_norm=jnp.mean(jnp.linalg.norm(grad, axis=-1)),
             n_nonfinite=count_nonfinite(logdensity),
-            ksd=kernel_stein_discrepancy(x_new, jnp.where(jnp.isfinite(logdensity)[:, None], grad,
-                                                          jnp.nan)),
+            ksd=kernel_stein_discrepancy(
+                x_new, jnp.where(jnp.isfinite(logdensity)[:, None], grad, jnp.nan)
+            ),
         )
         return SVGDState(x_new, logdensity, grad, opt_state), info
 

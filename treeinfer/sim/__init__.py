@@ -169,7 +169,9 @@ class Simulator:
     def grasp_point(self, fraction) -> jax.Array:
         """Grasp point in the grasped body's frame for a fraction of the branch length."""
         f = jnp.asarray(fraction, dtype=self.dtype)
-        return jnp.asarray(self.grasp_start) + f[..., None] * jnp.asarray(self.grasp_end - self.grasp_start)
+        return jnp.asarray(self.grasp_start) + f[..., None] * jnp.asarray(
+            self.grasp_end - self.grasp_start
+        )
 
 
 # ---- construction ---------------------------------------------------------------------------
@@ -194,9 +196,13 @@ def _stiff_corner_omega(mj_model, joint_ids: np.ndarray, kp_max: np.ndarray) -> 
     return float(np.sqrt(max(w2.max(), 0.0)))
 
 
-def choose_substeps(mj_model, joint_ids, kp_max, obs_dt: float, max_sim_dt: float = DEFAULT_MAX_SIM_DT) -> int:
+def choose_substeps(
+    mj_model, joint_ids, kp_max, obs_dt: float, max_sim_dt: float = DEFAULT_MAX_SIM_DT
+) -> int:
     """Simulation steps per observation so that ``omega_max * dt <= STABILITY_MARGIN``."""
-    omega = _stiff_corner_omega(mj_model, np.asarray(joint_ids), np.asarray(kp_max) * PRIOR_STIFFNESS_HEADROOM)
+    omega = _stiff_corner_omega(
+        mj_model, np.asarray(joint_ids), np.asarray(kp_max) * PRIOR_STIFFNESS_HEADROOM
+    )
     dt_max = min(max_sim_dt, STABILITY_MARGIN / omega if omega > 0 else max_sim_dt)
     return max(1, int(math.ceil(obs_dt / dt_max - 1e-9)))
 
@@ -254,27 +260,41 @@ def make_simulator(
     if backend not in BACKENDS:
         raise ConfigError(f"backend: must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if force_interp not in FORCE_INTERPS:
-        raise ConfigError(f"force_interp: must be one of {', '.join(FORCE_INTERPS)}, got {force_interp!r}")
+        raise ConfigError(
+            f"force_interp: must be one of {', '.join(FORCE_INTERPS)}, got {force_interp!r}"
+        )
     if not (isinstance(max_sim_dt, (int, float)) and math.isfinite(max_sim_dt) and max_sim_dt > 0):
         raise ConfigError(f"max_sim_dt: must be a positive number of seconds, got {max_sim_dt!r}")
     if sim_tolerance is not None and not (
-        isinstance(sim_tolerance, (int, float)) and math.isfinite(sim_tolerance) and sim_tolerance > 0
+        isinstance(sim_tolerance, (int, float))
+        and math.isfinite(sim_tolerance)
+        and sim_tolerance > 0
     ):
-        raise ConfigError(f"sim_tolerance: must be a positive number of metres, got {sim_tolerance!r}")
+        raise ConfigError(
+            f"sim_tolerance: must be a positive number of metres, got {sim_tolerance!r}"
+        )
     user = None
     if model_file is not None or tree.model is not None:
         from ..usermodel import prepare_user_model
 
         user = prepare_user_model(tree, model_file)
     mj_model = to_mjmodel(tree) if user is None else user.mj_model
-    bad = [mj_model.joint(j).name for j in range(mj_model.njnt) if mj_model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE]
+    bad = [
+        mj_model.joint(j).name
+        for j in range(mj_model.njnt)
+        if mj_model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE
+    ]
     if bad:
-        raise TreeFileError(f"model: only hinge joints are supported, found other joint types: {bad}")
+        raise TreeFileError(
+            f"model: only hinge joints are supported, found other joint types: {bad}"
+        )
 
     def jid(name):
         i = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_JOINT, name)
         if i < 0:
-            raise TreeFileError(f"model: no joint named '{name}' (inferred joints must exist in the model)")
+            raise TreeFileError(
+                f"model: no joint named '{name}' (inferred joints must exist in the model)"
+            )
         return i
 
     joint_ids = np.array([jid(n) for n in tree.inferred], dtype=np.int32)
@@ -294,7 +314,11 @@ def make_simulator(
     step_info = {"method": "given"}
     if substeps is None:
         substeps = choose_substeps(mj_model, joint_ids, kp_max, obs_dt, max_sim_dt)
-        step_info = {"method": "stability", "stability_substeps": int(substeps), "max_sim_dt": float(max_sim_dt)}
+        step_info = {
+            "method": "stability",
+            "stability_substeps": int(substeps),
+            "max_sim_dt": float(max_sim_dt),
+        }
     mj_model.opt.timestep = obs_dt / substeps
     g = np.asarray(mj_model.opt.gravity, float)
     gdir = g / np.linalg.norm(g)
@@ -343,7 +367,12 @@ def make_simulator(
         from .accuracy import with_accurate_step
 
         sim = with_accurate_step(
-            sim, forces, sim_tolerance, max_sim_dt, grasp_fraction=grasp_fraction, direction=direction,
+            sim,
+            forces,
+            sim_tolerance,
+            max_sim_dt,
+            grasp_fraction=grasp_fraction,
+            direction=direction,
             grasp_branch=grasp_branch,
         )
     return sim
@@ -388,7 +417,9 @@ def _fused_settle_one(sim: Simulator, kp, kd, dtype):
         return (q + dq, jnp.where(i == 0, r, r_first), r), None
 
     zero = jnp.zeros(nv, dtype)
-    (q, r_first, r_last), _ = jax.lax.scan(newton, (zero, zero, zero), jnp.arange(sim.settle_iterations))
+    (q, r_first, r_last), _ = jax.lax.scan(
+        newton, (zero, zero, zero), jnp.arange(sim.settle_iterations)
+    )
     scale = 1.0 + jnp.max(jnp.abs(r_first))
     ok = jnp.all(jnp.isfinite(q)) & (jnp.max(jnp.abs(r_last)) <= sim.settle_tolerance * scale)
     return q, ok
@@ -400,14 +431,27 @@ def _fused_prepare(sim: Simulator, kp, kd, dtype):
     return (kp, kd), qpos_rest, settled
 
 
-def _fused_pull(sim: Simulator, gains, qpos_rest, forces, site_local, unroll_outer=1, unroll_inner=1, **kw):
+def _fused_pull(
+    sim: Simulator, gains, qpos_rest, forces, site_local, unroll_outer=1, unroll_inner=1, **kw
+):
     kp, kd = gains
-    return _fused_pull_one(sim, kp, kd, qpos_rest, forces, site_local, unroll_outer, unroll_inner, **kw)
+    return _fused_pull_one(
+        sim, kp, kd, qpos_rest, forces, site_local, unroll_outer, unroll_inner, **kw
+    )
 
 
 def _fused_pull_one(
-    sim: Simulator, kp, kd, qpos_rest, forces, site_local, unroll_outer: int = 1, unroll_inner=1,
-    direction=None, body: int | None = None, substeps=None,
+    sim: Simulator,
+    kp,
+    kd,
+    qpos_rest,
+    forces,
+    site_local,
+    unroll_outer: int = 1,
+    unroll_inner=1,
+    direction=None,
+    body: int | None = None,
+    substeps=None,
 ):
     """:func:`_pull_one` for the fused backend: same timing, force and observation."""
     from . import fused as hd
@@ -435,7 +479,9 @@ def _fused_pull_one(
 
         def sub(k, st):
             q, v, lever, c, comp = st
-            force = hd.vscale(f0 + force_fraction(sim.force_interp, k, n_sub, dtype) * (f1 - f0), ddir)
+            force = hd.vscale(
+                f0 + force_fraction(sim.force_interp, k, n_sub, dtype) * (f1 - f0), ddir
+            )
             out = hd.step(t, q, v, stiffness, damping, spring, dt, bid, site_local, force, lever)
             c = tuple(jnp.where(k == 0, a, b) for a, b in zip(out.site, c))
             # Stacked [nv] carries: carrying nv separate scalars makes XLA emit one multi-output
@@ -460,7 +506,9 @@ def _fused_pull_one(
     zero = jnp.zeros_like(qpos_rest)
     carry = (qpos_rest, zero, tuple(jnp.asarray(x, dtype) for x in lever0), zero, jnp.bool_(True))
     forces = forces.astype(dtype)
-    (_, _, _, _, ok), tau = jax.lax.scan(observe, carry, (forces, next_samples(forces)), unroll=unroll_outer)
+    (_, _, _, _, ok), tau = jax.lax.scan(
+        observe, carry, (forces, next_samples(forces)), unroll=unroll_outer
+    )
     ok = ok & jnp.all(jnp.isfinite(tau)) & jnp.all(jnp.abs(tau) < sim.max_displacement)
     return tau, ok
 
@@ -476,8 +524,15 @@ def backend_of(sim: Simulator) -> Backend:
 
 
 def simulate(
-    sim: Simulator, kp: jax.Array, kd: jax.Array, forces: jax.Array, grasp_fraction=None,
-    unroll_outer: int = 1, unroll_inner=1, direction=None, grasp_branch=None,
+    sim: Simulator,
+    kp: jax.Array,
+    kd: jax.Array,
+    forces: jax.Array,
+    grasp_fraction=None,
+    unroll_outer: int = 1,
+    unroll_inner=1,
+    direction=None,
+    grasp_branch=None,
 ) -> Rollout:
     """Roll out P parameter sets under B force profiles in one batched call.
 
@@ -504,20 +559,28 @@ def simulate(
     Returns:
       :class:`Rollout` with ``tau``, ``tau_dot`` [P, B, T] and ``stable`` [P, B].
     """
-    return _simulate(sim, kp, kd, forces, grasp_fraction, unroll_outer, unroll_inner, direction, grasp_branch)
+    return _simulate(
+        sim, kp, kd, forces, grasp_fraction, unroll_outer, unroll_inner, direction, grasp_branch
+    )
 
 
-def _grasp_groups(sim: Simulator, grasp_branch, n_profiles: int) -> list[tuple[int | None, float, np.ndarray]]:
+def _grasp_groups(
+    sim: Simulator, grasp_branch, n_profiles: int
+) -> list[tuple[int | None, float, np.ndarray]]:
     """[(body index or None for the sim's own, branch length m, profile indices)] per branch."""
     if grasp_branch is None:
-        return [(None, float(np.linalg.norm(sim.grasp_end - sim.grasp_start)), np.arange(n_profiles))]
+        return [
+            (None, float(np.linalg.norm(sim.grasp_end - sim.grasp_start)), np.arange(n_profiles))
+        ]
     names = [grasp_branch] * n_profiles if isinstance(grasp_branch, str) else list(grasp_branch)
     if len(names) != n_profiles:
         raise ConfigError(f"grasp_branch: {len(names)} names for {n_profiles} force profiles")
     groups = []
     for name in dict.fromkeys(names):
         if name not in sim.branches:
-            raise ConfigError(f"grasp_branch: unknown branch '{name}'; the model has: {', '.join(sim.branches)}")
+            raise ConfigError(
+                f"grasp_branch: unknown branch '{name}'; the model has: {', '.join(sim.branches)}"
+            )
         body, length = sim.branches[name]
         idx = np.array([i for i, n in enumerate(names) if n == name])
         groups.append((None if body == sim.grasp_body else int(body), float(length), idx))
@@ -525,8 +588,16 @@ def _grasp_groups(sim: Simulator, grasp_branch, n_profiles: int) -> list[tuple[i
 
 
 def _simulate(
-    sim: Simulator, kp, kd, forces, grasp_fraction=None, unroll_outer: int = 1, unroll_inner=1,
-    direction=None, grasp_branch=None, substeps=None,
+    sim: Simulator,
+    kp,
+    kd,
+    forces,
+    grasp_fraction=None,
+    unroll_outer: int = 1,
+    unroll_inner=1,
+    direction=None,
+    grasp_branch=None,
+    substeps=None,
 ) -> Rollout:
     """:func:`simulate` with an optional traced ``substeps`` overriding ``sim.substeps``."""
     kp = jnp.atleast_2d(kp)
@@ -535,7 +606,8 @@ def _simulate(
     n_profiles = forces.shape[0]
     dtype = sim.dtype
     frac = jnp.broadcast_to(
-        jnp.asarray(sim.grasp_fraction if grasp_fraction is None else grasp_fraction, dtype), (n_profiles,)
+        jnp.asarray(sim.grasp_fraction if grasp_fraction is None else grasp_fraction, dtype),
+        (n_profiles,),
     )
     dirs = None
     if direction is not None:
@@ -551,7 +623,9 @@ def _simulate(
         taus, oks = [], []
         for body, length, idx in groups:
             if grasp_fraction is None and body is None:  # the model's own grasp site
-                site_local = jnp.broadcast_to(jnp.asarray(sim.mj_model.site_pos[sim.grasp_site], dtype), (len(idx), 3))
+                site_local = jnp.broadcast_to(
+                    jnp.asarray(sim.mj_model.site_pos[sim.grasp_site], dtype), (len(idx), 3)
+                )
             else:
                 site_local = sim.branch_point(body, length, frac[idx])
             opts = {"body": body, "substeps": substeps}
@@ -559,7 +633,9 @@ def _simulate(
                 pull = lambda f, s, o=opts: pull_fn(f, s, unroll_outer, unroll_inner, **o)
                 tau, ok = jax.vmap(pull)(forces[idx], site_local)
             else:
-                pull = lambda f, s, d, o=opts: pull_fn(f, s, unroll_outer, unroll_inner, direction=d, **o)
+                pull = lambda f, s, d, o=opts: pull_fn(
+                    f, s, unroll_outer, unroll_inner, direction=d, **o
+                )
                 tau, ok = jax.vmap(pull)(forces[idx], site_local, dirs[idx])
             taus.append(tau)
             oks.append(ok)

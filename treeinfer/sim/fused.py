@@ -121,7 +121,9 @@ def matTvec(m, v):
 
 
 def matmul(a, b):
-    return tuple(tuple(total(*(mul(a[i][k], b[k][j]) for k in range(3))) for j in range(3)) for i in range(3))
+    return tuple(
+        tuple(total(*(mul(a[i][k], b[k][j]) for k in range(3))) for j in range(3)) for i in range(3)
+    )
 
 
 _ZERO3 = (0.0, 0.0, 0.0)
@@ -250,7 +252,12 @@ def _axis_rotation(axis, angle):
     k = ((0.0, -axis[2], axis[1]), (axis[2], 0.0, -axis[0]), (-axis[1], axis[0], 0.0))
     k2 = np.asarray(k) @ np.asarray(k)
     return tuple(
-        tuple(total(_const(float(i == j)), mul(_const(k[i][j]), s), mul(_const(k2[i][j]), one_minus_c)) for j in range(3))
+        tuple(
+            total(
+                _const(float(i == j)), mul(_const(k[i][j]), s), mul(_const(k2[i][j]), one_minus_c)
+            )
+            for j in range(3)
+        )
         for i in range(3)
     )
 
@@ -323,7 +330,14 @@ def _subtree_sums(t: HingeTree, kin: Kinematics, force, moment):
     return out
 
 
-def bias_minus_applied(t: HingeTree, kin: Kinematics, qvel, applied_body=None, applied_force=_ZERO3, applied_torque=_ZERO3):
+def bias_minus_applied(
+    t: HingeTree,
+    kin: Kinematics,
+    qvel,
+    applied_body=None,
+    applied_force=_ZERO3,
+    applied_torque=_ZERO3,
+):
     """``qfrc_bias - qfrc_applied`` [nv]: Newton-Euler with velocity-product accelerations and
     gravity, minus the applied force/torque at ``applied_body``'s centre of mass."""
     nb = t.nbody + 1
@@ -361,7 +375,10 @@ def mass_matrix(t: HingeTree, kin: Kinematics):
         dofs = _ancestor_dofs(t, b)
         if not dofs:
             continue
-        lin = {d: cross(kin.axis[t.dof_body[d]], vsub(kin.com[b], kin.anchor[t.dof_body[d]])) for d in dofs}
+        lin = {
+            d: cross(kin.axis[t.dof_body[d]], vsub(kin.com[b], kin.anchor[t.dof_body[d]]))
+            for d in dofs
+        }
         ang = {d: _inertia_times(t, kin, b, kin.axis[t.dof_body[d]]) for d in dofs}
         m = t.mass[b - 1]
         for i in dofs:
@@ -429,7 +446,19 @@ class StepOutput(NamedTuple):
     site: tuple  # world grasp point at the start of this step
 
 
-def step(t: HingeTree, qpos, qvel, stiffness, damping, qpos_spring, dt, body: int, site_local, force, lever):
+def step(
+    t: HingeTree,
+    qpos,
+    qvel,
+    stiffness,
+    damping,
+    qpos_spring,
+    dt,
+    body: int,
+    site_local,
+    force,
+    lever,
+):
     """One ``implicitfast`` step of one particle; ``qpos``, ``qvel``: sequences of nv scalars.
 
     ``force`` is the world force applied at body ``body``'s centre of mass with torque
@@ -444,10 +473,13 @@ def step(t: HingeTree, qpos, qvel, stiffness, damping, qpos_spring, dt, body: in
     torque = cross(lever, force)
     rhs = bias_minus_applied(t, kin, v, body, force, torque)
     smooth = [
-        sub(sub(mul(-stiffness[i], sub(q[i], qpos_spring[i])), mul(damping[i], v[i])), rhs[i]) for i in range(nv)
+        sub(sub(mul(-stiffness[i], sub(q[i], qpos_spring[i])), mul(damping[i], v[i])), rhs[i])
+        for i in range(nv)
     ]
     diag = [add(t.armature[i], mul(dt, damping[i])) for i in range(nv)]
     qacc = solve_tree(t, mass_matrix(t, kin), diag, smooth)
     v_new = [add(v[i], mul(dt, qacc[i])) for i in range(nv)]
     q_new = [add(q[i], mul(dt, v_new[i])) for i in range(nv)]
-    return StepOutput(qpos=tuple(q_new), qvel=tuple(v_new), lever=vsub(site, kin.com[body]), site=site)
+    return StepOutput(
+        qpos=tuple(q_new), qvel=tuple(v_new), lever=vsub(site, kin.com[body]), site=site
+    )
