@@ -299,7 +299,9 @@ def read_bag_streams(
 
 
 def resample(time: np.ndarray, values: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """Linear interpolation of ``values [N, D]`` at times ``time [N]`` onto ``grid [G]`` -> [G, D]."""
+    """Linear interpolation of ``values [N, D]`` at times ``time [N]`` onto ``grid [G]``.
+
+    Returns ``[G, D]``."""
     return np.stack([np.interp(grid, time, values[:, j]) for j in range(values.shape[1])], axis=1)
 
 

@@ -128,14 +128,17 @@ def _build(
     name: str,
     tree_kwargs: Mapping[str, Any],
 ) -> Tree:
-    """make_tree with the generator's name in every error (a bad generated tree is a bad setting)."""
+    """make_tree with the generator's name in every error.
+
+    (A bad generated tree is a bad setting.)"""
     where = f"{kind}()"
     bounds = _as_bounds(bounds, where)
     tree_kwargs = _check_tree_kwargs(tree_kwargs, where)
     names = {b.name for b in branches}
     if grasp not in names:
         raise ConfigError(
-            f"{where}: grasp: unknown branch '{grasp}'; generated branches: {', '.join(sorted(names))}"
+            f"{where}: grasp: unknown branch '{grasp}'; generated branches: "
+            f"{', '.join(sorted(names))}"
         )
     if levels is None:
         levels = _path_levels(branches, grasp)
@@ -381,7 +384,8 @@ def _normalise_rules(rules: Rules) -> dict[str, tuple[np.ndarray, list[str]]]:
             words = [str(s) if isinstance(s, str) else None for _, s in succ]
         except (TypeError, ValueError):
             raise ConfigError(
-                f"lsystem: rules['{sym}']: expected a string or a list of (probability, string), got {succ!r}"
+                f"lsystem: rules['{sym}']: expected a string or a list of (probability, string), "
+                f"got {succ!r}"
             ) from None
         if not probs or None in words:
             raise ConfigError(
@@ -431,7 +435,8 @@ def rewrite(
         s = "".join(parts)
         if len(s) > MAX_LSYSTEM_LENGTH:
             raise ConfigError(
-                f"lsystem: the string grew beyond {MAX_LSYSTEM_LENGTH} symbols; use fewer iterations"
+                f"lsystem: the string grew beyond {MAX_LSYSTEM_LENGTH} symbols; use fewer "
+                "iterations"
             )
     return s
 
@@ -457,7 +462,8 @@ def _fork_angles(r_rel: np.ndarray) -> tuple[float, float]:
 
     The turtle's remaining roll about the new branch axis cannot be stored in the tree model (one
     hinge per branch): it only decides this branch's hinge axis, and the children's azimuths,
-    computed against the stored frame, absorb it, so every branch still points where the turtle drew.
+    computed against the stored frame, absorb it, so every branch still points where the turtle
+    drew.
     """
     h = r_rel[:, 0]
     sin_b = math.hypot(h[1], h[2])
@@ -487,8 +493,8 @@ def interpret(
 
     - a symbol in ``draw_symbols`` (``F``): draw forward by ``step_length * length_ratio**d``, where
       d is the current bracket depth;
-    - ``+`` / ``-``: turn up / down in the bending plane by ``angle_deg`` (about the turtle's y-axis;
-      ``+`` matches a positive ``angle_deg`` of the tree model);
+    - ``+`` / ``-``: turn up / down in the bending plane by ``angle_deg`` (about the turtle's
+      y-axis; ``+`` matches a positive ``angle_deg`` of the tree model);
     - ``&`` / ``^``: turn out of the bending plane, towards +y / -y (about the turtle's z-axis);
     - ``/`` / ``\\``: roll about the heading by +/- ``angle_deg`` (this rotates the bending plane of
       the branches drawn next: their azimuth); ``|``: turn around (180 deg about y);
@@ -566,7 +572,8 @@ def interpret(
         raise ConfigError(f"lsystem: {len(stack)} '[' without a matching ']'")
     if not nodes:
         raise ConfigError(
-            f"lsystem: the string draws nothing (no symbol from '{draw_symbols}'): {commands[:80]!r}"
+            f"lsystem: the string draws nothing (no symbol from '{draw_symbols}'): "
+            f"{commands[:80]!r}"
         )
     names = [f"{prefix}{i}" for i in range(len(nodes))]
     out = []
@@ -647,7 +654,7 @@ def lsystem(
     name: str = "lsystem",
     **tree_kwargs: Any,
 ) -> Tree:
-    """A tree grown by an L-system: :func:`rewrite`, then :func:`interpret`, then :func:`pipe_radii`.
+    """A tree grown by an L-system: :func:`rewrite`, :func:`interpret`, then :func:`pipe_radii`.
 
     Branches are named ``s0`` (the root), ``s1``, ... in drawing order.
 
@@ -690,8 +697,8 @@ def lsystem(
     except ConfigError as e:
         if "radius" in str(e):
             raise ConfigError(
-                f"{e} (hint: lsystem radii follow the pipe model; use a smaller base_radius/leaf_radius, "
-                "a longer step_length or merge_segments=True)"
+                f"{e} (hint: lsystem radii follow the pipe model; use a smaller "
+                "base_radius/leaf_radius, a longer step_length or merge_segments=True)"
             ) from None
         raise
 

@@ -158,7 +158,8 @@ def _effective_valid(pred: jax.Array, valid) -> jax.Array:
         valid = jnp.asarray(valid, dtype=bool)
         if valid.shape != (pred.shape[0],):
             raise ConfigError(
-                f"valid: expected shape ({pred.shape[0]},) (one flag per particle), got {valid.shape}"
+                f"valid: expected shape ({pred.shape[0]},) (one flag per particle), got "
+                f"{valid.shape}"
             )
     return _finite_and_valid(pred, valid)
 

@@ -222,7 +222,9 @@ def plot_band_grid(
 
 
 def _kde_curve(x: np.ndarray, grid: np.ndarray) -> np.ndarray | None:
-    """1-D Scott's-rule Gaussian KDE on ``grid`` (same rule as treeinfer.metrics); None if degenerate."""
+    """1-D Scott's-rule Gaussian KDE on ``grid`` (same rule as treeinfer.metrics).
+
+    None if degenerate."""
     n, sd = x.size, x.std(ddof=1) if x.size > 1 else 0.0
     if not sd > 0:
         return None

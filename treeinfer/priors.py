@@ -58,7 +58,8 @@ def smoothed_box(
 ) -> Callable[[jax.Array], jax.Array]:
     """Smoothed box (soft uniform) prior on ``theta``.
 
-    ``log p0(theta) = -sum_d dist_d(theta)^2 / (2 sigma_d^2) [- sum_d log(upper_d - lower_d + sqrt(2 pi) sigma_d)]``
+    ``log p0(theta) = -sum_d dist_d(theta)^2 / (2 sigma_d^2)``
+    ``[- sum_d log(upper_d - lower_d + sqrt(2 pi) sigma_d)]``
 
     with ``dist_d = max(|theta_d - c_d| - r_d, 0)`` the distance of coordinate
     ``d`` to the interval ``[lower_d, upper_d]`` (centre ``c``, half-width ``r``).
@@ -277,7 +278,8 @@ def _training_settings(
         activation = "softplus" if form == "linear" else "tanh"
     if activation not in _ACTIVATIONS:
         raise ConfigError(
-            f"inequality prior: activation must be one of {sorted(_ACTIVATIONS)}, got {activation!r}"
+            f"inequality prior: activation must be one of {sorted(_ACTIVATIONS)}, got "
+            f"{activation!r}"
         )
     learning_rate = num("learning_rate", learning_rate)
     if not learning_rate > 0:

@@ -14,8 +14,8 @@ On disk a trajectory is one CSV file::
 in seconds, newtons, metres (and metres per second). Files written by treeinfer begin with the
 header line, so ``pandas.read_csv``, the ``csv`` module and spreadsheets read them as they are;
 provenance goes beside them (``import.json`` of the importers, a run's ``config.json``).
-Reading also accepts ``#`` comment lines anywhere (before or after the header). Everything a user can get
-wrong in such a file raises :class:`~treeinfer.errors.TrajectoryFileError`
+Reading also accepts ``#`` comment lines anywhere (before or after the header). Everything a
+user can get wrong in such a file raises :class:`~treeinfer.errors.TrajectoryFileError`
 naming the file, the 1-based line and the problem.
 """
 
@@ -697,8 +697,8 @@ def read_force_profile(path: str | os.PathLike) -> ForceProfile:
         return ForceProfile(tr.time, tr.force, tr.displacement, path.name)
     if sorted(header) != ["force", "time"]:
         raise TrajectoryFileError(
-            f"{path}, line {body[0][0]}: header {header}; expected 'time,force' (a force profile) or "
-            "'time,force,displacement[,velocity]' (a trajectory)"
+            f"{path}, line {body[0][0]}: header {header}; expected 'time,force' (a force "
+            "profile) or 'time,force,displacement[,velocity]' (a trajectory)"
         )
     rows, where_line = [], []
     for n, ln in body[1:]:

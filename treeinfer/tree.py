@@ -426,7 +426,8 @@ def _validate_branches(branches: tuple[Branch, ...]) -> None:
             or not b.name.replace("_", "").replace("-", "").replace(".", "").isalnum()
         ):
             raise TreeFileError(
-                f"branches[{i}].name: must be a non-empty name of letters, digits, '_', '-', '.', got {b.name!r}"
+                f"branches[{i}].name: must be a non-empty name of letters, digits, '_', '-', "
+                f"'.', got {b.name!r}"
             )
         if b.name in seen:
             raise TreeFileError(f"{w}duplicate branch name")
@@ -502,9 +503,9 @@ def _check_masses(tree: Tree) -> None:
         m, inertia = cylinder_inertia(b, branch_density(tree, b))
         if not math.isfinite(m) or m < MIN_MASS:
             raise TreeFileError(
-                f"{w}mass {m:.3g} kg (density {branch_density(tree, b):g} kg/m^3, radius {b.radius:g} m, "
-                f"length {b.length:g} m) is below {MIN_MASS:g} kg: a degenerate body; check density "
-                "and radius"
+                f"{w}mass {m:.3g} kg (density {branch_density(tree, b):g} kg/m^3, radius "
+                f"{b.radius:g} m, length {b.length:g} m) is below {MIN_MASS:g} kg: a degenerate "
+                "body; check density and radius"
             )
         if not np.all(np.isfinite(inertia)) or float(inertia.min()) < MIN_INERTIA:
             raise TreeFileError(
@@ -675,7 +676,8 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
         unknown = set(rb) - _BRANCH_KEYS
         if unknown:
             raise TreeFileError(
-                f"{pre}branches[{i}]: unknown field(s) {sorted(unknown)}; allowed: {sorted(_BRANCH_KEYS)}"
+                f"{pre}branches[{i}]: unknown field(s) {sorted(unknown)}; allowed: "
+                f"{sorted(_BRANCH_KEYS)}"
             )
         for req in ("name", "length", "radius"):
             if req not in rb:
@@ -735,7 +737,8 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
     bad = set(inf) - {"joints", "levels", "prior", "parameters"}
     if bad:
         raise TreeFileError(
-            f"{pre}inference: unknown field(s) {sorted(bad)}; allowed: joints, levels, prior, parameters"
+            f"{pre}inference: unknown field(s) {sorted(bad)}; allowed: joints, levels, prior, "
+            "parameters"
         )
     try:
         pull_direction = parse_tree_pull(d.get("pull"), source)
@@ -756,7 +759,8 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
     per_joint_raw = prior.get("joints", {}) or {}
     if not isinstance(per_joint_raw, dict):
         raise TreeFileError(
-            f"{pre}inference.prior.joints: expected a mapping {{joint: {{kp: [lo, hi], kd: [lo, hi]}}}}"
+            f"{pre}inference.prior.joints: expected a mapping {{joint: {{kp: [lo, hi], kd: [lo, "
+            "hi]}}"
         )
     for n, pj in per_joint_raw.items():
         _no_unknown(pj, {"kp", "kd"}, f"inference.prior.joints.{n}", pre)
@@ -783,7 +787,8 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
         unknown_pj = set(per_joint) - set(tmp_inferred)
         if unknown_pj:
             raise TreeFileError(
-                f"inference.prior.joints: bounds given for joint(s) {sorted(unknown_pj)} that are not inferred"
+                f"inference.prior.joints: bounds given for joint(s) {sorted(unknown_pj)} that "
+                "are not inferred"
             )
         return make_tree(
             branches,

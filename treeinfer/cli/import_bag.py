@@ -1,4 +1,6 @@
-"""``treeinfer import-bag``: cut a ROS bag into trajectory CSVs (:func:`treeinfer.bags.import_bag`)."""
+"""``treeinfer import-bag``: cut a ROS bag into trajectory CSVs.
+
+The work is done by :func:`treeinfer.bags.import_bag`."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""Run folders (the ``runs`` package): what ``treeinfer infer`` writes, how it checkpoints and resumes, and how
-``predict`` / ``evaluate`` read it back.
+"""Run folders (the ``runs`` package): what ``treeinfer infer`` writes, how it checkpoints and
+resumes, and how ``predict`` / ``evaluate`` read it back.
 
 A finished run is one folder ``RUN/``::
 

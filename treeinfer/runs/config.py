@@ -73,8 +73,9 @@ class RunConfig:
     particles (>= 2); iterations (>= 1); backend ("auto", "fused", "mjx"); kT (loss units per
     nat, > 0, or "auto": from the data's noise estimate); likelihood ("boltzmann", "gaussian",
     "student_t", "ar1": :func:`treeinfer.likelihood.likelihood_terms`); noise_displacement (m,
-    None: inferred / estimated); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction (None or in
-    (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end only); force;
+    None: inferred / estimated); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction
+    (None or in (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end
+    only); force;
     prior_from (None or an earlier run folder, absolute: its posterior becomes this run's prior on
     the joints both infer, :mod:`treeinfer.sequential`).
     prior_tail (smoothed-box tail width, share of each log-box width, > 0); reinit_stragglers
@@ -151,8 +152,8 @@ class RunConfig:
             ):  # the log-likelihood -L/kT would overflow float32 to -inf everywhere
                 raise ConfigError(
                     f"--kT: {self.kT:g} is so small that every particle's log-likelihood -L/kT "
-                    f"overflows (below {MIN_KT:g}); a loss of L costs L/kT nats: typical values are "
-                    "1e-3 to 10 (see treeinfer.likelihood.suggest_kT)"
+                    f"overflows (below {MIN_KT:g}); a loss of L costs L/kT nats: typical values "
+                    "are 1e-3 to 10 (see treeinfer.likelihood.suggest_kT)"
                 )
         if self.likelihood not in LIKELIHOODS:
             raise ConfigError(
@@ -182,7 +183,8 @@ class RunConfig:
             )
         if self.force_interp not in FORCE_INTERPS:
             raise ConfigError(
-                f"--force-interp: must be one of {', '.join(FORCE_INTERPS)}, got {self.force_interp!r}"
+                f"--force-interp: must be one of {', '.join(FORCE_INTERPS)}, got "
+                f"{self.force_interp!r}"
             )
         for k, flag in (("max_sim_dt", "--max-sim-dt"), ("sim_tolerance", "--sim-tolerance")):
             v = getattr(self, k)
@@ -338,7 +340,9 @@ def infer_config(
 
 
 def read_true_params(tree: Tree, data_dir: str | os.PathLike) -> np.ndarray | None:
-    """True parameters ``[2R]`` (natural units, label order) from ``DIR/true_params.json``, or None."""
+    """True parameters ``[2R]`` (natural units, label order) from ``DIR/true_params.json``.
+
+    None if there is no such file."""
     path = Path(data_dir) / TRUE_PARAMS_FILE
     if not path.is_file():
         return None
@@ -362,8 +366,9 @@ def check_data_unchanged(config: dict) -> list[Trajectory]:
             + ([f"new: {', '.join(added)}"] if added else [])
         )
         raise ConfigError(
-            f"{d}: the training data differ from the run's (sha256 in config.json; {'; '.join(parts)}); "
-            "restore the original files, or start a new run without --resume"
+            f"{d}: the training data differ from the run's (sha256 in config.json; "
+            f"{'; '.join(parts)}); restore the original files, or start a new run without "
+            "--resume"
         )
     return read_trajectory_dir(d)
 

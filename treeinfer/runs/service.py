@@ -139,14 +139,17 @@ def build_problem(
         problem = with_prior(problem, prior.log_density)
         settings = {**problem.settings, "prior_from": {"run": o["prior_from"], **prior.to_dict()}}
         problem = dataclasses.replace(problem, settings=settings)
-    # infer() evaluates log_density once at the end: jitted, the simulator is traced and compiled once
+    # infer() evaluates log_density once at the end: jitted, the simulator is traced and compiled
+    # once
     # (op-by-op it costs tens of seconds); MH samples with the same function.
     return dataclasses.replace(problem, log_density=jax.jit(problem.log_density))
 
 
 # ==== inference ===================================================================================
 class InferOutcome(NamedTuple):
-    """What :func:`run_inference` produced: the run folder, its config and summary, the posterior."""
+    """What :func:`run_inference` produced.
+
+    The run folder, its config and summary, the posterior."""
 
     run_dir: Path
     config: dict
@@ -233,8 +236,8 @@ def _prepare_fresh(config: dict, log: Callable[[str], None]):
             if why is not None:
                 raise OutputExistsError(f"{partial}: an interrupted run is there but {why}")
             raise OutputExistsError(
-                f"{partial}: an interrupted run is waiting there; continue it with "
-                f"`treeinfer infer --resume {run_dir}`, or pass --force to discard it and start over"
+                f"{partial}: an interrupted run is waiting there; continue it with `treeinfer "
+                f"infer --resume {run_dir}`, or pass --force to discard it and start over"
             )
         shutil.rmtree(partial)
     from ..static import run_tree
@@ -364,12 +367,14 @@ def run_inference(
         config = read_json(partial / "config.json", "the interrupted run's config")
         if config.get("format") != RUN_FORMAT or "config_hash" not in config:
             raise ConfigError(
-                f"{partial / 'config.json'}: not a treeinfer run config (format {config.get('format')!r})"
+                f"{partial / 'config.json'}: not a treeinfer run config (format "
+                f"{config.get('format')!r})"
             )
         validate_run_config(config, partial / "config.json", resumable=True)
         if config_hash(config) != config["config_hash"]:
             raise ConfigError(
-                f"{partial / 'config.json'}: was edited (its hash no longer matches); start a new run"
+                f"{partial / 'config.json'}: was edited (its hash no longer matches); start a "
+                "new run"
             )
         check_output_dir(run_dir, config["options"]["force"], "run", inputs=_inputs(config))
         clean_stale_staging(run_dir, log)
@@ -378,7 +383,8 @@ def run_inference(
         tree = load_tree(partial / "tree.yaml")
         if tree_to_dict_json(tree_to_dict(tree)) != tree_to_dict_json(config["tree_dict"]):
             raise ConfigError(
-                f"{partial / 'tree.yaml'}: differs from the tree in config.json (edited?); start a new run"
+                f"{partial / 'tree.yaml'}: differs from the tree in config.json (edited?); start "
+                "a new run"
             )
         trajs = check_data_unchanged(config)
         truth = read_true_params(tree, config["data"]["dir"])
@@ -392,9 +398,9 @@ def run_inference(
             now.pop("force_interp")
         if _jsonable(now) != _jsonable(then) or sampler_settings(config) != config["sampler"]:
             raise ConfigError(
-                f"{partial}: this treeinfer derives other problem or sampler settings from the run's "
-                f"options than the interrupted run did (recorded {config['problem']}, now {problem.settings}); "
-                "it cannot continue it exactly: start a new run"
+                f"{partial}: this treeinfer derives other problem or sampler settings from the "
+                f"run's options than the interrupted run did (recorded {config['problem']}, now "
+                f"{problem.settings}); it cannot continue it exactly: start a new run"
             )
         previous = None
         if (partial / CHECKPOINT_FILE).is_file():
@@ -592,7 +598,9 @@ def infer_posterior(
 
 
 def _merged_trace(run, previous: Checkpoint | None) -> dict:
-    """Trace of the whole run: the driver's, preceded on a resumed run by the checkpoints' coarse one."""
+    """Trace of the whole run.
+
+    The driver's, preceded on a resumed run by the checkpoints' coarse one."""
     pos, ld, it = run.trace_positions, run.trace_logdensity, run.trace_iterations
     if previous is not None and len(previous.trace_iterations):
         keep = previous.trace_iterations <= previous.iteration
@@ -649,7 +657,8 @@ def kfold(
         train = [trajectories[j] for j in tr]
         test = [trajectories[j] for j in te]
         log(
-            f"fold {i}/{k}: inferring on {len(train)} trajectories, holding out {', '.join(t.source for t in test)}"
+            f"fold {i}/{k}: inferring on {len(train)} trajectories, holding out "
+            f"{', '.join(t.source for t in test)}"
         )
         g_train = [float(np.asarray(grasp_fraction)[j]) for j in tr] if per_traj else grasp_fraction
         g_test = np.asarray(grasp_fraction, float)[te] if per_traj else grasp_fraction
