@@ -325,7 +325,7 @@ def run_infer(args: argparse.Namespace) -> int:
                 f"{args.resume}{runs.PARTIAL_SUFFIX}/config.json; leave out {', '.join(given)} "
                 "(only --max-unstable-share and --no-progress may be given)"
             )
-        run_dir, config = args.resume, None
+        run_dir, config, inputs = args.resume, None, None
     else:
         missing = [
             f
@@ -343,6 +343,9 @@ def run_infer(args: argparse.Namespace) -> int:
         o["grasp_fraction"] = args.grasp_fraction
         _check_infer_options(o)
         run_dir = args.out
+        inputs = runs.load_run_inputs(
+            args.tree, args.data, args.model, args.repair_inertia, o["model_kind"]
+        )
         config = runs.infer_config(
             args.tree,
             args.data,
@@ -350,6 +353,7 @@ def run_infer(args: argparse.Namespace) -> int:
             force=bool(args.force),
             model=args.model,
             repair_inertia=args.repair_inertia,
+            inputs=inputs,
             **o,
         )
         _say(
@@ -366,6 +370,7 @@ def run_infer(args: argparse.Namespace) -> int:
             on_checkpointer=lambda cp: holder.__setitem__("cp", cp),
             cache=runs.SimulatorCache(),
             allow_implausible_data=args.allow_implausible_data,
+            inputs=inputs,
         )
     except KeyboardInterrupt:
         cp = holder.get("cp")

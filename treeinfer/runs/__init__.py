@@ -64,8 +64,10 @@ from .checkpoint import (
 from .config import (
     RUN_FORMAT,
     RunConfig,
+    RunInputs,
     check_data_unchanged,
     infer_config,
+    load_run_inputs,
     read_true_params,
     sampler_settings,
 )
@@ -107,6 +109,8 @@ __all__ = [
     "file_sha256",
     "flatten_state",
     "infer_config",
+    "load_run_inputs",
+    "RunInputs",
     "infer_posterior",
     "kfold",
     "load_checkpoint",

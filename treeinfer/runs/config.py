@@ -9,6 +9,7 @@ import os
 import time
 from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -244,6 +245,39 @@ def load_run_tree(tree_path, model=None, repair_inertia=None) -> Tree:
     return tree
 
 
+class RunInputs(NamedTuple):
+    """What a new run reads from disk, read once per command (:func:`load_run_inputs`) and passed
+    to :func:`infer_config` and :func:`treeinfer.runs.run_inference`.
+
+    Attributes: tree (the run's tree: ``--model`` attached, stiffness only for the static model);
+    trajectories (the training data, in file order); truth (``[2R]`` natural units from the data
+    folder's ``true_params.json``, or None); files (the data files' names and sha256,
+    :func:`~.provenance.data_manifest`)."""
+
+    tree: Tree
+    trajectories: list[Trajectory]
+    truth: np.ndarray | None
+    files: list[dict]
+
+
+def load_run_inputs(
+    tree_path: str | os.PathLike,
+    data_dir: str | os.PathLike,
+    model: str | os.PathLike | None = None,
+    repair_inertia: str | None = None,
+    model_kind: str = "dynamic",
+) -> RunInputs:
+    """Read the tree and the training data of a new run once (clear errors for a missing folder,
+    a bad file or a bad tree)."""
+    from ..static import run_tree
+
+    data_dir = Path(data_dir)
+    tree = run_tree(load_run_tree(tree_path, model, repair_inertia), model_kind)
+    files = data_manifest(data_dir) if data_dir.is_dir() else []
+    trajs = read_trajectory_dir(data_dir)
+    return RunInputs(tree, trajs, read_true_params(tree, data_dir), files)
+
+
 def infer_config(
     tree_path: str | os.PathLike,
     data_dir: str | os.PathLike,
@@ -271,18 +305,20 @@ def infer_config(
     noise_displacement: float | None = None,
     model: str | os.PathLike | None = None,
     repair_inertia: str | None = None,
+    inputs: RunInputs | None = None,
     **more,
 ) -> dict:
     """The config of a new run (validated options; data and tree hashed). The problem and
-    sampler settings are added by :func:`run_inference` once the problem is built."""
-    from ..static import run_tree
+    sampler settings are added by :func:`run_inference` once the problem is built.
 
+    ``inputs``: the tree and data already read by :func:`load_run_inputs` (pass the same to
+    :func:`run_inference`, so a command reads them once); read here if None."""
     tree_path, data_dir, out = Path(tree_path), Path(data_dir), Path(out)
-    tree = run_tree(
-        load_run_tree(tree_path, model, repair_inertia), more.get("model_kind", "dynamic")
-    )
-    files = data_manifest(data_dir) if data_dir.is_dir() else []
-    trajs = read_trajectory_dir(data_dir)  # clear errors for a missing folder / bad file
+    if inputs is None:
+        inputs = load_run_inputs(
+            tree_path, data_dir, model, repair_inertia, more.get("model_kind", "dynamic")
+        )
+    tree, trajs, files = inputs.tree, inputs.trajectories, inputs.files
     options = RunConfig(
         tree=str(tree_path.resolve()),
         data=str(data_dir.resolve()),

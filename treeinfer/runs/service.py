@@ -31,7 +31,6 @@ from ..samplers import sampler_spec
 from ..trajectories import (
     Observations,
     Trajectory,
-    read_trajectory_dir,
     stack_trajectories,
 )
 from ..tree import Tree, dump_tree, load_tree, tree_to_dict
@@ -47,8 +46,9 @@ from .checkpoint import (
 )
 from .config import (
     RUN_FORMAT,
+    RunInputs,
     check_data_unchanged,
-    load_run_tree,
+    load_run_inputs,
     read_true_params,
     sampler_settings,
 )
@@ -222,7 +222,9 @@ def _checks_not_applicable(config: dict, tree: Tree, names: Sequence[str]) -> se
     return drop
 
 
-def _prepare_fresh(config: dict, log: Callable[[str], None]):
+def _prepare_fresh(config: dict, inputs: RunInputs | None, log: Callable[[str], None]):
+    """The run folder, its staging folder and the run's inputs (``inputs`` if given: the ones
+    :func:`~.config.infer_config` hashed, else read now)."""
     from ..integrity import check_partial
 
     run_dir = Path(config["options"]["out"])
@@ -240,15 +242,22 @@ def _prepare_fresh(config: dict, log: Callable[[str], None]):
                 f"infer --resume {run_dir}`, or pass --force to discard it and start over"
             )
         shutil.rmtree(partial)
-    from ..static import run_tree
-
     o = config["options"]
-    tree = run_tree(
-        load_run_tree(o["tree"], o.get("model"), o.get("repair_inertia")), o.get("model_kind")
-    )
-    trajs = read_trajectory_dir(config["options"]["data"])
-    truth = read_true_params(tree, config["options"]["data"])
-    return run_dir, partial, tree, trajs, truth
+    if inputs is None:
+        inputs = load_run_inputs(
+            o["tree"], o["data"], o.get("model"), o.get("repair_inertia"), o.get("model_kind")
+        )
+    elif tree_to_dict_json(tree_to_dict(inputs.tree)) != tree_to_dict_json(config["tree_dict"]):
+        raise ConfigError(
+            "run_inference: the inputs' tree is not the config's (pass the RunInputs given to "
+            "infer_config)"
+        )
+    elif [f["name"] for f in inputs.files] != [f["name"] for f in config["data"]["files"]]:
+        raise ConfigError(
+            "run_inference: the inputs' data files are not the config's (pass the RunInputs "
+            "given to infer_config)"
+        )
+    return run_dir, partial, inputs.tree, list(inputs.trajectories), inputs.truth
 
 
 def _resume_paths(run_arg: str | os.PathLike) -> tuple[Path, Path]:
@@ -316,6 +325,7 @@ def run_inference(
     on_checkpointer: Callable[[Checkpointer], None] | None = None,
     cache: SimulatorCache | None = None,
     allow_implausible_data: bool = False,
+    inputs: RunInputs | None = None,
 ) -> InferOutcome:
     """Sample a posterior and write the run folder; or continue an interrupted one (``resume``).
 
@@ -329,6 +339,8 @@ def run_inference(
       cache: the command's :class:`SimulatorCache` (a new one if None).
       allow_implausible_data: sample even if the plausibility checks (:mod:`treeinfer.checks`)
         find errors in the data (they are logged and recorded in summary.json).
+      inputs: the tree and data :func:`~.config.infer_config` was given (a new run; read again
+        from the config's paths if None).
 
     The summary's ``fit`` (``status`` ok | warning | poor_fit, ``reasons``, ``measures``) judges
     the training fit (:func:`treeinfer.checks.fit_verdict_from_run`); the CLI exits 4 on
@@ -344,7 +356,7 @@ def run_inference(
     if resume is None:
         if config is None:
             raise ConfigError("run_inference: give a config (new run) or resume=RUN")
-        run_dir, partial, tree, trajs, truth = _prepare_fresh(config, log)
+        run_dir, partial, tree, trajs, truth = _prepare_fresh(config, inputs, log)
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
         problem = build_problem(config, tree, trajs, cache)
         _quasi_static_check(problem, config, log)
