@@ -42,7 +42,9 @@ diagnostics cover the resumed part only.
 Modules: :mod:`.config` (the run configuration, validated once, hashed for resume),
 :mod:`.provenance` (hashes, versions, JSON), :mod:`.checkpoint` (``RUN.partial``),
 :mod:`.folder` (save and load ``RUN/``), :mod:`.cache` (the simulator cache a command owns),
-:mod:`.service` (run, resume, k-fold: the only module that orchestrates the others).
+:mod:`.problem` (the inference problem of a config, checks before sampling), :mod:`.posterior`
+(the reported posterior, merged traces), :mod:`.service` (run, resume, k-fold: the only module
+that orchestrates the others).
 """
 
 from ..jsonio import read_json, write_json

@@ -4,8 +4,6 @@ cross-validate a run's settings (k-fold). Owns the simulator cache of a command.
 
 from __future__ import annotations
 
-import dataclasses
-import math
 import os
 import shutil
 import time
@@ -20,25 +18,20 @@ from .._io import (
     check_output_dir,
     clean_stale_staging,
 )
-from ..errors import ConfigError, OutputExistsError, SimulationError, TrajectoryFileError
+from ..errors import ConfigError, OutputExistsError, SimulationError
 
 # ==== problem and posterior =======================================================================
 from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits, noise_for
-from ..inference import DEFAULT_PRIOR_SIGMA
 from ..jsonio import jsonable as _jsonable
 from ..jsonio import read_json, write_json
-from ..samplers import sampler_spec
 from ..trajectories import (
-    Observations,
     Trajectory,
-    stack_trajectories,
 )
 from ..tree import Tree, dump_tree, load_tree, tree_to_dict
-from .cache import SimulatorCache, simulator_for
+from .cache import SimulatorCache
 from .checkpoint import (
     CHECKPOINT_FILE,
     PARTIAL_SUFFIX,
-    Checkpoint,
     Checkpointer,
     load_checkpoint,
     partial_dir,
@@ -53,96 +46,17 @@ from .config import (
     sampler_settings,
 )
 from .folder import _run_summary, save_run
+from .posterior import (  # noqa: F401 -- re-exported: the old import path keeps working
+    MAX_MCMC_DRAWS,
+    _merged_trace,
+    _summarised_posterior,
+)
+from .problem import (  # noqa: F401 -- re-exported: the old import path keeps working
+    _data_checks,
+    _quasi_static_check,
+    build_problem,
+)
 from .provenance import config_hash, tree_to_dict_json
-
-
-def _grasp_fractions(o: dict, tree: Tree, trajectories):
-    """The run's --grasp-fraction, else each trajectory's own from its data folder's pulls.yaml
-    (one fraction per trajectory), else None (the tree's grasp point)."""
-    if o.get("grasp_fraction") is not None or not o.get("data"):
-        return o.get("grasp_fraction")
-    if isinstance(trajectories, Observations):
-        return None
-    from ..pulls import data_grasp_fractions
-
-    own = data_grasp_fractions(o["data"], tree, [t.source for t in trajectories])
-    if own is None:
-        return None
-    return float(own[0]) if np.allclose(own, own[0]) else [float(g) for g in own]
-
-
-def build_problem(
-    config: dict,
-    tree: Tree,
-    trajectories: Sequence[Trajectory] | Observations,
-    cache: SimulatorCache | None = None,
-):
-    """The inference problem of a run config (the cached simulator; a jitted log-density)."""
-    from ..inference import make_problem
-
-    o = config["options"]
-    obs = (
-        trajectories
-        if isinstance(trajectories, Observations)
-        else stack_trajectories(list(trajectories))
-    )
-    recorded = config.get("problem") or {}  # a resumed run: the settings it was built with
-    # runs from before force interpolation existed held the force over each sample
-    interp = recorded.get("force_interp", o.get("force_interp", "hold" if recorded else "linear"))
-    sim = simulator_for(
-        tree,
-        float(obs.dt),
-        recorded.get("substeps"),
-        recorded.get("backend", o.get("backend", "auto")),
-        cache,
-        force_interp=interp,
-        max_sim_dt=o.get("max_sim_dt"),
-        sim_tolerance=o.get("sim_tolerance"),
-        forces=np.asarray(obs.force),
-        grasp_fraction=o.get("grasp_fraction"),
-    )
-    if recorded.get("sim_step"):  # a resumed run: how its step was chosen, as recorded
-        sim = dataclasses.replace(sim, step_info=dict(recorded["sim_step"]))
-    kind, static = o.get("model_kind", "dynamic"), {}
-    if kind == "static":  # each recording's own branch, grasp point and direction (pulls.yaml)
-        from ..static import model_for, model_with_pulls
-
-        model, grasp = model_with_pulls(
-            model_for(tree, kind),
-            None if isinstance(trajectories, Observations) else o.get("data"),
-            [] if isinstance(trajectories, Observations) else [t.source for t in trajectories],
-            o.get("grasp_fraction"),
-        )
-        grasp = None if grasp is None else np.asarray(grasp, float).tolist()
-        static = {"direction": model.direction, "grasp_branch": model.grasp_branch}
-    else:
-        grasp = _grasp_fractions(o, tree, trajectories)
-    problem = make_problem(
-        tree,
-        obs,
-        kT=o["kT"],
-        nn_prior=sampler_spec(o["sampler"]).nn_prior,
-        eta=o["eta"],
-        prior_sigma=o.get("prior_tail", DEFAULT_PRIOR_SIGMA),
-        grasp_fraction=grasp,
-        sim=sim,
-        gradient=o.get("gradients", "fd"),
-        likelihood=o.get("likelihood", "boltzmann"),  # run folders older than issue 11
-        noise_displacement=o.get("noise_displacement"),
-        model_kind=kind,
-        **static,
-    )
-    if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints
-        from ..sequential import prior_from_run, with_prior
-
-        prior = prior_from_run(o["prior_from"], problem.labels)
-        problem = with_prior(problem, prior.log_density)
-        settings = {**problem.settings, "prior_from": {"run": o["prior_from"], **prior.to_dict()}}
-        problem = dataclasses.replace(problem, settings=settings)
-    # infer() evaluates log_density once at the end: jitted, the simulator is traced and compiled
-    # once
-    # (op-by-op it costs tens of seconds); MH samples with the same function.
-    return dataclasses.replace(problem, log_density=jax.jit(problem.log_density))
 
 
 # ==== inference ===================================================================================
@@ -161,65 +75,6 @@ def _inputs(config: dict) -> list[str]:
     """The run's input paths, which ``--force`` must never replace."""
     o = config["options"]
     return [p for p in (o.get("tree"), o.get("data")) if p]
-
-
-def _data_checks(
-    config: dict, tree: Tree, trajs, log: Callable[[str], None], allow_implausible_data: bool
-) -> list[str]:
-    """Plausibility checks before sampling (:mod:`treeinfer.checks`): errors stop the run unless
-    ``allow_implausible_data``; warnings are logged, and so are entries of the data folder that
-    are not read (FIFOs, broken links, ``.CSV``). Returns every finding as text (summary.json)."""
-    from ..checks import format_findings, preflight
-    from ..safe_load import list_data_files
-
-    o = config["options"]
-    data_dir = Path(config["data"]["dir"])
-    _, skipped = list_data_files(data_dir)
-    skipped = [f"warning: {m}" for m in skipped]
-    paths = [data_dir / f["name"] for f in config["data"]["files"]]
-    errors, warns = preflight(
-        tree,
-        trajs,
-        paths if len(paths) == len(trajs) else None,
-        tree_file=o.get("tree"),
-        grasp_fraction=o.get("grasp_fraction"),
-    )
-    drop = _checks_not_applicable(config, tree, [f["name"] for f in config["data"]["files"]])
-    errors = [f for f in errors if f.check not in drop]
-    warns = [f for f in warns if f.check not in drop]
-    if errors and not allow_implausible_data:
-        raise TrajectoryFileError(
-            "the training data are implausible for this tree:\n"
-            + "\n".join([format_findings(errors + warns), *skipped])
-            + "\nfix the data (or the tree), or pass --allow-implausible-data to sample anyway"
-        )
-    for f in errors + warns:
-        log(str(f))
-    for m in skipped:
-        log(m)
-    return [str(f) for f in errors + warns] + skipped
-
-
-def _checks_not_applicable(config: dict, tree: Tree, names: Sequence[str]) -> set[str]:
-    """Plausibility checks that do not apply to this run: the simulation cost (the static
-    model does not step time), and the cross-file compliance comparison when the data folder's
-    pulls.yaml puts the recordings at different grasp points or directions (their compliance
-    differs by design, e.g. a stem pushed at three heights)."""
-    drop = set()
-    if config["options"].get("model_kind", "dynamic") == "static":
-        drop.add("simulation-cost")
-    from ..pulls import PULLS_FILE, load_data_pulls
-
-    data_dir = Path(config["data"]["dir"])
-    if names and (data_dir / PULLS_FILE).is_file():
-        try:
-            pulls = load_data_pulls(data_dir, tree, names)
-        except ConfigError:
-            return drop  # the problem build reports a bad sidecar, naming the field
-        keys = {(p.branch, round(p.fraction, 9), tuple(np.round(p.direction, 9))) for p in pulls}
-        if len(keys) > 1:
-            drop.add("mixed-units")
-    return drop
 
 
 def _prepare_fresh(config: dict, inputs: RunInputs | None, log: Callable[[str], None]):
@@ -497,22 +352,6 @@ def run_inference(
     return InferOutcome(run_dir, config, summary, posterior)
 
 
-def _quasi_static_check(problem, config: dict, log: Callable[[str], None]) -> None:
-    """Log :func:`treeinfer.static.quasi_static_notice` when the dynamic model is asked to fit
-    data sampled far more slowly than the branch's slowest natural period."""
-    if config["options"].get("model_kind", "dynamic") != "dynamic":
-        return
-    from ..static import quasi_static_notice
-
-    try:
-        notice = quasi_static_notice(problem.tree, problem.sim, float(problem.obs.dt))
-    except Exception as e:  # noqa: BLE001 - a notice must never stop a run
-        log(f"note: could not judge whether the data are quasi-static ({type(e).__name__}: {e})")
-        return
-    if notice:
-        log(f"note: {notice}")
-
-
 def _fitted_noise(problem) -> float | None:
     """The displacement noise sigma (m) the noise model fitted, if it has one (settings key
     ``noise_sigma``); None otherwise (then the fit verdict skips the residual test)."""
@@ -536,49 +375,6 @@ def _convergence_options(o: dict, problem) -> dict:
             int(o["reinit_stragglers"]), problem.lower, problem.upper
         )
     return out
-
-
-MAX_MCMC_DRAWS = 1024  # --mcmc-thin 0: thin the post-warm-up draws to at most this many
-
-
-def _summarised_posterior(posterior, problem, trace: dict, o: dict):
-    """The particles the run's summaries describe (summary.json, particles.csv, the fit).
-
-    MCMC samplers: every chain's post-warm-up trace (``--mcmc-warmup``), thinned
-    (``--mcmc-thin``; 0: to at most MAX_MCMC_DRAWS draws), not only the final states.
-    ``--drop-stragglers``: stuck final particles (SVGD) are left out. The sampler's own
-    final state stays in ``posterior.run``."""
-    from ..diagnostics import find_stragglers, mcmc_draws
-    from ..likelihood import gains_from_theta
-
-    theta, logp, extra = posterior.theta, posterior.log_density, {}
-    pos, ld = np.asarray(trace["positions"]), np.asarray(trace["log_density"])
-    if sampler_spec(o["sampler"]).family == "mcmc" and len(pos) >= 2:
-        warm = math.floor(o.get("mcmc_warmup", 0.5) * len(pos))
-        thin = int(o.get("mcmc_thin", 0))
-        if thin == 0:
-            thin = max(1, math.ceil((len(pos) - warm) * pos.shape[1] / MAX_MCMC_DRAWS))
-        theta, logp = mcmc_draws(pos, warm, thin, log_density=ld)
-        extra = {"mcmc_draws": {"warmup": warm, "thin": thin, "n_draws": int(len(theta))}}
-    elif o.get("drop_stragglers"):
-        rep = find_stragglers(logp, theta, problem.lower, problem.upper)
-        if 0 < rep.n_stragglers < len(theta) - 1:
-            theta, logp = theta[~rep.mask], logp[~rep.mask]
-            extra = {"dropped_stragglers": True, "n_dropped": rep.n_stragglers}
-    if not extra:
-        return posterior
-    if getattr(problem, "model", None) is not None:
-        kp, kd = problem.model.layout.gains(np.asarray(theta))
-    else:
-        kp, kd = gains_from_theta(theta, problem.sim.n_joints)
-    return dataclasses.replace(
-        posterior,
-        theta=np.asarray(theta),
-        kp=np.asarray(kp),
-        kd=np.asarray(kd),
-        log_density=np.asarray(logp),
-        settings={**posterior.settings, **extra},
-    )
 
 
 def infer_posterior(
@@ -607,30 +403,6 @@ def infer_posterior(
         **({} if theta0 is None else {"initial_theta": theta0}),
     )
     return problem, posterior
-
-
-def _merged_trace(run, previous: Checkpoint | None) -> dict:
-    """Trace of the whole run.
-
-    The driver's, preceded on a resumed run by the checkpoints' coarse one."""
-    pos, ld, it = run.trace_positions, run.trace_logdensity, run.trace_iterations
-    if previous is not None and len(previous.trace_iterations):
-        keep = previous.trace_iterations <= previous.iteration
-        pos = np.concatenate([previous.trace_positions[keep], pos])
-        ld = np.concatenate([previous.trace_logdensity[keep], ld])
-        it = np.concatenate([previous.trace_iterations[keep], it])
-    first = run.settings["start_iteration"]
-    diag = {k: np.asarray(v) for k, v in run.diagnostics.items()}
-    n_diag = len(next(iter(diag.values()))) if diag else 0
-    return {
-        "positions": np.asarray(pos),
-        "log_density": np.asarray(ld),
-        "iterations": np.asarray(it, np.int64),
-        "diagnostics": diag,
-        "diag_iterations": np.arange(first + 1, first + 1 + n_diag, dtype=np.int64),
-        "resumed_from": None if previous is None else int(previous.iteration),
-        "elapsed_s": float(run.elapsed_s),
-    }
 
 
 class FoldResult(NamedTuple):
