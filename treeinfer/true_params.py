@@ -11,6 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import ConfigError
+from .jsonio import read_json, write_json
+
 # ==== true_params.json: the one reader and writer ================================================
 TRUE_PARAMS_FILE = "true_params.json"
 GAIN_UNITS = {"kp": "N m/rad", "kd": "N m s/rad"}
@@ -19,8 +22,6 @@ GAIN_UNITS = {"kp": "N m/rad", "kd": "N m s/rad"}
 def check_positive_params(values: Sequence[float], labels: Sequence[str], where: str) -> np.ndarray:
     """``values`` as a float array [len(labels)], each a positive finite number (ConfigError
     naming ``where`` and the label otherwise)."""
-    from .errors import ConfigError
-
     if len(values) != len(labels):
         raise ConfigError(
             f"{where}: expected {len(labels)} numbers, in the order {', '.join(labels)}; "
@@ -44,17 +45,11 @@ def read_true_params(tree, path: str | os.PathLike, where: str | None = None) ->
     ``{"theta_log": [2R natural logs]}`` or a plain list of 2R numbers. ``where`` names the file
     in error messages (default: its path)."""
 
-    from .errors import ConfigError
-
     labels = tree.parameter_labels()
     where = str(path) if where is None else where
-    from .safe_load import load_file
-
-    try:
-        d = load_file(path, "parameter file", ConfigError, fmt="json")
-    except ConfigError as e:
-        msg = str(e)
-        raise ConfigError(msg.replace(str(path), where, 1) if where != str(path) else msg) from None
+    d = read_json(
+        Path(path), "parameter file", where=where, kinds=(dict, list, str, int, float, type(None))
+    )
     if isinstance(d, list):
         return check_positive_params(d, labels, where)
     if not isinstance(d, dict):
@@ -111,7 +106,5 @@ def true_params_record(tree, kp, kd, source: str, log_units: bool = True) -> dic
 
 
 def write_true_params(path: str | os.PathLike, record: dict) -> Path:
-    """Write a :func:`true_params_record` atomically (JSON)."""
-    from ._io import atomic_write_json
-
-    return atomic_write_json(Path(path), record)
+    """Write a :func:`true_params_record` atomically (strict JSON)."""
+    return write_json(Path(path), record)

@@ -268,6 +268,27 @@ def add_run_option(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_out_option(p: argparse.ArgumentParser, metavar: str = "DIR") -> None:
+    """``--out DIR``: the output folder a command writes (replaced only with ``--force``); one
+    definition for every command that writes a folder of results."""
+    p.add_argument(
+        "--out",
+        required=True,
+        type=Path,
+        metavar=metavar,
+        help="output folder (must be empty or absent unless --force)",
+    )
+
+
+def add_grasp_point_options(p: argparse.ArgumentParser) -> None:
+    """``--grasp-branch``, then ``--grasp-fraction`` or ``--grasp-distance``: where the imported
+    recordings were grasped, written to the data folder's ``pulls.yaml`` (the importers)."""
+    p.add_argument("--grasp-branch", metavar="NAME", help="grasped branch (pulls.yaml)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--grasp-fraction", type=float, metavar="F", help="grasp point, (0, 1]")
+    g.add_argument("--grasp-distance", type=float, metavar="M", help="m from the branch's joint")
+
+
 def add_simulation_options(p: argparse.ArgumentParser, default_note: str = "") -> None:
     """``--force-interp``, ``--max-sim-dt`` and ``--sim-tolerance`` (defaults None: the
     simulator's, or a run's recorded settings where ``default_note`` says so)."""

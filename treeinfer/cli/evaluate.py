@@ -34,6 +34,7 @@ from .common import (
     _say,
     add_command_parser,
     add_model_options,
+    add_out_option,
     add_run_option,
     add_simulation_options,
     check_simulation_options,
@@ -75,13 +76,7 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--data", required=True, type=Path, metavar="DIR", help="folder of held-out trajectory CSVs"
     )
-    p.add_argument(
-        "--out",
-        required=True,
-        type=Path,
-        metavar="DIR",
-        help="output folder (must be empty or absent unless --force)",
-    )
+    add_out_option(p)
     p.add_argument(
         "--kfold",
         type=int,

@@ -29,6 +29,7 @@ from .common import (
     _say,
     add_command_parser,
     add_model_options,
+    add_out_option,
     add_run_option,
     add_simulation_options,
     check_simulation_options,
@@ -87,13 +88,7 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         "own grasp point from its folder's pulls.yaml, else where the run's training data were "
         "recorded)",
     )
-    p.add_argument(
-        "--out",
-        required=True,
-        type=Path,
-        metavar="DIR",
-        help="output folder (must be empty or absent unless --force)",
-    )
+    add_out_option(p)
     p.add_argument(
         "--force",
         dest="force_flag",

@@ -40,6 +40,7 @@ from .common import (
     _say,
     add_command_parser,
     add_model_options,
+    add_out_option,
     add_simulation_options,
     check_simulation_options,
     print_model_report,
@@ -84,12 +85,7 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
         epilog=_SIMULATE_EPILOG,
     )
     p.add_argument("--tree", required=True, type=Path, help="tree description (YAML/JSON)")
-    p.add_argument(
-        "--out",
-        required=True,
-        type=Path,
-        help="output folder (must be empty or absent unless --force)",
-    )
+    add_out_option(p)
     p.add_argument(
         "--n-traj",
         type=int,
