@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError, TreeFileError
+from .errors import ConfigError, TreeFileError, check_positive
 from .tree import Bounds, Branch, Tree, make_tree
 
 _TREE_KWARGS = (
@@ -75,13 +75,7 @@ def _positive_int(v: Any, fld: str, where: str, minimum: int = 1) -> int:
 
 
 def _positive_float(v: Any, fld: str, where: str) -> float:
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{where}: {fld} must be a positive number, got {v!r}") from None
-    if not (math.isfinite(f) and f > 0):
-        raise ConfigError(f"{where}: {fld} must be a finite positive number, got {v!r}")
-    return f
+    return check_positive(v, f"{where}: {fld}")
 
 
 def _path_levels(branches: Sequence[Branch], grasp: str) -> int:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError, TreeFileError
+from .errors import ConfigError, TreeFileError, check_positive
 
 # Default prior boxes (natural units). Kp in N m/rad, Kd in N m s/rad. Chosen for branches of
 # a few cm radius and up to ~1.5 m: gravity sag of a few degrees to tens of degrees.
@@ -264,13 +264,7 @@ def _check_fraction(f: Any, fld: str, where: str = "") -> float:
 
 def _positive(v: Any, fld: str, where: str = "") -> float:
     _no_bool(v, fld, where, "a positive number")
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        raise TreeFileError(f"{where}{fld}: expected a positive number, got {v!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise TreeFileError(f"{where}{fld}: must be a finite positive number, got {v}")
-    return v
+    return check_positive(v, f"{where}{fld}:", error=TreeFileError)
 
 
 def _finite(v: Any, fld: str, where: str = "") -> float:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError
+from .errors import ConfigError, check_positive
 from .jsonio import read_json, write_json
 
 # ==== true_params.json: the one reader and writer ================================================
@@ -29,13 +29,7 @@ def check_positive_params(values: Sequence[float], labels: Sequence[str], where:
         )
     out = np.empty(len(labels))
     for i, (v, lab) in enumerate(zip(values, labels)):
-        try:
-            f = float(v)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{where}: {lab} must be a number, got {v!r}") from None
-        if not (math.isfinite(f) and f > 0):
-            raise ConfigError(f"{where}: {lab} must be a positive finite number, got {v!r}")
-        out[i] = f
+        out[i] = check_positive(v, f"{where}: {lab}")
     return out
 
 

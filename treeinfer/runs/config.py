@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, check_positive
 from ..inference import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA
 from ..likelihood import DEFAULT_KT
 from ..noise import KINDS as LIKELIHOODS
@@ -46,14 +46,8 @@ MIN_KT = 1e-30
 
 
 def _positive(flag: str, v, what: str = "a positive number") -> float:
-    """The one "positive finite number" check of the run options."""
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{flag}: must be {what}, got {v!r}") from None
-    if not (math.isfinite(f) and f > 0):
-        raise ConfigError(f"{flag}: must be {what}, got {f:g}")
-    return f
+    """:func:`treeinfer.errors.check_positive` naming the flag."""
+    return check_positive(v, f"{flag}:", what)
 
 
 def check_share(s, flag: str = "--max-unstable-share") -> float | None:
