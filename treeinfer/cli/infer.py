@@ -12,7 +12,7 @@ from typing import Any
 from .. import runs
 from ..errors import ConfigError
 from ..runs import RunConfig
-from ..runs.config import GRADIENT_CHOICES, INIT_CHOICES
+from ..runs.config import GRADIENT_CHOICES, INIT_CHOICES, OPTION_FIELDS
 from ..samplers import SAMPLER_NAMES
 from .common import (
     COMMAND_HELP,
@@ -39,6 +39,7 @@ INFER_DEFAULTS: dict[str, Any] = {
     f.name: f.default
     for f in fields(RunConfig)
     if f.default is not MISSING
+    and f.name in OPTION_FIELDS
     and f.name not in ("grasp_fraction", "force", "model", "repair_inertia")
 }
 # options a resumed run takes from its checkpoint's config (argparse dest -> flag)

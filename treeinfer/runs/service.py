@@ -4,6 +4,7 @@ cross-validate a run's settings (k-fold). Owns the simulator cache of a command.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import time
@@ -39,6 +40,7 @@ from .checkpoint import (
 )
 from .config import (
     RUN_FORMAT,
+    RunConfig,
     RunInputs,
     check_data_unchanged,
     load_run_inputs,
@@ -211,14 +213,19 @@ def run_inference(
     if resume is None:
         if config is None:
             raise ConfigError("run_inference: give a config (new run) or resume=RUN")
+        cfg = RunConfig.from_json(config)  # the given config.json, validated once
+        config = cfg.to_json()
         run_dir, partial, tree, trajs, truth = _prepare_fresh(config, inputs, log)
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
         problem = build_problem(config, tree, trajs, cache)
         _quasi_static_check(problem, config, log)
         if problem.noise is not None:
             log(f"likelihood: {problem.noise.description}")
-        config = {**config, "problem": problem.settings, "sampler": sampler_settings(config)}
-        config["config_hash"] = config_hash(config)
+        cfg = dataclasses.replace(
+            cfg, problem=problem.settings, sampler_record=sampler_settings(config)
+        )
+        cfg = dataclasses.replace(cfg, config_hash=config_hash(cfg.to_json()))
+        config = cfg.to_json()
         partial.mkdir(parents=True)
         try:
             dump_tree(tree, partial / "tree.yaml")
@@ -238,6 +245,7 @@ def run_inference(
                 f"{config.get('format')!r})"
             )
         validate_run_config(config, partial / "config.json", resumable=True)
+        RunConfig.from_json(config)  # its options, validated as a new run's are
         if config_hash(config) != config["config_hash"]:
             raise ConfigError(
                 f"{partial / 'config.json'}: was edited (its hash no longer matches); start a "
