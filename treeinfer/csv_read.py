@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .errors import ConfigError, TrajectoryFileError, where
-from .trajectories import DT_REL_TOL, MIN_ROWS
+from .trajectories import DT_REL_TOL, MIN_ROWS, _is_number
 
 G0 = 9.80665  # m/s^2, standard gravity (definition of the kilogram-force)
 TIME_UNITS = {"s": 1.0, "ms": 1e-3}
@@ -91,14 +91,6 @@ def _sniff_delimiter(sample: str) -> str:
         return csv.Sniffer().sniff(sample, delimiters=",;\t ").delimiter
     except csv.Error:
         return ","
-
-
-def _is_number(s: str) -> bool:
-    try:
-        float(s)
-    except ValueError:
-        return False
-    return True
 
 
 def _pick(spec: str | int, header: list[str] | None, ncols: int, path, line, quantity) -> int:
