@@ -126,8 +126,9 @@ def lever_precision(args) -> dict:
             "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
         }
         code = (
-            f"import json; from benchmarks.levers import precision_child; "
-            f"print(json.dumps(precision_child({args.batch}, {args.steps}, {args.n_check}, {args.reps})))"
+            "import json; from benchmarks.levers import precision_child; "
+            f"print(json.dumps(precision_child({args.batch}, {args.steps}, {args.n_check}, "
+            f"{args.reps})))"
         )
         proc = subprocess.run(
             [sys.executable, "-c", code],
@@ -146,7 +147,8 @@ def lever_precision(args) -> dict:
             f"   {name:<34}: |tau - C| <= {v['max_abs_tau_error_m']:.2e} m, |tau_dot - C| <= "
             f"{v['max_abs_tau_dot_error_m_s']:.2e} m/s (max tau {v['max_abs_tau_m']:.3f} m), "
             f"batch {v['batch']} vs alone {v['max_abs_tau_diff_batch_vs_alone_m']:.1e} m; "
-            f"{C.fmt_rate(v['steps_per_s'])} steps/s at N={v['batch']}x3, compile {v['compile_s']:.1f} s",
+            f"{C.fmt_rate(v['steps_per_s'])} steps/s at N={v['batch']}x3, compile "
+            f"{v['compile_s']:.1f} s",
             flush=True,
         )
     return out
@@ -200,8 +202,9 @@ def lever_loops(args) -> dict:
         }
         rows.append(row)
         print(
-            f"   {name:<22} {C.fmt_rate(row['steps_per_s'])} steps/s ({tm['median_s'] * 1e3:.1f} ms), "
-            f"compile {t_compile:.1f} s, max |diff| {row['max_abs_diff_from_library_m']:.1e} m",
+            f"   {name:<22} {C.fmt_rate(row['steps_per_s'])} steps/s ({tm['median_s'] * 1e3:.1f} "
+            f"ms), compile {t_compile:.1f} s, max |diff| "
+            f"{row['max_abs_diff_from_library_m']:.1e} m",
             flush=True,
         )
         del compiled, fn, out
@@ -271,8 +274,9 @@ def lever_cache(args) -> dict:
                 "iteration_ms": s["iteration_ms_steady"],
             }
             print(
-                f"   {label}: make_problem + infer({args.cache_iterations} it) = {s['time_to_posterior_s']:.1f} s "
-                f"(process {wall:.1f} s), compiles {s['compiles_total']}, cache hits {s['compilation_cache_hits']}",
+                f"   {label}: make_problem + infer({args.cache_iterations} it) = "
+                f"{s['time_to_posterior_s']:.1f} s (process {wall:.1f} s), compiles "
+                f"{s['compiles_total']}, cache hits {s['compilation_cache_hits']}",
                 flush=True,
             )
     return out
@@ -356,8 +360,9 @@ def lever_profile(args) -> dict:
             )
             rows.append(row)
             print(
-                f"   N={n:>6} {name:<10}: {row['step_us']:.1f} us; {row['kernels_in_hlo']} kernel ops in HLO, "
-                f"{row['while_loops']} while loops; cost model {row['flops_per_particle_step']:.0f} flop and "
+                f"   N={n:>6} {name:<10}: {row['step_us']:.1f} us; {row['kernels_in_hlo']} "
+                f"kernel ops in HLO, {row['while_loops']} while loops; cost model "
+                f"{row['flops_per_particle_step']:.0f} flop and "
                 f"{row['bytes_per_particle_step']:.0f} B per particle-step",
                 flush=True,
             )
@@ -367,7 +372,9 @@ def lever_profile(args) -> dict:
 XLA_FLAG_VARIANTS = {
     "default": "",
     "no command buffers": "--xla_gpu_enable_command_buffer=",
-    "command buffers incl. while/conditional": "--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL",
+    "command buffers incl. while/conditional": (
+        "--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL"
+    ),
 }
 
 
@@ -425,14 +432,15 @@ def lever_xla_flags(args) -> dict:
             r = json.loads(proc.stdout.strip().splitlines()[-1])
             out[name] = {"xla_flags": flags, **r}
             print(
-                f"   {name:<40} {r['rollout_s'] * 1e3:.1f} ms at N={args.batch}x3 ({r['us_per_step']:.1f} us per step), "
-                f"compile {r['compile_s']:.1f} s",
+                f"   {name:<40} {r['rollout_s'] * 1e3:.1f} ms at N={args.batch}x3 "
+                f"({r['us_per_step']:.1f} us per step), compile {r['compile_s']:.1f} s",
                 flush=True,
             )
         else:
             out[name] = {"xla_flags": flags, "error": proc.stderr[-1500:]}
             print(
-                f"   {name:<40} failed: {proc.stderr.strip().splitlines()[-1][:200] if proc.stderr.strip() else '?'}",
+                f"   {name:<40} failed: "
+                f"{proc.stderr.strip().splitlines()[-1][:200] if proc.stderr.strip() else '?'}",
                 flush=True,
             )
     return out

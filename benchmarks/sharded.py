@@ -1,15 +1,17 @@
 """NNSVGD step time with particles sharded over all local devices, against one device.
 
     python -m benchmarks.sharded --particles 128,1024,4096
-    XLA_FLAGS=--xla_force_host_platform_device_count=2 python -m benchmarks.sharded   # CPU cores as devices
+    # CPU cores as devices:
+    XLA_FLAGS=--xla_force_host_platform_device_count=2 python -m benchmarks.sharded
 
 The standard problem (``benchmarks.inference``); for each particle count, one jitted step on
-the default device alone (unsharded) and one with particles (and their finite-difference rows) sharded over
-all devices (``treeinfer.sharding``); after timing, ``--check-steps`` steps from the same start
-in both ways give the largest difference of the particles. (With Adam, a first step moves each
-coordinate by about the learning rate times the sign of its update, so a coordinate whose Stein
-update is near zero can flip by ~2 x lr from rounding alone: compare ``value_and_grad_check``,
-the batched value and gradient evaluated both ways on the same particles, for accuracy.)
+the default device alone (unsharded) and one with particles (and their finite-difference rows)
+sharded over all devices (``treeinfer.sharding``); after timing, ``--check-steps`` steps from the
+same start in both ways give the largest difference of the particles. (With Adam, a first step
+moves each coordinate by about the learning rate times the sign of its update, so a coordinate
+whose Stein update is near zero can flip by ~2 x lr from rounding alone: compare
+``value_and_grad_check``, the batched value and gradient evaluated both ways on the same
+particles, for accuracy.)
 """
 
 from __future__ import annotations

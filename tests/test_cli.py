@@ -545,7 +545,8 @@ def test_simulate_unstable_is_a_clear_error_and_writes_nothing(capsys, tmp_path)
 def bad_tree(tmp_path):
     p = tmp_path / "bad.yaml"
     p.write_text(
-        "name: x\nbranches:\n  - {name: a, parent: null, length: -1, radius: 0.01}\ngrasp: {branch: a}\n"
+        "name: x\nbranches:\n  - {name: a, parent: null, length: -1, radius: 0.01}\ngrasp: "
+        "{branch: a}\n"
     )
     return p
 

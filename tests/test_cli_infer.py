@@ -422,7 +422,8 @@ def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
     cfg = json.loads((tmp_path / "p1" / "config.json").read_text())
     assert cfg["command"] == "predict" and cfg["n_particles"] == 8
 
-    # independent reference: the band's mean is the particles' mean rollout in plain MuJoCo (C, float64)
+    # independent reference: the band's mean is the particles' mean rollout in plain MuJoCo (C,
+    # float64)
     loaded = runs.load_run(out)
     ok = loaded.stable
     refs = [

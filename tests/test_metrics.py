@@ -140,7 +140,8 @@ def test_ci_width_and_fraction_outside_by_hand():
     mask = np.array([[True, True, True], [True, True, False]])
     np.testing.assert_allclose(metrics.ci_width(lower, upper, mask), (1 + 2 + 0 + 4 + 1) / 5)
     np.testing.assert_allclose(metrics.ci_width(lower, upper), 9 / 6)
-    # usable GT points: (0,0) in, (0,1) out, (0,2) in (degenerate, equal), (1,1) out; NaN and masked skipped
+    # usable GT points: (0,0) in, (0,1) out, (0,2) in (degenerate, equal), (1,1) out; NaN and masked
+    # skipped
     np.testing.assert_allclose(metrics.fraction_outside(lower, upper, gt, mask), 2 / 4)
     # a hair beyond a degenerate bound is tolerated, a real miss is not
     assert (

@@ -77,7 +77,8 @@ def test_analysis_runs_with_some_results(monkeypatch, tmp_path):
     present = [s for s in STUDIES if (RESULTS / s / "results.json").exists()]
     if not present:
         pytest.skip(
-            "no committed results in experiments/results (run python experiments/<study>.py --size cpu)"
+            "no committed results in experiments/results (run python experiments/<study>.py "
+            "--size cpu)"
         )
     shutil.copytree(RESULTS / present[0], tmp_path / present[0])
     nb = execute("analysis.ipynb", monkeypatch, timeout=300, TREEINFER_RESULTS_DIR=str(tmp_path))

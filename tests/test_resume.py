@@ -202,7 +202,8 @@ def test_sigkill_sigint_resume_bit_identical(tmp_path, capsys):
     run, ref = tmp_path / "run", tmp_path / "ref"
     partial = runs.partial_dir(run)
 
-    # 1. the run to be killed, and meanwhile (same CPU budget) the uninterrupted reference in-process
+    # 1. the run to be killed, and meanwhile (same CPU budget) the uninterrupted reference
+    # in-process
     proc = _popen(_args(data, run), tmp_path)
     watch = _signal_when(proc, partial, 0, signal.SIGKILL)
     assert main(_args(data, ref)) == 0, capsys.readouterr().err

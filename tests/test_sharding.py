@@ -78,13 +78,15 @@ rows_sharded = sorted(set(rows))
 pos = sharded.final_state.position
 hlo = jax.jit(alg.step).lower(jax.random.key(0), sharded.final_state).compile().as_text()
 import re
-hlo_vg = jax.jit(S.shard_value_and_grad(vg, mesh, method)).lower(S.shard_particles(theta0, mesh)).compile().as_text()
+vg_sharded = jax.jit(S.shard_value_and_grad(vg, mesh, method))
+hlo_vg = vg_sharded.lower(S.shard_particles(theta0, mesh)).compile().as_text()
 leading = sorted({int(n) for n in re.findall(r"f32\[(\d+)[,\]]", hlo_vg)})
 a, b = np.asarray(plain.final_positions), np.asarray(sharded.final_positions)
 print(json.dumps(dict(
     max_abs=float(np.max(np.abs(a - b))), bitwise=bool(np.array_equal(a, b)),
     moved=float(np.max(np.abs(a - np.asarray(theta0)))),
-    n_shards=len(pos.addressable_shards), shard_rows=[s.data.shape[0] for s in pos.addressable_shards],
+    n_shards=len(pos.addressable_shards),
+    shard_rows=[s.data.shape[0] for s in pos.addressable_shards],
     rows_plain=rows_plain, rows_sharded=rows_sharded,
     collectives=hlo.count("all-gather") + hlo.count("all-reduce") + hlo.count("all-to-all"),
     leading=leading,
@@ -114,7 +116,8 @@ from types import SimpleNamespace
 from treeinfer.inference import Problem, infer
 logp = banana
 problem = Problem(
-    tree=SimpleNamespace(inferred_pairs=lambda: []), sim=SimpleNamespace(n_joints=1), obs=None, kT=1.0,
+    tree=SimpleNamespace(inferred_pairs=lambda: []), sim=SimpleNamespace(n_joints=1), obs=None,
+    kT=1.0,
     labels=("a", "b"), lower=np.array([-2.0, -1.0]), upper=np.array([2.0, 3.0]),
     log_likelihood=logp, log_prior=lambda t: jnp.zeros(t.shape[0]),
     value_and_grad=central_difference(logp, rel_step=1e-2), log_density=logp, nn_prior=False,
@@ -122,7 +125,9 @@ problem = Problem(
 out = {}
 for sampler in ("svgd", "mh"):
     a = infer(problem, sampler, n_particles=8, n_iterations=15, seed=3, progress=False)
-    b = S.infer_sharded(problem, sampler, n_particles=8, n_iterations=15, seed=3, progress=False, mesh=mesh)
+    b = S.infer_sharded(
+        problem, sampler, n_particles=8, n_iterations=15, seed=3, progress=False, mesh=mesh
+    )
     out[sampler] = dict(max_abs=float(np.max(np.abs(a.theta - b.theta))),
                         logp_abs=float(np.max(np.abs(a.log_density - b.log_density))),
                         moved=float(np.max(np.abs(a.theta - a.run.trace_positions[0]))))

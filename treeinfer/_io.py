@@ -67,7 +67,10 @@ def output_error(
     if isinstance(e, OSError):
         hint = _ERRNO_HINT.get(e.errno or -1)
         what = e.strerror or str(e)
-        msg = f"{path}: cannot {action} ({what}{'; ' + hint if hint and hint.lower() != what.lower() else ''})"
+        msg = (
+            f"{path}: cannot {action} "
+            f"({what}{'; ' + hint if hint and hint.lower() != what.lower() else ''})"
+        )
     else:
         msg = f"{path}: cannot {action} ({type(e).__name__}: {e})"
         free = _free_bytes(Path(path).parent)
@@ -240,8 +243,8 @@ def check_output_dir(
         rin = Path(os.path.realpath(inp))
         if _inside(rin, real):
             raise OutputExistsError(
-                f"{path}: {what} folder {'is' if rin == real else 'holds'} an input of this command "
-                f"({inp}); writing there would destroy it: choose another --out"
+                f"{path}: {what} folder {'is' if rin == real else 'holds'} an input of this "
+                f"command ({inp}); writing there would destroy it: choose another --out"
             )
     if path.is_dir() and any(path.iterdir()):
         if not force:
@@ -251,8 +254,8 @@ def check_output_dir(
         if not is_treeinfer_output(path):
             raise OutputExistsError(
                 f"{path}: --force replaces only folders treeinfer wrote (with a {OUTPUT_MARKER} "
-                "marker) or empty ones, and this one is neither; delete it yourself if you mean to, "
-                "or choose another --out"
+                "marker) or empty ones, and this one is neither; delete it yourself if you "
+                "mean to, or choose another --out"
             )
     return path
 
@@ -354,7 +357,8 @@ def clean_stale_staging(
                 msgs.append(f"{p}: removed a staging folder left by an interrupted process")
         except OSError as e:
             msgs.append(
-                f"{p}: stale staging folder could not be tidied ({e.strerror or e}); remove it yourself"
+                f"{p}: stale staging folder could not be tidied ({e.strerror or e}); remove it "
+                "yourself"
             )
     if log is not None:
         for m in msgs:

@@ -8,6 +8,8 @@ one); anything else escaping is a bug in treeinfer.
 
 from __future__ import annotations
 
+import math
+
 
 class TreeinferError(Exception):
     """Base class for errors caused by user input, not by a bug."""
@@ -43,3 +45,19 @@ def where(path=None, line=None, field=None) -> str:
     if field is not None:
         parts.append(f"field '{field}'")
     return ", ".join(parts)
+
+
+def check_positive(
+    v, subject: str, what: str = "a finite positive number", error: type = None
+) -> float:
+    """``v`` as a float if it is a finite number > 0; else ``error`` (ConfigError by default)
+    saying ``"{subject} must be {what}, got {v!r}"``. The one "positive finite number" check of
+    the options, tree fields, generator settings and parameter files."""
+    error = ConfigError if error is None else error
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise error(f"{subject} must be {what}, got {v!r}") from None
+    if not (math.isfinite(f) and f > 0):
+        raise error(f"{subject} must be {what}, got {v!r}")
+    return f

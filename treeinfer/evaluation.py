@@ -98,8 +98,9 @@ def predict_run(
     )
     if valid.sum() < 2:
         raise SimulationError(
-            f"only {int(valid.sum())} of {len(theta)} particles give a stable simulation of these forces; "
-            "a predictive band needs at least 2 (are the forces far larger than in training?)"
+            f"only {int(valid.sum())} of {len(theta)} particles give a stable simulation of "
+            "these forces; a predictive band needs at least 2 (are the forces far larger than "
+            "in training?)"
         )
     tau = np.asarray(rollout.tau)
     lower, upper, mean = (np.asarray(a) for a in predictive_interval(tau, level, valid))
@@ -156,16 +157,17 @@ def evaluate_trajectories(
     noise_kind: str = "gaussian",
     model=None,
 ) -> tuple[dict, Prediction, Observations]:
-    """Held-out metrics of particles ``theta`` on ``trajectories`` (:func:`treeinfer.metrics.summarize`
-    with the posterior NLL of the held-out data, per-trajectory CI width / % outside and, with
-    ``truth [2R]`` in natural units, posterior vs truth in log space)."""
+    """Held-out metrics of particles ``theta`` on ``trajectories``
+    (:func:`treeinfer.metrics.summarize` with the posterior NLL of the held-out data,
+    per-trajectory CI width / % outside and, with ``truth [2R]`` in natural units,
+    posterior vs truth in log space)."""
     from .metrics import ci_width, fraction_outside, summarize
 
     obs = stack_trajectories(list(trajectories))
     if not math.isclose(float(obs.dt), sim.obs_dt, rel_tol=1e-6):
         raise ConfigError(
-            f"the trajectories have dt={obs.dt:g} s but the run was inferred at dt={sim.obs_dt:g} s; "
-            "resample them to the run's step"
+            f"the trajectories have dt={obs.dt:g} s but the run was inferred at "
+            f"dt={sim.obs_dt:g} s; resample them to the run's step"
         )
     pred = predict_run(
         sim,

@@ -1,7 +1,8 @@
 """Force profiles: how hard the robot (or the simulator) pulls the grasp point down over time.
 
 A profile is a float64 array ``[T]`` in newtons along gravity (positive = downward), on the
-trajectory time grid ``t_k = k * dt``, ``k = 0 .. T - 1``, with ``T = n_steps(duration, dt) = floor(duration / dt)``.
+trajectory time grid ``t_k = k * dt``, ``k = 0 .. T - 1``, with
+``T = n_steps(duration, dt) = floor(duration / dt)``.
 Sample ``k`` is the force at ``t_k``; the simulator holds it over ``[t_k, t_k + dt)`` (see
 :func:`treeinfer.simulator.simulate`), so the last sample's interval ends by ``duration``.
 
@@ -138,8 +139,8 @@ def _check_start(start: float, duration: float, where: str) -> float:
     start = _non_negative(start, "start", where)
     if start >= float(duration):
         raise ConfigError(
-            f"{where}: start {start:g} s is not before the end of the profile ({float(duration):g} s); "
-            "the force would be zero throughout"
+            f"{where}: start {start:g} s is not before the end of the profile "
+            f"({float(duration):g} s); the force would be zero throughout"
         )
     return start
 
@@ -259,15 +260,16 @@ def parse_spec(spec: str) -> ProfileSpec:
     """
     if not isinstance(spec, str) or not spec.strip():
         raise ConfigError(
-            f"force profile spec: expected 'kind:key=value,...', got {spec!r}; forms: {_spec_help()}"
+            f"force profile spec: expected 'kind:key=value,...', got {spec!r}; forms: "
+            f"{_spec_help()}"
         )
     text = spec.strip()
     kind, sep, rest = text.partition(":")
     kind = kind.strip().lower()
     if kind not in SPEC_KEYS:
         raise ConfigError(
-            f"force profile spec {spec!r}: unknown kind '{kind}'; choose one of {sorted(SPEC_KEYS)} "
-            f"({_spec_help()})"
+            f"force profile spec {spec!r}: unknown kind '{kind}'; choose one of "
+            f"{sorted(SPEC_KEYS)} ({_spec_help()})"
         )
     allowed = SPEC_KEYS[kind]
     params: dict[str, float] = {}

@@ -37,12 +37,21 @@ def write_json(path, obj) -> Path:
     return atomic_write_json(path, jsonable(obj))
 
 
-def read_json(path: Path, what: str) -> dict:
+def read_json(path: Path, what: str, where: str | None = None, kinds: tuple = (dict,)) -> Any:
     """A JSON object through the safe loader (:mod:`treeinfer.safe_load`: regular files only,
-    size and depth limits, no duplicate keys); ConfigError naming the file and line."""
+    size and depth limits, no duplicate keys); ConfigError naming the file and line.
+
+    ``where``: how errors name the file (default: its path, e.g. ``"--params-json FILE"``);
+    ``kinds``: the JSON types accepted at the top (default: an object only). The one JSON
+    reader of treeinfer's files (run configs, summaries, ``true_params.json``)."""
     from .safe_load import load_file
 
-    d = load_file(path, what, ConfigError, fmt="json")
-    if not isinstance(d, dict):
-        raise ConfigError(f"{path}: {what} must be a JSON object")
+    try:
+        d = load_file(path, what, ConfigError, fmt="json")
+    except ConfigError as e:
+        if where is None or where == str(path):
+            raise
+        raise ConfigError(str(e).replace(str(path), where, 1)) from None
+    if not isinstance(d, kinds):
+        raise ConfigError(f"{where or path}: {what} must be a JSON object")
     return d

@@ -14,9 +14,13 @@ On disk a trajectory is one CSV file::
 in seconds, newtons, metres (and metres per second). Files written by treeinfer begin with the
 header line, so ``pandas.read_csv``, the ``csv`` module and spreadsheets read them as they are;
 provenance goes beside them (``import.json`` of the importers, a run's ``config.json``).
-Reading also accepts ``#`` comment lines anywhere (before or after the header). Everything a user can get
-wrong in such a file raises :class:`~treeinfer.errors.TrajectoryFileError`
+Reading also accepts ``#`` comment lines anywhere (before or after the header). Everything a
+user can get wrong in such a file raises :class:`~treeinfer.errors.TrajectoryFileError`
 naming the file, the 1-based line and the problem.
+
+Layout: the types and their validation live in :mod:`treeinfer.trajectory_types`,
+``true_params.json`` in :mod:`treeinfer.true_params`, the band CSV and ``import.json`` in
+:mod:`treeinfer.side_files`; this module reads and writes the recordings and re-exports them.
 """
 
 from __future__ import annotations
@@ -32,7 +36,39 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._io import atomic_write_text
-from .errors import ConfigError, TrajectoryFileError, where
+from .errors import ConfigError, TrajectoryFileError
+from .side_files import (  # noqa: F401 -- re-exported: the old import path keeps working
+    BAND_COLUMNS,
+    PROVENANCE_FILE,
+    band_csv_text,
+    write_band_csv,
+    write_provenance,
+)
+from .trajectory_types import (  # noqa: F401 -- re-exported: the old import path keeps working
+    DIR_DT_RTOL,
+    DT_REL_TOL,
+    MAX_DISPLACEMENT,
+    MAX_DT,
+    MAX_FILE_BYTES,
+    MAX_FORCE,
+    MAX_VELOCITY,
+    MIN_ROWS,
+    OPTIONAL_COLUMNS,
+    REQUIRED_COLUMNS,
+    Observations,
+    Trajectory,
+    _err,
+    _validate_arrays,
+    validate_trajectory,
+)
+from .true_params import (  # noqa: F401 -- re-exported: the old import path keeps working
+    GAIN_UNITS,
+    TRUE_PARAMS_FILE,
+    check_positive_params,
+    read_true_params,
+    true_params_record,
+    write_true_params,
+)
 
 __all__ = [
     "OPTIONAL_COLUMNS",
@@ -51,180 +87,6 @@ __all__ = [
     "write_provenance",
     "write_trajectory",
 ]
-
-REQUIRED_COLUMNS = ("time", "force", "displacement")
-OPTIONAL_COLUMNS = ("velocity",)
-
-# Plausibility limits: values beyond these almost always mean a wrong unit.
-MIN_ROWS = 3  # the second-order velocity scheme needs three samples
-DT_REL_TOL = 1e-3  # allowed relative deviation of each time step from the median step
-MAX_FILE_BYTES = 256 * 1024 * 1024  # a trajectory CSV larger than this is not a pull recording
-MAX_DT = 2.0  # s; quasi-static pushes log every 0.1-1 s; 2 s or more is almost surely ms
-MAX_DISPLACEMENT = 5.0  # m
-MAX_FORCE = 1.0e4  # N
-MAX_VELOCITY = 50.0  # m/s
-DIR_DT_RTOL = 1e-6  # trajectories loaded together must share one time step
-
-
-class Trajectory(NamedTuple):
-    """One measured (or simulated) pull.
-
-    Attributes:
-        time: [T] seconds, strictly increasing, uniform step.
-        force: [T] newtons applied on the branch along gravity, positive downward.
-        displacement: [T] metres of the grasp point from its rest position along
-            gravity, positive downward.
-        velocity: [T] metres per second (positive downward) if recorded, else ``None``
-            (then :func:`ground_truth_velocity` differentiates ``displacement``).
-        source: file name or label, used in messages and plots.
-    """
-
-    time: np.ndarray
-    force: np.ndarray
-    displacement: np.ndarray
-    velocity: np.ndarray | None = None
-    source: str = ""
-
-    @property
-    def n_steps(self) -> int:
-        """Number of samples T."""
-        return int(np.shape(self.time)[0])
-
-    @property
-    def dt(self) -> float:
-        """Time step in seconds (span / (T - 1), the least rounding-sensitive estimate)."""
-        t = np.asarray(self.time, dtype=float)
-        return float((t[-1] - t[0]) / (t.shape[0] - 1))
-
-
-class Observations(NamedTuple):
-    """A batch of trajectories on one time grid, padded to the longest.
-
-    Attributes:
-        force: [B, T] newtons, positive downward; padded with each row's last value.
-        displacement: [B, T] metres, positive downward; padded with each row's last value.
-        velocity: [B, T] metres per second; padded with 0 (at rest).
-        mask: [B, T] bool, True on real samples, False on padding.
-        dt: time step in seconds shared by all rows.
-    """
-
-    force: np.ndarray
-    displacement: np.ndarray
-    velocity: np.ndarray
-    mask: np.ndarray
-    dt: float
-
-
-# ----------------------------------------------------------------------------- validation
-
-
-def _err(path, line, problem: str) -> TrajectoryFileError:
-    loc = where(path if path is not None else "<trajectory>", line)
-    return TrajectoryFileError(f"{loc}: {problem}")
-
-
-def _line_of(lines: Sequence[int] | None, i: int) -> int | None:
-    return None if lines is None else lines[i]
-
-
-def _validate_arrays(
-    time: np.ndarray,
-    force: np.ndarray,
-    displacement: np.ndarray,
-    velocity: np.ndarray | None,
-    path,
-    lines: Sequence[int] | None = None,
-) -> None:
-    """Check shapes, finiteness, time grid and units; ``lines[i]`` is the file line of row i."""
-    named = {"time": time, "force": force, "displacement": displacement}
-    if velocity is not None:
-        named["velocity"] = velocity
-    for name, a in named.items():
-        if a.ndim != 1:
-            raise _err(path, None, f"column '{name}' must be one-dimensional, got shape {a.shape}")
-    n = time.shape[0]
-    for name, a in named.items():
-        if a.shape[0] != n:
-            raise _err(path, None, f"column '{name}' has {a.shape[0]} values but 'time' has {n}")
-    if n == 0:
-        raise _err(path, None, "no data rows")
-    if n < MIN_ROWS:
-        raise _err(path, None, f"only {n} data row(s); at least {MIN_ROWS} are needed")
-    for name, a in named.items():
-        bad = np.flatnonzero(~np.isfinite(a))
-        if bad.size:
-            i = int(bad[0])
-            raise _err(path, _line_of(lines, i), f"column '{name}' is {a[i]} (NaN/inf not allowed)")
-
-    with np.errstate(over="ignore", invalid="ignore"):
-        steps = np.diff(time)
-    bad = np.flatnonzero(~(steps > 0))
-    if bad.size:
-        i = int(bad[0]) + 1
-        raise _err(
-            path,
-            _line_of(lines, i),
-            f"time {float(time[i])!r} s is not after the previous time {float(time[i - 1])!r} s "
-            "(time must be strictly increasing)",
-        )
-    if not np.all(np.isfinite(steps)):
-        raise _err(path, None, "time values too large (step overflows)")
-    dt = float(np.median(steps))
-    if dt >= MAX_DT:
-        raise _err(
-            path,
-            _line_of(lines, 1),
-            f"time step is {dt:g} s; looks like milliseconds, expected seconds "
-            f"(steps of {MAX_DT:g} s or more are not plausible for a pull)",
-        )
-    bad = np.flatnonzero(np.abs(steps - dt) > DT_REL_TOL * dt)
-    if bad.size:
-        i = int(bad[0]) + 1
-        raise _err(
-            path,
-            _line_of(lines, i),
-            f"uneven time step: {steps[i - 1]:g} s from the previous row, expected {dt:g} s "
-            f"(relative tolerance {DT_REL_TOL:g}); resample to a fixed step",
-        )
-
-    i = int(np.argmax(np.abs(displacement)))
-    if abs(displacement[i]) > MAX_DISPLACEMENT:
-        raise _err(
-            path,
-            _line_of(lines, i),
-            f"displacement {displacement[i]:g} exceeds {MAX_DISPLACEMENT:g} m; "
-            "looks like millimetres, expected metres",
-        )
-    i = int(np.argmax(np.abs(force)))
-    if abs(force[i]) > MAX_FORCE:
-        raise _err(
-            path,
-            _line_of(lines, i),
-            f"force {force[i]:g} N exceeds {MAX_FORCE:g} N, which is implausible for a branch; "
-            "expected newtons",
-        )
-    if velocity is not None:
-        i = int(np.argmax(np.abs(velocity)))
-        if abs(velocity[i]) > MAX_VELOCITY:
-            raise _err(
-                path,
-                _line_of(lines, i),
-                f"velocity {velocity[i]:g} exceeds {MAX_VELOCITY:g} m/s; "
-                "looks like millimetres per second, expected metres per second",
-            )
-
-
-def validate_trajectory(traj: Trajectory) -> Trajectory:
-    """Return ``traj`` with float64 arrays after checking it as :func:`read_trajectory` would.
-
-    Raises:
-        TrajectoryFileError: naming ``traj.source`` and the problem.
-    """
-    arrs = [np.asarray(a, dtype=float) for a in (traj.time, traj.force, traj.displacement)]
-    vel = None if traj.velocity is None else np.asarray(traj.velocity, dtype=float)
-    _validate_arrays(*arrs, vel, traj.source or None)
-    return Trajectory(*arrs, vel, traj.source)
-
 
 # ----------------------------------------------------------------------------- CSV I/O
 
@@ -365,67 +227,6 @@ def write_trajectory(
     return atomic_write_text(path, "\n".join(out) + "\n")
 
 
-BAND_COLUMNS = ("time", "force", "recorded", "mean", "lower", "upper")
-
-
-def band_csv_text(
-    time,
-    force,
-    recorded,
-    mean,
-    lower,
-    upper,
-    predictive_lower=None,
-    predictive_upper=None,
-) -> str:
-    """One recording's prediction as CSV text, header first, for users' own plots and scores.
-
-    Columns ``time,force,recorded,mean,lower,upper`` (s, N, m, m, m, m): ``lower``/``upper``
-    bound the 95% band over the parameters; with ``predictive_lower``/``predictive_upper``
-    (the band including observation noise) two more columns of those names follow.
-    ``recorded`` may be ``None`` (a force profile without displacement): an empty column;
-    NaN (padding) is written as an empty cell too.
-    """
-    cols = [time, force, recorded, mean, lower, upper]
-    names = list(BAND_COLUMNS)
-    if predictive_lower is not None or predictive_upper is not None:
-        if predictive_lower is None or predictive_upper is None:
-            raise ConfigError("band CSV: give both predictive_lower and predictive_upper")
-        cols += [predictive_lower, predictive_upper]
-        names += ["predictive_lower", "predictive_upper"]
-    n = len(np.asarray(time))
-    arrs = []
-    for name, c in zip(names, cols):
-        if c is None:
-            arrs.append(np.full(n, np.nan))
-            continue
-        a = np.asarray(c, dtype=float).reshape(-1)
-        if a.shape[0] != n:
-            raise ConfigError(f"band CSV: column '{name}' has {a.shape[0]} values, time {n}")
-        arrs.append(a)
-    out = [",".join(names)]
-    out.extend(
-        ",".join(repr(float(v)) if math.isfinite(v) else "" for v in row) for row in zip(*arrs)
-    )
-    return "\n".join(out) + "\n"
-
-
-def write_band_csv(path: str | os.PathLike, *columns, **kwargs) -> Path:
-    """Write :func:`band_csv_text` atomically to ``path`` (same arguments)."""
-    return atomic_write_text(path, band_csv_text(*columns, **kwargs))
-
-
-PROVENANCE_FILE = "import.json"
-
-
-def write_provenance(directory: str | os.PathLike, entries: dict) -> Path:
-    """Write ``<directory>/import.json``: how the folder's CSVs were made (JSON object; keys are
-    free-form, e.g. ``{"source": ..., "options": {...}, "files": {"a.csv": [steps...]}}``)."""
-    from ._io import atomic_write_json
-
-    return atomic_write_json(Path(directory) / PROVENANCE_FILE, entries)
-
-
 def _check_common_dt(trajs: Sequence[Trajectory], rtol: float, context: str) -> float:
     dts = [t.dt for t in trajs]
     ref = dts[0]
@@ -551,112 +352,6 @@ def add_noise(
     )
 
 
-# ==== true_params.json: the one reader and writer ================================================
-TRUE_PARAMS_FILE = "true_params.json"
-GAIN_UNITS = {"kp": "N m/rad", "kd": "N m s/rad"}
-
-
-def check_positive_params(values: Sequence[float], labels: Sequence[str], where: str) -> np.ndarray:
-    """``values`` as a float array [len(labels)], each a positive finite number (ConfigError
-    naming ``where`` and the label otherwise)."""
-    from .errors import ConfigError
-
-    if len(values) != len(labels):
-        raise ConfigError(
-            f"{where}: expected {len(labels)} numbers, in the order {', '.join(labels)}; "
-            f"got {len(values)}"
-        )
-    out = np.empty(len(labels))
-    for i, (v, lab) in enumerate(zip(values, labels)):
-        try:
-            f = float(v)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{where}: {lab} must be a number, got {v!r}") from None
-        if not (math.isfinite(f) and f > 0):
-            raise ConfigError(f"{where}: {lab} must be a positive finite number, got {v!r}")
-        out[i] = f
-    return out
-
-
-def read_true_params(tree, path: str | os.PathLike, where: str | None = None) -> np.ndarray:
-    """True parameters [2R] (Kp of each inferred joint of ``tree``, then Kd; natural units) from
-    a JSON file: a ``true_params.json`` (``{"kp": {joint: value}, "kd": {joint: value}}``),
-    ``{"theta_log": [2R natural logs]}`` or a plain list of 2R numbers. ``where`` names the file
-    in error messages (default: its path)."""
-
-    from .errors import ConfigError
-
-    labels = tree.parameter_labels()
-    where = str(path) if where is None else where
-    from .safe_load import load_file
-
-    try:
-        d = load_file(path, "parameter file", ConfigError, fmt="json")
-    except ConfigError as e:
-        msg = str(e)
-        raise ConfigError(msg.replace(str(path), where, 1) if where != str(path) else msg) from None
-    if isinstance(d, list):
-        return check_positive_params(d, labels, where)
-    if not isinstance(d, dict):
-        raise ConfigError(
-            f"{where}: expected an object with 'kp' and 'kd' (or 'theta_log'), or a list"
-        )
-    if "kp" in d or "kd" in d:
-        vals = []
-        for key in ("kp", "kd"):
-            m = d.get(key)
-            if not isinstance(m, dict):
-                raise ConfigError(
-                    f"{where}: field '{key}' must map joint names to values, got {m!r}"
-                )
-            missing = [n for n in tree.inferred if n not in m]
-            extra = sorted(set(m) - set(tree.inferred))
-            if missing or extra:
-                raise ConfigError(
-                    f"{where}: field '{key}' must give exactly the inferred joints "
-                    f"{list(tree.inferred)}"
-                    + (f"; missing {missing}" if missing else "")
-                    + (f"; not inferred: {extra}" if extra else "")
-                )
-            vals += [m[n] for n in tree.inferred]
-        return check_positive_params(vals, labels, where)
-    if "theta_log" in d:
-        t = d["theta_log"]
-        if not isinstance(t, list) or len(t) != len(labels):
-            raise ConfigError(
-                f"{where}: field 'theta_log' must be a list of {len(labels)} numbers "
-                f"({', '.join(labels)})"
-            )
-        try:
-            vals = [math.exp(float(x)) for x in t]
-        except (TypeError, ValueError, OverflowError):
-            raise ConfigError(f"{where}: field 'theta_log' must hold numbers, got {t!r}") from None
-        return check_positive_params(vals, labels, where)
-    raise ConfigError(f"{where}: expected fields 'kp' and 'kd' (or 'theta_log'), found {sorted(d)}")
-
-
-def true_params_record(tree, kp, kd, source: str, log_units: bool = True) -> dict:
-    """The ``true_params.json`` object of gains ``kp``, ``kd`` [R] (natural units)."""
-    units = dict(GAIN_UNITS)
-    if log_units:
-        units["theta_log"] = "natural log of kp, kd"
-    return {
-        "labels": tree.parameter_labels(),
-        "kp": {n: float(v) for n, v in zip(tree.inferred, kp)},
-        "kd": {n: float(v) for n, v in zip(tree.inferred, kd)},
-        "theta_log": [float(math.log(v)) for v in np.concatenate([kp, kd])],
-        "units": units,
-        "source": source,
-    }
-
-
-def write_true_params(path: str | os.PathLike, record: dict) -> Path:
-    """Write a :func:`true_params_record` atomically (JSON)."""
-    from ._io import atomic_write_json
-
-    return atomic_write_json(Path(path), record)
-
-
 # ==== force-profile files (treeinfer predict --force) ==========================================
 class ForceProfile(NamedTuple):
     """A force profile to predict: ``time [T]`` s, ``force [T]`` N (downward); ``displacement
@@ -697,8 +392,8 @@ def read_force_profile(path: str | os.PathLike) -> ForceProfile:
         return ForceProfile(tr.time, tr.force, tr.displacement, path.name)
     if sorted(header) != ["force", "time"]:
         raise TrajectoryFileError(
-            f"{path}, line {body[0][0]}: header {header}; expected 'time,force' (a force profile) or "
-            "'time,force,displacement[,velocity]' (a trajectory)"
+            f"{path}, line {body[0][0]}: header {header}; expected 'time,force' (a force "
+            "profile) or 'time,force,displacement[,velocity]' (a trajectory)"
         )
     rows, where_line = [], []
     for n, ln in body[1:]:

@@ -98,8 +98,8 @@ def to_urdf(tree: Tree, timestep: float = 0.002, integrator: str = "implicitfast
     robot = ET.Element("robot", name=tree.name)
     robot.append(
         ET.Comment(
-            " Joint stiffness Kp (N m/rad, about the rest angle 0) is not part of URDF; treeinfer sets it "
-            "after loading (treeinfer.urdf.mjmodel_from_urdf). "
+            " Joint stiffness Kp (N m/rad, about the rest angle 0) is not part of URDF; "
+            "treeinfer sets it after loading (treeinfer.urdf.mjmodel_from_urdf). "
         )
     )
     mj = ET.SubElement(robot, "mujoco")

@@ -117,7 +117,9 @@ def _refuse_existing(paths: Sequence[Path], force: bool) -> None:
 
 
 def _prepare_jax() -> None:
-    """Persistent XLA cache: a second run with the same shapes skips compiling (MJX takes a minute)."""
+    """Persistent XLA cache: a second run with the same shapes skips compiling.
+
+    (MJX takes a minute to compile.)"""
     treeinfer.enable_compilation_cache()
 
 
@@ -145,12 +147,14 @@ def _print_posterior(summary: dict) -> None:
     table = summary["posterior"]
     n_unst = summary["n_unstable"]
     print(
-        f"posterior ({summary['n_particles']} particles, {n_unst} unstable, excluded): mean and 95% interval"
+        f"posterior ({summary['n_particles']} particles, {n_unst} unstable, excluded): mean and "
+        "95% interval"
     )
     width = max(len(k) for k in table)
     for lab, s in table.items():
         print(
-            f"  {lab:<{width}}  {_fmt_gain(s['mean']):>9} {s['unit']:<10} [{_fmt_gain(s['lower'])}, {_fmt_gain(s['upper'])}]"
+            f"  {lab:<{width}}  {_fmt_gain(s['mean']):>9} {s['unit']:<10} "
+            f"[{_fmt_gain(s['lower'])}, {_fmt_gain(s['upper'])}]"
         )
 
 
@@ -158,8 +162,9 @@ def _print_fit(m: dict | None, what: str) -> None:
     if not m:
         return
     print(
-        f"{what}: 95% band {1000 * m['ci_width']:.3g} mm wide on average, {m['pct_outside']:.1f}% of "
-        f"points outside it, predictive NLL {m['predictive_nll_per_point']:.3g} nats/point"
+        f"{what}: 95% band {1000 * m['ci_width']:.3g} mm wide on average, "
+        f"{m['pct_outside']:.1f}% of points outside it, predictive NLL "
+        f"{m['predictive_nll_per_point']:.3g} nats/point"
     )
 
 
@@ -229,7 +234,8 @@ def _metrics_md(title: str, m: dict) -> list[str]:
         for lab, p in m["parameters"].items():
             out.append(
                 f"| {lab} | {math.exp(p['truth']):.4g} | {math.exp(p['mean']):.4g} | "
-                f"[{math.exp(p['lower']):.4g}, {math.exp(p['upper']):.4g}] | {'yes' if p['in_interval'] else 'no'} |"
+                f"[{math.exp(p['lower']):.4g}, {math.exp(p['upper']):.4g}] | "
+                f"{'yes' if p['in_interval'] else 'no'} |"
             )
     return out + [""]
 
@@ -245,7 +251,8 @@ def _print_metrics(m: dict, what: str) -> None:
             + (
                 ""
                 if m.get("truth_in_joint_region") is None
-                else f"; inside the joint 95% region: {'yes' if m['truth_in_joint_region'] else 'no'}"
+                else "; inside the joint 95% region: "
+                f"{'yes' if m['truth_in_joint_region'] else 'no'}"
             )
         )
 
@@ -259,6 +266,27 @@ def add_run_option(p: argparse.ArgumentParser) -> None:
         metavar="RUN",
         help="run folder written by `treeinfer infer`",
     )
+
+
+def add_out_option(p: argparse.ArgumentParser, metavar: str = "DIR") -> None:
+    """``--out DIR``: the output folder a command writes (replaced only with ``--force``); one
+    definition for every command that writes a folder of results."""
+    p.add_argument(
+        "--out",
+        required=True,
+        type=Path,
+        metavar=metavar,
+        help="output folder (must be empty or absent unless --force)",
+    )
+
+
+def add_grasp_point_options(p: argparse.ArgumentParser) -> None:
+    """``--grasp-branch``, then ``--grasp-fraction`` or ``--grasp-distance``: where the imported
+    recordings were grasped, written to the data folder's ``pulls.yaml`` (the importers)."""
+    p.add_argument("--grasp-branch", metavar="NAME", help="grasped branch (pulls.yaml)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--grasp-fraction", type=float, metavar="F", help="grasp point, (0, 1]")
+    g.add_argument("--grasp-distance", type=float, metavar="M", help="m from the branch's joint")
 
 
 def add_simulation_options(p: argparse.ArgumentParser, default_note: str = "") -> None:

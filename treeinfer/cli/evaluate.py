@@ -34,6 +34,7 @@ from .common import (
     _say,
     add_command_parser,
     add_model_options,
+    add_out_option,
     add_run_option,
     add_simulation_options,
     check_simulation_options,
@@ -75,13 +76,7 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--data", required=True, type=Path, metavar="DIR", help="folder of held-out trajectory CSVs"
     )
-    p.add_argument(
-        "--out",
-        required=True,
-        type=Path,
-        metavar="DIR",
-        help="output folder (must be empty or absent unless --force)",
-    )
+    add_out_option(p)
     p.add_argument(
         "--kfold",
         type=int,
@@ -92,7 +87,8 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
         "--grasp-fraction",
         type=float,
         metavar="F",
-        help="where along the grasped branch DIR's data were recorded (default: as the run's training data)",
+        help="where along the grasped branch DIR's data were recorded (default: as the run's "
+        "training data)",
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
@@ -101,7 +97,8 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--allow-modified",
         action="store_true",
-        help="use the run even if its files changed since `infer` wrote them (checksums in its config.json); recorded in the output",
+        help="use the run even if its files changed since `infer` wrote them (checksums in its "
+        "config.json); recorded in the output",
     )
     return p
 
@@ -240,18 +237,21 @@ def run_evaluate(args: argparse.Namespace) -> int:
     md = [
         f"# treeinfer evaluate --kfold {args.kfold}: settings of `{args.run}` on `{args.data}`",
         "",
-        "| fold | held out | band width [mm] | outside [%] | predictive NLL [nats/point] | posterior NLL |",
+        "| fold | held out | band width [mm] | outside [%] | predictive NLL [nats/point] | "
+        "posterior NLL |",
         "|---|---|---|---|---|---|",
     ]
     for r in results:
         m = r.metrics
         md.append(
-            f"| {r.fold} | {', '.join(r.test)} | {1000 * m['ci_width']:.4g} | {m['pct_outside']:.2f} | "
-            f"{m['predictive_nll_per_point']:.4g} | {m.get('posterior_nll', float('nan')):.4g} |"
+            f"| {r.fold} | {', '.join(r.test)} | {1000 * m['ci_width']:.4g} | "
+            f"{m['pct_outside']:.2f} | {m['predictive_nll_per_point']:.4g} | "
+            f"{m.get('posterior_nll', float('nan')):.4g} |"
         )
     md.append(
         f"| mean | | {1000 * mean['ci_width']:.4g} | {mean['pct_outside']:.2f} | "
-        f"{mean['predictive_nll_per_point']:.4g} | {(mean.get('posterior_nll') or float('nan')):.4g} |"
+        f"{mean['predictive_nll_per_point']:.4g} | "
+        f"{(mean.get('posterior_nll') or float('nan')):.4g} |"
     )
     md.append("")
     for r in results:
@@ -274,10 +274,12 @@ def run_evaluate(args: argparse.Namespace) -> int:
     for r in results:
         _print_metrics(r.metrics, f"fold {r.fold} (held out {', '.join(r.test)})")
     print(
-        f"mean over {args.kfold} folds: 95% band {1000 * mean['ci_width']:.3g} mm, {mean['pct_outside']:.1f}% outside, "
-        f"predictive NLL {mean['predictive_nll_per_point']:.3g} nats/point"
+        f"mean over {args.kfold} folds: 95% band {1000 * mean['ci_width']:.3g} mm, "
+        f"{mean['pct_outside']:.1f}% outside, predictive NLL "
+        f"{mean['predictive_nll_per_point']:.3g} nats/point"
     )
     print(
-        f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json, fold_*_particles.csv)"
+        f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json, "
+        "fold_*_particles.csv)"
     )
     return EXIT_OK

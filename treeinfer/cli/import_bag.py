@@ -1,4 +1,6 @@
-"""``treeinfer import-bag``: cut a ROS bag into trajectory CSVs (:func:`treeinfer.bags.import_bag`)."""
+"""``treeinfer import-bag``: cut a ROS bag into trajectory CSVs.
+
+The work is done by :func:`treeinfer.bags.import_bag`."""
 
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ from .common import (
     COMMAND_HELP,
     EXIT_OK,
     add_command_parser,
+    add_grasp_point_options,
 )
 
 # ==== import-bag ==================================================================================
@@ -131,10 +134,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
         metavar="X,Y,Z",
         help="pull direction in the pose frame (default: --gravity-axis, a downward pull)",
     )
-    parser.add_argument("--grasp-branch", metavar="NAME", help="grasped branch (pulls.yaml)")
-    grasp = parser.add_mutually_exclusive_group()
-    grasp.add_argument("--grasp-fraction", type=float, metavar="F", help="grasp point, (0, 1]")
-    grasp.add_argument("--grasp-distance", type=float, metavar="M", help="m from the joint")
+    add_grasp_point_options(parser)
     parser.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     return parser
 

@@ -8,7 +8,7 @@ import argparse
 import warnings
 
 from ..csv_import import import_csv
-from .common import COMMAND_HELP, EXIT_OK, add_command_parser
+from .common import COMMAND_HELP, EXIT_OK, add_command_parser, add_grasp_point_options
 
 _IMPORT_CSV_EPILOG = """\
 examples:
@@ -81,10 +81,7 @@ def configure_import_csv(subparsers) -> argparse.ArgumentParser:
         help="measure displacement from the first sample (default) or from contact",
     )
     p.add_argument("--trim", action="store_true", help="drop idle samples at the start and end")
-    p.add_argument("--grasp-branch", metavar="NAME", help="grasped branch (pulls.yaml)")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--grasp-fraction", type=float, metavar="F", help="grasp point, (0, 1]")
-    g.add_argument("--grasp-distance", type=float, metavar="M", help="m from the branch's joint")
+    add_grasp_point_options(p)
     p.add_argument("--direction", metavar="D", help="down | horizontal | X,Y,Z (pulls.yaml)")
     p.add_argument("--delimiter", metavar="C", help="field separator (default: sniffed)")
     p.add_argument("--force", action="store_true", help="replace same-named CSVs in DIR")

@@ -12,7 +12,7 @@ from typing import Any
 from .. import runs
 from ..errors import ConfigError
 from ..runs import RunConfig
-from ..runs.config import GRADIENT_CHOICES, INIT_CHOICES
+from ..runs.config import GRADIENT_CHOICES, INIT_CHOICES, OPTION_FIELDS
 from ..samplers import SAMPLER_NAMES
 from .common import (
     COMMAND_HELP,
@@ -39,6 +39,7 @@ INFER_DEFAULTS: dict[str, Any] = {
     f.name: f.default
     for f in fields(RunConfig)
     if f.default is not MISSING
+    and f.name in OPTION_FIELDS
     and f.name not in ("grasp_fraction", "force", "model", "repair_inertia")
 }
 # options a resumed run takes from its checkpoint's config (argparse dest -> flag)
@@ -113,11 +114,12 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         subparsers,
         "infer",
         help=COMMAND_HELP["infer"],
-        description="Sample the posterior over the stiffness Kp and damping Kd of the tree's inferred "
-        "joints given force-deformation trajectories, with NNSVGD (the default: SVGD with the learned "
-        "parent-stiffer-than-child prior), SVGD, SGLD, SGHMC or Metropolis-Hastings, and write a run "
-        "folder for `treeinfer predict` and `treeinfer evaluate`. Prints the posterior mean and 95% "
-        "interval of every parameter, convergence warnings and the number of unstable particles.",
+        description="Sample the posterior over the stiffness Kp and damping Kd of the tree's "
+        "inferred joints given force-deformation trajectories, with NNSVGD (the default: SVGD "
+        "with the learned parent-stiffer-than-child prior), SVGD, SGLD, SGHMC or "
+        "Metropolis-Hastings, and write a run folder for `treeinfer predict` and `treeinfer "
+        "evaluate`. Prints the posterior mean and 95% interval of every parameter, convergence "
+        "warnings and the number of unstable particles.",
         epilog=_INFER_EPILOG,
     )
     p.add_argument("--tree", type=Path, help="tree description (YAML/JSON)")
@@ -145,23 +147,26 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "--kT",
         type=_kT_arg,
         metavar="X|auto",
-        help=f"Boltzmann likelihood temperature in loss units (m + m/s) per nat; smaller = sharper posterior; "
-        f"'auto': from the data's displacement-noise estimate, kT = sigma / sqrt(T) * (1 + sqrt(2) dt omega2), "
-        f"printed (default {d['kT']:g}, the paper-reproduction value; see treeinfer.likelihood)",
+        help="Boltzmann likelihood temperature in loss units (m + m/s) per nat; smaller = "
+        "sharper posterior; 'auto': from the data's displacement-noise estimate, kT = sigma / "
+        f"sqrt(T) * (1 + sqrt(2) dt omega2), printed (default {d['kT']:g}, the "
+        "paper-reproduction value; see treeinfer.likelihood)",
     )
     p.add_argument(
         "--likelihood",
         choices=("boltzmann", "gaussian", "student_t", "ar1"),
-        help="boltzmann: the paper's loss with temperature --kT (default); gaussian: recorded = simulated "
-        "displacement + white noise sigma_x (inferred unless --noise-displacement; calibrated bands); "
-        "student_t: the same with heavy tails (outliers); ar1: white + AR(1) residuals (slow errors, e.g. force noise)",
+        help="boltzmann: the paper's loss with temperature --kT (default); gaussian: recorded = "
+        "simulated displacement + white noise sigma_x (inferred unless --noise-displacement; "
+        "calibrated bands); student_t: the same with heavy tails (outliers); ar1: white + AR(1) "
+        "residuals (slow errors, e.g. force noise)",
     )
     p.add_argument(
         "--noise-displacement",
         type=float,
         metavar="M",
-        help="displacement noise sigma_x in metres for --likelihood gaussian/student_t/ar1 (default: inferred "
-        "jointly, prior centred on the data's estimate) or for --kT auto (default: estimated)",
+        help="displacement noise sigma_x in metres for --likelihood gaussian/student_t/ar1 "
+        "(default: inferred jointly, prior centred on the data's estimate) or for --kT auto "
+        "(default: estimated)",
     )
     p.add_argument(
         "--seed",
@@ -173,25 +178,29 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "--eta",
         type=float,
         metavar="X",
-        help=f"NNSVGD inequality-prior slope, nats per unit of log gain a child exceeds its parent (default {d['eta']:g})",
+        help="NNSVGD inequality-prior slope, nats per unit of log gain a child exceeds its "
+        f"parent (default {d['eta']:g})",
     )
     p.add_argument(
         "--grasp-fraction",
         type=float,
         metavar="F",
-        help="where along the grasped branch the data were recorded, in (0, 1] (default: the tree's grasp)",
+        help="where along the grasped branch the data were recorded, in (0, 1] (default: the "
+        "tree's grasp)",
     )
     p.add_argument(
         "--max-unstable-share",
         type=float,
         metavar="F",
-        help=f"stop with an error if more than this share of the final particles simulate unstably (default {d['max_unstable_share']:g}); may be changed with --resume",
+        help="stop with an error if more than this share of the final particles simulate "
+        f"unstably (default {d['max_unstable_share']:g}); may be changed with --resume",
     )
     p.add_argument(
         "--checkpoint-every",
         type=int,
         metavar="N",
-        help=f"write RUN.partial/checkpoint.npz every N iterations; 0: only at the end of sampling (default {d['checkpoint_every']})",
+        help="write RUN.partial/checkpoint.npz every N iterations; 0: only at the end of "
+        f"sampling (default {d['checkpoint_every']})",
     )
     p.add_argument(
         "--resume",
@@ -208,7 +217,9 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--backend",
         choices=("auto", "fused", "mjx"),
-        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
+        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few "
+        "XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' "
+        "(mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
     )
     p.add_argument(
         "--prior-from",
@@ -284,12 +295,14 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--allow-poor-fit",
         action="store_true",
-        help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 otherwise); the verdict stays in summary.json",
+        help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 "
+        "otherwise); the verdict stays in summary.json",
     )
     p.add_argument(
         "--allow-implausible-data",
         action="store_true",
-        help="sample even if the plausibility checks find errors in the data (wrong units, swapped columns, duplicates ...); they are printed and recorded in summary.json",
+        help="sample even if the plausibility checks find errors in the data (wrong units, "
+        "swapped columns, duplicates ...); they are printed and recorded in summary.json",
     )
     return p
 
@@ -309,10 +322,11 @@ def run_infer(args: argparse.Namespace) -> int:
         given = [flag for dest, flag in _RUN_OPTIONS.items() if getattr(args, dest) is not None]
         if given:
             raise ConfigError(
-                f"--resume takes every setting from {args.resume}{runs.PARTIAL_SUFFIX}/config.json; "
-                f"leave out {', '.join(given)} (only --max-unstable-share and --no-progress may be given)"
+                "--resume takes every setting from "
+                f"{args.resume}{runs.PARTIAL_SUFFIX}/config.json; leave out {', '.join(given)} "
+                "(only --max-unstable-share and --no-progress may be given)"
             )
-        run_dir, config = args.resume, None
+        run_dir, config, inputs = args.resume, None, None
     else:
         missing = [
             f
@@ -330,6 +344,9 @@ def run_infer(args: argparse.Namespace) -> int:
         o["grasp_fraction"] = args.grasp_fraction
         _check_infer_options(o)
         run_dir = args.out
+        inputs = runs.load_run_inputs(
+            args.tree, args.data, args.model, args.repair_inertia, o["model_kind"]
+        )
         config = runs.infer_config(
             args.tree,
             args.data,
@@ -337,11 +354,12 @@ def run_infer(args: argparse.Namespace) -> int:
             force=bool(args.force),
             model=args.model,
             repair_inertia=args.repair_inertia,
+            inputs=inputs,
             **o,
         )
         _say(
-            f"{len(config['data']['files'])} training trajectories from {args.data}; sampling with {o['sampler']} "
-            f"({o['particles']} particles x {o['iterations']} iterations)"
+            f"{len(config['data']['files'])} training trajectories from {args.data}; sampling "
+            f"with {o['sampler']} ({o['particles']} particles x {o['iterations']} iterations)"
         )
     try:
         outcome = runs.run_inference(
@@ -353,6 +371,7 @@ def run_infer(args: argparse.Namespace) -> int:
             on_checkpointer=lambda cp: holder.__setitem__("cp", cp),
             cache=runs.SimulatorCache(),
             allow_implausible_data=args.allow_implausible_data,
+            inputs=inputs,
         )
     except KeyboardInterrupt:
         cp = holder.get("cp")
@@ -360,13 +379,14 @@ def run_infer(args: argparse.Namespace) -> int:
             _say("interrupted before sampling started; nothing to resume")
         elif cp.last_iteration is None:
             _say(
-                f"interrupted before the first checkpoint; `treeinfer infer --resume {run_dir}` starts the "
-                f"same run again from iteration 0 (settings in {runs.partial_dir(run_dir)}/config.json)"
+                f"interrupted before the first checkpoint; `treeinfer infer --resume {run_dir}` "
+                "starts the same run again from iteration 0 (settings in "
+                f"{runs.partial_dir(run_dir)}/config.json)"
             )
         else:
             _say(
-                f"interrupted; the sampler state after iteration {cp.last_iteration} is kept in {cp.path}.\n"
-                f"continue with:  treeinfer infer --resume {run_dir}"
+                f"interrupted; the sampler state after iteration {cp.last_iteration} is kept in "
+                f"{cp.path}.\ncontinue with:  treeinfer infer --resume {run_dir}"
             )
         return EXIT_INTERRUPTED
     s = outcome.summary
@@ -383,12 +403,13 @@ def run_infer(args: argparse.Namespace) -> int:
     status = fit.get("status", "ok")
     print(f"fit verdict: {status}" + "".join(f"\n  - {r}" for r in fit.get("reasons", [])))
     print(
-        f"wrote {run_dir}/ (config.json, tree.yaml, posterior.nc, particles.csv, trace.npz, summary.json, plots/)"
+        f"wrote {run_dir}/ (config.json, tree.yaml, posterior.nc, particles.csv, trace.npz, "
+        "summary.json, plots/)"
     )
     if status == "poor_fit" and not args.allow_poor_fit:
         _say(
-            f"poor fit: the posterior in {run_dir} does not explain the training data (reasons above); "
-            "exit code 4 (--allow-poor-fit to accept it)"
+            f"poor fit: the posterior in {run_dir} does not explain the training data (reasons "
+            "above); exit code 4 (--allow-poor-fit to accept it)"
         )
         return EXIT_POOR_FIT
     return EXIT_OK

@@ -2,8 +2,8 @@
 
 Each command lives in its own module of :mod:`treeinfer.cli` (``tree``, ``simulate``,
 ``import_bag``, ``import_csv``, ``infer``, ``predict``, ``evaluate``, ``demo``, ``suggest``)
-as a pair ``configure_<name>(subparsers) -> parser`` and ``run_<name>(args) -> exit code``; those modules
-import what they need at their top and are imported only when their command runs, so
+as a pair ``configure_<name>(subparsers) -> parser`` and ``run_<name>(args) -> exit code``;
+those modules import what they need at their top and are imported only when their command runs, so
 ``treeinfer --help`` loads neither JAX nor MuJoCo. To add a command, write its module, add a
 line to :data:`~treeinfer.cli.common.COMMAND_HELP` and an entry to :data:`COMMANDS`. Commands
 parse and print; the work is done by the library (:mod:`treeinfer.synthetic`,
@@ -102,8 +102,9 @@ def build_parser(only: str | None = None, lazy: bool = False) -> argparse.Argume
     parser = argparse.ArgumentParser(
         prog="treeinfer",
         description=textwrap.fill(
-            "Infer the stiffness and damping of tree-branch joints from robot "
-            "force-deformation trajectories, with a batched MuJoCo simulator in JAX (a fused hinge-tree step, or MJX).",
+            "Infer the stiffness and damping of tree-branch joints from robot force-deformation "
+            "trajectories, with a batched MuJoCo simulator in JAX (a fused hinge-tree step, or "
+            "MJX).",
             width=_WIDTH,
         ),
         epilog=_MAIN_EPILOG,
@@ -158,8 +159,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if debug:
             traceback.print_exc()
         print(
-            f"internal error ({type(e).__name__}: {e}); this is a bug in treeinfer, please report it "
-            "(rerun with --debug for the traceback)",
+            f"internal error ({type(e).__name__}: {e}); this is a bug in treeinfer, please "
+            "report it (rerun with --debug for the traceback)",
             file=sys.stderr,
         )
         return EXIT_INTERNAL_ERROR

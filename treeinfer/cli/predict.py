@@ -29,6 +29,7 @@ from .common import (
     _say,
     add_command_parser,
     add_model_options,
+    add_out_option,
     add_run_option,
     add_simulation_options,
     check_simulation_options,
@@ -87,13 +88,7 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         "own grasp point from its folder's pulls.yaml, else where the run's training data were "
         "recorded)",
     )
-    p.add_argument(
-        "--out",
-        required=True,
-        type=Path,
-        metavar="DIR",
-        help="output folder (must be empty or absent unless --force)",
-    )
+    add_out_option(p)
     p.add_argument(
         "--force",
         dest="force_flag",
@@ -191,12 +186,14 @@ def run_predict(args: argparse.Namespace) -> int:
         dt = dt_run if args.dt is None else args.dt
         if not math.isclose(dt, dt_run, rel_tol=1e-6):
             raise ConfigError(
-                f"--dt {dt:g} s differs from the run's {dt_run:g} s; leave it out to use the run's step"
+                f"--dt {dt:g} s differs from the run's {dt_run:g} s; leave it out to use the "
+                "run's step"
             )
         f = from_spec(args.profile, args.duration, dt)
         prof = ForceProfile(np.arange(len(f)) * dt, f, None, args.profile)
     _say(
-        f"simulating {len(run.theta)} particles (the first prediction of a shape compiles for up to a minute)..."
+        f"simulating {len(run.theta)} particles (the first prediction of a shape compiles for up "
+        "to a minute)..."
     )
     grasp = args.grasp_fraction if args.grasp_fraction is not None else run.grasp_fraction
     compare = prof.displacement is not None
@@ -278,12 +275,14 @@ def run_predict(args: argparse.Namespace) -> int:
         runs.write_json(stage / "config.json", config)
     peak = float(np.max(np.abs(mean)))
     print(
-        f"predicted {len(prof.time)} steps under {prof.source}: peak mean displacement {1000 * peak:.3g} mm, "
-        f"band {1000 * float(np.mean(upper - lower)):.3g} mm wide on average; {n_bad} of {len(run.theta)} particles excluded"
+        f"predicted {len(prof.time)} steps under {prof.source}: peak mean displacement "
+        f"{1000 * peak:.3g} mm, band {1000 * float(np.mean(upper - lower)):.3g} mm wide on "
+        f"average; {n_bad} of {len(run.theta)} particles excluded"
     )
     if compare:
         print(
-            f"  {100 * float(fraction_outside(lower, upper, prof.displacement)):.1f}% of the recorded displacement lies outside the band"
+            f"  {100 * float(fraction_outside(lower, upper, prof.displacement)):.1f}% of the "
+            "recorded displacement lies outside the band"
         )
     print(f"wrote {args.out}/ (prediction.csv, prediction.png, config.json)")
     return EXIT_OK

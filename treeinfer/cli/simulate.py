@@ -40,6 +40,7 @@ from .common import (
     _say,
     add_command_parser,
     add_model_options,
+    add_out_option,
     add_simulation_options,
     check_simulation_options,
     print_model_report,
@@ -77,18 +78,14 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
         subparsers,
         "simulate",
         help=COMMAND_HELP["simulate"],
-        description="Sim-to-sim ground truth: pull the tree's grasp point down with a set of force "
-        "profiles using known (or drawn) joint stiffness and damping, in one batched "
-        "simulation, and write the trajectories in treeinfer's CSV format with the true parameters.",
+        description="Sim-to-sim ground truth: pull the tree's grasp point down with a set of "
+        "force profiles using known (or drawn) joint stiffness and damping, in one batched "
+        "simulation, and write the trajectories in treeinfer's CSV format with the true "
+        "parameters.",
         epilog=_SIMULATE_EPILOG,
     )
     p.add_argument("--tree", required=True, type=Path, help="tree description (YAML/JSON)")
-    p.add_argument(
-        "--out",
-        required=True,
-        type=Path,
-        help="output folder (must be empty or absent unless --force)",
-    )
+    add_out_option(p)
     p.add_argument(
         "--n-traj",
         type=int,
@@ -128,7 +125,8 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
         type=_pair,
         default=DEFAULT_PEAK_RANGE,
         metavar="LO,HI",
-        help=f"N, range of the random peaks (default {DEFAULT_PEAK_RANGE[0]:g},{DEFAULT_PEAK_RANGE[1]:g})",
+        help="N, range of the random peaks (default "
+        f"{DEFAULT_PEAK_RANGE[0]:g},{DEFAULT_PEAK_RANGE[1]:g})",
     )
     p.add_argument(
         "--noise-force",
@@ -156,7 +154,9 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
         "--backend",
         choices=("auto", "fused", "mjx"),
         default="auto",
-        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
+        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few "
+        "XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' "
+        "(mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     return p
@@ -175,7 +175,8 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
         raise ConfigError(f"--n-traj: must be at least 1, got {args.n_traj}")
     if args.profile and args.n_traj is not None and args.n_traj != len(args.profile):
         raise ConfigError(
-            f"--n-traj {args.n_traj} disagrees with the {len(args.profile)} --profile spec(s) (one trajectory each)"
+            f"--n-traj {args.n_traj} disagrees with the {len(args.profile)} --profile spec(s) "
+            "(one trajectory each)"
         )
     for flag, v in (
         ("--noise-force", args.noise_force),
@@ -185,7 +186,8 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
             raise ConfigError(f"{flag}: must be >= 0, got {v:g}")
     if args.grasp_fraction is not None and not (0.0 < args.grasp_fraction <= 1.0):
         raise ConfigError(
-            f"--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got {args.grasp_fraction:g}"
+            "--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got "
+            f"{args.grasp_fraction:g}"
         )
     check_simulation_options(args)
     lo, hi = args.peak_range
@@ -195,8 +197,8 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
         return n_steps(args.duration, args.dt)
     except ConfigError:
         raise ConfigError(
-            f"--duration {args.duration:g} s at --dt {args.dt:g} s gives {int(args.duration / args.dt)} "
-            "sample(s); at least 3 are needed"
+            f"--duration {args.duration:g} s at --dt {args.dt:g} s gives "
+            f"{int(args.duration / args.dt)} sample(s); at least 3 are needed"
         ) from None
 
 
@@ -245,9 +247,10 @@ def run_simulate(args: argparse.Namespace) -> int:
     if not stable.all():
         bad = [f"{names[i]} ({specs[i]})" for i in np.flatnonzero(~stable)]
         raise SimulationError(
-            f"the simulation blew up for {len(bad)} of {len(specs)} trajectories: {'; '.join(bad)}; "
-            f"with {_fmt_params(tree, kp, kd)}: lower the peak forces (--peak-range), the step "
-            "(--max-sim-dt) or check the parameters and the tree's units"
+            f"the simulation blew up for {len(bad)} of {len(specs)} trajectories: "
+            f"{'; '.join(bad)}; with {_fmt_params(tree, kp, kd)}: lower the peak forces "
+            "(--peak-range), the step (--max-sim-dt) or check the parameters and the tree's "
+            "units"
         )
     trajs = synthetic_trajectories(
         rollout, forces, args.dt, names, args.noise_force, args.noise_displacement, rng_noise
@@ -273,7 +276,8 @@ def run_simulate(args: argparse.Namespace) -> int:
     print(f"  true parameters: {_fmt_params(tree, kp, kd)}")
     peak = float(np.max(np.abs(np.asarray(rollout.tau))))
     print(
-        f"  largest displacement {peak:.3g} m; wrote {args.out}/ ({names[0]} .. {names[-1]}, tree.yaml, true_params.json, config.json)"
+        f"  largest displacement {peak:.3g} m; wrote {args.out}/ ({names[0]} .. {names[-1]}, "
+        "tree.yaml, true_params.json, config.json)"
     )
     return EXIT_OK
 

@@ -34,10 +34,13 @@ from .common import (
 # ==== tree ========================================================================================
 _TREE_EPILOG = """\
 examples:
-  treeinfer tree --kind fractal --depth 2 --branching 2 --base-pitch 20 --out fractal.yaml --mjcf fractal.xml
+  treeinfer tree --kind fractal --depth 2 --branching 2 --base-pitch 20 --out fractal.yaml \\
+      --mjcf fractal.xml
   treeinfer tree --kind chain --n 3 --lengths 0.7,0.6,0.5 --radii 0.03,0.02,0.014 --out chain.yaml
-  treeinfer tree --kind lsystem --axiom F --rule 'F=F[+F]F[-F]' --iterations 2 --angle 25 --out ls.yaml
-  treeinfer tree --from two_branch.yaml --grasp-fraction 0.5 --out two_branch.json --urdf two_branch.urdf
+  treeinfer tree --kind lsystem --axiom F --rule 'F=F[+F]F[-F]' --iterations 2 --angle 25 \\
+      --out ls.yaml
+  treeinfer tree --from two_branch.yaml --grasp-fraction 0.5 --out two_branch.json \\
+      --urdf two_branch.urdf
   treeinfer tree --from fractal.yaml --kind fractal --depth 3 --out deeper.yaml   # re-generate
   treeinfer tree --model my_tree.urdf --grasp link_7 --levels 2 --out my_tree.yaml  # your model
   treeinfer tree --from my_tree.yaml --model my_tree.urdf --repair-inertia geometry --out t.yaml
@@ -206,7 +209,8 @@ def _parse_rules(items: Sequence[str]) -> dict[str, Any]:
         sym = sym.strip()
         if not eq or len(sym) != 1:
             raise ConfigError(
-                f"--rule {item!r}: expected SYMBOL=SUCCESSOR with a one-character symbol, e.g. 'F=FF-[-F+F]'"
+                f"--rule {item!r}: expected SYMBOL=SUCCESSOR with a one-character symbol, e.g. "
+                "'F=FF-[-F+F]'"
             )
         prob: float | None = None
         head, colon, tail = succ.partition(":")
@@ -224,7 +228,8 @@ def _parse_rules(items: Sequence[str]) -> dict[str, Any]:
             rules[sym] = alts[0][1]
         elif any(pr is None for pr, _ in alts):
             raise ConfigError(
-                f"--rule: symbol '{sym}' has {len(alts)} rules; give each a probability, e.g. '{sym}=0.5:...'"
+                f"--rule: symbol '{sym}' has {len(alts)} rules; give each a probability, e.g. "
+                f"'{sym}=0.5:...'"
             )
         else:
             rules[sym] = [(pr, s) for pr, s in alts]
@@ -284,7 +289,8 @@ def _convert(tree, settings: dict[str, Any], source: Path):
             d["base"][fld] = list(settings[key]) if key == "base_position" else settings[key]
     first = tree.bounds[tree.inferred[0]]
     if {"grasp", "levels", "bounds"} & set(settings):
-        # the inferred joints (or their box) change: one box for all, from --k?-bounds or the first joint
+        # the inferred joints (or their box) change: one box for all, from --k?-bounds or the first
+        # joint
         bd = settings.get("bounds", first)
         d["inference"] = {
             "levels": settings.get("levels", tree.n_inferred),
@@ -305,7 +311,8 @@ def _summary(tree, path: Path) -> str:
     c = p0 + rot[:, 0] * g.length * tree.grasp_fraction
     lines.append(
         f"  grasp: branch '{g.name}' at fraction {tree.grasp_fraction:.3g} of its length "
-        f"({tree.grasp_fraction * g.length:.3g} m from its joint; rest position {np.round(c, 3).tolist()} m)"
+        f"({tree.grasp_fraction * g.length:.3g} m from its joint; rest position "
+        f"{np.round(c, 3).tolist()} m)"
     )
     lines.append(f"  inferred joints ({tree.n_inferred}): {', '.join(tree.inferred)}")
     lines.append(f"  parameters: {', '.join(tree.parameter_labels())}")
@@ -313,7 +320,8 @@ def _summary(tree, path: Path) -> str:
     if len(boxes) == 1:
         ((kp, kd),) = boxes
         lines.append(
-            f"  prior box: Kp in [{kp[0]:g}, {kp[1]:g}] N m/rad, Kd in [{kd[0]:g}, {kd[1]:g}] N m s/rad"
+            f"  prior box: Kp in [{kp[0]:g}, {kp[1]:g}] N m/rad, Kd in [{kd[0]:g}, {kd[1]:g}] N "
+            "m s/rad"
         )
     else:
         lines.append("  prior box: per joint (see the file)")

@@ -1,5 +1,5 @@
-"""Run folders (the ``runs`` package): what ``treeinfer infer`` writes, how it checkpoints and resumes, and how
-``predict`` / ``evaluate`` read it back.
+"""Run folders (the ``runs`` package): what ``treeinfer infer`` writes, how it checkpoints and
+resumes, and how ``predict`` / ``evaluate`` read it back.
 
 A finished run is one folder ``RUN/``::
 
@@ -42,7 +42,9 @@ diagnostics cover the resumed part only.
 Modules: :mod:`.config` (the run configuration, validated once, hashed for resume),
 :mod:`.provenance` (hashes, versions, JSON), :mod:`.checkpoint` (``RUN.partial``),
 :mod:`.folder` (save and load ``RUN/``), :mod:`.cache` (the simulator cache a command owns),
-:mod:`.service` (run, resume, k-fold: the only module that orchestrates the others).
+:mod:`.problem` (the inference problem of a config, checks before sampling), :mod:`.posterior`
+(the reported posterior, merged traces), :mod:`.service` (run, resume, k-fold: the only module
+that orchestrates the others).
 """
 
 from ..jsonio import read_json, write_json
@@ -64,8 +66,10 @@ from .checkpoint import (
 from .config import (
     RUN_FORMAT,
     RunConfig,
+    RunInputs,
     check_data_unchanged,
     infer_config,
+    load_run_inputs,
     read_true_params,
     sampler_settings,
 )
@@ -107,6 +111,8 @@ __all__ = [
     "file_sha256",
     "flatten_state",
     "infer_config",
+    "load_run_inputs",
+    "RunInputs",
     "infer_posterior",
     "kfold",
     "load_checkpoint",

@@ -75,8 +75,8 @@ def unflatten_state(
     t_leaves, treedef = jax.tree_util.tree_flatten(template)
     if len(t_leaves) != len(specs):
         raise ConfigError(
-            f"{where}: holds {len(specs)} state arrays but this sampler's state has {len(t_leaves)}; "
-            "it was written by another sampler or treeinfer version"
+            f"{where}: holds {len(specs)} state arrays but this sampler's state has "
+            f"{len(t_leaves)}; it was written by another sampler or treeinfer version"
         )
     leaves = []
     for i, (t, spec) in enumerate(zip(t_leaves, specs)):

@@ -7,12 +7,13 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, check_positive
 from ..inference import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA
 from ..likelihood import DEFAULT_KT
 from ..noise import KINDS as LIKELIHOODS
@@ -45,14 +46,8 @@ MIN_KT = 1e-30
 
 
 def _positive(flag: str, v, what: str = "a positive number") -> float:
-    """The one "positive finite number" check of the run options."""
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{flag}: must be {what}, got {v!r}") from None
-    if not (math.isfinite(f) and f > 0):
-        raise ConfigError(f"{flag}: must be {what}, got {f:g}")
-    return f
+    """:func:`treeinfer.errors.check_positive` naming the flag."""
+    return check_positive(v, f"{flag}:", what)
 
 
 def check_share(s, flag: str = "--max-unstable-share") -> float | None:
@@ -63,18 +58,23 @@ def check_share(s, flag: str = "--max-unstable-share") -> float | None:
 
 @dataclass(frozen=True)
 class RunConfig:
-    """The options of one ``treeinfer infer`` run, validated once (ConfigError naming the flag).
+    """A run's ``config.json``: the options of one ``treeinfer infer`` run, validated once
+    (ConfigError naming the flag), and the run's record.
 
-    Its JSON form is ``config.json``'s ``"options"`` object (the same keys as before this class
-    existed, so old run folders read back); everything but ``out``, ``force`` and
-    ``max_unstable_share`` enters the resume hash (:func:`~.provenance.config_hash`).
+    ``RunConfig.from_json(config.json)`` reads a run's file (old and new run folders) and
+    ``to_json()`` writes it; the file keeps its layout (the options in ``"options"``, the same
+    keys as before this class existed, so old run folders read back and hash the same). Every
+    option but ``out``, ``force`` and ``max_unstable_share`` enters the resume hash
+    (:func:`~.provenance.config_hash`). ``RunConfig(tree=..., data=..., out=..., **options)``
+    validates options alone (the record fields stay None).
 
     Attributes: tree, data, out (absolute paths as strings); sampler (a registry name);
     particles (>= 2); iterations (>= 1); backend ("auto", "fused", "mjx"); kT (loss units per
     nat, > 0, or "auto": from the data's noise estimate); likelihood ("boltzmann", "gaussian",
     "student_t", "ar1": :func:`treeinfer.likelihood.likelihood_terms`); noise_displacement (m,
-    None: inferred / estimated); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction (None or in
-    (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end only); force;
+    None: inferred / estimated); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction
+    (None or in (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end
+    only); force;
     prior_from (None or an earlier run folder, absolute: its posterior becomes this run's prior on
     the joints both infer, :mod:`treeinfer.sequential`).
     prior_tail (smoothed-box tail width, share of each log-box width, > 0); reinit_stragglers
@@ -123,6 +123,22 @@ class RunConfig:
     noise_displacement: float | None = None
     model: str | None = None
     repair_inertia: str | None = None
+    # ---- the record: config.json beyond the options (None until known; JSON key in brackets)
+    command: str = "infer"
+    versions: dict | None = None
+    created_utc: str | None = None
+    tree_record: dict | None = None  # ["tree"]: file, sha256, name, labels
+    tree_dict: dict | None = None
+    data_record: dict | None = None  # ["data"]: dir, files (name, sha256), dt, n_steps
+    checkpoint: dict | None = None
+    problem: dict | None = None  # the settings the code derived (added by run_inference)
+    sampler_record: dict | None = None  # ["sampler"]: name and options
+    config_hash: str | None = None
+    posterior_settings: dict | None = None
+    finished_utc: str | None = None
+    extra: dict = field(default_factory=dict)  # other top-level keys, kept as they are
+    # option keys a read file gave (None: a new config, every option is written)
+    given: frozenset | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)
@@ -151,8 +167,8 @@ class RunConfig:
             ):  # the log-likelihood -L/kT would overflow float32 to -inf everywhere
                 raise ConfigError(
                     f"--kT: {self.kT:g} is so small that every particle's log-likelihood -L/kT "
-                    f"overflows (below {MIN_KT:g}); a loss of L costs L/kT nats: typical values are "
-                    "1e-3 to 10 (see treeinfer.likelihood.suggest_kT)"
+                    f"overflows (below {MIN_KT:g}); a loss of L costs L/kT nats: typical values "
+                    "are 1e-3 to 10 (see treeinfer.likelihood.suggest_kT)"
                 )
         if self.likelihood not in LIKELIHOODS:
             raise ConfigError(
@@ -182,7 +198,8 @@ class RunConfig:
             )
         if self.force_interp not in FORCE_INTERPS:
             raise ConfigError(
-                f"--force-interp: must be one of {', '.join(FORCE_INTERPS)}, got {self.force_interp!r}"
+                f"--force-interp: must be one of {', '.join(FORCE_INTERPS)}, got "
+                f"{self.force_interp!r}"
             )
         for k, flag in (("max_sim_dt", "--max-sim-dt"), ("sim_tolerance", "--sim-tolerance")):
             v = getattr(self, k)
@@ -210,24 +227,84 @@ class RunConfig:
         set_("mcmc_warmup", w)
         set_("mcmc_thin", _count("--mcmc-thin", self.mcmc_thin, 0))
 
-    def to_json(self) -> dict:
-        """``config.json``'s ``"options"`` object (``gradients``/``init``/``model_kind`` only
-        when not default)."""
-        out = {f.name: getattr(self, f.name) for f in fields(self)}
+    def options_json(self) -> dict:
+        """``config.json``'s ``"options"`` object: every option (``gradients``/``init``/
+        ``model_kind`` only when not default); for a config read from a file, the keys it gave."""
+        out = {k: getattr(self, k) for k in OPTION_FIELDS}
         for k, default in (("gradients", "fd"), ("init", "uniform"), ("model_kind", "dynamic")):
             if out[k] == default:
                 del out[k]
+        if self.given is not None:
+            out = {k: getattr(self, k) for k in OPTION_FIELDS if k in self.given}
         return out
 
+    def to_json(self) -> dict:
+        """The whole ``config.json`` (record fields that are None are left out)."""
+        out = {
+            "command": self.command,
+            "format": RUN_FORMAT,
+            "versions": self.versions,
+            "created_utc": self.created_utc,
+            "options": self.options_json(),
+            "seed": int(self.seed),
+        }
+        for key, attr in _RECORD_KEYS.items():
+            out[key] = getattr(self, attr)
+        out = {k: v for k, v in out.items() if v is not None}
+        return {**out, **self.extra}
+
     @classmethod
-    def from_json(cls, options: dict) -> RunConfig:
-        """From a ``config.json``'s ``"options"``; folders written before ``backend`` existed get
-        ``"auto"``; keys this version does not know are refused."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(options) - known)
+    def from_json(cls, config: dict) -> RunConfig:
+        """From a ``config.json`` (a run's, old or new; or only its ``"options"`` object). Folders
+        written before an option existed get its default (``backend`` "auto", ...); option keys
+        this version does not know are refused; ``--prior-from`` is not looked up again (the
+        earlier run may have moved since)."""
+        if not isinstance(config, dict):
+            raise ConfigError(f"config.json: expected a JSON object, got {type(config).__name__}")
+        whole = isinstance(config.get("options"), dict)
+        options = config["options"] if whole else config
+        unknown = sorted(set(options) - set(OPTION_FIELDS))
         if unknown:
             raise ConfigError(f"config.json options: unknown field(s) {unknown}")
-        return cls(**options)
+        record = {}
+        if whole:
+            if config.get("format", RUN_FORMAT) != RUN_FORMAT:
+                raise ConfigError(
+                    f"config.json: format {config.get('format')!r} is not {RUN_FORMAT}"
+                )
+            plain = {"command", "versions", "created_utc", "format", "options", "seed"}
+            record = {k: config[k] for k in ("command", "versions", "created_utc") if k in config}
+            record.update({a: config[k] for k, a in _RECORD_KEYS.items() if k in config})
+            record["extra"] = {
+                k: v for k, v in config.items() if k not in plain and k not in _RECORD_KEYS
+            }
+        missing = [k for k in ("tree", "data", "out") if k not in options]
+        if missing:
+            raise ConfigError(f"config.json options: missing field(s) {missing}")
+        prior_from = options.get("prior_from")
+        cfg = cls(
+            **{**options, "prior_from": None},
+            **record,
+            given=frozenset(options),
+        )
+        object.__setattr__(cfg, "prior_from", prior_from)
+        return cfg
+
+
+_NAMES = [f.name for f in fields(RunConfig)]
+# the options: the fields before the record
+OPTION_FIELDS = tuple(_NAMES[: _NAMES.index("command")])
+_RECORD_KEYS = {  # config.json key -> RunConfig attribute, in the file's order
+    "tree": "tree_record",
+    "tree_dict": "tree_dict",
+    "data": "data_record",
+    "checkpoint": "checkpoint",
+    "problem": "problem",
+    "sampler": "sampler_record",
+    "config_hash": "config_hash",
+    "posterior_settings": "posterior_settings",
+    "finished_utc": "finished_utc",
+}
 
 
 # ==== config ======================================================================================
@@ -240,6 +317,39 @@ def load_run_tree(tree_path, model=None, repair_inertia=None) -> Tree:
 
         tree = attach_model(tree, model, repair_inertia)
     return tree
+
+
+class RunInputs(NamedTuple):
+    """What a new run reads from disk, read once per command (:func:`load_run_inputs`) and passed
+    to :func:`infer_config` and :func:`treeinfer.runs.run_inference`.
+
+    Attributes: tree (the run's tree: ``--model`` attached, stiffness only for the static model);
+    trajectories (the training data, in file order); truth (``[2R]`` natural units from the data
+    folder's ``true_params.json``, or None); files (the data files' names and sha256,
+    :func:`~.provenance.data_manifest`)."""
+
+    tree: Tree
+    trajectories: list[Trajectory]
+    truth: np.ndarray | None
+    files: list[dict]
+
+
+def load_run_inputs(
+    tree_path: str | os.PathLike,
+    data_dir: str | os.PathLike,
+    model: str | os.PathLike | None = None,
+    repair_inertia: str | None = None,
+    model_kind: str = "dynamic",
+) -> RunInputs:
+    """Read the tree and the training data of a new run once (clear errors for a missing folder,
+    a bad file or a bad tree)."""
+    from ..static import run_tree
+
+    data_dir = Path(data_dir)
+    tree = run_tree(load_run_tree(tree_path, model, repair_inertia), model_kind)
+    files = data_manifest(data_dir) if data_dir.is_dir() else []
+    trajs = read_trajectory_dir(data_dir)
+    return RunInputs(tree, trajs, read_true_params(tree, data_dir), files)
 
 
 def infer_config(
@@ -269,19 +379,22 @@ def infer_config(
     noise_displacement: float | None = None,
     model: str | os.PathLike | None = None,
     repair_inertia: str | None = None,
+    inputs: RunInputs | None = None,
     **more,
 ) -> dict:
-    """The config of a new run (validated options; data and tree hashed). The problem and
-    sampler settings are added by :func:`run_inference` once the problem is built."""
-    from ..static import run_tree
+    """The config of a new run (validated options; data and tree hashed), as the JSON form of
+    its :class:`RunConfig` (``RunConfig.from_json`` reads it back). The problem and sampler
+    settings are added by :func:`run_inference` once the problem is built.
 
+    ``inputs``: the tree and data already read by :func:`load_run_inputs` (pass the same to
+    :func:`run_inference`, so a command reads them once); read here if None."""
     tree_path, data_dir, out = Path(tree_path), Path(data_dir), Path(out)
-    tree = run_tree(
-        load_run_tree(tree_path, model, repair_inertia), more.get("model_kind", "dynamic")
-    )
-    files = data_manifest(data_dir) if data_dir.is_dir() else []
-    trajs = read_trajectory_dir(data_dir)  # clear errors for a missing folder / bad file
-    options = RunConfig(
+    if inputs is None:
+        inputs = load_run_inputs(
+            tree_path, data_dir, model, repair_inertia, more.get("model_kind", "dynamic")
+        )
+    tree, trajs, files = inputs.tree, inputs.trajectories, inputs.files
+    cfg = RunConfig(
         tree=str(tree_path.resolve()),
         data=str(data_dir.resolve()),
         out=str(out.resolve()),
@@ -306,39 +419,37 @@ def infer_config(
         noise_displacement=noise_displacement,
         model=None if model is None else str(Path(model).resolve()),
         repair_inertia=repair_inertia,
-        **more,
-    ).to_json()
-    return {
-        "command": command,
-        "format": RUN_FORMAT,
-        "versions": versions(),
-        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "options": options,
-        "seed": int(seed),
-        "tree": {
+        command=command,
+        versions=versions(),
+        created_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        tree_record={
             "file": str(tree_path.resolve()),
             "sha256": file_sha256(tree_path),
             "name": tree.name,
             "labels": tree.parameter_labels(),
         },
-        "tree_dict": tree_to_dict(tree),
-        "data": {
+        tree_dict=tree_to_dict(tree),
+        data_record={
             "dir": str(data_dir.resolve()),
             "files": files,
             "dt": trajs[0].dt,
             "n_steps": [t.n_steps for t in trajs],
             "true_params": TRUE_PARAMS_FILE if (data_dir / TRUE_PARAMS_FILE).is_file() else None,
         },
-        "checkpoint": {
+        checkpoint={
             "every": int(checkpoint_every),
             "dir": str(partial_dir(out).resolve()),
             "file": CHECKPOINT_FILE,
         },
-    }
+        **more,
+    )
+    return cfg.to_json()
 
 
 def read_true_params(tree: Tree, data_dir: str | os.PathLike) -> np.ndarray | None:
-    """True parameters ``[2R]`` (natural units, label order) from ``DIR/true_params.json``, or None."""
+    """True parameters ``[2R]`` (natural units, label order) from ``DIR/true_params.json``.
+
+    None if there is no such file."""
     path = Path(data_dir) / TRUE_PARAMS_FILE
     if not path.is_file():
         return None
@@ -362,8 +473,9 @@ def check_data_unchanged(config: dict) -> list[Trajectory]:
             + ([f"new: {', '.join(added)}"] if added else [])
         )
         raise ConfigError(
-            f"{d}: the training data differ from the run's (sha256 in config.json; {'; '.join(parts)}); "
-            "restore the original files, or start a new run without --resume"
+            f"{d}: the training data differ from the run's (sha256 in config.json; "
+            f"{'; '.join(parts)}); restore the original files, or start a new run without "
+            "--resume"
         )
     return read_trajectory_dir(d)
 

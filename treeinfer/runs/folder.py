@@ -214,12 +214,14 @@ def _csv_float(x) -> str:
 
 
 def particles_csv(theta, labels, log_density, stable) -> str:
-    """One row per particle: ``particle``, the labels in natural units, ``log_density``, ``stable``."""
+    """One row per particle.
+
+    Columns: ``particle``, the labels in natural units, ``log_density``, ``stable``."""
     theta = np.asarray(theta, float)
     lines = [
         (
-            f"# treeinfer {__version__}: posterior particles; Kp in {UNITS['Kp']}, Kd in {UNITS['Kd']}; "
-            "log_density of the whole target (-inf: unstable simulation)"
+            f"# treeinfer {__version__}: posterior particles; Kp in {UNITS['Kp']}, Kd in "
+            f"{UNITS['Kd']}; log_density of the whole target (-inf: unstable simulation)"
         ),
         ",".join(["particle", *labels, "log_density", "stable"]),
     ]
@@ -401,12 +403,14 @@ def load_run(
         raise ConfigError(f"{run_dir}: no such run folder{hint}")
     if not (run_dir / "config.json").is_file():
         raise ConfigError(
-            f"{run_dir}: not a treeinfer run (no config.json); give the folder `treeinfer infer --out` wrote"
+            f"{run_dir}: not a treeinfer run (no config.json); give the folder `treeinfer infer "
+            "--out` wrote"
         )
     config = read_json(run_dir / "config.json", "the run's config")
     if config.get("command") not in ("infer", "demo") or config.get("format") != RUN_FORMAT:
         raise ConfigError(
-            f"{run_dir / 'config.json'}: not a treeinfer run config (command {config.get('command')!r})"
+            f"{run_dir / 'config.json'}: not a treeinfer run config (command "
+            f"{config.get('command')!r})"
         )
     validate_run_config(config, run_dir / "config.json")
     notes = tuple(verify_run(run_dir, config, allow_modified))
@@ -437,7 +441,8 @@ def load_run(
         noise_ok = len(labels) == len(gains)  # Boltzmann only: no noise columns
     if list(labels[: len(gains)]) != gains or not noise_ok:
         raise ConfigError(
-            f"{run_dir}: trace.npz labels {list(labels)} do not match tree.yaml {list(model.labels)}"
+            f"{run_dir}: trace.npz labels {list(labels)} do not match tree.yaml "
+            f"{list(model.labels)}"
         )
     if model.kind == "dynamic" and model.layout.infers_damping:
         model = None  # the paper's model of [log Kp, log Kd]

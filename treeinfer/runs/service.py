@@ -5,7 +5,6 @@ cross-validate a run's settings (k-fold). Owns the simulator cache of a command.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import shutil
 import time
@@ -20,26 +19,20 @@ from .._io import (
     check_output_dir,
     clean_stale_staging,
 )
-from ..errors import ConfigError, OutputExistsError, SimulationError, TrajectoryFileError
+from ..errors import ConfigError, OutputExistsError, SimulationError
 
 # ==== problem and posterior =======================================================================
 from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits, noise_for
-from ..inference import DEFAULT_PRIOR_SIGMA
 from ..jsonio import jsonable as _jsonable
 from ..jsonio import read_json, write_json
-from ..samplers import sampler_spec
 from ..trajectories import (
-    Observations,
     Trajectory,
-    read_trajectory_dir,
-    stack_trajectories,
 )
 from ..tree import Tree, dump_tree, load_tree, tree_to_dict
-from .cache import SimulatorCache, simulator_for
+from .cache import SimulatorCache
 from .checkpoint import (
     CHECKPOINT_FILE,
     PARTIAL_SUFFIX,
-    Checkpoint,
     Checkpointer,
     load_checkpoint,
     partial_dir,
@@ -47,106 +40,32 @@ from .checkpoint import (
 )
 from .config import (
     RUN_FORMAT,
+    RunConfig,
+    RunInputs,
     check_data_unchanged,
-    load_run_tree,
+    load_run_inputs,
     read_true_params,
     sampler_settings,
 )
 from .folder import _run_summary, save_run
+from .posterior import (  # noqa: F401 -- re-exported: the old import path keeps working
+    MAX_MCMC_DRAWS,
+    _merged_trace,
+    _summarised_posterior,
+)
+from .problem import (  # noqa: F401 -- re-exported: the old import path keeps working
+    _data_checks,
+    _quasi_static_check,
+    build_problem,
+)
 from .provenance import config_hash, tree_to_dict_json
-
-
-def _grasp_fractions(o: dict, tree: Tree, trajectories):
-    """The run's --grasp-fraction, else each trajectory's own from its data folder's pulls.yaml
-    (one fraction per trajectory), else None (the tree's grasp point)."""
-    if o.get("grasp_fraction") is not None or not o.get("data"):
-        return o.get("grasp_fraction")
-    if isinstance(trajectories, Observations):
-        return None
-    from ..pulls import data_grasp_fractions
-
-    own = data_grasp_fractions(o["data"], tree, [t.source for t in trajectories])
-    if own is None:
-        return None
-    return float(own[0]) if np.allclose(own, own[0]) else [float(g) for g in own]
-
-
-def build_problem(
-    config: dict,
-    tree: Tree,
-    trajectories: Sequence[Trajectory] | Observations,
-    cache: SimulatorCache | None = None,
-):
-    """The inference problem of a run config (the cached simulator; a jitted log-density)."""
-    from ..inference import make_problem
-
-    o = config["options"]
-    obs = (
-        trajectories
-        if isinstance(trajectories, Observations)
-        else stack_trajectories(list(trajectories))
-    )
-    recorded = config.get("problem") or {}  # a resumed run: the settings it was built with
-    # runs from before force interpolation existed held the force over each sample
-    interp = recorded.get("force_interp", o.get("force_interp", "hold" if recorded else "linear"))
-    sim = simulator_for(
-        tree,
-        float(obs.dt),
-        recorded.get("substeps"),
-        recorded.get("backend", o.get("backend", "auto")),
-        cache,
-        force_interp=interp,
-        max_sim_dt=o.get("max_sim_dt"),
-        sim_tolerance=o.get("sim_tolerance"),
-        forces=np.asarray(obs.force),
-        grasp_fraction=o.get("grasp_fraction"),
-    )
-    if recorded.get("sim_step"):  # a resumed run: how its step was chosen, as recorded
-        sim = dataclasses.replace(sim, step_info=dict(recorded["sim_step"]))
-    kind, static = o.get("model_kind", "dynamic"), {}
-    if kind == "static":  # each recording's own branch, grasp point and direction (pulls.yaml)
-        from ..static import model_for, model_with_pulls
-
-        model, grasp = model_with_pulls(
-            model_for(tree, kind),
-            None if isinstance(trajectories, Observations) else o.get("data"),
-            [] if isinstance(trajectories, Observations) else [t.source for t in trajectories],
-            o.get("grasp_fraction"),
-        )
-        grasp = None if grasp is None else np.asarray(grasp, float).tolist()
-        static = {"direction": model.direction, "grasp_branch": model.grasp_branch}
-    else:
-        grasp = _grasp_fractions(o, tree, trajectories)
-    problem = make_problem(
-        tree,
-        obs,
-        kT=o["kT"],
-        nn_prior=sampler_spec(o["sampler"]).nn_prior,
-        eta=o["eta"],
-        prior_sigma=o.get("prior_tail", DEFAULT_PRIOR_SIGMA),
-        grasp_fraction=grasp,
-        sim=sim,
-        gradient=o.get("gradients", "fd"),
-        likelihood=o.get("likelihood", "boltzmann"),  # run folders older than issue 11
-        noise_displacement=o.get("noise_displacement"),
-        model_kind=kind,
-        **static,
-    )
-    if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints
-        from ..sequential import prior_from_run, with_prior
-
-        prior = prior_from_run(o["prior_from"], problem.labels)
-        problem = with_prior(problem, prior.log_density)
-        settings = {**problem.settings, "prior_from": {"run": o["prior_from"], **prior.to_dict()}}
-        problem = dataclasses.replace(problem, settings=settings)
-    # infer() evaluates log_density once at the end: jitted, the simulator is traced and compiled once
-    # (op-by-op it costs tens of seconds); MH samples with the same function.
-    return dataclasses.replace(problem, log_density=jax.jit(problem.log_density))
 
 
 # ==== inference ===================================================================================
 class InferOutcome(NamedTuple):
-    """What :func:`run_inference` produced: the run folder, its config and summary, the posterior."""
+    """What :func:`run_inference` produced.
+
+    The run folder, its config and summary, the posterior."""
 
     run_dir: Path
     config: dict
@@ -160,66 +79,9 @@ def _inputs(config: dict) -> list[str]:
     return [p for p in (o.get("tree"), o.get("data")) if p]
 
 
-def _data_checks(
-    config: dict, tree: Tree, trajs, log: Callable[[str], None], allow_implausible_data: bool
-) -> list[str]:
-    """Plausibility checks before sampling (:mod:`treeinfer.checks`): errors stop the run unless
-    ``allow_implausible_data``; warnings are logged, and so are entries of the data folder that
-    are not read (FIFOs, broken links, ``.CSV``). Returns every finding as text (summary.json)."""
-    from ..checks import format_findings, preflight
-    from ..safe_load import list_data_files
-
-    o = config["options"]
-    data_dir = Path(config["data"]["dir"])
-    _, skipped = list_data_files(data_dir)
-    skipped = [f"warning: {m}" for m in skipped]
-    paths = [data_dir / f["name"] for f in config["data"]["files"]]
-    errors, warns = preflight(
-        tree,
-        trajs,
-        paths if len(paths) == len(trajs) else None,
-        tree_file=o.get("tree"),
-        grasp_fraction=o.get("grasp_fraction"),
-    )
-    drop = _checks_not_applicable(config, tree, [f["name"] for f in config["data"]["files"]])
-    errors = [f for f in errors if f.check not in drop]
-    warns = [f for f in warns if f.check not in drop]
-    if errors and not allow_implausible_data:
-        raise TrajectoryFileError(
-            "the training data are implausible for this tree:\n"
-            + "\n".join([format_findings(errors + warns), *skipped])
-            + "\nfix the data (or the tree), or pass --allow-implausible-data to sample anyway"
-        )
-    for f in errors + warns:
-        log(str(f))
-    for m in skipped:
-        log(m)
-    return [str(f) for f in errors + warns] + skipped
-
-
-def _checks_not_applicable(config: dict, tree: Tree, names: Sequence[str]) -> set[str]:
-    """Plausibility checks that do not apply to this run: the simulation cost (the static
-    model does not step time), and the cross-file compliance comparison when the data folder's
-    pulls.yaml puts the recordings at different grasp points or directions (their compliance
-    differs by design, e.g. a stem pushed at three heights)."""
-    drop = set()
-    if config["options"].get("model_kind", "dynamic") == "static":
-        drop.add("simulation-cost")
-    from ..pulls import PULLS_FILE, load_data_pulls
-
-    data_dir = Path(config["data"]["dir"])
-    if names and (data_dir / PULLS_FILE).is_file():
-        try:
-            pulls = load_data_pulls(data_dir, tree, names)
-        except ConfigError:
-            return drop  # the problem build reports a bad sidecar, naming the field
-        keys = {(p.branch, round(p.fraction, 9), tuple(np.round(p.direction, 9))) for p in pulls}
-        if len(keys) > 1:
-            drop.add("mixed-units")
-    return drop
-
-
-def _prepare_fresh(config: dict, log: Callable[[str], None]):
+def _prepare_fresh(config: dict, inputs: RunInputs | None, log: Callable[[str], None]):
+    """The run folder, its staging folder and the run's inputs (``inputs`` if given: the ones
+    :func:`~.config.infer_config` hashed, else read now)."""
     from ..integrity import check_partial
 
     run_dir = Path(config["options"]["out"])
@@ -233,19 +95,26 @@ def _prepare_fresh(config: dict, log: Callable[[str], None]):
             if why is not None:
                 raise OutputExistsError(f"{partial}: an interrupted run is there but {why}")
             raise OutputExistsError(
-                f"{partial}: an interrupted run is waiting there; continue it with "
-                f"`treeinfer infer --resume {run_dir}`, or pass --force to discard it and start over"
+                f"{partial}: an interrupted run is waiting there; continue it with `treeinfer "
+                f"infer --resume {run_dir}`, or pass --force to discard it and start over"
             )
         shutil.rmtree(partial)
-    from ..static import run_tree
-
     o = config["options"]
-    tree = run_tree(
-        load_run_tree(o["tree"], o.get("model"), o.get("repair_inertia")), o.get("model_kind")
-    )
-    trajs = read_trajectory_dir(config["options"]["data"])
-    truth = read_true_params(tree, config["options"]["data"])
-    return run_dir, partial, tree, trajs, truth
+    if inputs is None:
+        inputs = load_run_inputs(
+            o["tree"], o["data"], o.get("model"), o.get("repair_inertia"), o.get("model_kind")
+        )
+    elif tree_to_dict_json(tree_to_dict(inputs.tree)) != tree_to_dict_json(config["tree_dict"]):
+        raise ConfigError(
+            "run_inference: the inputs' tree is not the config's (pass the RunInputs given to "
+            "infer_config)"
+        )
+    elif [f["name"] for f in inputs.files] != [f["name"] for f in config["data"]["files"]]:
+        raise ConfigError(
+            "run_inference: the inputs' data files are not the config's (pass the RunInputs "
+            "given to infer_config)"
+        )
+    return run_dir, partial, inputs.tree, list(inputs.trajectories), inputs.truth
 
 
 def _resume_paths(run_arg: str | os.PathLike) -> tuple[Path, Path]:
@@ -313,6 +182,7 @@ def run_inference(
     on_checkpointer: Callable[[Checkpointer], None] | None = None,
     cache: SimulatorCache | None = None,
     allow_implausible_data: bool = False,
+    inputs: RunInputs | None = None,
 ) -> InferOutcome:
     """Sample a posterior and write the run folder; or continue an interrupted one (``resume``).
 
@@ -326,6 +196,8 @@ def run_inference(
       cache: the command's :class:`SimulatorCache` (a new one if None).
       allow_implausible_data: sample even if the plausibility checks (:mod:`treeinfer.checks`)
         find errors in the data (they are logged and recorded in summary.json).
+      inputs: the tree and data :func:`~.config.infer_config` was given (a new run; read again
+        from the config's paths if None).
 
     The summary's ``fit`` (``status`` ok | warning | poor_fit, ``reasons``, ``measures``) judges
     the training fit (:func:`treeinfer.checks.fit_verdict_from_run`); the CLI exits 4 on
@@ -341,14 +213,19 @@ def run_inference(
     if resume is None:
         if config is None:
             raise ConfigError("run_inference: give a config (new run) or resume=RUN")
-        run_dir, partial, tree, trajs, truth = _prepare_fresh(config, log)
+        cfg = RunConfig.from_json(config)  # the given config.json, validated once
+        config = cfg.to_json()
+        run_dir, partial, tree, trajs, truth = _prepare_fresh(config, inputs, log)
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
         problem = build_problem(config, tree, trajs, cache)
         _quasi_static_check(problem, config, log)
         if problem.noise is not None:
             log(f"likelihood: {problem.noise.description}")
-        config = {**config, "problem": problem.settings, "sampler": sampler_settings(config)}
-        config["config_hash"] = config_hash(config)
+        cfg = dataclasses.replace(
+            cfg, problem=problem.settings, sampler_record=sampler_settings(config)
+        )
+        cfg = dataclasses.replace(cfg, config_hash=config_hash(cfg.to_json()))
+        config = cfg.to_json()
         partial.mkdir(parents=True)
         try:
             dump_tree(tree, partial / "tree.yaml")
@@ -364,12 +241,15 @@ def run_inference(
         config = read_json(partial / "config.json", "the interrupted run's config")
         if config.get("format") != RUN_FORMAT or "config_hash" not in config:
             raise ConfigError(
-                f"{partial / 'config.json'}: not a treeinfer run config (format {config.get('format')!r})"
+                f"{partial / 'config.json'}: not a treeinfer run config (format "
+                f"{config.get('format')!r})"
             )
         validate_run_config(config, partial / "config.json", resumable=True)
+        RunConfig.from_json(config)  # its options, validated as a new run's are
         if config_hash(config) != config["config_hash"]:
             raise ConfigError(
-                f"{partial / 'config.json'}: was edited (its hash no longer matches); start a new run"
+                f"{partial / 'config.json'}: was edited (its hash no longer matches); start a "
+                "new run"
             )
         check_output_dir(run_dir, config["options"]["force"], "run", inputs=_inputs(config))
         clean_stale_staging(run_dir, log)
@@ -378,7 +258,8 @@ def run_inference(
         tree = load_tree(partial / "tree.yaml")
         if tree_to_dict_json(tree_to_dict(tree)) != tree_to_dict_json(config["tree_dict"]):
             raise ConfigError(
-                f"{partial / 'tree.yaml'}: differs from the tree in config.json (edited?); start a new run"
+                f"{partial / 'tree.yaml'}: differs from the tree in config.json (edited?); start "
+                "a new run"
             )
         trajs = check_data_unchanged(config)
         truth = read_true_params(tree, config["data"]["dir"])
@@ -392,9 +273,9 @@ def run_inference(
             now.pop("force_interp")
         if _jsonable(now) != _jsonable(then) or sampler_settings(config) != config["sampler"]:
             raise ConfigError(
-                f"{partial}: this treeinfer derives other problem or sampler settings from the run's "
-                f"options than the interrupted run did (recorded {config['problem']}, now {problem.settings}); "
-                "it cannot continue it exactly: start a new run"
+                f"{partial}: this treeinfer derives other problem or sampler settings from the "
+                f"run's options than the interrupted run did (recorded {config['problem']}, now "
+                f"{problem.settings}); it cannot continue it exactly: start a new run"
             )
         previous = None
         if (partial / CHECKPOINT_FILE).is_file():
@@ -479,22 +360,6 @@ def run_inference(
     return InferOutcome(run_dir, config, summary, posterior)
 
 
-def _quasi_static_check(problem, config: dict, log: Callable[[str], None]) -> None:
-    """Log :func:`treeinfer.static.quasi_static_notice` when the dynamic model is asked to fit
-    data sampled far more slowly than the branch's slowest natural period."""
-    if config["options"].get("model_kind", "dynamic") != "dynamic":
-        return
-    from ..static import quasi_static_notice
-
-    try:
-        notice = quasi_static_notice(problem.tree, problem.sim, float(problem.obs.dt))
-    except Exception as e:  # noqa: BLE001 - a notice must never stop a run
-        log(f"note: could not judge whether the data are quasi-static ({type(e).__name__}: {e})")
-        return
-    if notice:
-        log(f"note: {notice}")
-
-
 def _fitted_noise(problem) -> float | None:
     """The displacement noise sigma (m) the noise model fitted, if it has one (settings key
     ``noise_sigma``); None otherwise (then the fit verdict skips the residual test)."""
@@ -518,49 +383,6 @@ def _convergence_options(o: dict, problem) -> dict:
             int(o["reinit_stragglers"]), problem.lower, problem.upper
         )
     return out
-
-
-MAX_MCMC_DRAWS = 1024  # --mcmc-thin 0: thin the post-warm-up draws to at most this many
-
-
-def _summarised_posterior(posterior, problem, trace: dict, o: dict):
-    """The particles the run's summaries describe (summary.json, particles.csv, the fit).
-
-    MCMC samplers: every chain's post-warm-up trace (``--mcmc-warmup``), thinned
-    (``--mcmc-thin``; 0: to at most MAX_MCMC_DRAWS draws), not only the final states.
-    ``--drop-stragglers``: stuck final particles (SVGD) are left out. The sampler's own
-    final state stays in ``posterior.run``."""
-    from ..diagnostics import find_stragglers, mcmc_draws
-    from ..likelihood import gains_from_theta
-
-    theta, logp, extra = posterior.theta, posterior.log_density, {}
-    pos, ld = np.asarray(trace["positions"]), np.asarray(trace["log_density"])
-    if sampler_spec(o["sampler"]).family == "mcmc" and len(pos) >= 2:
-        warm = math.floor(o.get("mcmc_warmup", 0.5) * len(pos))
-        thin = int(o.get("mcmc_thin", 0))
-        if thin == 0:
-            thin = max(1, math.ceil((len(pos) - warm) * pos.shape[1] / MAX_MCMC_DRAWS))
-        theta, logp = mcmc_draws(pos, warm, thin, log_density=ld)
-        extra = {"mcmc_draws": {"warmup": warm, "thin": thin, "n_draws": int(len(theta))}}
-    elif o.get("drop_stragglers"):
-        rep = find_stragglers(logp, theta, problem.lower, problem.upper)
-        if 0 < rep.n_stragglers < len(theta) - 1:
-            theta, logp = theta[~rep.mask], logp[~rep.mask]
-            extra = {"dropped_stragglers": True, "n_dropped": rep.n_stragglers}
-    if not extra:
-        return posterior
-    if getattr(problem, "model", None) is not None:
-        kp, kd = problem.model.layout.gains(np.asarray(theta))
-    else:
-        kp, kd = gains_from_theta(theta, problem.sim.n_joints)
-    return dataclasses.replace(
-        posterior,
-        theta=np.asarray(theta),
-        kp=np.asarray(kp),
-        kd=np.asarray(kd),
-        log_density=np.asarray(logp),
-        settings={**posterior.settings, **extra},
-    )
 
 
 def infer_posterior(
@@ -589,28 +411,6 @@ def infer_posterior(
         **({} if theta0 is None else {"initial_theta": theta0}),
     )
     return problem, posterior
-
-
-def _merged_trace(run, previous: Checkpoint | None) -> dict:
-    """Trace of the whole run: the driver's, preceded on a resumed run by the checkpoints' coarse one."""
-    pos, ld, it = run.trace_positions, run.trace_logdensity, run.trace_iterations
-    if previous is not None and len(previous.trace_iterations):
-        keep = previous.trace_iterations <= previous.iteration
-        pos = np.concatenate([previous.trace_positions[keep], pos])
-        ld = np.concatenate([previous.trace_logdensity[keep], ld])
-        it = np.concatenate([previous.trace_iterations[keep], it])
-    first = run.settings["start_iteration"]
-    diag = {k: np.asarray(v) for k, v in run.diagnostics.items()}
-    n_diag = len(next(iter(diag.values()))) if diag else 0
-    return {
-        "positions": np.asarray(pos),
-        "log_density": np.asarray(ld),
-        "iterations": np.asarray(it, np.int64),
-        "diagnostics": diag,
-        "diag_iterations": np.arange(first + 1, first + 1 + n_diag, dtype=np.int64),
-        "resumed_from": None if previous is None else int(previous.iteration),
-        "elapsed_s": float(run.elapsed_s),
-    }
 
 
 class FoldResult(NamedTuple):
@@ -649,7 +449,8 @@ def kfold(
         train = [trajectories[j] for j in tr]
         test = [trajectories[j] for j in te]
         log(
-            f"fold {i}/{k}: inferring on {len(train)} trajectories, holding out {', '.join(t.source for t in test)}"
+            f"fold {i}/{k}: inferring on {len(train)} trajectories, holding out "
+            f"{', '.join(t.source for t in test)}"
         )
         g_train = [float(np.asarray(grasp_fraction)[j]) for j in tr] if per_traj else grasp_fraction
         g_test = np.asarray(grasp_fraction, float)[te] if per_traj else grasp_fraction

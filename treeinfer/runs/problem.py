@@ -1,0 +1,183 @@
+"""The inference problem of a run config (:func:`build_problem`: the cached simulator, the grasp
+points of the data, the prior from an earlier run) and the checks before sampling (data
+plausibility, quasi-static data). Used by :mod:`.service`, which re-exports it."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from ..errors import ConfigError, TrajectoryFileError
+from ..inference import DEFAULT_PRIOR_SIGMA
+from ..samplers import sampler_spec
+from ..trajectories import Observations, Trajectory, stack_trajectories
+from ..tree import Tree
+from .cache import SimulatorCache, simulator_for
+
+
+def _grasp_fractions(o: dict, tree: Tree, trajectories):
+    """The run's --grasp-fraction, else each trajectory's own from its data folder's pulls.yaml
+    (one fraction per trajectory), else None (the tree's grasp point)."""
+    if o.get("grasp_fraction") is not None or not o.get("data"):
+        return o.get("grasp_fraction")
+    if isinstance(trajectories, Observations):
+        return None
+    from ..pulls import data_grasp_fractions
+
+    own = data_grasp_fractions(o["data"], tree, [t.source for t in trajectories])
+    if own is None:
+        return None
+    return float(own[0]) if np.allclose(own, own[0]) else [float(g) for g in own]
+
+
+def build_problem(
+    config: dict,
+    tree: Tree,
+    trajectories: Sequence[Trajectory] | Observations,
+    cache: SimulatorCache | None = None,
+):
+    """The inference problem of a run config (the cached simulator; a jitted log-density)."""
+    from ..inference import make_problem
+
+    o = config["options"]
+    obs = (
+        trajectories
+        if isinstance(trajectories, Observations)
+        else stack_trajectories(list(trajectories))
+    )
+    recorded = config.get("problem") or {}  # a resumed run: the settings it was built with
+    # runs from before force interpolation existed held the force over each sample
+    interp = recorded.get("force_interp", o.get("force_interp", "hold" if recorded else "linear"))
+    sim = simulator_for(
+        tree,
+        float(obs.dt),
+        recorded.get("substeps"),
+        recorded.get("backend", o.get("backend", "auto")),
+        cache,
+        force_interp=interp,
+        max_sim_dt=o.get("max_sim_dt"),
+        sim_tolerance=o.get("sim_tolerance"),
+        forces=np.asarray(obs.force),
+        grasp_fraction=o.get("grasp_fraction"),
+    )
+    if recorded.get("sim_step"):  # a resumed run: how its step was chosen, as recorded
+        sim = dataclasses.replace(sim, step_info=dict(recorded["sim_step"]))
+    kind, static = o.get("model_kind", "dynamic"), {}
+    if kind == "static":  # each recording's own branch, grasp point and direction (pulls.yaml)
+        from ..static import model_for, model_with_pulls
+
+        model, grasp = model_with_pulls(
+            model_for(tree, kind),
+            None if isinstance(trajectories, Observations) else o.get("data"),
+            [] if isinstance(trajectories, Observations) else [t.source for t in trajectories],
+            o.get("grasp_fraction"),
+        )
+        grasp = None if grasp is None else np.asarray(grasp, float).tolist()
+        static = {"direction": model.direction, "grasp_branch": model.grasp_branch}
+    else:
+        grasp = _grasp_fractions(o, tree, trajectories)
+    problem = make_problem(
+        tree,
+        obs,
+        kT=o["kT"],
+        nn_prior=sampler_spec(o["sampler"]).nn_prior,
+        eta=o["eta"],
+        prior_sigma=o.get("prior_tail", DEFAULT_PRIOR_SIGMA),
+        grasp_fraction=grasp,
+        sim=sim,
+        gradient=o.get("gradients", "fd"),
+        likelihood=o.get("likelihood", "boltzmann"),  # run folders older than issue 11
+        noise_displacement=o.get("noise_displacement"),
+        model_kind=kind,
+        **static,
+    )
+    if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints
+        from ..sequential import prior_from_run, with_prior
+
+        prior = prior_from_run(o["prior_from"], problem.labels)
+        problem = with_prior(problem, prior.log_density)
+        settings = {**problem.settings, "prior_from": {"run": o["prior_from"], **prior.to_dict()}}
+        problem = dataclasses.replace(problem, settings=settings)
+    # infer() evaluates log_density once at the end: jitted, the simulator is traced and compiled
+    # once
+    # (op-by-op it costs tens of seconds); MH samples with the same function.
+    return dataclasses.replace(problem, log_density=jax.jit(problem.log_density))
+
+
+def _data_checks(
+    config: dict, tree: Tree, trajs, log: Callable[[str], None], allow_implausible_data: bool
+) -> list[str]:
+    """Plausibility checks before sampling (:mod:`treeinfer.checks`): errors stop the run unless
+    ``allow_implausible_data``; warnings are logged, and so are entries of the data folder that
+    are not read (FIFOs, broken links, ``.CSV``). Returns every finding as text (summary.json)."""
+    from ..checks import format_findings, preflight
+    from ..safe_load import list_data_files
+
+    o = config["options"]
+    data_dir = Path(config["data"]["dir"])
+    _, skipped = list_data_files(data_dir)
+    skipped = [f"warning: {m}" for m in skipped]
+    paths = [data_dir / f["name"] for f in config["data"]["files"]]
+    errors, warns = preflight(
+        tree,
+        trajs,
+        paths if len(paths) == len(trajs) else None,
+        tree_file=o.get("tree"),
+        grasp_fraction=o.get("grasp_fraction"),
+    )
+    drop = _checks_not_applicable(config, tree, [f["name"] for f in config["data"]["files"]])
+    errors = [f for f in errors if f.check not in drop]
+    warns = [f for f in warns if f.check not in drop]
+    if errors and not allow_implausible_data:
+        raise TrajectoryFileError(
+            "the training data are implausible for this tree:\n"
+            + "\n".join([format_findings(errors + warns), *skipped])
+            + "\nfix the data (or the tree), or pass --allow-implausible-data to sample anyway"
+        )
+    for f in errors + warns:
+        log(str(f))
+    for m in skipped:
+        log(m)
+    return [str(f) for f in errors + warns] + skipped
+
+
+def _checks_not_applicable(config: dict, tree: Tree, names: Sequence[str]) -> set[str]:
+    """Plausibility checks that do not apply to this run: the simulation cost (the static
+    model does not step time), and the cross-file compliance comparison when the data folder's
+    pulls.yaml puts the recordings at different grasp points or directions (their compliance
+    differs by design, e.g. a stem pushed at three heights)."""
+    drop = set()
+    if config["options"].get("model_kind", "dynamic") == "static":
+        drop.add("simulation-cost")
+    from ..pulls import PULLS_FILE, load_data_pulls
+
+    data_dir = Path(config["data"]["dir"])
+    if names and (data_dir / PULLS_FILE).is_file():
+        try:
+            pulls = load_data_pulls(data_dir, tree, names)
+        except ConfigError:
+            return drop  # the problem build reports a bad sidecar, naming the field
+        keys = {(p.branch, round(p.fraction, 9), tuple(np.round(p.direction, 9))) for p in pulls}
+        if len(keys) > 1:
+            drop.add("mixed-units")
+    return drop
+
+
+def _quasi_static_check(problem, config: dict, log: Callable[[str], None]) -> None:
+    """Log :func:`treeinfer.static.quasi_static_notice` when the dynamic model is asked to fit
+    data sampled far more slowly than the branch's slowest natural period."""
+    if config["options"].get("model_kind", "dynamic") != "dynamic":
+        return
+    from ..static import quasi_static_notice
+
+    try:
+        notice = quasi_static_notice(problem.tree, problem.sim, float(problem.obs.dt))
+    except Exception as e:  # noqa: BLE001 - a notice must never stop a run
+        log(f"note: could not judge whether the data are quasi-static ({type(e).__name__}: {e})")
+        return
+    if notice:
+        log(f"note: {notice}")
