@@ -373,7 +373,10 @@ def main(argv=None) -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     p.add_argument("--particles", type=int, default=128)
-    p.add_argument("--backend", default="fused", choices=["fused", "mjx"], help="simulator backend")
+    p.add_argument(
+        "--backend", default="fused", choices=["fused", "mjx", "pallas"], help="simulator backend"
+    )
+    p.add_argument("--block", type=int, default=None, help="pallas backend: rollouts per kernel")
     p.add_argument("--iterations", type=int, default=200)
     p.add_argument("--chunk", type=int, default=None, help="driver chunk (default: iterations / 2)")
     p.add_argument("--steps", type=int, default=300, help="trajectory length T (observation steps)")
@@ -419,6 +422,10 @@ def main(argv=None) -> int:
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
     }
     unroll = UnrolledSimulate(args.unroll_outer, args.unroll_inner)
+    if args.block:
+        import treeinfer.sim.pallas
+
+        treeinfer.sim.pallas.DEFAULT_BLOCK = args.block
     if args.step_only:
         import json
 
@@ -433,6 +440,7 @@ def main(argv=None) -> int:
             xla_flags=record["xla_flags"],
             unroll_outer=args.unroll_outer,
             unroll_inner=args.unroll_inner,
+            block=args.block,
         )
         print("STEP " + json.dumps(r), flush=True)
         unroll.restore()

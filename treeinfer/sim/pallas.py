@@ -43,6 +43,19 @@ def available() -> bool:
     return jax.devices()[0].platform == "gpu"
 
 
+# ``backend="auto"`` picks the kernel on a GPU (measured faster there: ``BENCHMARKS.md``); on a
+# CPU the interpreter is far slower than the fused XLA loop, so "auto" stays "fused".
+AUTO_ON_GPU = True
+
+
+def resolve(backend: str) -> str:
+    """The backend a hinge-tree model runs on for the requested ``backend``: ``"pallas"`` when
+    asked for, or for ``"auto"`` on a GPU with Pallas; ``"fused"`` otherwise."""
+    if backend == "pallas" or (backend == "auto" and AUTO_ON_GPU and available()):
+        return "pallas"
+    return "fused"
+
+
 def supported(sim, grasp_branch=None, substeps=None) -> bool:
     """Whether :func:`simulate` runs the kernel for this call (else the fused path does)."""
     return sim.hinge_tree is not None and grasp_branch is None and substeps is None
@@ -302,7 +315,7 @@ def simulate(
     forces,
     grasp_fraction=None,
     direction=None,
-    block: int = DEFAULT_BLOCK,
+    block: int | None = None,
     interpret=None,
 ):
     """:func:`treeinfer.sim.simulate` through the whole-rollout kernel (same arguments and
@@ -310,8 +323,10 @@ def simulate(
     in ``kp``/``kd`` by ``jax.jvp`` (exact tangents from the same kernel, all tangent
     directions of a ``vmap`` in one launch).
 
-    ``block``: rollouts per kernel instance (a power of two, >= 32 on the GPU);
-    ``interpret``: None (Triton on a GPU, Pallas's interpreter elsewhere), True or False."""
+    ``block``: rollouts per kernel instance (a power of two, >= 32 on the GPU; default
+    ``DEFAULT_BLOCK``); ``interpret``: None (Triton on a GPU, Pallas's interpreter elsewhere),
+    True or False."""
+    block = DEFAULT_BLOCK if block is None else int(block)
     return _simulate_jvp(sim, block, interpret, kp, kd, forces, grasp_fraction, direction)
 
 
@@ -394,7 +409,7 @@ def simulate_with_tangents(
     dkd,
     grasp_fraction=None,
     direction=None,
-    block: int = DEFAULT_BLOCK,
+    block: int | None = None,
     interpret=None,
 ):
     """Rollout and K exact tangent rollouts in one kernel.
@@ -405,6 +420,7 @@ def simulate_with_tangents(
     ``jax.jvp`` through the settle (a few Newton steps, XLA)."""
     from . import _fused_prepare
 
+    block = DEFAULT_BLOCK if block is None else int(block)
     dtype = sim.dtype
     kp, kd = jnp.atleast_2d(kp).astype(dtype), jnp.atleast_2d(kd).astype(dtype)
     dkp, dkd = jnp.asarray(dkp, dtype), jnp.asarray(dkd, dtype)

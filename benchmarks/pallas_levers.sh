@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# Issue 15 on the GPU: the Pallas whole-rollout kernel checked against the fused step, then the
+# standard problem's NNSVGD step time for kernel block sizes and both simulation steps, then the
+# gradient cost. Run from the repo root: bash benchmarks/pallas_levers.sh [part]
+set -u
+part="${1:-all}"
+step() { timeout 200 python3 -m benchmarks.inference --step-only "$@" 2>&1 | grep -E "^STEP|Error" | tail -3; }
+if [ "$part" = all ] || [ "$part" = 1 ]; then
+  timeout 200 python3 -m benchmarks.pallas_check --particles 32 2>&1 | grep -E "PALLAS|Error" | tail -3
+  for b in 32 64 128; do step --reps 20 --backend pallas --block "$b"; done
+fi
+if [ "$part" = all ] || [ "$part" = 2 ]; then
+  step --reps 10 --backend pallas --accurate
+  step --reps 3 --backend fused --accurate
+  for b in pallas fused; do
+    timeout 200 python3 -m benchmarks.gradient_cost --backend "$b" --no-write --reps 5 2>&1 | tail -8
+  done
+fi
