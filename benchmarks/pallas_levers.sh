@@ -10,7 +10,10 @@ if [ "$part" = all ] || [ "$part" = 1 ]; then
   for b in 32 64 128; do step --reps 20 --backend pallas --block "$b"; done
 fi
 if [ "$part" = all ] || [ "$part" = 2 ]; then
+  timeout 200 python3 -m benchmarks.pallas_check --particles 32 2>&1 | grep -vE "^\s*$" | tail -12
   step --reps 10 --backend pallas --accurate
+fi
+if [ "$part" = all ] || [ "$part" = 3 ]; then
   step --reps 3 --backend fused --accurate
   for b in pallas fused; do
     timeout 200 python3 -m benchmarks.gradient_cost --backend "$b" --no-write --reps 5 2>&1 | tail -8
