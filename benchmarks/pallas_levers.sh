@@ -10,8 +10,8 @@ if [ "$part" = all ] || [ "$part" = 1 ]; then
   for b in 32 64 128; do step --reps 20 --backend pallas --block "$b"; done
 fi
 if [ "$part" = all ] || [ "$part" = 2 ]; then
-  timeout 200 python3 -m benchmarks.pallas_check --particles 32 2>&1 | grep -vE "^\s*$" | tail -12
   step --reps 10 --backend pallas --accurate
+  timeout 220 python3 -m benchmarks.pallas_check --particles 32 2>&1 | grep -vE "^\s*$" | tail -12
 fi
 if [ "$part" = all ] || [ "$part" = 3 ]; then
   step --reps 3 --backend fused --accurate
