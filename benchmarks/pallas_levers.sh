@@ -14,8 +14,7 @@ if [ "$part" = all ] || [ "$part" = 2 ]; then
   timeout 220 python3 -m benchmarks.pallas_check --particles 32 2>&1 | grep -vE "^\s*$" | tail -12
 fi
 if [ "$part" = all ] || [ "$part" = 3 ]; then
+  timeout 100 python3 -m benchmarks.gradient_cost --backend fused --no-write --reps 5 2>&1 | tail -7
   step --reps 3 --backend fused --accurate
-  for b in pallas fused; do
-    timeout 200 python3 -m benchmarks.gradient_cost --backend "$b" --no-write --reps 5 2>&1 | tail -8
-  done
+  timeout 260 python3 -m benchmarks.gradient_cost --backend pallas --no-write --reps 5 2>&1 | tail -7
 fi
