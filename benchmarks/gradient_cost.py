@@ -63,6 +63,12 @@ def main(argv=None) -> int:
     p.add_argument("--reps", type=int, default=3)
     p.add_argument("--reverse", action="store_true", help="also time reverse mode")
     p.add_argument("--backend", default="fused", choices=["fused", "pallas"])
+    p.add_argument(
+        "--tangent-layout",
+        default=None,
+        choices=["rows", "lanes"],
+        help="pallas backend: how tangents share the kernel (treeinfer.sim.pallas)",
+    )
     p.add_argument("--machine", default=None)
     p.add_argument("--no-write", dest="write", action="store_false")
     args = p.parse_args(argv)
@@ -72,6 +78,10 @@ def main(argv=None) -> int:
 
     from treeinfer.gradients import autodiff_value_and_grad, central_difference, jvp_value_and_grad
 
+    if args.tangent_layout:
+        import treeinfer.sim.pallas
+
+        treeinfer.sim.pallas.TANGENT_LAYOUT = args.tangent_layout
     info = C.machine_info()
     loglik, truth = standard_likelihood(args.steps, args.backend)
     rng = np.random.default_rng(1)
@@ -135,6 +145,7 @@ def main(argv=None) -> int:
             "dim": d,
             "jvp_over_fd": ratio,
             "backend": args.backend,
+            "tangent_layout": args.tangent_layout,
             "machine": info,
         }
     )

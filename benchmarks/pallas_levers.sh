@@ -16,5 +16,6 @@ fi
 if [ "$part" = all ] || [ "$part" = 3 ]; then
   timeout 100 python3 -m benchmarks.gradient_cost --backend fused --no-write --reps 5 2>&1 | tail -7
   step --reps 3 --backend fused --accurate
-  timeout 260 python3 -m benchmarks.gradient_cost --backend pallas --no-write --reps 5 2>&1 | tail -7
+  timeout 150 python3 -m benchmarks.gradient_cost --backend pallas --tangent-layout rows \
+    --no-write --reps 5 2>&1 | tail -7
 fi

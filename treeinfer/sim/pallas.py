@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 DEFAULT_BLOCK = 32  # rollouts per kernel instance (one warp): spreads small batches over SMs
+TANGENT_LAYOUT = "rows"  # see simulate_with_tangents; "lanes" took 182 s to compile on an H100
 
 
 def available() -> bool:
@@ -411,13 +412,19 @@ def simulate_with_tangents(
     direction=None,
     block: int | None = None,
     interpret=None,
+    layout: str | None = None,
 ):
     """Rollout and K exact tangent rollouts in one kernel.
 
     Args: as :func:`simulate`; ``dkp``, ``dkd`` [K, P, R]: K tangent directions of the gains.
     Returns ``(Rollout, Rollout of tangents)`` with tangent ``tau``/``tau_dot`` [K, P, B, T]
     (``stable`` of the second is the first's). The settled rest pose's tangent comes from
-    ``jax.jvp`` through the settle (a few Newton steps, XLA)."""
+    ``jax.jvp`` through the settle (a few Newton steps, XLA).
+
+    ``layout`` (default ``TANGENT_LAYOUT``): ``"lanes"`` carries all K tangents in each lane
+    beside one primal (least arithmetic; a large kernel, slow to compile), ``"rows"`` gives
+    each tangent its own lanes with a copy of the primal (2K rollouts of arithmetic, but K
+    times the parallelism for the GPU and a kernel as small as the primal's plus one)."""
     from . import _fused_prepare
 
     block = DEFAULT_BLOCK if block is None else int(block)
@@ -433,11 +440,27 @@ def simulate_with_tangents(
 
     dq = jax.vmap(lambda ta, tb: jax.jvp(jax.vmap(rest_q), (kp, kd), (ta, tb))[1])(dkp, dkd)
     # [K, P, X] -> [K * X, P * B] rows (tangent a, component i at row a * X + i)
-    lay = lambda x: jnp.concatenate([_rows(x[a], n_profiles) for a in range(n_tan)], axis=0)
-    tau, ok, dtau = _rollout_rows(
-        sim, rows["kp"], rows["kd"], rows["q_rest"], rows["site"], rows["dirs"], rows["f"],
-        rows["fn"], lay(dkp), lay(dkd), lay(dq), block=block, interpret=interpret,
-    )  # fmt: skip
+    layout = TANGENT_LAYOUT if layout is None else layout
+    if layout == "lanes":
+        # [K, P, X] -> [K * X, P * B]: tangent a, component i at row a * X + i of every lane
+        lay = lambda x: jnp.concatenate([_rows(x[a], n_profiles) for a in range(n_tan)], axis=0)
+        tau, ok, dtau = _rollout_rows(
+            sim, rows["kp"], rows["kd"], rows["q_rest"], rows["site"], rows["dirs"], rows["f"],
+            rows["fn"], lay(dkp), lay(dkd), lay(dq), block=block, interpret=interpret,
+        )  # fmt: skip
+    elif layout == "rows":
+        # one tangent per lane: the lanes of tangent a are columns [a * N, (a + 1) * N)
+        n = n_particles * n_profiles
+        rep = {k: None if v is None else jnp.tile(v, (1, n_tan)) for k, v in rows.items()}
+        lay = lambda x: jnp.concatenate([_rows(x[a], n_profiles) for a in range(n_tan)], axis=1)
+        tau, ok, dtau = _rollout_rows(
+            sim, rep["kp"], rep["kd"], rep["q_rest"], rep["site"], rep["dirs"], rep["f"],
+            rep["fn"], lay(dkp), lay(dkd), lay(dq), block=block, interpret=interpret,
+        )  # fmt: skip
+        tau, ok = tau[:, :n], ok[:n]
+        dtau = dtau.reshape(n_steps, n_tan, n).transpose(1, 0, 2).reshape(n_tan * n_steps, n)
+    else:
+        raise ValueError(f"layout: 'lanes' or 'rows', got {layout!r}")
     ro = _finish(sim, tau, ok, settled, shape)
     from . import velocity
 
