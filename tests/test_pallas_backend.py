@@ -101,3 +101,23 @@ def test_exact_gradient_matches_fused_and_central_differences(setup, layout, mon
     # tighter; float32 FD error at the default step is ~1e-3 of the gradient's scale here)
     _, g_fd = jax.jit(central_difference(loglik(pk.simulate)))(theta)
     np.testing.assert_allclose(g, g_fd, atol=2e-2 * scale)
+
+
+def test_reverse_mode_and_vmap_over_data_sets(setup, monkeypatch):
+    """``jax.grad`` (the generative likelihoods' route) and a ``vmap`` over data sets (the
+    calibration's) go through the kernel's custom JVP; both match the fused step's."""
+    sim, theta, forces = setup
+    monkeypatch.setattr(pk, "DEFAULT_BLOCK", 4)
+    kp, kd = _gains(sim, theta)
+
+    def loss(simfn, th, f):
+        ro = simfn(sim, *_gains(sim, th), f)
+        return 1e3 * jnp.sum(ro.tau**2)
+
+    g_ref = jax.grad(lambda th: loss(simulate, th, forces))(theta)
+    g = jax.grad(lambda th: loss(pk.simulate, th, forces))(theta)
+    np.testing.assert_allclose(g, g_ref, atol=1e-4 * float(jnp.abs(g_ref).max()))
+    batch = jnp.stack([forces, 0.5 * forces])
+    ref = jax.vmap(lambda f: simulate(sim, kp, kd, f).tau)(batch)
+    out = jax.vmap(lambda f: pk.simulate(sim, kp, kd, f).tau)(batch)
+    np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-7)

@@ -202,7 +202,7 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--backend",
-        choices=("auto", "fused", "mjx"),
+        choices=("auto", "fused", "mjx", "pallas"),
         default="auto",
         help="simulator backend (as `simulate`/`infer`)",
     )

@@ -207,8 +207,11 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--backend",
-        choices=("auto", "fused", "mjx"),
-        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
+        choices=("auto", "fused", "mjx", "pallas"),
+        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA "
+        "kernels; the CPU default for every tree treeinfer builds), 'pallas' (the same step as "
+        "one GPU kernel per block of rollouts; the GPU default), 'mjx' (mujoco.mjx.step) or "
+        "'auto' (pallas on a GPU, else fused, where the model allows; else mjx; default)",
     )
     p.add_argument(
         "--prior-from",

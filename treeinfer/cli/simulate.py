@@ -154,9 +154,12 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
     add_simulation_options(p)
     p.add_argument(
         "--backend",
-        choices=("auto", "fused", "mjx"),
+        choices=("auto", "fused", "mjx", "pallas"),
         default="auto",
-        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' (mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
+        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA "
+        "kernels; the CPU default for every tree treeinfer builds), 'pallas' (the same step as "
+        "one GPU kernel per block of rollouts; the GPU default), 'mjx' (mujoco.mjx.step) or "
+        "'auto' (pallas on a GPU, else fused, where the model allows; else mjx; default)",
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     return p

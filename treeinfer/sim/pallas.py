@@ -31,6 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 
 DEFAULT_BLOCK = 32  # rollouts per kernel instance (one warp): spreads small batches over SMs
+# in the interpreter (CPU), blocks of at least this many rows become one program over all rows
+INTERPRET_WHOLE_BATCH = 32
 TANGENT_LAYOUT = "rows"  # see simulate_with_tangents; "lanes" took 182 s to compile on an H100
 
 
@@ -223,6 +225,9 @@ def _rollout_rows(sim, kp, kd, q_rest, site, dirs, f, fn, dkp, dkd, dq, *, block
     from jax.experimental import pallas as pl
 
     n_steps, n = f.shape
+    interpret = _use_interpret(interpret)
+    if interpret and block >= INTERPRET_WHOLE_BATCH:
+        block = n  # the interpreter loops over programs one by one: one program, all rows
     n_pad = -(-n // block) * block
     k = 0 if dkp is None else dkp.shape[0] // sim.n_joints
     ins = [kp, kd, q_rest, site] + ([] if dirs is None else [dirs]) + [f, fn]
@@ -235,7 +240,6 @@ def _rollout_rows(sim, kp, kd, q_rest, site, dirs, f, fn, dkp, dkd, dq, *, block
     ]
     if k:
         out_shape.append(jax.ShapeDtypeStruct((k * n_steps, n_pad), f.dtype))
-    interpret = _use_interpret(interpret)
     params = None
     if not interpret:
         from jax.experimental.pallas import triton as plt
@@ -321,8 +325,7 @@ def simulate(
 ):
     """:func:`treeinfer.sim.simulate` through the whole-rollout kernel (same arguments and
     :class:`~treeinfer.sim.Rollout`; the grasp branch is the simulator's own). Differentiable
-    in ``kp``/``kd`` by ``jax.jvp`` (exact tangents from the same kernel, all tangent
-    directions of a ``vmap`` in one launch).
+    in ``kp``/``kd`` (``jax.jvp``, ``jax.grad``): exact, from the kernel's tangents.
 
     ``block``: rollouts per kernel instance (a power of two, >= 32 on the GPU; default
     ``DEFAULT_BLOCK``); ``interpret``: None (Triton on a GPU, Pallas's interpreter elsewhere),
@@ -343,52 +346,29 @@ def _simulate_jvp(sim, block, interpret, kp, kd, forces, grasp_fraction, directi
 
 @_simulate_jvp.defjvp
 def _simulate_jvp_rule(sim, block, interpret, primals, tangents):
-    """Exact JVP in (kp, kd) through the tangent kernel; tangents of the forces, grasp
-    fraction and direction are not propagated (they are data, not parameters)."""
+    """Exact JVP in (kp, kd): the kernel pushes the 2R basis tangents (the Jacobian of the
+    rollout, which does not depend on the incoming tangents, so ``vmap`` over tangent
+    directions computes it once), and the output tangent is its product with the incoming
+    tangent: linear and transposable, so reverse mode (``jax.grad``) works too. Tangents of the
+    forces, grasp fraction and direction are not propagated (data, not parameters)."""
     kp, kd, forces, grasp_fraction, direction = primals
-    dkp, dkd = tangents[:2]
     kp, kd = jnp.atleast_2d(kp), jnp.atleast_2d(kd)
-    dkp = jnp.broadcast_to(_instantiate(dkp, kp), kp.shape)[None]
-    dkd = jnp.broadcast_to(_instantiate(dkd, kd), kd.shape)[None]
-    ro, dro = _with_tangents(sim, block, interpret, kp, kd, forces, grasp_fraction, direction,
-                             dkp, dkd)  # fmt: skip
-    return ro, type(ro)(tau=dro.tau[0], tau_dot=dro.tau_dot[0], stable=_float0(ro.stable))
-
-
-def _with_tangents(sim, block, interpret, *args):
-    """:func:`simulate_with_tangents` whose ``vmap`` over tangent directions only (primal
-    arguments unbatched, as in ``vmap(jvp)`` of the gradient) runs ONE kernel carrying all
-    directions; any other batching maps the call sequentially."""
-    from jax.custom_batching import custom_vmap
-
-    @custom_vmap
-    def call(kp, kd, forces, grasp_fraction, direction, dkp, dkd):
-        return simulate_with_tangents(
-            sim, kp, kd, forces, dkp, dkd, grasp_fraction, direction, block, interpret
-        )
-
-    @call.def_vmap
-    def rule(axis_size, in_batched, kp, kd, forces, grasp_fraction, direction, dkp, dkd):
-        primal_batched = any(jax.tree.leaves(in_batched[:5]))
-        if not primal_batched:
-            spread = lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + x.shape)
-            dkp, dkd = spread(dkp, in_batched[5]), spread(dkd, in_batched[6])
-            n_tan = dkp.shape[1]
-            merge = lambda x: x.reshape((axis_size * n_tan,) + x.shape[2:])
-            ro, dro = call(kp, kd, forces, grasp_fraction, direction, merge(dkp), merge(dkd))
-            split = lambda x: x.reshape((axis_size, n_tan) + x.shape[1:])
-            dro = type(dro)(tau=split(dro.tau), tau_dot=split(dro.tau_dot),
-                            stable=jnp.broadcast_to(ro.stable, (axis_size,) + ro.stable.shape))
-            return (ro, dro), (type(ro)(False, False, False), type(ro)(True, True, True))
-        args = (kp, kd, forces, grasp_fraction, direction, dkp, dkd)
-        args = jax.tree.map(
-            lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)),
-            args, tuple(in_batched),
-        )
-        out = jax.lax.map(lambda a: call(*a), args)
-        return out, jax.tree.map(lambda _: True, out)
-
-    return call(*args)
+    dtheta = jnp.concatenate(
+        [
+            jnp.broadcast_to(_instantiate(tangents[0], kp), kp.shape),
+            jnp.broadcast_to(_instantiate(tangents[1], kd), kd.shape),
+        ],
+        axis=-1,
+    ).astype(sim.dtype)
+    n_particles, r = kp.shape
+    eye = jnp.eye(2 * r, dtype=sim.dtype)
+    basis = jnp.broadcast_to(eye[:, None, :], (2 * r, n_particles, 2 * r))
+    ro, jac = simulate_with_tangents(
+        sim, kp, kd, forces, basis[..., :r], basis[..., r:], grasp_fraction, direction,
+        block, interpret,
+    )  # fmt: skip
+    push = lambda j: jnp.einsum("kpbt,pk->pbt", j, dtheta)
+    return ro, type(ro)(tau=push(jac.tau), tau_dot=push(jac.tau_dot), stable=_float0(ro.stable))
 
 
 def _instantiate(x, like):
