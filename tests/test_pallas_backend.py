@@ -21,6 +21,10 @@ from treeinfer.sim import pallas as pk
 from treeinfer.synthetic import default_true_params
 
 T = 10
+# exact gradients of the two backends agree to float32 rounding: to ~1e-5 of their scale in the
+# CPU interpreter (the same XLA arithmetic); Triton contracts multiply-adds into FMAs where XLA
+# does not, and the velocity term's differences amplify that to ~3e-4 on an H100
+GRAD_TOL = 1e-4 if jax.devices()[0].platform == "cpu" else 1e-3
 
 
 @pytest.fixture(scope="module")
@@ -96,7 +100,7 @@ def test_exact_gradient_matches_fused_and_central_differences(setup, layout, mon
     np.testing.assert_allclose(v, v_ref, rtol=1e-5)
     scale = float(jnp.abs(g_ref).max())
     assert scale > 0
-    np.testing.assert_allclose(g, g_ref, atol=1e-4 * scale)
+    np.testing.assert_allclose(g, g_ref, atol=GRAD_TOL * scale)
     # independent reference: central differences of the kernel's own rollouts (float64 would be
     # tighter; float32 FD error at the default step is ~1e-3 of the gradient's scale here)
     _, g_fd = jax.jit(central_difference(loglik(pk.simulate)))(theta)
@@ -116,7 +120,7 @@ def test_reverse_mode_and_vmap_over_data_sets(setup, monkeypatch):
 
     g_ref = jax.grad(lambda th: loss(simulate, th, forces))(theta)
     g = jax.grad(lambda th: loss(pk.simulate, th, forces))(theta)
-    np.testing.assert_allclose(g, g_ref, atol=1e-4 * float(jnp.abs(g_ref).max()))
+    np.testing.assert_allclose(g, g_ref, atol=GRAD_TOL * float(jnp.abs(g_ref).max()))
     batch = jnp.stack([forces, 0.5 * forces])
     ref = jax.vmap(lambda f: simulate(sim, kp, kd, f).tau)(batch)
     out = jax.vmap(lambda f: pk.simulate(sim, kp, kd, f).tau)(batch)
