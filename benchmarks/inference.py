@@ -110,9 +110,7 @@ def make_standard_problem(
     tree = load_tree(EXAMPLES / "three_branch.yaml") if tree is None else tree
     kp, kd = default_true_params(tree, np.random.default_rng(seed))
     forces = profile_set("mixed", n=n_traj, duration=n_steps * dt, dt=dt, seed=seed)[:, :n_steps]
-    sim = make_simulator(
-        tree, obs_dt=dt, backend=backend, forces=forces if accurate else None
-    )
+    sim = make_simulator(tree, obs_dt=dt, backend=backend, forces=forces if accurate else None)
     t = np.arange(n_steps) * dt
     trajs = []
     for i, f in enumerate(forces):
@@ -228,15 +226,19 @@ def standard(args) -> dict:
         }
     )
     print(
-        f"standard problem ({problem.sim.backend} backend, R=3, P={args.particles}, 3 x {args.steps} steps, substeps {problem.sim.substeps}): "
+        f"standard problem ({problem.sim.backend} backend, R=3, P={args.particles}, "
+        f"3 x {args.steps} steps, substeps {problem.sim.substeps}): "
         f"make_problem {t_problem:.1f} s, infer {t_infer:.1f} s ({args.iterations} it), "
-        f"steady {1e3 * it_s:.1f} ms/it, compiles {compiles.n} (steady chunks: {out['compiles_during_steady_chunks']}), "
-        f"simulate calls/it {out['simulator_calls_per_iteration']} on {out['simulator_rows_per_call']} rows, "
+        f"steady {1e3 * it_s:.1f} ms/it, compiles {compiles.n} "
+        f"(steady chunks: {out['compiles_during_steady_chunks']}), "
+        f"simulate calls/it {out['simulator_calls_per_iteration']} "
+        f"on {out['simulator_rows_per_call']} rows, "
         f"host peak {out['peak_host_mb']:.0f} MB, device {out['device_memory']}",
         flush=True,
     )
     print(
-        f"   |posterior mean - truth| (log units): {np.round(out['abs_error_of_mean_log_units'], 3).tolist()}, "
+        "   |posterior mean - truth| (log units): "
+        f"{np.round(out['abs_error_of_mean_log_units'], 3).tolist()}, "
         f"sd {np.round(out['posterior_sd_theta'], 3).tolist()}",
         flush=True,
     )
@@ -351,7 +353,8 @@ def scaling(args) -> dict:
             }
         )
         print(
-            f"   R={n} (chain, substeps {prob.sim.substeps}): {r['step_ms']:.1f} ms/it (compile {r['compile_s']:.1f} s)",
+            f"   R={n} (chain, substeps {prob.sim.substeps}): {r['step_ms']:.1f} ms/it "
+            f"(compile {r['compile_s']:.1f} s)",
             flush=True,
         )
     for t in args.scale_t:

@@ -4,9 +4,12 @@
 # gradient cost. Run from the repo root: bash benchmarks/pallas_levers.sh [part]
 set -u
 part="${1:-all}"
-step() { timeout 200 python3 -m benchmarks.inference --step-only "$@" 2>&1 | grep -E "^STEP|Error" | tail -3; }
+step() {
+  timeout 200 python3 -m benchmarks.inference --step-only "$@" 2>&1 | grep -E "^STEP|Error" | tail -3
+}
 if [ "$part" = all ] || [ "$part" = 1 ]; then
-  timeout 200 python3 -m benchmarks.pallas_check --particles 32 2>&1 | grep -E "PALLAS|Error" | tail -3
+  timeout 200 python3 -m benchmarks.pallas_check --particles 32 2>&1 | grep -E "PALLAS|Error" \
+    | tail -3
   for b in 32 64 128; do step --reps 20 --backend pallas --block "$b"; done
 fi
 if [ "$part" = all ] || [ "$part" = 2 ]; then
