@@ -62,6 +62,13 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--reps", type=int, default=3)
     p.add_argument("--reverse", action="store_true", help="also time reverse mode")
+    p.add_argument("--backend", default="fused", choices=["fused", "pallas"])
+    p.add_argument(
+        "--tangent-layout",
+        default=None,
+        choices=["rows", "lanes"],
+        help="pallas backend: how tangents share the kernel (treeinfer.sim.pallas)",
+    )
     p.add_argument("--machine", default=None)
     p.add_argument("--no-write", dest="write", action="store_false")
     args = p.parse_args(argv)
@@ -71,8 +78,12 @@ def main(argv=None) -> int:
 
     from treeinfer.gradients import autodiff_value_and_grad, central_difference, jvp_value_and_grad
 
+    if args.tangent_layout:
+        import treeinfer.sim.pallas
+
+        treeinfer.sim.pallas.TANGENT_LAYOUT = args.tangent_layout
     info = C.machine_info()
-    loglik, truth = standard_likelihood(args.steps)
+    loglik, truth = standard_likelihood(args.steps, args.backend)
     rng = np.random.default_rng(1)
     theta = jnp.asarray(truth + 0.3 * rng.normal(size=(args.particles, truth.size)), jnp.float32)
     fns = {
@@ -133,12 +144,15 @@ def main(argv=None) -> int:
             "n_steps": args.steps,
             "dim": d,
             "jvp_over_fd": ratio,
+            "backend": args.backend,
+            "tangent_layout": args.tangent_layout,
             "machine": info,
         }
     )
     if args.write:
         path = C.RESULTS_DIR / f"{args.machine or C.default_machine_name()}.json"
-        C.merge_results(path, "gradient_cost", results, {})
+        section = "gradient_cost" if args.backend == "fused" else f"gradient_cost_{args.backend}"
+        C.merge_results(path, section, results, {})
         print(f"wrote {path}")
     return 0
 

@@ -31,6 +31,7 @@ R uses chains of R branches (``benchmarks.rollout.bench_tree``).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -65,6 +66,26 @@ class SimulateCounter:
         self._lik.simulate = self._orig
 
 
+class UnrolledSimulate:
+    """Makes the likelihood's ``simulate`` unroll its loops (``unroll_outer`` observations per
+    scan iteration, ``unroll_inner`` substeps per loop iteration; ``True``: all substeps), to
+    measure loop overhead on the GPU without changing the library's defaults."""
+
+    def __init__(self, unroll_outer: int = 1, unroll_inner=1):
+        import treeinfer.likelihood as lik
+
+        self._lik, self._orig = lik, lik.simulate
+
+        def unrolled(sim, kp, kd, forces, grasp_fraction=None):
+            return self._orig(sim, kp, kd, forces, grasp_fraction, unroll_outer, unroll_inner)
+
+        if unroll_outer != 1 or unroll_inner != 1:
+            lik.simulate = unrolled
+
+    def restore(self):
+        self._lik.simulate = self._orig
+
+
 def make_standard_problem(
     tree=None,
     n_traj: int = 3,
@@ -72,8 +93,12 @@ def make_standard_problem(
     dt: float = 0.01,
     seed: int = 0,
     backend: str = "fused",
+    accurate: bool = False,
 ):
-    """(problem, theta_true [D]) for ``tree`` (default: the built-in three-branch example)."""
+    """(problem, theta_true [D]) for ``tree`` (default: the built-in three-branch example).
+
+    ``accurate``: the issue-12 accuracy-controlled step (``make_simulator(forces=...)``, the
+    run layer's default) instead of the stability step (fewest stable substeps)."""
     from treeinfer.forces import profile_set
     from treeinfer.inference import make_problem
     from treeinfer.sim import make_simulator
@@ -83,9 +108,9 @@ def make_standard_problem(
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml") if tree is None else tree
-    sim = make_simulator(tree, obs_dt=dt, backend=backend)
     kp, kd = default_true_params(tree, np.random.default_rng(seed))
     forces = profile_set("mixed", n=n_traj, duration=n_steps * dt, dt=dt, seed=seed)[:, :n_steps]
+    sim = make_simulator(tree, obs_dt=dt, backend=backend, forces=forces if accurate else None)
     t = np.arange(n_steps) * dt
     trajs = []
     for i, f in enumerate(forces):
@@ -107,7 +132,9 @@ def standard(args) -> dict:
     try:
         with compiles:
             t0 = time.perf_counter()
-            problem, theta_true = make_standard_problem(n_steps=args.steps, backend=args.backend)
+            problem, theta_true = make_standard_problem(
+                n_steps=args.steps, backend=args.backend, accurate=args.accurate
+            )
             t_problem = time.perf_counter() - t0
             d = problem.dim
             marks: list[tuple[int, float, int]] = []
@@ -199,15 +226,19 @@ def standard(args) -> dict:
         }
     )
     print(
-        f"standard problem ({problem.sim.backend} backend, R=3, P={args.particles}, 3 x {args.steps} steps, substeps {problem.sim.substeps}): "
+        f"standard problem ({problem.sim.backend} backend, R=3, P={args.particles}, "
+        f"3 x {args.steps} steps, substeps {problem.sim.substeps}): "
         f"make_problem {t_problem:.1f} s, infer {t_infer:.1f} s ({args.iterations} it), "
-        f"steady {1e3 * it_s:.1f} ms/it, compiles {compiles.n} (steady chunks: {out['compiles_during_steady_chunks']}), "
-        f"simulate calls/it {out['simulator_calls_per_iteration']} on {out['simulator_rows_per_call']} rows, "
+        f"steady {1e3 * it_s:.1f} ms/it, compiles {compiles.n} "
+        f"(steady chunks: {out['compiles_during_steady_chunks']}), "
+        f"simulate calls/it {out['simulator_calls_per_iteration']} "
+        f"on {out['simulator_rows_per_call']} rows, "
         f"host peak {out['peak_host_mb']:.0f} MB, device {out['device_memory']}",
         flush=True,
     )
     print(
-        f"   |posterior mean - truth| (log units): {np.round(out['abs_error_of_mean_log_units'], 3).tolist()}, "
+        "   |posterior mean - truth| (log units): "
+        f"{np.round(out['abs_error_of_mean_log_units'], 3).tolist()}, "
         f"sd {np.round(out['posterior_sd_theta'], 3).tolist()}",
         flush=True,
     )
@@ -322,7 +353,8 @@ def scaling(args) -> dict:
             }
         )
         print(
-            f"   R={n} (chain, substeps {prob.sim.substeps}): {r['step_ms']:.1f} ms/it (compile {r['compile_s']:.1f} s)",
+            f"   R={n} (chain, substeps {prob.sim.substeps}): {r['step_ms']:.1f} ms/it "
+            f"(compile {r['compile_s']:.1f} s)",
             flush=True,
         )
     for t in args.scale_t:
@@ -344,7 +376,10 @@ def main(argv=None) -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     p.add_argument("--particles", type=int, default=128)
-    p.add_argument("--backend", default="fused", choices=["fused", "mjx"], help="simulator backend")
+    p.add_argument(
+        "--backend", default="fused", choices=["fused", "mjx", "pallas"], help="simulator backend"
+    )
+    p.add_argument("--block", type=int, default=None, help="pallas backend: rollouts per kernel")
     p.add_argument("--iterations", type=int, default=200)
     p.add_argument("--chunk", type=int, default=None, help="driver chunk (default: iterations / 2)")
     p.add_argument("--steps", type=int, default=300, help="trajectory length T (observation steps)")
@@ -360,6 +395,23 @@ def main(argv=None) -> int:
     )
     p.add_argument("--machine", default=None)
     p.add_argument("--out", default=None)
+    p.add_argument(
+        "--accurate",
+        action="store_true",
+        help="accuracy-controlled step (the run layer's default) instead of the stability step",
+    )
+    p.add_argument("--unroll-outer", type=int, default=1, help="observations per scan iteration")
+    p.add_argument(
+        "--unroll-inner",
+        type=lambda v: True if v == "full" else int(v),
+        default=1,
+        help="substeps per loop iteration ('full': all)",
+    )
+    p.add_argument(
+        "--step-only",
+        action="store_true",
+        help="only time one jitted NNSVGD step of the standard problem; print a STEP json line",
+    )
     args = p.parse_args(argv)
     args.t_start = time.perf_counter()
     args.chunk = args.chunk or max(1, args.iterations // 2)
@@ -370,7 +422,32 @@ def main(argv=None) -> int:
     record = {
         "machine": C.machine_info(),
         "settings": {k: v for k, v in vars(args).items() if k != "t_start"},
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
     }
+    unroll = UnrolledSimulate(args.unroll_outer, args.unroll_inner)
+    if args.block:
+        import treeinfer.sim.pallas
+
+        treeinfer.sim.pallas.DEFAULT_BLOCK = args.block
+    if args.step_only:
+        import json
+
+        problem = make_standard_problem(
+            n_steps=args.steps, backend=args.backend, accurate=args.accurate
+        )[0]
+        r = step_time(problem, args.particles, args.reps)
+        r.update(
+            substeps=problem.sim.substeps,
+            step_method=problem.sim.step_info.get("method"),
+            backend=problem.sim.backend,
+            xla_flags=record["xla_flags"],
+            unroll_outer=args.unroll_outer,
+            unroll_inner=args.unroll_inner,
+            block=args.block,
+        )
+        print("STEP " + json.dumps(r), flush=True)
+        unroll.restore()
+        return 0
     print(f"machine: {record['machine']}", flush=True)
     machine = args.machine or C.default_machine_name()
     out = args.out or (C.RESULTS_DIR / f"{machine}.json")

@@ -19,7 +19,14 @@ from ..calibration import (
 )
 from ..errors import ConfigError
 from ..tree import dump_tree, load_tree
-from .common import COMMAND_HELP, EXIT_OK, _prepare_jax, _say, add_command_parser
+from .common import (
+    COMMAND_HELP,
+    EXIT_OK,
+    _prepare_jax,
+    _say,
+    add_backend_option,
+    add_command_parser,
+)
 
 _D = SBCConfig()
 
@@ -200,12 +207,7 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         metavar="C",
         help="data sets per jitted program call (GPU: 64-256; CPU: a few)",
     )
-    p.add_argument(
-        "--backend",
-        choices=("auto", "fused", "mjx"),
-        default="auto",
-        help="simulator backend (as `simulate`/`infer`)",
-    )
+    add_backend_option(p)
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
     return p
 

@@ -289,6 +289,21 @@ def add_grasp_point_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--grasp-distance", type=float, metavar="M", help="m from the branch's joint")
 
 
+BACKEND_HELP = (
+    "simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA "
+    "kernels; the CPU default for every tree treeinfer builds), 'pallas' (the same step as "
+    "one GPU kernel per block of rollouts; the GPU default), 'mjx' (mujoco.mjx.step) or "
+    "'auto' (pallas on a GPU, else fused, where the model allows; else mjx; default)"
+)
+
+
+def add_backend_option(p: argparse.ArgumentParser, default: str | None = "auto") -> None:
+    """``--backend``: one definition for every command that simulates."""
+    p.add_argument(
+        "--backend", choices=("auto", "fused", "mjx", "pallas"), default=default, help=BACKEND_HELP
+    )
+
+
 def add_simulation_options(p: argparse.ArgumentParser, default_note: str = "") -> None:
     """``--force-interp``, ``--max-sim-dt`` and ``--sim-tolerance`` (defaults None: the
     simulator's, or a run's recorded settings where ``default_note`` says so)."""

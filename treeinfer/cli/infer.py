@@ -26,6 +26,7 @@ from .common import (
     _print_simulation,
     _print_warnings,
     _say,
+    add_backend_option,
     add_command_parser,
     add_model_options,
     add_simulation_options,
@@ -214,13 +215,7 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         default=None,
         help="replace a non-empty RUN (and discard an interrupted RUN.partial)",
     )
-    p.add_argument(
-        "--backend",
-        choices=("auto", "fused", "mjx"),
-        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few "
-        "XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' "
-        "(mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
-    )
+    add_backend_option(p, default=None)
     p.add_argument(
         "--prior-from",
         type=Path,

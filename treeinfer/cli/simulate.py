@@ -38,6 +38,7 @@ from .common import (
     _prepare_jax,
     _print_simulation,
     _say,
+    add_backend_option,
     add_command_parser,
     add_model_options,
     add_out_option,
@@ -150,14 +151,7 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
     )
     add_model_options(p)
     add_simulation_options(p)
-    p.add_argument(
-        "--backend",
-        choices=("auto", "fused", "mjx"),
-        default="auto",
-        help="simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few "
-        "XLA kernels; fast, the default for every tree treeinfer builds), 'mjx' "
-        "(mujoco.mjx.step) or 'auto' (fused where the model allows, else mjx; default)",
-    )
+    add_backend_option(p)
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     return p
 

@@ -56,9 +56,10 @@ import numpy as np
 from ..errors import ConfigError, SimulationError, TreeFileError
 from ..tree import Tree
 from . import mjx as _mjx_backend
+from . import pallas as _pallas_hook
 from .mjx import Backend
 
-BACKENDS = ("auto", "fused", "mjx")
+BACKENDS = ("auto", "fused", "mjx", "pallas")
 DEFAULT_MAX_SIM_DT = 0.005  # s: upper bound on the simulation step whatever the prior
 FORCE_INTERPS = ("linear", "hold")
 DEFAULT_SIM_TOLERANCE = 1e-4  # m: default accuracy target of the step when the noise is unknown
@@ -248,6 +249,8 @@ def make_simulator(
         hinge tree it reproduces, which every tree treeinfer builds is; MJX otherwise). Both
         step the same MuJoCo model and agree with MuJoCo C to float32 rounding; the fused step
         is several times faster and compiles in seconds (``BENCHMARKS.md``).
+        ``"pallas"``: the fused step as one GPU kernel per block of rollouts
+        (:mod:`treeinfer.sim.pallas`); ``"auto"`` picks it on a GPU.
     """
     import mujoco
 
@@ -323,13 +326,13 @@ def make_simulator(
     g = np.asarray(mj_model.opt.gravity, float)
     gdir = g / np.linalg.norm(g)
     hinge_tree = None
-    if backend in ("auto", "fused"):
+    if backend in ("auto", "fused", "pallas"):
         from .fused import UnsupportedModel, from_mjmodel
 
         try:
             hinge_tree = from_mjmodel(mj_model)
         except UnsupportedModel as e:
-            if backend == "fused":
+            if backend in ("fused", "pallas"):
                 raise TreeFileError(f"model: {e}; use backend='mjx'") from None
     branches, branch_axes = {}, {}
     for b in tree.branches:
@@ -353,7 +356,7 @@ def make_simulator(
         gravity_dir=gdir,
         settle_iterations=settle_iterations,
         max_displacement=max(5.0, 2.0 * tree.total_length()),
-        backend="mjx" if hinge_tree is None else "fused",
+        backend="mjx" if hinge_tree is None else _pallas_hook.resolve(backend),
         hinge_tree=hinge_tree,
         force_interp=force_interp,
         grasp_fraction=float(tree.grasp_fraction),
@@ -514,7 +517,8 @@ def _fused_pull_one(
 
 
 FUSED = Backend("fused", _fused_prepare, _fused_pull)
-_BACKENDS = {"fused": FUSED, "mjx": _mjx_backend.BACKEND}
+# "pallas" (treeinfer.sim.pallas) settles and falls back through the fused step
+_BACKENDS = {"fused": FUSED, "mjx": _mjx_backend.BACKEND, "pallas": FUSED}
 
 
 def backend_of(sim: Simulator) -> Backend:
@@ -600,6 +604,8 @@ def _simulate(
     substeps=None,
 ) -> Rollout:
     """:func:`simulate` with an optional traced ``substeps`` overriding ``sim.substeps``."""
+    if sim.backend == "pallas" and _pallas_hook.supported(sim, grasp_branch, substeps):
+        return _pallas_hook.simulate(sim, kp, kd, forces, grasp_fraction, direction)
     kp = jnp.atleast_2d(kp)
     kd = jnp.atleast_2d(kd)
     forces = jnp.atleast_2d(forces)
