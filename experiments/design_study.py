@@ -38,7 +38,7 @@ laplace``; widened ``laplace_scale`` x), and NNSVGD's Adam step decays along a c
 displacement term alone (``omega2 = 0``), which leaves the velocity term of the loss untempered:
 its posteriors came out ~3-4x narrower than the Cramér-Rao bound (``kT_velocity``). All
 posteriors of a stage run as one batched program
-(:func:`treeinfer.sequential.posterior_program`, ``batch`` data sets per call).
+(:func:`treeinfer.batch_posteriors.posterior_program`, ``batch`` data sets per call).
 
 Targets (issue 16): the design pull shrinks the std of the worst-identified parameter (largest
 std after pull 1) at least 2x more than the repeat (median over seeds), and never widens the
@@ -122,7 +122,7 @@ class DesignConfig:
     map_iterations: int = 25
     learning_rate: float = 0.1
     final_learning_rate: float | None = 0.003
-    batch: int = 64
+    batch: int = 128
     kT_velocity: bool = True
 
 
@@ -183,7 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="particle start of every posterior (default laplace: MAP fit + Laplace draws)",
     )
     p.add_argument(
-        "--batch", type=int, default=None, help="data sets per batched sampler call (default 64)"
+        "--batch", type=int, default=None, help="data sets per batched sampler call (default 128)"
     )
     p.add_argument("--out", type=Path, default=None, help="results folder")
     p.add_argument("--quiet", action="store_true")
@@ -229,35 +229,43 @@ def _kT(obs, cfg: DesignConfig) -> float:
     return suggest_kT(sigma, int(np.shape(obs.displacement)[-1]), cfg.dt, omega2)
 
 
-def _start(tree, sim, kT: float, obs, grasp, cfg: DesignConfig, seed: int) -> np.ndarray:
-    """``[P, D]`` starting particles of one posterior (see the module docstring)."""
+def _starts(tree, sim, kts, obs, grasp, seeds, cfg: DesignConfig) -> list[np.ndarray]:
+    """``[P, D]`` starting particles of each posterior (see the module docstring): Laplace draws
+    around a MAP fit of each data set (:func:`treeinfer.batch_posteriors.map_fits`: mapfit's
+    Levenberg-Marquardt fit, all data sets in one compiled program), or uniform in the box."""
     import jax
 
+    from treeinfer.batch_posteriors import map_fits
     from treeinfer.inference import initial_particles, make_problem
+    from treeinfer.mapfit import laplace_particles
 
-    problem = make_problem(tree, obs, kT=kT, sim=sim, nn_prior=cfg.init == "laplace")
     if cfg.init == "uniform":
-        return np.asarray(initial_particles(problem, cfg.n_particles, seed))
-    from treeinfer.mapfit import boltzmann_residuals, fit_map, laplace_particles
-
-    fit = fit_map(
-        boltzmann_residuals(sim, obs, kT, np.asarray(grasp, np.float32)),
-        problem.log_prior,
-        problem.lower,
-        problem.upper,
-        n_starts=cfg.map_starts,
-        seed=seed,
-        jacobian="fd",
-        max_iterations=cfg.map_iterations,
-    )
-    key = jax.random.fold_in(jax.random.key(int(seed)), 0x1A9)
-    return np.asarray(laplace_particles(key, fit, cfg.n_particles, scale=cfg.laplace_scale))
+        problem = make_problem(tree, obs[0], kT=1.0, sim=sim, nn_prior=False)
+        return [np.asarray(initial_particles(problem, cfg.n_particles, s)) for s in seeds]
+    out = []
+    for i in range(0, len(obs), cfg.batch):
+        part = slice(i, i + cfg.batch)
+        fits = map_fits(
+            tree,
+            sim,
+            kts[part],
+            obs[part],
+            np.asarray(grasp[part], np.float32),
+            n_starts=cfg.map_starts,
+            seeds=seeds[part],
+            max_iterations=cfg.map_iterations,
+        )
+        for fit, s in zip(fits, seeds[part]):
+            key = jax.random.fold_in(jax.random.key(int(s)), 0x1A9)
+            draws = laplace_particles(key, fit, cfg.n_particles, scale=cfg.laplace_scale)
+            out.append(np.asarray(draws))
+    return out
 
 
 def _posteriors(tree, sim, jobs: list, cfg: DesignConfig) -> list[_Post]:
     """Posteriors of ``jobs`` = [(trajectories, grasp fractions, seed)], all with the same
     number of pulls, through one batched NNSVGD program (``cfg.batch`` data sets per call)."""
-    from treeinfer.sequential import posterior_program, run_posteriors
+    from treeinfer.batch_posteriors import posterior_program, run_posteriors
     from treeinfer.trajectories import stack_trajectories
 
     program = posterior_program(
@@ -269,17 +277,19 @@ def _posteriors(tree, sim, jobs: list, cfg: DesignConfig) -> list[_Post]:
     )
     obs = [stack_trajectories(trajs) for trajs, _, _ in jobs]
     kts = [_kT(o, cfg) for o in obs]
-    theta0 = [_start(tree, sim, k, o, g, cfg, s) for k, o, (_, g, s) in zip(kts, obs, jobs)]
+    grasp = [g for _, g, _ in jobs]
+    seeds = [s for _, _, s in jobs]
+    theta0 = _starts(tree, sim, kts, obs, grasp, seeds, cfg)
     out = []
     for i in range(0, len(jobs), cfg.batch):
         part = slice(i, i + cfg.batch)
         theta, ld = run_posteriors(
             program,
             np.stack(theta0[part]),
-            [s for _, _, s in jobs[part]],
+            seeds[part],
             kts[part],
             obs[part],
-            np.asarray([g for _, g, _ in jobs[part]], np.float32),
+            np.asarray(grasp[part], np.float32),
         )
         out += [_Post(t, v, k) for t, v, k in zip(theta, ld, kts[part])]
     return out
@@ -437,8 +447,8 @@ def summarise(seeds: list[dict], labels) -> dict:
     med = {c: float(np.median(shrink[c])) for c in conds}
     # the target: design's median shrink >= 2x repeat's (a repeat that shrinks nothing or widens
     # the std counts as 0, and the design must shrink it at all); the ratio is None then
-    ratio = lambda c: med[c] / med["repeat"] if med["repeat"] > 0 else None  # noqa: E731
-    met = lambda c: bool(med[c] > 0 and med[c] >= 2.0 * max(med["repeat"], 0.0))  # noqa: E731
+    ratio = lambda c: med[c] / med["repeat"] if med["repeat"] > 0 else None
+    met = lambda c: bool(med[c] > 0 and med[c] >= 2.0 * max(med["repeat"], 0.0))
     paired = {c: shrink[c] - shrink["repeat"] for c in conds if c != "repeat"}
     per_seed_2x = {
         c: int(np.sum((shrink[c] > 0) & (shrink[c] >= 2.0 * np.maximum(shrink["repeat"], 0.0))))
@@ -474,7 +484,7 @@ def summarise(seeds: list[dict], labels) -> dict:
             out[f"{c}_target_2x"] = met(c)
             out[f"{c}_never_widens_band"] = not wider[c]
     if all("fisher_reference" in r for r in seeds):
-        fr = lambda s, k: np.array([r["fisher_reference"][s][k] for r in seeds])  # noqa: E731
+        fr = lambda s, k: np.array([r["fisher_reference"][s][k] for r in seeds])
         out["median_crb_std"] = {s: np.median(fr(s, "crb_std"), 0).tolist() for s in stages}
         out["median_crb_band_m"] = {s: float(np.median(fr(s, "crb_band_m"))) for s in stages}
         out["median_std_over_crb"] = {
@@ -648,7 +658,10 @@ def _markdown(
         ),
         "|---|---|---|---|---|---|---|",
     ]
-    fmt = lambda c: f"{c['grasp_fraction']:g}, {c['peak_force']:g}, {c['profile_kind']}"  # noqa: E731
+
+    def fmt(c):
+        return f"{c['grasp_fraction']:g}, {c['peak_force']:g}, {c['profile_kind']}"
+
     for r in seeds:
         st = r["stages"]
         tgt = fmt(st["design_target"]["second_pull"]) if "design_target" in st else "-"
