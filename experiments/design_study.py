@@ -3,22 +3,42 @@
 Protocol, per seed (sim-to-sim, as in the other studies: ground truth from plain MuJoCo C in
 float64, inference with the batched simulator):
 
-1. True gains drawn as ``treeinfer simulate`` does (:func:`treeinfer.cli.default_true_params`).
-2. **First pull** at the tip (grasp fraction 1), a ramp-hold-release of ``first_peak`` N, with
-   white Gaussian noise of ``noise_mm`` on the displacement; posterior 1 by NNSVGD with the
-   likelihood temperature of that noise (:func:`treeinfer.likelihood.suggest_kT`).
-2. **Score** the candidate second pulls (grasp fractions x peak forces x profile kinds) by the
-   Laplace EIG of :func:`treeinfer.design.score_candidates` at posterior 1 (``sigma_x`` = the
-   noise).
-3. **Four second pulls**, each a new noisy recording: ``design`` (ranked first by EIG),
+1. True gains drawn as ``treeinfer simulate`` does
+   (:func:`treeinfer.synthetic.default_true_params`).
+2. **First pull** at the tip (grasp fraction 1), a ramp-hold-release (``hold`` profile) of
+   ``first_peak`` N, with white Gaussian noise of ``noise_mm`` on the displacement; posterior 1
+   by NNSVGD with the likelihood temperature of that noise, velocity term included
+   (:func:`treeinfer.likelihood.suggest_kT` with ``omega2`` of the data set).
+3. **Score** the candidate second pulls (grasp fractions x peak forces x profile kinds) at
+   posterior 1 (``sigma_x`` = the noise) with :func:`treeinfer.design.score_candidates`.
+4. **Second pulls**, each a new noisy recording: ``design`` (ranked first by the Laplace EIG),
+   ``design_target`` (ranked first by the expected reduction of the held-out manipulation's
+   predictive variance, ``target=``: the criterion to use when the future manipulation is known),
    ``design_worst`` (ranked first by the expected variance reduction of the parameter with the
-   largest std after pull 1, ``score_candidates(..., parameter="worst")``), ``repeat`` (the
-   first pull again, fresh noise), ``random`` (a seeded uniform pick among the candidates).
-   For each, the posterior of both pulls together (same sampler settings, seed).
-4. Report the posterior std (log units) of every parameter after pull 1 and after each second
-   pull, and the width of the 95% predictive band at a held-out manipulation (a ramp-hold-release
-   of ``heldout_peak`` N at grasp fraction ``heldout_grasp``, not among the candidates),
-   averaged over its samples.
+   largest std after pull 1, ``parameter="worst"``), ``repeat`` (the first pull again, fresh
+   noise), ``random`` (a seeded uniform pick among the candidates). For each, the posterior of
+   both pulls together, with the same inference settings and sampler seed as every other arm.
+5. Report the posterior std (log units) of every parameter after pull 1 and after each second
+   pull, and the width of the 95% predictive band at the held-out manipulation (a ``hold`` pull
+   of ``heldout_peak`` N at grasp fraction ``heldout_grasp``, not among the candidates), averaged
+   over its samples. Beside them, as an independent reference, the Cramér-Rao std of every
+   parameter and the linearised held-out band (``3.92 sqrt(G C G^T)``) from the Fisher
+   information of the pulls at the true parameters (Gaussian noise of ``noise_mm``).
+
+**Inference (why not the uniform start).** NNSVGD from particles uniform in the prior box with a
+constant Adam step (the settings of the first version of this study) is far from converged
+here: on identical data, three sampler seeds gave held-out bands of 22, 182 and 207 mm and
+particles 150 nats below the best one, while the Fisher information at the truth gives a band
+of ~4 mm; the arms' bands then differed by sampler noise, not by their data. So every posterior
+here (all arms alike) starts from draws of the Laplace approximation around a Levenberg-Marquardt
+MAP fit of *its own* data (:func:`treeinfer.mapfit.fit_map`, as ``treeinfer infer --init
+laplace``; widened ``laplace_scale`` x), and NNSVGD's Adam step decays along a cosine from
+``learning_rate`` to ``final_learning_rate`` so the particles settle (``init="uniform"`` and
+``final_learning_rate=None`` give the old behaviour). The first version also set kT for the
+displacement term alone (``omega2 = 0``), which leaves the velocity term of the loss untempered:
+its posteriors came out ~3-4x narrower than the Cramér-Rao bound (``kT_velocity``). All
+posteriors of a stage run as one batched program
+(:func:`treeinfer.batch_posteriors.posterior_program`, ``batch`` data sets per call).
 
 Targets (issue 16): the design pull shrinks the std of the worst-identified parameter (largest
 std after pull 1) at least 2x more than the repeat (median over seeds), and never widens the
@@ -46,7 +66,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from experiments.common import (
+from experiments.common import (  # noqa: E402
     RESULTS,
     check_out,
     cpu_seconds,
@@ -58,7 +78,8 @@ from experiments.common import (
 )
 
 STUDY = "design"
-CONDITIONS = ("design", "design_worst", "repeat", "random")
+CONDITIONS = ("design", "design_target", "design_worst", "repeat", "random")
+STAGES = ("first",) + CONDITIONS
 
 
 @dataclass(frozen=True)
@@ -70,7 +91,13 @@ class DesignConfig:
     first_peak: N, the first pull (ramp-hold-release at the tip). grasp_fractions, peak_forces,
     profile_kinds: the candidate grid. heldout_grasp, heldout_peak: the held-out manipulation.
     n_particles, n_iterations: NNSVGD. design_particles: particles the sensitivities are taken at.
-    level: credible level of the band.
+    level: credible level of the band. init: ``"laplace"`` (MAP fit of each data set, its
+    Laplace draws widened ``laplace_scale`` x; ``map_starts`` LM starts, ``map_iterations``) or
+    ``"uniform"`` (the prior box). learning_rate, final_learning_rate: NNSVGD's Adam step and
+    where its cosine decay ends (None: constant). batch: data sets per batched sampler call.
+    kT_velocity: each data set's temperature counts the velocity term of the loss
+    (``suggest_kT(sigma, T, dt, signal_omega2(obs, sigma))``, as ``kT="auto"`` with the noise
+    known); False: ``suggest_kT(sigma, T, dt)``, which tempers the displacement term only.
     """
 
     size: str
@@ -89,6 +116,14 @@ class DesignConfig:
     n_iterations: int = 100
     design_particles: int = 24
     level: float = 0.95
+    init: str = "laplace"
+    laplace_scale: float = 2.0
+    map_starts: int = 6
+    map_iterations: int = 25
+    learning_rate: float = 0.1
+    final_learning_rate: float | None = 0.003
+    batch: int = 128
+    kT_velocity: bool = True
 
 
 SIZES = {
@@ -102,6 +137,8 @@ SIZES = {
         "n_particles": 8,
         "n_iterations": 10,
         "design_particles": 8,
+        "map_starts": 2,
+        "map_iterations": 5,
     },
     "cpu": {
         "profile_kinds": ("ramp", "hold", "step"),
@@ -113,7 +150,7 @@ SIZES = {
         "dt": 0.01,
         "duration": 2.0,
         "seeds": 20,
-        "grasp_fractions": tuple(np.round(np.linspace(0.1, 1.0, 10), 2)),
+        "grasp_fractions": tuple(float(g) for g in np.round(np.linspace(0.1, 1.0, 10), 2)),
         "peak_forces": (2.0, 4.0, 6.0, 8.0, 10.0),
         "profile_kinds": ("ramp", "hold", "step"),
         "n_particles": 128,
@@ -139,6 +176,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
     p.add_argument("--particles", type=int, default=None, help="override NNSVGD's particle count")
     p.add_argument("--iterations", type=int, default=None, help="override NNSVGD's iteration count")
+    p.add_argument(
+        "--init",
+        choices=("laplace", "uniform"),
+        default=None,
+        help="particle start of every posterior (default laplace: MAP fit + Laplace draws)",
+    )
+    p.add_argument(
+        "--batch", type=int, default=None, help="data sets per batched sampler call (default 128)"
+    )
     p.add_argument("--out", type=Path, default=None, help="results folder")
     p.add_argument("--quiet", action="store_true")
     p.add_argument(
@@ -154,7 +200,7 @@ def _say(quiet: bool, msg: str) -> None:
         print(f"[{STUDY}] {msg}", file=sys.stderr, flush=True)
 
 
-# ==== one seed ====================================================================================
+# ==== data, posteriors, references ================================================================
 def _pull(sim, kp, kd, cand, cfg: DesignConfig, rng, name: str):
     """A noisy recording of candidate ``cand`` (ground truth from MuJoCo C)."""
     from treeinfer.design import candidate_forces
@@ -168,75 +214,85 @@ def _pull(sim, kp, kd, cand, cfg: DesignConfig, rng, name: str):
 class _Post:
     """Final particles ``theta [P, D]``, their log-density and ``valid`` (finite) mask."""
 
-    def __init__(self, theta, logdensity):
+    def __init__(self, theta, logdensity, kT=None):
         self.theta, self.log_density = np.asarray(theta), np.asarray(logdensity)
+        self.kT = kT
         self.valid = np.isfinite(self.log_density) & np.all(np.isfinite(self.theta), 1)
 
 
-_RUNNERS: dict = {}
+def _kT(obs, cfg: DesignConfig) -> float:
+    """The data set's Boltzmann temperature for the study's noise (see ``kT_velocity``)."""
+    from treeinfer.likelihood import signal_omega2, suggest_kT
+
+    sigma = cfg.noise_mm * 1e-3
+    omega2 = signal_omega2(obs, sigma) if cfg.kT_velocity else 0.0
+    return suggest_kT(sigma, int(np.shape(obs.displacement)[-1]), cfg.dt, omega2)
 
 
-def _runner(tree, sim, kT: float, cfg: DesignConfig, n_pulls: int):
-    """NNSVGD on ``n_pulls`` recordings, compiled once and reused for every seed and condition.
-
-    The same problem (:func:`treeinfer.inference.make_problem`), algorithm
-    (``Problem.sampler`` / ``inference.make_algorithm``), initial particles and per-iteration keys
-    as :func:`treeinfer.inference.infer`, but the recordings are arguments of one jitted
-    ``lax.scan`` instead of constants closed over, so that a new data set does not recompile
-    (on a 2-core CPU a compile costs more than the run)."""
-    key_ = (id(sim), kT, n_pulls, cfg.n_particles, cfg.n_iterations)
-    if key_ in _RUNNERS:
-        return _RUNNERS[key_]
+def _starts(tree, sim, kts, obs, grasp, seeds, cfg: DesignConfig) -> list[np.ndarray]:
+    """``[P, D]`` starting particles of each posterior (see the module docstring): Laplace draws
+    around a MAP fit of each data set (:func:`treeinfer.batch_posteriors.map_fits`: mapfit's
+    Levenberg-Marquardt fit, all data sets in one compiled program), or uniform in the box."""
     import jax
 
-    from treeinfer import inference
-    from treeinfer.inference import make_problem
-    from treeinfer.samplers import init_key, iteration_key
-    from treeinfer.trajectories import Observations
-
-    @jax.jit
-    def run(theta0, key, force, disp, vel, mask, grasp):
-        obs = Observations(force, disp, vel, mask, float(cfg.dt))
-        problem = make_problem(tree, obs, kT=kT, sim=sim, grasp_fraction=grasp)
-        if hasattr(problem, "sampler"):  # after the refactor: Problem.sampler(name)
-            alg = problem.sampler("nnsvgd")
-        else:
-            alg = inference.make_algorithm(problem, "nnsvgd")
-        state = alg.init(init_key(key), theta0)
-        state, _ = jax.lax.scan(
-            lambda st, i: (alg.step(iteration_key(key, i), st)[0], None),
-            state,
-            jax.numpy.arange(cfg.n_iterations),
-        )
-        return state.position, state.logdensity
-
-    _RUNNERS[key_] = run
-    return run
-
-
-def _posterior(tree, sim, trajs, grasp, kT, cfg: DesignConfig, seed: int) -> _Post:
-    import jax
-
+    from treeinfer.batch_posteriors import map_fits
     from treeinfer.inference import initial_particles, make_problem
+    from treeinfer.mapfit import laplace_particles
+
+    if cfg.init == "uniform":
+        problem = make_problem(tree, obs[0], kT=1.0, sim=sim, nn_prior=False)
+        return [np.asarray(initial_particles(problem, cfg.n_particles, s)) for s in seeds]
+    out = []
+    for i in range(0, len(obs), cfg.batch):
+        part = slice(i, i + cfg.batch)
+        fits = map_fits(
+            tree,
+            sim,
+            kts[part],
+            obs[part],
+            np.asarray(grasp[part], np.float32),
+            n_starts=cfg.map_starts,
+            seeds=seeds[part],
+            max_iterations=cfg.map_iterations,
+        )
+        for fit, s in zip(fits, seeds[part]):
+            key = jax.random.fold_in(jax.random.key(int(s)), 0x1A9)
+            draws = laplace_particles(key, fit, cfg.n_particles, scale=cfg.laplace_scale)
+            out.append(np.asarray(draws))
+    return out
+
+
+def _posteriors(tree, sim, jobs: list, cfg: DesignConfig) -> list[_Post]:
+    """Posteriors of ``jobs`` = [(trajectories, grasp fractions, seed)], all with the same
+    number of pulls, through one batched NNSVGD program (``cfg.batch`` data sets per call)."""
+    from treeinfer.batch_posteriors import posterior_program, run_posteriors
     from treeinfer.trajectories import stack_trajectories
 
-    obs = stack_trajectories(trajs)
-    template = make_problem(
-        tree, obs, kT=kT, sim=sim, nn_prior=False
-    )  # box only: for the initial particles
-    theta0 = initial_particles(template, cfg.n_particles, seed)
-    run = _runner(tree, sim, kT, cfg, len(trajs))
-    f32 = lambda a: np.asarray(a, np.float32)
-    theta, ld = run(
-        theta0,
-        jax.random.key(int(seed)),
-        f32(obs.force),
-        f32(obs.displacement),
-        f32(obs.velocity),
-        np.asarray(obs.mask),
-        f32(grasp),
+    program = posterior_program(
+        tree,
+        sim,
+        cfg.n_iterations,
+        learning_rate=cfg.learning_rate,
+        final_learning_rate=cfg.final_learning_rate,
     )
-    return _Post(theta, ld)
+    obs = [stack_trajectories(trajs) for trajs, _, _ in jobs]
+    kts = [_kT(o, cfg) for o in obs]
+    grasp = [g for _, g, _ in jobs]
+    seeds = [s for _, _, s in jobs]
+    theta0 = _starts(tree, sim, kts, obs, grasp, seeds, cfg)
+    out = []
+    for i in range(0, len(jobs), cfg.batch):
+        part = slice(i, i + cfg.batch)
+        theta, ld = run_posteriors(
+            program,
+            np.stack(theta0[part]),
+            seeds[part],
+            kts[part],
+            obs[part],
+            np.asarray(grasp[part], np.float32),
+        )
+        out += [_Post(t, v, k) for t, v, k in zip(theta, ld, kts[part])]
+    return out
 
 
 def _band_width(sim, theta, valid, force, grasp, level) -> float:
@@ -250,136 +306,196 @@ def _band_width(sim, theta, valid, force, grasp, level) -> float:
     return float(np.mean(np.asarray(hi) - np.asarray(lo)))
 
 
-def run_seed(cfg: DesignConfig, tree, sim, seed: int, quiet: bool) -> dict:
-    try:  # the application-layer refactor moves it to treeinfer.synthetic
-        from treeinfer.synthetic import default_true_params
-    except ImportError:
-        from treeinfer.cli import default_true_params
-    from treeinfer.design import Candidate, candidate_forces, candidate_grid, score_candidates
-    from treeinfer.likelihood import suggest_kT
+def _fisher_reference(sim, theta_true, cands, cfg: DesignConfig) -> dict:
+    """Cramér-Rao std [D] (log units) and linearised held-out band (m) after pull 1 and after
+    pull 1 + each candidate in ``cands`` (a dict name -> Candidate), from the Gaussian Fisher
+    information ``J^T J / sigma^2`` at the true parameters (central differences, step 1e-2)."""
+    import jax.numpy as jnp
 
-    streams = [
-        np.random.default_rng(s)
-        for s in np.random.SeedSequence([int(seed), 0xDE51]).spawn(3 + len(CONDITIONS))
-    ]
-    kp, kd = default_true_params(tree, streams[0])
-    t_steps = round(cfg.duration / cfg.dt)
-    kT = suggest_kT(cfg.noise_mm * 1e-3, t_steps, cfg.dt)
-    first = Candidate(1.0, cfg.first_peak, "hold")
-    traj1 = _pull(sim, kp, kd, first, cfg, streams[1], "first")
-    t0 = time.perf_counter()
-    post1 = _posterior(tree, sim, [traj1], [1.0], kT, cfg, seed)
-    _say(quiet, f"seed {seed}: posterior 1 in {time.perf_counter() - t0:.0f} s")
-    cands = candidate_grid(cfg.grasp_fractions, cfg.peak_forces, cfg.profile_kinds)
-    t0 = time.perf_counter()
-    sugg = score_candidates(
-        sim,
-        post1.theta,
-        cands,
-        cfg.noise_mm * 1e-3,
-        cfg.duration,
-        valid=post1.valid,
-        n_particles=cfg.design_particles,
-        seed=seed,
-    )
-    t_design = time.perf_counter() - t0
-    sugg_worst = score_candidates(
-        sim,
-        post1.theta,
-        cands,
-        cfg.noise_mm * 1e-3,
-        cfg.duration,
-        valid=post1.valid,
-        n_particles=cfg.design_particles,
-        seed=seed,
-        parameter="worst",
-    )
-    pick = cands[int(streams[2].integers(len(cands)))]
-    seconds = {
-        "design": sugg.best,
-        "design_worst": sugg_worst.best,
-        "repeat": first,
-        "random": pick,
-    }
-    held_force = candidate_forces(
-        [Candidate(cfg.heldout_grasp, cfg.heldout_peak, "hold")], cfg.duration, cfg.dt
-    )[0]
-    out = {
-        "seed": seed,
-        "true_theta": np.log(np.concatenate([kp, kd])).tolist(),
-        "kT": kT,
-        "design_seconds": t_design,
-        "design_top5": sugg.to_dict()["candidates"][:5],
-        "design_worst_parameter": sugg_worst.settings["parameter"],
-        "design_worst_top5": sugg_worst.to_dict()["candidates"][:5],
-        "stages": {},
-    }
+    from treeinfer.design import Candidate, candidate_forces, fd_jacobian, simulator_forward
 
-    def record(name, post, cand):
-        v = post.valid
-        th = post.theta[v]
-        out["stages"][name] = {
-            "second_pull": None if cand is None else cand.to_dict(),
-            "mean": th.mean(0).tolist(),
-            "std": th.std(0, ddof=1).tolist(),
-            "band_width_m": _band_width(
-                sim, post.theta, v, held_force, cfg.heldout_grasp, cfg.level
-            ),
-            "n_valid": int(v.sum()),
+    held = Candidate(cfg.heldout_grasp, cfg.heldout_peak, "hold")
+    names = list(cands)
+    allc = [cands[n] for n in names] + [held]
+    forces = candidate_forces(allc, cfg.duration, cfg.dt)
+    grasp = np.asarray([c.grasp_fraction for c in allc], np.float32)
+    fwd = simulator_forward(sim, forces, grasp)
+    jac, ok = fd_jacobian(fwd, jnp.asarray(theta_true, np.float32)[None], rel_step=1e-2)
+    jac = np.asarray(jac, float)[0]  # [C, T, D]
+    sig2 = (cfg.noise_mm * 1e-3) ** 2
+    fisher = {n: jac[i].T @ jac[i] / sig2 for i, n in enumerate(names)}
+    g = jac[-1]
+    out = {}
+    for n in names:
+        f = fisher[names[0]] + (0.0 if n == names[0] else fisher[n])
+        cov = np.linalg.pinv(f)
+        band = 3.92 * np.mean(np.sqrt(np.clip(np.einsum("td,de,te->t", g, cov, g), 0, None)))
+        out[n] = {
+            "crb_std": np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(),
+            "crb_band_m": float(band),
+            "stable": bool(np.all(np.asarray(ok))),
         }
+    return out
 
-    record("first", post1, None)
-    for i, cond in enumerate(CONDITIONS):
-        cand = seconds[cond]
-        traj2 = _pull(sim, kp, kd, cand, cfg, streams[3 + i], f"second_{cond}")
+
+def run_seeds(cfg: DesignConfig, tree, sim, seeds: list[int], quiet: bool):
+    """The study for ``seeds``: returns ``(per-seed records, suggestions of the first seed)``."""
+    from treeinfer.design import (
+        Candidate,
+        Target,
+        candidate_forces,
+        candidate_grid,
+        score_candidates,
+    )
+    from treeinfer.synthetic import default_true_params
+
+    first = Candidate(1.0, cfg.first_peak, "hold")
+    cands = candidate_grid(cfg.grasp_fractions, cfg.peak_forces, cfg.profile_kinds)
+    target = Target(cfg.heldout_grasp, cfg.heldout_peak, "hold")
+    held_force = candidate_forces([target.candidate()], cfg.duration, cfg.dt)[0]
+    data = {}
+    for seed in seeds:
+        streams = [
+            np.random.default_rng(s)
+            for s in np.random.SeedSequence([int(seed), 0xDE51]).spawn(3 + len(CONDITIONS))
+        ]
+        kp, kd = default_true_params(tree, streams[0])
+        data[seed] = (kp, kd, streams, _pull(sim, kp, kd, first, cfg, streams[1], "first"))
+    t0 = time.perf_counter()
+    post1 = _posteriors(tree, sim, [([data[s][3]], [1.0], s) for s in seeds], cfg)
+    _say(quiet, f"posterior 1 of {len(seeds)} seeds in {time.perf_counter() - t0:.0f} s")
+    records, jobs, first_sugg = {}, [], None
+    for seed, p1 in zip(seeds, post1):
+        kp, kd, streams, traj1 = data[seed]
+        common = dict(valid=p1.valid, n_particles=cfg.design_particles, seed=seed)
+        sigma = cfg.noise_mm * 1e-3
         t0 = time.perf_counter()
-        post = _posterior(tree, sim, [traj1, traj2], [1.0, cand.grasp_fraction], kT, cfg, seed)
-        _say(
-            quiet,
-            f"seed {seed}: {cond} ({cand.grasp_fraction:g}, {cand.peak_force:g} N, "
-            f"{cand.profile_kind}) "
-            f"in {time.perf_counter() - t0:.0f} s",
+        sugg = score_candidates(sim, p1.theta, cands, sigma, cfg.duration, **common)
+        t_design = time.perf_counter() - t0
+        sugg_t = score_candidates(
+            sim, p1.theta, cands, sigma, cfg.duration, target=target, **common
         )
-        record(cond, post, cand)
-    return out, sugg
+        sugg_w = score_candidates(
+            sim, p1.theta, cands, sigma, cfg.duration, parameter="worst", **common
+        )
+        first_sugg = first_sugg or sugg
+        seconds = {
+            "design": sugg.best,
+            "design_target": sugg_t.best,
+            "design_worst": sugg_w.best,
+            "repeat": first,
+            "random": cands[int(streams[2].integers(len(cands)))],
+        }
+        theta_true = np.log(np.concatenate([kp, kd]))
+        records[seed] = {
+            "seed": seed,
+            "true_theta": theta_true.tolist(),
+            "design_seconds": t_design,
+            "design_top5": sugg.to_dict()["candidates"][:5],
+            "design_target_top5": sugg_t.to_dict()["candidates"][:5],
+            "design_worst_parameter": sugg_w.settings["parameter"],
+            "design_worst_top5": sugg_w.to_dict()["candidates"][:5],
+            "fisher_reference": _fisher_reference(
+                sim, theta_true, {"first": first, **seconds}, cfg
+            ),
+            "stages": {},
+        }
+        records[seed]["stages"]["first"] = _stage(sim, p1, None, held_force, cfg)
+        for i, cond in enumerate(CONDITIONS):
+            cand = seconds[cond]
+            traj2 = _pull(sim, kp, kd, cand, cfg, streams[3 + i], f"second_{cond}")
+            jobs.append((seed, cond, cand, ([traj1, traj2], [1.0, cand.grasp_fraction], seed)))
+    t0 = time.perf_counter()
+    post2 = _posteriors(tree, sim, [j[3] for j in jobs], cfg)
+    _say(quiet, f"{len(jobs)} second-pull posteriors in {time.perf_counter() - t0:.0f} s")
+    for (seed, cond, cand, _), p in zip(jobs, post2):
+        records[seed]["stages"][cond] = _stage(sim, p, cand, held_force, cfg)
+    return [records[s] for s in seeds], first_sugg
+
+
+def _stage(sim, post: _Post, cand, held_force, cfg: DesignConfig) -> dict:
+    v = post.valid
+    th, ld = post.theta[v], post.log_density[v]
+    return {
+        "second_pull": None if cand is None else cand.to_dict(),
+        "mean": th.mean(0).tolist(),
+        "std": th.std(0, ddof=1).tolist(),
+        "band_width_m": _band_width(sim, post.theta, v, held_force, cfg.heldout_grasp, cfg.level),
+        "n_valid": int(v.sum()),
+        "kT": post.kT,
+        # convergence: how far the median particle sits below the best one (nats); a converged
+        # posterior in D dimensions has about D/2 (chi-square), a stuck one hundreds
+        "log_density_max_minus_median": float(np.max(ld) - np.median(ld)) if len(ld) else None,
+    }
 
 
 # ==== summary =====================================================================================
+def _quartiles(x) -> list[float]:
+    return [float(v) for v in np.percentile(np.asarray(x, float), [25, 50, 75])]
+
+
 def summarise(seeds: list[dict], labels) -> dict:
-    std = {
-        s: np.array([r["stages"][s]["std"] for r in seeds]) for s in ("first",) + CONDITIONS
-    }  # [S, D]
-    band = {
-        s: np.array([r["stages"][s]["band_width_m"] for r in seeds])
-        for s in ("first",) + CONDITIONS
-    }
+    """The study's figures from the per-seed records (conditions present in every record)."""
+    conds = [c for c in CONDITIONS if all(c in r["stages"] for r in seeds)]
+    stages = ["first"] + conds
+    std = {s: np.array([r["stages"][s]["std"] for r in seeds]) for s in stages}  # [S, D]
+    band = {s: np.array([r["stages"][s]["band_width_m"] for r in seeds]) for s in stages}
     worst = np.argmax(std["first"], axis=1)  # per seed: the worst-identified parameter after pull 1
     rows = np.arange(len(seeds))
-    shrink = {c: std["first"][rows, worst] - std[c][rows, worst] for c in CONDITIONS}
-    med = {c: float(np.median(shrink[c])) for c in CONDITIONS}
+    shrink = {c: std["first"][rows, worst] - std[c][rows, worst] for c in conds}
+    ratio_std = {c: std[c][rows, worst] / std["first"][rows, worst] for c in conds}
+    med = {c: float(np.median(shrink[c])) for c in conds}
     # the target: design's median shrink >= 2x repeat's (a repeat that shrinks nothing or widens
     # the std counts as 0, and the design must shrink it at all); the ratio is None then
-    ratio = med["design"] / med["repeat"] if med["repeat"] > 0 else None
-    ratio_w = med["design_worst"] / med["repeat"] if med["repeat"] > 0 else None
+    ratio = lambda c: med[c] / med["repeat"] if med["repeat"] > 0 else None
     met = lambda c: bool(med[c] > 0 and med[c] >= 2.0 * max(med["repeat"], 0.0))
-    return {
+    paired = {c: shrink[c] - shrink["repeat"] for c in conds if c != "repeat"}
+    per_seed_2x = {
+        c: int(np.sum((shrink[c] > 0) & (shrink[c] >= 2.0 * np.maximum(shrink["repeat"], 0.0))))
+        for c in conds
+        if c != "repeat"
+    }
+    wider = {
+        c: [r["seed"] for r, a, b in zip(seeds, band[c], band["first"]) if a > b] for c in conds
+    }
+    out = {
         "labels": list(labels),
+        "conditions": conds,
         "median_std": {s: np.median(v, 0).tolist() for s, v in std.items()},
         "worst_parameter_per_seed": [labels[i] for i in worst],
-        "worst_std_shrink_per_seed": {c: shrink[c].tolist() for c in CONDITIONS},
+        "worst_std_shrink_per_seed": {c: shrink[c].tolist() for c in conds},
         "median_worst_std_shrink": med,
-        "design_vs_repeat_shrink_ratio": ratio,
+        "worst_std_shrink_quartiles": {c: _quartiles(shrink[c]) for c in conds},
+        "worst_std_ratio_quartiles": {c: _quartiles(ratio_std[c]) for c in conds},
+        "paired_shrink_minus_repeat_quartiles": {c: _quartiles(v) for c, v in paired.items()},
+        "seeds_with_2x_repeat_shrink": per_seed_2x,
+        "design_vs_repeat_shrink_ratio": ratio("design"),
         "target_2x_more_shrink_than_repeat": met("design"),
-        "design_worst_vs_repeat_shrink_ratio": ratio_w,
-        "design_worst_target_2x": met("design_worst"),
-        "design_worst_never_widens_band": bool(np.all(band["design_worst"] <= band["first"])),
         "band_width_m_per_seed": {s: v.tolist() for s, v in band.items()},
         "median_band_width_m": {s: float(np.median(v)) for s, v in band.items()},
-        "design_never_widens_band": bool(np.all(band["design"] <= band["first"])),
-        "seeds_where_design_widens_band": [
-            r["seed"] for r, a, b in zip(seeds, band["design"], band["first"]) if a > b
-        ],
+        "band_ratio_quartiles": {c: _quartiles(band[c] / band["first"]) for c in conds},
+        "seeds_where_band_widens": wider,
+        "design_never_widens_band": not wider["design"],
+        "seeds_where_design_widens_band": wider["design"],
     }
+    for c in ("design_worst", "design_target"):
+        if c in conds:
+            out[f"{c}_vs_repeat_shrink_ratio"] = ratio(c)
+            out[f"{c}_target_2x"] = met(c)
+            out[f"{c}_never_widens_band"] = not wider[c]
+    if all("fisher_reference" in r for r in seeds):
+        fr = lambda s, k: np.array([r["fisher_reference"][s][k] for r in seeds])
+        out["median_crb_std"] = {s: np.median(fr(s, "crb_std"), 0).tolist() for s in stages}
+        out["median_crb_band_m"] = {s: float(np.median(fr(s, "crb_band_m"))) for s in stages}
+        out["median_std_over_crb"] = {
+            s: np.median(std[s] / np.maximum(fr(s, "crb_std"), 1e-12), 0).tolist() for s in stages
+        }
+    if all("log_density_max_minus_median" in r["stages"]["first"] for r in seeds):
+        out["median_log_density_max_minus_median"] = {
+            s: float(np.median([r["stages"][s]["log_density_max_minus_median"] for r in seeds]))
+            for s in stages
+        }
+    return out
 
 
 def _figures(summary: dict, sugg):
@@ -388,7 +504,8 @@ def _figures(summary: dict, sugg):
     from treeinfer.design import plot_scores
 
     labels = summary["labels"]
-    stages = ("first",) + CONDITIONS
+    conds = summary.get("conditions", CONDITIONS)
+    stages = ["first"] + list(conds)
     fig1, ax = plt.subplots(figsize=(1.4 * len(labels) + 3, 3.6))
     x = np.arange(len(labels))
     wbar = 0.8 / len(stages)
@@ -415,7 +532,7 @@ def _figures(summary: dict, sugg):
         ms=10,
         label="median",
     )
-    ax2.set_xticks(range(len(stages)), ["pull 1"] + [f"+{c}" for c in CONDITIONS], rotation=15)
+    ax2.set_xticks(range(len(stages)), ["pull 1"] + [f"+{c}" for c in conds], rotation=15)
     ax2.set_ylabel("held-out 95% band width [mm]")
     ax2.set_yscale("log")
     ax2.legend()
@@ -426,24 +543,38 @@ def _figures(summary: dict, sugg):
 
 
 def _ratio(r) -> str:
-    return "n/a (repeat did not shrink it)" if r is None else f"{r:.2f}"
+    return "n/a (the repeat's median shrink is <= 0)" if r is None else f"{r:.2f}"
+
+
+def _q(q, scale=1.0, fmt=".3f") -> str:
+    return f"{scale * q[1]:{fmt}} [{scale * q[0]:{fmt}}, {scale * q[2]:{fmt}}]"
 
 
 def _markdown(
     cfg: DesignConfig, summary: dict, seeds: list[dict], wall: float, cpu: float | None = None
 ) -> str:
     labels = summary["labels"]
+    conds = summary.get("conditions", CONDITIONS)
+    n = len(seeds)
+    init = (
+        f"start: MAP + Laplace draws x{cfg.laplace_scale:g}"
+        if cfg.init == "laplace"
+        else "start: uniform in the prior box"
+    )
+    lr = (
+        f"Adam step {cfg.learning_rate:g}"
+        if cfg.final_learning_rate is None
+        else f"Adam step {cfg.learning_rate:g} -> {cfg.final_learning_rate:g} (cosine)"
+    )
     lines = [
         f"# Design study ({cfg.size}): which second pull?",
         "",
         (
-            f"Tree `{cfg.tree}`, {cfg.seeds} seeds, displacement noise {cfg.noise_mm:g} mm, "
-            "first pull: "
-            f"ramp-hold-release {cfg.first_peak:g} N at the tip; "
-            f"NNSVGD {cfg.n_particles} particles x "
-            f"{cfg.n_iterations} iterations; candidates: grasp {list(cfg.grasp_fractions)} x peak "
-            f"{list(cfg.peak_forces)} N x {list(cfg.profile_kinds)}; "
-            f"held-out: {cfg.heldout_peak:g} N hold at grasp "
+            f"Tree `{cfg.tree}`, {n} seeds, displacement noise {cfg.noise_mm:g} mm, first pull: "
+            f"ramp-hold-release {cfg.first_peak:g} N at the tip; NNSVGD {cfg.n_particles} "
+            f"particles x {cfg.n_iterations} iterations ({init}; {lr}; the same for every arm); "
+            f"candidates: grasp {list(cfg.grasp_fractions)} x peak {list(cfg.peak_forces)} N x "
+            f"{list(cfg.profile_kinds)}; held-out: {cfg.heldout_peak:g} N hold at grasp "
             f"{cfg.heldout_grasp:g}. dt {cfg.dt:g} s, {cfg.duration:g} s pulls."
         ),
         "",
@@ -452,11 +583,37 @@ def _markdown(
         "| stage | " + " | ".join(labels) + " | held-out band [mm] |",
         "|---" * (len(labels) + 2) + "|",
     ]
-    for s in ("first",) + CONDITIONS:
+    for s in ["first"] + list(conds):
         name = "after pull 1" if s == "first" else f"+ {s}"
         cells = " | ".join(f"{v:.3f}" for v in summary["median_std"][s])
         lines.append(f"| {name} | {cells} | {1e3 * summary['median_band_width_m'][s]:.2f} |")
-    m = summary["median_worst_std_shrink"]
+    if "median_crb_std" in summary:
+        lines += [
+            "",
+            "Reference (Fisher information at the true parameters, Gaussian noise): median "
+            "Cramér-Rao std, and the linearised held-out band; then the sampled std over it.",
+            "",
+            "| stage | " + " | ".join(labels) + " | lin. band [mm] | std / CRB (median) |",
+            "|---" * (len(labels) + 3) + "|",
+        ]
+        for s in ["first"] + list(conds):
+            name = "after pull 1" if s == "first" else f"+ {s}"
+            cells = " | ".join(f"{v:.3f}" for v in summary["median_crb_std"][s])
+            r = ", ".join(f"{v:.1f}" for v in summary["median_std_over_crb"][s])
+            lines.append(
+                f"| {name} | {cells} | {1e3 * summary['median_crb_band_m'][s]:.2f} | {r} |"
+            )
+    if "median_log_density_max_minus_median" in summary:
+        c = summary["median_log_density_max_minus_median"]
+        lines += [
+            "",
+            "Convergence: best minus median particle log-density (nats, median over seeds; about "
+            f"D/2 = {len(labels) / 2:g} when converged): "
+            + ", ".join(f"{k} {v:.1f}" for k, v in c.items())
+            + ".",
+        ]
+    q = summary["worst_std_shrink_quartiles"]
+    qr = summary["worst_std_ratio_quartiles"]
     lines += [
         "",
         "## Targets",
@@ -465,42 +622,51 @@ def _markdown(
             "- Worst-identified parameter after pull 1 (per seed): "
             f"{', '.join(summary['worst_parameter_per_seed'])}."
         ),
+        "- Shrink of its std (log units), median [25%, 75%] over seeds: "
+        + "; ".join(f"{c} {_q(q[c])}" for c in conds)
+        + ". Its std after / before: "
+        + "; ".join(f"{c} {_q(qr[c], fmt='.2f')}" for c in conds)
+        + ".",
         (
-            f"- Median shrink of its std: design {m['design']:.3f}, "
-            f"design_worst {m['design_worst']:.3f}, "
-            f"repeat {m['repeat']:.3f}, random {m['random']:.3f} (log units); design / repeat = "
+            "- design / repeat (ratio of the median shrinks) = "
             f"{_ratio(summary['design_vs_repeat_shrink_ratio'])} (target >= 2: "
-            f"**{'met' if summary['target_2x_more_shrink_than_repeat'] else 'not met'}**); "
-            "design_worst / repeat = "
-            f"{_ratio(summary['design_worst_vs_repeat_shrink_ratio'])} "
-            f"(**{'met' if summary['design_worst_target_2x'] else 'not met'}**)."
+            f"**{'met' if summary['target_2x_more_shrink_than_repeat'] else 'not met'}**). "
+            "Per seed, the design arm's shrink minus the repeat's: "
+            + "; ".join(
+                f"{c} {_q(v)}" for c, v in summary["paired_shrink_minus_repeat_quartiles"].items()
+            )
+            + "; seeds where the arm shrinks it by > 0 and >= 2x the repeat's (a repeat <= 0 "
+            "counting as 0): "
+            + ", ".join(f"{c} {k}/{n}" for c, k in summary["seeds_with_2x_repeat_shrink"].items())
+            + "."
         ),
-        (
-            f"- design_worst never widens the held-out band: "
-            f"**{'yes' if summary['design_worst_never_widens_band'] else 'no'}**."
-        ),
-        "- Design pull never widens the held-out band: "
-        f"**{'yes' if summary['design_never_widens_band'] else 'no'}**"
-        + (
-            f" (wider at seeds {summary['seeds_where_design_widens_band']})"
-            if summary["seeds_where_design_widens_band"]
-            else ""
+        "- Held-out band after / before, median [25%, 75%]: "
+        + "; ".join(f"{c} {_q(v, fmt='.2f')}" for c, v in summary["band_ratio_quartiles"].items())
+        + ".",
+        "- Never widens the held-out band: "
+        + "; ".join(
+            f"{c} **{'yes' if not w else 'no'}**" + (f" (wider at seeds {w})" if w else "")
+            for c, w in summary["seeds_where_band_widens"].items()
         )
         + ".",
         "",
         "## Second pulls chosen",
         "",
         (
-            "| seed | design (grasp, N, kind) | design_worst (parameter) | random "
+            "| seed | design (grasp, N, kind) | design_target | design_worst (parameter) | random "
             "| EIG of best [nats] | scoring [s] |"
         ),
-        "|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|",
     ]
-    fmt = lambda c: f"{c['grasp_fraction']:g}, {c['peak_force']:g}, {c['profile_kind']}"
+
+    def fmt(c):
+        return f"{c['grasp_fraction']:g}, {c['peak_force']:g}, {c['profile_kind']}"
+
     for r in seeds:
         st = r["stages"]
+        tgt = fmt(st["design_target"]["second_pull"]) if "design_target" in st else "-"
         lines.append(
-            f"| {r['seed']} | {fmt(st['design']['second_pull'])} "
+            f"| {r['seed']} | {fmt(st['design']['second_pull'])} | {tgt} "
             f"| {fmt(st['design_worst']['second_pull'])} "
             f"({r['design_worst_parameter']}) | {fmt(st['random']['second_pull'])} | "
             f"{r['design_top5'][0]['score']:.2f} | {r['design_seconds']:.1f} |"
@@ -548,9 +714,10 @@ def _resummarise(out: Path) -> int:
 
     record = json.loads((out / "results.json").read_text())
     sugg_d = json.loads((out / "suggestions_seed0.json").read_text())
-    cfg = DesignConfig(
-        **{k: tuple(v) if isinstance(v, list) else v for k, v in record["config"].items()}
-    )
+    conf = {k: tuple(v) if isinstance(v, list) else v for k, v in record["config"].items()}
+    if "init" not in conf:  # a record of the first version: uniform start, constant Adam step
+        conf.update(init="uniform", final_learning_rate=None, kT_velocity=False)
+    cfg = DesignConfig(**conf)
     seeds = record["seeds"]
     record["summary"] = summarise(seeds, record["summary"]["labels"])
     md = _markdown(cfg, record["summary"], seeds, record["wall_time_s"], record["cpu_time_s"])
@@ -573,6 +740,8 @@ def main(argv=None) -> int:
             ("seeds", args.seeds),
             ("n_particles", args.particles),
             ("n_iterations", args.iterations),
+            ("init", args.init),
+            ("batch", args.batch),
         )
         if v is not None
     }
@@ -590,11 +759,9 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     tree = load_tree(tree_path(cfg.tree))
     sim = make_simulator(tree, obs_dt=cfg.dt)
-    seeds, first_sugg = [], None
-    for s in range(args.seed, args.seed + cfg.seeds):
-        rec, sugg = run_seed(cfg, tree, sim, s, args.quiet)
-        seeds.append(rec)
-        first_sugg = first_sugg or sugg
+    seeds, first_sugg = run_seeds(
+        cfg, tree, sim, list(range(args.seed, args.seed + cfg.seeds)), args.quiet
+    )
     summary = summarise(seeds, tree.parameter_labels())
     wall = time.perf_counter() - t0
     record = {

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from treeinfer import sequential
+from treeinfer import batch_posteriors, sequential
 from treeinfer.errors import ConfigError
 
 
@@ -255,3 +255,78 @@ def test_two_joint_chain_a_then_b_agrees_with_a_and_b_svgd():
     assert np.all(np.abs(m_seq - m_ab) <= 0.35 * s_ab + 0.03), (m_seq, m_ab, s_ab)
     ratio = s_seq / s_ab
     assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), ratio
+
+
+def test_posterior_program_matches_the_problem_sampler_per_data_set():
+    """The batched program (data and kT as arguments, vmapped over data sets) gives the same
+    particles as each data set's own Problem.sampler run with the same start, keys and kT."""
+    from treeinfer.samplers import init_key, iteration_key
+
+    p_b, p_a, _ = _chain_problems(kT=0.05)
+    kts = [0.05, 0.02]
+    from treeinfer.inference import make_problem
+
+    problems = [
+        make_problem(p.tree, p.obs, kT=k, sim=p.sim, nn_prior=False)
+        for p, k in zip([p_a, p_b], kts)
+    ]
+    rng = np.random.default_rng(0)
+    lo, hi = problems[0].lower, problems[0].upper
+    theta0 = lo + (hi - lo) * rng.uniform(0.3, 0.7, size=(2, 6, len(lo)))
+    n_it = 3
+    prog = batch_posteriors.posterior_program(p_a.tree, p_a.sim, n_it, sampler="svgd")
+    grasp = np.full((2, 1), p_a.tree.grasp_fraction)
+    theta, ld = batch_posteriors.run_posteriors(
+        prog, theta0, [4, 9], kts, [p.obs for p in problems], grasp
+    )
+    assert theta.shape == (2, 6, len(lo)) and ld.shape == (2, 6)
+    for c, (p, seed) in enumerate(zip(problems, [4, 9])):
+        alg = p.sampler("svgd")
+        key = jax.random.key(seed)
+        st = alg.init(init_key(key), jnp.asarray(theta0[c], jnp.float32))
+        for i in range(n_it):
+            st = alg.step(iteration_key(key, i), st)[0]
+        np.testing.assert_allclose(theta[c], np.asarray(st.position), rtol=0, atol=2e-3)
+        np.testing.assert_allclose(ld[c], np.asarray(st.logdensity), rtol=1e-3)
+    assert not np.allclose(theta[0], theta0[0])  # the particles moved
+    with pytest.raises(ConfigError, match="kT"):
+        batch_posteriors.run_posteriors(
+            prog, theta0, [0, 1], [0.05, -1.0], [p.obs for p in problems], grasp
+        )
+    with pytest.raises(ConfigError, match="sampler"):
+        batch_posteriors.posterior_program(p_a.tree, p_a.sim, 3, sampler="mh")
+
+
+def test_map_fits_match_fit_map_per_data_set():
+    """The batched MAP fits (one program for all data sets) equal mapfit.fit_map run on each
+    data set alone with the same starts, kT and Levenberg-Marquardt settings."""
+    from treeinfer.inference import make_problem
+    from treeinfer.mapfit import boltzmann_residuals, fit_map
+
+    p_b, p_a, _ = _chain_problems(kT=0.05)
+    tree, sim, kts = p_a.tree, p_a.sim, [0.05, 0.02]
+    g = np.full((2, 1), tree.grasp_fraction, np.float32)
+    kw = dict(n_starts=3, max_iterations=8)
+    fits = batch_posteriors.map_fits(
+        tree, sim, kts, [p_a.obs, p_b.obs], g, seeds=[0, 5], nn_prior=False, **kw
+    )
+    for fit, obs, kT, seed in zip(fits, [p_a.obs, p_b.obs], kts, [0, 5]):
+        prob = make_problem(tree, obs, kT=kT, sim=sim, nn_prior=False)
+        ref = fit_map(
+            boltzmann_residuals(sim, obs, kT, g[0]),
+            prob.log_prior,
+            prob.lower,
+            prob.upper,
+            seed=seed,
+            jacobian="fd",
+            **kw,
+        )
+        np.testing.assert_allclose(fit.starts, ref.starts)
+        np.testing.assert_allclose(fit.values, ref.values, rtol=1e-4)
+        np.testing.assert_allclose(fit.theta, ref.theta, atol=1e-3)
+        np.testing.assert_allclose(
+            fit.hessian, ref.hessian, rtol=1e-2, atol=1e-3 * np.abs(ref.hessian).max()
+        )
+    assert not np.allclose(fits[0].theta, fits[1].theta)  # two data sets, two fits
+    with pytest.raises(ConfigError, match="kT"):
+        batch_posteriors.map_fits(tree, sim, [0.05, 0.0], [p_a.obs, p_b.obs], g)
