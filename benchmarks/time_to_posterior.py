@@ -101,7 +101,7 @@ def child(args) -> int:
             zip(data["train_force"], data["train_tau"], data["train_tau_dot"])
         )
     ]
-    problem = make_problem(tree, trajs)
+    problem = make_problem(tree, trajs, substeps=args.substeps)
     marks["problem"] = time.time()
     mode = args.child
     record: dict = {"mode": mode}
@@ -278,6 +278,13 @@ def main(argv=None) -> int:
         default=15,
         help="fast path: ramp Adam's learning rate up over this many iterations",
     )
+    p.add_argument(
+        "--substeps",
+        type=int,
+        default=None,
+        help="simulation substeps per observation of every path (default: the library's "
+        "accuracy-controlled step; 4 is the stability step of the earlier figures)",
+    )
     p.add_argument("--check-every", type=int, default=5)
     p.add_argument("--tolerance", type=float, default=0.10)
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "gpu", "cuda"])
@@ -311,6 +318,7 @@ def main(argv=None) -> int:
         "check_every",
         "fast_learning_rate",
         "fast_warmup",
+        "substeps",
     ]
     args.passthrough = []
     for k in keep:
