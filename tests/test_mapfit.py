@@ -128,7 +128,8 @@ def test_norm_loss_covariance_against_quadrature():
 
 def test_boltzmann_fit_draws_the_norm_matched_gaussian():
     """Sum-of-norms toy with residuals left at the mode: ``fit.norm_cov`` satisfies its fixed
-    point, agrees with the Laplace ``H^-1`` where the loss is smooth, and ``laplace_particles`` draws it."""
+    point, agrees with the Laplace ``H^-1`` where the loss is smooth, and ``laplace_particles``
+    draws it."""
     a, y, _ = _linear_toy(seed=3)
     groups = [slice(0, 15), slice(15, 30)]
     kT = 0.05
