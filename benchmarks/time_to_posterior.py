@@ -11,20 +11,29 @@ The standard problem (``benchmarks/inference.py``: three-branch example, R = 3, 
 * ``reference``: uniform initialisation, central differences, ``--reference-iterations`` (long);
 * ``today``: today's code path, uniform initialisation in the prior box, central differences,
   ``--today-iterations`` (200, the paper's setting);
-* ``fast``: Levenberg–Marquardt MAP from ``--starts`` Latin-hypercube points
-  (:func:`treeinfer.mapfit.fit_problem`), particles drawn from its Laplace approximation
-  (:func:`treeinfer.mapfit.laplace_particles`, widened ``--laplace-scale`` = 2x), NNSVGD with
-  ``--fast-gradients`` (fd: on the CPU forward mode costs 2.6x central differences,
-  ``benchmarks/gradient_cost.py``) for ``--fast-iterations`` (15), its Adam learning rate ramped
-  up over ``--fast-warmup`` iterations (Adam's first steps move every coordinate by ~lr whatever
-  its gradient, which scatters particles that start near the posterior).
+* ``fast``: Levenberg–Marquardt MAP from ``--starts`` Latin-hypercube points, at most
+  ``--lm-iterations`` (40) (:func:`treeinfer.mapfit.fit_problem`), particles drawn around it
+  (:func:`treeinfer.mapfit.laplace_particles`; for the Boltzmann loss the Gaussian matched to
+  its cone-shaped density, :func:`treeinfer.mapfit.norm_loss_covariance`, at ``--laplace-scale``
+  1), NNSVGD with ``--fast-gradients`` (fd: on the CPU forward mode costs 2.6x central
+  differences, ``benchmarks/gradient_cost.py``), its Adam learning rate ramped up over
+  ``--fast-warmup`` iterations (the sampler's ``warmup`` option), stopped by
+  :class:`treeinfer.diagnostics.ConvergenceCriterion` (``--stop-when-converged``) or at
+  ``--fast-iterations`` (60).
+
+``--substeps`` sets the simulation step of every path (default: the library's
+accuracy-controlled step); ``--compile-cache DIR`` keeps one compilation cache between runs
+(run twice: the second is the warm-cache figure, written under a ``_warm_compile_cache`` key).
 
 Every ``--check-every`` iterations each run stores its particles and the wall-clock time. A
 posterior is *usable* when, on 3 held-out pulls (noise-free MuJoCo C reference), its 95%
 predictive band's mean width is within ``--tolerance`` (10%) of the reference run's and its
 share of held-out points outside the band is within 10% of the reference's (or 1 percentage
-point, whichever is larger). The time to posterior of a path is the wall time from its process
-start to the first stored state that is usable. The NN prior is trained (or loaded) once
+point, whichever is larger). ``first_usable_s`` is the wall time from a path's process start to
+its first stored state that is usable (an oracle: it needs the reference);
+``time_to_posterior_s`` is the wall time to the run's own end (convergence or its iteration
+cap) when that end is usable, else null; the headline figure is the fast path's
+``time_to_posterior_s``. The NN prior is trained (or loaded) once
 before the timed runs, and the training data are written once and read by each run, as a
 user's CSV files would be.
 
