@@ -23,6 +23,7 @@ from treeinfer.mapfit import (
     fit_problem,
     laplace_particles,
     latin_hypercube,
+    norm_loss_covariance,
     problem_with_gradients,
 )
 from treeinfer.sim import make_simulator
@@ -108,6 +109,65 @@ def test_sum_of_norms_minimum_is_least_squares():
         fit = fit_map(model, None, -3 * np.ones(3), 3 * np.ones(3), n_starts=3)
     np.testing.assert_allclose(fit.theta, beta, atol=1e-6)
     assert np.all(np.linalg.eigvalsh(fit.hessian) > 0)
+
+
+def test_norm_loss_covariance_against_quadrature():
+    """One group, zero residual, D = 2: the covariance of exp(-||J d|| / kT), integrated on a
+    grid, is (D + 1) kT^2 (J^T J)^-1; the variational fixed point is D kT^2 (J^T J)^-1."""
+    jac = np.array([[2.0, 0.5], [0.3, 1.0], [0.0, 0.7]])
+    kT = 0.3
+    gram = jac.T @ jac
+    grid = np.linspace(-6, 6, 1201)
+    d = np.stack(np.meshgrid(grid, grid, indexing="ij"), -1).reshape(-1, 2)
+    w = np.exp(-np.linalg.norm(d @ jac.T, axis=1) / kT)
+    exact = (d * w[:, None]).T @ d / w.sum()
+    np.testing.assert_allclose(exact, 3 * kT**2 * np.linalg.inv(gram), rtol=2e-3, atol=1e-5)
+    cov = norm_loss_covariance(gram[None], np.zeros(1), kT)
+    np.testing.assert_allclose(cov, 2 * kT**2 * np.linalg.inv(gram), rtol=1e-6)
+
+
+def test_boltzmann_fit_draws_the_norm_matched_gaussian():
+    """Sum-of-norms toy with residuals left at the mode: ``fit.norm_cov`` satisfies its fixed
+    point, agrees with the Laplace ``H^-1`` where the loss is smooth, and ``laplace_particles``
+    draws it."""
+    a, y, _ = _linear_toy(seed=3)
+    groups = [slice(0, 15), slice(15, 30)]
+    kT = 0.05
+    with jax.enable_x64(True):
+        model = ResidualModel(
+            lambda th: (jnp.stack([(jnp.asarray(a) @ th - y)[g] for g in groups]), True),
+            "norm",
+            scale=kT,
+        )
+        fit = fit_map(model, None, -3 * np.ones(3), 3 * np.ones(3), n_starts=3)
+        draws = np.asarray(laplace_particles(jax.random.key(2), fit, 40000, box_precision=False))
+        lap = np.asarray(
+            laplace_particles(jax.random.key(2), fit, 4, box_precision=False, covariance="laplace")
+        )
+    gram = np.stack([a[g].T @ a[g] for g in groups])
+    r2 = np.array([np.sum((a[g] @ fit.theta - y[g]) ** 2) for g in groups])
+    s = np.sqrt(r2 + np.einsum("gde,ed->g", gram, fit.norm_cov))
+    np.testing.assert_allclose(
+        np.linalg.inv(fit.norm_cov), np.einsum("gde,g->de", gram, 1 / (kT * s)), rtol=1e-6
+    )
+    # residuals dominate here (the loss is smooth at the mode): matched Gaussian ~ Laplace
+    assert abs(np.trace(fit.norm_cov) / np.trace(fit.cov) - 1) < 0.1
+    np.testing.assert_allclose(np.cov(draws.T), fit.norm_cov, rtol=0.05, atol=1e-3 * s.max())
+    assert lap.shape == (4, 3)
+    with pytest.raises(ConfigError):
+        laplace_particles(jax.random.key(0), fit, 4, covariance="bogus")
+
+
+def test_lm_agree_stops_early_once_starts_agree():
+    a, y, _ = _linear_toy(seed=4)
+    with jax.enable_x64(True):
+        model = ResidualModel(lambda th: ((jnp.asarray(a) @ th - y)[None], True), "gaussian")
+        full = fit_map(model, None, -3 * np.ones(3), 3 * np.ones(3), n_starts=6, agree=None)
+        early = fit_map(model, None, -3 * np.ones(3), 3 * np.ones(3), n_starts=6, agree=2)
+    np.testing.assert_allclose(early.theta, full.theta, atol=1e-6)
+    assert early.converged.sum() >= 2 and early.iterations <= full.iterations
+    with pytest.raises(ConfigError):
+        fit_map(model, None, -3 * np.ones(3), 3 * np.ones(3), agree=0)
 
 
 def test_latin_hypercube_covers_every_stratum():

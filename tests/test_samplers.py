@@ -151,7 +151,72 @@ def test_one_batched_evaluation_per_step():
             calls.clear()
             alg = make_sampler(name, **fn, **extra)  # fresh closures: no compilation cache hits
             run(alg, 0, start(8), n_iter, progress=False, chunk_size=10)
-            assert len(calls) == 3, name  # init + shape inference + one compiled chunk
+            # shape inference of init and of step + one compiled chunk (init folded into it)
+            assert len(calls) == 3 + 1, name
+
+
+def test_a_fresh_run_compiles_one_program():
+    """``init`` is folded into the chunk: a fresh run (and its resumption) compiles exactly one
+    XLA program, counted from JAX's compile events (persistent cache off, so every program the
+    run needs is compiled here and counted)."""
+    from jax._src import dispatch
+
+    compiled = []
+
+    def listener(event, duration, **kw):
+        if event == dispatch.BACKEND_COMPILE_EVENT:
+            compiled.append(kw.get("fun_name"))
+
+    before = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        run(svgd(VG, learning_rate=0.05), 0, start(8), 12, progress=False, chunk_size=4)
+        compiled.clear()  # the run above compiled the small eager helpers of these shapes
+        alg = svgd(VG, learning_rate=0.05)  # new closures: nothing of it is compiled yet
+        full = run(alg, 1, start(8), 12, progress=False, chunk_size=4)
+        assert compiled == ["jit(chunk)"], compiled
+        part = run(alg, 1, start(8), 4, progress=False, chunk_size=4)
+        rest = run(
+            alg,
+            1,
+            None,
+            12,
+            initial_state=part.final_state,
+            start_iteration=4,
+            chunk_size=4,
+            progress=False,
+        )
+        assert compiled == ["jit(chunk)"], compiled  # same shapes: the resumed run reuses it
+        np.testing.assert_array_equal(rest.final_positions, full.final_positions)
+        assert full.trace_iterations[0] == 0
+        np.testing.assert_array_equal(full.trace_positions[0], np.asarray(start(8)))
+        init_state = jax.jit(alg.init)(jax.random.key(0), start(8))
+        np.testing.assert_allclose(
+            full.trace_logdensity[0], np.asarray(init_state.logdensity), rtol=1e-6
+        )
+    finally:
+        jax.monitoring.clear_event_listeners()
+        jax.config.update("jax_enable_compilation_cache", before)
+
+
+def test_svgd_warmup_ramps_the_learning_rate():
+    """``warmup=W``: Adam's step sizes ramp linearly from lr / 20 to lr over W iterations
+    (optax.linear_schedule), so the first move from a good start is 20x smaller."""
+    x0 = start(16)
+    moves = {}
+    for w in (0, 10):
+        r = run(svgd(VG, learning_rate=0.1, warmup=w), 0, x0, 1, progress=False)
+        moves[w] = np.abs(np.asarray(r.final_positions) - np.asarray(x0)).max()
+    # Adam's first update is lr * sign(g) (bias-corrected m / sqrt(v)), up to its epsilon
+    np.testing.assert_allclose(moves[0], 0.1, rtol=1e-3)
+    np.testing.assert_allclose(moves[10], 0.1 / 20, rtol=1e-3)
+    alg = svgd(VG, learning_rate=0.1, warmup=10)
+    assert alg.settings["warmup"] == 10 and "warmup" not in svgd(VG).settings
+    with pytest.raises(ConfigError):
+        svgd(VG, warmup=-1)
+    with pytest.raises(ConfigError):
+        svgd(VG, warmup=3, optimizer=optax.sgd(0.1))
 
 
 def test_collapsed_and_single_particles_do_not_nan():

@@ -59,6 +59,7 @@ __all__ = [
     "gaussian_residuals",
     "laplace_particles",
     "latin_hypercube",
+    "norm_loss_covariance",
     "problem_with_gradients",
 ]
 
@@ -95,6 +96,9 @@ class MapFit(NamedTuple):
     lower, upper: [D_model] the prior box (theta units) the starts were drawn from.
     n_model: columns of theta that are model parameters (log Kp, log Kd).
     settings: options of the fit.
+    norm_cov: [D, D] for ``kind="norm"`` only (else None): the Gaussian matched to the
+      Boltzmann density's spread, :func:`norm_loss_covariance` (the Laplace ``cov`` is far too
+      narrow there: the density is cone-shaped at a small-residual mode).
     """
 
     theta: np.ndarray
@@ -110,6 +114,7 @@ class MapFit(NamedTuple):
     upper: np.ndarray
     n_model: int
     settings: dict
+    norm_cov: np.ndarray | None = None
 
 
 # ---- residual models of the simulator ------------------------------------------------------
@@ -206,7 +211,9 @@ def _psd(h):
 
 
 def _terms_one(model: ResidualModel, log_prior, method, rel_step, theta):
-    """(objective, gradient [D], curvature [D, D]) of ``-log posterior`` at ``theta [D]``."""
+    """(objective, gradient [D], curvature [D, D], (gram [G, Dm, Dm], r2 [G])) of ``-log
+    posterior`` at ``theta [D]``; ``gram_g = J_g^T J_g`` and ``r2_g = ||r_g||^2`` per residual
+    group (for :func:`norm_loss_covariance`)."""
     n_model = theta.shape[0] - (1 if model.kind == "gaussian_log_sigma" else 0)
     th = theta[:n_model]
     r, ok, jac = _jacobian(model.residuals, th, method, rel_step)
@@ -245,7 +252,8 @@ def _terms_one(model: ResidualModel, log_prior, method, rel_step, theta):
     value = jnp.where(ok, value, jnp.inf)
     grad = jnp.where(ok, grad, 0.0)
     curv = jnp.where(ok, curv, 0.0)
-    return value, grad, curv
+    groups = (jnp.einsum("gkd,gke->gde", jac, jac), jnp.sum(r**2, axis=-1))
+    return value, grad, curv, groups
 
 
 def latin_hypercube(n: int, lower, upper, seed: int = 0) -> np.ndarray:
@@ -270,6 +278,7 @@ def fit_map(
     max_iterations: int = 60,
     tolerance: float = 1e-6,
     max_step: float = 1.0,
+    agree: int | None = None,
 ) -> MapFit:
     """Levenberg–Marquardt from ``n_starts`` Latin-hypercube points of the prior box.
 
@@ -284,6 +293,11 @@ def fit_map(
       tolerance: stop a start when its objective falls by less than ``tolerance * (1 + |f|)``
         on an accepted step, or its step is below ``tolerance`` in every coordinate.
       max_step: largest change of any coordinate in one step (log units: a factor e).
+      agree: stop early once this many starts have converged to the best value found so far
+        (objective within ``sqrt(tolerance) * (1 + |f|)`` of the lowest of all starts): that
+        many independent starts ending at one minimum, with no start lower, is taken as the
+        mode (None: run until every start has converged or ``max_iterations``). Starts still
+        travelling are abandoned, so a lower mode that only they would reach is missed.
 
     Returns a :class:`MapFit`; its ``cov`` is ``H^-1`` at the best point, with ``H`` the
     Gauss–Newton curvature of the likelihood plus the prior's (PSD-projected) Hessian.
@@ -297,6 +311,8 @@ def fit_map(
     lower, upper = np.asarray(lower, float), np.asarray(upper, float)
     if lower.shape != upper.shape or lower.ndim != 1 or np.any(~(upper > lower)):
         raise ConfigError("lower/upper: need two [D] arrays with upper > lower")
+    if agree is not None and not (isinstance(agree, int) and agree >= 1):
+        raise ConfigError(f"agree: must be an integer >= 1 or None, got {agree!r}")
     if starts is None:
         if not (isinstance(n_starts, int) and n_starts >= 1):
             raise ConfigError(f"n_starts: must be an integer >= 1, got {n_starts!r}")
@@ -310,11 +326,12 @@ def fit_map(
     terms = jax.jit(jax.vmap(lambda th: _terms_one(model, log_prior, jacobian, rel_step, th)))
 
     def evaluate(theta):
-        f, g, h = terms(jnp.asarray(theta, dtype))
-        return np.array(f, float), np.array(g, float), np.array(h, float)  # writable copies
+        f, g, h, (gram, r2) = terms(jnp.asarray(theta, dtype))
+        out = (f, g, h, gram, r2)
+        return tuple(np.array(x, float) for x in out)  # writable copies
 
     theta = starts.copy()
-    f, g, h = evaluate(theta)
+    f, g, h, gram, r2 = evaluate(theta)
     n = theta.shape[0]
     scale0 = np.array([np.mean(np.abs(np.diag(hi))) + 1e-12 for hi in h])
     lam = 1e-3 * np.ones(n)
@@ -333,7 +350,7 @@ def fit_map(
             big = np.max(np.abs(step))
             steps[i] = step if big <= max_step else step * (max_step / big)
         trial = theta + steps
-        ft, gt, ht = evaluate(trial)
+        ft, gt, ht, gram_t, r2_t = evaluate(trial)
         accept = ~done & np.isfinite(ft) & (ft < f)
         small = np.max(np.abs(steps), axis=1) < tolerance
         flat = accept & ((f - ft) < tolerance * (1.0 + np.abs(f)))
@@ -343,12 +360,18 @@ def fit_map(
             gt[accept],
             ht[accept],
         )
+        gram[accept], r2[accept] = gram_t[accept], r2_t[accept]
         lam = np.where(accept, np.maximum(lam / 3.0, 1e-9), lam * 4.0)
         newly = ~done & (flat | small)
         converged |= newly
         done |= newly | (lam > 1e10)
         if done.all():
             break
+        if agree is not None and np.isfinite(f).any():
+            low = np.min(np.where(np.isfinite(f), f, np.inf))
+            at_low = converged & (f - low <= math.sqrt(tolerance) * (1.0 + abs(low)))
+            if at_low.sum() >= agree:
+                break
     best = int(np.argmin(np.where(np.isfinite(f), f, np.inf)))
     if not np.isfinite(f[best]):
         from .errors import SimulationError
@@ -359,6 +382,9 @@ def fit_map(
         )
     hess = 0.5 * (h[best] + h[best].T)
     cov = _inverse_psd(hess)
+    norm_cov = (
+        norm_loss_covariance(gram[best], r2[best], model.scale) if model.kind == "norm" else None
+    )
     settings = {
         "n_starts": len(starts),
         "seed": seed,
@@ -367,6 +393,7 @@ def fit_map(
         "max_iterations": max_iterations,
         "tolerance": tolerance,
         "max_step": max_step,
+        "agree": agree,
     }
     return MapFit(
         theta[best].copy(),
@@ -382,7 +409,45 @@ def fit_map(
         upper,
         lower.size,
         settings,
+        norm_cov,
     )
+
+
+def norm_loss_covariance(
+    gram, r2, kT: float, iterations: int = 200, rtol: float = 1e-8
+) -> np.ndarray:
+    """Covariance ``S [D, D]`` of the Gaussian matched to ``exp(-sum_g ||r_g + J_g d|| / kT)``.
+
+    Why not the Laplace ``H^-1``: the Boltzmann loss is a sum of norms; at a mode whose
+    residuals are small (good data, small noise) its curvature ``J^T (I - u u^T) J / ||r||``
+    grows without bound and ``H^-1`` is far narrower than the density (the density is a cone
+    there, not a Gaussian). This is the variational (iteratively reweighted) Gaussian of the
+    linearised loss instead: each norm is replaced by its quadratic upper bound at its expected
+    size, ``||x|| <= (||x||^2 + s^2) / (2 s)``, with ``s_g^2 = E||r_g + J_g d||^2 = ||r_g||^2 +
+    tr(J_g^T J_g S)`` under ``d ~ N(0, S)``, which gives the fixed point
+
+        S = (sum_g J_g^T J_g / (kT s_g))^-1,  s_g = sqrt(||r_g||^2 + tr(J_g^T J_g S)).
+
+    For one group with ``r = 0`` and a full-rank ``J`` in ``D`` dimensions the exact covariance
+    of ``exp(-||J d|| / kT)`` is ``(D + 1) kT^2 (J^T J)^-1`` and the fixed point gives ``D kT^2
+    (J^T J)^-1`` (``tests/test_mapfit.py`` checks both); the prior is not included (add the
+    box's precision as :func:`laplace_particles` does).
+
+    Args: gram [G, D, D] ``J_g^T J_g``; r2 [G] ``||r_g||^2`` at the mode; kT the temperature.
+    """
+    gram = np.asarray(gram, float)
+    r2 = np.asarray(r2, float)
+    dim = gram.shape[-1]
+    total = gram.sum(0)
+    cov = dim * kT**2 * _inverse_psd(total) / len(gram)  # equal shares: a starting point
+    for _ in range(iterations):
+        s = np.sqrt(r2 + np.maximum(np.einsum("gde,ed->g", gram, cov), 0.0)) + 1e-300
+        new = _inverse_psd(np.einsum("gde,g->de", gram, 1.0 / (kT * s)))
+        done = np.max(np.abs(new - cov)) <= rtol * np.max(np.abs(new))
+        cov = new
+        if done:
+            break
+    return 0.5 * (cov + cov.T)
 
 
 def _inverse_psd(h: np.ndarray) -> np.ndarray:
@@ -394,9 +459,19 @@ def _inverse_psd(h: np.ndarray) -> np.ndarray:
 
 
 def laplace_particles(
-    key, fit: MapFit, n: int, scale: float = 1.0, box_precision: bool = True
+    key,
+    fit: MapFit,
+    n: int,
+    scale: float = 1.0,
+    box_precision: bool = True,
+    covariance: str = "auto",
 ) -> jax.Array:
-    """``[n, D]`` draws of the Laplace approximation ``N(fit.theta, scale^2 cov)``.
+    """``[n, D]`` draws of ``N(fit.theta, scale^2 C)`` around the MAP point.
+
+    ``covariance``: ``"laplace"`` (``C = H^-1``, the Laplace approximation), ``"norm"``
+    (``fit.norm_cov``, the Gaussian matched to the Boltzmann loss's cone-shaped density, see
+    :func:`norm_loss_covariance`) or ``"auto"`` (``"norm"`` when the fit has it, i.e. for the
+    Boltzmann loss, else ``"laplace"``).
 
     ``box_precision=True`` adds the precision ``12 / width^2`` of the uniform over the prior box
     (a Gaussian with the box's variance) to the model columns before inverting, so directions
@@ -406,7 +481,18 @@ def laplace_particles(
         raise ConfigError(f"n: must be an integer >= 1, got {n!r}")
     if not (scale > 0):
         raise ConfigError(f"scale: must be > 0, got {scale!r}")
-    h = np.array(fit.hessian, float)
+    if covariance not in ("auto", "laplace", "norm"):
+        raise ConfigError(f"covariance: 'auto', 'laplace' or 'norm', got {covariance!r}")
+    if covariance == "norm" and fit.norm_cov is None:
+        raise ConfigError("covariance='norm': the fit has no norm_cov (not a Boltzmann loss)")
+    use_norm = covariance == "norm" or (covariance == "auto" and fit.norm_cov is not None)
+    if use_norm:
+        # precision of the matched Gaussian (model columns only; the norm loss has no sigma)
+        h = np.zeros((len(fit.theta),) * 2)
+        m = fit.n_model
+        h[:m, :m] = _inverse_psd(np.asarray(fit.norm_cov, float))
+    else:
+        h = np.array(fit.hessian, float)
     if box_precision:
         width = np.asarray(fit.upper, float) - np.asarray(fit.lower, float)
         idx = np.arange(fit.n_model)

@@ -480,6 +480,14 @@ def check_data_unchanged(config: dict) -> list[Trajectory]:
     return read_trajectory_dir(d)
 
 
+# Particles from --init laplace already have the posterior's spread: full-size Adam steps in
+# the first iterations scatter them, so SVGD/NNSVGD ramp the step up over this many iterations.
+LAPLACE_WARMUP = 10
+
+
 def sampler_settings(config: dict) -> dict:
     name = config["options"]["sampler"]
-    return {"name": name, "options": sampler_options(name)}
+    options = dict(sampler_options(name))
+    if config["options"].get("init", "uniform") == "laplace" and name in ("svgd", "nnsvgd"):
+        options["warmup"] = LAPLACE_WARMUP
+    return {"name": name, "options": options}

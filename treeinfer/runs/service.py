@@ -137,11 +137,11 @@ def _resume_paths(run_arg: str | os.PathLike) -> tuple[Path, Path]:
     return p, partial
 
 
-# The Gaussian (Gauss-Newton) Laplace approximation is narrower than the NNSVGD posterior of the
-# Boltzmann loss (a sum of norms: its density is cone-shaped, not Gaussian, where the residuals
-# are small): on the standard problem, Laplace draws widened 2x give a predictive band within 10%
-# of a 400-iteration NNSVGD reference (benchmarks/time_to_posterior.py, BENCHMARKS.md).
-LAPLACE_SCALE = 2.0
+# For the Boltzmann loss laplace_particles draws the Gaussian matched to the loss's cone-shaped
+# density (mapfit.norm_loss_covariance), not the Gauss-Newton H^-1, which is far too narrow at a
+# small-residual mode; it is used as it is (scale 1): BENCHMARKS.md, "second pass (issue 15)".
+LAPLACE_SCALE = 1.0
+LAPLACE_LM_ITERATIONS = 40  # 25 left every start short of the mode on the standard problem
 
 
 def _laplace_start(problem, config: dict, log: Callable[[str], None]):
@@ -157,9 +157,14 @@ def _laplace_start(problem, config: dict, log: Callable[[str], None]):
         )
     jacobian = "jvp" if o.get("gradients", "fd") == "jvp" else "fd"
     fit = fit_problem(
-        problem, "boltzmann", n_starts=6, seed=o["seed"], jacobian=jacobian, max_iterations=25
+        problem,
+        "boltzmann",
+        n_starts=6,
+        seed=o["seed"],
+        jacobian=jacobian,
+        max_iterations=LAPLACE_LM_ITERATIONS,
     )
-    std = np.sqrt(np.diag(fit.cov))
+    std = np.sqrt(np.diag(fit.cov if fit.norm_cov is None else fit.norm_cov))
     log(
         f"Laplace start: MAP from {len(fit.starts)} starts in {fit.iterations} LM iterations, "
         "log-gain std " + ", ".join(f"{x:.3g}" for x in std)
@@ -310,6 +315,7 @@ def run_inference(
         start_iteration=0 if previous is None else previous.iteration,
         **_convergence_options(o, problem),
         **({} if theta0 is None else {"initial_theta": theta0}),
+        **_warmup_option(config),
     )
     done = int(posterior.run.settings.get("n_iterations_done", o["iterations"]))
     if checkpointer.last_iteration != done:
@@ -370,6 +376,12 @@ def _fitted_noise(problem) -> float | None:
         return None
 
 
+def _warmup_option(config: dict) -> dict:
+    """The recorded learning-rate warm-up (``--init laplace`` with SVGD/NNSVGD), if any."""
+    w = config.get("sampler", {}).get("options", {}).get("warmup")
+    return {"warmup": int(w)} if w else {}
+
+
 def _convergence_options(o: dict, problem) -> dict:
     """``stop_when`` / ``reinit_stragglers`` for :func:`~treeinfer.inference.infer` from a run's
     options (issue 11: --stop-when-converged, --reinit-stragglers N)."""
@@ -409,6 +421,7 @@ def infer_posterior(
         seed=o["seed"],
         progress=progress,
         **({} if theta0 is None else {"initial_theta": theta0}),
+        **_warmup_option(config),
     )
     return problem, posterior
 

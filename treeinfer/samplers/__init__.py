@@ -8,9 +8,10 @@ target evaluation per step. Gradient samplers take a batched
 Hastings takes a batched ``logdensity_fn(theta [P, D]) -> [P]``.
 
 :func:`run` drives any of them in jitted ``lax.scan`` chunks with progress,
-tracing, checkpoint callbacks and exact resume; :data:`REGISTRY` lists every sampler (constructor, default options, target kind, whether it
-needs the NN prior); :func:`build_sampler` builds one by name with treeinfer's options and
-:func:`make_sampler` with raw constructor hyperparameters.
+tracing, checkpoint callbacks and exact resume; :data:`REGISTRY` lists every sampler
+(constructor, default options, target kind, whether it needs the NN prior);
+:func:`build_sampler` builds one by name with treeinfer's options and :func:`make_sampler` with
+raw constructor hyperparameters.
 """
 
 from __future__ import annotations
@@ -66,7 +67,10 @@ LOG_DENSITY = "log_density"
 
 
 def _svgd_options(opts: dict, box_width) -> dict:
-    return {"learning_rate": opts["learning_rate"]}
+    # warmup (learning-rate ramp, e.g. for --init laplace) only when asked: not a default, so
+    # runs without it record the same options as before
+    warm = {"warmup": opts["warmup"]} if opts.get("warmup") else {}
+    return {"learning_rate": opts["learning_rate"], **warm}
 
 
 def _langevin_options(opts: dict, box_width) -> dict:
@@ -145,7 +149,8 @@ SAMPLER_NAMES: tuple[str, ...] = tuple(REGISTRY)
 SAMPLERS: dict[str, Callable[..., SamplingAlgorithm]] = {
     n: s.constructor for n, s in REGISTRY.items()
 }
-"""Sampler constructors by name. ``mh`` takes a log-density, the others a value-and-grad function."""
+"""Sampler constructors by name. ``mh`` takes a log-density, the others a value-and-grad
+function."""
 
 
 def sampler_spec(name: str) -> SamplerSpec:

@@ -94,12 +94,28 @@ def _scalars(info) -> dict:
 
 
 @functools.lru_cache(maxsize=4)
-def _build_chunk(step, length: int, record_trace: bool, scalar_template: tuple):
-    """Jitted chunk of ``length`` iterations; cached so repeated runs of one
-    algorithm (resume, benchmarks, notebooks) do not recompile."""
+def _build_chunk(init, step, length: int, record_trace: bool, scalar_template: tuple):
+    """Jitted chunk of ``length`` iterations, ``init`` folded in: one program per run.
+
+    ``chunk(state, positions, fresh, rng_key, first, stop)``: when ``fresh``, ``state`` (zeros
+    of the state's shapes) is replaced by ``init(init_key(rng_key), positions)`` before the
+    iterations; otherwise ``positions`` is ignored and ``state`` is continued. Both the first
+    chunk of a run and every later one (and a resumed run) call the same executable, so a run
+    compiles once, where a separate ``init`` program compiled the whole simulator a second
+    time. Iterations ``i >= stop`` are padding (held, no evaluation). Returns ``(state,
+    (scalars, trace), (position [P, D], logdensity [P]))``, the last the state after the
+    (optional) init: the run's initial particles and their log density on a fresh run.
+
+    Cached so repeated runs of one algorithm (resume, benchmarks, notebooks) do not recompile.
+    """
     scalar_template = dict(scalar_template)
 
-    def chunk(state, rng_key, first, stop):
+    def chunk(state, positions, fresh, rng_key, first, stop):
+        state = jax.lax.cond(
+            fresh, lambda s: init(init_key(rng_key), positions), lambda s: s, state
+        )
+        initial = (state.position, state.logdensity)
+
         def body(state, i):
             def advance(s):
                 s, info = step(iteration_key(rng_key, i), s)
@@ -112,7 +128,8 @@ def _build_chunk(step, length: int, record_trace: bool, scalar_template: tuple):
             trace = (state.position, state.logdensity) if record_trace else None
             return state, (scalars, trace)
 
-        return jax.lax.scan(body, state, first + jnp.arange(length, dtype=jnp.int32))
+        state, out = jax.lax.scan(body, state, first + jnp.arange(length, dtype=jnp.int32))
+        return state, out, initial
 
     return jax.jit(chunk)
 
@@ -149,22 +166,8 @@ def _single_device(tree) -> bool:
     return len(devices) <= 1
 
 
-def _initial_state_and_chunk(init, init_args, chunk, state_shapes, key):
-    """Run ``init`` and compile the scan chunk. Both programs hold the whole finite-difference
-    simulator, and compiling them dominates a run's start-up; XLA compiles without the GIL, so
-    on one device they compile side by side in two threads (on several devices the chunk is
-    compiled after ``init`` has run, so that it sees the state's real shardings)."""
-    if chunk is None:
-        return init(*init_args), None
-    if not _single_device(init_args):
-        state = init(*init_args)
-        return state, _compiled(chunk, (state, key, jnp.int32(0), jnp.int32(0)))
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        init_exe = pool.submit(lambda: init.lower(*init_args).compile())
-        chunk_exe = pool.submit(_compiled, chunk, (state_shapes, key, jnp.int32(0), jnp.int32(0)))
-        return init_exe.result()(*init_args), chunk_exe.result()
+def _zeros_like_shapes(tree):
+    return jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), tree)
 
 
 def _key_record(rng_key) -> dict:
@@ -227,10 +230,11 @@ def run(
         when some are found); ``diagnostics["n_reinitialised"]`` counts them per iteration.
         Deterministic (keyed by iteration), so resume stays exact.
 
-    The step is traced twice (shape inference and compilation) and the chunk
-    compiled once; ``init`` is compiled beside it, in a second thread. Compiled
-    chunks of the last few (algorithm, chunk length, shapes) are cached, so a
-    resumed run of the same algorithm object does not recompile.
+    One program per run: ``init`` is folded into the jitted scan chunk (run inside it, under
+    ``lax.cond``, on the first chunk of a fresh run), so a run compiles one executable where
+    it used to compile two (``tests/test_samplers.py`` counts them). Compiled chunks of the
+    last few (algorithm, chunk length, shapes) are cached, so a resumed run of the same
+    algorithm object does not recompile.
     """
     t0 = time.perf_counter()
     for nm, v in (("n_iterations", n_iterations), ("start_iteration", start_iteration)):
@@ -263,17 +267,16 @@ def run(
     key_record = _key_record(rng_key)
     key = jax.random.key(int(rng_key)) if isinstance(rng_key, (int, np.integer)) else rng_key
 
-    init_args = None
-    if initial_state is None:
+    fresh = initial_state is None
+    if fresh:
         if start_iteration != 0:
             raise ConfigError(
                 "run: start_iteration > 0 needs the initial_state saved at that iteration"
             )
         if initial_positions is None:
             raise ConfigError("run: give initial_positions [P, D] (or initial_state to resume)")
-        init_args = (init_key(key), check_positions(initial_positions))
-        init = jax.jit(algorithm.init)
-        state = init.eval_shape(*init_args)  # shapes now; values once init is compiled below
+        positions = check_positions(initial_positions)
+        state = jax.eval_shape(algorithm.init, init_key(key), positions)  # shapes only
     else:
         state = initial_state
     n_particles, dim = state.position.shape
@@ -282,23 +285,41 @@ def run(
     diagnostics: dict[str, list] = {}
     remaining = n_iterations - start_iteration
     chunk = None
-    if remaining > 0:
+    if remaining > 0 or fresh:
         _, info_shape = jax.eval_shape(algorithm.step, iteration_key(key, 0), state)
         template = tuple(
             (k, jax.ShapeDtypeStruct(v.shape, v.dtype)) for k, v in _scalars(info_shape).items()
         )
-        length = min(chunk_size, remaining)
-        chunk = _build_chunk(algorithm.step, length, record_trace, template)
-    if init_args is not None:
-        state, chunk = _initial_state_and_chunk(init, init_args, chunk, state, key)
-    elif chunk is not None:
-        chunk = _compiled(chunk, (state, key, jnp.int32(0), jnp.int32(0)))
+        length = max(1, min(chunk_size, remaining))
+        chunk = _build_chunk(algorithm.init, algorithm.step, length, record_trace, template)
+    if fresh and not _single_device(positions):
+        # sharded particles: init runs on its own so the chunk sees the state's real shardings
+        state = jax.jit(algorithm.init)(init_key(key), positions)
+        fresh = False
+    if fresh:
+        state = _zeros_like_shapes(state)
+    else:
+        positions = state.position
+    if chunk is not None:
+        chunk = _compiled(
+            chunk, (state, positions, jnp.asarray(True), key, jnp.int32(0), jnp.int32(0))
+        )
 
     trace_pos, trace_ld, trace_it = [], [], []
-    if record_trace and start_iteration == 0:
+    initial_trace = record_trace and start_iteration == 0
+    if initial_trace and not fresh:
         trace_pos.append(to_host(state.position))
         trace_ld.append(to_host(state.logdensity))
         trace_it.append(0)
+    if fresh and remaining == 0:  # nothing to run: the chunk only initialises
+        state, _, initial = chunk(
+            state, positions, jnp.asarray(True), key, jnp.int32(0), jnp.int32(0)
+        )
+        if initial_trace:
+            trace_pos.append(to_host(initial[0]))
+            trace_ld.append(to_host(initial[1]))
+            trace_it.append(0)
+        fresh = False
 
     stop_reason = "max_iterations"
     it = start_iteration
@@ -316,7 +337,14 @@ def run(
         try:
             while it < n_iterations:
                 stop = min((it // chunk_size + 1) * chunk_size, n_iterations)
-                state, (scalars, trace) = chunk(state, key, jnp.int32(it), jnp.int32(stop))
+                state, (scalars, trace), initial = chunk(
+                    state, positions, jnp.asarray(fresh), key, jnp.int32(it), jnp.int32(stop)
+                )
+                if fresh and initial_trace:  # the initial state, evaluated inside the chunk
+                    trace_pos.append(to_host(initial[0]))
+                    trace_ld.append(to_host(initial[1]))
+                    trace_it.append(0)
+                fresh = False
                 n_done = stop - it
                 scalars = {k: to_host(v)[:n_done] for k, v in scalars.items()}
                 for k, v in scalars.items():

@@ -97,7 +97,8 @@ def sghmc(
     temperature = positive(temperature, "sghmc: temperature")
     if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
         raise ConfigError(
-            f"sghmc: optimizer must be an optax GradientTransformation, got {type(optimizer).__name__}"
+            f"sghmc: optimizer must be an optax GradientTransformation, "
+            f"got {type(optimizer).__name__}"
         )
     if not callable(step_size):
         eps = float(step_size)

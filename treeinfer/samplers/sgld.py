@@ -84,7 +84,8 @@ def sgld(
     temperature = positive(temperature, "sgld: temperature", allow_zero=True)
     if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
         raise ConfigError(
-            f"sgld: optimizer must be an optax GradientTransformation, got {type(optimizer).__name__}"
+            f"sgld: optimizer must be an optax GradientTransformation, "
+            f"got {type(optimizer).__name__}"
         )
     integrator = diffusions.overdamped_langevin()
     settings = {

@@ -27,6 +27,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from blackjax.vi import svgd as _bj_svgd
 
@@ -35,7 +36,17 @@ from ..errors import ConfigError
 from ..gradients import ValueAndGradFn
 from .base import SamplingAlgorithm, check_positions, count_nonfinite, finite_mean, positive
 
-__all__ = ["SVGDInfo", "SVGDState", "median_length_scale", "nnsvgd", "stein_direction", "svgd"]
+__all__ = [
+    "WARMUP_START_DIVISOR",
+    "SVGDInfo",
+    "SVGDState",
+    "median_length_scale",
+    "nnsvgd",
+    "stein_direction",
+    "svgd",
+]
+
+WARMUP_START_DIVISOR = 20.0  # a warm-up starts at learning_rate / 20
 
 
 class SVGDState(NamedTuple):
@@ -99,6 +110,7 @@ def svgd(
     length_scale: float | None = None,
     min_length_scale: float = 1e-6,
     name: str = "svgd",
+    warmup: int = 0,
 ) -> SamplingAlgorithm:
     """SVGD with an RBF kernel and median-heuristic bandwidth.
 
@@ -113,6 +125,11 @@ def svgd(
         heuristic from the current particles before every update.
       min_length_scale: floor for the heuristic (collapsed particles).
       name: recorded sampler name.
+      warmup: iterations over which Adam's learning rate ramps linearly from
+        ``learning_rate / 20`` up to ``learning_rate`` (``optax.linear_schedule``; 0: constant).
+        For particles that start near the posterior (``--init laplace``): Adam's first steps
+        move every coordinate by about the learning rate whatever its gradient, which scatters
+        particles that already have the right spread. Only with ``optimizer=None``.
 
     The key passed to ``step`` is ignored: SVGD is deterministic, so exactly
     identical initial particles stay identical (start from a spread).
@@ -121,7 +138,12 @@ def svgd(
     min_ls = positive(min_length_scale, "svgd: min_length_scale")
     if length_scale is not None:
         length_scale = positive(length_scale, "svgd: length_scale")
-    opt = optax.adam(lr) if optimizer is None else optimizer
+    if isinstance(warmup, bool) or not isinstance(warmup, (int, np.integer)) or warmup < 0:
+        raise ConfigError(f"svgd: warmup must be an integer >= 0, got {warmup!r}")
+    if warmup and optimizer is not None:
+        raise ConfigError("svgd: warmup ramps the default Adam; give it in your own optimizer")
+    rate = optax.linear_schedule(lr / WARMUP_START_DIVISOR, lr, int(warmup)) if warmup else lr
+    opt = optax.adam(rate) if optimizer is None else optimizer
     if not isinstance(opt, optax.GradientTransformation):
         raise ConfigError(
             f"svgd: optimizer must be an optax GradientTransformation, got {type(opt).__name__}"
@@ -131,6 +153,7 @@ def svgd(
         "learning_rate": lr if optimizer is None else None,
         "length_scale": "median_heuristic" if length_scale is None else length_scale,
         "min_length_scale": min_ls,
+        **({"warmup": int(warmup)} if warmup else {}),
     }
 
     def init(rng_key, positions) -> SVGDState:
@@ -172,12 +195,15 @@ def nnsvgd(
     length_scale: float | None = None,
     min_length_scale: float = 1e-6,
     name: str = "nnsvgd",
+    warmup: int = 0,
 ) -> SamplingAlgorithm:
     """NNSVGD (the paper's method): :func:`svgd` recorded under the name ``"nnsvgd"``.
 
     The algorithm is plain SVGD; what makes it NNSVGD is the target, which the
     caller composes to include the neural-network inequality prior, e.g.
-    ``combined_value_and_grad(fd_terms=[likelihood], autodiff_terms=[box_prior, inequality_prior(net, pairs)])``.
-    Arguments as for :func:`svgd`.
+    ``combined_value_and_grad(fd_terms=[likelihood],
+    autodiff_terms=[box_prior, inequality_prior(net, pairs)])``. Arguments as for :func:`svgd`.
     """
-    return svgd(value_and_grad_fn, learning_rate, optimizer, length_scale, min_length_scale, name)
+    return svgd(
+        value_and_grad_fn, learning_rate, optimizer, length_scale, min_length_scale, name, warmup
+    )
