@@ -58,19 +58,20 @@ SIZES = {
         dt=0.02,
         chunk=4,
     ),
-    # committed CPU size: 64 data sets of 5 short pulls (1 s at 20 ms), SMC with 128 particles
+    # committed CPU size (a 2-core box shared with others): 64 data sets of 3 short pulls
+    # (0.6 s at 30 ms), SMC with 64 particles, 16 ranked draws
     "cpu": dict(
         datasets=64,
-        particles=32,
-        smc_particles=128,
-        smc_levels=40,
-        smc_mutations=4,
-        smc_final=16,
-        n_traj=5,
-        test_traj=25,
-        duration=1.0,
-        dt=0.02,
-        chunk=16,
+        particles=16,
+        smc_particles=64,
+        smc_levels=24,
+        smc_mutations=3,
+        smc_final=8,
+        n_traj=3,
+        test_traj=5,
+        duration=0.6,
+        dt=0.03,
+        chunk=64,
     ),
     # the set-up on a GPU: >= 200 data sets per tree, 3 s pulls at 10 ms
     "full": dict(
