@@ -59,28 +59,30 @@ SIZES = {
         chunk=4,
     ),
     # committed CPU size (a 2-core box shared with others): 64 data sets of 3 short pulls
-    # (0.6 s at 30 ms), SMC with 64 particles, 16 ranked draws
+    # (0.6 s at 30 ms), SMC with 128 particles and 8 moves per level, 16 ranked draws
     "cpu": dict(
         datasets=64,
         particles=16,
-        smc_particles=64,
-        smc_levels=24,
-        smc_mutations=3,
-        smc_final=8,
+        smc_particles=128,
+        smc_levels=20,
+        smc_mutations=8,
+        smc_final=24,
         n_traj=3,
         test_traj=5,
         duration=0.6,
         dt=0.03,
         chunk=64,
     ),
-    # the set-up on a GPU: >= 200 data sets per tree, 3 s pulls at 10 ms
+    # the set-up on a GPU: >= 200 data sets per tree, 3 s pulls at 10 ms; SMC with 256
+    # particles, up to 48 levels of 10 moves and 40 final moves (520 batched simulations of
+    # 256 x 128 rollouts per chunk)
     "full": dict(
         datasets=256,
         particles=32,
         smc_particles=256,
-        smc_levels=96,
-        smc_mutations=5,
-        smc_final=20,
+        smc_levels=48,
+        smc_mutations=10,
+        smc_final=40,
         n_traj=5,
         test_traj=25,
         duration=3.0,
