@@ -50,6 +50,8 @@ from .core import (
     MIN_ESS_PER_CHAIN,
     RHAT_MAX,
     WINDOW,
+    _arviz as _arviz,
+    _labels as _labels,
     convergence_warnings,
     mcmc_diagnostics,
     save_inference_data,
