@@ -50,14 +50,14 @@ from .core import (
     MIN_ESS_PER_CHAIN,
     RHAT_MAX,
     WINDOW,
-    _arviz as _arviz,
-    _labels as _labels,
     convergence_warnings,
     mcmc_diagnostics,
     save_inference_data,
     svgd_diagnostics,
     to_inference_data,
 )
+from .core import _arviz as _arviz  # private helpers some tests and callers use
+from .core import _labels as _labels
 from .stragglers import (
     FALSE_ALARM,
     MAX_BOX_EXCESS,
