@@ -256,3 +256,24 @@ def test_smc_weights_separated_modes_like_the_exact_posterior():
     share = float(np.mean(np.asarray(x) > 0))
     assert 0.6 < exact < 0.95  # both modes matter
     assert abs(share - exact) < 0.06, (share, exact)
+
+
+def test_cli_names_the_smc_flag_on_bad_sizes(tmp_path, capsys):
+    from treeinfer.cli import main
+
+    rc = main(
+        [
+            "calibrate",
+            "--tree",
+            "treeinfer/examples/two_branch.yaml",
+            "--out",
+            str(tmp_path / "sbc"),
+            "--particles",
+            "16",
+            "--smc-particles",
+            "8",
+        ]
+    )
+    assert rc == 2
+    assert "--smc-particles" in capsys.readouterr().err
+    assert not (tmp_path / "sbc").exists()
