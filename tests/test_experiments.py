@@ -40,7 +40,7 @@ METRIC_KEYS = {
 }
 
 
-# ---- data (no MJX) ----------------------------------------------------------------------------------
+# ---- data (no MJX) -------------------------------------------------------------------------------
 def test_data_is_seeded_and_train_test_differ():
     cfg = C.study_config("baselines", "tiny")
     a, b, other = C.make_data(cfg, 0), C.make_data(cfg, 0), C.make_data(cfg, 1)
@@ -51,7 +51,8 @@ def test_data_is_seeded_and_train_test_differ():
     assert not np.allclose(a.theta, other.theta)
     assert not set(a.train_specs) & set(a.test_specs)  # unseen test profiles
     assert len(a.train) == cfg.n_train and len(a.test) == cfg.n_test
-    # true parameters: parent at least as stiff and as damped as its child (inequality prior's premise)
+    # true parameters: parent at least as stiff and as damped as its child (inequality prior's
+    # premise)
     tree = a.tree
     for parent, child in tree.inferred_pairs():
         assert a.kp[parent] >= a.kp[child] and a.kd[parent] >= a.kd[child]
@@ -83,7 +84,8 @@ def test_grasp_test_set_repeats_profiles_at_each_location():
         same = [data.test[j * k + i] for j in range(len(cfg.grasp_locations))]
         for t in same[1:]:
             np.testing.assert_array_equal(t.force, same[0].force)
-        # the same downward force moves a point nearer the joint less (shorter lever, smaller torque)
+        # the same downward force moves a point nearer the joint less (shorter lever, smaller
+        # torque)
         peaks = [np.max(t.displacement) for t in same]
         assert np.all(np.diff(peaks) > 0), peaks
 
@@ -142,7 +144,7 @@ def test_config_likelihood_options():
     assert (args.likelihood, args.noise_displacement) == ("student_t", 0.001)
 
 
-# ---- command line ------------------------------------------------------------------------------------
+# ---- command line --------------------------------------------------------------------------------
 @pytest.mark.parametrize("module", [baselines, nn_prior, noise, grasp])
 def test_help(module, capsys):
     with pytest.raises(SystemExit) as e:
@@ -172,7 +174,7 @@ def test_refuses_a_folder_of_other_files(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
 
 
-# ---- the studies at --size tiny ------------------------------------------------------------------------
+# ---- the studies at --size tiny ------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory):
     return tmp_path_factory.mktemp("posteriors")
