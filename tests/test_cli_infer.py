@@ -179,9 +179,7 @@ def test_demo_quick_gaussian_likelihood_on_noisy_pulls(tmp_path, capsys):
     """``demo --likelihood gaussian``: 2 mm noise on the pulls, sigma_x inferred, the headline
     band predictive; the noise column has no truth and is left out of the parameter check."""
     out = tmp_path / "demo_g"
-    rc = main(
-        ["demo", "--quick", "--likelihood", "gaussian", "--out", str(out), "--no-progress"]
-    )
+    rc = main(["demo", "--quick", "--likelihood", "gaussian", "--out", str(out), "--no-progress"])
     assert rc == 0
     d = json.loads((out / "demo.json").read_text())
     assert d["sizes"]["likelihood"] == "gaussian"
