@@ -152,6 +152,7 @@ def run(
     out: Path | None,
     case_name: str = "cpu",
     targets=TARGETS,
+    reinit_until: int = 0,
 ) -> dict:
     from treeinfer.diagnostics import find_stragglers
     from treeinfer.inference import infer, make_problem
@@ -175,6 +176,13 @@ def run(
             t0 = time.perf_counter()
             problem = problems[target]
             sampler = target.split("-")[0]
+            extra = {}
+            if reinit_until > 0:  # the warm-up remedy for stuck particles (--reinit-stragglers)
+                from treeinfer.diagnostics import ReinitStragglers
+
+                extra["reinit_stragglers"] = ReinitStragglers(
+                    reinit_until, problem.lower, problem.upper
+                )
             post = infer(
                 problem,
                 sampler,
@@ -182,6 +190,7 @@ def run(
                 n_iterations=n_iterations,
                 seed=seed,
                 progress=False,
+                **extra,
             )
             rep = find_stragglers(
                 post.log_density, post.theta, problem.lower, problem.upper, labels=problem.labels
@@ -244,6 +253,7 @@ def run(
             "case": case_name,
             **{k: (list(v) if isinstance(v, tuple) else v) for k, v in case.items()},
             "targets": list(targets),
+            "reinit_stragglers_until": int(reinit_until),
         },
         "runs": rows,
         "summary": summary,
@@ -262,8 +272,17 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--case", choices=tuple(CASES), default="cpu")
     ap.add_argument("--targets", nargs="+", choices=TARGETS, default=list(TARGETS))
+    ap.add_argument(
+        "--reinit-stragglers",
+        type=int,
+        default=0,
+        metavar="N",
+        help="re-initialise stuck particles up to iteration N (0: off, the default)",
+    )
     a = ap.parse_args(argv)
-    res = run(a.seeds, a.particles, a.iterations, a.out, a.case, tuple(a.targets))
+    res = run(
+        a.seeds, a.particles, a.iterations, a.out, a.case, tuple(a.targets), a.reinit_stragglers
+    )
     for sampler, s in res["summary"].items():
         cells = ", ".join(
             f"{lab} {c}/{s['n_runs']}" for lab, c in zip(s["labels"], s["covered_per_parameter"])
