@@ -18,6 +18,14 @@ particles, 200 iterations, 2 seeds; about 15 minutes on 2 busy cores. Usage::
 
     python -m experiments.nnsvgd_coverage --seeds 0 1 --out experiments/results/nnsvgd_coverage
 
+The issue's case (``--case issue``: 5 training pulls x 3 s at 10 ms, 2 mm displacement noise,
+Gaussian likelihood with the noise given; ``--case issue-cpu``: the same at 50 ms), e.g. on a
+GPU::
+
+    python -m experiments.nnsvgd_coverage --case issue --seeds 0 1 2 3 4 --particles 32 \
+        --iterations 400 --targets svgd nnsvgd --reinit-stragglers 200 \
+        --out experiments/results/nnsvgd_coverage_issue_full
+
 Writes ``coverage.json`` (intervals, coverage, straggler counts per seed and sampler) and prints
 a table.
 """
