@@ -16,11 +16,15 @@ prior ``log sigma_x ~ Normal(log 2 mm, 0.5)``), 5 training and 25 unseen test pu
   sigma_x (see :mod:`treeinfer.noise`). Its SBC ranks show the effect on the gains; its
   predictive coverage is the figure for noisy recordings.
 
-Sampler: Adam ascent to the mode, then one adaptive random-walk MH chain per particle, all data
-sets of a chunk in one jitted program (:mod:`treeinfer.calibration` says why).
+Sampler: adaptive tempered SMC from exact prior draws (:mod:`treeinfer.calibration.smc`), all
+data sets of a chunk in one jitted program; ``--sampler mh`` runs the previous sampler (Adam to
+the best mode, then random-walk MH chains there), which failed SBC by staying in wrong local
+modes.
 
-    JAX_PLATFORMS=cpu python experiments/calibration.py --size cpu     # committed, minutes
-    python experiments/calibration.py --size full --out OUT            # GPU: 256 data sets/tree
+    JAX_PLATFORMS=cpu python experiments/calibration.py --size cpu --trees two_branch \
+        --conditions sbc                                              # committed, CPU
+    python experiments/calibration.py --size full --trees two_branch --out OUT   # GPU, 256
+    python experiments/calibration.py --size full --trees three_branch --out OUT # data sets
 
 Writes ``OUT/results.json``, ``OUT/results.md`` and per tree and condition
 ``OUT/<tree>_<condition>/`` (sbc_summary.json, ranks.csv, draws.npz, config.json,
@@ -44,35 +48,41 @@ SIZES = {
     "tiny": dict(
         datasets=4,
         particles=8,
-        iterations=20,
-        mh_warmup=20,
-        mh_steps=10,
+        smc_particles=16,
+        smc_levels=4,
+        smc_mutations=2,
+        smc_final=2,
         n_traj=5,
         test_traj=25,
         duration=1.0,
         dt=0.02,
         chunk=4,
     ),
-    # committed CPU size: coarse dt and 2 s pulls as experiments/coverage.py's cpu size
+    # committed CPU size (a 2-core box shared with others): 64 data sets of 3 short pulls
+    # (0.6 s at 30 ms), SMC with 128 particles and 8 moves per level, 16 ranked draws
     "cpu": dict(
-        datasets=12,
+        datasets=64,
         particles=16,
-        iterations=80,
-        mh_warmup=400,
-        mh_steps=400,
-        n_traj=5,
-        test_traj=25,
-        duration=2.0,
-        dt=0.02,
-        chunk=12,
+        smc_particles=128,
+        smc_levels=20,
+        smc_mutations=8,
+        smc_final=24,
+        n_traj=3,
+        test_traj=5,
+        duration=0.6,
+        dt=0.03,
+        chunk=64,
     ),
-    # the set-up on a GPU: >= 200 data sets per tree, 3 s pulls at 10 ms
+    # the set-up on a GPU: >= 200 data sets per tree, 3 s pulls at 10 ms; SMC with 256
+    # particles, up to 48 levels of 10 moves and 40 final moves (520 batched simulations of
+    # 256 x 128 rollouts per chunk)
     "full": dict(
         datasets=256,
         particles=32,
-        iterations=300,
-        mh_warmup=800,
-        mh_steps=800,
+        smc_particles=256,
+        smc_levels=48,
+        smc_mutations=10,
+        smc_final=40,
         n_traj=5,
         test_traj=25,
         duration=3.0,
@@ -119,6 +129,7 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--datasets", type=int, default=None, help="override the size's data sets")
     p.add_argument("--chunk", type=int, default=None, help="override the size's chunk")
+    p.add_argument("--sampler", choices=("smc", "mh", "svgd"), default="smc")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
     args = p.parse_args(argv)
 
@@ -162,6 +173,7 @@ def main(argv=None) -> int:
                     noise_prior_center=0.002,
                     noise_force=CONDITIONS[c],
                     seed=args.seed + 100 * ti + ci,
+                    sampler=args.sampler,
                     **size,
                 )
                 t0 = time.perf_counter()
@@ -239,6 +251,16 @@ def _markdown(results: dict) -> str:
             f"{pa['median']:.1%} | {'PASS' if run['uniformity']['pass'] else 'FAIL'} | "
             f"{run['seconds']:.0f} |"
         )
+    for key, run in results["runs"].items():
+        info = run["info"]
+        if "smc_levels_to_one_max" in info:
+            lines.append(
+                f"- {key}: SMC levels to beta = 1: mean {info['smc_levels_to_one_mean']:.1f}, "
+                f"max {info['smc_levels_to_one_max']:.0f} of {run['config']['smc_levels']}; "
+                f"data sets forced to beta = 1: {info['smc_datasets_forced_to_beta_1']}; "
+                f"final MH acceptance {info['smc_acceptance_mean']:.2f}; distinct particles "
+                f"after the last resampling {info['smc_unique_share_mean']:.0%}"
+            )
     lines += [
         "",
         "Sampler: " + next(iter(results["runs"].values()))["info"]["sampler_note"]

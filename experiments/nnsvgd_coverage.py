@@ -18,6 +18,14 @@ particles, 200 iterations, 2 seeds; about 15 minutes on 2 busy cores. Usage::
 
     python -m experiments.nnsvgd_coverage --seeds 0 1 --out experiments/results/nnsvgd_coverage
 
+The issue's case (``--case issue``: 5 training pulls x 3 s at 10 ms, 2 mm displacement noise,
+Gaussian likelihood with the noise given; ``--case issue-cpu``: the same at 50 ms), e.g. on a
+GPU::
+
+    python -m experiments.nnsvgd_coverage --case issue --seeds 0 1 2 3 4 --particles 32 \
+        --iterations 400 --targets svgd nnsvgd --reinit-stragglers 200 \
+        --out experiments/results/nnsvgd_coverage_issue_full
+
 Writes ``coverage.json`` (intervals, coverage, straggler counts per seed and sampler) and prints
 a table.
 """
@@ -48,7 +56,8 @@ def _forces(peaks, dt=DT, duration=DURATION):
     return np.stack([p * up * down for p in peaks])
 
 
-def make_data(seed: int):
+def make_data(seed: int, case: dict | None = None):
+    """Tree, simulator and noisy training pulls of ``case`` (``CASES`` entry; None: ``cpu``)."""
     import jax
     import jax.numpy as jnp
 
@@ -57,19 +66,21 @@ def make_data(seed: int):
     from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 
+    case = CASES["cpu"] if case is None else case
+    dt, noise = case["dt"], case["noise_m"]
     tree = load_tree(example_path("three_branch"))
-    sim = make_simulator(tree, obs_dt=DT)
-    forces = _forces(PEAKS)
+    sim = make_simulator(tree, obs_dt=dt)
+    forces = _forces(case["peaks"], dt, case["duration"])
     r = jax.jit(lambda kp, kd, f: simulate(sim, kp, kd, f))(
         jnp.asarray(KP_TRUE[None]), jnp.asarray(KD_TRUE[None]), jnp.asarray(forces)
     )
     if not bool(np.asarray(r.stable).all()):
         raise RuntimeError("ground-truth simulation unstable")
     rng = np.random.default_rng(seed)
-    t = np.arange(forces.shape[1]) * DT
+    t = np.arange(forces.shape[1]) * dt
     trajs = []
-    for b in range(len(PEAKS)):
-        tau = np.asarray(r.tau[0, b], float) + NOISE_M * rng.standard_normal(t.size)
+    for b in range(forces.shape[0]):
+        tau = np.asarray(r.tau[0, b], float) + noise * rng.standard_normal(t.size)
         trajs.append(Trajectory(t, forces[b], tau, None, f"pull{b}"))
     return tree, sim, trajs
 
@@ -82,6 +93,27 @@ LEGACY_NET = {
     "span": 1.0,
 }  # the training settings of the format-2 bundled network
 TARGETS = ("svgd", "nnsvgd", "nnsvgd-legacy")
+CASES = {
+    # the original CPU case: 3 pulls x 2 s at 25 Hz, 0.5 mm noise, Boltzmann likelihood
+    "cpu": dict(peaks=PEAKS, duration=DURATION, dt=DT, noise_m=NOISE_M, likelihood="boltzmann"),
+    # the issue's case: 5 training pulls x 3 s, 2 mm displacement noise, Gaussian likelihood
+    # with the noise given; dt 10 ms on the GPU ...
+    "issue": dict(
+        peaks=(3.0, 5.0, 7.0, 9.0, 11.0),
+        duration=3.0,
+        dt=0.01,
+        noise_m=0.002,
+        likelihood="gaussian",
+    ),
+    # ... and 50 ms on the CPU (same pulls and noise, 60 samples per pull)
+    "issue-cpu": dict(
+        peaks=(3.0, 5.0, 7.0, 9.0, 11.0),
+        duration=3.0,
+        dt=0.05,
+        noise_m=0.002,
+        likelihood="gaussian",
+    ),
+}
 
 
 def with_inequality_prior(problem, net_kwargs: dict):
@@ -121,24 +153,44 @@ def with_inequality_prior(problem, net_kwargs: dict):
     )
 
 
-def run(seeds, n_particles: int, n_iterations: int, out: Path | None) -> dict:
+def run(
+    seeds,
+    n_particles: int,
+    n_iterations: int,
+    out: Path | None,
+    case_name: str = "cpu",
+    targets=TARGETS,
+    reinit_until: int = 0,
+) -> dict:
     from treeinfer.diagnostics import find_stragglers
     from treeinfer.inference import infer, make_problem
 
     truth = np.log(np.concatenate([KP_TRUE, KD_TRUE]))
+    case = CASES[case_name]
+    lik = case["likelihood"]
     rows = []
     for seed in seeds:
-        tree, sim, trajs = make_data(seed)
-        base = make_problem(tree, trajs, sim=sim, nn_prior=False)
-        problems = {
-            "svgd": base,
-            "nnsvgd": with_inequality_prior(base, {}),
-            "nnsvgd-legacy": with_inequality_prior(base, LEGACY_NET),
-        }
-        for target in TARGETS:
+        tree, sim, trajs = make_data(seed, case)
+        noise = case["noise_m"] if lik != "boltzmann" else None
+        base = make_problem(
+            tree, trajs, sim=sim, nn_prior=False, likelihood=lik, noise_displacement=noise
+        )
+        problems = {"svgd": base}
+        if "nnsvgd" in targets:
+            problems["nnsvgd"] = with_inequality_prior(base, {})
+        if "nnsvgd-legacy" in targets:
+            problems["nnsvgd-legacy"] = with_inequality_prior(base, LEGACY_NET)
+        for target in targets:
             t0 = time.perf_counter()
             problem = problems[target]
             sampler = target.split("-")[0]
+            extra = {}
+            if reinit_until > 0:  # the warm-up remedy for stuck particles (--reinit-stragglers)
+                from treeinfer.diagnostics import ReinitStragglers
+
+                extra["reinit_stragglers"] = ReinitStragglers(
+                    reinit_until, problem.lower, problem.upper
+                )
             post = infer(
                 problem,
                 sampler,
@@ -146,6 +198,7 @@ def run(seeds, n_particles: int, n_iterations: int, out: Path | None) -> dict:
                 n_iterations=n_iterations,
                 seed=seed,
                 progress=False,
+                **extra,
             )
             rep = find_stragglers(
                 post.log_density, post.theta, problem.lower, problem.upper, labels=problem.labels
@@ -166,6 +219,7 @@ def run(seeds, n_particles: int, n_iterations: int, out: Path | None) -> dict:
                     "interval_95": np.exp(np.stack([lo, hi], 1)).tolist(),
                     "truth": np.exp(truth).tolist(),
                     "covered": covered.tolist(),
+                    "log_width_95": (hi - lo).tolist(),
                     "n_covered": int(covered.sum()),
                     "interval_95_without_stragglers": np.exp(np.stack([lo_k, hi_k], 1)).tolist(),
                     "covered_without_stragglers": covered_kept.tolist(),
@@ -188,11 +242,12 @@ def run(seeds, n_particles: int, n_iterations: int, out: Path | None) -> dict:
                 flush=True,
             )
     summary = {}
-    for sampler in TARGETS:
+    for sampler in targets:
         rs = [r for r in rows if r["sampler"] == sampler]
         cov = np.array([r["covered"] for r in rs])
         summary[sampler] = {
             "covered_per_parameter": cov.sum(0).tolist(),
+            "median_log_width_95": np.median([r["log_width_95"] for r in rs], 0).tolist(),
             "n_runs": len(rs),
             "labels": rs[0]["labels"],
         }
@@ -203,10 +258,10 @@ def run(seeds, n_particles: int, n_iterations: int, out: Path | None) -> dict:
             "n_iterations": n_iterations,
             "kp_true": KP_TRUE.tolist(),
             "kd_true": KD_TRUE.tolist(),
-            "dt": DT,
-            "duration": DURATION,
-            "peaks": list(PEAKS),
-            "noise_m": NOISE_M,
+            "case": case_name,
+            **{k: (list(v) if isinstance(v, tuple) else v) for k, v in case.items()},
+            "targets": list(targets),
+            "reinit_stragglers_until": int(reinit_until),
         },
         "runs": rows,
         "summary": summary,
@@ -223,13 +278,28 @@ def main(argv=None) -> int:
     ap.add_argument("--particles", type=int, default=16)
     ap.add_argument("--iterations", type=int, default=200)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--case", choices=tuple(CASES), default="cpu")
+    ap.add_argument("--targets", nargs="+", choices=TARGETS, default=list(TARGETS))
+    ap.add_argument(
+        "--reinit-stragglers",
+        type=int,
+        default=0,
+        metavar="N",
+        help="re-initialise stuck particles up to iteration N (0: off, the default)",
+    )
     a = ap.parse_args(argv)
-    res = run(a.seeds, a.particles, a.iterations, a.out)
+    res = run(
+        a.seeds, a.particles, a.iterations, a.out, a.case, tuple(a.targets), a.reinit_stragglers
+    )
     for sampler, s in res["summary"].items():
         cells = ", ".join(
             f"{lab} {c}/{s['n_runs']}" for lab, c in zip(s["labels"], s["covered_per_parameter"])
         )
         print(f"{sampler}: truth inside 95% interval: {cells}")
+        widths = ", ".join(
+            f"{lab} {w:.2f}" for lab, w in zip(s["labels"], s["median_log_width_95"])
+        )
+        print(f"{sampler}: median 95% interval width (log units): {widths}")
     return 0
 
 

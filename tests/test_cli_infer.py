@@ -175,6 +175,28 @@ def test_demo_quick(demo):
         assert text in stdout, text
 
 
+def test_demo_quick_gaussian_likelihood_on_noisy_pulls(tmp_path, capsys):
+    """``demo --likelihood gaussian``: 2 mm noise on the pulls, sigma_x inferred, the headline
+    band predictive; the noise column has no truth and is left out of the parameter check."""
+    out = tmp_path / "demo_g"
+    rc = main(["demo", "--quick", "--likelihood", "gaussian", "--out", str(out), "--no-progress"])
+    assert rc == 0
+    d = json.loads((out / "demo.json").read_text())
+    assert d["sizes"]["likelihood"] == "gaussian"
+    assert d["sizes"]["noise_displacement_data_m"] == 0.002
+    m = d["unseen_test_metrics"]
+    assert m["band"] == "predictive" and m["ci_width"] > 0.002  # at least the noise's width
+    assert set(m["parameters"]) == {"Kp[child]", "Kp[parent]", "Kd[child]", "Kd[parent]"}
+    assert "sigma_x" in d["posterior"]
+    assert "added white displacement noise of 2 mm" in capsys.readouterr().err
+
+
+def test_demo_rejects_bad_noise(tmp_path, capsys):
+    rc = main(["demo", "--quick", "--noise-displacement", "-1", "--out", str(tmp_path / "d")])
+    assert rc == 2
+    assert "noise-displacement" in capsys.readouterr().err
+
+
 # ---- infer -----------------------------------------------------------------------------------
 def test_infer_run_folder(run_dir, demo):
     import arviz as az

@@ -40,8 +40,7 @@ METRIC_KEYS = {
 }
 
 
-# ---- data (no MJX)
-# ----------------------------------------------------------------------------------
+# ---- data (no MJX) -------------------------------------------------------------------------------
 def test_data_is_seeded_and_train_test_differ():
     cfg = C.study_config("baselines", "tiny")
     a, b, other = C.make_data(cfg, 0), C.make_data(cfg, 0), C.make_data(cfg, 1)
@@ -130,8 +129,22 @@ def test_config_sizes_and_errors():
         C.study_config("grasp", "tiny", grasp_locations=(0.0, 1.0))
 
 
-# ---- command line
-# ------------------------------------------------------------------------------------
+def test_config_likelihood_options():
+    """--likelihood / --noise-displacement reach every study's config (issue 11), checked."""
+    assert C.study_config("baselines", "tiny").likelihood == "boltzmann"
+    cfg = C.study_config("noise", "tiny", likelihood="gaussian", noise_displacement=0.002)
+    assert (cfg.likelihood, cfg.noise_displacement) == ("gaussian", 0.002)
+    with pytest.raises(C.ConfigError, match="likelihood"):
+        C.study_config("baselines", "tiny", likelihood="cauchy")
+    with pytest.raises(C.ConfigError, match="noise_displacement"):
+        C.study_config("baselines", "tiny", likelihood="gaussian", noise_displacement=-1.0)
+    args = C.build_parser("baselines", "d").parse_args(
+        ["--likelihood", "student_t", "--noise-displacement", "0.001", "--no-cache"]
+    )
+    assert (args.likelihood, args.noise_displacement) == ("student_t", 0.001)
+
+
+# ---- command line --------------------------------------------------------------------------------
 @pytest.mark.parametrize("module", [baselines, nn_prior, noise, grasp])
 def test_help(module, capsys):
     with pytest.raises(SystemExit) as e:
@@ -161,8 +174,7 @@ def test_refuses_a_folder_of_other_files(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
 
 
-# ---- the studies at --size tiny
-# ------------------------------------------------------------------------
+# ---- the studies at --size tiny ------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory):
     return tmp_path_factory.mktemp("posteriors")

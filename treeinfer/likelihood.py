@@ -23,9 +23,10 @@ the generative Gaussian model, i.e. calibrated) needs
 
 where the factor ``(1 + sqrt(2) dt omega2)`` accounts for the velocity term, which counts the same
 noise a second time; ``omega2`` (1/s^2) is the ratio of the signal's mean squared velocity to its
-mean squared displacement (0 drops the correction). ``kT = "auto"`` (:func:`auto_kT`) estimates
-sigma (:func:`treeinfer.noise.estimate_displacement_noise`) and omega2 from the data and applies
-the rule. Example: 2 mm noise, 301 samples at 10 ms, omega2 = 0 gives kT = 1.2e-4.
+mean squared displacement (0 drops the correction). ``kT = "auto"`` (:func:`auto_kT`, in
+:mod:`treeinfer.temperature`) estimates sigma (:func:`treeinfer.noise.estimate_displacement_noise`)
+and omega2 from the data and applies the rule. Example: 2 mm noise, 301 samples at 10 ms,
+omega2 = 0 gives kT = 1.2e-4.
 
 ``DEFAULT_KT = 0.05`` is the paper-reproduction setting used by the studies in ``experiments/``;
 it is NOT tied to a noise level: by the rule it is the temperature for ~0.4-0.9 m of noise, i.e.
@@ -54,7 +55,35 @@ from . import noise
 from .errors import ConfigError
 from .gradients import autodiff_value_and_grad, central_difference, finite_difference_jvp
 from .sim import Rollout, Simulator, simulate
+from .temperature import (  # re-exported: the kT rule lived here before the split
+    KTChoice,
+    auto_kT,
+    check_kT,
+    signal_omega2,
+    suggest_kT,
+)
 from .trajectories import Observations
+
+__all__ = [
+    "DEFAULT_KT",
+    "KTChoice",
+    "LikelihoodTerms",
+    "auto_kT",
+    "boltzmann_log_likelihood",
+    "check_kT",
+    "gains_from_theta",
+    "likelihood_terms",
+    "log_likelihood_from_rollout",
+    "measurement_log_likelihood",
+    "natural_units",
+    "noise_columns",
+    "noise_params_from_theta",
+    "predictive_noise_kind",
+    "signal_omega2",
+    "suggest_kT",
+    "theta_from_gains",
+    "trajectory_loss",
+]
 
 DEFAULT_KT = 0.05
 
@@ -114,92 +143,6 @@ def boltzmann_log_likelihood(
         return log_likelihood_from_rollout(simulate(sim, kp, kd, forces, grasp_fraction), obs, kT)
 
     return loglik
-
-
-def check_kT(kT) -> float:
-    try:
-        kT = float(kT)
-    except (TypeError, ValueError):
-        raise ConfigError(f"kT: expected a positive number, got {kT!r}") from None
-    if not math.isfinite(kT) or kT <= 0:
-        raise ConfigError(f"kT: must be a finite positive number, got {kT}")
-    return kT
-
-
-def suggest_kT(sigma_displacement: float, n_steps: int, dt: float, omega2: float = 0.0) -> float:
-    """Boltzmann temperature that matches the Gaussian measurement model's posterior width.
-
-    ``kT = sigma / sqrt(T) * (1 + sqrt(2) * dt * omega2)`` (module docstring: equal curvature of
-    ``-L_b / kT`` and of the Gaussian log-likelihood at the truth). Per trajectory loss; the same
-    value for any number of trajectories.
-
-    Args:
-      sigma_displacement: m, white displacement-noise std.
-      n_steps: samples T per trajectory. dt: s between samples.
-      omega2: 1/s^2, mean squared velocity over mean squared displacement of the signal (the
-        velocity term's share); 0 ignores the velocity term.
-    """
-    sigma = noise.check_sigma(sigma_displacement, "sigma_displacement")
-    if int(n_steps) < 1 or not (dt > 0) or not (omega2 >= 0):
-        raise ConfigError(
-            f"suggest_kT: need n_steps >= 1, dt > 0, omega2 >= 0; got {n_steps}, {dt}, {omega2}"
-        )
-    return float(sigma / math.sqrt(int(n_steps)) * (1.0 + math.sqrt(2.0) * dt * omega2))
-
-
-def signal_omega2(obs: Observations, sigma: float, lag: int = 5) -> float:
-    """``omega2`` for :func:`suggest_kT` from data (1/s^2): mean squared velocity over mean squared
-    displacement, noise power removed. Velocity is the lag-``lag`` central difference
-    ``(x[t+k] - x[t-k]) / (2 k dt)`` (noise variance ``sigma^2 / (2 k^2 dt^2)``, k^2 times less
-    than the 1-step difference), so the subtraction is stable. Clipped at 0."""
-    x = np.asarray(obs.displacement, float)
-    m = np.asarray(obs.mask, bool)
-    k, dt = int(lag), float(obs.dt)
-    if x.shape[-1] <= 2 * k:
-        return 0.0
-    v = (x[:, 2 * k :] - x[:, : -2 * k]) / (2 * k * dt)
-    vm = m[:, 2 * k :] & m[:, : -2 * k]
-    msv = float(np.mean(v[vm] ** 2)) - sigma**2 / (2 * k**2 * dt**2)
-    msx = float(np.mean(x[m] ** 2)) - sigma**2
-    if msx <= 0.0:
-        return 0.0
-    return max(msv, 0.0) / msx
-
-
-class KTChoice(NamedTuple):
-    """Result of :func:`auto_kT`: ``kT`` and what it was computed from (``describe()``)."""
-
-    kT: float
-    estimate: noise.NoiseEstimate
-    n_steps: int
-    dt: float
-    omega2: float
-
-    def describe(self) -> str:
-        return (
-            f"kT auto = {self.kT:.4g}: {self.estimate.describe()}; rule kT = sigma / sqrt(T) * "
-            f"(1 + sqrt(2) dt omega2) with T = {self.n_steps}, dt = {self.dt:g} s, "
-            f"omega2 = {self.omega2:.4g} 1/s^2 (velocity share from the data)"
-        )
-
-
-def auto_kT(data, sigma_displacement: float | None = None) -> KTChoice:
-    """``kT = "auto"``: estimate the displacement noise (unless given) and apply :func:`suggest_kT`.
-
-    ``T`` is the median number of real samples per trajectory. Raises ConfigError when the data
-    are too short to estimate the noise (give ``sigma_displacement`` then)."""
-    obs = noise.as_observations(data)
-    if sigma_displacement is None:
-        est = noise.estimate_displacement_noise(obs)
-    else:
-        s = noise.check_sigma(
-            sigma_displacement, "noise_displacement", noise.displacement_range(obs)
-        )
-        est = noise.NoiseEstimate(s, 0, "given")
-    n_steps = int(np.median(np.sum(np.asarray(obs.mask, bool), axis=-1)))
-    om2 = signal_omega2(obs, est.sigma)
-    kT = suggest_kT(est.sigma, n_steps, float(obs.dt), om2)
-    return KTChoice(kT, est, n_steps, float(obs.dt), om2)
 
 
 # ----------------------------------------------------------------------------- measurement model

@@ -33,8 +33,8 @@ _D = SBCConfig()
 _CALIBRATE_EPILOG = f"""\
 examples:
   treeinfer calibrate --tree two_branch.yaml --out sbc --datasets 20 --particles 16
-  treeinfer calibrate --tree two_branch.yaml --out sbc-gpu --datasets 256 --chunk 64 \\
-      --particles 32 --iterations 300 --mh-warmup 400 --mh-steps 400 --seed 1
+  treeinfer calibrate --tree two_branch.yaml --out sbc-gpu --datasets 256 --chunk 128 \\
+      --particles 32 --smc-particles 256 --smc-levels 96 --seed 1
 
 What it does (Talts et al. 2018): for each of --datasets data sets, draw Kp, Kd of the inferred
 joints from the smoothed box prior (and sigma_x from log sigma_x ~ Normal(log
@@ -44,12 +44,14 @@ inference with that same model, and rank the truth among the --particles posteri
 calibrated posterior gives uniform ranks and central intervals that cover the truth as often as
 their level says ({", ".join(f"{a:.0%}" for a in COVERAGE_LEVELS)} reported).
 
-Sampler: mh (default) climbs from --particles starts in the prior box to the posterior mode
-with Adam (--iterations, --learning-rate decaying 100x), then runs one random-walk Metropolis
-chain per particle from the mode (--mh-warmup adaptive steps with the chains' ensemble
-covariance, then --mh-steps fixed-proposal steps): each chain's final state is one draw. svgd
-uses the final SVGD particles as draws (measures SVGD's own calibration). All data sets of a
-chunk run in one jitted program (--chunk data sets at once: hundreds on a GPU, a few on a CPU).
+Sampler: smc (default) starts --smc-particles exact prior draws per data set and tempers them
+to the posterior (adaptive temperature ladder of --smc-levels levels, systematic resampling,
+--smc-mutations random-walk MH moves per level with the cloud's covariance, --smc-final moves at
+the end); --particles of the final cloud are ranked. Likelihood only: one simulation per particle
+and move. mh (the previous default) climbs to the best mode with Adam and runs MH chains there;
+it misses separated modes and failed SBC on the GPU. svgd ranks the final SVGD particles. All
+data sets of a chunk run in one jitted program (--chunk data sets at once: hundreds on a GPU, a
+few on a CPU).
 
 Output folder (built aside, appears complete or not at all): sbc_summary.json (uniformity
 p-values per parameter: chi-square on equal bins and Kolmogorov-Smirnov of the fractional ranks,
@@ -124,15 +126,45 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         "--sampler",
         choices=SBC_SAMPLERS,
         default=_D.sampler,
-        help="mh: Adam to the mode, then one adaptive random-walk MH chain per "
-        "particle (near-exact draws); svgd: the SVGD particles themselves",
+        help="smc (default): adaptive tempered SMC from the prior, near-exact draws that keep "
+        "every mode; mh: Adam to the best mode, then random-walk MH chains there (misses other "
+        "modes); svgd: the SVGD particles themselves",
+    )
+    p.add_argument(
+        "--smc-particles",
+        type=int,
+        default=_D.smc_particles,
+        metavar="N",
+        help="SMC cloud size per data set (>= --particles; --particles of them are ranked)",
+    )
+    p.add_argument(
+        "--smc-levels",
+        type=int,
+        default=_D.smc_levels,
+        metavar="K",
+        help="SMC temperature levels (the last is forced to beta = 1; more levels after beta "
+        "reaches 1 are extra moves)",
+    )
+    p.add_argument(
+        "--smc-mutations",
+        type=int,
+        default=_D.smc_mutations,
+        metavar="M",
+        help="random-walk MH steps per SMC level",
+    )
+    p.add_argument(
+        "--smc-final",
+        type=int,
+        default=_D.smc_final,
+        metavar="M",
+        help="MH steps at beta = 1 after the SMC ladder",
     )
     p.add_argument(
         "--particles",
         type=int,
         default=_D.particles,
         metavar="P",
-        help="particles = posterior draws L per data set, >= 2",
+        help="posterior draws L ranked per data set, >= 2 (mh/svgd: the particles)",
     )
     p.add_argument(
         "--iterations",
@@ -232,6 +264,10 @@ def _config_from_args(args) -> SBCConfig:
         student_t_df=args.student_t_df,
         sampler=args.sampler,
         particles=args.particles,
+        smc_particles=args.smc_particles,
+        smc_levels=args.smc_levels,
+        smc_mutations=args.smc_mutations,
+        smc_final=args.smc_final,
         iterations=args.iterations,
         learning_rate=args.learning_rate,
         mh_warmup=args.mh_warmup,

@@ -33,12 +33,28 @@ from .common import (
 )
 from .infer import INFER_DEFAULTS
 
+DEMO_NOISE = 0.002  # m: the pulls' noise with a generative likelihood and no --noise-displacement
+DEMO_ITERATIONS = 300
+DEMO_REINIT = 100  # iterations of the straggler remedy (issue 11: the demo had 8 of 32 stuck)
+
 # ==== demo ========================================================================================
 _DEMO_EPILOG = """\
 examples:
   treeinfer demo                       # a few minutes on a laptop CPU
   treeinfer demo --out my-demo --seed 2
   treeinfer demo --quick               # tiny sizes: checks the installation in about a minute
+  treeinfer demo --likelihood gaussian # 2 mm noisy pulls, sigma_x inferred, predictive bands
+  treeinfer demo --likelihood gaussian --noise-displacement 0.001   # 1 mm noise, sigma_x given
+
+By default the pulls are noise-free and inference uses the paper's Boltzmann loss. With
+--likelihood gaussian|student_t|ar1 the demo adds white displacement noise to every pull (std
+--noise-displacement, default 2 mm) and infers with that noise model: sigma_x is inferred unless
+--noise-displacement gives it, and the reported bands are predictive (simulation + noise).
+--noise-displacement with the Boltzmann loss only adds the noise to the pulls.
+
+Stuck particles: the demo re-initialises particles stuck far below the bulk during the first
+--reinit-stragglers iterations (default 100 of 300; 0 turns the remedy off), so its intervals
+do not rest on them; any left at the end are counted and warned about.
 
 Writes DIR/data/train and DIR/data/test (synthetic trajectories with true_params.json, as
 `treeinfer simulate` writes), DIR/run (the run folder of `treeinfer infer`), DIR/evaluation (as
@@ -52,8 +68,9 @@ def configure_demo(subparsers) -> argparse.ArgumentParser:
         "demo",
         help=COMMAND_HELP["demo"],
         description="Simulate training and unseen test pulls of the built-in two-branch tree with "
-        "known stiffness and damping, infer the posterior with NNSVGD, predict the unseen pulls with "
-        "95% bands and print how well the bands cover them and how close the posterior is to the truth.",
+        "known stiffness and damping, infer the posterior with NNSVGD, predict the unseen pulls "
+        "with 95% bands and print how well the bands cover them and how close the posterior is "
+        "to the truth.",
         epilog=_DEMO_EPILOG,
     )
     p.add_argument(
@@ -71,6 +88,30 @@ def configure_demo(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--force", action="store_true", help="replace the contents of a non-empty output folder"
     )
+    p.add_argument(
+        "--likelihood",
+        choices=("boltzmann", "gaussian", "student_t", "ar1"),
+        default="boltzmann",
+        help="boltzmann (the paper's loss on noise-free pulls, default) or a generative noise "
+        "model: the pulls then get white displacement noise and the bands are predictive",
+    )
+    p.add_argument(
+        "--noise-displacement",
+        type=float,
+        default=None,
+        metavar="M",
+        help=f"displacement noise std in m added to the pulls (default {DEMO_NOISE:g} with a "
+        "generative likelihood, none with boltzmann); given to a generative likelihood as a "
+        "fixed sigma_x (otherwise sigma_x is inferred)",
+    )
+    p.add_argument(
+        "--reinit-stragglers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="re-initialise stuck particles next to good ones up to iteration N (default "
+        f"{DEMO_REINIT} of {DEMO_ITERATIONS}; 0: off)",
+    )
     add_simulation_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -86,15 +127,42 @@ def _write_synthetic(
         write_true_params(stage / TRUE_PARAMS_FILE, true_params)
 
 
+def _add_noise(trajs, sigma: float, rng: np.random.Generator):
+    """Copies of ``trajs`` with white Gaussian noise of std ``sigma`` (m) on the displacement
+    (the velocity column is dropped: differentiating the noise would swamp it)."""
+    out = []
+    for tr in trajs:
+        x = np.asarray(tr.displacement, float) + sigma * rng.standard_normal(
+            np.shape(tr.displacement)
+        )
+        out.append(tr._replace(displacement=x, velocity=None))
+    return out
+
+
 def run_demo(args: argparse.Namespace) -> int:
     # Sizes: the whole demo should take about a minute on a 2-core laptop CPU (tune here).
     n_train, n_test = 3, 3  # trajectories (training, unseen test)
     duration, dt = 2.0, 0.02  # s
-    particles, iterations = 32, 300
+    particles, iterations = 32, DEMO_ITERATIONS
     sampler = "nnsvgd"
     checkpoint_every = 25
+    reinit = DEMO_REINIT
     if args.quick:  # tiny: for tests and a first check of an installation
         n_train, n_test, duration, particles, iterations, checkpoint_every = 2, 2, 0.8, 8, 3, 0
+        reinit = 0
+    if args.reinit_stragglers is not None:
+        if args.reinit_stragglers < 0:
+            raise ConfigError(f"--reinit-stragglers: must be >= 0, got {args.reinit_stragglers}")
+        reinit = args.reinit_stragglers
+    likelihood = args.likelihood
+    generative = likelihood != "boltzmann"
+    data_noise = args.noise_displacement
+    if data_noise is not None:
+        from ..noise import check_sigma
+
+        check_sigma(data_noise, "--noise-displacement")
+    elif generative:
+        data_noise = DEMO_NOISE
 
     if args.seed < 0:
         raise ConfigError(f"--seed: must be >= 0, got {args.seed}")
@@ -110,7 +178,8 @@ def run_demo(args: argparse.Namespace) -> int:
     specs = random_specs("mixed", n_train + n_test, duration, DEFAULT_PEAK_RANGE, rng_profiles)
     forces = np.stack([from_spec(s, duration, dt) for s in specs])
     _say(
-        f"demo: simulating {n_train} training and {n_test} unseen test pulls of {duration:g} s on '{tree.name}' "
+        f"demo: simulating {n_train} training and {n_test} unseen test pulls of {duration:g} s "
+        f"on '{tree.name}' "
         f"with {_fmt_params(tree, kp, kd)}"
     )
     check_simulation_options(args)
@@ -133,6 +202,9 @@ def run_demo(args: argparse.Namespace) -> int:
     trajs = synthetic_trajectories(
         rollout, forces, dt, [f"traj_{i:03d}.csv" for i in range(len(specs))]
     )
+    if data_noise:
+        trajs = _add_noise(trajs, data_noise, rng_profiles)
+        _say(f"demo: added white displacement noise of {data_noise * 1e3:g} mm to every pull")
     true_params = true_params_record(
         tree, kp, kd, f"demo (default_true_params, seed {args.seed})", log_units=False
     )
@@ -151,6 +223,7 @@ def run_demo(args: argparse.Namespace) -> int:
         "unseen test pull",
     )
 
+    inputs = runs.load_run_inputs(tree_file, data_train, model_kind="dynamic")
     config = runs.infer_config(
         tree_file,
         data_train,
@@ -168,11 +241,21 @@ def run_demo(args: argparse.Namespace) -> int:
         force_interp=interp,
         max_sim_dt=args.max_sim_dt,
         sim_tolerance=args.sim_tolerance,
+        likelihood=likelihood,
+        noise_displacement=args.noise_displacement if generative else None,
+        reinit_stragglers=reinit,
+        inputs=inputs,
     )
     config["via"] = "demo"
-    _say(f"demo: {sampler} with {particles} particles x {iterations} iterations")
+    _say(
+        f"demo: {sampler} with {particles} particles x {iterations} iterations, {likelihood} "
+        f"likelihood"
+        + (f", stuck particles re-initialised up to iteration {reinit}" if reinit else "")
+    )
     cache = runs.SimulatorCache()
-    outcome = runs.run_inference(config, progress=not args.no_progress, log=_say, cache=cache)
+    outcome = runs.run_inference(
+        config, progress=not args.no_progress, log=_say, cache=cache, inputs=inputs
+    )
     run = runs.load_run(out / "run", cache)
     truth = np.concatenate([kp, kd])
     test = trajs[n_train:]
@@ -196,9 +279,10 @@ def run_demo(args: argparse.Namespace) -> int:
         dt=dt,
         via="demo",
     )
-    md = ["# treeinfer demo: NNSVGD posterior on unseen test pulls", ""] + _metrics_md(
-        "unseen test trajectories", m
-    )
+    md = [
+        f"# treeinfer demo: NNSVGD posterior ({likelihood}) on unseen test pulls",
+        "",
+    ] + _metrics_md("unseen test trajectories", m)
     write_evaluation(
         out / "evaluation",
         {"run": str(out / "run"), "data": str(data_test), "metrics": m},
@@ -219,6 +303,9 @@ def run_demo(args: argparse.Namespace) -> int:
             "iterations": iterations,
             "sampler": sampler,
             "quick": bool(args.quick),
+            "likelihood": likelihood,
+            "noise_displacement_data_m": data_noise,
+            "reinit_stragglers": reinit,
         },
         "seed": args.seed,
         "true_params": true_params,
@@ -226,6 +313,7 @@ def run_demo(args: argparse.Namespace) -> int:
         "posterior": outcome.summary["posterior"],
         "unseen_test_metrics": m,
         "convergence_warnings": outcome.summary["convergence_warnings"],
+        "stragglers": outcome.summary.get("stragglers"),
     }
     runs.write_json(out / "demo.json", demo)
 
@@ -235,7 +323,8 @@ def run_demo(args: argparse.Namespace) -> int:
     _print_metrics(m, f"unseen test trajectories ({n_test})")
     _print_warnings(outcome.summary["convergence_warnings"])
     print(
-        f"wrote {out}/ (data/train, data/test, run/, evaluation/, demo.json); see {out}/run/plots and "
+        f"wrote {out}/ (data/train, data/test, run/, evaluation/, demo.json); see "
+        f"{out}/run/plots and "
         f"{out}/evaluation/bands.png"
     )
     return EXIT_OK
