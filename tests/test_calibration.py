@@ -277,3 +277,31 @@ def test_cli_names_the_smc_flag_on_bad_sizes(tmp_path, capsys):
     assert rc == 2
     assert "--smc-particles" in capsys.readouterr().err
     assert not (tmp_path / "sbc").exists()
+
+
+def test_unstable_truths_are_redrawn(monkeypatch):
+    """A prior draw whose simulation is unstable is redrawn (the GPU run of three_branch hit
+    this path: device arrays came back read-only and the redraw's assignment failed)."""
+    import treeinfer.calibration.study as study
+    from treeinfer.tree import load_tree
+
+    real = study._simulate_truths
+    calls = []
+
+    def flaky(sim, truth, forces, r):
+        tau, stable = real(sim, truth, forces, r)
+        calls.append(int(truth.shape[0]))
+        if len(calls) == 1:  # first call: mark data set 1 unstable
+            stable = stable.at[1].set(False)
+        return tau, stable
+
+    monkeypatch.setattr(study, "_simulate_truths", flaky)
+    tree = load_tree("treeinfer/examples/two_branch.yaml")
+    cfg = cal.SBCConfig(
+        smc_particles=8, smc_levels=2, smc_mutations=1, smc_final=1, datasets=3, particles=4,
+        n_traj=1, duration=0.3, chunk=3, seed=2, test_traj=1,
+    )  # fmt: skip
+    res = cal.run_tree_sbc(tree, cfg)
+    assert calls[:2] == [3, 1]  # all truths, then the one redraw
+    assert np.all(np.isfinite(res.draws))
+    assert res.info["n_redrawn_unstable_truths"] == 1

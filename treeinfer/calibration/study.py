@@ -101,7 +101,8 @@ def run_tree_sbc(
     )
     t0 = time.perf_counter()
     tau, stable = _simulate_truths(sim, jnp.asarray(truth), jnp.asarray(forces), r)
-    tau, stable = np.asarray(tau), np.asarray(stable)
+    # np.array, not asarray: device arrays come back read-only and the redraws write into them
+    tau, stable = np.array(tau), np.array(stable)
     n_redrawn = 0
     for _ in range(20):  # redraw the (rare) unstable truths
         bad = np.flatnonzero(~stable)
