@@ -174,7 +174,8 @@ def main(argv=None) -> int:
             rows.append(row)
             print(
                 f"{n:>6} {layout:>7} {row['depth']:>5} {row['compile_s']:>9.2f} "
-                f"{row['compile_cpu_s']:>8.2f} {row['peak_rss_mb']:>8.0f} {row['obs_steps_per_s']:>12.4g} "
+                f"{row['compile_cpu_s']:>8.2f} {row['peak_rss_mb']:>8.0f} "
+                f"{row['obs_steps_per_s']:>12.4g} "
                 f"{row['load_average'][0]:>5.1f}",
                 flush=True,
             )

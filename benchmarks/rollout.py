@@ -79,7 +79,8 @@ def pull_profile(n_steps: int, dt: float) -> np.ndarray:
 # ---- native MuJoCo -------------------------------------------------------------------------
 def rollout_model(tree, sim):
     """The tree's MuJoCo model plus a 1e-6 kg body at the grasp point (for a plain world-frame
-    ``xfrc_applied`` pull) and a ``framepos`` sensor of it; same options and time step as ``sim``."""
+    ``xfrc_applied`` pull) and a ``framepos`` sensor of it; same options and time step as
+    ``sim``."""
     import mujoco
 
     from treeinfer.export import GRASP_SITE, to_mjcf
@@ -217,7 +218,8 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
         "steps_per_rollout": steps_per_rollout,
     }
     print(
-        f"\n== {n_branches}-branch chain, {sim.backend} backend: nq={sim.mj_model.nq}, substeps={sim.substeps}, T={n_steps} "
+        f"\n== {n_branches}-branch chain, {sim.backend} backend: nq={sim.mj_model.nq}, "
+        f"substeps={sim.substeps}, T={n_steps} "
         f"({steps_per_rollout} physics steps per rollout)",
         flush=True,
     )
@@ -318,9 +320,11 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
         out_rows.append(row)
         save()
         print(
-            f"   N={n:>6}: MJX {C.fmt_rate(mjx_rate)} steps/s ({tm['median_s'] * 1e3:.1f} ms; lower {t1 - t0:.1f} s, "
-            f"compile {t2 - t1:.1f} s) | C rollout {C.fmt_rate(row.get('c_steps_per_s'))} (N={n_c}) | "
-            f"naive {C.fmt_rate(info['naive_steps_per_s'])} | MJX/C {row.get('mjx_over_c', float('nan')):.3g}",
+            f"   N={n:>6}: MJX {C.fmt_rate(mjx_rate)} steps/s ({tm['median_s'] * 1e3:.1f} ms; "
+            f"lower {t1 - t0:.1f} s, compile {t2 - t1:.1f} s) | "
+            f"C rollout {C.fmt_rate(row.get('c_steps_per_s'))} (N={n_c}) | "
+            f"naive {C.fmt_rate(info['naive_steps_per_s'])} | "
+            f"MJX/C {row.get('mjx_over_c', float('nan')):.3g}",
             flush=True,
         )
         if args.breakdown and n == max(batches):
@@ -338,7 +342,8 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
             row["settle_compile_s"] = tcs
             save()
             print(
-                f"   settle alone at N={n}: {ts['median_s'] * 1e3:.1f} ms = {row['settle_share']:.0%} of the rollout "
+                f"   settle alone at N={n}: {ts['median_s'] * 1e3:.1f} ms = "
+                f"{row['settle_share']:.0%} of the rollout "
                 f"(compile {tcs:.1f} s)",
                 flush=True,
             )
@@ -373,7 +378,8 @@ def main(argv=None) -> int:
         "--c-max-batch",
         type=int,
         default=None,
-        help="largest batch run through mujoco.rollout (its rate is flat in N); default 16384 GPU host, 1024 CPU",
+        help="largest batch run through mujoco.rollout (its rate is flat in N); "
+        "default 16384 GPU host, 1024 CPU",
     )
     p.add_argument("--naive-particles", type=int, default=2)
     p.add_argument("--reps", type=int, default=3)
@@ -424,7 +430,8 @@ def main(argv=None) -> int:
     record = {
         "machine": C.machine_info(),
         "settings": {k: v for k, v in vars(args).items() if k != "t_start"},
-        "definition": "particle-steps/s = N * B * T * substeps / s, B = 1 profile; MJX includes the settle, "
+        "definition": "particle-steps/s = N * B * T * substeps / s, B = 1 profile; "
+        "MJX includes the settle, "
         "mujoco.rollout starts from settled states",
     }
     print(f"machine: {record['machine']}", flush=True)
@@ -448,7 +455,8 @@ def main(argv=None) -> int:
         run_tree(nb, batches, args.steps, args, rows, record, save)
         save()
     print(
-        "\nparticle-steps/s (N * T * substeps / s); MJX includes the settle; C rollout from settled states"
+        "\nparticle-steps/s (N * T * substeps / s); MJX includes the settle; "
+        "C rollout from settled states"
     )
     C.print_table(
         [

@@ -34,7 +34,8 @@ Joint model: each hinge has ``stiffness = Kp``, ``damping = Kd`` and ``springref
 passive torque is ``-Kp * psi - Kd * psi_dot`` about the geometric rest angle, the paper's PD
 controller with zero target. Integrator: ``implicitfast`` (damping implicit, so any Kd in the
 prior is stable); the step is chosen from the stiffest corner of the prior box so that
-``omega_max * dt <= 1.5`` at twice the box's upper Kp (explicit springs are stable for ``omega * dt < 2``).
+``omega_max * dt <= 1.5`` at twice the box's upper Kp (explicit springs are stable for
+``omega * dt < 2``).
 
 Instability: a parameter set whose state becomes non-finite, whose joint speed exceeds
 ``max_joint_speed`` or whose displacement exceeds ``max_displacement`` (or that fails to
@@ -264,5 +265,6 @@ def check_stable_share(stable, max_unstable_share: float, what: str = "particles
     if share > max_unstable_share:
         raise SimulationError(
             f"{share:.0%} of {what} gave unstable simulations (limit {max_unstable_share:.0%}); "
-            "narrow the Kp prior box, lower the simulation step (--max-sim-dt) or check the tree's units"
+            "narrow the Kp prior box, lower the simulation step (--max-sim-dt) or check the "
+            "tree's units"
         )

@@ -221,4 +221,3 @@ def make_simulator(
             grasp_branch=grasp_branch,
         )
     return sim
-

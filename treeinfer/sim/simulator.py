@@ -164,7 +164,6 @@ class Simulator:
         )
 
 
-
 def _canonical(x) -> str:
     """A deterministic text form of a Simulator field (arrays by dtype, shape and bytes)."""
     if isinstance(x, np.ndarray):
