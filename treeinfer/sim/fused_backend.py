@@ -27,7 +27,7 @@ from .mjx import Backend
 if TYPE_CHECKING:
     from .simulator import Simulator
 
-LEVELS_FROM_JOINTS = 12  # auto: the level layout from this many joints (dofs) on
+LEVELS_FROM_JOINTS = 25  # auto: the level layout from this many joints (dofs) on
 STEP_LAYOUTS = ("auto", "scalar", "levels")
 
 

@@ -24,7 +24,14 @@ level without index bookkeeping.
 Welded (joint-less) bodies take part with a zero motion subspace and ``D = 1``: they add their
 inertia to their parent and get no acceleration of their own.
 
-All functions work on one particle (arrays over the tree's bodies); ``vmap`` batches them.
+Arithmetic is structure-of-arrays: a 3-vector is a tuple of three [W] arrays (one entry per
+body of the level), a 6x6 inertia 36 of them, and the element functions of
+:mod:`treeinfer.sim.fused` (``add``, ``mul``, ``cross`` ...) combine them, folding the
+constants that are zero or one for a whole level. XLA then sees elementwise arithmetic on
+[particles, W] arrays, which it fuses into few loops; [W, 6, 6] arrays with reductions over the
+trailing axes were 25x slower on the CPU (many small unfused kernels).
+
+All functions work on one particle; ``vmap`` batches them.
 """
 
 from __future__ import annotations
@@ -36,7 +43,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .fused import HingeTree
+from . import fused as hd
+from .fused import HingeTree, add, cross, dot, matmul, matvec, mul, sub, total
 
 
 class Level(NamedTuple):
@@ -123,51 +131,115 @@ def layout(t: HingeTree) -> Layout:
     )
 
 
-# ---- small linear algebra on trailing axes (elementwise, so XLA fuses it) -----------------------
-def _mv(m, v):
-    return jnp.sum(m * v[..., None, :], axis=-1)
+# ---- structure-of-arrays elements ---------------------------------------------------------------
+def _elem(a, dtype):
+    """A level constant [W] as an element: 0.0 / 1.0 when it is that for every body (folds),
+    else a JAX array."""
+    a = np.asarray(a, float)
+    if np.all(a == 0.0):
+        return 0.0
+    if np.all(a == 1.0):
+        return 1.0
+    return jnp.asarray(a, dtype)
 
 
-def _mm(a, b):
-    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+def _vec(a, dtype):
+    """[W, 3] constants -> tuple of 3 elements."""
+    return tuple(_elem(a[:, i], dtype) for i in range(3))
 
 
-def _skew(c):
-    z = jnp.zeros_like(c[..., 0])
-    x, y, w = c[..., 0], c[..., 1], c[..., 2]
-    rows = [jnp.stack(r, axis=-1) for r in ((z, -w, y), (w, z, -x), (-y, x, z))]
-    return jnp.stack(rows, axis=-2)
+def _mat(a, dtype):
+    """[W, 3, 3] constants -> 3x3 tuple of elements."""
+    return tuple(tuple(_elem(a[:, i, j], dtype) for j in range(3)) for i in range(3))
 
 
-def _crm(v, u):
-    """Spatial motion cross product ``v x u`` of 6-vectors [angular; linear at the origin]."""
-    w, vo, uw, uo = v[..., :3], v[..., 3:], u[..., :3], u[..., 3:]
-    return jnp.concatenate([jnp.cross(w, uw), jnp.cross(w, uo) + jnp.cross(vo, uw)], axis=-1)
-
-
-def _crf(v, f):
-    """Spatial force cross product ``v x* f`` (f = [moment about the origin; force])."""
-    w, vo, fn, ff = v[..., :3], v[..., 3:], f[..., :3], f[..., 3:]
-    return jnp.concatenate([jnp.cross(w, fn) + jnp.cross(vo, ff), jnp.cross(w, ff)], axis=-1)
-
-
-def _gather(x, idx):
-    """Rows ``idx`` (numpy) of ``x``; a slice when they are 0..n-1 (no gather op)."""
-    if idx is None:
+def _take(x, idx):
+    """Element ``x`` (float or [W_prev] array) at the parent indices ``idx`` (numpy [W])."""
+    if isinstance(x, float) or idx is None:
         return x
     if len(idx) == x.shape[0] and np.array_equal(idx, np.arange(len(idx))):
         return x
     return x[idx]
 
 
-def _to_parents(x, idx, n_parents: int):
-    """Sum rows of ``x`` into their parents' rows (``idx`` [W] numpy) -> [n_parents, ...]."""
+def _take_all(xs, idx):
+    return jax.tree_util.tree_map(lambda x: _take(x, idx), xs)
+
+
+def _to_parents(elems: list, idx, width: int, n_parents: int, dtype) -> list:
+    """Sum each element (float or [width] array) into its parent's row -> [n_parents] each, in
+    one scatter for all elements."""
     if len(idx) == n_parents and np.array_equal(idx, np.arange(n_parents)):
-        return x
-    return jax.ops.segment_sum(x, jnp.asarray(idx), num_segments=n_parents)
+        return list(elems)
+    live = [i for i, e in enumerate(elems) if not (isinstance(e, float) and e == 0.0)]
+    out = [0.0] * len(elems)
+    if not live:
+        return out
+    stacked = jnp.stack([jnp.broadcast_to(jnp.asarray(elems[i], dtype), (width,)) for i in live])
+    summed = jax.ops.segment_sum(stacked.T, jnp.asarray(idx), num_segments=n_parents).T
+    for k, i in enumerate(live):
+        out[i] = summed[k]
+    return out
+
+
+def _mv6(m, x):
+    return tuple(total(*(mul(m[i][k], x[k]) for k in range(6))) for i in range(6))
+
+
+def _dot6(a, b):
+    return total(*(mul(x, y) for x, y in zip(a, b)))
+
+
+def _crm(v, u):
+    """Spatial motion cross product ``v x u`` of 6-vectors [angular; linear at the origin]."""
+    w, vo, uw, uo = v[:3], v[3:], u[:3], u[3:]
+    return cross(w, uw) + hd.vadd(cross(w, uo), cross(vo, uw))
+
+
+def _crf(v, f):
+    """Spatial force cross product ``v x* f`` (f = [moment about the origin; force])."""
+    w, vo, fn, ff = v[:3], v[3:], f[:3], f[3:]
+    return hd.vadd(cross(w, fn), cross(vo, ff)) + cross(w, ff)
 
 
 # ---- kinematics ---------------------------------------------------------------------------------
+class _Frames(NamedTuple):
+    rot: tuple  # 3x3 elements, world orientation
+    pos: tuple  # 3 elements, m
+    com: tuple  # 3 elements, m
+    anchor: tuple  # 3 elements, m
+    axis: tuple  # 3 elements (zeros for welded bodies)
+
+
+def _frames(lay: Layout, q) -> list[_Frames]:
+    dtype = q.dtype
+    qpad = jnp.concatenate([q, jnp.zeros((1,), dtype)])
+    out: list[_Frames] = []
+    for lev in lay.levels:
+        if lev.parent is None:
+            x, r = _vec(lev.body_pos, dtype), _mat(lev.body_rot, dtype)
+        else:
+            prev = out[-1]
+            rp, xp = _take_all(prev.rot, lev.parent), _take_all(prev.pos, lev.parent)
+            x = hd.vadd(xp, matvec(rp, _vec(lev.body_pos, dtype)))
+            r = matmul(rp, _mat(lev.body_rot, dtype))
+        jpos = _vec(lev.jnt_pos, dtype)
+        anchor = hd.vadd(x, matvec(r, jpos))
+        axis = matvec(r, _vec(lev.jnt_axis, dtype))
+        angle = qpad[lev.dof] - jnp.asarray(lev.qpos0, dtype)
+        sn, omc = jnp.sin(angle), 1.0 - jnp.cos(angle)
+        k, k2 = _mat(lev.skew, dtype), _mat(lev.skew2, dtype)
+        turn = tuple(
+            tuple(total(float(i == j), mul(k[i][j], sn), mul(k2[i][j], omc)) for j in range(3))
+            for i in range(3)
+        )
+        r = matmul(r, turn)
+        x = hd.vsub(anchor, matvec(r, jpos))
+        com = hd.vadd(x, matvec(r, _vec(lev.ipos, dtype)))
+        out.append(_Frames(r, x, com, anchor, axis))
+    return out
+
+
 class LevelKinematics(NamedTuple):
     rot: jax.Array  # [W, 3, 3] world orientation
     pos: jax.Array  # [W, 3] m, world origin of each body frame
@@ -176,53 +248,63 @@ class LevelKinematics(NamedTuple):
     axis: jax.Array  # [W, 3] world joint axis (zeros for welded bodies)
 
 
+def _stack_vec(v, w: int, dtype):
+    return jnp.stack([jnp.broadcast_to(jnp.asarray(x, dtype), (w,)) for x in v], axis=-1)
+
+
 def kinematics(lay: Layout, q) -> list[LevelKinematics]:
     """World frames of every body, per level, for joint angles ``q`` [nv] (``mj_kinematics``)."""
     q = jnp.asarray(q)
-    dtype = q.dtype
-    c = lambda a: jnp.asarray(a, dtype)
-    qpad = jnp.concatenate([q, jnp.zeros((1,), dtype)])
-    out: list[LevelKinematics] = []
-    for lev in lay.levels:
-        if lev.parent is None:
-            x, r = c(lev.body_pos), c(lev.body_rot)
-        else:
-            prev = out[-1]
-            rp = _gather(prev.rot, lev.parent)
-            x = _gather(prev.pos, lev.parent) + _mv(rp, c(lev.body_pos))
-            r = _mm(rp, c(lev.body_rot))
-        anchor = x + _mv(r, c(lev.jnt_pos))
-        axis = _mv(r, c(lev.jnt_axis))
-        angle = (qpad[lev.dof] - c(lev.qpos0))[:, None, None]
-        turn = c(np.eye(3)) + jnp.sin(angle) * c(lev.skew) + (1.0 - jnp.cos(angle)) * c(lev.skew2)
-        r = _mm(r, turn)
-        x = anchor - _mv(r, c(lev.jnt_pos))
-        out.append(LevelKinematics(r, x, x + _mv(r, c(lev.ipos)), anchor, axis))
+    out = []
+    for lev, f in zip(lay.levels, _frames(lay, q)):
+        w = len(lev.bodies)
+        sv = lambda v: _stack_vec(v, w, q.dtype)
+        rot = jnp.stack([sv(row) for row in f.rot], axis=-2)
+        out.append(LevelKinematics(rot, sv(f.pos), sv(f.com), sv(f.anchor), sv(f.axis)))
     return out
 
 
-def body_frame(lay: Layout, kin: list[LevelKinematics], body: int):
-    """(rot [3, 3], pos [3], com [3]) of MuJoCo body ``body``."""
+def body_frame(lay: Layout, kin: list, body: int):
+    """(rot [3, 3], pos [3], com [3]) of MuJoCo body ``body`` from :func:`kinematics`."""
     level, i = lay.where[body]
     k = kin[level]
     return k.rot[i], k.pos[i], k.com[i]
 
 
-def _spatial_inertia(lev: Level, k: LevelKinematics, dtype):
-    """[W, 6, 6] spatial inertia about the world origin, world axes, [angular; linear]."""
-    rb = _mm(k.rot, jnp.asarray(lev.irot, dtype))
-    ic = _mm(rb * jnp.asarray(lev.inertia, dtype)[:, None, :], jnp.swapaxes(rb, -1, -2))
-    m = jnp.asarray(lev.mass, dtype)[:, None, None]
-    cx = _skew(k.com)
-    mcx = m * cx
-    top = jnp.concatenate([ic - _mm(mcx, cx), mcx], axis=-1)
-    bottom = jnp.concatenate([-mcx, m * jnp.eye(3, dtype=dtype)], axis=-1)
-    return jnp.concatenate([top, bottom], axis=-2)
+def _pick(v, i: int):
+    """Entry ``i`` of each element of a tuple (floats stay)."""
+    return tuple(x if isinstance(x, float) else x[i] for x in v)
 
 
-def _motion_subspace(k: LevelKinematics):
-    """[W, 6] hinge motion subspace [axis; anchor x axis] (the origin's velocity per rad/s)."""
-    return jnp.concatenate([k.axis, jnp.cross(k.anchor, k.axis)], axis=-1)
+def _spatial_inertia(lev: Level, f: _Frames, dtype):
+    """6x6 elements: spatial inertia about the world origin, world axes, [angular; linear]."""
+    rb = matmul(f.rot, _mat(lev.irot, dtype))
+    inertia = _vec(lev.inertia, dtype)
+    rbi = tuple(tuple(mul(rb[i][k], inertia[k]) for k in range(3)) for i in range(3))
+    ic = tuple(
+        tuple(total(*(mul(rbi[i][k], rb[j][k]) for k in range(3))) for j in range(3))
+        for i in range(3)
+    )
+    m = _elem(lev.mass, dtype)
+    c = f.com
+    cc = dot(c, c)
+    top_left = tuple(
+        tuple(add(ic[i][j], mul(m, sub(cc if i == j else 0.0, mul(c[i], c[j])))) for j in range(3))
+        for i in range(3)
+    )
+    cx = ((0.0, mul(-1.0, c[2]), c[1]), (c[2], 0.0, mul(-1.0, c[0])), (mul(-1.0, c[1]), c[0], 0.0))
+    mcx = tuple(tuple(mul(m, cx[i][j]) for j in range(3)) for i in range(3))
+    rows = [top_left[i] + mcx[i] for i in range(3)]
+    rows += [  # bottom-left block: (m [c]x)^T
+        tuple(mcx[i][j] for i in range(3)) + tuple(m if i == j else 0.0 for i in range(3))
+        for j in range(3)
+    ]
+    return tuple(rows)
+
+
+def _motion_subspace(f: _Frames):
+    """6 elements: hinge motion subspace [axis; anchor x axis] (origin velocity per rad/s)."""
+    return f.axis + cross(f.anchor, f.axis)
 
 
 def _pad(x, value: float):
@@ -230,29 +312,32 @@ def _pad(x, value: float):
 
 
 # ---- the public per-particle functions ----------------------------------------------------------
-def gravity_bias(lay: Layout, kin: list[LevelKinematics], dtype):
+def gravity_bias(lay: Layout, frames: list[_Frames], dtype):
     """``qfrc_bias`` at zero velocity (gravity only) [nv]."""
-    g = jnp.asarray(lay.gravity, dtype)
+    g = tuple(float(x) for x in lay.gravity)
+    minus_g = tuple(-x for x in g)
     n = len(lay.levels)
-    sub = [None] * n
+    sub_f: list = [None] * n
     for lv in range(n - 1, -1, -1):
-        lev, k = lay.levels[lv], kin[lv]
-        m = jnp.asarray(lev.mass, dtype)[:, None]
-        f = jnp.concatenate([m * jnp.cross(k.com, -g), -m * g], axis=-1)  # I [0; -g]
-        sub[lv] = f if sub[lv] is None else sub[lv] + f
+        lev, f = lay.levels[lv], frames[lv]
+        m = _elem(lev.mass, dtype)
+        own = tuple(mul(m, x) for x in cross(f.com, minus_g)) + tuple(mul(m, x) for x in minus_g)
+        sub_f[lv] = own if sub_f[lv] is None else tuple(add(a, b) for a, b in zip(sub_f[lv], own))
         if lv > 0:
-            up = _to_parents(sub[lv], lev.parent, len(lay.levels[lv - 1].bodies))
-            sub[lv - 1] = up
-    bias = jnp.concatenate([jnp.sum(_motion_subspace(k) * s, -1) for k, s in zip(kin, sub)])
-    return bias[lay.perm]
+            w, wp = len(lev.bodies), len(lay.levels[lv - 1].bodies)
+            sub_f[lv - 1] = tuple(_to_parents(list(sub_f[lv]), lev.parent, w, wp, dtype))
+    parts = []
+    for lev, f, sf in zip(lay.levels, frames, sub_f):
+        b = _dot6(_motion_subspace(f), sf)
+        parts.append(jnp.broadcast_to(jnp.asarray(b, dtype), (len(lev.bodies),)))
+    return jnp.concatenate(parts)[lay.perm]
 
 
 def static_torque(lay: Layout, q, stiffness, qpos_spring):
     """Net joint torque at rest (spring minus gravity bias) [nv] for angles ``q`` [nv]."""
     q = jnp.asarray(q)
-    kin = kinematics(lay, q)
     spring = -jnp.asarray(stiffness, q.dtype) * (q - jnp.asarray(qpos_spring, q.dtype))
-    return spring - gravity_bias(lay, kin, q.dtype)
+    return spring - gravity_bias(lay, _frames(lay, q), q.dtype)
 
 
 class StepOutput(NamedTuple):
@@ -288,51 +373,73 @@ def step(
     c = lambda a: jnp.asarray(a, dtype)
     v = c(qvel)
     stiffness, damping = c(stiffness), c(damping)
-    force, lever = c(jnp.stack([c(f) for f in force])), c(jnp.stack([c(x) for x in lever]))
-    site_local = jnp.stack([c(s) for s in site_local])
-    kin = kinematics(lay, q)
-    rot_b, pos_b, com_b = body_frame(lay, kin, body)
-    site = pos_b + _mv(rot_b, site_local)
+    force, lever, site_local = tuple(force), tuple(lever), tuple(site_local)
+    frames = _frames(lay, q)
+    b_level, b_index = lay.where[body]
+    fb = frames[b_level]
+    rot_b, pos_b, com_b = (
+        tuple(_pick(row, b_index) for row in fb.rot),
+        _pick(fb.pos, b_index),
+        _pick(fb.com, b_index),
+    )
+    site = hd.vadd(pos_b, matvec(rot_b, site_local))
     # applied wrench at the grasp body: force at its com plus the lever torque, about the origin
-    f_ext = jnp.concatenate([jnp.cross(lever, force) + jnp.cross(com_b, force), force])
+    f_ext = hd.vadd(cross(lever, force), cross(com_b, force)) + force
     tau = _pad(-stiffness * (q - c(qpos_spring)) - damping * v, 0.0)
     diag = _pad(c(lay.armature) + dt * damping, 1.0)  # welded bodies: D = 1, s = 0
     vpad = _pad(v, 0.0)
     n = len(lay.levels)
     s_, c_, ia, pa, vel = [None] * n, [None] * n, [None] * n, [None] * n, [None] * n
-    b_level, b_index = lay.where[body]
-    for lv, (lev, k) in enumerate(zip(lay.levels, kin)):  # velocities, root to leaves
-        s = _motion_subspace(k)
-        sq = s * vpad[lev.dof][:, None]
-        vp = None if lev.parent is None else _gather(vel[lv - 1], lev.parent)
-        vel[lv] = sq if vp is None else vp + sq
-        c_[lv] = jnp.zeros_like(sq) if vp is None else _crm(vp, sq)
-        inertia = _spatial_inertia(lev, k, dtype)
-        p = _crf(vel[lv], _mv(inertia, vel[lv]))
+    for lv, (lev, f) in enumerate(zip(lay.levels, frames)):  # velocities, root to leaves
+        s = _motion_subspace(f)
+        qd = vpad[lev.dof]
+        sq = tuple(mul(x, qd) for x in s)
+        if lev.parent is None:
+            vel[lv], c_[lv] = sq, (0.0,) * 6
+        else:
+            vp = _take_all(vel[lv - 1], lev.parent)
+            vel[lv], c_[lv] = tuple(add(a, b) for a, b in zip(vp, sq)), _crm(vp, sq)
+        inertia = _spatial_inertia(lev, f, dtype)
+        p = _crf(vel[lv], _mv6(inertia, vel[lv]))
         if lv == b_level:
-            p = p.at[b_index].add(-f_ext)
+            onehot = np.zeros(len(lev.bodies))
+            onehot[b_index] = 1.0
+            oh = _elem(onehot, dtype)
+            p = tuple(sub(a, mul(oh, b)) for a, b in zip(p, f_ext))
         s_[lv], ia[lv], pa[lv] = s, inertia, p
     u_, d_, uu_ = [None] * n, [None] * n, [None] * n
     for lv in range(n - 1, -1, -1):  # articulated inertias and bias forces, leaves to root
         lev, s = lay.levels[lv], s_[lv]
-        U = _mv(ia[lv], s)
-        D = jnp.sum(s * U, -1) + diag[lev.dof]
-        u = tau[lev.dof] - jnp.sum(s * pa[lv], -1)
+        U = _mv6(ia[lv], s)
+        D = add(_dot6(s, U), diag[lev.dof])
+        u = sub(tau[lev.dof], _dot6(s, pa[lv]))
         u_[lv], d_[lv], uu_[lv] = u, D, U
         if lv > 0:
-            ia_child = ia[lv] - U[:, :, None] * (U / D[:, None])[:, None, :]
-            pa_child = pa[lv] + _mv(ia_child, c_[lv]) + U * (u / D)[:, None]
-            w = len(lay.levels[lv - 1].bodies)
-            ia[lv - 1] = ia[lv - 1] + _to_parents(ia_child, lev.parent, w)
-            pa[lv - 1] = pa[lv - 1] + _to_parents(pa_child, lev.parent, w)
-    a0 = jnp.concatenate([jnp.zeros(3, dtype), -c(lay.gravity)])
+            ud = tuple(x / D if not isinstance(x, float) else mul(x, 1.0 / D) for x in U)
+            ia_child = tuple(
+                tuple(sub(ia[lv][i][j], mul(U[i], ud[j])) for j in range(6)) for i in range(6)
+            )
+            uod = u / D
+            pa_child = tuple(
+                add(add(a, b), mul(x, uod)) for a, b, x in zip(pa[lv], _mv6(ia_child, c_[lv]), U)
+            )
+            w, wp = len(lev.bodies), len(lay.levels[lv - 1].bodies)
+            flat = [e for row in ia_child for e in row] + list(pa_child)
+            up = _to_parents(flat, lev.parent, w, wp, dtype)
+            ia[lv - 1] = tuple(
+                tuple(add(ia[lv - 1][i][j], up[6 * i + j]) for j in range(6)) for i in range(6)
+            )
+            pa[lv - 1] = tuple(add(a, b) for a, b in zip(pa[lv - 1], up[36:]))
+    a0 = (0.0, 0.0, 0.0) + tuple(-float(x) for x in lay.gravity)
     acc, qdd = [None] * n, []
     for lv, lev in enumerate(lay.levels):  # accelerations, root to leaves
-        ap = a0[None, :] if lev.parent is None else _gather(acc[lv - 1], lev.parent)
-        ap = ap + c_[lv]
-        a = (u_[lv] - jnp.sum(uu_[lv] * ap, -1)) / d_[lv]
-        acc[lv] = ap + s_[lv] * a[:, None]
-        qdd.append(a)
+        ap = a0 if lev.parent is None else _take_all(acc[lv - 1], lev.parent)
+        ap = tuple(add(a, b) for a, b in zip(ap, c_[lv]))
+        a = (u_[lv] - _dot6(uu_[lv], ap)) / d_[lv]
+        acc[lv] = tuple(add(x, mul(y, a)) for x, y in zip(ap, s_[lv]))
+        qdd.append(jnp.broadcast_to(a, (len(lev.bodies),)))
     qacc = jnp.concatenate(qdd)[lay.perm]
     v_new = v + dt * qacc
-    return StepOutput(qpos=q + dt * v_new, qvel=v_new, lever=site - com_b, site=site)
+    stack3 = lambda t: jnp.stack([c(x) for x in t])
+    lever_new = hd.vsub(site, com_b)
+    return StepOutput(qpos=q + dt * v_new, qvel=v_new, lever=stack3(lever_new), site=stack3(site))
