@@ -8,8 +8,8 @@ hinge-tree step written as JAX, in one of two layouts of the same arithmetic:
   articulated-body algorithm, whose program grows with the tree's depth only.
 
 ``Simulator.step_layout == "auto"`` takes the scalar layout up to :data:`LEVELS_FROM_JOINTS` - 1
-joints and the level layout from there (``BENCHMARKS.md``, "Compile time against joint count",
-has the measurements behind the threshold).
+joints and the level layout from there (``BENCHMARKS.md``, "Compile time
+and memory against joint count", has the measurements behind the threshold).
 """
 
 from __future__ import annotations
