@@ -219,7 +219,8 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
     }
     print(
         f"\n== {n_branches}-branch chain, {sim.backend} backend: nq={sim.mj_model.nq}, "
-        f"substeps={sim.substeps}, T={n_steps} ({steps_per_rollout} physics steps per rollout)",
+        f"substeps={sim.substeps}, T={n_steps} "
+        f"({steps_per_rollout} physics steps per rollout)",
         flush=True,
     )
 
@@ -320,10 +321,10 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
         save()
         print(
             f"   N={n:>6}: MJX {C.fmt_rate(mjx_rate)} steps/s ({tm['median_s'] * 1e3:.1f} ms; "
-            f"lower {t1 - t0:.1f} s, compile {t2 - t1:.1f} s) | C rollout "
-            f"{C.fmt_rate(row.get('c_steps_per_s'))} (N={n_c}) | naive "
-            f"{C.fmt_rate(info['naive_steps_per_s'])} | MJX/C "
-            f"{row.get('mjx_over_c', float('nan')):.3g}",
+            f"lower {t1 - t0:.1f} s, compile {t2 - t1:.1f} s) | "
+            f"C rollout {C.fmt_rate(row.get('c_steps_per_s'))} (N={n_c}) | "
+            f"naive {C.fmt_rate(info['naive_steps_per_s'])} | "
+            f"MJX/C {row.get('mjx_over_c', float('nan')):.3g}",
             flush=True,
         )
         if args.breakdown and n == max(batches):
@@ -342,7 +343,8 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
             save()
             print(
                 f"   settle alone at N={n}: {ts['median_s'] * 1e3:.1f} ms = "
-                f"{row['settle_share']:.0%} of the rollout (compile {tcs:.1f} s)",
+                f"{row['settle_share']:.0%} of the rollout "
+                f"(compile {tcs:.1f} s)",
                 flush=True,
             )
         del compiled, lowered
@@ -376,8 +378,8 @@ def main(argv=None) -> int:
         "--c-max-batch",
         type=int,
         default=None,
-        help="largest batch run through mujoco.rollout (its rate is flat in N); default 16384 "
-        "GPU host, 1024 CPU",
+        help="largest batch run through mujoco.rollout (its rate is flat in N); "
+        "default 16384 GPU host, 1024 CPU",
     )
     p.add_argument("--naive-particles", type=int, default=2)
     p.add_argument("--reps", type=int, default=3)
@@ -428,8 +430,9 @@ def main(argv=None) -> int:
     record = {
         "machine": C.machine_info(),
         "settings": {k: v for k, v in vars(args).items() if k != "t_start"},
-        "definition": "particle-steps/s = N * B * T * substeps / s, B = 1 profile; MJX includes "
-        "the settle, mujoco.rollout starts from settled states",
+        "definition": "particle-steps/s = N * B * T * substeps / s, B = 1 profile; "
+        "MJX includes the settle, "
+        "mujoco.rollout starts from settled states",
     }
     print(f"machine: {record['machine']}", flush=True)
     rows: list[dict] = []
@@ -452,8 +455,8 @@ def main(argv=None) -> int:
         run_tree(nb, batches, args.steps, args, rows, record, save)
         save()
     print(
-        "\nparticle-steps/s (N * T * substeps / s); MJX includes the settle; C rollout from "
-        "settled states"
+        "\nparticle-steps/s (N * T * substeps / s); MJX includes the settle; "
+        "C rollout from settled states"
     )
     C.print_table(
         [

@@ -29,6 +29,7 @@ from treeinfer.gradients import (
 )
 from treeinfer.likelihood import boltzmann_log_likelihood
 from treeinfer.sim import fused as hd
+from treeinfer.sim import levels as lv
 from treeinfer.sim import make_simulator
 from treeinfer.sim.reference import simulate_reference
 from treeinfer.trajectories import Trajectory, stack_trajectories
@@ -139,11 +140,18 @@ def _random_state(m, rng):
     return d, kp, kd, body, force, lever
 
 
-def _fused_next_state(m, t, body, force, lever):
-    """(q [nv], v [nv], stiffness [nv], damping [nv]) -> next state [2 nv] of the fused step."""
+def _fused_next_state(m, t, body, force, lever, layout="scalar"):
+    """(q [nv], v [nv], stiffness [nv], damping [nv]) -> next state [2 nv] of the fused step
+    (``layout``: ``"scalar"``, :mod:`treeinfer.sim.fused`; ``"levels"``, :mod:`~.levels`)."""
     spring = m.qpos_spring[m.jnt_qposadr[m.dof_jntid]]
 
     def next_state(q, v, kp, kd):
+        if layout == "levels":
+            out = lv.step(
+                lv.layout(t), q, v, kp, kd, spring, m.opt.timestep, body, (0.1, 0.0, 0.0),
+                tuple(force), tuple(lever),
+            )  # fmt: skip
+            return jnp.concatenate([out.qpos, out.qvel])
         out = hd.step(
             t,
             q,
@@ -162,10 +170,11 @@ def _fused_next_state(m, t, body, force, lever):
     return next_state
 
 
+@pytest.mark.parametrize("layout", ["scalar", "levels"])
 @pytest.mark.parametrize(
     "name,model", list(_models()), ids=lambda x: x if isinstance(x, str) else ""
 )
-def test_step_state_jacobian_matches_mjd_transitionFD(name, model):
+def test_step_state_jacobian_matches_mjd_transitionFD(name, model, layout):
     m = model
     t = hd.from_mjmodel(m)
     rng = np.random.default_rng(3)
@@ -174,7 +183,7 @@ def test_step_state_jacobian_matches_mjd_transitionFD(name, model):
             d, kp, kd, body, force, lever = _random_state(m, rng)
             a = np.zeros((2 * m.nv + m.na, 2 * m.nv + m.na))
             mujoco.mjd_transitionFD(m, d, 1e-6, True, a, None, None, None)
-            f = _fused_next_state(m, t, body, force, lever)
+            f = _fused_next_state(m, t, body, force, lever, layout)
             args = (jnp.asarray(d.qpos), jnp.asarray(d.qvel), jnp.asarray(kp), jnp.asarray(kd))
             jq, jv = jax.jit(jax.jacfwd(f, argnums=(0, 1)))(*args)
             ours = np.concatenate([np.asarray(jq), np.asarray(jv)], axis=1)
@@ -182,16 +191,17 @@ def test_step_state_jacobian_matches_mjd_transitionFD(name, model):
             np.testing.assert_allclose(ours, a, atol=1e-6 * max(1.0, np.abs(a).max()))
 
 
+@pytest.mark.parametrize("layout", ["scalar", "levels"])
 @pytest.mark.parametrize(
     "name,model", list(_models()), ids=lambda x: x if isinstance(x, str) else ""
 )
-def test_step_gain_jacobian_matches_fd_of_mj_step(name, model):
+def test_step_gain_jacobian_matches_fd_of_mj_step(name, model, layout):
     m = model
     t = hd.from_mjmodel(m)
     rng = np.random.default_rng(4)
     with jax.enable_x64(True):
         d0, kp, kd, body, force, lever = _random_state(m, rng)
-        f = _fused_next_state(m, t, body, force, lever)
+        f = _fused_next_state(m, t, body, force, lever, layout)
         args = (jnp.asarray(d0.qpos), jnp.asarray(d0.qvel), jnp.asarray(kp), jnp.asarray(kd))
         jkp, jkd = (np.asarray(x) for x in jax.jit(jax.jacfwd(f, argnums=(2, 3)))(*args))
 

@@ -12,10 +12,13 @@ import mujoco
 import numpy as np
 import pytest
 
+from treeinfer import generators as gen
 from treeinfer.examples import example_path
 from treeinfer.export import to_mjmodel
 from treeinfer.sim import fused as hd
+from treeinfer.sim import levels as lv
 from treeinfer.sim import make_simulator
+from treeinfer.sim.fused_backend import LEVELS_FROM_JOINTS, uses_levels
 from treeinfer.tree import load_tree
 
 # A hand-written model that uses what our exports do not: a welded (joint-less) body, joint
@@ -34,7 +37,8 @@ GENERAL_MJCF = """
       <body name="welded" pos="0.6 0 0" quat="0.7 0 0.7 0">
         <inertial pos="0.1 0 0.02" mass="0.3" diaginertia="0.002 0.001 0.003"/>
         <body name="b" pos="0.2 0.05 0" quat="1 0.2 0 0.1">
-          <joint name="jb" type="hinge" axis="0 0 1" pos="-0.02 0.01 0" stiffness="12" damping="0.2"/>
+          <joint name="jb" type="hinge" axis="0 0 1" pos="-0.02 0.01 0" stiffness="12"
+                 damping="0.2"/>
           <inertial pos="0.25 0 0" mass="0.5" diaginertia="0.01 0.012 0.004"/>
           <site name="grasp" pos="0.5 0 0"/>
         </body>
@@ -127,3 +131,73 @@ def test_models_it_does_not_reproduce_are_refused():
 def test_auto_backend_picks_fused_for_our_trees():
     sim = make_simulator(load_tree(example_path("three_branch")), obs_dt=0.01)
     assert sim.backend == "fused" and sim.hinge_tree is not None
+
+
+def _random_mj_state(m, rng, body):
+    """A random state, gains and applied wrench on ``m`` (in place), as the test above."""
+    d = mujoco.MjData(m)
+    d.qpos[:] = rng.normal(size=m.nq) * 0.6
+    d.qvel[:] = rng.normal(size=m.nv) * 2.0
+    kp, kd = rng.uniform(2, 80, m.nv), rng.uniform(0.05, 3, m.nv)
+    m.jnt_stiffness[m.dof_jntid] = kp
+    m.dof_damping[:] = kd
+    force, lever = rng.normal(size=3) * 4, rng.normal(size=3) * 0.1
+    d.xfrc_applied[body, :3] = force
+    d.xfrc_applied[body, 3:] = np.cross(lever, force)
+    mujoco.mj_forward(m, d)
+    return d, kp, kd, force, lever
+
+
+def _big_lsystem():
+    """A generated L-system tree of 171 hinges, 5 levels deep."""
+    return to_mjmodel(gen.lsystem("F", {"F": "F[+F][-F]F"}, 4, angle_deg=25, step_length=0.3))
+
+
+@pytest.mark.parametrize(
+    "name,model",
+    list(_models()) + [("lsystem171", _big_lsystem())],
+    ids=lambda x: x if isinstance(x, str) else "",
+)
+def test_level_step_matches_mj_step(name, model):
+    """The level layout (articulated-body algorithm per depth level) equals mj_step in float64:
+    frames, gravity torque, grasp point, and the next qpos/qvel."""
+    m = model
+    lay = lv.layout(hd.from_mjmodel(m))
+    assert sorted(np.concatenate([x.bodies for x in lay.levels])) == list(range(1, m.nbody))
+    rng = np.random.default_rng(2)
+    body = m.nbody - 1
+    with jax.enable_x64(True):
+        for _ in range(2):
+            d, kp, kd, force, lever = _random_mj_state(m, rng, body)
+            q, v = jnp.asarray(d.qpos), jnp.asarray(d.qvel)
+            kin = lv.kinematics(lay, q)
+            for level, k in zip(lay.levels, kin):
+                np.testing.assert_allclose(np.asarray(k.com), d.xipos[level.bodies], atol=1e-12)
+                np.testing.assert_allclose(
+                    np.asarray(k.rot), d.xmat[level.bodies].reshape(-1, 3, 3), atol=1e-12
+                )
+            spring = m.qpos_spring[m.jnt_qposadr[m.dof_jntid]]
+            # gravity torque: MuJoCo's qfrc_bias at zero velocity
+            d0 = mujoco.MjData(m)
+            d0.qpos[:] = d.qpos
+            mujoco.mj_forward(m, d0)
+            torque = lv.static_torque(lay, q, kp, spring)
+            want = -kp * (d.qpos - spring) - d0.qfrc_bias
+            np.testing.assert_allclose(np.asarray(torque), want, atol=1e-10)
+            out = lv.step(
+                lay, q, v, kp, kd, spring, m.opt.timestep, body, (0.1, 0.0, 0.0), force, lever
+            )
+            site_body = d.xpos[body] + d.xmat[body].reshape(3, 3) @ np.array([0.1, 0.0, 0.0])
+            np.testing.assert_allclose(np.asarray(out.site), site_body, atol=1e-12)
+            mujoco.mj_step(m, d)
+            assert np.max(np.abs(d.qvel)) > 0.1  # the state really moves
+            np.testing.assert_allclose(np.asarray(out.qpos), d.qpos, atol=1e-10)
+            np.testing.assert_allclose(np.asarray(out.qvel), d.qvel, atol=1e-10)
+
+
+def test_auto_layout_switches_to_levels_for_big_trees():
+    small = make_simulator(load_tree(example_path("three_branch")), obs_dt=0.01)
+    assert small.hinge_tree.nv < LEVELS_FROM_JOINTS and not uses_levels(small)
+    tree = gen.chain(LEVELS_FROM_JOINTS, 0.2, 0.02)
+    big = make_simulator(tree, obs_dt=0.01, substeps=2)
+    assert uses_levels(big)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -22,12 +24,16 @@ T = 60
 DT = 0.02
 
 
-@pytest.fixture(scope="module", params=["fused", "mjx"])
+@pytest.fixture(scope="module", params=["fused", "levels", "mjx"])
 def three(request):
-    """Every test below runs on both backends: the fused hinge-tree step and mjx.step."""
+    """Every test below runs on both backends: the fused hinge-tree step (in its scalar and its
+    level layout) and mjx.step."""
     tree = load_tree(example_path("three_branch"))
-    sim = make_simulator(tree, obs_dt=DT, backend=request.param)
-    assert sim.backend == request.param
+    backend = "fused" if request.param == "levels" else request.param
+    sim = make_simulator(tree, obs_dt=DT, backend=backend)
+    if request.param == "levels":
+        sim = dataclasses.replace(sim, step_layout="levels")
+    assert sim.backend == backend
     run = jax.jit(lambda kp, kd, f, g: simulate(sim, kp, kd, f, g))
     return tree, sim, run
 
@@ -150,3 +156,39 @@ def test_substeps_follow_the_stiffest_prior_corner():
     assert (
         stiff.sim_dt <= 1.5 / 1000.0
     )  # omega_max * dt <= 1.5; omega_max > 1000 rad/s at 2 x 50000 N m/rad
+
+
+def test_second_simulate_call_does_not_recompile():
+    """``simulate`` is compiled once per simulator content and shapes: new values, and a
+    simulator rebuilt from the same tree, reuse the program (no trace, no XLA compile)."""
+    import treeinfer.sim as ts
+
+    tree = load_tree(example_path("two_branch"))
+    forces = jnp.asarray(_forces()[:, :20])
+    kp, kd = jnp.asarray([[40.0, 60.0]]), jnp.asarray([[0.5, 0.5]])
+    kp2 = jnp.asarray([[80.0, 60.0]])  # made here: an eager op compiles a program of its own
+    sim = make_simulator(tree, obs_dt=DT, substeps=2)
+    compiles = []
+
+    def listener(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        before = ts.TRACES
+        first = simulate(sim, kp, kd, forces)
+        assert ts.TRACES == before + 1
+        n_traces, n_compiles = ts.TRACES, len(compiles)
+        again = simulate(sim, kp2, kd, forces)
+        rebuilt = make_simulator(tree, obs_dt=DT, substeps=2)
+        assert rebuilt is not sim and rebuilt == sim
+        third = simulate(rebuilt, kp, kd, forces)
+        assert ts.TRACES == n_traces and len(compiles) == n_compiles
+        # another step is another program
+        simulate(make_simulator(tree, obs_dt=DT, substeps=3), kp, kd, forces)
+        assert ts.TRACES == n_traces + 1
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    np.testing.assert_array_equal(np.asarray(first.tau), np.asarray(third.tau))
+    assert not np.allclose(np.asarray(first.tau), np.asarray(again.tau))

@@ -125,8 +125,8 @@ def simulate_batch(
         else ""
     )
     log(f"simulating {forces.shape[0]} trajectories{slow}...")
-    run = jax.jit(lambda a, b, f: simulate(sim, a, b, f))
-    rollout = run(np.asarray(kp)[None], np.asarray(kd)[None], np.asarray(forces))
+    # simulate is jitted per simulator content: a second call on the same shapes reuses it
+    rollout = simulate(sim, np.asarray(kp)[None], np.asarray(kd)[None], np.asarray(forces))
     return jax.device_get(rollout), sim
 
 

@@ -61,7 +61,15 @@ def resolve(backend: str) -> str:
 
 def supported(sim, grasp_branch=None, substeps=None) -> bool:
     """Whether :func:`simulate` runs the kernel for this call (else the fused path does)."""
-    return sim.hinge_tree is not None and grasp_branch is None and substeps is None
+    from .fused_backend import uses_levels
+
+    # the kernel runs the scalar (unrolled) fused step; big trees take the level layout
+    return (
+        sim.hinge_tree is not None
+        and grasp_branch is None
+        and substeps is None
+        and not uses_levels(sim)
+    )
 
 
 def _rows(x, n_profiles: int):
@@ -83,9 +91,9 @@ def _rollout_kernel(sim, n_steps: int, n_tangents: int, has_dir: bool, *refs):
     Refs (each [K, BLOCK] unless said): kp [R], kd [R], q_rest [nv], site [3], (dir [3]),
     forces [T], next forces [T], then for tangents: d kp [K*R], d kd [K*R], d q_rest [K*nv];
     outputs: tau [T], ok [1], (d tau [K*T])."""
-    from . import _fused_gains
     from . import fused as hd
     from .forcing import force_fraction
+    from .fused_backend import _gains as _fused_gains
 
     refs = list(refs)
     kp_ref, kd_ref, q_ref, site_ref = refs[:4]
@@ -262,7 +270,7 @@ def _rollout_rows(sim, kp, kd, q_rest, site, dirs, f, fn, dkp, dkd, dq, *, block
 
 def _prepare(sim, kp, kd, forces, grasp_fraction, direction):
     """Settle P parameter sets (fused backend's Newton solve) and lay out rollout rows."""
-    from . import _fused_prepare
+    from .fused_backend import _prepare as _fused_prepare
 
     dtype = sim.dtype
     kp, kd = jnp.atleast_2d(kp).astype(dtype), jnp.atleast_2d(kd).astype(dtype)
@@ -405,7 +413,7 @@ def simulate_with_tangents(
     beside one primal (least arithmetic; a large kernel, slow to compile), ``"rows"`` gives
     each tangent its own lanes with a copy of the primal (2K rollouts of arithmetic, but K
     times the parallelism for the GPU and a kernel as small as the primal's plus one)."""
-    from . import _fused_prepare
+    from .fused_backend import _prepare as _fused_prepare
 
     block = DEFAULT_BLOCK if block is None else int(block)
     dtype = sim.dtype

@@ -1,0 +1,210 @@
+"""The fused backend of :mod:`treeinfer.sim`: settle and pull with MuJoCo's ``implicitfast``
+hinge-tree step written as JAX, in one of two layouts of the same arithmetic:
+
+* ``"scalar"`` (:mod:`treeinfer.sim.fused`): unrolled scalar code per body and mass-matrix
+  entry, fastest for a few joints (XLA fuses a step into a handful of kernels) but its program
+  grows steeply with the joint count;
+* ``"levels"`` (:mod:`treeinfer.sim.levels`): arrays over each depth level of the tree and the
+  articulated-body algorithm, whose program grows with the tree's depth only.
+
+``Simulator.step_layout == "auto"`` takes the scalar layout up to :data:`LEVELS_FROM_JOINTS` - 1
+joints and the level layout from there (``BENCHMARKS.md``, "Compile time
+and memory against joint count", has the measurements behind the threshold).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import fused as hd
+from . import levels as lv
+from .mjx import Backend
+
+if TYPE_CHECKING:
+    from .simulator import Simulator
+
+LEVELS_FROM_JOINTS = 25  # auto: the level layout from this many joints (dofs) on
+STEP_LAYOUTS = ("auto", "scalar", "levels")
+
+
+def uses_levels(sim: Simulator) -> bool:
+    """Whether ``sim``'s fused step runs in the level layout."""
+    layout = getattr(sim, "step_layout", "auto")
+    if layout == "auto":
+        return sim.hinge_tree.nv >= LEVELS_FROM_JOINTS
+    return layout == "levels"
+
+
+def _gains(sim: Simulator, kp: jax.Array, kd: jax.Array):
+    """Per-dof stiffness, damping and spring reference as elements: the inferred joints' from
+    ``kp``/``kd`` [R], the others as Python constants (so they fold into the compiled step)."""
+    m = sim.mj_model
+    stiffness = [float(m.jnt_stiffness[m.dof_jntid[i]]) for i in range(m.nv)]
+    damping = [float(m.dof_damping[i]) for i in range(m.nv)]
+    for col, dof in enumerate(sim.dof_ids):
+        stiffness[int(dof)] = kp[col]
+        damping[int(dof)] = kd[col]
+    spring = [float(m.qpos_spring[m.jnt_qposadr[m.dof_jntid[i]]]) for i in range(m.nv)]
+    return stiffness, damping, spring
+
+
+def _gain_arrays(sim: Simulator, kp: jax.Array, kd: jax.Array, dtype):
+    """:func:`_gains` as [nv] arrays (the level layout's form)."""
+    m = sim.mj_model
+    dofs = np.asarray(sim.dof_ids)
+    stiffness = np.asarray(m.jnt_stiffness)[np.asarray(m.dof_jntid)]
+    stiffness = jnp.asarray(stiffness, dtype).at[dofs].set(kp.astype(dtype))
+    damping = jnp.asarray(np.asarray(m.dof_damping), dtype).at[dofs].set(kd.astype(dtype))
+    qadr = np.asarray(m.jnt_qposadr)[np.asarray(m.dof_jntid)]
+    spring = jnp.asarray(np.asarray(m.qpos_spring)[qadr], dtype)
+    return stiffness, damping, spring
+
+
+def _settle_one(sim: Simulator, kp, kd, dtype):
+    """:func:`treeinfer.sim.mjx.settle_one` for the fused backend: the same clipped Newton
+    iteration and convergence test, with the exact Jacobian by forward-mode autodiff."""
+    if uses_levels(sim):
+        lay = lv.layout(sim.hinge_tree)
+        stiffness, _, spring = _gain_arrays(sim, kp, kd, dtype)
+        torque = lambda q: lv.static_torque(lay, q, stiffness, spring)
+    else:
+        stiffness, _, spring = _gains(sim, kp, kd)
+        torque = lambda q: hd.static_torque(sim.hinge_tree, q, stiffness, spring)
+    nv = sim.mj_model.nv
+
+    def newton(carry, i):
+        q, r_first, _ = carry
+        r, jac = torque(q), jax.jacfwd(torque)(q)
+        dq = jnp.clip(-jnp.linalg.solve(jac, r), -0.2, 0.2)
+        return (q + dq, jnp.where(i == 0, r, r_first), r), None
+
+    zero = jnp.zeros(nv, dtype)
+    (q, r_first, r_last), _ = jax.lax.scan(
+        newton, (zero, zero, zero), jnp.arange(sim.settle_iterations)
+    )
+    scale = 1.0 + jnp.max(jnp.abs(r_first))
+    ok = jnp.all(jnp.isfinite(q)) & (jnp.max(jnp.abs(r_last)) <= sim.settle_tolerance * scale)
+    return q, ok
+
+
+def _prepare(sim: Simulator, kp, kd, dtype):
+    kp, kd = kp.astype(dtype), kd.astype(dtype)
+    qpos_rest, settled = _settle_one(sim, kp, kd, dtype)
+    return (kp, kd), qpos_rest, settled
+
+
+def _pull(
+    sim: Simulator, gains, qpos_rest, forces, site_local, unroll_outer=1, unroll_inner=1, **kw
+):
+    kp, kd = gains
+    return _pull_one(sim, kp, kd, qpos_rest, forces, site_local, unroll_outer, unroll_inner, **kw)
+
+
+def _stepper(sim: Simulator, kp, kd, dtype, bid: int, site_local):
+    """(rest(q) -> (site [3], lever [3]), step(q, v, dt, force, lever) -> (v_new [nv],
+    lever [3], site [3])) in the simulator's layout; 3-vectors as tuples of scalars."""
+    if uses_levels(sim):
+        lay = lv.layout(sim.hinge_tree)
+        stiffness, damping, spring = _gain_arrays(sim, kp, kd, dtype)
+
+        def rest(q):
+            rot, pos, com = lv.body_frame(lay, lv.kinematics(lay, q), bid)
+            site = pos + jnp.sum(rot * jnp.stack(site_local)[None, :], axis=-1)
+            return tuple(site[i] for i in range(3)), tuple((site - com)[i] for i in range(3))
+
+        def step(q, v, dt, force, lever):
+            out = lv.step(lay, q, v, stiffness, damping, spring, dt, bid, site_local, force, lever)
+            split = lambda x: tuple(x[i] for i in range(3))
+            return out.qvel, split(out.lever), split(out.site)
+
+        return rest, step
+    t = sim.hinge_tree
+    stiffness, damping, spring = _gains(sim, kp, kd)
+
+    def rest(q):
+        kin = hd.kinematics(t, [q[i] for i in range(t.nv)])
+        site = hd.point(kin, bid, site_local)
+        return site, hd.vsub(site, kin.com[bid])
+
+    def step(q, v, dt, force, lever):
+        out = hd.step(t, q, v, stiffness, damping, spring, dt, bid, site_local, force, lever)
+        # Stacked [nv] carries: carrying nv separate scalars makes XLA emit one multi-output
+        # loop (1.3x faster for 6 joints at N = 131072 on an H100) but costs more per loop
+        # iteration at the standard problem's size (26 ms vs 19 ms per NNSVGD iteration).
+        return jnp.stack([jnp.asarray(x, dtype) for x in out.qvel]), out.lever, out.site
+
+    return rest, step
+
+
+def _pull_one(
+    sim: Simulator,
+    kp,
+    kd,
+    qpos_rest,
+    forces,
+    site_local,
+    unroll_outer: int = 1,
+    unroll_inner=1,
+    direction=None,
+    body: int | None = None,
+    substeps=None,
+):
+    """:func:`treeinfer.sim.mjx.BACKEND`'s ``pull`` for the fused backend: same timing, force
+    and observation."""
+    from .forcing import force_fraction, next_samples
+
+    dtype = qpos_rest.dtype
+    # gravity's direction as Python constants (its zeros fold away) unless given per profile
+    if direction is None:
+        ddir = tuple(float(x) for x in sim.gravity_dir)
+    else:
+        ddir = tuple(jnp.asarray(direction[i], dtype) for i in range(3))
+    bid = sim.grasp_body if body is None else body
+    n_sub = sim.substeps if substeps is None else substeps
+    dt = sim.sim_dt if substeps is None else sim.obs_dt / jnp.asarray(substeps, dtype)
+    site_local = tuple(site_local[i] for i in range(3))
+    rest, step = _stepper(sim, kp, kd, dtype, bid, site_local)
+    c_rest, lever0 = rest(qpos_rest)
+    as_dtype = lambda xs: tuple(jnp.asarray(x, dtype) for x in xs)
+
+    def observe(carry, ff):
+        q, v, lever, comp, ok = carry
+        f0, f1 = ff
+
+        def sub(k, st):
+            q, v, lever, c, comp = st
+            force = hd.vscale(
+                f0 + force_fraction(sim.force_interp, k, n_sub, dtype) * (f1 - f0), ddir
+            )
+            v_new, lever, site = step(q, v, dt, force, lever)
+            c = tuple(jnp.where(k == 0, a, b) for a, b in zip(site, c))
+            v_new = v_new.astype(dtype)
+            # qpos += dt * qvel with Kahan's compensated summation: thousands of small float32
+            # increments otherwise drift by ~0.1 mm over a 3 s pull at sub-millisecond steps
+            # (the floor that stopped the accuracy control's refinement).
+            y = dt * v_new - comp
+            q_new = q + y
+            comp = (q_new - q) - y
+            return q_new, v_new, as_dtype(lever), c, comp
+
+        inner = {} if unroll_inner == 1 else {"unroll": unroll_inner}
+        st = (q, v, lever, as_dtype(c_rest), comp)
+        q, v, lever, c, comp = jax.lax.fori_loop(0, n_sub, sub, st, **inner)
+        ok = ok & jnp.all(jnp.isfinite(q)) & jnp.all(jnp.abs(v) < sim.max_joint_speed)
+        return (q, v, lever, comp, ok), hd.dot(hd.vsub(c, c_rest), ddir)
+
+    zero = jnp.zeros_like(qpos_rest)
+    carry = (qpos_rest, zero, as_dtype(lever0), zero, jnp.bool_(True))
+    forces = forces.astype(dtype)
+    (_, _, _, _, ok), tau = jax.lax.scan(
+        observe, carry, (forces, next_samples(forces)), unroll=unroll_outer
+    )
+    ok = ok & jnp.all(jnp.isfinite(tau)) & jnp.all(jnp.abs(tau) < sim.max_displacement)
+    return tau, ok
+
+
+BACKEND = Backend("fused", _prepare, _pull)
