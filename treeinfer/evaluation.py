@@ -61,6 +61,9 @@ def noise_for(theta, n_joints: int, settings: dict | None):
     settings = settings or {}
     kind = predictive_noise_kind(settings.get("likelihood", "boltzmann"))
     fixed = settings.get("noise_displacement")
+    theta = np.atleast_2d(np.asarray(theta))
+    if list(settings.get("parameters", ["kp", "kd"])) == ["kp"]:  # stiffness only: pad Kd columns
+        theta = np.insert(theta, [n_joints] * n_joints, 0.0, axis=1)
     try:
         sigma = noise_params_from_theta(theta, n_joints, fixed)
     except ConfigError:
