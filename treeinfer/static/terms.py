@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from .. import noise
 from ..errors import ConfigError
 from ..gradients import autodiff_value_and_grad, central_difference, finite_difference_jvp
-from ..likelihood import DEFAULT_KT, log_likelihood_from_rollout, likelihood_terms
+from ..likelihood import DEFAULT_KT, likelihood_terms, log_likelihood_from_rollout
 from ..sim import Simulator
 from ..trajectories import Observations
 from .model import Model, model_rollout
