@@ -102,15 +102,13 @@ def static_rollout(
         else:
             starts.append(np.zeros(3))
             ends.append(np.array([tree.branch(sim.mj_model.body(body).name).length, 0.0, 0.0]))
-    starts, ends = jnp.asarray(np.asarray(starts), dtype), jnp.asarray(np.asarray(ends), dtype)
+    ends_np = np.asarray(ends, float)
+    starts, ends = jnp.asarray(np.asarray(starts), dtype), jnp.asarray(ends_np, dtype)
     if grasp_fraction is None:
         tree_site = np.asarray(sim.mj_model.site_pos[sim.grasp_site], float)
         sites = jnp.asarray(
             np.asarray(
-                [
-                    tree_site if body == sim.grasp_body else e
-                    for body, e in zip(bodies, np.asarray(ends))
-                ]
+                [tree_site if body == sim.grasp_body else e for body, e in zip(bodies, ends_np)]
             ),
             dtype,
         )
