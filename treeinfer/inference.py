@@ -29,14 +29,12 @@ from . import samplers as _samplers
 from .errors import ConfigError
 from .gradients import combine, combined_value_and_grad, jvp_combined_value_and_grad
 from .likelihood import DEFAULT_KT, check_kT, gains_from_theta, likelihood_terms
-from .priors import inequality_prior, load_or_train_inequality_network, smoothed_box
+from .problem_priors import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA, box_prior, nn_inequality_prior
 from .sim import Rollout, Simulator, make_simulator, simulate
 from .trajectories import Observations, Trajectory, stack_trajectories
 from .tree import Tree
 
-DEFAULT_ETA = 10.0  # nats per unit of log-gain violation (paper: eta >> 0)
 GRADIENTS = ("fd", "jvp", "autodiff")  # how make_problem differentiates the simulator likelihood
-DEFAULT_PRIOR_SIGMA = 0.1  # tail width of the smoothed box, as a share of each log-box width
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,55 +90,6 @@ class Problem:
         )
 
 
-def box_prior(
-    tree: Tree, prior_sigma: float = DEFAULT_PRIOR_SIGMA, prior_space: str = "log", layout=None
-):
-    """Smoothed box over the inferred joints' gains as a theta-space log-density (``layout``:
-    a :class:`treeinfer.static.ParameterLayout`, for stiffness only)."""
-    lo, hi = tree.bounds_array()
-    if layout is not None:
-        lo, hi = np.exp(layout.lower), np.exp(layout.upper)
-    if prior_space == "log":
-        llo, lhi = np.log(lo), np.log(hi)
-        return smoothed_box(llo, lhi, prior_sigma * (lhi - llo))
-    if prior_space == "linear":
-        box = smoothed_box(lo, hi, prior_sigma * (hi - lo))
-        # density of K = exp(theta) expressed in theta: p(theta) = p_K(exp theta) * |dK/dtheta|
-        return lambda theta: box(jnp.exp(theta)) + jnp.sum(theta, axis=-1)
-    raise ConfigError(f"prior_space: expected 'log' or 'linear', got {prior_space!r}")
-
-
-def nn_inequality_prior(
-    tree: Tree,
-    eta: float = DEFAULT_ETA,
-    form: str = "linear",
-    seed: int = 0,
-    cache_dir=None,
-    kinds: Sequence[str] = ("Kp", "Kd"),
-):
-    """The learned inequality prior on every inferred parent-child pair, for Kp and for Kd.
-
-    One network per gain kind (their log ranges differ), trained over that kind's log box
-    (widened by the tails) and cached on disk."""
-    pairs = tree.inferred_pairs()
-    if not pairs:
-        return None
-    r = tree.n_inferred
-    lo, hi = np.log(tree.bounds_array()[0]), np.log(tree.bounds_array()[1])
-    terms = []
-    for kind, cols in (("Kp", slice(0, r)), ("Kd", slice(r, 2 * r))):
-        if kind not in kinds:
-            continue
-        a, b = float(lo[cols].min()), float(hi[cols].max())
-        pad = 0.5 * (b - a)  # cover the smoothed box's tails too
-        net = load_or_train_inequality_network(
-            a - pad, b + pad, eta=eta, form=form, seed=seed, cache_dir=cache_dir
-        )
-        off = 0 if kind == "Kp" else r
-        terms.append(inequality_prior(net, [(p + off, c + off) for p, c in pairs]))
-    return combine(*terms)
-
-
 def make_problem(
     tree: Tree,
     trajectories: Sequence[Trajectory] | Observations,
@@ -179,7 +128,8 @@ def make_problem(
       nn_prior: add the learned inequality prior (NNSVGD's target); False gives SVGD's.
       eta: inequality penalty slope (nats per unit of log-gain the child exceeds its parent).
       gradient: ``"fd"`` (central differences, the paper's black-box route), ``"jvp"`` (exact
-        forward-mode sensitivities of the simulator, :func:`~treeinfer.gradients.jvp_value_and_grad`)
+        forward-mode sensitivities of the simulator,
+        :func:`~treeinfer.gradients.jvp_value_and_grad`)
         or ``"autodiff"`` (exact reverse mode; slow to compile, for checks).
       rel_step: finite-difference step in log units (default ~5e-3 for float32).
       grasp_fraction: where the training data were recorded (None: the tree's grasp).
@@ -384,7 +334,7 @@ def infer(
     reinit_stragglers=None,
     **sampler_options,
 ) -> Posterior:
-    """Sample the posterior of ``problem`` with one of ``nnsvgd``, ``svgd``, ``sgld``, ``sghmc``, ``mh``.
+    """Sample the posterior of ``problem`` with ``nnsvgd``, ``svgd``, ``sgld``, ``sghmc`` or ``mh``.
 
     Particles start uniformly in the prior box (seeded); MCMC samplers run one chain per
     particle. Returns a :class:`Posterior`; ``posterior.run.trace`` holds the particle and
@@ -461,8 +411,8 @@ def predict(
     if model is None:
         if not 2 * sim.n_joints <= theta.shape[-1] <= 2 * sim.n_joints + 3:
             raise ConfigError(
-                f"theta: expected {2 * sim.n_joints} columns (log Kp, log Kd per joint) and up to 3 "
-                f"noise columns, got {theta.shape[-1]}"
+                f"theta: expected {2 * sim.n_joints} columns (log Kp, log Kd per joint) and up "
+                f"to 3 noise columns, got {theta.shape[-1]}"
             )
         theta = theta[:, : 2 * sim.n_joints]  # noise columns do not enter the simulation
     else:
