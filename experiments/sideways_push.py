@@ -53,19 +53,20 @@ G0 = 9.80665  # m/s^2 per kgf
 SIZES = {
     # pulls per height, seconds per pull, particles, iterations, seeds
     "tiny": dict(pulls=1, seconds=1.0, particles=4, iterations=3, seeds=(0,)),
-    "cpu": dict(pulls=2, seconds=2.0, particles=32, iterations=150, seeds=(0, 1)),
-    "full": dict(pulls=4, seconds=3.0, particles=64, iterations=300, seeds=(0, 1, 2, 3, 4)),
+    "cpu": dict(pulls=2, seconds=2.0, particles=32, iterations=400, seeds=(0,)),
+    "full": dict(pulls=4, seconds=3.0, particles=64, iterations=600, seeds=(0, 1, 2, 3, 4)),
 }
 
 
 def stem_tree():
-    """The vertical two-link stem (0.5 m links, 12 mm radius) with a wide prior box."""
+    """The vertical two-link stem (0.5 m links, 12 mm radius); prior box Kp 5-200 N m/rad,
+    Kd 0.05-2 N m s/rad."""
     return chain(
         2,
         0.5,
         0.012,
         base_pitch_deg=90.0,
-        bounds=Bounds(kp=(2.0, 400.0), kd=(0.02, 5.0)),
+        bounds=Bounds(kp=(5.0, 200.0), kd=(0.05, 2.0)),
         name="sideways-stem",
     )
 
@@ -74,7 +75,9 @@ def write_raw_logs(folder: Path, tree, pulls: int, seconds: float, noise_mm: flo
     """Raw logger CSVs ``push_<height>_<k>.csv`` (``t_ms,load_gf,pos_mm``), one per pull.
 
     Each pull is a ramp-hold-release horizontal push with random peak (0.8-2 N) and timing,
-    simulated at the true gains by MuJoCo C; ``noise_mm`` Gaussian noise on the position.
+    simulated at the true gains by MuJoCo C; ``noise_mm`` Gaussian noise on the position, which
+    the logger records from the branch's rest (so the import keeps ``--zero-displacement none``:
+    zeroing at the first noisy sample would shift a whole pull by that sample's noise).
     Returns ``{height label: [paths]}``."""
     rng = np.random.default_rng(seed)
     sim = make_simulator(tree, obs_dt=DT, substeps=20)  # 0.5 ms steps
@@ -124,13 +127,14 @@ def run_pipeline(work: Path, size: str = "cpu", seed: int = 0, noise_mm: float =
             + ["--time", "t_ms", "--force-column", "load_gf", "--displacement", "pos_mm"]
             + ["--units", "time=ms,force=gf,displacement=mm"]
             + ["--grasp-branch", branch, "--grasp-fraction", str(frac)]
-            + ["--direction", "horizontal", "--force"]
+            + ["--direction", "horizontal", "--zero-displacement", "none", "--force"]
         )
     run = work / "run"
     _cli(
         ["infer", "--tree", str(tree_file), "--data", str(work / "train"), "--out", str(run)]
         + ["--likelihood", "gaussian", "--sampler", "svgd", "--seed", str(seed)]
         + ["--particles", str(s["particles"]), "--iterations", str(s["iterations"])]
+        + ["--reinit-stragglers", str(s["iterations"] // 2)]
         + ["--no-progress", "--checkpoint-every", "0", "--force"]
         + (["--allow-poor-fit"] if size == "tiny" else [])
     )

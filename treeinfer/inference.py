@@ -114,6 +114,7 @@ def make_problem(
     model_kind: str = "dynamic",
     direction=None,
     grasp_branch=None,
+    model=None,
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
@@ -146,6 +147,9 @@ def make_problem(
         model kind (one batched simulator call; see :func:`treeinfer.static.model_with_pulls`
         for reading them from a data folder's ``pulls.yaml``). Every likelihood works with every
         model: :func:`treeinfer.static.model_likelihood_terms`.
+      model: a prebuilt :class:`treeinfer.static.Model` (e.g. a
+        :func:`~treeinfer.static.tied_layout` of one stiffness scale); overrides
+        ``model_kind``, ``direction`` and ``grasp_branch``.
     """
     if not (isinstance(kT, str) and kT == "auto"):
         kT = check_kT(kT)
@@ -177,7 +181,8 @@ def make_problem(
         )
     from .static import model_for, model_likelihood_terms
 
-    model = model_for(tree, model_kind, direction, grasp_branch)
+    if model is None:
+        model = model_for(tree, model_kind, direction, grasp_branch)
     tree, layout = model.tree, model.layout
     if model.is_paper:
         model = None  # the paper's model: theta = [log Kp, log Kd] (+ noise columns), as before
@@ -246,6 +251,8 @@ def make_problem(
         settings["parameters"] = list(layout.parameters)
         if not layout.infers_damping:
             settings["fixed_kd"] = [float(v) for v in layout.fixed_kd]
+        if getattr(layout, "shape", None) is not None:  # one stiffness scale (TiedLayout)
+            settings["kp_shape"] = [float(v) for v in layout.shape]
         if model.grasp_branch is not None or model.direction is not None:
             settings["pulls"] = _pulls_record(model, int(obs.force.shape[0]))
     return Problem(

@@ -23,7 +23,7 @@ Per entry (every field optional, missing ones come from ``default``, then from t
 * ``direction`` of the force the robot applies on the branch, in world coordinates:
   ``down`` (along gravity, the paper's pulls), ``horizontal`` (horizontal and perpendicular to
   the grasped branch at its rest geometry: ``up x axis``; for a vertical branch, its bending
-  direction, the branch frame's z-axis) or a vector ``[x, y, z]`` (any length but zero). The
+  direction, the base's heading) or a vector ``[x, y, z]`` (any length but zero). The
   recorded displacement is the grasp point's motion along this direction, and force is
   positive when it pushes the branch along it.
 
@@ -312,32 +312,21 @@ def pull_direction(tree, branch: str, direction: str | Sequence[float]) -> np.nd
 
     ``down`` is along the tree's gravity; ``horizontal`` is ``up x axis`` normalised, with
     ``axis`` the branch's direction at its geometric rest pose (from its joint towards its
-    tip); for a vertical branch, where that vanishes, the horizontal bending direction of its
-    hinge (the branch frame's z-axis). A vector is normalised.
+    tip); for a vertical branch, where that vanishes, the base's heading ``(cos yaw, sin yaw,
+    0)``, which lies in a vertical stem's bending plane. A vector is normalised. The same
+    convention as the simulator's :func:`treeinfer.sim.direction.pull_direction` (this calls
+    it), so data, sidecar and simulation agree on the sign.
     """
-    from .tree import world_frames
+    from .sim.direction import pull_direction as _sim_direction
 
     g = np.asarray(tree.gravity, float)
     if np.linalg.norm(g) == 0:
         raise ConfigError("tree gravity is zero: 'down' and 'horizontal' are undefined")
-    down = g / np.linalg.norm(g)
     if isinstance(direction, str):
         word = direction.strip().lower()
-        if word == "down":
-            return down
-        if word != "horizontal":
+        if word not in DIRECTION_WORDS:
             raise ConfigError(f"direction: unknown word {direction!r}; expected down or horizontal")
-        _, rot = world_frames(tree)[branch]
-        axis = rot[:, 0]
-        up = -down
-        if abs(float(axis @ up)) > VERTICAL_COS:
-            h = rot[:, 2] - (rot[:, 2] @ up) * up
-        else:
-            h = np.cross(up, axis)
-        n = np.linalg.norm(h)
-        if n < 1e-9:
-            raise ConfigError(f"direction: 'horizontal' is undefined for branch '{branch}'")
-        return h / n
+        return _sim_direction(tree, word, branch)
     v = np.asarray(parse_direction(direction), float)
     return v / np.linalg.norm(v)
 

@@ -41,6 +41,7 @@ from .layout import (
 )
 from .model import Model, model_for, model_rollout, model_with_pulls
 from .terms import full_theta, model_likelihood_terms
+from .tied import TiedLayout, tied_layout
 
 __all__ = [
     "MODEL_KINDS",
@@ -49,6 +50,7 @@ __all__ = [
     "PARAMETERS",
     "QUASI_STATIC_RATIO",
     "ParameterLayout",
+    "TiedLayout",
     "damping_note",
     "full_theta",
     "natural_periods",
@@ -62,6 +64,7 @@ __all__ = [
     "quasi_static_notice",
     "run_tree",
     "static_rollout",
+    "tied_layout",
     "suggest_static",
     "tree_layout",
 ]
