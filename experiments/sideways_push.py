@@ -45,7 +45,9 @@ from treeinfer.sim.direction import pull_direction
 from treeinfer.sim.reference import simulate_reference
 from treeinfer.tree import Bounds, dump_tree
 
-KP = np.array([40.0, 20.0])  # N m/rad, base and upper hinge
+# true gains in the simulator's joint order, tree.inferred = (branch1, branch0): the upper
+# hinge first, then the base hinge
+KP = np.array([40.0, 20.0])  # N m/rad
 KD = np.array([0.4, 0.2])  # N m s/rad
 # (label, branch, fraction of its 0.5 m length): heights 0.3 m, 0.7 m and 1.0 m
 HEIGHTS = (("low", "branch0", 0.6), ("mid", "branch1", 0.4), ("top", "branch1", 1.0))
@@ -150,7 +152,11 @@ def run_pipeline(work: Path, size: str = "cpu", seed: int = 0, noise_mm: float =
         "per_trajectory": metrics["per_trajectory"],
         "rmse_m": metrics.get("rmse"),
         "posterior": summary["posterior"],
-        "truth": {"kp": KP.tolist(), "kd": KD.tolist(), "sigma_x": noise_mm / 1000},
+        "truth": {
+            **{f"Kp[{n}]": float(k) for n, k in zip(tree.inferred, KP)},
+            **{f"Kd[{n}]": float(k) for n, k in zip(tree.inferred, KD)},
+            "sigma_x": noise_mm / 1000,
+        },
         "fit_status": summary.get("status"),
     }
 

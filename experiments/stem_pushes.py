@@ -261,7 +261,16 @@ def main(argv=None):
     sim = make_simulator(tree, obs_dt=0.5, backend="fused")
     with tempfile.TemporaryDirectory() as tmp:
         trajs, pulls, heights = import_logs(Path(tmp), stem, tree, args.seed)
-    results = [fold(sim, tree, trajs, pulls, heights, k, args, rng, stem) for k in range(3)]
+    results = []
+    for k in range(3):
+        results.append(fold(sim, tree, trajs, pulls, heights, k, args, rng, stem))
+        r = results[-1]
+        print(
+            f"held out {r['held_out_height_m']:.2f} m: {r['inside_95_band']:.0%} inside, "
+            f"RMSE {1e3 * r['rmse_static_m']:.3f} mm (cantilever "
+            f"{1e3 * r['rmse_cantilever_m']:.3f} mm), {r['sampler_wall_s']:.0f} s",
+            flush=True,
+        )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(

@@ -222,12 +222,16 @@ def _training_fit(problem, posterior, config) -> dict:
 
     sigma, kind = noise_for(posterior.theta, sim.n_joints, problem.settings)
     rollout_pred = None
+    grasp = config["options"]["grasp_fraction"]
+    recorded = problem.settings.get("grasp_fraction")  # e.g. each recording's own (pulls.yaml)
+    if grasp is None and (isinstance(recorded, (list, tuple)) or problem.model is not None):
+        grasp = recorded
     try:
         rollout_pred = predict_run(
             sim,
             posterior.theta,
             problem.obs.force,
-            config["options"]["grasp_fraction"],
+            grasp,
             pred_ok,
             noise_sigma=sigma,
             noise_kind=kind,
