@@ -152,3 +152,24 @@ def test_stiffness_only_generative_equals_the_full_model_at_fixed_damping(kind):
     if kind == "gaussian":  # value_and_grad: central-difference JVP through the simulator
         _, g = problem.value_and_grad(jnp.asarray(theta))
         assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_tied_layout_is_the_free_model_at_scaled_stiffness(static_case):
+    """One stiffness scale (Kp = s * shape): the problem's log-likelihood at [log s, log sigma]
+    equals the free-stiffness problem's at [log(s * shape), log sigma]; the box is the scale's."""
+    from treeinfer.static import model_for, tied_layout
+
+    tree, sim, traj, _ = static_case
+    model = model_for(tree, "static")
+    tied = model._replace(layout=tied_layout(tree, [2.0], (1.0, 300.0)))
+    kw = dict(nn_prior=False, sim=sim, likelihood="gaussian")
+    p_tied = make_problem(tree, [traj], model=tied, **kw)
+    p_free = make_problem(tree, [traj], model_kind="static", **kw)
+    assert p_tied.labels == ("Kp_scale", "sigma_x")
+    assert p_tied.settings["kp_shape"] == [2.0]
+    np.testing.assert_allclose(p_tied.lower[0], np.log(1.0))
+    s = np.array([10.0, 25.0])
+    sig = np.log([0.004, 0.006])
+    got = np.asarray(p_tied.log_likelihood(jnp.asarray(np.stack([np.log(s), sig], 1))))
+    want = np.asarray(p_free.log_likelihood(jnp.asarray(np.stack([np.log(2 * s), sig], 1))))
+    np.testing.assert_allclose(got, want, rtol=1e-5)
