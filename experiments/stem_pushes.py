@@ -5,26 +5,26 @@ heights; the logger writes raw CSVs (gf, mm, a wrapping ms counter, jitter, a lo
 noise). For each held-out height:
 
 1. ``import_csv`` the three logs (units, wrap-around, tare, contact zero, trim, sidecar);
-2. fit a 3-link vertical hinge chain (stiffness only) with the static model
-   (``treeinfer.static.static_rollout``) and a Gaussian likelihood on displacement with an
-   unknown noise sigma, to the two other heights;
-3. predict the held-out height: the 95% predictive band (parameters + noise) and its mean;
+2. fit a vertical hinge chain with the static model and a Gaussian likelihood with sigma_x
+   inferred (``make_problem(model_kind static, likelihood gaussian)``, the library path of
+   ``infer --model-kind static --likelihood gaussian``) to the two other heights, sampled by
+   the library's Metropolis-Hastings (``infer(problem, "mh")``). The default model is 8 hinges
+   at segment midpoints with their stiffnesses tied along the taper (one free scale,
+   :func:`treeinfer.static.tied_layout`); ``--no-tied --links 3`` fits free stiffnesses;
+3. predict the held-out height (``evaluate_trajectories`` at its own pull): the 95% predictive
+   band (parameters + noise) and its mean;
 4. compare with the one-parameter cantilever ``x = F h^3 / 3EI`` fitted to the same two heights.
 
 Reported per fold: share of held-out measured points inside the 95% band, RMSE of the
 predictive mean and of the cantilever (m). Target: >= 90% inside, RMSE <= cantilever's.
 
-The sampler is an affine-invariant ensemble (Goodman & Weare stretch move): tuning-free in 4
-dimensions, and each move evaluates half the walkers in one batched static solve. (emcee is
-not installed here; the move is a few lines.) The integrator's ``infer --model-kind static
---likelihood gaussian`` will use the library's samplers instead.
-
-    JAX_PLATFORMS=cpu python experiments/stem_pushes.py [--steps 800] [--walkers 32]
+    JAX_PLATFORMS=cpu python experiments/stem_pushes.py [--steps 1500] [--walkers 64]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import tempfile
@@ -40,9 +40,11 @@ import numpy as np
 
 from treeinfer._io import atomic_write_text
 from treeinfer.csv_import import import_csv
+from treeinfer.evaluation import evaluate_trajectories
+from treeinfer.inference import infer, make_problem
 from treeinfer.pulls import load_data_pulls, stack_resolved
 from treeinfer.sim import make_simulator
-from treeinfer.static import static_rollout
+from treeinfer.static import model_for, tied_layout
 from treeinfer.synthetic_stem import (
     Stem,
     branch_at_height,
@@ -52,9 +54,7 @@ from treeinfer.synthetic_stem import (
     stem_tree,
     write_stem_logs,
 )
-from treeinfer.trajectories import read_trajectory, stack_trajectories
-
-LOG_SIGMA = (np.log(1e-5), np.log(1e-2))  # m
+from treeinfer.trajectories import read_trajectory
 
 
 def import_logs(folder: Path, stem: Stem, tree, seed: int):
@@ -83,131 +83,84 @@ def import_logs(folder: Path, stem: Stem, tree, seed: int):
     return trajs, pulls, [push.height for _, push in raw]
 
 
-def stretch_sampler(logp, x0, steps, rng, a=2.0):
-    """Goodman & Weare (2010) stretch move, two halves updated in turn. ``logp``: [W, D] -> [W].
-    Returns the chain [steps, W, D] and its log densities [steps, W] (walkers that start where
-    the density is zero move to the first finite proposal)."""
-    x = np.array(x0, float)
-    w, d = x.shape
-    lp = logp(x)
-    half = w // 2
-    chain = np.empty((steps, w, d))
-    lps = np.empty((steps, w))
-    for s in range(steps):
-        for sl, other in ((slice(0, half), slice(half, w)), (slice(half, w), slice(0, half))):
-            xs, xo = x[sl], x[other]
-            n = xs.shape[0]
-            z = ((a - 1.0) * rng.uniform(size=n) + 1.0) ** 2 / a
-            partner = xo[rng.integers(0, xo.shape[0], n)]
-            prop = partner + z[:, None] * (xs - partner)
-            lp_prop = logp(prop)
-            with np.errstate(invalid="ignore"):  # -inf - -inf: both outside, reject
-                delta = np.where(
-                    np.isfinite(lp[sl]),
-                    lp_prop - lp[sl],
-                    np.where(np.isfinite(lp_prop), np.inf, -np.inf),
-                )
-            accept = np.log(rng.uniform(size=n)) < (d - 1) * np.log(z) + delta
-            xs[accept] = prop[accept]
-            lp_s = lp[sl].copy()
-            lp_s[accept] = lp_prop[accept]
-            x[sl], lp[sl] = xs, lp_s
-        chain[s] = x
-        lps[s] = lp
-    return chain, lps
+def taper_shape(tree, stem: Stem) -> np.ndarray:
+    """[R] relative hinge stiffnesses ``E I(z_j) / l`` at each hinge's height (segments of
+    equal length), normalised to the stiffest: the taper tie of :func:`tied_layout`."""
+    from treeinfer.tree import world_frames
+
+    frames = world_frames(tree)
+    z = np.array([frames[n][0][2] - tree.base_position[2] for n in tree.inferred])
+    ei = np.array([float(stem.ei(h)) for h in z])
+    return ei / ei.max()
+
+
+def _warm_start(problem, n: int, rng) -> np.ndarray:
+    """[n, D] chains started around the best point of a coarse grid over the stiffness scale
+    (noise at its data estimate), spread by 0.05 in every log column: MH's random walk then
+    spends its steps in the posterior instead of crossing a 7-decade box."""
+    d = problem.dim
+    grid = np.linspace(problem.lower[0], problem.upper[0], 64)
+    theta = np.tile(0.5 * (problem.lower + problem.upper), (64, 1))
+    theta[:, 0] = grid
+    logp = np.asarray(problem.log_density(jnp.asarray(theta)))
+    best = theta[int(np.nanargmax(np.where(np.isfinite(logp), logp, -np.inf)))]
+    return best + 0.05 * rng.standard_normal((n, d))
 
 
 def fold(sim, tree, trajs, pulls, heights, test: int, args, rng, stem: Stem):
+    """Infer on the two other heights, predict the held-out one: library calls only
+    (``make_problem(model_kind static, likelihood gaussian)`` -> ``infer`` -> the held-out
+    metrics of ``evaluate``)."""
     train = [i for i in range(len(trajs)) if i != test]
-    obs = stack_trajectories([trajs[i] for i in train])
     br, fr, di = stack_resolved([pulls[i] for i in train], tree)
-    lo, hi = tree.bounds_array()
-    r = tree.n_inferred
-    box_lo = np.concatenate([np.log(lo[:r]), [LOG_SIGMA[0]]])
-    box_hi = np.concatenate([np.log(hi[:r]), [LOG_SIGMA[1]]])
-    shape = None
-    if args.tied:  # one stiffness scale: Kp_j = s * d_j^4 / l_j (beam-like, from the taper)
-        # K_j = E I(z_j) / segment at each hinge's height z_j (segments of equal length)
-        from treeinfer.tree import world_frames
-
-        frames = world_frames(tree)
-        z = np.array([frames[n][0][2] - tree.base_position[2] for n in tree.inferred])
-        ei = np.array([float(stem.ei(h)) for h in z])
-        shape = ei / ei.max()
-        box_lo = np.array([np.log(lo[0]), LOG_SIGMA[0]])
-        box_hi = np.array([np.log(hi[0]) + np.log(1.0 / shape.min()), LOG_SIGMA[1]])
-    nk = 1 if args.tied else r
-
-    def gains(theta):
-        if shape is None:
-            return jnp.exp(theta[:, :r])
-        return jnp.exp(theta[:, :1]) * jnp.asarray(shape)[None, :]
-
-    x_obs = jnp.asarray(obs.displacement)
-    mask = jnp.asarray(obs.mask, x_obs.dtype)
-
-    @jax.jit
-    def loglik(theta):
-        roll = static_rollout(
-            sim,
-            gains(theta),
-            obs.force,
-            grasp_fraction=fr,
-            direction=di,
-            grasp_branch=list(br),
-            tree=tree,
-            iterations=args.newton,
+    model = model_for(tree, "static")
+    if args.tied:  # one stiffness scale, Kp_j = s * E I(z_j) / l (beam-like, from the taper)
+        lo, hi = tree.bounds_array()
+        shape = taper_shape(tree, stem)
+        model = model._replace(
+            layout=tied_layout(tree, shape, (lo[0], hi[0] / shape.min()), model.layout.fixed_kd)
         )
-        sigma = jnp.exp(theta[:, nk])[:, None, None]
-        res = (roll.tau - x_obs) / sigma
-        ll = jnp.sum(mask * (-0.5 * res**2 - jnp.log(sigma)), axis=(1, 2))
-        return jnp.where(jnp.all(roll.stable, axis=1), ll, -jnp.inf)
-
-    def logp(theta):
-        # every walker is evaluated (clipped into the box) so the batch shape never changes
-        # and the static solve compiles once per fold
-        inside = np.all((theta > box_lo) & (theta < box_hi), axis=1)
-        if (
-            args.ordered and not args.tied
-        ):  # parent joints at least as stiff as their children (treeinfer's
-            # inequality prior, here as a hard constraint); pairs index tree.inferred
-            for parent, child in tree.inferred_pairs():
-                inside &= theta[:, parent] >= theta[:, child]
-        ll = np.asarray(loglik(jnp.asarray(np.clip(theta, box_lo, box_hi))))
-        return np.where(inside, ll, -np.inf)
-
-    x0 = rng.uniform(box_lo, box_hi, size=(args.walkers, nk + 1))
-    if (
-        args.ordered and not args.tied
-    ):  # start inside the constraint: a chain is inferred grasp branch first,
-        x0[:, :r] = np.sort(x0[:, :r], axis=1)  # so ascending order puts parents above children
-    x0[:, nk] = np.log(1e-3) + 0.1 * rng.standard_normal(args.walkers)
+    model = model._replace(direction=di, grasp_branch=tuple(br))
+    problem = make_problem(
+        tree,
+        [trajs[i] for i in train],
+        nn_prior=False,
+        sim=sim,
+        likelihood="gaussian",
+        grasp_fraction=fr,
+        model=model,
+    )
+    problem = dataclasses.replace(problem, log_density=jax.jit(problem.log_density))
     t0 = time.time()
-    chain, lps = stretch_sampler(logp, x0, args.steps, rng)
+    start = _warm_start(problem, args.walkers, rng) if args.tied else None
+    post = infer(
+        problem,
+        "mh",
+        n_particles=args.walkers,
+        n_iterations=args.steps,
+        seed=args.seed + test,
+        progress=False,
+        initial_theta=start,
+        proposal_scale=args.proposal,
+    )
     wall = time.time() - t0
-    post = chain[args.steps // 2 :].reshape(-1, nk + 1)
-    post = post[np.isfinite(lps[args.steps // 2 :].reshape(-1))]  # walkers still outside: out
-    post = post[rng.choice(post.shape[0], min(args.draws, post.shape[0]), replace=False)]
-
     held = trajs[test]
     pb = pulls[test]
-    roll = static_rollout(
+    held_model = model._replace(direction=pb.direction[None], grasp_branch=(pb.branch,))
+    sigma = np.exp(post.theta[:, -1])  # the inferred noise column, m
+    m, pred, _ = evaluate_trajectories(
         sim,
-        gains(jnp.asarray(post)),
-        held.force[None],
-        grasp_fraction=pb.fraction,
-        direction=pb.direction,
-        grasp_branch=[pb.branch],
-        tree=tree,
-        iterations=args.newton,
+        post.theta,
+        list(problem.labels),
+        [held],
+        problem.kT,
+        np.array([pb.fraction]),
+        particle_ok=post.valid,
+        noise_sigma=sigma,
+        noise_kind="gaussian",
+        model=held_model,
     )
-    tau = np.asarray(roll.tau[:, 0])  # [S, T]
-    ok = np.asarray(roll.stable[:, 0])
-    tau, sig = tau[ok], np.exp(post[ok, nk])
-    draws = tau + sig[:, None] * rng.standard_normal(tau.shape)
-    lower, upper = np.percentile(draws, [2.5, 97.5], axis=0)
-    mean = tau.mean(axis=0)
-    inside = float(np.mean((held.displacement >= lower) & (held.displacement <= upper)))
+    mean = pred.mean[0]
     rmse = float(np.sqrt(np.mean((mean - held.displacement) ** 2)))
     ei = fit_cantilever(
         [trajs[i].force for i in train],
@@ -216,17 +169,20 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args, rng, stem: Stem):
     )
     cant = cantilever_displacement(held.force, heights[test], ei)
     rmse_c = float(np.sqrt(np.mean((cant - held.displacement) ** 2)))
+    kp, _ = model.layout.gains(jnp.asarray(post.theta[post.valid]))
+    lo_b, hi_b = pred.band()
     return {
         "held_out_height_m": heights[test],
-        "inside_95_band": inside,
+        "inside_95_band": 1.0 - m["pct_outside"] / 100.0,
         "rmse_static_m": rmse,
         "rmse_cantilever_m": rmse_c,
         "cantilever_EI_Nm2": ei,
-        "posterior_kp_median": np.median(np.asarray(gains(jnp.asarray(post))), axis=0).tolist(),
-        "posterior_sigma_median_m": float(np.exp(np.median(post[:, nk]))),
-        "band_width_mean_m": float(np.mean(upper - lower)),
+        "posterior_kp_median": np.median(np.asarray(kp), axis=0).tolist(),
+        "posterior_sigma_median_m": float(np.median(sigma)),
+        "band_width_mean_m": float(np.mean(hi_b[0] - lo_b[0])),
         "sampler_wall_s": wall,
         "n_points": int(held.n_steps),
+        "valid_chains": int(post.valid.sum()),
     }
 
 
@@ -272,28 +228,24 @@ def analytic_table(stem: Stem, heights=(0.12, 0.24, 0.36)) -> list[str]:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--steps", type=int, default=800)
-    ap.add_argument("--walkers", type=int, default=32)
-    ap.add_argument("--draws", type=int, default=400)
-    ap.add_argument("--newton", type=int, default=12, help="Newton iterations per sample")
+    ap.add_argument("--steps", type=int, default=1500, help="MH iterations per chain")
+    ap.add_argument("--walkers", type=int, default=64, help="MH chains (final states = draws)")
+    ap.add_argument(
+        "--proposal", type=float, default=0.003, help="MH step, share of each box width"
+    )
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--links", type=int, default=3, help="hinged links in the chain (3)")
+    ap.add_argument("--links", type=int, default=8, help="hinged links in the chain (8)")
     ap.add_argument(
         "--hinges",
         choices=("bases", "midpoints"),
-        default="bases",
-        help="hinge at each segment's base (default) or middle",
+        default="midpoints",
+        help="hinge at each segment's base or middle (default)",
     )
     ap.add_argument(
         "--tied",
-        action="store_true",
-        help="one stiffness scale, Kp_j proportional to d_j^4 / l_j (taper-tied)",
-    )
-    ap.add_argument(
-        "--ordered",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="parent joints at least as stiff as children (default on)",
+        help="one stiffness scale, Kp_j proportional to E I(z_j) / l (taper-tied; default on)",
     )
     ap.add_argument("--out", default="experiments/results/stem_pushes")
     ap.add_argument(
@@ -309,7 +261,16 @@ def main(argv=None):
     sim = make_simulator(tree, obs_dt=0.5, backend="fused")
     with tempfile.TemporaryDirectory() as tmp:
         trajs, pulls, heights = import_logs(Path(tmp), stem, tree, args.seed)
-    results = [fold(sim, tree, trajs, pulls, heights, k, args, rng, stem) for k in range(3)]
+    results = []
+    for k in range(3):
+        results.append(fold(sim, tree, trajs, pulls, heights, k, args, rng, stem))
+        r = results[-1]
+        print(
+            f"held out {r['held_out_height_m']:.2f} m: {r['inside_95_band']:.0%} inside, "
+            f"RMSE {1e3 * r['rmse_static_m']:.3f} mm (cantilever "
+            f"{1e3 * r['rmse_cantilever_m']:.3f} mm), {r['sampler_wall_s']:.0f} s",
+            flush=True,
+        )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(
@@ -317,11 +278,7 @@ def main(argv=None):
         json.dumps({"folds": results, "stem": stem._asdict(), "args": vars(args)}, indent=2) + "\n",
     )
     lines_note = (
-        "one scale, Kp = s EI(z_hinge) / segment (tied)"
-        if args.tied
-        else "parent >= child stiffness"
-        if args.ordered
-        else "independent stiffnesses"
+        "one scale, Kp = s EI(z_hinge) / segment (tied)" if args.tied else "free stiffnesses"
     )
     lines = [
         "| held-out height (m) | inside 95% band | RMSE static (mm) | RMSE cantilever (mm) |",
@@ -333,8 +290,9 @@ def main(argv=None):
             f"{1e3 * r['rmse_static_m']:.3f} | {1e3 * r['rmse_cantilever_m']:.3f} |"
         )
     lines.append(
-        f"\n{args.links} links (hinges at segment {args.hinges}), {args.walkers} walkers x "
-        f"{args.steps} steps, {lines_note}, seed {args.seed}"
+        f"\n{args.links} links (hinges at segment {args.hinges}), MH {args.walkers} chains x "
+        f"{args.steps} steps (proposal {args.proposal} box widths), {lines_note}, static model, "
+        f"Gaussian noise with sigma_x inferred, seed {args.seed}"
     )
     atomic_write_text(out / "results.md", "\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -191,11 +191,10 @@ def test_stiffness_only_problem_holds_damping_at_the_trees_value():
     assert got[0] != pytest.approx(got[1])  # the data do depend on Kp
 
 
-def test_static_and_stiffness_only_refuse_generative_likelihoods_but_take_kT_auto():
-    """The noise likelihoods are built on the dynamic [log Kp, log Kd] rollout: with the static
-    model or stiffness only they are refused (ConfigError naming the likelihood); Boltzmann with
+def test_static_and_stiffness_only_take_generative_likelihoods_and_kT_auto():
+    """The noise likelihoods work with the static model and with stiffness only (theta = the
+    model's gains + log sigma_x; values checked in test_model_likelihoods.py); Boltzmann with
     kT="auto" uses the same kT rule as the dynamic model on the same data."""
-    from treeinfer.errors import ConfigError
     from treeinfer.inference import make_problem
     from treeinfer.trajectories import Trajectory
 
@@ -206,15 +205,11 @@ def test_static_and_stiffness_only_refuse_generative_likelihoods_but_take_kT_aut
     traj = Trajectory(t, force, x, np.gradient(x, dt), "syn.csv")
     kp_only = dataclasses.replace(_one_joint_tree(), parameters=("kp",))
     for tree, kind in ((kp_only, "dynamic"), (_one_joint_tree(), "static")):
-        with pytest.raises(ConfigError, match="likelihood: 'gaussian'"):
-            make_problem(
-                tree,
-                [traj],
-                nn_prior=False,
-                backend="fused",
-                model_kind=kind,
-                likelihood="gaussian",
-            )
+        p = make_problem(
+            tree, [traj], nn_prior=False, backend="fused", model_kind=kind, likelihood="gaussian"
+        )
+        assert p.labels == ("Kp[b]", "sigma_x")
+        assert p.settings["likelihood"] == "gaussian" and p.settings["model_kind"] == kind
     auto = make_problem(kp_only, [traj], kT="auto", nn_prior=False, backend="fused")
     full = make_problem(_one_joint_tree(), [traj], kT="auto", nn_prior=False, backend="fused")
     assert auto.dim == 1 and auto.kT == pytest.approx(full.kT)

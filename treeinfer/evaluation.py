@@ -61,6 +61,9 @@ def noise_for(theta, n_joints: int, settings: dict | None):
     settings = settings or {}
     kind = predictive_noise_kind(settings.get("likelihood", "boltzmann"))
     fixed = settings.get("noise_displacement")
+    theta = np.atleast_2d(np.asarray(theta))
+    if list(settings.get("parameters", ["kp", "kd"])) == ["kp"]:  # stiffness only: pad Kd columns
+        theta = np.insert(theta, [n_joints] * n_joints, 0.0, axis=1)
     try:
         sigma = noise_params_from_theta(theta, n_joints, fixed)
     except ConfigError:
@@ -221,12 +224,16 @@ def _training_fit(problem, posterior, config) -> dict:
 
     sigma, kind = noise_for(posterior.theta, sim.n_joints, problem.settings)
     rollout_pred = None
+    grasp = config["options"]["grasp_fraction"]
+    recorded = problem.settings.get("grasp_fraction")  # e.g. each recording's own (pulls.yaml)
+    if grasp is None and (isinstance(recorded, (list, tuple)) or problem.model is not None):
+        grasp = recorded
     try:
         rollout_pred = predict_run(
             sim,
             posterior.theta,
             problem.obs.force,
-            config["options"]["grasp_fraction"],
+            grasp,
             pred_ok,
             noise_sigma=sigma,
             noise_kind=kind,

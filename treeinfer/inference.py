@@ -29,14 +29,12 @@ from . import samplers as _samplers
 from .errors import ConfigError
 from .gradients import combine, combined_value_and_grad, jvp_combined_value_and_grad
 from .likelihood import DEFAULT_KT, check_kT, gains_from_theta, likelihood_terms
-from .priors import inequality_prior, load_or_train_inequality_network, smoothed_box
+from .problem_priors import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA, box_prior, nn_inequality_prior
 from .sim import Rollout, Simulator, make_simulator, simulate
 from .trajectories import Observations, Trajectory, stack_trajectories
 from .tree import Tree
 
-DEFAULT_ETA = 10.0  # nats per unit of log-gain violation (paper: eta >> 0)
 GRADIENTS = ("fd", "jvp", "autodiff")  # how make_problem differentiates the simulator likelihood
-DEFAULT_PRIOR_SIGMA = 0.1  # tail width of the smoothed box, as a share of each log-box width
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,55 +90,6 @@ class Problem:
         )
 
 
-def box_prior(
-    tree: Tree, prior_sigma: float = DEFAULT_PRIOR_SIGMA, prior_space: str = "log", layout=None
-):
-    """Smoothed box over the inferred joints' gains as a theta-space log-density (``layout``:
-    a :class:`treeinfer.static.ParameterLayout`, for stiffness only)."""
-    lo, hi = tree.bounds_array()
-    if layout is not None:
-        lo, hi = np.exp(layout.lower), np.exp(layout.upper)
-    if prior_space == "log":
-        llo, lhi = np.log(lo), np.log(hi)
-        return smoothed_box(llo, lhi, prior_sigma * (lhi - llo))
-    if prior_space == "linear":
-        box = smoothed_box(lo, hi, prior_sigma * (hi - lo))
-        # density of K = exp(theta) expressed in theta: p(theta) = p_K(exp theta) * |dK/dtheta|
-        return lambda theta: box(jnp.exp(theta)) + jnp.sum(theta, axis=-1)
-    raise ConfigError(f"prior_space: expected 'log' or 'linear', got {prior_space!r}")
-
-
-def nn_inequality_prior(
-    tree: Tree,
-    eta: float = DEFAULT_ETA,
-    form: str = "linear",
-    seed: int = 0,
-    cache_dir=None,
-    kinds: Sequence[str] = ("Kp", "Kd"),
-):
-    """The learned inequality prior on every inferred parent-child pair, for Kp and for Kd.
-
-    One network per gain kind (their log ranges differ), trained over that kind's log box
-    (widened by the tails) and cached on disk."""
-    pairs = tree.inferred_pairs()
-    if not pairs:
-        return None
-    r = tree.n_inferred
-    lo, hi = np.log(tree.bounds_array()[0]), np.log(tree.bounds_array()[1])
-    terms = []
-    for kind, cols in (("Kp", slice(0, r)), ("Kd", slice(r, 2 * r))):
-        if kind not in kinds:
-            continue
-        a, b = float(lo[cols].min()), float(hi[cols].max())
-        pad = 0.5 * (b - a)  # cover the smoothed box's tails too
-        net = load_or_train_inequality_network(
-            a - pad, b + pad, eta=eta, form=form, seed=seed, cache_dir=cache_dir
-        )
-        off = 0 if kind == "Kp" else r
-        terms.append(inequality_prior(net, [(p + off, c + off) for p, c in pairs]))
-    return combine(*terms)
-
-
 def make_problem(
     tree: Tree,
     trajectories: Sequence[Trajectory] | Observations,
@@ -165,6 +114,7 @@ def make_problem(
     model_kind: str = "dynamic",
     direction=None,
     grasp_branch=None,
+    model=None,
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
@@ -179,7 +129,8 @@ def make_problem(
       nn_prior: add the learned inequality prior (NNSVGD's target); False gives SVGD's.
       eta: inequality penalty slope (nats per unit of log-gain the child exceeds its parent).
       gradient: ``"fd"`` (central differences, the paper's black-box route), ``"jvp"`` (exact
-        forward-mode sensitivities of the simulator, :func:`~treeinfer.gradients.jvp_value_and_grad`)
+        forward-mode sensitivities of the simulator,
+        :func:`~treeinfer.gradients.jvp_value_and_grad`)
         or ``"autodiff"`` (exact reverse mode; slow to compile, for checks).
       rel_step: finite-difference step in log units (default ~5e-3 for float32).
       grasp_fraction: where the training data were recorded (None: the tree's grasp).
@@ -191,9 +142,14 @@ def make_problem(
         sample, stiffness only: :mod:`treeinfer.static`). ``tree.parameters == ("kp",)``
         (``inference: {parameters: [kp]}``) infers stiffness only with either model, damping
         held at :func:`treeinfer.static.tree_layout`'s value; theta is then ``[log Kp]``.
-      direction, grasp_branch: the static model's pull directions ([3] or [B, 3], default the
-        tree's ``pull.direction``) and grasped branches (None or B names). The static model
-        and stiffness only take the Boltzmann likelihood only (ConfigError otherwise).
+      direction, grasp_branch: each training pull's direction ([3] or [B, 3] world vectors,
+        default the tree's ``pull.direction``) and grasped branch (None or B names), for either
+        model kind (one batched simulator call; see :func:`treeinfer.static.model_with_pulls`
+        for reading them from a data folder's ``pulls.yaml``). Every likelihood works with every
+        model: :func:`treeinfer.static.model_likelihood_terms`.
+      model: a prebuilt :class:`treeinfer.static.Model` (e.g. a
+        :func:`~treeinfer.static.tied_layout` of one stiffness scale); overrides
+        ``model_kind``, ``direction`` and ``grasp_branch``.
     """
     if not (isinstance(kT, str) and kT == "auto"):
         kT = check_kT(kT)
@@ -223,38 +179,28 @@ def make_problem(
             force_interp=force_interp,
             **kwargs,
         )
-    from .static import model_for
+    from .static import model_for, model_likelihood_terms
 
-    model = model_for(tree, model_kind, direction, grasp_branch)
-    tree = model.tree
-    layout = model.layout
-    if model.kind == "dynamic" and layout.infers_damping:
-        model = None  # the paper's model: theta = [log Kp, log Kd] (+ noise columns), as before
-    elif likelihood != "boltzmann":
-        # the generative likelihoods are built on the dynamic rollout of [log Kp, log Kd]
-        raise ConfigError(
-            f"likelihood: {likelihood!r} is not available with model_kind={model.kind!r} and "
-            f"parameters {list(layout.parameters)}; use likelihood 'boltzmann' (the default)"
-        )
-    terms = likelihood_terms(
-        sim,
-        obs,
-        likelihood,
-        kT=kT,
-        sigma_x=noise_displacement,
-        grasp_fraction=grasp_fraction,
-        gradient="autodiff" if gradient == "jvp" else gradient,
-        rel_step=rel_step,
-    )
     if model is None:
-        loglik = terms.log_likelihood
-        n_gains = 2 * tree.n_inferred
-        box = box_prior(tree, prior_sigma, prior_space)
-        prior_terms = [box if not terms.extra_labels else (lambda th: box(th[:, :n_gains]))]
-        prior_terms += terms.log_prior_terms()
-    else:  # Boltzmann (no extra columns) on the model's rollout, at the (possibly auto) kT
-        loglik = _model_log_likelihood(sim, model, obs, terms.kT, grasp_fraction)
-        prior_terms = [box_prior(tree, prior_sigma, prior_space, layout)]
+        model = model_for(tree, model_kind, direction, grasp_branch)
+    tree, layout = model.tree, model.layout
+    if model.is_paper:
+        model = None  # the paper's model: theta = [log Kp, log Kd] (+ noise columns), as before
+    options = dict(kT=kT, sigma_x=noise_displacement, grasp_fraction=grasp_fraction)
+    grad_kind = "autodiff" if gradient == "jvp" else gradient
+    if model is None:
+        terms = likelihood_terms(
+            sim, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options
+        )
+    else:  # the model's own rollout (static, stiffness only, per-recording pulls)
+        terms = model_likelihood_terms(
+            sim, model, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options
+        )
+    loglik = terms.log_likelihood
+    n_gains = layout.dim
+    box = box_prior(tree, prior_sigma, prior_space, None if model is None else layout)
+    prior_terms = [box if not terms.extra_labels else (lambda th: box(th[:, :n_gains]))]
+    prior_terms += terms.log_prior_terms()
     kinds = ("Kp", "Kd") if layout.infers_damping else ("Kp",)
     nn = nn_inequality_prior(tree, eta=eta, seed=nn_seed, kinds=kinds) if nn_prior else None
     if nn is not None:
@@ -271,7 +217,6 @@ def make_problem(
             black_box, differentiable = [], [loglik, log_prior]
         value_and_grad = combined_value_and_grad(black_box, differentiable, rel_step=rel_step)
 
-    lo, hi = tree.bounds_array()
     kT = terms.kT if terms.kT is not None else (DEFAULT_KT if isinstance(kT, str) else kT)
     # the paper's mode (Boltzmann, fixed kT, no noise given) records exactly what it did before
     # issue 11, so older interrupted runs still resume with identical settings
@@ -298,20 +243,18 @@ def make_problem(
             nn_seed=nn_seed,
         ),
     }
+    labels = tuple(layout.labels) + terms.extra_labels
+    lower = np.concatenate([np.asarray(layout.lower), terms.extra_lower])
+    upper = np.concatenate([np.asarray(layout.upper), terms.extra_upper])
     if model is not None:  # recorded only when not the default (older runs' settings unchanged)
         settings["model_kind"] = model.kind
         settings["parameters"] = list(layout.parameters)
         if not layout.infers_damping:
             settings["fixed_kd"] = [float(v) for v in layout.fixed_kd]
-        labels, lower, upper = (
-            tuple(layout.labels),
-            np.asarray(layout.lower),
-            np.asarray(layout.upper),
-        )
-    else:
-        labels = tuple(tree.parameter_labels()) + terms.extra_labels
-        lower = np.concatenate([np.log(lo), terms.extra_lower])
-        upper = np.concatenate([np.log(hi), terms.extra_upper])
+        if getattr(layout, "shape", None) is not None:  # one stiffness scale (TiedLayout)
+            settings["kp_shape"] = [float(v) for v in layout.shape]
+        if model.grasp_branch is not None or model.direction is not None:
+            settings["pulls"] = _pulls_record(model, int(obs.force.shape[0]))
     return Problem(
         tree=tree,
         sim=sim,
@@ -331,26 +274,15 @@ def make_problem(
     )
 
 
-def _model_log_likelihood(sim: Simulator, model, obs: Observations, kT: float, grasp_fraction=None):
-    """:func:`~treeinfer.likelihood.boltzmann_log_likelihood` of a :class:`treeinfer.static.Model`
-    (static model, or stiffness only): ``theta [N, D] -> [N]``."""
-    import math
-
-    from .likelihood import log_likelihood_from_rollout
-    from .static import model_rollout
-
-    if not math.isclose(float(obs.dt), sim.obs_dt, rel_tol=1e-6):
-        raise ConfigError(
-            f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s"
-        )
-    forces = jnp.asarray(obs.force)
-
-    def loglik(theta: jax.Array) -> jax.Array:
-        return log_likelihood_from_rollout(
-            model_rollout(sim, model, theta, forces, grasp_fraction), obs, kT
-        )
-
-    return loglik
+def _pulls_record(model, n: int) -> dict:
+    """JSON record of the training pulls: grasped branch and unit direction per trajectory."""
+    branch = model.grasp_branch
+    names = [branch] * n if branch is None or isinstance(branch, str) else list(branch)
+    dirs = None
+    if model.direction is not None:
+        d = np.broadcast_to(np.asarray(model.direction, float), (n, 3))
+        dirs = (d / np.linalg.norm(d, axis=1, keepdims=True)).round(9).tolist()
+    return {"grasp_branch": names, "direction": dirs}
 
 
 def initial_particles(problem: Problem, n_particles: int, seed: int = 0) -> jax.Array:
@@ -409,7 +341,7 @@ def infer(
     reinit_stragglers=None,
     **sampler_options,
 ) -> Posterior:
-    """Sample the posterior of ``problem`` with one of ``nnsvgd``, ``svgd``, ``sgld``, ``sghmc``, ``mh``.
+    """Sample the posterior of ``problem`` with ``nnsvgd``, ``svgd``, ``sgld``, ``sghmc`` or ``mh``.
 
     Particles start uniformly in the prior box (seeded); MCMC samplers run one chain per
     particle. Returns a :class:`Posterior`; ``posterior.run.trace`` holds the particle and
@@ -486,24 +418,28 @@ def predict(
     if model is None:
         if not 2 * sim.n_joints <= theta.shape[-1] <= 2 * sim.n_joints + 3:
             raise ConfigError(
-                f"theta: expected {2 * sim.n_joints} columns (log Kp, log Kd per joint) and up to 3 "
-                f"noise columns, got {theta.shape[-1]}"
+                f"theta: expected {2 * sim.n_joints} columns (log Kp, log Kd per joint) and up "
+                f"to 3 noise columns, got {theta.shape[-1]}"
             )
         theta = theta[:, : 2 * sim.n_joints]  # noise columns do not enter the simulation
-    elif theta.shape[-1] != model.layout.dim:
-        raise ConfigError(
-            f"theta: expected {model.layout.dim} columns ({', '.join(model.labels)}), got {theta.shape[-1]}"
-        )
+    else:
+        d = model.layout.dim
+        if not d <= theta.shape[-1] <= d + 3:
+            raise ConfigError(
+                f"theta: expected {d} columns ({', '.join(model.labels)}) and up to 3 noise "
+                f"columns, got {theta.shape[-1]}"
+            )
+        theta = theta[:, :d]
     if grasp_fraction is not None:
         g = np.asarray(grasp_fraction, float)
         if np.any(~np.isfinite(g)) or np.any(g <= 0) or np.any(g > 1):
             raise ConfigError(f"grasp_fraction: must be in (0, 1], got {g.tolist()}")
     forces = jnp.atleast_2d(jnp.asarray(forces))
-    if model is not None and model.kind == "static":
+    if model is not None:
         from .static import model_rollout
 
         return model_rollout(sim, model, theta, forces, grasp_fraction)  # jitted inside
-    kp, kd = gains_from_theta(theta, sim.n_joints) if model is None else model.layout.gains(theta)
+    kp, kd = gains_from_theta(theta, sim.n_joints)
     return _predict_jit(sim, kp, kd, forces, grasp_fraction)
 
 

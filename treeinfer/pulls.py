@@ -23,7 +23,7 @@ Per entry (every field optional, missing ones come from ``default``, then from t
 * ``direction`` of the force the robot applies on the branch, in world coordinates:
   ``down`` (along gravity, the paper's pulls), ``horizontal`` (horizontal and perpendicular to
   the grasped branch at its rest geometry: ``up x axis``; for a vertical branch, its bending
-  direction, the branch frame's z-axis) or a vector ``[x, y, z]`` (any length but zero). The
+  direction, the base's heading) or a vector ``[x, y, z]`` (any length but zero). The
   recorded displacement is the grasp point's motion along this direction, and force is
   positive when it pushes the branch along it.
 
@@ -45,6 +45,7 @@ import numpy as np
 
 from ._io import atomic_write_text
 from .errors import ConfigError
+from .pull_checks import check_pull_moves, check_same_pull, pull_leverage
 from .tree import DIRECTION_WORDS, parse_direction, parse_tree_pull
 
 __all__ = [
@@ -311,32 +312,21 @@ def pull_direction(tree, branch: str, direction: str | Sequence[float]) -> np.nd
 
     ``down`` is along the tree's gravity; ``horizontal`` is ``up x axis`` normalised, with
     ``axis`` the branch's direction at its geometric rest pose (from its joint towards its
-    tip); for a vertical branch, where that vanishes, the horizontal bending direction of its
-    hinge (the branch frame's z-axis). A vector is normalised.
+    tip); for a vertical branch, where that vanishes, the base's heading ``(cos yaw, sin yaw,
+    0)``, which lies in a vertical stem's bending plane. A vector is normalised. The same
+    convention as the simulator's :func:`treeinfer.sim.direction.pull_direction` (this calls
+    it), so data, sidecar and simulation agree on the sign.
     """
-    from .tree import world_frames
+    from .sim.direction import pull_direction as _sim_direction
 
     g = np.asarray(tree.gravity, float)
     if np.linalg.norm(g) == 0:
         raise ConfigError("tree gravity is zero: 'down' and 'horizontal' are undefined")
-    down = g / np.linalg.norm(g)
     if isinstance(direction, str):
         word = direction.strip().lower()
-        if word == "down":
-            return down
-        if word != "horizontal":
+        if word not in DIRECTION_WORDS:
             raise ConfigError(f"direction: unknown word {direction!r}; expected down or horizontal")
-        _, rot = world_frames(tree)[branch]
-        axis = rot[:, 0]
-        up = -down
-        if abs(float(axis @ up)) > VERTICAL_COS:
-            h = rot[:, 2] - (rot[:, 2] @ up) * up
-        else:
-            h = np.cross(up, axis)
-        n = np.linalg.norm(h)
-        if n < 1e-9:
-            raise ConfigError(f"direction: 'horizontal' is undefined for branch '{branch}'")
-        return h / n
+        return _sim_direction(tree, word, branch)
     v = np.asarray(parse_direction(direction), float)
     return v / np.linalg.norm(v)
 
@@ -493,63 +483,3 @@ def stack_resolved(resolved: Sequence[ResolvedPull], tree=None):
     fractions = np.asarray([r.fraction for r in resolved], float)
     directions = np.asarray([r.direction for r in resolved], float).reshape(len(resolved), 3)
     return branches, fractions, directions
-
-
-def pull_leverage(tree, pull: ResolvedPull) -> float:
-    """Largest joint torque per newton [m] the pull exerts at the rest geometry (metres).
-
-    Each jointed branch on the path to the root is a hinge about its frame's y-axis at its
-    joint; a pull ``F d`` at the grasp point C exerts ``axis . ((C - joint) x d)`` on it. Zero
-    means the direction runs along every hinge axis (or through every joint): the hinge model
-    cannot move under it (e.g. a horizontal push across a branch whose hinges all bend in its
-    vertical plane)."""
-    from .tree import world_frames
-
-    frames = world_frames(tree)
-    origin, rot = frames[pull.branch]
-    c = origin + rot[:, 0] * pull.fraction * tree.branch(pull.branch).length
-    best = 0.0
-    for name in tree.ancestors(pull.branch):
-        if tree.branch(name).fixed:
-            continue
-        o, r = frames[name]
-        best = max(best, abs(float(r[:, 1] @ np.cross(c - o, pull.direction))))
-    return best
-
-
-def check_pull_moves(tree, pull: ResolvedPull, what: str = "pull", rtol: float = 1e-6):
-    """A message if ``pull`` cannot bend any hinge of the model (see :func:`pull_leverage`),
-    else ``None``; callers refuse the data set or warn."""
-    scale = max(tree.total_length(), 1e-12)
-    if pull_leverage(tree, pull) > rtol * scale:
-        return None
-    return (
-        f"{what}: a pull {pull.label} on branch '{pull.branch}' acts along the axes of all its "
-        "hinges (each branch bends about one axis only), so the model predicts no displacement; "
-        "pull in the branches' bending plane, or give the tree joints that bend that way"
-    )
-
-
-def check_same_pull(
-    recorded: ResolvedPull,
-    predicted: ResolvedPull,
-    what: str = "recording",
-    fraction_tol: float = 1e-6,
-    cos_tol: float = 1e-6,
-) -> str | None:
-    """``None`` if ``predicted`` is at the recording's grasp point and direction, else a message
-    saying how they differ (for ``predict``/``evaluate`` to refuse or warn)."""
-    diffs = []
-    if recorded.branch != predicted.branch:
-        diffs.append(f"branch '{predicted.branch}' instead of '{recorded.branch}'")
-    elif abs(recorded.fraction - predicted.fraction) > fraction_tol:
-        diffs.append(f"fraction {predicted.fraction:g} instead of {recorded.fraction:g}")
-    cos = float(np.dot(recorded.direction, predicted.direction))
-    if cos < 1.0 - cos_tol:
-        diffs.append(f"direction {predicted.label} instead of {recorded.label}")
-    if not diffs:
-        return None
-    return (
-        f"{what}: the prediction is for a pull at {', '.join(diffs)}; its displacement is not "
-        "comparable with the recording's"
-    )

@@ -137,8 +137,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
         )
     truth = runs.read_true_params(run.tree, args.data)
     grasp = args.grasp_fraction if args.grasp_fraction is not None else run.grasp_fraction
-    static = run.model is not None and run.model.kind == "static"  # any branch and direction
-    own = data_grasp_fractions(args.data, run.tree, [t.source for t in trajs], static, static)
+    # every model pulls at any branch and in any direction (each recording's own, pulls.yaml)
+    own = data_grasp_fractions(args.data, run.tree, [t.source for t in trajs], True, True)
     if own is not None:  # each recording at its own grasp point (the folder's pulls.yaml)
         if args.grasp_fraction is not None and not np.allclose(own, args.grasp_fraction):
             raise ConfigError(
@@ -162,7 +162,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
     if args.kfold is None:
         from ..static import model_with_pulls
 
-        model, grasp = model_with_pulls(run.model, args.data, [t.source for t in trajs], grasp)
+        model, grasp = model_with_pulls(
+            run.model, args.data, [t.source for t in trajs], grasp, tree=run.tree
+        )
         sim = simulator_for_run(run, args, stack_trajectories(trajs).force, grasp, cache)
         config["simulation"] = runs.simulation_summary(sim)
         _print_simulation(config["simulation"])

@@ -200,15 +200,11 @@ def run_predict(args: argparse.Namespace) -> int:
     model = run.model
     src = None if args.force_file is None else Path(args.force_file)
     if (
-        src is not None
-        and model is not None
-        and model.kind == "static"
-        and args.grasp_fraction is None
-        and (src.parent / PULLS_FILE).is_file()
-    ):  # the static model: at the recording's own branch, point and direction (pulls.yaml)
+        src is not None and args.grasp_fraction is None and (src.parent / PULLS_FILE).is_file()
+    ):  # at the recording's own branch, point and direction (pulls.yaml)
         from ..static import model_with_pulls
 
-        model, own = model_with_pulls(model, src.parent, [src.name])
+        model, own = model_with_pulls(model, src.parent, [src.name], tree=run.tree)
         grasp = float(np.asarray(own)[0])
     elif src is not None:
         grasp, same = _compare_check(args, run, grasp)

@@ -437,14 +437,12 @@ def load_run(
         [list(noise_columns(k, True)) for k in ("gaussian", "ar1")]
         + [list(noise_columns("ar1", False)), []]
     )
-    if model.kind == "static" or not model.layout.infers_damping:
-        noise_ok = len(labels) == len(gains)  # Boltzmann only: no noise columns
     if list(labels[: len(gains)]) != gains or not noise_ok:
         raise ConfigError(
             f"{run_dir}: trace.npz labels {list(labels)} do not match tree.yaml "
             f"{list(model.labels)}"
         )
-    if model.kind == "dynamic" and model.layout.infers_damping:
+    if model.is_paper:
         model = None  # the paper's model of [log Kp, log Kd]
     summary = (
         read_json(run_dir / "summary.json", "the run's summary")

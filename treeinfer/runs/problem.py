@@ -66,20 +66,24 @@ def build_problem(
     )
     if recorded.get("sim_step"):  # a resumed run: how its step was chosen, as recorded
         sim = dataclasses.replace(sim, step_info=dict(recorded["sim_step"]))
-    kind, static = o.get("model_kind", "dynamic"), {}
-    if kind == "static":  # each recording's own branch, grasp point and direction (pulls.yaml)
-        from ..static import model_for, model_with_pulls
+    kind = o.get("model_kind", "dynamic")
+    # each recording's own branch, grasp point and direction (the data folder's pulls.yaml)
+    from ..static import model_for, model_with_pulls
 
-        model, grasp = model_with_pulls(
-            model_for(tree, kind),
-            None if isinstance(trajectories, Observations) else o.get("data"),
-            [] if isinstance(trajectories, Observations) else [t.source for t in trajectories],
-            o.get("grasp_fraction"),
-        )
-        grasp = None if grasp is None else np.asarray(grasp, float).tolist()
-        static = {"direction": model.direction, "grasp_branch": model.grasp_branch}
-    else:
+    table = not isinstance(trajectories, Observations)
+    model, grasp = model_with_pulls(
+        model_for(tree, kind) if kind == "static" else None,
+        o.get("data") if table else None,
+        [t.source for t in trajectories] if table else [],
+        o.get("grasp_fraction"),
+        tree=tree,
+    )
+    pulls = {}
+    if model is None:  # every pull down at the tree's grasp branch: the paper's model
         grasp = _grasp_fractions(o, tree, trajectories)
+    else:
+        grasp = None if grasp is None else np.asarray(grasp, float).tolist()
+        pulls = {"direction": model.direction, "grasp_branch": model.grasp_branch}
     problem = make_problem(
         tree,
         obs,
@@ -93,7 +97,7 @@ def build_problem(
         likelihood=o.get("likelihood", "boltzmann"),  # run folders older than issue 11
         noise_displacement=o.get("noise_displacement"),
         model_kind=kind,
-        **static,
+        **pulls,
     )
     if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints
         from ..sequential import prior_from_run, with_prior

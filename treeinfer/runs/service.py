@@ -469,13 +469,11 @@ def kfold(
         g_test = np.asarray(grasp_fraction, float)[te] if per_traj else grasp_fraction
         cfg = {**config, "options": {**options, "grasp_fraction": g_train}}
         problem, post = infer_posterior(cfg, tree, train, progress, cache)
-        model = problem.model
-        if model is not None and model.kind == "static":  # the held-out recordings' own pulls
-            from ..static import model_with_pulls
+        from ..static import model_with_pulls
 
-            model, g_test = model_with_pulls(
-                model, options.get("data"), [t.source for t in test], g_test
-            )
+        model, g_test = model_with_pulls(  # the held-out recordings' own pulls
+            problem.model, options.get("data"), [t.source for t in test], g_test, tree=tree
+        )
         m, pred, _ = evaluate_trajectories(
             problem.sim,
             post.theta,
