@@ -160,7 +160,8 @@ def _terms_program(tree, sim, nn_prior: bool):
             return jnp.concatenate([dpos, dvel], axis=0), jnp.all(out.stable[0])
 
         model = ResidualModel(residuals, "norm", scale=kT)
-        return _terms_one(model, problem.log_prior, "fd", None, theta)
+        # (objective, gradient, curvature); the fourth term (grams) is for the Laplace start
+        return _terms_one(model, problem.log_prior, "fd", None, theta)[:3]
 
     prog = jax.jit(jax.vmap(one))
     _TERMS[key_] = prog
