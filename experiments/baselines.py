@@ -160,9 +160,12 @@ def _markdown(cfg, data, problem, conditions) -> str:
             "Posterior means of ln K with 95% marginal intervals:",
             params,
             (
-                "Figures: `bands.png` (rows: samplers; columns: unseen test trajectories), `metrics.png`, "
-                "`pairs.png`, `trace_<sampler>.png`. Sampler time is the sampler's own wall time when it "
-                "ran (compilation included; a cached posterior keeps the time of the run that made it)."
+                "Figures: `bands.png` (rows: samplers; columns: unseen test trajectories), "
+                "`metrics.png`, "
+                "`pairs.png`, `trace_<sampler>.png`. Sampler time is the sampler's own wall time "
+                "when it "
+                "ran (compilation included; a cached posterior keeps the time of the run that made "
+                "it)."
             ),
             C.METRIC_NOTES,
         ]

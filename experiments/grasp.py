@@ -79,7 +79,8 @@ def run(argv=None) -> int:
     problem = C.make_problem(cfg, data, nn_prior=True)
     C.say(
         ctx,
-        f"NNSVGD at grasp {data.tree.grasp_fraction:g}: {cfg.n_particles} particles x {cfg.n_iterations} iterations",
+        f"NNSVGD at grasp {data.tree.grasp_fraction:g}: {cfg.n_particles} particles x "
+        f"{cfg.n_iterations} iterations",
     )
     post = C.posterior(problem, "nnsvgd", cfg, seed, ctx.cache, ctx.progress)
     groups = {
@@ -133,8 +134,10 @@ def _markdown(cfg, data, problem, conditions, post) -> str:
     )
     m0 = conditions[0]["metrics"]
     post_line = (
-        f"Posterior (shared by all locations): |log error| {C.fmt(m0.get('mean_abs_log_error'), '.2f')}, "
-        f"{m0.get('n_params_in_interval', 0)}/{m0.get('n_params', 0)} true parameters in their 95% interval, "
+        f"Posterior (shared by all locations): |log error| "
+        f"{C.fmt(m0.get('mean_abs_log_error'), '.2f')}, "
+        f"{m0.get('n_params_in_interval', 0)}/{m0.get('n_params', 0)} true parameters in their 95% "
+        f"interval, "
         f"posterior NLL (train) {C.fmt(m0.get('posterior_nll'), '.4g')}."
         if "error" not in m0
         else "Posterior: no stable particles."
@@ -146,13 +149,16 @@ def _markdown(cfg, data, problem, conditions, post) -> str:
                 cfg,
                 data,
                 problem,
-                f"{len(data.test)} unseen test ({cfg.n_test_per_location} profiles x {len(cfg.grasp_locations)} locations)",
+                f"{len(data.test)} unseen test ({cfg.n_test_per_location} profiles x "
+                f"{len(cfg.grasp_locations)} locations)",
             )
-            + f"; trained at grasp fraction {data.tree.grasp_fraction:g} of branch `{data.tree.grasp_branch}`, no noise.",
+            + f"; trained at grasp fraction {data.tree.grasp_fraction:g} of branch "
+            f"`{data.tree.grasp_branch}`, no noise.",
             table,
             post_line,
             (
-                "Figures: `bands.png` (columns: test grasp locations as fractions of the branch length l from its "
+                "Figures: `bands.png` (columns: test grasp locations as fractions of the branch "
+                "length l from its "
                 "parent joint; rows: unseen force profiles), `metrics.png`."
             ),
             C.METRIC_NOTES,

@@ -117,11 +117,13 @@ def _markdown(cfg, data, problem, conditions) -> str:
             "# (b) NN prior benefit: NNSVGD vs SVGD (paper Table I, Fig. 4)",
             C.config_line(cfg, data, problem) + ".",
             table,
-            "The paper's Table I (Isaac Gym, 25 unseen test trajectories, its own NLL definition and units):",
+            "The paper's Table I (Isaac Gym, 25 unseen test trajectories, its own NLL definition "
+            "and units):",
             paper,
             "Posterior means of ln K with 95% marginal intervals:",
             params,
-            "Figures: `pairs.png` (Fig. 4: both posteriors, truth in red), `bands.png`, `metrics.png`.",
+            "Figures: `pairs.png` (Fig. 4: both posteriors, truth in red), `bands.png`, "
+            "`metrics.png`.",
             C.METRIC_NOTES,
         ]
     )

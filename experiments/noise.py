@@ -84,7 +84,8 @@ def run(argv=None) -> int:
         problem = C.make_problem(cfg, data, nn_prior=True)
         C.say(
             ctx,
-            f"{level_name(level)}: NNSVGD, {cfg.n_particles} particles x {cfg.n_iterations} iterations",
+            f"{level_name(level)}: NNSVGD, {cfg.n_particles} particles x {cfg.n_iterations} "
+            f"iterations",
         )
         post = C.posterior(problem, "nnsvgd", cfg, seed, ctx.cache, ctx.progress)
         pred, m = C.evaluate(problem, post, data, cfg)
@@ -161,18 +162,22 @@ def _markdown(cfg, data, problem, conditions) -> str:
             "# (c) Robustness to Gaussian noise on force and displacement (paper Fig. 5)",
             C.config_line(cfg, data, problem) + "; NNSVGD at every level.",
             (
-                "Noise: sigma_F = s * max|F| and sigma_x = s * max|x|, maxima over the clean training and test "
-                "trajectories; added to training and test trajectories; the metrics compare the bands with "
+                "Noise: sigma_F = s * max|F| and sigma_x = s * max|x|, maxima over the clean "
+                "training and test "
+                "trajectories; added to training and test trajectories; the metrics compare the "
+                "bands with "
                 "the noisy test displacement."
             ),
             table,
             (
-                "The same bands against the noise-free test displacement (did the posterior recover the "
+                "The same bands against the noise-free test displacement (did the posterior "
+                "recover the "
                 "motion underneath the noise?):"
             ),
             clean_table,
             (
-                "Figures: `bands.png` (rows: noise levels; columns: unseen test trajectories; red: the noisy "
+                "Figures: `bands.png` (rows: noise levels; columns: unseen test trajectories; red: "
+                "the noisy "
                 "ground truth), `metrics.png`."
             ),
             C.METRIC_NOTES,
