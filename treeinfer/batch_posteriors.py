@@ -65,7 +65,8 @@ def posterior_program(
     for name, v in (("learning_rate", learning_rate), ("final_learning_rate", final_learning_rate)):
         if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise ConfigError(f"{name}: must be a positive number, got {v!r}")
-    key_ = (id(sim), n_iterations, sampler, learning_rate, final_learning_rate)
+    # keyed by the simulator itself (hashed by content): id() may be reused after it is freed
+    key_ = (sim, n_iterations, sampler, learning_rate, final_learning_rate)
     if key_ in _PROGRAMS:
         return _PROGRAMS[key_]
     if final_learning_rate is None:
@@ -138,7 +139,8 @@ def _terms_program(tree, sim, nn_prior: bool):
     posterior`` with the Boltzmann loss as :func:`treeinfer.mapfit.boltzmann_residuals` builds it
     (``kind="norm"``, central-difference Jacobian) and the prior of
     :func:`~treeinfer.inference.make_problem`, through mapfit's own per-point terms."""
-    key_ = (id(sim), bool(nn_prior))
+    # keyed by the simulator itself (hashed by content): id() may be reused after it is freed
+    key_ = (sim, bool(nn_prior))
     if key_ in _TERMS:
         return _TERMS[key_]
     from .inference import make_problem
