@@ -78,6 +78,8 @@ from experiments.common import (  # noqa: E402
 )
 
 STUDY = "design"
+# compiled batched programs, reused across seeds and stages of this process (the study owns it)
+_PROGRAMS: dict = {}
 from experiments._design_summary import CONDITIONS  # noqa: E402
 
 
@@ -255,6 +257,7 @@ def _starts(tree, sim, kts, obs, grasp, seeds, cfg: DesignConfig) -> list[np.nda
             n_starts=cfg.map_starts,
             seeds=seeds[part],
             max_iterations=cfg.map_iterations,
+            cache=_PROGRAMS,
         )
         for fit, s in zip(fits, seeds[part]):
             key = jax.random.fold_in(jax.random.key(int(s)), 0x1A9)
@@ -275,6 +278,7 @@ def _posteriors(tree, sim, jobs: list, cfg: DesignConfig) -> list[_Post]:
         cfg.n_iterations,
         learning_rate=cfg.learning_rate,
         final_learning_rate=cfg.final_learning_rate,
+        cache=_PROGRAMS,
     )
     obs = [stack_trajectories(trajs) for trajs, _, _ in jobs]
     kts = [_kT(o, cfg) for o in obs]

@@ -268,3 +268,25 @@ def test_grasp_and_seed_reproducibility(baseline_run, tmp_path, cache):
     for c1, c2 in zip(r["conditions"], again["conditions"]):
         assert c1["metrics"]["ci_width"] == c2["metrics"]["ci_width"]
         assert c1["metrics"]["parameters"] == c2["metrics"]["parameters"]
+
+
+def test_design_study_tiny(tmp_path):
+    """experiments/design_study.py end to end at --size tiny: every arm of every seed gets a
+    posterior and a held-out band, the summary states each target, and --resummarise rebuilds
+    the same markdown from results.json (the study owns its program cache: a second seed
+    reuses the batched programs)."""
+    from experiments import design_study
+
+    out = tmp_path / "design"
+    assert design_study.main(["--size", "tiny", "--out", str(out), "--quiet"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert len(res["seeds"]) == 2 and res["config"]
+    for seed in res["seeds"]:
+        assert set(seed["stages"]) == {"first", *design_study.CONDITIONS}
+        for stage in seed["stages"].values():
+            assert stage["band_width_m"] > 0 and np.all(np.isfinite(stage["std"]))
+    assert isinstance(res["summary"]["design_never_widens_band"], bool)
+    assert len(design_study._PROGRAMS) >= 2  # the batched MAP and sampler programs, kept
+    md = (out / "results.md").read_text()
+    assert design_study.main(["--resummarise", "--out", str(out)]) == 0
+    assert (out / "results.md").read_text().split("Wall time")[0] == md.split("Wall time")[0]

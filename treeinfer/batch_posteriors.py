@@ -22,7 +22,8 @@ __all__ = ["map_fits", "posterior_program", "run_posteriors"]
 
 
 # ==== many posteriors of one tree in one jitted program ==========================================
-_PROGRAMS: dict = {}
+# No module-level program cache (issue 10): callers that build the same program repeatedly pass
+# their own ``cache`` dict (keyed by the content-hashed Simulator and the settings).
 
 
 def posterior_program(
@@ -33,6 +34,7 @@ def posterior_program(
     sampler: str = "nnsvgd",
     learning_rate: float = 0.1,
     final_learning_rate: float | None = None,
+    cache: dict | None = None,
 ):
     """One jitted program that runs the sampler on C data sets at once (``jax.vmap``).
 
@@ -51,7 +53,8 @@ def posterior_program(
     ``infer`` does; a value decays it along a cosine to that value over the ``n_iterations``, so
     the particles settle instead of jittering by about ``learning_rate`` around the stationary
     configuration (which matters where the posterior is much narrower than 0.1 log units).
-    Programs are cached per (sim, iterations, sampler, rates); jit caches the shapes."""
+    ``cache``: a dict the caller owns; the program is kept there per (sim, iterations, sampler,
+    rates) and reused on the next call (jit caches the shapes). None: a new program."""
     import optax
 
     from .gradients import combined_value_and_grad
@@ -66,9 +69,9 @@ def posterior_program(
         if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise ConfigError(f"{name}: must be a positive number, got {v!r}")
     # keyed by the simulator itself (hashed by content): id() may be reused after it is freed
-    key_ = (sim, n_iterations, sampler, learning_rate, final_learning_rate)
-    if key_ in _PROGRAMS:
-        return _PROGRAMS[key_]
+    key_ = ("posterior", sim, n_iterations, sampler, learning_rate, final_learning_rate)
+    if cache is not None and key_ in cache:
+        return cache[key_]
     if final_learning_rate is None:
         rate = float(learning_rate)
     else:
@@ -95,7 +98,8 @@ def posterior_program(
         return state.position, state.logdensity
 
     run = jax.jit(jax.vmap(one))
-    _PROGRAMS[key_] = run
+    if cache is not None:
+        cache[key_] = run
     return run
 
 
@@ -130,19 +134,18 @@ def run_posteriors(program, theta0, seeds, kT, observations, grasp):
 
 
 # ==== MAP fits of many data sets =================================================================
-_TERMS: dict = {}
 
 
-def _terms_program(tree, sim, nn_prior: bool):
+def _terms_program(tree, sim, nn_prior: bool, cache: dict | None = None):
     """jitted ``(theta [N, D], kT [N], force, displacement, velocity [N, B, T], mask [N, B, T],
     grasp [N, B]) -> (objective [N], gradient [N, D], curvature [N, D, D])`` of ``-log
     posterior`` with the Boltzmann loss as :func:`treeinfer.mapfit.boltzmann_residuals` builds it
     (``kind="norm"``, central-difference Jacobian) and the prior of
     :func:`~treeinfer.inference.make_problem`, through mapfit's own per-point terms."""
     # keyed by the simulator itself (hashed by content): id() may be reused after it is freed
-    key_ = (sim, bool(nn_prior))
-    if key_ in _TERMS:
-        return _TERMS[key_]
+    key_ = ("terms", sim, bool(nn_prior))
+    if cache is not None and key_ in cache:
+        return cache[key_]
     from .inference import make_problem
     from .likelihood import gains_from_theta
     from .mapfit import ResidualModel, _terms_one
@@ -166,7 +169,8 @@ def _terms_program(tree, sim, nn_prior: bool):
         return _terms_one(model, problem.log_prior, "fd", None, theta)[:3]
 
     prog = jax.jit(jax.vmap(one))
-    _TERMS[key_] = prog
+    if cache is not None:
+        cache[key_] = prog
     return prog
 
 
@@ -183,6 +187,7 @@ def map_fits(
     max_iterations: int = 25,
     tolerance: float = 1e-6,
     max_step: float = 1.0,
+    cache: dict | None = None,
 ) -> list:
     """:func:`treeinfer.mapfit.fit_map` (Boltzmann residuals, ``jacobian="fd"``) on C data sets
     at once: one compiled program for all of them and all their starts.
@@ -193,7 +198,7 @@ def map_fits(
     iteration is fit_map's, step for step, run on all ``C * n_starts`` points together (a point
     stops when it meets the tolerance, as there). Returns C :class:`~treeinfer.mapfit.MapFit`
     (theta, Laplace ``cov``, ``hessian``, starts and finals of that data set), ready for
-    :func:`~treeinfer.mapfit.laplace_particles`."""
+    :func:`~treeinfer.mapfit.laplace_particles`. ``cache``: as :func:`posterior_program`'s."""
     from .inference import make_problem
     from .mapfit import MapFit, latin_hypercube
 
@@ -222,7 +227,7 @@ def map_fits(
         stack("mask").astype(bool),
         rep(np.asarray(grasp, np.float32)),
     )
-    prog = _terms_program(tree, sim, nn_prior)
+    prog = _terms_program(tree, sim, nn_prior, cache)
     dtype = jnp.asarray(0.0).dtype
 
     def evaluate(theta):
