@@ -105,3 +105,93 @@ def test_no_import_cycles_between_modules():
         if m not in state:
             visit(m, [m])
     assert not cycles, cycles
+
+
+# ---- no process-global caches hidden in modules ---------------------------------------------
+# Compiled programs and simulators are cached only in objects their owner passes down
+# (treeinfer.program_cache.ProgramCache, treeinfer.runs.SimulatorCache). Memoised pure functions
+# that build no program may stay, each with its reason here.
+ALLOWED_MEMOS = {
+    "treeinfer.sim.levels.layout": "NumPy index arrays of a hashable tuple of constants",
+}
+_CONTAINERS = {"dict", "list", "set", "OrderedDict", "defaultdict", "WeakValueDictionary"}
+_MUTATORS = {"append", "add", "clear", "extend", "insert", "pop", "popitem", "setdefault"}
+_MUTATORS |= {"update", "remove", "discard", "move_to_end"}
+
+
+def _name_of(node) -> str:
+    node = node.func if isinstance(node, ast.Call) else node
+    if isinstance(node, ast.Attribute):
+        return node.attr
+    return getattr(node, "id", "")
+
+
+def module_caches(source: str, module: str) -> list[str]:
+    """What in ``source`` keeps state across calls at module level: functions memoised with
+    ``functools.lru_cache`` / ``functools.cache``, and module-level dicts, lists or sets that
+    a function writes to (item assignment or deletion, a mutating method, ``global``)."""
+    tree = ast.parse(source)
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for d in node.decorator_list:
+                if _name_of(d) in ("lru_cache", "cache"):
+                    found.append(f"{module}.{node.name}: @{_name_of(d)}")
+    containers = set()
+    for stmt in tree.body:
+        value = getattr(stmt, "value", None)
+        targets = stmt.targets if isinstance(stmt, ast.Assign) else [getattr(stmt, "target", None)]
+        mutable = isinstance(value, (ast.Dict, ast.List, ast.Set, ast.DictComp, ast.ListComp))
+        mutable |= isinstance(value, ast.Call) and _name_of(value) in _CONTAINERS
+        if isinstance(stmt, (ast.Assign, ast.AnnAssign)) and mutable:
+            containers |= {t.id for t in targets if isinstance(t, ast.Name)}
+    for fn in ast.walk(tree):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            continue
+        written = set()
+        for node in ast.walk(fn):
+            if isinstance(node, ast.Global):
+                written |= set(node.names) & containers
+            elif isinstance(node, ast.Subscript) and isinstance(node.ctx, (ast.Store, ast.Del)):
+                written.add(getattr(node.value, "id", None))
+            elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+                if node.func.attr in _MUTATORS:
+                    written.add(getattr(node.func.value, "id", None))
+        name = getattr(fn, "name", "<lambda>")
+        found += [f"{module}.{c}: written by {name}()" for c in sorted(written & containers)]
+    return found
+
+
+def test_the_cache_scanner_finds_the_old_driver_caches():
+    """The check below would have failed on the old sampler driver (an lru_cache on the chunk
+    builder and a module-level dict of compiled executables); a cache object passed in, a
+    constant table and a local dict are not caches of the module."""
+    old = (
+        "import functools\n"
+        "@functools.lru_cache(maxsize=4)\n"
+        "def _build_chunk(init, step):\n"
+        "    return jax.jit(init)\n"
+        "_COMPILED: dict = {}\n"
+        "TABLE = {'a': 1}\n"
+        "def _compiled(jitted, args, cache):\n"
+        "    key = (jitted, args)\n"
+        "    local = {}\n"
+        "    local[key] = TABLE['a']\n"
+        "    cache[key] = 1\n"
+        "    if key not in _COMPILED:\n"
+        "        _COMPILED[key] = jitted.lower(*args).compile()\n"
+        "    return _COMPILED[key]\n"
+    )
+    assert module_caches(old, "old") == [
+        "old._build_chunk: @lru_cache",
+        "old._COMPILED: written by _compiled()",
+    ]
+    assert module_caches("_S = []\ndef f(x):\n    _S.append(x)\n", "m") == ["m._S: written by f()"]
+
+
+def test_no_module_keeps_a_cache():
+    found = []
+    for m in MODULES:
+        found += module_caches(_module_file(m).read_text(encoding="utf-8"), m)
+    allowed = {f"{name}: @lru_cache" for name in ALLOWED_MEMOS}
+    assert sorted(set(found) - allowed) == []

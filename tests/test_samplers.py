@@ -15,6 +15,7 @@ from scipy.spatial.distance import pdist
 
 from treeinfer.errors import ConfigError
 from treeinfer.gradients import central_difference
+from treeinfer.program_cache import ProgramCache
 from treeinfer.samplers import (
     SAMPLERS,
     make_sampler,
@@ -174,9 +175,10 @@ def test_a_fresh_run_compiles_one_program():
         run(svgd(VG, learning_rate=0.05), 0, start(8), 12, progress=False, chunk_size=4)
         compiled.clear()  # the run above compiled the small eager helpers of these shapes
         alg = svgd(VG, learning_rate=0.05)  # new closures: nothing of it is compiled yet
-        full = run(alg, 1, start(8), 12, progress=False, chunk_size=4)
+        cache = ProgramCache()  # the caller's: the resumed run below finds the program here
+        full = run(alg, 1, start(8), 12, progress=False, chunk_size=4, cache=cache)
         assert compiled == ["jit(chunk)"], compiled
-        part = run(alg, 1, start(8), 4, progress=False, chunk_size=4)
+        part = run(alg, 1, start(8), 4, progress=False, chunk_size=4, cache=cache)
         rest = run(
             alg,
             1,
@@ -186,8 +188,10 @@ def test_a_fresh_run_compiles_one_program():
             start_iteration=4,
             chunk_size=4,
             progress=False,
+            cache=cache,
         )
         assert compiled == ["jit(chunk)"], compiled  # same shapes: the resumed run reuses it
+        assert cache.builds == 1 and len(cache) == 1
         np.testing.assert_array_equal(rest.final_positions, full.final_positions)
         assert full.trace_iterations[0] == 0
         np.testing.assert_array_equal(full.trace_positions[0], np.asarray(start(8)))
@@ -198,6 +202,46 @@ def test_a_fresh_run_compiles_one_program():
     finally:
         jax.monitoring.clear_event_listeners()
         jax.config.update("jax_enable_compilation_cache", before)
+
+
+def test_compiled_programs_live_in_the_callers_cache_only():
+    """Two runs of one algorithm share a compiled chunk only through a ProgramCache the caller
+    owns: without one, every run compiles its own (nothing is kept in a module); with one,
+    the second run compiles nothing and equals the first."""
+    from jax._src import dispatch
+
+    compiled = []
+
+    def listener(event, duration, **kw):
+        if event == dispatch.BACKEND_COMPILE_EVENT and kw.get("fun_name") == "jit(chunk)":
+            compiled.append(1)
+
+    before = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        alg = svgd(VG, learning_rate=0.05)
+        run(alg, 0, start(8), 6, progress=False, chunk_size=3)
+        run(alg, 0, start(8), 6, progress=False, chunk_size=3)
+        assert len(compiled) == 2  # no cache given: a program per run, none kept
+        compiled.clear()
+        cache = ProgramCache(max_size=2)
+        a = run(alg, 0, start(8), 6, progress=False, chunk_size=3, cache=cache)
+        b = run(alg, 0, start(8, seed=2), 6, progress=False, chunk_size=3, cache=cache)
+        assert len(compiled) == 1 and cache.builds == 1
+        np.testing.assert_array_equal(
+            a.final_positions,
+            run(alg, 0, start(8), 6, progress=False, chunk_size=3).final_positions,
+        )
+        assert not np.allclose(a.final_positions, b.final_positions)  # other data, same program
+        run(alg, 0, start(16), 6, progress=False, chunk_size=3, cache=cache)  # new shapes
+        run(alg, 0, start(8), 2, progress=False, chunk_size=3, cache=cache)  # shorter chunk
+        assert len(cache) == 2 and cache.builds == 3  # the oldest entry was dropped
+    finally:
+        jax.monitoring.clear_event_listeners()
+        jax.config.update("jax_enable_compilation_cache", before)
+    with pytest.raises(ConfigError, match="ProgramCache"):
+        run(alg, 0, start(8), 3, progress=False, cache={})
 
 
 def test_svgd_warmup_ramps_the_learning_rate():

@@ -17,13 +17,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import ConfigError
+from .program_cache import ProgramCache
 
 __all__ = ["map_fits", "posterior_program", "run_posteriors"]
 
 
 # ==== many posteriors of one tree in one jitted program ==========================================
-# No module-level program cache (issue 10): callers that build the same program repeatedly pass
-# their own ``cache`` dict (keyed by the content-hashed Simulator and the settings).
+# No module-level program cache: callers that build the same program repeatedly pass their own
+# ProgramCache (keyed by the content-hashed Simulator and the settings).
 
 
 def posterior_program(
@@ -34,7 +35,7 @@ def posterior_program(
     sampler: str = "nnsvgd",
     learning_rate: float = 0.1,
     final_learning_rate: float | None = None,
-    cache: dict | None = None,
+    cache: ProgramCache | None = None,
 ):
     """One jitted program that runs the sampler on C data sets at once (``jax.vmap``).
 
@@ -53,14 +54,10 @@ def posterior_program(
     ``infer`` does; a value decays it along a cosine to that value over the ``n_iterations``, so
     the particles settle instead of jittering by about ``learning_rate`` around the stationary
     configuration (which matters where the posterior is much narrower than 0.1 log units).
-    ``cache``: a dict the caller owns; the program is kept there per (sim, iterations, sampler,
-    rates) and reused on the next call (jit caches the shapes). None: a new program."""
-    import optax
-
-    from .gradients import combined_value_and_grad
-    from .inference import check_count, make_problem
-    from .samplers import init_key, iteration_key, nnsvgd, svgd
-    from .trajectories import Observations
+    ``cache``: a :class:`~treeinfer.program_cache.ProgramCache` the caller owns; the program is
+    kept there per (sim, iterations, sampler, rates) and reused on the next call (jit caches the
+    shapes). None: a new program."""
+    from .inference import check_count
 
     n_iterations = check_count(n_iterations, "n_iterations")
     if sampler not in ("nnsvgd", "svgd"):
@@ -70,8 +67,23 @@ def posterior_program(
             raise ConfigError(f"{name}: must be a positive number, got {v!r}")
     # keyed by the simulator itself (hashed by content): id() may be reused after it is freed
     key_ = ("posterior", sim, n_iterations, sampler, learning_rate, final_learning_rate)
-    if cache is not None and key_ in cache:
-        return cache[key_]
+    return _cached(
+        cache,
+        key_,
+        lambda: _posterior_program(
+            tree, sim, n_iterations, sampler, learning_rate, final_learning_rate
+        ),
+    )
+
+
+def _posterior_program(tree, sim, n_iterations, sampler, learning_rate, final_learning_rate):
+    import optax
+
+    from .gradients import combined_value_and_grad
+    from .inference import make_problem
+    from .samplers import init_key, iteration_key, nnsvgd, svgd
+    from .trajectories import Observations
+
     if final_learning_rate is None:
         rate = float(learning_rate)
     else:
@@ -97,10 +109,15 @@ def posterior_program(
         )
         return state.position, state.logdensity
 
-    run = jax.jit(jax.vmap(one))
-    if cache is not None:
-        cache[key_] = run
-    return run
+    return jax.jit(jax.vmap(one))
+
+
+def _cached(cache, key, build):
+    if cache is None:
+        return build()
+    if not isinstance(cache, ProgramCache):
+        raise ConfigError(f"cache: expected a ProgramCache or None, got {type(cache).__name__}")
+    return cache.get(key, build)
 
 
 def run_posteriors(program, theta0, seeds, kT, observations, grasp):
@@ -136,7 +153,7 @@ def run_posteriors(program, theta0, seeds, kT, observations, grasp):
 # ==== MAP fits of many data sets =================================================================
 
 
-def _terms_program(tree, sim, nn_prior: bool, cache: dict | None = None):
+def _terms_program(tree, sim, nn_prior: bool, cache: ProgramCache | None = None):
     """jitted ``(theta [N, D], kT [N], force, displacement, velocity [N, B, T], mask [N, B, T],
     grasp [N, B]) -> (objective [N], gradient [N, D], curvature [N, D, D])`` of ``-log
     posterior`` with the Boltzmann loss as :func:`treeinfer.mapfit.boltzmann_residuals` builds it
@@ -144,8 +161,10 @@ def _terms_program(tree, sim, nn_prior: bool, cache: dict | None = None):
     :func:`~treeinfer.inference.make_problem`, through mapfit's own per-point terms."""
     # keyed by the simulator itself (hashed by content): id() may be reused after it is freed
     key_ = ("terms", sim, bool(nn_prior))
-    if cache is not None and key_ in cache:
-        return cache[key_]
+    return _cached(cache, key_, lambda: _build_terms_program(tree, sim, nn_prior))
+
+
+def _build_terms_program(tree, sim, nn_prior: bool):
     from .inference import make_problem
     from .likelihood import gains_from_theta
     from .mapfit import ResidualModel, _terms_one
@@ -168,10 +187,7 @@ def _terms_program(tree, sim, nn_prior: bool, cache: dict | None = None):
         # (objective, gradient, curvature); the fourth term (grams) is for the Laplace start
         return _terms_one(model, problem.log_prior, "fd", None, theta)[:3]
 
-    prog = jax.jit(jax.vmap(one))
-    if cache is not None:
-        cache[key_] = prog
-    return prog
+    return jax.jit(jax.vmap(one))
 
 
 def map_fits(
@@ -187,7 +203,7 @@ def map_fits(
     max_iterations: int = 25,
     tolerance: float = 1e-6,
     max_step: float = 1.0,
-    cache: dict | None = None,
+    cache: ProgramCache | None = None,
 ) -> list:
     """:func:`treeinfer.mapfit.fit_map` (Boltzmann residuals, ``jacobian="fd"``) on C data sets
     at once: one compiled program for all of them and all their starts.
@@ -200,6 +216,7 @@ def map_fits(
     (theta, Laplace ``cov``, ``hessian``, starts and finals of that data set), ready for
     :func:`~treeinfer.mapfit.laplace_particles`. ``cache``: as :func:`posterior_program`'s."""
     from .inference import make_problem
+    from .lm import levenberg_marquardt
     from .mapfit import MapFit, latin_hypercube
 
     c = len(observations)
@@ -231,45 +248,11 @@ def map_fits(
     dtype = jnp.asarray(0.0).dtype
 
     def evaluate(theta):
-        f, g, h = prog(jnp.asarray(theta, dtype), *data)
-        return np.array(f, float), np.array(g, float), np.array(h, float)
+        return prog(jnp.asarray(theta, dtype), *data)
 
-    # --- fit_map's Levenberg-Marquardt loop, unchanged, over all C * S points ---
-    theta = starts.reshape(-1, d).astype(float)
-    f, g, h = evaluate(theta)
-    n = theta.shape[0]
-    scale0 = np.array([np.mean(np.abs(np.diag(hi))) + 1e-12 for hi in h])
-    lam = 1e-3 * np.ones(n)
-    done = ~np.isfinite(f)
-    converged = np.zeros(n, bool)
-    iterations = 0
-    for iterations in range(1, max_iterations + 1):
-        steps = np.zeros_like(theta)
-        for i in np.flatnonzero(~done):
-            damp = lam[i] * (np.diag(h[i]) + 1e-6 * scale0[i])
-            try:
-                step = np.linalg.solve(h[i] + np.diag(damp), -g[i])
-            except np.linalg.LinAlgError:
-                step = -g[i] / (np.diag(h[i]) + damp + 1e-12)
-            big = np.max(np.abs(step))
-            steps[i] = step if big <= max_step else step * (max_step / big)
-        trial = theta + steps
-        ft, gt, ht = evaluate(trial)
-        accept = ~done & np.isfinite(ft) & (ft < f)
-        small = np.max(np.abs(steps), axis=1) < tolerance
-        flat = accept & ((f - ft) < tolerance * (1.0 + np.abs(f)))
-        theta[accept], f[accept], g[accept], h[accept] = (
-            trial[accept],
-            ft[accept],
-            gt[accept],
-            ht[accept],
-        )
-        lam = np.where(accept, np.maximum(lam / 3.0, 1e-9), lam * 4.0)
-        newly = ~done & (flat | small)
-        converged |= newly
-        done |= newly | (lam > 1e10)
-        if done.all():
-            break
+    # fit_map's Levenberg-Marquardt iteration, over all C * S points at once
+    lm = levenberg_marquardt(evaluate, starts.reshape(-1, d), max_iterations, tolerance, max_step)
+    theta, f, h, _, converged, iterations = lm
     fits = []
     for k in range(c):
         part = slice(k * n_starts, (k + 1) * n_starts)

@@ -324,6 +324,20 @@ class Posterior:
         return np.isfinite(self.log_density)
 
 
+def _algorithm(problem: Problem, name: str, options: dict, cache):
+    """``problem.sampler(name, **options)``, kept in ``cache`` (a ProgramCache or None) per
+    (problem object, name, options): a later run of the same problem with that cache gets the
+    same algorithm object, so the driver finds its compiled program there too."""
+    try:
+        key = ("sampler algorithm", problem, name, tuple(sorted(options.items())))
+        hash(key)
+    except TypeError:  # an option that is not hashable (an optax optimizer object, ...)
+        key = None
+    if cache is None or key is None:
+        return problem.sampler(name, **options)
+    return cache.get(key, lambda: problem.sampler(name, **options))
+
+
 def infer(
     problem: Problem,
     sampler: str = "nnsvgd",
@@ -339,6 +353,7 @@ def infer(
     trace_every: int | None = 1,
     stop_when=None,
     reinit_stragglers=None,
+    cache=None,
     **sampler_options,
 ) -> Posterior:
     """Sample the posterior of ``problem`` with ``nnsvgd``, ``svgd``, ``sgld``, ``sghmc`` or ``mh``.
@@ -349,7 +364,9 @@ def infer(
     where checkpoints are written; ``initial_state``/``start_iteration`` resume exactly.
     ``stop_when`` (e.g. :class:`treeinfer.diagnostics.ConvergenceCriterion`) and
     ``reinit_stragglers`` (:class:`treeinfer.diagnostics.ReinitStragglers`) go to
-    :func:`treeinfer.samplers.run`.
+    :func:`treeinfer.samplers.run`, and so does ``cache`` (a
+    :class:`~treeinfer.program_cache.ProgramCache` the caller owns, where the compiled sampler
+    program is kept for later runs of the same algorithm; None: compiled for this call only).
     """
     check_count(n_particles, "n_particles")
     check_count(n_iterations, "n_iterations")
@@ -357,7 +374,7 @@ def infer(
     spec = _samplers.sampler_spec(name)
     if spec.nn_prior and not problem.nn_prior and problem.tree.inferred_pairs():
         raise ConfigError(f"sampler '{name}' needs a problem built with nn_prior=True")
-    algorithm = problem.sampler(name, **sampler_options)
+    algorithm = _algorithm(problem, name, sampler_options, cache)
     theta0 = (
         initial_particles(problem, n_particles, seed)
         if initial_theta is None
@@ -376,6 +393,7 @@ def infer(
         trace_every=trace_every,
         stop_when=stop_when,
         reinit_stragglers=reinit_stragglers,
+        cache=cache,
     )
     theta = np.asarray(result.final_positions)
     # every sampler state carries log p at its positions: no extra (compiled) evaluation

@@ -34,7 +34,8 @@ jitted program evaluates value, gradient and curvature at all starting points at
 
 Why not ``scipy.optimize.least_squares`` or ``jaxopt.LevenbergMarquardt``: neither takes the
 Boltzmann loss (a sum of norms, not of squares) or a prior curvature, and scipy would evaluate
-one starting point at a time; the loop below is 30 lines.
+one starting point at a time; the loop (:mod:`treeinfer.lm`, shared with the batched fits of
+:mod:`treeinfer.batch_posteriors`) is 40 lines.
 """
 
 from __future__ import annotations
@@ -49,9 +50,11 @@ import numpy as np
 
 from .errors import ConfigError
 from .laplace import _inverse_psd, laplace_particles, norm_loss_covariance
+from .lm import LMResult, levenberg_marquardt
 
 __all__ = [
     "KINDS",
+    "LMResult",
     "MapFit",
     "ResidualModel",
     "boltzmann_residuals",
@@ -60,6 +63,7 @@ __all__ = [
     "gaussian_residuals",
     "laplace_particles",
     "latin_hypercube",
+    "levenberg_marquardt",
     "norm_loss_covariance",
     "problem_with_gradients",
 ]
@@ -328,51 +332,12 @@ def fit_map(
 
     def evaluate(theta):
         f, g, h, (gram, r2) = terms(jnp.asarray(theta, dtype))
-        out = (f, g, h, gram, r2)
-        return tuple(np.array(x, float) for x in out)  # writable copies
+        return f, g, h, gram, r2
 
-    theta = starts.copy()
-    f, g, h, gram, r2 = evaluate(theta)
-    n = theta.shape[0]
-    scale0 = np.array([np.mean(np.abs(np.diag(hi))) + 1e-12 for hi in h])
-    lam = 1e-3 * np.ones(n)
-    done = ~np.isfinite(f)
-    converged = np.zeros(n, bool)
-    iterations = 0
-    for iterations in range(1, max_iterations + 1):
-        steps = np.zeros_like(theta)
-        for i in np.flatnonzero(~done):
-            # Marquardt's scaling, floored so unidentified directions still get damped
-            damp = lam[i] * (np.diag(h[i]) + 1e-6 * scale0[i])
-            try:
-                step = np.linalg.solve(h[i] + np.diag(damp), -g[i])
-            except np.linalg.LinAlgError:
-                step = -g[i] / (np.diag(h[i]) + damp + 1e-12)
-            big = np.max(np.abs(step))
-            steps[i] = step if big <= max_step else step * (max_step / big)
-        trial = theta + steps
-        ft, gt, ht, gram_t, r2_t = evaluate(trial)
-        accept = ~done & np.isfinite(ft) & (ft < f)
-        small = np.max(np.abs(steps), axis=1) < tolerance
-        flat = accept & ((f - ft) < tolerance * (1.0 + np.abs(f)))
-        theta[accept], f[accept], g[accept], h[accept] = (
-            trial[accept],
-            ft[accept],
-            gt[accept],
-            ht[accept],
-        )
-        gram[accept], r2[accept] = gram_t[accept], r2_t[accept]
-        lam = np.where(accept, np.maximum(lam / 3.0, 1e-9), lam * 4.0)
-        newly = ~done & (flat | small)
-        converged |= newly
-        done |= newly | (lam > 1e10)
-        if done.all():
-            break
-        if agree is not None and np.isfinite(f).any():
-            low = np.min(np.where(np.isfinite(f), f, np.inf))
-            at_low = converged & (f - low <= math.sqrt(tolerance) * (1.0 + abs(low)))
-            if at_low.sum() >= agree:
-                break
+    lm = levenberg_marquardt(
+        evaluate, starts, max_iterations, tolerance, max_step, agree, n_extras=2
+    )
+    theta, f, h, (gram, r2), converged, iterations = lm
     best = int(np.argmin(np.where(np.isfinite(f), f, np.inf)))
     if not np.isfinite(f[best]):
         from .errors import SimulationError

@@ -41,13 +41,15 @@ diagnostics cover the resumed part only.
 
 Modules: :mod:`.config` (the run configuration, validated once, hashed for resume),
 :mod:`.provenance` (hashes, versions, JSON), :mod:`.checkpoint` (``RUN.partial``),
-:mod:`.folder` (save and load ``RUN/``), :mod:`.cache` (the simulator cache a command owns),
+:mod:`.folder` (save and load ``RUN/``), :mod:`.cache` (the cache a command owns: simulators and
+compiled sampler programs),
 :mod:`.problem` (the inference problem of a config, checks before sampling), :mod:`.posterior`
 (the reported posterior, merged traces), :mod:`.service` (run, resume, k-fold: the only module
 that orchestrates the others).
 """
 
 from ..jsonio import read_json, write_json
+from ..program_cache import ProgramCache
 from .cache import SimulatorCache, simulator_for
 from .checkpoint import (
     CHECKPOINT_FILE,
@@ -103,6 +105,7 @@ __all__ = [
     "InferOutcome",
     "LoadedRun",
     "RunConfig",
+    "ProgramCache",
     "SimulatorCache",
     "build_problem",
     "check_data_unchanged",

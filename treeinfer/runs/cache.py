@@ -1,10 +1,14 @@
 """The one cache of the application layer: compiled simulators by (tree, obs_dt, substeps,
-backend). A :class:`~treeinfer.sim.Simulator` is immutable and is a *static* jit argument hashed
-by identity, so handing the same object to every predict() of a command reuses the traced and
+backend), and the command's compiled sampler programs (``SimulatorCache.programs``, a
+:class:`~treeinfer.program_cache.ProgramCache` handed to :func:`treeinfer.inference.infer`).
+
+A :class:`~treeinfer.sim.Simulator` is immutable and is a *static* jit argument hashed by
+identity, so handing the same object to every predict() of a command reuses the traced and
 compiled rollout instead of re-tracing the simulator (seconds; tens of seconds with MJX).
 
 No module keeps one: a command (or a caller of :mod:`treeinfer.runs.service`) makes a
-:class:`SimulatorCache` and passes it down; without one, each call builds its simulator.
+:class:`SimulatorCache` and passes it down; without one, each call builds its simulator and
+compiles its programs.
 """
 
 from __future__ import annotations
@@ -13,17 +17,21 @@ import hashlib
 
 import numpy as np
 
+from ..program_cache import ProgramCache
 from ..sim import Simulator, make_simulator
 from ..tree import Tree, tree_to_dict
 from .provenance import tree_to_dict_json
 
 
 class SimulatorCache:
-    """At most ``max_size`` simulators, the oldest dropped first."""
+    """At most ``max_size`` simulators, the oldest dropped first, and ``programs``: the
+    command's :class:`~treeinfer.program_cache.ProgramCache` of compiled sampler programs (at
+    most ``max_size`` too), which :mod:`treeinfer.runs.service` passes to every sampler run."""
 
     def __init__(self, max_size: int = 8):
         self.max_size = int(max_size)
         self._sims: dict[tuple, Simulator] = {}
+        self.programs = ProgramCache(self.max_size)
 
     def __len__(self) -> int:
         return len(set(map(id, self._sims.values())))

@@ -1,5 +1,6 @@
 """The run service: sample a posterior and write the run folder, resume an interrupted run,
-cross-validate a run's settings (k-fold). Owns the simulator cache of a command.
+cross-validate a run's settings (k-fold). Uses the command's cache (simulators and compiled
+sampler programs, :class:`~treeinfer.runs.cache.SimulatorCache`), or makes one per call.
 """
 
 from __future__ import annotations
@@ -15,19 +16,12 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from .._io import (
-    check_output_dir,
-    clean_stale_staging,
-)
+from .._io import check_output_dir, clean_stale_staging
 from ..errors import ConfigError, OutputExistsError, SimulationError
-
-# ==== problem and posterior =======================================================================
 from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits, noise_for
 from ..jsonio import jsonable as _jsonable
 from ..jsonio import read_json, write_json
-from ..trajectories import (
-    Trajectory,
-)
+from ..trajectories import Trajectory
 from ..tree import Tree, dump_tree, load_tree, tree_to_dict
 from .cache import SimulatorCache
 from .checkpoint import (
@@ -313,6 +307,7 @@ def run_inference(
         callback_every=every,
         initial_state=None if previous is None else previous.state,
         start_iteration=0 if previous is None else previous.iteration,
+        cache=cache.programs,
         **_convergence_options(o, problem),
         **({} if theta0 is None else {"initial_theta": theta0}),
         **_warmup_option(config),
@@ -408,6 +403,7 @@ def infer_posterior(
     k-fold protocol reuses a run's settings this way."""
     from ..inference import infer
 
+    cache = SimulatorCache() if cache is None else cache
     problem = build_problem(config, tree, trajectories, cache)
     o = config["options"]
     theta0 = None
@@ -420,6 +416,7 @@ def infer_posterior(
         n_iterations=o["iterations"],
         seed=o["seed"],
         progress=progress,
+        cache=cache.programs,
         **({} if theta0 is None else {"initial_theta": theta0}),
         **_warmup_option(config),
     )

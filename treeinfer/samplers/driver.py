@@ -1,7 +1,8 @@
 """Run any :class:`SamplingAlgorithm` for many iterations, in jitted chunks.
 
-Iterations run in chunks of one jitted ``lax.scan`` (compiled once per run),
-so progress can be reported, a callback can checkpoint, and the run can be
+Iterations run in chunks of one jitted ``lax.scan`` (compiled once per run; kept in the
+caller's :class:`~treeinfer.program_cache.ProgramCache` when one is given, so a resumed run
+reuses it), so progress can be reported, a callback can checkpoint, and the run can be
 resumed between chunks. The key for (0-based) iteration ``i`` is
 ``jax.random.fold_in(rng_key, i)`` and the key for ``init`` is
 ``fold_in(rng_key, 2**32 - 1)``, so a run resumed from a saved state at
@@ -10,7 +11,6 @@ iteration ``k`` reproduces the uninterrupted run exactly.
 
 from __future__ import annotations
 
-import functools
 import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -23,6 +23,7 @@ from tqdm.auto import tqdm
 from ..diagnostics import ReinitStragglers, straggler_mask
 from ..diagnostics import reinit_stragglers as _reinit_positions
 from ..errors import ConfigError
+from ..program_cache import ProgramCache
 from .base import SamplingAlgorithm, check_positions
 
 __all__ = ["RunResult", "init_key", "iteration_key", "run"]
@@ -93,7 +94,6 @@ def _scalars(info) -> dict:
     return {k: v for k, v in fields.items() if jnp.ndim(v) == 0}
 
 
-@functools.lru_cache(maxsize=4)
 def _build_chunk(init, step, length: int, record_trace: bool, scalar_template: tuple):
     """Jitted chunk of ``length`` iterations, ``init`` folded in: one program per run.
 
@@ -105,8 +105,8 @@ def _build_chunk(init, step, length: int, record_trace: bool, scalar_template: t
     time. Iterations ``i >= stop`` are padding (held, no evaluation). Returns ``(state,
     (scalars, trace), (position [P, D], logdensity [P]))``, the last the state after the
     (optional) init: the run's initial particles and their log density on a fresh run.
-
-    Cached so repeated runs of one algorithm (resume, benchmarks, notebooks) do not recompile.
+    :func:`run` compiles it once per (algorithm, length, shapes) and keeps the executable in
+    its ``cache``.
     """
     scalar_template = dict(scalar_template)
 
@@ -134,9 +134,6 @@ def _build_chunk(init, step, length: int, record_trace: bool, scalar_template: t
     return jax.jit(chunk)
 
 
-_COMPILED: dict = {}  # (jitted chunk, argument signature) -> executable; a few, for resumed runs
-
-
 def _signature(args) -> tuple:
     leaves, treedef = jax.tree.flatten(args)
     return (
@@ -148,14 +145,13 @@ def _signature(args) -> tuple:
     )
 
 
-def _compiled(jitted, args):
-    """``jitted`` compiled for ``args`` (arrays or shape structs), kept for repeated runs."""
-    key = (jitted, _signature(args))
-    if key not in _COMPILED:
-        while len(_COMPILED) >= 8:
-            _COMPILED.pop(next(iter(_COMPILED)))
-        _COMPILED[key] = jitted.lower(*args).compile()
-    return _COMPILED[key]
+def _compiled_chunk(cache: ProgramCache, chunk_key: tuple, args):
+    """The chunk of ``chunk_key`` (:func:`_build_chunk`'s arguments) compiled for ``args``
+    (arrays or shape structs), from ``cache`` (compiled and kept there on a miss)."""
+    return cache.get(
+        ("sampler chunk", chunk_key, _signature(args)),
+        lambda: _build_chunk(*chunk_key).lower(*args).compile(),
+    )
 
 
 def _single_device(tree) -> bool:
@@ -198,6 +194,7 @@ def run(
     start_iteration: int = 0,
     stop_when: Callable[..., str | None] | None = None,
     reinit_stragglers: ReinitStragglers | None = None,
+    cache: ProgramCache | None = None,
 ) -> RunResult:
     """Run ``algorithm`` from ``initial_positions [P, D]`` (or a saved state) to ``n_iterations``.
 
@@ -229,12 +226,14 @@ def run(
         particles and their state re-initialised (one extra batched target evaluation, only
         when some are found); ``diagnostics["n_reinitialised"]`` counts them per iteration.
         Deterministic (keyed by iteration), so resume stays exact.
+      cache: a :class:`~treeinfer.program_cache.ProgramCache` the caller owns: the compiled
+        chunk is kept there per (algorithm object, chunk length, shapes), so another run (or a
+        resumed run) of the same algorithm object with that cache does not recompile. None: a
+        cache local to this call (the program is compiled, used and dropped).
 
     One program per run: ``init`` is folded into the jitted scan chunk (run inside it, under
     ``lax.cond``, on the first chunk of a fresh run), so a run compiles one executable where
-    it used to compile two (``tests/test_samplers.py`` counts them). Compiled chunks of the
-    last few (algorithm, chunk length, shapes) are cached, so a resumed run of the same
-    algorithm object does not recompile.
+    it used to compile two (``tests/test_samplers.py`` counts them).
     """
     t0 = time.perf_counter()
     for nm, v in (("n_iterations", n_iterations), ("start_iteration", start_iteration)):
@@ -284,14 +283,17 @@ def run(
     record_trace = trace_every is not None
     diagnostics: dict[str, list] = {}
     remaining = n_iterations - start_iteration
-    chunk = None
+    programs = ProgramCache() if cache is None else cache
+    if not isinstance(programs, ProgramCache):
+        raise ConfigError(f"run: cache must be a ProgramCache or None, got {cache!r}")
+    chunk_key = None
     if remaining > 0 or fresh:
         _, info_shape = jax.eval_shape(algorithm.step, iteration_key(key, 0), state)
         template = tuple(
             (k, jax.ShapeDtypeStruct(v.shape, v.dtype)) for k, v in _scalars(info_shape).items()
         )
         length = max(1, min(chunk_size, remaining))
-        chunk = _build_chunk(algorithm.init, algorithm.step, length, record_trace, template)
+        chunk_key = (algorithm.init, algorithm.step, length, record_trace, template)
     if fresh and not _single_device(positions):
         # sharded particles: init runs on its own so the chunk sees the state's real shardings
         state = jax.jit(algorithm.init)(init_key(key), positions)
@@ -300,10 +302,10 @@ def run(
         state = _zeros_like_shapes(state)
     else:
         positions = state.position
-    if chunk is not None:
-        chunk = _compiled(
-            chunk, (state, positions, jnp.asarray(True), key, jnp.int32(0), jnp.int32(0))
-        )
+    chunk = None
+    if chunk_key is not None:
+        args = (state, positions, jnp.asarray(True), key, jnp.int32(0), jnp.int32(0))
+        chunk = _compiled_chunk(programs, chunk_key, args)
 
     trace_pos, trace_ld, trace_it = [], [], []
     initial_trace = record_trace and start_iteration == 0
