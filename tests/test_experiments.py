@@ -273,12 +273,14 @@ def test_grasp_and_seed_reproducibility(baseline_run, tmp_path, cache):
 def test_design_study_tiny(tmp_path):
     """experiments/design_study.py end to end at --size tiny: every arm of every seed gets a
     posterior and a held-out band, the summary states each target, and --resummarise rebuilds
-    the same markdown from results.json (the study owns its program cache: a second seed
-    reuses the batched programs)."""
+    the same markdown from results.json (the program cache is the caller's: both stages and
+    both seeds run on one batched MAP program and one batched sampler program)."""
     from experiments import design_study
+    from treeinfer.program_cache import ProgramCache
 
     out = tmp_path / "design"
-    assert design_study.main(["--size", "tiny", "--out", str(out), "--quiet"]) == 0
+    programs = ProgramCache()
+    assert design_study.main(["--size", "tiny", "--out", str(out), "--quiet"], programs) == 0
     res = json.loads((out / "results.json").read_text())
     assert len(res["seeds"]) == 2 and res["config"]
     for seed in res["seeds"]:
@@ -286,7 +288,7 @@ def test_design_study_tiny(tmp_path):
         for stage in seed["stages"].values():
             assert stage["band_width_m"] > 0 and np.all(np.isfinite(stage["std"]))
     assert isinstance(res["summary"]["design_never_widens_band"], bool)
-    assert len(design_study._PROGRAMS) >= 2  # the batched MAP and sampler programs, kept
+    assert programs.builds == 2 and len(programs) == 2  # built once, used by every stage
     md = (out / "results.md").read_text()
     assert design_study.main(["--resummarise", "--out", str(out)]) == 0
     assert (out / "results.md").read_text().split("Wall time")[0] == md.split("Wall time")[0]

@@ -308,3 +308,37 @@ def test_cli_infer_with_laplace_init_and_gradient_choice_recorded(tmp_path, caps
         ]
     )
     assert rc == 2 and "--gradients" in capsys.readouterr().err
+
+
+def test_lm_core_is_exact_on_least_squares_and_batches_data_sets_independently():
+    """treeinfer.lm.levenberg_marquardt (the loop of fit_map and batch_posteriors.map_fits):
+    on ``||A theta - y||^2 / 2`` it reaches the least-squares point (numpy.linalg.lstsq); two
+    data sets stacked as one batch of points give, point for point, what each gives alone (as
+    map_fits runs many data sets' starts together); extras follow the accepted points."""
+    from treeinfer.lm import levenberg_marquardt
+
+    sets = [_linear_toy(seed=s)[:2] for s in (0, 1)]
+
+    def evaluate_for(rows):  # rows: the data set of each point
+        def evaluate(theta):
+            r = np.stack([sets[k][0] @ t - sets[k][1] for k, t in zip(rows, theta)])
+            a = np.stack([sets[k][0] for k in rows])
+            g = np.einsum("pnd,pn->pd", a, r)
+            return 0.5 * np.sum(r**2, 1), g, np.einsum("pnd,pne->pde", a, a), np.sum(r**2, 1)
+
+        return evaluate
+
+    starts = latin_hypercube(3, -3 * np.ones(3), 3 * np.ones(3), seed=4)
+    kw = dict(max_iterations=60, tolerance=1e-10, max_step=1.0, n_extras=1)
+    both = levenberg_marquardt(evaluate_for([0] * 3 + [1] * 3), np.vstack([starts, starts]), **kw)
+    for k, (a, y) in enumerate(sets):
+        alone = levenberg_marquardt(evaluate_for([k] * 3), starts, **kw)
+        part = slice(3 * k, 3 * k + 3)
+        np.testing.assert_array_equal(both.theta[part], alone.theta)
+        np.testing.assert_array_equal(both.values[part], alone.values)
+        exact = np.linalg.lstsq(a, y, rcond=None)[0]
+        np.testing.assert_allclose(alone.theta, np.tile(exact, (3, 1)), atol=1e-6)
+        assert alone.converged.all()
+        np.testing.assert_allclose(alone.extras[0], 2 * alone.values, rtol=1e-12)
+    with pytest.raises(ConfigError, match="extra"):
+        levenberg_marquardt(evaluate_for([0] * 3), starts, 5, 1e-6, 1.0, n_extras=0)
