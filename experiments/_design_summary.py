@@ -131,6 +131,16 @@ def _q(q, scale=1.0, fmt=".3f") -> str:
     return f"{scale * q[1]:{fmt}} [{scale * q[0]:{fmt}}, {scale * q[2]:{fmt}}]"
 
 
+def _stage_rows(conds, per_parameter: dict, rest) -> list[str]:
+    """Markdown rows ``| stage | value per parameter | rest(stage) |``, pull 1 first."""
+    rows = []
+    for s in ["first"] + list(conds):
+        name = "after pull 1" if s == "first" else f"+ {s}"
+        cells = " | ".join(f"{v:.3f}" for v in per_parameter[s])
+        rows.append(f"| {name} | {cells} | {rest(s)} |")
+    return rows
+
+
 def _markdown(cfg, summary: dict, seeds: list[dict], wall: float, cpu: float | None = None) -> str:
     labels = summary["labels"]
     conds = summary.get("conditions", CONDITIONS)
@@ -162,10 +172,9 @@ def _markdown(cfg, summary: dict, seeds: list[dict], wall: float, cpu: float | N
         "| stage | " + " | ".join(labels) + " | held-out band [mm] |",
         "|---" * (len(labels) + 2) + "|",
     ]
-    for s in ["first"] + list(conds):
-        name = "after pull 1" if s == "first" else f"+ {s}"
-        cells = " | ".join(f"{v:.3f}" for v in summary["median_std"][s])
-        lines.append(f"| {name} | {cells} | {1e3 * summary['median_band_width_m'][s]:.2f} |")
+    lines += _stage_rows(
+        conds, summary["median_std"], lambda s: f"{1e3 * summary['median_band_width_m'][s]:.2f}"
+    )
     if "median_crb_std" in summary:
         lines += [
             "",
@@ -175,13 +184,14 @@ def _markdown(cfg, summary: dict, seeds: list[dict], wall: float, cpu: float | N
             "| stage | " + " | ".join(labels) + " | lin. band [mm] | std / CRB (median) |",
             "|---" * (len(labels) + 3) + "|",
         ]
-        for s in ["first"] + list(conds):
-            name = "after pull 1" if s == "first" else f"+ {s}"
-            cells = " | ".join(f"{v:.3f}" for v in summary["median_crb_std"][s])
-            r = ", ".join(f"{v:.1f}" for v in summary["median_std_over_crb"][s])
-            lines.append(
-                f"| {name} | {cells} | {1e3 * summary['median_crb_band_m'][s]:.2f} | {r} |"
-            )
+        lines += _stage_rows(
+            conds,
+            summary["median_crb_std"],
+            lambda s: (
+                f"{1e3 * summary['median_crb_band_m'][s]:.2f} | "
+                + ", ".join(f"{v:.1f}" for v in summary["median_std_over_crb"][s])
+            ),
+        )
     if "median_log_density_max_minus_median" in summary:
         c = summary["median_log_density_max_minus_median"]
         lines += [

@@ -194,15 +194,17 @@ def main(argv=None, programs=None) -> int:
         "wall_time_s": wall,
         "cpu_time_s": cpu_seconds(),
     }
+    # the record's CPU time, so --resummarise rebuilds this markdown exactly
+    md = _markdown(cfg, summary, seeds, wall, record["cpu_time_s"])
     figures = _figures(summary, first_sugg)
     with staged_output_dir(out, force=True, what="results") as stage:
         for name, fig in figures.items():
             save_figure(fig, stage / name)
         atomic_write_json(stage / "results.json", record)
-        atomic_write_text(stage / "results.md", _markdown(cfg, summary, seeds, wall, cpu_seconds()))
+        atomic_write_text(stage / "results.md", md)
         atomic_write_json(stage / "suggestions_seed0.json", first_sugg.to_dict())
     _say(args.quiet, f"wrote {out} in {wall:.0f} s")
-    print(_markdown(cfg, summary, seeds, wall))
+    print(md)
     return 0
 
 

@@ -291,4 +291,4 @@ def test_design_study_tiny(tmp_path):
     assert programs.builds == 2 and len(programs) == 2  # built once, used by every stage
     md = (out / "results.md").read_text()
     assert design_study.main(["--resummarise", "--out", str(out)]) == 0
-    assert (out / "results.md").read_text().split("Wall time")[0] == md.split("Wall time")[0]
+    assert (out / "results.md").read_text() == md
