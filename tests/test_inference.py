@@ -16,6 +16,7 @@ from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
 from treeinfer.inference import infer, make_problem, predict
 from treeinfer.likelihood import gains_from_theta, theta_from_gains
+from treeinfer.program_cache import ProgramCache
 from treeinfer.sim import make_simulator, simulate
 from treeinfer.trajectories import Trajectory
 from treeinfer.tree import load_tree
@@ -125,10 +126,15 @@ def test_nnsvgd_recovers_truth_and_covers_training_data(setup):
 
 
 def test_same_seed_same_particles(setup):
+    """Same seed, same particles, with or without the caller's ProgramCache; with one, the runs
+    of one problem share one algorithm object and its compiled sampler program."""
     *_, problem = setup
-    a = infer(problem, "nnsvgd", n_particles=16, n_iterations=3, seed=11, progress=False)
-    b = infer(problem, "nnsvgd", n_particles=16, n_iterations=3, seed=11, progress=False)
-    c = infer(problem, "nnsvgd", n_particles=16, n_iterations=3, seed=12, progress=False)
+    programs = ProgramCache()
+    kw = dict(n_particles=16, n_iterations=3, progress=False)
+    a = infer(problem, "nnsvgd", seed=11, **kw)
+    b = infer(problem, "nnsvgd", seed=11, cache=programs, **kw)
+    c = infer(problem, "nnsvgd", seed=12, cache=programs, **kw)
+    assert programs.builds == 2  # the algorithm and its compiled chunk: built once, used twice
     assert np.array_equal(a.theta, b.theta)
     assert not np.array_equal(a.theta, c.theta)
     assert a.settings["seed"] == 11 and a.settings["sampler"] == "nnsvgd"
