@@ -57,9 +57,11 @@ def run(seeds, n_particles, n_iterations, until, out: Path | None) -> list[dict]
     from treeinfer import samplers
     from treeinfer.diagnostics import ReinitStragglers, find_stragglers
     from treeinfer.inference import initial_particles
+    from treeinfer.program_cache import ProgramCache
 
     prob = problem()
     alg = prob.sampler("svgd")
+    programs = ProgramCache()  # one compiled chunk for every seed and policy
     rows = []
     for seed in seeds:
         theta0 = initial_particles(prob, n_particles, seed)
@@ -76,6 +78,7 @@ def run(seeds, n_particles, n_iterations, until, out: Path | None) -> list[dict]
                 progress=False,
                 chunk_size=10,
                 reinit_stragglers=pol,
+                cache=programs,
             )
             ld = np.asarray(res.final_state.logdensity)
             rep = find_stragglers(

@@ -267,19 +267,20 @@ def test_collapsed_and_single_particles_do_not_nan():
     same = jnp.ones((50, 2))
     assert float(median_length_scale(same)) == pytest.approx(1e-6)
     assert float(median_length_scale(same[:1])) == 1.0
-    alg = svgd(VG, learning_rate=0.05)  # one object: compiled chunks are reused
+    alg = svgd(VG, learning_rate=0.05)  # one object and one cache: compiled chunks are reused
+    programs = ProgramCache()
     for positions in (same, same[:1]):
-        r = run(alg, 0, positions, 100, progress=False)
+        r = run(alg, 0, positions, 100, progress=False, cache=programs)
         assert np.all(np.isfinite(r.final_positions))
         assert np.all(np.isfinite(r.diagnostics["bandwidth"]))
         assert np.all(r.diagnostics["bandwidth"] > 0)
     # single particle: SVGD is gradient ascent -> moves to the mode
-    r = run(alg, 0, jnp.zeros((1, 2)), 300, progress=False)
+    r = run(alg, 0, jnp.zeros((1, 2)), 300, progress=False, cache=programs)
     np.testing.assert_allclose(r.final_positions[0], MU, atol=0.05)
     # nearly collapsed (distinct) particles spread out again; exactly identical
     # ones cannot (SVGD is deterministic and treats them identically)
     nearly = same + 1e-4 * jax.random.normal(jax.random.key(2), same.shape)
-    r = run(alg, 0, nearly, 200, progress=False)
+    r = run(alg, 0, nearly, 200, progress=False, cache=programs)
     assert np.std(r.final_positions[:, 0]) > 0.3
 
 
