@@ -146,31 +146,30 @@ def _validate_arrays(
             f"(relative tolerance {DT_REL_TOL:g}); resample to a fixed step",
         )
 
-    i = int(np.argmax(np.abs(displacement)))
-    if abs(displacement[i]) > MAX_DISPLACEMENT:
-        raise _err(
-            path,
-            _line_of(lines, i),
-            f"displacement {displacement[i]:g} exceeds {MAX_DISPLACEMENT:g} m; "
-            "looks like millimetres, expected metres",
-        )
-    i = int(np.argmax(np.abs(force)))
-    if abs(force[i]) > MAX_FORCE:
-        raise _err(
-            path,
-            _line_of(lines, i),
-            f"force {force[i]:g} N exceeds {MAX_FORCE:g} N, which is implausible for a branch; "
+    for values, limit, message in (
+        (
+            displacement,
+            MAX_DISPLACEMENT,
+            "displacement {v:g} exceeds {limit:g} m; looks like millimetres, expected metres",
+        ),
+        (
+            force,
+            MAX_FORCE,
+            "force {v:g} N exceeds {limit:g} N, which is implausible for a branch; "
             "expected newtons",
-        )
-    if velocity is not None:
-        i = int(np.argmax(np.abs(velocity)))
-        if abs(velocity[i]) > MAX_VELOCITY:
-            raise _err(
-                path,
-                _line_of(lines, i),
-                f"velocity {velocity[i]:g} exceeds {MAX_VELOCITY:g} m/s; "
-                "looks like millimetres per second, expected metres per second",
-            )
+        ),
+        (
+            velocity,
+            MAX_VELOCITY,
+            "velocity {v:g} exceeds {limit:g} m/s; "
+            "looks like millimetres per second, expected metres per second",
+        ),
+    ):
+        if values is None:
+            continue
+        i = int(np.argmax(np.abs(values)))
+        if abs(values[i]) > limit:
+            raise _err(path, _line_of(lines, i), message.format(v=values[i], limit=limit))
 
 
 def validate_trajectory(traj: Trajectory) -> Trajectory:
