@@ -113,6 +113,7 @@ def test_no_import_cycles_between_modules():
 # that build no program may stay, each with its reason here.
 ALLOWED_MEMOS = {
     "treeinfer.sim.levels.layout": "NumPy index arrays of a hashable tuple of constants",
+    "experiments._posterior_cache._source_digest": "the sources' hash, read once per process",
 }
 _CONTAINERS = {"dict", "list", "set", "OrderedDict", "defaultdict", "WeakValueDictionary"}
 _MUTATORS = {"append", "add", "clear", "extend", "insert", "pop", "popitem", "setdefault"}
@@ -129,7 +130,8 @@ def _name_of(node) -> str:
 def module_caches(source: str, module: str) -> list[str]:
     """What in ``source`` keeps state across calls at module level: functions memoised with
     ``functools.lru_cache`` / ``functools.cache``, and module-level dicts, lists or sets that
-    a function writes to (item assignment or deletion, a mutating method, ``global``)."""
+    a function writes to (item assignment or deletion, a mutating method, ``global``) or that
+    are handed to a call as its ``cache=``."""
     tree = ast.parse(source)
     found = []
     for node in ast.walk(tree):
@@ -159,6 +161,10 @@ def module_caches(source: str, module: str) -> list[str]:
                     written.add(getattr(node.func.value, "id", None))
         name = getattr(fn, "name", "<lambda>")
         found += [f"{module}.{c}: written by {name}()" for c in sorted(written & containers)]
+    for node in ast.walk(tree):  # handed to a library function as its cache
+        if isinstance(node, ast.keyword) and "cache" in (node.arg or ""):
+            if getattr(node.value, "id", None) in containers:
+                found.append(f"{module}.{node.value.id}: passed as {node.arg}=")
     return found
 
 
@@ -187,11 +193,18 @@ def test_the_cache_scanner_finds_the_old_driver_caches():
         "old._COMPILED: written by _compiled()",
     ]
     assert module_caches("_S = []\ndef f(x):\n    _S.append(x)\n", "m") == ["m._S: written by f()"]
+    study = "_PROGRAMS: dict = {}\ndef run(sim):\n    return program(sim, cache=_PROGRAMS)\n"
+    assert module_caches(study, "m") == ["m._PROGRAMS: passed as cache="]
 
 
 def test_no_module_keeps_a_cache():
+    """No module of the package, the experiments or the benchmarks keeps a cache (but the
+    memoised pure functions of ``ALLOWED_MEMOS``)."""
     found = []
     for m in MODULES:
         found += module_caches(_module_file(m).read_text(encoding="utf-8"), m)
+    for folder in ("experiments", "benchmarks"):
+        for path in sorted((ROOT.parent / folder).glob("*.py")):
+            found += module_caches(path.read_text(encoding="utf-8"), f"{folder}.{path.stem}")
     allowed = {f"{name}: @lru_cache" for name in ALLOWED_MEMOS}
     assert sorted(set(found) - allowed) == []
