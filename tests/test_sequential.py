@@ -295,6 +295,8 @@ def test_posterior_program_matches_the_problem_sampler_per_data_set():
         )
     with pytest.raises(ConfigError, match="sampler"):
         batch_posteriors.posterior_program(p_a.tree, p_a.sim, 3, sampler="mh")
+    with pytest.raises(ConfigError, match="ProgramCache"):  # a cache object, not a dict
+        batch_posteriors.posterior_program(p_a.tree, p_a.sim, 3, sampler="svgd", cache={})
 
 
 def test_map_fits_match_fit_map_per_data_set():
