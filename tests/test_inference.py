@@ -148,6 +148,8 @@ def test_bad_arguments(setup):
         infer(problem, "hmc", n_particles=4, n_iterations=1)
     with pytest.raises(ConfigError, match="n_particles"):
         infer(problem, "svgd", n_particles=0, n_iterations=1)
+    with pytest.raises(ConfigError, match="ProgramCache"):
+        infer(problem, "svgd", n_particles=4, n_iterations=1, cache={})
     with pytest.raises(ConfigError, match="grasp_fraction"):
         predict(problem, THETA_TRUE, trajs[0].force, grasp_fraction=1.5)
     with pytest.raises(ConfigError, match="columns"):

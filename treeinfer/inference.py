@@ -30,6 +30,7 @@ from .errors import ConfigError
 from .gradients import combine, combined_value_and_grad, jvp_combined_value_and_grad
 from .likelihood import DEFAULT_KT, check_kT, gains_from_theta, likelihood_terms
 from .problem_priors import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA, box_prior, nn_inequality_prior
+from .program_cache import ProgramCache
 from .sim import Rollout, Simulator, make_simulator, simulate
 from .trajectories import Observations, Trajectory, stack_trajectories
 from .tree import Tree
@@ -328,6 +329,8 @@ def _algorithm(problem: Problem, name: str, options: dict, cache):
     """``problem.sampler(name, **options)``, kept in ``cache`` (a ProgramCache or None) per
     (problem object, name, options): a later run of the same problem with that cache gets the
     same algorithm object, so the driver finds its compiled program there too."""
+    if cache is not None and not isinstance(cache, ProgramCache):
+        raise ConfigError(f"infer: cache must be a ProgramCache or None, got {cache!r}")
     try:
         key = ("sampler algorithm", problem, name, tuple(sorted(options.items())))
         hash(key)
