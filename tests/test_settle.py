@@ -1,7 +1,7 @@
-"""The fused backend's converged settle (Newton until the step is below rounding, then one last
-step) against the fixed 30-iteration settle and against MuJoCo C's equilibrium
-(``settle_reference``, float64 finite-difference Newton); its implicit derivative against
-central differences of the C equilibrium."""
+"""The fused backend's converged settle (Newton until the step is below rounding) against the
+fixed 30-iteration settle and against MuJoCo C's equilibrium (``settle_reference``, float64
+finite-difference Newton); its implicit derivative against central differences of the C
+equilibrium."""
 
 from __future__ import annotations
 
@@ -20,15 +20,18 @@ from treeinfer.tree import load_tree
 
 def _trees():
     yield "three_branch", load_tree(example_path("three_branch"))
-    yield "chain6", chain(
-        6,
-        lengths=np.linspace(0.7, 0.4, 6).tolist(),
-        radii=np.linspace(0.03, 0.012, 6).tolist(),
-        angles_deg=[0.0] + [-10.0] * 5,
-        base_position=(0.0, 0.0, 1.5),
-        base_pitch_deg=20.0,
-        levels=6,
-        name="chain6",
+    yield (
+        "chain6",
+        chain(
+            6,
+            lengths=np.linspace(0.7, 0.4, 6).tolist(),
+            radii=np.linspace(0.03, 0.012, 6).tolist(),
+            angles_deg=[0.0] + [-10.0] * 5,
+            base_position=(0.0, 0.0, 1.5),
+            base_pitch_deg=20.0,
+            levels=6,
+            name="chain6",
+        ),
     )
 
 

@@ -68,14 +68,14 @@ def _settle_one(sim: Simulator, kp, kd, dtype, converged: bool = True):
     """:func:`treeinfer.sim.mjx.settle_one` for the fused backend: the same clipped Newton
     iteration, with the exact Jacobian by forward-mode autodiff.
 
-    ``converged=True`` (default) stops once a Newton step moves every joint by at most
-    ``sqrt(eps)`` of the dtype (Newton converges quadratically: the next step is below
-    rounding, ~1e-7 rad in float32), then takes one last step; at most
-    ``sim.settle_iterations`` in all, typically 4 to 10 instead of the fixed 30
-    (``converged=False``, the earlier rule), which were most of the settle's cost
-    (``BENCHMARKS.md``, CPU). Under ``vmap`` the loop runs until every lane has stopped;
-    stopped lanes keep their values. Both report ``ok`` when the residual before the last step
-    is at most ``sim.settle_tolerance`` times ``1 + max|r(0)|``."""
+    ``converged=True`` (default) stops after the Newton step that moved every joint by at most
+    ``sqrt(eps)`` of the dtype (Newton converges quadratically, so that step left an error
+    below rounding: ~1e-7 rad in float32), at most ``sim.settle_iterations``: typically 4 to 10
+    iterations instead of the fixed 30 (``converged=False``, the earlier rule), which were most
+    of the settle's cost (``BENCHMARKS.md``, CPU). Under ``vmap`` the loop runs until every lane
+    has stopped; stopped lanes keep their values. Derivatives are the implicit ones
+    (``lax.custom_root``). ``ok``: the residual at the returned angles (converged; the fixed
+    rule: before its last step) is at most ``sim.settle_tolerance`` times ``1 + max|r(0)|``."""
     if uses_levels(sim):
         lay = lv.layout(sim.hinge_tree)
         stiffness, _, spring = _gain_arrays(sim, kp, kd, dtype)
@@ -85,41 +85,40 @@ def _settle_one(sim: Simulator, kp, kd, dtype, converged: bool = True):
         torque = lambda q: hd.static_torque(sim.hinge_tree, q, stiffness, spring)
     nv = sim.mj_model.nv
 
-    def newton_step(q):
-        r, jac = torque(q), jax.jacfwd(torque)(q)
+    def newton_step(f, q):
+        r, jac = f(q), jax.jacfwd(f)(q)
         return r, jnp.clip(-jnp.linalg.solve(jac, r), -0.2, 0.2)
 
     zero = jnp.zeros(nv, dtype)
     if converged:
         stop = float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
 
-        def cond(carry):
-            i, _, _, big = carry
-            return (i < sim.settle_iterations - 1) & (big > stop)
+        def solve(f, q0):
+            def cond(carry):
+                i, _, big = carry
+                return (i < sim.settle_iterations) & (big > stop)
 
-        def body(carry):
-            i, q, r_first, _ = carry
-            r, dq = newton_step(q)
-            big = jnp.max(jnp.abs(dq))
-            # NaN steps (a singular Jacobian) stop the loop; ok below rejects them
-            big = jnp.where(jnp.isfinite(big), big, jnp.zeros((), dtype))
-            return i + 1, q + dq, jnp.where(i == 0, r, r_first), big
+            def body(carry):
+                i, q, _ = carry
+                _, dq = newton_step(f, q)
+                big = jnp.max(jnp.abs(dq))
+                # NaN steps (a singular Jacobian) stop the loop; ok below rejects them
+                big = jnp.where(jnp.isfinite(big), big, jnp.zeros((), dtype))
+                return i + 1, q + dq, big
 
-        inf = jnp.asarray(np.inf, dtype)
-        carry = (jnp.int32(0), zero, zero, inf)
-        _, q, r_first, _ = jax.lax.stop_gradient(jax.lax.while_loop(cond, body, carry))
-        # One more Newton step outside the loop: it refines q, and it is where derivatives
-        # come from. At the root r(q) ~ 0, so its derivative in the gains is the implicit-
-        # function one, dq = -J^-1 dr/dK, in forward and in reverse mode (a while_loop has no
-        # reverse-mode rule, and differentiating through the iterations is not needed).
-        r_last, dq = newton_step(q)
-        r_first = jnp.where(jnp.all(r_first == 0), r_last, r_first)
-        q = q + dq
+            inf = jnp.asarray(np.inf, dtype)
+            return jax.lax.while_loop(cond, body, (jnp.int32(0), q0, inf))[1]
+
+        # lax.custom_root: derivatives by the implicit function theorem, dq = -J^-1 dr/dK, in
+        # forward and reverse mode (a while_loop has no reverse-mode rule of its own)
+        tangent_solve = lambda g, y: jnp.linalg.solve(jax.jacfwd(g)(y), y)
+        q = jax.lax.custom_root(torque, zero, solve, tangent_solve)
+        r_first, r_last = torque(zero), torque(q)
     else:
 
         def newton(carry, i):
             q, r_first, _ = carry
-            r, dq = newton_step(q)
+            r, dq = newton_step(torque, q)
             return (q + dq, jnp.where(i == 0, r, r_first), r), None
 
         carry = (zero, zero, zero)
