@@ -17,7 +17,7 @@ import pytest
 from scipy import stats
 
 from treeinfer.errors import ConfigError
-from treeinfer.fast_posterior import BatchEvaluator, fast_posterior
+from treeinfer.fast_posterior import BatchEvaluator, fast_posterior, posterior_from_fast
 from treeinfer.generators import chain
 from treeinfer.importance import importance_resample, systematic_resample
 from treeinfer.inference import make_problem
@@ -112,6 +112,11 @@ def test_fast_posterior_matches_grid_quadrature(one_joint):
     assert np.all(np.abs(res.theta.mean(0) - g_mean) < 0.3 * g_sd)
     # and the data identify Kp: the truth lies within the posterior's bulk
     assert abs(g_mean[0] - truth[0]) < 4 * g_sd[0]
+    # as a Posterior for the run layer: zero iterations, the diagnostics recorded
+    post = posterior_from_fast(problem, res, seed=1)
+    np.testing.assert_allclose(post.kp[:, 0], np.exp(res.theta[:, 0]), rtol=1e-6)
+    assert post.run.settings["n_iterations_done"] == 0 and "k_hat" in post.run.stop_reason
+    assert post.valid.all() and post.run.final_state.logdensity.shape == (256,)
 
 
 def test_fast_posterior_refuses_other_models(one_joint):

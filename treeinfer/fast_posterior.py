@@ -40,7 +40,14 @@ import numpy as np
 
 from .errors import ConfigError
 
-__all__ = ["BatchEvaluator", "FastPosterior", "fast_posterior", "fit_map_batched"]
+__all__ = [
+    "BatchEvaluator",
+    "FastPosterior",
+    "ParticleState",
+    "fast_posterior",
+    "fit_map_batched",
+    "posterior_from_fast",
+]
 
 
 class BatchEvaluator:
@@ -333,3 +340,49 @@ def fast_posterior(
         "program_calls": ev.calls,
     }
     return FastPosterior(theta, ok, reason, fit, imp, log_p[idx], phases, ev.calls, settings)
+
+
+class ParticleState(NamedTuple):
+    """The minimal sampler state of a posterior that no sampler produced (the run layer reads
+    ``position`` and ``logdensity``)."""
+
+    position: np.ndarray
+    logdensity: np.ndarray
+
+
+def posterior_from_fast(problem, result: FastPosterior, seed: int = 0):
+    """A :class:`treeinfer.inference.Posterior` of ``result`` (zero sampler iterations), for the
+    run layer (``--init importance --iterations 0``): ``run`` is a
+    :class:`treeinfer.samplers.RunResult` whose trace is the one state (iteration 0),
+    ``stop_reason`` says that importance sampling produced it, and ``settings`` record the
+    fit and the weights' diagnostics (``khat``, ``ess``)."""
+    from .inference import Posterior
+    from .likelihood import gains_from_theta
+    from .samplers import RunResult
+
+    theta = np.asarray(result.theta, np.float32)
+    logp = np.asarray(result.log_density, np.float32)
+    run_settings = {**result.settings, "n_iterations": 0, "n_iterations_done": 0, "seed": seed}
+    run = RunResult(
+        final_positions=theta,
+        final_state=ParticleState(theta, logp),
+        trace_positions=theta[None],
+        trace_logdensity=logp[None],
+        trace_iterations=np.zeros(1, np.int64),
+        diagnostics={},
+        settings=run_settings,
+        elapsed_s=float(sum(result.phases.values())),
+        stop_reason=f"importance sampling (Pareto k_hat {result.importance.khat:.2f}, "
+        f"effective sample size {result.importance.ess:.0f})",
+    )
+    kp, kd = gains_from_theta(theta, problem.sim.n_joints)
+    settings = {
+        "problem": problem.settings,
+        "sampler": "importance",
+        "sampler_options": {k: result.settings[k] for k in ("n_starts", "n_draws", "df")},
+        "n_particles": len(theta),
+        "n_iterations": 0,
+        "seed": int(seed),
+        "run": run_settings,
+    }
+    return Posterior(theta, np.asarray(kp), np.asarray(kd), logp, problem.labels, run, settings)
