@@ -3,6 +3,7 @@
     python -m benchmarks.time_to_posterior                      # CPU (2 cores), writes the JSON
     python -m benchmarks.time_to_posterior --device gpu         # the same on a GPU
     python -m benchmarks.time_to_posterior --fast-gradients jvp --fast-jacobian jvp
+    python -m benchmarks.time_to_posterior --paths today,importance --reference-from ref.json
 
 The standard problem (``benchmarks/inference.py``: three-branch example, R = 3, 128 particles,
 3 training pulls x 300 steps, NNSVGD). Each path runs in a **fresh Python process** with an
@@ -20,6 +21,13 @@ The standard problem (``benchmarks/inference.py``: three-branch example, R = 3, 
   ``--fast-warmup`` iterations (the sampler's ``warmup`` option), stopped by
   :class:`treeinfer.diagnostics.ConvergenceCriterion` (``--stop-when-converged``) or at
   ``--fast-iterations`` (60).
+
+* ``importance``: :func:`treeinfer.fast_posterior.fast_posterior`, no sampler iterations: one
+  compiled rollout program screens ``4 K`` box points, runs Levenberg–Marquardt from the
+  ``--is-starts`` best (its central-difference points are the program's batch K), and
+  importance-samples the Boltzmann-matched Gaussian around the mode (Pareto-smoothed weights);
+  when the weights fail their own check (``k_hat > 0.7`` or too few effective samples) NNSVGD
+  runs from those particles as in ``fast``. The headline figure is this path's when it runs.
 
 ``--substeps`` sets the simulation step of every path (default: the library's
 accuracy-controlled step); ``--compile-cache DIR`` keeps one compilation cache between runs
