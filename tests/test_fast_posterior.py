@@ -19,7 +19,7 @@ from scipy import stats
 from treeinfer.errors import ConfigError
 from treeinfer.fast_posterior import BatchEvaluator, fast_posterior, posterior_from_fast
 from treeinfer.generators import chain
-from treeinfer.importance import importance_resample, systematic_resample
+from treeinfer.importance import importance_resample, psis, systematic_resample
 from treeinfer.inference import make_problem
 from treeinfer.sim import make_simulator
 from treeinfer.sim.reference import simulate_reference
@@ -48,6 +48,19 @@ def test_importance_weights_recover_a_gaussian_target():
     log_p = np.where(np.arange(4000) % 2 == 0, -np.inf, 0.0)
     idx, lw, *_ = importance_resample(x[:, None], log_p, np.zeros(4000), 50)
     assert np.all(idx % 2 == 1) and np.all(np.isneginf(lw[::2]))
+
+
+@pytest.mark.parametrize("scale", [0.3, 1.0, 2.5])
+def test_psis_equals_arviz(scale):
+    import arviz
+
+    rng = np.random.default_rng(4)
+    lw = scale * rng.normal(size=3000)  # log-normal weights: heavier tails with the scale
+    ours, k = psis(lw)
+    ref, k_ref = arviz.psislw(lw.copy())
+    np.testing.assert_allclose(ours, ref, rtol=1e-10, atol=1e-12)
+    assert k == pytest.approx(float(k_ref), rel=1e-10)
+    assert (k > 0.7) == (scale > 2)  # heavier tails, larger k_hat
 
 
 def test_systematic_resample_counts():

@@ -6,11 +6,12 @@ density (:func:`treeinfer.laplace.norm_loss_covariance`), else the Laplace appro
 ``q`` is close to the posterior, a few hundred draws of ``q`` weighted by ``p / q`` *are* a
 posterior sample, at the cost of one batched log-density evaluation (no gradients, no
 iterations): self-normalised importance sampling, the weights stabilised by Pareto smoothing
-(PSIS, Vehtari et al. 2024, ``arviz.psislw``). Its Pareto shape ``k_hat`` says whether the
-result can be trusted (``k_hat <= 0.7``: the estimate converges at a usable rate; above that the
-proposal misses the posterior's tails and a sampler must run), and the effective sample size
-``1 / sum w^2`` how many independent draws the weighted set is worth. The particles returned are
-a systematic resample of the weighted draws (so they can be used wherever particles are).
+(PSIS, Vehtari et al. 2024; :func:`psis`, equal to ``arviz.psislw``). Its Pareto shape
+``k_hat`` says whether the result can be trusted (``k_hat <= 0.7``: the estimate converges at a
+usable rate; above that the proposal misses the posterior's tails and a sampler must run), and
+the effective sample size ``1 / sum w^2`` how many independent draws the weighted set is worth.
+The particles returned are a systematic resample of the weighted draws (so they can be used
+wherever particles are).
 
 Why not always run a sampler from ``q``: on a 2-core CPU one NNSVGD iteration of the standard
 problem costs 1-2 s (13 rollouts per particle for central differences) and its compilation
@@ -35,6 +36,7 @@ __all__ = [
     "ImportancePosterior",
     "importance_posterior",
     "importance_resample",
+    "psis",
     "proposal_from_fit",
     "systematic_resample",
 ]
@@ -100,6 +102,59 @@ def _draw(rng: np.random.Generator, mean, cov, m: int, df: float):
     return x, np.atleast_1d(dist.logpdf(x))
 
 
+def psis(log_weights) -> tuple[np.ndarray, float]:
+    """Pareto-smoothed importance sampling (Vehtari et al. 2024): ``(normalised smoothed log
+    weights [M], k_hat)`` for raw ``log_weights [M]`` (finite), as ``arviz.psislw`` with
+    ``reff = 1`` (``tests/test_fast_posterior.py`` checks equality).
+
+    The largest ``min(M / 5, 3 sqrt(M))`` weights are replaced by the expected order statistics
+    of a generalised Pareto distribution fitted to them (Zhang & Stephens' empirical-Bayes
+    estimate with the weakly informative prior on its shape), truncated at the largest raw
+    weight. Why not ``arviz.psislw`` itself: importing arviz takes 1.5-4 s on the 2-core box,
+    a tenth to a quarter of the whole fast posterior (``BENCHMARKS.md``, issue 15 fourth pass).
+    """
+    x = np.array(log_weights, float)
+    n = x.size
+    x -= np.max(x)
+    cutoff_ind = -int(np.ceil(min(n / 5.0, 3 * n**0.5))) - 1
+    xcutoff = max(np.sort(x)[cutoff_ind], np.log(np.finfo(float).tiny))
+    tail = np.flatnonzero(x > xcutoff)
+    khat = math.inf
+    if len(tail) > 4:
+        order = tail[np.argsort(x[tail])]
+        excess = np.exp(x[order]) - np.exp(xcutoff)  # sorted
+        khat, sigma = _gpd_fit(excess)
+        if np.isfinite(khat) and sigma > 0:
+            p = np.arange(0.5, len(tail)) / len(tail)
+            if abs(khat) < np.finfo(float).eps:
+                q = -np.log1p(-p) * sigma
+            else:
+                q = np.expm1(-khat * np.log1p(-p)) / khat * sigma
+            x[order] = np.log(q + np.exp(xcutoff))
+            x[x > 0] = 0.0
+    return x - np.logaddexp.reduce(x), float(khat)
+
+
+def _gpd_fit(ary: np.ndarray) -> tuple[float, float]:
+    """(k, sigma) of a generalised Pareto distribution for sorted positive ``ary``: Zhang and
+    Stephens (2009), with the prior of Vehtari et al. on k (as arviz / loo)."""
+    n = len(ary)
+    m_est = 30 + int(n**0.5)
+    b = 1 - np.sqrt(m_est / (np.arange(1, m_est + 1, dtype=float) - 0.5))
+    b /= 3 * ary[int(n / 4 + 0.5) - 1]
+    b += 1 / ary[-1]
+    k = np.log1p(-b[:, None] * ary).mean(axis=1)
+    len_scale = n * (np.log(-(b / k)) - k - 1)
+    w = 1 / np.exp(len_scale - len_scale[:, None]).sum(axis=1)
+    keep = w >= 10 * np.finfo(float).eps
+    w, b = w[keep], b[keep]
+    w /= w.sum()
+    b_post = np.sum(b * w)
+    k_post = np.log1p(-b_post * ary).mean()
+    sigma = -k_post / b_post
+    return (n * k_post + 10 * 0.5) / (n + 10), sigma
+
+
 def systematic_resample(rng: np.random.Generator, log_weights, n: int) -> np.ndarray:
     """``[n]`` indices drawn by systematic resampling from normalised ``log_weights [M]``
     (lowest variance of the standard schemes: each draw of weight w appears floor(n w) or
@@ -117,8 +172,6 @@ def importance_resample(
     """PSIS weights of ``draws [M, D]`` with target ``log_p [M]`` and proposal ``log_q [M]``,
     and ``n_particles`` systematic resamples. Returns ``(index [n] into draws, log_weights [M],
     khat, ess, ok, reason)``; ``min_ess`` defaults to ``n_particles / 4``."""
-    import arviz
-
     draws = np.asarray(draws, float)
     log_p, log_q = np.asarray(log_p, float), np.asarray(log_q, float)
     if draws.ndim != 2 or log_p.shape != (len(draws),) or log_q.shape != log_p.shape:
@@ -131,8 +184,8 @@ def importance_resample(
         idx = np.arange(n_particles) % len(draws)
         return idx, lw, math.inf, 0.0, False, "no stable draw of the proposal"
     lw = np.full(len(raw), -np.inf)
-    # psislw smooths the largest weights by a fitted generalised Pareto tail (arviz)
-    lw_f, khat = arviz.psislw(raw[finite].copy())
+    # the largest weights smoothed by a fitted generalised Pareto tail
+    lw_f, khat = psis(raw[finite])
     lw[finite] = lw_f
     lw = lw - np.logaddexp.reduce(lw[finite])
     w = np.exp(lw)
