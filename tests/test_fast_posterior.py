@@ -19,7 +19,12 @@ from scipy import stats
 from treeinfer.errors import ConfigError
 from treeinfer.fast_posterior import BatchEvaluator, fast_posterior, posterior_from_fast
 from treeinfer.generators import chain
-from treeinfer.importance import importance_resample, psis, systematic_resample
+from treeinfer.importance import (
+    importance_posterior,
+    importance_resample,
+    psis,
+    systematic_resample,
+)
 from treeinfer.inference import make_problem
 from treeinfer.sim import make_simulator
 from treeinfer.sim.reference import simulate_reference
@@ -125,6 +130,13 @@ def test_fast_posterior_matches_grid_quadrature(one_joint):
     assert np.all(np.abs(res.theta.mean(0) - g_mean) < 0.3 * g_sd)
     # and the data identify Kp: the truth lies within the posterior's bulk
     assert abs(g_mean[0] - truth[0]) < 4 * g_sd[0]
+    # the same through problem.log_density (importance_posterior) and a Student-t proposal
+    other = importance_posterior(problem, res.fit, 256, n_draws=4000, seed=2, df=8.0)
+    wo = np.exp(other.log_weights)
+    o_mean = wo @ other.draws
+    assert other.ok and np.all(
+        np.abs(o_mean - g_mean) < 5 * g_sd / math.sqrt(other.ess) + 1e-3 * g_sd
+    )
     # as a Posterior for the run layer: zero iterations, the diagnostics recorded
     post = posterior_from_fast(problem, res, seed=1)
     np.testing.assert_allclose(post.kp[:, 0], np.exp(res.theta[:, 0]), rtol=1e-6)
