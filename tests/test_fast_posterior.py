@@ -17,7 +17,12 @@ import pytest
 from scipy import stats
 
 from treeinfer.errors import ConfigError
-from treeinfer.fast_posterior import BatchEvaluator, fast_posterior, posterior_from_fast
+from treeinfer.fast_posterior import (
+    BatchEvaluator,
+    fast_posterior,
+    importance_for_run,
+    posterior_from_fast,
+)
 from treeinfer.generators import chain
 from treeinfer.importance import (
     importance_posterior,
@@ -142,6 +147,22 @@ def test_fast_posterior_matches_grid_quadrature(one_joint):
     np.testing.assert_allclose(post.kp[:, 0], np.exp(res.theta[:, 0]), rtol=1e-6)
     assert post.run.settings["n_iterations_done"] == 0 and "k_hat" in post.run.stop_reason
     assert post.valid.all() and post.run.final_state.logdensity.shape == (256,)
+
+
+def test_importance_for_run_logs_and_decides(one_joint):
+    problem, _ = one_joint
+    lines = []
+    # (k_hat from a few hundred draws is noisy: 256 draws gave k_hat 1-2 with ESS 235 here)
+    post, theta0 = importance_for_run(
+        problem, 64, seed=3, log=lines.append, n_starts=3, n_draws=2000
+    )
+    assert len(lines) == 1 and "k_hat" in lines[0] and theta0.shape == (64, 2)
+    assert post is not None and "no sampler iterations" in lines[0]
+    np.testing.assert_array_equal(post.theta, theta0.astype(np.float32))
+    # too few draws for the effective sample size asked: not trusted, particles still returned
+    lines.clear()
+    post, theta0 = importance_for_run(problem, 64, seed=3, log=lines.append, n_starts=3, n_draws=40)
+    assert post is None and "not trusted" in lines[0] and theta0.shape == (64, 2)
 
 
 def test_fast_posterior_refuses_other_models(one_joint):
