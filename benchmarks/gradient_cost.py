@@ -138,6 +138,10 @@ def main(argv=None) -> int:
     d = truth.size
     ratio = results["jvp"]["steady_s"] / results["fd"]["steady_s"]
     print(f"jvp / fd time: {ratio:.2f} (target <= 0.5; fd = 2D + 1 = {2 * d + 1} rollouts)")
+    if "reverse" in results:
+        rev = results["reverse"]["steady_s"] / results["fd"]["steady_s"]
+        results["reverse_over_fd"] = rev
+        print(f"reverse / fd time: {rev:.2f}")
     results.update(
         {
             "n_particles": args.particles,

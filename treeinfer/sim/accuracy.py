@@ -211,7 +211,13 @@ def with_accurate_step(
     estimated error and the stability choice."""
     used = representative_forces(sim.obs_dt) if forces is None else forces
     tol = DEFAULT_SIM_TOLERANCE if tol is None else float(tol)
-    substeps, err = choose_substeps_for_accuracy(sim, used, tol, max_sim_dt, **kwargs)
+    path = _step_cache_path(sim, used, tol, max_sim_dt, kwargs)
+    cached = _read_step_cache(path)
+    if cached is None:
+        substeps, err = choose_substeps_for_accuracy(sim, used, tol, max_sim_dt, **kwargs)
+        _write_step_cache(path, substeps, err)
+    else:
+        substeps, err = cached
     sim.mj_model.opt.timestep = sim.obs_dt / substeps
     info = {
         "method": "accuracy",
@@ -222,3 +228,59 @@ def with_accurate_step(
         "forces": "given" if forces is not None else "representative",
     }
     return dataclasses.replace(sim, substeps=int(substeps), step_info=info)
+
+
+# ---- the step choice kept on disk ---------------------------------------------------------------
+# The step-doubling probes cost 1-3 s of compilation and rollouts per process (BENCHMARKS.md,
+# cold start). Their result depends only on the simulator (its content hash), the forces and the
+# options, so it is kept next to the compiled-program cache (``TREEINFER_JAX_CACHE``; ``off``
+# disables both) and a later process with the same tree and data skips the probes.
+
+
+def _step_cache_path(sim, forces, tol, max_sim_dt, kwargs):
+    """``<cache>/steps/<sha256>.json`` for this choice, or None when the cache is off."""
+    import hashlib
+    import json
+    import os
+
+    from .. import _CACHE_OFF, _cache_tag
+
+    env = os.environ.get("TREEINFER_JAX_CACHE")
+    if env is not None and env.strip().lower() in _CACHE_OFF:
+        return None
+    root = env or os.path.join(os.path.expanduser("~"), ".cache", "treeinfer", "jax")
+    h = hashlib.sha256(sim.fingerprint.encode())
+    h.update(np.ascontiguousarray(np.asarray(forces, np.float64)).tobytes())
+    h.update(str(np.shape(forces)).encode())
+    opts = {k: np.asarray(v).tolist() if v is not None else None for k, v in kwargs.items()}
+    h.update(json.dumps([tol, float(max_sim_dt), opts], sort_keys=True, default=str).encode())
+    return os.path.join(root, _cache_tag(), "steps", h.hexdigest() + ".json")
+
+
+def _read_step_cache(path):
+    import json
+
+    if path is None:
+        return None
+    try:
+        with open(path) as f:
+            rec = json.load(f)
+        return int(rec["substeps"]), float(rec["estimated_error"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _write_step_cache(path, substeps, err) -> None:
+    import json
+    import os
+
+    if path is None:
+        return
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        tmp = f"{path}.{os.getpid()}.tmp"
+        with open(tmp, "w") as f:
+            json.dump({"substeps": int(substeps), "estimated_error": float(err)}, f)
+        os.replace(tmp, path)
+    except OSError:  # a read-only cache folder: the choice is simply recomputed next time
+        pass

@@ -64,9 +64,33 @@ def _gain_arrays(sim: Simulator, kp: jax.Array, kd: jax.Array, dtype):
     return stiffness, damping, spring
 
 
-def _settle_one(sim: Simulator, kp, kd, dtype):
+def _value_and_jacobian(f, q):
+    """``(f(q) [n], df/dq [n, n])`` by one ``jax.jvp`` per column, unrolled.
+
+    Why not ``jax.jacfwd``: it vmaps the tangents, and under the particles' ``vmap`` XLA:CPU
+    turns the [N, n] tangent arrays of the scalar step code into slow code: 7-10 ms per
+    Jacobian of the 6-joint chain at N = 256 against 0.9 ms for the unrolled columns (same
+    values; 0.12 ms for the torque alone)."""
+    n = q.shape[0]
+    cols = []
+    for i in range(n):
+        r, c = jax.jvp(f, (q,), (jnp.zeros(n, q.dtype).at[i].set(1.0),))
+        cols.append(c)
+    return r, jnp.stack(cols, axis=1)
+
+
+def _settle_one(sim: Simulator, kp, kd, dtype, converged: bool = True):
     """:func:`treeinfer.sim.mjx.settle_one` for the fused backend: the same clipped Newton
-    iteration and convergence test, with the exact Jacobian by forward-mode autodiff."""
+    iteration, with the exact Jacobian by forward-mode autodiff.
+
+    ``converged=True`` (default) stops after the Newton step that moved every joint by at most
+    ``sqrt(eps)`` of the dtype (Newton converges quadratically, so that step left an error
+    below rounding: ~1e-7 rad in float32), at most ``sim.settle_iterations``: typically 4 to 10
+    iterations instead of the fixed 30 (``converged=False``, the earlier rule), which were most
+    of the settle's cost (``BENCHMARKS.md``, CPU). Under ``vmap`` the loop runs until every lane
+    has stopped; stopped lanes keep their values. Derivatives are the implicit ones
+    (``lax.custom_root``). ``ok``: the residual at the returned angles (converged; the fixed
+    rule: before its last step) is at most ``sim.settle_tolerance`` times ``1 + max|r(0)|``."""
     if uses_levels(sim):
         lay = lv.layout(sim.hinge_tree)
         stiffness, _, spring = _gain_arrays(sim, kp, kd, dtype)
@@ -76,16 +100,44 @@ def _settle_one(sim: Simulator, kp, kd, dtype):
         torque = lambda q: hd.static_torque(sim.hinge_tree, q, stiffness, spring)
     nv = sim.mj_model.nv
 
-    def newton(carry, i):
-        q, r_first, _ = carry
-        r, jac = torque(q), jax.jacfwd(torque)(q)
-        dq = jnp.clip(-jnp.linalg.solve(jac, r), -0.2, 0.2)
-        return (q + dq, jnp.where(i == 0, r, r_first), r), None
+    def newton_step(f, q):
+        r, jac = _value_and_jacobian(f, q)
+        return r, jnp.clip(-jnp.linalg.solve(jac, r), -0.2, 0.2)
 
     zero = jnp.zeros(nv, dtype)
-    (q, r_first, r_last), _ = jax.lax.scan(
-        newton, (zero, zero, zero), jnp.arange(sim.settle_iterations)
-    )
+    if converged:
+        stop = float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
+
+        def solve(f, q0):
+            def cond(carry):
+                i, _, big = carry
+                return (i < sim.settle_iterations) & (big > stop)
+
+            def body(carry):
+                i, q, _ = carry
+                _, dq = newton_step(f, q)
+                big = jnp.max(jnp.abs(dq))
+                # NaN steps (a singular Jacobian) stop the loop; ok below rejects them
+                big = jnp.where(jnp.isfinite(big), big, jnp.zeros((), dtype))
+                return i + 1, q + dq, big
+
+            inf = jnp.asarray(np.inf, dtype)
+            return jax.lax.while_loop(cond, body, (jnp.int32(0), q0, inf))[1]
+
+        # lax.custom_root: derivatives by the implicit function theorem, dq = -J^-1 dr/dK, in
+        # forward and reverse mode (a while_loop has no reverse-mode rule of its own)
+        tangent_solve = lambda g, y: jnp.linalg.solve(_value_and_jacobian(g, y)[1], y)
+        q = jax.lax.custom_root(torque, zero, solve, tangent_solve)
+        r_first, r_last = torque(zero), torque(q)
+    else:
+
+        def newton(carry, i):
+            q, r_first, _ = carry
+            r, dq = newton_step(torque, q)
+            return (q + dq, jnp.where(i == 0, r, r_first), r), None
+
+        carry = (zero, zero, zero)
+        (q, r_first, r_last), _ = jax.lax.scan(newton, carry, jnp.arange(sim.settle_iterations))
     scale = 1.0 + jnp.max(jnp.abs(r_first))
     ok = jnp.all(jnp.isfinite(q)) & (jnp.max(jnp.abs(r_last)) <= sim.settle_tolerance * scale)
     return q, ok

@@ -1,0 +1,177 @@
+"""The posterior without sampler iterations (treeinfer.fast_posterior, treeinfer.importance).
+
+References: a closed-form Gaussian target for the importance weights; ``problem.log_density``
+(the likelihood's own code path) for the batched evaluator; quadrature of the exact posterior on
+a grid for a one-joint tree (D = 2), against which the importance-sampled mean and std are
+checked.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats
+
+from treeinfer.errors import ConfigError
+from treeinfer.fast_posterior import (
+    BatchEvaluator,
+    fast_posterior,
+    importance_for_run,
+    posterior_from_fast,
+)
+from treeinfer.generators import chain
+from treeinfer.importance import (
+    importance_posterior,
+    importance_resample,
+    psis,
+    systematic_resample,
+)
+from treeinfer.inference import make_problem
+from treeinfer.sim import make_simulator
+from treeinfer.sim.reference import simulate_reference
+from treeinfer.trajectories import Trajectory
+
+
+def test_importance_weights_recover_a_gaussian_target():
+    rng = np.random.default_rng(0)
+    q = stats.norm(0.0, 1.5)
+    x = q.rvs(size=20000, random_state=rng)
+    log_p = stats.norm(0.7, 0.5).logpdf(x)
+    idx, lw, khat, ess, ok, reason = importance_resample(x[:, None], log_p, q.logpdf(x), 4000)
+    w = np.exp(lw)
+    assert ok and reason == "" and khat < 0.7 and 2000 < ess < 20000
+    mean = w @ x
+    assert abs(mean - 0.7) < 0.02 and abs(np.sqrt(w @ (x - mean) ** 2) - 0.5) < 0.02
+    assert abs(x[idx].mean() - 0.7) < 0.03
+    # a proposal much narrower than the target: heavy-tailed weights, flagged
+    q = stats.norm(0.0, 0.3)
+    x = q.rvs(size=4000, random_state=rng)
+    _, _, khat, _, ok, reason = importance_resample(
+        x[:, None], stats.norm(0.0, 1.0).logpdf(x), q.logpdf(x), 100
+    )
+    assert not ok and khat > 0.7 and "k_hat" in reason
+    # unstable draws (-inf) get no weight
+    log_p = np.where(np.arange(4000) % 2 == 0, -np.inf, 0.0)
+    idx, lw, *_ = importance_resample(x[:, None], log_p, np.zeros(4000), 50)
+    assert np.all(idx % 2 == 1) and np.all(np.isneginf(lw[::2]))
+
+
+@pytest.mark.parametrize("scale", [0.3, 1.0, 2.5])
+def test_psis_equals_arviz(scale):
+    import arviz
+
+    rng = np.random.default_rng(4)
+    lw = scale * rng.normal(size=3000)  # log-normal weights: heavier tails with the scale
+    ours, k = psis(lw)
+    ref, k_ref = arviz.psislw(lw.copy())
+    np.testing.assert_allclose(ours, ref, rtol=1e-10, atol=1e-12)
+    assert k == pytest.approx(float(k_ref), rel=1e-10)
+    assert (k > 0.7) == (scale > 2)  # heavier tails, larger k_hat
+
+
+def test_systematic_resample_counts():
+    w = np.array([0.5, 0.25, 0.125, 0.125])
+    idx = systematic_resample(np.random.default_rng(3), np.log(w), 8)
+    np.testing.assert_array_equal(np.bincount(idx, minlength=4), [4, 2, 1, 1])
+
+
+@pytest.fixture(scope="module")
+def one_joint():
+    tree = chain(1, lengths=0.7, radii=0.03, angles_deg=0.0, base_position=(0.0, 0.0, 1.5),
+                 base_pitch_deg=20.0, levels=1, name="c1")  # fmt: skip
+    sim = make_simulator(tree, obs_dt=0.01, substeps=2)
+    kp, kd = np.array([40.0]), np.array([0.6])
+    t = np.arange(60) * 0.01
+    rng = np.random.default_rng(2)
+    trajs = []
+    for i, peak in enumerate((6.0, 3.0)):
+        f = peak * np.clip(t / (0.1 + 0.1 * i), 0.0, 1.0) * (t < 0.35)
+        tau, _ = simulate_reference(sim, kp, kd, f)
+        trajs.append(Trajectory(t, f, tau + 2e-3 * rng.normal(size=tau.shape), None, f"p{i}"))
+    problem = make_problem(tree, trajs, sim=sim, nn_prior=False, kT=0.05)
+    return problem, np.log(np.concatenate([kp, kd]))
+
+
+def test_batch_evaluator_equals_problem_log_density(one_joint):
+    problem, truth = one_joint
+    ev = BatchEvaluator(problem, chunk=5)
+    theta = truth + np.random.default_rng(0).normal(size=(7, 2)) * [[0.3, 1.0]]
+    theta[3] = [30.0, 0.0]  # Kp = e^30: an unstable rollout, -inf
+    got = ev.log_density(theta)
+    want = np.asarray(jax.jit(problem.log_density)(jnp.asarray(theta, jnp.float32)))
+    assert np.isneginf(got[3]) and np.isneginf(want[3])
+    fin = np.isfinite(want)
+    np.testing.assert_allclose(got[fin], want[fin], rtol=1e-5, atol=1e-3)
+    assert ev.calls == 2  # 7 sets in chunks of 5: one program, two runs
+
+
+def test_fast_posterior_matches_grid_quadrature(one_joint):
+    problem, truth = one_joint
+    res = fast_posterior(problem, n_particles=256, n_starts=3, n_draws=4000, seed=1)
+    assert res.ok, res.reason
+    assert res.theta.shape == (256, 2) and np.all(np.isfinite(res.log_density))
+    assert res.settings["program_calls"] == res.calls
+    # the exact posterior by quadrature on a grid of +-7 proposal stds around the MAP point
+    sd = np.sqrt(np.diag(res.importance.cov))
+    axes = [np.linspace(m - 7 * s, m + 7 * s, 121) for m, s in zip(res.fit.theta, sd)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
+    lp = np.asarray(jax.jit(problem.log_density)(jnp.asarray(grid, jnp.float32)), float)
+    w = np.exp(lp - lp[np.isfinite(lp)].max())
+    w = np.where(np.isfinite(w), w, 0.0)
+    w /= w.sum()
+    g_mean = w @ grid
+    g_sd = np.sqrt(w @ (grid - g_mean) ** 2)
+    wi = np.exp(res.importance.log_weights)
+    i_mean = wi @ res.importance.draws
+    i_sd = np.sqrt(wi @ (res.importance.draws - i_mean) ** 2)
+    se = g_sd / math.sqrt(res.importance.ess)
+    assert np.all(np.abs(i_mean - g_mean) < 5 * se + 1e-3 * g_sd), (i_mean, g_mean, se)
+    np.testing.assert_allclose(i_sd, g_sd, rtol=0.15)
+    # the resampled particles carry the same distribution
+    assert np.all(np.abs(res.theta.mean(0) - g_mean) < 0.3 * g_sd)
+    # and the data identify Kp: the truth lies within the posterior's bulk
+    assert abs(g_mean[0] - truth[0]) < 4 * g_sd[0]
+    # the same through problem.log_density (importance_posterior) and a Student-t proposal
+    other = importance_posterior(problem, res.fit, 256, n_draws=4000, seed=2, df=8.0)
+    wo = np.exp(other.log_weights)
+    o_mean = wo @ other.draws
+    assert other.ok and np.all(
+        np.abs(o_mean - g_mean) < 5 * g_sd / math.sqrt(other.ess) + 1e-3 * g_sd
+    )
+    # as a Posterior for the run layer: zero iterations, the diagnostics recorded
+    post = posterior_from_fast(problem, res, seed=1)
+    np.testing.assert_allclose(post.kp[:, 0], np.exp(res.theta[:, 0]), rtol=1e-6)
+    assert post.run.settings["n_iterations_done"] == 0 and "k_hat" in post.run.stop_reason
+    assert post.valid.all() and post.run.final_state.logdensity.shape == (256,)
+
+
+def test_importance_for_run_logs_and_decides(one_joint):
+    problem, _ = one_joint
+    lines = []
+    # (k_hat from a few hundred draws is noisy: 256 draws gave k_hat 1-2 with ESS 235 here)
+    post, theta0 = importance_for_run(
+        problem, 64, seed=3, log=lines.append, n_starts=3, n_draws=2000
+    )
+    assert len(lines) == 1 and "k_hat" in lines[0] and theta0.shape == (64, 2)
+    assert post is not None and "no sampler iterations" in lines[0]
+    np.testing.assert_array_equal(post.theta, theta0.astype(np.float32))
+    # too few draws for the effective sample size asked: not trusted, particles still returned
+    lines.clear()
+    post, theta0 = importance_for_run(problem, 64, seed=3, log=lines.append, n_starts=3, n_draws=40)
+    assert post is None and "not trusted" in lines[0] and theta0.shape == (64, 2)
+
+
+def test_fast_posterior_refuses_other_models(one_joint):
+    problem, _ = one_joint
+    gauss = make_problem(
+        problem.tree, problem.obs, sim=problem.sim, nn_prior=False, likelihood="gaussian",
+        noise_displacement=2e-3,
+    )  # fmt: skip
+    with pytest.raises(ConfigError, match="Boltzmann"):
+        fast_posterior(gauss)
+    with pytest.raises(ConfigError, match="n_starts"):
+        fast_posterior(problem, n_starts=0)

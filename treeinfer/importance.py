@@ -1,0 +1,251 @@
+"""A posterior without a sampler run: the MAP fit's Gaussian, corrected by importance sampling.
+
+The fast start (:mod:`treeinfer.mapfit`, :mod:`treeinfer.laplace`) gives a Gaussian ``q`` around
+the posterior mode: for the paper's Boltzmann loss the Gaussian matched to its cone-shaped
+density (:func:`treeinfer.laplace.norm_loss_covariance`), else the Laplace approximation. When
+``q`` is close to the posterior, a few hundred draws of ``q`` weighted by ``p / q`` *are* a
+posterior sample, at the cost of one batched log-density evaluation (no gradients, no
+iterations): self-normalised importance sampling, the weights stabilised by Pareto smoothing
+(PSIS, Vehtari et al. 2024; :func:`psis`, equal to ``arviz.psislw``). Its Pareto shape
+``k_hat`` says whether the result can be trusted (``k_hat <= 0.7``: the estimate converges at a
+usable rate; above that the proposal misses the posterior's tails and a sampler must run), and
+the effective sample size ``1 / sum w^2`` how many independent draws the weighted set is worth.
+The particles returned are a systematic resample of the weighted draws (so they can be used
+wherever particles are).
+
+Why not always run a sampler from ``q``: on a 2-core CPU one NNSVGD iteration of the standard
+problem costs 1-2 s (13 rollouts per particle for central differences) and its compilation
+20 s or more, while evaluating ``p`` at 1024 draws is one rollout batch (about 1 s); SVGD with
+128 particles in 6 dimensions also under-disperses (its band settles narrower than an exact
+sampler's, ``BENCHMARKS.md``), which importance sampling does not.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .errors import ConfigError
+
+__all__ = [
+    "KHAT_LIMIT",
+    "ImportancePosterior",
+    "importance_posterior",
+    "importance_resample",
+    "psis",
+    "proposal_from_fit",
+    "systematic_resample",
+]
+
+KHAT_LIMIT = 0.7  # PSIS: above this the importance estimate is unreliable (Vehtari et al.)
+
+
+class ImportancePosterior(NamedTuple):
+    """Result of :func:`importance_posterior` / :func:`importance_resample` (NumPy).
+
+    theta: [P, D] resampled particles (equal weights; duplicates possible).
+    draws: [M, D] proposal draws. log_weights: [M] PSIS-smoothed, normalised log weights.
+    log_density: [M] log p at the draws (``-inf`` where the simulation was unstable).
+    khat: Pareto shape of the weights' tail. ess: effective sample size ``1 / sum w^2``.
+    ok: ``khat <= KHAT_LIMIT`` and ``ess >= min_ess`` (the result is a usable posterior).
+    mean, cov: [D], [D, D] the proposal. df: its Student-t degrees of freedom (inf: Gaussian).
+    reason: why ``ok`` is False ("" when True).
+    """
+
+    theta: np.ndarray
+    draws: np.ndarray
+    log_weights: np.ndarray
+    log_density: np.ndarray
+    khat: float
+    ess: float
+    ok: bool
+    mean: np.ndarray
+    cov: np.ndarray
+    df: float
+    reason: str
+
+
+def proposal_from_fit(fit, inflate: float = 1.0, box_precision: bool = True):
+    """``(mean [D], cov [D, D])`` of the Gaussian :func:`treeinfer.laplace.laplace_particles`
+    draws from a :class:`treeinfer.mapfit.MapFit` (same covariance choice, ``"auto"``), with
+    the covariance times ``inflate**2``."""
+    from .laplace import _inverse_psd
+
+    if fit.norm_cov is not None:
+        h = np.zeros((len(fit.theta),) * 2)
+        m = fit.n_model
+        h[:m, :m] = _inverse_psd(np.asarray(fit.norm_cov, float))
+    else:
+        h = np.array(fit.hessian, float)
+    if box_precision:
+        width = np.asarray(fit.upper, float) - np.asarray(fit.lower, float)
+        idx = np.arange(fit.n_model)
+        h[idx, idx] += 12.0 / width**2
+    cov = _inverse_psd(h) * float(inflate) ** 2
+    return np.asarray(fit.theta, float), 0.5 * (cov + cov.T)
+
+
+def _draw(rng: np.random.Generator, mean, cov, m: int, df: float):
+    """``m`` draws of N(mean, cov) (df = inf) or the multivariate Student-t, and their log
+    density (``scipy.stats``)."""
+    from scipy import stats
+
+    if math.isinf(df):
+        dist = stats.multivariate_normal(mean, cov, allow_singular=False)
+    else:
+        dist = stats.multivariate_t(mean, cov, df=df, allow_singular=False)
+    x = np.atleast_2d(dist.rvs(size=m, random_state=rng))
+    return x, np.atleast_1d(dist.logpdf(x))
+
+
+def psis(log_weights) -> tuple[np.ndarray, float]:
+    """Pareto-smoothed importance sampling (Vehtari et al. 2024): ``(normalised smoothed log
+    weights [M], k_hat)`` for raw ``log_weights [M]`` (finite), as ``arviz.psislw`` with
+    ``reff = 1`` (``tests/test_fast_posterior.py`` checks equality).
+
+    The largest ``min(M / 5, 3 sqrt(M))`` weights are replaced by the expected order statistics
+    of a generalised Pareto distribution fitted to them (Zhang & Stephens' empirical-Bayes
+    estimate with the weakly informative prior on its shape), truncated at the largest raw
+    weight. Why not ``arviz.psislw`` itself: importing arviz takes 1.5-4 s on the 2-core box,
+    a tenth to a quarter of the whole fast posterior (``BENCHMARKS.md``, issue 15 fourth pass).
+    """
+    x = np.array(log_weights, float)
+    n = x.size
+    x -= np.max(x)
+    cutoff_ind = -int(np.ceil(min(n / 5.0, 3 * n**0.5))) - 1
+    xcutoff = max(np.sort(x)[cutoff_ind], np.log(np.finfo(float).tiny))
+    tail = np.flatnonzero(x > xcutoff)
+    khat = math.inf
+    if len(tail) > 4:
+        order = tail[np.argsort(x[tail])]
+        excess = np.exp(x[order]) - np.exp(xcutoff)  # sorted
+        khat, sigma = _gpd_fit(excess)
+        if np.isfinite(khat) and sigma > 0:
+            p = np.arange(0.5, len(tail)) / len(tail)
+            if abs(khat) < np.finfo(float).eps:
+                q = -np.log1p(-p) * sigma
+            else:
+                q = np.expm1(-khat * np.log1p(-p)) / khat * sigma
+            x[order] = np.log(q + np.exp(xcutoff))
+            x[x > 0] = 0.0
+    return x - np.logaddexp.reduce(x), float(khat)
+
+
+def _gpd_fit(ary: np.ndarray) -> tuple[float, float]:
+    """(k, sigma) of a generalised Pareto distribution for sorted positive ``ary``: Zhang and
+    Stephens (2009), with the prior of Vehtari et al. on k (as arviz / loo)."""
+    n = len(ary)
+    m_est = 30 + int(n**0.5)
+    b = 1 - np.sqrt(m_est / (np.arange(1, m_est + 1, dtype=float) - 0.5))
+    b /= 3 * ary[int(n / 4 + 0.5) - 1]
+    b += 1 / ary[-1]
+    k = np.log1p(-b[:, None] * ary).mean(axis=1)
+    len_scale = n * (np.log(-(b / k)) - k - 1)
+    w = 1 / np.exp(len_scale - len_scale[:, None]).sum(axis=1)
+    keep = w >= 10 * np.finfo(float).eps
+    w, b = w[keep], b[keep]
+    w /= w.sum()
+    b_post = np.sum(b * w)
+    k_post = np.log1p(-b_post * ary).mean()
+    sigma = -k_post / b_post
+    return (n * k_post + 10 * 0.5) / (n + 10), sigma
+
+
+def systematic_resample(rng: np.random.Generator, log_weights, n: int) -> np.ndarray:
+    """``[n]`` indices drawn by systematic resampling from normalised ``log_weights [M]``
+    (lowest variance of the standard schemes: each draw of weight w appears floor(n w) or
+    ceil(n w) times)."""
+    w = np.exp(np.asarray(log_weights, float) - np.max(log_weights))
+    c = np.cumsum(w / w.sum())
+    c[-1] = 1.0
+    u = (rng.random() + np.arange(n)) / n
+    return np.searchsorted(c, u, side="right").clip(0, len(c) - 1)
+
+
+def importance_resample(
+    draws, log_p, log_q, n_particles: int, seed: int = 0, min_ess: float | None = None
+) -> tuple[np.ndarray, np.ndarray, float, float, bool, str]:
+    """PSIS weights of ``draws [M, D]`` with target ``log_p [M]`` and proposal ``log_q [M]``,
+    and ``n_particles`` systematic resamples. Returns ``(index [n] into draws, log_weights [M],
+    khat, ess, ok, reason)``; ``min_ess`` defaults to ``n_particles / 4``."""
+    draws = np.asarray(draws, float)
+    log_p, log_q = np.asarray(log_p, float), np.asarray(log_q, float)
+    if draws.ndim != 2 or log_p.shape != (len(draws),) or log_q.shape != log_p.shape:
+        raise ConfigError("importance_resample: draws [M, D], log_p [M], log_q [M]")
+    min_ess = n_particles / 4 if min_ess is None else float(min_ess)
+    raw = np.where(np.isfinite(log_p), log_p - log_q, -np.inf)
+    finite = np.isfinite(raw)
+    if finite.sum() < 2:
+        lw = np.full(len(raw), -np.log(len(raw)))
+        idx = np.arange(n_particles) % len(draws)
+        return idx, lw, math.inf, 0.0, False, "no stable draw of the proposal"
+    lw = np.full(len(raw), -np.inf)
+    # the largest weights smoothed by a fitted generalised Pareto tail
+    lw_f, khat = psis(raw[finite])
+    lw[finite] = lw_f
+    lw = lw - np.logaddexp.reduce(lw[finite])
+    w = np.exp(lw)
+    ess = float(1.0 / np.sum(w**2))
+    khat = float(khat)
+    reasons = []
+    if not khat <= KHAT_LIMIT:
+        reasons.append(f"Pareto k_hat {khat:.2f} > {KHAT_LIMIT}")
+    if ess < min_ess:
+        reasons.append(f"effective sample size {ess:.0f} < {min_ess:.0f}")
+    idx = systematic_resample(np.random.default_rng(seed), lw, n_particles)
+    return idx, lw, khat, ess, not reasons, "; ".join(reasons)
+
+
+def importance_posterior(
+    problem,
+    fit,
+    n_particles: int = 128,
+    n_draws: int | None = None,
+    seed: int = 0,
+    df: float = math.inf,
+    inflate: float = 1.0,
+    min_ess: float | None = None,
+    log_density=None,
+) -> ImportancePosterior:
+    """Posterior particles of ``problem`` from the Gaussian of a MAP ``fit``, importance-weighted.
+
+    Args:
+      problem: a :class:`treeinfer.inference.Problem` (its ``log_density``: ``[M, D] -> [M]``).
+      fit: :class:`treeinfer.mapfit.MapFit` of the same problem (``fit_problem``).
+      n_particles: particles returned (systematic resample of the weighted draws).
+      n_draws: proposal draws M (default ``8 * n_particles``), evaluated in one batched call.
+      df: Student-t degrees of freedom of the proposal (inf: the Gaussian itself; a finite df
+        gives heavier tails, safer for importance sampling when ``q`` may be too narrow).
+      inflate: the proposal's scale factor on the fit's covariance.
+      min_ess: effective sample size below which ``ok`` is False (default ``n_particles / 4``).
+      log_density: ``[M, D] -> [M]`` to use instead of ``problem.log_density`` (e.g. a jitted
+        one the caller keeps).
+
+    The draws, weights, ``khat``, ``ess`` and ``ok`` are returned with the particles: a caller
+    that gets ``ok=False`` should run a sampler from ``theta`` (see the module docstring).
+    """
+    if not (isinstance(n_particles, (int, np.integer)) and n_particles >= 1):
+        raise ConfigError(f"n_particles: must be an integer >= 1, got {n_particles!r}")
+    m = 8 * int(n_particles) if n_draws is None else n_draws
+    if not (isinstance(m, (int, np.integer)) and m >= 2):
+        raise ConfigError(f"n_draws: must be an integer >= 2, got {n_draws!r}")
+    if not (df > 2):
+        raise ConfigError(f"df: must be > 2 (finite variance) or inf, got {df!r}")
+    if not (inflate > 0):
+        raise ConfigError(f"inflate: must be > 0, got {inflate!r}")
+    mean, cov = proposal_from_fit(fit, inflate)
+    rng = np.random.default_rng(seed)
+    draws, log_q = _draw(rng, mean, cov, int(m), float(df))
+    fn = jax.jit(problem.log_density) if log_density is None else log_density
+    dtype = jnp.asarray(0.0).dtype
+    log_p = np.asarray(fn(jnp.asarray(draws, dtype)), float)
+    idx, lw, khat, ess, ok, reason = importance_resample(
+        draws, log_p, log_q, int(n_particles), seed, min_ess
+    )
+    return ImportancePosterior(
+        draws[idx], draws, lw, log_p, khat, ess, ok, mean, cov, float(df), reason
+    )
