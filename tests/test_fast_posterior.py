@@ -227,6 +227,9 @@ def test_cli_infer_init_importance(tmp_path, capsys, monkeypatch):
     assert summary["n_iterations_done"] == 0, err
     assert "importance sampling" in summary["stop_reason"] and "k_hat" in summary["stop_reason"]
     assert "effective sample size" in summary["stop_reason"]
+    assert summary["diagnostics_kind"] == "importance" and summary["diagnostics"]["khat"] <= 0.7
+    assert summary["diagnostics"]["ess"] >= 6 / 4
+    assert not any("diagnostics unavailable" in w for w in summary["convergence_warnings"])
     config = json.loads((out / "config.json").read_text())
     assert config["options"]["init"] == "importance"
     assert config["posterior_settings"]["n_iterations"] == 0

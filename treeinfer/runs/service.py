@@ -345,6 +345,8 @@ def run_inference(
             f"`treeinfer infer --resume {run_dir} --max-unstable-share X` writes the run anyway"
         ) from None
     summary = _run_summary(problem, posterior, config, trace, fit, truth)
+    if ready is not None:
+        _importance_diagnostics(summary, posterior)
     from ..checks import fit_verdict_from_run
 
     verdict = fit_verdict_from_run(problem, posterior, fit, noise_sigma=_fitted_noise(problem))
@@ -405,6 +407,17 @@ def _sample(problem, config, partial: Path, previous, theta0, progress, cache, o
         # the end state too: if anything below fails (or is interrupted), --resume skips sampling
         checkpointer(done, posterior.run.final_state)
     return posterior
+
+
+def _importance_diagnostics(summary: dict, posterior) -> None:
+    """``--init importance`` used as the posterior: summary.json's diagnostics are the importance
+    weights' (Pareto k_hat, effective sample size), not a sampler trace's (it has one state)."""
+    run = posterior.run.settings
+    summary["diagnostics_kind"] = "importance"
+    summary["diagnostics"] = {k: run[k] for k in ("khat", "ess", "n_draws", "lm_iterations")}
+    summary["convergence_warnings"] = [
+        w for w in summary["convergence_warnings"] if not w.startswith("diagnostics unavailable")
+    ]
 
 
 def _fitted_noise(problem) -> float | None:
