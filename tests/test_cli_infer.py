@@ -742,6 +742,7 @@ def test_infer_too_many_unstable_keeps_the_sampler_state(demo, tmp_path, monkeyp
         callback_every,
         initial_state,
         start_iteration,
+        **options,  # cache, warm-up ...: not used by the stand-in
     ):
         calls.append((initial_state is not None, start_iteration))
         state = SVGDState(

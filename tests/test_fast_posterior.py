@@ -175,3 +175,94 @@ def test_fast_posterior_refuses_other_models(one_joint):
         fast_posterior(gauss)
     with pytest.raises(ConfigError, match="n_starts"):
         fast_posterior(problem, n_starts=0)
+
+
+def _cli(capsys, *argv):
+    from treeinfer.cli import main
+
+    rc = main([str(a) for a in argv])
+    return rc, capsys.readouterr().err
+
+
+def test_cli_infer_init_importance(tmp_path, capsys, monkeypatch):
+    """``infer --init importance``: the importance draws are the run's posterior (zero
+    iterations, the stop reason with k_hat and the ESS) and predict/evaluate read the folder;
+    when the weights are not trusted the sampler runs from the draws; a static model and a
+    --resume of the finished run are refused with a user error."""
+    import json
+
+    import treeinfer.fast_posterior as fp
+    from treeinfer.trajectories import write_trajectory
+    from treeinfer.tree import dump_tree
+
+    tree = chain(1, lengths=0.7, radii=0.03, angles_deg=0.0, base_position=(0.0, 0.0, 1.5),
+                 base_pitch_deg=20.0, levels=1, name="c1")  # fmt: skip
+    tree_file = tmp_path / "tree.yaml"
+    dump_tree(tree, tree_file)
+    sim = make_simulator(tree, obs_dt=0.01, substeps=2)
+    t = np.arange(60) * 0.01
+    rng = np.random.default_rng(2)
+    data = tmp_path / "data"
+    data.mkdir()
+    for i, peak in enumerate((6.0, 3.0)):  # the one_joint fixture's data
+        f = peak * np.clip(t / (0.1 + 0.1 * i), 0.0, 1.0) * (t < 0.35)
+        tau, _ = simulate_reference(sim, [40.0], [0.6], f)
+        noisy = tau + 2e-3 * rng.normal(size=tau.shape)
+        write_trajectory(data / f"p{i}.csv", Trajectory(t, f, noisy, None, f"p{i}"))
+    real = fp.importance_for_run
+    calls = []
+
+    def trusted(problem, n_particles, seed, log):  # enough draws for a reliable k_hat
+        calls.append((n_particles, seed))
+        return real(problem, n_particles, seed, log, n_starts=3, n_draws=2000)
+
+    monkeypatch.setattr(fp, "importance_for_run", trusted)
+    out = tmp_path / "run"
+    common = ["--tree", tree_file, "--data", data, "--particles", 6, "--iterations", 3,
+              "--checkpoint-every", 0, "--no-progress", "--init", "importance"]  # fmt: skip
+    rc, err = _cli(capsys, "infer", *common, "--out", out)
+    assert rc == 0, err
+    assert calls == [(6, 0)] and "importance posterior" in err and "k_hat" in err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_iterations_done"] == 0, err
+    assert "importance sampling" in summary["stop_reason"] and "k_hat" in summary["stop_reason"]
+    assert "effective sample size" in summary["stop_reason"]
+    assert summary["diagnostics_kind"] == "importance" and summary["diagnostics"]["khat"] <= 0.7
+    assert summary["diagnostics"]["ess"] >= 6 / 4
+    assert not any("diagnostics unavailable" in w for w in summary["convergence_warnings"])
+    config = json.loads((out / "config.json").read_text())
+    assert config["options"]["init"] == "importance"
+    assert config["posterior_settings"]["n_iterations"] == 0
+    assert config["posterior_settings"]["sampler"] == "importance"
+    assert config["sampler"]["options"]["warmup"] == 10  # as --init laplace (svgd)
+    assert not (tmp_path / "run.partial").exists()
+    # predict and evaluate read the folder
+    rc, err = _cli(capsys, "predict", "--run", out, "--force-csv", data / "p0.csv", "--out",
+                   tmp_path / "pred")  # fmt: skip
+    assert rc == 0, err
+    rc, err = _cli(capsys, "evaluate", "--run", out, "--data", data, "--out", tmp_path / "ev")
+    assert rc == 0, err
+    # --resume of the finished run: a user error, no traceback
+    rc, err = _cli(capsys, "infer", "--resume", out)
+    assert rc == 2 and "already complete" in err and "Traceback" not in err, err
+
+    # weights not trusted: the sampler runs its iterations from the importance particles
+    def untrusted(problem, n_particles, seed, log):
+        _, theta0 = real(problem, n_particles, seed, log, n_starts=3, n_draws=40)
+        calls.append(theta0)
+        return None, theta0
+
+    monkeypatch.setattr(fp, "importance_for_run", untrusted)
+    rc, err = _cli(capsys, "infer", *common, "--out", tmp_path / "run2")
+    assert rc == 0, err
+    assert "not trusted" in err
+    summary = json.loads((tmp_path / "run2" / "summary.json").read_text())
+    assert summary["n_iterations_done"] == 3 and "importance" not in summary["stop_reason"]
+    trace = np.load(tmp_path / "run2" / "trace.npz")
+    np.testing.assert_allclose(trace["positions"][0], calls[-1], rtol=1e-6)
+
+    # the static model: refused before any run folder is made
+    rc, err = _cli(capsys, "infer", *common, "--out", tmp_path / "run3", "--model-kind", "static")
+    assert rc == 2 and "--init importance" in err and "Traceback" not in err, err
+    assert "dynamic model" in err
+    assert not (tmp_path / "run3").exists() and not (tmp_path / "run3.partial").exists()

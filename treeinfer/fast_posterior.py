@@ -365,7 +365,13 @@ def posterior_from_fast(problem, result: FastPosterior, seed: int = 0):
 
     theta = np.asarray(result.theta, np.float32)
     logp = np.asarray(result.log_density, np.float32)
-    run_settings = {**result.settings, "n_iterations": 0, "n_iterations_done": 0, "seed": seed}
+    run_settings = {
+        **result.settings,
+        "n_iterations": 0,
+        "n_iterations_done": 0,
+        "start_iteration": 0,
+        "seed": seed,
+    }
     run = RunResult(
         final_positions=theta,
         final_state=ParticleState(theta, logp),

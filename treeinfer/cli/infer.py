@@ -274,8 +274,12 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--init",
         choices=INIT_CHOICES,
-        help="initial particles: 'uniform' in the prior box (the paper's, default) or 'laplace' "
-        "(around a Levenberg-Marquardt MAP fit, so iterations go into the posterior's shape)",
+        help="initial particles: 'uniform' in the prior box (the paper's, default), 'laplace' "
+        "(around a Levenberg-Marquardt MAP fit, so iterations go into the posterior's shape) or "
+        "'importance' (a screened LM fit, then Pareto-smoothed importance sampling around the "
+        "mode: its draws are the posterior, with no sampler iterations, unless Pareto k-hat > "
+        "0.7 or too few effective samples, when the sampler runs from them; dynamic model and "
+        "Boltzmann likelihood only)",
     )
     p.add_argument(
         "--model-kind",

@@ -32,7 +32,7 @@ from .provenance import data_manifest, file_sha256, versions
 
 RUN_FORMAT = 1
 GRADIENT_CHOICES = ("fd", "jvp")
-INIT_CHOICES = ("uniform", "laplace")
+INIT_CHOICES = ("uniform", "laplace", "importance")
 
 
 def _count(flag: str, v, minimum: int, why: str = "") -> int:
@@ -480,14 +480,16 @@ def check_data_unchanged(config: dict) -> list[Trajectory]:
     return read_trajectory_dir(d)
 
 
-# Particles from --init laplace already have the posterior's spread: full-size Adam steps in
-# the first iterations scatter them, so SVGD/NNSVGD ramp the step up over this many iterations.
+# Particles from --init laplace/importance already have the posterior's spread: full-size Adam
+# steps in the first iterations scatter them, so SVGD/NNSVGD ramp the step up over this many
+# iterations.
 LAPLACE_WARMUP = 10
 
 
 def sampler_settings(config: dict) -> dict:
     name = config["options"]["sampler"]
     options = dict(sampler_options(name))
-    if config["options"].get("init", "uniform") == "laplace" and name in ("svgd", "nnsvgd"):
+    init = config["options"].get("init", "uniform")
+    if init in ("laplace", "importance") and name in ("svgd", "nnsvgd"):
         options["warmup"] = LAPLACE_WARMUP
     return {"name": name, "options": options}

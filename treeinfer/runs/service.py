@@ -171,6 +171,38 @@ def _laplace_start(problem, config: dict, log: Callable[[str], None]):
     )
 
 
+def _check_init(problem, options: dict) -> None:
+    """ConfigError (before the run folder is made) if the problem does not support ``--init``."""
+    if options.get("init", "uniform") != "importance":
+        return
+    from ..fast_posterior import check_problem
+
+    try:
+        check_problem(problem)
+    except ConfigError as e:
+        why = str(e).removeprefix("fast posterior: ")
+        raise ConfigError(
+            f"--init importance: {why} (its proposal and weights are built for theta = "
+            "[log Kp, log Kd] and the Boltzmann loss); use --init uniform or laplace"
+        ) from None
+
+
+def _start(problem, config: dict, log: Callable[[str], None]):
+    """``(ready, theta0)`` for the run's ``--init``: ``ready`` a finished posterior (``--init
+    importance`` whose importance weights pass their check: no sampler iterations) or None;
+    ``theta0`` [P, D] the sampler's initial particles, None for the sampler's own (uniform)."""
+    o = config["options"]
+    init = o.get("init", "uniform")
+    if init == "laplace":
+        return None, _laplace_start(problem, config, log)
+    if init == "importance":
+        from ..fast_posterior import importance_for_run
+
+        _check_init(problem, o)
+        return importance_for_run(problem, o["particles"], o["seed"], log)
+    return None, None
+
+
 def run_inference(
     config: dict | None = None,
     *,
@@ -206,7 +238,7 @@ def run_inference(
       SimulationError: more than ``max_unstable_share`` of the final particles are unstable
         (``RUN.partial/`` is kept: resume with a larger ``max_unstable_share`` to write it anyway).
     """
-    from ..inference import infer, initial_particles
+    from ..inference import initial_particles
 
     cache = SimulatorCache() if cache is None else cache
     if resume is None:
@@ -218,6 +250,7 @@ def run_inference(
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
         problem = build_problem(config, tree, trajs, cache)
         _quasi_static_check(problem, config, log)
+        _check_init(problem, config["options"])
         if problem.noise is not None:
             log(f"likelihood: {problem.noise.description}")
         cfg = dataclasses.replace(
@@ -289,33 +322,13 @@ def run_inference(
         config["options"]["max_unstable_share"] = float(max_unstable_share)
 
     o = config["options"]
-    theta0 = None
-    if previous is None and o.get("init", "uniform") == "laplace":
-        theta0 = _laplace_start(problem, config, log)
-    every = o["checkpoint_every"] or None
-    checkpointer = Checkpointer(partial / CHECKPOINT_FILE, config["config_hash"], previous)
-    if on_checkpointer is not None:
-        on_checkpointer(checkpointer)
-    posterior = infer(
-        problem,
-        o["sampler"],
-        n_particles=o["particles"],
-        n_iterations=o["iterations"],
-        seed=o["seed"],
-        progress=progress,
-        callback=checkpointer if every else None,
-        callback_every=every,
-        initial_state=None if previous is None else previous.state,
-        start_iteration=0 if previous is None else previous.iteration,
-        cache=cache.programs,
-        **_convergence_options(o, problem),
-        **({} if theta0 is None else {"initial_theta": theta0}),
-        **_warmup_option(config),
-    )
-    done = int(posterior.run.settings.get("n_iterations_done", o["iterations"]))
-    if checkpointer.last_iteration != done:
-        # the end state too: if anything below fails (or is interrupted), --resume skips sampling
-        checkpointer(done, posterior.run.final_state)
+    ready, theta0 = (None, None) if previous is not None else _start(problem, config, log)
+    if ready is not None:  # --init importance: the weighted draws are the posterior
+        posterior = ready
+    else:
+        posterior = _sample(
+            problem, config, partial, previous, theta0, progress, cache, on_checkpointer
+        )
 
     trace = _merged_trace(posterior.run, previous)
     posterior = _summarised_posterior(posterior, problem, trace, o)
@@ -332,6 +345,8 @@ def run_inference(
             f"`treeinfer infer --resume {run_dir} --max-unstable-share X` writes the run anyway"
         ) from None
     summary = _run_summary(problem, posterior, config, trace, fit, truth)
+    if ready is not None:
+        _importance_diagnostics(summary, posterior)
     from ..checks import fit_verdict_from_run
 
     verdict = fit_verdict_from_run(problem, posterior, fit, noise_sigma=_fitted_noise(problem))
@@ -361,6 +376,50 @@ def run_inference(
     return InferOutcome(run_dir, config, summary, posterior)
 
 
+def _sample(problem, config, partial: Path, previous, theta0, progress, cache, on_checkpointer):
+    """The sampler's run of :func:`run_inference` (from ``previous``'s checkpoint if any, else
+    from ``theta0`` or the sampler's own start), checkpointing into ``partial``."""
+    from ..inference import infer
+
+    o = config["options"]
+    every = o["checkpoint_every"] or None
+    checkpointer = Checkpointer(partial / CHECKPOINT_FILE, config["config_hash"], previous)
+    if on_checkpointer is not None:
+        on_checkpointer(checkpointer)
+    posterior = infer(
+        problem,
+        o["sampler"],
+        n_particles=o["particles"],
+        n_iterations=o["iterations"],
+        seed=o["seed"],
+        progress=progress,
+        callback=checkpointer if every else None,
+        callback_every=every,
+        initial_state=None if previous is None else previous.state,
+        start_iteration=0 if previous is None else previous.iteration,
+        cache=cache.programs,
+        **_convergence_options(o, problem),
+        **({} if theta0 is None else {"initial_theta": theta0}),
+        **_warmup_option(config),
+    )
+    done = int(posterior.run.settings.get("n_iterations_done", o["iterations"]))
+    if checkpointer.last_iteration != done:
+        # the end state too: if anything below fails (or is interrupted), --resume skips sampling
+        checkpointer(done, posterior.run.final_state)
+    return posterior
+
+
+def _importance_diagnostics(summary: dict, posterior) -> None:
+    """``--init importance`` used as the posterior: summary.json's diagnostics are the importance
+    weights' (Pareto k_hat, effective sample size), not a sampler trace's (it has one state)."""
+    run = posterior.run.settings
+    summary["diagnostics_kind"] = "importance"
+    summary["diagnostics"] = {k: run[k] for k in ("khat", "ess", "n_draws", "lm_iterations")}
+    summary["convergence_warnings"] = [
+        w for w in summary["convergence_warnings"] if not w.startswith("diagnostics unavailable")
+    ]
+
+
 def _fitted_noise(problem) -> float | None:
     """The displacement noise sigma (m) the noise model fitted, if it has one (settings key
     ``noise_sigma``); None otherwise (then the fit verdict skips the residual test)."""
@@ -372,7 +431,7 @@ def _fitted_noise(problem) -> float | None:
 
 
 def _warmup_option(config: dict) -> dict:
-    """The recorded learning-rate warm-up (``--init laplace`` with SVGD/NNSVGD), if any."""
+    """The recorded learning-rate warm-up (``--init laplace``/``importance`` with SVGD/NNSVGD)."""
     w = config.get("sampler", {}).get("options", {}).get("warmup")
     return {"warmup": int(w)} if w else {}
 
@@ -406,9 +465,9 @@ def infer_posterior(
     cache = SimulatorCache() if cache is None else cache
     problem = build_problem(config, tree, trajectories, cache)
     o = config["options"]
-    theta0 = None
-    if o.get("init", "uniform") == "laplace":
-        theta0 = _laplace_start(problem, config, lambda msg: None)
+    ready, theta0 = _start(problem, config, lambda msg: None)
+    if ready is not None:
+        return problem, ready
     posterior = infer(
         problem,
         o["sampler"],
