@@ -202,6 +202,9 @@ def make_problem(
     prior_terms = [box if not terms.extra_labels else (lambda th: box(th[:, :n_gains]))]
     prior_terms += terms.log_prior_terms()
     kinds = ("Kp", "Kd") if layout.infers_damping else ("Kp",)
+    # the learned inequality prior orders free per-joint stiffness columns; a tied layout (one
+    # scale along the taper, :mod:`treeinfer.static.tied`) has none, its taper orders them
+    nn_prior = nn_prior and getattr(layout, "shape", None) is None
     nn = nn_inequality_prior(tree, eta=eta, seed=nn_seed, kinds=kinds) if nn_prior else None
     if nn is not None:
         prior_terms.append(nn)
@@ -253,6 +256,9 @@ def make_problem(
             settings["fixed_kd"] = [float(v) for v in layout.fixed_kd]
         if getattr(layout, "shape", None) is not None:  # one stiffness scale (TiedLayout)
             settings["kp_shape"] = [float(v) for v in layout.shape]
+            if getattr(layout, "tie", None) is not None:
+                settings["tie"] = layout.tie
+                settings["tie_scale"] = layout.tau
         if model.grasp_branch is not None or model.direction is not None:
             settings["pulls"] = _pulls_record(model, int(obs.force.shape[0]))
     return Problem(

@@ -102,7 +102,13 @@ def _prepare_fresh(config: dict, inputs: RunInputs | None, log: Callable[[str], 
     o = config["options"]
     if inputs is None:
         inputs = load_run_inputs(
-            o["tree"], o["data"], o.get("model"), o.get("repair_inertia"), o.get("model_kind")
+            o["tree"],
+            o["data"],
+            o.get("model"),
+            o.get("repair_inertia"),
+            o.get("model_kind"),
+            o.get("tie"),
+            o.get("tie_scale"),
         )
     elif tree_to_dict_json(tree_to_dict(inputs.tree)) != tree_to_dict_json(config["tree_dict"]):
         raise ConfigError(

@@ -41,7 +41,7 @@ from .layout import (
 )
 from .model import Model, model_for, model_rollout, model_with_pulls
 from .terms import full_theta, model_likelihood_terms
-from .tied import TiedLayout, tied_layout
+from .tied import TiedLayout, taper_shape, tied_layout, tree_tied_layout, with_tie
 
 __all__ = [
     "MODEL_KINDS",
@@ -64,7 +64,10 @@ __all__ = [
     "quasi_static_notice",
     "run_tree",
     "static_rollout",
+    "taper_shape",
     "tied_layout",
+    "tree_tied_layout",
+    "with_tie",
     "suggest_static",
     "tree_layout",
 ]
