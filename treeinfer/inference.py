@@ -361,7 +361,9 @@ def infer(
     check_count(n_iterations, "n_iterations")
     name = sampler.lower()
     spec = _samplers.sampler_spec(name)
-    if spec.nn_prior and not problem.nn_prior and problem.tree.inferred_pairs():
+    # a taper tie has no per-joint columns to order: nnsvgd is SVGD there (make_problem)
+    tied = problem.model is not None and getattr(problem.model.layout, "shape", None) is not None
+    if spec.nn_prior and not problem.nn_prior and problem.tree.inferred_pairs() and not tied:
         raise ConfigError(f"sampler '{name}' needs a problem built with nn_prior=True")
     algorithm = problem.sampler(name, **sampler_options)
     theta0 = (

@@ -156,11 +156,8 @@ def _laplace_start(problem, config: dict, log: Callable[[str], None]):
     from ..mapfit import fit_problem, laplace_particles
 
     o = config["options"]
-    if getattr(problem, "model", None) is not None:
-        raise ConfigError(
-            "--init laplace: supported for the dynamic model of Kp and Kd only; use --init "
-            "uniform with --model-kind static or inference.parameters: [kp]"
-        )
+    if getattr(problem, "model", None) is not None:  # static, stiffness only, a taper tie
+        return _model_laplace_start(problem, o, log)
     jacobian = "jvp" if o.get("gradients", "fd") == "jvp" else "fd"
     fit = fit_problem(
         problem,
@@ -180,6 +177,23 @@ def _laplace_start(problem, config: dict, log: Callable[[str], None]):
         fit,
         o["particles"],
         scale=LAPLACE_SCALE,
+    )
+
+
+def _model_laplace_start(problem, o: dict, log: Callable[[str], None]):
+    """``--init laplace`` for any model other than the paper's (the LM fit needs its
+    residuals): the MAP and Hessian of the problem's own log-density
+    (:func:`treeinfer.laplace.problem_laplace`), drawn with the run's seed."""
+    from ..laplace import problem_laplace, problem_laplace_particles
+
+    lap = problem_laplace(problem, seed=o["seed"])
+    std = np.sqrt(np.diag(lap.cov))
+    log(
+        f"Laplace start: MAP of the log-density ({lap.n_evals} evaluations), std "
+        + ", ".join(f"{x:.3g}" for x in std)
+    )
+    return problem_laplace_particles(
+        jax.random.fold_in(jax.random.key(o["seed"]), 0x1A9), lap, o["particles"]
     )
 
 
