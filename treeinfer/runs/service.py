@@ -246,8 +246,11 @@ def run_inference(
         _quasi_static_check(problem, config, log)
         if problem.noise is not None:
             log(f"likelihood: {problem.noise.description}")
+        start = None  # --init laplace: drawn before the sampler is recorded (MH's proposal)
+        if config["options"].get("init", "uniform") == "laplace":
+            start = _laplace_start(problem, config, log)
         cfg = dataclasses.replace(
-            cfg, problem=problem.settings, sampler_record=sampler_settings(config)
+            cfg, problem=problem.settings, sampler_record=sampler_settings(config, start)
         )
         cfg = dataclasses.replace(cfg, config_hash=config_hash(cfg.to_json()))
         config = cfg.to_json()
@@ -315,8 +318,8 @@ def run_inference(
         config["options"]["max_unstable_share"] = float(max_unstable_share)
 
     o = config["options"]
-    theta0 = None
-    if previous is None and o.get("init", "uniform") == "laplace":
+    theta0 = start if resume is None else None
+    if previous is None and theta0 is None and o.get("init", "uniform") == "laplace":
         theta0 = _laplace_start(problem, config, log)
     every = o["checkpoint_every"] or None
     checkpointer = Checkpointer(partial / CHECKPOINT_FILE, config["config_hash"], previous)
@@ -396,10 +399,18 @@ def _fitted_noise(problem) -> float | None:
         return None
 
 
-def _warmup_option(config: dict) -> dict:
-    """The recorded learning-rate warm-up (``--init laplace`` with SVGD/NNSVGD), if any."""
-    w = config.get("sampler", {}).get("options", {}).get("warmup")
-    return {"warmup": int(w)} if w else {}
+def _warmup_option(config: dict, start=None) -> dict:
+    """The recorded learning-rate warm-up (``--init laplace`` with SVGD/NNSVGD), if any, and
+    MH's Laplace-shaped proposal (recorded; or from ``start``, a k-fold refit's own Laplace
+    particles)."""
+    recorded = config.get("sampler", {}).get("options", {})
+    w = recorded.get("warmup")
+    out = {"warmup": int(w)} if w else {}
+    if start is not None and config["options"].get("sampler") == "mh":
+        recorded = sampler_settings(config, start)["options"]
+    if isinstance(recorded.get("proposal_scale"), list):
+        out["proposal_scale"] = np.asarray(recorded["proposal_scale"], float)
+    return out
 
 
 def _convergence_options(o: dict, problem) -> dict:
@@ -441,7 +452,7 @@ def infer_posterior(
         seed=o["seed"],
         progress=progress,
         **({} if theta0 is None else {"initial_theta": theta0}),
-        **_warmup_option(config),
+        **_warmup_option(config, theta0),
     )
     return problem, posterior
 
