@@ -1,16 +1,15 @@
 """The Laplace start of any problem (:func:`treeinfer.laplace.problem_laplace`): the MAP and the
-Hessian of the log-density's values, checked on a Gaussian of known mean and covariance; the MH
-proposal built from it; and ``--init laplace`` for the static model with a soft taper tie."""
+Hessian of the log-density's values, checked on a Gaussian of known mean and covariance, and the
+MH proposal built from it. ``--init laplace`` for the static model with a soft taper tie runs in
+``tests/test_tie.py``'s CLI test."""
 
 from __future__ import annotations
 
-import json
 from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from treeinfer.laplace import (
     mh_proposal,
@@ -66,50 +65,3 @@ def test_value_hessian_of_a_quadratic_is_exact():
         log_density=lambda th: 0.5 * jnp.einsum("pi,ij,pj->p", th, jnp.asarray(h), th) + 3.0
     )
     np.testing.assert_allclose(value_hessian(prob, [0.3, -0.2], [0.1, 0.2]), h, atol=1e-3)
-
-
-@pytest.mark.slow
-def test_init_laplace_runs_for_the_static_model_with_a_soft_tie(tmp_path, capsys):
-    """``infer --model-kind static --tie taper --tie-scale 0.1 --init laplace``: the start is
-    drawn around the MAP of the run's own log-density (logged), and the run completes."""
-    import dataclasses
-
-    from treeinfer.cli.main import main
-    from treeinfer.csv_import import import_csv
-    from treeinfer.synthetic_stem import Stem, branch_at_height, stem_tree, write_stem_logs
-    from treeinfer.tree import dump_tree
-
-    tree = dataclasses.replace(
-        stem_tree(Stem(), n_links=2, kp_bounds=(0.05, 50.0)), pull_direction="horizontal"
-    )
-    dump_tree(tree, tmp_path / "stem.yaml")
-    for path, push in write_stem_logs(tmp_path / "raw", Stem(), heights=(0.15, 0.35), seed=2):
-        branch, dist = branch_at_height(tree, push.height)
-        import_csv(
-            [path],
-            tmp_path / "data",
-            time="millis",
-            force="load_g",
-            displacement="pos_mm",
-            units="time=ms,force=gf,displacement=mm",
-            dt=0.5,
-            tare=True,
-            zero_displacement="contact",
-            trim=True,
-            grasp_branch=branch,
-            grasp_distance=dist,
-            direction="horizontal",
-            tree=tree,
-        )
-    run = tmp_path / "run"
-    args = ["infer", "--tree", str(tmp_path / "stem.yaml"), "--data", str(tmp_path / "data")]
-    args += ["--out", str(run), "--model-kind", "static", "--likelihood", "gaussian"]
-    args += ["--tie", "taper", "--tie-scale", "0.1", "--init", "laplace", "--sampler", "mh"]
-    args += ["--particles", "4", "--iterations", "3", "--no-progress", "--checkpoint-every", "0"]
-    args += ["--allow-poor-fit"]
-    rc = main(args)
-    err = capsys.readouterr().err
-    assert rc == 0, err
-    assert "Laplace start: MAP of the log-density" in err
-    config = json.loads((run / "config.json").read_text())
-    assert config["options"]["init"] == "laplace"

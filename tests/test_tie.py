@@ -157,8 +157,9 @@ def test_tied_problem_has_no_inequality_prior_and_records_the_tie():
 @pytest.mark.slow
 def test_cli_soft_tie_infer_then_evaluate(tmp_path, capsys):
     """import-csv -> infer --model-kind static --likelihood gaussian --tie taper --tie-scale ->
-    evaluate at the held-out height: the tie is recorded (options, tree.yaml, problem) and the
-    prediction is the static model's at the tied gains (recomputed here by hand)."""
+    evaluate at the held-out height, MH from ``--init laplace``: the tie is recorded (options,
+    tree.yaml, problem) and the prediction is the static model's at the tied gains (recomputed
+    here by hand)."""
     from treeinfer.cli.main import main
     from treeinfer.csv_import import import_csv
     from treeinfer.pulls import load_data_pulls, stack_resolved
@@ -194,11 +195,16 @@ def test_cli_soft_tie_infer_then_evaluate(tmp_path, capsys):
     run = tmp_path / "run"
     args = ["infer", "--tree", str(tmp_path / "stem.yaml"), "--data", str(tmp_path / "train")]
     args += ["--out", str(run), "--model-kind", "static", "--likelihood", "gaussian"]
-    args += ["--tie", "taper", "--tie-scale", "0.1", "--sampler", "mh", "--particles", "4"]
+    args += ["--tie", "taper", "--tie-scale", "0.1", "--sampler", "mh", "--particles", "6"]
+    args += ["--init", "laplace"]
     args += ["--iterations", "4", "--no-progress", "--checkpoint-every", "0", "--allow-poor-fit"]
-    assert main(args) == 0, capsys.readouterr().err
-    capsys.readouterr()
+    rc = main(args)
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "Laplace start: MAP of the log-density" in err  # --init laplace, any model
     config = json.loads((run / "config.json").read_text())
+    prop = np.asarray(config["sampler"]["options"]["proposal_scale"])  # MH shaped by the start
+    assert prop.shape == (6, 6) and np.allclose(prop, np.tril(prop))
     assert config["options"]["tie"] == "taper" and config["options"]["tie_scale"] == 0.1
     assert config["problem"]["tie"] == "taper" and config["problem"]["tie_scale"] == 0.1
     saved = load_tree(run / "tree.yaml")

@@ -135,8 +135,19 @@ class ProblemLaplace(NamedTuple):
     n_evals: int
 
 
+CHUNK = 64  # points per log-density call: one batch shape, so a jitted density compiles once
+
+
 def _values(problem, theta: np.ndarray) -> np.ndarray:
-    out = np.asarray(problem.log_density(jnp.asarray(theta)), float)
+    """``[N]`` log-densities of ``theta [N, D]`` in calls of exactly :data:`CHUNK` points (the
+    last padded with copies of its first point); -inf where not finite."""
+    theta = np.atleast_2d(np.asarray(theta, float))
+    out = []
+    for a in range(0, len(theta), CHUNK):
+        part = theta[a : a + CHUNK]
+        pad = np.concatenate([part, np.repeat(part[:1], CHUNK - len(part), 0)])
+        out.append(np.asarray(problem.log_density(jnp.asarray(pad)), float)[: len(part)])
+    out = np.concatenate(out)
     return np.where(np.isfinite(out), out, -np.inf)
 
 
@@ -193,7 +204,7 @@ def problem_laplace(
 
     lower, upper = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
     width = upper - lower
-    u = np.random.default_rng(seed).random((int(n_starts), lower.size))
+    u = np.random.default_rng(seed).random((max(1, int(n_starts)), lower.size))
     starts = lower + u * width
     f0 = _values(problem, starts)
     n_evals = len(starts)
