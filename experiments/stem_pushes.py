@@ -238,6 +238,19 @@ def analytic_table(stem: Stem, heights=(0.12, 0.24, 0.36)) -> list[str]:
                 loo(chain(joints, [float(stem.ei(m)) / step for m in mids])),
             )
         )
+    from treeinfer.static import taper_shape
+    from treeinfer.tree import world_frames
+
+    for n in (3, 8, 16):  # the tree file's tie: Hencky lumping of the branches' radii
+        tree = stem_tree(stem, n_links=n, hinges="midpoints", tie="taper")
+        frames = world_frames(tree)
+        z = [float(frames[j][0][2] - tree.base_position[2]) for j in tree.inferred]
+        rows.append(
+            (
+                f"{n} midpoint hinges, tie: taper from the tree (1 parameter)",
+                loo(chain(z, list(taper_shape(tree)))),
+            )
+        )
     head = "| model | " + " | ".join(f"held out {h:.2f} m" for h in hs) + " |"
     out = [head, "|---" * (len(hs) + 1) + "|"]
     out += [
