@@ -115,6 +115,7 @@ def make_problem(
     direction=None,
     grasp_branch=None,
     model=None,
+    force_noise: float | None = None,
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
@@ -147,6 +148,9 @@ def make_problem(
         model kind (one batched simulator call; see :func:`treeinfer.static.model_with_pulls`
         for reading them from a data folder's ``pulls.yaml``). Every likelihood works with every
         model: :func:`treeinfer.static.model_likelihood_terms`.
+      force_noise: N, the load cell's noise std for a Gaussian/Student-t likelihood on a model
+        other than the paper's (:func:`treeinfer.static.model_likelihood_terms`): each pull's
+        displacement noise is ``sqrt(sigma_x^2 + (force_noise * compliance)^2)``.
       model: a prebuilt :class:`treeinfer.static.Model` (e.g. a
         :func:`~treeinfer.static.tied_layout` of one stiffness scale); overrides
         ``model_kind``, ``direction`` and ``grasp_branch``.
@@ -188,13 +192,16 @@ def make_problem(
         model = None  # the paper's model: theta = [log Kp, log Kd] (+ noise columns), as before
     options = dict(kT=kT, sigma_x=noise_displacement, grasp_fraction=grasp_fraction)
     grad_kind = "autodiff" if gradient == "jvp" else gradient
+    if model is None and force_noise is not None:
+        raise ConfigError("force_noise: supported for the static model or stiffness-only runs")
     if model is None:
         terms = likelihood_terms(
             sim, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options
         )
     else:  # the model's own rollout (static, stiffness only, per-recording pulls)
+        extra = {} if force_noise is None else {"force_noise": force_noise}
         terms = model_likelihood_terms(
-            sim, model, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options
+            sim, model, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options, **extra
         )
     loglik = terms.log_likelihood
     n_gains = layout.dim
