@@ -202,6 +202,7 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args):
         "force_noise_N": f_noise,
         "band_width_mean_m": float(np.mean(hi_b[0] - lo_b[0])),
         "rhat_max": float(np.max(rhat)),
+        "rhat": dict(zip(problem.labels, np.asarray(rhat, float).tolist())),
         "mh_acceptance": acc,
         "sampler_wall_s": wall,
         "n_draws": int(len(theta)),
@@ -346,6 +347,11 @@ def main(argv=None):
         default=10,
         help="Newton iterations per equilibrium (the solver's convergence check still applies)",
     )
+    ap.add_argument(
+        "--folds",
+        default="0,1,2",
+        help="held-out heights to run, by index (0: 0.12 m, 1: 0.24 m, 2: 0.36 m)",
+    )
     ap.add_argument("--out", default="experiments/results/stem_pushes")
     ap.add_argument(
         "--analytic", action="store_true", help="print the model-error table (no sampling) and exit"
@@ -371,7 +377,7 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as tmp:
         trajs, pulls, heights = import_logs(Path(tmp), stem, tree, args.seed)
     results = []
-    for k in range(3):
+    for k in (int(v) for v in args.folds.split(",")):
         results.append(fold(sim, tree, trajs, pulls, heights, k, args))
         r = results[-1]
         print(
