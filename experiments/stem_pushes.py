@@ -92,7 +92,8 @@ def _mh_draws(problem, args, seed: int):
     1. warm-up: ``args.walkers`` chains from Laplace draws, proposal ``2.38/sqrt(D)`` times
        the Laplace covariance's Cholesky factor, ``args.warmup`` steps;
     2. the proposal re-estimated from the pooled second half of the warm-up (the posterior's
-       own covariance, not the Laplace one), ``args.steps`` steps from the warm-up's ends.
+       own covariance, not the Laplace one) of the chains within 10 nats of the best one (the
+       others restart from their end states), ``args.steps`` steps from the warm-up's ends.
 
     Returns (draws [N, D] from the second half of step 2, thinned to at most ``args.draws``;
     split R-hat per column over the chains (arviz); acceptance; seconds)."""
@@ -113,8 +114,22 @@ def _mh_draws(problem, args, seed: int):
         initial_theta=start,
         proposal_scale=mh_proposal(lap.cov),
     )
-    tr = warm.run.trace_positions[warm.run.trace_positions.shape[0] // 2 :]
-    cov = np.cov(tr.reshape(-1, tr.shape[-1]).T)
+    half = warm.run.trace_positions.shape[0] // 2
+    tr = warm.run.trace_positions[half:]  # [T, P, D]
+    # chains stuck far below the others (a mean log-density more than 10 nats under the best
+    # chain's) would inflate the pooled covariance and freeze every chain's proposal: they are
+    # left out of it and restarted from the end states of the others
+    mean_ld = np.nanmean(
+        np.where(
+            np.isfinite(warm.run.trace_logdensity[half:]), warm.run.trace_logdensity[half:], np.nan
+        ),
+        axis=0,
+    )
+    good = np.isfinite(mean_ld) & (mean_ld >= np.nanmax(mean_ld) - 10.0)
+    cov = np.cov(tr[:, good].reshape(-1, tr.shape[-1]).T)
+    ends = np.asarray(warm.theta)[good]
+    pick = np.random.default_rng(seed).integers(0, len(ends), args.walkers)
+    start = np.where(good[:, None], np.asarray(warm.theta), ends[pick])
     post = infer(
         problem,
         "mh",
@@ -122,7 +137,7 @@ def _mh_draws(problem, args, seed: int):
         n_iterations=args.steps,
         seed=seed + 1000,
         progress=False,
-        initial_theta=jnp.asarray(warm.theta),
+        initial_theta=jnp.asarray(start),
         proposal_scale=mh_proposal(cov),
     )
     run = post.run
@@ -134,6 +149,7 @@ def _mh_draws(problem, args, seed: int):
     acc = float(np.mean(run.diagnostics["mean_acceptance_rate"]))
     draws = keep.reshape(-1, keep.shape[-1])
     stride = max(1, len(draws) // args.draws)
+    print(f"  warm-up: {int(good.sum())}/{len(good)} chains kept, acceptance {acc:.2f}", flush=True)
     return draws[::stride], np.asarray(rhat, float), acc, time.time() - t0
 
 
