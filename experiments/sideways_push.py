@@ -118,7 +118,9 @@ def _cli(args: list[str]) -> None:
         raise SystemExit(f"treeinfer {' '.join(args)} exited with {rc}")
 
 
-def run_pipeline(work: Path, size: str = "cpu", seed: int = 0, noise_mm: float = 2.0) -> dict:
+def run_pipeline(
+    work: Path, size: str = "cpu", seed: int = 0, noise_mm: float = 2.0, init: str = "laplace"
+) -> dict:
     """import-csv -> infer (two heights) -> evaluate (the third) in ``work``; returns the
     held-out metrics, the posterior summary and the truth."""
     s = SIZES[size]
@@ -138,6 +140,7 @@ def run_pipeline(work: Path, size: str = "cpu", seed: int = 0, noise_mm: float =
     _cli(
         ["infer", "--tree", str(tree_file), "--data", str(work / "train"), "--out", str(run)]
         + ["--likelihood", "gaussian", "--sampler", "mh", "--seed", str(seed)]
+        + (["--init", init] if init != "uniform" else [])
         + ["--particles", str(s["particles"]), "--iterations", str(s["iterations"])]
         + ["--no-progress", "--checkpoint-every", "0", "--force"]
         + (["--allow-poor-fit"] if size == "tiny" else [])
@@ -146,7 +149,12 @@ def run_pipeline(work: Path, size: str = "cpu", seed: int = 0, noise_mm: float =
     _cli(["evaluate", "--run", str(run), "--data", str(work / "test"), "--out", str(ev), "--force"])
     metrics = json.loads((ev / "metrics.json").read_text())["metrics"]
     summary = json.loads((run / "summary.json").read_text())
+    params = (summary.get("diagnostics") or {}).get("parameters") or {}
+    rhat = {k: v.get("rhat") for k, v in params.items()}
     return {
+        "init": init,
+        "rhat": rhat,
+        "rhat_max": max((float(v) for v in rhat.values() if v is not None), default=None),
         "seed": seed,
         "pct_inside_predictive_95": 100.0 - metrics["pct_outside"],
         "per_trajectory": metrics["per_trajectory"],
@@ -166,24 +174,36 @@ def main_cli(argv=None) -> dict:
     ap.add_argument("--size", choices=sorted(SIZES), default="cpu")
     ap.add_argument("--noise-mm", type=float, default=2.0)
     ap.add_argument("--out", type=Path, default=None, help="results JSON (default: committed)")
+    ap.add_argument(
+        "--init",
+        choices=("laplace", "uniform"),
+        default="laplace",
+        help="MH chains' start: 'laplace' (around the MAP of the run's log-density, proposal "
+        "shaped by its covariance; default) or 'uniform' in the prior box (before issue 13)",
+    )
     a = ap.parse_args(argv)
     start = time.time()
     folds = []
     for seed in SIZES[a.size]["seeds"]:
         with tempfile.TemporaryDirectory() as tmp:
-            folds.append(run_pipeline(Path(tmp), a.size, seed, a.noise_mm))
-        print(f"seed {seed}: {folds[-1]['pct_inside_predictive_95']:.1f}% inside", flush=True)
+            folds.append(run_pipeline(Path(tmp), a.size, seed, a.noise_mm, a.init))
+        print(
+            f"seed {seed}: {folds[-1]['pct_inside_predictive_95']:.1f}% inside, R-hat max "
+            f"{folds[-1]['rhat_max']}",
+            flush=True,
+        )
     inside = [f["pct_inside_predictive_95"] for f in folds]
     result = {
         "experiment": "sideways_push",
         "size": a.size,
-        "settings": SIZES[a.size] | {"noise_mm": a.noise_mm, "train": TRAIN, "test": TEST},
+        "settings": SIZES[a.size]
+        | {"noise_mm": a.noise_mm, "train": TRAIN, "test": TEST, "init": a.init},
         "heights": [{"label": h, "branch": b, "fraction": f} for h, b, f in HEIGHTS],
         "pct_inside_predictive_95": {"per_seed": inside, "median": float(np.median(inside))},
         "target": "93-97% of the held-out height's noisy points inside the 95% predictive band",
         "runs": folds,
         "seconds": round(time.time() - start, 1),
-        "command": f"python experiments/sideways_push.py --size {a.size}",
+        "command": f"python experiments/sideways_push.py --size {a.size} --init {a.init}",
     }
     out = a.out or Path(__file__).parent / "results" / "sideways_push" / f"{a.size}.json"
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -44,8 +44,9 @@ from treeinfer.evaluation import evaluate_trajectories
 from treeinfer.inference import infer, make_problem
 from treeinfer.pulls import load_data_pulls, stack_resolved
 from treeinfer.sim import make_simulator
-from treeinfer.static import model_for, tied_layout
+from treeinfer.static import effective_noise, force_noise_estimate, model_for, model_rollout
 from treeinfer.synthetic_stem import (
+    G0,
     Stem,
     branch_at_height,
     cantilever_displacement,
@@ -83,44 +84,84 @@ def import_logs(folder: Path, stem: Stem, tree, seed: int):
     return trajs, pulls, [push.height for _, push in raw]
 
 
-def taper_shape(tree, stem: Stem) -> np.ndarray:
-    """[R] relative hinge stiffnesses ``E I(z_j) / l`` at each hinge's height (segments of
-    equal length), normalised to the stiffest: the taper tie of :func:`tied_layout`."""
-    from treeinfer.tree import world_frames
+def _mh_draws(problem, args, seed: int):
+    """Posterior draws by the library's MH (``infer(problem, "mh")``), started and tuned from
+    the problem's Laplace approximation (:func:`treeinfer.laplace.problem_laplace`: MAP and
+    Hessian of the log-density, any model), then adapted once:
 
-    frames = world_frames(tree)
-    z = np.array([frames[n][0][2] - tree.base_position[2] for n in tree.inferred])
-    ei = np.array([float(stem.ei(h)) for h in z])
-    return ei / ei.max()
+    1. warm-up: ``args.walkers`` chains from Laplace draws, proposal ``2.38/sqrt(D)`` times
+       the Laplace covariance's Cholesky factor, ``args.warmup`` steps;
+    2. the proposal re-estimated from the pooled second half of the warm-up (the posterior's
+       own covariance, not the Laplace one) of the chains within 10 nats of the best one (the
+       others restart from their end states), ``args.steps`` steps from the warm-up's ends.
+
+    Returns (draws [N, D] from the second half of step 2, thinned to at most ``args.draws``;
+    split R-hat per column over the chains (arviz); acceptance; seconds)."""
+    import arviz as az
+
+    from treeinfer.laplace import mh_proposal, problem_laplace, problem_laplace_particles
+
+    t0 = time.time()
+    lap = problem_laplace(problem, seed=seed)
+    start = problem_laplace_particles(jax.random.key(seed), lap, args.walkers)
+    warm = infer(
+        problem,
+        "mh",
+        n_particles=args.walkers,
+        n_iterations=args.warmup,
+        seed=seed,
+        progress=False,
+        initial_theta=start,
+        proposal_scale=mh_proposal(lap.cov),
+    )
+    half = warm.run.trace_positions.shape[0] // 2
+    tr = warm.run.trace_positions[half:]  # [T, P, D]
+    # chains stuck far below the others (a mean log-density more than 10 nats under the best
+    # chain's) would inflate the pooled covariance and freeze every chain's proposal: they are
+    # left out of it and restarted from the end states of the others
+    mean_ld = np.nanmean(
+        np.where(
+            np.isfinite(warm.run.trace_logdensity[half:]), warm.run.trace_logdensity[half:], np.nan
+        ),
+        axis=0,
+    )
+    good = np.isfinite(mean_ld) & (mean_ld >= np.nanmax(mean_ld) - 10.0)
+    cov = np.cov(tr[:, good].reshape(-1, tr.shape[-1]).T)
+    ends = np.asarray(warm.theta)[good]
+    pick = np.random.default_rng(seed).integers(0, len(ends), args.walkers)
+    start = np.where(good[:, None], np.asarray(warm.theta), ends[pick])
+    post = infer(
+        problem,
+        "mh",
+        n_particles=args.walkers,
+        n_iterations=args.steps,
+        seed=seed + 1000,
+        progress=False,
+        initial_theta=jnp.asarray(start),
+        proposal_scale=mh_proposal(cov),
+    )
+    run = post.run
+    keep = run.trace_positions[run.trace_positions.shape[0] // 2 :]  # [T, P, D]
+    ld = run.trace_logdensity[run.trace_logdensity.shape[0] // 2 :]
+    chains_ok = np.all(np.isfinite(ld), axis=0)
+    keep = keep[:, chains_ok]
+    rhat = az.rhat(az.convert_to_dataset(np.swapaxes(keep, 0, 1)))["x"].values
+    acc = float(np.mean(run.diagnostics["mean_acceptance_rate"]))
+    draws = keep.reshape(-1, keep.shape[-1])
+    stride = max(1, len(draws) // args.draws)
+    print(f"  warm-up: {int(good.sum())}/{len(good)} chains kept, acceptance {acc:.2f}", flush=True)
+    return draws[::stride], np.asarray(rhat, float), acc, time.time() - t0
 
 
-def _warm_start(problem, n: int, rng) -> np.ndarray:
-    """[n, D] chains started around the best point of a coarse grid over the stiffness scale
-    (noise at its data estimate), spread by 0.05 in every log column: MH's random walk then
-    spends its steps in the posterior instead of crossing a 7-decade box."""
-    d = problem.dim
-    grid = np.linspace(problem.lower[0], problem.upper[0], 64)
-    theta = np.tile(0.5 * (problem.lower + problem.upper), (64, 1))
-    theta[:, 0] = grid
-    logp = np.asarray(problem.log_density(jnp.asarray(theta)))
-    best = theta[int(np.nanargmax(np.where(np.isfinite(logp), logp, -np.inf)))]
-    return best + 0.05 * rng.standard_normal((n, d))
-
-
-def fold(sim, tree, trajs, pulls, heights, test: int, args, rng, stem: Stem):
+def fold(sim, tree, trajs, pulls, heights, test: int, args):
     """Infer on the two other heights, predict the held-out one: library calls only
-    (``make_problem(model_kind static, likelihood gaussian)`` -> ``infer`` -> the held-out
-    metrics of ``evaluate``)."""
+    (``make_problem(model_kind static, likelihood gaussian)`` with the tree's own tie ->
+    ``infer(problem, "mh")`` -> the held-out metrics of ``evaluate``)."""
     train = [i for i in range(len(trajs)) if i != test]
     br, fr, di = stack_resolved([pulls[i] for i in train], tree)
-    model = model_for(tree, "static")
-    if args.tied:  # one stiffness scale, Kp_j = s * E I(z_j) / l (beam-like, from the taper)
-        lo, hi = tree.bounds_array()
-        shape = taper_shape(tree, stem)
-        model = model._replace(
-            layout=tied_layout(tree, shape, (lo[0], hi[0] / shape.min()), model.layout.fixed_kd)
-        )
-    model = model._replace(direction=di, grasp_branch=tuple(br))
+    model = model_for(tree, "static")._replace(direction=di, grasp_branch=tuple(br))
+    # the load cell's noise, from the training recordings' force signals alone
+    f_noise = force_noise_estimate([trajs[i] for i in train]) if args.force_noise else None
     problem = make_problem(
         tree,
         [trajs[i] for i in train],
@@ -129,33 +170,27 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args, rng, stem: Stem):
         likelihood="gaussian",
         grasp_fraction=fr,
         model=model,
+        force_noise=f_noise,
     )
     problem = dataclasses.replace(problem, log_density=jax.jit(problem.log_density))
-    t0 = time.time()
-    start = _warm_start(problem, args.walkers, rng) if args.tied else None
-    post = infer(
-        problem,
-        "mh",
-        n_particles=args.walkers,
-        n_iterations=args.steps,
-        seed=args.seed + test,
-        progress=False,
-        initial_theta=start,
-        proposal_scale=args.proposal,
-    )
-    wall = time.time() - t0
+    theta, rhat, acc, wall = _mh_draws(problem, args, args.seed + test)
     held = trajs[test]
     pb = pulls[test]
     held_model = model._replace(direction=pb.direction[None], grasp_branch=(pb.branch,))
-    sigma = np.exp(post.theta[:, -1])  # the inferred noise column, m
+    sigma = np.exp(theta[:, -1])  # the inferred noise column, m
+    if f_noise is not None:  # each draw's noise at the held-out pull (its own compliance)
+        d = model.layout.dim
+        tau = model_rollout(sim, held_model, theta[:, :d], held.force[None], [pb.fraction]).tau
+        sigma = np.asarray(
+            effective_noise(sigma, f_noise, jnp.asarray(tau), held.force[None]), float
+        )[:, 0]
     m, pred, _ = evaluate_trajectories(
         sim,
-        post.theta,
+        theta,
         list(problem.labels),
         [held],
         problem.kT,
         np.array([pb.fraction]),
-        particle_ok=post.valid,
         noise_sigma=sigma,
         noise_kind="gaussian",
         model=held_model,
@@ -169,7 +204,7 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args, rng, stem: Stem):
     )
     cant = cantilever_displacement(held.force, heights[test], ei)
     rmse_c = float(np.sqrt(np.mean((cant - held.displacement) ** 2)))
-    kp, _ = model.layout.gains(jnp.asarray(post.theta[post.valid]))
+    kp, _ = model.layout.gains(jnp.asarray(theta))
     lo_b, hi_b = pred.band()
     return {
         "held_out_height_m": heights[test],
@@ -178,11 +213,24 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args, rng, stem: Stem):
         "rmse_cantilever_m": rmse_c,
         "cantilever_EI_Nm2": ei,
         "posterior_kp_median": np.median(np.asarray(kp), axis=0).tolist(),
-        "posterior_sigma_median_m": float(np.median(sigma)),
+        "posterior_sigma_median_m": float(np.median(np.exp(theta[:, -1]))),
+        "held_out_noise_median_m": float(np.median(sigma)),
+        "force_noise_N": f_noise,
         "band_width_mean_m": float(np.mean(hi_b[0] - lo_b[0])),
+        "rhat_max": float(np.max(rhat)),
+        "rhat": dict(zip(problem.labels, np.asarray(rhat, float).tolist())),
+        "mh_acceptance": acc,
         "sampler_wall_s": wall,
+        "n_draws": int(len(theta)),
         "n_points": int(held.n_steps),
-        "valid_chains": int(post.valid.sum()),
+        "curve": {
+            "force_N": held.force.tolist(),
+            "recorded_m": held.displacement.tolist(),
+            "mean_m": mean.tolist(),
+            "lower_m": lo_b[0].tolist(),
+            "upper_m": hi_b[0].tolist(),
+            "cantilever_m": cant.tolist(),
+        },
     }
 
 
@@ -218,6 +266,19 @@ def analytic_table(stem: Stem, heights=(0.12, 0.24, 0.36)) -> list[str]:
                 loo(chain(joints, [float(stem.ei(m)) / step for m in mids])),
             )
         )
+    from treeinfer.static import taper_shape
+    from treeinfer.tree import world_frames
+
+    for n in (3, 8, 16):  # the tree file's tie: Hencky lumping of the branches' radii
+        tree = stem_tree(stem, n_links=n, hinges="midpoints", tie="taper")
+        frames = world_frames(tree)
+        z = [float(frames[j][0][2] - tree.base_position[2]) for j in tree.inferred]
+        rows.append(
+            (
+                f"{n} midpoint hinges, tie: taper from the tree (1 parameter)",
+                loo(chain(z, list(taper_shape(tree)))),
+            )
+        )
     head = "| model | " + " | ".join(f"held out {h:.2f} m" for h in hs) + " |"
     out = [head, "|---" * (len(hs) + 1) + "|"]
     out += [
@@ -226,13 +287,47 @@ def analytic_table(stem: Stem, heights=(0.12, 0.24, 0.36)) -> list[str]:
     return out
 
 
+def plot_folds(results, path: Path) -> None:
+    """Held-out force-displacement per fold: recorded points, the 95% predictive band and mean
+    of the hinge chain, and the cantilever fitted to the two other heights."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(results), figsize=(4.2 * len(results), 3.6))
+    for ax, r in zip(np.atleast_1d(axes), results):
+        c = r["curve"]
+        f = 1e3 * np.asarray(c["force_N"]) / G0  # gf
+        order = np.argsort(f, kind="stable")
+        mm = lambda k: 1e3 * np.asarray(c[k])[order]  # noqa: E731
+        ax.fill_between(
+            f[order],
+            mm("lower_m"),
+            mm("upper_m"),
+            color="C0",
+            alpha=0.3,
+            label="95% predictive band",
+            lw=0,
+        )
+        ax.plot(f[order], mm("mean_m"), "C0-", lw=1, label="predictive mean")
+        ax.plot(f[order], mm("cantilever_m"), "C3--", lw=1, label="cantilever (2 heights)")
+        ax.plot(f, 1e3 * np.asarray(c["recorded_m"]), "k.", ms=2, label="recorded")
+        ax.set_title(f"held out {r['held_out_height_m']:.2f} m: {r['inside_95_band']:.0%} inside")
+        ax.set_xlabel("force (gf)")
+    np.atleast_1d(axes)[0].set_ylabel("displacement (mm)")
+    np.atleast_1d(axes)[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--steps", type=int, default=1500, help="MH iterations per chain")
-    ap.add_argument("--walkers", type=int, default=64, help="MH chains (final states = draws)")
-    ap.add_argument(
-        "--proposal", type=float, default=0.003, help="MH step, share of each box width"
-    )
+    ap.add_argument("--steps", type=int, default=400, help="MH iterations per chain (main)")
+    ap.add_argument("--warmup", type=int, default=200, help="MH warm-up iterations per chain")
+    ap.add_argument("--walkers", type=int, default=32, help="MH chains")
+    ap.add_argument("--draws", type=int, default=512, help="posterior draws kept for the band")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--links", type=int, default=8, help="hinged links in the chain (8)")
     ap.add_argument(
@@ -242,57 +337,107 @@ def main(argv=None):
         help="hinge at each segment's base or middle (default)",
     )
     ap.add_argument(
-        "--tied",
+        "--tie",
+        choices=("taper", "none"),
+        default="taper",
+        help="the tree file's inference.tie: 'taper' (stiffness along the taper, default) or "
+        "'none' (free stiffnesses)",
+    )
+    ap.add_argument(
+        "--tie-scale",
+        type=float,
+        default=0.1,
+        help="soft tie: std of each hinge's log-stiffness about the taper (default 0.1, fixed "
+        "a priori: about 2.5%% uncertainty on the diameter, under d^4); 0: hard tie",
+    )
+    ap.add_argument(
+        "--force-noise",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="one stiffness scale, Kp_j proportional to E I(z_j) / l (taper-tied; default on)",
+        help="load-cell noise (estimated from the training forces) read through each pull's "
+        "compliance, next to sigma_x (default on; --no-force-noise: sigma_x alone)",
+    )
+    ap.add_argument(
+        "--settle-iterations",
+        type=int,
+        default=10,
+        help="Newton iterations per equilibrium (the solver's convergence check still applies)",
+    )
+    ap.add_argument(
+        "--folds",
+        default="0,1,2",
+        help="held-out heights to run, by index (0: 0.12 m, 1: 0.24 m, 2: 0.36 m)",
     )
     ap.add_argument("--out", default="experiments/results/stem_pushes")
     ap.add_argument(
         "--analytic", action="store_true", help="print the model-error table (no sampling) and exit"
     )
     args = ap.parse_args(argv)
-    rng = np.random.default_rng(args.seed)
     stem = Stem()
     if args.analytic:
         print("\n".join(analytic_table(stem)))
         return
-    tree = stem_tree(stem, n_links=args.links, kp_bounds=(0.05, 50.0), hinges=args.hinges)
-    sim = make_simulator(tree, obs_dt=0.5, backend="fused")
+    tie = None if args.tie == "none" else args.tie
+    tau = args.tie_scale if (tie is not None and args.tie_scale > 0) else None
+    tree = stem_tree(
+        stem,
+        n_links=args.links,
+        kp_bounds=(0.05, 50.0),
+        hinges=args.hinges,
+        tie=tie,
+        tie_scale=tau,
+    )
+    sim = make_simulator(
+        tree, obs_dt=0.5, backend="fused", settle_iterations=args.settle_iterations
+    )
     with tempfile.TemporaryDirectory() as tmp:
         trajs, pulls, heights = import_logs(Path(tmp), stem, tree, args.seed)
     results = []
-    for k in range(3):
-        results.append(fold(sim, tree, trajs, pulls, heights, k, args, rng, stem))
+    for k in (int(v) for v in args.folds.split(",")):
+        results.append(fold(sim, tree, trajs, pulls, heights, k, args))
         r = results[-1]
         print(
             f"held out {r['held_out_height_m']:.2f} m: {r['inside_95_band']:.0%} inside, "
             f"RMSE {1e3 * r['rmse_static_m']:.3f} mm (cantilever "
-            f"{1e3 * r['rmse_cantilever_m']:.3f} mm), {r['sampler_wall_s']:.0f} s",
+            f"{1e3 * r['rmse_cantilever_m']:.3f} mm), R-hat max {r['rhat_max']:.3f}, "
+            f"{r['sampler_wall_s']:.0f} s",
             flush=True,
         )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(
         out / "results.json",
-        json.dumps({"folds": results, "stem": stem._asdict(), "args": vars(args)}, indent=2) + "\n",
+        json.dumps({"folds": results, "stem": stem._asdict(), "args": vars(args)}) + "\n",
     )
-    lines_note = (
-        "one scale, Kp = s EI(z_hinge) / segment (tied)" if args.tied else "free stiffnesses"
-    )
+    plot_folds(results, out / "held_out.png")
+    if tie is None:
+        note = "free stiffnesses"
+    elif tau is None:
+        note = "stiffness tied along the taper (one scale, hard tie)"
+    else:
+        note = f"stiffness softly tied along the taper (tau = {tau:g})"
     lines = [
-        "| held-out height (m) | inside 95% band | RMSE static (mm) | RMSE cantilever (mm) |",
-        "|---|---|---|---|",
+        "| held-out height (m) | inside 95% band | RMSE static (mm) | RMSE cantilever (mm) "
+        "| band width (mm) | R-hat max |",
+        "|---|---|---|---|---|---|",
     ]
     for r in results:
         lines.append(
             f"| {r['held_out_height_m']:.2f} | {r['inside_95_band']:.0%} | "
-            f"{1e3 * r['rmse_static_m']:.3f} | {1e3 * r['rmse_cantilever_m']:.3f} |"
+            f"{1e3 * r['rmse_static_m']:.3f} | {1e3 * r['rmse_cantilever_m']:.3f} | "
+            f"{1e3 * r['band_width_mean_m']:.3f} | {r['rhat_max']:.3f} |"
         )
+    noise_note = (
+        "sigma_x inferred plus the load cell's noise (from the training forces) through each "
+        "pull's compliance"
+        if args.force_noise
+        else "sigma_x inferred"
+    )
     lines.append(
-        f"\n{args.links} links (hinges at segment {args.hinges}), MH {args.walkers} chains x "
-        f"{args.steps} steps (proposal {args.proposal} box widths), {lines_note}, static model, "
-        f"Gaussian noise with sigma_x inferred, seed {args.seed}"
+        f"\n{args.links} links (hinges at segment {args.hinges}), {note}, static model, Gaussian "
+        f"noise: {noise_note}; MH {args.walkers} chains x ({args.warmup} warm-up + "
+        f"{args.steps}) steps from a Laplace start, proposal adapted after warm-up; seed "
+        f"{args.seed}"
     )
     atomic_write_text(out / "results.md", "\n".join(lines) + "\n")
     print("\n".join(lines))

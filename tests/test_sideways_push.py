@@ -25,6 +25,11 @@ def test_sideways_push_three_heights_pipeline(tmp_path):
     assert "sigma_x" in result["posterior"]
     config = json.loads((tmp_path / "run" / "config.json").read_text())
     problem = config["problem"]
+    # MH from the Laplace start, its proposal shaped by the start's covariance (recorded:
+    # a lower-triangular factor over Kp, Kd and sigma_x)
+    assert config["options"]["init"] == "laplace"
+    prop = np.asarray(config["sampler"]["options"]["proposal_scale"])
+    assert prop.shape == (5, 5) and np.allclose(prop, np.tril(prop)) and np.all(np.diag(prop) > 0)
     # the two training heights, each at its own branch, point and horizontal direction
     assert problem["pulls"]["grasp_branch"] == ["branch0", "branch1"]
     assert problem["grasp_fraction"] == pytest.approx([0.6, 1.0])

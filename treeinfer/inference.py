@@ -116,6 +116,7 @@ def make_problem(
     direction=None,
     grasp_branch=None,
     model=None,
+    force_noise: float | None = None,
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
@@ -148,6 +149,9 @@ def make_problem(
         model kind (one batched simulator call; see :func:`treeinfer.static.model_with_pulls`
         for reading them from a data folder's ``pulls.yaml``). Every likelihood works with every
         model: :func:`treeinfer.static.model_likelihood_terms`.
+      force_noise: N, the load cell's noise std for a Gaussian/Student-t likelihood on a model
+        other than the paper's (:func:`treeinfer.static.model_likelihood_terms`): each pull's
+        displacement noise is ``sqrt(sigma_x^2 + (force_noise * compliance)^2)``.
       model: a prebuilt :class:`treeinfer.static.Model` (e.g. a
         :func:`~treeinfer.static.tied_layout` of one stiffness scale); overrides
         ``model_kind``, ``direction`` and ``grasp_branch``.
@@ -189,13 +193,16 @@ def make_problem(
         model = None  # the paper's model: theta = [log Kp, log Kd] (+ noise columns), as before
     options = dict(kT=kT, sigma_x=noise_displacement, grasp_fraction=grasp_fraction)
     grad_kind = "autodiff" if gradient == "jvp" else gradient
+    if model is None and force_noise is not None:
+        raise ConfigError("force_noise: supported for the static model or stiffness-only runs")
     if model is None:
         terms = likelihood_terms(
             sim, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options
         )
     else:  # the model's own rollout (static, stiffness only, per-recording pulls)
+        extra = {} if force_noise is None else {"force_noise": force_noise}
         terms = model_likelihood_terms(
-            sim, model, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options
+            sim, model, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options, **extra
         )
     loglik = terms.log_likelihood
     n_gains = layout.dim
@@ -203,6 +210,9 @@ def make_problem(
     prior_terms = [box if not terms.extra_labels else (lambda th: box(th[:, :n_gains]))]
     prior_terms += terms.log_prior_terms()
     kinds = ("Kp", "Kd") if layout.infers_damping else ("Kp",)
+    # the learned inequality prior orders free per-joint stiffness columns; a tied layout (one
+    # scale along the taper, :mod:`treeinfer.static.tied`) has none, its taper orders them
+    nn_prior = nn_prior and getattr(layout, "shape", None) is None
     nn = nn_inequality_prior(tree, eta=eta, seed=nn_seed, kinds=kinds) if nn_prior else None
     if nn is not None:
         prior_terms.append(nn)
@@ -254,6 +264,9 @@ def make_problem(
             settings["fixed_kd"] = [float(v) for v in layout.fixed_kd]
         if getattr(layout, "shape", None) is not None:  # one stiffness scale (TiedLayout)
             settings["kp_shape"] = [float(v) for v in layout.shape]
+            if getattr(layout, "tie", None) is not None:
+                settings["tie"] = layout.tie
+                settings["tie_scale"] = layout.tau
         if model.grasp_branch is not None or model.direction is not None:
             settings["pulls"] = _pulls_record(model, int(obs.force.shape[0]))
     return Problem(
@@ -375,7 +388,9 @@ def infer(
     check_count(n_iterations, "n_iterations")
     name = sampler.lower()
     spec = _samplers.sampler_spec(name)
-    if spec.nn_prior and not problem.nn_prior and problem.tree.inferred_pairs():
+    # a taper tie has no per-joint columns to order: nnsvgd is SVGD there (make_problem)
+    tied = problem.model is not None and getattr(problem.model.layout, "shape", None) is not None
+    if spec.nn_prior and not problem.nn_prior and problem.tree.inferred_pairs() and not tied:
         raise ConfigError(f"sampler '{name}' needs a problem built with nn_prior=True")
     algorithm = _algorithm(problem, name, sampler_options, cache)
     theta0 = (

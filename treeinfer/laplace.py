@@ -4,13 +4,23 @@ linearised loss. Split from :mod:`treeinfer.mapfit`, which re-exports these name
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .errors import ConfigError
 
-__all__ = ["laplace_particles", "norm_loss_covariance"]
+__all__ = [
+    "ProblemLaplace",
+    "laplace_particles",
+    "mh_proposal",
+    "norm_loss_covariance",
+    "problem_laplace",
+    "problem_laplace_particles",
+    "value_hessian",
+]
 
 
 def norm_loss_covariance(
@@ -104,3 +114,161 @@ def laplace_particles(
 
 
 # ---- treeinfer problems ------------------------------------------------------------------------
+# Any problem (static model, stiffness only, a taper tie, noise columns): the MAP of its own
+# log-density and a Hessian from its values. The Levenberg-Marquardt fit of treeinfer.mapfit needs
+# the paper's residuals; this needs only ``problem.log_density`` (batched) and
+# ``problem.value_and_grad``.
+
+
+class ProblemLaplace(NamedTuple):
+    """The Laplace approximation of a problem's posterior.
+
+    Attributes: theta [D] the MAP (theta units); cov [D, D] the covariance (inverse of the
+    Hessian of ``-log_density`` at the MAP, plus the box's precision where asked);
+    log_density the value at the MAP; steps [D] the difference steps of the Hessian; n_evals
+    the log-density evaluations spent."""
+
+    theta: np.ndarray
+    cov: np.ndarray
+    log_density: float
+    steps: np.ndarray
+    n_evals: int
+
+
+CHUNK = 64  # points per log-density call: one batch shape, so a jitted density compiles once
+
+
+def _values(problem, theta: np.ndarray) -> np.ndarray:
+    """``[N]`` log-densities of ``theta [N, D]`` in calls of exactly :data:`CHUNK` points (the
+    last padded with copies of its first point); -inf where not finite."""
+    theta = np.atleast_2d(np.asarray(theta, float))
+    out = []
+    for a in range(0, len(theta), CHUNK):
+        part = theta[a : a + CHUNK]
+        pad = np.concatenate([part, np.repeat(part[:1], CHUNK - len(part), 0)])
+        out.append(np.asarray(problem.log_density(jnp.asarray(pad)), float)[: len(part)])
+    out = np.concatenate(out)
+    return np.where(np.isfinite(out), out, -np.inf)
+
+
+def value_hessian(problem, theta, steps) -> np.ndarray:
+    """``[D, D]`` Hessian of ``problem.log_density`` at ``theta [D]`` by central differences
+    of its **values** with per-coordinate ``steps [D]`` (one batched call of ``1 + 2D^2``
+    points): ``H_ii = (f(+h_i) - 2 f + f(-h_i)) / h_i^2``, ``H_ij = (f(++)-f(+-)-f(-+)+f(--)) /
+    (4 h_i h_j)``. Values, not the gradient: the likelihood's gradient is itself a finite
+    difference, and a step at the posterior's own scale averages the float32 noise away."""
+    x = np.asarray(theta, float)
+    h = np.asarray(steps, float)
+    d = x.size
+    pts = [x]
+    for i in range(d):
+        for s in (1, -1):
+            pts.append(x + s * h[i] * np.eye(d)[i])
+    pairs = [(i, j) for i in range(d) for j in range(i + 1, d)]
+    for i, j in pairs:
+        for si, sj in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+            pts.append(x + si * h[i] * np.eye(d)[i] + sj * h[j] * np.eye(d)[j])
+    f = _values(problem, np.stack(pts))
+    hess = np.zeros((d, d))
+    for i in range(d):
+        hess[i, i] = (f[1 + 2 * i] - 2 * f[0] + f[2 + 2 * i]) / h[i] ** 2
+    base = 1 + 2 * d
+    for k, (i, j) in enumerate(pairs):
+        pp, pm, mp, mm = f[base + 4 * k : base + 4 * k + 4]
+        hess[i, j] = hess[j, i] = (pp - pm - mp + mm) / (4 * h[i] * h[j])
+    return hess
+
+
+def problem_laplace(
+    problem,
+    n_starts: int = 64,
+    n_local: int = 3,
+    seed: int = 0,
+    max_iterations: int = 200,
+    box_precision: bool = True,
+) -> ProblemLaplace:
+    """MAP and Laplace covariance of ``problem`` (any :class:`~treeinfer.inference.Problem`).
+
+    The MAP: the best ``n_local`` of ``n_starts`` uniform random points in the prior box (one
+    batched call), each polished by scipy's L-BFGS-B on ``-log_density`` with the problem's own
+    gradient (``value_and_grad``), inside the box widened by half its width. The covariance:
+    the inverse of ``-H`` from :func:`value_hessian`, its steps set twice (first a hundredth of
+    each box width, then each coordinate's Laplace std, so that the differences span the
+    posterior's own width); ``box_precision`` adds ``12 / width^2`` (a uniform over the box) so
+    directions the data leave flat are drawn with the prior's spread.
+
+    Raises:
+        ConfigError: no start with a finite log-density.
+    """
+    from scipy.optimize import minimize
+
+    lower, upper = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
+    width = upper - lower
+    u = np.random.default_rng(seed).random((max(1, int(n_starts)), lower.size))
+    starts = lower + u * width
+    f0 = _values(problem, starts)
+    n_evals = len(starts)
+    if not np.any(np.isfinite(f0)):
+        raise ConfigError("Laplace start: no finite log-density in the prior box")
+    order = np.argsort(-f0)[: max(1, int(n_local))]
+    bounds = list(zip(lower - 0.5 * width, upper + 0.5 * width))
+
+    def objective(x):
+        v, g = problem.value_and_grad(jnp.asarray(x[None]))
+        v, g = float(np.asarray(v)[0]), np.asarray(g, float)[0]
+        if not np.isfinite(v):
+            return 1e30, np.zeros_like(x)
+        return -v, -g
+
+    best = None
+    for k in order:
+        if not np.isfinite(f0[k]):
+            continue
+        res = minimize(
+            objective,
+            starts[k],
+            jac=True,
+            method="L-BFGS-B",
+            bounds=bounds,
+            options={"maxiter": int(max_iterations)},
+        )
+        n_evals += int(res.nfev)
+        if best is None or res.fun < best.fun:
+            best = res
+    theta = np.asarray(best.x, float)
+    prec_box = np.diag(12.0 / width**2) if box_precision else np.zeros((lower.size,) * 2)
+    steps = 0.01 * width
+    for _ in range(2):
+        hess = value_hessian(problem, theta, steps)
+        n_evals += 1 + 2 * lower.size**2
+        cov = _inverse_psd(_psd_part(-hess) + prec_box)
+        steps = np.clip(np.sqrt(np.diag(cov)), 1e-6 * width, 0.25 * width)
+    return ProblemLaplace(theta, 0.5 * (cov + cov.T), -float(best.fun), steps, n_evals)
+
+
+def _psd_part(h: np.ndarray) -> np.ndarray:
+    """The positive semi-definite part of a symmetric matrix (negative eigenvalues set to 0:
+    a saddle or noise direction gets no curvature, i.e. the box's spread)."""
+    h = 0.5 * (h + h.T)
+    w, v = np.linalg.eigh(h)
+    return (v * np.maximum(w, 0.0)) @ v.T
+
+
+def problem_laplace_particles(key, lap: ProblemLaplace, n: int, scale: float = 1.0):
+    """``[n, D]`` draws of ``N(lap.theta, scale^2 lap.cov)`` (``key``: a JAX key)."""
+    if not (isinstance(n, (int, np.integer)) and n >= 1):
+        raise ConfigError(f"n: must be an integer >= 1, got {n!r}")
+    cov = np.asarray(lap.cov, float) * float(scale) ** 2
+    chol = np.linalg.cholesky(cov + 1e-12 * np.eye(len(cov)) * np.trace(cov) / len(cov))
+    z = jax.random.normal(key, (int(n), len(lap.theta)))
+    return jnp.asarray(lap.theta) + z @ jnp.asarray(chol.T, z.dtype)
+
+
+def mh_proposal(cov, dim: int | None = None) -> np.ndarray:
+    """``[D, D]`` Cholesky factor of the random-walk proposal ``(2.38^2 / D) cov`` (Roberts,
+    Gelman & Gilks 1997: the optimal scaling for a Gaussian target), for
+    :func:`treeinfer.samplers.mh`'s matrix ``proposal_scale``."""
+    cov = np.asarray(cov, float)
+    d = cov.shape[0] if dim is None else int(dim)
+    chol = np.linalg.cholesky(cov + 1e-12 * np.eye(len(cov)) * np.trace(cov) / len(cov))
+    return 2.38 / np.sqrt(d) * chol

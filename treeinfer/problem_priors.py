@@ -23,6 +23,8 @@ def box_prior(
 ):
     """Smoothed box over the inferred joints' gains as a theta-space log-density (``layout``:
     a :class:`treeinfer.static.ParameterLayout`, for stiffness only)."""
+    if layout is not None and hasattr(layout, "log_prior"):  # a tied layout's own prior
+        return layout.log_prior(prior_sigma, prior_space)
     lo, hi = tree.bounds_array()
     if layout is not None:
         lo, hi = np.exp(layout.lower), np.exp(layout.upper)

@@ -169,6 +169,8 @@ def stem_tree(
     n_links: int = 3,
     kp_bounds=(0.5, 100.0),
     hinges: str = "bases",
+    tie: str | None = None,
+    tie_scale: float | None = None,
 ):
     """A vertical chain of ``n_links`` hinges approximating ``stem``, every joint inferred: the
     hinge model to fit to pushes. The stem is cut into ``n_links`` equal segments;
@@ -176,7 +178,9 @@ def stem_tree(
     ``"midpoints"`` at its segment's middle (a fixed stub of half a segment at the ground, a
     half-length top link): a beam segment replaced by a hinge at its middle with
     ``K = E I / l`` reproduces the beam's deflection to second order (see
-    ``experiments/stem_pushes.py --analytic``). Radii follow the taper at each link's middle."""
+    ``experiments/stem_pushes.py --analytic``). Radii follow the taper at each link's middle.
+    ``tie``/``tie_scale``: the tree file's ``inference: {tie: taper, tie_scale: TAU}``
+    (:mod:`treeinfer.static.tied`)."""
     from .tree import Bounds, Branch, make_tree
 
     if hinges not in ("bases", "midpoints"):
@@ -203,6 +207,8 @@ def stem_tree(
         name="stem",
         base_pitch_deg=90.0,
         density=stem.density,
+        tie=tie,
+        tie_scale=tie_scale,
     )
 
 

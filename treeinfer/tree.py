@@ -63,6 +63,7 @@ from .tree_types import (  # noqa: F401 -- re-exported: the old import path keep
     local_rotation,
     parse_direction,
     parse_parameters,
+    parse_tie,
     parse_tree_pull,
     quat_from_matrix,
     rot_x,
@@ -140,6 +141,10 @@ def make_tree(
             kwargs["pull_direction"] = parse_direction(kwargs["pull_direction"], "pull.direction")
         if "parameters" in kwargs:
             kwargs["parameters"] = parse_parameters(kwargs["parameters"])
+        if "tie" in kwargs or "tie_scale" in kwargs:
+            kwargs["tie"], kwargs["tie_scale"] = parse_tie(
+                kwargs.get("tie"), kwargs.get("tie_scale")
+            )
     except ConfigError as e:
         raise TreeFileError(str(e)) from None
     tree = Tree(
@@ -160,7 +165,32 @@ def make_tree(
     g = np.asarray(tree.gravity, float)
     if not np.all(np.isfinite(g)) or np.linalg.norm(g) == 0:
         raise TreeFileError(f"gravity: must be a finite non-zero vector, got {list(tree.gravity)}")
+    if tree.tie is not None:
+        check_tie(tree)
     return tree
+
+
+def check_tie(tree: Tree) -> None:
+    """A taper tie needs two or more inferred joints along one stem (each joint an ancestor of
+    the next): a stiffness profile along a taper means nothing across side branches.
+
+    Raises:
+        TreeFileError: naming ``inference.tie`` and what is wrong.
+    """
+    joints = list(tree.inferred)
+    if len(joints) < 2:
+        raise TreeFileError(
+            f"inference.tie: '{tree.tie}' ties the stiffnesses of two or more joints along a stem; "
+            f"this tree infers only {joints}; drop the tie or infer more joints (inference.levels)"
+        )
+    chain = sorted(joints, key=lambda n: len(tree.ancestors(n)))
+    for lower, upper in zip(chain[:-1], chain[1:]):
+        if lower not in tree.ancestors(upper):
+            raise TreeFileError(
+                f"inference.tie: '{tree.tie}' runs along one stem, but joints '{lower}' and "
+                f"'{upper}' are on different branches (neither holds the other); infer one "
+                "chain of joints (inference.joints) or drop the tie"
+            )
 
 
 def _validate_branches(branches: tuple[Branch, ...]) -> None:
@@ -354,15 +384,16 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
     inf = d.get("inference", {}) or {}
     if not isinstance(inf, dict):
         raise TreeFileError(f"{pre}inference: expected a mapping")
-    bad = set(inf) - {"joints", "levels", "prior", "parameters"}
+    bad = set(inf) - {"joints", "levels", "prior", "parameters", "tie", "tie_scale"}
     if bad:
         raise TreeFileError(
             f"{pre}inference: unknown field(s) {sorted(bad)}; allowed: joints, levels, prior, "
-            "parameters"
+            "parameters, tie, tie_scale"
         )
     try:
         pull_direction = parse_tree_pull(d.get("pull"), source)
         parameters = parse_parameters(inf.get("parameters"), f"{source}: inference.parameters")
+        tie, tie_scale = parse_tie(inf.get("tie"), inf.get("tie_scale"), f"{source}: inference")
     except ConfigError as e:
         msg = str(e)
         raise TreeFileError(msg if msg.startswith(pre) else f"{pre}{msg}") from None
@@ -429,6 +460,8 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
             fixed_kd=_positive(fixed.get("kd", DEFAULT_FIXED_KD), "fixed.kd"),
             pull_direction=pull_direction,
             parameters=parameters,
+            tie=tie,
+            tie_scale=tie_scale,
             model=_model_section(d.get("model"), source, base_dir),
         )
     except TreeFileError as e:

@@ -103,6 +103,11 @@ class Tree:
     pull_direction: str | tuple[float, float, float] = "down"
     # gains the samplers move (``inference: {parameters: [kp]}``): ("kp", "kd") or ("kp",)
     parameters: tuple[str, ...] = ("kp", "kd")
+    # stiffness tied along the stem (``inference: {tie: taper, tie_scale: TAU}``, see
+    # treeinfer.static.tied): None (every joint free) or "taper"; tie_scale None (hard tie, one
+    # free scale) or the std TAU > 0 of each joint's log-stiffness about the taper (soft tie)
+    tie: str | None = None
+    tie_scale: float | None = None
     # the user's own URDF/MJCF (treeinfer.usermodel): the validated ``model:`` section, or None
     model: dict | None = None
 
@@ -385,6 +390,48 @@ def parse_parameters(value, source: str = "inference.parameters") -> tuple[str, 
     return tuple(p for p in PARAMETERS if p in names)
 
 
+TIES = ("taper",)
+
+
+def parse_tie(
+    tie, tie_scale=None, source: str = "inference", names=("tie", "tie_scale")
+) -> tuple[str | None, float | None]:
+    """Validate ``inference: {tie: taper, tie_scale: TAU}`` (or ``--tie``/``--tie-scale``:
+    ``source=""`` and ``names=("--tie", "--tie-scale")``).
+
+    Returns:
+        (tie, tie_scale): tie None (``none`` or absent: every joint's stiffness free) or
+        ``"taper"``; tie_scale None (hard tie) or a finite TAU > 0 in natural-log units.
+    Raises:
+        ConfigError: an unknown tie, a bad scale, or a scale without a tie.
+    """
+    where = f"{source}." if source else ""
+    name = None if tie is None else str(tie).strip().lower()
+    if name in ("none", ""):
+        name = None
+    if name is not None and name not in TIES:
+        raise ConfigError(
+            f"{where}{names[0]}: unknown tie {tie!r}; expected one of: {', '.join(TIES)} (or none)"
+        )
+    if tie_scale is None:
+        return name, None
+    if isinstance(tie_scale, bool):
+        tau = float("nan")
+    else:
+        try:
+            tau = float(tie_scale)
+        except (TypeError, ValueError):
+            tau = float("nan")
+    if not (math.isfinite(tau) and tau > 0):
+        raise ConfigError(
+            f"{where}{names[1]}: expected a positive number (std of each joint's log-stiffness "
+            f"about the taper), got {tie_scale!r}"
+        )
+    if name is None:
+        raise ConfigError(f"{where}{names[1]}: given without a tie; add {names[0]} taper")
+    return name, tau
+
+
 def _density_in_range(v: float, fld: str, where: str = "") -> float:
     lo, hi = DENSITY_RANGE
     if not lo <= v <= hi:
@@ -478,6 +525,10 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
     # written only when not the default, so that older trees' files (and hashes) are unchanged
     if tree.parameters != ("kp", "kd"):
         out["inference"]["parameters"] = list(tree.parameters)
+    if tree.tie is not None:
+        out["inference"]["tie"] = tree.tie
+        if tree.tie_scale is not None:
+            out["inference"]["tie_scale"] = float(tree.tie_scale)
     if tree.pull_direction != "down":
         pd = tree.pull_direction
         out["pull"] = {"direction": pd if isinstance(pd, str) else [float(x) for x in pd]}

@@ -75,6 +75,8 @@ _RUN_OPTIONS = {
     "noise_displacement": "--noise-displacement",
     "model": "--model",
     "repair_inertia": "--repair-inertia",
+    "tie": "--tie",
+    "tie_scale": "--tie-scale",
 }
 
 
@@ -288,6 +290,21 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "under each force sample, for slow quasi-static pushes: stiffness only, damping not "
         "identified (infer prints a notice when the data look quasi-static)",
     )
+    p.add_argument(
+        "--tie",
+        metavar="TIE",
+        help="'taper': stiffness tied along the stem's taper (Kp_j = s * r_j^4 / l_j, Hencky "
+        "lumping), one free scale s; 'none' drops a tree file's inference.tie (default: the tree "
+        "file's); needs stiffness only (--model-kind static or inference.parameters: [kp])",
+    )
+    p.add_argument(
+        "--tie-scale",
+        type=float,
+        metavar="TAU",
+        help="soften the tie: each joint's log-stiffness deviates from the taper by "
+        "Normal(0, TAU) (TAU = 0.1: about 10%%), so untested heights keep honest uncertainty "
+        "(default: the tree file's inference.tie_scale, else a hard tie)",
+    )
     add_model_options(p)
     add_simulation_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -344,7 +361,13 @@ def run_infer(args: argparse.Namespace) -> int:
         _check_infer_options(o)
         run_dir = args.out
         inputs = runs.load_run_inputs(
-            args.tree, args.data, args.model, args.repair_inertia, o["model_kind"]
+            args.tree,
+            args.data,
+            args.model,
+            args.repair_inertia,
+            o["model_kind"],
+            o["tie"],
+            o["tie_scale"],
         )
         config = runs.infer_config(
             args.tree,

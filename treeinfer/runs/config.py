@@ -123,6 +123,8 @@ class RunConfig:
     noise_displacement: float | None = None
     model: str | None = None
     repair_inertia: str | None = None
+    tie: str | None = None
+    tie_scale: float | None = None
     # ---- the record: config.json beyond the options (None until known; JSON key in brackets)
     command: str = "infer"
     versions: dict | None = None
@@ -145,6 +147,13 @@ class RunConfig:
         from ..static import parse_model_kind
 
         set_("model_kind", parse_model_kind(self.model_kind))
+        from ..tree_types import parse_tie
+
+        if self.tie is not None or self.tie_scale is not None:  # --tie-scale alone: the file's
+            name = "taper" if self.tie is None else self.tie
+            tie, tau = parse_tie(name, self.tie_scale, "", ("--tie", "--tie-scale"))
+            set_("tie", tie if self.tie is not None else None)
+            set_("tie_scale", tau)
         sampler_spec(self.sampler)
         set_(
             "particles",
@@ -231,7 +240,13 @@ class RunConfig:
         """``config.json``'s ``"options"`` object: every option (``gradients``/``init``/
         ``model_kind`` only when not default); for a config read from a file, the keys it gave."""
         out = {k: getattr(self, k) for k in OPTION_FIELDS}
-        for k, default in (("gradients", "fd"), ("init", "uniform"), ("model_kind", "dynamic")):
+        for k, default in (
+            ("gradients", "fd"),
+            ("init", "uniform"),
+            ("model_kind", "dynamic"),
+            ("tie", None),
+            ("tie_scale", None),
+        ):
             if out[k] == default:
                 del out[k]
         if self.given is not None:
@@ -340,13 +355,18 @@ def load_run_inputs(
     model: str | os.PathLike | None = None,
     repair_inertia: str | None = None,
     model_kind: str = "dynamic",
+    tie: str | None = None,
+    tie_scale: float | None = None,
 ) -> RunInputs:
     """Read the tree and the training data of a new run once (clear errors for a missing folder,
     a bad file or a bad tree)."""
     from ..static import run_tree
 
     data_dir = Path(data_dir)
+    from ..static import with_tie
+
     tree = run_tree(load_run_tree(tree_path, model, repair_inertia), model_kind)
+    tree = with_tie(tree, tie, tie_scale)  # --tie/--tie-scale over the file's inference.tie
     files = data_manifest(data_dir) if data_dir.is_dir() else []
     trajs = read_trajectory_dir(data_dir)
     return RunInputs(tree, trajs, read_true_params(tree, data_dir), files)
@@ -391,7 +411,13 @@ def infer_config(
     tree_path, data_dir, out = Path(tree_path), Path(data_dir), Path(out)
     if inputs is None:
         inputs = load_run_inputs(
-            tree_path, data_dir, model, repair_inertia, more.get("model_kind", "dynamic")
+            tree_path,
+            data_dir,
+            model,
+            repair_inertia,
+            more.get("model_kind", "dynamic"),
+            more.get("tie"),
+            more.get("tie_scale"),
         )
     tree, trajs, files = inputs.tree, inputs.trajectories, inputs.files
     cfg = RunConfig(
@@ -486,10 +512,35 @@ def check_data_unchanged(config: dict) -> list[Trajectory]:
 LAPLACE_WARMUP = 10
 
 
-def sampler_settings(config: dict) -> dict:
+def laplace_mh_proposal(start) -> list:
+    """MH's proposal for ``--init laplace``: the Cholesky factor of ``(2.38^2 / D)`` times the
+    covariance of the Laplace start's particles ``[P, D]`` (:func:`treeinfer.laplace.mh_proposal`),
+    as nested lists (config.json records it, so a resumed run moves the same way)."""
+    from ..laplace import mh_proposal
+
+    x = np.asarray(start, float)
+    cov = np.atleast_2d(np.cov(x.T)) if len(x) > 1 else np.zeros((x.shape[1],) * 2)
+    ridge = 1e-10 * max(float(np.trace(cov)) / len(cov), 1e-12)
+    return mh_proposal(cov + ridge * np.eye(len(cov))).tolist()
+
+
+def sampler_settings(config: dict, start=None) -> dict:
+    """The sampler record of a run (``config.json``'s ``"sampler"``). With ``--init laplace``:
+    SVGD/NNSVGD ramp their step up; MH's proposal is shaped by the start's covariance
+    (:func:`laplace_mh_proposal` of ``start``, the Laplace particles; without ``start``, the one
+    the config recorded)."""
     name = config["options"]["sampler"]
     options = dict(sampler_options(name))
     init = config["options"].get("init", "uniform")
-    if init in ("laplace", "importance") and name in ("svgd", "nnsvgd"):
+    # Both fitted starts (Laplace, importance) begin near the posterior: ramp the step up.
+    laplace = init in ("laplace", "importance")
+    if laplace and name in ("svgd", "nnsvgd"):
         options["warmup"] = LAPLACE_WARMUP
+    if laplace and name == "mh":
+        if start is not None:
+            options["proposal_scale"] = laplace_mh_proposal(start)
+        else:
+            recorded = (config.get("sampler") or {}).get("options", {}).get("proposal_scale")
+            if isinstance(recorded, list):
+                options["proposal_scale"] = recorded
     return {"name": name, "options": options}

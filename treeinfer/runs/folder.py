@@ -28,7 +28,15 @@ from .cache import SimulatorCache, simulator_for
 from .checkpoint import _npz_bytes, partial_dir
 from .config import RUN_FORMAT
 
-UNITS = {"Kp": "N m/rad", "Kd": "N m s/rad", "sigma_x": "m", "sigma_c": "m", "rho": ""}
+UNITS = {
+    "Kp": "N m/rad",
+    "Kd": "N m s/rad",
+    "sigma_x": "m",
+    "sigma_c": "m",
+    "rho": "",
+    "Kp_scale": "N m/rad",  # a taper tie's scale (treeinfer.static.tied)
+    "Kp_taper_ratio": "",  # a soft tie's Kp_j / (scale * taper_j)
+}
 
 
 # ==== summaries ===================================================================================

@@ -96,7 +96,13 @@ def _prepare_fresh(config: dict, inputs: RunInputs | None, log: Callable[[str], 
     o = config["options"]
     if inputs is None:
         inputs = load_run_inputs(
-            o["tree"], o["data"], o.get("model"), o.get("repair_inertia"), o.get("model_kind")
+            o["tree"],
+            o["data"],
+            o.get("model"),
+            o.get("repair_inertia"),
+            o.get("model_kind"),
+            o.get("tie"),
+            o.get("tie_scale"),
         )
     elif tree_to_dict_json(tree_to_dict(inputs.tree)) != tree_to_dict_json(config["tree_dict"]):
         raise ConfigError(
@@ -144,11 +150,8 @@ def _laplace_start(problem, config: dict, log: Callable[[str], None]):
     from ..mapfit import fit_problem, laplace_particles
 
     o = config["options"]
-    if getattr(problem, "model", None) is not None:
-        raise ConfigError(
-            "--init laplace: supported for the dynamic model of Kp and Kd only; use --init "
-            "uniform with --model-kind static or inference.parameters: [kp]"
-        )
+    if getattr(problem, "model", None) is not None:  # static, stiffness only, a taper tie
+        return _model_laplace_start(problem, o, log)
     jacobian = "jvp" if o.get("gradients", "fd") == "jvp" else "fd"
     fit = fit_problem(
         problem,
@@ -203,6 +206,23 @@ def _start(problem, config: dict, log: Callable[[str], None]):
     return None, None
 
 
+def _model_laplace_start(problem, o: dict, log: Callable[[str], None]):
+    """``--init laplace`` for any model other than the paper's (the LM fit needs its
+    residuals): the MAP and Hessian of the problem's own log-density
+    (:func:`treeinfer.laplace.problem_laplace`), drawn with the run's seed."""
+    from ..laplace import problem_laplace, problem_laplace_particles
+
+    lap = problem_laplace(problem, seed=o["seed"])
+    std = np.sqrt(np.diag(lap.cov))
+    log(
+        f"Laplace start: MAP of the log-density ({lap.n_evals} evaluations), std "
+        + ", ".join(f"{x:.3g}" for x in std)
+    )
+    return problem_laplace_particles(
+        jax.random.fold_in(jax.random.key(o["seed"]), 0x1A9), lap, o["particles"]
+    )
+
+
 def run_inference(
     config: dict | None = None,
     *,
@@ -253,8 +273,10 @@ def run_inference(
         _check_init(problem, config["options"])
         if problem.noise is not None:
             log(f"likelihood: {problem.noise.description}")
+        # --init laplace/importance: drawn before the sampler is recorded (MH's proposal)
+        ready_start, start = _start(problem, config, log)
         cfg = dataclasses.replace(
-            cfg, problem=problem.settings, sampler_record=sampler_settings(config)
+            cfg, problem=problem.settings, sampler_record=sampler_settings(config, start)
         )
         cfg = dataclasses.replace(cfg, config_hash=config_hash(cfg.to_json()))
         config = cfg.to_json()
@@ -322,7 +344,13 @@ def run_inference(
         config["options"]["max_unstable_share"] = float(max_unstable_share)
 
     o = config["options"]
-    ready, theta0 = (None, None) if previous is not None else _start(problem, config, log)
+    if resume is None:
+        ready, theta0 = ready_start, start
+    else:
+        ready, theta0 = None, None
+    if previous is None and ready is None and theta0 is None:
+        # a resumed run that stopped before its first checkpoint: draw its start again
+        ready, theta0 = _start(problem, config, log)
     if ready is not None:  # --init importance: the weighted draws are the posterior
         posterior = ready
     else:
@@ -430,10 +458,18 @@ def _fitted_noise(problem) -> float | None:
         return None
 
 
-def _warmup_option(config: dict) -> dict:
-    """The recorded learning-rate warm-up (``--init laplace``/``importance`` with SVGD/NNSVGD)."""
-    w = config.get("sampler", {}).get("options", {}).get("warmup")
-    return {"warmup": int(w)} if w else {}
+def _warmup_option(config: dict, start=None) -> dict:
+    """The recorded learning-rate warm-up (``--init laplace``/``importance`` with SVGD/NNSVGD), if any, and
+    MH's Laplace-shaped proposal (recorded; or from ``start``, a k-fold refit's own Laplace
+    particles)."""
+    recorded = config.get("sampler", {}).get("options", {})
+    w = recorded.get("warmup")
+    out = {"warmup": int(w)} if w else {}
+    if start is not None and config["options"].get("sampler") == "mh":
+        recorded = sampler_settings(config, start)["options"]
+    if isinstance(recorded.get("proposal_scale"), list):
+        out["proposal_scale"] = np.asarray(recorded["proposal_scale"], float)
+    return out
 
 
 def _convergence_options(o: dict, problem) -> dict:
@@ -477,7 +513,7 @@ def infer_posterior(
         progress=progress,
         cache=cache.programs,
         **({} if theta0 is None else {"initial_theta": theta0}),
-        **_warmup_option(config),
+        **_warmup_option(config, theta0),
     )
     return problem, posterior
 

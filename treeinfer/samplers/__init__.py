@@ -89,8 +89,12 @@ def _sghmc_options(opts: dict, box_width) -> dict:
 def _mh_options(opts: dict, box_width) -> dict:
     import jax.numpy as jnp
 
-    # proposal_scale is a share of each (log) prior box width [D]
-    return {"proposal_scale": jnp.asarray(opts["proposal_scale"] * box_width)}
+    # proposal_scale is a share of each (log) prior box width [D]; a [D, D] matrix is the
+    # proposal's Cholesky factor in theta units (e.g. treeinfer.laplace.mh_proposal), as it is
+    scale = jnp.asarray(opts["proposal_scale"])
+    if scale.ndim == 2:
+        return {"proposal_scale": scale}
+    return {"proposal_scale": jnp.asarray(scale * box_width)}
 
 
 class SamplerSpec(NamedTuple):

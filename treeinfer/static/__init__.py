@@ -40,8 +40,14 @@ from .layout import (
     tree_layout,
 )
 from .model import Model, model_for, model_rollout, model_with_pulls
-from .terms import full_theta, model_likelihood_terms
-from .tied import TiedLayout, tied_layout
+from .terms import (
+    compliance_slopes,
+    effective_noise,
+    force_noise_estimate,
+    full_theta,
+    model_likelihood_terms,
+)
+from .tied import TiedLayout, taper_shape, tied_layout, tree_tied_layout, with_tie
 
 __all__ = [
     "MODEL_KINDS",
@@ -51,7 +57,10 @@ __all__ = [
     "QUASI_STATIC_RATIO",
     "ParameterLayout",
     "TiedLayout",
+    "compliance_slopes",
     "damping_note",
+    "effective_noise",
+    "force_noise_estimate",
     "full_theta",
     "natural_periods",
     "parameter_layout",
@@ -64,7 +73,10 @@ __all__ = [
     "quasi_static_notice",
     "run_tree",
     "static_rollout",
+    "taper_shape",
     "tied_layout",
+    "tree_tied_layout",
+    "with_tie",
     "suggest_static",
     "tree_layout",
 ]

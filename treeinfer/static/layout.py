@@ -128,12 +128,17 @@ def run_tree(tree, model_kind: str = "dynamic"):
     return tree
 
 
-def tree_layout(tree) -> ParameterLayout:
+def tree_layout(tree):
     """:func:`parameter_layout` of ``tree.parameters``; damping, when not inferred, is held at
     each joint's own ``kd`` in the tree file where given, else at its prior box's geometric
-    mean."""
+    mean. A tree with ``inference: {tie: taper}`` gets the tied layout
+    (:func:`treeinfer.static.tied.tree_tied_layout`: one stiffness scale, or soft)."""
     joints = tuple(tree.inferred)
     lo, hi = (np.asarray([tree.bounds[n].kd[i] for n in joints], float) for i in (0, 1))
     own = [tree.branch(n).kd for n in joints]
     fixed = np.asarray([k if k is not None else math.sqrt(a * b) for k, a, b in zip(own, lo, hi)])
+    if getattr(tree, "tie", None) is not None:
+        from .tied import tree_tied_layout
+
+        return tree_tied_layout(tree, fixed)
     return parameter_layout(tree, getattr(tree, "parameters", PARAMETERS), fixed_kd=fixed)

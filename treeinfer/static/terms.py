@@ -46,6 +46,7 @@ def model_likelihood_terms(
     grasp_fraction=None,
     gradient: str = "fd",
     rel_step: float | None = None,
+    force_noise: float | None = None,
 ):
     """:class:`treeinfer.likelihood.LikelihoodTerms` of ``model`` on ``obs``.
 
@@ -56,6 +57,12 @@ def model_likelihood_terms(
       gradient: ``"fd"`` (black box: central differences of the Boltzmann loss, or the
         simulator wrapped in :func:`~treeinfer.gradients.finite_difference_jvp` for the
         generative kinds) or ``"autodiff"`` (through the simulator).
+      force_noise: N, the load cell's noise std (e.g. :func:`force_noise_estimate`), or None.
+        Given (Gaussian or Student-t only), each recording's displacement noise is
+        :func:`effective_noise`: ``sqrt(sigma_x^2 + (force_noise * c_b)^2)`` with ``c_b`` the
+        model's compliance at that recording's pull (a noisy force read through the branch's
+        compliance; the linearised errors-in-variables model). A push where the branch is soft
+        turns the same load-cell noise into more displacement scatter than a stiff one.
 
     Returns:
       the terms with ``log_likelihood: theta [N, layout.dim + E] -> [N]`` (nats) and the noise
@@ -87,7 +94,20 @@ def model_likelihood_terms(
         )
         return base._replace(log_likelihood=loglik, value_and_grad=vg)
 
-    loglik = _measurement(rollout, obs, d, kind, base.sigma_x, gradient == "fd", rel_step)
+    if force_noise is not None:
+        if kind not in ("gaussian", "student_t"):
+            raise ConfigError(f"force noise: works with gaussian or student_t, not {kind!r}")
+        if not (math.isfinite(float(force_noise)) and float(force_noise) > 0):
+            raise ConfigError(f"force noise: expected a positive std in N, got {force_noise!r}")
+        settings = {**base.settings, "force_noise": float(force_noise)}
+        base = base._replace(
+            settings=settings,
+            description=base.description
+            + f"; load-cell noise {float(force_noise):.3g} N read through each pull's compliance",
+        )
+    loglik = _measurement(
+        rollout, obs, d, kind, base.sigma_x, gradient == "fd", rel_step, force_noise
+    )
     extra = None
     if base.extra_log_prior is not None:
         prior = base.extra_log_prior
@@ -100,11 +120,41 @@ def model_likelihood_terms(
     )
 
 
-def _measurement(rollout, obs, d, kind, sigma_x, black_box, rel_step):
+def compliance_slopes(tau, force, mask=None):
+    """``[..., B]`` least-squares slopes ``c_b = sum_t tau F / sum_t F^2`` (m/N) of displacement
+    ``tau [..., B, T]`` on force ``force [B, T]`` over the real samples (``mask [B, T]``)."""
+    f = jnp.asarray(force, tau.dtype)
+    m = jnp.ones(f.shape, bool) if mask is None else jnp.asarray(mask, bool)
+    num = jnp.sum(jnp.where(m, tau * f, 0.0), axis=-1)
+    den = jnp.sum(jnp.where(m, f * f, 0.0), axis=-1)
+    return num / jnp.maximum(den, jnp.finfo(tau.dtype).tiny)
+
+
+def effective_noise(sigma_x, force_noise, tau, force, mask=None):
+    """``[N, B]`` displacement noise std (m) ``sqrt(sigma_x^2 + (force_noise * c_b)^2)`` of
+    draws with noise ``sigma_x [N]`` (m) and predicted displacements ``tau [N, B, T]`` under
+    ``force [B, T]`` (N); ``force_noise`` in N (None: ``sigma_x`` alone)."""
+    sx = jnp.asarray(sigma_x, tau.dtype)[:, None]
+    if force_noise is None:
+        return jnp.broadcast_to(sx, tau.shape[:2])
+    c = compliance_slopes(tau, force, mask)
+    return jnp.sqrt(sx**2 + (float(force_noise) * c) ** 2)
+
+
+def force_noise_estimate(data) -> float:
+    """The load cell's noise std (N) from the recordings' force signals: the robust estimate of
+    :func:`treeinfer.noise.estimate_displacement_noise` (MAD of second differences / sqrt(6))
+    applied to force instead of displacement (a slow push's force is smooth between samples)."""
+    obs = noise.as_observations(data)
+    return float(noise.estimate_displacement_noise(obs._replace(displacement=obs.force)).sigma)
+
+
+def _measurement(rollout, obs, d, kind, sigma_x, black_box, rel_step, force_noise=None):
     """``theta [N, d + E] -> [N]``: the displacement noise model on ``rollout``'s tau (the
     same terms as :func:`treeinfer.likelihood.measurement_log_likelihood`, velocity term off)."""
     x_obs = jnp.asarray(obs.displacement)
     mask = jnp.asarray(obs.mask, bool)
+    forces = jnp.asarray(obs.force)
     df = noise.DEFAULT_STUDENT_T_DF
 
     def tau(gains):  # [M, d] -> [M, B, T], NaN where unstable
@@ -122,7 +172,11 @@ def _measurement(rollout, obs, d, kind, sigma_x, black_box, rel_step):
         else:
             sx = jnp.full(theta.shape[:1], sigma_x, out.dtype)
         resid = x_obs.astype(out.dtype) - out
-        if kind == "ar1":
+        if force_noise is not None:  # each pull's own scatter (its compliance)
+            scale = effective_noise(sx, force_noise, jnp.nan_to_num(out), forces, mask)
+            lp = noise.residual_log_prob(resid, scale[:, :, None], kind, df)
+            total = jnp.sum(jnp.where(mask, lp, 0.0), axis=(-2, -1))
+        elif kind == "ar1":
             sc, rho = jnp.exp(theta[:, c]), jax.nn.sigmoid(theta[:, c + 1])
             total = noise.ar1_white_log_prob(resid, mask, sx, sc, rho)
         else:
