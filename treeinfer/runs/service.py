@@ -459,9 +459,9 @@ def _fitted_noise(problem) -> float | None:
 
 
 def _warmup_option(config: dict, start=None) -> dict:
-    """The recorded learning-rate warm-up (``--init laplace``/``importance`` with SVGD/NNSVGD), if any, and
-    MH's Laplace-shaped proposal (recorded; or from ``start``, a k-fold refit's own Laplace
-    particles)."""
+    """The recorded learning-rate warm-up (``--init laplace``/``importance`` with SVGD/NNSVGD),
+    if any, and MH's Laplace-shaped proposal (recorded; or from ``start``, a k-fold refit's own
+    Laplace particles)."""
     recorded = config.get("sampler", {}).get("options", {})
     w = recorded.get("warmup")
     out = {"warmup": int(w)} if w else {}

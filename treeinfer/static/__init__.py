@@ -38,6 +38,7 @@ from .layout import (
     parse_model_kind,
     run_tree,
     tree_layout,
+    with_tie,
 )
 from .model import Model, model_for, model_rollout, model_with_pulls
 from .terms import (
@@ -47,7 +48,7 @@ from .terms import (
     full_theta,
     model_likelihood_terms,
 )
-from .tied import TiedLayout, taper_shape, tied_layout, tree_tied_layout, with_tie
+from .tied import TiedLayout, taper_shape, tied_layout, tree_tied_layout
 
 __all__ = [
     "MODEL_KINDS",

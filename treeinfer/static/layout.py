@@ -142,3 +142,44 @@ def tree_layout(tree):
 
         return tree_tied_layout(tree, fixed)
     return parameter_layout(tree, getattr(tree, "parameters", PARAMETERS), fixed_kd=fixed)
+
+
+def with_tie(tree, tie=None, tie_scale=None):
+    """``tree`` with a run's ``--tie``/``--tie-scale`` applied over its file's
+    ``inference.tie``/``tie_scale`` (``--tie none`` drops the file's tie; ``--tie-scale`` alone
+    softens the file's tie), validated: the tie's name, the tree's shape
+    (:func:`treeinfer.tree.check_tie`) and the layout (no damping inferred).
+
+    Raises:
+        ConfigError: naming the flag or the tree file's field.
+    """
+    import dataclasses
+
+    from ..errors import TreeFileError
+    from ..tree import check_tie
+    from ..tree_types import parse_tie
+
+    if tie is None and tie_scale is None:
+        if tree.tie is not None:
+            tree_layout(tree)
+        return tree
+    flags = ("--tie", "--tie-scale")
+    name, _ = parse_tie(tie, None, "", flags)
+    if tie is None:  # --tie-scale alone: the tree file's tie, softened
+        name = tree.tie
+    if name is None and tie_scale is not None:
+        raise ConfigError(
+            "--tie-scale: given without a tie; add --tie taper (or tie: taper to the tree file's "
+            "inference section)"
+        )
+    name, tau = parse_tie(name, tie_scale, "", flags)
+    if tie_scale is None and tie is not None and name == tree.tie:
+        tau = tree.tie_scale  # --tie taper on a tree that already ties: keep its scale
+    out = dataclasses.replace(tree, tie=name, tie_scale=tau)
+    if name is not None:
+        try:
+            check_tie(out)
+        except TreeFileError as e:
+            raise ConfigError(f"--tie {name}: {e}") from None
+        tree_layout(out)
+    return out
