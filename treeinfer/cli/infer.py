@@ -379,10 +379,10 @@ def run_infer(args: argparse.Namespace) -> int:
             inputs=inputs,
             **o,
         )
-        _say(
-            f"{len(config['data']['files'])} training trajectories from {args.data}; sampling "
-            f"with {o['sampler']} ({o['particles']} particles x {o['iterations']} iterations)"
-        )
+        plan = f"{o['sampler']} ({o['particles']} particles x {o['iterations']} iterations)"
+        if o.get("init") == "importance":  # the sampler runs only if the weights fail
+            plan = f"importance sampling ({o['particles']} particles), else {plan}"
+        _say(f"{len(config['data']['files'])} training trajectories from {args.data}; {plan}")
     try:
         outcome = runs.run_inference(
             config,
