@@ -1,18 +1,29 @@
 """The tree description's types: branches, prior boxes and the :class:`Tree` itself, the limits
-every field is checked against, the frame geometry, and the field-level checks and parsers
-(grasp fraction, gains, pull direction, inferred parameters) shared by :mod:`treeinfer.tree`
-(construction and files) and the importers."""
+every field is checked against, the frame geometry, and the field-level checks (grasp
+fraction, gains) shared by :mod:`treeinfer.tree` (construction and files) and the importers.
+The pull-direction, inferred-parameter and tie parsers live in :mod:`treeinfer.tree_options`
+(re-exported here)."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError, TreeFileError, check_positive
+from .errors import TreeFileError, check_positive
+
+# the pull direction, inferred parameters and tie live in tree_options (re-exported here)
+from .tree_options import (  # noqa: F401 -- re-exported: the old import path keeps working
+    DIRECTION_WORDS,
+    PARAMETERS,
+    TIES,
+    parse_direction,
+    parse_parameters,
+    parse_tie,
+    parse_tree_pull,
+)
 
 # Default prior boxes (natural units). Kp in N m/rad, Kd in N m s/rad. Chosen for branches of
 # a few cm radius and up to ~1.5 m: gravity sag of a few degrees to tens of degrees.
@@ -305,131 +316,6 @@ def _gain_in_range(v: float, fld: str, where: str = "") -> float:
             "for a branch joint; check the value and its unit"
         )
     return v
-
-
-# ---- pull direction and inferred gains (parsed here, the lowest layer; re-exported by
-# treeinfer.pulls and treeinfer.static) -------------------------------------------------------
-DIRECTION_WORDS = ("down", "horizontal")
-PARAMETERS = ("kp", "kd")
-
-
-def parse_direction(value: Any, where: str = "direction") -> str | tuple[float, float, float]:
-    """Validate a direction: ``down``, ``horizontal``, ``[x, y, z]`` or the text ``"x,y,z"``.
-
-    Returns the word (lower case) or the 3-tuple as given (not normalised).
-
-    Raises:
-        ConfigError: naming ``where``: unknown word, wrong length, non-finite or zero vector.
-    """
-    if isinstance(value, str):
-        word = value.strip().lower()
-        if word in DIRECTION_WORDS:
-            return word
-        parts = [p for p in word.replace(",", " ").split() if p]
-        if len(parts) == 3:
-            value = parts
-        else:
-            raise ConfigError(
-                f"{where}: expected 'down', 'horizontal' or a vector [x, y, z], got {value!r}"
-            )
-    if not isinstance(value, (list, tuple, np.ndarray)) or len(value) != 3:
-        raise ConfigError(
-            f"{where}: expected 'down', 'horizontal' or a vector [x, y, z], got {value!r}"
-        )
-    try:
-        vec = tuple(float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{where}: vector components must be numbers, got {value!r}") from None
-    if not all(math.isfinite(v) for v in vec):
-        raise ConfigError(f"{where}: vector components must be finite, got {list(vec)}")
-    if math.hypot(*vec) == 0.0:
-        raise ConfigError(f"{where}: the zero vector has no direction")
-    return vec  # type: ignore[return-value]
-
-
-def parse_tree_pull(value: Any, source: str = "<tree>") -> str | tuple[float, float, float]:
-    """Parse a tree file's ``pull:`` mapping; returns its default direction (``"down"`` if absent).
-
-    Hook for :func:`treeinfer.tree.tree_from_dict`: accept the top-level key ``pull`` and store
-    ``parse_tree_pull(d.get("pull"), source)`` on the tree (e.g. ``Tree.pull_direction``).
-    """
-    if value is None:
-        return "down"
-    if not isinstance(value, Mapping):
-        raise ConfigError(
-            f"{source}: pull: expected a mapping like {{direction: down}}, got {value!r}"
-        )
-    bad = set(value) - {"direction"}
-    if bad:
-        raise ConfigError(
-            f"{source}: pull: unknown field(s) {sorted(map(str, bad))}; allowed: direction"
-        )
-    if value.get("direction") is None:
-        return "down"
-    return parse_direction(value["direction"], f"{source}: pull: field 'direction'")
-
-
-def parse_parameters(value, source: str = "inference.parameters") -> tuple[str, ...]:
-    """Validate ``inference: {parameters: [...]}``: a list of ``kp``/``kd`` containing ``kp``."""
-    if value is None:
-        return PARAMETERS
-    if isinstance(value, str):
-        value = [v for v in value.replace(",", " ").split() if v]
-    if not isinstance(value, (list, tuple)) or not value:
-        raise ConfigError(f"{source}: expected a list like [kp] or [kp, kd], got {value!r}")
-    names = [str(v).strip().lower() for v in value]
-    bad = [n for n in names if n not in PARAMETERS]
-    if bad:
-        raise ConfigError(f"{source}: unknown parameter(s) {bad}; allowed: kp, kd")
-    if "kp" not in names:
-        raise ConfigError(
-            f"{source}: stiffness (kp) must be inferred; damping alone is not supported"
-        )
-    if len(set(names)) != len(names):
-        raise ConfigError(f"{source}: duplicate entries in {names}")
-    return tuple(p for p in PARAMETERS if p in names)
-
-
-TIES = ("taper",)
-
-
-def parse_tie(
-    tie, tie_scale=None, source: str = "inference", names=("tie", "tie_scale")
-) -> tuple[str | None, float | None]:
-    """Validate ``inference: {tie: taper, tie_scale: TAU}`` (or ``--tie``/``--tie-scale``:
-    ``source=""`` and ``names=("--tie", "--tie-scale")``).
-
-    Returns:
-        (tie, tie_scale): tie None (``none`` or absent: every joint's stiffness free) or
-        ``"taper"``; tie_scale None (hard tie) or a finite TAU > 0 in natural-log units.
-    Raises:
-        ConfigError: an unknown tie, a bad scale, or a scale without a tie.
-    """
-    where = f"{source}." if source else ""
-    name = None if tie is None else str(tie).strip().lower()
-    if name in ("none", ""):
-        name = None
-    if name is not None and name not in TIES:
-        raise ConfigError(
-            f"{where}{names[0]}: unknown tie {tie!r}; expected one of: {', '.join(TIES)} (or none)"
-        )
-    if tie_scale is None:
-        return name, None
-    if isinstance(tie_scale, bool):
-        tau = float("nan")
-    else:
-        try:
-            tau = float(tie_scale)
-        except (TypeError, ValueError):
-            tau = float("nan")
-    if not (math.isfinite(tau) and tau > 0):
-        raise ConfigError(
-            f"{where}{names[1]}: expected a positive number (std of each joint's log-stiffness "
-            f"about the taper), got {tie_scale!r}"
-        )
-    if name is None:
-        raise ConfigError(f"{where}{names[1]}: given without a tie; add {names[0]} taper")
-    return name, tau
 
 
 def _density_in_range(v: float, fld: str, where: str = "") -> float:
