@@ -64,8 +64,14 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks._ttp_child import (  # noqa: F401 -- re-exported; the child runs there
+    DT,
+    N_STEPS,
+    child,
+    child_importance,
+)
+
 ROOT = Path(__file__).resolve().parent.parent
-N_STEPS, DT = 300, 0.01
 
 
 # ---- data (parent) -----------------------------------------------------------------------------
@@ -97,182 +103,6 @@ def warm_nn_prior() -> None:
     from treeinfer.tree import load_tree
 
     nn_inequality_prior(load_tree(EXAMPLES / "three_branch.yaml"))
-
-
-# ---- one timed run (child) ---------------------------------------------------------------------
-def child(args) -> int:
-    import jax
-
-    from benchmarks.inference import EXAMPLES
-    from treeinfer.inference import infer, make_problem
-    from treeinfer.trajectories import Trajectory
-    from treeinfer.tree import load_tree
-
-    marks = {"imports": time.time()}
-    data = np.load(Path(args.workdir) / "data.npz")
-    tree = load_tree(EXAMPLES / "three_branch.yaml")
-    t = np.arange(N_STEPS) * DT
-    trajs = [
-        Trajectory(t, f, tau, tau_dot, f"pull{i}")
-        for i, (f, tau, tau_dot) in enumerate(
-            zip(data["train_force"], data["train_tau"], data["train_tau_dot"])
-        )
-    ]
-    problem = make_problem(tree, trajs, substeps=args.substeps)
-    marks["problem"] = time.time()
-    mode = args.child
-    record: dict = {"mode": mode}
-    if mode == "importance":
-        return child_importance(args, problem, marks, record)
-    if mode == "fast":
-        from treeinfer.mapfit import fit_problem, laplace_particles, problem_with_gradients
-
-        fit = fit_problem(
-            problem,
-            "boltzmann",
-            n_starts=args.starts,
-            seed=0,
-            jacobian=args.fast_jacobian,
-            max_iterations=args.lm_iterations,
-            agree=args.lm_agree,
-        )
-        theta0 = laplace_particles(
-            jax.random.key(0),
-            fit,
-            args.particles,
-            scale=args.laplace_scale,
-            covariance=args.laplace_covariance,
-        )
-        marks["map_fit"] = time.time()
-        record["map"] = {
-            "theta": fit.theta.tolist(),
-            "iterations": fit.iterations,
-            "converged": fit.converged.tolist(),
-            "values": fit.values.tolist(),
-        }
-        problem = problem_with_gradients(problem, args.fast_gradients)
-        n_iter = args.fast_iterations
-        options = (
-            {} if args.fast_learning_rate is None else {"learning_rate": args.fast_learning_rate}
-        )
-    else:
-        options = {}
-        theta0 = None
-        n_iter = args.reference_iterations if mode == "reference" else args.today_iterations
-    checks: list = []
-
-    def on_chunk(iteration, state):
-        theta = np.asarray(jax.block_until_ready(state.position))
-        checks.append({"iteration": int(iteration), "time": time.time(), "theta": theta.tolist()})
-
-    if theta0 is not None:
-        checks.append({"iteration": 0, "time": time.time(), "theta": np.asarray(theta0).tolist()})
-    stop_when = None
-    if mode == "fast" and args.stop_when_converged:
-        from treeinfer.diagnostics import ConvergenceCriterion
-
-        stop_when = ConvergenceCriterion(
-            min_iterations=args.min_iterations, window=args.check_every
-        )
-    if mode == "fast" and args.fast_warmup > 0:
-        # Adam's first steps move every coordinate by ~lr whatever its gradient: from particles
-        # already near the posterior that is a kick; the sampler ramps the learning rate up
-        options["warmup"] = args.fast_warmup
-    posterior = infer(
-        problem,
-        "nnsvgd",
-        n_particles=args.particles,
-        n_iterations=n_iter,
-        seed=0,
-        progress=False,
-        initial_theta=theta0,
-        callback=on_chunk,
-        callback_every=args.check_every,
-        trace_every=None,
-        stop_when=stop_when,
-        **options,
-    )
-    final_theta = np.asarray(posterior.theta)
-    record["stop_reason"] = posterior.run.stop_reason
-    record["n_iterations_done"] = int(posterior.run.settings["n_iterations_done"])
-    marks["infer"] = time.time()
-    record.update(
-        {
-            "marks": marks,
-            "checks": checks,
-            "n_iterations": n_iter,
-            "gradient": problem.settings["gradient"],
-            "final_theta": final_theta.tolist(),
-        }
-    )
-    Path(args.result).write_text(json.dumps(record))
-    return 0
-
-
-def child_importance(args, problem, marks, record) -> int:
-    """The ``importance`` path: :func:`treeinfer.fast_posterior.fast_posterior` (one rollout
-    program: screened LM fit, PSIS importance sampling); when its own check fails (``ok``
-    False: Pareto k_hat > 0.7 or too few effective samples) NNSVGD runs from its particles as
-    in the ``fast`` path, stopped by the convergence criterion."""
-    import jax
-
-    from treeinfer.fast_posterior import fast_posterior
-    from treeinfer.inference import infer
-
-    res = fast_posterior(problem, args.particles, n_starts=args.is_starts, seed=0, df=args.is_df)
-    marks["map_fit"] = time.time()
-    record["importance"] = {k: v for k, v in res.settings.items()}
-    record["importance"]["phases_s"] = res.phases
-    record["map"] = {
-        "theta": res.fit.theta.tolist(),
-        "iterations": res.fit.iterations,
-        "converged": res.fit.converged.tolist(),
-        "values": res.fit.values.tolist(),
-    }
-    checks = [{"iteration": 0, "time": time.time(), "theta": res.theta.tolist()}]
-    final_theta, n_done, reason = res.theta, 0, "importance_ok"
-    if not res.ok:
-        from treeinfer.diagnostics import ConvergenceCriterion
-
-        def on_chunk(iteration, state):
-            theta = np.asarray(jax.block_until_ready(state.position))
-            checks.append(
-                {"iteration": int(iteration), "time": time.time(), "theta": theta.tolist()}
-            )
-
-        posterior = infer(
-            problem,
-            "nnsvgd",
-            n_particles=args.particles,
-            n_iterations=args.fast_iterations,
-            seed=0,
-            progress=False,
-            initial_theta=res.theta,
-            callback=on_chunk,
-            callback_every=args.check_every,
-            trace_every=None,
-            stop_when=ConvergenceCriterion(
-                min_iterations=args.min_iterations, window=args.check_every
-            ),
-            warmup=args.fast_warmup,
-        )
-        final_theta = np.asarray(posterior.theta)
-        n_done = int(posterior.run.settings["n_iterations_done"])
-        reason = f"importance failed ({res.reason}); nnsvgd: {posterior.run.stop_reason}"
-    marks["infer"] = time.time()
-    record.update(
-        {
-            "marks": marks,
-            "checks": checks,
-            "n_iterations": n_done,
-            "n_iterations_done": n_done,
-            "stop_reason": reason,
-            "gradient": "none (importance sampling)" if res.ok else problem.settings["gradient"],
-            "final_theta": np.asarray(final_theta).tolist(),
-        }
-    )
-    Path(args.result).write_text(json.dumps(record))
-    return 0
 
 
 # ---- comparison (parent) -----------------------------------------------------------------------
