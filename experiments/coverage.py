@@ -112,7 +112,7 @@ def make_case(tree_name: str, size: dict, seed: int, force_level: float = FORCE_
     return tree, sim, kp, kd, noisy(train), noisy(test), sf
 
 
-def fit(tree, sim, train, size: dict, seed: int, kind: str = "gaussian"):
+def fit(tree, sim, train, size: dict, seed: int, kind: str = "gaussian", noise_force=None):
     import jax
     import jax.numpy as jnp
     import optax
@@ -123,7 +123,7 @@ def fit(tree, sim, train, size: dict, seed: int, kind: str = "gaussian"):
     from treeinfer.trajectories import stack_trajectories
 
     obs = stack_trajectories(train)
-    terms = likelihood_terms(sim, obs, kind)
+    terms = likelihood_terms(sim, obs, kind, noise_force=noise_force)
     r = sim.n_joints
     box = box_prior(tree)
     lo, hi = np.log(tree.bounds_array()[0]), np.log(tree.bounds_array()[1])
@@ -198,7 +198,9 @@ def crb_log_std(sim, kp, kd, train) -> np.ndarray:
     return np.sqrt(np.diag(np.linalg.inv(fisher)))
 
 
-def evaluate(sim, samples, test, n_pred: int, kind: str, sigma_x=None, level: float = 0.95) -> dict:
+def evaluate(
+    sim, samples, test, n_pred: int, kind: str, sigma_x=None, level: float = 0.95, force_noise=None
+) -> dict:
     import jax
     import jax.numpy as jnp
 
@@ -219,11 +221,21 @@ def evaluate(sim, samples, test, n_pred: int, kind: str, sigma_x=None, level: fl
     valid = np.asarray(ro.stable).all(axis=1)
     sigma = noise_params_from_theta(th, sim.n_joints, sigma_x)
     band_kind = predictive_noise_kind(kind)
-    bands = metrics.predictive_bands(ro.tau, sigma, level, valid, band_kind)
+    # errors-in-variables: the test pulls are driven by their RECORDED (noisy) forces, so the
+    # predictive band adds diag C of each test pull's own force (treeinfer.force_noise)
+    extra = None
+    if force_noise is not None:
+        from treeinfer.force_noise import point_variance
+
+        extra = point_variance(force_noise.basis(sim, obs.force, np.asarray(obs.mask, bool)))
+    bands = metrics.predictive_bands(ro.tau, sigma, level, valid, band_kind, extra_variance=extra)
     y, m = obs.displacement, obs.mask
     inside_pred = 1.0 - float(metrics.fraction_outside(*bands.predictive[:2], y, m))
     inside_par = 1.0 - float(metrics.fraction_outside(*bands.parameter[:2], y, m))
-    nll = metrics.noisy_predictive_nll(ro.tau, y, sigma, m, valid, band_kind)
+    nll = metrics.noisy_predictive_nll(ro.tau, y, sigma, m, valid, band_kind, extra_variance=extra)
+    lo, hi = (np.asarray(v) for v in bands.predictive[:2])
+    outside = np.asarray(metrics._outside(lo, hi, np.asarray(y)), bool) & np.asarray(m, bool)
+    per_pull = 100.0 * (1.0 - outside.sum(1) / np.asarray(m, bool).sum(1))
     return {
         "pct_inside_predictive_band": 100 * inside_pred,
         "pct_inside_parameter_band": 100 * inside_par,
@@ -232,6 +244,7 @@ def evaluate(sim, samples, test, n_pred: int, kind: str, sigma_x=None, level: fl
         "predictive_nll_per_point": float(nll.mean),
         "n_points": int(nll.n_points),
         "n_valid_draws": int(valid.sum()),
+        "pct_inside_predictive_band_per_pull": [float(v) for v in per_pull],
     }
 
 
@@ -247,6 +260,13 @@ def main(argv=None) -> int:
         type=float,
         default=FORCE_LEVEL,
         help="force noise std as a share of the largest peak force (default 0.02)",
+    )
+    p.add_argument(
+        "--noise-force",
+        default=None,
+        help="model the force noise (errors in variables, gaussian only): newtons, 'P%%' of the "
+        "largest recorded training force, 'auto' (estimated from the recorded force), or 'true' "
+        "(the generator's value); default: not modelled",
     )
     args = p.parse_args(argv)
     import jax
@@ -266,6 +286,8 @@ def main(argv=None) -> int:
             + ([args.size] if args.size != "cpu" else [])
             + ([args.likelihood] if args.likelihood != "gaussian" else [])
             + ([f"force{args.force_noise:g}"] if args.force_noise != FORCE_LEVEL else [])
+            + ([f"eiv-{args.noise_force.replace('%', 'pct')}"] if args.noise_force else [])
+            + ([f"seed{args.seed}"] if args.seed else [])
         )
     )
     results = {
@@ -274,6 +296,7 @@ def main(argv=None) -> int:
         "sigma_x_m": SIGMA_X,
         "force_noise_share_of_largest_peak": args.force_noise,
         "likelihood": args.likelihood,
+        "noise_force_option": args.noise_force,
         "seed": args.seed,
         "device": str(jax.devices()[0]),
         "trees": {},
@@ -281,7 +304,10 @@ def main(argv=None) -> int:
     for name in args.trees.split(","):
         t0 = time.time()
         tree, sim, kp, kd, train, test, sigma_f = make_case(name, size, args.seed, args.force_noise)
-        terms, samples, best_lp, div = fit(tree, sim, train, size, args.seed, args.likelihood)
+        nf = sigma_f if args.noise_force == "true" else args.noise_force
+        terms, samples, best_lp, div = fit(
+            tree, sim, train, size, args.seed, args.likelihood, noise_force=nf
+        )
         labels = list(tree.parameter_labels()) + list(terms.extra_labels)
         nominal = {"sigma_x": math.log(SIGMA_X)}  # the displacement noise (force noise excluded)
         truth = np.concatenate(
@@ -307,12 +333,23 @@ def main(argv=None) -> int:
             }
             for i, lab in enumerate(labels)
         }
-        ev = evaluate(sim, samples, test, size["n_pred"], args.likelihood, terms.sigma_x)
+        ev = evaluate(
+            sim,
+            samples,
+            test,
+            size["n_pred"],
+            args.likelihood,
+            terms.sigma_x,
+            force_noise=terms.force_noise,
+        )
         results["trees"][name] = {
             "parameters": params,
             "evaluation": ev,
             "noise_estimate_m": terms.settings["noise_estimate"],
             "sigma_force_N": sigma_f,
+            "noise_force_model": None
+            if terms.force_noise is None
+            else terms.force_noise.settings(),
             "nuts_divergences": div,
             "best_start_logdensity": best_lp,
             "seconds": time.time() - t0,
@@ -321,7 +358,10 @@ def main(argv=None) -> int:
             f"{name} ({args.likelihood}): {ev['pct_inside_predictive_band']:.1f}% inside the "
             f"95% predictive band "
             f"({ev['pct_inside_parameter_band']:.1f}% inside the parameter band), NLL "
-            f"{ev['predictive_nll_per_point']:.3f} nats/point, {time.time() - t0:.0f} s",
+            f"{ev['predictive_nll_per_point']:.3f} nats/point, median over test pulls "
+            f"{np.median(ev['pct_inside_predictive_band_per_pull']):.1f}%, "
+            f"{time.time() - t0:.0f} s"
+            + (f"; {terms.force_noise.description}" if terms.force_noise is not None else ""),
             flush=True,
         )
         for lab, v in params.items():

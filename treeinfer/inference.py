@@ -115,6 +115,7 @@ def make_problem(
     direction=None,
     grasp_branch=None,
     model=None,
+    noise_force=None,
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
@@ -126,6 +127,9 @@ def make_problem(
         :func:`treeinfer.likelihood.likelihood_terms`.
       noise_displacement: m, fixed displacement noise sigma_x for the generative likelihoods
         (None: inferred as an extra column of theta) or the noise used by ``kT="auto"``.
+      noise_force: None, or the recorded force's noise (N, ``"P%"`` or ``"auto"``): the
+        errors-in-variables term of :mod:`treeinfer.force_noise` (gaussian likelihood, the
+        paper's dynamic model only).
       nn_prior: add the learned inequality prior (NNSVGD's target); False gives SVGD's.
       eta: inequality penalty slope (nats per unit of log-gain the child exceeds its parent).
       gradient: ``"fd"`` (central differences, the paper's black-box route), ``"jvp"`` (exact
@@ -190,7 +194,19 @@ def make_problem(
     grad_kind = "autodiff" if gradient == "jvp" else gradient
     if model is None:
         terms = likelihood_terms(
-            sim, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options
+            sim,
+            obs,
+            likelihood,
+            gradient=grad_kind,
+            rel_step=rel_step,
+            noise_force=noise_force,
+            **options,
+        )
+    elif noise_force is not None:
+        raise ConfigError(
+            "--noise-force: the force-noise term is available for the dynamic model of pulls "
+            "at the tree's own grasp branch and direction only (not with --model-kind static, "
+            "stiffness-only runs or per-recording pulls)"
         )
     else:  # the model's own rollout (static, stiffness only, per-recording pulls)
         terms = model_likelihood_terms(

@@ -22,7 +22,14 @@ from .._io import (
 from ..errors import ConfigError, OutputExistsError, SimulationError
 
 # ==== problem and posterior =======================================================================
-from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits, noise_for
+from ..evaluation import (
+    Prediction,
+    _training_fit,
+    evaluate_trajectories,
+    force_noise_for,
+    kfold_splits,
+    noise_for,
+)
 from ..jsonio import jsonable as _jsonable
 from ..jsonio import read_json, write_json
 from ..trajectories import (
@@ -485,6 +492,7 @@ def kfold(
             np.isfinite(post.log_density),
             *noise_for(post.theta, problem.sim.n_joints, problem.settings),
             model=model,
+            force_noise=force_noise_for(problem.settings),
         )
         out.append(
             FoldResult(
