@@ -38,6 +38,11 @@ simulated displacement + i.i.d. noise (Gaussian or Student-t, :mod:`treeinfer.no
 sigma_x given or inferred as an extra column ``log sigma_x`` of theta. The simulator stays a
 black box: :func:`treeinfer.gradients.finite_difference_jvp` gives it central-difference
 derivatives, while the noise density and the sigma column get exact autodiff gradients.
+
+Noise on the recorded force (``likelihood_terms(kind="gaussian", noise_force=...)``,
+``--noise-force``): an errors-in-variables term, marginalised in closed form after linearising
+the simulation in the force; each pull's residual is then ``MVN(0, C_b + sigma_x^2 I)`` with
+``C_b = sigma_F^2 J_b J_b^T`` (:mod:`treeinfer.force_noise`, which says why this design).
 """
 
 from __future__ import annotations
