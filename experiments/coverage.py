@@ -174,8 +174,12 @@ def fit(tree, sim, train, size: dict, seed: int, kind: str = "gaussian", noise_f
     return terms, samples, float(np.max(lp)), div
 
 
-def crb_log_std(sim, kp, kd, train) -> np.ndarray:
-    """Cramer-Rao std per log parameter: Fisher = J^T J / sigma^2 over the training samples."""
+def crb_log_std(sim, kp, kd, train, sigma_force=None) -> np.ndarray:
+    """Cramer-Rao std per log parameter: Fisher = J^T J / sigma^2 over the training samples.
+
+    With ``sigma_force`` (N) the bound of the errors-in-variables model instead: per pull
+    ``Fisher_b = J_b^T (C_b + sigma^2 I)^-1 J_b``, ``C_b = sigma_F^2 J_F J_F^T`` at the truth
+    (treeinfer.force_noise), i.e. the information left once the force noise is accounted for."""
     import jax.numpy as jnp
 
     from treeinfer.gradients import central_difference_jacobian
@@ -193,8 +197,20 @@ def crb_log_std(sim, kp, kd, train) -> np.ndarray:
 
     theta = jnp.asarray(np.log(np.concatenate([kp, kd]))[None], jnp.float32)
     _, jac = central_difference_jacobian(tau, theta, rel_step=1e-2)
-    j = np.asarray(jac[0], float)[np.asarray(obs.mask, bool)]  # [n, 2R]
-    fisher = j.T @ j / SIGMA_X**2
+    mask = np.asarray(obs.mask, bool)
+    if sigma_force is None:
+        j = np.asarray(jac[0], float)[mask]  # [n, 2R]
+        fisher = j.T @ j / SIGMA_X**2
+        return np.sqrt(np.diag(np.linalg.inv(fisher)))
+    from treeinfer.force_noise import force_noise_basis
+
+    theta_true = np.log(np.concatenate([kp, kd]))
+    cov = force_noise_basis(sim, theta_true, obs.force, sigma_force, mask).covariance()
+    fisher = 0.0
+    for b in range(len(cov)):
+        jb = np.asarray(jac[0, b], float)[mask[b]]  # [n_b, 2R]
+        cb = cov[b][np.ix_(mask[b], mask[b])] + SIGMA_X**2 * np.eye(int(mask[b].sum()))
+        fisher = fisher + jb.T @ np.linalg.solve(cb, jb)
     return np.sqrt(np.diag(np.linalg.inv(fisher)))
 
 
@@ -314,6 +330,7 @@ def main(argv=None) -> int:
             [np.log(kp), np.log(kd), [nominal.get(lab, np.nan) for lab in terms.extra_labels]]
         )
         crb = crb_log_std(sim, kp, kd, train)
+        crb_f = crb_log_std(sim, kp, kd, train, sigma_f) if sigma_f > 0 else crb
         std = samples.std(axis=0)
         q = np.quantile(samples, [0.025, 0.975], axis=0)
 
@@ -327,6 +344,8 @@ def main(argv=None) -> int:
                 "log_std": float(std[i]),
                 "crb_log_std": float(crb[i]) if i < len(crb) else None,
                 "std_over_crb": float(std[i] / crb[i]) if i < len(crb) else None,
+                "crb_force_log_std": float(crb_f[i]) if i < len(crb) else None,
+                "std_over_crb_force": float(std[i] / crb_f[i]) if i < len(crb) else None,
                 "truth_in_95": bool(q[0, i] <= truth[i] <= q[1, i])
                 if np.isfinite(truth[i])
                 else None,
@@ -371,6 +390,8 @@ def main(argv=None) -> int:
                 f"log-std {v['log_std']:.3g}"
                 + (
                     f" CRB {v['crb_log_std']:.3g} ratio {v['std_over_crb']:.2f}"
+                    f" (with force noise: CRB {v['crb_force_log_std']:.3g} "
+                    f"ratio {v['std_over_crb_force']:.2f})"
                     if v["crb_log_std"]
                     else ""
                 )
