@@ -221,7 +221,11 @@ def run_predict(args: argparse.Namespace) -> int:
         noise_sigma=sigma,
         noise_kind=kind,
         model=model,
-        force_noise=force_noise_for(run.config.get("problem")),
+        # a recording's force is the noisy sensor's: its band carries the force-noise term; a
+        # profile without a recorded response is taken as the force actually applied
+        force_noise=force_noise_for(run.config.get("problem"))
+        if prof.displacement is not None
+        else None,
     )
     n_bad = int((~pred.valid).sum())
     mean = pred.mean[0]
