@@ -388,8 +388,7 @@ def likelihood_terms(
         ``"auto"`` (:func:`treeinfer.force_noise.resolve_noise_force`). Gaussian only: adds the
         errors-in-variables covariance of :mod:`treeinfer.force_noise` to the likelihood.
       force_noise_reference: ``[2R]`` log gains at which the force Jacobian is taken; None: the
-        MAP of the Gaussian model without the force term (:func:`~treeinfer.force_noise.
-        reference_theta`).
+        MAP of the errors-in-variables model (:func:`~treeinfer.force_noise.reference_theta`).
     """
     noise.check_kind(kind)
     if noise_force is not None and kind != "gaussian":
@@ -441,8 +440,8 @@ def likelihood_terms(
             )
         sigma_f, rule = force_noise.resolve_noise_force(noise_force, obs)
         if force_noise_reference is None:
-            ref = force_noise.reference_theta(sim, obs, grasp_fraction)
-            rule += "; J at the MAP of the Gaussian model without the force term"
+            ref = force_noise.reference_theta(sim, obs, grasp_fraction, sigma_f)
+            rule += "; J at the MAP of this errors-in-variables model"
         else:
             ref = np.asarray(force_noise_reference, float).reshape(-1)
             if ref.shape != (2 * sim.n_joints,) or not np.all(np.isfinite(ref)):
