@@ -78,7 +78,11 @@ def test_infer_predict_evaluate_with_noise_force(data, tmp_path):
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["options"]["noise_force"] == "auto"
     assert cfg["problem"]["noise_force"] == pytest.approx(sf, rel=0.35)
-    assert len(cfg["problem"]["noise_force_reference"]) == 4
+    ref = np.asarray(cfg["problem"]["noise_force_reference"])
+    from treeinfer.tree import load_tree
+
+    lo, hi = np.log(load_tree(TWO).bounds_array())
+    assert ref.shape == (4,) and np.all((ref >= lo) & (ref <= hi))  # the MAP, inside the box
 
     test_csv = sorted((base / "test").glob("*.csv"))[0]
     rc, stdout, err = _main(
