@@ -43,7 +43,8 @@ see :mod:`treeinfer.force_noise` for why this and not the alternatives.
 
 Without ``--noise-force`` (the default, behaviour unchanged) inferring sigma_x absorbs the force
 noise's variance: the fitted sigma_x exceeds the displacement noise, but the slow, growing error
-is not white, and the 95% predictive bands of unseen noisy pulls hold only 90.5-93% of points
+is not white: the 95% predictive bands of unseen noisy pulls hold 90.5-97.4% of points
+depending on the data set, and the gains' posterior is up to 4x too narrow
 (``experiments/README.md``, "Force noise"). The noise estimator below does not see force noise
 (it is in the simulation, not in the recording, and it is low-frequency); ``--noise-force auto``
 estimates it from the recorded force instead. ``ar1`` models a slow residual too, but a
