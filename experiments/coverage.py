@@ -112,7 +112,7 @@ def make_case(tree_name: str, size: dict, seed: int, force_level: float = FORCE_
     return tree, sim, kp, kd, noisy(train), noisy(test), sf
 
 
-def fit(tree, sim, train, size: dict, seed: int, kind: str = "gaussian"):
+def fit(tree, sim, train, size: dict, seed: int, kind: str = "gaussian", noise_force=None):
     import jax
     import jax.numpy as jnp
     import optax
@@ -123,7 +123,7 @@ def fit(tree, sim, train, size: dict, seed: int, kind: str = "gaussian"):
     from treeinfer.trajectories import stack_trajectories
 
     obs = stack_trajectories(train)
-    terms = likelihood_terms(sim, obs, kind)
+    terms = likelihood_terms(sim, obs, kind, noise_force=noise_force)
     r = sim.n_joints
     box = box_prior(tree)
     lo, hi = np.log(tree.bounds_array()[0]), np.log(tree.bounds_array()[1])
@@ -174,8 +174,12 @@ def fit(tree, sim, train, size: dict, seed: int, kind: str = "gaussian"):
     return terms, samples, float(np.max(lp)), div
 
 
-def crb_log_std(sim, kp, kd, train) -> np.ndarray:
-    """Cramer-Rao std per log parameter: Fisher = J^T J / sigma^2 over the training samples."""
+def crb_log_std(sim, kp, kd, train, sigma_force=None) -> np.ndarray:
+    """Cramer-Rao std per log parameter: Fisher = J^T J / sigma^2 over the training samples.
+
+    With ``sigma_force`` (N) the bound of the errors-in-variables model instead: per pull
+    ``Fisher_b = J_b^T (C_b + sigma^2 I)^-1 J_b``, ``C_b = sigma_F^2 J_F J_F^T`` at the truth
+    (treeinfer.force_noise), i.e. the information left once the force noise is accounted for."""
     import jax.numpy as jnp
 
     from treeinfer.gradients import central_difference_jacobian
@@ -193,12 +197,26 @@ def crb_log_std(sim, kp, kd, train) -> np.ndarray:
 
     theta = jnp.asarray(np.log(np.concatenate([kp, kd]))[None], jnp.float32)
     _, jac = central_difference_jacobian(tau, theta, rel_step=1e-2)
-    j = np.asarray(jac[0], float)[np.asarray(obs.mask, bool)]  # [n, 2R]
-    fisher = j.T @ j / SIGMA_X**2
+    mask = np.asarray(obs.mask, bool)
+    if sigma_force is None:
+        j = np.asarray(jac[0], float)[mask]  # [n, 2R]
+        fisher = j.T @ j / SIGMA_X**2
+        return np.sqrt(np.diag(np.linalg.inv(fisher)))
+    from treeinfer.force_noise import force_noise_basis
+
+    theta_true = np.log(np.concatenate([kp, kd]))
+    cov = force_noise_basis(sim, theta_true, obs.force, sigma_force, mask).covariance()
+    fisher = 0.0
+    for b in range(len(cov)):
+        jb = np.asarray(jac[0, b], float)[mask[b]]  # [n_b, 2R]
+        cb = cov[b][np.ix_(mask[b], mask[b])] + SIGMA_X**2 * np.eye(int(mask[b].sum()))
+        fisher = fisher + jb.T @ np.linalg.solve(cb, jb)
     return np.sqrt(np.diag(np.linalg.inv(fisher)))
 
 
-def evaluate(sim, samples, test, n_pred: int, kind: str, sigma_x=None, level: float = 0.95) -> dict:
+def evaluate(
+    sim, samples, test, n_pred: int, kind: str, sigma_x=None, level: float = 0.95, force_noise=None
+) -> dict:
     import jax
     import jax.numpy as jnp
 
@@ -219,11 +237,21 @@ def evaluate(sim, samples, test, n_pred: int, kind: str, sigma_x=None, level: fl
     valid = np.asarray(ro.stable).all(axis=1)
     sigma = noise_params_from_theta(th, sim.n_joints, sigma_x)
     band_kind = predictive_noise_kind(kind)
-    bands = metrics.predictive_bands(ro.tau, sigma, level, valid, band_kind)
+    # errors-in-variables: the test pulls are driven by their RECORDED (noisy) forces, so the
+    # predictive band adds diag C of each test pull's own force (treeinfer.force_noise)
+    extra = None
+    if force_noise is not None:
+        from treeinfer.force_noise import point_variance
+
+        extra = point_variance(force_noise.basis(sim, obs.force, np.asarray(obs.mask, bool)))
+    bands = metrics.predictive_bands(ro.tau, sigma, level, valid, band_kind, extra_variance=extra)
     y, m = obs.displacement, obs.mask
     inside_pred = 1.0 - float(metrics.fraction_outside(*bands.predictive[:2], y, m))
     inside_par = 1.0 - float(metrics.fraction_outside(*bands.parameter[:2], y, m))
-    nll = metrics.noisy_predictive_nll(ro.tau, y, sigma, m, valid, band_kind)
+    nll = metrics.noisy_predictive_nll(ro.tau, y, sigma, m, valid, band_kind, extra_variance=extra)
+    lo, hi = (np.asarray(v) for v in bands.predictive[:2])
+    outside = np.asarray(metrics._outside(lo, hi, np.asarray(y)), bool) & np.asarray(m, bool)
+    per_pull = 100.0 * (1.0 - outside.sum(1) / np.asarray(m, bool).sum(1))
     return {
         "pct_inside_predictive_band": 100 * inside_pred,
         "pct_inside_parameter_band": 100 * inside_par,
@@ -232,6 +260,7 @@ def evaluate(sim, samples, test, n_pred: int, kind: str, sigma_x=None, level: fl
         "predictive_nll_per_point": float(nll.mean),
         "n_points": int(nll.n_points),
         "n_valid_draws": int(valid.sum()),
+        "pct_inside_predictive_band_per_pull": [float(v) for v in per_pull],
     }
 
 
@@ -247,6 +276,13 @@ def main(argv=None) -> int:
         type=float,
         default=FORCE_LEVEL,
         help="force noise std as a share of the largest peak force (default 0.02)",
+    )
+    p.add_argument(
+        "--noise-force",
+        default=None,
+        help="model the force noise (errors in variables, gaussian only): newtons, 'P%%' of the "
+        "largest recorded training force, 'auto' (estimated from the recorded force), or 'true' "
+        "(the generator's value); default: not modelled",
     )
     args = p.parse_args(argv)
     import jax
@@ -266,6 +302,8 @@ def main(argv=None) -> int:
             + ([args.size] if args.size != "cpu" else [])
             + ([args.likelihood] if args.likelihood != "gaussian" else [])
             + ([f"force{args.force_noise:g}"] if args.force_noise != FORCE_LEVEL else [])
+            + ([f"eiv-{args.noise_force.replace('%', 'pct')}"] if args.noise_force else [])
+            + ([f"seed{args.seed}"] if args.seed else [])
         )
     )
     results = {
@@ -274,6 +312,7 @@ def main(argv=None) -> int:
         "sigma_x_m": SIGMA_X,
         "force_noise_share_of_largest_peak": args.force_noise,
         "likelihood": args.likelihood,
+        "noise_force_option": args.noise_force,
         "seed": args.seed,
         "device": str(jax.devices()[0]),
         "trees": {},
@@ -281,13 +320,17 @@ def main(argv=None) -> int:
     for name in args.trees.split(","):
         t0 = time.time()
         tree, sim, kp, kd, train, test, sigma_f = make_case(name, size, args.seed, args.force_noise)
-        terms, samples, best_lp, div = fit(tree, sim, train, size, args.seed, args.likelihood)
+        nf = sigma_f if args.noise_force == "true" else args.noise_force
+        terms, samples, best_lp, div = fit(
+            tree, sim, train, size, args.seed, args.likelihood, noise_force=nf
+        )
         labels = list(tree.parameter_labels()) + list(terms.extra_labels)
         nominal = {"sigma_x": math.log(SIGMA_X)}  # the displacement noise (force noise excluded)
         truth = np.concatenate(
             [np.log(kp), np.log(kd), [nominal.get(lab, np.nan) for lab in terms.extra_labels]]
         )
         crb = crb_log_std(sim, kp, kd, train)
+        crb_f = crb_log_std(sim, kp, kd, train, sigma_f) if sigma_f > 0 else crb
         std = samples.std(axis=0)
         q = np.quantile(samples, [0.025, 0.975], axis=0)
 
@@ -301,18 +344,31 @@ def main(argv=None) -> int:
                 "log_std": float(std[i]),
                 "crb_log_std": float(crb[i]) if i < len(crb) else None,
                 "std_over_crb": float(std[i] / crb[i]) if i < len(crb) else None,
+                "crb_force_log_std": float(crb_f[i]) if i < len(crb) else None,
+                "std_over_crb_force": float(std[i] / crb_f[i]) if i < len(crb) else None,
                 "truth_in_95": bool(q[0, i] <= truth[i] <= q[1, i])
                 if np.isfinite(truth[i])
                 else None,
             }
             for i, lab in enumerate(labels)
         }
-        ev = evaluate(sim, samples, test, size["n_pred"], args.likelihood, terms.sigma_x)
+        ev = evaluate(
+            sim,
+            samples,
+            test,
+            size["n_pred"],
+            args.likelihood,
+            terms.sigma_x,
+            force_noise=terms.force_noise,
+        )
         results["trees"][name] = {
             "parameters": params,
             "evaluation": ev,
             "noise_estimate_m": terms.settings["noise_estimate"],
             "sigma_force_N": sigma_f,
+            "noise_force_model": None
+            if terms.force_noise is None
+            else terms.force_noise.settings(),
             "nuts_divergences": div,
             "best_start_logdensity": best_lp,
             "seconds": time.time() - t0,
@@ -321,7 +377,10 @@ def main(argv=None) -> int:
             f"{name} ({args.likelihood}): {ev['pct_inside_predictive_band']:.1f}% inside the "
             f"95% predictive band "
             f"({ev['pct_inside_parameter_band']:.1f}% inside the parameter band), NLL "
-            f"{ev['predictive_nll_per_point']:.3f} nats/point, {time.time() - t0:.0f} s",
+            f"{ev['predictive_nll_per_point']:.3f} nats/point, median over test pulls "
+            f"{np.median(ev['pct_inside_predictive_band_per_pull']):.1f}%, "
+            f"{time.time() - t0:.0f} s"
+            + (f"; {terms.force_noise.description}" if terms.force_noise is not None else ""),
             flush=True,
         )
         for lab, v in params.items():
@@ -331,6 +390,8 @@ def main(argv=None) -> int:
                 f"log-std {v['log_std']:.3g}"
                 + (
                     f" CRB {v['crb_log_std']:.3g} ratio {v['std_over_crb']:.2f}"
+                    f" (with force noise: CRB {v['crb_force_log_std']:.3g} "
+                    f"ratio {v['std_over_crb_force']:.2f})"
                     if v["crb_log_std"]
                     else ""
                 )

@@ -170,7 +170,7 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args):
         likelihood="gaussian",
         grasp_fraction=fr,
         model=model,
-        force_noise=f_noise,
+        noise_force=f_noise,
     )
     problem = dataclasses.replace(problem, log_density=jax.jit(problem.log_density))
     theta, rhat, acc, wall = _mh_draws(problem, args, args.seed + test)

@@ -219,9 +219,10 @@ def test_predictive_band_at_truth_covers_95(setup):
 
 
 def test_force_noise_enters_through_displacement(setup):
-    """The decision documented in treeinfer.noise: force noise is NOT an errors-in-variables term;
-    the simulator is driven by the recorded force, so force noise reaches the residual through the
-    branch's low-pass as a slow displacement error. Measured here (2% force noise, 2 mm
+    """Why treeinfer.noise documents force noise as an errors-in-variables term (opt-in,
+    treeinfer.force_noise; tests/test_force_noise.py): the simulator is driven by the recorded
+    force, so force noise reaches the residual through the branch's low-pass as a slow
+    displacement error. Measured here (2% force noise, 2 mm
     displacement noise): it is slow (lag-1 autocorrelation > 0.8) and NOT negligible for this
     compliant tree (rms ~1.9 mm), so a white sigma_x fixed at the displacement noise alone
     under-covers, while sigma_x fitted to the training residuals (what inferring it does)

@@ -279,12 +279,16 @@ def noisy_predictive_interval(
     kind: str = "gaussian",
     df: float = 4.0,
     n_iter: int = 60,
+    extra_variance=None,
 ) -> PredictiveInterval:
     """Central ``level`` interval of the posterior predictive (simulations + noise).
 
     Args:
       pred: ``[P, *S]`` particle simulations (m). sigma: scalar or ``[P]`` noise scale (m) per
         particle. kind, df: noise model (:mod:`treeinfer.noise`). valid: ``[P]`` bool.
+      extra_variance: None or ``[*S]`` m^2 added to every particle's ``sigma_p^2`` at each point:
+        the force-noise-induced variance ``diag C`` of a recording driven by a noisy force
+        (:func:`treeinfer.force_noise.point_variance`); part of the predictive band only.
 
     Returns:
       ``(lower, upper, mean)`` ``[*S]``: quantiles of the mixture
@@ -305,20 +309,37 @@ def noisy_predictive_interval(
     z = jnp.asarray(
         [standard_quantile(alpha, kind, df), standard_quantile(1 - alpha, kind, df)], pred.dtype
     )
-    return _noisy_interval(pred, eff, s, z, alpha, kind, float(df), int(n_iter))
+    extra = _extra_variance(extra_variance, pred)
+    return _noisy_interval(pred, eff, s, z, alpha, kind, float(df), int(n_iter), extra)
 
 
-def _kernel_scale(pred, eff, s):
-    """Per (step, particle) scale ``sqrt(sigma_p^2 + h^2)`` [*S, P]: the noise of each particle
-    convolved with the parameter band's KDE kernel (bandwidth h, 0 at degenerate steps or P < 2)."""
+def _extra_variance(extra, pred) -> jax.Array:
+    """``extra_variance`` (None, or ``[*S]`` m^2, finite and >= 0) -> ``[*S]`` array."""
+    if extra is None:
+        return jnp.zeros(pred.shape[1:], pred.dtype)
+    e = jnp.asarray(extra, pred.dtype)
+    if e.shape != pred.shape[1:]:
+        raise ConfigError(
+            f"extra_variance: expected shape {tuple(pred.shape[1:])} to match pred, got {e.shape}"
+        )
+    if not _is_tracer(e) and not bool(jnp.all(jnp.isfinite(e) & (e >= 0))):
+        raise ConfigError("extra_variance: variances must be finite and >= 0")
+    return e
+
+
+def _kernel_scale(pred, eff, s, extra=0.0):
+    """Per (step, particle) scale ``sqrt(sigma_p^2 + extra + h^2)`` [*S, P]: the noise of each
+    particle (plus the per-point ``extra`` variance [*S], e.g. force-noise-induced) convolved
+    with the parameter band's KDE kernel (bandwidth h, 0 at degenerate steps or P < 2)."""
     kde = _kde_1d(pred, eff)
     h = jnp.where(kde.degenerate | ~jnp.isfinite(kde.bandwidth), 0.0, kde.bandwidth)
-    return jnp.sqrt(jnp.where(eff, s, 1.0) ** 2 + h[..., None] ** 2), kde
+    extra = jnp.asarray(extra)[..., None]
+    return jnp.sqrt(jnp.where(eff, s, 1.0) ** 2 + extra + h[..., None] ** 2), kde
 
 
 @functools.partial(jax.jit, static_argnames=("alpha", "kind", "df", "n_iter"))
-def _noisy_interval(pred, eff, s, z, alpha, kind, df, n_iter):
-    scale, kde = _kernel_scale(pred, eff, s)
+def _noisy_interval(pred, eff, s, z, alpha, kind, df, n_iter, extra):
+    scale, kde = _kernel_scale(pred, eff, s, extra)
     x, w = kde.points, kde.weights
 
     def cdf(y):
@@ -353,13 +374,17 @@ def predictive_bands(
     valid=None,
     kind: str = "gaussian",
     df: float = 4.0,
+    extra_variance=None,
 ) -> PredictiveBands:
     """Parameter band (KDE of the simulations, :func:`predictive_interval`) AND predictive band
     (simulations + noise, :func:`noisy_predictive_interval`), clearly named. ``pred [P, *S]``,
-    ``sigma`` scalar or ``[P]`` (m). The parameter band needs P >= 2."""
+    ``sigma`` scalar or ``[P]`` (m). The parameter band needs P >= 2. ``extra_variance``
+    (``[*S]`` m^2, e.g. force-noise-induced) widens the predictive band only."""
     return PredictiveBands(
         predictive_interval(pred, level, valid),
-        noisy_predictive_interval(pred, sigma, level, valid, kind, df),
+        noisy_predictive_interval(
+            pred, sigma, level, valid, kind, df, extra_variance=extra_variance
+        ),
     )
 
 
@@ -394,6 +419,7 @@ def noisy_predictive_nll(
     valid=None,
     kind: str = "gaussian",
     df: float = 4.0,
+    extra_variance=None,
 ) -> PredictiveNLL:
     """NLL of held-out recordings under the posterior predictive (simulations + noise model).
 
@@ -403,7 +429,8 @@ def noisy_predictive_nll(
     is per point. Finite for any particle spread (zero included: then it is the noise model's
     own NLL), so it is comparable across runs, samplers and likelihoods that report a noise
     model. ``n_degenerate`` is always 0 here. Args as :func:`noisy_predictive_interval`;
-    ``gt [*S]`` m, ``mask [*S]`` bool.
+    ``gt [*S]`` m, ``mask [*S]`` bool; ``extra_variance`` as there (point-wise marginals: the
+    force-induced correlation between points is not in this per-point NLL).
     """
     pred = jnp.asarray(pred)
     if not jnp.issubdtype(pred.dtype, jnp.floating):
@@ -416,12 +443,13 @@ def noisy_predictive_nll(
             f"gt: expected shape {tuple(pred.shape[1:])} to match pred, got {gt.shape}"
         )
     s = _noise_scale(sigma, pred.shape[0], pred.dtype)
-    return _noisy_nll(pred, eff, s, gt, _point_mask(gt, mask), kind, float(df))
+    extra = _extra_variance(extra_variance, pred)
+    return _noisy_nll(pred, eff, s, gt, _point_mask(gt, mask), kind, float(df), extra)
 
 
 @functools.partial(jax.jit, static_argnames=("kind", "df"))
-def _noisy_nll(pred, eff, s, gt, m, kind, df):
-    scale, kde = _kernel_scale(pred, eff, s)
+def _noisy_nll(pred, eff, s, gt, m, kind, df, extra):
+    scale, kde = _kernel_scale(pred, eff, s, extra)
     g = jnp.where(m, gt, 0.0)[..., None]
     lp = residual_log_prob(g - kde.points, scale, kind, df)  # [*S, P]
     log_p = logsumexp(lp, b=kde.weights, axis=-1)  # weight 0 drops invalid particles

@@ -31,7 +31,10 @@ class Prediction(NamedTuple):
     PARAMETER band (95% KDE of the simulations, no noise). ``predictive_lower``,
     ``predictive_upper`` ``[B, T]`` m: the PREDICTIVE band (simulations + the fitted noise model,
     never zero-width), None when no noise level is known; ``sigma`` the noise scale used
-    (scalar or ``[P]`` m), ``noise_kind`` its distribution."""
+    (scalar or ``[P]`` m), ``noise_kind`` its distribution. ``force_variance`` ``[B, T]`` m^2:
+    the force-noise-induced variance the predictive band adds to every point (runs with
+    ``--noise-force``, :mod:`treeinfer.force_noise`; from the predicted recording's own force),
+    else None."""
 
     tau: np.ndarray
     tau_dot: np.ndarray
@@ -44,6 +47,7 @@ class Prediction(NamedTuple):
     predictive_upper: np.ndarray | None = None
     sigma: np.ndarray | float | None = None
     noise_kind: str = "gaussian"
+    force_variance: np.ndarray | None = None
 
     def band(self):
         """``(lower, upper)`` to compare recordings with: predictive if known, else parameter."""
@@ -71,6 +75,25 @@ def noise_for(theta, n_joints: int, settings: dict | None):
     return (None if sigma is None else np.asarray(sigma, float)), kind
 
 
+def force_noise_for(settings: dict | None):
+    """The run's force-noise term (:class:`treeinfer.force_noise.ForceNoiseModel`) from its
+    problem settings (``noise_force`` N and ``noise_force_reference``, written by runs with
+    ``--noise-force``), else None."""
+    from .force_noise import ForceNoiseModel
+
+    settings = settings or {}
+    sf, ref = settings.get("noise_force"), settings.get("noise_force_reference")
+    if sf is None or ref is None:
+        return None
+    grasp = settings.get("grasp_fraction")
+    return ForceNoiseModel(
+        float(sf),
+        np.asarray(ref, float),
+        str(settings.get("noise_force_rule", "")),
+        None if isinstance(grasp, (list, tuple)) else grasp,
+    )
+
+
 def predict_run(
     sim,
     theta,
@@ -81,11 +104,14 @@ def predict_run(
     noise_sigma=None,
     noise_kind: str = "gaussian",
     model=None,
+    force_noise=None,
 ) -> Prediction:
     """Simulate every particle ``theta [P, D]`` under ``forces [B, T]`` and summarise the bands
     (parameter band; predictive band too when ``noise_sigma``, scalar or ``[P]`` m, is given);
     unstable particles are excluded (``valid``). Needs two valid particles. ``model``: the
-    run's :class:`treeinfer.static.Model` (None: the dynamic model of ``[log Kp, log Kd]``)."""
+    run's :class:`treeinfer.static.Model` (None: the dynamic model of ``[log Kp, log Kd]``).
+    ``force_noise``: the run's force-noise term (:func:`force_noise_for`): the forces are taken
+    as recorded (noisy), and the predictive band adds the variance that noise induces."""
     from .inference import predict
     from .metrics import noisy_predictive_interval, predictive_interval
 
@@ -107,11 +133,18 @@ def predict_run(
         )
     tau = np.asarray(rollout.tau)
     lower, upper, mean = (np.asarray(a) for a in predictive_interval(tau, level, valid))
-    plo = phi = None
+    plo = phi = fvar = None
+    if noise_sigma is not None and force_noise is not None and model is None:
+        from .force_noise import point_variance
+
+        fmodel = force_noise._replace(grasp_fraction=grasp_fraction)  # the predicted pulls' own
+        fvar = point_variance(fmodel.basis(sim, np.atleast_2d(np.asarray(forces, float))))
     if noise_sigma is not None:
         plo, phi, _ = (
             np.asarray(a)
-            for a in noisy_predictive_interval(tau, noise_sigma, level, valid, noise_kind)
+            for a in noisy_predictive_interval(
+                tau, noise_sigma, level, valid, noise_kind, extra_variance=fvar
+            )
         )
     return Prediction(
         tau,
@@ -125,6 +158,7 @@ def predict_run(
         phi,
         noise_sigma,
         noise_kind,
+        fvar,
     )
 
 
@@ -159,6 +193,7 @@ def evaluate_trajectories(
     noise_sigma=None,
     noise_kind: str = "gaussian",
     model=None,
+    force_noise=None,
 ) -> tuple[dict, Prediction, Observations]:
     """Held-out metrics of particles ``theta`` on ``trajectories``
     (:func:`treeinfer.metrics.summarize` with the posterior NLL of the held-out data,
@@ -181,6 +216,7 @@ def evaluate_trajectories(
         noise_sigma=noise_sigma,
         noise_kind=noise_kind,
         model=model,
+        force_noise=force_noise,
     )
     ll = _per_trajectory_loglik(pred, obs, kT)
     n_gains = 2 * sim.n_joints if model is None else model.layout.dim  # noise: no true value
@@ -198,7 +234,10 @@ def evaluate_trajectories(
         log_space=True,
         noise_sigma=noise_sigma,
         noise_kind=noise_kind,
+        extra_variance=pred.force_variance,
     )
+    if pred.force_variance is not None:
+        m["band_includes_force_noise"] = True  # the predictive band: + diag C of each force
     lo_b, hi_b = pred.band()
     m["per_trajectory"] = [
         {
@@ -238,6 +277,7 @@ def _training_fit(problem, posterior, config) -> dict:
             noise_sigma=sigma,
             noise_kind=kind,
             model=getattr(problem, "model", None),
+            force_noise=force_noise_for(problem.settings),
         )
     except SimulationError:
         pass  # too few stable particles: the stable-share check reports it
@@ -252,6 +292,7 @@ def _training_fit(problem, posterior, config) -> dict:
         log_likelihood=ll,
         noise_sigma=sigma,
         noise_kind=kind,
+        extra_variance=rollout_pred.force_variance,
     )
     return {"stable": rollout_pred.valid, "prediction": rollout_pred, "metrics": metrics}
 

@@ -116,7 +116,7 @@ def make_problem(
     direction=None,
     grasp_branch=None,
     model=None,
-    force_noise: float | None = None,
+    noise_force=None,
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
@@ -128,6 +128,12 @@ def make_problem(
         :func:`treeinfer.likelihood.likelihood_terms`.
       noise_displacement: m, fixed displacement noise sigma_x for the generative likelihoods
         (None: inferred as an extra column of theta) or the noise used by ``kT="auto"``.
+      noise_force: None, or the recorded force's noise std (N, ``"P%"`` of the largest recorded
+        force, or ``"auto"``: :func:`treeinfer.force_noise.resolve_noise_force`). With the
+        paper's dynamic model: the errors-in-variables term of :mod:`treeinfer.force_noise`
+        (gaussian likelihood). With ``model_kind="static"``: the load cell's noise read through
+        each pull's compliance, ``sqrt(sigma_x^2 + (noise_force * compliance)^2)``
+        (:func:`treeinfer.static.model_likelihood_terms`, Gaussian/Student-t).
       nn_prior: add the learned inequality prior (NNSVGD's target); False gives SVGD's.
       eta: inequality penalty slope (nats per unit of log-gain the child exceeds its parent).
       gradient: ``"fd"`` (central differences, the paper's black-box route), ``"jvp"`` (exact
@@ -149,9 +155,6 @@ def make_problem(
         model kind (one batched simulator call; see :func:`treeinfer.static.model_with_pulls`
         for reading them from a data folder's ``pulls.yaml``). Every likelihood works with every
         model: :func:`treeinfer.static.model_likelihood_terms`.
-      force_noise: N, the load cell's noise std for a Gaussian/Student-t likelihood on a model
-        other than the paper's (:func:`treeinfer.static.model_likelihood_terms`): each pull's
-        displacement noise is ``sqrt(sigma_x^2 + (force_noise * compliance)^2)``.
       model: a prebuilt :class:`treeinfer.static.Model` (e.g. a
         :func:`~treeinfer.static.tied_layout` of one stiffness scale); overrides
         ``model_kind``, ``direction`` and ``grasp_branch``.
@@ -193,14 +196,30 @@ def make_problem(
         model = None  # the paper's model: theta = [log Kp, log Kd] (+ noise columns), as before
     options = dict(kT=kT, sigma_x=noise_displacement, grasp_fraction=grasp_fraction)
     grad_kind = "autodiff" if gradient == "jvp" else gradient
-    if model is None and force_noise is not None:
-        raise ConfigError("force_noise: supported for the static model or stiffness-only runs")
     if model is None:
         terms = likelihood_terms(
-            sim, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options
+            sim,
+            obs,
+            likelihood,
+            gradient=grad_kind,
+            rel_step=rel_step,
+            noise_force=noise_force,
+            **options,
         )
     else:  # the model's own rollout (static, stiffness only, per-recording pulls)
-        extra = {} if force_noise is None else {"force_noise": force_noise}
+        extra = {}
+        if noise_force is not None:
+            if model.kind != "static":
+                raise ConfigError(
+                    "--noise-force: available for the paper's dynamic model (an errors-in-"
+                    "variables term through the force Jacobian) and for --model-kind static (the "
+                    "load cell's noise read through each pull's compliance); not for a dynamic "
+                    "model with stiffness-only parameters, a tie or per-recording pulls"
+                )
+            from .force_noise import resolve_noise_force
+
+            # one meaning of --noise-force for both models: N, 'P%' of the largest force, 'auto'
+            extra["force_noise"], _ = resolve_noise_force(noise_force, obs)
         terms = model_likelihood_terms(
             sim, model, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options, **extra
         )

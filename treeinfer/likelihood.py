@@ -38,6 +38,11 @@ simulated displacement + i.i.d. noise (Gaussian or Student-t, :mod:`treeinfer.no
 sigma_x given or inferred as an extra column ``log sigma_x`` of theta. The simulator stays a
 black box: :func:`treeinfer.gradients.finite_difference_jvp` gives it central-difference
 derivatives, while the noise density and the sigma column get exact autodiff gradients.
+
+Noise on the recorded force (``likelihood_terms(kind="gaussian", noise_force=...)``,
+``--noise-force``): an errors-in-variables term, marginalised in closed form after linearising
+the simulation in the force; each pull's residual is then ``MVN(0, C_b + sigma_x^2 I)`` with
+``C_b = sigma_F^2 J_b J_b^T`` (:mod:`treeinfer.force_noise`, which says why this design).
 """
 
 from __future__ import annotations
@@ -51,8 +56,9 @@ import jax.numpy as jnp
 import numpy as np
 import numpyro.distributions as dist
 
-from . import noise
+from . import force_noise, noise
 from .errors import ConfigError
+from .gains import gains_from_theta, theta_from_gains  # noqa: F401  (re-exported)
 from .gradients import autodiff_value_and_grad, central_difference, finite_difference_jvp
 from .sim import Rollout, Simulator, simulate
 from .temperature import (  # re-exported: the kT rule lived here before the split
@@ -86,22 +92,6 @@ __all__ = [
 ]
 
 DEFAULT_KT = 0.05
-
-
-def gains_from_theta(theta: jax.Array, n_joints: int) -> tuple[jax.Array, jax.Array]:
-    """``theta [..., 2R (+ extra)]`` (log Kp then log Kd, then e.g. log sigma_x) ->
-    (Kp [..., R] N m/rad, Kd [..., R] N m s/rad). Extra noise columns are ignored."""
-    return jnp.exp(theta[..., :n_joints]), jnp.exp(theta[..., n_joints : 2 * n_joints])
-
-
-def theta_from_gains(kp, kd) -> np.ndarray:
-    """Inverse of :func:`gains_from_theta` (numpy, for configs and true parameters)."""
-    kp, kd = np.asarray(kp, float), np.asarray(kd, float)
-    if np.any(~np.isfinite(kp)) or np.any(~np.isfinite(kd)) or np.any(kp <= 0) or np.any(kd <= 0):
-        raise ConfigError(
-            f"Kp and Kd must be finite and positive, got Kp={kp.tolist()}, Kd={kd.tolist()}"
-        )
-    return np.concatenate([np.log(kp), np.log(kd)], axis=-1)
 
 
 def trajectory_loss(rollout: Rollout, obs: Observations) -> jax.Array:
@@ -222,6 +212,7 @@ def measurement_log_likelihood(
     grasp_fraction=None,
     rel_step: float | None = None,
     black_box: bool = True,
+    force_basis=None,
 ):
     """Generative log-likelihood ``theta [N, D] -> [N]`` (nats): displacement noise model.
 
@@ -237,6 +228,9 @@ def measurement_log_likelihood(
       sigma_v: m/s, velocity noise; None (default) leaves the velocity out.
       black_box: True wraps the simulator in :func:`finite_difference_jvp` (central differences,
         ``rel_step``); False lets JAX differentiate through the simulator (checks only).
+      force_basis: :class:`treeinfer.force_noise.ForceNoiseBasis` of the training pulls (gaussian
+        only): the displacement residual of each pull is then ``MVN(0, C_b + sigma_x^2 I)`` with
+        ``C_b`` the force-noise-induced covariance (:mod:`treeinfer.force_noise`).
     """
     if kind not in noise.NOISE_KINDS:
         raise ConfigError(
@@ -258,6 +252,17 @@ def measurement_log_likelihood(
         sigma_v = noise.check_sigma(sigma_v, "noise_velocity")
     if sigma_x is not None:
         sigma_x = noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
+    if force_basis is not None:
+        if kind != "gaussian" or use_v:
+            raise ConfigError(
+                "noise_force: the force-noise term needs --likelihood gaussian without a velocity "
+                f"term (got likelihood {kind!r}, velocity term {'on' if use_v else 'off'})"
+            )
+        if np.shape(force_basis.values) != tuple(x_obs.shape):
+            raise ConfigError(
+                f"force_basis: built for pulls of shape {np.shape(force_basis.values)}, the data "
+                f"have {tuple(x_obs.shape)}"
+            )
 
     def rollout(theta_gains):  # [M, 2R] -> [M, C, B, T], NaN where unstable
         kp, kd = gains_from_theta(theta_gains, r)
@@ -275,7 +280,10 @@ def measurement_log_likelihood(
             sx, c = jnp.exp(theta[:, c]), c + 1
         else:
             sx = jnp.full(theta.shape[:1], sigma_x, out.dtype)
-        if kind == "ar1":
+        if force_basis is not None:
+            resid = jnp.where(mask, x_obs - out[:, 0], 0.0)
+            total = force_noise.mvn_log_prob(resid, force_basis, sx)
+        elif kind == "ar1":
             sc, rho = jnp.exp(theta[:, c]), jax.nn.sigmoid(theta[:, c + 1])
             total = noise.ar1_white_log_prob(x_obs - out[:, 0], mask, sx, sc, rho)
         else:
@@ -304,6 +312,9 @@ class LikelihoodTerms(NamedTuple):
       ``kT="auto"`` the data estimate (for the predictive band); None otherwise (fixed-kT
       Boltzmann without a given noise: the paper's mode, parameter bands only).
     settings: JSON-ready record. description: human-readable lines (print them).
+    force_noise: the force-noise term (:class:`treeinfer.force_noise.ForceNoiseModel`) when
+      ``noise_force`` was given, else None; predictive bands of recordings driven by a noisy
+      force add its covariance (``force_noise.basis(sim, forces)``).
     """
 
     log_likelihood: Callable
@@ -316,6 +327,7 @@ class LikelihoodTerms(NamedTuple):
     sigma_x: float | None
     settings: dict
     description: str
+    force_noise: force_noise.ForceNoiseModel | None = None
 
     @property
     def black_box(self) -> bool:
@@ -342,6 +354,8 @@ def likelihood_terms(
     grasp_fraction=None,
     gradient: str = "fd",
     rel_step: float | None = None,
+    noise_force=None,
+    force_noise_reference=None,
 ) -> LikelihoodTerms:
     """The likelihood part of the posterior for one tree + data + likelihood choice.
 
@@ -354,8 +368,19 @@ def likelihood_terms(
         the data estimate. Boltzmann with ``kT="auto"``: use it instead of the estimate.
       sigma_v: m/s, velocity noise for the generative kinds (None: velocity term off).
       gradient: ``"fd"`` (black box, central differences) or ``"autodiff"`` (through the simulator).
+      noise_force: None (default: no force-noise term, behaviour unchanged) or the std of white
+        noise on the recorded force: newtons, ``"P%"`` of the largest recorded |force|, or
+        ``"auto"`` (:func:`treeinfer.force_noise.resolve_noise_force`). Gaussian only: adds the
+        errors-in-variables covariance of :mod:`treeinfer.force_noise` to the likelihood.
+      force_noise_reference: ``[2R]`` log gains at which the force Jacobian is taken; None: the
+        MAP of the errors-in-variables model (:func:`~treeinfer.force_noise.reference_theta`).
     """
     noise.check_kind(kind)
+    if noise_force is not None and kind != "gaussian":
+        raise ConfigError(
+            f"noise_force: the force-noise term is available with --likelihood gaussian only, "
+            f"got {kind!r}"
+        )
     if gradient not in ("fd", "autodiff"):
         raise ConfigError(f"gradient: expected 'fd' or 'autodiff', got {gradient!r}")
     empty = np.zeros((0,))
@@ -391,8 +416,38 @@ def likelihood_terms(
         return LikelihoodTerms(loglik, vg, (), empty, empty, None, kT_value, est, settings, desc)
 
     df = noise.check_df(df)
+    fmodel, basis = None, None
+    if noise_force is not None:
+        if sigma_v is not None:
+            raise ConfigError(
+                "noise_force: the force-noise term is not available with a velocity term "
+                "(noise_velocity); leave the velocity out"
+            )
+        sigma_f, rule = force_noise.resolve_noise_force(noise_force, obs)
+        if force_noise_reference is None:
+            ref = force_noise.reference_theta(sim, obs, grasp_fraction, sigma_f)
+            rule += "; J at the MAP of this errors-in-variables model"
+        else:
+            ref = np.asarray(force_noise_reference, float).reshape(-1)
+            if ref.shape != (2 * sim.n_joints,) or not np.all(np.isfinite(ref)):
+                raise ConfigError(
+                    f"force_noise_reference: expected {2 * sim.n_joints} finite log gains, "
+                    f"got {ref.tolist()}"
+                )
+            rule += "; J at the given reference"
+        fmodel = force_noise.ForceNoiseModel(sigma_f, ref, rule, grasp_fraction)
+        basis = fmodel.basis(sim, np.asarray(obs.force), np.asarray(obs.mask, bool))
     loglik = measurement_log_likelihood(
-        sim, obs, kind, sigma_x, sigma_v, df, grasp_fraction, rel_step, black_box=gradient == "fd"
+        sim,
+        obs,
+        kind,
+        sigma_x,
+        sigma_v,
+        df,
+        grasp_fraction,
+        rel_step,
+        black_box=gradient == "fd",
+        force_basis=basis,
     )
     vg = autodiff_value_and_grad(loglik)
     names = {
@@ -401,10 +456,13 @@ def likelihood_terms(
         "ar1": "white + AR(1)",
     }
     vel = f", velocity noise {sigma_v:g} m/s" if sigma_v is not None else ", velocity term off"
+    if fmodel is not None:
+        vel += f"; errors-in-variables {fmodel.description}"
     settings = {
         "likelihood": kind,
         "noise_velocity": sigma_v,
         "student_t_df": df if kind == "student_t" else None,
+        **({} if fmodel is None else fmodel.settings()),
     }
     if not (math.isfinite(float(sigma_prior_scale)) and sigma_prior_scale > 0):
         raise ConfigError(
@@ -416,7 +474,9 @@ def likelihood_terms(
         settings.update(noise_displacement=sx, noise_inferred=False)
         desc = f"{names[kind]} displacement noise, sigma_x = {sx * 1e3:.4g} mm (given){vel}"
         if kind != "ar1":
-            return LikelihoodTerms(loglik, vg, (), empty, empty, None, None, sx, settings, desc)
+            return LikelihoodTerms(
+                loglik, vg, (), empty, empty, None, None, sx, settings, desc, fmodel
+            )
         est = noise.NoiseEstimate(sx, 0, "given")
     else:
         est = noise.estimate_displacement_noise(obs)
@@ -470,4 +530,5 @@ def likelihood_terms(
         sx,
         settings,
         desc,
+        fmodel,
     )

@@ -124,7 +124,7 @@ class MapFit(NamedTuple):
 
 # ---- residual models of the simulator ------------------------------------------------------
 def _rollout_one(sim, obs, grasp_fraction):
-    from .likelihood import gains_from_theta
+    from .gains import gains_from_theta
     from .sim import simulate
 
     forces = jnp.asarray(obs.force)
@@ -141,7 +141,7 @@ def boltzmann_residuals(sim, obs, kT: float, grasp_fraction=None) -> ResidualMod
     """The paper's loss ``sum_b ||tau_b - tau_obs_b|| + ||tau_dot_b - tau_dot_obs_b||`` over
     ``kT`` as :class:`ResidualModel` (``kind="norm"``, 2B groups of T masked entries, metres and
     metres per second). Matches :func:`treeinfer.likelihood.boltzmann_log_likelihood`."""
-    from .likelihood import check_kT
+    from .temperature import check_kT
 
     kT = check_kT(kT)
     rollout = _rollout_one(sim, obs, grasp_fraction)

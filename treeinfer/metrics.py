@@ -323,6 +323,7 @@ def summarize(
     log_space: bool = False,
     noise_sigma=None,
     noise_kind: str = "gaussian",
+    extra_variance=None,
 ) -> dict:
     """All metrics in one JSON-ready dict (floats, ints, bools, None; nested for parameters).
 
@@ -340,6 +341,8 @@ def summarize(
     ``pct_outside`` and ``predictive_nll*`` (:func:`noisy_predictive_nll`) refer to it, ``band`` is
     ``"predictive"`` and ``parameter_band`` holds ``ci_width`` / ``pct_outside`` of the
     parameter-only KDE band. Without it ``band`` is ``"parameter"`` (the KDE band, as before).
+    ``extra_variance`` (``[*S]`` m^2, the force-noise-induced variance of each point,
+    :func:`treeinfer.force_noise.point_variance`) widens the predictive band and its NLL.
     """
     pred = jnp.asarray(pred)
     eff = _effective_valid(pred, valid)
@@ -348,9 +351,13 @@ def summarize(
     pm = _point_mask(np.asarray(gt, float), mask)
     parameter_band = {"ci_width": _f(ci_width(lower, upper, pm)), "pct_outside": 100.0 * _f(frac)}
     if noise_sigma is not None:
-        lower, upper, _ = noisy_predictive_interval(pred, noise_sigma, level, eff, noise_kind)
+        lower, upper, _ = noisy_predictive_interval(
+            pred, noise_sigma, level, eff, noise_kind, extra_variance=extra_variance
+        )
         frac = fraction_outside(lower, upper, gt, mask)
-        nll = noisy_predictive_nll(pred, gt, noise_sigma, mask, eff, noise_kind)
+        nll = noisy_predictive_nll(
+            pred, gt, noise_sigma, mask, eff, noise_kind, extra_variance=extra_variance
+        )
     else:
         nll = predictive_nll(pred, gt, mask, eff)
     out = {

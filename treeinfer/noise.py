@@ -17,32 +17,39 @@ When to use which:
 * ``ar1``: white noise of std sigma_x PLUS a stationary AR(1) component of std sigma_c and
   lag-1 correlation rho (``c[t] = rho c[t-1] + sqrt(1 - rho^2) sigma_c xi[t]``), its exact
   likelihood by a scalar Kalman filter (:func:`ar1_white_log_prob`). Use it when residuals are
-  slow (correlated in time): force noise (see below), drift, unmodelled slow dynamics. sigma_c
+  slow (correlated in time): drift, unmodelled slow dynamics (for known force noise prefer
+  ``gaussian`` with ``--noise-force``, below). sigma_c
   and rho are always inferred; a point's marginal noise std is ``sqrt(sigma_x^2 + sigma_c^2)``
   (what the predictive band uses).
 * ``student_t`` (``df = 4`` by default): real recordings with outliers (a slipping gripper,
   a tracking glitch) or visible model error. A few large residuals then cost ``log`` of their
   size instead of their square, so they do not drag the gains. ``sigma_x`` is the t scale; the
   residual standard deviation is ``sigma_x * sqrt(df / (df - 2))`` (df > 2). Residuals that
-  are correlated in time (slow drift) are not modelled by either; the posterior is then too
+  are correlated in time (slow drift) are not modelled by it; the posterior is then too
   narrow by about sqrt(correlation length in samples); see "Force noise" below.
 
-Force noise (decision: no errors-in-variables term; its effect is absorbed by sigma_x):
-the simulator is driven by the *recorded* force, so force noise reaches the residual only
-through the branch's mechanical low-pass, as a SLOW displacement error. An errors-in-variables
-term would need the noise-free force as B x T latent variables, each costing two black-box
-simulations per gradient: not feasible. Measured on the built-in 2-branch tree
-(``tests/test_likelihood.py::test_force_noise_enters_through_displacement``): 2% white force
-noise moves the simulated displacement by ~1.7-1.9 mm rms (as large as 2 mm displacement
-noise for this compliant branch) with lag-1 autocorrelation 0.95-0.99. Consequences:
+Force noise (decision: an errors-in-variables term, ``--noise-force``, :mod:`treeinfer.
+force_noise`): the simulator is driven by the *recorded* force, so force noise reaches the
+residual only through the branch's mechanical low-pass, as a SLOW displacement error. Measured
+on the built-in 2-branch tree (``tests/test_likelihood.py::
+test_force_noise_enters_through_displacement``): 2% white force noise moves the simulated
+displacement by ~1.7-1.9 mm rms at 10 ms (~4.5 mm at 20 ms) with lag-1 autocorrelation
+0.95-0.99. Treating the noise-free force as B x T latent variables would cost two black-box
+simulations per latent per gradient: not feasible. Instead the force noise is marginalised in
+closed form after linearising the simulation in the force: the residual of each pull is
+``MVN(0, sigma_F^2 J J^T + sigma_x^2 I)`` with ``J`` the exact forward-mode Jacobian of the
+simulated displacement in the recorded force, taken once at a reference parameter (the MAP);
+see :mod:`treeinfer.force_noise` for why this and not the alternatives.
 
-* the noise estimator below does not see it (it is in the simulation, not in the recording, and
-  it is low-frequency), so the data estimate is only the displacement noise;
-* inferring sigma_x (the default) absorbs its variance: the fitted sigma_x exceeds the
-  displacement noise, and 95% predictive bands stay calibrated point by point (the test
-  checks 92-98% on unseen pulls, and < 93% with sigma_x fixed at the displacement noise);
-* because the error is slow, with ``gaussian`` the gains' posterior is then somewhat too narrow
-  (fewer independent residuals than samples): ``ar1`` models that correlation.
+Without ``--noise-force`` (the default, behaviour unchanged) inferring sigma_x absorbs the force
+noise's variance: the fitted sigma_x exceeds the displacement noise, but the slow, growing error
+is not white: the 95% predictive bands of unseen noisy pulls hold 90.5-97.4% of points
+depending on the data set, and the gains' posterior is up to 4x too narrow
+(``experiments/README.md``, "Force noise"). The noise estimator below does not see force noise
+(it is in the simulation, not in the recording, and it is low-frequency); ``--noise-force auto``
+estimates it from the recorded force instead. ``ar1`` models a slow residual too, but a
+stationary one; the force-induced error is not stationary (zero at t = 0, growing with the
+response).
 
 The velocity term is off by default: recorded velocity is usually differentiated from the
 noisy displacement (noise std ``sigma_x / (sqrt(2) dt)``, i.e. ~70x sigma_x at 10 ms, and

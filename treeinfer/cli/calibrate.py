@@ -61,6 +61,25 @@ seed, versions), tree.yaml, plots/rank_histograms.png, plots/coverage.png.
 """
 
 
+def _force_share(text: str) -> float:
+    """``--noise-force P%`` -> the share P / 100. A bare number is refused: in ``infer`` and
+    ``simulate`` it means newtons, and each calibration data set scales its noise to its own
+    peak force, so only the ``P%`` form has one meaning across commands."""
+    t = text.strip()
+    if not t.endswith("%"):
+        raise argparse.ArgumentTypeError(
+            f"give the share of each data set's largest force as P% (e.g. 2%), got {text!r} "
+            "(a bare number means newtons in infer and simulate)"
+        )
+    try:
+        v = float(t[:-1]) / 100.0
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected P% (e.g. 2%), got {text!r}") from None
+    if not 0.0 <= v < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a share in [0%, 100%), got {text!r}")
+    return v
+
+
 def configure_calibrate(subparsers) -> argparse.ArgumentParser:
     p = add_command_parser(
         subparsers,
@@ -207,15 +226,16 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         default=0,
         metavar="B",
         help="unseen test pulls per data set: adds the share of noisy test points "
-        "inside the 95%% predictive band (0: none)",
+        "inside the 95% predictive band (0: none)",
     )
     p.add_argument(
         "--noise-force",
-        type=float,
+        type=_force_share,
         default=0.0,
-        metavar="SHARE",
-        help="relative force noise (share of each data set's peak force) on the "
-        "recorded forces; not in the inference model, so SBC is exact only at 0",
+        metavar="P%",
+        help="force noise on the recorded forces, P% of each data set's largest force (the "
+        "'P%' form of infer's --noise-force; e.g. 2%); not in the inference model, so SBC is "
+        "exact only at 0% (default)",
     )
     p.add_argument("--duration", type=float, default=_D.duration, help="s per pull")
     p.add_argument("--dt", type=float, default=_D.dt, help="s between samples")

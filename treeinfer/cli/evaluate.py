@@ -14,6 +14,7 @@ from ..errors import ConfigError
 from ..evaluation import (
     band_arrays,
     evaluate_trajectories,
+    force_noise_for,
     kfold_splits,
     mean_metrics,
     noise_for,
@@ -181,6 +182,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
             noise_sigma=sigma,
             noise_kind=kind,
             model=model,
+            force_noise=force_noise_for(run.config.get("problem")),
         )
         metrics = {"run": str(args.run), "data": str(args.data), "metrics": m}
         md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md(

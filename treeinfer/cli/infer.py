@@ -73,6 +73,7 @@ _RUN_OPTIONS = {
     "sim_tolerance": "--sim-tolerance",
     "likelihood": "--likelihood",
     "noise_displacement": "--noise-displacement",
+    "noise_force": "--noise-force",
     "model": "--model",
     "repair_inertia": "--repair-inertia",
     "tie": "--tie",
@@ -170,6 +171,14 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         help="displacement noise sigma_x in metres for --likelihood gaussian/student_t/ar1 "
         "(default: inferred jointly, prior centred on the data's estimate) or for --kT auto "
         "(default: estimated)",
+    )
+    p.add_argument(
+        "--noise-force",
+        metavar="N|P%|auto",
+        help="noise std of the RECORDED force per sample, as an errors-in-variables term "
+        "(--likelihood gaussian only): newtons, P%% of the largest recorded |force|, or 'auto' "
+        "(estimated from the force's high-frequency residual); predictive bands then include "
+        "it (default: off; see treeinfer.force_noise)",
     )
     p.add_argument(
         "--seed",

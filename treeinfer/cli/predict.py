@@ -12,7 +12,7 @@ import numpy as np
 from .. import runs
 from .._io import atomic_write_text, check_output_dir, staged_output_dir
 from ..errors import ConfigError
-from ..evaluation import noise_for, predict_run
+from ..evaluation import force_noise_for, noise_for, predict_run
 from ..forces import from_spec
 from ..metrics import fraction_outside
 from ..plots import plot_trajectory_bands, save_figure
@@ -221,15 +221,22 @@ def run_predict(args: argparse.Namespace) -> int:
         noise_sigma=sigma,
         noise_kind=kind,
         model=model,
+        # a recording's force is the noisy sensor's: its band carries the force-noise term; a
+        # profile without a recorded response is taken as the force actually applied
+        force_noise=force_noise_for(run.config.get("problem"))
+        if prof.displacement is not None
+        else None,
     )
     n_bad = int((~pred.valid).sum())
     mean = pred.mean[0]
     lower, upper = (a[0] for a in pred.band())  # what a recording is compared with
     has_noise = pred.predictive_lower is not None
     band_name = (
-        "predictive band (simulation + fitted noise)"
-        if has_noise
-        else "parameter band (no noise model known)"
+        "parameter band (no noise model known)"
+        if not has_noise
+        else "predictive band (simulation + fitted noise + force-noise term)"
+        if pred.force_variance is not None
+        else "predictive band (simulation + fitted noise)"
     )
     recorded = prof.displacement if compare else None
     csv_text = band_csv_text(
@@ -250,6 +257,8 @@ def run_predict(args: argparse.Namespace) -> int:
         n_steps=len(prof.time),
         grasp_fraction=grasp if grasp is not None else run.tree.grasp_fraction,
         compared_with_recording=bool(compare),
+        band=band_name,
+        band_includes_force_noise=pred.force_variance is not None,
         n_particles=len(run.theta),
         n_valid=int(pred.valid.sum()),
         n_excluded=n_bad,

@@ -72,7 +72,9 @@ class RunConfig:
     particles (>= 2); iterations (>= 1); backend ("auto", "fused", "mjx"); kT (loss units per
     nat, > 0, or "auto": from the data's noise estimate); likelihood ("boltzmann", "gaussian",
     "student_t", "ar1": :func:`treeinfer.likelihood.likelihood_terms`); noise_displacement (m,
-    None: inferred / estimated); seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction
+    None: inferred / estimated); noise_force (None: off; N, "P%" or "auto": the recorded force's
+    noise as an errors-in-variables term, gaussian only, :mod:`treeinfer.force_noise`);
+    seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction
     (None or in (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end
     only); force;
     prior_from (None or an earlier run folder, absolute: its posterior becomes this run's prior on
@@ -121,6 +123,7 @@ class RunConfig:
     sim_tolerance: float | None = None
     likelihood: str = "boltzmann"
     noise_displacement: float | None = None
+    noise_force: float | str | None = None
     model: str | None = None
     repair_inertia: str | None = None
     tie: str | None = None
@@ -185,6 +188,18 @@ class RunConfig:
             )
         if self.noise_displacement is not None:
             set_("noise_displacement", check_sigma(self.noise_displacement, "--noise-displacement"))
+        if self.noise_force is not None:
+            from ..force_noise import check_noise_force
+
+            try:
+                set_("noise_force", check_noise_force(self.noise_force))
+            except ConfigError as e:
+                raise ConfigError(str(e).replace("noise_force", "--noise-force", 1)) from None
+            if self.likelihood != "gaussian":
+                raise ConfigError(
+                    "--noise-force: the force-noise term needs --likelihood gaussian, got "
+                    f"{self.likelihood!r}"
+                )
         set_("eta", _positive("--eta", self.eta))
         g = self.grasp_fraction
         if g is not None and not (math.isfinite(g) and 0.0 < g <= 1.0):

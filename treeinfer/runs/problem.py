@@ -96,6 +96,7 @@ def build_problem(
         gradient=o.get("gradients", "fd"),
         likelihood=o.get("likelihood", "boltzmann"),  # run folders older than issue 11
         noise_displacement=o.get("noise_displacement"),
+        noise_force=o.get("noise_force"),
         model_kind=kind,
         **pulls,
     )

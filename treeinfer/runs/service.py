@@ -18,7 +18,14 @@ import numpy as np
 
 from .._io import check_output_dir, clean_stale_staging
 from ..errors import ConfigError, OutputExistsError, SimulationError
-from ..evaluation import Prediction, _training_fit, evaluate_trajectories, kfold_splits, noise_for
+from ..evaluation import (
+    Prediction,
+    _training_fit,
+    evaluate_trajectories,
+    force_noise_for,
+    kfold_splits,
+    noise_for,
+)
 from ..jsonio import jsonable as _jsonable
 from ..jsonio import read_json, write_json
 from ..trajectories import Trajectory
@@ -577,6 +584,7 @@ def kfold(
             np.isfinite(post.log_density),
             *noise_for(post.theta, problem.sim.n_joints, problem.settings),
             model=model,
+            force_noise=force_noise_for(problem.settings),
         )
         out.append(
             FoldResult(

@@ -142,11 +142,12 @@ def effective_noise(sigma_x, force_noise, tau, force, mask=None):
 
 
 def force_noise_estimate(data) -> float:
-    """The load cell's noise std (N) from the recordings' force signals: the robust estimate of
-    :func:`treeinfer.noise.estimate_displacement_noise` (MAD of second differences / sqrt(6))
-    applied to force instead of displacement (a slow push's force is smooth between samples)."""
-    obs = noise.as_observations(data)
-    return float(noise.estimate_displacement_noise(obs._replace(displacement=obs.force)).sigma)
+    """The load cell's noise std (N) from the recordings' force signals: the ``--noise-force
+    auto`` estimate (:func:`treeinfer.force_noise.estimate_force_noise`, robust MAD of second
+    differences / sqrt(6); a slow push's force is smooth between samples)."""
+    from ..force_noise import estimate_force_noise
+
+    return float(estimate_force_noise(noise.as_observations(data)).sigma)
 
 
 def _measurement(rollout, obs, d, kind, sigma_x, black_box, rel_step, force_noise=None):

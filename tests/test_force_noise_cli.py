@@ -1,0 +1,118 @@
+"""``treeinfer infer --likelihood gaussian --noise-force`` end to end (in-process, tiny): the
+option's record in the run folder, the predictive band of ``predict``/``evaluate`` carrying the
+force-noise term, and clear errors for bad values."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from treeinfer.cli import main
+from treeinfer.trajectories import add_noise, read_trajectory_dir, write_trajectory
+
+ROOT = Path(__file__).resolve().parents[1]
+TWO = ROOT / "treeinfer" / "examples" / "two_branch.yaml"
+QUICK = [
+    "--particles",
+    "8",
+    "--iterations",
+    "3",
+    "--checkpoint-every",
+    "0",
+    "--no-progress",
+    "--allow-poor-fit",
+]
+SIGMA = 0.002
+
+
+def _main(*argv):
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = main([str(a) for a in argv])
+    return rc, out.getvalue(), err.getvalue()
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    """demo --quick data with 2 mm displacement and 2% (of the largest peak) force noise."""
+    base = tmp_path_factory.mktemp("fnoise")
+    rc, _, err = _main("demo", "--quick", "--out", base / "demo", "--no-progress")
+    assert rc == 0, err
+    rng = np.random.default_rng(0)
+    sets = {s: read_trajectory_dir(base / "demo" / "data" / s) for s in ("train", "test")}
+    sf = 0.02 * max(np.abs(t.force).max() for ts in sets.values() for t in ts)
+    for sub, trajs in sets.items():
+        (base / sub).mkdir()
+        for t in trajs:
+            noisy = add_noise(t._replace(velocity=None), sf, SIGMA, rng)
+            write_trajectory(base / sub / t.source, noisy._replace(source=t.source))
+    shutil.copy(base / "demo" / "data" / "train" / "true_params.json", base / "train")
+    return base, sf
+
+
+def test_infer_predict_evaluate_with_noise_force(data, tmp_path):
+    base, sf = data
+    out = tmp_path / "run"
+    rc, stdout, err = _main(
+        "infer",
+        "--tree",
+        TWO,
+        "--data",
+        base / "train",
+        "--out",
+        out,
+        "--likelihood",
+        "gaussian",
+        "--noise-force",
+        "auto",
+        *QUICK,
+    )
+    assert rc == 0, err
+    assert "errors-in-variables force noise sigma_F" in stdout + err
+    cfg = json.loads((out / "config.json").read_text())
+    assert cfg["options"]["noise_force"] == "auto"
+    assert cfg["problem"]["noise_force"] == pytest.approx(sf, rel=0.35)
+    ref = np.asarray(cfg["problem"]["noise_force_reference"])
+    from treeinfer.tree import load_tree
+
+    lo, hi = np.log(load_tree(TWO).bounds_array())
+    assert ref.shape == (4,) and np.all((ref >= lo) & (ref <= hi))  # the MAP, inside the box
+
+    test_csv = sorted((base / "test").glob("*.csv"))[0]
+    rc, stdout, err = _main(
+        "predict", "--run", out, "--force-csv", test_csv, "--out", tmp_path / "p"
+    )
+    assert rc == 0, err
+    pc = json.loads((tmp_path / "p" / "config.json").read_text())
+    assert pc["band_includes_force_noise"] is True and "force-noise term" in pc["band"]
+    rc, stdout, err = _main(
+        "evaluate", "--run", out, "--data", base / "test", "--out", tmp_path / "e"
+    )
+    assert rc == 0, err
+    m = json.loads((tmp_path / "e" / "metrics.json").read_text())["metrics"]
+    assert m["band"] == "predictive" and m["band_includes_force_noise"] is True
+
+
+@pytest.mark.parametrize(
+    "extra, fragment",
+    [
+        (["--likelihood", "gaussian", "--noise-force", "-0.1"], "--noise-force"),
+        (["--likelihood", "gaussian", "--noise-force", "nan"], "--noise-force"),
+        (["--likelihood", "gaussian", "--noise-force", "150%"], "--noise-force"),
+        (["--likelihood", "gaussian", "--noise-force", "500"], "noise_force"),  # above every force
+        (["--likelihood", "student_t", "--noise-force", "0.1"], "--noise-force"),
+        (["--noise-force", "0.1"], "--noise-force"),  # boltzmann
+    ],
+)
+def test_bad_noise_force(data, tmp_path, extra, fragment):
+    base, _ = data
+    rc, _, err = _main(
+        "infer", "--tree", TWO, "--data", base / "train", "--out", tmp_path / "bad", *extra, *QUICK
+    )
+    assert rc == 2 and fragment in err and "Traceback" not in err, err
