@@ -226,16 +226,16 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         default=0,
         metavar="B",
         help="unseen test pulls per data set: adds the share of noisy test points "
-        "inside the 95% predictive band (0: none)",
+        "inside the 95%% predictive band (0: none)",
     )
     p.add_argument(
         "--noise-force",
         type=_force_share,
         default=0.0,
         metavar="P%",
-        help="force noise on the recorded forces, P% of each data set's largest force (the "
-        "'P%' form of infer's --noise-force; e.g. 2%); not in the inference model, so SBC is "
-        "exact only at 0% (default)",
+        help="force noise on the recorded forces, P%% of each data set's largest force (the "
+        "'P%%' form of infer's --noise-force; e.g. 2%%); not in the inference model, so SBC is "
+        "exact only at 0%%",
     )
     p.add_argument("--duration", type=float, default=_D.duration, help="s per pull")
     p.add_argument("--dt", type=float, default=_D.dt, help="s between samples")
