@@ -202,6 +202,7 @@ def _nuts_draws(problem, args, seed: int):
     @jax.jit
     def sample(keys, states, params):
         def one(key, state, p):
+            p = {k: v for k, v in p.items() if k != "max_num_doublings"}  # a static int here
             kernel = blackjax.nuts(logdensity, **p, max_num_doublings=args.max_doublings).step
 
             def body(s, k):
