@@ -153,6 +153,81 @@ def _mh_draws(problem, args, seed: int):
     return draws[::stride], np.asarray(rhat, float), acc, time.time() - t0
 
 
+def _nuts_draws(problem, args, seed: int):
+    """Posterior draws by BlackJAX NUTS on the problem's own log-density (the static model's
+    settle is differentiable: ``lax.custom_root`` gives its implicit derivatives), started from
+    the problem's Laplace approximation (:func:`treeinfer.laplace.problem_laplace`):
+
+    ``args.walkers`` chains from Laplace draws, each with its own Stan-style window adaptation
+    (``blackjax.window_adaptation``: step size to 0.8 acceptance, dense inverse mass matrix
+    started at the Laplace covariance) over ``args.warmup`` steps, then ``args.steps`` NUTS
+    steps; chains run one after the other (``lax.map``: on CPU a vmapped batch of chains cost
+    more per chain than one chain, measured 0.23 s against 0.13 s per gradient).
+
+    Returns (draws [N, D] over all chains, thinned to at most ``args.draws``; split R-hat per
+    column over the chains (arviz); mean acceptance; seconds; divergences (count))."""
+    import arviz as az
+    import blackjax
+
+    from treeinfer.laplace import problem_laplace, problem_laplace_particles
+
+    t0 = time.time()
+    lap = problem_laplace(problem, seed=seed)
+    start = jnp.asarray(problem_laplace_particles(jax.random.key(seed), lap, args.walkers))
+
+    def logdensity(x):  # [D] -> scalar; the problem's density takes a batch [N, D]
+        return problem.log_density(x[None])[0]
+
+    inv_mass = jnp.asarray(lap.cov)
+    warm = blackjax.window_adaptation(
+        blackjax.nuts,
+        logdensity,
+        is_mass_matrix_diagonal=False,
+        initial_inverse_mass_matrix=inv_mass,
+        initial_step_size=0.5,
+        max_num_doublings=args.max_doublings,
+    )
+    k_warm, k_run = jax.random.split(jax.random.key(seed + 1000))
+
+    @jax.jit
+    def adapt(keys, x0):
+        def one(key, x):
+            (state, params), _ = warm.run(key, x, num_steps=args.warmup)
+            return state, params
+
+        return jax.lax.map(lambda a: one(*a), (keys, x0))
+
+    states, params = adapt(jax.random.split(k_warm, args.walkers), start)
+
+    @jax.jit
+    def sample(keys, states, params):
+        def one(key, state, p):
+            p = {k: v for k, v in p.items() if k != "max_num_doublings"}  # a static int here
+            kernel = blackjax.nuts(logdensity, **p, max_num_doublings=args.max_doublings).step
+
+            def body(s, k):
+                s, info = kernel(k, s)
+                return s, (s.position, info.acceptance_rate, info.is_divergent)
+
+            _, out = jax.lax.scan(body, state, jax.random.split(key, args.steps))
+            return out
+
+        return jax.lax.map(lambda a: one(*a), (keys, states, params))
+
+    pos, acc, div = sample(jax.random.split(k_run, args.walkers), states, params)
+    pos = np.asarray(pos)  # [P, T, D]
+    rhat = az.rhat(az.convert_to_dataset(pos))["x"].values
+    draws = pos.reshape(-1, pos.shape[-1])
+    stride = max(1, len(draws) // args.draws)
+    n_div = int(np.sum(np.asarray(div)))
+    print(
+        f"  NUTS: acceptance {float(np.mean(acc)):.2f}, {n_div} divergences, step sizes "
+        f"{np.round(np.asarray(params['step_size']), 3).tolist()}",
+        flush=True,
+    )
+    return draws[::stride], np.asarray(rhat, float), float(np.mean(acc)), time.time() - t0, n_div
+
+
 def fold(sim, tree, trajs, pulls, heights, test: int, args):
     """Infer on the two other heights, predict the held-out one: library calls only
     (``make_problem(model_kind static, likelihood gaussian)`` with the tree's own tie ->
@@ -173,7 +248,12 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args):
         noise_force=f_noise,
     )
     problem = dataclasses.replace(problem, log_density=jax.jit(problem.log_density))
-    theta, rhat, acc, wall = _mh_draws(problem, args, args.seed + test)
+    n_div = None
+    seed = (args.seed if args.sampler_seed is None else args.sampler_seed) + test
+    if args.sampler == "nuts":
+        theta, rhat, acc, wall, n_div = _nuts_draws(problem, args, seed)
+    else:
+        theta, rhat, acc, wall = _mh_draws(problem, args, seed)
     held = trajs[test]
     pb = pulls[test]
     held_model = model._replace(direction=pb.direction[None], grasp_branch=(pb.branch,))
@@ -219,7 +299,9 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args):
         "band_width_mean_m": float(np.mean(hi_b[0] - lo_b[0])),
         "rhat_max": float(np.max(rhat)),
         "rhat": dict(zip(problem.labels, np.asarray(rhat, float).tolist())),
-        "mh_acceptance": acc,
+        "sampler": args.sampler,
+        "acceptance": acc,
+        "nuts_divergences": n_div,
         "sampler_wall_s": wall,
         "n_draws": int(len(theta)),
         "n_points": int(held.n_steps),
@@ -328,7 +410,20 @@ def main(argv=None):
     ap.add_argument("--warmup", type=int, default=200, help="MH warm-up iterations per chain")
     ap.add_argument("--walkers", type=int, default=32, help="MH chains")
     ap.add_argument("--draws", type=int, default=512, help="posterior draws kept for the band")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="data (logger noise) and sampler seed")
+    ap.add_argument(
+        "--sampler-seed", type=int, default=None, help="sampler seed alone (default: --seed)"
+    )
+    ap.add_argument(
+        "--sampler",
+        choices=("mh", "nuts"),
+        default="mh",
+        help="mh: the library's Metropolis-Hastings (default); nuts: BlackJAX NUTS with window "
+        "adaptation from the Laplace start (--warmup adaptation + --steps draws per chain)",
+    )
+    ap.add_argument(
+        "--max-doublings", type=int, default=4, help="NUTS tree depth cap (<= 2^k - 1 leapfrogs)"
+    )
     ap.add_argument("--links", type=int, default=8, help="hinged links in the chain (8)")
     ap.add_argument(
         "--hinges",

@@ -13,7 +13,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-import jax
 import numpy as np
 
 from .._io import check_output_dir, clean_stale_staging
@@ -60,6 +59,7 @@ from .problem import (  # noqa: F401 -- re-exported: the old import path keeps w
     build_problem,
 )
 from .provenance import config_hash, tree_to_dict_json
+from .start import LAPLACE_LM_ITERATIONS, LAPLACE_SCALE, _check_init, _start  # noqa: F401
 
 
 # ==== inference ===================================================================================
@@ -142,92 +142,6 @@ def _resume_paths(run_arg: str | os.PathLike) -> tuple[Path, Path]:
     if why is not None:
         raise ConfigError(f"{partial}: not resumable: {why}")
     return p, partial
-
-
-# For the Boltzmann loss laplace_particles draws the Gaussian matched to the loss's cone-shaped
-# density (mapfit.norm_loss_covariance), not the Gauss-Newton H^-1, which is far too narrow at a
-# small-residual mode; it is used as it is (scale 1): BENCHMARKS.md, "second pass (issue 15)".
-LAPLACE_SCALE = 1.0
-LAPLACE_LM_ITERATIONS = 40  # 25 left every start short of the mode on the standard problem
-
-
-def _laplace_start(problem, config: dict, log: Callable[[str], None]):
-    """Particles around a Levenberg–Marquardt MAP fit (``--init laplace``): its Laplace
-    approximation, drawn with the run's seed. The residual Jacobian follows ``--gradients``."""
-    from ..mapfit import fit_problem, laplace_particles
-
-    o = config["options"]
-    if getattr(problem, "model", None) is not None:  # static, stiffness only, a taper tie
-        return _model_laplace_start(problem, o, log)
-    jacobian = "jvp" if o.get("gradients", "fd") == "jvp" else "fd"
-    fit = fit_problem(
-        problem,
-        "boltzmann",
-        n_starts=6,
-        seed=o["seed"],
-        jacobian=jacobian,
-        max_iterations=LAPLACE_LM_ITERATIONS,
-    )
-    std = np.sqrt(np.diag(fit.cov if fit.norm_cov is None else fit.norm_cov))
-    log(
-        f"Laplace start: MAP from {len(fit.starts)} starts in {fit.iterations} LM iterations, "
-        "log-gain std " + ", ".join(f"{x:.3g}" for x in std)
-    )
-    return laplace_particles(
-        jax.random.fold_in(jax.random.key(o["seed"]), 0x1A9),
-        fit,
-        o["particles"],
-        scale=LAPLACE_SCALE,
-    )
-
-
-def _check_init(problem, options: dict) -> None:
-    """ConfigError (before the run folder is made) if the problem does not support ``--init``."""
-    if options.get("init", "uniform") != "importance":
-        return
-    from ..fast_posterior import check_problem
-
-    try:
-        check_problem(problem)
-    except ConfigError as e:
-        why = str(e).removeprefix("fast posterior: ")
-        raise ConfigError(
-            f"--init importance: {why} (its proposal and weights are built for theta = "
-            "[log Kp, log Kd] and the Boltzmann loss); use --init uniform or laplace"
-        ) from None
-
-
-def _start(problem, config: dict, log: Callable[[str], None]):
-    """``(ready, theta0)`` for the run's ``--init``: ``ready`` a finished posterior (``--init
-    importance`` whose importance weights pass their check: no sampler iterations) or None;
-    ``theta0`` [P, D] the sampler's initial particles, None for the sampler's own (uniform)."""
-    o = config["options"]
-    init = o.get("init", "uniform")
-    if init == "laplace":
-        return None, _laplace_start(problem, config, log)
-    if init == "importance":
-        from ..fast_posterior import importance_for_run
-
-        _check_init(problem, o)
-        return importance_for_run(problem, o["particles"], o["seed"], log)
-    return None, None
-
-
-def _model_laplace_start(problem, o: dict, log: Callable[[str], None]):
-    """``--init laplace`` for any model other than the paper's (the LM fit needs its
-    residuals): the MAP and Hessian of the problem's own log-density
-    (:func:`treeinfer.laplace.problem_laplace`), drawn with the run's seed."""
-    from ..laplace import problem_laplace, problem_laplace_particles
-
-    lap = problem_laplace(problem, seed=o["seed"])
-    std = np.sqrt(np.diag(lap.cov))
-    log(
-        f"Laplace start: MAP of the log-density ({lap.n_evals} evaluations), std "
-        + ", ".join(f"{x:.3g}" for x in std)
-    )
-    return problem_laplace_particles(
-        jax.random.fold_in(jax.random.key(o["seed"]), 0x1A9), lap, o["particles"]
-    )
 
 
 def run_inference(
