@@ -73,18 +73,9 @@ def proposal_from_fit(fit, inflate: float = 1.0, box_precision: bool = True):
     """``(mean [D], cov [D, D])`` of the Gaussian :func:`treeinfer.laplace.laplace_particles`
     draws from a :class:`treeinfer.mapfit.MapFit` (same covariance choice, ``"auto"``), with
     the covariance times ``inflate**2``."""
-    from .laplace import _inverse_psd
+    from .laplace import _inverse_psd, fit_precision
 
-    if fit.norm_cov is not None:
-        h = np.zeros((len(fit.theta),) * 2)
-        m = fit.n_model
-        h[:m, :m] = _inverse_psd(np.asarray(fit.norm_cov, float))
-    else:
-        h = np.array(fit.hessian, float)
-    if box_precision:
-        width = np.asarray(fit.upper, float) - np.asarray(fit.lower, float)
-        idx = np.arange(fit.n_model)
-        h[idx, idx] += 12.0 / width**2
+    h = fit_precision(fit, fit.norm_cov is not None, box_precision)
     cov = _inverse_psd(h) * float(inflate) ** 2
     return np.asarray(fit.theta, float), 0.5 * (cov + cov.T)
 

@@ -68,6 +68,24 @@ def _inverse_psd(h: np.ndarray) -> np.ndarray:
     return (v / np.maximum(w, floor)) @ v.T
 
 
+def fit_precision(fit, use_norm: bool, box_precision: bool) -> np.ndarray:
+    """``[D, D]`` precision of a MAP fit's Gaussian: the Boltzmann-matched one (``use_norm``:
+    the inverse of ``fit.norm_cov`` on the model columns; the norm loss has no sigma) or the
+    Hessian, plus, with ``box_precision``, a uniform-box's variance ``width^2 / 12`` per model
+    column as extra precision."""
+    if use_norm:
+        h = np.zeros((len(fit.theta),) * 2)
+        m = fit.n_model
+        h[:m, :m] = _inverse_psd(np.asarray(fit.norm_cov, float))
+    else:
+        h = np.array(fit.hessian, float)
+    if box_precision:
+        width = np.asarray(fit.upper, float) - np.asarray(fit.lower, float)
+        idx = np.arange(fit.n_model)
+        h[idx, idx] += 12.0 / width**2
+    return h
+
+
 def laplace_particles(
     key,
     fit,  # treeinfer.mapfit.MapFit (not imported: mapfit imports this module)
@@ -96,17 +114,7 @@ def laplace_particles(
     if covariance == "norm" and fit.norm_cov is None:
         raise ConfigError("covariance='norm': the fit has no norm_cov (not a Boltzmann loss)")
     use_norm = covariance == "norm" or (covariance == "auto" and fit.norm_cov is not None)
-    if use_norm:
-        # precision of the matched Gaussian (model columns only; the norm loss has no sigma)
-        h = np.zeros((len(fit.theta),) * 2)
-        m = fit.n_model
-        h[:m, :m] = _inverse_psd(np.asarray(fit.norm_cov, float))
-    else:
-        h = np.array(fit.hessian, float)
-    if box_precision:
-        width = np.asarray(fit.upper, float) - np.asarray(fit.lower, float)
-        idx = np.arange(fit.n_model)
-        h[idx, idx] += 12.0 / width**2
+    h = fit_precision(fit, use_norm, box_precision)
     cov = _inverse_psd(h) * float(scale) ** 2
     chol = np.linalg.cholesky(cov + 1e-12 * np.eye(len(cov)) * np.trace(cov) / len(cov))
     z = jax.random.normal(key, (int(n), len(fit.theta)))
