@@ -113,6 +113,21 @@ class BatchEvaluator:
         return np.where(ok & np.isfinite(out), out, -np.inf)
 
 
+def latin_hypercube(n: int, lower, upper, seed: int = 0) -> np.ndarray:
+    """``[n, D]`` Latin-hypercube points in the box ``[lower, upper]``: the same points as
+    :func:`treeinfer.mapfit.latin_hypercube` (``scipy.stats.qmc.LatinHypercube``, scrambled,
+    seeded by ``numpy.random.default_rng(seed)``; ``tests/test_fast_posterior.py`` checks
+    equality), in NumPy because importing ``scipy.stats`` costs 0.6-1.3 s of a cold start."""
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    rng = np.random.default_rng(seed).spawn(1)[0]  # as scipy's engine: a spawned child
+    d = lower.size
+    jitter = rng.uniform(size=(n, d))
+    perms = np.tile(np.arange(1, n + 1), (d, 1))
+    for i in range(d):
+        rng.shuffle(perms[i, :])
+    return (perms.T - jitter) / n * (upper - lower) + lower
+
+
 def check_problem(problem) -> None:
     """ConfigError unless ``problem`` is the paper's model with the Boltzmann likelihood."""
     noise = getattr(problem, "noise", None)
@@ -293,7 +308,6 @@ def fast_posterior(
       evaluator: a :class:`BatchEvaluator` of the same problem with ``chunk == K`` to reuse.
     """
     from .importance import ImportancePosterior, _draw, importance_resample, proposal_from_fit
-    from .mapfit import latin_hypercube
 
     for name, v in (("n_particles", n_particles), ("n_starts", n_starts)):
         if not (isinstance(v, (int, np.integer)) and v >= 1):

@@ -81,16 +81,41 @@ def proposal_from_fit(fit, inflate: float = 1.0, box_precision: bool = True):
 
 
 def _draw(rng: np.random.Generator, mean, cov, m: int, df: float):
-    """``m`` draws of N(mean, cov) (df = inf) or the multivariate Student-t, and their log
-    density (``scipy.stats``)."""
-    from scipy import stats
+    """``m`` draws ``[m, D]`` of N(mean, cov) (df = inf) or the multivariate Student-t with
+    ``df`` degrees of freedom, and their log density ``[m]``.
 
-    if math.isinf(df):
-        dist = stats.multivariate_normal(mean, cov, allow_singular=False)
+    NumPy and the closed-form densities rather than ``scipy.stats.multivariate_normal`` /
+    ``multivariate_t``: importing ``scipy.stats`` costs 0.6-1.3 s, more than the rest of this
+    module's work on a GPU (``tests/test_fast_posterior.py`` checks the densities against
+    scipy's). ``cov`` must be positive definite (``numpy.linalg.LinAlgError`` otherwise)."""
+    return _draw_log_density(rng, mean, cov, m, df)
+
+
+def _draw_log_density(rng, mean, cov, m, df, x=None):
+    mean = np.asarray(mean, float)
+    d = mean.size
+    chol = np.linalg.cholesky(np.asarray(cov, float))
+    half_logdet = float(np.sum(np.log(np.diag(chol))))
+    if x is None:
+        z = rng.standard_normal((int(m), d))
+        if not math.isinf(df):
+            z = z / np.sqrt(rng.chisquare(df, int(m)) / df)[:, None]
+        x = mean + z @ chol.T
     else:
-        dist = stats.multivariate_t(mean, cov, df=df, allow_singular=False)
-    x = np.atleast_2d(dist.rvs(size=m, random_state=rng))
-    return x, np.atleast_1d(dist.logpdf(x))
+        x = np.atleast_2d(np.asarray(x, float))
+        z = np.linalg.solve(chol, (x - mean).T).T
+    maha = np.sum(z**2, axis=1)
+    if math.isinf(df):
+        log_q = -0.5 * maha - half_logdet - 0.5 * d * math.log(2 * math.pi)
+    else:
+        log_q = (
+            math.lgamma(0.5 * (df + d))
+            - math.lgamma(0.5 * df)
+            - 0.5 * d * math.log(df * math.pi)
+            - half_logdet
+            - 0.5 * (df + d) * np.log1p(maha / df)
+        )
+    return x, log_q
 
 
 def psis(log_weights) -> tuple[np.ndarray, float]:

@@ -13,7 +13,6 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 from flax import linen as nn
 
 from .errors import ConfigError
@@ -286,6 +285,8 @@ def _normalised_target(u_parent, u_child, form: str):
 
 
 def _fit(settings: dict):
+    import optax  # training only: a cached or bundled net is loaded without it
+
     key_data, key_init = jax.random.split(jax.random.key(settings["seed"]))
     span = settings["span"]
     u = jax.random.uniform(key_data, (settings["n_samples"], 2), minval=-span, maxval=span)

@@ -54,9 +54,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import numpyro.distributions as dist
 
-from . import force_noise, noise
+from . import noise
 from .errors import ConfigError
 from .gains import (  # noqa: F401  (re-exported: they lived here before)
     gains_from_theta,
@@ -224,6 +223,8 @@ def measurement_log_likelihood(
         else:
             sx = jnp.full(theta.shape[:1], sigma_x, out.dtype)
         if force_basis is not None:
+            from . import force_noise  # numpyro: imported where the term is used
+
             resid = jnp.where(mask, x_obs - out[:, 0], 0.0)
             total = force_noise.mvn_log_prob(resid, force_basis, sx)
         elif kind == "ar1":
@@ -366,6 +367,8 @@ def likelihood_terms(
                 "noise_force: the force-noise term is not available with a velocity term "
                 "(noise_velocity); leave the velocity out"
             )
+        from . import force_noise
+
         sigma_f, rule = force_noise.resolve_noise_force(noise_force, obs)
         if force_noise_reference is None:
             ref = force_noise.reference_theta(sim, obs, grasp_fraction, sigma_f)
@@ -429,6 +432,8 @@ def likelihood_terms(
             f"{names[kind]} displacement noise, sigma_x inferred (prior log sigma_x ~ "
             f"Normal(log sigma_hat, {sigma_prior_scale:g}); {est.describe()}){vel}"
         )
+    import numpyro.distributions as dist
+
     sigma_prior = noise.log_sigma_prior(est.sigma, sigma_prior_scale)
     rho_prior = dist.Normal(noise.RHO_PRIOR_LOC, noise.RHO_PRIOR_SCALE)
     col = 2 * sim.n_joints

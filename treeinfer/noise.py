@@ -67,13 +67,12 @@ signal curvature instead of 0; that is an upper bound, harmless as a prior centr
 from __future__ import annotations
 
 import math
+import statistics
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
-import numpyro.distributions as dist
-import scipy.stats
 
 from .errors import ConfigError
 from .trajectories import Observations, Trajectory, stack_trajectories
@@ -109,7 +108,9 @@ DEFAULT_STUDENT_T_DF = 4.0
 # log sigma ~ 1 / sqrt(2 n)).
 SIGMA_PRIOR_SCALE = 1.5
 MIN_NOISE_SAMPLES = 20  # second differences needed for a noise estimate worth the name
-_MAD_TO_STD = 1.0 / scipy.stats.norm.ppf(0.75)  # 1.4826: MAD of a Gaussian -> its std
+# 1.4826: MAD of a Gaussian -> its std (the standard library's quantile: scipy.stats costs
+# 0.6 s to import, and this module is on every run's import path)
+_MAD_TO_STD = 1.0 / statistics.NormalDist().inv_cdf(0.75)
 
 
 # --------------------------------------------------------------------------- checks
@@ -233,6 +234,8 @@ def estimate_displacement_noise(data, min_samples: int = MIN_NOISE_SAMPLES) -> N
 
 def noise_distribution(kind: str, scale, df: float = DEFAULT_STUDENT_T_DF):
     """The zero-mean residual distribution of ``kind`` with ``scale`` (m) as numpyro object."""
+    import numpyro.distributions as dist
+
     if kind == "gaussian":
         return dist.Normal(0.0, scale)
     if kind == "student_t":
@@ -247,6 +250,8 @@ def residual_log_prob(residual, scale, kind: str = "gaussian", df: float = DEFAU
 
 def standard_quantile(q: float, kind: str = "gaussian", df: float = DEFAULT_STUDENT_T_DF) -> float:
     """``q``-quantile of the unit-scale noise distribution (a Python float, from scipy)."""
+    import scipy.stats
+
     if kind == "gaussian":
         return float(scipy.stats.norm.ppf(q))
     if kind == "student_t":
@@ -268,6 +273,7 @@ def ar1_white_log_prob(residual, mask, sigma_w, sigma_c, rho):
     checks the total against ``scipy.stats.multivariate_normal`` with the dense covariance.
     """
     import jax
+    import numpyro.distributions as dist
 
     r = jnp.moveaxis(jnp.asarray(residual), -1, 0)  # [T, N, B]
     m_t = jnp.moveaxis(jnp.asarray(mask, bool), -1, 0)[:, None, :]  # [T, 1, B]
@@ -299,6 +305,8 @@ def log_sigma_prior(center: float, scale: float = SIGMA_PRIOR_SCALE):
     """Weakly-informative prior on ``log sigma_x``: ``Normal(log center, scale)`` (numpyro).
 
     Returns ``logp(log_sigma [N]) -> [N]``."""
+    import numpyro.distributions as dist
+
     center = check_sigma(center, "noise prior centre")
     d = dist.Normal(math.log(center), float(scale))
 

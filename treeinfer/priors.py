@@ -22,30 +22,68 @@ import os
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import serialization
 
 from ._io import atomic_write_bytes
 from .errors import ConfigError
-from .inequality_net import (  # noqa: F401 -- re-exported: the old import path keeps working
-    DEFAULT_ALLOWED_WEIGHT,
-    DEFAULT_GRAD_WEIGHT,
-    DEFAULT_SHARPNESS,
-    DEFAULT_SPAN,
-    FLAT_BAND,
-    FLAT_MEAN_TOLERANCE,
-    FLAT_TOLERANCE,
-    InequalityNet,
-    _fit_key,
-    _fit_settings,
-    _settings_key,
-    _training_settings,
-    inequality_target,
-    train_inequality_network,
+
+if TYPE_CHECKING:  # bound at run time by _net_names() (below)
+    from .inequality_net import (  # noqa: F401 -- re-exported (see _NET_NAMES)
+        DEFAULT_ALLOWED_WEIGHT,
+        DEFAULT_GRAD_WEIGHT,
+        DEFAULT_SHARPNESS,
+        DEFAULT_SPAN,
+        FLAT_BAND,
+        FLAT_MEAN_TOLERANCE,
+        FLAT_TOLERANCE,
+        InequalityNet,
+        _fit_key,
+        _fit_settings,
+        _settings_key,
+        _training_settings,
+        inequality_target,
+        train_inequality_network,
+    )
+
+# Re-exported from :mod:`.inequality_net` (the old import path keeps working), imported on first
+# use: it defines a flax module, and flax costs 0.15 s to import, which a run whose problem has
+# no inequality prior (the smoothed box alone, the importance path's screening) need not pay.
+_NET_NAMES = (
+    "DEFAULT_ALLOWED_WEIGHT",
+    "DEFAULT_GRAD_WEIGHT",
+    "DEFAULT_SHARPNESS",
+    "DEFAULT_SPAN",
+    "FLAT_BAND",
+    "FLAT_MEAN_TOLERANCE",
+    "FLAT_TOLERANCE",
+    "InequalityNet",
+    "_fit_key",
+    "_fit_settings",
+    "_settings_key",
+    "_training_settings",
+    "inequality_target",
+    "train_inequality_network",
 )
+
+
+def _net_names() -> None:
+    """Bind :data:`_NET_NAMES` here (a name already set, e.g. by a test's monkeypatch, stays)."""
+    from . import inequality_net
+
+    for name in _NET_NAMES:
+        globals().setdefault(name, getattr(inequality_net, name))
+
+
+def __getattr__(name):
+    if name in _NET_NAMES:
+        _net_names()
+        return globals()[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "InequalityNet",
@@ -184,6 +222,9 @@ def load_or_train_inequality_network(
     :func:`default_cache_dir`. The returned net has ``loaded=True`` when it
     came from the cache.
     """
+    from flax import serialization
+
+    _net_names()
     settings = _training_settings(
         box_low,
         box_high,
@@ -277,6 +318,10 @@ def _write_bundled_default() -> Path:
     """Train the inequality network with the default settings and store it in
     :data:`BUNDLED_NETS` (run by maintainers when the training code or defaults change)."""
     import tempfile
+
+    from flax import serialization
+
+    _net_names()
 
     with tempfile.TemporaryDirectory() as tmp:
         net = load_or_train_inequality_network(0.0, 1.0, cache_dir=tmp)

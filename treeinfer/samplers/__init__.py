@@ -24,7 +24,7 @@ from ..errors import ConfigError
 from ..gradients import LogDensityFn, ValueAndGradFn
 from .base import SamplingAlgorithm
 from .driver import RunResult, init_key, iteration_key, run
-from .mh import MHInfo, RWState, mh
+from .mh import MHInfo, mh
 from .sghmc import SGHMCInfo, SGHMCState, sghmc
 from .sgld import SGLDInfo, SGLDState, sgld
 from .svgd import SVGDInfo, SVGDState, median_length_scale, nnsvgd, stein_direction, svgd
@@ -61,6 +61,16 @@ __all__ = [
     "stein_direction",
     "svgd",
 ]
+
+
+def __getattr__(name):
+    # BlackJAX's RWState (mh's chain state), imported with blackjax on first use
+    if name == "RWState":
+        from .mh import RWState
+
+        return RWState
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 VALUE_AND_GRAD = "value_and_grad"
 LOG_DENSITY = "log_density"

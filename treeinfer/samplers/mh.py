@@ -16,13 +16,11 @@ with a leading particle axis.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from blackjax.mcmc import random_walk
-from blackjax.mcmc.random_walk import RWState
 
 from ..errors import ConfigError
 from .base import (
@@ -32,6 +30,9 @@ from .base import (
     count_nonfinite,
     finite_mean,
 )
+
+if TYPE_CHECKING:  # blackjax (0.3 s) is imported where it is used
+    from blackjax.mcmc.random_walk import RWState
 
 __all__ = ["MHInfo", "RWState", "mh"]
 
@@ -63,6 +64,9 @@ def mh(
         covariance ``L L^T``). ~``2.4 / sqrt(D)`` times the posterior standard
         deviation gives the classic ~25-45% acceptance.
     """
+    from blackjax.mcmc import random_walk
+    from blackjax.mcmc.random_walk import RWState
+
     scale = np.asarray(proposal_scale, dtype=np.float64)
     if scale.ndim > 2 or not np.all(np.isfinite(scale)):
         raise ConfigError(
@@ -115,3 +119,12 @@ def mh(
         return RWState(new_state.position, new_state.logdensity), info
 
     return SamplingAlgorithm(init, step, name, settings)
+
+
+def __getattr__(name):
+    # BlackJAX's chain state, re-exported without importing blackjax (0.3 s) with this module
+    if name == "RWState":
+        from blackjax.mcmc.random_walk import RWState
+
+        return RWState
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

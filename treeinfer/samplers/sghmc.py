@@ -21,12 +21,10 @@ we refuse that for a constant step and clip ``beta`` for schedules.
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import optax
-from blackjax.sgmcmc import diffusions
 
 from ..errors import ConfigError
 from ..gradients import ValueAndGradFn
@@ -39,6 +37,9 @@ from .base import (
     positive,
     preconditioned_drift,
 )
+
+if TYPE_CHECKING:  # annotations only: optax is imported where it is used
+    import optax
 
 __all__ = ["SGHMCInfo", "SGHMCState", "sghmc"]
 
@@ -95,6 +96,9 @@ def sghmc(
     alpha = positive(alpha, "sghmc: alpha")
     beta = positive(beta, "sghmc: beta", allow_zero=True)
     temperature = positive(temperature, "sghmc: temperature")
+    import optax
+    from blackjax.sgmcmc import diffusions
+
     if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
         raise ConfigError(
             f"sghmc: optimizer must be an optax GradientTransformation, "

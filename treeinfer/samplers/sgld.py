@@ -16,12 +16,10 @@ gradient from the previous batched evaluation (one evaluation per step).
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import optax
-from blackjax.sgmcmc import diffusions
 
 from ..errors import ConfigError
 from ..gradients import ValueAndGradFn
@@ -34,6 +32,9 @@ from .base import (
     positive,
     preconditioned_drift,
 )
+
+if TYPE_CHECKING:  # annotations only: optax is imported where it is used
+    import optax
 
 __all__ = ["SGLDInfo", "SGLDState", "sgld"]
 
@@ -82,6 +83,9 @@ def sgld(
     """
     schedule, step_record = as_schedule(step_size, "sgld: step_size")
     temperature = positive(temperature, "sgld: temperature", allow_zero=True)
+    import optax
+    from blackjax.sgmcmc import diffusions
+
     if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
         raise ConfigError(
             f"sgld: optimizer must be an optax GradientTransformation, "

@@ -23,18 +23,19 @@ particles give a NaN/zero bandwidth. We reuse its ``rbf_kernel`` and
 from __future__ import annotations
 
 import functools
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
-from blackjax.vi import svgd as _bj_svgd
 
 from ..diagnostics import kernel_stein_discrepancy
 from ..errors import ConfigError
 from ..gradients import ValueAndGradFn
 from .base import SamplingAlgorithm, check_positions, count_nonfinite, finite_mean, positive
+
+if TYPE_CHECKING:  # annotations only: optax is imported where it is used
+    import optax
 
 __all__ = [
     "WARMUP_START_DIVISOR",
@@ -84,6 +85,8 @@ def median_length_scale(particles: jax.Array, min_length_scale: float = 1e-6) ->
     """
     if particles.shape[0] < 2:
         return jnp.asarray(1.0, particles.dtype)
+    from blackjax.vi import svgd as _bj_svgd
+
     # Fresh dict each call: BlackJAX writes the result into the dict it is given.
     h = _bj_svgd.median_heuristic({}, particles)["length_scale"]
     return jnp.where(jnp.isfinite(h) & (h > min_length_scale), h, min_length_scale).astype(
@@ -94,6 +97,8 @@ def median_length_scale(particles: jax.Array, min_length_scale: float = 1e-6) ->
 def stein_direction(particles: jax.Array, grads: jax.Array, length_scale) -> jax.Array:
     """SVGD direction ``phi [P, D]`` (uphill) for particles ``[P, D]`` with
     ``grads = grad log p [P, D]`` and RBF length scale ``h``."""
+    from blackjax.vi import svgd as _bj_svgd
+
     kernel = functools.partial(_bj_svgd.rbf_kernel, length_scale=length_scale)
     k_and_dk = jax.vmap(  # over i (second argument)
         jax.vmap(jax.value_and_grad(kernel), in_axes=(0, None)),  # over j (first argument)
@@ -134,6 +139,8 @@ def svgd(
     The key passed to ``step`` is ignored: SVGD is deterministic, so exactly
     identical initial particles stay identical (start from a spread).
     """
+    import optax
+
     lr = positive(learning_rate, "svgd: learning_rate")
     min_ls = positive(min_length_scale, "svgd: min_length_scale")
     if length_scale is not None:
