@@ -17,7 +17,9 @@ from treeinfer.tree import load_tree
 
 
 def test_buckets():
-    assert [trajectories_bucket(n) for n in (1, 2, 3, 4, 5, 9)] == [1, 2, 4, 4, 8, 16]
+    assert [trajectories_bucket(n) for n in (1, 2, 3, 4, 5, 7, 9, 13)] == [1, 2, 3, 4, 6, 8, 12, 16]
+    for n in range(1, 200):  # at most 50% extra rows, never fewer
+        assert n <= trajectories_bucket(n) <= 1.5 * n
     assert steps_bucket(10) == 64 and steps_bucket(64) == 64 and steps_bucket(65) == 80
     assert steps_bucket(300) == 320 and steps_bucket(287) == 320 and steps_bucket(321) == 384
     for n in range(64, 5000, 7):  # at most 25% extra steps, never fewer
@@ -38,7 +40,8 @@ def test_padded_trajectories_and_steps_give_the_same_log_density(likelihood):
         x = 0.01 * f / 5.0 + 1e-3 * rng.normal(size=n)
         trajs.append(Trajectory(t, f, x, None, f"p{i}"))
     obs = stack_trajectories(trajs)
-    padded = bucket_observations(obs)
+    assert bucket_observations(obs).force.shape == (3, 64)
+    padded = bucket_observations(obs, 4, 64)  # a padded row as well
     assert padded.force.shape == (4, 64) and padded.mask.sum() == obs.mask.sum()
     kw = {"sim": sim, "nn_prior": False, "likelihood": likelihood, "kT": 0.05}
     if likelihood == "gaussian":
@@ -60,3 +63,71 @@ def test_padded_trajectories_and_steps_give_the_same_log_density(likelihood):
     np.testing.assert_allclose(np.asarray(vb), np.asarray(va), rtol=rtol)
     # central differences of a float32 log density of ~600: rounding noise ~ eps * 600 / h
     np.testing.assert_allclose(np.asarray(gb), np.asarray(ga), rtol=1e-3, atol=0.05)
+
+
+def _pulls(lengths, seed=0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for i, n in enumerate(lengths):
+        t = np.arange(n) * 0.01
+        f = (5.0 + i) * np.clip(t / 0.1, 0, 1) * (t < 0.3)
+        x = 0.01 * f / 5.0 + 1e-3 * rng.normal(size=n)
+        out.append(Trajectory(t, f, x, None, f"p{i}"))
+    return out
+
+
+def _config(init="importance", problem=None, **options):
+    o = {"kT": 0.05, "sampler": "svgd", "eta": 10.0, "grasp_fraction": None, "init": init}
+    return {"options": {**o, **options}, **({"problem": problem} if problem else {})}
+
+
+def test_shape_bucket_for_importance_runs_only():
+    from treeinfer.runs.problem import shape_bucket_for
+
+    obs = stack_trajectories(_pulls((50, 57, 44)))
+    assert shape_bucket_for(_config(), obs) == [3, 64]
+    assert shape_bucket_for(_config("uniform"), obs) is None  # the samplers' programs: as before
+    assert shape_bucket_for(_config(shape_buckets="off"), obs) is None
+    # a resumed run keeps what it recorded (runs from before buckets recorded none)
+    assert shape_bucket_for(_config(problem={"substeps": 2}), obs) is None
+    assert shape_bucket_for(_config(problem={"shape_bucket": [4, 80]}), obs) == [4, 80]
+    with pytest.raises(ConfigError, match="shape_buckets"):
+        shape_bucket_for(_config(shape_buckets="yes"), obs)
+
+
+def test_two_data_sets_of_one_bucket_share_one_compiled_program():
+    """Through the run layer (build_problem records the bucket, the importance path's evaluator
+    pads to it): data sets of 57 and 60 steps compile one rollout program between them, and
+    each gives the log density of its own unpadded problem."""
+    from treeinfer.fast_posterior import BatchEvaluator
+    from treeinfer.generators import chain
+    from treeinfer.program_cache import ProgramCache
+    from treeinfer.runs import SimulatorCache
+    from treeinfer.runs.problem import build_problem
+
+    tree = chain(1, lengths=0.7, radii=0.03, angles_deg=0.0, base_position=(0.0, 0.0, 1.5),
+                 base_pitch_deg=20.0, levels=1, name="c1")  # fmt: skip
+    cache, programs = SimulatorCache(), ProgramCache()
+    # recorded substeps (as a resumed run's): the same simulator for both, no step probes
+    theta = jnp.asarray(np.log([[40.0, 0.6], [25.0, 1.5], [70.0, 0.2]]), jnp.float32)
+    evaluators = []
+    for lengths in ((50, 57), (60, 44)):
+        config = _config(problem={"substeps": 2, "shape_bucket": [2, 64]})
+        problem = build_problem(config, tree, _pulls(lengths), cache)
+        assert problem.settings["shape_bucket"] == [2, 64]
+        assert problem.obs.force.shape == (2, max(lengths))  # the run's data stay unpadded
+        ev = BatchEvaluator(problem, 3, programs)
+        got = ev.log_density(theta)
+        want = np.asarray(jax.jit(problem.log_density)(theta), float)
+        np.testing.assert_allclose(got, want, rtol=1e-5)
+        r, _, _ = ev.evaluate(theta)
+        assert r.shape == (3, 4, max(lengths))  # the data's rows and steps only
+        evaluators.append(ev)
+    a, b = evaluators
+    assert programs.builds == 1 and a._run is b._run
+    assert a._run._cache_size() == 1  # one trace and compile for both data sets
+    # without the bucket the two data sets have two shapes: two programs
+    for lengths in ((50, 57), (60, 44)):
+        config = _config(problem={"substeps": 2})
+        BatchEvaluator(build_problem(config, tree, _pulls(lengths), cache), 3, programs)
+    assert programs.builds == 3

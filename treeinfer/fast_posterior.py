@@ -30,6 +30,7 @@ Only the paper's model and loss: ``theta = [log Kp, log Kd]``, the Boltzmann lik
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from typing import NamedTuple
@@ -52,19 +53,29 @@ __all__ = [
 
 
 class BatchEvaluator:
-    """Boltzmann residuals and log-prior of ``K`` parameter sets per call, one compiled program.
+    """Boltzmann residuals and log-prior of ``K`` parameter sets per call.
 
     ``evaluate(theta [N, D])`` (any N; padded to multiples of ``K`` and run in chunks) returns
     ``(r [N, 2B, T], stable [N], log_prior [N])``: the masked displacement (m) then velocity
     (m/s) errors of each training trajectory, whether every rollout was stable, and
     ``problem.log_prior``. ``log_density(theta)`` is ``problem.log_density`` from them:
-    ``-sum_g ||r_g|| / kT + log_prior``, ``-inf`` where unstable. ``calls`` counts program runs.
+    ``-sum_g ||r_g|| / kT + log_prior``, ``-inf`` where unstable. ``calls`` counts rollout-program
+    runs.
+
+    The rollout program takes the observations as **arguments** (the likelihood's own programs
+    embed them as constants), padded to ``shape`` ``[B', T']`` (:func:`treeinfer.startup.
+    bucket_observations`; default ``problem.settings["shape_bucket"]``, recorded by the run
+    layer, else the data's shape): its XLA program depends on the simulator, the batch and that
+    shape only, so another data set of the same bucket reuses it, from ``programs`` (a
+    :class:`~treeinfer.program_cache.ProgramCache`, keyed by simulator, grasp point, batch and
+    shape) in this process and from the persistent compilation cache in the next. Padded rows
+    and steps carry ``mask = False`` and are cut from ``r``; padded rows count as stable. The
+    log-prior (box and inequality network; no data) is a second, small program of its own.
     """
 
-    def __init__(self, problem, chunk: int):
+    def __init__(self, problem, chunk: int, programs=None, shape=None):
         check_problem(problem)
-        from .likelihood import gains_from_theta
-        from .sim import simulate
+        from .startup import bucket_observations
 
         self.problem, self.chunk, self.calls = problem, int(chunk), 0
         self.kT = float(problem.kT)
@@ -72,22 +83,35 @@ class BatchEvaluator:
         gf = problem.settings.get("grasp_fraction")
         if gf is not None and math.isclose(gf, problem.tree.grasp_fraction):
             gf = None  # the simulator's own grasp site: the likelihood's exact path
-        forces = jnp.asarray(obs.force)
-        mask = np.asarray(obs.mask, float)
-        disp, vel = np.asarray(obs.displacement), np.asarray(obs.velocity)
-        log_prior = problem.log_prior
-
-        def run(theta):
-            kp, kd = gains_from_theta(theta, sim.n_joints)
-            out = simulate(sim, kp, kd, forces, gf)
-            m = jnp.asarray(mask, out.tau.dtype)
-            dpos = (out.tau - jnp.asarray(disp, out.tau.dtype)) * m
-            dvel = (out.tau_dot - jnp.asarray(vel, out.tau.dtype)) * m
-            stable = jnp.all(out.stable, axis=-1)
-            return jnp.concatenate([dpos, dvel], axis=1), stable, log_prior(theta)
-
-        self._run = jax.jit(run)
+        b, t = np.shape(obs.force)
+        shape = problem.settings.get("shape_bucket") if shape is None else shape
+        padded = obs if shape is None else bucket_observations(obs, *shape)
+        self.shape, self._rows, self._steps = tuple(np.shape(padded.force)), b, t
         self._dtype = jnp.asarray(0.0).dtype
+        self._data = tuple(
+            jnp.asarray(np.asarray(x), dt)
+            for x, dt in (
+                (padded.force, self._dtype),
+                (padded.displacement, self._dtype),
+                (padded.velocity, self._dtype),
+                (padded.mask, bool),
+                (t, jnp.int32),
+            )
+        )
+        # the simulator by content, without step_info (how its step was chosen: metadata that
+        # differs between data sets whose accuracy-controlled step came out the same)
+        sim_key = None if programs is None else dataclasses.replace(sim, step_info={}).fingerprint
+        key = (
+            "fast_posterior.BatchEvaluator",
+            sim_key,
+            gf,
+            self.chunk,
+            self.shape,
+            str(self._dtype),
+        )
+        build = lambda: jax.jit(_rollout_residuals(sim, gf))  # noqa: E731
+        self._run = build() if programs is None else programs.get(key, build)
+        self._prior = jax.jit(problem.log_prior)
 
     def evaluate(self, theta):
         theta = np.atleast_2d(np.asarray(theta, float))
@@ -97,8 +121,11 @@ class BatchEvaluator:
         outs = []
         for i in range(0, len(full), k):
             self.calls += 1
-            outs.append(self._run(jnp.asarray(full[i : i + k], self._dtype)))
+            th = jnp.asarray(full[i : i + k], self._dtype)
+            outs.append((*self._run(th, *self._data), self._prior(th)))
         r, ok, lp = (np.concatenate([np.asarray(o[j], float) for o in outs])[:n] for j in range(3))
+        b, t, nb = self._rows, self._steps, self.shape[0]
+        r = np.concatenate([r[:, :b, :t], r[:, nb : nb + b, :t]], axis=1)  # the data's rows, steps
         return r, ok.astype(bool), lp
 
     def loss_terms(self, theta):
@@ -111,6 +138,41 @@ class BatchEvaluator:
         norms, ok, lp, _ = self.loss_terms(theta)
         out = -norms.sum(-1) / self.kT + lp
         return np.where(ok & np.isfinite(out), out, -np.inf)
+
+
+def _rollout_residuals(sim, gf):
+    """``(theta [K, 2R], forces, displacement, velocity, mask [B, T], n_steps) -> (r [K, 2B, T],
+    stable [K])``: the masked displacement and velocity errors of the rollouts (the Boltzmann
+    loss's residuals) and whether every real row (one with a True mask entry) stayed stable.
+
+    ``n_steps`` (a traced integer: one program for every data length of a bucket) is the
+    unpadded data's length T0: the simulated velocity at sample T0 - 1 is the one-sided
+    difference, as in the unpadded simulation (:func:`treeinfer.sim.velocity`: second-order
+    one-sided at the last sample), not the central one the padded steps would give (that changed
+    the log density by up to 3e-4 relative, ``tests/test_startup.py``)."""
+    from .likelihood import gains_from_theta
+    from .sim import simulate
+
+    inv = 1.0 / (2.0 * sim.obs_dt)  # treeinfer.trajectories.velocity_from_displacement's
+
+    def run(theta, forces, disp, vel, mask, n_steps):
+        kp, kd = gains_from_theta(theta, sim.n_joints)
+        out = simulate(sim, kp, kd, forces, gf)
+        x = out.tau
+
+        def at(i):
+            return jax.lax.dynamic_index_in_dim(x, i, axis=-1, keepdims=True)
+
+        last = (3.0 * at(n_steps - 1) - 4.0 * at(n_steps - 2) + at(n_steps - 3)) * inv
+        end = jnp.arange(x.shape[-1]) == n_steps - 1
+        tau_dot = jnp.where(end, jnp.where(out.stable[..., None], last, 0.0), out.tau_dot)
+        m = mask.astype(out.tau.dtype)
+        dpos = (out.tau - disp.astype(out.tau.dtype)) * m
+        dvel = (tau_dot - vel.astype(out.tau.dtype)) * m
+        stable = jnp.all(out.stable | ~jnp.any(mask, axis=-1), axis=-1)
+        return jnp.concatenate([dpos, dvel], axis=1), stable
+
+    return run
 
 
 def latin_hypercube(n: int, lower, upper, seed: int = 0) -> np.ndarray:
@@ -292,6 +354,9 @@ def fast_posterior(
     df: float = math.inf,
     seed: int = 0,
     evaluator: BatchEvaluator | None = None,
+    max_rounds: int = 2,
+    target_ess: float | None = None,
+    programs=None,
 ) -> FastPosterior:
     """Posterior particles of ``problem`` without sampler iterations (module docstring).
 
@@ -306,8 +371,13 @@ def fast_posterior(
         of freedom of the importance proposal (inf: Gaussian). seed: of the screen, the draws
         and the resample.
       evaluator: a :class:`BatchEvaluator` of the same problem with ``chunk == K`` to reuse.
+      programs: a :class:`~treeinfer.program_cache.ProgramCache` for the evaluator's rollout
+        program (shared by every data set of one shape bucket, :class:`BatchEvaluator`).
+      max_rounds, target_ess: :func:`treeinfer.importance.adaptive_importance`: while the
+        effective sample size is below ``target_ess`` (default ``2 P``), up to ``max_rounds``
+        rounds of ``n_draws`` each, the later ones from the weighted draws' moments.
     """
-    from .importance import ImportancePosterior, _draw, importance_resample, proposal_from_fit
+    from .importance import adaptive_importance, proposal_from_fit
 
     for name, v in (("n_particles", n_particles), ("n_starts", n_starts)):
         if not (isinstance(v, (int, np.integer)) and v >= 1):
@@ -318,7 +388,7 @@ def fast_posterior(
     n_draws = max(8 * k, 4 * n_particles) if n_draws is None else int(n_draws)
     if n_screen < n_starts:
         raise ConfigError(f"n_screen: must be >= n_starts ({n_starts}), got {n_screen}")
-    ev = BatchEvaluator(problem, k) if evaluator is None else evaluator
+    ev = BatchEvaluator(problem, k, programs) if evaluator is None else evaluator
     if ev.chunk != k or ev.problem is not problem:
         raise ConfigError("evaluator: built for another problem or batch size")
     phases, t = {}, time.perf_counter()
@@ -333,13 +403,11 @@ def fast_posterior(
     fit = fit_map_batched(ev, starts, max_iterations, tolerance)
     phases["map_fit"], t = time.perf_counter() - t, time.perf_counter()
     mean, cov = proposal_from_fit(fit)
-    draws, log_q = _draw(np.random.default_rng(seed + 1), mean, cov, n_draws, float(df))
-    log_p = ev.log_density(draws)
-    idx, lw, khat, ess, ok, reason = importance_resample(
-        draws, log_p, log_q, int(n_particles), seed
-    )
-    theta = draws[idx]
-    imp = ImportancePosterior(theta, draws, lw, log_p, khat, ess, ok, mean, cov, float(df), reason)
+    imp, idx = adaptive_importance(
+        ev.log_density, mean, cov, n_draws, int(n_particles), seed, float(df), max_rounds,
+        target_ess,
+    )  # fmt: skip
+    theta, khat, ess, ok, reason = imp.theta, imp.khat, imp.ess, imp.ok, imp.reason
     phases["importance"] = time.perf_counter() - t
     settings = {
         "method": "fast_posterior",
@@ -352,11 +420,15 @@ def fast_posterior(
         "lm_values": [float(v) for v in fit.values],
         "khat": khat,
         "ess": ess,
+        "importance_rounds": imp.rounds,
+        "max_rounds": max_rounds,
         "ok": ok,
         "reason": reason,
         "program_calls": ev.calls,
     }
-    return FastPosterior(theta, ok, reason, fit, imp, log_p[idx], phases, ev.calls, settings)
+    return FastPosterior(
+        theta, ok, reason, fit, imp, imp.log_density[idx], phases, ev.calls, settings
+    )
 
 
 class ParticleState(NamedTuple):
@@ -426,7 +498,8 @@ def importance_for_run(problem, n_particles: int, seed: int = 0, log=lambda msg:
     )
     log(
         f"importance posterior: MAP from {len(res.fit.starts)} screened starts in "
-        f"{res.fit.iterations} LM iterations, {len(imp.draws)} draws, Pareto k_hat "
+        f"{res.fit.iterations} LM iterations, {len(imp.draws)} draws in {imp.rounds} "
+        f"round{'s' if imp.rounds > 1 else ''}, Pareto k_hat "
         f"{imp.khat:.2f}, effective sample size {imp.ess:.0f}: {verdict}"
     )
     return (posterior_from_fast(problem, res, seed) if res.ok else None), res.theta

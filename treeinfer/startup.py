@@ -5,7 +5,8 @@ pulls of 287 steps tomorrow would compile the whole finite-difference simulator 
 seconds on a small CPU), even with the persistent compilation cache on, because the cache is
 keyed by shape. Padding the observations to a few bucket sizes makes both data sets one shape:
 
-* trajectories: the next power of two (1, 2, 4, 8, ...);
+* trajectories: the next of ``2^k * {1, 1.5}`` (1, 2, 3, 4, 6, 8, 12, ...: at most 50% extra
+  rows, 3 stays 3; a padded row is simulated like a real one, so on a CPU it costs its share);
 * time steps: the next of ``2^k * {1, 1.25, 1.5, 1.75}`` (at most 25% extra steps to simulate,
   four buckets per doubling), at least :data:`MIN_STEPS`.
 
@@ -16,9 +17,12 @@ stacked with a longer one is padded the same way by
 *not* padded: SVGD particles interact through the kernel, so a padded particle would change the
 result; use a few particle counts (64, 128, 256) instead.
 
-Wiring (for the run layer): ``make_problem(tree, bucket_observations(stack_trajectories(trajs)),
-...)``. The accuracy-controlled step must be chosen on the unpadded forces (or the padded ones:
-a padded row has zero force and the padded steps hold the last force, so they add no error).
+Wiring: the run layer records the bucket of an ``--init importance`` run
+(:func:`treeinfer.runs.problem.shape_bucket_for`, ``shape_bucket`` in config.json's problem
+settings) and :class:`treeinfer.fast_posterior.BatchEvaluator` pads the data to it; its rollout
+program takes the data as arguments, so it is shared by every data set of the bucket (the
+samplers' programs embed the data as constants, where padding would reuse nothing). The
+accuracy-controlled step is chosen on the unpadded forces.
 """
 
 from __future__ import annotations
@@ -42,9 +46,10 @@ def _count(n, what: str) -> int:
 
 
 def trajectories_bucket(n: int) -> int:
-    """The bucket of ``n`` trajectories: the next power of two."""
+    """The bucket of ``n`` trajectories: the smallest ``2^k`` or ``3 * 2^k`` that is >= ``n``."""
     n = _count(n, "number of trajectories")
-    return 1 << (n - 1).bit_length()
+    two = 1 << (n - 1).bit_length()
+    return 3 * two // 4 if two >= 4 and 3 * two // 4 >= n else two
 
 
 def steps_bucket(n: int) -> int:

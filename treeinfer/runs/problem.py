@@ -14,6 +14,7 @@ import numpy as np
 from ..errors import ConfigError, TrajectoryFileError
 from ..inference import DEFAULT_PRIOR_SIGMA
 from ..samplers import sampler_spec
+from ..startup import steps_bucket, trajectories_bucket
 from ..trajectories import Observations, Trajectory, stack_trajectories
 from ..tree import Tree
 from .cache import SimulatorCache, simulator_for
@@ -32,6 +33,38 @@ def _grasp_fractions(o: dict, tree: Tree, trajectories):
     if own is None:
         return None
     return float(own[0]) if np.allclose(own, own[0]) else [float(g) for g in own]
+
+
+SHAPE_BUCKET_CHOICES = ("on", "off")
+
+
+def shape_bucket_for(config: dict, obs: Observations) -> list[int] | None:
+    """``[B', T']`` the run's observations are padded to in the programs that take them as
+    arguments (:mod:`treeinfer.startup`), or None; recorded as ``shape_bucket`` in the run's
+    problem settings (config.json).
+
+    Option ``shape_buckets`` (``on``, the default, or ``off``). Today only ``--init
+    importance``'s rollout program (:class:`treeinfer.fast_posterior.BatchEvaluator`) takes the
+    data as arguments; the samplers' programs embed them as constants, so padding them would add
+    work and reuse nothing (a later change to the likelihood can lift that). So the bucket
+    applies, and is recorded, for ``--init importance`` runs only: every other run's problem and
+    settings are exactly as before. There the masked padding changes the log density by float
+    rounding only (~1e-6 relative, ``tests/test_startup.py``), far below the importance weights'
+    Monte Carlo error. A resumed run keeps what it recorded."""
+    o = config["options"]
+    recorded = config.get("problem")
+    if recorded:  # a resumed run: built as recorded (runs from before buckets have none)
+        b = recorded.get("shape_bucket")
+        return None if b is None else [int(b[0]), int(b[1])]
+    choice = o.get("shape_buckets", "on")
+    if choice not in SHAPE_BUCKET_CHOICES:
+        raise ConfigError(
+            f"shape_buckets: expected one of {', '.join(SHAPE_BUCKET_CHOICES)}, got {choice!r}"
+        )
+    if choice == "off" or o.get("init", "uniform") != "importance":
+        return None
+    b, t = np.shape(obs.force)
+    return [trajectories_bucket(b), steps_bucket(t)]
 
 
 def build_problem(
@@ -107,6 +140,11 @@ def build_problem(
         problem = with_prior(problem, prior.log_density)
         settings = {**problem.settings, "prior_from": {"run": o["prior_from"], **prior.to_dict()}}
         problem = dataclasses.replace(problem, settings=settings)
+    bucket = shape_bucket_for(config, obs)
+    if bucket is not None:
+        problem = dataclasses.replace(
+            problem, settings={**problem.settings, "shape_bucket": bucket}
+        )
     # infer() evaluates log_density once at the end: jitted, the simulator is traced and compiled
     # once
     # (op-by-op it costs tens of seconds); MH samples with the same function.

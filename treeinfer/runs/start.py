@@ -65,10 +65,13 @@ def _check_init(problem, options: dict) -> None:
         ) from None
 
 
-def _start(problem, config: dict, log: Callable[[str], None]):
+def _start(problem, config: dict, log: Callable[[str], None], programs=None):
     """``(ready, theta0)`` for the run's ``--init``: ``ready`` a finished posterior (``--init
     importance`` whose importance weights pass their check: no sampler iterations) or None;
-    ``theta0`` [P, D] the sampler's initial particles, None for the sampler's own (uniform)."""
+    ``theta0`` [P, D] the sampler's initial particles, None for the sampler's own (uniform).
+    ``programs``: the command's :class:`~treeinfer.program_cache.ProgramCache`
+    (``SimulatorCache.programs``), where ``--init importance`` keeps its rollout program, so
+    runs and folds whose data share a shape bucket compile it once."""
     o = config["options"]
     init = o.get("init", "uniform")
     if init == "laplace":
@@ -77,7 +80,8 @@ def _start(problem, config: dict, log: Callable[[str], None]):
         from ..fast_posterior import importance_for_run
 
         _check_init(problem, o)
-        return importance_for_run(problem, o["particles"], o["seed"], log)
+        options = {} if programs is None else {"programs": programs}
+        return importance_for_run(problem, o["particles"], o["seed"], log, **options)
     return None, None
 
 
