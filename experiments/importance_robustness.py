@@ -41,7 +41,7 @@ def main(argv=None) -> int:
     from benchmarks.inference import EXAMPLES
     from benchmarks.time_to_posterior import DT, N_STEPS, band_metrics, write_data
     from treeinfer.fast_posterior import BatchEvaluator, fast_posterior
-    from treeinfer.importance import adaptive_importance, proposal_from_fit
+    from treeinfer.importance import adaptive_importance, band_split, proposal_from_fit
     from treeinfer.inference import make_problem
     from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
@@ -73,11 +73,22 @@ def main(argv=None) -> int:
         res = fast_posterior(problem, args.particles, seed=seed, evaluator=ev, max_rounds=1)
         fits.append(res.fit)
         mean, cov = proposal_from_fit(res.fit)
+        mask = np.asarray(problem.obs.mask, bool)
         for r in rounds:
+            kept = []
+
+            def log_density(theta):
+                norms, stable, lp, res_r = ev.loss_terms(theta)
+                kept.append(res_r[:, : mask.shape[0]][:, mask])
+                out = -norms.sum(-1) / ev.kT + lp
+                return np.where(stable & np.isfinite(out), out, -np.inf)
+
             imp, idx = adaptive_importance(
-                ev.log_density, mean, cov, n_draws, args.particles, seed, max_rounds=r,
+                log_density, mean, cov, n_draws, args.particles, seed, max_rounds=r,
                 target_ess=np.inf,
             )  # fmt: skip
+            pred = np.concatenate(kept) + np.asarray(problem.obs.displacement, float)[mask]
+            split = band_split(pred, imp.log_weights)[2]
             m = band(imp.theta)
             rows.append(
                 {
@@ -91,6 +102,7 @@ def main(argv=None) -> int:
                     "n_draws": len(imp.draws),
                     "distinct": len(np.unique(idx)),
                     "ok": imp.ok,
+                    "band_split": split,
                     "band_mm": m["ci_width_m"] * 1e3,
                     "pct_outside": m["pct_outside"],
                 }

@@ -34,7 +34,9 @@ from .errors import ConfigError
 __all__ = [
     "KHAT_LIMIT",
     "ImportancePosterior",
+    "BAND_SPLIT_LIMIT",
     "adaptive_importance",
+    "band_split",
     "importance_posterior",
     "importance_resample",
     "psis",
@@ -43,6 +45,9 @@ __all__ = [
 ]
 
 KHAT_LIMIT = 0.7  # PSIS: above this the importance estimate is unreliable (Vehtari et al.)
+# the two halves of the weighted draws must agree on the band width within this share
+# (:func:`band_split`; experiments/importance_robustness.py)
+BAND_SPLIT_LIMIT = 0.1
 
 
 class ImportancePosterior(NamedTuple):
@@ -360,3 +365,42 @@ def adaptive_importance(
         all_x[idx], all_x, lw, all_lp, khat, ess, ok, m_last, c_last, float(df), reason, r
     )
     return imp, idx
+
+
+def _weighted_width(pred: np.ndarray, w: np.ndarray, level: float) -> float:
+    """Mean over points of the central ``level`` interval width of ``pred [M, S]`` under
+    weights ``w [M]`` (normalised; the inverse of the weighted empirical CDF)."""
+    order = np.argsort(pred, axis=0)
+    cdf = np.cumsum(w[order], axis=0)
+    cdf /= cdf[-1:]
+    lo_q, hi_q = 0.5 * (1.0 - level), 0.5 * (1.0 + level)
+    i_lo = np.argmax(cdf >= lo_q, axis=0)
+    i_hi = np.argmax(cdf >= hi_q, axis=0)
+    cols = np.arange(pred.shape[1])
+    sorted_pred = np.take_along_axis(pred, order, axis=0)
+    return float(np.mean(sorted_pred[i_hi, cols] - sorted_pred[i_lo, cols]))
+
+
+def band_split(pred, log_weights, level: float = 0.95) -> tuple[float, float, float]:
+    """How stable the weighted draws' predictive band is: ``(width_a, width_b, split)``, the
+    mean ``level`` band widths of ``pred [M, S]`` (each draw's prediction at S points) under the
+    normalised ``log_weights [M]`` restricted to the even and the odd draws, and
+    ``split = |width_a - width_b| / mean``.
+
+    Why: k_hat and the effective sample size judge the weights, not what a user reads off the
+    particles. On the standard problem one seed's weights passed both (k_hat 0.31, ESS 166) while
+    its band came out 14 % wider than the exact posterior's (``experiments/
+    importance_robustness.py``); the two halves' bands disagree when a few draws carry the band.
+    Weighted empirical quantiles, not the KDE band of :mod:`treeinfer.bands`: the check compares
+    the halves with each other. NaN when a half has no weight."""
+    pred = np.asarray(pred, float)
+    lw = np.asarray(log_weights, float)
+    widths = []
+    for half in (slice(0, None, 2), slice(1, None, 2)):
+        x, w = pred[half], np.exp(lw[half])
+        if not np.isfinite(w).all() or w.sum() <= 0:
+            return math.nan, math.nan, math.nan
+        keep = w > 0
+        widths.append(_weighted_width(x[keep], w[keep] / w[keep].sum(), level))
+    a, b = widths
+    return a, b, abs(a - b) / max(0.5 * (a + b), 1e-300)
