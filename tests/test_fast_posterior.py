@@ -161,7 +161,9 @@ def test_importance_for_run_logs_and_decides(one_joint):
     np.testing.assert_array_equal(post.theta, theta0.astype(np.float32))
     # too few draws for the effective sample size asked: not trusted, particles still returned
     lines.clear()
-    post, theta0 = importance_for_run(problem, 64, seed=3, log=lines.append, n_starts=3, n_draws=40)
+    post, theta0 = importance_for_run(
+        problem, 64, seed=3, log=lines.append, n_starts=3, n_draws=40, max_rounds=1
+    )
     assert post is None and "not trusted" in lines[0] and theta0.shape == (64, 2)
 
 
@@ -248,7 +250,7 @@ def test_cli_infer_init_importance(tmp_path, capsys, monkeypatch):
 
     # weights not trusted: the sampler runs its iterations from the importance particles
     def untrusted(problem, n_particles, seed, log):
-        _, theta0 = real(problem, n_particles, seed, log, n_starts=3, n_draws=40)
+        _, theta0 = real(problem, n_particles, seed, log, n_starts=3, n_draws=40, max_rounds=1)
         calls.append(theta0)
         return None, theta0
 
