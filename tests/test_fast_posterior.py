@@ -268,3 +268,20 @@ def test_cli_infer_init_importance(tmp_path, capsys, monkeypatch):
     assert rc == 2 and "--init importance" in err and "Traceback" not in err, err
     assert "dynamic model" in err
     assert not (tmp_path / "run3").exists() and not (tmp_path / "run3.partial").exists()
+
+
+def test_fast_posterior_ok_needs_a_stable_band_and_enough_ess(one_joint, monkeypatch):
+    """``ok`` is False when the even and odd draws' bands disagree (band_split) or when the
+    effective sample size stays below 2 P; adaptive rounds run while it is below."""
+    import treeinfer.importance as imp_mod
+
+    problem, _ = one_joint
+    res = fast_posterior(problem, 32, n_starts=3, n_draws=2000, seed=3)
+    assert res.ok and res.importance.ess >= 64 and res.settings["band_split"] <= 0.2
+    assert res.settings["importance_rounds"] == res.importance.rounds >= 1
+    monkeypatch.setattr(imp_mod, "band_split", lambda pred, lw: (0.010, 0.013, 0.26))
+    bad = fast_posterior(problem, 32, n_starts=3, n_draws=2000, seed=3)
+    assert not bad.ok and "halves" in bad.reason and "26%" in bad.reason
+    monkeypatch.undo()
+    few = fast_posterior(problem, 200, n_starts=3, n_draws=100, seed=2, max_rounds=1)
+    assert not few.ok and "effective sample size" in few.reason

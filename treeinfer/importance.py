@@ -46,8 +46,10 @@ __all__ = [
 
 KHAT_LIMIT = 0.7  # PSIS: above this the importance estimate is unreliable (Vehtari et al.)
 # the two halves of the weighted draws must agree on the band width within this share
-# (:func:`band_split`; experiments/importance_robustness.py)
-BAND_SPLIT_LIMIT = 0.1
+# (:func:`band_split`): a guard against gross instability. The halves' 2.5/97.5 % quantiles are
+# noisy (at 200-300 effective draws per half their widths differ by ~10 % typically), so the
+# effective sample size carries the check (experiments/importance_robustness.py)
+BAND_SPLIT_LIMIT = 0.2
 
 
 class ImportancePosterior(NamedTuple):
