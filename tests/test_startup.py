@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -131,3 +133,42 @@ def test_two_data_sets_of_one_bucket_share_one_compiled_program():
         config = _config(problem={"substeps": 2})
         BatchEvaluator(build_problem(config, tree, _pulls(lengths), cache), 3, programs)
     assert programs.builds == 3
+
+
+def test_cached_program_is_traced_once_per_machine(tmp_path, monkeypatch):
+    """The serialized export is written on the first call and read by the next (no tracing of
+    the function), with the same results as a plain jit; off with TREEINFER_JAX_CACHE=off."""
+    pytest.importorskip("flatbuffers")  # jax.export's serialization needs it (an extra)
+    from treeinfer.startup import cached_program, export_path
+
+    monkeypatch.setenv("TREEINFER_JAX_CACHE", str(tmp_path))
+    traced = []
+
+    def make():  # a fresh function each time, as in a new process (jax caches traces per object)
+        def fn(x, y, n):
+            traced.append(1)
+            return jnp.sin(x) @ y + n, jnp.linalg.solve(y, x.T)
+
+        return fn
+
+    args = (jnp.ones((3, 4)) * 0.3, jnp.eye(4) * 2.0 + 0.1, jnp.asarray(5, jnp.int32))
+    want = jax.jit(make())(*args)
+    traced.clear()
+    got1 = cached_program(make(), args, "test-key")(*args)
+    assert len(traced) == 1
+    path = export_path("test-key")
+    assert path is not None and path.startswith(str(tmp_path)) and Path(path).is_file()
+    got2 = cached_program(make(), args, "test-key")(*args)
+    assert len(traced) == 1  # read from disk: fn not traced again
+    for a, b, c in zip(want, got1, got2):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-6)
+        np.testing.assert_array_equal(np.asarray(c), np.asarray(b))
+    assert export_path("other-key") != path
+    Path(path).write_bytes(b"not an export")  # unreadable: traced and written again
+    third = cached_program(make(), args, "test-key")
+    np.testing.assert_array_equal(np.asarray(third(*args)[0]), np.asarray(got1[0]))
+    assert len(traced) == 2
+    monkeypatch.setenv("TREEINFER_JAX_CACHE", "off")
+    assert export_path("test-key") is None
+    cached_program(make(), args, "test-key")(*args)
+    assert len(traced) == 3

@@ -86,7 +86,7 @@ class BatchEvaluator:
 
     def __init__(self, problem, chunk: int, programs=None, shape=None):
         check_problem(problem)
-        from .startup import bucket_observations
+        from .startup import bucket_observations, cached_program
 
         self.problem, self.chunk, self.calls = problem, int(chunk), 0
         self.kT = float(problem.kT)
@@ -111,16 +111,21 @@ class BatchEvaluator:
         )
         # the simulator by content, without step_info (how its step was chosen: metadata that
         # differs between data sets whose accuracy-controlled step came out the same)
-        sim_key = None if programs is None else dataclasses.replace(sim, step_info={}).fingerprint
+        sim_key = dataclasses.replace(sim, step_info={}).fingerprint
         key = (
             "fast_posterior.BatchEvaluator",
             sim_key,
             gf,
             self.chunk,
+            problem.dim,
             self.shape,
             str(self._dtype),
         )
-        build = lambda: jax.jit(_rollout_residuals(sim, gf))  # noqa: E731
+        example = (jnp.zeros((self.chunk, problem.dim), self._dtype), *self._data)
+
+        def build():  # traced once per machine: treeinfer.startup.cached_program
+            return cached_program(_rollout_residuals(sim, gf), example, repr(key))
+
         self._run = build() if programs is None else programs.get(key, build)
         self._prior = jax.jit(problem.log_prior)
 
