@@ -105,3 +105,19 @@ def test_band_split_flags_a_band_carried_by_a_few_draws():
     assert split > 0.2 and np.isfinite(a) and np.isfinite(b)
     no_weight = np.where(np.arange(2000) % 2 == 0, -np.inf, 0.0)
     assert np.isnan(band_split(pred, no_weight)[2])
+
+
+def test_student_t_later_rounds_keep_the_target():
+    """Gaussian first round, Student-t later rounds (heavier tails): the mixture weights still
+    give the target's moments."""
+    target = _gauss_log_density(MEAN, COV)
+    q_mean = MEAN - 0.5 * np.sqrt(np.diag(COV))
+    res, _ = adaptive_importance(
+        target, q_mean, COV * 2.0, 1500, 100, seed=4, max_rounds=3, target_ess=np.inf,
+        df_adapt=6.0,
+    )  # fmt: skip
+    assert res.rounds == 3 and res.df == 6.0 and res.ok
+    m, c = weighted_moments(res.draws, res.log_weights)
+    se = np.sqrt(np.diag(COV) / res.ess)
+    assert np.all(np.abs(m - MEAN) < 5 * se)
+    np.testing.assert_allclose(c, COV, atol=0.2)

@@ -301,6 +301,7 @@ def adaptive_importance(
     max_rounds: int = 2,
     target_ess: float | None = None,
     min_ess: float | None = None,
+    df_adapt: float | None = None,
 ):
     """Importance sampling whose proposal adapts to the weighted draws (population Monte
     Carlo; Cappé et al. 2004, with the deterministic-mixture weights of Owen & Zhou 2000).
@@ -329,6 +330,8 @@ def adaptive_importance(
         round r with ``seed + r``; the resample with ``seed``).
       min_ess: the effective sample size below which ``ok`` is False (default
         ``n_particles / 4``); target_ess: the one more rounds aim for.
+      df: Student-t degrees of freedom of the first proposal (inf: Gaussian); df_adapt: of the
+        later rounds' (default ``df``).
 
     Returns ``(ImportancePosterior, index [n_particles])``: ``theta = draws[index]``; its
     ``rounds`` says how many rounds ran.
@@ -336,18 +339,19 @@ def adaptive_importance(
     if not (isinstance(max_rounds, (int, np.integer)) and max_rounds >= 1):
         raise ConfigError(f"max_rounds: must be an integer >= 1, got {max_rounds!r}")
     target = 2.0 * n_particles if target_ess is None else float(target_ess)
-    proposals = [(np.asarray(mean, float), np.asarray(cov, float))]
+    df_adapt = float(df) if df_adapt is None else float(df_adapt)
+    proposals = [(np.asarray(mean, float), np.asarray(cov, float), float(df))]
     draws, log_p, sizes = [], [], []
     while True:
         r = len(proposals)
-        m_r, c_r = proposals[-1]
-        x, _ = _draw(np.random.default_rng(seed + r), m_r, c_r, n_draws, float(df))
+        m_r, c_r, df_r = proposals[-1]
+        x, _ = _draw(np.random.default_rng(seed + r), m_r, c_r, n_draws, df_r)
         draws.append(x)
         log_p.append(np.asarray(log_density(x), float))
         sizes.append(len(x))
         all_x, all_lp = np.concatenate(draws), np.concatenate(log_p)
         # the deterministic mixture of every proposal so far, at every draw
-        log_qs = [_draw_log_density(None, m, c, 0, float(df), all_x)[1] for m, c in proposals]
+        log_qs = [_draw_log_density(None, m, c, 0, d, all_x)[1] for m, c, d in proposals]
         log_q = np.logaddexp.reduce(
             np.stack(log_qs) + np.log(np.asarray(sizes, float))[:, None], axis=0
         ) - np.log(float(sum(sizes)))
@@ -361,10 +365,10 @@ def adaptive_importance(
             np.linalg.cholesky(nxt[1])
         except np.linalg.LinAlgError:
             break
-        proposals.append(nxt)
-    m_last, c_last = proposals[-1]
+        proposals.append((*nxt, df_adapt))
+    m_last, c_last, df_last = proposals[-1]
     imp = ImportancePosterior(
-        all_x[idx], all_x, lw, all_lp, khat, ess, ok, m_last, c_last, float(df), reason, r
+        all_x[idx], all_x, lw, all_lp, khat, ess, ok, m_last, c_last, df_last, reason, r
     )
     return imp, idx
 
