@@ -240,8 +240,9 @@ def main(argv=None) -> int:
     p.add_argument(
         "--is-df",
         type=float,
-        default=float("inf"),
-        help="importance path: Student-t degrees of freedom of the proposal (inf: Gaussian)",
+        default=8.0,
+        help="importance path: Student-t degrees of freedom of the proposals (inf: Gaussian, "
+        "as before; fast_posterior's default 8)",
     )
     p.add_argument(
         "--is-rounds",

@@ -52,7 +52,12 @@ import numpy as np
 
 from .errors import ConfigError
 
+# Student-t proposals (every round): Gaussian ones leave the posterior's tails short, so the
+# band came out 4-5 % narrow on average (experiments/importance_robustness.py, BENCHMARKS.md)
+DEFAULT_DF = 8.0
+
 __all__ = [
+    "DEFAULT_DF",
     "BatchEvaluator",
     "FastPosterior",
     "ParticleState",
@@ -368,7 +373,7 @@ def fast_posterior(
     n_draws: int | None = None,
     max_iterations: int = 30,
     tolerance: float = 1e-4,
-    df: float = math.inf,
+    df: float = DEFAULT_DF,
     seed: int = 0,
     evaluator: BatchEvaluator | None = None,
     max_rounds: int = 3,
@@ -385,8 +390,8 @@ def fast_posterior(
         ``8 K``, at least ``4 P``; the Pareto k_hat needs several hundred to be reliable: with
         256 draws of a near-perfect proposal it read 1-2 on a one-joint test, a false alarm).
         max_iterations, tolerance: of the LM (:func:`fit_map_batched`). df: Student-t degrees
-        of freedom of the importance proposal (inf: Gaussian). seed: of the screen, the draws
-        and the resample.
+        of freedom of the importance proposals (:data:`DEFAULT_DF`; inf: Gaussian). seed: of
+        the screen, the draws and the resample.
       evaluator: a :class:`BatchEvaluator` of the same problem with ``chunk == K`` to reuse.
       programs: a :class:`~treeinfer.program_cache.ProgramCache` for the evaluator's rollout
         program (shared by every data set of one shape bucket, :class:`BatchEvaluator`).
