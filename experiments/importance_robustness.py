@@ -36,10 +36,9 @@ def main(argv=None) -> int:
     p.add_argument("--particles", type=int, default=128)
     p.add_argument("--rounds", default="1,2,3")
     p.add_argument("--ref-draws", type=int, default=2048)
-    p.add_argument(
-        "--df", type=float, default=float("inf"), help="Student-t proposal (inf: Gaussian)"
-    )
+    p.add_argument("--df", type=float, default=8.0, help="Student-t proposals (inf: Gaussian)")
     p.add_argument("--df-adapt", type=float, default=None, help="Student-t df of rounds >= 2")
+    p.add_argument("--lm-iterations", type=int, default=30)
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
 
@@ -52,7 +51,13 @@ def main(argv=None) -> int:
         write_data,
     )
     from treeinfer.fast_posterior import BatchEvaluator, fast_posterior
-    from treeinfer.importance import adaptive_importance, band_split, proposal_from_fit
+    from treeinfer.importance import (
+        adaptive_importance,
+        band_split,
+        leading_projection,
+        proposal_from_fit,
+        sorted_resample,
+    )
     from treeinfer.inference import make_problem
     from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
@@ -82,8 +87,9 @@ def main(argv=None) -> int:
     t0 = time.time()
     for seed in range(args.seeds):
         res = fast_posterior(
-            problem, args.particles, seed=seed, evaluator=ev, max_rounds=1, df=args.df
-        )
+            problem, args.particles, seed=seed, evaluator=ev, max_rounds=1, df=args.df,
+            max_iterations=args.lm_iterations,
+        )  # fmt: skip
         fits.append(res.fit)
         mean, cov = proposal_from_fit(res.fit)
         mask = np.asarray(problem.obs.mask, bool)
@@ -103,6 +109,8 @@ def main(argv=None) -> int:
             pred = np.concatenate(kept) + np.asarray(problem.obs.displacement, float)[mask]
             split = band_split(pred, imp.log_weights)[2]
             m = band(imp.theta)
+            key = leading_projection(pred, imp.log_weights)
+            ms = band(imp.draws[sorted_resample(seed, imp.log_weights, args.particles, key)])
             rows.append(
                 {
                     "seed": seed,
@@ -117,6 +125,7 @@ def main(argv=None) -> int:
                     "ok": imp.ok,
                     "band_split": split,
                     "band_mm": m["ci_width_m"] * 1e3,
+                    "band_sorted_mm": ms["ci_width_m"] * 1e3,
                     "pct_outside": m["pct_outside"],
                 }
             )

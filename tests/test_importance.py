@@ -121,3 +121,25 @@ def test_student_t_later_rounds_keep_the_target():
     se = np.sqrt(np.diag(COV) / res.ess)
     assert np.all(np.abs(m - MEAN) < 5 * se)
     np.testing.assert_allclose(c, COV, atol=0.2)
+
+
+def test_sorted_resample_takes_one_draw_per_stratum():
+    from treeinfer.importance import leading_projection, sorted_resample
+
+    rng = np.random.default_rng(5)
+    key = rng.normal(size=1000)
+    lw = np.full(1000, -np.log(1000.0))
+    idx = sorted_resample(0, lw, 100, key)
+    ranks = np.argsort(np.argsort(key))[idx]  # rank of each chosen draw along the key
+    assert sorted(ranks // 10) == list(range(100))  # one from each block of 10 ranks
+    # unequal weights: each draw appears floor(n w) or ceil(n w) times, as systematic resampling
+    w = rng.gamma(1.0, size=1000)
+    w /= w.sum()
+    counts = np.bincount(sorted_resample(1, np.log(w), 500, key), minlength=1000)
+    assert np.all(counts >= np.floor(500 * w)) and np.all(counts <= np.ceil(500 * w))
+    # the leading prediction component: predictions a_i * u + noise project onto a_i
+    a = rng.normal(size=400)
+    u = rng.normal(size=30)
+    pred = a[:, None] * u + 0.01 * rng.normal(size=(400, 30))
+    proj = leading_projection(pred, np.full(400, -np.log(400.0)))
+    assert abs(np.corrcoef(proj, a)[0, 1]) > 0.999
