@@ -202,16 +202,17 @@ def child_importance(args, problem, marks, record) -> int:
 
 def child_reference_importance(args, problem, marks, record) -> int:
     """The ``--reference-kind importance`` reference: an importance posterior with many draws
-    (4 adaptive rounds of 2048, ``8 P`` particles resampled and shuffled; the parent averages
-    the band over the ``P``-particle subsets, so the reference has the runs' KDE smoothing). An
-    exact sampler in the limit, unlike NNSVGD, whose 128 particles settle into a band about 10 %
-    narrower on this problem (``experiments/importance_robustness.py``)."""
+    (4 adaptive rounds of 4096 Student-t draws, ``32 P`` particles, shuffled; the parent averages
+    the band over the 32 ``P``-particle subsets, so the reference has the runs' KDE smoothing and
+    about 1 % noise: 128 exact draws' bands scatter by 6.6 %). An exact sampler in the limit,
+    unlike NNSVGD, whose 128 particles settle into a band 10-15 % narrower on this problem
+    (``experiments/importance_robustness.py``, BENCHMARKS.md issue 15 fifth pass)."""
     from treeinfer.fast_posterior import fast_posterior
 
-    n = 8 * args.particles
+    n = 32 * args.particles
     res = fast_posterior(
-        problem, n, n_starts=args.is_starts, n_draws=2048, seed=1234, max_rounds=4,
-        target_ess=float("inf"),
+        problem, n, n_starts=args.is_starts, n_draws=4096, seed=1234, max_rounds=4,
+        target_ess=float("inf"), df=8.0,
     )  # fmt: skip
     theta = np.random.default_rng(0).permutation(res.theta)
     marks["infer"] = time.time()

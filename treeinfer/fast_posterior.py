@@ -399,9 +399,9 @@ def fast_posterior(
       programs: a :class:`~treeinfer.program_cache.ProgramCache` for the evaluator's rollout
         program (shared by every data set of one shape bucket, :class:`BatchEvaluator`).
       max_rounds, target_ess: :func:`treeinfer.importance.adaptive_importance`: while the
-        effective sample size is below ``target_ess`` (default ``2 P``), up to ``max_rounds``
+        effective sample size is below ``target_ess`` (default ``4 P``), up to ``max_rounds``
         rounds of ``n_draws`` each, the later ones from the weighted draws' moments; ``ok``
-        needs that effective sample size.
+        needs ``min(target_ess, 2 P)``.
     """
     from .importance import (
         BAND_SPLIT_LIMIT,
@@ -445,10 +445,10 @@ def fast_posterior(
         out = -norms.sum(-1) / ev.kT + lp
         return np.where(stable & np.isfinite(out), out, -np.inf)
 
-    target = 2.0 * n_particles if target_ess is None else float(target_ess)
+    target = 4.0 * n_particles if target_ess is None else float(target_ess)
     imp, idx = adaptive_importance(
         log_density, mean, cov, n_draws, int(n_particles), seed, float(df), max_rounds,
-        target, min_ess=target if math.isfinite(target) else 2.0 * n_particles,
+        target, min_ess=min(target, 2.0 * n_particles),
     )  # fmt: skip
     pred = np.concatenate(kept) + np.asarray(problem.obs.displacement, float)[mask]
     width_a, width_b, split = band_split(pred, imp.log_weights)
