@@ -247,9 +247,9 @@ def main(argv=None) -> int:
     p.add_argument(
         "--is-rounds",
         type=int,
-        default=2,
-        help="importance path: at most this many adaptive proposal rounds (1: the fit's Gaussian "
-        "alone, as before)",
+        default=3,
+        help="importance path: at most this many adaptive proposal rounds (fast_posterior's 3; 1: "
+        "the fit's proposal alone, as before)",
     )
     p.add_argument(
         "--reference-kind",
