@@ -57,7 +57,7 @@ import numpy as np
 from .errors import ConfigError
 
 # Student-t proposals (every round): Gaussian ones leave the posterior's tails short, so the
-# band came out 4-5 % narrow on average (experiments/importance_robustness.py, BENCHMARKS.md)
+# band came out 5-6 % narrow on average (experiments/importance_robustness.py, BENCHMARKS.md)
 DEFAULT_DF = 8.0
 
 __all__ = [

@@ -319,8 +319,8 @@ def adaptive_importance(
     Why: the MAP fit's Gaussian (the Boltzmann-matched cone shape) is the right size but can be
     off-centre where the LM stopped short of the mode (its 30 iterations on the standard problem
     end unconverged for 7-8 of 8 starts). Its weights then concentrate (effective sample size
-    37-169 of 832 draws) and the predictive band of the resampled particles scatters by 6.6 %
-    between seeds, up to 11 % (``experiments/importance_robustness.py``, BENCHMARKS.md issue 15
+    37-169 of 832 draws) and the predictive band of the resampled particles scatters by 6.5 %
+    between seeds, up to 10 % (``experiments/importance_robustness.py``, BENCHMARKS.md issue 15
     fifth pass); a second, moment-matched proposal lifts the effective sample size to 280-640
     at the cost of ``n_draws`` more log-density evaluations.
 
