@@ -228,7 +228,8 @@ def crb_log_std(sim, kp, kd, train, sigma_force=None) -> np.ndarray:
 
 
 def force_noise_check(name: str, size: dict, seed: int, force_level: float, n_mc: int = 200):
-    """Checks of the force-noise term on one case WITHOUT a fit (seconds; ``--check-force-noise``).
+    """Checks of the force-noise term on one case WITHOUT a fit (``--check-force-noise``; 1-4
+    minutes per tree at full size on a CPU, most of it the reference MAP).
 
     At the true gains, on the case's own data (issue 11, the full-size R = 2 miss):
 
@@ -241,12 +242,15 @@ def force_noise_check(name: str, size: dict, seed: int, force_level: float, n_mc
       linearisation), with the median ratio of variances (MC / point_variance, t >= 20);
     * ``pct_inside_at_truth``: noisy test points inside ``tau(truth, recorded force) +- 1.96
       sqrt(sigma_x^2 [+ diag C])`` with sigma_x = 2 mm, without and with the term;
-    * the Cramer-Rao std per log gain without and with the force noise (:func:`crb_log_std`).
+    * the Cramer-Rao std per log gain without and with the force noise (:func:`crb_log_std`);
+    * ``at_reference``: the errors-in-variables MAP that ``--noise-force auto`` linearises at
+      (``likelihood_terms``), the sigma_x maximising the likelihood there (grid 1.5-3.5 mm), and
+      the test coverage at that point with and without the term (what a fit should give).
     """
     import jax.numpy as jnp
 
     from treeinfer import force_noise as fn
-    from treeinfer.likelihood import gains_from_theta
+    from treeinfer.likelihood import gains_from_theta, likelihood_terms
     from treeinfer.sim import simulate
     from treeinfer.sim.reference import simulate_reference
     from treeinfer.trajectories import stack_trajectories
@@ -255,9 +259,9 @@ def force_noise_check(name: str, size: dict, seed: int, force_level: float, n_mc
         name, size, seed, force_level, with_clean=True
     )
     theta = np.log(np.concatenate([kp, kd]))
-    k, d = gains_from_theta(jnp.asarray(theta[None], sim.dtype), sim.n_joints)
 
-    def tau(forces):
+    def tau(forces, th=theta):  # [B, T] N -> [B, T] m at the log gains th [2R]
+        k, d = gains_from_theta(jnp.asarray(th[None], sim.dtype), sim.n_joints)
         return np.asarray(simulate(sim, k, d, jnp.asarray(forces, sim.dtype)).tau[0], float)
 
     f_clean = np.stack([t.force for t in clean])
@@ -277,9 +281,25 @@ def force_noise_check(name: str, size: dict, seed: int, force_level: float, n_mc
     y = np.asarray(test_obs.displacement, float)
     z = 1.959963984540054
 
-    def inside(var):
-        return 100.0 * float(np.mean(np.abs(y - st) <= z * np.sqrt(var)))
+    def inside(var, pred):  # % of noisy test points in pred +- z sqrt(var)
+        return 100.0 * float(np.mean(np.abs(y - pred) <= z * np.sqrt(var)))
 
+    # the reference point of --noise-force auto (the errors-in-variables MAP)
+    terms = likelihood_terms(sim, obs, "gaussian", noise_force="auto")
+    ref_theta = np.asarray(terms.force_noise.theta_ref, float)
+    grid = np.log(np.linspace(0.0015, 0.0035, 41))
+    th = np.column_stack([np.tile(ref_theta, (grid.size, 1)), grid])
+    ll = np.asarray(terms.log_likelihood(jnp.asarray(th, sim.dtype)))
+    sx = float(np.exp(grid[np.argmax(ll)]))
+    st_ref = tau(test_obs.force, ref_theta)
+    pv_ref = fn.point_variance(terms.force_noise.basis(sim, test_obs.force))
+    at_ref = {
+        "theta_ref": [float(v) for v in ref_theta],
+        "theta_true": [float(v) for v in theta],
+        "sigma_x_mm": 1e3 * sx,
+        "pct_inside_sigma_x_only": inside(sx**2 + 0.0 * pv_ref, st_ref),
+        "pct_inside_with_force_term": inside(sx**2 + pv_ref, st_ref),
+    }
     return {
         "tree": name,
         "backend": sim.backend,
@@ -292,11 +312,12 @@ def force_noise_check(name: str, size: dict, seed: int, force_level: float, n_mc
         "mc_over_point_variance_reference": float(np.median(mc_ref[late] / pv[0, late])),
         "mc_over_point_variance_inference": float(np.median(mc_inf[late] / pv[0, late])),
         "pct_inside_at_truth": {
-            "sigma_x_only": inside(SIGMA_X**2 + 0.0 * pv_test),
-            "with_force_term": inside(SIGMA_X**2 + pv_test),
+            "sigma_x_only": inside(SIGMA_X**2 + 0.0 * pv_test, st),
+            "with_force_term": inside(SIGMA_X**2 + pv_test, st),
         },
         "crb_log_std": [float(v) for v in crb_log_std(sim, kp, kd, train)],
         "crb_force_log_std": [float(v) for v in crb_log_std(sim, kp, kd, train, sf)],
+        "at_reference": at_ref,
     }
 
 
