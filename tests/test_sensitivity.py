@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from test_forward_mode import GENERAL_MJCF  # tests/ is on sys.path (pytest prepend)
 
 from treeinfer.examples import example_path
 from treeinfer.gradients import autodiff_value_and_grad, jvp_value_and_grad
@@ -25,8 +26,6 @@ from treeinfer.sim import fused as hd
 from treeinfer.sim import fused_backend as fb
 from treeinfer.sim import sensitivity as sn
 from treeinfer.tree import load_tree, tree_from_dict
-
-from test_forward_mode import GENERAL_MJCF  # tests/ is on sys.path (pytest prepend)
 
 ONE_BRANCH = {
     "name": "one",
@@ -171,8 +170,7 @@ def test_likelihood_gradient_forward_reverse_and_force_fallback():
     kp, kd = np.array([120.0, 60.0, 30.0]), np.array([1.0, 0.5, 0.3])
     t = np.arange(forces.shape[1]) * 0.01
     trajs = [
-        Trajectory(t, f, *simulate_reference(sim, kp, kd, f), f"p{i}")
-        for i, f in enumerate(forces)
+        Trajectory(t, f, *simulate_reference(sim, kp, kd, f), f"p{i}") for i, f in enumerate(forces)
     ]
     obs = stack_trajectories(trajs)
     rng = np.random.default_rng(3)

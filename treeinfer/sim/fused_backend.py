@@ -154,7 +154,7 @@ def _pull(
     sim: Simulator, gains, qpos_rest, forces, site_local, unroll_outer=1, unroll_inner=1, **kw
 ):
     kp, kd = gains
-    if kw.get("substeps") is None and not uses_levels(sim):
+    if SENSITIVITY_RULE and kw.get("substeps") is None and not uses_levels(sim):
         # same values; derivatives in the gains by the step's sensitivity equations
         return _pull_sensitivity(
             sim, unroll_outer, unroll_inner, kw.get("body"),
@@ -171,6 +171,11 @@ def _pull(
 # applies it to every tangent direction with a few multiply-adds; under ``vmap`` over tangent
 # directions (``gradients.jvp_value_and_grad``, ``jax.jacfwd``) the Jacobian stays unbatched.
 # Tangents of the forces, grasp point or direction (``force_noise``) take the plain ``jax.jvp``.
+
+
+SENSITIVITY_RULE = True
+"""Read at trace time: False differentiates the plain step code (``jax.jvp`` of
+:func:`_pull_one`), for comparisons (``benchmarks/gradient_cost.py --plain-jvp``)."""
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3))
@@ -201,9 +206,7 @@ def _pull_sensitivity_jvp(sim, unroll_outer, unroll_inner, body, primals, tangen
             body=body,
         )  # fmt: skip
         tan = tuple(
-            jax.tree_util.tree_map(inst, t, p, is_leaf=_is_zero_tangent)
-            if p is not None
-            else None
+            jax.tree_util.tree_map(inst, t, p, is_leaf=_is_zero_tangent) if p is not None else None
             for t, p in zip(tangents, primals)
         )
         return jax.jvp(plain, primals, tan)
@@ -258,6 +261,7 @@ def pull_with_tangent(
     for col, dof in enumerate(sim.dof_ids):
         dstiff[int(dof)] = dkp[col]
         ddamp[int(dof)] = dkd[col]
+    staged = sn.use_staging()
     rest, _ = _stepper(sim, kp, kd, dtype, bid, site_local)
     (c_rest, lever0), (dc_rest, dlever0) = jax.jvp(rest, (qpos_rest,), (dq0,))
     as_dtype = lambda xs: tuple(jnp.asarray(x, dtype) for x in xs)
@@ -273,7 +277,7 @@ def pull_with_tangent(
             )
             lin = sn.step_linearization(
                 t, q, v, stiffness, damping, spring, dt, bid, site_local, force, lever,
-                pred=k >= 0,
+                pred=(k >= 0) if staged else None,
             )  # fmt: skip
             dq_new, dv_new, dl_new, dsite = sn.step_tangent(
                 t, lin, dt, [dq[i] for i in range(nv)], [dv[i] for i in range(nv)], dl,

@@ -37,6 +37,19 @@ import jax.numpy as jnp
 
 from . import fused as hd
 
+STAGING = "auto"
+"""Whether :func:`step_linearization` stages through :func:`materialize` in the pull:
+``"auto"`` (on the CPU only: a ``lax.cond`` per stage is free there, while on a GPU a
+conditional inside the step loop costs a device-to-host round trip and fusion is not the
+problem), ``"on"`` or ``"off"``."""
+
+
+def use_staging() -> bool:
+    """:data:`STAGING` resolved for the default backend (at trace time)."""
+    if STAGING == "auto":
+        return jax.default_backend() == "cpu"
+    return STAGING == "on"
+
 
 def materialize(fn, pred):
     """``fn()`` (a pytree whose leaves are arrays or Python floats) evaluated inside a
