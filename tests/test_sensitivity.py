@@ -204,3 +204,27 @@ def test_pull_uses_the_rule_only_for_the_scalar_layout_and_default_substeps():
         jnp.ones((1, 2))
     ))  # fmt: skip
     assert "name=_pull_sensitivity" not in jaxpr
+
+
+def test_pull_tangent_with_direction_grasp_branch_and_fraction():
+    """Per-profile pull directions, another grasped branch and a grasp fraction (issue 13's
+    pulls) go through the rule too: same tangent as the plain path."""
+    sim, forces = _pull_data("two", 15)
+    rng = np.random.default_rng(5)
+    with jax.enable_x64(True):
+        kp = jnp.asarray(rng.uniform(30, 200, (2, 2)))
+        kd = jnp.asarray(rng.uniform(0.3, 3, (2, 2)))
+        dkp, dkd = jnp.asarray(rng.normal(size=(2, 2))) * kp, jnp.asarray(rng.normal(size=(2, 2)))
+        f = jnp.asarray(forces)
+        opts = {
+            "direction": jnp.asarray([[1.0, 0.0, -0.3], [0.0, 1.0, 0.0]]),
+            "grasp_branch": ("parent", "child"),
+            "grasp_fraction": jnp.asarray([0.6, 0.9]),
+        }
+        fast = lambda a, b: _simulate(sim, a, b, f, **opts).tau
+        slow = lambda a, b: _simulate(sim, a, b, f, substeps=sim.substeps, **opts).tau
+        _, dtau = jax.jvp(fast, (kp, kd), (dkp, dkd))
+        _, dtau_p = jax.jvp(slow, (kp, kd), (dkp, dkd))
+        scale = np.abs(np.asarray(dtau_p)).max()
+        assert scale > 1e-5
+        np.testing.assert_allclose(dtau, dtau_p, rtol=1e-9, atol=1e-9 * scale)
