@@ -137,8 +137,11 @@ def _pull_data(name, n_steps=40):
     return sim, forces
 
 
-@pytest.mark.parametrize("name,plain", [("one", False), ("two", False), ("three", True)])
-def test_pull_tangent_equals_plain_jvp_and_central_differences(name, plain):
+@pytest.mark.parametrize(
+    "name,plain,staging", [("one", False, "off"), ("two", False, "auto"), ("three", True, "auto")]
+)
+def test_pull_tangent_equals_plain_jvp_and_central_differences(name, plain, staging, monkeypatch):
+    monkeypatch.setattr(sn, "STAGING", staging)  # "off": the GPU's unstaged linearization
     sim, forces = _pull_data(name, 25)
     r = sim.n_joints
     rng = np.random.default_rng(2)
