@@ -4,8 +4,8 @@
 * the analytic kinematic tangent against ``jax.jvp`` of the kinematics;
 * one step's Jacobian-times-tangent against ``jax.jvp`` of ``fused.step`` (random states, gains
   and tangents, staged and unstaged), float64;
-* whole pulls against ``jax.jvp`` of the plain pull and against central differences of the
-  rollout (float64), on 1-, 2- and 3-joint trees;
+* whole pulls against ``jax.jvp`` of the plain pull, against central differences of the
+  rollout (float64), on 1-, 2- and 3-joint trees, and against central differences of MuJoCo C;
 * the likelihood gradient against ``jax.jacfwd`` of the plain path and reverse mode, and the
   force-tangent fallback (``force_noise``'s ``jax.jacfwd`` in the forces) against the plain path.
 """
@@ -231,3 +231,31 @@ def test_pull_tangent_with_direction_grasp_branch_and_fraction():
         scale = np.abs(np.asarray(dtau_p)).max()
         assert scale > 1e-5
         np.testing.assert_allclose(dtau, dtau_p, rtol=1e-9, atol=1e-9 * scale)
+
+
+def test_pull_tangent_matches_central_differences_of_mujoco_c():
+    """An independent reference: central differences of the MuJoCo C rollout
+    (``simulate_reference``, ``mj_step`` in float64) in each gain, three-branch tree (its side
+    joint's gains are fixed constants)."""
+    from treeinfer.sim.reference import simulate_reference
+
+    sim = make_simulator(TREES["three"], obs_dt=0.01)
+    t = np.arange(30) * 0.01
+    f = 4.0 * np.clip(t / 0.2, 0, 1)
+    kp, kd = np.array([120.0, 60.0, 30.0]), np.array([1.0, 0.5, 0.3])
+    with jax.enable_x64(True):
+        tau = lambda a, b: _simulate(sim, a[None], b[None], jnp.asarray(f)[None]).tau[0, 0]
+        push = jax.jit(lambda da, db: jax.jvp(tau, (jnp.asarray(kp), jnp.asarray(kd)), (da, db)))
+        for j in range(6):
+            e = np.zeros(6)
+            e[j] = 1.0
+            gains = np.concatenate([kp, kd])
+            _, ours = push(jnp.asarray((e * gains)[:3]), jnp.asarray((e * gains)[3:]))
+            h = 1e-5
+            up, down = gains * (1 + h * e), gains * (1 - h * e)
+            ref = (
+                simulate_reference(sim, up[:3], up[3:], f)[0]
+                - simulate_reference(sim, down[:3], down[3:], f)[0]
+            ) / (2 * h)
+            assert np.abs(ref).max() > 1e-5
+            np.testing.assert_allclose(ours, ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
