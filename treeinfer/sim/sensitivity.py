@@ -66,9 +66,13 @@ def materialize(fn, pred):
         box["tdef"], box["leaves"] = tdef, leaves
         return [x for x in leaves if not isinstance(x, float)]
 
-    shapes = jax.eval_shape(true_fn)
-    zeros = lambda: [jnp.zeros(x.shape, x.dtype) for x in shapes]
-    got = iter(jax.lax.cond(pred, true_fn, zeros))
+    def false_fn():  # zeros shaped like true_fn's arrays (lax.cond traces true_fn first)
+        if "leaves" not in box:
+            jax.eval_shape(true_fn)
+        live = [x for x in box["leaves"] if not isinstance(x, float)]
+        return [jnp.zeros(jnp.shape(x), jnp.result_type(x)) for x in live]
+
+    got = iter(jax.lax.cond(pred, true_fn, false_fn))
     leaves = [x if isinstance(x, float) else next(got) for x in box["leaves"]]
     return jax.tree_util.tree_unflatten(box["tdef"], leaves)
 
