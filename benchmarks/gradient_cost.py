@@ -10,7 +10,10 @@ particles) it times, interleaved in one process so machine load hits all alike:
 * ``fd``: :func:`treeinfer.gradients.central_difference`, P x (2D + 1) rollouts in one call;
 * ``jvp``: :func:`treeinfer.gradients.jvp_value_and_grad`, D tangents pushed through one
   primal rollout (exact);
-* ``reverse`` (``--reverse``): :func:`treeinfer.gradients.autodiff_value_and_grad`.
+* ``reverse`` (``--reverse``): :func:`treeinfer.gradients.autodiff_value_and_grad`;
+* ``jvp_plain`` (``--plain-jvp``): ``jvp`` with the fused pull's sensitivity rule off
+  (``treeinfer.sim.fused_backend.SENSITIVITY_RULE``): ``jax.jvp`` through the step code, the
+  path before the rule.
 
 Each is reported as steady wall time (minimum over ``--reps``), compile time, and
 **rollout-equivalents per particle** = time / time(rollout). Central differences cost 2D + 1 = 13
@@ -62,6 +65,9 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--reps", type=int, default=3)
     p.add_argument("--reverse", action="store_true", help="also time reverse mode")
+    p.add_argument(
+        "--plain-jvp", action="store_true", help="also time jvp without the sensitivity rule"
+    )
     p.add_argument("--backend", default="fused", choices=["fused", "pallas"])
     p.add_argument(
         "--tangent-layout",
@@ -93,11 +99,21 @@ def main(argv=None) -> int:
     }
     if args.reverse:
         fns["reverse"] = jax.jit(autodiff_value_and_grad(loglik))
+    if args.plain_jvp:
+        fns["jvp_plain"] = jax.jit(jvp_value_and_grad(loglik))
+    import treeinfer.sim.fused_backend as fb
+
     compile_s, out = {}, {}
-    for name, fn in fns.items():
+    for name, fn in list(fns.items()):
+        # compiled ahead of time, each from a fresh trace: the switch is read while tracing, and
+        # the simulator's inner jit would otherwise reuse the first trace
+        fb.SENSITIVITY_RULE = name != "jvp_plain"
+        jax.clear_caches()
         t0 = time.perf_counter()
-        out[name] = C.block(fn(theta))
+        fns[name] = fn.lower(theta).compile()
+        out[name] = C.block(fns[name](theta))
         compile_s[name] = time.perf_counter() - t0
+    fb.SENSITIVITY_RULE = True
     times = {name: [] for name in fns}
     for _ in range(args.reps):
         for name, fn in fns.items():
@@ -135,9 +151,17 @@ def main(argv=None) -> int:
             ("rollouts", "rollouts/particle"),
         ],
     )
+    for name in fns:
+        if name not in ("rollout", "fd"):
+            rel = results[name]["max_abs_diff_vs_fd"] / float(np.abs(g_fd).max())
+            print(f"{name}: max |grad - fd grad| / max |fd grad| = {rel:.1e}")
     d = truth.size
     ratio = results["jvp"]["steady_s"] / results["fd"]["steady_s"]
     print(f"jvp / fd time: {ratio:.2f} (target <= 0.5; fd = 2D + 1 = {2 * d + 1} rollouts)")
+    if "jvp_plain" in results:
+        plain = results["jvp_plain"]["steady_s"] / results["fd"]["steady_s"]
+        results["jvp_plain_over_fd"] = plain
+        print(f"jvp without the sensitivity rule / fd time: {plain:.2f}")
     if "reverse" in results:
         rev = results["reverse"]["steady_s"] / results["fd"]["steady_s"]
         results["reverse_over_fd"] = rev

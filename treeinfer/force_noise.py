@@ -24,10 +24,13 @@ Why this and not the alternatives:
 
 ``J`` is the exact forward-mode Jacobian of the batched simulator in its force input
 (``jax.jacfwd``; the simulator is causal, so ``J`` is lower triangular; with first-order-hold
-force interpolation its diagonal is not zero). It depends on theta mainly through the branch's
-compliance; it is evaluated ONCE, at a reference parameter ``theta_ref``: by default the MAP of
-this errors-in-variables model (:func:`reference_theta`: Levenberg-Marquardt from several starts
-in the prior box, :func:`treeinfer.mapfit.fit_map`, first without the force term, then with it).
+force interpolation its diagonal is not zero; on the Pallas backend it is taken through the
+fused twin, whose XLA step ``jacfwd`` differentiates in the force, and checked against a central
+difference of the run's own simulator: :func:`force_jacobian`). It depends on theta mainly
+through the branch's compliance; it is evaluated ONCE, at a reference parameter ``theta_ref``:
+by default the MAP of this errors-in-variables model (:func:`reference_theta`:
+Levenberg-Marquardt from several starts in the prior box, :func:`treeinfer.mapfit.fit_map`,
+first without the force term, then with it).
 Why the MAP and not the prior median: the prior box spans one to two orders of magnitude in each
 gain, and ``J`` scales with the compliance, so ``C`` at the prior median can be off by that
 factor; the posterior is narrow (a few % in the identified gains), so ``J`` at the MAP is ``J``
@@ -51,6 +54,7 @@ largest peak force), or ``"auto"``: estimated from the recorded force's high-fre
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import NamedTuple
 
@@ -254,16 +258,47 @@ def reference_theta(
 # --------------------------------------------------------------------------- J, C, basis
 
 
-def force_jacobian(sim, theta, forces, grasp_fraction=None) -> np.ndarray:
+def _force_differentiable(sim):
+    """The simulator whose forward mode carries force tangents, for :func:`force_jacobian`.
+
+    ``sim`` itself, except on the Pallas backend (``backend="pallas"``, what ``"auto"`` picks on
+    a GPU): its ``custom_jvp`` (:mod:`treeinfer.sim.pallas`) pushes tangents of (kp, kd) only
+    and returns a ZERO tangent for the forces, silently, so ``jax.jacfwd`` in the force gave
+    ``J = 0`` there and the errors-in-variables term vanished on the GPU (issue 11: the full-size
+    coverage runs). Its fused twin runs the same step arithmetic (the kernel IS
+    :func:`treeinfer.sim.fused.step`, agreeing to float32 rounding: ``tests/test_pallas_backend``)
+    in plain XLA, which ``jacfwd`` differentiates in every input."""
+    if sim.backend == "pallas":
+        return dataclasses.replace(sim, backend="fused")
+    return sim
+
+
+# Directional check of J against the simulator's own primal rollouts (see force_jacobian):
+# perturbation per sample as a share of the largest |force|, and the allowed relative error.
+_CHECK_STEP = 0.01
+_CHECK_RTOL = 0.02
+
+
+def force_jacobian(sim, theta, forces, grasp_fraction=None, check: bool = True) -> np.ndarray:
     """``J[b] = d tau[b, :] / d forces[b, :]`` at ``theta [2R]``: ``[B, T, T]`` (m/N, float64).
 
     Exact forward mode (``jax.jacfwd``) through :func:`treeinfer.sim.simulate`, one pull at a
     time under ``vmap``; ``J[b, t, s]`` is the change of the displacement at sample t per newton
-    at force sample s. Raises :class:`SimulationError` if the rollout at ``theta`` is unstable."""
+    at force sample s. On the Pallas backend the Jacobian is taken through the fused twin of
+    ``sim`` (:func:`_force_differentiable`: the kernel's JVP drops force tangents).
+
+    ``check`` (default on): one directional central difference of ``sim``'s OWN rollouts
+    (``tau(F + h v) - tau(F - h v)``, ``v`` random signs, ``h`` 1% of the largest |force|, one
+    batched call of 2B pulls) must match ``2 h J v`` to 2% (norm over each pull, plus a float
+    rounding floor); else :class:`SimulationError`. It guards against a backend whose
+    derivative in the force is wrong or missing (a zero ``J`` is not an error anywhere else:
+    the term would silently vanish). Raises :class:`SimulationError` too if the rollout at
+    ``theta`` is unstable."""
     from .gains import gains_from_theta
     from .sim import simulate
 
     dtype = sim.dtype
+    jsim = _force_differentiable(sim)
     theta = jnp.asarray(np.asarray(theta, float)[None], dtype)
     kp, kd = gains_from_theta(theta, sim.n_joints)
     forces = jnp.asarray(np.atleast_2d(np.asarray(forces, float)), dtype)
@@ -275,7 +310,7 @@ def force_jacobian(sim, theta, forces, grasp_fraction=None) -> np.ndarray:
 
     def one(f, g):
         def tau(fb):
-            ro = simulate(sim, kp, kd, fb[None], None if g is None else g[None])
+            ro = simulate(jsim, kp, kd, fb[None], None if g is None else g[None])
             return ro.tau[0, 0], ro.stable[0, 0]
 
         jac, ok = jax.jacfwd(tau, has_aux=True)(f)
@@ -291,7 +326,41 @@ def force_jacobian(sim, theta, forces, grasp_fraction=None) -> np.ndarray:
             "force noise: the simulation at the reference parameters is unstable on some pull; "
             "give another reference (force_noise_reference)"
         )
+    if check:
+        _check_force_jacobian(sim, kp, kd, np.asarray(forces, float), gf, jac)
     return jac
+
+
+def _check_force_jacobian(sim, kp, kd, forces, gf, jac) -> None:
+    """Raise :class:`SimulationError` unless ``jac [B, T, T]`` predicts ``sim``'s own response
+    to a small random force perturbation (see :func:`force_jacobian`)."""
+    from .sim import simulate
+
+    n_b, n_t = forces.shape
+    rng = np.random.default_rng(0)
+    v = rng.choice([-1.0, 1.0], size=(n_b, n_t))
+    h = _CHECK_STEP * max(float(np.max(np.abs(forces))), 1e-12)
+    both = np.concatenate([forces + h * v, forces - h * v])
+    g2 = None if gf is None else jnp.concatenate([gf, gf])
+    ro = simulate(sim, kp, kd, jnp.asarray(both, sim.dtype), g2)
+    tau = np.asarray(ro.tau[0], float)
+    if not np.all(np.asarray(ro.stable)):
+        return  # a perturbed pull blew up: nothing to compare (the unperturbed one is stable)
+    fd = tau[:n_b] - tau[n_b:]  # [B, T] m
+    lin = 2.0 * h * np.einsum("bts,bs->bt", jac, v)
+    # float rounding of the two rollouts: a few ulps of the displacement's scale
+    eps = float(np.finfo(np.dtype(sim.dtype)).eps)
+    floor = 10.0 * eps * np.abs(tau[:n_b]).max(axis=1) * math.sqrt(n_t)
+    err = np.linalg.norm(fd - lin, axis=1)
+    bad = err > _CHECK_RTOL * np.linalg.norm(fd, axis=1) + floor
+    if np.any(bad):
+        b = int(np.argmax(bad))
+        rel = err[b] / max(float(np.linalg.norm(fd[b])), 1e-300)
+        raise SimulationError(
+            f"force noise: the forward-mode force Jacobian (backend {sim.backend!r}) does not "
+            f"match a central difference of the simulator on pull {b} (relative error "
+            f"{rel:.2g}); the backend's derivative in the force is wrong or missing"
+        )
 
 
 def force_noise_covariance(jac, sigma_force: float, mask=None) -> np.ndarray:

@@ -389,39 +389,55 @@ def mass_matrix(t: HingeTree, kin: Kinematics):
     return entries
 
 
-def solve_tree(t: HingeTree, entries: dict, diagonal, rhs):
-    """Solve ``(M + diag(diagonal)) x = rhs`` by MuJoCo's no-fill-in tree LDL (``mj_factorM``,
-    ``mj_solveM``): M's nonzeros lie on dof-ancestor pairs, so the factor does too."""
-    nv = t.nv
-
-    def ancestors(i):
-        out, j = [], t.dof_parent[i]
+def _tree_ancestors(t: HingeTree) -> list[list[int]]:
+    """Per dof: its ancestor dofs, nearest first."""
+    out = []
+    for i in range(t.nv):
+        anc, j = [], t.dof_parent[i]
         while j >= 0:
-            out.append(j)
+            anc.append(j)
             j = t.dof_parent[j]
-        return out
+        out.append(anc)
+    return out
 
+
+def factor_tree(t: HingeTree, entries: dict, diagonal) -> dict:
+    """MuJoCo's no-fill-in tree LDL of ``M + diag(diagonal)`` (``mj_factorM``): M's nonzeros lie
+    on dof-ancestor pairs, so the factor does too. Returns {(row, col): element} with col an
+    ancestor of row (the unit-lower factor L) and (i, i): D_i."""
     a = {}
     for (i, j), v in entries.items():
         a[(j, i)] = v  # store as (row, col) with col an ancestor of row (col <= row)
-    for i in range(nv):
+    for i in range(t.nv):
         a[(i, i)] = add(a.get((i, i), 0.0), diagonal[i])
-    anc = [ancestors(i) for i in range(nv)]
-    for k in range(nv - 1, -1, -1):
+    anc = _tree_ancestors(t)
+    for k in range(t.nv - 1, -1, -1):
         for i in anc[k]:
             tmp = a.get((k, i), 0.0) / a[(k, k)] if not _is(a.get((k, i), 0.0), 0.0) else 0.0
             for j in [i] + anc[i]:
                 a[(i, j)] = sub(a.get((i, j), 0.0), mul(tmp, a.get((k, j), 0.0)))
             a[(k, i)] = tmp
+    return a
+
+
+def solve_factored(t: HingeTree, a: dict, rhs):
+    """Solve with the factor of :func:`factor_tree` (``mj_solveM``)."""
+    anc = _tree_ancestors(t)
     x = list(rhs)
-    for i in range(nv - 1, -1, -1):
+    for i in range(t.nv - 1, -1, -1):
         for j in anc[i]:
             x[j] = sub(x[j], mul(a.get((i, j), 0.0), x[i]))
-    x = [x[i] / a[(i, i)] for i in range(nv)]
-    for i in range(nv):
+    x = [x[i] / a[(i, i)] for i in range(t.nv)]
+    for i in range(t.nv):
         for j in anc[i]:
             x[i] = sub(x[i], mul(a.get((i, j), 0.0), x[j]))
     return x
+
+
+def solve_tree(t: HingeTree, entries: dict, diagonal, rhs):
+    """Solve ``(M + diag(diagonal)) x = rhs`` by MuJoCo's no-fill-in tree LDL (``mj_factorM``,
+    ``mj_solveM``): M's nonzeros lie on dof-ancestor pairs, so the factor does too."""
+    return solve_factored(t, factor_tree(t, entries, diagonal), rhs)
 
 
 # ---- the public per-particle functions ----------------------------------------------------------
@@ -458,8 +474,10 @@ def step(
     site_local,
     force,
     lever,
+    kin: Kinematics | None = None,
 ):
     """One ``implicitfast`` step of one particle; ``qpos``, ``qvel``: sequences of nv scalars.
+    ``kin``: ``kinematics(t, qpos)`` if the caller already has it (the same arithmetic).
 
     ``force`` is the world force applied at body ``body``'s centre of mass with torque
     ``lever x force``: ``lever`` comes from the previous step's kinematics, as when a MuJoCo
@@ -468,7 +486,7 @@ def step(
     nv = t.nv
     q = [qpos[i] for i in range(nv)]
     v = [qvel[i] for i in range(nv)]
-    kin = kinematics(t, q)
+    kin = kinematics(t, q) if kin is None else kin
     site = point(kin, body, site_local)
     torque = cross(lever, force)
     rhs = bias_minus_applied(t, kin, v, body, force, torque)

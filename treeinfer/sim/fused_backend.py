@@ -14,6 +14,7 @@ and memory against joint count", has the measurements behind the threshold).
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING
 
 import jax
@@ -153,7 +154,167 @@ def _pull(
     sim: Simulator, gains, qpos_rest, forces, site_local, unroll_outer=1, unroll_inner=1, **kw
 ):
     kp, kd = gains
+    if SENSITIVITY_RULE and kw.get("substeps") is None and not uses_levels(sim):
+        # same values; derivatives in the gains by the step's sensitivity equations
+        return _pull_sensitivity(
+            sim, unroll_outer, unroll_inner, kw.get("body"),
+            kp, kd, qpos_rest, forces, site_local, kw.get("direction"),
+        )  # fmt: skip
     return _pull_one(sim, kp, kd, qpos_rest, forces, site_local, unroll_outer, unroll_inner, **kw)
+
+
+# ---- exact forward sensitivities (issue 15) -------------------------------------------------
+# ``jax.jvp`` of ``_pull_one`` linearises the whole step once per tangent direction, and XLA:CPU
+# recomputes primal subexpressions inside every batched tangent kernel: 26-33 rollouts per
+# particle for the 2R = 6 gradient directions of the standard problem (central differences:
+# 13). The rule below computes the step's state Jacobian once per step (``sensitivity.py``) and
+# applies it to every tangent direction with a few multiply-adds; under ``vmap`` over tangent
+# directions (``gradients.jvp_value_and_grad``, ``jax.jacfwd``) the Jacobian stays unbatched.
+# Tangents of the forces, grasp point or direction (``force_noise``) take the plain ``jax.jvp``.
+
+
+SENSITIVITY_RULE = True
+"""Read at trace time: False differentiates the plain step code (``jax.jvp`` of
+:func:`_pull_one`), for comparisons (``benchmarks/gradient_cost.py --plain-jvp``)."""
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3))
+def _pull_sensitivity(
+    sim, unroll_outer, unroll_inner, body, kp, kd, qpos_rest, forces, site_local, direction
+):
+    """:func:`_pull_one` (the same values) with :func:`_pull_sensitivity_jvp` as derivative."""
+    return _pull_one(
+        sim, kp, kd, qpos_rest, forces, site_local, unroll_outer, unroll_inner,
+        direction=direction, body=body,
+    )  # fmt: skip
+
+
+def _is_zero_tangent(x) -> bool:
+    return x is None or isinstance(x, jax.custom_derivatives.SymbolicZero)
+
+
+def _pull_sensitivity_jvp(sim, unroll_outer, unroll_inner, body, primals, tangents):
+    kp, kd, qpos_rest, forces, site_local, direction = primals
+    dkp, dkd, dq0, dforces, dsite, ddirection = tangents
+    data = [dforces, dsite] + jax.tree_util.tree_leaves(
+        ddirection, is_leaf=lambda x: isinstance(x, jax.custom_derivatives.SymbolicZero)
+    )
+    if not all(_is_zero_tangent(x) for x in data):
+        inst = lambda x, p: jnp.zeros_like(p) if _is_zero_tangent(x) else x
+        plain = lambda *a: _pull_one(
+            sim, a[0], a[1], a[2], a[3], a[4], unroll_outer, unroll_inner, direction=a[5],
+            body=body,
+        )  # fmt: skip
+        tan = tuple(
+            jax.tree_util.tree_map(inst, t, p, is_leaf=_is_zero_tangent) if p is not None else None
+            for t, p in zip(tangents, primals)
+        )
+        return jax.jvp(plain, primals, tan)
+    dtype = qpos_rest.dtype
+    zero = lambda x, like: jnp.zeros_like(like) if _is_zero_tangent(x) else x.astype(dtype)
+    (tau, ok), dtau = pull_with_tangent(
+        sim, kp, kd, qpos_rest, forces, site_local, zero(dkp, kp), zero(dkd, kd),
+        zero(dq0, qpos_rest), unroll_outer, unroll_inner, direction, body,
+    )  # fmt: skip
+    return (tau, ok), (dtau, np.zeros(np.shape(ok), jax.dtypes.float0))
+
+
+_pull_sensitivity.defjvp(_pull_sensitivity_jvp, symbolic_zeros=True)
+
+
+def pull_with_tangent(
+    sim: Simulator,
+    kp,
+    kd,
+    qpos_rest,
+    forces,
+    site_local,
+    dkp,
+    dkd,
+    dq0,
+    unroll_outer: int = 1,
+    unroll_inner=1,
+    direction=None,
+    body: int | None = None,
+):
+    """One pull (:func:`_pull_one`, scalar layout, the simulator's own substeps) and its exact
+    tangent for the gain tangents ``dkp``, ``dkd`` [R] and rest-pose tangent ``dq0`` [nv]:
+    ``((tau [T], ok), dtau [T])`` (m). The step's Jacobian is computed once per step
+    (:func:`treeinfer.sim.sensitivity.step_linearization`) and does not depend on the tangent,
+    so under ``vmap`` over tangent directions it is shared by all of them."""
+    from . import sensitivity as sn
+    from .forcing import force_fraction, next_samples
+
+    dtype = qpos_rest.dtype
+    t = sim.hinge_tree
+    nv = t.nv
+    if direction is None:
+        ddir = tuple(float(x) for x in sim.gravity_dir)
+    else:
+        ddir = tuple(jnp.asarray(direction[i], dtype) for i in range(3))
+    bid = sim.grasp_body if body is None else body
+    n_sub = sim.substeps
+    dt = sim.sim_dt
+    site_local = tuple(site_local[i] for i in range(3))
+    stiffness, damping, spring = _gains(sim, kp, kd)
+    dstiff, ddamp = [0.0] * nv, [0.0] * nv
+    for col, dof in enumerate(sim.dof_ids):
+        dstiff[int(dof)] = dkp[col]
+        ddamp[int(dof)] = dkd[col]
+    staged = sn.use_staging()
+    rest, _ = _stepper(sim, kp, kd, dtype, bid, site_local)
+    (c_rest, lever0), (dc_rest, dlever0) = jax.jvp(rest, (qpos_rest,), (dq0,))
+    as_dtype = lambda xs: tuple(jnp.asarray(x, dtype) for x in xs)
+
+    def observe(carry, ff):
+        (q, v, lever, comp, ok), (dq, dv, dl) = carry
+        f0, f1 = ff
+
+        def sub(k, st):
+            (q, v, lever, c, comp), (dq, dv, dl, dc) = st
+            force = hd.vscale(
+                f0 + force_fraction(sim.force_interp, k, n_sub, dtype) * (f1 - f0), ddir
+            )
+            lin = sn.step_linearization(
+                t, q, v, stiffness, damping, spring, dt, bid, site_local, force, lever,
+                pred=(k >= 0) if staged else None,
+            )  # fmt: skip
+            dq_new, dv_new, dl_new, dsite = sn.step_tangent(
+                t, lin, dt, [dq[i] for i in range(nv)], [dv[i] for i in range(nv)], dl,
+                dstiff, ddamp,
+            )  # fmt: skip
+            out = lin.out
+            site = out.site
+            c = tuple(jnp.where(k == 0, a, b) for a, b in zip(site, c))
+            dc = tuple(jnp.where(k == 0, a, b) for a, b in zip(dsite, dc))
+            v_new = jnp.stack([jnp.asarray(x, dtype) for x in out.qvel]).astype(dtype)
+            # Kahan's compensated qpos += dt * qvel, as _pull_one (its tangent is dq + dt dv')
+            y = dt * v_new - comp
+            q_new = q + y
+            comp = (q_new - q) - y
+            tangent = (jnp.stack(as_dtype(dq_new)), jnp.stack(as_dtype(dv_new)),
+                       as_dtype(dl_new), as_dtype(dc))  # fmt: skip
+            return (q_new, v_new, as_dtype(out.lever), c, comp), tangent
+
+        inner = {} if unroll_inner == 1 else {"unroll": unroll_inner}
+        st = ((q, v, lever, as_dtype(c_rest), comp), (dq, dv, dl, as_dtype(dc_rest)))
+        (q, v, lever, c, comp), (dq, dv, dl, dc) = jax.lax.fori_loop(0, n_sub, sub, st, **inner)
+        ok = ok & jnp.all(jnp.isfinite(q)) & jnp.all(jnp.abs(v) < sim.max_joint_speed)
+        obs = hd.dot(hd.vsub(c, c_rest), ddir)
+        dobs = hd.dot(hd.vsub(dc, dc_rest), ddir)
+        return ((q, v, lever, comp, ok), (dq, dv, dl)), (obs, dobs)
+
+    zero = jnp.zeros_like(qpos_rest)
+    carry = (
+        (qpos_rest, zero, as_dtype(lever0), zero, jnp.bool_(True)),
+        (dq0, zero, as_dtype(dlever0)),
+    )
+    forces = forces.astype(dtype)
+    (((_, _, _, _, ok), _), (tau, dtau)) = jax.lax.scan(
+        observe, carry, (forces, next_samples(forces)), unroll=unroll_outer
+    )
+    ok = ok & jnp.all(jnp.isfinite(tau)) & jnp.all(jnp.abs(tau) < sim.max_displacement)
+    return (tau, ok), dtau
 
 
 def _stepper(sim: Simulator, kp, kd, dtype, bid: int, site_local):
