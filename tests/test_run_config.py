@@ -68,3 +68,11 @@ def test_inputs_read_once_are_passed_through_and_checked(tmp_path):
     other = other._replace(tree=dataclasses.replace(other.tree, name="x"))
     with pytest.raises(ConfigError, match="inputs' tree"):
         run_inference(cfg, inputs=other, progress=False)
+
+
+def test_shape_buckets_option_is_validated_and_written_only_when_not_default():
+    base = dict(tree="t.yaml", data="d", out="o")
+    with pytest.raises(ConfigError, match="--shape-buckets"):
+        RunConfig(**base, shape_buckets="maybe")
+    assert "shape_buckets" not in RunConfig(**base).options_json()  # old run hashes unchanged
+    assert RunConfig(**base, shape_buckets="off").options_json()["shape_buckets"] == "off"

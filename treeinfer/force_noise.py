@@ -61,7 +61,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import numpyro.distributions as dist
 
 from .errors import ConfigError, SimulationError
 from .noise import MIN_NOISE_SAMPLES, NoiseEstimate, as_observations
@@ -418,6 +417,8 @@ def mvn_log_prob(residual, basis: ForceNoiseBasis, sigma_x) -> jax.Array:
     ``z_i ~ Normal(0, sqrt(L_i + sigma_x^2))`` (numpyro); O(B T^2) per row. Padded samples
     contribute ``log N(0; 0, sigma_x)`` each to that full density (C is zero there) and are
     taken out again, so the result is the exact density of the real samples."""
+    import numpyro.distributions as dist  # here, not at the top: keeps it off the start-up path
+
     r = jnp.asarray(residual)
     u = jnp.asarray(basis.vectors, r.dtype)
     lam = jnp.asarray(basis.values, r.dtype)

@@ -78,6 +78,7 @@ _RUN_OPTIONS = {
     "repair_inertia": "--repair-inertia",
     "tie": "--tie",
     "tie_scale": "--tie-scale",
+    "shape_buckets": "--shape-buckets",
 }
 
 
@@ -291,6 +292,13 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "mode: its draws are the posterior, with no sampler iterations, unless Pareto k-hat > "
         "0.7 or too few effective samples, when the sampler runs from them; dynamic model and "
         "Boltzmann likelihood only)",
+    )
+    p.add_argument(
+        "--shape-buckets",
+        choices=("on", "off"),
+        help="pad the data to a few bucket shapes (trajectories 1, 2, 3, 4, 6, 8, ...; steps up "
+        "to 25%% more) so a new data set of a similar size reuses compiled programs: 'on' "
+        "(default; used by --init importance, the log density is unchanged) or 'off'",
     )
     p.add_argument(
         "--model-kind",

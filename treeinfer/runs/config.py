@@ -127,6 +127,7 @@ class RunConfig:
     repair_inertia: str | None = None
     tie: str | None = None
     tie_scale: float | None = None
+    shape_buckets: str = "on"
     # ---- the record: config.json beyond the options (None until known; JSON key in brackets)
     command: str = "infer"
     versions: dict | None = None
@@ -219,6 +220,10 @@ class RunConfig:
             raise ConfigError(
                 f"--init: must be one of {', '.join(INIT_CHOICES)}, got {self.init!r}"
             )
+        if self.shape_buckets not in ("on", "off"):
+            raise ConfigError(
+                f"--shape-buckets: must be 'on' or 'off', got {self.shape_buckets!r}"
+            )
         if self.force_interp not in FORCE_INTERPS:
             raise ConfigError(
                 f"--force-interp: must be one of {', '.join(FORCE_INTERPS)}, got "
@@ -260,6 +265,7 @@ class RunConfig:
             ("model_kind", "dynamic"),
             ("tie", None),
             ("tie_scale", None),
+            ("shape_buckets", "on"),
         ):
             if out[k] == default:
                 del out[k]

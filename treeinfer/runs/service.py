@@ -195,7 +195,7 @@ def run_inference(
         if problem.noise is not None:
             log(f"likelihood: {problem.noise.description}")
         # --init laplace/importance: drawn before the sampler is recorded (MH's proposal)
-        ready_start, start = _start(problem, config, log)
+        ready_start, start = _start(problem, config, log, programs=cache.programs)
         cfg = dataclasses.replace(
             cfg, problem=problem.settings, sampler_record=sampler_settings(config, start)
         )
@@ -271,7 +271,7 @@ def run_inference(
         ready, theta0 = None, None
     if previous is None and ready is None and theta0 is None:
         # a resumed run that stopped before its first checkpoint: draw its start again
-        ready, theta0 = _start(problem, config, log)
+        ready, theta0 = _start(problem, config, log, programs=cache.programs)
     if ready is not None:  # --init importance: the weighted draws are the posterior
         posterior = ready
     else:
@@ -422,7 +422,7 @@ def infer_posterior(
     cache = SimulatorCache() if cache is None else cache
     problem = build_problem(config, tree, trajectories, cache)
     o = config["options"]
-    ready, theta0 = _start(problem, config, lambda msg: None)
+    ready, theta0 = _start(problem, config, lambda msg: None, programs=cache.programs)
     if ready is not None:
         return problem, ready
     posterior = infer(

@@ -38,12 +38,15 @@ TANGENT_LAYOUT = "rows"  # see simulate_with_tangents; "lanes" took 182 s to com
 
 def available() -> bool:
     """Whether the Pallas Triton lowering can run here (a CUDA GPU and jax's Pallas)."""
+    # the platform first: importing Pallas/Triton costs ~0.3 s of a CPU process's start-up
+    if jax.devices()[0].platform != "gpu":
+        return False
     try:
         from jax.experimental import pallas  # noqa: F401
         from jax.experimental.pallas import triton  # noqa: F401
     except Exception:  # pragma: no cover - depends on the jax build
         return False
-    return jax.devices()[0].platform == "gpu"
+    return True
 
 
 # ``backend="auto"`` picks the kernel on a GPU (measured faster there: ``BENCHMARKS.md``); on a
