@@ -312,3 +312,37 @@ def test_bundled_default_network_loads_and_matches_a_fresh_fit(tmp_path, monkeyp
     parent, child = jnp.meshgrid(x, x)
     # same procedure and seed; float32 training on another machine may round differently
     np.testing.assert_allclose(net(parent, child), fresh(parent, child), atol=1e-3 * 10.0 * 9.0)
+
+
+def test_network_files_load_and_run_without_flax_as_flax_does():
+    """The cold-start path reads the bundled network with msgpack alone and applies it in plain
+    jax.numpy (issue 15): both must equal flax's own restore and ``Module.apply``."""
+    from flax import serialization
+
+    from treeinfer.inequality_net import _mlp_apply, _model
+
+    files = sorted(priors.BUNDLED_NETS.glob("inequality_net-*.msgpack"))
+    assert files, "no bundled network"
+    raw = files[0].read_bytes()
+    ours, theirs = priors.read_net_file(raw), serialization.msgpack_restore(raw)
+    assert ours.keys() == theirs.keys() and ours["settings_json"] == theirs["settings_json"]
+    flat_ours, tree_ours = jax.tree.flatten(ours["params"])
+    flat_theirs, tree_theirs = jax.tree.flatten(theirs["params"])
+    assert tree_ours == tree_theirs
+    for a, b in zip(flat_ours, flat_theirs):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    net = priors.load_or_train_inequality_network(0.0, 1.0)
+    assert net.loaded
+    u = jax.random.uniform(jax.random.key(0), (257, 2), minval=-1.2, maxval=1.2)
+    flax_y = _model(net.settings).apply({"params": net.params}, u)
+    np.testing.assert_allclose(
+        _mlp_apply(net.params, net.settings, u), flax_y, rtol=1e-6, atol=1e-7
+    )
+
+
+def test_a_broken_network_file_extension_is_refused():
+    import msgpack
+
+    bad = msgpack.packb({"params": msgpack.ExtType(7, b"x")})
+    with pytest.raises(ValueError, match="extension type 7"):
+        priors.read_net_file(bad)

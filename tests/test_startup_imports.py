@@ -158,3 +158,27 @@ def test_a_fast_posterior_run_imports_no_heavy_library(tmp_path):
     assert "treeinfer.fast_posterior" in loaded
     bad = sorted(m for m in loaded for h in HEAVY if m == h or m.startswith(h + "."))
     assert not bad, bad
+
+
+def test_the_bundled_inequality_network_loads_and_runs_without_flax():
+    """NNSVGD's default prior on the start-up path: the bundled network is read with msgpack and
+    applied in jax.numpy, so a cold process never imports flax (only training does)."""
+    code = textwrap.dedent(
+        """
+        import sys
+        import jax.numpy as jnp
+        from treeinfer.priors import inequality_prior, load_or_train_inequality_network
+        net = load_or_train_inequality_network(0.0, 1.0)
+        assert net.loaded
+        print(float(inequality_prior(net, [(0, 1)])(jnp.array([[0.2, 0.7]]))[0]))
+        print(" ".join(sorted(sys.modules)))
+        """
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=_env(),
+        timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    value, modules = proc.stdout.splitlines()[:2]
+    assert float(value) < 0  # the inequality is violated there: a penalty
+    assert not [m for m in modules.split() if m == "flax" or m.startswith("flax.")]

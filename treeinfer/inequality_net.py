@@ -13,7 +13,6 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import linen as nn
 
 from .errors import ConfigError
 
@@ -22,7 +21,13 @@ from .errors import ConfigError
 # ----------------------------------------------------------------------------
 
 _FORMS = ("linear", "step")
-_ACTIVATIONS = {"softplus": nn.softplus, "tanh": nn.tanh, "sigmoid": nn.sigmoid, "gelu": nn.gelu}
+# the functions flax.linen re-exports under these names (nn.softplus is jax.nn.softplus, ...)
+_ACTIVATIONS = {
+    "softplus": jax.nn.softplus,
+    "tanh": jnp.tanh,
+    "sigmoid": jax.nn.sigmoid,
+    "gelu": jax.nn.gelu,
+}
 _CACHE_FORMAT = 3  # 2: the cache key and the fit leave out the box and eta (see _fit_settings);
 #                   3: sharpened softplus units, gradient-matching loss, wider input range
 # Flatness where the inequality holds (issue 11): the plain MSE fit of format 2 kept a residual
@@ -51,28 +56,46 @@ def inequality_target(parent, child, eta: float, form: str = "linear"):
     raise ConfigError(f"inequality prior: form must be one of {_FORMS}, got {form!r}")
 
 
-class _MLP(nn.Module):
-    """One hidden layer, eq. 14: ``w0 + sum_k w_k act(w_k0 + w_k1 u1 + w_k2 u2)``.
+def _flax_mlp():
+    """The Flax module the network is trained as (one hidden layer, eq. 14:
+    ``w0 + sum_k w_k act(w_k0 + w_k1 u1 + w_k2 u2)``). Built on first use: flax is imported for
+    training only, so a cached or bundled net loads and runs without it (flax costs ~0.3 s of a
+    cold process; :func:`_mlp_apply` is the same arithmetic in plain jax.numpy).
 
     ``sharpness`` s scales the units: ``act(s a) / s`` (s = 1: the plain activation). For
     softplus it is a hinge whose bend is 1/s wide, so units can be flat away from the kink
     without the huge first-layer weights plain training does not reach."""
+    from flax import linen as nn
 
-    hidden: int
-    activation: str
-    sharpness: float = 1.0
+    class MLP(nn.Module):
+        hidden: int
+        activation: str
+        sharpness: float = 1.0
 
-    @nn.compact
-    def __call__(self, x):  # x: [..., 2] normalised (parent, child)
-        x = nn.Dense(self.hidden)(x)
-        x = _ACTIVATIONS[self.activation](self.sharpness * x) / self.sharpness
-        return nn.Dense(1)(x)[..., 0]
+        @nn.compact
+        def __call__(self, x):  # x: [..., 2] normalised (parent, child)
+            x = nn.Dense(self.hidden)(x)
+            x = _ACTIVATIONS[self.activation](self.sharpness * x) / self.sharpness
+            return nn.Dense(1)(x)[..., 0]
+
+    return MLP
+
+
+def _mlp_apply(params, settings, u):
+    """The trained MLP at normalised inputs ``u [..., 2]`` -> ``[...]``: what
+    ``_model(settings).apply({"params": params}, u)`` computes (``nn.Dense`` is ``x @ kernel +
+    bias``), without importing flax (tests/test_priors.py compares the two)."""
+    d0, d1 = params["Dense_0"], params["Dense_1"]
+    s = settings["sharpness"]
+    h = jnp.matmul(u, d0["kernel"]) + d0["bias"]
+    h = _ACTIVATIONS[settings["activation"]](s * h) / s
+    return (jnp.matmul(h, d1["kernel"]) + d1["bias"])[..., 0]
 
 
 class InequalityNet(NamedTuple):
     """A trained inequality-prior network.
 
-    params: Flax parameters of the MLP (float32).
+    params: Flax parameters of the MLP (float32; ``Dense_0``, ``Dense_1``: ``kernel``, ``bias``).
     settings: every training setting (box, eta, form, sizes, seed, ...); also the cache key.
     final_loss: training MSE at the last step, in normalised units.
     cache_path: file the weights were loaded from / saved to, if any.
@@ -100,12 +123,13 @@ def _apply_net(params, settings, parent, child):
     low, high = settings["box_low"], settings["box_high"]
     x = jnp.stack([parent, child], axis=-1)
     u = (2.0 * (x - low) / (high - low) - 1.0).astype(jnp.float32)
-    y = _model(settings).apply({"params": params}, u)
+    y = _mlp_apply(params, settings, u)
     return (y * _output_scale(settings)).astype(jnp.result_type(parent, jnp.float32))
 
 
-def _model(settings) -> _MLP:
-    return _MLP(settings["hidden"], settings["activation"], settings["sharpness"])
+def _model(settings):
+    """The Flax module of ``settings`` (training; :func:`_mlp_apply` evaluates a trained one)."""
+    return _flax_mlp()(settings["hidden"], settings["activation"], settings["sharpness"])
 
 
 def _output_scale(settings) -> float:

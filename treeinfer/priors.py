@@ -222,8 +222,6 @@ def load_or_train_inequality_network(
     :func:`default_cache_dir`. The returned net has ``loaded=True`` when it
     came from the cache.
     """
-    from flax import serialization
-
     _net_names()
     settings = _training_settings(
         box_low,
@@ -247,7 +245,7 @@ def load_or_train_inequality_network(
         path = BUNDLED_NETS / path.name  # the default fit ships with the package (3 s of training)
     if path.is_file():
         try:
-            blob = serialization.msgpack_restore(path.read_bytes())
+            blob = read_net_file(path.read_bytes())
             stored = json.loads(blob["settings_json"])
             if stored != _fit_settings(settings):
                 raise ValueError("stored settings differ from the requested ones")
@@ -257,6 +255,8 @@ def load_or_train_inequality_network(
             warnings.warn(
                 f"{path}: cached inequality network unusable ({exc}); retraining", stacklevel=2
             )
+    from flax import serialization  # writing (after training) only
+
     # Look the trainer up by module name so tests can observe whether it ran.
     net = train_inequality_network(**{k: v for k, v in settings.items() if k != "format"})
     blob = {
@@ -266,6 +266,26 @@ def load_or_train_inequality_network(
     }
     atomic_write_bytes(path, serialization.msgpack_serialize(blob))
     return net._replace(cache_path=str(path))
+
+
+def read_net_file(blob: bytes) -> dict:
+    """A network file this package wrote (``flax.serialization.msgpack_serialize`` of a dict of
+    arrays and plain values), read with msgpack alone.
+
+    Why not ``flax.serialization.msgpack_restore``: importing flax costs ~0.3 s of every cold
+    process (issue 15), and these files hold nothing but float arrays, which flax stores as
+    msgpack extension type 1 = ``packb((shape, dtype name, raw buffer))``. Any other extension
+    type is refused (the caller retrains). ``tests/test_priors.py`` checks this against flax on
+    the bundled file."""
+    import msgpack
+
+    def ext_hook(code, data):
+        if code != 1:
+            raise ValueError(f"unexpected msgpack extension type {code} in a network file")
+        shape, dtype_name, buffer = msgpack.unpackb(data, raw=True)
+        return np.frombuffer(buffer, dtype=np.dtype(dtype_name.decode())).reshape(shape)
+
+    return msgpack.unpackb(blob, ext_hook=ext_hook, raw=False, strict_map_key=False)
 
 
 def inequality_prior(

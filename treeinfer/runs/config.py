@@ -221,9 +221,7 @@ class RunConfig:
                 f"--init: must be one of {', '.join(INIT_CHOICES)}, got {self.init!r}"
             )
         if self.shape_buckets not in ("on", "off"):
-            raise ConfigError(
-                f"--shape-buckets: must be 'on' or 'off', got {self.shape_buckets!r}"
-            )
+            raise ConfigError(f"--shape-buckets: must be 'on' or 'off', got {self.shape_buckets!r}")
         if self.force_interp not in FORCE_INTERPS:
             raise ConfigError(
                 f"--force-interp: must be one of {', '.join(FORCE_INTERPS)}, got "

@@ -37,16 +37,19 @@ TANGENT_LAYOUT = "rows"  # see simulate_with_tangents; "lanes" took 182 s to com
 
 
 def available() -> bool:
-    """Whether the Pallas Triton lowering can run here (a CUDA GPU and jax's Pallas)."""
-    # the platform first: importing Pallas/Triton costs ~0.3 s of a CPU process's start-up
+    """Whether the Pallas Triton lowering can run here (a CUDA GPU and jax's Pallas).
+
+    Looked up, not imported: importing Pallas and its Triton lowering costs 0.2-0.5 s of a cold
+    process (issue 15), and a run whose programs come from the persistent caches never traces
+    the kernel; the kernel's builder imports them when it does."""
+    import importlib.util
+
     if jax.devices()[0].platform != "gpu":
         return False
     try:
-        from jax.experimental import pallas  # noqa: F401
-        from jax.experimental.pallas import triton  # noqa: F401
-    except Exception:  # pragma: no cover - depends on the jax build
+        return importlib.util.find_spec("jax.experimental.pallas") is not None
+    except (ImportError, ValueError):  # pragma: no cover - depends on the jax build
         return False
-    return True
 
 
 # ``backend="auto"`` picks the kernel on a GPU (measured faster there: ``BENCHMARKS.md``); on a
