@@ -214,9 +214,11 @@ def test_cli_infer_init_importance(tmp_path, capsys, monkeypatch):
     real = fp.importance_for_run
     calls = []
 
-    def trusted(problem, n_particles, seed, log):  # enough draws for a reliable k_hat
+    def trusted(problem, n_particles, seed, log, **kw):  # enough draws for a reliable k_hat
+        # the run layer hands its ProgramCache down (the command's programs are shared)
+        assert type(kw.get("programs")).__name__ == "ProgramCache"
         calls.append((n_particles, seed))
-        return real(problem, n_particles, seed, log, n_starts=3, n_draws=2000)
+        return real(problem, n_particles, seed, log, n_starts=3, n_draws=2000, **kw)
 
     monkeypatch.setattr(fp, "importance_for_run", trusted)
     out = tmp_path / "run"
@@ -249,8 +251,10 @@ def test_cli_infer_init_importance(tmp_path, capsys, monkeypatch):
     assert rc == 2 and "already complete" in err and "Traceback" not in err, err
 
     # weights not trusted: the sampler runs its iterations from the importance particles
-    def untrusted(problem, n_particles, seed, log):
-        _, theta0 = real(problem, n_particles, seed, log, n_starts=3, n_draws=40, max_rounds=1)
+    def untrusted(problem, n_particles, seed, log, **kw):
+        _, theta0 = real(
+            problem, n_particles, seed, log, n_starts=3, n_draws=40, max_rounds=1, **kw
+        )
         calls.append(theta0)
         return None, theta0
 
