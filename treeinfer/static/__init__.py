@@ -42,11 +42,13 @@ from .layout import (
 )
 from .model import Model, model_for, model_rollout, model_with_pulls
 from .terms import (
+    StaticForceNoise,
     compliance_slopes,
     effective_noise,
     force_noise_estimate,
     full_theta,
     model_likelihood_terms,
+    static_force_noise_for,
 )
 from .tied import TiedLayout, taper_shape, tied_layout, tree_tied_layout
 
@@ -57,6 +59,7 @@ __all__ = [
     "PARAMETERS",
     "QUASI_STATIC_RATIO",
     "ParameterLayout",
+    "StaticForceNoise",
     "TiedLayout",
     "compliance_slopes",
     "damping_note",
@@ -73,6 +76,7 @@ __all__ = [
     "parse_parameters",
     "quasi_static_notice",
     "run_tree",
+    "static_force_noise_for",
     "static_rollout",
     "taper_shape",
     "tied_layout",
