@@ -52,10 +52,12 @@ from treeinfer.synthetic_stem import (
     cantilever_displacement,
     compliance,
     fit_cantilever,
+    matched_hinges,
     stem_tree,
     write_stem_logs,
 )
 from treeinfer.trajectories import read_trajectory
+from treeinfer.tree import world_frames
 
 
 def import_logs(folder: Path, stem: Stem, tree, seed: int):
@@ -241,6 +243,26 @@ def _nuts_draws(problem, args, seed: int):
     return draws[::stride], np.asarray(rhat, float), float(np.mean(acc)), time.time() - t0, n_div
 
 
+def matched_layout(tree, heights, args):
+    """``--hinges matched``: one hinge per push height (:func:`matched_hinges`), stiffnesses
+    tied to the shape that makes the chain's compliance the tapered beam's at every push height
+    (from the push heights and the diameters alone, no recording), one free scale (soft tie
+    ``--tie-scale`` about it, or hard with 0)."""
+    from treeinfer.static import tied_layout
+
+    z, shape = matched_hinges(Stem(), heights)
+    frames = world_frames(tree)
+    base = float(tree.base_position[2])
+    at = {round(float(frames[n][0][2]) - base, 9): n for n in tree.inferred}
+    by_name = {at[round(float(v), 9)]: k for v, k in zip(z, shape)}
+    shape_inferred = np.array([by_name[n] for n in tree.inferred])
+    lo, hi = tree.bounds_array()
+    r = len(tree.inferred)
+    bounds = (float(np.min(lo[:r] / shape_inferred)), float(np.max(hi[:r] / shape_inferred)))
+    tau = args.tie_scale if args.tie_scale > 0 else None
+    return tied_layout(tree, shape_inferred, bounds, tau=tau)
+
+
 def fold(sim, tree, trajs, pulls, heights, test: int, args):
     """Infer on the two other heights, predict the held-out one: library calls only
     (``make_problem(model_kind static, likelihood gaussian)`` with the tree's own tie ->
@@ -248,6 +270,8 @@ def fold(sim, tree, trajs, pulls, heights, test: int, args):
     train = [i for i in range(len(trajs)) if i != test]
     br, fr, di = stack_resolved([pulls[i] for i in train], tree)
     model = model_for(tree, "static")._replace(direction=di, grasp_branch=tuple(br))
+    if args.hinges == "matched":  # the tie's shape: the chain matching the beam at each height
+        model = model._replace(layout=matched_layout(tree, heights, args))
     # the load cell's noise, from the training recordings' force signals alone
     f_noise = force_noise_estimate([trajs[i] for i in train]) if args.force_noise else None
     problem = make_problem(
@@ -368,8 +392,14 @@ def analytic_table(stem: Stem, heights=(0.12, 0.24, 0.36)) -> list[str]:
                 loo(chain(joints, [float(stem.ei(m)) / step for m in mids])),
             )
         )
+    z, shape = matched_hinges(stem, hs)
+    rows.append(
+        (
+            f"{len(z)} matched hinges (PRB pivots), beam-matched shape (1 parameter)",
+            loo(chain(z, shape)),
+        )
+    )
     from treeinfer.static import taper_shape
-    from treeinfer.tree import world_frames
 
     for n in (3, 8, 16):  # the tree file's tie: Hencky lumping of the branches' radii
         tree = stem_tree(stem, n_links=n, hinges="midpoints", tie="taper")
@@ -454,9 +484,12 @@ def main(argv=None):
     ap.add_argument("--links", type=int, default=8, help="hinged links in the chain (8)")
     ap.add_argument(
         "--hinges",
-        choices=("bases", "midpoints"),
+        choices=("bases", "midpoints", "matched"),
         default="midpoints",
-        help="hinge at each segment's base or middle (default)",
+        help="hinge at each segment's base or middle (default), or 'matched': one hinge per "
+        "push height at the pseudo-rigid-body pivot, stiffnesses tied to the shape matching the "
+        "tapered beam at every push height (treeinfer.synthetic_stem.matched_hinges; --links "
+        "is then the number of heights)",
     )
     ap.add_argument(
         "--tie",
@@ -509,6 +542,8 @@ def main(argv=None):
         tie=tie,
         tie_scale=tau,
     )
+    if args.hinges == "matched":
+        args.links = len(tree.inferred)
     sim = make_simulator(
         tree, obs_dt=0.5, backend="fused", settle_iterations=args.settle_iterations
     )
