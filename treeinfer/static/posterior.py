@@ -64,6 +64,7 @@ def exact_laplace(
     if not np.any(np.isfinite(f0)):
         raise ConfigError("Laplace start: no finite log-density in the prior box")
     n_evals = len(starts)
+    dtype = problem.sim.dtype if getattr(problem, "sim", None) is not None else jnp.float32
 
     def one(x):  # [D] -> scalar log-density
         return problem.log_density(x[None])[0]
@@ -79,12 +80,12 @@ def exact_laplace(
         d = x.size
         h = 1e-3
         pts = np.concatenate([x + h * np.eye(d), x - h * np.eye(d)])
-        g = np.asarray(batch_grad(jnp.asarray(pts, problem.sim.dtype)), float)
+        g = np.asarray(batch_grad(jnp.asarray(pts, dtype)), float)
         hess = (g[:d] - g[d:]) / (2 * h)  # row i: d grad / d x_i
         return 0.5 * (hess + hess.T)
 
     def objective(x):
-        v, g = value_grad(jnp.asarray(x, problem.sim.dtype))
+        v, g = value_grad(jnp.asarray(x, dtype))
         v, g = float(v), np.asarray(g, float)
         if not (np.isfinite(v) and np.all(np.isfinite(g))):
             return 1e30, np.zeros_like(x)
