@@ -173,3 +173,57 @@ def test_tied_layout_is_the_free_model_at_scaled_stiffness(static_case):
     got = np.asarray(p_tied.log_likelihood(jnp.asarray(np.stack([np.log(s), sig], 1))))
     want = np.asarray(p_free.log_likelihood(jnp.asarray(np.stack([np.log(2 * s), sig], 1))))
     np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
+def test_exact_laplace_of_a_static_model_matches_an_independent_fit(static_case):
+    """:func:`treeinfer.static.exact_laplace` (autodiff through the equilibrium): MAP and
+    covariance of [log Kp, log sigma_x] against a fit of the same posterior built from brentq
+    equilibria and scipy densities (flat in log Kp inside the box, the problem's recorded
+    Normal prior on log sigma_x), its Hessian by central differences in float64."""
+    from scipy.optimize import minimize
+
+    from treeinfer.noise import SIGMA_PRIOR_SCALE
+    from treeinfer.static import exact_laplace
+
+    tree, sim, traj, tau = static_case
+    problem = make_problem(
+        tree,
+        [traj],
+        nn_prior=False,
+        sim=sim,
+        model_kind="static",
+        likelihood="gaussian",
+        gradient="autodiff",
+    )
+    assert problem.labels == ("Kp[b]", "sigma_x")
+    centre = math.log(problem.settings["noise_estimate"])
+
+    def logp(th):
+        lk, ls = th
+        lik = scipy.stats.norm.logpdf(traj.displacement - tau(math.exp(lk)), scale=math.exp(ls))
+        return lik.sum() + scipy.stats.norm.logpdf(ls, centre, SIGMA_PRIOR_SCALE)
+
+    ref = minimize(
+        lambda th: -logp(th),
+        [math.log(KP), math.log(SIGMA)],
+        method="Nelder-Mead",
+        options={"xatol": 1e-7, "fatol": 1e-9, "maxiter": 4000},
+    ).x
+    h = np.array([2e-3, 2e-2])
+    hess = np.zeros((2, 2))
+    for i in range(2):
+        for j in range(2):
+            ei, ej = h[i] * np.eye(2)[i], h[j] * np.eye(2)[j]
+            hess[i, j] = (
+                logp(ref + ei + ej)
+                - logp(ref + ei - ej)
+                - logp(ref - ei + ej)
+                + logp(ref - ei - ej)
+            ) / (4 * h[i] * h[j])
+    cov_ref = np.linalg.inv(-hess)
+    lap = exact_laplace(problem, n_starts=16, n_local=1)
+    sd = np.sqrt(np.diag(cov_ref))
+    np.testing.assert_allclose(lap.theta, ref, atol=0.05 * sd.min())
+    np.testing.assert_allclose(np.sqrt(np.diag(lap.cov)), sd, rtol=0.03)
+    corr = lambda c: c[0, 1] / np.sqrt(c[0, 0] * c[1, 1])  # noqa: E731
+    assert corr(lap.cov) == pytest.approx(corr(cov_ref), abs=0.03)

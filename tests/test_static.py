@@ -56,6 +56,48 @@ def test_one_joint_horizontal_branch_pulled_down():
     np.testing.assert_allclose(np.asarray(r.tau[0, 0]), want, rtol=2e-4, atol=1e-6)
 
 
+def test_one_joint_derivatives_by_the_implicit_function_theorem():
+    """d tau / d log Kp of the static model (``lax.custom_root``), reverse and forward mode,
+    against the closed form: ``G(psi, K) = K psi - (m g c + F a) cos psi = 0`` gives
+    ``dpsi/dK = -psi / (K + (m g c + F a) sin psi)``; the second derivative against central
+    differences of that closed form."""
+    import jax
+
+    _, sim = one_joint(0.0)
+    m = float(sim.mj_model.body_mass[1])
+    c = float(sim.mj_model.body_ipos[1][0])
+    a, forces = 0.6, np.array([[0.0, 5.0, 20.0, 60.0]])
+
+    def closed(kp):  # [T] d tau / d log Kp
+        def psi(f):
+            return brentq(lambda p: kp * p - (m * G * c + f * a) * math.cos(p), -1.5, 1.5)
+
+        def dpsi(f):
+            p = psi(f)
+            return -p / (kp + (m * G * c + f * a) * math.sin(p))
+
+        return np.array(
+            [
+                a * kp * (math.cos(psi(f)) * dpsi(f) - math.cos(psi(0.0)) * dpsi(0.0))
+                for f in forces[0]
+            ]
+        )
+
+    def tau(log_kp):  # [T]
+        r = static_rollout(sim, jnp.exp(log_kp)[None, None], forces, grasp_fraction=a / 0.8)
+        return r.tau[0, 0]
+
+    lk = jnp.asarray(math.log(40.0))
+    want = closed(40.0)
+    assert abs(want[-1]) > 0.1  # the non-linear regime: a large, force-dependent sensitivity
+    np.testing.assert_allclose(np.asarray(jax.jacfwd(tau)(lk)), want, rtol=2e-3, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(jax.jacrev(tau)(lk)), want, rtol=2e-3, atol=1e-6)
+    h = 1e-3  # second derivative: d/dlogK of the closed form's first, by central differences
+    want2 = (closed(40.0 * math.exp(h)) - closed(40.0 * math.exp(-h))) / (2 * h)
+    got2 = np.asarray(jax.jacfwd(jax.jacrev(tau))(lk))
+    np.testing.assert_allclose(got2, want2, rtol=1e-2, atol=1e-5)
+
+
 def test_one_joint_vertical_stem_pushed_sideways():
     """Vertical stem, horizontal push at height a: Kp psi = F a cos psi + m g c sin psi."""
     tree, sim = one_joint(90.0)

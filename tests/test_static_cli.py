@@ -161,6 +161,68 @@ def test_cli_static_infer_then_evaluate_held_out_height(stem_data, capsys):
     assert sorted(f["test"][0] for f in folds) == ["push_120mm.csv", "push_360mm.csv"]
 
 
+@pytest.mark.slow
+def test_cli_static_noise_force_band_flag_in_predict_evaluate_and_kfold(stem_data, capsys):
+    """``infer --model-kind static --likelihood gaussian --noise-force auto``: the load-cell
+    term enters the predictive bands of ``predict``, ``evaluate`` and ``evaluate --kfold`` (the
+    same ``band_includes_force_noise`` flag as dynamic runs), and widens them."""
+    from treeinfer.cli.main import main
+
+    root = stem_data
+    run = root / "run_fn"
+    quick = ["--particles", "4", "--iterations", "4", "--no-progress", "--checkpoint-every", "0"]
+    argv = ["infer", "--tree", str(root / "stem.yaml"), "--data", str(root / "train")]
+    argv += ["--model-kind", "static", "--likelihood", "gaussian", "--sampler", "svgd"]
+    rc = main(argv + ["--out", str(run), "--noise-force", "auto", *quick, "--allow-poor-fit"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    config = json.loads((run / "config.json").read_text())
+    assert config["problem"]["force_noise"] > 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["training_metrics"]["band_includes_force_noise"] is True
+    test_csv = str(root / "test" / "push_240mm.csv")
+    assert (
+        main(["predict", "--run", str(run), "--force-csv", test_csv, "--out", str(root / "pf")])
+        == 0
+    )
+    capsys.readouterr()
+    pc = json.loads((root / "pf" / "config.json").read_text())
+    assert pc["band_includes_force_noise"] is True and "force-noise term" in pc["band"]
+    ev = root / "eval_fn"
+    assert (
+        main(["evaluate", "--run", str(run), "--data", str(root / "test"), "--out", str(ev)]) == 0
+    )
+    m = json.loads((ev / "metrics.json").read_text())["metrics"]
+    assert m["band"] == "predictive" and m["band_includes_force_noise"] is True
+    kf = root / "kfold_fn"
+    argv = ["evaluate", "--run", str(run), "--data", str(root / "train"), "--kfold", "2"]
+    assert main(argv + ["--out", str(kf), "--no-progress"]) == 0
+    capsys.readouterr()
+    folds = json.loads((kf / "metrics.json").read_text())["folds"]
+    assert all(f["metrics"]["band_includes_force_noise"] is True for f in folds)
+    # the same particles without the term: a narrower band than with it
+    from treeinfer.evaluation import evaluate_trajectories, force_noise_for, noise_for
+    from treeinfer.runs import load_run
+    from treeinfer.static import model_with_pulls
+    from treeinfer.trajectories import read_trajectory_dir
+
+    loaded = load_run(run)
+    trajs = read_trajectory_dir(root / "test")
+    model, grasp = model_with_pulls(
+        loaded.model, root / "test", [t.source for t in trajs], tree=loaded.tree
+    )
+    sigma, kind = noise_for(loaded.theta, loaded.sim.n_joints, loaded.config["problem"])
+    args = (loaded.sim, loaded.theta, list(loaded.labels), trajs, loaded.kT, grasp)
+    kw = dict(noise_sigma=sigma, noise_kind=kind, model=model)
+    with_term, _, _ = evaluate_trajectories(
+        *args, **kw, force_noise=force_noise_for(loaded.config["problem"])
+    )
+    without, _, _ = evaluate_trajectories(*args, **kw)
+    assert (
+        with_term["ci_width"] > without["ci_width"] and "band_includes_force_noise" not in without
+    )
+
+
 def _one_joint_tree(**kw):
     return make_tree(
         [Branch("b", None, 0.5, 0.01, kd=0.3)], grasp_branch="b", grasp_fraction=1.0, **kw

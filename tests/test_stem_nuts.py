@@ -27,7 +27,9 @@ def test_nuts_draws_recover_correlated_gaussian():
         lower=-5.0 * np.ones(3),
         upper=5.0 * np.ones(3),
     )
-    args = types.SimpleNamespace(walkers=4, warmup=200, steps=500, draws=2000, max_doublings=4)
+    args = types.SimpleNamespace(
+        walkers=4, warmup=200, steps=500, draws=2000, max_doublings=4, laplace="values"
+    )
     theta, rhat, acc, _, n_div = _nuts_draws(problem, args, seed=0)
     assert theta.shape == (2000, 3)
     assert np.all(rhat < 1.05) and n_div == 0 and acc > 0.6

@@ -7,6 +7,7 @@ import pytest
 from scipy.integrate import solve_bvp
 
 from treeinfer.csv_import import import_csv
+from treeinfer.errors import ConfigError
 from treeinfer.synthetic_stem import (
     Stem,
     cantilever_displacement,
@@ -106,3 +107,58 @@ def test_stem_tree_midpoint_hinges_and_branch_at_height():
     assert branch_at_height(tree, 0.12) == ("link0", pytest.approx(0.12 - seg / 2))
     assert branch_at_height(tree, 0.36) == ("link2", pytest.approx(0.36 - 2.5 * seg))
     assert branch_at_height(stem_tree(stem), 0.24) == ("link1", pytest.approx(0.24 - seg))
+
+
+def test_matched_hinges_uniform_stem_closed_form():
+    """Uniform stem, pushes at a, 2a, 3a: pivots at 0.15a, 1.15a, 2.15a and, with
+    c(h) = h^3 / 3EI, the triangular system for 1/K solved by hand, one row at a time."""
+    from treeinfer.synthetic_stem import matched_hinges
+
+    stem = Stem(base_diameter=0.008, tip_diameter=0.008)
+    a, ei = 0.1, float(stem.ei(0.0))
+    z, shape = matched_hinges(stem, (a, 2 * a, 3 * a))
+    np.testing.assert_allclose(z, [0.15 * a, 1.15 * a, 2.15 * a], rtol=1e-12)
+    c = np.array([1.0, 8.0, 27.0]) * a**3 / (3 * ei)
+    f1 = c[0] / (0.85 * a) ** 2
+    f2 = (c[1] - (1.85 * a) ** 2 * f1) / (0.85 * a) ** 2
+    f3 = (c[2] - (2.85 * a) ** 2 * f1 - (1.85 * a) ** 2 * f2) / (0.85 * a) ** 2
+    k = 1.0 / np.array([f1, f2, f3])
+    np.testing.assert_allclose(shape, k / k.max(), rtol=1e-9)
+    with pytest.raises(ConfigError, match="heights"):
+        matched_hinges(stem, (0.2, 0.1))
+
+
+def test_matched_chain_reproduces_the_tapered_beam_in_the_static_model():
+    """The matched 3-hinge tree (``stem_tree(hinges="matched")``) in treeinfer's static model,
+    its stiffness scale set from the beam's compliance at the lowest push alone, gives the
+    tapered beam's compliance (scipy quadrature) at the two other push heights (small push;
+    the stem's own weight softens it by ~1%)."""
+    import jax.numpy as jnp
+
+    from treeinfer.pulls import pull_direction
+    from treeinfer.sim import make_simulator
+    from treeinfer.static import static_rollout
+    from treeinfer.synthetic_stem import branch_at_height, matched_hinges
+
+    stem, heights = Stem(), (0.12, 0.24, 0.36)
+    tree = stem_tree(stem, hinges="matched", push_heights=heights)
+    z, shape = matched_hinges(stem, heights)
+    assert len(tree.inferred) == 3
+    scale = (heights[0] - z[0]) ** 2 / shape[0] / compliance(stem, heights[0])
+    kp = {f"link{k}": scale * shape[k] for k in range(3)}
+    sim = make_simulator(tree, obs_dt=0.5, backend="fused")
+    for h in heights:
+        branch, dist = branch_at_height(tree, h)
+        d = pull_direction(tree, branch, "horizontal")
+        frac = dist / tree.branch(branch).length
+        r = static_rollout(
+            sim,
+            jnp.asarray([[kp[n] for n in tree.inferred]]),
+            np.array([[0.0, 0.005, 0.01]]),
+            frac,
+            d,
+            branch,
+            tree,
+        )
+        got = float(r.tau[0, 0, 2]) / 0.01
+        assert abs(got) == pytest.approx(compliance(stem, h), rel=0.03)

@@ -286,9 +286,11 @@ def noisy_predictive_interval(
     Args:
       pred: ``[P, *S]`` particle simulations (m). sigma: scalar or ``[P]`` noise scale (m) per
         particle. kind, df: noise model (:mod:`treeinfer.noise`). valid: ``[P]`` bool.
-      extra_variance: None or ``[*S]`` m^2 added to every particle's ``sigma_p^2`` at each point:
-        the force-noise-induced variance ``diag C`` of a recording driven by a noisy force
-        (:func:`treeinfer.force_noise.point_variance`); part of the predictive band only.
+      extra_variance: None, ``[*S]`` m^2 added to every particle's ``sigma_p^2`` at each point
+        (the force-noise-induced variance ``diag C`` of a recording driven by a noisy force,
+        :func:`treeinfer.force_noise.point_variance`), or ``[P, *S]``: particle p's own (the
+        static model's load-cell term ``(sigma_F c_p)^2`` through each draw's compliance,
+        :class:`treeinfer.static.StaticForceNoise`); part of the predictive band only.
 
     Returns:
       ``(lower, upper, mean)`` ``[*S]``: quantiles of the mixture
@@ -314,26 +316,29 @@ def noisy_predictive_interval(
 
 
 def _extra_variance(extra, pred) -> jax.Array:
-    """``extra_variance`` (None, or ``[*S]`` m^2, finite and >= 0) -> ``[*S]`` array."""
+    """``extra_variance`` (None, ``[*S]`` or per particle ``[P, *S]`` m^2, finite and >= 0) ->
+    ``[*S, 1]`` or ``[*S, P]`` (the layout of :func:`_kernel_scale`'s scales)."""
     if extra is None:
-        return jnp.zeros(pred.shape[1:], pred.dtype)
+        return jnp.zeros(pred.shape[1:] + (1,), pred.dtype)
     e = jnp.asarray(extra, pred.dtype)
-    if e.shape != pred.shape[1:]:
+    if e.shape not in (pred.shape[1:], pred.shape):
         raise ConfigError(
-            f"extra_variance: expected shape {tuple(pred.shape[1:])} to match pred, got {e.shape}"
+            f"extra_variance: expected shape {tuple(pred.shape[1:])} or {tuple(pred.shape)} to "
+            f"match pred, got {e.shape}"
         )
     if not _is_tracer(e) and not bool(jnp.all(jnp.isfinite(e) & (e >= 0))):
         raise ConfigError("extra_variance: variances must be finite and >= 0")
-    return e
+    return jnp.moveaxis(e, 0, -1) if e.shape == pred.shape else e[..., None]
 
 
 def _kernel_scale(pred, eff, s, extra=0.0):
     """Per (step, particle) scale ``sqrt(sigma_p^2 + extra + h^2)`` [*S, P]: the noise of each
-    particle (plus the per-point ``extra`` variance [*S], e.g. force-noise-induced) convolved
-    with the parameter band's KDE kernel (bandwidth h, 0 at degenerate steps or P < 2)."""
+    particle (plus the ``extra`` variance [*S, 1] per point or [*S, P] per point and particle
+    from :func:`_extra_variance`, e.g. force-noise-induced) convolved with the parameter band's
+    KDE kernel (bandwidth h, 0 at degenerate steps or P < 2)."""
     kde = _kde_1d(pred, eff)
     h = jnp.where(kde.degenerate | ~jnp.isfinite(kde.bandwidth), 0.0, kde.bandwidth)
-    extra = jnp.asarray(extra)[..., None]
+    extra = jnp.asarray(extra)
     return jnp.sqrt(jnp.where(eff, s, 1.0) ** 2 + extra + h[..., None] ** 2), kde
 
 

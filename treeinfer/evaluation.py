@@ -31,10 +31,11 @@ class Prediction(NamedTuple):
     PARAMETER band (95% KDE of the simulations, no noise). ``predictive_lower``,
     ``predictive_upper`` ``[B, T]`` m: the PREDICTIVE band (simulations + the fitted noise model,
     never zero-width), None when no noise level is known; ``sigma`` the noise scale used
-    (scalar or ``[P]`` m), ``noise_kind`` its distribution. ``force_variance`` ``[B, T]`` m^2:
-    the force-noise-induced variance the predictive band adds to every point (runs with
-    ``--noise-force``, :mod:`treeinfer.force_noise`; from the predicted recording's own force),
-    else None."""
+    (scalar or ``[P]`` m), ``noise_kind`` its distribution. ``force_variance`` ``[B, T]`` m^2
+    (dynamic, :mod:`treeinfer.force_noise`) or ``[P, B, T]`` (static, each draw's own,
+    :class:`treeinfer.static.StaticForceNoise`): the force-noise-induced variance the
+    predictive band adds to every point (runs with ``--noise-force``; from the predicted
+    recording's own force), else None."""
 
     tau: np.ndarray
     tau_dot: np.ndarray
@@ -76,11 +77,18 @@ def noise_for(theta, n_joints: int, settings: dict | None):
 
 
 def force_noise_for(settings: dict | None):
-    """The run's force-noise term (:class:`treeinfer.force_noise.ForceNoiseModel`) from its
-    problem settings (``noise_force`` N and ``noise_force_reference``, written by runs with
-    ``--noise-force``), else None."""
+    """The run's force-noise term from its problem settings, else None: for the paper's dynamic
+    model a :class:`treeinfer.force_noise.ForceNoiseModel` (``noise_force`` N and
+    ``noise_force_reference``, written by runs with ``--noise-force``); for ``--model-kind
+    static`` runs with ``--noise-force`` a :class:`treeinfer.static.StaticForceNoise`
+    (``force_noise`` N: the load cell's noise read through each draw's compliance, as in the
+    run's likelihood)."""
     from .force_noise import ForceNoiseModel
+    from .static import static_force_noise_for
 
+    static = static_force_noise_for(settings)
+    if static is not None:
+        return static
     settings = settings or {}
     sf, ref = settings.get("noise_force"), settings.get("noise_force_reference")
     if sf is None or ref is None:
@@ -111,7 +119,9 @@ def predict_run(
     unstable particles are excluded (``valid``). Needs two valid particles. ``model``: the
     run's :class:`treeinfer.static.Model` (None: the dynamic model of ``[log Kp, log Kd]``).
     ``force_noise``: the run's force-noise term (:func:`force_noise_for`): the forces are taken
-    as recorded (noisy), and the predictive band adds the variance that noise induces."""
+    as recorded (noisy), and the predictive band adds the variance that noise induces (dynamic:
+    ``diag C`` of each pull at the run's reference gains, ``force_variance [B, T]``; static:
+    each draw's own ``(sigma_F c_p)^2``, ``force_variance [P, B, T]``)."""
     from .inference import predict
     from .metrics import noisy_predictive_interval, predictive_interval
 
@@ -134,11 +144,18 @@ def predict_run(
     tau = np.asarray(rollout.tau)
     lower, upper, mean = (np.asarray(a) for a in predictive_interval(tau, level, valid))
     plo = phi = fvar = None
-    if noise_sigma is not None and force_noise is not None and model is None:
-        from .force_noise import point_variance
+    if noise_sigma is not None and force_noise is not None:
+        from .static import StaticForceNoise
 
-        fmodel = force_noise._replace(grasp_fraction=grasp_fraction)  # the predicted pulls' own
-        fvar = point_variance(fmodel.basis(sim, np.atleast_2d(np.asarray(forces, float))))
+        if isinstance(force_noise, StaticForceNoise):  # each draw's compliance at each pull
+            if model is None or model.kind != "static":
+                raise ConfigError("the load-cell term of a static run needs its static model")
+            fvar = force_noise.point_variance(np.where(valid[:, None, None], tau, 0.0), forces)
+        elif model is None:
+            from .force_noise import point_variance
+
+            fmodel = force_noise._replace(grasp_fraction=grasp_fraction)  # the predicted pulls'
+            fvar = point_variance(fmodel.basis(sim, np.atleast_2d(np.asarray(forces, float))))
     if noise_sigma is not None:
         plo, phi, _ = (
             np.asarray(a)
@@ -294,6 +311,8 @@ def _training_fit(problem, posterior, config) -> dict:
         noise_kind=kind,
         extra_variance=rollout_pred.force_variance,
     )
+    if rollout_pred.force_variance is not None:
+        metrics["band_includes_force_noise"] = True  # as evaluate's metrics.json
     return {"stable": rollout_pred.valid, "prediction": rollout_pred, "metrics": metrics}
 
 

@@ -39,6 +39,7 @@ __all__ = [
     "cantilever_displacement",
     "compliance",
     "fit_cantilever",
+    "matched_hinges",
     "push_recording",
     "branch_at_height",
     "stem_tree",
@@ -76,6 +77,49 @@ def compliance(stem: Stem, h: float) -> float:
         raise ConfigError(f"height {h} m outside the stem (0, {stem.height}] m")
     val, _ = quad(lambda z: (h - z) ** 2 / float(stem.ei(z)), 0.0, h, epsabs=0, epsrel=1e-12)
     return float(val)
+
+
+PRB_GAMMA = 0.85  # pseudo-rigid-body characteristic radius of an end-loaded cantilever (Howell)
+
+
+def matched_hinges(
+    stem: Stem, heights: Sequence[float], gamma: float = PRB_GAMMA
+) -> tuple[np.ndarray, np.ndarray]:
+    """A hinge chain whose compliance at each push height equals the tapered beam's.
+
+    One hinge per push height ``h_1 < ... < h_n`` (m): hinge k at the pseudo-rigid-body pivot
+    of the beam piece between the push heights below and at it,
+    ``z_k = h_{k-1} + (1 - gamma) (h_k - h_{k-1})`` (``h_0 = 0``; ``gamma = 0.85``: Howell's
+    characteristic radius, the pivot that reproduces an end-loaded cantilever's tip path), and
+    stiffnesses solving ``sum_{k <= i} (h_i - z_k)^2 / K_k = c(h_i)`` for every i (a lower
+    triangular system in ``1 / K``), ``c`` the beam's compliance :func:`compliance` (the
+    stem's taper; E only scales every K, so the relative stiffnesses need the diameters alone).
+
+    Returns:
+        (z [n] hinge heights m, shape [n] relative stiffnesses ``K_k / max K``). With the scale
+        inferred (a taper tie of this shape) the chain reproduces the beam at every push height,
+        the held-out one included, up to the beam's E.
+
+    Raises:
+        ConfigError: heights not increasing inside the stem, or no positive stiffness solves
+            the system (pushes too close together for this gamma).
+    """
+    h = np.asarray(heights, float)
+    if h.ndim != 1 or h.size < 1 or np.any(np.diff(h) <= 0) or h[0] <= 0 or h[-1] > stem.height:
+        raise ConfigError(f"heights: expected increasing heights in (0, {stem.height}] m, got {h}")
+    if not 0.0 < gamma < 1.0:
+        raise ConfigError(f"gamma: expected a number in (0, 1), got {gamma!r}")
+    below = np.concatenate([[0.0], h[:-1]])
+    z = below + (1.0 - gamma) * (h - below)
+    arms = np.where(z[None, :] < h[:, None], (h[:, None] - z[None, :]) ** 2, 0.0)  # [i, k]
+    flex = np.linalg.solve(arms, np.array([compliance(stem, float(v)) for v in h]))  # 1/K
+    if not np.all(flex > 0):
+        raise ConfigError(
+            f"matched hinges: no positive stiffness matches the beam at heights {h.tolist()} "
+            f"with gamma {gamma:g} (1/K = {flex.tolist()})"
+        )
+    k = 1.0 / flex
+    return z, k / k.max()
 
 
 class StemPush(NamedTuple):
@@ -171,6 +215,7 @@ def stem_tree(
     hinges: str = "bases",
     tie: str | None = None,
     tie_scale: float | None = None,
+    push_heights: Sequence[float] = (0.12, 0.24, 0.36),
 ):
     """A vertical chain of ``n_links`` hinges approximating ``stem``, every joint inferred: the
     hinge model to fit to pushes. The stem is cut into ``n_links`` equal segments;
@@ -178,23 +223,30 @@ def stem_tree(
     ``"midpoints"`` at its segment's middle (a fixed stub of half a segment at the ground, a
     half-length top link): a beam segment replaced by a hinge at its middle with
     ``K = E I / l`` reproduces the beam's deflection to second order (see
-    ``experiments/stem_pushes.py --analytic``). Radii follow the taper at each link's middle.
+    ``experiments/stem_pushes.py --analytic``); ``"matched"`` puts one hinge per push height
+    at :func:`matched_hinges`' pivots (``push_heights``; ``n_links`` is then their number).
+    Radii follow the taper at each link's middle.
     ``tie``/``tie_scale``: the tree file's ``inference: {tie: taper, tie_scale: TAU}``
     (:mod:`treeinfer.static.tied`)."""
     from .tree import Bounds, Branch, make_tree
 
-    if hinges not in ("bases", "midpoints"):
-        raise ConfigError(f"hinges: expected 'bases' or 'midpoints', got {hinges!r}")
+    if hinges not in ("bases", "midpoints", "matched"):
+        raise ConfigError(f"hinges: expected 'bases', 'midpoints' or 'matched', got {hinges!r}")
     stem = Stem() if stem is None else stem
     seg = stem.height / n_links
-    if hinges == "bases":
+    if hinges == "matched":  # one hinge per push height (matched_hinges), a stub below
+        z, _ = matched_hinges(stem, push_heights)
+        cuts = [0.0, *z.tolist(), stem.height]
+        spans = [(a, b, k == 0) for k, (a, b) in enumerate(zip(cuts[:-1], cuts[1:]))]
+        n_links = len(z)
+    elif hinges == "bases":
         spans = [(i * seg, (i + 1) * seg, False) for i in range(n_links)]
     else:
         cuts = [0.0] + [(i + 0.5) * seg for i in range(n_links)] + [stem.height]
         spans = [(a, b, k == 0) for k, (a, b) in enumerate(zip(cuts[:-1], cuts[1:]))]
     branches, parent = [], None
     for k, (a, b, fixed) in enumerate(spans):
-        name = "stub" if fixed else f"link{k - (1 if hinges == 'midpoints' else 0)}"
+        name = "stub" if fixed else f"link{k - (0 if hinges == 'bases' else 1)}"
         r = float(stem.diameter((a + b) / 2)) / 2
         branches.append(Branch(name, parent, b - a, r, fixed=fixed))
         parent = name

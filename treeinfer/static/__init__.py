@@ -22,7 +22,8 @@ sample interval far longer than the branch's slowest natural period), and
 Modules: :mod:`~treeinfer.static.equilibrium` (the solver), :mod:`~treeinfer.static.detection`
 (quasi-static data), :mod:`~treeinfer.static.layout` (theta layouts, model kinds),
 :mod:`~treeinfer.static.model` (:class:`Model`, rollouts, per-recording pulls) and
-:mod:`~treeinfer.static.terms` (likelihood terms of any model).
+:mod:`~treeinfer.static.terms` (likelihood terms of any model) and
+:mod:`~treeinfer.static.posterior` (the Laplace approximation from exact derivatives).
 """
 
 from __future__ import annotations
@@ -41,12 +42,15 @@ from .layout import (
     with_tie,
 )
 from .model import Model, model_for, model_rollout, model_with_pulls
+from .posterior import exact_laplace
 from .terms import (
+    StaticForceNoise,
     compliance_slopes,
     effective_noise,
     force_noise_estimate,
     full_theta,
     model_likelihood_terms,
+    static_force_noise_for,
 )
 from .tied import TiedLayout, taper_shape, tied_layout, tree_tied_layout
 
@@ -57,10 +61,12 @@ __all__ = [
     "PARAMETERS",
     "QUASI_STATIC_RATIO",
     "ParameterLayout",
+    "StaticForceNoise",
     "TiedLayout",
     "compliance_slopes",
     "damping_note",
     "effective_noise",
+    "exact_laplace",
     "force_noise_estimate",
     "full_theta",
     "natural_periods",
@@ -73,6 +79,7 @@ __all__ = [
     "parse_parameters",
     "quasi_static_notice",
     "run_tree",
+    "static_force_noise_for",
     "static_rollout",
     "taper_shape",
     "tied_layout",

@@ -14,9 +14,11 @@ are the same numpyro ones (:func:`treeinfer.noise.residual_log_prob`,
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .. import noise
 from ..errors import ConfigError
@@ -139,6 +141,50 @@ def effective_noise(sigma_x, force_noise, tau, force, mask=None):
         return jnp.broadcast_to(sx, tau.shape[:2])
     c = compliance_slopes(tau, force, mask)
     return jnp.sqrt(sx**2 + (float(force_noise) * c) ** 2)
+
+
+class StaticForceNoise(NamedTuple):
+    """The load-cell term of a static run (``--noise-force`` with ``--model-kind static``) for
+    its predictive bands: the same term as its likelihood (:func:`effective_noise`).
+
+    sigma_force: N per force sample (the run's ``force_noise`` setting). description: one line.
+
+    The static model's prediction is linear in the force at small deflections, so a load-cell
+    error ``e ~ N(0, sigma_F)`` on a sample moves that sample's predicted displacement by
+    ``c e`` (``c`` the pull's compliance, m/N) and no other sample (no dynamics): each point of
+    a draw's predictive distribution has variance ``sigma_x^2 + (sigma_F c)^2``. The dynamic
+    model's term (:mod:`treeinfer.force_noise`) is the same idea with the full force Jacobian.
+    """
+
+    sigma_force: float
+    description: str = ""
+
+    def point_variance(self, tau, force, mask=None) -> np.ndarray:
+        """``[P, B, T]`` m^2: ``(sigma_F c_{p,b})^2`` at every sample of pull b for draw p, with
+        ``c_{p,b}`` the least-squares compliance of that draw's predicted displacement ``tau
+        [P, B, T]`` (m) on the pull's force ``force [B, T]`` (N) (:func:`compliance_slopes`,
+        as the likelihood). Non-finite (unstable draws) -> 0."""
+        tau = np.nan_to_num(np.asarray(tau, float))
+        force = np.atleast_2d(np.asarray(force, float))
+        c = np.asarray(compliance_slopes(jnp.asarray(tau), force, mask), float)  # [P, B]
+        var = (float(self.sigma_force) * c) ** 2
+        return np.broadcast_to(np.nan_to_num(var)[..., None], tau.shape).copy()
+
+    def settings(self) -> dict:
+        """JSON-ready record (the static run's ``force_noise`` setting, N)."""
+        return {"force_noise": float(self.sigma_force)}
+
+
+def static_force_noise_for(settings: dict | None) -> StaticForceNoise | None:
+    """The load-cell term of a run from its problem settings: a static run (``model_kind:
+    static``) with ``force_noise`` (N) recorded; else None."""
+    settings = settings or {}
+    sf = settings.get("force_noise")
+    if settings.get("model_kind") != "static" or sf is None:
+        return None
+    return StaticForceNoise(
+        float(sf), f"load-cell noise {float(sf):.3g} N read through each pull's compliance"
+    )
 
 
 def force_noise_estimate(data) -> float:
