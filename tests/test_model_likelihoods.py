@@ -227,3 +227,26 @@ def test_exact_laplace_of_a_static_model_matches_an_independent_fit(static_case)
     np.testing.assert_allclose(np.sqrt(np.diag(lap.cov)), sd, rtol=0.03)
     corr = lambda c: c[0, 1] / np.sqrt(c[0, 0] * c[1, 1])  # noqa: E731
     assert corr(lap.cov) == pytest.approx(corr(cov_ref), abs=0.03)
+
+
+def test_init_laplace_of_a_static_run_with_exact_gradients_uses_the_exact_fit(static_case):
+    """``infer --model-kind static --gradients jvp --init laplace``: the run layer's start is
+    :func:`treeinfer.static.exact_laplace` (its particles centre on that MAP and say so)."""
+    from treeinfer.runs.start import _model_laplace_start
+    from treeinfer.static import exact_laplace
+
+    tree, sim, traj, _ = static_case
+    problem = make_problem(
+        tree, [traj], nn_prior=False, sim=sim, model_kind="static", likelihood="gaussian",
+        gradient="autodiff",
+    )  # fmt: skip
+    said = []
+    theta0 = _model_laplace_start(problem, {"seed": 0, "particles": 400, "gradients": "jvp"},
+                                  said.append)  # fmt: skip
+    assert "exact derivatives" in said[0]
+    lap = exact_laplace(problem, seed=0)
+    sd = np.sqrt(np.diag(lap.cov))
+    assert np.all(np.abs(np.mean(np.asarray(theta0), axis=0) - lap.theta) < 0.3 * sd)
+    generic = []
+    _model_laplace_start(problem, {"seed": 0, "particles": 8, "gradients": "fd"}, generic.append)
+    assert "generic" in generic[0]

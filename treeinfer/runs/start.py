@@ -91,10 +91,20 @@ def _model_laplace_start(problem, o: dict, log: Callable[[str], None]):
     (:func:`treeinfer.laplace.problem_laplace`), drawn with the run's seed."""
     from ..laplace import problem_laplace, problem_laplace_particles
 
-    lap = problem_laplace(problem, seed=o["seed"])
+    exact = getattr(problem.model, "kind", None) == "static" and o.get("gradients") == "jvp"
+    if exact:
+        # exact derivatives (implicit function theorem through the equilibrium): Newton steps
+        # reach the MAP and its Hessian, where the generic fit stopped short of it and its
+        # covariance came out 7x too wide in log sigma_x (experiments/README.md, stem study)
+        from ..static import exact_laplace
+
+        lap = exact_laplace(problem, seed=o["seed"])
+    else:
+        lap = problem_laplace(problem, seed=o["seed"])
     std = np.sqrt(np.diag(lap.cov))
     log(
-        f"Laplace start: MAP of the log-density ({lap.n_evals} evaluations), std "
+        f"Laplace start ({'exact derivatives' if exact else 'generic'}): "
+        f"MAP of the log-density ({lap.n_evals} evaluations), std "
         + ", ".join(f"{x:.3g}" for x in std)
     )
     return problem_laplace_particles(
