@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError
-from ..laplace import ProblemLaplace, _values
+from ..laplace import ProblemLaplace, _values, best_local_fit
 
 
 def exact_laplace(
@@ -95,21 +95,9 @@ def exact_laplace(
         return -hessian(np.asarray(x, float))
 
     bounds = list(zip(lower - 0.5 * width, upper + 0.5 * width))
-    best = None
-    for k in np.argsort(-f0)[: max(1, int(n_local))]:
-        if not np.isfinite(f0[k]):
-            continue
-        res = minimize(
-            objective,
-            starts[k],
-            jac=True,
-            method="L-BFGS-B",
-            bounds=bounds,
-            options={"maxiter": int(max_iterations)},
-        )
-        n_evals += int(res.nfev)
-        if best is None or res.fun < best.fun:
-            best = res
+    order = np.argsort(-f0)[: max(1, int(n_local))]
+    best, n_fit = best_local_fit(objective, starts, f0, order, bounds, max_iterations)
+    n_evals += n_fit
     # Newton with the Hessian (trust region): L-BFGS-B stops early on a posterior whose
     # widths span three decades
     res = minimize(
