@@ -249,4 +249,4 @@ def test_init_laplace_of_a_static_run_with_exact_gradients_uses_the_exact_fit(st
     assert np.all(np.abs(np.mean(np.asarray(theta0), axis=0) - lap.theta) < 0.3 * sd)
     generic = []
     _model_laplace_start(problem, {"seed": 0, "particles": 8, "gradients": "fd"}, generic.append)
-    assert "generic" in generic[0]
+    assert "generic fit" in generic[0]

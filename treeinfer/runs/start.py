@@ -103,8 +103,8 @@ def _model_laplace_start(problem, o: dict, log: Callable[[str], None]):
         lap = problem_laplace(problem, seed=o["seed"])
     std = np.sqrt(np.diag(lap.cov))
     log(
-        f"Laplace start ({'exact derivatives' if exact else 'generic'}): "
-        f"MAP of the log-density ({lap.n_evals} evaluations), std "
+        f"Laplace start: MAP of the log-density ({lap.n_evals} evaluations, "
+        f"{'exact derivatives' if exact else 'generic fit'}), std "
         + ", ".join(f"{x:.3g}" for x in std)
     )
     return problem_laplace_particles(
