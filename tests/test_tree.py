@@ -132,6 +132,8 @@ CASES = {
         ["inference.joints", "duplicate"],
     ),
     "levels 0": (lambda d: d["inference"].update(levels=0), ["inference.levels"]),
+    # found by the fuzz test in CI: a non-mapping 'inference' crashed with a TypeError
+    "inference not a mapping": (lambda d: d.update(inference=True), ["inference", "mapping"]),
     "kp lower >= upper": (
         lambda d: d["inference"]["prior"].update(kp=[50.0, 50.0]),
         ["inference.prior.kp", "lower"],

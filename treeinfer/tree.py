@@ -274,10 +274,6 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
     string(grasp["branch"], "grasp.branch", source, TreeFileError)
     if "name" in d:
         string(d["name"], "name", source, TreeFileError)
-    if "levels" in (d.get("inference") or {}) and isinstance(d["inference"], dict):
-        lv = d["inference"]["levels"]
-        if isinstance(lv, bool) or not isinstance(lv, int):
-            raise TreeFileError(f"{pre}inference.levels: expected a positive integer, got {lv!r}")
     base = d.get("base", {}) or {}
     if not isinstance(base, dict):
         raise TreeFileError(f"{pre}base: expected a mapping with position, pitch_deg, yaw_deg")
@@ -289,6 +285,10 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
     inf = d.get("inference", {}) or {}
     if not isinstance(inf, dict):
         raise TreeFileError(f"{pre}inference: expected a mapping")
+    if "levels" in inf:
+        lv = inf["levels"]
+        if isinstance(lv, bool) or not isinstance(lv, int):
+            raise TreeFileError(f"{pre}inference.levels: expected a positive integer, got {lv!r}")
     bad = set(inf) - {"joints", "levels", "prior", "parameters", "tie", "tie_scale"}
     if bad:
         raise TreeFileError(
