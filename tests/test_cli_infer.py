@@ -160,6 +160,9 @@ def test_demo_quick(demo):
     d = json.loads((out / "demo.json").read_text())
     m = d["unseen_test_metrics"]
     assert d["sizes"]["quick"] and 0 <= m["pct_outside"] <= 100 and m["ci_width"] > 0
+    # the demo starts from the Laplace fit (its 300 iterations then end converged), recorded
+    assert d["sizes"]["init"] == "laplace"
+    assert json.loads((out / "run" / "config.json").read_text())["options"]["init"] == "laplace"
     assert set(m["parameters"]) == {"Kp[child]", "Kp[parent]", "Kd[child]", "Kd[parent]"}
     truth = json.loads((out / "data" / "train" / "true_params.json").read_text())
     for lab, p in m["parameters"].items():  # truth recorded in log space, as the true_params say
