@@ -158,3 +158,24 @@ def test_two_data_sets_of_one_bucket_compile_the_sampler_once():
     keys = [k for k in programs._programs if k[0] == "sampler chunk, data argument"]
     assert len(keys) == 2
     assert not np.allclose(finals[0], finals[1])  # the second run sampled its own data
+
+
+@pytest.mark.parametrize("sampler", ["sgld", "mh"])
+def test_mcmc_samplers_on_the_data_argument_match_the_constant_path(sampler):
+    """SGLD (Adam-preconditioned) and MH (its proposal scale is a host array recorded in the
+    settings) built on the data argument: the same chains as with the data as constants, to
+    float rounding (a padded row of 7 steps here)."""
+    from treeinfer.samplers import DataSamplingAlgorithm
+
+    tree, obs = _tree(), _obs((50, 57))
+    sim = make_simulator(tree, obs_dt=0.01, substeps=2)
+    kw = {"sim": sim, "kT": 0.05, "nn_prior": False}
+    a = make_problem(tree, obs, shape_bucket=(2, 64), **kw)
+    b = make_problem(tree, obs, **kw)
+    assert isinstance(a.data_sampler(sampler), DataSamplingAlgorithm)
+    assert b.data_sampler(sampler) is None
+    run = {"n_particles": 4, "n_iterations": 3, "progress": False, "trace_every": None}
+    pa, pb = infer(a, sampler, **run), infer(b, sampler, **run)
+    assert pa.settings["sampler_options"] == pb.settings["sampler_options"]
+    np.testing.assert_allclose(pa.theta, pb.theta, atol=1e-5)
+    np.testing.assert_allclose(pa.log_density, pb.log_density, rtol=1e-5)

@@ -106,16 +106,17 @@ class Problem:
         dt = self.data_target
         if dt is None or dt.built_for is not self.value_and_grad:
             return None
-        box_width = self.upper - self.lower
+        # the constructor's hyperparameters on the host, once: arrays made here (MH's proposal
+        # scale) are concrete, so the settings record can read them inside a trace
+        spec = _samplers.sampler_spec(name)
+        hyper = spec.hyperparameters(
+            _samplers.sampler_options(name, **options), self.upper - self.lower
+        )
 
         def build(data):
             value_and_grad, log_density = dt.target(data)
-            return _samplers.build_sampler(
-                name,
-                value_and_grad_fn=value_and_grad,
-                logdensity_fn=log_density,
-                box_width=box_width,
-                **options,
+            return _samplers.make_sampler(
+                name, value_and_grad_fn=value_and_grad, logdensity_fn=log_density, **hyper
             )
 
         host = build(dt.data)  # name and settings (nothing is traced here)
