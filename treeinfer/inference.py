@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +36,25 @@ from .trajectories import Observations, Trajectory, stack_trajectories
 from .tree import Tree
 
 GRADIENTS = ("fd", "jvp", "autodiff")  # how make_problem differentiates the simulator likelihood
+
+
+class DataTarget(NamedTuple):
+    """The problem's target with the observations as an argument (:func:`make_problem`'s
+    ``shape_bucket``).
+
+    built_for: the problem's ``value_and_grad`` it was built with; a problem whose target was
+      replaced since (e.g. :func:`treeinfer.sequential.with_prior`) no longer uses it.
+    target: ``data -> (value_and_grad, log_density)``, the same functions as the problem's on
+      ``data`` (traceable: ``data`` may be a jitted program's argument).
+    data: the training observations padded to ``shape`` and masked, as a pytree of arrays
+      (:meth:`treeinfer.likelihood.LikelihoodTerms.data_of`).
+    shape: ``(B', T')`` the bucket.
+    """
+
+    built_for: Callable
+    target: Callable
+    data: Any
+    shape: tuple[int, int]
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,10 +93,34 @@ class Problem:
     settings: dict = field(default_factory=dict)
     noise: Any = None  # treeinfer.likelihood.LikelihoodTerms: the likelihood choice and its noise
     model: Any = None  # treeinfer.static.Model when not the dynamic model of [log Kp, log Kd]
+    data_target: Any = None  # DataTarget: the samplers' programs take the data as an argument
 
     @property
     def dim(self) -> int:
         return len(self.labels)
+
+    def data_sampler(self, name: str = "nnsvgd", **options):
+        """:meth:`sampler` with the observations as its programs' argument: a
+        :class:`treeinfer.samplers.DataSamplingAlgorithm` on :attr:`data_target`, or None when
+        the problem has none (or its target was replaced since it was built)."""
+        dt = self.data_target
+        if dt is None or dt.built_for is not self.value_and_grad:
+            return None
+        # the constructor's hyperparameters on the host, once: arrays made here (MH's proposal
+        # scale) are concrete, so the settings record can read them inside a trace
+        spec = _samplers.sampler_spec(name)
+        hyper = spec.hyperparameters(
+            _samplers.sampler_options(name, **options), self.upper - self.lower
+        )
+
+        def build(data):
+            value_and_grad, log_density = dt.target(data)
+            return _samplers.make_sampler(
+                name, value_and_grad_fn=value_and_grad, logdensity_fn=log_density, **hyper
+            )
+
+        host = build(dt.data)  # name and settings (nothing is traced here)
+        return _samplers.DataSamplingAlgorithm(build, dt.data, host.name, host.settings)
 
     def sampler(self, name: str = "nnsvgd", **options) -> _samplers.SamplingAlgorithm:
         """The sampler ``name`` (see :data:`treeinfer.samplers.REGISTRY`) wired to this target,
@@ -117,6 +160,7 @@ def make_problem(
     grasp_branch=None,
     model=None,
     noise_force=None,
+    shape_bucket=None,
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
@@ -158,6 +202,13 @@ def make_problem(
       model: a prebuilt :class:`treeinfer.static.Model` (e.g. a
         :func:`~treeinfer.static.tied_layout` of one stiffness scale); overrides
         ``model_kind``, ``direction`` and ``grasp_branch``.
+      shape_bucket: None (the samplers' programs embed the data as constants, as before), or
+        ``(B', T')`` at least the data's ``[B, T]``: the samplers' programs then take the data
+        as an argument, padded to ``[B', T']`` and masked (:class:`DataTarget`), so another
+        data set of that bucket reuses them (:func:`infer`'s ``cache``, and the persistent
+        compile cache). Recorded as ``shape_bucket`` and ``sampler_data: "arguments"``.
+        Applies to the paper's dynamic model (theta = [log Kp, log Kd] + noise columns); a
+        static model, a stiffness-only layout or per-recording pulls keep the constants.
     """
     if not (isinstance(kT, str) and kT == "auto"):
         kT = check_kT(kT)
@@ -236,16 +287,31 @@ def make_problem(
     if nn is not None:
         prior_terms.append(nn)
     log_prior = combine(*prior_terms)
-    # the black-box likelihood by central differences (or forward mode, or reverse-mode autodiff
-    # for checks); priors by autodiff
-    if gradient == "jvp":
-        value_and_grad = jvp_combined_value_and_grad([loglik], [log_prior])
-    else:
+
+    def target(loglik):
+        """``(value_and_grad, log_density)`` of ``loglik`` + the prior: the black-box likelihood
+        by central differences (or forward mode, or reverse-mode autodiff for checks); priors
+        by autodiff."""
+        if gradient == "jvp":
+            return jvp_combined_value_and_grad([loglik], [log_prior]), combine(loglik, log_prior)
         if gradient == "fd" and terms.black_box:
             black_box, differentiable = [loglik], [log_prior]
         else:  # autodiff, or a generative likelihood (its simulator carries an FD custom_jvp)
             black_box, differentiable = [], [loglik, log_prior]
-        value_and_grad = combined_value_and_grad(black_box, differentiable, rel_step=rel_step)
+        vg = combined_value_and_grad(black_box, differentiable, rel_step=rel_step)
+        return vg, combine(loglik, log_prior)
+
+    value_and_grad, log_density = target(loglik)
+    data_target = None
+    if shape_bucket is not None and model is None and terms.loglik_of is not None:
+        # the sampler programs take the data as an argument, padded to the bucket and masked
+        data = terms.data_of(obs, shape_bucket)
+        data_target = DataTarget(
+            value_and_grad,
+            lambda data: target(terms.loglik_of(data)),
+            data,
+            tuple(int(n) for n in np.shape(data["force"])),
+        )
 
     kT = terms.kT if terms.kT is not None else (DEFAULT_KT if isinstance(kT, str) else kT)
     # the paper's mode (Boltzmann, fixed kT, no noise given) records exactly what it did before
@@ -273,6 +339,9 @@ def make_problem(
             nn_seed=nn_seed,
         ),
     }
+    if data_target is not None:
+        settings["shape_bucket"] = list(data_target.shape)
+        settings["sampler_data"] = "arguments"
     labels = tuple(layout.labels) + terms.extra_labels
     lower = np.concatenate([np.asarray(layout.lower), terms.extra_lower])
     upper = np.concatenate([np.asarray(layout.upper), terms.extra_upper])
@@ -299,11 +368,12 @@ def make_problem(
         log_likelihood=loglik,
         log_prior=log_prior,
         value_and_grad=value_and_grad,
-        log_density=combine(loglik, log_prior),
+        log_density=log_density,
         nn_prior=nn is not None,
         settings=settings,
         noise=terms,
         model=model,
+        data_target=data_target,
     )
 
 
@@ -368,9 +438,14 @@ def _algorithm(problem: Problem, name: str, options: dict, cache):
         hash(key)
     except TypeError:  # an option that is not hashable (an optax optimizer object, ...)
         key = None
+
+    def build():  # the data as the programs' argument where the problem offers it
+        algorithm = problem.data_sampler(name, **options)
+        return problem.sampler(name, **options) if algorithm is None else algorithm
+
     if cache is None or key is None:
-        return problem.sampler(name, **options)
-    return cache.get(key, lambda: problem.sampler(name, **options))
+        return build()
+    return cache.get(key, build)
 
 
 def infer(
@@ -504,6 +579,7 @@ def _predict_jit(sim, kp, kd, forces, grasp_fraction):
 
 
 __all__ = [
+    "DataTarget",
     "Problem",
     "Posterior",
     "make_problem",

@@ -83,6 +83,7 @@ __all__ = [
     "auto_kT",
     "boltzmann_log_likelihood",
     "check_kT",
+    "data_observations",
     "gains_from_theta",
     "likelihood_terms",
     "log_likelihood_from_rollout",
@@ -90,6 +91,8 @@ __all__ = [
     "natural_units",
     "noise_columns",
     "noise_params_from_theta",
+    "observation_data",
+    "padded_rollout",
     "predictive_noise_kind",
     "signal_omega2",
     "suggest_kT",
@@ -108,6 +111,23 @@ def trajectory_loss(rollout: Rollout, obs: Observations) -> jax.Array:
     dpos = (rollout.tau - jnp.asarray(obs.displacement, rollout.tau.dtype)) * mask
     dvel = (rollout.tau_dot - jnp.asarray(obs.velocity, rollout.tau.dtype)) * mask
     return jnp.sqrt(jnp.sum(dpos**2, -1)) + jnp.sqrt(jnp.sum(dvel**2, -1))
+
+
+def _padded_trajectory_loss(rollout: Rollout, obs: Observations) -> jax.Array:
+    """:func:`trajectory_loss` [P, B'] of observations with padded rows (no real sample): the
+    same values (0 on a padded row), but the norm of a padded row's zero residual is not
+    differentiated (d sqrt(s) / ds is infinite at s = 0: forward or reverse mode would give
+    NaN where the unpadded problem has no row at all)."""
+    mask = jnp.asarray(obs.mask, rollout.tau.dtype)
+    dpos = (rollout.tau - jnp.asarray(obs.displacement, rollout.tau.dtype)) * mask
+    dvel = (rollout.tau_dot - jnp.asarray(obs.velocity, rollout.tau.dtype)) * mask
+    real = jnp.any(jnp.asarray(obs.mask, bool), axis=-1)  # [B']
+
+    def norm(r):
+        s = jnp.sum(r**2, -1)
+        return jnp.where(real, jnp.sqrt(jnp.where(real, s, 1.0)), 0.0)
+
+    return norm(dpos) + norm(dvel)
 
 
 def log_likelihood_from_rollout(rollout: Rollout, obs: Observations, kT: float) -> jax.Array:
@@ -183,12 +203,6 @@ def measurement_log_likelihood(
             f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s"
         )
     df = noise.check_df(df)
-    r = sim.n_joints
-    dtype = sim.dtype
-    forces = jnp.asarray(obs.force, dtype)
-    x_obs = jnp.asarray(obs.displacement, dtype)
-    v_obs = jnp.asarray(obs.velocity, dtype)
-    mask = jnp.asarray(obs.mask, bool)
     use_v = sigma_v is not None
     if use_v:
         sigma_v = noise.check_sigma(sigma_v, "noise_velocity")
@@ -200,15 +214,47 @@ def measurement_log_likelihood(
                 "noise_force: the force-noise term needs --likelihood gaussian without a velocity "
                 f"term (got likelihood {kind!r}, velocity term {'on' if use_v else 'off'})"
             )
-        if np.shape(force_basis.values) != tuple(x_obs.shape):
+        if np.shape(force_basis.values) != tuple(np.shape(obs.displacement)):
             raise ConfigError(
                 f"force_basis: built for pulls of shape {np.shape(force_basis.values)}, the data "
-                f"have {tuple(x_obs.shape)}"
+                f"have {tuple(np.shape(obs.displacement))}"
             )
+    return _measurement_loglik(
+        sim, obs, kind, sigma_x, sigma_v, df, grasp_fraction, rel_step, black_box, force_basis
+    )
+
+
+def _measurement_loglik(
+    sim,
+    obs,
+    kind,
+    sigma_x,
+    sigma_v,
+    df,
+    grasp_fraction,
+    rel_step,
+    black_box,
+    force_basis,
+    n_steps=None,
+):
+    """:func:`measurement_log_likelihood` after its checks: ``obs`` (and ``force_basis``) may be
+    traced arrays here (the sampler programs that take the data as arguments,
+    :meth:`LikelihoodTerms.loglik_of`); the other arguments are checked values. ``n_steps``:
+    None, or the unpadded length of ``obs`` padded past it (:func:`padded_rollout`)."""
+    r = sim.n_joints
+    dtype = sim.dtype
+    forces = jnp.asarray(obs.force, dtype)
+    x_obs = jnp.asarray(obs.displacement, dtype)
+    v_obs = jnp.asarray(obs.velocity, dtype)
+    mask = jnp.asarray(obs.mask, bool)
+    use_v = sigma_v is not None
 
     def rollout(theta_gains):  # [M, 2R] -> [M, C, B, T], NaN where unstable
         kp, kd = gains_from_theta(theta_gains, r)
-        ro = simulate(sim, kp, kd, forces, grasp_fraction)
+        if n_steps is None:
+            ro = simulate(sim, kp, kd, forces, grasp_fraction)
+        else:
+            ro = padded_rollout(sim, kp, kd, forces, grasp_fraction, n_steps, mask)
         out = jnp.stack([ro.tau, ro.tau_dot], axis=1) if use_v else ro.tau[:, None]
         return jnp.where(ro.stable[:, None, :, None], out, jnp.nan)
 
@@ -242,6 +288,63 @@ def measurement_log_likelihood(
     return loglik
 
 
+def observation_data(obs: Observations, grasp_fraction=None, shape=None) -> dict:
+    """``obs [B, T]`` padded to ``shape`` ``(B', T')`` (None: as it is) and masked
+    (:func:`treeinfer.startup.bucket_observations`), as the pytree of arrays a program takes as
+    its data argument: ``force``, ``displacement``, ``velocity`` ([B', T'], the default float
+    dtype), ``mask`` ([B', T'] bool), ``n_steps`` (int32 scalar, the unpadded T) and, when
+    ``grasp_fraction`` is one fraction per trajectory, ``grasp`` [B'] (padded rows, at rest,
+    take the last fraction)."""
+    b, t = np.shape(obs.force)
+    if shape is not None:
+        from .startup import bucket_observations
+
+        obs = bucket_observations(obs, *(int(n) for n in shape))
+    d = {
+        "force": jnp.asarray(np.asarray(obs.force)),
+        "displacement": jnp.asarray(np.asarray(obs.displacement)),
+        "velocity": jnp.asarray(np.asarray(obs.velocity)),
+        "mask": jnp.asarray(np.asarray(obs.mask, bool)),
+        "n_steps": jnp.asarray(t, jnp.int32),
+    }
+    if grasp_fraction is not None and np.ndim(grasp_fraction) == 1:
+        g = np.asarray(grasp_fraction, float)
+        if g.size != b:
+            raise ConfigError(f"grasp_fraction: {g.size} fractions for {b} trajectories")
+        rows = np.shape(obs.force)[0]
+        d["grasp"] = jnp.asarray(np.concatenate([g, np.full(rows - b, g[-1])]))
+    return d
+
+
+def padded_rollout(sim: Simulator, kp, kd, forces, grasp_fraction, n_steps, mask) -> Rollout:
+    """:func:`treeinfer.sim.simulate` of observations padded past their length ``n_steps``
+    (a traced int32 is fine) and masked (``mask [B', T']``), equal on the real samples to the
+    rollout of the unpadded data: the velocity at sample ``n_steps - 1`` is the second-order
+    one-sided difference the unpadded rollout ends with (:func:`treeinfer.sim.velocity`), not
+    the central difference the padded steps would give (up to 3e-4 of the Boltzmann log
+    density, ``tests/test_sampler_buckets.py``); and ``stable`` counts real rows only (a padded
+    row, at rest, has no data). Written here, not in the simulator, because only the padded
+    programs need it; the same correction as :func:`treeinfer.fast_posterior`'s."""
+    ro = simulate(sim, kp, kd, forces, grasp_fraction)
+    x = ro.tau
+    inv = 1.0 / (2.0 * sim.obs_dt)  # treeinfer.trajectories.velocity_from_displacement's
+
+    def at(i):
+        return jax.lax.dynamic_index_in_dim(x, i, axis=-1, keepdims=True)
+
+    last = (3.0 * at(n_steps - 1) - 4.0 * at(n_steps - 2) + at(n_steps - 3)) * inv
+    end = jnp.arange(x.shape[-1]) == n_steps - 1
+    tau_dot = jnp.where(end, jnp.where(ro.stable[..., None], last, 0.0), ro.tau_dot)
+    real_row = jnp.any(jnp.asarray(mask, bool), axis=-1)  # [B']
+    return Rollout(tau=x, tau_dot=tau_dot, stable=ro.stable | ~real_row)
+
+
+def data_observations(data: dict, dt: float) -> Observations:
+    """:class:`Observations` back from :func:`observation_data`'s pytree (arrays may be traced;
+    ``dt`` s is static)."""
+    return Observations(data["force"], data["displacement"], data["velocity"], data["mask"], dt)
+
+
 class LikelihoodTerms(NamedTuple):
     """What :func:`likelihood_terms` builds, ready to plug into ``make_problem``.
 
@@ -259,6 +362,13 @@ class LikelihoodTerms(NamedTuple):
     force_noise: the force-noise term (:class:`treeinfer.force_noise.ForceNoiseModel`) when
       ``noise_force`` was given, else None; predictive bands of recordings driven by a noisy
       force add its covariance (``force_noise.basis(sim, forces)``).
+    data_of, loglik_of: the same likelihood with the observations as an argument (None where a
+      builder does not offer it): ``data_of(obs, shape=None)`` (host) turns observations on the
+      training data's time step and grasp points, padded to ``shape`` ``(B', T')`` (a shape
+      bucket, :mod:`treeinfer.startup`), into a pytree of arrays (:func:`observation_data`, plus
+      the force-noise basis of the padded pulls), and ``loglik_of(data)`` is ``theta [N, D] ->
+      [N]`` on them, equal to ``log_likelihood`` on the unpadded data; ``data`` may be traced (a
+      jitted program's argument), so programs built on it serve every data set of one shape.
     """
 
     log_likelihood: Callable
@@ -272,6 +382,8 @@ class LikelihoodTerms(NamedTuple):
     settings: dict
     description: str
     force_noise: force_noise.ForceNoiseModel | None = None
+    data_of: Callable | None = None
+    loglik_of: Callable | None = None
 
     @property
     def black_box(self) -> bool:
@@ -357,7 +469,35 @@ def likelihood_terms(
             "noise_displacement": est,
             **extra,
         }
-        return LikelihoodTerms(loglik, vg, (), empty, empty, None, kT_value, est, settings, desc)
+
+        def boltzmann_of(data):
+            o = data_observations(data, obs.dt)
+            gf = data.get("grasp", grasp_fraction)
+
+            def loglik_data(theta: jax.Array) -> jax.Array:
+                kp, kd = gains_from_theta(theta, sim.n_joints)
+                ro = padded_rollout(sim, kp, kd, o.force, gf, data["n_steps"], o.mask)
+                loss = _padded_trajectory_loss(ro, o)
+                ll = -jnp.sum(loss, axis=-1) / kT_value
+                return jnp.where(jnp.all(ro.stable, axis=-1), ll, -jnp.inf)
+
+            return loglik_data
+
+        return LikelihoodTerms(
+            loglik,
+            vg,
+            (),
+            empty,
+            empty,
+            None,
+            kT_value,
+            est,
+            settings,
+            desc,
+            None,
+            lambda o, shape=None: observation_data(o, grasp_fraction, shape),
+            boltzmann_of,
+        )
 
     df = noise.check_df(df)
     fmodel, basis = None, None
@@ -396,6 +536,35 @@ def likelihood_terms(
         force_basis=basis,
     )
     vg = autodiff_value_and_grad(loglik)
+    checked_sx = (
+        None
+        if sigma_x is None
+        else noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
+    )
+    checked_sv = None if sigma_v is None else noise.check_sigma(sigma_v, "noise_velocity")
+
+    def data_of(o, shape=None):
+        data = observation_data(o, grasp_fraction, shape)
+        if fmodel is not None:  # the force-noise basis of these (padded) pulls: data as well
+            b = fmodel.basis(sim, np.asarray(data["force"]), np.asarray(data["mask"]))
+            data["force_basis"] = type(b)(*(jnp.asarray(x) for x in b))
+        return data
+
+    def loglik_of(data):
+        return _measurement_loglik(
+            sim,
+            data_observations(data, obs.dt),
+            kind,
+            checked_sx,
+            checked_sv,
+            df,
+            data.get("grasp", grasp_fraction),
+            rel_step,
+            gradient == "fd",
+            data.get("force_basis"),
+            data["n_steps"],
+        )
+
     names = {
         "gaussian": "Gaussian",
         "student_t": f"Student-t (df = {df:g})",
@@ -421,8 +590,9 @@ def likelihood_terms(
         desc = f"{names[kind]} displacement noise, sigma_x = {sx * 1e3:.4g} mm (given){vel}"
         if kind != "ar1":
             return LikelihoodTerms(
-                loglik, vg, (), empty, empty, None, None, sx, settings, desc, fmodel
-            )
+                loglik, vg, (), empty, empty, None, None, sx, settings, desc, fmodel, data_of,
+                loglik_of,
+            )  # fmt: skip
         est = noise.NoiseEstimate(sx, 0, "given")
     else:
         est = noise.estimate_displacement_noise(obs)
@@ -479,4 +649,6 @@ def likelihood_terms(
         settings,
         desc,
         fmodel,
+        data_of,
+        loglik_of,
     )

@@ -43,14 +43,14 @@ def shape_bucket_for(config: dict, obs: Observations) -> list[int] | None:
     arguments (:mod:`treeinfer.startup`), or None; recorded as ``shape_bucket`` in the run's
     problem settings (config.json).
 
-    Option ``shape_buckets`` (``on``, the default, or ``off``). Today only ``--init
-    importance``'s rollout program (:class:`treeinfer.fast_posterior.BatchEvaluator`) takes the
-    data as arguments; the samplers' programs embed them as constants, so padding them would add
-    work and reuse nothing (a later change to the likelihood can lift that). So the bucket
-    applies, and is recorded, for ``--init importance`` runs only: every other run's problem and
-    settings are exactly as before. There the masked padding changes the log density by float
-    rounding only (~1e-6 relative, ``tests/test_startup.py``), far below the importance weights'
-    Monte Carlo error. A resumed run keeps what it recorded."""
+    Option ``shape_buckets`` (``on``, the default, or ``off``). This is the bucket of ``--init
+    importance``'s rollout program (:class:`treeinfer.fast_posterior.BatchEvaluator`), recorded
+    for those runs here; the samplers' programs take their bucket from
+    :func:`sampler_bucket_for` (the same bucket; :func:`treeinfer.inference.make_problem`
+    records it with ``sampler_data: "arguments"`` where its target takes the data as an
+    argument). The masked padding changes the log density by float rounding only (~1e-6
+    relative, ``tests/test_startup.py``, ``tests/test_sampler_buckets.py``). A resumed run
+    keeps what it recorded."""
     o = config["options"]
     recorded = config.get("problem")
     if recorded:  # a resumed run: built as recorded (runs from before buckets have none)
@@ -62,6 +62,33 @@ def shape_bucket_for(config: dict, obs: Observations) -> list[int] | None:
             f"shape_buckets: expected one of {', '.join(SHAPE_BUCKET_CHOICES)}, got {choice!r}"
         )
     if choice == "off" or o.get("init", "uniform") != "importance":
+        return None
+    b, t = np.shape(obs.force)
+    return [trajectories_bucket(b), steps_bucket(t)]
+
+
+def sampler_bucket_for(config: dict, obs: Observations) -> list[int] | None:
+    """``[B', T']`` the samplers' programs take the run's observations padded to, as an argument
+    (:func:`treeinfer.inference.make_problem`'s ``shape_bucket``), or None (the data are
+    constants of the programs, as before). New runs: the buckets of the data's shape
+    (:func:`treeinfer.startup.trajectories_bucket`, :func:`~treeinfer.startup.steps_bucket`)
+    unless ``shape_buckets`` is ``off``, or the run takes an earlier run's posterior as its
+    prior (``prior_from``: that target is not built on the data argument). A resumed run is
+    built as recorded: the bucket when its problem settings record ``sampler_data:
+    "arguments"``, else None (runs from before, whose samplers embedded the data)."""
+    o = config["options"]
+    recorded = config.get("problem")
+    if recorded:
+        b = recorded.get("shape_bucket")
+        if b is None or recorded.get("sampler_data") != "arguments":
+            return None
+        return [int(b[0]), int(b[1])]
+    choice = o.get("shape_buckets", "on")
+    if choice not in SHAPE_BUCKET_CHOICES:
+        raise ConfigError(
+            f"shape_buckets: expected one of {', '.join(SHAPE_BUCKET_CHOICES)}, got {choice!r}"
+        )
+    if choice == "off" or o.get("prior_from"):
         return None
     b, t = np.shape(obs.force)
     return [trajectories_bucket(b), steps_bucket(t)]
@@ -131,6 +158,7 @@ def build_problem(
         noise_displacement=o.get("noise_displacement"),
         noise_force=o.get("noise_force"),
         model_kind=kind,
+        shape_bucket=sampler_bucket_for(config, obs),
         **pulls,
     )
     if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints

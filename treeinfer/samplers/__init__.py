@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 from ..errors import ConfigError
 from ..gradients import LogDensityFn, ValueAndGradFn
-from .base import SamplingAlgorithm
+from .base import DataSamplingAlgorithm, SamplingAlgorithm
 from .driver import RunResult, init_key, iteration_key, run
 from .mh import MHInfo, mh
 from .sghmc import SGHMCInfo, SGHMCState, sghmc
@@ -36,6 +36,7 @@ __all__ = [
     "SAMPLER_NAMES",
     "VALUE_AND_GRAD",
     "SamplerSpec",
+    "DataSamplingAlgorithm",
     "build_sampler",
     "sampler_options",
     "sampler_spec",

@@ -29,7 +29,14 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["SamplingAlgorithm", "as_schedule", "check_positions", "count_nonfinite", "finite_mean"]
+__all__ = [
+    "DataSamplingAlgorithm",
+    "SamplingAlgorithm",
+    "as_schedule",
+    "check_positions",
+    "count_nonfinite",
+    "finite_mean",
+]
 
 
 class SamplingAlgorithm(NamedTuple):
@@ -41,6 +48,27 @@ class SamplingAlgorithm(NamedTuple):
 
     init: Callable[[jax.Array, jax.Array], Any]
     step: Callable[[jax.Array, Any], tuple[Any, Any]]
+    name: str = ""
+    settings: Mapping[str, Any] = types.MappingProxyType({})
+
+
+class DataSamplingAlgorithm(NamedTuple):
+    """A sampler whose target takes the observations as an argument, so that the programs
+    :func:`treeinfer.samplers.run` compiles take them as one too: another data set of the same
+    shapes (one shape bucket, :mod:`treeinfer.startup`) reuses the compiled program, in the
+    process (a :class:`~treeinfer.program_cache.ProgramCache`) and across processes (the
+    persistent compile cache), where a :class:`SamplingAlgorithm` closing over the data embeds
+    them in the program as constants.
+
+    build: ``data -> SamplingAlgorithm``, pure and traceable (``data`` may be a tracer); every
+      call builds the same sampler on other data.
+    data: the pytree of arrays to run on (e.g. the padded observations,
+      :meth:`treeinfer.inference.Problem.data_sampler`).
+    name, settings: as :class:`SamplingAlgorithm`'s (the sampler ``build`` makes).
+    """
+
+    build: Callable[[Any], SamplingAlgorithm]
+    data: Any
     name: str = ""
     settings: Mapping[str, Any] = types.MappingProxyType({})
 

@@ -24,7 +24,7 @@ from ..diagnostics import ReinitStragglers, straggler_mask
 from ..diagnostics import reinit_stragglers as _reinit_positions
 from ..errors import ConfigError
 from ..program_cache import ProgramCache
-from .base import SamplingAlgorithm, check_positions
+from .base import DataSamplingAlgorithm, SamplingAlgorithm, check_positions
 
 __all__ = ["RunResult", "init_key", "iteration_key", "run"]
 
@@ -108,6 +108,24 @@ def _build_chunk(init, step, length: int, record_trace: bool, scalar_template: t
     :func:`run` compiles it once per (algorithm, length, shapes) and keeps the executable in
     its ``cache``.
     """
+    return jax.jit(_chunk_fn(init, step, length, record_trace, scalar_template))
+
+
+def _build_data_chunk(build, length: int, record_trace: bool, scalar_template: tuple):
+    """:func:`_build_chunk` of a :class:`DataSamplingAlgorithm`: ``chunk(state, positions,
+    fresh, rng_key, first, stop, data)``, the sampler built on ``data`` (an argument of the
+    program, not constants in it)."""
+
+    def chunk(state, positions, fresh, rng_key, first, stop, data):
+        algorithm = build(data)
+        run_chunk = _chunk_fn(algorithm.init, algorithm.step, length, record_trace, scalar_template)
+        return run_chunk(state, positions, fresh, rng_key, first, stop)
+
+    return jax.jit(chunk)
+
+
+def _chunk_fn(init, step, length: int, record_trace: bool, scalar_template: tuple):
+    """The Python function :func:`_build_chunk` jits."""
     scalar_template = dict(scalar_template)
 
     def chunk(state, positions, fresh, rng_key, first, stop):
@@ -131,7 +149,7 @@ def _build_chunk(init, step, length: int, record_trace: bool, scalar_template: t
         state, out = jax.lax.scan(body, state, first + jnp.arange(length, dtype=jnp.int32))
         return state, out, initial
 
-    return jax.jit(chunk)
+    return chunk
 
 
 def _signature(args) -> tuple:
@@ -152,6 +170,20 @@ def _compiled_chunk(cache: ProgramCache, chunk_key: tuple, args):
         ("sampler chunk", chunk_key, _signature(args)),
         lambda: _build_chunk(*chunk_key).lower(*args).compile(),
     )
+
+
+def _compiled_data_chunk(cache: ProgramCache, chunk_key: tuple, args):
+    """The chunk of a :class:`DataSamplingAlgorithm` (``chunk_key``: :func:`_build_data_chunk`'s
+    arguments) compiled for ``args`` (the data last), from ``cache``. Keyed by the lowered
+    program's text: the algorithm is rebuilt for every data set (new closures), and the text is
+    what identifies the program -- two data sets of one shape lower to the same text, so the
+    second one is traced but not compiled (the persistent compile cache, keyed by the same
+    program, serves a later process)."""
+    import hashlib
+
+    lowered = _build_data_chunk(*chunk_key).lower(*args)
+    digest = hashlib.sha256(lowered.as_text().encode()).hexdigest()
+    return cache.get(("sampler chunk, data argument", digest, _signature(args)), lowered.compile)
 
 
 def _single_device(tree) -> bool:
@@ -199,7 +231,10 @@ def run(
     """Run ``algorithm`` from ``initial_positions [P, D]`` (or a saved state) to ``n_iterations``.
 
     Args:
-      algorithm: a :class:`SamplingAlgorithm` (``make_sampler(...)``).
+      algorithm: a :class:`SamplingAlgorithm` (``make_sampler(...)``), or a
+        :class:`DataSamplingAlgorithm`, whose programs take its data as an argument: the
+        compiled chunk is then kept in ``cache`` by the lowered program itself, so a run on
+        other data of the same shapes (a new algorithm object) reuses it.
       rng_key: a JAX key or an integer seed (``jax.random.key(seed)``).
       initial_positions: ``[P, D]`` starting particles (ignored when resuming).
       n_iterations: total iteration count of the whole run, *including* the
@@ -263,6 +298,15 @@ def run(
             f"run: callback_every={callback_every} must be a multiple of chunk_size={chunk_size}"
         )
 
+    # a sampler on data given as an argument: its programs take them as one (build(data))
+    data_algorithm = isinstance(algorithm, DataSamplingAlgorithm)
+    if data_algorithm:
+        build, data = algorithm.build, algorithm.data
+        extra = (data,)
+        plain = build(data)  # closes over the data: used for shapes (eval_shape) only
+    else:
+        build, extra, plain = None, (), algorithm
+
     key_record = _key_record(rng_key)
     key = jax.random.key(int(rng_key)) if isinstance(rng_key, (int, np.integer)) else rng_key
 
@@ -275,7 +319,7 @@ def run(
         if initial_positions is None:
             raise ConfigError("run: give initial_positions [P, D] (or initial_state to resume)")
         positions = check_positions(initial_positions)
-        state = jax.eval_shape(algorithm.init, init_key(key), positions)  # shapes only
+        state = jax.eval_shape(plain.init, init_key(key), positions)  # shapes only
     else:
         state = initial_state
     n_particles, dim = state.position.shape
@@ -288,15 +332,22 @@ def run(
         raise ConfigError(f"run: cache must be a ProgramCache or None, got {cache!r}")
     chunk_key = None
     if remaining > 0 or fresh:
-        _, info_shape = jax.eval_shape(algorithm.step, iteration_key(key, 0), state)
+        _, info_shape = jax.eval_shape(plain.step, iteration_key(key, 0), state)
         template = tuple(
             (k, jax.ShapeDtypeStruct(v.shape, v.dtype)) for k, v in _scalars(info_shape).items()
         )
         length = max(1, min(chunk_size, remaining))
-        chunk_key = (algorithm.init, algorithm.step, length, record_trace, template)
+        chunk_key = (
+            (build, length, record_trace, template)
+            if data_algorithm
+            else (algorithm.init, algorithm.step, length, record_trace, template)
+        )
     if fresh and not _single_device(positions):
         # sharded particles: init runs on its own so the chunk sees the state's real shardings
-        state = jax.jit(algorithm.init)(init_key(key), positions)
+        if data_algorithm:
+            state = jax.jit(lambda k, p, d: build(d).init(k, p))(init_key(key), positions, data)
+        else:
+            state = jax.jit(algorithm.init)(init_key(key), positions)
         fresh = False
     if fresh:
         state = _zeros_like_shapes(state)
@@ -305,7 +356,14 @@ def run(
     chunk = None
     if chunk_key is not None:
         args = (state, positions, jnp.asarray(True), key, jnp.int32(0), jnp.int32(0))
-        chunk = _compiled_chunk(programs, chunk_key, args)
+        if data_algorithm:
+            compiled = _compiled_data_chunk(programs, chunk_key, (*args, data))
+
+            def chunk(*a):
+                return compiled(*a, data)
+
+        else:
+            chunk = _compiled_chunk(programs, chunk_key, args)
 
     trace_pos, trace_ld, trace_it = [], [], []
     initial_trace = record_trace and start_iteration == 0
@@ -363,8 +421,13 @@ def run(
                     n_re = 0
                     if it <= reinit_stragglers.until:
                         if reinit_fn is None:
-                            reinit_fn = _straggler_reinit(algorithm.init, reinit_stragglers)
-                        state, n_re = reinit_fn(state, key, jnp.int32(it))
+                            init_of = (
+                                (lambda d: build(d).init)
+                                if data_algorithm
+                                else (lambda: algorithm.init)
+                            )
+                            reinit_fn = _straggler_reinit(init_of, reinit_stragglers)
+                        state, n_re = reinit_fn(state, key, jnp.int32(it), extra)
                         n_re = int(n_re)
                     counts = np.zeros(n_done, np.int32)
                     counts[-1] = n_re
@@ -422,15 +485,18 @@ def run(
     )
 
 
-def _straggler_reinit(init, policy: ReinitStragglers):
-    """Jitted ``(state, key, iteration) -> (state, n_moved)``: stragglers of ``state`` moved
-    next to good particles, their state rows taken from ``init`` at the new positions (every
-    state leaf whose leading axis is the particle axis; scalars such as step counters are
-    kept). ``init`` (one batched target evaluation) runs only when some particle is flagged."""
+def _straggler_reinit(init_of, policy: ReinitStragglers):
+    """Jitted ``(state, key, iteration, extra) -> (state, n_moved)``: stragglers of ``state``
+    moved next to good particles, their state rows taken from ``init = init_of(extra)`` at the
+    new positions (every state leaf whose leading axis is the particle axis; scalars such as
+    step counters are kept). ``extra``: ``()``, or ``(data,)`` of a
+    :class:`DataSamplingAlgorithm` (an argument of the program). ``init`` (one batched target
+    evaluation) runs only when some particle is flagged."""
     lower = jnp.asarray(policy.lower)
     upper = jnp.asarray(policy.upper)
 
-    def apply(state, key, iteration):
+    def apply(state, key, iteration, extra):
+        init = init_of(*extra)
         mask = straggler_mask(
             state.logdensity,
             state.position,
