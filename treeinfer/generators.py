@@ -276,9 +276,7 @@ def _stem_of(height, push_heights, base_diameter, tip_diameter, diameters, where
     if not pushes or any(b <= a for a, b in zip(pushes[:-1], pushes[1:])):
         raise ConfigError(f"{where}: push_heights must increase, got {pushes}")
     if pushes[0] <= 0 or pushes[-1] > h:
-        raise ConfigError(
-            f"{where}: push_heights must lie in (0, height = {h:g}] m, got {pushes}"
-        )
+        raise ConfigError(f"{where}: push_heights must lie in (0, height = {h:g}] m, got {pushes}")
     base = None if base_diameter is None else _positive_float(base_diameter, "base_diameter", where)
     tip = None if tip_diameter is None else _positive_float(tip_diameter, "tip_diameter", where)
     if diameters is None:

@@ -229,3 +229,22 @@ def tree_tied_layout(tree, fixed_kd) -> TiedLayout:
     r = len(tree.inferred)
     bounds = (float(np.min(lo[:r] / shape)), float(np.max(hi[:r] / shape)))
     return tied_layout(tree, shape, bounds, fixed_kd, tau=tree.tie_scale)._replace(tie=tree.tie)
+
+
+def tied_noise_theta(theta, n_joints: int, settings: dict) -> np.ndarray:
+    """A tied run's draws ``theta [N, D]`` (``[log s, (delta_1..R,) noise...]``) laid out as
+    :func:`treeinfer.gains.noise_params_from_theta` reads them, ``[N, 2R + E]``: the gain
+    columns zeroed (unused there), the E noise columns kept. ``settings``: the run's problem
+    settings (``kp_shape`` marks a tied layout, ``tie_scale`` None a hard one).
+
+    Without this the per-joint reading (``2R`` gain columns) takes a tied run's deviations for
+    noise columns and the predictive band silently loses its noise term."""
+    theta = np.atleast_2d(np.asarray(theta, float))
+    n_layout = 1 + (n_joints if settings.get("tie_scale") is not None else 0)
+    if theta.shape[-1] < n_layout:
+        raise ConfigError(
+            f"theta: a tied run of {n_joints} joints has at least {n_layout} columns, "
+            f"got {theta.shape[-1]}"
+        )
+    gains = np.zeros(theta.shape[:-1] + (2 * n_joints,))
+    return np.concatenate([gains, theta[..., n_layout:]], axis=-1)
