@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -535,16 +536,16 @@ def _pull_heights(folder: Path) -> dict[str, tuple[float, Any]]:
         branches.add(branch)
         direction = spec.direction if spec.direction is not None else pf.default.direction
         out[name] = (round(float(dist), 9), direction)
+    chain = sorted(str(b) for b in branches if re.fullmatch(r"stub|link\d+", str(b)))
+    if chain:
+        raise ConfigError(
+            f"{path}: entries already name a generated chain's link ('{chain[0]}'); their "
+            "distances are from that link's joint, not the ground: give --push-heights"
+        )
     if len(branches) > 1:
         raise ConfigError(
             f"{path}: entries name several branches {sorted(map(str, branches))}; the push heights "
             "are read as distances from the ground along one stem (give --push-heights instead)"
-        )
-    (branch,) = branches
-    if branch is not None and (branch == "stub" or str(branch).startswith("link")):
-        raise ConfigError(
-            f"{path}: entries already name a generated chain's link ('{branch}'); their distances "
-            "are from that link's joint, not the ground: give --push-heights"
         )
     return out
 
