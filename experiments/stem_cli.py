@@ -31,7 +31,6 @@ import json
 import shutil
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 if __name__ == "__main__":  # run as a script from anywhere: use this checkout's treeinfer
@@ -123,10 +122,7 @@ def prepare(work: Path, seed: int, tie_scale: str) -> tuple[Path, list[str]]:
 
 
 def fold(work: Path, tree: Path, names: list[str], test: int, args) -> dict:
-    """Step 4-5 for one held-out height."""
-    from treeinfer.synthetic_stem import cantilever_displacement, fit_cantilever
-    from treeinfer.trajectories import read_trajectory
-
+    """Steps 4-5 for one held-out height."""
     data = work / "data" / "all"
     fdir = work / f"fold{test}"
     train, held = fdir / "train", fdir / "test"
@@ -139,7 +135,6 @@ def fold(work: Path, tree: Path, names: list[str], test: int, args) -> dict:
             shutil.copy(data / n, folder / n)
         shutil.copy(data / "pulls.yaml", folder / "pulls.yaml")
     run, ev = fdir / "run", fdir / "eval"
-    t0 = time.time()
     _cli(
         [
             "infer",
@@ -173,30 +168,66 @@ def fold(work: Path, tree: Path, names: list[str], test: int, args) -> dict:
             "--allow-poor-fit",
         ]
     )
-    infer_s = time.time() - t0
     _cli(["evaluate", "--run", str(run), "--data", str(held), "--out", str(ev)])
-    metrics = json.loads((ev / "metrics.json").read_text())
-    pred_csv = next(ev.glob("*_prediction.csv"))
-    pred = np.genfromtxt(pred_csv, delimiter=",", names=True)
+    return score(work, names, test, args)
+
+
+def _wall(config: dict) -> float | None:
+    """Seconds from the run's creation to its end (``config.json``), compilation included."""
+    from datetime import datetime
+
+    try:
+        a, b = (
+            datetime.fromisoformat(config[k].replace("Z", "+00:00"))
+            for k in ("created_utc", "finished_utc")
+        )
+    except (KeyError, TypeError, ValueError):
+        return None
+    return (b - a).total_seconds()
+
+
+def score(work: Path, names: list[str], test: int, args) -> dict:
+    """Step 5 from the files infer and evaluate wrote in ``work/fold<test>``: the share of the
+    held-out points inside the band ``metrics.json`` scores (the predictive band, noise
+    included, when the run has a noise model: the CSV's ``predictive_lower/upper``), the RMSE
+    of the predictive mean and of the cantilever fitted to the two training CSVs, R-hat."""
+    from treeinfer.synthetic_stem import cantilever_displacement, fit_cantilever
+    from treeinfer.trajectories import read_trajectory
+
+    fdir = work / f"fold{test}"
+    train, run, ev = fdir / "train", fdir / "run", fdir / "eval"
+    metrics = json.loads((ev / "metrics.json").read_text())["metrics"]
+    pred = np.genfromtxt(next(ev.glob("*_prediction.csv")), delimiter=",", names=True)
     tr = [read_trajectory(train / n) for n in names if n != names[test]]
     hs = [h for k, h in enumerate(HEIGHTS) if k != test]
     ei = fit_cantilever([t.force for t in tr], [t.displacement for t in tr], hs)
     cant = cantilever_displacement(pred["force"], HEIGHTS[test], ei)
     rec = pred["recorded"]
-    inside = float(np.mean((rec >= pred["lower"]) & (rec <= pred["upper"])))
-    summary = json.loads((run / "summary.json").read_text())
+    noisy = "predictive_lower" in pred.dtype.names
+    lo, hi = (pred["predictive_lower"], pred["predictive_upper"]) if noisy else (None, None)
+    inside = (
+        float(np.mean((rec >= lo) & (rec <= hi)))
+        if noisy
+        else 1.0 - float(metrics["pct_outside"]) / 100.0  # evaluate before the CSV's columns
+    )
+    config = json.loads((run / "config.json").read_text())
     return {
         "held_out_height_m": HEIGHTS[test],
         "inside_95_band": inside,
-        "pct_outside_metrics_json": _find(metrics, "pct_outside"),
+        "band": metrics.get("band"),
+        "band_includes_force_noise": metrics.get("band_includes_force_noise", False),
+        "pct_outside_metrics_json": metrics["pct_outside"],
+        "inside_parameter_band": 1.0 - metrics["parameter_band"]["pct_outside"] / 100.0
+        if "parameter_band" in metrics
+        else None,
         "rmse_static_m": float(np.sqrt(np.mean((pred["mean"] - rec) ** 2))),
         "rmse_cantilever_m": float(np.sqrt(np.mean((cant - rec) ** 2))),
         "cantilever_EI_Nm2": ei,
-        "band_width_mean_m": float(np.mean(pred["upper"] - pred["lower"])),
+        "band_width_mean_m": float(metrics["ci_width"]),
         "rhat_max": _rhat_max(run, args.warmup),
-        "infer_wall_s": infer_s,
+        "infer_wall_s": _wall(config),
         "n_points": int(rec.size),
-        "posterior_mean": _find(summary, "mean"),
+        "posterior": json.loads((run / "summary.json").read_text()).get("posterior"),
     }
 
 
@@ -228,40 +259,55 @@ def main(argv=None):
     ap.add_argument("--folds", default="0,1,2", help="held-out heights by index")
     ap.add_argument("--out", default=None, help="results folder (default by seed)")
     ap.add_argument("--keep", type=Path, default=None, help="keep the work folder here")
+    ap.add_argument(
+        "--rescore",
+        action="store_true",
+        help="only score the folds already run in the --keep folder (no commands run)",
+    )
     args = ap.parse_args(argv)
+    if args.rescore and args.keep is None:
+        ap.error("--rescore needs --keep DIR (a work folder of an earlier run)")
     out = Path(args.out or f"experiments/results/stem_cli_s{args.seed}")
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp) if args.keep is None else args.keep
         work.mkdir(parents=True, exist_ok=True)
-        tree, names = prepare(work, args.seed, args.tie_scale)
+        if args.rescore:
+            tree = work / "stem.yaml"
+            names = [f"push_{round(1000 * h)}mm.csv" for h in HEIGHTS]
+        else:
+            tree, names = prepare(work, args.seed, args.tie_scale)
         tree_text = tree.read_text()
         for k in (int(v) for v in args.folds.split(",")):
-            results.append(fold(work, tree, names, k, args))
+            if args.rescore:
+                results.append(score(work, names, k, args))
+            else:
+                results.append(fold(work, tree, names, k, args))
             r = results[-1]
             print(
                 f"held out {r['held_out_height_m']:.2f} m: {r['inside_95_band']:.0%} inside, "
                 f"RMSE {1e3 * r['rmse_static_m']:.3f} mm (cantilever "
                 f"{1e3 * r['rmse_cantilever_m']:.3f} mm), R-hat max {r['rhat_max']:.3f}, "
-                f"infer {r['infer_wall_s']:.0f} s",
+                f"infer {r['infer_wall_s'] or float('nan'):.0f} s",
                 flush=True,
             )
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(
-        json.dumps({"folds": results, "args": vars(args) | {"keep": str(args.keep)}}, indent=1)
+        json.dumps({"folds": results, "args": {**vars(args), "keep": str(args.keep)}}, indent=1)
         + "\n"
     )
     (out / "stem.yaml").write_text(tree_text)
     lines = [
         "| held-out height (m) | inside 95% band | RMSE static (mm) | RMSE cantilever (mm) "
-        "| band width (mm) | R-hat max |",
-        "|---|---|---|---|---|---|",
+        "| band width (mm) | R-hat max | infer wall (s) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in results:
         lines.append(
             f"| {r['held_out_height_m']:.2f} | {r['inside_95_band']:.0%} | "
             f"{1e3 * r['rmse_static_m']:.3f} | {1e3 * r['rmse_cantilever_m']:.3f} | "
-            f"{1e3 * r['band_width_mean_m']:.3f} | {r['rhat_max']:.3f} |"
+            f"{1e3 * r['band_width_mean_m']:.3f} | {r['rhat_max']:.3f} | "
+            f"{r['infer_wall_s'] or float('nan'):.0f} |"
         )
     lines.append(
         f"\nCLI path (import-csv -> tree --kind stem -> infer --model-kind static --likelihood "
