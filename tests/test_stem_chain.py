@@ -464,3 +464,10 @@ def test_cli_import_tree_infer_evaluate_with_the_stem_chain(tmp_path, capsys):
     m = json.loads((ev / "metrics.json").read_text())["metrics"]
     assert m["band"] == "predictive"
     assert m["ci_width"] > m["parameter_band"]["ci_width"]
+    # the per-recording CSV carries the band metrics.json scores (predictive, noise included)
+    csv = np.genfromtxt(ev / "push_240mm_prediction.csv", delimiter=",", names=True)
+    assert csv.dtype.names[-2:] == ("predictive_lower", "predictive_upper")
+    rec = csv["recorded"]
+    inside = (rec >= csv["predictive_lower"]) & (rec <= csv["predictive_upper"])
+    assert 100.0 * (1.0 - inside.mean()) == pytest.approx(m["pct_outside"], abs=1e-3)
+    assert np.all(csv["predictive_upper"] - csv["predictive_lower"] >= csv["upper"] - csv["lower"])
