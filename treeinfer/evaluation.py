@@ -67,7 +67,11 @@ def noise_for(theta, n_joints: int, settings: dict | None):
     kind = predictive_noise_kind(settings.get("likelihood", "boltzmann"))
     fixed = settings.get("noise_displacement")
     theta = np.atleast_2d(np.asarray(theta))
-    if list(settings.get("parameters", ["kp", "kd"])) == ["kp"]:  # stiffness only: pad Kd columns
+    if settings.get("kp_shape") is not None:  # a tied layout: one scale (+ R deviations), noise
+        from .static.tied import tied_noise_theta
+
+        theta = tied_noise_theta(theta, n_joints, settings)
+    elif list(settings.get("parameters", ["kp", "kd"])) == ["kp"]:  # stiffness only: pad Kd
         theta = np.insert(theta, [n_joints] * n_joints, 0.0, axis=1)
     try:
         sigma = noise_params_from_theta(theta, n_joints, fixed)

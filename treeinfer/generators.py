@@ -261,11 +261,142 @@ def fractal(
 
 
 # ---- recorded settings --------------------------------------------------------------------------
+# ---- (d) a plant stem pushed at a few heights ---------------------------------------------------
+STEM_KP_BOUNDS = (0.05, 50.0)  # N m/rad: stems of a few mm to 2 cm, E of 0.1 to 20 GPa
+
+
+def _stem_of(height, push_heights, base_diameter, tip_diameter, diameters, where):
+    """The stem :func:`~treeinfer.synthetic_stem.matched_hinges` reads: a linear taper from
+    base to tip, or a piecewise-linear profile through one diameter per push height (plus the
+    base and tip diameters where given)."""
+    from .synthetic_stem import Stem, StemProfile
+
+    h = _positive_float(height, "height", where)
+    pushes = _per_branch(push_heights, len(np.atleast_1d(push_heights)), "push_heights", where)
+    if not pushes or any(b <= a for a, b in zip(pushes[:-1], pushes[1:])):
+        raise ConfigError(f"{where}: push_heights must increase, got {pushes}")
+    if pushes[0] <= 0 or pushes[-1] > h:
+        raise ConfigError(f"{where}: push_heights must lie in (0, height = {h:g}] m, got {pushes}")
+    base = None if base_diameter is None else _positive_float(base_diameter, "base_diameter", where)
+    tip = None if tip_diameter is None else _positive_float(tip_diameter, "tip_diameter", where)
+    if diameters is None:
+        if base is None or tip is None:
+            raise ConfigError(
+                f"{where}: give base_diameter and tip_diameter (a linear taper), or diameters "
+                "(one per push height)"
+            )
+        return pushes, Stem(height=h, base_diameter=base, tip_diameter=tip)
+    ds = _per_branch(diameters, len(pushes), "diameters (one per push height)", where)
+    for d in ds:
+        _positive_float(d, "diameters", where)
+    zs, dd = list(pushes), list(ds)
+    if base is not None:
+        zs, dd = [0.0, *zs], [base, *dd]
+    if tip is not None and h > zs[-1]:
+        zs, dd = [*zs, h], [*dd, tip]
+    return pushes, StemProfile(height=h, heights=tuple(zs), diameters=tuple(dd))
+
+
+def stem(
+    height: float,
+    push_heights: Sequence[float],
+    base_diameter: float | None = None,
+    tip_diameter: float | None = None,
+    diameters: Sequence[float] | None = None,
+    *,
+    gamma: float = 0.85,
+    tie_scale: float | None = 0.1,
+    bounds: Bounds | Mapping[str, Any] | None = None,
+    name: str = "stem",
+    direction: str | Sequence[float] = "horizontal",
+    density: float = 900.0,
+    base_position: Sequence[float] = (0.0, 0.0, 0.0),
+    base_yaw_deg: float = 0.0,
+) -> Tree:
+    """A vertical hinge chain for a stem pushed at ``push_heights``: one hinge per push height
+    at the pseudo-rigid-body pivot, stiffnesses tied to the shape that makes the chain's
+    compliance the tapered beam's at every push height (one free scale;
+    :func:`treeinfer.synthetic_stem.matched_hinges`), written as ``inference: {tie: shape,
+    tie_shape: ..., tie_scale: ...}`` with stiffness only inferred (``parameters: [kp]``).
+
+    Branches: a welded ``stub`` from the ground to the first pivot, then ``link0``...
+    ``link{n-1}`` from pivot to pivot, the last up to ``height``; radii follow the diameter at
+    each piece's middle. Grasped at the top push height. Push height ``h`` lies on the link
+    :func:`stem_push_points` names, at its distance from that link's joint.
+
+    Args:
+      height: m, the stem from the ground (the clamp) to its tip.
+      push_heights: m above the ground, increasing, in (0, height].
+      base_diameter, tip_diameter: m, a linear taper; or ``diameters``: m, one per push height
+        (piecewise linear between them, through the base/tip diameters where given).
+      gamma: pseudo-rigid-body characteristic radius (Howell's 0.85).
+      tie_scale: std of each hinge's log-stiffness about the shape (soft tie; 0.1: about 10%),
+        or None for a hard tie.
+      bounds: prior box of every hinge (default Kp in ``STEM_KP_BOUNDS`` N m/rad).
+      direction: the data set's default pull direction (``pull: {direction: ...}``): pushes are
+        sideways, ``horizontal`` by default.
+      density: kg/m^3 of the stem.
+    """
+    from .synthetic_stem import matched_hinges
+
+    where = "stem()"
+    pushes, beam = _stem_of(height, push_heights, base_diameter, tip_diameter, diameters, where)
+    if not 0.0 < float(gamma) < 1.0:
+        raise ConfigError(f"{where}: gamma must lie in (0, 1), got {gamma!r}")
+    if tie_scale is not None:
+        tie_scale = _positive_float(tie_scale, "tie_scale", where)
+    z, shape = matched_hinges(beam, pushes, float(gamma))
+    cuts = [0.0, *z.tolist(), float(beam.height)]
+    branches, parent = [], None
+    for k, (a, b) in enumerate(zip(cuts[:-1], cuts[1:])):
+        bname = "stub" if k == 0 else f"link{k - 1}"
+        r = float(beam.diameter((a + b) / 2)) / 2
+        branches.append(Branch(bname, parent, b - a, r, fixed=k == 0))
+        parent = bname
+    top = f"link{len(z) - 1}"
+    grasp_fraction = (pushes[-1] - float(z[-1])) / (cuts[-1] - cuts[-2])
+    bounds = _as_bounds(bounds, where) or Bounds(kp=STEM_KP_BOUNDS)
+    names = [f"link{k}" for k in range(len(z))]
+    try:
+        from .tree import make_tree
+
+        tree = make_tree(
+            branches,
+            grasp_branch=top,
+            grasp_fraction=grasp_fraction,
+            levels=len(z),
+            bounds=bounds,
+            name=str(name),
+            base_position=tuple(float(v) for v in base_position),
+            base_pitch_deg=90.0,
+            base_yaw_deg=float(base_yaw_deg),
+            density=float(density),
+            pull_direction=direction,
+            parameters=("kp",),
+            tie="shape" if len(z) > 1 else None,
+            tie_scale=tie_scale if len(z) > 1 else None,
+            tie_shape=dict(zip(names, shape.tolist())) if len(z) > 1 else None,
+        )
+    except TreeFileError as e:
+        raise ConfigError(f"{where}: the generated tree is invalid: {e}") from None
+    return tree
+
+
+def stem_push_points(tree: Tree, push_heights: Sequence[float]) -> list[tuple[float, str, float]]:
+    """(height m, branch, distance m from its joint) of each push height on a vertical chain
+    such as :func:`stem` builds: the ``--grasp-branch``/``--grasp-distance`` of ``import-csv``
+    for the push at that height."""
+    from .synthetic_stem import branch_at_height
+
+    return [(float(h), *branch_at_height(tree, float(h))) for h in push_heights]
+
+
 GENERATORS: dict[str, Callable[..., Tree]] = {
     "chain": chain,
     "explicit": explicit,
     "fractal": fractal,
     "lsystem": lsystem,
+    "stem": stem,
 }
 
 

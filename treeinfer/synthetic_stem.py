@@ -35,6 +35,7 @@ from .errors import ConfigError
 
 __all__ = [
     "Stem",
+    "StemProfile",
     "StemPush",
     "cantilever_displacement",
     "compliance",
@@ -63,6 +64,26 @@ class Stem(NamedTuple):
         return self.base_diameter + (self.tip_diameter - self.base_diameter) * (
             np.asarray(z, float) / self.height
         )
+
+    def ei(self, z):
+        """Bending stiffness EI(z) [N m^2]."""
+        return self.youngs_modulus * math.pi * self.diameter(z) ** 4 / 64.0
+
+
+class StemProfile(NamedTuple):
+    """A stem whose diameter is measured at a few heights (piecewise linear between them, held
+    constant beyond the first and last): heights [n] m increasing in [0, height], diameters [n]
+    m. Duck-types :class:`Stem` for :func:`compliance` and :func:`matched_hinges`."""
+
+    height: float
+    heights: tuple[float, ...]
+    diameters: tuple[float, ...]
+    youngs_modulus: float = 2.0e9
+    density: float = 900.0
+
+    def diameter(self, z):
+        """Diameter [m] at height ``z`` [m]."""
+        return np.interp(np.asarray(z, float), self.heights, self.diameters)
 
     def ei(self, z):
         """Bending stiffness EI(z) [N m^2]."""

@@ -65,8 +65,10 @@ from .tree_types import (  # noqa: F401 -- re-exported: the old import path keep
     parse_direction,
     parse_parameters,
     parse_tie,
+    parse_tie_shape,
     parse_tree_pull,
     quat_from_matrix,
+    resolve_tie_shape,
     rot_x,
     rot_y,
     rot_z,
@@ -142,9 +144,12 @@ def make_tree(
             kwargs["pull_direction"] = parse_direction(kwargs["pull_direction"], "pull.direction")
         if "parameters" in kwargs:
             kwargs["parameters"] = parse_parameters(kwargs["parameters"])
-        if "tie" in kwargs or "tie_scale" in kwargs:
+        if "tie" in kwargs or "tie_scale" in kwargs or "tie_shape" in kwargs:
             kwargs["tie"], kwargs["tie_scale"] = parse_tie(
                 kwargs.get("tie"), kwargs.get("tie_scale")
+            )
+            kwargs["tie_shape"] = resolve_tie_shape(
+                parse_tie_shape(kwargs.get("tie_shape"), kwargs["tie"]), inferred
             )
     except ConfigError as e:
         raise TreeFileError(str(e)) from None
@@ -289,16 +294,17 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
         lv = inf["levels"]
         if isinstance(lv, bool) or not isinstance(lv, int):
             raise TreeFileError(f"{pre}inference.levels: expected a positive integer, got {lv!r}")
-    bad = set(inf) - {"joints", "levels", "prior", "parameters", "tie", "tie_scale"}
+    bad = set(inf) - {"joints", "levels", "prior", "parameters", "tie", "tie_scale", "tie_shape"}
     if bad:
         raise TreeFileError(
             f"{pre}inference: unknown field(s) {sorted(bad)}; allowed: joints, levels, prior, "
-            "parameters, tie, tie_scale"
+            "parameters, tie, tie_scale, tie_shape"
         )
     try:
         pull_direction = parse_tree_pull(d.get("pull"), source)
         parameters = parse_parameters(inf.get("parameters"), f"{source}: inference.parameters")
         tie, tie_scale = parse_tie(inf.get("tie"), inf.get("tie_scale"), f"{source}: inference")
+        tie_shape = parse_tie_shape(inf.get("tie_shape"), tie, f"{source}: inference")
     except ConfigError as e:
         msg = str(e)
         raise TreeFileError(msg if msg.startswith(pre) else f"{pre}{msg}") from None
@@ -367,6 +373,7 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
             parameters=parameters,
             tie=tie,
             tie_scale=tie_scale,
+            tie_shape=tie_shape,
             model=_model_section(d.get("model"), source, base_dir),
         )
     except TreeFileError as e:

@@ -95,18 +95,20 @@ def parse_parameters(value, source: str = "inference.parameters") -> tuple[str, 
     return tuple(p for p in PARAMETERS if p in names)
 
 
-TIES = ("taper",)
+TIES = ("taper", "shape")
 
 
 def parse_tie(
     tie, tie_scale=None, source: str = "inference", names=("tie", "tie_scale")
 ) -> tuple[str | None, float | None]:
-    """Validate ``inference: {tie: taper, tie_scale: TAU}`` (or ``--tie``/``--tie-scale``:
-    ``source=""`` and ``names=("--tie", "--tie-scale")``).
+    """Validate ``inference: {tie: taper|shape, tie_scale: TAU}`` (or ``--tie``/``--tie-scale``:
+    ``source=""`` and ``names=("--tie", "--tie-scale")``). The shape of ``tie: shape`` is
+    checked by :func:`parse_tie_shape` and :func:`resolve_tie_shape`.
 
     Returns:
-        (tie, tie_scale): tie None (``none`` or absent: every joint's stiffness free) or
-        ``"taper"``; tie_scale None (hard tie) or a finite TAU > 0 in natural-log units.
+        (tie, tie_scale): tie None (``none`` or absent: every joint's stiffness free),
+        ``"taper"`` or ``"shape"``; tie_scale None (hard tie) or a finite TAU > 0 in
+        natural-log units.
     Raises:
         ConfigError: an unknown tie, a bad scale, or a scale without a tie.
     """
@@ -135,3 +137,85 @@ def parse_tie(
     if name is None:
         raise ConfigError(f"{where}{names[1]}: given without a tie; add {names[0]} taper")
     return name, tau
+
+
+def _shape_number(v, where: str) -> float:
+    if isinstance(v, bool):
+        v = None
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        x = float("nan")
+    if not (math.isfinite(x) and x > 0):
+        raise ConfigError(f"{where}: expected a positive finite number, got {v!r}")
+    return x
+
+
+def parse_tie_shape(value, tie, source: str = "inference", name: str = "tie_shape"):
+    """Validate ``inference: {tie: shape, tie_shape: [s_1, ..., s_R]}`` (or the mapping
+    ``{joint: s_j}``) without the tree: every entry a positive finite number (dimensionless,
+    ``Kp_j = scale * s_j``), present exactly when ``tie`` is ``"shape"``.
+
+    Returns:
+        None (no shape), a tuple of floats (in the order of ``inference.joints``) or a dict
+        ``{joint: float}``; :func:`resolve_tie_shape` aligns it with the inferred joints.
+    Raises:
+        ConfigError: naming ``{source}.{name}`` (and the entry) and what is wrong.
+    """
+    where = f"{source}.{name}" if source else name
+    if value is None:
+        if tie == "shape":
+            raise ConfigError(
+                f"{where}: 'tie: shape' needs the relative stiffness of every inferred joint, "
+                "e.g. tie_shape: [1.0, 0.41, 0.12] (in the order of inference.joints) or "
+                "{joint: value, ...}"
+            )
+        return None
+    if tie != "shape":
+        raise ConfigError(
+            f"{where}: given with tie {tie!r}; an explicit stiffness shape needs 'tie: shape'"
+        )
+    if isinstance(value, Mapping):
+        if not value:
+            raise ConfigError(f"{where}: empty mapping; expected {{joint: value, ...}}")
+        return {str(k): _shape_number(v, f"{where}.{k}") for k, v in value.items()}
+    if isinstance(value, str):
+        value = [v for v in value.replace(",", " ").split() if v]
+    if not isinstance(value, (list, tuple, np.ndarray)) or len(value) == 0:
+        raise ConfigError(
+            f"{where}: expected a list of positive numbers, one per inferred joint, got {value!r}"
+        )
+    return tuple(_shape_number(v, f"{where}[{i}]") for i, v in enumerate(value))
+
+
+def resolve_tie_shape(shape, joints, source: str = "inference", name: str = "tie_shape"):
+    """:func:`parse_tie_shape`'s value aligned with the tree's inferred ``joints``.
+
+    Returns:
+        None or a tuple of R floats, one per joint of ``joints`` in that order.
+    Raises:
+        ConfigError: a list of the wrong length, or a mapping missing a joint or naming one
+            that is not inferred.
+    """
+    where = f"{source}.{name}" if source else name
+    if shape is None:
+        return None
+    joints = tuple(joints)
+    if isinstance(shape, Mapping):
+        unknown = sorted(set(shape) - set(joints))
+        missing = [j for j in joints if j not in shape]
+        if unknown or missing:
+            raise ConfigError(
+                f"{where}: needs one entry per inferred joint ({', '.join(joints)}); "
+                + (f"not inferred: {unknown}" if unknown else f"missing: {missing}")
+            )
+        return tuple(float(shape[j]) for j in joints)
+    vals = tuple(float(v) for v in shape)
+    if len(vals) != len(joints):
+        raise ConfigError(
+            f"{where}: {len(vals)} value(s) for {len(joints)} inferred joint(s) "
+            f"({', '.join(joints)}); give one per joint, in the order of inference.joints"
+        )
+    for i, v in enumerate(vals):
+        _shape_number(v, f"{where}[{i}]")
+    return vals

@@ -22,7 +22,9 @@ from .tree_options import (  # noqa: F401 -- re-exported: the old import path ke
     parse_direction,
     parse_parameters,
     parse_tie,
+    parse_tie_shape,
     parse_tree_pull,
+    resolve_tie_shape,
 )
 
 # Default prior boxes (natural units). Kp in N m/rad, Kd in N m s/rad. Chosen for branches of
@@ -119,6 +121,9 @@ class Tree:
     # free scale) or the std TAU > 0 of each joint's log-stiffness about the taper (soft tie)
     tie: str | None = None
     tie_scale: float | None = None
+    # ``tie: shape``'s relative stiffnesses (``inference.tie_shape``), one positive number per
+    # inferred joint in the order of ``inferred`` (Kp_j = scale * tie_shape[j]); else None
+    tie_shape: tuple[float, ...] | None = None
     # the user's own URDF/MJCF (treeinfer.usermodel): the validated ``model:`` section, or None
     model: dict | None = None
 
@@ -415,6 +420,10 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
         out["inference"]["tie"] = tree.tie
         if tree.tie_scale is not None:
             out["inference"]["tie_scale"] = float(tree.tie_scale)
+        if tree.tie == "shape" and tree.tie_shape is not None:  # by joint: order-proof
+            out["inference"]["tie_shape"] = {
+                n: float(v) for n, v in zip(tree.inferred, tree.tie_shape)
+            }
     if tree.pull_direction != "down":
         pd = tree.pull_direction
         out["pull"] = {"direction": pd if isinstance(pd, str) else [float(x) for x in pd]}

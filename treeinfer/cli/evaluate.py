@@ -105,8 +105,11 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
 
 
 def _prediction_csvs(pred, obs, trajs) -> dict[str, str]:
-    """Per recording ``<stem>_prediction.csv``: time, force, recorded, mean, lower, upper."""
+    """Per recording ``<stem>_prediction.csv``: time, force, recorded, mean, lower, upper (the
+    parameter band) and, when the run has a noise model, predictive_lower, predictive_upper (the
+    band that metrics.json scores), as ``predict`` writes."""
     out = {}
+    noisy = getattr(pred, "predictive_lower", None) is not None
     for b, t in enumerate(trajs):
         n = t.n_steps
         out[f"{Path(t.source).stem}_prediction.csv"] = band_csv_text(
@@ -116,6 +119,8 @@ def _prediction_csvs(pred, obs, trajs) -> dict[str, str]:
             pred.mean[b, :n],
             pred.lower[b, :n],
             pred.upper[b, :n],
+            pred.predictive_lower[b, :n] if noisy else None,
+            pred.predictive_upper[b, :n] if noisy else None,
         )
     return out
 

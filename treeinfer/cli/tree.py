@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -44,10 +45,23 @@ examples:
   treeinfer tree --from fractal.yaml --kind fractal --depth 3 --out deeper.yaml   # re-generate
   treeinfer tree --model my_tree.urdf --grasp link_7 --levels 2 --out my_tree.yaml  # your model
   treeinfer tree --from my_tree.yaml --model my_tree.urdf --repair-inertia geometry --out t.yaml
+  treeinfer tree --kind stem --stem-height 0.4 --base-diameter 0.010 --tip-diameter 0.006 \
+      --push-heights 0.12,0.24,0.36 --out stem.yaml
+  treeinfer tree --kind stem --stem-height 0.4 --base-diameter 0.010 --tip-diameter 0.006 \
+      --push-heights-from data/stem --out stem.yaml   # heights from data/stem/pulls.yaml
 
 --model FILE describes your own URDF/MJCF (one branch per link, joint names mapped under
 model:) or, with --from, attaches it to a tree file; the model is checked (names, inertias,
 joint limits, grasp axis) and the file's sha256 recorded.
+
+--kind stem writes the chain for a stem pushed at a few heights (issue 13's quasi-static
+pushes): one hinge per push height at the pseudo-rigid-body pivot, the stiffnesses tied to the
+shape that matches the tapered beam at every push height (inference: {tie: shape, tie_shape,
+tie_scale}), stiffness only; it prints, per push height, the --grasp-branch/--grasp-distance
+that import-csv needs. With --push-heights-from DIR the heights are the 'distance' entries of
+DIR/pulls.yaml (import-csv ... --grasp-branch stem --grasp-distance H, H in m above the ground),
+and DIR/pulls.yaml is rewritten to point at the chain's links (the original kept as
+pulls.yaml.orig).
 
 Generated trees keep their settings under 'generator:' in the file, so --from FILE --kind KIND
 re-generates with only the given options changed. --kind explicit (the default with --from)
@@ -75,12 +89,23 @@ _GENERATOR_OPTIONS: dict[str, tuple[str, frozenset[str]]] = {
     "grasp": ("grasp", frozenset({"fractal", "lsystem", "explicit"})),
     "grasp_fraction": ("grasp_fraction", frozenset({"chain", "fractal", "lsystem", "explicit"})),
     "levels": ("levels", frozenset({"chain", "fractal", "lsystem", "explicit"})),
-    "tree_name": ("name", frozenset({"chain", "fractal", "lsystem", "explicit"})),
-    "base_position": ("base_position", frozenset({"chain", "fractal", "lsystem", "explicit"})),
+    "tree_name": ("name", frozenset({"chain", "fractal", "lsystem", "explicit", "stem"})),
+    "base_position": (
+        "base_position",
+        frozenset({"chain", "fractal", "lsystem", "explicit", "stem"}),
+    ),
     "base_pitch": ("base_pitch_deg", frozenset({"chain", "fractal", "lsystem", "explicit"})),
-    "base_yaw": ("base_yaw_deg", frozenset({"chain", "fractal", "lsystem", "explicit"})),
+    "base_yaw": ("base_yaw_deg", frozenset({"chain", "fractal", "lsystem", "explicit", "stem"})),
+    "stem_height": ("height", frozenset({"stem"})),
+    "push_heights": ("push_heights", frozenset({"stem"})),
+    "base_diameter": ("base_diameter", frozenset({"stem"})),
+    "tip_diameter": ("tip_diameter", frozenset({"stem"})),
+    "diameters": ("diameters", frozenset({"stem"})),
+    "tie_scale": ("tie_scale", frozenset({"stem"})),
+    "prb_gamma": ("gamma", frozenset({"stem"})),
+    "direction": ("direction", frozenset({"stem"})),
 }
-_TREE_KINDS = ("explicit", "chain", "fractal", "lsystem")
+_TREE_KINDS = ("explicit", "chain", "fractal", "lsystem", "stem")
 
 
 def configure_tree(subparsers) -> argparse.ArgumentParser:
@@ -198,7 +223,68 @@ def configure_tree(subparsers) -> argparse.ArgumentParser:
     ls.add_argument("--angle", type=float, metavar="DEG", help="turtle turn angle, deg")
     ls.add_argument("--step-length", type=float, metavar="M", help="length of one F, m")
     ls.add_argument("--seed", type=int, help="seed for stochastic rules")
+
+    st = p.add_argument_group("stem (a stem pushed sideways at a few heights)")
+    st.add_argument("--stem-height", type=float, metavar="M", help="m, ground (clamp) to tip")
+    st.add_argument(
+        "--push-heights",
+        type=_floats,
+        metavar="H[,H...]",
+        help="m above the ground, increasing: one hinge per push height",
+    )
+    st.add_argument(
+        "--push-heights-from",
+        type=Path,
+        metavar="DIR",
+        help="read the push heights from DIR/pulls.yaml (each entry's 'distance' on one branch, "
+        "m above the ground, as import-csv --grasp-distance wrote it) and rewrite DIR/pulls.yaml "
+        "to point at the chain's links",
+    )
+    st.add_argument("--base-diameter", type=float, metavar="M", help="m, diameter at the ground")
+    st.add_argument("--tip-diameter", type=float, metavar="M", help="m, diameter at the tip")
+    st.add_argument(
+        "--diameters",
+        type=_floats,
+        metavar="D[,D...]",
+        help="m, the diameter at each push height (instead of, or with, base and tip)",
+    )
+    st.add_argument(
+        "--tie-scale",
+        type=_tie_scale,
+        metavar="TAU|none",
+        help="as infer --tie-scale: each hinge's log-stiffness deviates from the beam-matched "
+        "shape by Normal(0, TAU) (default 0.1); 'none': a hard tie (one free scale)",
+    )
+    st.add_argument(
+        "--prb-gamma",
+        type=float,
+        metavar="G",
+        help="pseudo-rigid-body characteristic radius: each hinge sits (1 - G) of the way from "
+        "the push height below to its own (default 0.85, Howell's)",
+    )
+    st.add_argument(
+        "--direction",
+        metavar="D",
+        help="the data set's default push direction, as import-csv --direction: down | "
+        "horizontal | X,Y,Z (default horizontal)",
+    )
     return p
+
+
+_NO_TIE_SCALE = "none"
+
+
+def _tie_scale(text: str):
+    """argparse type of ``--tie-scale``: a positive number or ``none`` (a hard tie)."""
+    if text.strip().lower() in (_NO_TIE_SCALE, "hard"):
+        return _NO_TIE_SCALE
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (np.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number or 'none', got {text!r}")
+    return v
 
 
 def _parse_rules(items: Sequence[str]) -> dict[str, Any]:
@@ -250,6 +336,8 @@ def _tree_settings(args: argparse.Namespace, kind: str) -> dict[str, Any]:
             )
         if dest == "rule":
             value = _parse_rules(value)
+        elif dest == "tie_scale" and value == _NO_TIE_SCALE:
+            value = None
         elif dest in ("lengths", "radii", "angles") and len(value) == 1:
             value = value[0]
         out[arg] = value
@@ -336,6 +424,24 @@ def run_tree(args: argparse.Namespace) -> int:
         return _run_tree_model(args)
     kind = args.kind or ("explicit" if args.source is not None else "fractal")
     settings = _tree_settings(args, kind)
+    pulls_dir = getattr(args, "push_heights_from", None)
+    if pulls_dir is not None:
+        if kind != "stem":
+            raise ConfigError(
+                f"--push-heights-from does not apply to --kind {kind} (it is for: stem)"
+            )
+        if "push_heights" in settings:
+            raise ConfigError("give --push-heights or --push-heights-from, not both")
+        settings["push_heights"] = [h for h, _ in _pull_heights(pulls_dir).values()]
+        settings["push_heights"] = sorted(set(settings["push_heights"]))
+    if kind == "stem" and args.source is None:
+        need = {
+            "height": "--stem-height",
+            "push_heights": "--push-heights (or --push-heights-from)",
+        }
+        missing = [flag for key, flag in need.items() if key not in settings]
+        if missing:
+            raise ConfigError(f"--kind stem needs {' and '.join(missing)}")
 
     generator_cfg = None  # settings written under generator: (None: a plain tree file)
     if kind == "explicit":
@@ -387,6 +493,8 @@ def run_tree(args: argparse.Namespace) -> int:
         )
         atomic_write_text(out, text)
     print(_summary(tree, out))
+    if kind == "stem":
+        _report_stem(tree, generator_cfg, pulls_dir)
     if mjcf is not None:
         atomic_write_text(args.mjcf, mjcf)
         print(f"wrote {args.mjcf} (MJCF)")
@@ -394,6 +502,90 @@ def run_tree(args: argparse.Namespace) -> int:
         atomic_write_text(args.urdf, urdf)
         print(f"wrote {args.urdf} (URDF)")
     return EXIT_OK
+
+
+def _pull_heights(folder: Path) -> dict[str, tuple[float, Any]]:
+    """``{csv name: (height m, direction)}`` from ``folder/pulls.yaml`` written with
+    ``import-csv --grasp-branch NAME --grasp-distance H`` (H above the ground, one branch
+    name for every entry).
+
+    Raises:
+        ConfigError: no pulls file, an entry without a distance, several branch names, or
+            entries that already name a generated chain's links.
+    """
+    from ..pulls import PULLS_FILE, read_pulls
+
+    path = Path(folder) / PULLS_FILE
+    if not path.is_file():
+        raise ConfigError(
+            f"--push-heights-from {folder}: no {PULLS_FILE} there (import-csv writes it)"
+        )
+    pf = read_pulls(path)
+    if not pf.pulls:
+        raise ConfigError(f"{path}: no entries under 'pulls'")
+    out, branches = {}, set()
+    for name, spec in pf.pulls.items():
+        own = spec.fraction is not None or spec.distance is not None
+        dist = spec.distance if own else pf.default.distance
+        branch = spec.branch if spec.branch is not None else pf.default.branch
+        if dist is None:
+            raise ConfigError(
+                f"{path}: pulls.{name}: no 'distance' (the push height above the ground); "
+                "import with --grasp-distance H, or give --push-heights"
+            )
+        branches.add(branch)
+        direction = spec.direction if spec.direction is not None else pf.default.direction
+        out[name] = (round(float(dist), 9), direction)
+    chain = sorted(str(b) for b in branches if re.fullmatch(r"stub|link\d+", str(b)))
+    if chain:
+        raise ConfigError(
+            f"{path}: entries already name a generated chain's link ('{chain[0]}'); their "
+            "distances are from that link's joint, not the ground: give --push-heights"
+        )
+    if len(branches) > 1:
+        raise ConfigError(
+            f"{path}: entries name several branches {sorted(map(str, branches))}; the push heights "
+            "are read as distances from the ground along one stem (give --push-heights instead)"
+        )
+    return out
+
+
+def _report_stem(tree, cfg, pulls_dir) -> None:
+    """Print where each push height lies on the chain (import-csv's grasp options); with
+    ``pulls_dir``, rewrite its pulls.yaml to point at those links (the original kept)."""
+    import shutil
+
+    from ..pulls import PULLS_FILE, PullSpec, read_pulls, write_pulls
+
+    points = gen.stem_push_points(tree, cfg["push_heights"])
+    if tree.tie_shape is not None:
+        shape = ", ".join(f"{n} {v:.3g}" for n, v in zip(tree.inferred, tree.tie_shape))
+        tau = "hard" if tree.tie_scale is None else f"soft, tie_scale {tree.tie_scale:g}"
+        print(f"  tie: shape ({tau}): {shape}")
+    print("  push heights (import-csv grasp options):")
+    for h, branch, dist in points:
+        print(f"    {h:g} m: --grasp-branch {branch} --grasp-distance {dist:.6g}")
+    if pulls_dir is None:
+        return
+    path = Path(pulls_dir) / PULLS_FILE
+    heights = _pull_heights(pulls_dir)
+    at = {round(h, 9): (b, d) for h, b, d in points}
+    pf = read_pulls(path)
+    new = {
+        name: PullSpec(branch=at[h][0], distance=at[h][1], direction=direction)
+        for name, (h, direction) in heights.items()
+    }
+    backup = path.with_name(PULLS_FILE + ".orig")
+    if not backup.exists():
+        shutil.copyfile(path, backup)
+    write_pulls(
+        path,
+        new,
+        default=PullSpec(direction=pf.default.direction),
+        header=f"rewritten by treeinfer tree --kind stem for {tree.name}: heights above the "
+        f"ground are now (link, distance from its joint); the original is {backup.name}",
+    )
+    print(f"  rewrote {path} to the chain's links (original: {backup})")
 
 
 def _run_tree_model(args: argparse.Namespace) -> int:

@@ -21,6 +21,10 @@ an extrapolation's band widens where the data say nothing.
 
 :func:`taper_shape` reads the shape from the tree's branches (Hencky bar-chain lumping: each
 hinge carries the flexibility of the half-bars on either side of it, :func:`taper_shape`).
+``inference: {tie: shape, tie_shape: [...]}`` gives the shape explicitly instead (e.g. the
+beam-matched shape that ``treeinfer tree --kind stem`` writes,
+:func:`treeinfer.synthetic_stem.matched_hinges`): ``Kp_j = s * tie_shape_j`` exactly, as given
+(not rescaled), hard or soft (``tie_scale``) as for the taper.
 """
 
 from __future__ import annotations
@@ -183,13 +187,36 @@ def tied_layout(tree, shape, scale_bounds, fixed_kd=None, tau=None) -> TiedLayou
     )
 
 
+def tree_tie_shape(tree) -> np.ndarray:
+    """[R] the tied shape of ``tree``'s inferred joints: :func:`taper_shape` for ``tie: taper``,
+    the file's ``inference.tie_shape`` for ``tie: shape``.
+
+    Raises:
+        ConfigError: ``tie: shape`` without a shape (e.g. ``--tie shape`` on a tree file that
+            has no ``inference.tie_shape``), or no tie at all.
+    """
+    if tree.tie == "taper":
+        return taper_shape(tree)
+    if tree.tie == "shape":
+        shape = getattr(tree, "tie_shape", None)
+        if shape is None or len(shape) != len(tree.inferred):
+            raise ConfigError(
+                "inference.tie: 'shape' needs inference.tie_shape in the tree file, one positive "
+                f"number per inferred joint ({', '.join(tree.inferred)}); "
+                "`treeinfer tree --kind stem` writes one"
+            )
+        return np.asarray(shape, float)
+    raise ConfigError(f"inference.tie: no stiffness tie on this tree (got {tree.tie!r})")
+
+
 def tree_tied_layout(tree, fixed_kd) -> TiedLayout:
-    """The layout of a tree file's ``inference: {tie: taper[, tie_scale: TAU]}``: the shape from
-    :func:`taper_shape`, the scale's box wide enough for every joint's own Kp box
+    """The layout of a tree file's ``inference: {tie: taper|shape[, tie_scale: TAU]}``: the
+    shape from :func:`tree_tie_shape`, the scale's box wide enough for every joint's own Kp box
     (``[min_j lo_j / shape_j, max_j hi_j / shape_j]``).
 
     Raises:
-        ConfigError: the tree infers damping (the tie is on stiffness only).
+        ConfigError: the tree infers damping (the tie is on stiffness only); ``tie: shape``
+            without its shape.
     """
     if "kd" in tuple(tree.parameters):
         raise ConfigError(
@@ -197,8 +224,27 @@ def tree_tied_layout(tree, fixed_kd) -> TiedLayout:
             "add 'parameters: [kp]' to the tree file's inference section or run "
             "--model-kind static"
         )
-    shape = taper_shape(tree)
+    shape = tree_tie_shape(tree)
     lo, hi = tree.bounds_array()
     r = len(tree.inferred)
     bounds = (float(np.min(lo[:r] / shape)), float(np.max(hi[:r] / shape)))
-    return tied_layout(tree, shape, bounds, fixed_kd, tau=tree.tie_scale)
+    return tied_layout(tree, shape, bounds, fixed_kd, tau=tree.tie_scale)._replace(tie=tree.tie)
+
+
+def tied_noise_theta(theta, n_joints: int, settings: dict) -> np.ndarray:
+    """A tied run's draws ``theta [N, D]`` (``[log s, (delta_1..R,) noise...]``) laid out as
+    :func:`treeinfer.gains.noise_params_from_theta` reads them, ``[N, 2R + E]``: the gain
+    columns zeroed (unused there), the E noise columns kept. ``settings``: the run's problem
+    settings (``kp_shape`` marks a tied layout, ``tie_scale`` None a hard one).
+
+    Without this the per-joint reading (``2R`` gain columns) takes a tied run's deviations for
+    noise columns and the predictive band silently loses its noise term."""
+    theta = np.atleast_2d(np.asarray(theta, float))
+    n_layout = 1 + (n_joints if settings.get("tie_scale") is not None else 0)
+    if theta.shape[-1] < n_layout:
+        raise ConfigError(
+            f"theta: a tied run of {n_joints} joints has at least {n_layout} columns, "
+            f"got {theta.shape[-1]}"
+        )
+    gains = np.zeros(theta.shape[:-1] + (2 * n_joints,))
+    return np.concatenate([gains, theta[..., n_layout:]], axis=-1)
