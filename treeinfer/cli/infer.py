@@ -311,14 +311,15 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "--tie",
         metavar="TIE",
         help="'taper': stiffness tied along the stem's taper (Kp_j = s * r_j^4 / l_j, Hencky "
-        "lumping), one free scale s; 'none' drops a tree file's inference.tie (default: the tree "
-        "file's); needs stiffness only (--model-kind static or inference.parameters: [kp])",
+        "lumping), one free scale s; 'shape': Kp_j = s * tie_shape_j with the tree file's "
+        "inference.tie_shape (written by `treeinfer tree --kind stem`); 'none' drops a tree "
+        "file's inference.tie (default: the tree file's); needs stiffness only (--model-kind static or inference.parameters: [kp])",
     )
     p.add_argument(
         "--tie-scale",
         type=float,
         metavar="TAU",
-        help="soften the tie: each joint's log-stiffness deviates from the taper by "
+        help="soften the tie: each joint's log-stiffness deviates from the tie by "
         "Normal(0, TAU) (TAU = 0.1: about 10%%), so untested heights keep honest uncertainty "
         "(default: the tree file's inference.tie_scale, else a hard tie)",
     )
