@@ -6,7 +6,9 @@ For every force sample ``f_t`` it solves
 
 (spring, gravity, and the point force ``f_t`` along the unit direction ``d`` at the grasp point
 C) by the clipped Newton iteration of the simulator's settle solver with exact Jacobians from
-``jax.jacfwd``; see :mod:`treeinfer.static` for when to use it.
+``jax.jacfwd``; see :mod:`treeinfer.static` for when to use it. The Newton and implicit-derivative
+solves use :func:`treeinfer.small_solve.solve`, not ``jnp.linalg.solve``: jaxlib 0.10's batched
+LAPACK LU deadlocks XLA's CPU thread pool when two of them run at once (issue 13's hang).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..sim import Rollout, Simulator, velocity
 from ..sim import fused as hd
+from ..small_solve import solve as small_solve
 
 NEWTON_CLIP = 0.2  # rad per Newton step, as the simulator's settle solver
 
@@ -180,7 +183,7 @@ def _static_group(sim: Simulator, body: int, n_iter: int, kp, forces, sites, dir
 
         def newton(q, _):
             jac = jax.jacfwd(residual)(q, kp_i, f, site, d)
-            dq = -jnp.linalg.solve(jac, residual(q, kp_i, f, site, d))
+            dq = -small_solve(jac, residual(q, kp_i, f, site, d))
             return q + jnp.clip(dq, -NEWTON_CLIP, NEWTON_CLIP), None
 
         return jax.lax.scan(newton, q0, None, length=n_iter)[0]
@@ -199,7 +202,7 @@ def _static_group(sim: Simulator, body: int, n_iter: int, kp, forces, sites, dir
         _, dr = jax.jvp(
             lambda k, ff, ss, dd: residual(q, k, ff, ss, dd), (kp_i, f, site, d), tangents[:4]
         )
-        return q, -jnp.linalg.solve(jac, dr)
+        return q, -small_solve(jac, dr)
 
     def per_params(kp_i):
         def solve(f, site, d, q0):
