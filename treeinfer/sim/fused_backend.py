@@ -21,6 +21,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+# not jnp.linalg.solve: jaxlib 0.10's CPU batched LU deadlocks when two run at once
+# (treeinfer.small_solve says why)
+from ..small_solve import solve as small_solve
 from . import fused as hd
 from . import levels as lv
 from .mjx import Backend
@@ -103,7 +106,7 @@ def _settle_one(sim: Simulator, kp, kd, dtype, converged: bool = True):
 
     def newton_step(f, q):
         r, jac = _value_and_jacobian(f, q)
-        return r, jnp.clip(-jnp.linalg.solve(jac, r), -0.2, 0.2)
+        return r, jnp.clip(-small_solve(jac, r), -0.2, 0.2)
 
     zero = jnp.zeros(nv, dtype)
     if converged:
@@ -127,7 +130,7 @@ def _settle_one(sim: Simulator, kp, kd, dtype, converged: bool = True):
 
         # lax.custom_root: derivatives by the implicit function theorem, dq = -J^-1 dr/dK, in
         # forward and reverse mode (a while_loop has no reverse-mode rule of its own)
-        tangent_solve = lambda g, y: jnp.linalg.solve(_value_and_jacobian(g, y)[1], y)
+        tangent_solve = lambda g, y: small_solve(_value_and_jacobian(g, y)[1], y)
         q = jax.lax.custom_root(torque, zero, solve, tangent_solve)
         r_first, r_last = torque(zero), torque(q)
     else:

@@ -12,6 +12,8 @@ from typing import TYPE_CHECKING, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ..small_solve import solve as small_solve  # not jnp.linalg.solve: treeinfer.small_solve
+
 if TYPE_CHECKING:
     from . import Simulator
 
@@ -77,7 +79,7 @@ def settle_one(sim: Simulator, model) -> tuple[jax.Array, jax.Array]:
         q, r_first, _ = carry
         r = f(q[None] + probes)
         jac = ((r[1 : nq + 1] - r[nq + 1 :]) / (2 * eps)).T
-        dq = jnp.clip(-jnp.linalg.solve(jac, r[0]), -0.2, 0.2)  # clipped: robust far from the root
+        dq = jnp.clip(-small_solve(jac, r[0]), -0.2, 0.2)  # clipped: robust far from the root
         r_first = jnp.where(i == 0, r[0], r_first)
         return (q + dq, r_first, r[0]), None
 
