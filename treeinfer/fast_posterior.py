@@ -418,7 +418,7 @@ def fast_posterior(
     n_starts: int = 8,
     n_screen: int | None = None,
     n_draws: int | None = None,
-    max_iterations: int = 30,
+    max_iterations: int | None = None,
     tolerance: float = 1e-4,
     df: float = DEFAULT_DF,
     seed: int = 0,
@@ -428,7 +428,7 @@ def fast_posterior(
     programs=None,
     coarse_substeps: int | str | None = "auto",
     polish_iterations: int = 0,
-    coarse_rounds: int = 3,
+    coarse_rounds: int = 2,
 ) -> FastPosterior:
     """Posterior particles of ``problem`` without sampler iterations (module docstring).
 
@@ -459,6 +459,15 @@ def fast_posterior(
         None: the simulator's own everywhere.
       polish_iterations: LM iterations at the accurate step from the coarse fit's mode (0:
         none; each costs one program run).
+      coarse_rounds: with a coarse step, importance rounds at that step
+        (:func:`treeinfer.importance.adaptive_importance` from the fit's proposal) before the
+        accurate step's: their weighted draws' mean and covariance are the first proposal of the
+        accurate rounds (Student-t, ``df``), the accurate rounds adapt further (``max_rounds``)
+        and only their draws are weighted and returned. On the standard problem the fit's own
+        Student-t gives an effective sample size of 50-70 of 832 draws, the coarse posterior's
+        180-270; the coarse rounds cost about a third of accurate ones (4 against 14 substeps).
+      max_iterations (None): 15 with a coarse step (the coarse importance rounds re-centre the
+        proposal), else 30.
     """
     from .importance import (
         BAND_SPLIT_LIMIT,
@@ -479,12 +488,16 @@ def fast_posterior(
     n_draws = max(8 * k, 4 * n_particles) if n_draws is None else int(n_draws)
     if n_screen < n_starts:
         raise ConfigError(f"n_screen: must be >= n_starts ({n_starts}), got {n_screen}")
+    if not (isinstance(coarse_rounds, (int, np.integer)) and coarse_rounds >= 0):
+        raise ConfigError(f"coarse_rounds: must be an integer >= 0, got {coarse_rounds!r}")
     if not (isinstance(polish_iterations, (int, np.integer)) and polish_iterations >= 0):
         raise ConfigError(f"polish_iterations: must be an integer >= 0, got {polish_iterations!r}")
     ev = BatchEvaluator(problem, k, programs) if evaluator is None else evaluator
     if ev.chunk != k or ev.problem is not problem:
         raise ConfigError("evaluator: built for another problem or batch size")
     coarse = resolve_coarse_substeps(ev, coarse_substeps)
+    if max_iterations is None:
+        max_iterations = 15 if coarse != ev.substeps and coarse_rounds > 0 else 30
     phases, t = {}, time.perf_counter()
     lower, upper = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
     ev.evaluate(lower[None], coarse)  # compile (and run once)
