@@ -253,8 +253,9 @@ def test_cli_infer_init_importance(tmp_path, capsys, monkeypatch):
     # weights not trusted: the sampler runs its iterations from the importance particles
     def untrusted(problem, n_particles, seed, log, **kw):
         _, theta0 = real(
-            problem, n_particles, seed, log, n_starts=3, n_draws=40, max_rounds=1, **kw
-        )
+            problem, n_particles, seed, log, n_starts=3, n_draws=40, max_rounds=1,
+            coarse_substeps=None, **kw,  # one round of 40 draws of the fit's own proposal
+        )  # fmt: skip
         calls.append(theta0)
         return None, theta0
 

@@ -34,6 +34,17 @@ draws, ESS 37-169) scattered by 6.5 % (sd), worst 10.2 %; this one (Student-t, t
 sorted resampling, ESS 634-888): mean -0.6 %, sd 3.9 %, worst 5.9 %. 128 exact posterior draws
 scatter by 6.6 % themselves.
 
+**Multi-fidelity** (``coarse_substeps``, default ``"auto"``: the stability step, 4 substeps on
+the standard problem against the accuracy-controlled 14): the rollout program takes the step as
+an argument (one compiled program), the screen, the LM fit (15 iterations) and two importance
+rounds run at the coarse step, at about a third of the cost; the coarse rounds' weighted moments
+are the first proposal of the accurate step's rounds, and only the accurate rounds' draws are
+weighted and returned, so the result targets the accurate posterior exactly (any proposal gives
+correct weights; ``tests/test_fast_posterior_multifidelity.py`` checks the weighted moments
+against quadrature at the accurate step where the coarse posterior is measurably elsewhere).
+Rollout-program runs on the standard problem (batch 104): before, 60 at 14 substeps; now 37 at
+4 and 16-24 at 14.
+
 Why not :func:`treeinfer.mapfit.fit_problem` then ``problem.log_density``: that is three
 programs (the LM's value/gradient/curvature with its vmapped Jacobian, the log-density at M
 draws, the sampler's chunk), 11-14 s of compilation each on the 2-core box; here the LM,
@@ -56,6 +67,8 @@ import numpy as np
 
 from .errors import ConfigError
 
+# the coarse-step importance rounds draw with seed + COARSE_SEED (the accurate step's with seed)
+COARSE_SEED = 7919
 # Student-t proposals (every round): Gaussian ones leave the posterior's tails short, so the
 # band came out 5-6 % narrow on average (experiments/importance_robustness.py, BENCHMARKS.md)
 DEFAULT_DF = 8.0
@@ -69,6 +82,7 @@ __all__ = [
     "fit_map_batched",
     "importance_for_run",
     "posterior_from_fast",
+    "resolve_coarse_substeps",
 ]
 
 
@@ -93,11 +107,17 @@ class BatchEvaluator:
     log-prior (box and inequality network; no data) is a second, small program of its own.
     """
 
-    def __init__(self, problem, chunk: int, programs=None, shape=None):
+    def __init__(self, problem, chunk: int, programs=None, shape=None, traced_substeps=None):
         check_problem(problem)
         from .startup import bucket_observations, cached_program
 
         self.problem, self.chunk, self.calls = problem, int(chunk), 0
+        sim = problem.sim
+        self.substeps = int(sim.substeps)
+        # the step count as a program argument unless the Pallas kernel runs the rollouts (it
+        # takes the simulator's own step only: a traced count would fall back to the fused path)
+        self.traced = sim.backend != "pallas" if traced_substeps is None else bool(traced_substeps)
+        self.runs: dict[int, int] = {}  # program runs per substep count
         self.kT = float(problem.kT)
         sim, obs = problem.sim, problem.obs
         gf = problem.settings.get("grasp_fraction")
@@ -129,16 +149,32 @@ class BatchEvaluator:
             problem.dim,
             self.shape,
             str(self._dtype),
+            "traced substeps" if self.traced else "static substeps",
         )
         example = (jnp.zeros((self.chunk, problem.dim), self._dtype), *self._data)
+        if self.traced:
+            example = (*example, jnp.int32(self.substeps))
 
         def build():  # traced once per machine: treeinfer.startup.cached_program
-            return cached_program(_rollout_residuals(sim, gf), example, repr(key))
+            fn = _rollout_residuals(sim, gf, self.traced)
+            return cached_program(fn, example, repr(key))
 
         self._run = build() if programs is None else programs.get(key, build)
         self._prior = jax.jit(problem.log_prior)
 
-    def evaluate(self, theta):
+    def evaluate(self, theta, substeps: int | None = None):
+        """``(r, stable, log_prior)`` at ``theta [N, D]`` (class docstring); ``substeps``:
+        simulation steps per observation (default the simulator's own, ``self.substeps``;
+        another count needs ``self.traced``)."""
+        s = self.substeps if substeps is None else int(substeps)
+        if s != self.substeps and not self.traced:
+            raise ConfigError(
+                f"substeps: this rollout program runs the simulator's own step "
+                f"({self.substeps} substeps), not {s}"
+            )
+        if s < 1:
+            raise ConfigError(f"substeps: must be an integer >= 1, got {substeps!r}")
+        extra = (jnp.int32(s),) if self.traced else ()
         theta = np.atleast_2d(np.asarray(theta, float))
         n, k = len(theta), self.chunk
         pad = (-n) % k
@@ -146,29 +182,40 @@ class BatchEvaluator:
         outs = []
         for i in range(0, len(full), k):
             self.calls += 1
+            self.runs[s] = self.runs.get(s, 0) + 1
             th = jnp.asarray(full[i : i + k], self._dtype)
-            outs.append((*self._run(th, *self._data), self._prior(th)))
+            outs.append((*self._run(th, *self._data, *extra), self._prior(th)))
         r, ok, lp = (np.concatenate([np.asarray(o[j], float) for o in outs])[:n] for j in range(3))
         b, t, nb = self._rows, self._steps, self.shape[0]
         r = np.concatenate([r[:, :b, :t], r[:, nb : nb + b, :t]], axis=1)  # the data's rows, steps
         return r, ok.astype(bool), lp
 
-    def loss_terms(self, theta):
+    def loss_terms(self, theta, substeps: int | None = None):
         """``(norms [N, G], stable [N], log_prior [N], r [N, G, T])``."""
-        r, ok, lp = self.evaluate(theta)
+        r, ok, lp = self.evaluate(theta, substeps)
         return np.sqrt(np.sum(r**2, axis=-1)), ok, lp, r
 
-    def log_density(self, theta) -> np.ndarray:
-        """``[N]`` log p(theta | data) up to a constant (as ``problem.log_density``)."""
-        norms, ok, lp, _ = self.loss_terms(theta)
+    def log_density(self, theta, substeps: int | None = None) -> np.ndarray:
+        """``[N]`` log p(theta | data) up to a constant (as ``problem.log_density``; with
+        ``substeps`` the simulator's step changed to that many substeps)."""
+        norms, ok, lp, _ = self.loss_terms(theta, substeps)
         out = -norms.sum(-1) / self.kT + lp
         return np.where(ok & np.isfinite(out), out, -np.inf)
 
 
-def _rollout_residuals(sim, gf):
-    """``(theta [K, 2R], forces, displacement, velocity, mask [B, T], n_steps) -> (r [K, 2B, T],
-    stable [K])``: the masked displacement and velocity errors of the rollouts (the Boltzmann
-    loss's residuals) and whether every real row (one with a True mask entry) stayed stable.
+def _rollout_residuals(sim, gf, traced_substeps: bool = False):
+    """``(theta [K, 2R], forces, displacement, velocity, mask [B, T], n_steps[, substeps]) ->
+    (r [K, 2B, T], stable [K])``: the masked displacement and velocity errors of the rollouts
+    (the Boltzmann loss's residuals) and whether every real row (one with a True mask entry)
+    stayed stable.
+
+    ``traced_substeps``: the program takes the simulation substeps per observation as a last
+    (int32) argument, so one compiled program runs any step (the multi-fidelity fit of
+    :func:`fast_posterior` screens and fits at a coarse step and weights at the accurate one).
+    On the CPU it is also the faster program at the simulator's own step: 0.26 s against 0.43 s
+    for 104 parameter sets of the standard problem at 14 substeps (2-core box; the static count
+    runs the pull of :mod:`treeinfer.sim.sensitivity`, built for derivatives; the values agree
+    to float32 rounding, ``tests/test_fast_posterior.py``).
 
     ``n_steps`` (a traced integer: one program for every data length of a bucket) is the
     unpadded data's length T0: the simulated velocity at sample T0 - 1 is the one-sided
@@ -176,13 +223,16 @@ def _rollout_residuals(sim, gf):
     one-sided at the last sample), not the central one the padded steps would give (that changed
     the log density by up to 3e-4 relative, ``tests/test_startup.py``)."""
     from .likelihood import gains_from_theta
-    from .sim import simulate
+    from .sim import _simulate, simulate
 
     inv = 1.0 / (2.0 * sim.obs_dt)  # treeinfer.trajectories.velocity_from_displacement's
 
-    def run(theta, forces, disp, vel, mask, n_steps):
+    def run(theta, forces, disp, vel, mask, n_steps, *substeps):
         kp, kd = gains_from_theta(theta, sim.n_joints)
-        out = simulate(sim, kp, kd, forces, gf)
+        if traced_substeps:
+            out = _simulate(sim, kp, kd, forces, gf, substeps=substeps[0])
+        else:
+            out = simulate(sim, kp, kd, forces, gf)
         x = out.tau
 
         def at(i):
@@ -227,14 +277,15 @@ def check_problem(problem) -> None:
         raise ConfigError(f"fast posterior: theta has {problem.dim} columns, expected 2R")
 
 
-def _lm_terms(ev: BatchEvaluator, theta, h: float):
+def _lm_terms(ev: BatchEvaluator, theta, h: float, substeps: int | None = None):
     """Objective ``-log p`` [S], gradient [S, D], Gauss–Newton curvature [S, D, D] and the
     per-group ``(gram [S, G, D, D], r2 [S, G])`` at ``theta [S, D]``, from one batch of the
-    ``S (2D + 1)`` central-difference points."""
+    ``S (2D + 1)`` central-difference points (simulated with ``substeps``, default the
+    simulator's own)."""
     s, d = theta.shape
     eye = h * np.eye(d)
     pts = np.concatenate([theta[:, None], theta[:, None] + eye, theta[:, None] - eye], 1)
-    r, ok, lp = ev.evaluate(pts.reshape(-1, d))
+    r, ok, lp = ev.evaluate(pts.reshape(-1, d), substeps)
     r = r.reshape(s, 2 * d + 1, *r.shape[1:])
     ok = ok.reshape(s, -1).all(1)
     lp = lp.reshape(s, -1)
@@ -263,10 +314,12 @@ def fit_map_batched(
     tolerance: float = 1e-4,
     max_step: float = 1.0,
     rel_step: float | None = None,
+    substeps: int | None = None,
 ):
     """Levenberg–Marquardt on ``-log p`` from ``starts [S, D]`` through ``ev`` (one call per
-    iteration). The update rule is :func:`treeinfer.mapfit.fit_map`'s (Marquardt scaling with
-    a floor, step capped at ``max_step`` log units, damping /3 on success and x4 on failure).
+    iteration; the rollouts with ``substeps`` per observation, default the simulator's own).
+    The update rule is :func:`treeinfer.mapfit.fit_map`'s (Marquardt scaling with a floor,
+    step capped at ``max_step`` log units, damping /3 on success and x4 on failure).
     A start stops when an accepted step lowers its objective by less than ``tolerance * (1 +
     |f|)``; the fit stops when every start has stopped, or when two starts have stopped within
     ``sqrt(tolerance)`` of the lowest objective found. Returns a
@@ -279,7 +332,7 @@ def fit_map_batched(
     p = ev.problem
     h = default_rel_step(jnp.float32) if rel_step is None else float(rel_step)
     theta = np.array(starts, float)
-    f, g, hs, gram, r2 = _lm_terms(ev, theta, h)
+    f, g, hs, gram, r2 = _lm_terms(ev, theta, h, substeps)
     n = len(theta)
     scale0 = np.array([np.mean(np.abs(np.diag(x))) + 1e-12 for x in hs])
     lam = 1e-3 * np.ones(n)
@@ -296,7 +349,7 @@ def fit_map_batched(
             big = np.max(np.abs(step))
             steps[i] = step if big <= max_step else step * (max_step / big)
         trial = theta + steps
-        ft, gt, ht, gram_t, r2_t = _lm_terms(ev, trial, h)
+        ft, gt, ht, gram_t, r2_t = _lm_terms(ev, trial, h, substeps)
         accept = ~done & np.isfinite(ft) & (ft < f)
         flat = accept & ((f - ft) < tolerance * (1.0 + np.abs(f)))
         for a, b in ((theta, trial), (f, ft), (g, gt), (hs, ht), (gram, gram_t), (r2, r2_t)):
@@ -328,6 +381,7 @@ def fit_map_batched(
         "tolerance": tolerance,
         "max_step": max_step,
         "batched": True,
+        "substeps": ev.substeps if substeps is None else int(substeps),
     }
     return MapFit(
         theta[best].copy(),
@@ -375,7 +429,7 @@ def fast_posterior(
     n_starts: int = 8,
     n_screen: int | None = None,
     n_draws: int | None = None,
-    max_iterations: int = 30,
+    max_iterations: int | None = None,
     tolerance: float = 1e-4,
     df: float = DEFAULT_DF,
     seed: int = 0,
@@ -383,6 +437,9 @@ def fast_posterior(
     max_rounds: int = 3,
     target_ess: float | None = None,
     programs=None,
+    coarse_substeps: int | str | None = "auto",
+    polish_iterations: int = 0,
+    coarse_rounds: int = 2,
 ) -> FastPosterior:
     """Posterior particles of ``problem`` without sampler iterations (module docstring).
 
@@ -403,6 +460,25 @@ def fast_posterior(
         effective sample size is below ``target_ess`` (default ``4 P``), up to ``max_rounds``
         rounds of ``n_draws`` each, the later ones from the weighted draws' moments; ``ok``
         needs ``min(target_ess, 2 P)``.
+      coarse_substeps: multi-fidelity: the screen and the LM fit simulate with this many
+        substeps per observation (a cheaper, less accurate step), the importance weights with
+        the simulator's own (accurate) step, so the posterior is still the accurate one: any
+        proposal gives exact weights, the fit only has to place it near the mode. ``"auto"``:
+        the step that is merely stable (``sim.step_info["stability_substeps"]``) when it is
+        coarser than the simulator's and the rollout program takes the step as an argument
+        (:class:`BatchEvaluator` ``traced``; not the Pallas kernel), else the simulator's own;
+        None: the simulator's own everywhere.
+      polish_iterations: LM iterations at the accurate step from the coarse fit's mode (0:
+        none; each costs one program run).
+      coarse_rounds: with a coarse step, importance rounds at that step
+        (:func:`treeinfer.importance.adaptive_importance` from the fit's proposal) before the
+        accurate step's: their weighted draws' mean and covariance are the first proposal of the
+        accurate rounds (Student-t, ``df``), the accurate rounds adapt further (``max_rounds``)
+        and only their draws are weighted and returned. On the standard problem the fit's own
+        Student-t gives an effective sample size of 50-70 of 832 draws, the coarse posterior's
+        180-270; the coarse rounds cost about a third of accurate ones (4 against 14 substeps).
+      max_iterations (None): 15 with a coarse step (the coarse importance rounds re-centre the
+        proposal), else 30.
     """
     from .importance import (
         BAND_SPLIT_LIMIT,
@@ -411,6 +487,7 @@ def fast_posterior(
         leading_projection,
         proposal_from_fit,
         sorted_resample,
+        weighted_moments,
     )
 
     for name, v in (("n_particles", n_particles), ("n_starts", n_starts)):
@@ -422,21 +499,43 @@ def fast_posterior(
     n_draws = max(8 * k, 4 * n_particles) if n_draws is None else int(n_draws)
     if n_screen < n_starts:
         raise ConfigError(f"n_screen: must be >= n_starts ({n_starts}), got {n_screen}")
+    if not (isinstance(coarse_rounds, (int, np.integer)) and coarse_rounds >= 0):
+        raise ConfigError(f"coarse_rounds: must be an integer >= 0, got {coarse_rounds!r}")
+    if not (isinstance(polish_iterations, (int, np.integer)) and polish_iterations >= 0):
+        raise ConfigError(f"polish_iterations: must be an integer >= 0, got {polish_iterations!r}")
     ev = BatchEvaluator(problem, k, programs) if evaluator is None else evaluator
     if ev.chunk != k or ev.problem is not problem:
         raise ConfigError("evaluator: built for another problem or batch size")
+    coarse = resolve_coarse_substeps(ev, coarse_substeps)
+    if max_iterations is None:
+        max_iterations = 15 if coarse != ev.substeps and coarse_rounds > 0 else 30
     phases, t = {}, time.perf_counter()
     lower, upper = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
-    ev.evaluate(lower[None])  # compile (and run once)
+    ev.evaluate(lower[None], coarse)  # compile (and run once)
     phases["compile"], t = time.perf_counter() - t, time.perf_counter()
     pts = latin_hypercube(n_screen, lower, upper, seed)
-    lp = ev.log_density(pts)
+    lp = ev.log_density(pts, coarse)
     order = np.argsort(np.where(np.isfinite(lp), -lp, np.inf))
     starts = pts[order[:n_starts]]
     phases["screen"], t = time.perf_counter() - t, time.perf_counter()
-    fit = fit_map_batched(ev, starts, max_iterations, tolerance)
+    fit = fit_map_batched(ev, starts, max_iterations, tolerance, substeps=coarse)
+    coarse_fit = fit
+    if polish_iterations and coarse != ev.substeps:
+        fit = fit_map_batched(ev, fit.theta[None], polish_iterations, tolerance)
     phases["map_fit"], t = time.perf_counter() - t, time.perf_counter()
     mean, cov = proposal_from_fit(fit)
+    target = 4.0 * n_particles if target_ess is None else float(target_ess)
+    coarse_imp = None
+    if coarse != ev.substeps and coarse_rounds > 0:
+        # the proposal: the coarse step's own (importance-weighted) posterior, whose shape the
+        # fit's Gaussian matches poorly (effective sample size 50-70 of 832 draws)
+        coarse_imp, _ = adaptive_importance(
+            lambda x: ev.log_density(x, coarse), mean, cov, n_draws, int(n_particles),
+            seed + COARSE_SEED, float(df), int(coarse_rounds), target,
+        )  # fmt: skip
+        if np.isfinite(coarse_imp.ess) and coarse_imp.ess >= 2 * len(mean):
+            mean, cov = weighted_moments(coarse_imp.draws, coarse_imp.log_weights)
+        phases["coarse_importance"], t = time.perf_counter() - t, time.perf_counter()
     mask = np.asarray(problem.obs.mask, bool)
     kept = []  # each draw's displacement residual at the data's points, for the band check
 
@@ -446,7 +545,6 @@ def fast_posterior(
         out = -norms.sum(-1) / ev.kT + lp
         return np.where(stable & np.isfinite(out), out, -np.inf)
 
-    target = 4.0 * n_particles if target_ess is None else float(target_ess)
     imp, idx = adaptive_importance(
         log_density, mean, cov, n_draws, int(n_particles), seed, float(df), max_rounds,
         target, min_ess=min(target, 2.0 * n_particles),
@@ -476,8 +574,15 @@ def fast_posterior(
         "n_screen": n_screen,
         "n_draws": n_draws,
         "df": None if math.isinf(df) else df,
-        "lm_iterations": fit.iterations,
-        "lm_values": [float(v) for v in fit.values],
+        "lm_iterations": coarse_fit.iterations,
+        "lm_values": [float(v) for v in coarse_fit.values],
+        "substeps": ev.substeps,
+        "fit_substeps": coarse,
+        "polish_iterations": fit.iterations if fit is not coarse_fit else 0,
+        "coarse_importance": None
+        if coarse_imp is None
+        else {"rounds": coarse_imp.rounds, "ess": coarse_imp.ess, "khat": coarse_imp.khat},
+        "program_runs_by_substeps": {str(s): n for s, n in sorted(ev.runs.items())},
         "khat": khat,
         "ess": ess,
         "importance_rounds": imp.rounds,
@@ -490,6 +595,29 @@ def fast_posterior(
     return FastPosterior(
         theta, ok, reason, fit, imp, imp.log_density[idx], phases, ev.calls, settings
     )
+
+
+def resolve_coarse_substeps(ev: BatchEvaluator, coarse) -> int:
+    """The substeps per observation of :func:`fast_posterior`'s screen and fit (its
+    ``coarse_substeps``, resolved against the evaluator ``ev``)."""
+    fine = ev.substeps
+    if coarse is None:
+        return fine
+    if isinstance(coarse, str):
+        if coarse != "auto":
+            raise ConfigError(
+                f"coarse_substeps: expected an integer, 'auto' or None, got {coarse!r}"
+            )
+        stable = ev.problem.sim.step_info.get("stability_substeps", fine)
+        return int(stable) if ev.traced and 1 <= int(stable) < fine else fine
+    if not (isinstance(coarse, (int, np.integer)) and coarse >= 1):
+        raise ConfigError(f"coarse_substeps: must be an integer >= 1, got {coarse!r}")
+    if coarse != fine and not ev.traced:
+        raise ConfigError(
+            "coarse_substeps: this rollout program runs only the simulator's own step "
+            f"({fine} substeps; the Pallas kernel)"
+        )
+    return int(coarse)
 
 
 class ParticleState(NamedTuple):
