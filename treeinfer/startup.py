@@ -20,9 +20,14 @@ result; use a few particle counts (64, 128, 256) instead.
 Wiring: the run layer records the bucket of an ``--init importance`` run
 (:func:`treeinfer.runs.problem.shape_bucket_for`, ``shape_bucket`` in config.json's problem
 settings) and :class:`treeinfer.fast_posterior.BatchEvaluator` pads the data to it; its rollout
-program takes the data as arguments, so it is shared by every data set of the bucket (the
-samplers' programs embed the data as constants, where padding would reuse nothing). The
-accuracy-controlled step is chosen on the unpadded forces.
+program takes the data as arguments, so it is shared by every data set of the bucket. New
+runs of the paper's dynamic model also pad the samplers' data
+(:func:`treeinfer.runs.problem.sampler_bucket_for`, ``make_problem(shape_bucket=)``): the
+sampler chunk takes the data as an argument (:class:`treeinfer.samplers.base.
+DataSamplingAlgorithm`), so a second data set of the bucket reuses its compiled program. Static
+models, stiffness-only layouts, per-recording pulls and the run layer's post-sampling programs
+(prediction, NLL) still embed the data as constants. The accuracy-controlled step is chosen on
+the unpadded forces, and a data set whose step comes out different compiles anew.
 """
 
 from __future__ import annotations
