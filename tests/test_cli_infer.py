@@ -78,6 +78,8 @@ def run_dir(demo):
                 str(out),
                 "--seed",
                 "0",
+                "--init",
+                "laplace",  # the demo's start
                 *QUICK,
             ]
         )
