@@ -158,8 +158,12 @@ def main(argv=None) -> int:
         row = {}
         for name in ("a", "b"):
             out = work / f"cli_{name}_{buckets}"
-            cmd = [sys.executable, "-m", "treeinfer",
-                   *_infer_args(data[name], out, buckets, args.particles, args.iterations)]
+            cmd = [
+                sys.executable,
+                "-m",
+                "treeinfer",
+                *_infer_args(data[name], out, buckets, args.particles, args.iterations),
+            ]
             t = time.perf_counter()
             r = subprocess.run(cmd, env=_env(cache), capture_output=True, text=True)
             if r.returncode not in (0, 4):  # 4: a poor fit after a few iterations is expected

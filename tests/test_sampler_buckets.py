@@ -47,8 +47,14 @@ THETA = np.log([[40.0, 0.6], [25.0, 1.5], [70.0, 0.2]])
         {"likelihood": "student_t", "noise_displacement": 1e-3},
         {"likelihood": "boltzmann", "kT": 0.05, "gradient": "jvp"},
     ],
-    ids=["boltzmann", "boltzmann-grasp-per-pull", "gaussian", "gaussian-sigma-inferred",
-         "student-t", "boltzmann-jvp"],  # fmt: skip
+    ids=[
+        "boltzmann",
+        "boltzmann-grasp-per-pull",
+        "gaussian",
+        "gaussian-sigma-inferred",
+        "student-t",
+        "boltzmann-jvp",
+    ],  # fmt: skip
 )
 def test_padded_data_argument_equals_unpadded_target(case):
     """The sampler's target on the padded data, passed as a jitted program's argument, equals

@@ -313,7 +313,8 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         help="'taper': stiffness tied along the stem's taper (Kp_j = s * r_j^4 / l_j, Hencky "
         "lumping), one free scale s; 'shape': Kp_j = s * tie_shape_j with the tree file's "
         "inference.tie_shape (written by `treeinfer tree --kind stem`); 'none' drops a tree "
-        "file's inference.tie (default: the tree file's); needs stiffness only (--model-kind static or inference.parameters: [kp])",
+        "file's inference.tie (default: the tree file's); needs stiffness only (--model-kind "
+        "static or inference.parameters: [kp])",
     )
     p.add_argument(
         "--tie-scale",
