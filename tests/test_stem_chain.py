@@ -307,41 +307,13 @@ def test_push_heights_from_a_data_folder_rewrite_its_pulls(tmp_path, capsys):
         assert spec.branch == want[name][0] and spec.distance == pytest.approx(want[name][1])
         assert spec.direction == "horizontal"
     assert read_pulls(data / "pulls.yaml.orig").pulls == specs  # the original is kept
+    again = ["tree", "--kind", "stem", *STEM_ARGS, "--push-heights-from", str(data)]
+    again += ["--out", str(out), "--force"]
     # a second pass refuses: the distances now are from the links' joints, not the ground
-    assert (
-        main(
-            [
-                "tree",
-                "--kind",
-                "stem",
-                *STEM_ARGS,
-                "--push-heights-from",
-                str(data),
-                "--out",
-                str(out),
-                "--force",
-            ]
-        )
-        != 0
-    )
+    assert main(again) != 0
     assert "already name a generated chain's link" in capsys.readouterr().err
     write_pulls(data / "pulls.yaml", {"a.csv": PullSpec("stem", 0.5, None, None)})
-    assert (
-        main(
-            [
-                "tree",
-                "--kind",
-                "stem",
-                *STEM_ARGS,
-                "--push-heights-from",
-                str(data),
-                "--out",
-                str(out),
-                "--force",
-            ]
-        )
-        != 0
-    )
+    assert main(again) != 0
     assert "no 'distance'" in capsys.readouterr().err
 
 
