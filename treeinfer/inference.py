@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import noise
 from . import samplers as _samplers
 from .errors import ConfigError
 from .gradients import combine, combined_value_and_grad, jvp_combined_value_and_grad
@@ -161,6 +162,7 @@ def make_problem(
     model=None,
     noise_force=None,
     shape_bucket=None,
+    noise_velocity: float | None = None,
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
@@ -178,6 +180,9 @@ def make_problem(
         (gaussian likelihood). With ``model_kind="static"``: the load cell's noise read through
         each pull's compliance, ``sqrt(sigma_x^2 + (noise_force * compliance)^2)``
         (:func:`treeinfer.static.model_likelihood_terms`, Gaussian/Student-t).
+      noise_velocity: None (default: the velocity term off) or m/s, the velocity residual's
+        noise std for the generative likelihoods of the paper's model
+        (:func:`treeinfer.likelihood.likelihood_terms`'s ``sigma_v``).
       nn_prior: add the learned inequality prior (NNSVGD's target); False gives SVGD's.
       eta: inequality penalty slope (nats per unit of log-gain the child exceeds its parent).
       gradient: ``"fd"`` (central differences, the paper's black-box route), ``"jvp"`` (exact
@@ -221,6 +226,15 @@ def make_problem(
         if isinstance(trajectories, Observations)
         else stack_trajectories(list(trajectories))
     )
+    if noise_velocity is not None:
+        if likelihood == "boltzmann":
+            raise ConfigError(
+                "--noise-velocity: the velocity term belongs to a generative likelihood "
+                "(gaussian, student_t, ar1); the Boltzmann loss has its own velocity term"
+            )
+        v = np.asarray(obs.velocity, float)[np.asarray(obs.mask, bool)]
+        # a sigma above everything the velocity column holds is a unit mistake, as for sigma_x
+        noise.check_sigma(noise_velocity, "noise_velocity", float(np.ptp(v)) if v.size else None)
     if sim is None:  # the step accuracy-controlled on the training forces (sim_tolerance, m)
         kwargs = {} if max_sim_dt is None else {"max_sim_dt": max_sim_dt}
         if substeps is None:
@@ -255,9 +269,16 @@ def make_problem(
             gradient=grad_kind,
             rel_step=rel_step,
             noise_force=noise_force,
+            sigma_v=noise_velocity,
             **options,
         )
     else:  # the model's own rollout (static, stiffness only, per-recording pulls)
+        if noise_velocity is not None:
+            raise ConfigError(
+                "--noise-velocity: the velocity term is available for the paper's dynamic model "
+                "only (not for a static model, stiffness-only parameters, a tie or per-recording "
+                "pulls)"
+            )
         extra = {}
         if noise_force is not None:
             if model.kind != "static":

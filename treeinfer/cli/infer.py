@@ -74,6 +74,7 @@ _RUN_OPTIONS = {
     "likelihood": "--likelihood",
     "noise_displacement": "--noise-displacement",
     "noise_force": "--noise-force",
+    "noise_velocity": "--noise-velocity",
     "model": "--model",
     "repair_inertia": "--repair-inertia",
     "tie": "--tie",
@@ -180,6 +181,15 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "(--likelihood gaussian only): newtons, P%% of the largest recorded |force|, or 'auto' "
         "(estimated from the force's high-frequency residual); predictive bands then include "
         "it (default: off; see treeinfer.force_noise)",
+    )
+    p.add_argument(
+        "--noise-velocity",
+        type=float,
+        metavar="M_PER_S",
+        help="add the velocity term to a generative likelihood, with this noise std in m/s "
+        "(default: off; a velocity differentiated from the noisy displacement has noise ~ "
+        "sigma_x / (sqrt(2) dt), correlated with it, and adds nothing: give it only for an "
+        "independently measured velocity column)",
     )
     p.add_argument(
         "--seed",

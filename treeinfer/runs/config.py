@@ -16,7 +16,7 @@ from ..errors import ConfigError, check_positive
 from ..inference import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA
 from ..likelihood import DEFAULT_KT
 from ..noise import KINDS as LIKELIHOODS
-from ..noise import check_sigma
+from ..noise import NOISE_KINDS, check_sigma
 from ..samplers import sampler_options, sampler_spec
 from ..sim import BACKENDS, FORCE_INTERPS
 from ..trajectories import (
@@ -73,9 +73,10 @@ class RunConfig:
     "student_t", "ar1": :func:`treeinfer.likelihood.likelihood_terms`); noise_displacement (m,
     None: inferred / estimated); noise_force (None: off; N, "P%" or "auto": the recorded force's
     noise as an errors-in-variables term, gaussian only, :mod:`treeinfer.force_noise`);
-    seed (>= 0); eta (nats per unit of log gain, > 0); grasp_fraction
-    (None or in (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0; 0: at the end
-    only); force;
+    noise_velocity (None: velocity term off, the default; m/s: the velocity residual's noise
+    std, generative likelihoods only); seed (>= 0); eta (nats per unit of log gain, > 0);
+    grasp_fraction (None or in (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0;
+    0: at the end only); force;
     prior_from (None or an earlier run folder, absolute: its posterior becomes this run's prior on
     the joints both infer, :mod:`treeinfer.sequential`).
     prior_tail (smoothed-box tail width, share of each log-box width, > 0); reinit_stragglers
@@ -123,6 +124,7 @@ class RunConfig:
     likelihood: str = "boltzmann"
     noise_displacement: float | None = None
     noise_force: float | str | None = None
+    noise_velocity: float | None = None
     model: str | None = None
     repair_inertia: str | None = None
     tie: str | None = None
@@ -200,6 +202,18 @@ class RunConfig:
                     "--noise-force: the force-noise term needs --likelihood gaussian, got "
                     f"{self.likelihood!r}"
                 )
+        if self.noise_velocity is not None:
+            set_("noise_velocity", check_sigma(self.noise_velocity, "--noise-velocity"))
+            if self.likelihood not in NOISE_KINDS:
+                raise ConfigError(
+                    "--noise-velocity: the velocity term belongs to a generative likelihood "
+                    f"(--likelihood {'|'.join(NOISE_KINDS)}), got {self.likelihood!r}"
+                )
+            if self.noise_force is not None:
+                raise ConfigError(
+                    "--noise-velocity: not available with --noise-force (the errors-in-variables "
+                    "term covers the displacement only); leave one out"
+                )
         set_("eta", _positive("--eta", self.eta))
         g = self.grasp_fraction
         if g is not None and not (math.isfinite(g) and 0.0 < g <= 1.0):
@@ -264,6 +278,7 @@ class RunConfig:
             ("tie", None),
             ("tie_scale", None),
             ("shape_buckets", "on"),
+            ("noise_velocity", None),  # off: config.json as before the option existed
         ):
             if out[k] == default:
                 del out[k]

@@ -157,6 +157,7 @@ def build_problem(
         likelihood=o.get("likelihood", "boltzmann"),  # run folders older than issue 11
         noise_displacement=o.get("noise_displacement"),
         noise_force=o.get("noise_force"),
+        noise_velocity=o.get("noise_velocity"),
         model_kind=kind,
         shape_bucket=sampler_bucket_for(config, obs),
         **pulls,
