@@ -76,7 +76,12 @@ def _bandwidths(positions: np.ndarray) -> np.ndarray:
     return np.asarray(jax.jit(jax.vmap(median_length_scale))(jnp.asarray(positions)), float)
 
 
-def _diagnostics(sampler: str, trace: dict, labels) -> tuple[str, dict, list[str]]:
+def _diagnostics(
+    sampler: str, trace: dict, labels, warmup: float = 0.5
+) -> tuple[str, dict, list[str]]:
+    """Convergence diagnostics of the run's trace. MCMC: R-hat/ESS over every chain after the
+    run's own warm-up share (``--mcmc-warmup``), the draws the summaries report (one meaning of
+    the option: the warm-up is discarded from both)."""
     from ..diagnostics import convergence_warnings, mcmc_diagnostics, svgd_diagnostics
 
     kind = sampler_spec(sampler).family
@@ -89,7 +94,9 @@ def _diagnostics(sampler: str, trace: dict, labels) -> tuple[str, dict, list[str
                 ksd_trace=ksd if ksd is not None and len(ksd) >= 2 else None,
             )
         else:
-            diag = mcmc_diagnostics(trace["positions"], labels, log_density=trace["log_density"])
+            diag = mcmc_diagnostics(
+                trace["positions"], labels, burn_in=warmup, log_density=trace["log_density"]
+            )
         warns = convergence_warnings(diag, kind)
     except ConfigError as e:  # e.g. too short a trace for split R-hat
         diag, warns = {"error": str(e)}, [f"diagnostics unavailable: {e}"]
@@ -155,7 +162,9 @@ def simulation_line(sim) -> str:
 
 def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
     o = config["options"]
-    kind, diag, warns = _diagnostics(o["sampler"], trace, list(problem.labels))
+    kind, diag, warns = _diagnostics(
+        o["sampler"], trace, list(problem.labels), o.get("mcmc_warmup", 0.5)
+    )
     stable = np.asarray(fit["stable"], bool)
     strag, edge = _straggler_and_edge(problem, posterior)
     warns = [*warns, *strag["warnings"], *edge["warnings"]]
