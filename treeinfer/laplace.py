@@ -86,6 +86,13 @@ def fit_precision(fit, use_norm: bool, box_precision: bool) -> np.ndarray:
     return h
 
 
+def particle_covariance(fit, box_precision: bool = True, covariance: str = "auto") -> np.ndarray:
+    """``[D, D]`` covariance :func:`laplace_particles` draws with (at ``scale`` 1): the inverse
+    of :func:`fit_precision` (``covariance`` as there)."""
+    use_norm = covariance == "norm" or (covariance == "auto" and fit.norm_cov is not None)
+    return _inverse_psd(fit_precision(fit, use_norm, box_precision))
+
+
 def laplace_particles(
     key,
     fit,  # treeinfer.mapfit.MapFit (not imported: mapfit imports this module)
@@ -113,9 +120,7 @@ def laplace_particles(
         raise ConfigError(f"covariance: 'auto', 'laplace' or 'norm', got {covariance!r}")
     if covariance == "norm" and fit.norm_cov is None:
         raise ConfigError("covariance='norm': the fit has no norm_cov (not a Boltzmann loss)")
-    use_norm = covariance == "norm" or (covariance == "auto" and fit.norm_cov is not None)
-    h = fit_precision(fit, use_norm, box_precision)
-    cov = _inverse_psd(h) * float(scale) ** 2
+    cov = particle_covariance(fit, box_precision, covariance) * float(scale) ** 2
     chol = np.linalg.cholesky(cov + 1e-12 * np.eye(len(cov)) * np.trace(cov) / len(cov))
     z = jax.random.normal(key, (int(n), len(fit.theta)))
     return jnp.asarray(fit.theta) + z @ jnp.asarray(chol.T, z.dtype)

@@ -22,6 +22,7 @@ LAPLACE_LM_ITERATIONS = 40  # 25 left every start short of the mode on the stand
 def _laplace_start(problem, config: dict, log: Callable[[str], None]):
     """Particles around a Levenberg–Marquardt MAP fit (``--init laplace``): its Laplace
     approximation, drawn with the run's seed. The residual Jacobian follows ``--gradients``."""
+    from ..laplace import particle_covariance
     from ..mapfit import fit_problem, laplace_particles
 
     o = config["options"]
@@ -36,10 +37,13 @@ def _laplace_start(problem, config: dict, log: Callable[[str], None]):
         jacobian=jacobian,
         max_iterations=LAPLACE_LM_ITERATIONS,
     )
-    std = np.sqrt(np.diag(fit.cov if fit.norm_cov is None else fit.norm_cov))
+    # the spread the particles are drawn with (laplace_particles: the fit's precision plus the
+    # prior box's), not the fit's own covariance, which is unbounded in columns the loss does
+    # not see (a noise column under the Boltzmann fit printed a std of 2e4)
+    std = np.sqrt(np.diag(particle_covariance(fit)))
     log(
         f"Laplace start: MAP from {len(fit.starts)} starts in {fit.iterations} LM iterations, "
-        "log-gain std " + ", ".join(f"{x:.3g}" for x in std)
+        "start std (log units) " + ", ".join(f"{x:.3g}" for x in std)
     )
     return laplace_particles(
         jax.random.fold_in(jax.random.key(o["seed"]), 0x1A9),
