@@ -26,15 +26,23 @@ from treeinfer.tree import load_tree
 KP, KD = np.array([37.7, 98.7]), np.array([0.365, 1.047])  # child, parent (the demo's truth)
 
 
-@pytest.fixture(scope="module")
-def clean():
-    """Noise-free pulls at the true gains: ``(tree, sim, train)``."""
+def two_branch_pulls():
+    """Two ramp-and-hold pulls of the two_branch example (60 samples at 20 ms, 8 substeps) at
+    the true gains: ``(tree, sim, t [T], forces [2, T], rollout)`` (also used by
+    ``test_noise_velocity.py``)."""
     tree = load_tree(example_path("two_branch"))
     dt, n = 0.02, 60
     sim = make_simulator(tree, obs_dt=dt, substeps=8)
     t = np.arange(n) * dt
     forces = np.stack([np.clip(t / 0.5, 0.0, 1.0) * p for p in (4.0, 7.0)])
     roll = simulate(sim, jnp.asarray(KP[None]), jnp.asarray(KD[None]), jnp.asarray(forces))
+    return tree, sim, t, forces, roll
+
+
+@pytest.fixture(scope="module")
+def clean():
+    """Noise-free pulls at the true gains: ``(tree, sim, train)``."""
+    tree, sim, t, forces, roll = two_branch_pulls()
     train = [
         Trajectory(t, forces[b], np.asarray(roll.tau[0, b], float), None, f"p{b}") for b in range(2)
     ]

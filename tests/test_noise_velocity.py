@@ -12,33 +12,29 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import stats
+from test_crb import KD, KP, two_branch_pulls
 
 from treeinfer.cli import main
 from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
 from treeinfer.inference import make_problem
 from treeinfer.runs.config import RunConfig
-from treeinfer.sim import make_simulator, simulate
+from treeinfer.sim import simulate
 from treeinfer.trajectories import Trajectory, write_trajectory
-from treeinfer.tree import load_tree
 
 SX, SV = 0.002, 0.05  # m, m/s
-KP, KD = np.array([37.7, 98.7]), np.array([0.365, 1.047])  # child, parent (the demo's truth)
 
 
 @pytest.fixture(scope="module")
 def setup():
-    tree = load_tree(example_path("two_branch"))
-    dt, n = 0.02, 60
-    sim = make_simulator(tree, obs_dt=dt, substeps=8)
-    t = np.arange(n) * dt
-    forces = np.stack([np.clip(t / 0.5, 0.0, 1.0) * p for p in (4.0, 7.0)])
-    roll = simulate(sim, jnp.asarray(KP[None]), jnp.asarray(KD[None]), jnp.asarray(forces))
+    """The two pulls of ``test_crb.two_branch_pulls`` with white displacement and velocity
+    noise: ``(tree, sim, trajectories)``."""
+    tree, sim, t, forces, roll = two_branch_pulls()
     rng = np.random.default_rng(3)
     trajs = []
     for b in range(2):
-        x = np.asarray(roll.tau[0, b], float) + SX * rng.standard_normal(n)
-        v = np.asarray(roll.tau_dot[0, b], float) + SV * rng.standard_normal(n)
+        x = np.asarray(roll.tau[0, b], float) + SX * rng.standard_normal(t.size)
+        v = np.asarray(roll.tau_dot[0, b], float) + SV * rng.standard_normal(t.size)
         trajs.append(Trajectory(t, forces[b], x, v, f"p{b}.csv"))
     return tree, sim, trajs
 
