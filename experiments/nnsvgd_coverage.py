@@ -161,6 +161,7 @@ def run(
     case_name: str = "cpu",
     targets=TARGETS,
     reinit_until: int = 0,
+    init: str = "uniform",
 ) -> dict:
     from treeinfer.diagnostics import find_stragglers
     from treeinfer.inference import infer, make_problem
@@ -180,11 +181,19 @@ def run(
             problems["nnsvgd"] = with_inequality_prior(base, {})
         if "nnsvgd-legacy" in targets:
             problems["nnsvgd-legacy"] = with_inequality_prior(base, LEGACY_NET)
+        start = {}
+        if init == "laplace":  # the CLI's --init laplace: the same draws, warm-up and seed
+            from treeinfer.runs.config import LAPLACE_WARMUP
+            from treeinfer.runs.start import _laplace_start
+
+            opts = {"seed": int(seed), "particles": n_particles, "gradients": "fd"}
+            theta0 = _laplace_start(base, {"options": opts}, lambda m: print(m, flush=True))
+            start = {"initial_theta": theta0, "warmup": LAPLACE_WARMUP}
         for target in targets:
             t0 = time.perf_counter()
             problem = problems[target]
             sampler = target.split("-")[0]
-            extra = {}
+            extra = dict(start)
             if reinit_until > 0:  # the warm-up remedy for stuck particles (--reinit-stragglers)
                 from treeinfer.diagnostics import ReinitStragglers
 
@@ -262,6 +271,7 @@ def run(
             **{k: (list(v) if isinstance(v, tuple) else v) for k, v in case.items()},
             "targets": list(targets),
             "reinit_stragglers_until": int(reinit_until),
+            "init": init,
         },
         "runs": rows,
         "summary": summary,
@@ -287,9 +297,24 @@ def main(argv=None) -> int:
         metavar="N",
         help="re-initialise stuck particles up to iteration N (0: off, the default)",
     )
+    ap.add_argument(
+        "--init",
+        choices=("uniform", "laplace"),
+        default="uniform",
+        help="initial particles: uniform in the prior box (default, as before) or around a "
+        "Levenberg-Marquardt MAP fit, as `treeinfer infer --init laplace` (same draws and "
+        "learning-rate warm-up; both samplers of a seed start from the same particles)",
+    )
     a = ap.parse_args(argv)
     res = run(
-        a.seeds, a.particles, a.iterations, a.out, a.case, tuple(a.targets), a.reinit_stragglers
+        a.seeds,
+        a.particles,
+        a.iterations,
+        a.out,
+        a.case,
+        tuple(a.targets),
+        a.reinit_stragglers,
+        a.init,
     )
     for sampler, s in res["summary"].items():
         cells = ", ".join(
