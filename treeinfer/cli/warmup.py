@@ -28,7 +28,8 @@ _SHARED = ("--model", "--repair-inertia", "--grasp-fraction", "--force-interp", 
 
 _EPILOG = """\
 examples:
-  treeinfer warmup --tree tree.yaml --trajectories 3 --steps 300 -- --init importance --particles 128
+  treeinfer warmup --tree tree.yaml --trajectories 3 --steps 300 -- --init importance \
+      --particles 128
   treeinfer warmup --tree tree.yaml --trajectories 4 --steps 500 --dt 0.005 -- --init importance
 
 Everything after `--` is passed to `treeinfer infer` unchanged: give the options your field runs
@@ -123,9 +124,10 @@ def run_warmup(args: argparse.Namespace) -> int:
             f"warmup: {args.trajectories} synthetic pulls x {args.steps} samples (dt "
             f"{args.dt:g} s), then `treeinfer infer {' '.join(rest)}`"
         )
-        sim_args = ["simulate", "--tree", str(args.tree), "--out", str(data), "--n-traj",
-                    str(args.trajectories), "--duration", repr(duration), "--dt", repr(args.dt),
-                    "--seed", "0", "--noise-displacement", "0.002", *_shared_options(rest)]  # fmt: skip
+        sim_args = ["simulate", "--tree", str(args.tree), "--out", str(data),
+                    "--n-traj", str(args.trajectories), "--duration", repr(duration),
+                    "--dt", repr(args.dt), "--seed", "0", "--noise-displacement", "0.002",
+                    *_shared_options(rest)]  # fmt: skip
         rc = main(sim_args)
         if rc != EXIT_OK:
             raise ConfigError(f"warmup: simulating the synthetic data failed (exit {rc})")
