@@ -460,7 +460,9 @@ def compare(runs: dict, workdir: Path, args) -> dict:
                 "never"
                 if first_ok is None
                 else f"iteration {first_ok['iteration']} at {first_ok['elapsed_s']:.1f} s"
-            ),
+            )
+            + f"; XLA compiles {summary[mode]['xla_compiles']} "
+            f"({summary[mode]['compile_s']} s), cache loads {summary[mode]['cache_hits']}",
             flush=True,
         )
     for fast in [m for m in ("fast", "importance") if m in summary and "today" in summary]:
