@@ -129,3 +129,24 @@ def test_training_fit_at_the_bucket_equals_the_fit_at_the_data_shape(tree):
     # by 2e-6 relative, which this tolerance catches)
     for key in ("ci_width", "pct_outside", "predictive_nll", "posterior_nll"):
         np.testing.assert_allclose(mg[key], mw[key], rtol=5e-7, err_msg=key)
+
+
+def test_traced_rollout_program_key_leaves_out_only_the_step(tree):
+    import jax
+
+    from treeinfer.fast_posterior import _program_key, _rollout_residuals
+
+    a = make_simulator(tree, obs_dt=0.01, substeps=4, backend="fused")
+    b = make_simulator(tree, obs_dt=0.01, substeps=9, backend="fused")
+    b.mj_model.opt.timestep = 0.01 / 9  # make_simulator may share one model: each its own step
+    own = b.mj_model.opt.timestep
+    assert _program_key(a, True) == _program_key(b, True)
+    assert b.mj_model.opt.timestep == own  # restored
+    assert _program_key(a, False) != _program_key(b, False)  # the static step is in the program
+    # the reason the key may leave the step out: the traced program is the same XLA program
+    f = jnp.zeros((2, 64))
+    args = (jnp.zeros((3, 4)), f, f, f, jnp.ones((2, 64), bool), jnp.int32(64), jnp.int32(4))
+    text = [jax.jit(_rollout_residuals(s, None, True)).lower(*args).as_text() for s in (a, b)]
+    assert text[0] == text[1]
+    other = make_simulator(load_tree(example_path("three_branch")), obs_dt=0.01, substeps=4)
+    assert _program_key(other, True) != _program_key(a, True)  # another tree: another program

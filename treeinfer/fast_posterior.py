@@ -138,9 +138,7 @@ class BatchEvaluator:
                 (t, jnp.int32),
             )
         )
-        # the simulator by content, without step_info (how its step was chosen: metadata that
-        # differs between data sets whose accuracy-controlled step came out the same)
-        sim_key = dataclasses.replace(sim, step_info={}).fingerprint
+        sim_key = _program_key(sim, self.traced)
         key = (
             "fast_posterior.BatchEvaluator",
             sim_key,
@@ -201,6 +199,25 @@ class BatchEvaluator:
         norms, ok, lp, _ = self.loss_terms(theta, substeps)
         out = -norms.sum(-1) / self.kT + lp
         return np.where(ok & np.isfinite(out), out, -np.inf)
+
+
+def _program_key(sim, traced: bool) -> str:
+    """The simulator's part of the rollout program's key: its content without ``step_info``
+    (how its step was chosen: metadata that differs between data sets whose accuracy-controlled
+    step came out the same). With the step traced on the fused backend, also without the step
+    itself (``substeps`` and the model's timestep, which that program takes as an argument and
+    never reads: ``fused_backend.pull``), so a data set whose accurate step differs loads the
+    traced program of an earlier one (:func:`treeinfer.startup.cached_program`) instead of
+    tracing the simulator again; MJX reads the model's timestep, so its key keeps it."""
+    if not (traced and sim.backend == "fused"):
+        return dataclasses.replace(sim, step_info={}).fingerprint
+    opt = sim.mj_model.opt
+    own = opt.timestep
+    try:  # the fingerprint hashes the saved model: its timestep set to one canonical value
+        opt.timestep = sim.obs_dt
+        return dataclasses.replace(sim, step_info={}, substeps=1).fingerprint
+    finally:
+        opt.timestep = own
 
 
 def _rollout_residuals(sim, gf, traced_substeps: bool = False):
