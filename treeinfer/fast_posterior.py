@@ -114,9 +114,14 @@ class BatchEvaluator:
         self.problem, self.chunk, self.calls = problem, int(chunk), 0
         sim = problem.sim
         self.substeps = int(sim.substeps)
-        # the step count as a program argument unless the Pallas kernel runs the rollouts (it
-        # takes the simulator's own step only: a traced count would fall back to the fused path)
-        self.traced = sim.backend != "pallas" if traced_substeps is None else bool(traced_substeps)
+        # the step count as a program argument unless the Pallas kernel runs the rollouts with
+        # the simulator's own step (its default: pallas.TRACED_SUBSTEPS off; a traced count
+        # would then fall back to the fused path)
+        if traced_substeps is None:
+            from .sim import pallas
+
+            traced_substeps = sim.backend != "pallas" or pallas.TRACED_SUBSTEPS
+        self.traced = bool(traced_substeps)
         self.runs: dict[int, int] = {}  # program runs per substep count
         self.kT = float(problem.kT)
         sim, obs = problem.sim, problem.obs
