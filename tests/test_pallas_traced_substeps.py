@@ -76,3 +76,16 @@ def test_the_switch_routes_a_traced_step_to_the_kernel(setup, monkeypatch):
         pk._rollout_rows(sim, *([jnp.zeros((1, 4))] * 4), None, jnp.zeros((T, 4)),
                          jnp.zeros((T, 4)), jnp.zeros((2, 4)), jnp.zeros((2, 4)),
                          jnp.zeros((2, 4)), s, block=4, interpret=True)  # fmt: skip
+
+
+def test_the_environment_switch_is_validated(monkeypatch):
+    from treeinfer.errors import ConfigError
+
+    name = "TREEINFER_PALLAS_TRACED_SUBSTEPS"
+    monkeypatch.delenv(name, raising=False)
+    assert pk._switch(name) is False
+    monkeypatch.setenv(name, "on")
+    assert pk._switch(name) is True
+    monkeypatch.setenv(name, "maybe")
+    with pytest.raises(ConfigError, match=name):
+        pk._switch(name)

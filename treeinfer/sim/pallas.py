@@ -34,13 +34,27 @@ DEFAULT_BLOCK = 32  # rollouts per kernel instance (one warp): spreads small bat
 # in the interpreter (CPU), blocks of at least this many rows become one program over all rows
 INTERPRET_WHOLE_BATCH = 32
 TANGENT_LAYOUT = "rows"  # see simulate_with_tangents; "lanes" took 182 s to compile on an H100
+
+
 # The substep count as a runtime operand of the (value-only) kernel, a loop bound, instead of a
 # constant: one compiled kernel then serves every accurate step, so a new data set whose step
 # differs, the multi-fidelity fit's coarse step and the step check (issue 15 item 4) reuse it.
 # Off until timed against the constant count on a GPU (a dynamic trip count may cost the Triton
 # loop its unrolling); checked in the interpreter against the fused backend
-# (tests/test_pallas_backend.py). Gradients (simulate_with_tangents) keep the constant count.
-TRACED_SUBSTEPS = False
+# (tests/test_pallas_traced_substeps.py). Gradients (simulate_with_tangents) keep the constant
+# count. Environment switch for timing it: TREEINFER_PALLAS_TRACED_SUBSTEPS=on|off (read once).
+def _switch(name: str) -> bool:
+    import os
+
+    from ..errors import ConfigError
+
+    value = os.environ.get(name, "off").strip().lower()
+    if value not in ("on", "off", "1", "0"):
+        raise ConfigError(f"{name}: expected on or off, got {value!r}")
+    return value in ("on", "1")
+
+
+TRACED_SUBSTEPS = _switch("TREEINFER_PALLAS_TRACED_SUBSTEPS")
 
 
 def available() -> bool:
