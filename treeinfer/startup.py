@@ -50,8 +50,9 @@ What still compiles per data set: static models, stiffness-only layouts, per-rec
 samplers' programs take the data as an argument but embed the simulator's step, so a sampler run
 (or an importance run that falls back to the sampler) compiles its chunk again when the data's
 accurate step differs from the cached one's; and on the GPU the Pallas kernel of the importance
-program takes the step as a constant (issue 15's next lever: a runtime step count in the kernel,
-shared with the step check). ``treeinfer predict`` and ``evaluate`` predict at the data's shape.
+program takes the step as a constant, unless ``TREEINFER_PALLAS_TRACED_SUBSTEPS=on``
+(:data:`treeinfer.sim.pallas.TRACED_SUBSTEPS`: a runtime step count, off until timed on a GPU).
+``treeinfer predict`` and ``evaluate`` predict at the data's shape.
 """
 
 from __future__ import annotations
