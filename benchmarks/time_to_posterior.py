@@ -32,6 +32,10 @@ The standard problem (``benchmarks/inference.py``: three-branch example, R = 3, 
 ``--substeps`` sets the simulation step of every path (default: the library's
 accuracy-controlled step); ``--compile-cache DIR`` keeps one compilation cache between runs
 (run twice: the second is the warm-cache figure, written under a ``_warm_compile_cache`` key).
+``--data-seed N`` writes another data set of the same shape (other force profiles), so a cold
+process on a NEW recording can be timed against a cache filled on seed 0; each child's record
+has its XLA compilations and persistent-cache loads (``xla_compiles``, ``compiled``,
+``cache_hits``).
 
 Every ``--check-every`` iterations each run stores its particles and the wall-clock time. A
 posterior is *usable* when, on 3 held-out pulls (noise-free MuJoCo C reference), its 95%
@@ -75,8 +79,10 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 # ---- data (parent) -----------------------------------------------------------------------------
-def write_data(folder: Path) -> None:
-    """Training and held-out pulls of the standard problem (C reference, noise-free)."""
+def write_data(folder: Path, data_seed: int = 0) -> None:
+    """Training and held-out pulls of the standard problem (C reference, noise-free); the
+    profiles' seeds are ``2 data_seed`` and ``2 data_seed + 1`` (seed 0: the benchmark's data
+    as before), the tree's true gains are the same for every data seed."""
     from benchmarks.inference import EXAMPLES
     from treeinfer.forces import profile_set
     from treeinfer.sim import make_simulator
@@ -88,7 +94,7 @@ def write_data(folder: Path) -> None:
     sim = make_simulator(tree, obs_dt=DT)
     kp, kd = default_true_params(tree, np.random.default_rng(0))
     out = {"kp": kp, "kd": kd}
-    for name, seed in (("train", 0), ("test", 1)):
+    for name, seed in (("train", 2 * data_seed), ("test", 2 * data_seed + 1)):
         forces = profile_set("mixed", n=3, duration=N_STEPS * DT, dt=DT, seed=seed)[:, :N_STEPS]
         ref = [simulate_reference(sim, kp, kd, f) for f in forces]
         out[f"{name}_force"] = forces
@@ -276,6 +282,14 @@ def main(argv=None) -> int:
         help="persistent compilation cache folder kept between runs (default: a fresh empty "
         "one per path: a cold start); run twice with the same folder for the warm-cache figure",
     )
+    p.add_argument(
+        "--data-seed",
+        type=int,
+        default=0,
+        help="another data set of the same shape (3 pulls x 300 steps, other force profiles): "
+        "fill the cache with seed 0, then time a cold process on seed 1 (a new recording). "
+        "The reference must be of the same data seed (--save-reference with it)",
+    )
     p.add_argument("--machine", default=None)
     p.add_argument("--no-write", dest="write", action="store_false")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -318,7 +332,7 @@ def main(argv=None) -> int:
 
     workdir = Path(tempfile.mkdtemp(prefix="ttp-"))
     try:
-        write_data(workdir)
+        write_data(workdir, args.data_seed)
         warm_nn_prior()
         paths = args.paths.split(",")
         runs = {}
@@ -353,6 +367,8 @@ def main(argv=None) -> int:
         if warm:  # a cache filled by an earlier run: not a cold start
             key = key.replace("_cold", "") + "_warm_compile_cache"
             summary["compile_cache"] = "warm"
+        if args.data_seed:  # another data set than the benchmark's: its own key
+            key += f"_data_seed_{args.data_seed}"
         best = "importance" if "importance" in summary else "fast"
         headline = summary.get(best, {}).get("time_to_posterior_s")
         summary["headline_path"] = best
@@ -411,6 +427,12 @@ def compare(runs: dict, workdir: Path, args) -> dict:
             "cpu_s": rec.get("cpu_s"),
             "load_average_after": rec.get("load_average_after"),
             "compile_cache_entries_at_start": rec.get("compile_cache_entries_at_start"),
+            "data_seed": args.data_seed,
+            # this child's XLA compilations and persistent-cache loads (treeinfer.compile_stats)
+            "xla_compiles": (rec.get("compile_stats") or {}).get("xla_compiles"),
+            "compile_s": (rec.get("compile_stats") or {}).get("compile_s"),
+            "compiled": (rec.get("compile_stats") or {}).get("compiled"),
+            "cache_hits": (rec.get("compile_stats") or {}).get("cache_hits"),
             "n_iterations": rec["n_iterations"],
             "gradient": rec["gradient"],
             "phase_ends_s": marks,
@@ -438,7 +460,9 @@ def compare(runs: dict, workdir: Path, args) -> dict:
                 "never"
                 if first_ok is None
                 else f"iteration {first_ok['iteration']} at {first_ok['elapsed_s']:.1f} s"
-            ),
+            )
+            + f"; XLA compiles {summary[mode]['xla_compiles']} "
+            f"({summary[mode]['compile_s']} s), cache loads {summary[mode]['cache_hits']}",
             flush=True,
         )
     for fast in [m for m in ("fast", "importance") if m in summary and "today" in summary]:

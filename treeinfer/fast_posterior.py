@@ -114,9 +114,14 @@ class BatchEvaluator:
         self.problem, self.chunk, self.calls = problem, int(chunk), 0
         sim = problem.sim
         self.substeps = int(sim.substeps)
-        # the step count as a program argument unless the Pallas kernel runs the rollouts (it
-        # takes the simulator's own step only: a traced count would fall back to the fused path)
-        self.traced = sim.backend != "pallas" if traced_substeps is None else bool(traced_substeps)
+        # the step count as a program argument unless the Pallas kernel runs the rollouts with
+        # the simulator's own step (its default: pallas.TRACED_SUBSTEPS off; a traced count
+        # would then fall back to the fused path)
+        if traced_substeps is None:
+            from .sim import pallas
+
+            traced_substeps = sim.backend != "pallas" or pallas.TRACED_SUBSTEPS
+        self.traced = bool(traced_substeps)
         self.runs: dict[int, int] = {}  # program runs per substep count
         self.kT = float(problem.kT)
         sim, obs = problem.sim, problem.obs
@@ -138,9 +143,7 @@ class BatchEvaluator:
                 (t, jnp.int32),
             )
         )
-        # the simulator by content, without step_info (how its step was chosen: metadata that
-        # differs between data sets whose accuracy-controlled step came out the same)
-        sim_key = dataclasses.replace(sim, step_info={}).fingerprint
+        sim_key = _program_key(sim, self.traced)
         key = (
             "fast_posterior.BatchEvaluator",
             sim_key,
@@ -201,6 +204,25 @@ class BatchEvaluator:
         norms, ok, lp, _ = self.loss_terms(theta, substeps)
         out = -norms.sum(-1) / self.kT + lp
         return np.where(ok & np.isfinite(out), out, -np.inf)
+
+
+def _program_key(sim, traced: bool) -> str:
+    """The simulator's part of the rollout program's key: its content without ``step_info``
+    (how its step was chosen: metadata that differs between data sets whose accuracy-controlled
+    step came out the same). With the step traced on the fused backend, also without the step
+    itself (``substeps`` and the model's timestep, which that program takes as an argument and
+    never reads: ``fused_backend.pull``), so a data set whose accurate step differs loads the
+    traced program of an earlier one (:func:`treeinfer.startup.cached_program`) instead of
+    tracing the simulator again; MJX reads the model's timestep, so its key keeps it."""
+    if not (traced and sim.backend == "fused"):
+        return dataclasses.replace(sim, step_info={}).fingerprint
+    opt = sim.mj_model.opt
+    own = opt.timestep
+    try:  # the fingerprint hashes the saved model: its timestep set to one canonical value
+        opt.timestep = sim.obs_dt
+        return dataclasses.replace(sim, step_info={}, substeps=1).fingerprint
+    finally:
+        opt.timestep = own
 
 
 def _rollout_residuals(sim, gf, traced_substeps: bool = False):

@@ -554,8 +554,15 @@ def predict(
     forces,
     grasp_fraction=None,
     model=None,
+    traced_substeps: bool = False,
 ) -> Rollout:
     """Simulate every particle ``theta [P, D]`` under ``forces [B, T]``: :class:`Rollout` [P, B, T].
+
+    ``traced_substeps``: the simulator's substeps per observation enter the program as an
+    argument, not as a constant, so simulators that differ only in their step (an
+    accuracy-controlled step chosen on each data set's forces) share one compiled program; the
+    values agree with the default's to float32 rounding (another formulation of the same loop,
+    as :class:`treeinfer.fast_posterior.BatchEvaluator`'s). The dynamic model only.
 
     ``grasp_fraction`` (scalar or [B]) predicts at another point of the grasped branch.
     ``model``: the run's :class:`treeinfer.static.Model` (static model or stiffness only; a
@@ -591,12 +598,21 @@ def predict(
 
         return model_rollout(sim, model, theta, forces, grasp_fraction)  # jitted inside
     kp, kd = gains_from_theta(theta, sim.n_joints)
+    if traced_substeps:
+        return _predict_traced(sim, kp, kd, forces, grasp_fraction, jnp.int32(sim.substeps))
     return _predict_jit(sim, kp, kd, forces, grasp_fraction)
 
 
 @partial(jax.jit, static_argnums=0)
 def _predict_jit(sim, kp, kd, forces, grasp_fraction):
     return simulate(sim, kp, kd, forces, grasp_fraction)
+
+
+@partial(jax.jit, static_argnums=0)
+def _predict_traced(sim, kp, kd, forces, grasp_fraction, substeps):
+    from .sim import _simulate
+
+    return _simulate(sim, kp, kd, forces, grasp_fraction, substeps=substeps)
 
 
 __all__ = [

@@ -152,7 +152,9 @@ def boltzmann_log_likelihood(
         raise ConfigError(
             f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s"
         )
-    forces = jnp.asarray(obs.force)
+    # device_put, not jnp.asarray: jax compiles a small program per shape for jnp.asarray of a
+    # NumPy array (lax.stage), one XLA compile for every new data length at a cold start
+    forces = jax.device_put(obs.force)
 
     def loglik(theta: jax.Array) -> jax.Array:
         kp, kd = gains_from_theta(theta, sim.n_joints)

@@ -24,10 +24,35 @@ program takes the data as arguments, so it is shared by every data set of the bu
 runs of the paper's dynamic model also pad the samplers' data
 (:func:`treeinfer.runs.problem.sampler_bucket_for`, ``make_problem(shape_bucket=)``): the
 sampler chunk takes the data as an argument (:class:`treeinfer.samplers.base.
-DataSamplingAlgorithm`), so a second data set of the bucket reuses its compiled program. Static
-models, stiffness-only layouts, per-recording pulls and the run layer's post-sampling programs
-(prediction, NLL) still embed the data as constants. The accuracy-controlled step is chosen on
-the unpadded forces, and a data set whose step comes out different compiles anew.
+DataSamplingAlgorithm`), so a second data set of the bucket reuses its compiled program.
+
+A new data set of a bucket compiles nothing on the CPU's ``--init importance`` path of
+``treeinfer infer`` (``tests/test_cold_start.py``, counted with :mod:`treeinfer.compile_stats`):
+
+* the accuracy-controlled step's check (:func:`treeinfer.sim.accuracy.
+  choose_substeps_for_accuracy`) simulates the forces padded to their bucket (the step count was
+  already an argument) and cuts the padding off before the error estimate: the same step as
+  before, to the bit;
+* the training fit after sampling (:func:`treeinfer.evaluation._training_fit`: prediction,
+  parameter and predictive bands, NLLs, and the small array operations between them) runs on
+  the observations padded to the run's ``shape_bucket``, with the step count as a program
+  argument (:func:`treeinfer.inference.predict`'s ``traced_substeps``): each data set's
+  accuracy-controlled step comes out different (31 and 83 substeps on two recordings of one
+  tree), and a step baked into the program would compile it anew. Its values equal the
+  unpadded fit's to float32 rounding (``tests/test_bucketed_programs.py``);
+* ``jax.device_put`` instead of ``jnp.asarray`` for the likelihood's forces (jax compiles a
+  small program per shape for ``jnp.asarray`` of a NumPy array).
+
+``treeinfer warmup`` fills the cache for a bucket from synthetic data before the first recording.
+
+What still compiles per data set: static models, stiffness-only layouts, per-recording pulls
+(``pulls.yaml``) and force-noise runs keep the data's own shape in the training fit; the
+samplers' programs take the data as an argument but embed the simulator's step, so a sampler run
+(or an importance run that falls back to the sampler) compiles its chunk again when the data's
+accurate step differs from the cached one's; and on the GPU the Pallas kernel of the importance
+program takes the step as a constant, unless ``TREEINFER_PALLAS_TRACED_SUBSTEPS=on``
+(:data:`treeinfer.sim.pallas.TRACED_SUBSTEPS`: a runtime step count, off until timed on a GPU).
+``treeinfer predict`` and ``evaluate`` predict at the data's shape.
 """
 
 from __future__ import annotations

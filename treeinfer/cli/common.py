@@ -40,6 +40,7 @@ COMMAND_HELP: dict[str, str] = {
     "demo": "end-to-end example on the built-in 2-branch tree (synthetic data, NNSVGD, metrics)",
     "suggest": "rank candidate next pulls by expected information gain for a run's posterior",
     "calibrate": "simulation-based calibration: rank histograms, coverage, uniformity test",
+    "warmup": "compile the programs of an infer run into the persistent cache, from synthetic data",
 }
 
 

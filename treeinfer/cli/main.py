@@ -68,6 +68,7 @@ COMMANDS: dict[str, Command] = {
     "demo": _command("demo"),
     "suggest": _command("suggest"),
     "calibrate": _command("calibrate"),
+    "warmup": _command("warmup"),
 }
 
 _MAIN_EPILOG = """\

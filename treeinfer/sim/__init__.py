@@ -201,7 +201,9 @@ def _simulate(
 ) -> Rollout:
     """:func:`simulate` with an optional traced ``substeps`` overriding ``sim.substeps``."""
     if sim.backend == "pallas" and _pallas_hook.supported(sim, grasp_branch, substeps):
-        return _pallas_hook.simulate(sim, kp, kd, forces, grasp_fraction, direction)
+        return _pallas_hook.simulate(
+            sim, kp, kd, forces, grasp_fraction, direction, substeps=substeps
+        )
     kp = jnp.atleast_2d(kp)
     kd = jnp.atleast_2d(kd)
     forces = jnp.atleast_2d(forces)

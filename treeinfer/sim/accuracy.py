@@ -19,7 +19,9 @@ estimated where it matters:
 
 Starting from the stability choice, ``s`` grows (by the first-order prediction
 ``s * err / tol``, at least by one) until ``err(s) <= tol``. Every candidate runs through one
-compiled program: the substep count is a traced loop bound there.
+compiled program: the substep count is a traced loop bound there, and the forces are padded to
+their shape bucket (:mod:`treeinfer.startup`), so a new data set of a bucket reuses the program
+compiled for an earlier one (from the persistent compilation cache in a new process).
 """
 
 from __future__ import annotations
@@ -93,6 +95,27 @@ def _rollout_tau(sim, kp, kd, forces, frac, dirs, grasp_branch, substeps):
     return out.tau, out.stable
 
 
+def _bucketed(forces: np.ndarray, frac, dirs, gb):
+    """The check's inputs padded to the shape bucket of ``forces [B, T]``
+    (:mod:`treeinfer.startup`), so the step-doubling program is compiled once per bucket, not
+    once per data set: steps hold each row's last force (the simulator holds it after the last
+    sample anyway), padded rows repeat the last row (its grasp point, direction and branch too).
+    A padded row or step is simulated and then cut off, never part of the error estimate."""
+    from ..startup import steps_bucket, trajectories_bucket
+
+    b, t = forces.shape
+    nb, nt = trajectories_bucket(b), steps_bucket(t)
+    rows = np.minimum(np.arange(nb), b - 1)
+    out = forces[rows][:, np.minimum(np.arange(nt), t - 1)]
+
+    def per_row(x, ndim: int):  # a per-profile argument ([B] or [B, 3]) follows the rows
+        return x if x is None or x.ndim < ndim else x[rows]
+
+    if isinstance(gb, tuple):
+        gb = tuple(gb[i] for i in rows)
+    return out, per_row(frac, 1), per_row(dirs, 2), gb
+
+
 def choose_substeps_for_accuracy(
     sim_or_tree,
     forces,
@@ -147,13 +170,17 @@ def choose_substeps_for_accuracy(
         if grasp_branch is None or isinstance(grasp_branch, str)
         else tuple(grasp_branch)
     )
-    args = (jnp.asarray(kp, dtype), jnp.asarray(kd, dtype), jnp.asarray(forces, dtype), frac, dirs)
+    n_rows, n_steps = forces.shape
+    padded, frac, dirs, gb = _bucketed(forces, frac, dirs, gb)
+    args = (jnp.asarray(kp, dtype), jnp.asarray(kd, dtype), jnp.asarray(padded, dtype), frac, dirs)
     cache: dict[int, np.ndarray] = {}
 
     def tau(s: int) -> np.ndarray:
         if s not in cache:
             t, ok = _rollout_tau(sim, *args, gb, jnp.asarray(s, jnp.int32))
-            t, ok = np.asarray(t), np.asarray(ok)
+            # the data's rows and steps: a rollout is causal and the padded force holds the
+            # last sample, as the simulator does after it, so these are the unpadded values
+            t, ok = np.asarray(t)[:, :n_rows, :n_steps], np.asarray(ok)[:, :n_rows]
             # a parameter set that blows up at one step count but not the other would dominate
             # the estimate; the box is checked for stability separately (choose_substeps)
             cache[s] = np.where(ok[..., None], t, np.nan)

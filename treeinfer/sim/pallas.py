@@ -36,6 +36,27 @@ INTERPRET_WHOLE_BATCH = 32
 TANGENT_LAYOUT = "rows"  # see simulate_with_tangents; "lanes" took 182 s to compile on an H100
 
 
+# The substep count as a runtime operand of the (value-only) kernel, a loop bound, instead of a
+# constant: one compiled kernel then serves every accurate step, so a new data set whose step
+# differs, the multi-fidelity fit's coarse step and the step check (issue 15 item 4) reuse it.
+# Off until timed against the constant count on a GPU (a dynamic trip count may cost the Triton
+# loop its unrolling); checked in the interpreter against the fused backend
+# (tests/test_pallas_traced_substeps.py). Gradients (simulate_with_tangents) keep the constant
+# count. Environment switch for timing it: TREEINFER_PALLAS_TRACED_SUBSTEPS=on|off (read once).
+def _switch(name: str) -> bool:
+    import os
+
+    from ..errors import ConfigError
+
+    value = os.environ.get(name, "off").strip().lower()
+    if value not in ("on", "off", "1", "0"):
+        raise ConfigError(f"{name}: expected on or off, got {value!r}")
+    return value in ("on", "1")
+
+
+TRACED_SUBSTEPS = _switch("TREEINFER_PALLAS_TRACED_SUBSTEPS")
+
+
 def available() -> bool:
     """Whether the Pallas Triton lowering can run here (a CUDA GPU and jax's Pallas).
 
@@ -73,7 +94,7 @@ def supported(sim, grasp_branch=None, substeps=None) -> bool:
     return (
         sim.hinge_tree is not None
         and grasp_branch is None
-        and substeps is None
+        and (substeps is None or TRACED_SUBSTEPS)
         and not uses_levels(sim)
     )
 
@@ -91,11 +112,12 @@ def _pad(x, n: int):
     return jnp.concatenate([x, jnp.broadcast_to(x[..., :1], x.shape[:-1] + (extra,))], axis=-1)
 
 
-def _rollout_kernel(sim, n_steps: int, n_tangents: int, has_dir: bool, *refs):
+def _rollout_kernel(sim, n_steps: int, n_tangents: int, has_dir: bool, traced: bool, *refs):
     """Kernel body: every observation and substep of BLOCK rollouts.
 
     Refs (each [K, BLOCK] unless said): kp [R], kd [R], q_rest [nv], site [3], (dir [3]),
-    forces [T], next forces [T], then for tangents: d kp [K*R], d kd [K*R], d q_rest [K*nv];
+    forces [T], next forces [T], (with ``traced``: substeps [1], int32, the same in every
+    column), then for tangents: d kp [K*R], d kd [K*R], d q_rest [K*nv];
     outputs: tau [T], ok [1], (d tau [K*T])."""
     from . import fused as hd
     from .forcing import force_fraction
@@ -107,6 +129,7 @@ def _rollout_kernel(sim, n_steps: int, n_tangents: int, has_dir: bool, *refs):
     dir_ref = refs.pop(0) if has_dir else None
     f_ref, fn_ref = refs[:2]
     refs = refs[2:]
+    sub_ref = refs.pop(0) if traced else None
     if n_tangents:
         dkp_ref, dkd_ref, dq_ref = refs[:3]
         refs = refs[3:]
@@ -117,8 +140,12 @@ def _rollout_kernel(sim, n_steps: int, n_tangents: int, has_dir: bool, *refs):
     nv, n_j = t.nv, sim.n_joints
     dtype = f_ref.dtype
     bid = sim.grasp_body
-    n_sub = sim.substeps
-    dt = sim.sim_dt
+    if traced:  # a reduction, not an element read: a scalar of the block in Triton's terms
+        n_sub = jnp.max(sub_ref[0, :])
+        dt = jnp.asarray(sim.obs_dt, dtype) / n_sub.astype(dtype)
+    else:
+        n_sub = sim.substeps
+        dt = sim.sim_dt
     row = lambda ref, i: ref[i, :]
     kp = tuple(row(kp_ref, i) for i in range(n_j))
     kd = tuple(row(kd_ref, i) for i in range(n_j))
@@ -232,9 +259,12 @@ def _use_interpret(interpret):
 
 
 @functools.partial(jax.jit, static_argnums=(0,), static_argnames=("block", "interpret"))
-def _rollout_rows(sim, kp, kd, q_rest, site, dirs, f, fn, dkp, dkd, dq, *, block, interpret):
+def _rollout_rows(
+    sim, kp, kd, q_rest, site, dirs, f, fn, dkp, dkd, dq, substeps=None, *, block, interpret
+):
     """Run the kernel on rows: kp, kd [R, N], q_rest [nv, N], site [3, N], dirs None or
-    [3, N], f, fn [T, N]; tangents None or [K*R, N], [K*R, N], [K*nv, N]. Returns
+    [3, N], f, fn [T, N]; tangents None or [K*R, N], [K*R, N], [K*nv, N]; ``substeps`` None
+    (the simulator's, a constant) or a traced integer (no tangents then). Returns
     (tau [T, N], ok [N] float, dtau [K*T, N] or None)."""
     from jax.experimental import pallas as pl
 
@@ -245,6 +275,11 @@ def _rollout_rows(sim, kp, kd, q_rest, site, dirs, f, fn, dkp, dkd, dq, *, block
     n_pad = -(-n // block) * block
     k = 0 if dkp is None else dkp.shape[0] // sim.n_joints
     ins = [kp, kd, q_rest, site] + ([] if dirs is None else [dirs]) + [f, fn]
+    traced = substeps is not None
+    if traced:
+        if k:
+            raise ValueError("the kernel's tangents run the simulator's own substeps only")
+        ins.append(jnp.full((1, n), substeps, jnp.int32))
     ins += [] if k == 0 else [dkp, dkd, dq]
     ins = [_pad(x, n_pad) for x in ins]
     spec = lambda rows: pl.BlockSpec((rows, block), lambda i: (0, i))
@@ -259,7 +294,7 @@ def _rollout_rows(sim, kp, kd, q_rest, site, dirs, f, fn, dkp, dkd, dq, *, block
         from jax.experimental.pallas import triton as plt
 
         params = plt.CompilerParams(num_warps=max(1, block // 32), num_stages=1)
-    kernel = functools.partial(_rollout_kernel, sim, n_steps, k, dirs is not None)
+    kernel = functools.partial(_rollout_kernel, sim, n_steps, k, dirs is not None, traced)
     outs = pl.pallas_call(
         kernel,
         out_shape=out_shape,
@@ -336,15 +371,27 @@ def simulate(
     direction=None,
     block: int | None = None,
     interpret=None,
+    substeps=None,
 ):
     """:func:`treeinfer.sim.simulate` through the whole-rollout kernel (same arguments and
     :class:`~treeinfer.sim.Rollout`; the grasp branch is the simulator's own). Differentiable
     in ``kp``/``kd`` (``jax.jvp``, ``jax.grad``): exact, from the kernel's tangents.
 
+    ``substeps``: None (the simulator's own, a constant of the kernel), or a traced integer
+    passed to the kernel as an operand (:data:`TRACED_SUBSTEPS`; values only, not
+    differentiable).
+
     ``block``: rollouts per kernel instance (a power of two, >= 32 on the GPU; default
     ``DEFAULT_BLOCK``); ``interpret``: None (Triton on a GPU, Pallas's interpreter elsewhere),
     True or False."""
     block = DEFAULT_BLOCK if block is None else int(block)
+    if substeps is not None:
+        rows, _, settled, shape = _prepare(sim, kp, kd, forces, grasp_fraction, direction)
+        tau, ok, _ = _rollout_rows(
+            sim, rows["kp"], rows["kd"], rows["q_rest"], rows["site"], rows["dirs"], rows["f"],
+            rows["fn"], None, None, None, substeps, block=block, interpret=interpret,
+        )  # fmt: skip
+        return _finish(sim, tau, ok, settled, shape)
     return _simulate_jvp(sim, block, interpret, kp, kd, forces, grasp_fraction, direction)
 
 
