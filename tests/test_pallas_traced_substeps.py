@@ -58,7 +58,8 @@ def test_the_switch_routes_a_traced_step_to_the_kernel(setup, monkeypatch):
     sim, kp, kd, forces = setup
     psim = dataclasses.replace(sim, backend="pallas")
     s = jnp.int32(3)
-    assert not pk.supported(psim, None, s)  # default: a traced step runs the fused path
+    monkeypatch.setattr(pk, "TRACED_SUBSTEPS", False)
+    assert not pk.supported(psim, None, s)  # switched off: a traced step runs the fused path
     monkeypatch.setattr(pk, "TRACED_SUBSTEPS", True)
     assert pk.supported(psim, None, s)
     calls, real = [], pk.simulate
@@ -83,6 +84,8 @@ def test_the_environment_switch_is_validated(monkeypatch):
 
     name = "TREEINFER_PALLAS_TRACED_SUBSTEPS"
     monkeypatch.delenv(name, raising=False)
+    assert pk._switch(name) is True  # on by default (timed on an H100)
+    monkeypatch.setenv(name, "off")
     assert pk._switch(name) is False
     monkeypatch.setenv(name, "on")
     assert pk._switch(name) is True

@@ -115,7 +115,7 @@ class BatchEvaluator:
         sim = problem.sim
         self.substeps = int(sim.substeps)
         # the step count as a program argument unless the Pallas kernel runs the rollouts with
-        # the simulator's own step (its default: pallas.TRACED_SUBSTEPS off; a traced count
+        # the simulator's own step (pallas.TRACED_SUBSTEPS, on by default; a traced count
         # would then fall back to the fused path)
         if traced_substeps is None:
             from .sim import pallas

@@ -49,9 +49,9 @@ What still compiles per data set: static models, stiffness-only layouts, per-rec
 (``pulls.yaml``) and force-noise runs keep the data's own shape in the training fit; the
 samplers' programs take the data as an argument but embed the simulator's step, so a sampler run
 (or an importance run that falls back to the sampler) compiles its chunk again when the data's
-accurate step differs from the cached one's; and on the GPU the Pallas kernel of the importance
-program takes the step as a constant, unless ``TREEINFER_PALLAS_TRACED_SUBSTEPS=on``
-(:data:`treeinfer.sim.pallas.TRACED_SUBSTEPS`: a runtime step count, off until timed on a GPU).
+accurate step differs from the cached one's. On the GPU the Pallas kernel of the importance
+program takes the step as a runtime count (:data:`treeinfer.sim.pallas.TRACED_SUBSTEPS`, on by
+default since timed on an H100; ``TREEINFER_PALLAS_TRACED_SUBSTEPS=off`` makes it a constant).
 ``treeinfer predict`` and ``evaluate`` predict at the data's shape.
 """
 

@@ -39,8 +39,10 @@ TANGENT_LAYOUT = "rows"  # see simulate_with_tangents; "lanes" took 182 s to com
 # The substep count as a runtime operand of the (value-only) kernel, a loop bound, instead of a
 # constant: one compiled kernel then serves every accurate step, so a new data set whose step
 # differs, the multi-fidelity fit's coarse step and the step check (issue 15 item 4) reuse it.
-# Off until timed against the constant count on a GPU (a dynamic trip count may cost the Triton
-# loop its unrolling); checked in the interpreter against the fused backend
+# On by default since it was timed on an H100 (BENCHMARKS.md, "H100: a cold process on a NEW
+# data set"): a new recording of the bucket then compiles nothing (3.9 s to a posterior, against
+# 7.2-8.6 s with one kernel compile per new step), and an empty cache compiles 6.8 s instead of
+# 8.3 s; checked in the interpreter against the fused backend
 # (tests/test_pallas_traced_substeps.py). Gradients (simulate_with_tangents) keep the constant
 # count. Environment switch for timing it: TREEINFER_PALLAS_TRACED_SUBSTEPS=on|off (read once).
 def _switch(name: str) -> bool:
@@ -48,7 +50,7 @@ def _switch(name: str) -> bool:
 
     from ..errors import ConfigError
 
-    value = os.environ.get(name, "off").strip().lower()
+    value = os.environ.get(name, "on").strip().lower()
     if value not in ("on", "off", "1", "0"):
         raise ConfigError(f"{name}: expected on or off, got {value!r}")
     return value in ("on", "1")
