@@ -27,9 +27,9 @@ T = 10
 GRAD_TOL = 1e-4 if jax.devices()[0].platform == "cpu" else 1e-3
 
 
-@pytest.fixture(scope="module")
-def setup():
-    tree = chain(
+def pallas_chain():
+    """The 2-link tilted chain of the Pallas kernel tests (also test_pallas_traced_substeps)."""
+    return chain(
         2,
         lengths=[0.6, 0.4],
         radii=[0.03, 0.015],
@@ -39,6 +39,11 @@ def setup():
         levels=2,
         name="c2",
     )
+
+
+@pytest.fixture(scope="module")
+def setup():
+    tree = pallas_chain()
     sim = make_simulator(tree, obs_dt=0.01, substeps=2, backend="fused")
     rng = np.random.default_rng(0)
     kp, kd = default_true_params(tree, rng)

@@ -10,9 +10,9 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_pallas_backend import pallas_chain
 
 from treeinfer.forces import profile_set
-from treeinfer.generators import chain
 from treeinfer.sim import _simulate, make_simulator
 from treeinfer.sim import pallas as pk
 from treeinfer.synthetic import default_true_params
@@ -22,16 +22,7 @@ T = 40
 
 @pytest.fixture(scope="module")
 def setup():
-    tree = chain(
-        2,
-        lengths=[0.6, 0.4],
-        radii=[0.03, 0.015],
-        angles_deg=[0.0, -10.0],
-        base_position=(0.0, 0.0, 1.5),
-        base_pitch_deg=20.0,
-        levels=2,
-        name="c2",
-    )
+    tree = pallas_chain()
     sim = make_simulator(tree, obs_dt=0.01, substeps=2, backend="fused")
     kp, kd = default_true_params(tree, np.random.default_rng(0))
     kp = jnp.asarray(kp[None] * np.array([[1.0], [0.5], [2.0]]), jnp.float32)
