@@ -28,8 +28,8 @@ _SHARED = ("--model", "--repair-inertia", "--grasp-fraction", "--force-interp", 
 
 _EPILOG = """\
 examples:
-  treeinfer warmup --tree tree.yaml --trajectories 3 --steps 300 -- --init importance \
-      --particles 128
+  treeinfer warmup --tree tree.yaml --trajectories 3 --steps 300 -- \\
+      --init importance --particles 128
   treeinfer warmup --tree tree.yaml --trajectories 4 --steps 500 --dt 0.005 -- --init importance
 
 Everything after `--` is passed to `treeinfer infer` unchanged: give the options your field runs
