@@ -136,19 +136,46 @@ def test_training_fit_at_the_bucket_equals_the_fit_at_the_data_shape(tree, grasp
 def test_traced_rollout_program_key_leaves_out_only_the_step(tree):
     import jax
 
-    from treeinfer.fast_posterior import _program_key, _rollout_residuals
+    from treeinfer.fast_posterior import _rollout_residuals
 
     a = make_simulator(tree, obs_dt=0.01, substeps=4, backend="fused")
     b = make_simulator(tree, obs_dt=0.01, substeps=9, backend="fused")
     b.mj_model.opt.timestep = 0.01 / 9  # make_simulator may share one model: each its own step
     own = b.mj_model.opt.timestep
-    assert _program_key(a, True) == _program_key(b, True)
+    assert a.program_key(True) == b.program_key(True)
     assert b.mj_model.opt.timestep == own  # restored
-    assert _program_key(a, False) != _program_key(b, False)  # the static step is in the program
+    assert a.program_key(False) != b.program_key(False)  # the static step is in the program
     # the reason the key may leave the step out: the traced program is the same XLA program
     f = jnp.zeros((2, 64))
     args = (jnp.zeros((3, 4)), f, f, f, jnp.ones((2, 64), bool), jnp.int32(64), jnp.int32(4))
     text = [jax.jit(_rollout_residuals(s, None, True)).lower(*args).as_text() for s in (a, b)]
     assert text[0] == text[1]
     other = make_simulator(load_tree(example_path("three_branch")), obs_dt=0.01, substeps=4)
-    assert _program_key(other, True) != _program_key(a, True)  # another tree: another program
+    assert other.program_key(True) != a.program_key(True)  # another tree: another program
+
+
+@pytest.mark.parametrize("backend", ["fused", "pallas"])
+def test_step_check_is_one_stored_program_for_any_step(tree, tmp_path, monkeypatch, backend):
+    """The step check's program is kept as one jax.export artifact whatever the step, on the
+    fused backend and on the Pallas kernel (whose traced step count is a runtime operand): a new
+    recording whose accurate step differs loads it instead of tracing the simulator again."""
+    from treeinfer.sim import _simulate
+
+    monkeypatch.setenv("TREEINFER_JAX_CACHE", str(tmp_path))
+    accuracy._step_check_program.cache_clear()
+    a = make_simulator(tree, obs_dt=0.01, substeps=4, backend=backend)
+    b = make_simulator(tree, obs_dt=0.01, substeps=9, backend=backend)
+    assert a.program_key(True) == b.program_key(True)
+    assert a.program_key(False) != b.program_key(False)
+    kp, kd = (jnp.asarray(x, jnp.float32) for x in accuracy.prior_box_params(*a.prior_box, 5, 1))
+    f = jnp.asarray(_forces(2, 64), jnp.float32)
+    for sim in (a, b):
+        s = np.int32(sim.substeps)
+        got_tau, got_ok = accuracy._rollout_tau(sim, kp, kd, f, None, None, None, s)
+        want = _simulate(sim, kp, kd, f, substeps=jnp.int32(s))
+        np.testing.assert_array_equal(np.asarray(got_ok), np.asarray(want.stable))
+        scale = float(np.max(np.abs(np.asarray(want.tau))))  # float32 rounding of another build
+        np.testing.assert_allclose(np.asarray(got_tau), np.asarray(want.tau), atol=1e-5 * scale)
+    exports = list(tmp_path.rglob("*.jaxexport"))
+    assert len(exports) == 1, exports  # b loaded a's program
+    accuracy._step_check_program.cache_clear()

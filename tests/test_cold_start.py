@@ -61,10 +61,15 @@ def test_a_new_data_set_of_the_bucket_compiles_nothing(data, tmp_path):
     cache = tmp_path / "cache"
     a = _infer(data["a"], tmp_path / "run_a", cache, tmp_path / "a.json")
     assert a["xla_compiles"] > 10  # the counter sees compilations (an empty cache)
+    exports = sorted(cache.rglob("*.jaxexport"))  # the step check's and the fit's programs
+    assert len(exports) >= 2, exports
     b = _infer(data["b"], tmp_path / "run_b", cache, tmp_path / "b.json")
+    # B's accurate step differs from A's, yet it traced no stored program anew
+    assert sorted(cache.rglob("*.jaxexport")) == exports
     steps = [json.loads((tmp_path / f"run_{n}" / "config.json").read_text())["problem"]
              for n in "ab"]  # fmt: skip
     assert steps[0]["shape_bucket"] == steps[1]["shape_bucket"] == [2, 80]
+    assert steps[0]["substeps"] != steps[1]["substeps"]  # what the stored programs leave out
     assert b["cache_hits"] > 10 and b["xla_compiles"] == 0, b["compiled"]
 
 

@@ -153,11 +153,42 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
     return path
 
 
+# What XLA's GPU client reads, at its start, to size its memory pool; any of them set by the user
+# is theirs to keep.
+_GPU_MEMORY_SETTINGS = (
+    "XLA_PYTHON_CLIENT_PREALLOCATE",
+    "XLA_PYTHON_CLIENT_MEM_FRACTION",
+    "XLA_CLIENT_MEM_FRACTION",
+    "XLA_PYTHON_CLIENT_ALLOCATOR",
+)
+
+
+def _grow_gpu_memory_on_demand() -> bool:
+    """Set ``XLA_PYTHON_CLIENT_PREALLOCATE=false`` unless the user set any of the GPU memory
+    settings (:data:`_GPU_MEMORY_SETTINGS`); returns whether it set it.
+
+    Why: by default JAX's GPU client reserves 75% of the card's memory in its first transfer,
+    and that reservation is most of a cold process's GPU start: 1.4-1.9 s of the first
+    ``device_put`` on an H200 (105 GiB), 0.00 s without it (BENCHMARKS.md, issue 15). treeinfer's
+    programs need little memory (the standard problem's NNSVGD iteration a few MB; 131k
+    parameter sets a few GB) and run the same once the pool has grown. Read by XLA when its GPU
+    client starts, so it works as long as no JAX computation has run yet; set
+    ``XLA_PYTHON_CLIENT_PREALLOCATE=true`` to keep JAX's reservation."""
+    import os
+
+    if any(name in os.environ for name in _GPU_MEMORY_SETTINGS):
+        return False
+    os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+    return True
+
+
 def _enable_cache_on_import() -> None:
     import contextlib
 
     with contextlib.suppress(Exception):  # never let the cache stop the package importing
         enable_compilation_cache()
+    with contextlib.suppress(Exception):
+        _grow_gpu_memory_on_demand()
 
 
 _enable_cache_on_import()

@@ -56,7 +56,6 @@ Only the paper's model and loss: ``theta = [log Kp, log Kd]``, the Boltzmann lik
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from typing import NamedTuple
@@ -66,6 +65,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import ConfigError
+from .startup import device_array
 
 # the coarse-step importance rounds draw with seed + COARSE_SEED (the accurate step's with seed)
 COARSE_SEED = 7919
@@ -132,18 +132,18 @@ class BatchEvaluator:
         shape = problem.settings.get("shape_bucket") if shape is None else shape
         padded = obs if shape is None else bucket_observations(obs, *shape)
         self.shape, self._rows, self._steps = tuple(np.shape(padded.force)), b, t
-        self._dtype = jnp.asarray(0.0).dtype
+        self._dtype = sim.dtype
         self._data = tuple(
-            jnp.asarray(np.asarray(x), dt)
+            device_array(x, dt)
             for x, dt in (
                 (padded.force, self._dtype),
                 (padded.displacement, self._dtype),
                 (padded.velocity, self._dtype),
                 (padded.mask, bool),
-                (t, jnp.int32),
+                (t, np.int32),
             )
         )
-        sim_key = _program_key(sim, self.traced)
+        sim_key = sim.program_key(self.traced)
         key = (
             "fast_posterior.BatchEvaluator",
             sim_key,
@@ -154,9 +154,9 @@ class BatchEvaluator:
             str(self._dtype),
             "traced substeps" if self.traced else "static substeps",
         )
-        example = (jnp.zeros((self.chunk, problem.dim), self._dtype), *self._data)
+        example = (jax.ShapeDtypeStruct((self.chunk, problem.dim), self._dtype), *self._data)
         if self.traced:
-            example = (*example, jnp.int32(self.substeps))
+            example = (*example, np.int32(self.substeps))
 
         def build():  # traced once per machine: treeinfer.startup.cached_program
             fn = _rollout_residuals(sim, gf, self.traced)
@@ -177,7 +177,7 @@ class BatchEvaluator:
             )
         if s < 1:
             raise ConfigError(f"substeps: must be an integer >= 1, got {substeps!r}")
-        extra = (jnp.int32(s),) if self.traced else ()
+        extra = (np.int32(s),) if self.traced else ()
         theta = np.atleast_2d(np.asarray(theta, float))
         n, k = len(theta), self.chunk
         pad = (-n) % k
@@ -186,7 +186,7 @@ class BatchEvaluator:
         for i in range(0, len(full), k):
             self.calls += 1
             self.runs[s] = self.runs.get(s, 0) + 1
-            th = jnp.asarray(full[i : i + k], self._dtype)
+            th = device_array(full[i : i + k], self._dtype)
             outs.append((*self._run(th, *self._data, *extra), self._prior(th)))
         r, ok, lp = (np.concatenate([np.asarray(o[j], float) for o in outs])[:n] for j in range(3))
         b, t, nb = self._rows, self._steps, self.shape[0]
@@ -204,25 +204,6 @@ class BatchEvaluator:
         norms, ok, lp, _ = self.loss_terms(theta, substeps)
         out = -norms.sum(-1) / self.kT + lp
         return np.where(ok & np.isfinite(out), out, -np.inf)
-
-
-def _program_key(sim, traced: bool) -> str:
-    """The simulator's part of the rollout program's key: its content without ``step_info``
-    (how its step was chosen: metadata that differs between data sets whose accuracy-controlled
-    step came out the same). With the step traced on the fused backend, also without the step
-    itself (``substeps`` and the model's timestep, which that program takes as an argument and
-    never reads: ``fused_backend.pull``), so a data set whose accurate step differs loads the
-    traced program of an earlier one (:func:`treeinfer.startup.cached_program`) instead of
-    tracing the simulator again; MJX reads the model's timestep, so its key keeps it."""
-    if not (traced and sim.backend == "fused"):
-        return dataclasses.replace(sim, step_info={}).fingerprint
-    opt = sim.mj_model.opt
-    own = opt.timestep
-    try:  # the fingerprint hashes the saved model: its timestep set to one canonical value
-        opt.timestep = sim.obs_dt
-        return dataclasses.replace(sim, step_info={}, substeps=1).fingerprint
-    finally:
-        opt.timestep = own
 
 
 def _rollout_residuals(sim, gf, traced_substeps: bool = False):

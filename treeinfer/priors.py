@@ -249,7 +249,8 @@ def load_or_train_inequality_network(
             stored = json.loads(blob["settings_json"])
             if stored != _fit_settings(settings):
                 raise ValueError("stored settings differ from the requested ones")
-            params = jax.tree.map(jnp.asarray, blob["params"])
+            # device_put: jnp.asarray would run (and load) one small program per array shape
+            params = jax.device_put(blob["params"])
             return InequalityNet(params, settings, float(blob["final_loss"]), str(path), True)
         except Exception as exc:  # noqa: BLE001 -- any unreadable/foreign file: retrain below
             warnings.warn(

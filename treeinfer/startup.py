@@ -64,7 +64,13 @@ import numpy as np
 from .errors import ConfigError
 from .trajectories import Observations
 
-__all__ = ["MIN_STEPS", "bucket_observations", "steps_bucket", "trajectories_bucket"]
+__all__ = [
+    "MIN_STEPS",
+    "bucket_observations",
+    "device_array",
+    "steps_bucket",
+    "trajectories_bucket",
+]
 
 MIN_STEPS = 64
 
@@ -123,6 +129,17 @@ def bucket_observations(
         mask=pad(obs.mask, False, bool),
         dt=obs.dt,
     )
+
+
+def device_array(x, dtype):
+    """``x`` on the default device as ``dtype``, converted on the host: ``jnp.asarray(x,
+    dtype)`` of a NumPy array or a Python number runs a small XLA program per shape and dtype
+    (``convert_element_type``, ``stage``), and in a cold process each is one more program to load
+    from the persistent cache (about 20 ms on a GPU; 12 of the 15 programs a new recording's
+    importance fit loaded were such conversions, BENCHMARKS.md issue 15)."""
+    import jax
+
+    return jax.device_put(np.asarray(x, dtype=np.dtype(dtype)))
 
 
 # ---- traced programs kept on disk ---------------------------------------------------------------

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError
+from ..startup import device_array
 from . import DEFAULT_MAX_SIM_DT, DEFAULT_SIM_TOLERANCE, Simulator, _simulate, make_simulator
 
 MAX_SUBSTEPS = 400  # per observation: the refinement stops here (and warns)
@@ -87,12 +88,38 @@ def representative_forces(obs_dt: float, duration: float = 3.0, n: int = 8) -> n
     return profile_set("mixed", n=n, duration=duration, dt=obs_dt, seed=0)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 6))
 def _rollout_tau(sim, kp, kd, forces, frac, dirs, grasp_branch, substeps):
-    out = _simulate(
-        sim, kp, kd, forces, frac, direction=dirs, grasp_branch=grasp_branch, substeps=substeps
-    )
-    return out.tau, out.stable
+    """``(tau, stable)`` of the check's rollouts with ``substeps`` (a traced int32) per
+    observation; ``frac``, ``dirs`` may be None (the simulator's own grasp point, the pull
+    along gravity)."""
+    args = [a for a in (kp, kd, forces, frac, dirs, substeps) if a is not None]
+    shapes = tuple((tuple(np.shape(a)), str(jnp.result_type(a))) for a in args)
+    program = _step_check_program(sim, grasp_branch, frac is not None, dirs is not None, shapes)
+    return program(*args)
+
+
+@functools.lru_cache(maxsize=8)  # in this process; cached_program keeps it across processes
+def _step_check_program(sim, grasp_branch, has_frac: bool, has_dirs: bool, shapes):
+    """The check's rollout program, kept on disk as a serialized ``jax.export``
+    (:func:`treeinfer.startup.cached_program`) under a key without the step: a new process on
+    a new recording (whose step the check is about to choose) deserializes it instead of
+    tracing the simulator (the Pallas kernel and the settle: 0.5-1 s of a GPU cold start,
+    BENCHMARKS.md) and loads its XLA program from the persistent cache."""
+    from ..startup import cached_program
+
+    def run(kp, kd, forces, *rest):
+        rest = list(rest)
+        frac = rest.pop(0) if has_frac else None
+        dirs = rest.pop(0) if has_dirs else None
+        out = _simulate(
+            sim, kp, kd, forces, frac, direction=dirs, grasp_branch=grasp_branch,
+            substeps=rest[0],
+        )  # fmt: skip
+        return out.tau, out.stable
+
+    example = [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in shapes]
+    key = ("accuracy.step_check", sim.program_key(True), grasp_branch, has_frac, has_dirs, shapes)
+    return cached_program(run, example, repr(key))
 
 
 def _bucketed(forces: np.ndarray, frac, dirs, gb):
@@ -163,8 +190,8 @@ def choose_substeps_for_accuracy(
         raise ConfigError(f"forces: expected a finite [B, T] array, got shape {forces.shape}")
     kp, kd = prior_box_params(*sim.prior_box, max_params=max_params)
     dtype = sim.dtype
-    frac = None if grasp_fraction is None else jnp.asarray(grasp_fraction, dtype)
-    dirs = None if direction is None else jnp.asarray(direction, dtype)
+    frac = None if grasp_fraction is None else np.asarray(grasp_fraction, dtype)
+    dirs = None if direction is None else np.asarray(direction, dtype)
     gb = (
         grasp_branch
         if grasp_branch is None or isinstance(grasp_branch, str)
@@ -172,12 +199,15 @@ def choose_substeps_for_accuracy(
     )
     n_rows, n_steps = forces.shape
     padded, frac, dirs, gb = _bucketed(forces, frac, dirs, gb)
-    args = (jnp.asarray(kp, dtype), jnp.asarray(kd, dtype), jnp.asarray(padded, dtype), frac, dirs)
+    # on the device by host-side conversion (startup.device_array): no conversion programs
+    args = tuple(
+        None if a is None else device_array(a, dtype) for a in (kp, kd, padded, frac, dirs)
+    )
     cache: dict[int, np.ndarray] = {}
 
     def tau(s: int) -> np.ndarray:
         if s not in cache:
-            t, ok = _rollout_tau(sim, *args, gb, jnp.asarray(s, jnp.int32))
+            t, ok = _rollout_tau(sim, *args, gb, np.int32(s))
             # the data's rows and steps: a rollout is causal and the padded force holds the
             # last sample, as the simulator does after it, so these are the unpadded values
             t, ok = np.asarray(t)[:, :n_rows, :n_steps], np.asarray(ok)[:, :n_rows]

@@ -9,6 +9,7 @@ simulators built from the same tree with the same settings share one compiled pr
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 from dataclasses import dataclass, field, fields
@@ -119,6 +120,26 @@ class Simulator:
             h.update(_canonical(getattr(self, f.name)).encode())
         return h.hexdigest()
 
+    def program_key(self, traced_substeps: bool) -> str:
+        """The simulator's part of a persistent program's key (:func:`treeinfer.startup.
+        cached_program`): its content without ``step_info`` (how its step was chosen: metadata
+        that differs between data sets whose accuracy-controlled step came out the same). A
+        program that takes the substep count as an argument (``traced_substeps``) never reads
+        the step (``substeps`` and the model's timestep: the fused pull and the Pallas kernel
+        divide ``obs_dt`` by the traced count), so its key leaves the step out too, and a data
+        set whose accurate step differs loads the program traced for an earlier one instead of
+        tracing the simulator again (about 1 s on a GPU, BENCHMARKS.md). MJX reads the model's
+        timestep, so its key keeps it."""
+        if not traced_substeps or self.backend == "mjx":
+            return dataclasses.replace(self, step_info={}).fingerprint
+        opt = self.mj_model.opt
+        own = opt.timestep
+        try:  # the fingerprint hashes the saved model: its timestep set to one canonical value
+            opt.timestep = self.obs_dt
+            return dataclasses.replace(self, step_info={}, substeps=1).fingerprint
+        finally:
+            opt.timestep = own
+
     def __hash__(self) -> int:
         return hash(self.fingerprint)
 
@@ -135,8 +156,10 @@ class Simulator:
 
     @property
     def dtype(self):
-        """Float type of the rollout: float32, or float64 when ``jax_enable_x64`` is on."""
-        return jnp.asarray(0.0).dtype
+        """Float type of the rollout: float32, or float64 when ``jax_enable_x64`` is on (read
+        from the config: ``jnp.asarray(0.0)`` would put an array on the device, the first of
+        which pays the GPU client's start)."""
+        return jnp.dtype(jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
 
     @property
     def n_joints(self) -> int:
