@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     from benchmarks._ttp_child import DT, N_STEPS
     from benchmarks.inference import EXAMPLES
     from benchmarks.time_to_posterior import band_metrics, write_data
-    from treeinfer.fast_posterior import BatchEvaluator, fast_posterior
+    from treeinfer.fast_posterior import BatchEvaluator, default_chunk, fast_posterior
     from treeinfer.inference import make_problem
     from treeinfer.sim import make_simulator
     from treeinfer.trajectories import Trajectory
@@ -54,7 +54,8 @@ def main(argv=None) -> int:
     ]
     problem = make_problem(tree, trajs, substeps=args.substeps)
     band_sim = make_simulator(tree, obs_dt=DT)
-    ev = BatchEvaluator(problem, options.get("n_starts", 8) * (2 * problem.dim + 1))
+    k = options.get("n_starts", 8) * (2 * problem.dim + 1)  # fast_posterior's own batch
+    ev = BatchEvaluator(problem, default_chunk(k, options.get("n_draws", max(8 * k, 4 * 128))))
     devs = []
     for seed in seeds:
         ev.runs = {}

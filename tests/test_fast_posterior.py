@@ -290,3 +290,26 @@ def test_fast_posterior_ok_needs_a_stable_band_and_enough_ess(one_joint, monkeyp
     monkeypatch.undo()
     few = fast_posterior(problem, 200, n_starts=3, n_draws=100, seed=2, max_rounds=1)
     assert not few.ok and "effective sample size" in few.reason
+
+
+def test_default_chunk_fills_an_accelerator_with_one_round(monkeypatch):
+    from treeinfer import fast_posterior as fp
+
+    monkeypatch.setattr(fp.jax, "default_backend", lambda: "cpu")
+    assert fp.default_chunk(104, 832) == 104  # the LM's batch: padding costs its share here
+    monkeypatch.setattr(fp.jax, "default_backend", lambda: "gpu")
+    assert fp.default_chunk(104, 832) == 832  # one program run per importance round
+    assert fp.default_chunk(39, 512) == 14 * 39  # the next multiple of the LM batch (546)
+
+
+def test_fast_posterior_is_the_same_with_a_larger_batch(one_joint):
+    """The accelerator's batch (every call padded to the importance round's draws) changes how
+    many program runs there are, not the posterior."""
+    problem, _ = one_joint
+    opts = dict(n_particles=64, n_starts=2, n_draws=400, seed=3, max_rounds=1)
+    small = fast_posterior(problem, **opts)
+    big = fast_posterior(problem, evaluator=BatchEvaluator(problem, chunk=400), **opts)
+    assert big.calls < small.calls
+    np.testing.assert_allclose(big.fit.theta, small.fit.theta, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(big.theta, small.theta, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(big.importance.ess, small.importance.ess, rtol=1e-4)

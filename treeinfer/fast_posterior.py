@@ -78,6 +78,7 @@ __all__ = [
     "BatchEvaluator",
     "FastPosterior",
     "ParticleState",
+    "default_chunk",
     "fast_posterior",
     "fit_map_batched",
     "importance_for_run",
@@ -204,6 +205,19 @@ class BatchEvaluator:
         norms, ok, lp, _ = self.loss_terms(theta, substeps)
         out = -norms.sum(-1) / self.kT + lp
         return np.where(ok & np.isfinite(out), out, -np.inf)
+
+
+def default_chunk(k: int, n_draws: int) -> int:
+    """The rollout program's batch for an LM batch of ``k`` points and importance rounds of
+    ``n_draws``: ``k`` on a CPU, where the work is arithmetic and a padded row costs its share;
+    on an accelerator ``n_draws`` rounded up to a multiple of ``k``, because a rollout there is
+    bound by the latency of its sequential steps, not by lanes (832 parameter sets x 3 pulls
+    fill 78 of an H100's 132 multiprocessors in one wave and take about as long as 104): an
+    importance round is then one program run instead of eight, the screen one instead of four
+    (BENCHMARKS.md, issue 15: a new recording's importance fit on an H100)."""
+    if jax.default_backend() == "cpu":
+        return int(k)
+    return -(-int(n_draws) // int(k)) * int(k)
 
 
 def _rollout_residuals(sim, gf, traced_substeps: bool = False):
@@ -456,7 +470,8 @@ def fast_posterior(
         max_iterations, tolerance: of the LM (:func:`fit_map_batched`). df: Student-t degrees
         of freedom of the importance proposals (:data:`DEFAULT_DF`; inf: Gaussian). seed: of
         the screen, the draws and the resample.
-      evaluator: a :class:`BatchEvaluator` of the same problem with ``chunk == K`` to reuse.
+      evaluator: a :class:`BatchEvaluator` of the same problem to reuse (any batch; default
+        :func:`default_chunk`).
       programs: a :class:`~treeinfer.program_cache.ProgramCache` for the evaluator's rollout
         program (shared by every data set of one shape bucket, :class:`BatchEvaluator`).
       max_rounds, target_ess: :func:`treeinfer.importance.adaptive_importance`: while the
@@ -506,9 +521,11 @@ def fast_posterior(
         raise ConfigError(f"coarse_rounds: must be an integer >= 0, got {coarse_rounds!r}")
     if not (isinstance(polish_iterations, (int, np.integer)) and polish_iterations >= 0):
         raise ConfigError(f"polish_iterations: must be an integer >= 0, got {polish_iterations!r}")
-    ev = BatchEvaluator(problem, k, programs) if evaluator is None else evaluator
-    if ev.chunk != k or ev.problem is not problem:
-        raise ConfigError("evaluator: built for another problem or batch size")
+    if evaluator is None:
+        evaluator = BatchEvaluator(problem, default_chunk(k, n_draws), programs)
+    ev = evaluator
+    if ev.problem is not problem:
+        raise ConfigError("evaluator: built for another problem")
     coarse = resolve_coarse_substeps(ev, coarse_substeps)
     if max_iterations is None:
         max_iterations = 15 if coarse != ev.substeps and coarse_rounds > 0 else 30
