@@ -41,7 +41,12 @@ A new data set of a bucket compiles nothing on the CPU's ``--init importance`` p
   tree), and a step baked into the program would compile it anew. Its values equal the
   unpadded fit's to float32 rounding (``tests/test_bucketed_programs.py``);
 * ``jax.device_put`` instead of ``jnp.asarray`` for the likelihood's forces (jax compiles a
-  small program per shape for ``jnp.asarray`` of a NumPy array).
+  small program per shape for ``jnp.asarray`` of a NumPy array; :func:`device_array`).
+
+A new recording also traces nothing on the GPU's importance path: the step check's rollout
+program and the importance program are kept as ``jax.export`` artifacts keyed without the step
+(:func:`cached_program`, :meth:`treeinfer.sim.Simulator.program_key`), so only 3 programs load
+from the persistent cache (BENCHMARKS.md, "H100: a new recording in under 3 s").
 
 ``treeinfer warmup`` fills the cache for a bucket from synthetic data before the first recording.
 
@@ -50,8 +55,9 @@ What still compiles per data set: static models, stiffness-only layouts, per-rec
 samplers' programs take the data as an argument but embed the simulator's step, so a sampler run
 (or an importance run that falls back to the sampler) compiles its chunk again when the data's
 accurate step differs from the cached one's. On the GPU the Pallas kernel of the importance
-program takes the step as a runtime count (:data:`treeinfer.sim.pallas.TRACED_SUBSTEPS`, on by
-default since timed on an H100; ``TREEINFER_PALLAS_TRACED_SUBSTEPS=off`` makes it a constant).
+program and of the step check takes the step as a runtime count
+(:data:`treeinfer.sim.pallas.TRACED_SUBSTEPS`, on by default since timed on an H100;
+``TREEINFER_PALLAS_TRACED_SUBSTEPS=off`` makes it a constant).
 ``treeinfer predict`` and ``evaluate`` predict at the data's shape.
 """
 
