@@ -13,7 +13,13 @@ particles) it times, interleaved in one process so machine load hits all alike:
 * ``reverse`` (``--reverse``): :func:`treeinfer.gradients.autodiff_value_and_grad`;
 * ``jvp_plain`` (``--plain-jvp``): ``jvp`` with the fused pull's sensitivity rule off
   (``treeinfer.sim.fused_backend.SENSITIVITY_RULE``): ``jax.jvp`` through the step code, the
-  path before the rule.
+  path before the rule;
+* ``jvp_<layout>`` (``--backend pallas --layout A B ...``): ``jvp`` with the kernel's tangents
+  in each further layout (``treeinfer.sim.pallas.TANGENT_LAYOUTS``: ``rows``, ``lanes``,
+  ``sensitivity``); ``jvp`` itself takes the first (default: ``pallas.TANGENT_LAYOUT``, which
+  ``TREEINFER_PALLAS_TANGENT_LAYOUT`` sets), so one process compares them:
+
+      python -m benchmarks.gradient_cost --backend pallas --layout rows sensitivity lanes
 
 Each is reported as steady wall time (minimum over ``--reps``), compile time, and
 **rollout-equivalents per particle** = time / time(rollout). Central differences cost 2D + 1 = 13
@@ -70,24 +76,34 @@ def main(argv=None) -> int:
     )
     p.add_argument("--backend", default="fused", choices=["fused", "pallas"])
     p.add_argument(
+        "--layout",
         "--tangent-layout",
+        dest="layout",
+        nargs="+",
         default=None,
-        choices=["rows", "lanes"],
-        help="pallas backend: how tangents share the kernel (treeinfer.sim.pallas)",
+        choices=["rows", "lanes", "sensitivity"],
+        help="pallas backend: how tangents share the kernel (treeinfer.sim.pallas; default its "
+        "TANGENT_LAYOUT); several: jvp takes the first, jvp_<layout> each other",
     )
     p.add_argument("--machine", default=None)
     p.add_argument("--no-write", dest="write", action="store_false")
     args = p.parse_args(argv)
+    if args.layout and args.backend != "pallas":
+        p.error("--layout is for --backend pallas")
 
     import jax
     import jax.numpy as jnp
 
+    import treeinfer.sim.pallas as pk
     from treeinfer.gradients import autodiff_value_and_grad, central_difference, jvp_value_and_grad
 
-    if args.tangent_layout:
-        import treeinfer.sim.pallas
-
-        treeinfer.sim.pallas.TANGENT_LAYOUT = args.tangent_layout
+    # the kernel's tangent layout per jvp entry, set before each is traced (read at trace time)
+    layouts = list(dict.fromkeys(args.layout or [pk.TANGENT_LAYOUT]))
+    default_layout = pk.TANGENT_LAYOUT
+    layout_of = {}
+    if args.backend == "pallas":
+        layout_of = {"jvp": layouts[0], "jvp_plain": layouts[0]}
+        layout_of.update({f"jvp_{x}": x for x in layouts[1:]})
     info = C.machine_info()
     loglik, truth = standard_likelihood(args.steps, args.backend)
     rng = np.random.default_rng(1)
@@ -99,21 +115,26 @@ def main(argv=None) -> int:
     }
     if args.reverse:
         fns["reverse"] = jax.jit(autodiff_value_and_grad(loglik))
+    for name in layout_of:
+        if name.startswith("jvp_") and name != "jvp_plain":
+            fns[name] = jax.jit(jvp_value_and_grad(loglik))
     if args.plain_jvp:
         fns["jvp_plain"] = jax.jit(jvp_value_and_grad(loglik))
     import treeinfer.sim.fused_backend as fb
 
     compile_s, out = {}, {}
     for name, fn in list(fns.items()):
-        # compiled ahead of time, each from a fresh trace: the switch is read while tracing, and
-        # the simulator's inner jit would otherwise reuse the first trace
+        # compiled ahead of time, each from a fresh trace: the switches are read while tracing,
+        # and the simulator's inner jit would otherwise reuse the first trace
         fb.SENSITIVITY_RULE = name != "jvp_plain"
+        pk.TANGENT_LAYOUT = layout_of.get(name, default_layout)
         jax.clear_caches()
         t0 = time.perf_counter()
         fns[name] = fn.lower(theta).compile()
         out[name] = C.block(fns[name](theta))
         compile_s[name] = time.perf_counter() - t0
     fb.SENSITIVITY_RULE = True
+    pk.TANGENT_LAYOUT = default_layout
     times = {name: [] for name in fns}
     for _ in range(args.reps):
         for name, fn in fns.items():
@@ -133,10 +154,15 @@ def main(argv=None) -> int:
         if name != "rollout":
             g = np.asarray(out[name][1])
             rec["max_abs_diff_vs_fd"] = float(np.abs(g - g_fd).max())
+        if name in layout_of:
+            rec["tangent_layout"] = layout_of[name]
+            if name != "jvp":  # exact gradients of two layouts: equal to float32 rounding
+                rec["max_abs_diff_vs_jvp"] = float(np.abs(g - np.asarray(out["jvp"][1])).max())
         results[name] = rec
         rows.append(
             {
                 "name": name,
+                "layout": layout_of.get(name, ""),
                 "steady": f"{steady * 1e3:.1f} ms",
                 "first": f"{compile_s[name]:.1f} s",
                 "rollouts": f"{steady / unit:.1f}",
@@ -144,8 +170,9 @@ def main(argv=None) -> int:
         )
     C.print_table(
         rows,
-        [
-            ("name", "gradient"),
+        [("name", "gradient")]
+        + ([("layout", "layout")] if layout_of else [])
+        + [
             ("steady", "steady"),
             ("first", "compile+first"),
             ("rollouts", "rollouts/particle"),
@@ -155,9 +182,19 @@ def main(argv=None) -> int:
         if name not in ("rollout", "fd"):
             rel = results[name]["max_abs_diff_vs_fd"] / float(np.abs(g_fd).max())
             print(f"{name}: max |grad - fd grad| / max |fd grad| = {rel:.1e}")
+            if "max_abs_diff_vs_jvp" in results[name]:
+                rel = results[name]["max_abs_diff_vs_jvp"] / float(np.abs(g_fd).max())
+                print(f"{name}: max |grad - jvp grad| / max |fd grad| = {rel:.1e}")
     d = truth.size
     ratio = results["jvp"]["steady_s"] / results["fd"]["steady_s"]
-    print(f"jvp / fd time: {ratio:.2f} (target <= 0.5; fd = 2D + 1 = {2 * d + 1} rollouts)")
+    label = f" [{layout_of['jvp']}]" if layout_of else ""
+    print(f"jvp{label} / fd time: {ratio:.2f} (target <= 0.5; fd = 2D + 1 = {2 * d + 1} rollouts)")
+    by_layout = {}
+    for name, layout in layout_of.items():
+        if name in results and name != "jvp_plain":
+            by_layout[layout] = results[name]["steady_s"] / results["fd"]["steady_s"]
+            if name != "jvp":
+                print(f"{name} [{layout}] / fd time: {by_layout[layout]:.2f}")
     if "jvp_plain" in results:
         plain = results["jvp_plain"]["steady_s"] / results["fd"]["steady_s"]
         results["jvp_plain_over_fd"] = plain
@@ -173,7 +210,8 @@ def main(argv=None) -> int:
             "dim": d,
             "jvp_over_fd": ratio,
             "backend": args.backend,
-            "tangent_layout": args.tangent_layout,
+            "tangent_layout": layout_of.get("jvp"),
+            "jvp_over_fd_by_layout": by_layout,
             "machine": info,
         }
     )

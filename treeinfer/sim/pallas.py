@@ -18,8 +18,11 @@ on the CPU). Profiles grouped by grasp branch or a traced ``substeps`` (the accu
 handed to the fused path unchanged.
 
 Exact forward-mode tangents: :func:`simulate_with_tangents` carries K tangent directions of
-(kp, kd) through the same kernel (``jax.linearize`` of the step inside the kernel, so the primal
-runs once per step and each tangent adds only the linearised arithmetic).
+(kp, kd) through the same kernel, in one of three layouts (:data:`TANGENT_LAYOUTS`): ``"rows"``
+and ``"lanes"`` push each tangent through ``jax.linearize`` of the whole step (the linearised
+kinematics, bias forces, mass matrix and LDL once per tangent); ``"sensitivity"`` computes the
+step's state Jacobian once per substep from the primal (:mod:`treeinfer.sim.sensitivity`, the
+fused backend's rule on the CPU) and applies it to each tangent with ~100 multiply-adds.
 """
 
 from __future__ import annotations
@@ -33,7 +36,6 @@ import numpy as np
 DEFAULT_BLOCK = 32  # rollouts per kernel instance (one warp): spreads small batches over SMs
 # in the interpreter (CPU), blocks of at least this many rows become one program over all rows
 INTERPRET_WHOLE_BATCH = 32
-TANGENT_LAYOUT = "rows"  # see simulate_with_tangents; "lanes" took 182 s to compile on an H100
 
 
 # The substep count as a runtime operand of the (value-only) kernel, a loop bound, instead of a
@@ -57,6 +59,43 @@ def _switch(name: str) -> bool:
 
 
 TRACED_SUBSTEPS = _switch("TREEINFER_PALLAS_TRACED_SUBSTEPS")
+
+
+# How simulate_with_tangents (and so the kernel's exact JVP) lays its K tangents out:
+# * "rows": one tangent per lane beside its own copy of the primal, the step linearised with
+#   jax.linearize (K copies of the primal plus K linearised steps: ~12-15 rollouts of arithmetic
+#   for K = 6; a kernel as small as the primal's plus one; 1.0x central differences on an H100);
+# * "lanes": one primal and all K tangents per lane, each tangent the whole linearised step
+#   (~10 rollouts of arithmetic for K = 6; Triton took 182 s to compile it on an H100);
+# * "sensitivity": one primal and all K tangents per lane, the step's state Jacobian computed
+#   ONCE per substep from the primal (sensitivity.step_linearization) and applied to each
+#   tangent (sensitivity.step_tangent: ~100 multiply-adds and a back-substitution), the rule
+#   that brought the fused backend on the CPU to 0.20-0.24x of central differences.
+# Timed on an H100 (BENCHMARKS.md, "exact gradients at half the cost of central differences"):
+# once the GPU is full "sensitivity" takes 0.50x the wall time of central differences at
+# P = 65536 (46.7 against 94.0 ms; 0.66x at 16384, where "rows" is 1.02-1.09x), but Triton
+# compiles it in 90-98 s per batch shape, and at the standard problem's P = 128, where the
+# rollouts are latency-bound and central differences cost one rollout's time, it is 3.5x slower
+# than central differences ("rows": 1.7x). So "rows" stays the default; a long run at a large
+# batch with a warm persistent cache sets TREEINFER_PALLAS_TANGENT_LAYOUT=sensitivity
+# (rows|lanes|sensitivity, read once at import).
+TANGENT_LAYOUTS = ("rows", "lanes", "sensitivity")
+
+
+def _tangent_layout(name: str = "TREEINFER_PALLAS_TANGENT_LAYOUT", default: str = "rows") -> str:
+    """The tangent layout named by environment variable ``name`` (unset or empty: ``default``);
+    a ConfigError names the variable and the accepted values otherwise."""
+    import os
+
+    from ..errors import ConfigError
+
+    value = os.environ.get(name, "").strip().lower() or default
+    if value not in TANGENT_LAYOUTS:
+        raise ConfigError(f"{name}: expected one of {', '.join(TANGENT_LAYOUTS)}, got {value!r}")
+    return value
+
+
+TANGENT_LAYOUT = _tangent_layout()
 
 
 def available() -> bool:
@@ -114,13 +153,17 @@ def _pad(x, n: int):
     return jnp.concatenate([x, jnp.broadcast_to(x[..., :1], x.shape[:-1] + (extra,))], axis=-1)
 
 
-def _rollout_kernel(sim, n_steps: int, n_tangents: int, has_dir: bool, traced: bool, *refs):
+def _rollout_kernel(
+    sim, n_steps: int, n_tangents: int, has_dir: bool, traced: bool, rule: str, *refs
+):
     """Kernel body: every observation and substep of BLOCK rollouts.
 
     Refs (each [K, BLOCK] unless said): kp [R], kd [R], q_rest [nv], site [3], (dir [3]),
     forces [T], next forces [T], (with ``traced``: substeps [1], int32, the same in every
     column), then for tangents: d kp [K*R], d kd [K*R], d q_rest [K*nv];
-    outputs: tau [T], ok [1], (d tau [K*T])."""
+    outputs: tau [T], ok [1], (d tau [K*T]). ``rule``: how a substep carries the tangents,
+    ``"linearize"`` (``jax.linearize`` of the whole step, applied to each tangent) or
+    ``"sensitivity"`` (the step's state Jacobian once, :func:`_sensitivity_substep`)."""
     from . import fused as hd
     from .forcing import force_fraction
     from .fused_backend import _gains as _fused_gains
@@ -209,7 +252,13 @@ def _rollout_kernel(sim, n_steps: int, n_tangents: int, has_dir: bool, traced: b
         ok_ref[0, :] = ok
         return
 
-    # ---- primal + K tangents: the step linearised once per substep, applied to each tangent
+    # ---- primal + K tangents per lane. "linearize": jax.linearize of the whole step per
+    # substep, its linear map (the linearised kinematics, dynamics and solve: ~1.6x the primal's
+    # arithmetic on the three-branch tree) applied to each tangent; "sensitivity": the step's
+    # state Jacobian once per substep (~3.8x the primal's arithmetic), then ~160 operations per
+    # tangent (_sensitivity_substep): the fewer operations from K = 3 tangents on (jaxpr counts
+    # after CSE, one substep of the three-branch tree: primal 580, K = 6 "linearize" 6200,
+    # K = 6 "sensitivity" 3145)
     dkp = tuple(tuple(row(dkp_ref, a * n_j + i) for i in range(n_j)) for a in range(n_tangents))
     dkd = tuple(tuple(row(dkd_ref, a * n_j + i) for i in range(n_j)) for a in range(n_tangents))
     dq0 = tuple(tuple(row(dq_ref, a * nv + i) for i in range(nv)) for a in range(n_tangents))
@@ -218,11 +267,27 @@ def _rollout_kernel(sim, n_steps: int, n_tangents: int, has_dir: bool, traced: b
     dc_rest = tuple(d[0] for d in d_rest)
     dlever0 = tuple(d[1] for d in d_rest)
 
+    if rule == "sensitivity":
+        # the per-lane values the sensitivity substep reads (one lane = one rollout)
+        lanes = {"kp": kp, "kd": kd, "site": site_local, "dkp": dkp, "dkd": dkd}
+        if has_dir:
+            lanes["dir"] = ddir
+        const_dir = None if has_dir else ddir  # Python floats: gravity's, folded
+        sens = functools.partial(_sensitivity_substep, sim, n_tangents, n_sub, dt, dtype, const_dir)
+        # jax.vmap over the lanes: the sensitivity functions pass Python-float unit tangents to
+        # jax.jvp (sensitivity._jvp_sparse), whose shape () must match the primal's, so they
+        # run on one lane's scalars, as the fused backend runs them under its vmap
+        sens = jax.vmap(sens, in_axes=(None, 0, 0))
+    elif rule != "linearize":
+        raise ValueError(f"rule: 'linearize' or 'sensitivity', got {rule!r}")
+
     def observe_t(k, carry):
         (q, v, lever, comp, ok), (dq, dv, dlever) = carry
         f0, f1 = f_ref[k, :], fn_ref[k, :]
 
         def sub(j, st):
+            if rule == "sensitivity":
+                return sens(j, {**lanes, "f0": f0, "f1": f1}, st)
             (q, v, lever, c, comp), (dq, dv, dlever, dc) = st
             fn = lambda kp, kd, q, v, lever: substep(j, f0, f1, kp, kd, q, v, lever)
             (v_new, lever, site), lin = jax.linearize(fn, kp, kd, q, v, lever)
@@ -256,18 +321,76 @@ def _rollout_kernel(sim, n_steps: int, n_tangents: int, has_dir: bool, traced: b
     ok_ref[0, :] = ok
 
 
+def _sensitivity_substep(sim, n_tangents, n_sub, dt, dtype, ddir, j, lane, st):
+    """One substep of ONE rollout (scalars; the kernel vmaps it over its lanes) and its K
+    tangents by the sensitivity rule: the fused backend's ``pull_with_tangent`` substep.
+
+    ``lane``: kp, kd [R], site [3], dkp, dkd [K][R], f0, f1 (this observation's force samples),
+    with a per-profile direction ``dir`` [3] (else ``ddir``, Python floats, is used);
+    ``st``: ``((q, v, lever, c, comp), (dq, dv, dlever, dc))``, tangents [K][...]. The step's
+    Jacobian (:func:`treeinfer.sim.sensitivity.step_linearization`, no staging: a ``lax.cond``
+    has no place in a kernel) is computed once from the primal and applied to each tangent
+    (:func:`~treeinfer.sim.sensitivity.step_tangent`)."""
+    from . import fused as hd
+    from . import sensitivity as sn
+    from .forcing import force_fraction
+    from .fused_backend import _gains as _fused_gains
+
+    t = sim.hinge_tree
+    nv = t.nv
+    (q, v, lever, c, comp), (dq, dv, dlever, dc) = st
+    ddir = lane["dir"] if "dir" in lane else ddir
+    stiffness, damping, spring = _fused_gains(sim, lane["kp"], lane["kd"])
+    f0, f1 = lane["f0"], lane["f1"]
+    force = hd.vscale(f0 + force_fraction(sim.force_interp, j, n_sub, dtype) * (f1 - f0), ddir)
+    lin = sn.step_linearization(
+        t, q, v, stiffness, damping, spring, dt, sim.grasp_body, lane["site"], force, lever
+    )
+    as_dtype = lambda xs: tuple(jnp.asarray(x, dtype) for x in xs)
+    tangents = []
+    for a in range(n_tangents):
+        # gain tangents per dof, Python 0.0 for the joints that are not inferred (fold away)
+        dstiff, ddamp = [0.0] * nv, [0.0] * nv
+        for col, dof in enumerate(sim.dof_ids):
+            dstiff[int(dof)] = lane["dkp"][a][col]
+            ddamp[int(dof)] = lane["dkd"][a][col]
+        tangents.append(sn.step_tangent(t, lin, dt, dq[a], dv[a], dlever[a], dstiff, ddamp))
+    out = lin.out
+    first = j == 0  # the observation reads the grasp point at the observation's first substep
+    c = tuple(jnp.where(first, a, b) for a, b in zip(out.site, c))
+    dc = tuple(
+        tuple(jnp.where(first, a, b) for a, b in zip(tn[3], dc_a)) for tn, dc_a in zip(tangents, dc)
+    )
+    # qpos += dt * qvel, Kahan-compensated as in the fused backend; the tangent is dq + dt dv'
+    # (step_tangent's dq'), the compensation's rounding has none
+    v_new = as_dtype(out.qvel)
+    y = tuple(dt * a - b for a, b in zip(v_new, comp))
+    q_new = tuple(a + b for a, b in zip(q, y))
+    comp = tuple((a - b) - e for a, b, e in zip(q_new, q, y))
+    primal = (q_new, v_new, as_dtype(out.lever), as_dtype(c), comp)
+    tangent = (
+        tuple(as_dtype(tn[0]) for tn in tangents),
+        tuple(as_dtype(tn[1]) for tn in tangents),
+        tuple(as_dtype(tn[2]) for tn in tangents),
+        tuple(as_dtype(d) for d in dc),
+    )
+    return primal, tangent
+
+
 def _use_interpret(interpret):
     return (jax.devices()[0].platform != "gpu") if interpret is None else interpret
 
 
-@functools.partial(jax.jit, static_argnums=(0,), static_argnames=("block", "interpret"))
+@functools.partial(jax.jit, static_argnums=(0,), static_argnames=("block", "interpret", "rule"))
 def _rollout_rows(
-    sim, kp, kd, q_rest, site, dirs, f, fn, dkp, dkd, dq, substeps=None, *, block, interpret
-):
+    sim, kp, kd, q_rest, site, dirs, f, fn, dkp, dkd, dq, substeps=None, *, block, interpret,
+    rule="linearize",
+):  # fmt: skip
     """Run the kernel on rows: kp, kd [R, N], q_rest [nv, N], site [3, N], dirs None or
-    [3, N], f, fn [T, N]; tangents None or [K*R, N], [K*R, N], [K*nv, N]; ``substeps`` None
-    (the simulator's, a constant) or a traced integer (no tangents then). Returns
-    (tau [T, N], ok [N] float, dtau [K*T, N] or None)."""
+    [3, N], f, fn [T, N]; tangents None or [K*R, N], [K*R, N], [K*nv, N] (tangent a, component
+    i at row a * X + i); ``substeps`` None (the simulator's, a constant) or a traced integer
+    (no tangents then); ``rule``: how the kernel carries tangents (:func:`_rollout_kernel`).
+    Returns (tau [T, N], ok [N] float, dtau [K*T, N] or None)."""
     from jax.experimental import pallas as pl
 
     n_steps, n = f.shape
@@ -296,7 +419,7 @@ def _rollout_rows(
         from jax.experimental.pallas import triton as plt
 
         params = plt.CompilerParams(num_warps=max(1, block // 32), num_stages=1)
-    kernel = functools.partial(_rollout_kernel, sim, n_steps, k, dirs is not None, traced)
+    kernel = functools.partial(_rollout_kernel, sim, n_steps, k, dirs is not None, traced, rule)
     outs = pl.pallas_call(
         kernel,
         out_shape=out_shape,
@@ -464,10 +587,13 @@ def simulate_with_tangents(
     (``stable`` of the second is the first's). The settled rest pose's tangent comes from
     ``jax.jvp`` through the settle (a few Newton steps, XLA).
 
-    ``layout`` (default ``TANGENT_LAYOUT``): ``"lanes"`` carries all K tangents in each lane
-    beside one primal (least arithmetic; a large kernel, slow to compile), ``"rows"`` gives
-    each tangent its own lanes with a copy of the primal (2K rollouts of arithmetic, but K
-    times the parallelism for the GPU and a kernel as small as the primal's plus one)."""
+    ``layout`` (default :data:`TANGENT_LAYOUT`): ``"lanes"`` carries all K tangents in each lane
+    beside one primal, each the whole linearised step (a large kernel, slow to compile),
+    ``"rows"`` gives each tangent its own lanes with a copy of the primal (2K rollouts of
+    arithmetic, but K times the parallelism for the GPU and a kernel as small as the primal's
+    plus one), ``"sensitivity"`` carries all K tangents in each lane like ``"lanes"`` but
+    linearises the step once per substep and applies that to each tangent (least
+    arithmetic: the fused backend's rule)."""
     from .fused_backend import _prepare as _fused_prepare
 
     block = DEFAULT_BLOCK if block is None else int(block)
@@ -484,12 +610,14 @@ def simulate_with_tangents(
     dq = jax.vmap(lambda ta, tb: jax.jvp(jax.vmap(rest_q), (kp, kd), (ta, tb))[1])(dkp, dkd)
     # [K, P, X] -> [K * X, P * B] rows (tangent a, component i at row a * X + i)
     layout = TANGENT_LAYOUT if layout is None else layout
-    if layout == "lanes":
+    if layout in ("lanes", "sensitivity"):
         # [K, P, X] -> [K * X, P * B]: tangent a, component i at row a * X + i of every lane
         lay = lambda x: jnp.concatenate([_rows(x[a], n_profiles) for a in range(n_tan)], axis=0)
+        rule = "linearize" if layout == "lanes" else "sensitivity"
         tau, ok, dtau = _rollout_rows(
             sim, rows["kp"], rows["kd"], rows["q_rest"], rows["site"], rows["dirs"], rows["f"],
             rows["fn"], lay(dkp), lay(dkd), lay(dq), block=block, interpret=interpret,
+            rule=rule,
         )  # fmt: skip
     elif layout == "rows":
         # one tangent per lane: the lanes of tangent a are columns [a * N, (a + 1) * N)
@@ -503,7 +631,7 @@ def simulate_with_tangents(
         tau, ok = tau[:, :n], ok[:n]
         dtau = dtau.reshape(n_steps, n_tan, n).transpose(1, 0, 2).reshape(n_tan * n_steps, n)
     else:
-        raise ValueError(f"layout: 'lanes' or 'rows', got {layout!r}")
+        raise ValueError(f"layout: one of {', '.join(TANGENT_LAYOUTS)}, got {layout!r}")
     ro = _finish(sim, tau, ok, settled, shape)
     from . import velocity
 
