@@ -102,6 +102,32 @@ def test_static_compliance_matches_a_settled_mujoco_pull(tree):
     assert c_stiff < static_compliance(tree, dict(zip(tree.inferred, TRUE_KP))) < c_soft
 
 
+def test_compliance_range_covers_the_box_where_compliance_is_not_monotone():
+    """A soft joint lets the branch hang along gravity, where a downward pull has little lever
+    arm: on the three-branch example the compliance peaks inside the box (0.11 m/N at Kp ~ 23,
+    against 0.016 at the lower bound 5), and a slow pull simulated from the example's own model
+    at in-box gains must not read as a unit mistake."""
+    from treeinfer.forces import ramp
+
+    tree3 = load_tree(example_path("three_branch"))
+    least, most = compliance_range(tree3)
+    ends = [static_compliance(tree3, {n: tree3.bounds[n].kp[i] for n in tree3.inferred})
+            for i in (0, 1)]  # fmt: skip
+    inside = static_compliance(tree3, {n: 23.0 for n in tree3.inferred})
+    assert inside > 3 * max(ends)  # the ends alone missed it
+    assert least <= min(ends) and most >= inside
+    # a quasi-static pull of the example at Kp = 23 (independent: the simulator, not MuJoCo's
+    # static Jacobians) gives no scale finding
+    make_simulator, simulate = _sim()
+    sim = make_simulator(tree3, obs_dt=DT)
+    f = ramp(0.5, 1.0, 4.0, DT)
+    roll = simulate(sim, np.full((1, 3), 23.0), np.full((1, 3), 3.0), f[None])
+    x = np.asarray(roll.tau, float)[0, 0]
+    assert x[-1] / 0.5 == pytest.approx(inside, rel=0.05)
+    pull = Trajectory(np.arange(f.size) * DT, f, x, None, "slow.csv")
+    assert not [h for h in data_checks(tree3, [pull]) if h.check == "scale"]
+
+
 # ---- the clean set and each corruption -------------------------------------------------------
 def test_clean_data_give_no_finding(tree, clean):
     assert _checks(tree, clean) == []

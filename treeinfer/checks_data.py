@@ -219,8 +219,8 @@ def data_checks(
                             name,
                             "scale",
                             f"displacement per newton is {c:.3g} m/N, {_ratio_text(r)} more than "
-                            f"the tree allows at the softest prior stiffness ({c_soft:.3g} m/N, "
-                            f"Kp at the prior box's lower bounds); it would fit if: {hint}",
+                            f"the most the tree allows over the prior box's stiffnesses "
+                            f"({c_soft:.3g} m/N); it would fit if: {hint}",
                         )
                     )
                 elif c < c_stiff / SCALE_WARN:
@@ -232,8 +232,8 @@ def data_checks(
                             name,
                             "scale",
                             f"displacement per newton is {c:.3g} m/N, {_ratio_text(r)} less than "
-                            f"the tree gives at the stiffest prior stiffness ({c_stiff:.3g} m/N, "
-                            "Kp at the prior box's upper bounds): the branch may be stiffer than "
+                            f"the least the tree gives over the prior box's stiffnesses "
+                            f"({c_stiff:.3g} m/N): the branch may be stiffer than "
                             "the prior box allows (widen inference.prior.kp), or displacement "
                             "is in km / force in mN?",
                         )

@@ -97,21 +97,33 @@ def static_compliance(
     Why not only the lever-arm formula: a soft joint sags under the branch's own weight, which
     moves the grasp point and changes its lever arms several-fold (tested against MuJoCo).
     """
+    m, sid = _compliance_model(tree, grasp_fraction)
+    return _model_compliance(tree, m, sid, kp or {})
+
+
+def _compliance_model(tree: Tree, grasp_fraction: float | None):
+    """The tree's MuJoCo model (grasp site moved to ``grasp_fraction``) and the site's id."""
     import mujoco
 
     from .export import GRASP_SITE, to_mjmodel
 
-    settle_reference = _sim_attr("settle_reference")
-
-    kp = kp or {}
     m = to_mjmodel(tree)
-    for name, k in kp.items():
-        j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)
-        m.jnt_stiffness[j] = float(k)
     sid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, GRASP_SITE)
     if grasp_fraction is not None:
         gb = tree.branch(tree.grasp_branch)
         m.site_pos[sid] = np.array([float(grasp_fraction) * gb.length, 0.0, 0.0])
+    return m, sid
+
+
+def _model_compliance(tree: Tree, m, sid: int, kp: dict[str, float]) -> float:
+    """:func:`static_compliance` on a model from :func:`_compliance_model` (its joint
+    stiffnesses set to ``kp`` first)."""
+    import mujoco
+
+    settle_reference = _sim_attr("settle_reference")
+    for name, k in kp.items():
+        j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)
+        m.jnt_stiffness[j] = float(k)
     q0 = settle_reference(m)
     d = mujoco.MjData(m)
 
@@ -193,12 +205,36 @@ def simulation_cost_check(
     ]
 
 
+COMPLIANCE_DIAGONAL = 9  # points along the prior box's diagonal in compliance_range
+COMPLIANCE_CORNERS_UP_TO = 4  # inferred joints up to which every corner is evaluated too
+
+
 def compliance_range(tree: Tree, grasp_fraction: float | None = None) -> tuple[float, float]:
-    """(stiffest, softest) compliance in m/N over the prior box (all inferred Kp at the upper,
-    then at the lower bound)."""
-    hi = {n: tree.bounds[n].kp[1] for n in tree.inferred}
-    lo = {n: tree.bounds[n].kp[0] for n in tree.inferred}
-    return static_compliance(tree, hi, grasp_fraction), static_compliance(tree, lo, grasp_fraction)
+    """(least, most) quasi-static compliance in m/N over the prior box's stiffnesses: the
+    smallest and largest :func:`static_compliance` along the box's diagonal in log space (every
+    inferred Kp at the same fraction of its log range, :data:`COMPLIANCE_DIAGONAL` points) and,
+    up to :data:`COMPLIANCE_CORNERS_UP_TO` inferred joints, at every corner.
+
+    Why not the two ends alone: the compliance is not monotone in the stiffness. A soft joint
+    lets the branch sag until it hangs along gravity, where a downward pull has little lever
+    arm: on the three-branch example it is 0.016 m/N with every Kp at its lower bound (5), 0.110
+    at 23 and 0.009 at 500, so the ends missed the largest by 7x and data simulated from the
+    example's own model inside its box drew a false "displacement in cm?" warning."""
+    import itertools
+
+    names = list(tree.inferred)
+    lo = np.log([tree.bounds[n].kp[0] for n in names])
+    hi = np.log([tree.bounds[n].kp[1] for n in names])
+    points = [lo + f * (hi - lo) for f in np.linspace(0.0, 1.0, COMPLIANCE_DIAGONAL)]
+    if len(names) <= COMPLIANCE_CORNERS_UP_TO:
+        points += [np.where(bits, hi, lo) for bits in itertools.product((0, 1), repeat=len(names))]
+    m, sid = _compliance_model(tree, grasp_fraction)
+    values = [_model_compliance(tree, m, sid, dict(zip(names, np.exp(p)))) for p in points]
+    finite = [c for c in values if math.isfinite(c)]
+    if not finite:
+        return math.inf, math.inf
+    # an unstable pose somewhere in the box: no bound on how soft the grasp point can be
+    return min(finite), (max(finite) if len(finite) == len(values) else math.inf)
 
 
 def grasp_reach(tree: Tree, grasp_fraction: float | None = None) -> float:
