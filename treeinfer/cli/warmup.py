@@ -139,6 +139,9 @@ def run_warmup(args: argparse.Namespace) -> int:
     finally:
         shutil.rmtree(work, ignore_errors=True)
     s = stats.since(mark)
+    # the synthetic run's own report (its fit verdict, warnings) is printed above: say that only
+    # its programs are kept, so a fit warning on made-up data is not read as one about the tree
+    print("warmup: the synthetic run above is discarded; only its compiled programs are kept")
     slow = ", ".join(f"{n} {t:.1f} s" for n, t in s["compiled"][:5])
     print(
         f"compiled {s['xla_compiles']} programs in {s['compile_s']:.1f} s"
