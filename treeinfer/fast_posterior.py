@@ -4,9 +4,10 @@ importance sampling, no sampler iterations.
     result = fast_posterior(problem, n_particles=128)
     result.theta          # [P, D] posterior particles; result.ok says whether to trust them
 
-The steps, all through **one** jitted batched rollout of a fixed number K of parameter sets
+The steps, all through **one** jitted batched rollout of a fixed number of parameter sets
 (:class:`BatchEvaluator`; on a 2-core CPU each extra XLA program of the standard problem costs
-3-12 s to compile, more than the work it does):
+3-12 s to compile, more than the work it does). Its batch is K below on a CPU and an importance
+round's draws on an accelerator (:func:`default_chunk`: latency-bound there, so one run a round):
 
 1. **Screen**: the Boltzmann loss at ``n_screen`` Latin-hypercube points of the prior box (no
    gradients); the ``n_starts`` lowest are the starting points.
