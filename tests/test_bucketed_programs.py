@@ -162,7 +162,6 @@ def test_step_check_is_one_stored_program_for_any_step(tree, tmp_path, monkeypat
     from treeinfer.sim import _simulate
 
     monkeypatch.setenv("TREEINFER_JAX_CACHE", str(tmp_path))
-    accuracy._step_check_program.cache_clear()
     a = make_simulator(tree, obs_dt=0.01, substeps=4, backend=backend)
     b = make_simulator(tree, obs_dt=0.01, substeps=9, backend=backend)
     assert a.program_key(True) == b.program_key(True)
@@ -178,4 +177,3 @@ def test_step_check_is_one_stored_program_for_any_step(tree, tmp_path, monkeypat
         np.testing.assert_allclose(np.asarray(got_tau), np.asarray(want.tau), atol=1e-5 * scale)
     exports = list(tmp_path.rglob("*.jaxexport"))
     assert len(exports) == 1, exports  # b loaded a's program
-    accuracy._step_check_program.cache_clear()

@@ -205,6 +205,19 @@ def cached_program(fn, example_args, key: str):
     machine: the serialized ``jax.export`` of it is kept under :func:`export_path` and a later
     process deserializes it instead of tracing ``fn`` again. Falls back to a plain
     ``jax.jit(fn)`` when the cache is off, unwritable, or the program cannot be exported."""
+    import jax
+
+    exp = stored_export(fn, example_args, key)
+    return jax.jit(fn) if exp is None else jax.jit(exp.call)
+
+
+def stored_export(fn, example_args, key: str):
+    """The ``jax.export.Exported`` of ``jax.jit(fn)`` at the shapes and dtypes of
+    ``example_args`` (arrays, tracers or ``ShapeDtypeStruct``), read from :func:`export_path`
+    of ``key`` when a process stored it there, else exported now and stored; None when the
+    cache is off or the program cannot be exported. Calling ``.call`` of it inside a jitted
+    function inlines the stored program: the caller's jit keeps it in memory, and a new process
+    skips tracing ``fn``."""
     import os
 
     import jax
@@ -212,10 +225,10 @@ def cached_program(fn, example_args, key: str):
 
     path = export_path(key)
     if path is None:
-        return jax.jit(fn)
+        return None
     try:
         with open(path, "rb") as f:
-            return jax.jit(export.deserialize(bytearray(f.read())).call)
+            return export.deserialize(bytearray(f.read()))
     except Exception:  # noqa: BLE001 - missing, truncated or foreign: trace and write it anew
         pass
     try:
@@ -224,7 +237,7 @@ def cached_program(fn, example_args, key: str):
         exp = export.export(jax.jit(fn), disabled_checks=checks)(*specs)
         blob = exp.serialize()
     except Exception:  # noqa: BLE001 - a program export cannot take: trace it every time
-        return jax.jit(fn)
+        return None
     try:
         os.makedirs(os.path.dirname(path), exist_ok=True)
         tmp = f"{path}.{os.getpid()}.tmp"
@@ -233,4 +246,4 @@ def cached_program(fn, example_args, key: str):
         os.replace(tmp, path)
     except OSError:
         pass
-    return jax.jit(exp.call)
+    return exp

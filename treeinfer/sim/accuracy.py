@@ -32,7 +32,6 @@ import math
 import warnings
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError
@@ -88,38 +87,37 @@ def representative_forces(obs_dt: float, duration: float = 3.0, n: int = 8) -> n
     return profile_set("mixed", n=n, duration=duration, dt=obs_dt, seed=0)
 
 
+@functools.partial(jax.jit, static_argnums=(0, 6))
 def _rollout_tau(sim, kp, kd, forces, frac, dirs, grasp_branch, substeps):
     """``(tau, stable)`` of the check's rollouts with ``substeps`` (a traced int32) per
     observation; ``frac``, ``dirs`` may be None (the simulator's own grasp point, the pull
-    along gravity)."""
+    along gravity).
+
+    The rollout is a stored ``jax.export`` program keyed without the step
+    (:func:`treeinfer.startup.stored_export`, :meth:`~treeinfer.sim.Simulator.program_key`):
+    a new process on a new recording, whose step this check is about to choose, inlines it
+    instead of tracing the simulator (the Pallas kernel and the settle: 0.5-0.7 s of a GPU cold
+    start, BENCHMARKS.md) and loads its XLA program from the persistent cache; this jit keeps it
+    in memory for the process."""
+    from ..startup import stored_export
+
+    has = (frac is not None, dirs is not None)
     args = [a for a in (kp, kd, forces, frac, dirs, substeps) if a is not None]
-    shapes = tuple((tuple(np.shape(a)), str(jnp.result_type(a))) for a in args)
-    program = _step_check_program(sim, grasp_branch, frac is not None, dirs is not None, shapes)
-    return program(*args)
-
-
-@functools.lru_cache(maxsize=8)  # in this process; cached_program keeps it across processes
-def _step_check_program(sim, grasp_branch, has_frac: bool, has_dirs: bool, shapes):
-    """The check's rollout program, kept on disk as a serialized ``jax.export``
-    (:func:`treeinfer.startup.cached_program`) under a key without the step: a new process on
-    a new recording (whose step the check is about to choose) deserializes it instead of
-    tracing the simulator (the Pallas kernel and the settle: 0.5-1 s of a GPU cold start,
-    BENCHMARKS.md) and loads its XLA program from the persistent cache."""
-    from ..startup import cached_program
 
     def run(kp, kd, forces, *rest):
         rest = list(rest)
-        frac = rest.pop(0) if has_frac else None
-        dirs = rest.pop(0) if has_dirs else None
+        frac = rest.pop(0) if has[0] else None
+        dirs = rest.pop(0) if has[1] else None
         out = _simulate(
             sim, kp, kd, forces, frac, direction=dirs, grasp_branch=grasp_branch,
             substeps=rest[0],
         )  # fmt: skip
         return out.tau, out.stable
 
-    example = [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in shapes]
-    key = ("accuracy.step_check", sim.program_key(True), grasp_branch, has_frac, has_dirs, shapes)
-    return cached_program(run, example, repr(key))
+    shapes = tuple((tuple(a.shape), str(a.dtype)) for a in args)
+    key = ("accuracy.step_check", sim.program_key(True), grasp_branch, has, shapes)
+    exported = stored_export(run, args, repr(key))
+    return run(*args) if exported is None else exported.call(*args)
 
 
 def _bucketed(forces: np.ndarray, frac, dirs, gb):
