@@ -485,7 +485,8 @@ def fast_posterior(
         proposal gives exact weights, the fit only has to place it near the mode. ``"auto"``:
         the step that is merely stable (``sim.step_info["stability_substeps"]``) when it is
         coarser than the simulator's and the rollout program takes the step as an argument
-        (:class:`BatchEvaluator` ``traced``; not the Pallas kernel), else the simulator's own;
+        (:class:`BatchEvaluator` ``traced``; the Pallas kernel only with
+        :data:`treeinfer.sim.pallas.TRACED_SUBSTEPS`, the default), else the simulator's own;
         None: the simulator's own everywhere.
       polish_iterations: LM iterations at the accurate step from the coarse fit's mode (0:
         none; each costs one program run).
@@ -636,7 +637,7 @@ def resolve_coarse_substeps(ev: BatchEvaluator, coarse) -> int:
     if coarse != fine and not ev.traced:
         raise ConfigError(
             "coarse_substeps: this rollout program runs only the simulator's own step "
-            f"({fine} substeps; the Pallas kernel)"
+            f"({fine} substeps; the Pallas kernel with TREEINFER_PALLAS_TRACED_SUBSTEPS=off)"
         )
     return int(coarse)
 
