@@ -45,7 +45,8 @@ A new data set of a bucket compiles nothing on the CPU's ``--init importance`` p
 
 A new recording also traces nothing on the GPU's importance path: the step check's rollout
 program and the importance program are kept as ``jax.export`` artifacts keyed without the step
-(:func:`cached_program`, :meth:`treeinfer.sim.Simulator.program_key`), so only 3 programs load
+(:func:`cached_program` for the importance program, :func:`stored_export` inlined by the
+step check's jit; :meth:`treeinfer.sim.Simulator.program_key`), so only 3 programs load
 from the persistent cache (BENCHMARKS.md, "H100: a new recording in under 3 s").
 
 ``treeinfer warmup`` fills the cache for a bucket from synthetic data before the first recording.

@@ -121,15 +121,15 @@ class Simulator:
         return h.hexdigest()
 
     def program_key(self, traced_substeps: bool) -> str:
-        """The simulator's part of a persistent program's key (:func:`treeinfer.startup.
-        cached_program`): its content without ``step_info`` (how its step was chosen: metadata
-        that differs between data sets whose accuracy-controlled step came out the same). A
-        program that takes the substep count as an argument (``traced_substeps``) never reads
-        the step (``substeps`` and the model's timestep: the fused pull and the Pallas kernel
-        divide ``obs_dt`` by the traced count), so its key leaves the step out too, and a data
-        set whose accurate step differs loads the program traced for an earlier one instead of
-        tracing the simulator again (about 1 s on a GPU, BENCHMARKS.md). MJX reads the model's
-        timestep, so its key keeps it."""
+        """The simulator's part of a persistent program's key (``treeinfer.startup``'s
+        ``cached_program`` and ``stored_export``): its content without ``step_info`` (how its
+        step was chosen: metadata that differs between data sets whose accuracy-controlled
+        step came out the same). A program that takes the substep count as an argument
+        (``traced_substeps``) never reads the step (``substeps`` and the model's timestep: the
+        fused pull and the Pallas kernel divide ``obs_dt`` by the traced count), so its key
+        leaves the step out too, and a data set whose accurate step differs loads the program
+        traced for an earlier one instead of tracing the simulator again (about 1 s on a GPU,
+        BENCHMARKS.md). MJX reads the model's timestep, so its key keeps it."""
         if not traced_substeps or self.backend == "mjx":
             return dataclasses.replace(self, step_info={}).fingerprint
         opt = self.mj_model.opt
