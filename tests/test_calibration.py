@@ -121,6 +121,7 @@ def test_config_checks():
 
 
 @pytest.mark.parametrize("sampler", ["smc", "mh"])
+@pytest.mark.slow  # an SBC study, however tiny
 def test_tiny_tree_end_to_end(tmp_path, sampler):
     from treeinfer.tree import load_tree
 

@@ -57,6 +57,7 @@ def _infer(data: Path, out: Path, cache: Path, report: Path) -> dict:
     return _run(args, cache, report)
 
 
+@pytest.mark.slow  # fresh processes that run infer
 def test_a_new_data_set_of_the_bucket_compiles_nothing(data, tmp_path):
     cache = tmp_path / "cache"
     a = _infer(data["a"], tmp_path / "run_a", cache, tmp_path / "a.json")
@@ -73,6 +74,7 @@ def test_a_new_data_set_of_the_bucket_compiles_nothing(data, tmp_path):
     assert b["cache_hits"] > 10 and b["xla_compiles"] == 0, b["compiled"]
 
 
+@pytest.mark.slow  # fresh processes that run infer
 def test_warmup_fills_the_cache_for_a_field_run(data, tmp_path):
     cache = tmp_path / "cache"
     r = subprocess.run(

@@ -215,6 +215,7 @@ def baseline_run(tmp_path_factory, cache):
     return out, run_study(baselines, out, cache, "--samplers", "nnsvgd,svgd")
 
 
+@pytest.mark.slow  # a study script end to end (several minutes cold)
 def test_baselines(baseline_run):
     out, r = baseline_run
     check_folder(
@@ -230,6 +231,7 @@ def test_baselines(baseline_run):
     assert inf["n_particles"] == 6 and inf["n_iterations"] == 3 and not inf["from_cache"]
 
 
+@pytest.mark.slow  # a study script end to end (several minutes cold)
 def test_nn_prior_reuses_the_baselines_posteriors(baseline_run, tmp_path, cache):
     r = run_study(nn_prior, tmp_path, cache)
     check_folder(r, tmp_path, "nn_prior", {"pairs.png", "bands.png", "metrics.png"}, 2)
@@ -243,6 +245,7 @@ def test_nn_prior_reuses_the_baselines_posteriors(baseline_run, tmp_path, cache)
         assert c["metrics"]["posterior_nll"] == base[c["name"]]["metrics"]["posterior_nll"]
 
 
+@pytest.mark.slow  # a study script end to end (several minutes cold)
 def test_noise(baseline_run, tmp_path, cache):
     r = run_study(noise, tmp_path, cache)
     check_folder(r, tmp_path, "noise", {"bands.png", "metrics.png"}, 2)
@@ -256,6 +259,7 @@ def test_noise(baseline_run, tmp_path, cache):
     assert noisy["metrics_vs_clean_truth"]["ci_width"] == noisy["metrics"]["ci_width"]  # same bands
 
 
+@pytest.mark.slow  # a study script end to end (several minutes cold)
 def test_grasp_and_seed_reproducibility(baseline_run, tmp_path, cache):
     r = run_study(grasp, tmp_path / "a", cache)
     check_folder(r, tmp_path / "a", "grasp", {"bands.png", "metrics.png"}, 4)
@@ -270,6 +274,7 @@ def test_grasp_and_seed_reproducibility(baseline_run, tmp_path, cache):
         assert c1["metrics"]["parameters"] == c2["metrics"]["parameters"]
 
 
+@pytest.mark.slow  # a study script end to end (several minutes cold)
 def test_design_study_tiny(tmp_path):
     """experiments/design_study.py end to end at --size tiny: every arm of every seed gets a
     posterior and a held-out band, the summary states each target, and --resummarise rebuilds

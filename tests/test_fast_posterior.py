@@ -186,6 +186,7 @@ def _cli(capsys, *argv):
     return rc, capsys.readouterr().err
 
 
+@pytest.mark.slow  # a whole `treeinfer infer` run: 2 min on the loaded 2-core box
 def test_cli_infer_init_importance(tmp_path, capsys, monkeypatch):
     """``infer --init importance``: the importance draws are the run's posterior (zero
     iterations, the stop reason with k_hat and the ESS) and predict/evaluate read the folder;

@@ -3,7 +3,7 @@
 Every generated input must give either a correct load / a successful command, or a clear
 user error (TreeFileError / exit code 2 with an ``error:`` line) — never another exception,
 a traceback or a partial output. ``TREEINFER_FUZZ_EXAMPLES`` raises the example count for a
-long fuzz run (see the README's Troubleshooting section)."""
+long fuzz run (see docs/troubleshooting.md, "Robustness tests")."""
 
 from __future__ import annotations
 

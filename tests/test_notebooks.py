@@ -57,6 +57,7 @@ def test_notebooks_are_stored_without_outputs():
         ), path
 
 
+@pytest.mark.slow  # compiles the sampler in a notebook kernel
 def test_walkthrough_runs(monkeypatch):
     nb = execute("walkthrough.ipynb", monkeypatch, TREEINFER_NOTEBOOK_SIZE="tiny")
     text = outputs_text(nb)

@@ -53,7 +53,11 @@ _COMMON.add_argument(
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keep the description/epilog layout and show defaults (where they are not None)."""
+    """Keep the description/epilog layout and show defaults (where they are not None); a fixed
+    width so that --help reads the same in any terminal (and its line budget can be tested)."""
+
+    def __init__(self, prog, indent_increment=2, max_help_position=30, width=_WIDTH):
+        super().__init__(prog, indent_increment, max_help_position, width)
 
     def _get_help_string(self, action):
         d = action.default
@@ -74,6 +78,68 @@ def add_command_parser(
         parents=[_COMMON],
         formatter_class=_Formatter,
     )
+
+
+EXPERT_HEADING = "expert options"
+
+# What `treeinfer COMMAND --help` shows first, per command: the options of the everyday job; the
+# rest go under EXPERT_HEADING (see group_options). Every option keeps working either way.
+COMMON_OPTIONS: dict[str, tuple[str, ...]] = {
+    "tree": ("--out", "--kind", "--from", "--model", "--grasp", "--grasp-fraction", "--levels",
+             "--kp-bounds", "--kd-bounds", "--mjcf", "--urdf", "--force"),
+    "simulate": ("--tree", "--out", "--n-traj", "--seed", "--params", "--params-json",
+                 "--duration", "--dt", "--profiles", "--noise-displacement", "--noise-force",
+                 "--force"),
+    "import-bag": ("--out", "--force-topic", "--pose-topic", "--direction", "--grasp-branch",
+                   "--grasp-fraction", "--grasp-distance", "--force"),
+    "import-csv": ("--out", "--time-column", "--force-column", "--displacement-column",
+                   "--units", "--dt", "--tare", "--trim", "--grasp-branch", "--grasp-fraction",
+                   "--grasp-distance", "--direction", "--force"),
+    "infer": ("--tree", "--data", "--out", "--likelihood", "--noise-displacement", "--sampler",
+              "--particles", "--iterations", "--seed", "--resume", "--force", "--allow-poor-fit"),
+    "predict": ("--run", "--force-csv", "--profile", "--duration", "--dt", "--grasp-fraction",
+                "--out", "--force"),
+    "evaluate": ("--run", "--data", "--out", "--kfold", "--grasp-fraction", "--force"),
+    "demo": ("--out", "--quick", "--seed", "--likelihood", "--force"),
+    "suggest": ("--run", "--out", "--grasp-fractions", "--peak-forces", "--target",
+                "--parameter", "--top", "--force"),
+    "calibrate": ("--tree", "--out", "--datasets", "--likelihood", "--noise-displacement",
+                  "--noise-force", "--sampler", "--particles", "--iterations", "--n-traj",
+                  "--seed", "--force"),
+    "warmup": ("--tree", "--trajectories", "--steps", "--dt"),
+}  # fmt: skip
+
+
+def group_options(p: argparse.ArgumentParser, common: Sequence[str]) -> argparse.ArgumentParser:
+    """Show the options named in ``common`` first ("common options") and every other option
+    under the ``expert options`` heading, with a usage line that lists only the common ones.
+
+    Why after the fact rather than ``add_argument_group`` at each call: the commands' option
+    definitions (and the shared ``add_*_options`` helpers) stay exactly as they are, so parsing,
+    defaults and option names cannot change, and one list per command says what a newcomer sees
+    first. It moves actions between argparse's groups (``_group_actions``, the attribute argparse
+    has used for this since Python 3.2); tests/test_cli_help.py checks the result for every
+    command, so a change in argparse shows there."""
+    wanted = set(common)
+    known = {s for a in p._actions for s in a.option_strings}
+    unknown = wanted - known
+    if unknown:  # a typo here would silently demote an option
+        raise ValueError(f"{p.prog}: no such options {sorted(unknown)}")
+    optionals = p._optionals
+    optionals.title = "common options"
+    expert = p.add_argument_group(EXPERT_HEADING)
+    for action in list(optionals._group_actions):
+        if action.option_strings and not wanted & set(action.option_strings):
+            if "-h" in action.option_strings or "--debug" in action.option_strings:
+                continue  # -h and --debug stay with the common options
+            optionals._group_actions.remove(action)
+            expert._group_actions.append(action)
+    shown = [a for a in p._actions if not a.option_strings or wanted & set(a.option_strings)]
+    formatter = p._get_formatter()
+    formatter.add_usage(None, shown, [])
+    usage = formatter.format_help().strip().removeprefix("usage:").strip()
+    p.usage = usage.replace("%", "%%") + " [expert options]"
+    return p
 
 
 def _floats(text: str) -> list[float]:
@@ -291,10 +357,9 @@ def add_grasp_point_options(p: argparse.ArgumentParser) -> None:
 
 
 BACKEND_HELP = (
-    "simulator: 'fused' (MuJoCo's implicitfast step for hinge trees fused into a few XLA "
-    "kernels; the CPU default for every tree treeinfer builds), 'pallas' (the same step as "
-    "one GPU kernel per block of rollouts; the GPU default), 'mjx' (mujoco.mjx.step) or "
-    "'auto' (pallas on a GPU, else fused, where the model allows; else mjx; default)"
+    "simulator: 'auto' (pallas on a GPU, else fused, where the model allows; else mjx), "
+    "'fused' (MuJoCo's implicitfast hinge-tree step as fused XLA), 'pallas' (one GPU kernel) "
+    "or 'mjx'"
 )
 
 
@@ -312,8 +377,8 @@ def add_simulation_options(p: argparse.ArgumentParser, default_note: str = "") -
         "--force-interp",
         choices=("linear", "hold"),
         default=None,
-        help="force between samples: 'linear' (interpolated, the default: a sampled force is "
-        "continuous) or 'hold' (each sample held until the next)" + default_note,
+        help="force between samples: 'linear' (default) or 'hold' (each sample held until the "
+        "next)" + default_note,
     )
     p.add_argument(
         "--max-sim-dt",
@@ -327,9 +392,8 @@ def add_simulation_options(p: argparse.ArgumentParser, default_note: str = "") -
         type=float,
         default=None,
         metavar="M",
-        help="m, accuracy target of the simulated displacement: the step is refined until its "
-        "estimated error on the force profiles, over the prior box, is below it (default 1e-4)"
-        + default_note,
+        help="m, accuracy target of the simulated displacement; the step is refined until its "
+        "estimated error is below it (default 1e-4)" + default_note,
     )
 
 
@@ -389,8 +453,7 @@ def add_model_options(p: argparse.ArgumentParser, run: bool = False) -> None:
             "--model",
             type=Path,
             metavar="FILE",
-            help="where the run's own URDF/MJCF model lies now, if it moved (its sha256 must be "
-            "the recorded one); default: the file recorded in the run",
+            help="where the run's own URDF/MJCF model lies now, if it moved (same sha256)",
         )
         return
     p.add_argument(
@@ -398,16 +461,14 @@ def add_model_options(p: argparse.ArgumentParser, run: bool = False) -> None:
         type=Path,
         metavar="FILE",
         help="simulate your own URDF (.urdf) or MJCF (.xml) model instead of the tree's "
-        "cylinders; the tree file names the inferred joints, the grasped branch and the "
-        "grasp point, and its model: section maps branch names to joint/link names",
+        "cylinders (the tree file's model: section maps branches to joints and links)",
     )
     p.add_argument(
         "--repair-inertia",
         choices=("geometry", "floor"),
         default=None,
-        help="repair links with zero or non-positive-definite inertia (as in files rounded to a "
-        "few decimals): 'geometry' (solid cylinder of the link's cylinder geom) or 'floor' "
-        "(eigenvalues raised to a 1 cm radius of gyration); reported and recorded",
+        help="repair links with zero or non-positive-definite inertia: 'geometry' (a solid "
+        "cylinder of the link's geom) or 'floor' (a 1 cm radius of gyration); reported",
     )
 
 

@@ -29,10 +29,12 @@ from ..errors import TreeinferError
 from .common import (
     _WIDTH,
     COMMAND_HELP,
+    COMMON_OPTIONS,
     EXIT_INTERNAL_ERROR,
     EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_USER_ERROR,
+    group_options,
 )
 
 
@@ -79,7 +81,7 @@ a typical sim-to-sim session:
       --params-json data/train/true_params.json
   treeinfer infer --tree tree.yaml --data data/train --out run
   treeinfer evaluate --run run --data data/test --out eval
-  treeinfer predict --run run --force data/test/traj_000.csv --out pred
+  treeinfer predict --run run --force-csv data/test/traj_000.csv --out pred
 
 or all of it on the built-in example: treeinfer demo
 
@@ -122,6 +124,7 @@ def build_parser(only: str | None = None, lazy: bool = False) -> argparse.Argume
         p = cmd.configure(sub)
         if p.prog.split()[-1] != name:  # the table's key is the command's name
             raise RuntimeError(f"COMMANDS['{name}'] configures a parser named '{p.prog}'")
+        group_options(p, COMMON_OPTIONS[name])  # common options first, the rest under a heading
         p.set_defaults(_run=cmd.run)
     return parser
 
