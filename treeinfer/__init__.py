@@ -23,6 +23,7 @@ _EXPORTS = {
     "predict": "inference",
     "Problem": "inference",
     "Posterior": "inference",
+    "load_posterior": "posterior",
     "example_path": "examples",
 }
 _MODULES = {

@@ -30,6 +30,7 @@ from . import samplers as _samplers
 from .errors import ConfigError
 from .gradients import combine, combined_value_and_grad, jvp_combined_value_and_grad
 from .likelihood import DEFAULT_KT, check_kT, gains_from_theta, likelihood_terms
+from .posterior import Posterior, context_from_problem  # the result type of infer (issue 29)
 from .problem_priors import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA, box_prior, nn_inequality_prior
 from .program_cache import ProgramCache
 from .sim import Rollout, Simulator, make_simulator, simulate
@@ -423,31 +424,6 @@ def check_count(n, what: str, minimum: int = 1) -> int:
     return int(n)
 
 
-@dataclass(frozen=True, eq=False)
-class Posterior:
-    """Result of :func:`infer`.
-
-    Attributes:
-      theta: [P, D] final particles (log Kp, log Kd). kp, kd: [P, R] in natural units.
-      log_density: [P] at the final particles. labels: column labels of theta.
-      run: the sampler driver's :class:`~treeinfer.samplers.RunResult` (trace, state, settings).
-      settings: problem + sampler settings, enough to reproduce the run.
-    """
-
-    theta: np.ndarray
-    kp: np.ndarray
-    kd: np.ndarray
-    log_density: np.ndarray
-    labels: tuple[str, ...]
-    run: Any
-    settings: dict
-
-    @property
-    def valid(self) -> np.ndarray:
-        """[P] particles with a finite log-density (their simulations were stable)."""
-        return np.isfinite(self.log_density)
-
-
 def _algorithm(problem: Problem, name: str, options: dict, cache):
     """``problem.sampler(name, **options)``, kept in ``cache`` (a ProgramCache or None) per
     (problem object, name, options): a later run of the same problem with that cache gets the
@@ -545,7 +521,16 @@ def infer(
         "seed": int(seed),
         "run": result.settings,
     }
-    return Posterior(theta, np.asarray(kp), np.asarray(kd), logp, problem.labels, result, settings)
+    return Posterior(
+        theta,
+        np.asarray(kp),
+        np.asarray(kd),
+        logp,
+        problem.labels,
+        result,
+        settings,
+        context_from_problem(problem, result),
+    )
 
 
 def predict(
