@@ -165,6 +165,7 @@ def plot_trace(
     if bw is not None:
         axes[-1].plot(it, bw, color=SAMPLE_COLOR, lw=1.2)
         axes[-1].set_yscale("log")
+        plain_log_ticks(axes[-1].yaxis)
         axes[-1].set_ylabel("kernel bandwidth", fontsize="small")
     axes[-1].set_xlabel("iteration")
     if title:

@@ -158,11 +158,12 @@ class Posterior:
 
         return {lab: unit_of(lab) for lab in self.labels}
 
-    def _rows(self) -> np.ndarray:
-        """The usable rows of theta [N, D], after checking the run may be sampled from."""
+    def _rows(self, check_fit: bool = True) -> np.ndarray:
+        """The usable rows of theta [N, D], after checking the run may be sampled from
+        (``check_fit=False``: figures and ArviZ data, which show a failed run too)."""
         ctx = self.context or PosteriorContext()
         where = f"{ctx.path}: " if ctx.path is not None else ""
-        if ctx.status == "poor_fit" and not ctx.allow_poor_fit:
+        if check_fit and ctx.status == "poor_fit" and not ctx.allow_poor_fit:
             why = "; ".join(ctx.reasons) or "see summary.json's 'fit'"
             raise PosteriorError(
                 f"{where}this run failed its fit check (poor_fit: {why}); its draws do not explain "

@@ -228,7 +228,7 @@ def posterior_inference_data(post: Posterior):
     ctx = post.context or PosteriorContext()
     chains = mcmc_chains(post) if post.method == "mcmc" else None
     if chains is None:
-        rows = post._rows()
+        rows = post._rows(check_fit=False)  # a failed run's data can still be inspected
         ld = np.asarray(post.log_density, float)[post.usable]
         chains = (rows[None], ld[None])
     return build_inference_data(
@@ -263,7 +263,7 @@ def pair_plot_of(post: Posterior, truth=None, **options):
     from .plot_posterior import pair_plot
 
     ctx = post.context or PosteriorContext()
-    nat = post.natural()
+    nat = natural_units(post._rows(check_fit=False), post.labels)  # a failed run's too
     d = len(post.labels)
     tr = ctx.truth if truth is None else truth
     if tr is not None:
