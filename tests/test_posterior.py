@@ -198,7 +198,7 @@ def test_figures_have_units_prior_box_and_truth(gauss, tmp_path):
     assert axes[0, 0].get_xscale() == "log"
     dot = [ln for ln in axes[3, 1].lines if ln.get_marker() == "o"]
     assert (dot[0].get_xdata()[0], dot[0].get_ydata()[0]) == (100.0, 1.0)
-    legend = [t.get_text() for t in axes[0, 3].get_legend().get_texts()]
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
     assert legend == ["truth", "prior box"]
     _title_inside(fig)
     written = save_figure(fig, tmp_path / "pairs.png", formats=("png", "pdf", "svg"))
@@ -281,6 +281,14 @@ def test_old_run_folder_loads_samples_and_predicts(tmp_path):
         post.predict(forces, grasp=("parent", 0.5))
     with pytest.raises(PosteriorError, match="an interrupted run"):
         treeinfer.load_posterior(root / "interrupted.partial")
+    # the four lines of docs/api_posterior.md, as written, on this folder
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "api_posterior.md").read_text()
+    code = doc.split("```python\n", 1)[1].split("```", 1)[0]
+    assert len(code.strip().splitlines()) == 4
+    scope = {}
+    exec(code.replace('"demo/run"', repr(str(root / "run"))), scope)
+    assert scope["draws"]["Kp[child]"].shape == (1000,) and scope["axes"].shape == (4, 4)
+    assert any(isinstance(p, Rectangle) for p in scope["axes"][1, 0].patches)
     summary = json.loads((root / "run" / "summary.json").read_text())
     summary["fit"] = {"status": "poor_fit", "reasons": ["misses the data"]}
     summary["status"] = "poor_fit"

@@ -47,9 +47,17 @@ def with_unit(label: str, unit: str | None) -> str:
 
 
 def plain_log_ticks(axis) -> None:
-    """Plain numbers (``300``, not ``3 x 10^2``) on a log ``axis`` (``ax.xaxis``/``ax.yaxis``);
-    minor ticks labelled only where a decade holds few of them (matplotlib's thresholds)."""
+    """Plain numbers (``300``, ``0.1``; not ``3 x 10^2``, ``1e-01``) on a log ``axis``
+    (``ax.xaxis``/``ax.yaxis``); minor ticks labelled only where a decade holds few of them
+    (matplotlib's thresholds)."""
     from matplotlib.ticker import LogFormatter
 
-    axis.set_major_formatter(LogFormatter(labelOnlyBase=False))
-    axis.set_minor_formatter(LogFormatter(labelOnlyBase=False, minor_thresholds=(1.5, 0.5)))
+    class Plain(LogFormatter):
+        def _num_to_string(self, x, vmin, vmax):  # where LogFormatter formats one number
+            return f"{x:g}"
+
+    axis.set_major_formatter(Plain(labelOnlyBase=False))
+    axis.set_minor_formatter(Plain(labelOnlyBase=False, minor_thresholds=(1.5, 0.5)))
+
+
+LOG_MIN_DECADES = 0.5  # a log axis narrower than this reads better (and ticks better) linear

@@ -11,6 +11,7 @@ from matplotlib.axes import Axes
 
 from ._plot_common import (
     GT_COLOR,
+    LOG_MIN_DECADES,
     PRIOR_COLOR,
     SET_COLORS,
     _new_axes,
@@ -153,6 +154,9 @@ def pair_plot(
     pad = np.where(hi > lo, 0.05 * (hi - lo), np.maximum(np.abs(lo) * 0.05, 1e-3))
     lo, hi = lo - pad, hi + pad
 
+    # a log scale only where the view spans a good part of a decade (ticks crowd otherwise);
+    # the histograms and KDEs stay in log10 of the values either way
+    log_scale = logs & (hi - lo >= LOG_MIN_DECADES)
     size = figsize or (max(4.5, 2.1 * D), max(4.5, 2.1 * D))
     fig, axes = _new_axes(D, D, figsize=size)
     multi = len(finite) > 1
@@ -201,12 +205,12 @@ def pair_plot(
             if j > i:
                 ax.set_visible(False)
                 continue
-            if logs[j]:
+            if log_scale[j]:
                 ax.set_xscale("log")
                 plain_log_ticks(ax.xaxis)
             ax.set_xlim(inv(lo[j], j), inv(hi[j], j))
             if j < i:
-                if logs[i]:
+                if log_scale[i]:
                     ax.set_yscale("log")
                     plain_log_ticks(ax.yaxis)
                 ax.set_ylim(inv(lo[i], i), inv(hi[i], i))
@@ -255,10 +259,8 @@ def pair_plot(
     if bt is not None and np.any(np.isfinite(bt)):
         handles.append(Patch(fill=False, ls="--", ec=PRIOR_COLOR))
         legend_names.append("prior box")
-    if handles and D > 1:
-        axes[0, D - 1].legend(handles, legend_names, loc="upper right", frameon=False)
-        axes[0, D - 1].set_visible(True)
-        axes[0, D - 1].axis("off")
+    if handles and D > 1:  # in the empty upper triangle
+        fig.legend(handles, legend_names, loc="upper right", frameon=False)
     elif handles:
         axes[0, 0].legend(handles, legend_names, loc="upper right", frameon=False, fontsize="small")
     if title:

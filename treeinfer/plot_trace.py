@@ -10,6 +10,7 @@ import numpy as np
 from ._plot_common import (
     BAND_COLOR,
     GT_COLOR,
+    LOG_MIN_DECADES,
     MEAN_COLOR,
     SAMPLE_COLOR,
     _new_axes,
@@ -150,7 +151,8 @@ def plot_trace(
         for p in range(0, x.shape[1], step)[:max_lines]:
             a.plot(it, x[:, p], color=SAMPLE_COLOR, lw=0.5, alpha=0.4)
         a.plot(it, med, color=MEAN_COLOR, lw=1.2)
-        if logs[j]:
+        span = np.log10(np.nanmax(hi) / np.nanmin(lo)) if logs[j] and np.any(lo > 0) else 0.0
+        if logs[j] and span >= LOG_MIN_DECADES:  # narrower: linear ticks read better
             a.set_yscale("log")
             plain_log_ticks(a.yaxis)
         a.set_ylabel(with_unit(labels[j], None if units is None else units[j]), fontsize="small")
