@@ -212,6 +212,8 @@ def test_figures_have_units_prior_box_and_truth(gauss, tmp_path):
     assert [ax.get_ylabel() for ax in axes[1:]] == [
         "Kp[a] [N m/rad]", "Kp[b] [N m/rad]", "Kd[a] [N m s/rad]", "Kd[b] [N m s/rad]"
     ]  # fmt: skip
+    written = post.save_figures(tmp_path / "figs", formats=("png", "svg"))
+    assert sorted(p.name for p in written) == ["pairs.png", "pairs.svg", "trace.png", "trace.svg"]
     lo, hi = axes[0].get_ylim()  # the plateau is shown, not flattened by the first iterations
     assert hi - lo < 100 and any("zoomed" in t.get_text() for t in axes[0].texts)
     _title_inside(fig)

@@ -28,69 +28,12 @@ box (``treeinfer demo --out demo`` writes ``demo/run``)::
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
-from .errors import PosteriorError
-
-LEVEL = 0.95
-
-
-class PosteriorContext(NamedTuple):
-    """What a posterior knows about the run that produced it (None where unknown).
-
-    tree, sim, model: the tree, its simulator at the data's time step, and the
-      :class:`treeinfer.static.Model` (None: the paper's dynamic model of [log Kp, log Kd]).
-    lower, upper: [D] the prior box in theta (log) units; NaN for columns without a box.
-    problem_settings: the problem's settings (likelihood, noise model, grasp fraction ...).
-    stable: [P] particles whose training rollouts were stable. truth: [G] the true gains in
-      natural units (a simulation's), G <= D. status / reasons: the run's fit verdict.
-    path: the run folder. trace: ``positions [n, P, D]``, ``log_density [n, P]``,
-      ``iterations [n]`` of the sampler. summary: summary.json. force_max: N, the largest
-      |force| of the training data (predictions beyond :data:`FORCE_MARGIN` times it are refused).
-    allow_poor_fit: sample from a run whose fit verdict is poor_fit anyway.
-    """
-
-    tree: Any = None
-    sim: Any = None
-    model: Any = None
-    lower: np.ndarray | None = None
-    upper: np.ndarray | None = None
-    problem_settings: dict | None = None
-    stable: np.ndarray | None = None
-    truth: np.ndarray | None = None
-    status: str | None = None
-    reasons: tuple[str, ...] = ()
-    path: Any = None
-    trace: dict | None = None
-    summary: dict | None = None
-    force_max: float | None = None
-    allow_poor_fit: bool = False
-
-
-def context_from_problem(problem, run=None) -> PosteriorContext:
-    """The context of a posterior sampled on ``problem`` (a :class:`treeinfer.inference.Problem`);
-    ``run``: the sampler's :class:`treeinfer.samplers.RunResult` (its trace)."""
-    obs = problem.obs
-    force = np.where(np.asarray(obs.mask, bool), np.abs(np.asarray(obs.force, float)), 0.0)
-    trace = None
-    if run is not None and getattr(run, "trace_positions", None) is not None:
-        trace = {
-            "positions": np.asarray(run.trace_positions),
-            "log_density": np.asarray(run.trace_logdensity),
-            "iterations": np.asarray(run.trace_iterations),
-        }
-    return PosteriorContext(
-        tree=problem.tree,
-        sim=problem.sim,
-        model=problem.model,
-        lower=np.asarray(problem.lower, float),
-        upper=np.asarray(problem.upper, float),
-        problem_settings=dict(problem.settings),
-        trace=trace,
-        force_max=float(force.max()) if force.size else None,
-    )
+from .errors import ConfigError, PosteriorError
+from .posterior_io import LEVEL, PosteriorContext, context_from_problem  # noqa: F401 -- API
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,9 +128,10 @@ class Posterior:
         ``rng``: a :class:`numpy.random.Generator` or a seed (None: fresh entropy). Draws are the
         usable equal-weight rows resampled with replacement (see the module docstring)."""
         from .gains import natural_units
-        from .inference import check_count
 
-        n = check_count(n, "n")
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ConfigError(f"n: must be an integer >= 1, got {n!r}")
+        n = int(n)
         rows = self._rows()
         gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
         picked = rows[gen.integers(0, len(rows), size=n)]
@@ -223,21 +167,17 @@ class Posterior:
         interval of summary.json (per-parameter KDE in log space, mapped back; monotone)."""
         import pandas as pd
 
-        from .bands import _check_level
-        from .runs.folder import posterior_table
+        from .bands import _check_level, predictive_interval
+        from .gains import natural_units
 
         _check_level(level)
         rows = self._rows()
         if len(rows) < 2:
             raise PosteriorError(f"interval: needs 2 usable particles, got {len(rows)}")
-        table = posterior_table(rows, self.labels, level=level)
-        df = pd.DataFrame(
-            {
-                "lower": [table[lab]["lower"] for lab in self.labels],
-                "upper": [table[lab]["upper"] for lab in self.labels],
-            },
-            index=list(self.labels),
-        )
+        # as summary.json's table (runs.folder.posterior_table): the KDE interval of log values
+        lo, hi, _ = (np.asarray(a, float) for a in predictive_interval(rows, level))
+        ends = natural_units(np.stack([lo, hi]), self.labels)  # monotone maps: ends map over
+        df = pd.DataFrame({"lower": ends[0], "upper": ends[1]}, index=list(self.labels))
         df.attrs["units"] = self.units
         df.attrs["level"] = float(level)
         return df
@@ -326,6 +266,24 @@ class Posterior:
 
         return trace_plot_of(self, **options)
 
+    def save_figures(self, folder, formats=("png",)) -> list:
+        """Write ``pairs`` and (with a sampler trace) ``trace`` into ``folder`` in every format
+        of ``formats`` (``png``, ``pdf``, ``svg``); returns the paths written."""
+        from pathlib import Path
+
+        from .plots import save_figure
+
+        folder = Path(folder)
+        fig, _ = self.pair_plot()
+        written = save_figure(fig, folder / "pairs.png", formats=formats)
+        has_trace = (self.context is not None and self.context.trace is not None) or getattr(
+            self.run, "trace_positions", None
+        ) is not None
+        if has_trace:
+            fig, _ = self.plot_trace()
+            written += save_figure(fig, folder / "trace.png", formats=formats)
+        return written
+
     def __repr__(self) -> str:
         ctx = self.context or PosteriorContext()
         where = f", run={str(ctx.path)!r}" if ctx.path is not None else ""
@@ -336,19 +294,4 @@ class Posterior:
         )
 
 
-def load_posterior(
-    path, *, allow_poor_fit: bool = False, allow_modified: bool = False, cache=None
-) -> Posterior:
-    """The :class:`Posterior` of a run folder (``treeinfer infer --out RUN``, ``demo/run``).
-
-    Checks the folder's checksums (``allow_modified`` to accept edited files, noted in
-    ``context.summary``), refuses an interrupted run (``RUN.partial``: resume it first), and
-    keeps a ``poor_fit`` run loadable for inspection (figures, :meth:`Posterior.diagnostics`)
-    while :meth:`Posterior.sample` and friends refuse it unless ``allow_poor_fit``. Folders
-    written before posterior.nc held natural units load the same (from trace.npz)."""
-    from .posterior_io import load_run_posterior
-
-    return load_run_posterior(path, allow_poor_fit, allow_modified, cache)
-
-
-__all__ = ["Posterior", "PosteriorContext", "context_from_problem", "load_posterior"]
+__all__ = ["Posterior", "PosteriorContext", "context_from_problem"]

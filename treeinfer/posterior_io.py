@@ -1,5 +1,6 @@
-"""The :class:`treeinfer.posterior.Posterior` read from a run folder, turned into ArviZ data
-(natural units with units and the prior box as attributes), and drawn (pair plot, trace).
+"""What :class:`treeinfer.posterior.Posterior` knows about its run (:class:`PosteriorContext`),
+its ArviZ data (natural units with units and the prior box as attributes) and its figures (pair
+plot, trace). Below :mod:`treeinfer.posterior`: it takes the posterior as an argument.
 
 ArviZ is reached only through :func:`_arviz_from_dict`, :func:`_arviz_summary` and
 :func:`_arviz_rhat_ess` (one seam each), so the package's adapter module replaces them in one place.
@@ -10,12 +11,22 @@ from __future__ import annotations
 import json
 import math
 import warnings
-from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from .errors import ConfigError, PosteriorError
-from .posterior import LEVEL, Posterior, PosteriorContext
+
+UNITS = {
+    "Kp": "N m/rad",
+    "Kd": "N m s/rad",
+    "sigma_x": "m",
+    "sigma_c": "m",
+    "rho": "",
+    "Kp_scale": "N m/rad",  # a taper tie's scale (treeinfer.static.tied)
+    "Kp_taper_ratio": "",  # a soft tie's Kp_j / (scale * taper_j)
+}
+
 
 DIAGNOSTICS_NOTE = {
     "mcmc": "R-hat and ESS over every chain's post-warm-up draws (rank-normalised split R-hat, "
@@ -29,10 +40,67 @@ DIAGNOSTICS_NOTE = {
 }
 
 
+LEVEL = 0.95
+
+
+class PosteriorContext(NamedTuple):
+    """What a posterior knows about the run that produced it (None where unknown).
+
+    tree, sim, model: the tree, its simulator at the data's time step, and the
+      :class:`treeinfer.static.Model` (None: the paper's dynamic model of [log Kp, log Kd]).
+    lower, upper: [D] the prior box in theta (log) units; NaN for columns without a box.
+    problem_settings: the problem's settings (likelihood, noise model, grasp fraction ...).
+    stable: [P] particles whose training rollouts were stable. truth: [G] the true gains in
+      natural units (a simulation's), G <= D. status / reasons: the run's fit verdict.
+    path: the run folder. trace: ``positions [n, P, D]``, ``log_density [n, P]``,
+      ``iterations [n]`` of the sampler. summary: summary.json. force_max: N, the largest
+      |force| of the training data (predictions beyond :data:`FORCE_MARGIN` times it are refused).
+    allow_poor_fit: sample from a run whose fit verdict is poor_fit anyway.
+    """
+
+    tree: Any = None
+    sim: Any = None
+    model: Any = None
+    lower: np.ndarray | None = None
+    upper: np.ndarray | None = None
+    problem_settings: dict | None = None
+    stable: np.ndarray | None = None
+    truth: np.ndarray | None = None
+    status: str | None = None
+    reasons: tuple[str, ...] = ()
+    path: Any = None
+    trace: dict | None = None
+    summary: dict | None = None
+    force_max: float | None = None
+    allow_poor_fit: bool = False
+
+
+def context_from_problem(problem, run=None) -> PosteriorContext:
+    """The context of a posterior sampled on ``problem`` (a :class:`treeinfer.inference.Problem`);
+    ``run``: the sampler's :class:`treeinfer.samplers.RunResult` (its trace)."""
+    obs = problem.obs
+    force = np.where(np.asarray(obs.mask, bool), np.abs(np.asarray(obs.force, float)), 0.0)
+    trace = None
+    if run is not None and getattr(run, "trace_positions", None) is not None:
+        trace = {
+            "positions": np.asarray(run.trace_positions),
+            "log_density": np.asarray(run.trace_logdensity),
+            "iterations": np.asarray(run.trace_iterations),
+        }
+    return PosteriorContext(
+        tree=problem.tree,
+        sim=problem.sim,
+        model=problem.model,
+        lower=np.asarray(problem.lower, float),
+        upper=np.asarray(problem.upper, float),
+        problem_settings=dict(problem.settings),
+        trace=trace,
+        force_max=float(force.max()) if force.size else None,
+    )
+
+
 def unit_of(label: str) -> str:
     """The natural unit of a theta column label (``Kp[branch]`` -> ``N m/rad``)."""
-    from .runs.folder import UNITS
-
     return UNITS.get(label.split("[")[0], "")
 
 
@@ -195,7 +263,7 @@ def run_attrs(problem_settings: dict | None, summary: dict | None = None) -> dic
     return out
 
 
-def mcmc_chains(post: Posterior):
+def mcmc_chains(post):
     """``(chains [C, S, D], lp [C, S])``: every MCMC chain after the run's warm-up, thinned as
     its summaries (``settings["mcmc_draws"]``; else the first half dropped), or None."""
     ctx = post.context
@@ -223,7 +291,7 @@ def rhat_ess(chains: np.ndarray, labels) -> dict:
     }
 
 
-def posterior_inference_data(post: Posterior):
+def posterior_inference_data(post):
     """:meth:`Posterior.to_arviz`."""
     ctx = post.context or PosteriorContext()
     chains = mcmc_chains(post) if post.method == "mcmc" else None
@@ -243,7 +311,7 @@ def posterior_inference_data(post: Posterior):
     )
 
 
-def arviz_summary(post: Posterior, level: float = LEVEL):
+def arviz_summary(post, level: float = LEVEL):
     """:meth:`Posterior.summary`: ArviZ's table with a ``unit`` column."""
     idata = posterior_inference_data(post)
     df = _arviz_summary(idata, "all" if post.method == "mcmc" else "stats", level)
@@ -252,12 +320,12 @@ def arviz_summary(post: Posterior, level: float = LEVEL):
 
 
 # ==== figures =====================================================================================
-def _title(post: Posterior, n: int) -> str:
+def _title(post, n: int) -> str:
     what = {"mcmc": "post-warm-up MCMC draws", "importance": "importance-resampled particles"}
     return f"{post.sampler} posterior: {n} {what.get(post.method, 'particles')}"
 
 
-def pair_plot_of(post: Posterior, truth=None, **options):
+def pair_plot_of(post, truth=None, **options):
     """:meth:`Posterior.pair_plot`."""
     from .gains import natural_units
     from .plot_posterior import pair_plot
@@ -286,7 +354,7 @@ def pair_plot_of(post: Posterior, truth=None, **options):
     )
 
 
-def trace_plot_of(post: Posterior, **options):
+def trace_plot_of(post, **options):
     """:meth:`Posterior.plot_trace`."""
     from .gains import natural_units
     from .plot_posterior import plot_trace
@@ -317,120 +385,4 @@ def trace_plot_of(post: Posterior, **options):
         units=[unit_of(lab) for lab in post.labels],
         warmup=warm,
         **options,
-    )
-
-
-# ==== loading a run folder ========================================================================
-def _theta_box(run) -> tuple[np.ndarray, np.ndarray]:
-    """The prior box of a loaded run in theta units, NaN for the noise columns (their box is
-    the likelihood's, not recorded)."""
-    d = len(run.labels)
-    if run.model is not None:
-        lo, hi = (
-            np.asarray(run.model.layout.lower, float),
-            np.asarray(run.model.layout.upper, float),
-        )
-    else:
-        blo, bhi = run.tree.bounds_array()
-        lo, hi = np.log(blo), np.log(bhi)
-    pad = np.full(d - len(lo), np.nan)
-    return np.concatenate([lo, pad]), np.concatenate([hi, pad])
-
-
-def _force_max(run) -> float | None:
-    """N, the largest |force| of the run's training data: summary.json's record, else the data
-    files named in config.json (older folders) when they are still there, else None."""
-    v = run.summary.get("training_force_max_N")
-    if isinstance(v, (int, float)) and math.isfinite(v) and v > 0:
-        return float(v)
-    from .trajectories import read_trajectory
-
-    data = run.config.get("data") or {}
-    peak = 0.0
-    try:
-        for f in data.get("files", []):
-            peak = max(
-                peak, float(np.max(np.abs(read_trajectory(Path(data["dir"]) / f["name"]).force)))
-            )
-    except Exception:  # noqa: BLE001 - the data moved or changed: no force check, not an error
-        return None
-    return peak or None
-
-
-def _truth(run) -> np.ndarray | None:
-    """The true gains (natural units) of a simulation's run, from summary.json."""
-    t = run.summary.get("truth")
-    if not isinstance(t, dict) or not t:
-        return None
-    vals = []
-    for lab in run.labels:
-        if lab not in t:
-            break
-        vals.append(float(t[lab]["truth"]))
-    return np.asarray(vals) if vals else None
-
-
-def load_run_posterior(path, allow_poor_fit=False, allow_modified=False, cache=None) -> Posterior:
-    """:func:`treeinfer.posterior.load_posterior`."""
-    from .gains import gains_from_theta
-    from .integrity import load_npz
-    from .runs.checkpoint import PARTIAL_SUFFIX
-    from .runs.folder import load_run
-
-    path = Path(path)
-    if path.name.endswith(PARTIAL_SUFFIX):
-        run_dir = path.with_name(path.name[: -len(PARTIAL_SUFFIX)])
-        raise PosteriorError(
-            f"{path}: an interrupted run (a checkpoint, no posterior yet); continue it with "
-            f"`treeinfer infer --resume {run_dir}` and load {run_dir}"
-        )
-    run = load_run(path, cache, allow_modified=allow_modified)
-    z = load_npz(path / "trace.npz", "trace file")
-    trace = {
-        "positions": np.asarray(z["positions"]),
-        "log_density": np.asarray(z["log_density"]),
-        "iterations": np.asarray(z["iterations"]),
-    }
-    config, summary = run.config, run.summary
-    settings = dict(config.get("posterior_settings") or {})
-    settings.setdefault("sampler", config["options"]["sampler"])
-    if summary.get("diagnostics_kind") == "importance":
-        settings["sampler"] = "importance"
-    theta = np.asarray(run.theta)
-    if run.model is not None:
-        kp, kd = run.model.layout.gains(theta)
-    else:
-        kp, kd = gains_from_theta(theta, run.tree.n_inferred)
-    lower, upper = _theta_box(run)
-    fit = summary.get("fit") or {}
-    ctx = PosteriorContext(
-        tree=run.tree,
-        sim=run.sim,
-        model=run.model,
-        lower=lower,
-        upper=upper,
-        problem_settings=dict(config.get("problem") or {}),
-        stable=np.asarray(run.stable, bool),
-        truth=_truth(run),
-        status=summary.get("status") or fit.get("status"),
-        reasons=tuple(str(r) for r in fit.get("reasons", [])),
-        path=path,
-        trace=trace,
-        summary={**summary, "integrity_notes": list(run.notes)} if run.notes else summary,
-        force_max=_force_max(run),
-        allow_poor_fit=bool(allow_poor_fit),
-    )
-    if run.grasp_fraction is not None:  # the run's --grasp-fraction: predictions default to it
-        ctx = ctx._replace(
-            problem_settings={**ctx.problem_settings, "grasp_fraction": run.grasp_fraction}
-        )
-    return Posterior(
-        theta,
-        np.asarray(kp),
-        np.asarray(kd),
-        np.asarray(run.log_density),
-        tuple(run.labels),
-        None,
-        settings,
-        ctx,
     )

@@ -21,21 +21,12 @@ from .._io import (
 from ..errors import ConfigError
 from ..evaluation import LEVEL
 from ..jsonio import read_json, write_json
+from ..posterior_io import UNITS  # one table of units (moved there, issue 29)
 from ..samplers import sampler_spec
 from ..tree import Tree, dump_tree, load_tree
 from .cache import SimulatorCache, simulator_for
 from .checkpoint import _npz_bytes, partial_dir
 from .config import RUN_FORMAT
-
-UNITS = {
-    "Kp": "N m/rad",
-    "Kd": "N m s/rad",
-    "sigma_x": "m",
-    "sigma_c": "m",
-    "rho": "",
-    "Kp_scale": "N m/rad",  # a taper tie's scale (treeinfer.static.tied)
-    "Kp_taper_ratio": "",  # a soft tie's Kp_j / (scale * taper_j)
-}
 
 
 # ==== summaries ===================================================================================
