@@ -281,8 +281,9 @@ def test_old_run_folder_loads_samples_and_predicts(tmp_path):
         post.predict(forces, grasp=0.0)
     with pytest.raises(PosteriorError, match="'parent' is not where"):
         post.predict(forces, grasp=("parent", 0.5))
-    with pytest.raises(PosteriorError, match="an interrupted run"):
-        treeinfer.load_posterior(root / "interrupted.partial")
+    for where in ("interrupted.partial", "interrupted"):  # the checkpoint, or the run it waits for
+        with pytest.raises(PosteriorError, match="an interrupted run.*--resume"):
+            treeinfer.load_posterior(root / where)
     # the four lines of docs/api_posterior.md, as written, on this folder
     doc = (Path(__file__).resolve().parents[1] / "docs" / "api_posterior.md").read_text()
     code = doc.split("```python\n", 1)[1].split("```", 1)[0]
@@ -300,3 +301,38 @@ def test_old_run_folder_loads_samples_and_predicts(tmp_path):
     fig, _ = failed.pair_plot()  # a failed run can still be looked at ...
     with pytest.raises(PosteriorError, match="misses the data"):
         failed.sample(10)  # ... but not sampled from
+
+
+def test_infer_returns_the_posterior_object():
+    """The API path: ``treeinfer.infer`` (MH, one chain per particle) returns the same object,
+    with its chains for ArviZ and its simulator for predictions."""
+    import jax.numpy as jnp
+
+    from treeinfer.examples import example_path
+    from treeinfer.sim import make_simulator, simulate
+    from treeinfer.trajectories import Trajectory
+    from treeinfer.tree import load_tree
+
+    tree = load_tree(example_path("two_branch"))
+    sim = make_simulator(tree, obs_dt=0.02)
+    forces = np.stack([np.minimum(np.arange(40) * 0.2, p) for p in (3.0, 5.0)])
+    r = simulate(sim, jnp.asarray([[40.0, 120.0]]), jnp.asarray([[0.5, 1.0]]), jnp.asarray(forces))
+    t = 0.02 * np.arange(40)
+    trajs = [
+        Trajectory(t, forces[b], np.asarray(r.tau[0, b], float), None, f"p{b}") for b in (0, 1)
+    ]
+    problem = treeinfer.make_problem(tree, trajs, kT=0.05, sim=sim, nn_prior=False)
+    post = treeinfer.infer(problem, sampler="mh", n_particles=4, n_iterations=9, progress=False)
+    assert isinstance(post, Posterior) and post.method == "mcmc"
+    assert post.context.force_max == pytest.approx(5.0)
+    idata = post.to_arviz()  # 10 trace entries (the start and 9 steps), the first half dropped
+    assert dict(idata.posterior.sizes) == {"chain": 4, "draw": 5, "joint": 2}
+    np.testing.assert_allclose(
+        idata.posterior["Kd"].values[2, -1], np.exp(post.run.trace_positions[-1, 2, 2:]), rtol=1e-6
+    )
+    assert set(post.diagnostics()["r_hat"]) == set(post.labels)
+    band = post.predict(forces[1])
+    ref = treeinfer.predict(problem, post.theta, forces[1][None])  # an independent rollout
+    np.testing.assert_allclose(band.draws, np.asarray(ref.tau)[:, 0], rtol=1e-5, atol=1e-9)
+    with pytest.raises(PosteriorError, match="largest force of the training data"):
+        post.predict(forces[1] * 2)

@@ -14,15 +14,13 @@ the CSVs says where the force acted and in which direction::
       push_low.csv:  {branch: stem, distance: 0.10, direction: horizontal}
       push_mid.csv:  {branch: stem, fraction: 0.6}
       push_high.csv: {branch: tip, fraction: 1.0, direction: [1, 0, 0]}
-      hold.csv:      {trimmed: {lead_in_samples: 40, tail_samples: 0, ends_with: loaded hold}}
 
 Per entry (every field optional, missing ones come from ``default``, then from the tree file):
 
 * ``branch``: the grasped branch's name.
 * ``fraction`` (0 < f <= 1, of the branch's length from its joint) **or** ``distance``
   (metres from the branch's joint, 0 < d <= length). Not both.
-* ``trimmed`` (written by ``import-csv --trim``): what was cut from the recording, for the
-  record; ``ends_with: loaded hold`` means its end was kept whole.
+* ``trimmed`` (by ``import-csv --trim``): what was cut, for the record (``ends_with``).
 * ``direction`` of the force the robot applies on the branch, in world coordinates:
   ``down`` (along gravity, the paper's pulls), ``horizontal`` (horizontal and perpendicular to
   the grasped branch at its rest geometry: ``up x axis``; for a vertical branch, its bending
@@ -89,9 +87,7 @@ class PullSpec(NamedTuple):
         fraction: grasp point as a fraction of the branch length from its joint, (0, 1].
         distance: grasp point in metres from the branch's joint (exclusive with ``fraction``).
         direction: ``"down"``, ``"horizontal"`` or a tuple of 3 floats (world, any length > 0).
-        trimmed: what ``import-csv --trim`` removed from this recording (a record, not an
-            instruction: ``lead_in_samples``, ``tail_samples``, ``kept_from_s``, ``kept_to_s``,
-            ``ends_with``); never inherited from ``default``.
+        trimmed: what ``import-csv --trim`` removed (a record; never inherited).
     """
 
     branch: str | None = None
@@ -185,14 +181,11 @@ def pull_spec(entry: Any, source: str = PULLS_FILE, name: str = "entry") -> Pull
     if entry.get("direction") is not None:
         direction = parse_direction(entry["direction"], _where(source, name, "direction"))
     trimmed = entry.get("trimmed")
-    if trimmed is not None and (
-        not isinstance(trimmed, Mapping)
-        or not all(isinstance(v, (str, int, float)) for v in trimmed.values())
+    if trimmed is not None and not (
+        isinstance(trimmed, Mapping)
+        and all(isinstance(v, (str, int, float)) for v in trimmed.values())
     ):
-        raise ConfigError(
-            f"{_where(source, name, 'trimmed')}: expected a mapping of what --trim removed "
-            f"(numbers and words), got {trimmed!r}"
-        )
+        raise ConfigError(f"{_where(source, name, 'trimmed')}: expected a mapping, got {trimmed!r}")
     return PullSpec(
         branch, fraction, distance, direction, None if trimmed is None else dict(trimmed)
     )

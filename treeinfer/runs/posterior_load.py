@@ -74,12 +74,13 @@ def load_posterior(
     ``cache``: a :class:`~treeinfer.runs.SimulatorCache` to share simulators between runs."""
     from ..gains import gains_from_theta
     from ..integrity import load_npz
-    from .checkpoint import PARTIAL_SUFFIX
+    from .checkpoint import PARTIAL_SUFFIX, partial_dir
     from .folder import load_run
 
     path = Path(path)
-    if path.name.endswith(PARTIAL_SUFFIX):
-        run_dir = path.with_name(path.name[: -len(PARTIAL_SUFFIX)])
+    if path.name.endswith(PARTIAL_SUFFIX) or (not path.exists() and partial_dir(path).is_dir()):
+        run_dir = path.with_name(path.name.removesuffix(PARTIAL_SUFFIX))
+        path = partial_dir(run_dir)
         raise PosteriorError(
             f"{path}: an interrupted run (a checkpoint, no posterior yet); continue it with "
             f"`treeinfer infer --resume {run_dir}` and load {run_dir}"
