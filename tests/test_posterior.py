@@ -336,3 +336,23 @@ def test_infer_returns_the_posterior_object():
     np.testing.assert_allclose(band.draws, np.asarray(ref.tau)[:, 0], rtol=1e-5, atol=1e-9)
     with pytest.raises(PosteriorError, match="largest force of the training data"):
         post.predict(forces[1] * 2)
+
+
+def test_noise_and_tied_columns_become_their_own_variables():
+    from treeinfer.posterior_io import build_inference_data
+
+    rng = np.random.default_rng(7)
+    labels = ["Kp[a]", "Kd[a]", "sigma_x", "rho"]
+    theta = rng.normal(size=(2, 30, 4))
+    idata = build_inference_data(theta, None, labels, method="mcmc", sampler="mh")
+    post = idata.posterior
+    assert post["sigma_x"].dims == ("chain", "draw") and post["sigma_x"].attrs["units"] == "m"
+    np.testing.assert_allclose(post["sigma_x"].values, np.exp(theta[..., 2]))
+    np.testing.assert_allclose(post["rho"].values, 1 / (1 + np.exp(-theta[..., 3])))  # logit
+    np.testing.assert_allclose(post["Kp"].values[..., 0], np.exp(theta[..., 0]))
+    tied = ["Kp_scale", "Kp_taper_ratio[a]", "Kp_taper_ratio[b]"]
+    idata = build_inference_data(theta[..., :3], None, tied, method="particles", sampler="svgd")
+    assert idata.posterior["Kp_taper_ratio"].dims == ("chain", "draw", "joint")
+    assert idata.posterior["Kp_scale"].attrs["units"] == "N m/rad"
+    with pytest.raises(ConfigError, match="chains"):
+        build_inference_data(theta, None, labels[:3], method="mcmc", sampler="mh")
