@@ -258,10 +258,6 @@ def test_infer_run_folder(run_dir, demo):
         assert z["positions"].shape == (4, 8, 4) and it.tolist() == [0, 1, 2, 3]
         np.testing.assert_array_equal(z["positions"][-1], theta)
     assert labels == ["Kp[child]", "Kp[parent]", "Kd[child]", "Kd[parent]"]
-    idata = az.from_netcdf(out / "posterior.nc")
-    post = idata.posterior["theta"]
-    assert list(post.coords["param"].values) == labels and post.shape == (1, 8, 4)
-    np.testing.assert_allclose(post.values[0], theta, rtol=0, atol=0)
 
     rows = [ln for ln in (out / "particles.csv").read_text().splitlines() if not ln.startswith("#")]
     assert rows[0].split(",") == ["particle", *labels, "log_density", "stable"]
@@ -288,6 +284,27 @@ def test_infer_run_folder(run_dir, demo):
         assert p["mean"] == pytest.approx(k.mean(), rel=1e-6) and p["lower"] <= p["upper"]
         assert lab in stdout
     assert "wrote" in stdout and "convergence" in stdout
+    # posterior.nc: natural units with units and the prior box; the log-parameters beside them
+    idata = az.from_netcdf(out / "posterior.nc")
+    logs = idata.log_posterior["theta"]
+    assert list(logs.coords["param"].values) == labels and logs.shape == (1, stable.sum(), 4)
+    np.testing.assert_allclose(logs.values[0], theta[stable], rtol=0, atol=0)
+    kp = idata.posterior["Kp"]
+    assert kp.attrs["units"] == "N m/rad" and list(kp.coords["joint"].values) == ["child", "parent"]
+    np.testing.assert_allclose(kp.values[0], np.exp(theta[stable][:, :2].astype(float)))
+    np.testing.assert_allclose(kp.attrs["prior_lower"], [5.0, 5.0])  # two_branch.yaml's box
+    assert idata.posterior.attrs["likelihood"] == "boltzmann"
+    # the same folder through the API: the numbers summary.json reports
+    import treeinfer
+
+    post = treeinfer.load_posterior(out)
+    for lab in labels:
+        assert post.mean[lab] == pytest.approx(s["posterior"][lab]["mean"], rel=1e-9)
+        assert post.interval().loc[lab, "lower"] == pytest.approx(s["posterior"][lab]["lower"])
+    assert post.sample(100, rng=0)["Kp[child]"].shape == (100,)
+    assert {p.name for p in (out / "plots").iterdir()} == {
+        "trace.png", "pairs.png", "bands_train.png"
+    }  # fmt: skip
     # same data, settings and seed as the demo's run: the same particles
     with np.load(demo[0] / "run" / "trace.npz") as z:
         assert np.array_equal(z["theta"], theta)

@@ -165,6 +165,57 @@ def test_tare_trim_zero(tmp_path):
     np.testing.assert_allclose(traj.force.max(), 3.0, atol=0.05)
 
 
+def _pull(idle_before: int, hold: int, release: bool, idle_after: int = 12):
+    """A pull: rest, a ramp to 3 N, a loaded hold of ``hold`` samples, then (``release``) the
+    force back to rest and ``idle_after`` rest samples; a spring of 0.5 cm/N (N, m, s)."""
+    rng = np.random.default_rng(3)
+    parts = [np.zeros(idle_before), np.linspace(0, 3, 30), np.full(hold, 3.0)]
+    if release:
+        parts += [np.linspace(3, 0, 10), np.zeros(idle_after)]
+    f = np.concatenate(parts)
+    x = f / 200.0
+    t = 0.01 * np.arange(f.size)
+    return t, f + 0.005 * rng.standard_normal(f.size), x
+
+
+@pytest.mark.parametrize("release", [False, True])
+def test_trim_keeps_a_loaded_hold(tmp_path, release):
+    """Issue 29: --trim removes the idle lead-in and the tail after a release, never a loaded
+    hold at the end (a plateau of force, the samples that identify the stiffness best)."""
+    t, f, x = _pull(idle_before=20, hold=129, release=release)
+    src = write_log(
+        tmp_path / "pull.csv",
+        ["time", "force", "displacement"],
+        [[r(a), r(b), r(c)] for a, b, c in zip(t, f, x)],
+    )
+    record = {}
+    traj, steps = convert_file(src, trim=True, record=record)
+    hold_end = 20 + 30 + 129  # samples up to the end of the hold
+    line = next(s for s in steps if s.startswith("trim:"))
+    assert "dropped 19 idle sample(s) of lead-in" in line  # one rest sample kept
+    assert record["lead_in_samples"] == 19
+    if release:
+        # the hold, the release ramp and one rest sample after it are kept; the rest goes
+        assert traj.n_steps == f.size - 19 - record["tail_samples"]
+        assert 8 <= record["tail_samples"] <= 11 and record["ends_with"] == "release"
+        assert "after the release" in line
+        assert np.all(np.abs(traj.force[-1]) < 0.05)
+    else:
+        assert traj.n_steps == f.size - 19  # everything from the ramp's foot to the end
+        assert record == {**record, "tail_samples": 0, "ends_with": "loaded hold"}
+        assert "loaded hold" in line
+        np.testing.assert_allclose(traj.force[-129:], f[-129:], atol=1e-9)  # the whole hold
+    assert traj.n_steps >= hold_end - 19 + (0 if not release else 10)
+    assert record["kept_from_s"] == pytest.approx(0.19)
+    # the record reaches pulls.yaml beside the grasp point
+    out = tmp_path / "data"
+    res = import_csv([src], out, trim=True, grasp_fraction=0.8)
+    entry = read_pulls(res.sidecar).pulls["pull.csv"]
+    assert entry.fraction == 0.8 and entry.trimmed["lead_in_samples"] == 19
+    assert entry.trimmed["ends_with"] == ("release" if release else "loaded hold")
+    assert "ends_with" in (out / "pulls.yaml").read_text()
+
+
 def test_zero_at_contact(tmp_path):
     t, f, x = ramp(idle=6)
     x = x + np.concatenate([np.linspace(-0.01, 0, 6), np.zeros(x.size - 6)])  # approach

@@ -112,7 +112,7 @@ def test_pair_plot_single_and_overlay(tmp_path):
 
     fig, axes = plots.pair_plot({"NNSVGD": a, "SVGD": b}, labels, truth, kind="kde")
     assert len(fig.legends) == 1
-    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["NNSVGD", "SVGD", "ground truth"]
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["NNSVGD", "SVGD", "truth"]
     assert len(axes[1, 0].collections) >= 2  # contour sets, one per sample set
     plots.save_figure(fig, tmp_path / "pair_overlay.png")
     _png_ok(tmp_path / "pair_overlay.png")

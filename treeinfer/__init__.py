@@ -23,6 +23,7 @@ _EXPORTS = {
     "predict": "inference",
     "Problem": "inference",
     "Posterior": "inference",
+    "load_posterior": "runs.posterior_load",
     "example_path": "examples",
 }
 _MODULES = {

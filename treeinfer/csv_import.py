@@ -15,8 +15,11 @@ applied, in order:
    one not to be trusted);
 3. force and displacement to newtons and metres from the unit table;
 4. ``tare``: subtract the mean force over the rest samples at the start;
-5. ``trim``: drop idle samples at the start and end (force at rest and displacement still,
-   widened to the foot of the ramps), keeping one rest sample on each side;
+5. ``trim``: drop the idle lead-in (force at rest and displacement still, widened to the foot of
+   the ramp) and, only when the pull ends with a release (the force back at rest), the idle
+   tail after it, keeping one rest sample on each side; a pull that ends on a loaded hold (a
+   plateau of force, which identifies the stiffness best) keeps its end whole. What was removed
+   is said in the steps and recorded in pulls.yaml (``trimmed``);
 6. ``zero_displacement``: ``"first"`` subtracts the first sample's displacement; ``"contact"``
    keeps only the samples in contact (from the last rest sample before the force rises to the
    first after it returns to rest) and measures from the contact position (a line through the
@@ -109,6 +112,81 @@ class ImportResult(NamedTuple):
         return "\n".join(out)
 
 
+class Trimmed(NamedTuple):
+    """What ``trim`` removed from one recording: ``lead_in`` samples before the pull, ``tail``
+    samples after the release; ``ends`` is ``"release"`` (the force back at rest at the end)
+    or ``"loaded hold"`` (force still applied: the end is kept whole)."""
+
+    lead_in: int
+    tail: int
+    n: int
+    ends: str
+
+    def sentence(self, t: np.ndarray) -> str:
+        head = (
+            f"trim: dropped {self.lead_in} idle sample(s) of lead-in (t < {t[self.lead_in]:g} s)"
+            if self.lead_in
+            else "trim: no idle lead-in to drop"
+        )
+        if self.ends == "loaded hold":
+            tail = "kept the end whole: the pull ends on a loaded hold (force still applied)"
+        elif self.tail:
+            tail = (
+                f"dropped {self.tail} idle sample(s) after the release "
+                f"(t > {t[self.n - self.tail - 1]:g} s)"
+            )
+        else:
+            tail = "no idle tail after the release to drop"
+        return f"{head}; {tail} (one rest sample kept on each trimmed side)"
+
+    def record(self, t: np.ndarray) -> dict:
+        """The pulls.yaml entry's ``trimmed`` field (s of the source's time base)."""
+        return {
+            "lead_in_samples": int(self.lead_in),
+            "tail_samples": int(self.tail),
+            "kept_from_s": float(round(t[self.lead_in] - t[0], 9)),
+            "kept_to_s": float(round(t[self.n - self.tail - 1] - t[0], 9)),
+            "ends_with": self.ends,
+        }
+
+
+def _trim_bounds(f: np.ndarray, x: np.ndarray, thr: float, path) -> tuple[int, int, Trimmed]:
+    """``(lo, hi, Trimmed)``: the samples ``[lo, hi)`` that ``trim`` keeps.
+
+    The lead-in is idle while the force stays at its starting rest level and the displacement
+    still. The tail is idle only after a release: when the last samples' force is back at the
+    starting rest level (within the activity threshold). A pull that ends with force still
+    applied ends on a loaded hold, the samples that identify the stiffness best, and keeps
+    its end whole (issue 29: the old rule took the last samples' level as "rest" and cut the
+    whole hold away)."""
+    rest = float(np.median(f[:3]))
+    xthr = max(REST_FRACTION * float(np.ptp(x)), REST_NOISE_FACTOR * _robust_sd(x), 1e-15)
+    a = np.abs(f - rest)
+    first_active = np.flatnonzero((a > thr) | (np.abs(x - x[0]) > xthr))
+    if first_active.size == 0:
+        raise TrajectoryFileError(
+            f"{path}: nothing happens in this recording (force and displacement at rest "
+            "throughout); nothing to import"
+        )
+    # widen to the foot of the ramp (as bags.find_pulls): the first samples of a slow ramp sit
+    # below the threshold but are already part of the push
+    s = int(first_active[0])
+    while s > 0 and a[s - 1] < a[s]:
+        s -= 1
+    lo, hi = max(0, s - 1), f.size
+    released = abs(float(np.median(f[-3:])) - rest) <= thr
+    if released:
+        # the release's own rest level (a load cell may drift a little over the pull)
+        b = np.abs(f - np.median(f[-3:]))
+        last_active = np.flatnonzero((b > thr) | (np.abs(x - x[-1]) > xthr))
+        e = int(last_active[-1]) if last_active.size else f.size - 1
+        while e < f.size - 1 and b[e + 1] < b[e]:
+            e += 1
+        hi = min(f.size, e + 2)
+    ends = "release" if released else "loaded hold"
+    return lo, hi, Trimmed(lo, f.size - hi, f.size, ends)
+
+
 def convert_file(
     path: str | os.PathLike,
     *,
@@ -121,8 +199,12 @@ def convert_file(
     zero_displacement: str | None = "first",
     trim: bool = False,
     delimiter: str | None = None,
+    record: dict | None = None,
 ) -> tuple[Trajectory, list[str]]:
     """Convert one logger CSV into a :class:`Trajectory` (see the module docstring).
+
+    ``record``: a dict that receives what ``trim`` removed (:meth:`Trimmed.record`), for the
+    data folder's pulls.yaml.
 
     Returns:
         (trajectory in s, N, m on a uniform grid starting at 0, list of steps applied).
@@ -183,32 +265,10 @@ def convert_file(
         thr = _threshold(f)
     lo, hi = 0, f.size
     if trim:
-        active_f = np.abs(f - np.median(f[:3])) > thr
-        xthr = max(REST_FRACTION * float(np.ptp(x)), REST_NOISE_FACTOR * _robust_sd(x), 1e-15)
-        first_active = np.flatnonzero(active_f | (np.abs(x - x[0]) > xthr))
-        end_f = np.abs(f - np.median(f[-3:])) > thr
-        last_active = np.flatnonzero(end_f | (np.abs(x - x[-1]) > xthr))
-        if first_active.size == 0:
-            raise TrajectoryFileError(
-                f"{path}: nothing happens in this recording (force and displacement at rest "
-                "throughout); nothing to import"
-            )
-        # widen to the foot of the ramps (as bags.find_pulls): the first samples of a slow
-        # ramp sit below the threshold but are already part of the push
-        a = np.abs(f - np.median(f[:3]))
-        s = int(first_active[0])
-        while s > 0 and a[s - 1] < a[s]:
-            s -= 1
-        a = np.abs(f - np.median(f[-3:]))
-        e = int(last_active[-1])
-        while e < f.size - 1 and a[e + 1] < a[e]:
-            e += 1
-        lo, hi = max(0, s - 1), min(f.size, e + 2)
-        if lo > 0 or hi < f.size:
-            steps.append(
-                f"trim: dropped {lo} idle sample(s) at the start and {f.size - hi} at the end "
-                "(one rest sample kept on each side)"
-            )
+        lo, hi, trimmed = _trim_bounds(f, x, thr, path)
+        steps.append(trimmed.sentence(t))
+        if record is not None:
+            record.update(trimmed.record(t))
     x_contact = None
     if zero_displacement == "contact":
         base = np.median(f[lo : lo + 3])
@@ -373,8 +433,9 @@ def import_csv(
         tree,
         str(side),
     )
-    results = []
+    results, records = [], []
     for src in sources:
+        records.append({})
         results.append(
             convert_file(
                 src,
@@ -387,8 +448,12 @@ def import_csv(
                 zero_displacement=zero_displacement,
                 trim=trim,
                 delimiter=delimiter,
+                record=records[-1],
             )
         )
+    for m, rec in zip(names, records):  # what --trim removed, beside the grasp point
+        if rec:
+            merged[m] = merged[m]._replace(trimmed=rec)
     out.mkdir(parents=True, exist_ok=True)
     paths, steps = [], {}
     for (traj, st), m, src in zip(results, names, sources):

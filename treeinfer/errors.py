@@ -35,6 +35,11 @@ class OutputExistsError(TreeinferError):
     """An output folder already holds results and ``--force`` was not given."""
 
 
+class PosteriorError(ConfigError):
+    """A posterior cannot answer what was asked: samples of a run that failed (poor fit,
+    interrupted), or a prediction for a grasp point or force outside what the run supports."""
+
+
 def where(path=None, line=None, field=None) -> str:
     """Format a location prefix such as ``data/pull1.csv, line 12, column 'force'``."""
     parts = []

@@ -128,8 +128,8 @@ def predict_run(
     ``diag C`` of each pull at the run's reference gains, ``force_variance [B, T]``; static:
     each draw's own ``(sigma_F c_p)^2``, ``force_variance [P, B, T]``). ``traced_substeps``:
     as in :func:`treeinfer.inference.predict`."""
-    from .inference import predict
     from .metrics import noisy_predictive_interval, predictive_interval
+    from .rollout import predict
 
     theta = np.asarray(theta)
     rollout = jax.device_get(
@@ -454,8 +454,10 @@ def write_evaluation(
     force: bool,
     md: Sequence[str],
     extra_files: dict[str, str] | None = None,
+    formats=("png",),
 ) -> None:
-    """metrics.json, metrics.md, bands.png, config.json (+ extra text files) in a staged folder."""
+    """metrics.json, metrics.md, bands.png, config.json (+ extra text files) in a staged folder;
+    ``formats``: the figure's file formats (``png``, ``pdf``, ``svg``)."""
     from ._io import atomic_write_text, staged_output_dir
     from .plots import plot_band_grid, save_figure
 
@@ -478,9 +480,10 @@ def write_evaluation(
             mean,
             gt,
             titles=list(titles),
-            suptitle=f"{which} vs held-out trajectories",
+            suptitle=f"{which} vs held-out recordings",
+            reference_label="recording",
         )
-        save_figure(fig, stage / "bands.png")
+        save_figure(fig, stage / "bands.png", formats=formats)
         write_json(stage / "config.json", config)
         for name, text in (extra_files or {}).items():
             atomic_write_text(stage / name, text)

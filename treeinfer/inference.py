@@ -18,7 +18,6 @@ adds the log-Jacobian ``sum(theta)`` of ``K = exp(theta)`` so the density stays 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import partial
 from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
@@ -30,9 +29,11 @@ from . import samplers as _samplers
 from .errors import ConfigError
 from .gradients import combine, combined_value_and_grad, jvp_combined_value_and_grad
 from .likelihood import DEFAULT_KT, check_kT, gains_from_theta, likelihood_terms
+from .posterior import Posterior, context_from_problem  # the result type of infer (issue 29)
 from .problem_priors import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA, box_prior, nn_inequality_prior
 from .program_cache import ProgramCache
-from .sim import Rollout, Simulator, make_simulator, simulate
+from .rollout import _predict_jit, _predict_traced, predict  # noqa: F401 -- moved (issue 29)
+from .sim import Simulator, make_simulator
 from .trajectories import Observations, Trajectory, stack_trajectories
 from .tree import Tree
 
@@ -423,31 +424,6 @@ def check_count(n, what: str, minimum: int = 1) -> int:
     return int(n)
 
 
-@dataclass(frozen=True, eq=False)
-class Posterior:
-    """Result of :func:`infer`.
-
-    Attributes:
-      theta: [P, D] final particles (log Kp, log Kd). kp, kd: [P, R] in natural units.
-      log_density: [P] at the final particles. labels: column labels of theta.
-      run: the sampler driver's :class:`~treeinfer.samplers.RunResult` (trace, state, settings).
-      settings: problem + sampler settings, enough to reproduce the run.
-    """
-
-    theta: np.ndarray
-    kp: np.ndarray
-    kd: np.ndarray
-    log_density: np.ndarray
-    labels: tuple[str, ...]
-    run: Any
-    settings: dict
-
-    @property
-    def valid(self) -> np.ndarray:
-        """[P] particles with a finite log-density (their simulations were stable)."""
-        return np.isfinite(self.log_density)
-
-
 def _algorithm(problem: Problem, name: str, options: dict, cache):
     """``problem.sampler(name, **options)``, kept in ``cache`` (a ProgramCache or None) per
     (problem object, name, options): a later run of the same problem with that cache gets the
@@ -545,74 +521,16 @@ def infer(
         "seed": int(seed),
         "run": result.settings,
     }
-    return Posterior(theta, np.asarray(kp), np.asarray(kd), logp, problem.labels, result, settings)
-
-
-def predict(
-    sim_or_problem: Simulator | Problem,
-    theta,
-    forces,
-    grasp_fraction=None,
-    model=None,
-    traced_substeps: bool = False,
-) -> Rollout:
-    """Simulate every particle ``theta [P, D]`` under ``forces [B, T]``: :class:`Rollout` [P, B, T].
-
-    ``traced_substeps``: the simulator's substeps per observation enter the program as an
-    argument, not as a constant, so simulators that differ only in their step (an
-    accuracy-controlled step chosen on each data set's forces) share one compiled program; the
-    values agree with the default's to float32 rounding (another formulation of the same loop,
-    as :class:`treeinfer.fast_posterior.BatchEvaluator`'s). The dynamic model only.
-
-    ``grasp_fraction`` (scalar or [B]) predicts at another point of the grasped branch.
-    ``model``: the run's :class:`treeinfer.static.Model` (static model or stiffness only; a
-    problem's own by default), None for the dynamic model of ``[log Kp, log Kd]``.
-    Particles whose rollout is unstable have ``stable = False``; drop them before summarising."""
-    if isinstance(sim_or_problem, Problem):
-        sim, model = sim_or_problem.sim, (sim_or_problem.model if model is None else model)
-    else:
-        sim = sim_or_problem
-    theta = jnp.atleast_2d(jnp.asarray(theta))
-    if model is None:
-        if not 2 * sim.n_joints <= theta.shape[-1] <= 2 * sim.n_joints + 3:
-            raise ConfigError(
-                f"theta: expected {2 * sim.n_joints} columns (log Kp, log Kd per joint) and up "
-                f"to 3 noise columns, got {theta.shape[-1]}"
-            )
-        theta = theta[:, : 2 * sim.n_joints]  # noise columns do not enter the simulation
-    else:
-        d = model.layout.dim
-        if not d <= theta.shape[-1] <= d + 3:
-            raise ConfigError(
-                f"theta: expected {d} columns ({', '.join(model.labels)}) and up to 3 noise "
-                f"columns, got {theta.shape[-1]}"
-            )
-        theta = theta[:, :d]
-    if grasp_fraction is not None:
-        g = np.asarray(grasp_fraction, float)
-        if np.any(~np.isfinite(g)) or np.any(g <= 0) or np.any(g > 1):
-            raise ConfigError(f"grasp_fraction: must be in (0, 1], got {g.tolist()}")
-    forces = jnp.atleast_2d(jnp.asarray(forces))
-    if model is not None:
-        from .static import model_rollout
-
-        return model_rollout(sim, model, theta, forces, grasp_fraction)  # jitted inside
-    kp, kd = gains_from_theta(theta, sim.n_joints)
-    if traced_substeps:
-        return _predict_traced(sim, kp, kd, forces, grasp_fraction, jnp.int32(sim.substeps))
-    return _predict_jit(sim, kp, kd, forces, grasp_fraction)
-
-
-@partial(jax.jit, static_argnums=0)
-def _predict_jit(sim, kp, kd, forces, grasp_fraction):
-    return simulate(sim, kp, kd, forces, grasp_fraction)
-
-
-@partial(jax.jit, static_argnums=0)
-def _predict_traced(sim, kp, kd, forces, grasp_fraction, substeps):
-    from .sim import _simulate
-
-    return _simulate(sim, kp, kd, forces, grasp_fraction, substeps=substeps)
+    return Posterior(
+        theta,
+        np.asarray(kp),
+        np.asarray(kd),
+        logp,
+        problem.labels,
+        result,
+        settings,
+        context_from_problem(problem, result),
+    )
 
 
 __all__ = [

@@ -1,6 +1,6 @@
 """Figures of a posterior on plain arrays: the pair plot (KDE marginals, 68%/95% highest-density
-contours), metric bars and the sampler trace; conventions as in :mod:`treeinfer.plots`, which
-re-exports every name here."""
+contours, the prior box, the truth), metric bars and the sampler trace (:mod:`.plot_trace`);
+conventions as in :mod:`treeinfer.plots`, which re-exports every name here."""
 
 from __future__ import annotations
 
@@ -10,15 +10,18 @@ import numpy as np
 from matplotlib.axes import Axes
 
 from ._plot_common import (
-    BAND_COLOR,
     GT_COLOR,
-    MEAN_COLOR,
-    SAMPLE_COLOR,
+    LOG_MIN_DECADES,
+    PRIOR_COLOR,
     SET_COLORS,
     _new_axes,
     _np,
+    plain_log_ticks,
+    with_unit,
+    wrap_title,
 )
 from .errors import ConfigError
+from .plot_trace import plot_trace  # noqa: F401 -- re-exported: the old import path keeps working
 
 # --------------------------------------------------------------------------- pair plot
 
@@ -68,6 +71,10 @@ def pair_plot(
     max_points: int = 2000,
     figsize=None,
     title: str | None = None,
+    units: Sequence[str] | None = None,
+    log_axes: bool | Sequence[bool] = False,
+    prior_box=None,
+    view: str = "auto",
 ):
     """Corner plot of posterior samples, paper Fig. 4 style.
 
@@ -75,17 +82,26 @@ def pair_plot(
       samples: ``[P, D]`` particles, or a mapping ``{name: [P_k, D]}`` to
         overlay several sets (e.g. ``{"NNSVGD": a, "SVGD": b}``) with a legend.
       labels: ``D`` parameter names, e.g. ``["Kp[b1]", "Kd[b1]", ...]``.
-      truth: optional ``[D]`` true values: red lines on the diagonal, red dots below.
+      truth: optional ``[D]`` true values (a simulation's; NaN: none): red lines on the
+        diagonal, red dots below, "truth" in the legend.
       kind: ``"scatter"`` or ``"kde"`` (68%/95% highest-density contours of a
         2-D Scott's-rule KDE; falls back to scatter for a collapsed set).
-      bins: histogram bins on the diagonal (a 1-D KDE curve is drawn over them).
+      bins: histogram bins on the diagonal (a 1-D KDE curve is drawn over them: the marginal).
       max_points: at most this many points per set in each scatter.
+      units: ``D`` units shown in the axis labels (``"Kp[b1] [N m/rad]"``).
+      log_axes: log-scale axes (all, or per parameter); histograms and KDEs are then taken
+        in log10 of the values (positive samples needed).
+      prior_box: ``(lower [D], upper [D])`` drawn dashed (NaN: no box for that parameter).
+      view: ``"prior"`` (axes span the prior box), ``"posterior"`` (the samples) or ``"auto"``:
+        per parameter the box when the samples fill at least 5% of its width, else the samples.
 
     Returns:
       ``(fig, axes)``, ``axes`` is ``[D, D]``; panels above the diagonal are hidden.
     """
     if kind not in ("scatter", "kde"):
         raise ConfigError(f"kind: expected 'scatter' or 'kde', got {kind!r}")
+    if view not in ("auto", "prior", "posterior"):
+        raise ConfigError(f"view: expected 'auto', 'prior' or 'posterior', got {view!r}")
     sets = dict(samples) if isinstance(samples, Mapping) else {"samples": samples}
     sets = {k: _np(v, f"samples[{k!r}]", 2) for k, v in sets.items()}
     D = next(iter(sets.values())).shape[1]
@@ -95,19 +111,53 @@ def pair_plot(
     labels = list(labels) if labels is not None else [f"theta[{i}]" for i in range(D)]
     if len(labels) != D:
         raise ConfigError(f"labels: expected {D} names, got {len(labels)}")
+    if units is not None and len(units) != D:
+        raise ConfigError(f"units: expected {D} units, got {len(units)}")
+    names = [with_unit(lab, None if units is None else units[i]) for i, lab in enumerate(labels)]
+    logs = np.broadcast_to(np.asarray(log_axes, bool), (D,))
     tr = None if truth is None else _np(truth, "truth", 1)
     if tr is not None and tr.shape != (D,):
         raise ConfigError(f"truth: expected shape ({D},), got {tr.shape}")
+    box = None
+    if prior_box is not None:
+        box = np.asarray(prior_box, float)
+        if box.shape != (2, D):
+            raise ConfigError(f"prior_box: expected (lower [{D}], upper [{D}]), got {box.shape}")
 
-    finite = {k: v[np.all(np.isfinite(v), axis=1)] for k, v in sets.items()}
+    # every computation in plot coordinates: log10 of the values on log axes
+    def fwd(a, cols=slice(None)):
+        a = np.asarray(a, float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(logs[cols], np.log10(np.where(a > 0, a, np.nan)), a)
+
+    def inv(a, i):
+        return 10.0**a if logs[i] else a
+
+    finite = {}
+    for k, v in sets.items():
+        if np.any(v[:, logs] <= 0):
+            raise ConfigError(f"samples[{k!r}]: log axes need positive values")
+        finite[k] = fwd(v[np.all(np.isfinite(v), axis=1)])
     allv = np.concatenate(list(finite.values()))
     lo, hi = allv.min(0), allv.max(0)
     if tr is not None:  # NaN entries: no true value (e.g. a noise column), nothing marked
-        lo, hi = np.fmin(lo, tr), np.fmax(hi, tr)
+        lo, hi = np.fmin(lo, fwd(tr)), np.fmax(hi, fwd(tr))
+    bt = None if box is None else fwd(box)
+    if bt is not None:
+        width = bt[1] - bt[0]
+        use = np.isfinite(width) & (width > 0)
+        if view == "auto":
+            use &= (hi - lo) >= 0.05 * np.where(use, width, np.inf)
+        elif view == "posterior":
+            use[:] = False
+        lo, hi = np.where(use, np.fmin(lo, bt[0]), lo), np.where(use, np.fmax(hi, bt[1]), hi)
     pad = np.where(hi > lo, 0.05 * (hi - lo), np.maximum(np.abs(lo) * 0.05, 1e-3))
     lo, hi = lo - pad, hi + pad
 
-    size = figsize or (max(4.0, 2.0 * D), max(4.0, 2.0 * D))
+    # a log scale only where the view spans a good part of a decade (ticks crowd otherwise);
+    # the histograms and KDEs stay in log10 of the values either way
+    log_scale = logs & (hi - lo >= LOG_MIN_DECADES)
+    size = figsize or (max(4.5, 2.1 * D), max(4.5, 2.1 * D))
     fig, axes = _new_axes(D, D, figsize=size)
     multi = len(finite) > 1
     for s_idx, (name, v) in enumerate(finite.items()):
@@ -115,19 +165,16 @@ def pair_plot(
         pts = v[:: max(1, len(v) // max_points)]
         for i in range(D):
             ax = axes[i, i]
-            ax.hist(
-                v[:, i],
-                bins=np.linspace(lo[i], hi[i], bins + 1),
-                density=True,
-                histtype="stepfilled",
-                color=color,
-                alpha=0.3,
-                label=name if multi else None,
+            # histogram and KDE both per unit of the plot coordinate (log10 on a log axis)
+            edges = np.linspace(lo[i], hi[i], bins + 1)
+            h, _ = np.histogram(v[:, i], bins=edges, density=True)
+            ax.stairs(
+                h, inv(edges, i), fill=True, color=color, alpha=0.3, label=name if multi else None
             )
             g = np.linspace(lo[i], hi[i], 200)
             curve = _kde_curve(v[:, i], g)
             if curve is not None:
-                ax.plot(g, curve, color=color, lw=1.2)
+                ax.plot(inv(g, i), curve, color=color, lw=1.2)
             for j in range(i):
                 ax2 = axes[i, j]
                 dens = None
@@ -136,43 +183,88 @@ def pair_plot(
                     dens = _kde_2d(v[:, j], v[:, i], gx, gy)
                 if dens is not None:
                     ax2.contour(
-                        gx, gy, dens, levels=_hdr_levels(dens), colors=color, linewidths=1.0
+                        inv(gx, j),
+                        inv(gy, i),
+                        dens,
+                        levels=_hdr_levels(dens),
+                        colors=color,
+                        linewidths=1.0,
                     )
                 else:
-                    ax2.scatter(pts[:, j], pts[:, i], s=4, color=color, alpha=0.4, lw=0)
+                    ax2.scatter(
+                        inv(pts[:, j], j), inv(pts[:, i], i), s=6, color=color, alpha=0.5, lw=0
+                    )
+    from matplotlib.patches import Rectangle
+
+    def has_box(i):
+        return bt is not None and np.all(np.isfinite(bt[:, i]))
+
     for i in range(D):
         for j in range(D):
             ax = axes[i, j]
             if j > i:
                 ax.set_visible(False)
                 continue
-            ax.set_xlim(lo[j], hi[j])
+            if log_scale[j]:
+                ax.set_xscale("log")
+                plain_log_ticks(ax.xaxis)
+            ax.set_xlim(inv(lo[j], j), inv(hi[j], j))
             if j < i:
-                ax.set_ylim(lo[i], hi[i])
+                if log_scale[i]:
+                    ax.set_yscale("log")
+                    plain_log_ticks(ax.yaxis)
+                ax.set_ylim(inv(lo[i], i), inv(hi[i], i))
+                if has_box(i) and has_box(j):
+                    ax.add_patch(
+                        Rectangle(
+                            (box[0, j], box[0, i]),
+                            box[1, j] - box[0, j],
+                            box[1, i] - box[0, i],
+                            fill=False,
+                            ls="--",
+                            lw=1.0,
+                            ec=PRIOR_COLOR,
+                            zorder=1,
+                            label="prior box",
+                        )
+                    )
                 if tr is not None and np.isfinite(tr[i]) and np.isfinite(tr[j]):
                     ax.plot(tr[j], tr[i], "o", color=GT_COLOR, ms=5, zorder=5)
-            elif tr is not None and np.isfinite(tr[i]):
-                ax.axvline(tr[i], color=GT_COLOR, lw=1.2, zorder=5)
-            if i == D - 1:
-                ax.set_xlabel(labels[j])
             else:
-                ax.tick_params(labelbottom=False)
+                if has_box(i):
+                    ax.axvspan(
+                        box[0, i], box[1, i], fill=False, ls="--", lw=1.0, ec=PRIOR_COLOR, zorder=1
+                    )
+                if tr is not None and np.isfinite(tr[i]):
+                    ax.axvline(tr[i], color=GT_COLOR, lw=1.2, zorder=5)
+            if i == D - 1:
+                ax.set_xlabel(names[j])
+            else:
+                ax.tick_params(which="both", labelbottom=False)
             if j == 0 and i > 0:
-                ax.set_ylabel(labels[i])
+                ax.set_ylabel(names[i])
             elif j > 0 or i == 0:
-                ax.tick_params(labelleft=False)
+                ax.tick_params(which="both", labelleft=False)
             if i == j:
                 ax.set_yticks([])
-    if multi or tr is not None:
-        handles, names = axes[0, 0].get_legend_handles_labels()
-        if tr is not None:
-            from matplotlib.lines import Line2D
+                ax.set_yticks([], minor=True)
+                ax.set_title(f"{labels[i]}", fontsize="small")
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
-            handles.append(Line2D([], [], color=GT_COLOR, marker="o", lw=1.2))
-            names.append("ground truth")
-        fig.legend(handles, names, loc="upper right", frameon=False)
+    handles, legend_names = axes[0, 0].get_legend_handles_labels()
+    if tr is not None and np.any(np.isfinite(tr)):
+        handles.append(Line2D([], [], color=GT_COLOR, marker="o", lw=1.2))
+        legend_names.append("truth")
+    if bt is not None and np.any(np.isfinite(bt)):
+        handles.append(Patch(fill=False, ls="--", ec=PRIOR_COLOR))
+        legend_names.append("prior box")
+    if handles and D > 1:  # in the empty upper triangle
+        fig.legend(handles, legend_names, loc="upper right", frameon=False)
+    elif handles:
+        axes[0, 0].legend(handles, legend_names, loc="upper right", frameon=False, fontsize="small")
     if title:
-        fig.suptitle(title)
+        fig.suptitle(wrap_title(title, size[0]))
     return fig, axes
 
 
@@ -249,73 +341,3 @@ def metric_bars(
     ax.legend(frameon=False, fontsize="small")
     ax.margins(y=0.15)
     return fig, ax
-
-
-def plot_trace(
-    log_density_trace,
-    bandwidth=None,
-    *,
-    iterations=None,
-    quantiles=(0.05, 0.95),
-    title: str | None = None,
-):
-    """Log-density over iterations: particle mean and a quantile band; optional bandwidth panel.
-
-    Args:
-      log_density_trace: ``[n, P]`` log posterior density of each particle at
-        each recorded iteration. Non-finite values (unstable simulations) are
-        left out of the statistics; the share of them is drawn if any occur.
-      bandwidth: optional ``[n]`` SVGD kernel bandwidth, drawn in a second
-        panel below (log scale).
-      iterations: optional ``[n]`` iteration numbers (default ``0..n-1``).
-      quantiles: lower/upper particle quantiles of the band.
-
-    Returns:
-      ``(fig, axes)`` with ``axes`` ``[1]`` or ``[2]`` (shared x).
-    """
-    ld = _np(log_density_trace, "log_density_trace", 2)
-    n = ld.shape[0]
-    it = np.arange(n) if iterations is None else _np(iterations, "iterations", 1)
-    if it.shape != (n,):
-        raise ConfigError(f"iterations: expected {n} values, got shape {it.shape}")
-    bw = None if bandwidth is None else _np(bandwidth, "bandwidth", 1)
-    if bw is not None and bw.shape != (n,):
-        raise ConfigError(
-            f"bandwidth: expected {n} values to match the trace, got shape {bw.shape}"
-        )
-    fig, axs = _new_axes(
-        2 if bw is not None else 1, 1, figsize=(6.0, 4.5 if bw is not None else 3.0), sharex=True
-    )
-    axes = axs[:, 0]
-    finite = np.where(np.isfinite(ld), ld, np.nan)
-    ok = np.any(np.isfinite(finite), axis=1)
-    mean = np.full(n, np.nan)
-    qlo, qhi = np.full(n, np.nan), np.full(n, np.nan)
-    mean[ok] = np.nanmean(finite[ok], axis=1)
-    qlo[ok], qhi[ok] = np.nanquantile(finite[ok], quantiles, axis=1)
-    ax = axes[0]
-    ax.fill_between(
-        it,
-        qlo,
-        qhi,
-        color=BAND_COLOR,
-        alpha=0.5,
-        lw=0,
-        label=f"{quantiles[0]:.0%}-{quantiles[1]:.0%} of particles",
-    )
-    ax.plot(it, mean, color=MEAN_COLOR, lw=1.2, label="particle mean")
-    ax.set_ylabel("log density")
-    bad = 1.0 - np.isfinite(ld).mean(axis=1)
-    if np.any(bad > 0):
-        ax_r = ax.twinx()
-        ax_r.plot(it, 100 * bad, color=GT_COLOR, lw=0.8, ls=":", label="% non-finite")
-        ax_r.set_ylabel("% non-finite", color=GT_COLOR)
-    ax.legend(loc="lower right", frameon=False, fontsize="small")
-    if bw is not None:
-        axes[1].plot(it, bw, color=SAMPLE_COLOR, lw=1.2)
-        axes[1].set_yscale("log")
-        axes[1].set_ylabel("kernel bandwidth")
-    axes[-1].set_xlabel("iteration")
-    if title:
-        axes[0].set_title(title)
-    return fig, axes

@@ -7,7 +7,9 @@ headless machine, inline in notebooks, where a returned figure displays
 itself) and leave no global pyplot state behind. Pass ``ax=`` to draw into an
 existing axes instead. Save with :func:`save_figure`.
 
-Colours follow the paper's figures: the 95% band in grey, ground truth in red.
+Colours follow the paper's figures: the 95% band in grey, the reference in red: a real pull's
+measured displacement is labelled "recording", a simulation's noise-free response "truth"
+(``reference_label``); "ground truth" is never used for a recording.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from ._plot_common import (  # noqa: F401 -- re-exported: the old import path ke
     SET_COLORS,
     _new_axes,
     _np,
+    wrap_title,
 )
 from .errors import ConfigError
 from .plot_posterior import (  # noqa: F401 -- re-exported: the old import path keeps working
@@ -63,6 +66,7 @@ def plot_trajectory_bands(
     band_label: str = "95% CI",
     max_samples: int = 20,
     legend: bool = True,
+    reference_label: str = "recording",
 ):
     """Predictive band of one trajectory, paper Fig. 3/5/6/7 style.
 
@@ -70,7 +74,9 @@ def plot_trajectory_bands(
       time: ``[T]`` seconds (or step index).
       lower, upper: ``[T]`` band limits, e.g. from :func:`treeinfer.metrics.predictive_interval`.
       mean: optional ``[T]`` predictive mean (dark dashed line).
-      gt: optional ``[T]`` ground truth (red). NaN points are not drawn.
+      gt: optional ``[T]`` reference displacement (red), named ``reference_label``:
+        ``"recording"`` (a measured pull, the default) or ``"truth"`` (a simulation's
+        noise-free response). NaN points are not drawn.
       samples: optional ``[S, T]`` predicted trajectories (thin lines, first ``max_samples``).
       ax: draw into this axes instead of a new figure.
 
@@ -97,11 +103,11 @@ def plot_trajectory_bands(
     if mean is not None:
         ax.plot(t, _np(mean, "mean", 1), color=MEAN_COLOR, lw=1.0, ls="--", label="predictive mean")
     if gt is not None:
-        ax.plot(t, _np(gt, "gt", 1), color=GT_COLOR, lw=1.5, label="ground truth")
+        ax.plot(t, _np(gt, "gt", 1), color=GT_COLOR, lw=1.5, label=reference_label)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     if title:
-        ax.set_title(title)
+        ax.set_title(wrap_title(title, ax.get_position().width * fig.get_figwidth()))
     if legend:
         ax.legend(loc="best", fontsize="small", frameon=False)
     return fig, ax
@@ -125,6 +131,7 @@ def plot_band_grid(
     ylabel: str = "displacement [m]",
     panel_size=(3.2, 2.4),
     max_samples: int = 10,
+    reference_label: str = "recording",
 ):
     """Several predictive bands in a grid with shared axes (noise sweep, grasp study, samplers).
 
@@ -136,6 +143,8 @@ def plot_band_grid(
       samples: optional ``[K, S, T]`` / ``[R, C, S, T]``.
       titles: ``K`` (or ``R*C``) panel titles; ``row_labels`` / ``col_labels``
         label the grid's rows (y label) and columns (titles) instead.
+      reference_label: the name of ``gt`` in the legend (``"recording"`` or ``"truth"``, as
+        in :func:`plot_trajectory_bands`).
 
     Returns:
       ``(fig, axes)`` with ``axes`` the full ``[rows, cols]`` array; unused
@@ -196,6 +205,7 @@ def plot_band_grid(
             ylabel="",
             max_samples=max_samples,
             legend=(k == 0),
+            reference_label=reference_label,
         )
     for ax in flat[K:]:
         ax.set_visible(False)
@@ -208,21 +218,41 @@ def plot_band_grid(
     fig.supxlabel(xlabel)
     fig.supylabel(ylabel)
     if suptitle:
-        fig.suptitle(suptitle)
+        fig.suptitle(wrap_title(suptitle, panel_size[0] * ncols))
     return fig, axes
 
 
 # --------------------------------------------------------------------------- saving
 
 
-def save_figure(fig: Figure, path, dpi: int = 120) -> None:
-    """Save ``fig`` atomically (format from the suffix, usually ``.png``) and close it.
+FIGURE_FORMATS = ("png", "pdf", "svg")
 
+
+def save_figure(fig: Figure, path, dpi: int = 120, formats=None) -> list:
+    """Save ``fig`` atomically and close it; returns the paths written.
+
+    ``path``'s suffix gives the format (usually ``.png``); ``formats`` (e.g. ``("png", "pdf")``,
+    any of :data:`FIGURE_FORMATS`) writes ``path`` with each of those suffixes instead.
     Closing releases the figure from ``pyplot`` if it was made there; figures
     from this module are not registered with ``pyplot`` and need no closing.
     """
-    with atomic_save(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format=tmp.suffix.lstrip(".") or "png")
+    from pathlib import Path
+
+    path = Path(path)
+    if formats is None:
+        targets = [path]
+    else:
+        fmts = [formats] if isinstance(formats, str) else list(formats)
+        bad = [f for f in fmts if str(f).lower().lstrip(".") not in FIGURE_FORMATS]
+        if bad or not fmts:
+            raise ConfigError(
+                f"formats: expected some of {', '.join(FIGURE_FORMATS)}, got {list(fmts)!r}"
+            )
+        targets = [path.with_suffix("." + str(f).lower().lstrip(".")) for f in dict.fromkeys(fmts)]
+    for target in targets:
+        with atomic_save(target) as tmp:
+            fig.savefig(tmp, dpi=dpi, format=tmp.suffix.lstrip(".") or "png")
     plt = sys.modules.get("matplotlib.pyplot")  # only if the caller already uses pyplot
     if plt is not None:
         plt.close(fig)
+    return targets

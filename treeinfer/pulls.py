@@ -20,6 +20,7 @@ Per entry (every field optional, missing ones come from ``default``, then from t
 * ``branch``: the grasped branch's name.
 * ``fraction`` (0 < f <= 1, of the branch's length from its joint) **or** ``distance``
   (metres from the branch's joint, 0 < d <= length). Not both.
+* ``trimmed`` (by ``import-csv --trim``): what was cut, for the record (``ends_with``).
 * ``direction`` of the force the robot applies on the branch, in world coordinates:
   ``down`` (along gravity, the paper's pulls), ``horizontal`` (horizontal and perpendicular to
   the grasped branch at its rest geometry: ``up x axis``; for a vertical branch, its bending
@@ -73,7 +74,7 @@ __all__ = [
 ]
 
 PULLS_FILE = "pulls.yaml"
-_ENTRY_KEYS = {"branch", "fraction", "distance", "direction"}
+_ENTRY_KEYS = {"branch", "fraction", "distance", "direction", "trimmed"}
 _TOP_KEYS = {"default", "pulls"}
 VERTICAL_COS = 1.0 - 1e-9  # |axis . up| above this: the branch counts as vertical
 
@@ -86,12 +87,14 @@ class PullSpec(NamedTuple):
         fraction: grasp point as a fraction of the branch length from its joint, (0, 1].
         distance: grasp point in metres from the branch's joint (exclusive with ``fraction``).
         direction: ``"down"``, ``"horizontal"`` or a tuple of 3 floats (world, any length > 0).
+        trimmed: what ``import-csv --trim`` removed (a record; never inherited).
     """
 
     branch: str | None = None
     fraction: float | None = None
     distance: float | None = None
     direction: str | tuple[float, float, float] | None = None
+    trimmed: dict | None = None
 
 
 class PullsFile(NamedTuple):
@@ -177,7 +180,15 @@ def pull_spec(entry: Any, source: str = PULLS_FILE, name: str = "entry") -> Pull
     direction = None
     if entry.get("direction") is not None:
         direction = parse_direction(entry["direction"], _where(source, name, "direction"))
-    return PullSpec(branch, fraction, distance, direction)
+    trimmed = entry.get("trimmed")
+    if trimmed is not None and not (
+        isinstance(trimmed, Mapping)
+        and all(isinstance(v, (str, int, float)) for v in trimmed.values())
+    ):
+        raise ConfigError(f"{_where(source, name, 'trimmed')}: expected a mapping, got {trimmed!r}")
+    return PullSpec(
+        branch, fraction, distance, direction, None if trimmed is None else dict(trimmed)
+    )
 
 
 def _check_against_tree(spec: PullSpec, tree, source: str, name: str) -> None:
@@ -260,6 +271,8 @@ def spec_to_dict(spec: PullSpec) -> dict:
     if spec.direction is not None:
         d = spec.direction
         out["direction"] = d if isinstance(d, str) else [float(x) for x in d]
+    if spec.trimmed:
+        out["trimmed"] = dict(spec.trimmed)
     return out
 
 
@@ -304,7 +317,7 @@ def _merge(spec: PullSpec, default: PullSpec) -> PullSpec:
     else:
         fraction = distance = None
     direction = spec.direction if spec.direction is not None else default.direction
-    return PullSpec(branch, fraction, distance, direction)
+    return PullSpec(branch, fraction, distance, direction, spec.trimmed)
 
 
 def pull_direction(tree, branch: str, direction: str | Sequence[float]) -> np.ndarray:

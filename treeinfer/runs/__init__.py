@@ -6,15 +6,19 @@ A finished run is one folder ``RUN/``::
     config.json      every option, the seed, treeinfer/jax/mujoco versions, the data files with
                      their sha256, the problem and sampler settings (enough to reproduce the run)
     tree.yaml        the tree that was inferred (a copy, so the run stands on its own)
-    posterior.nc     ArviZ InferenceData: posterior ``theta`` (log Kp, log Kd) with the labels as
-                     ``param`` coordinates; MCMC samplers store the whole trace, one chain per
-                     particle; SVGD/NNSVGD the final particles as one chain of draws
+    posterior.nc     ArviZ InferenceData: group ``posterior`` in natural units (``Kp``, ``Kd`` over
+                     ``joint``; ``units`` and the prior box as attributes; likelihood and noise
+                     model as group attributes), ``log_posterior`` (``theta``, log units, the
+                     labels as ``param``); MCMC: every chain after its warm-up, thinned;
+                     SVGD/NNSVGD/importance: the usable particles as one chain of draws (old
+                     folders: ``posterior`` holds ``theta`` in log units)
     particles.csv    one row per final particle: Kp/Kd in natural units, log_density, stable
     trace.npz        positions [n, P, D], log_density [n, P], iterations [n], final theta [P, D],
                      per-iteration sampler diagnostics (``diag_<name>``, at ``diag_iterations``)
     summary.json     diagnostics, convergence warnings, unstable particles, posterior table,
                      fit to the training data (95% band width, share of points outside)
-    plots/           trace.png, pairs.png (log10 Kp/Kd, truth marked if known), bands_train.png
+    plots/           trace.png (log density and parameters), pairs.png (natural units on log axes,
+                     prior box, truth if known), bands_train.png
 
 Atomicity: the folder is built in a hidden staging sibling and renamed into place at the very
 end (:func:`treeinfer._io.staged_output_dir`), so ``RUN/`` appears complete or not at all.

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -22,21 +21,12 @@ from .._io import (
 from ..errors import ConfigError
 from ..evaluation import LEVEL
 from ..jsonio import read_json, write_json
+from ..posterior_io import UNITS  # one table of units (moved there, issue 29)
 from ..samplers import sampler_spec
 from ..tree import Tree, dump_tree, load_tree
 from .cache import SimulatorCache, simulator_for
 from .checkpoint import _npz_bytes, partial_dir
 from .config import RUN_FORMAT
-
-UNITS = {
-    "Kp": "N m/rad",
-    "Kd": "N m s/rad",
-    "sigma_x": "m",
-    "sigma_c": "m",
-    "rho": "",
-    "Kp_scale": "N m/rad",  # a taper tie's scale (treeinfer.static.tied)
-    "Kp_taper_ratio": "",  # a soft tie's Kp_j / (scale * taper_j)
-}
 
 
 # ==== summaries ===================================================================================
@@ -162,6 +152,8 @@ def simulation_line(sim) -> str:
 
 def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
     o = config["options"]
+    from ..run_figures import training_force_max
+
     kind, diag, warns = _diagnostics(
         o["sampler"], trace, list(problem.labels), o.get("mcmc_warmup", 0.5)
     )
@@ -192,6 +184,7 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
         "level": LEVEL,
         "training_metrics": fit["metrics"],
         "simulation": simulation_summary(problem.sim),
+        "training_force_max_N": training_force_max(problem),  # predictions beyond are refused
     }
     model = getattr(problem, "model", None)
     if model is not None and (model.kind == "static" or not model.layout.infers_damping):
@@ -272,14 +265,16 @@ def save_run(
     force: bool = False,
     inputs: Sequence[str | os.PathLike] = (),
     log=None,
+    formats=("png",),
 ) -> Path:
     """Write the run folder (see the module docstring) atomically: built in a staging folder,
     moved into place at the end. ``inputs`` (the tree file and data folder) are never replaced
     by ``force``; config.json records the checksums of the files written before it
-    (``config["integrity"]``, see :mod:`treeinfer.integrity`)."""
-    from ..diagnostics import save_inference_data, to_inference_data
+    (``config["integrity"]``, see :mod:`treeinfer.integrity`). ``formats``: the figures' file
+    formats in ``plots/`` (``png``, ``pdf``, ``svg``)."""
+    from ..diagnostics import save_inference_data
     from ..integrity import record_checksums
-    from ..plots import pair_plot, plot_band_grid, plot_trace, save_figure
+    from ..run_figures import run_inference_data, write_run_figures
 
     labels = list(problem.labels)
     sampler = config["options"]["sampler"]
@@ -288,29 +283,12 @@ def save_run(
         dump_tree(tree, stage / "tree.yaml")
         attrs = {
             "treeinfer_version": __version__,
-            "theta": "natural log of Kp [N m/rad] then Kd [N m s/rad]",
             "seed": int(config["options"]["seed"]),
             "n_iterations": int(config["options"]["iterations"]),
+            "training_force_max_N": summary.get("training_force_max_N"),
         }
-        if sampler_spec(sampler).family == "svgd":
-            idata = to_inference_data(
-                posterior.theta,
-                labels,
-                log_density=posterior.log_density,
-                sampler=sampler,
-                attrs=attrs,
-            )
-        else:
-            attrs["trace_iterations"] = ",".join(str(i) for i in trace["iterations"])
-            with warnings.catch_warnings():  # short runs: ArviZ suspects chains and draws swapped
-                warnings.filterwarnings("ignore", "More chains", UserWarning)
-                idata = to_inference_data(
-                    trace["positions"],
-                    labels,
-                    log_density=trace["log_density"],
-                    sampler=sampler,
-                    attrs=attrs,
-                )
+        # natural units with their units, the prior box, likelihood and noise model (issue 29)
+        idata = run_inference_data(posterior, problem, trace, stable, summary, attrs)
         save_inference_data(idata, stage / "posterior.nc")
         atomic_write_text(
             stage / "particles.csv",
@@ -331,42 +309,20 @@ def save_run(
         # written after the files it checksums: predict/evaluate/--resume verify them
         write_json(stage / "config.json", {**config, "integrity": record_checksums(stage)})
 
-        plots = stage / "plots"
         bw = _bandwidths(trace["positions"]) if sampler_spec(sampler).family == "svgd" else None
-        fig, _ = plot_trace(
-            trace["log_density"],
-            bw,
-            iterations=trace["iterations"],
-            title=f"{sampler}: log density",
+        write_run_figures(
+            stage / "plots",
+            posterior,
+            problem,
+            trace,
+            stable,
+            truth,
+            fit,
+            [f["name"] for f in config["data"]["files"]],
+            sampler,
+            bandwidth=bw,
+            formats=formats,
         )
-        save_figure(fig, plots / "trace.png")
-        ok = stable & np.all(np.isfinite(posterior.theta), axis=1)
-        t10 = None if truth is None else np.log10(np.asarray(truth, float))
-        if t10 is not None and len(t10) < len(labels):  # noise columns: no true value to mark
-            t10 = np.concatenate([t10, np.full(len(labels) - len(t10), np.nan)])
-        fig, _ = pair_plot(
-            np.asarray(posterior.theta, float)[ok] / np.log(10.0),
-            [f"log10 {lab}" for lab in labels],
-            truth=t10,
-            title=f"posterior ({int(ok.sum())} stable particles)",
-        )
-        save_figure(fig, plots / "pairs.png")
-        pred = fit["prediction"]
-        if pred is not None:
-            obs = problem.obs
-            gt = np.where(obs.mask, obs.displacement, np.nan)
-            t = np.arange(obs.force.shape[1]) * float(obs.dt)
-            names = [f["name"] for f in config["data"]["files"]]
-            fig, _ = plot_band_grid(
-                t,
-                pred.lower,
-                pred.upper,
-                pred.mean,
-                gt,
-                titles=names,
-                suptitle="95% predictive band vs training trajectories",
-            )
-            save_figure(fig, plots / "bands_train.png")
     return Path(run_dir)
 
 
