@@ -52,6 +52,7 @@ LONG_MODULES = {
     "treeinfer.runs.config": "520 lines",
     "treeinfer.runs.service": "513 lines",
     "treeinfer.sim.fused": "503 lines",
+    "treeinfer.runs.folder": "499 lines; the longer import paths of the move take it to ~501",
 }
 MAX_LINES = 500
 TOP_LEVEL = {"__init__", "__main__", "errors"}
