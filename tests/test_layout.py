@@ -186,5 +186,8 @@ def test_benchmarks_and_experiments_use_public_names():
 
 def test_the_private_name_check_catches_one(tmp_path):
     p = tmp_path / "x.py"
-    p.write_text("from treeinfer.metrics import _outside\nfrom treeinfer._generate import f\n")
+    p.write_text(
+        "from treeinfer.metrics import _outside\n"  # a private name
+        "from treeinfer._generate import f\n"  # a private module
+    )
     assert len(_private_uses(p)) == 2
