@@ -26,15 +26,15 @@ SAMPLER_LABELS = {name: name.upper() for name in REGISTRY}  # table and figure l
 
 # Modules whose code decides a posterior; a change to any of them invalidates the posterior cache.
 _POSTERIOR_MODULES = (
-    "inference.py",
-    "likelihood.py",
-    "sim",
-    "priors.py",
-    "gradients.py",
-    "tree.py",
-    "export.py",
-    "trajectories.py",
-    "samplers",
+    "treeinfer.inference",
+    "treeinfer.likelihood",
+    "treeinfer.sim",
+    "treeinfer.priors",
+    "treeinfer.gradients",
+    "treeinfer.tree",
+    "treeinfer.export",
+    "treeinfer.trajectories",
+    "treeinfer.samplers",
 )
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import importlib.metadata
+import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -62,9 +63,10 @@ def _source_digest() -> str:
     process runs, even if the files change while it runs)."""
     h = hashlib.sha256()
     pkg = ROOT / "treeinfer"
-    for name in _POSTERIOR_MODULES:
-        p = pkg / name
-        files = sorted(p.rglob("*.py")) if p.is_dir() else [p]
+    for name in _POSTERIOR_MODULES:  # module names, so a module that moves is still found
+        spec = importlib.util.find_spec(name)
+        p = Path(spec.origin)
+        files = sorted(p.parent.rglob("*.py")) if p.name == "__init__.py" else [p]
         for f in files:
             h.update(str(f.relative_to(pkg)).encode())
             h.update(f.read_bytes())

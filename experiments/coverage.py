@@ -380,7 +380,7 @@ def evaluate(
     inside_par = 1.0 - float(metrics.fraction_outside(*bands.parameter[:2], y, m))
     nll = metrics.noisy_predictive_nll(ro.tau, y, sigma, m, valid, band_kind, extra_variance=extra)
     lo, hi = (np.asarray(v) for v in bands.predictive[:2])
-    outside = np.asarray(metrics._outside(lo, hi, np.asarray(y)), bool) & np.asarray(m, bool)
+    outside = np.asarray(metrics.outside(lo, hi, np.asarray(y)), bool) & np.asarray(m, bool)
     per_pull = 100.0 * (1.0 - outside.sum(1) / np.asarray(m, bool).sum(1))
     return {
         "pct_inside_predictive_band": 100 * inside_pred,

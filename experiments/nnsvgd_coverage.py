@@ -184,10 +184,10 @@ def run(
         start = {}
         if init == "laplace":  # the CLI's --init laplace: the same draws, warm-up and seed
             from treeinfer.runs.config import LAPLACE_WARMUP
-            from treeinfer.runs.start import _laplace_start
+            from treeinfer.runs.start import laplace_start
 
             opts = {"seed": int(seed), "particles": n_particles, "gradients": "fd"}
-            theta0 = _laplace_start(base, {"options": opts}, lambda m: print(m, flush=True))
+            theta0 = laplace_start(base, {"options": opts}, lambda m: print(m, flush=True))
             start = {"initial_theta": theta0, "warmup": LAPLACE_WARMUP}
         for target in targets:
             t0 = time.perf_counter()

@@ -229,6 +229,7 @@ def test_suggest_for_run_and_prior_from_run(tmp_path):
     import io
 
     from treeinfer.cli import main
+    from treeinfer.design_run import noise_sigma_of_run, suggest_for_run
     from treeinfer.errors import OutputExistsError
     from treeinfer.runs import load_run
     from treeinfer.sequential import prior_from_run
@@ -237,9 +238,9 @@ def test_suggest_for_run_and_prior_from_run(tmp_path):
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
         assert main(["demo", "--quick", "--out", str(demo), "--no-progress"]) == 0
     run = load_run(demo / "run")
-    sigma, where = design.noise_sigma_of_run(run.config)
+    sigma, where = noise_sigma_of_run(run.config)
     assert 1e-5 < sigma < 0.05 and "kT" in where
-    s = design.suggest_for_run(
+    s = suggest_for_run(
         demo / "run",
         grasp_fractions=[0.5, 1.0],
         peak_forces=[1.0, 5.0],
@@ -251,14 +252,14 @@ def test_suggest_for_run_and_prior_from_run(tmp_path):
     assert saved["candidates"][0]["score"] == pytest.approx(float(s.score[0]))
     assert (tmp_path / "sugg" / "suggestions.png").stat().st_size > 0
     with pytest.raises(OutputExistsError):
-        design.suggest_for_run(
+        suggest_for_run(
             demo / "run",
             grasp_fractions=[1.0],
             peak_forces=[1.0],
             n_particles=4,
             out=tmp_path / "sugg",
         )
-    prior = prior_from_run(demo / "run", run.labels)
+    prior = prior_from_run(run, run.labels)
     assert set(prior.shared) | set(prior.box_only) == set(run.labels)
     v = np.asarray(prior.log_density(jnp.asarray(run.theta[:3])))
     assert v.shape == (3,) and np.all(np.isfinite(v))

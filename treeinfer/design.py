@@ -21,7 +21,7 @@ the simulator as linear over the posterior's width at each particle. It is not b
 ``log P`` (as nested Monte Carlo is), so it still ranks pulls that are very informative.
 
 Cost: ``M * 2D * C`` rollouts for ``C`` candidates and ``M`` particles (a seeded subsample of
-the posterior, default 32), all in **one** jitted batched :func:`treeinfer.simulator.simulate`
+the posterior, default 32), all in **one** jitted batched :func:`treeinfer.sim.simulate`
 call, plus ``O(M C (T D^2 + D^3))`` arithmetic. E.g. 100 candidates, 32 particles and the
 2-branch example (D = 4): 25,600 rollouts, about a second on a 2-core CPU after compiling.
 
@@ -50,12 +50,13 @@ directions. A direction (``[3]`` unit vector, world frame) is passed to the simu
 
 Everything here is generic in the forward model: the estimators take a batched
 ``forward(theta [N, D]) -> (tau [N, C, T], ok [N, C])``; :func:`simulator_forward` builds it from
-a :class:`~treeinfer.simulator.Simulator`.
+a :class:`~treeinfer.sim.Simulator`.
 
 Modules: :mod:`treeinfer.design_candidates` (candidates, targets),
 :mod:`treeinfer.design_estimators` (estimators, the simulator as forward model),
-:mod:`treeinfer.design_scoring` (ranking, table, plot), :mod:`treeinfer.design_run` (a finished
-run as the start). Import from here.
+:mod:`treeinfer.design_scoring` (ranking, table, plot). Import from here. A finished run as the
+start (``treeinfer suggest``) is a service over a run folder, in :mod:`treeinfer.design_run`:
+it sits above this package (it loads the run), so it is not re-exported here.
 """
 
 from __future__ import annotations
@@ -85,7 +86,6 @@ from .design_estimators import (
 from .design_estimators import (
     _accepts_direction as _accepts_direction,
 )
-from .design_run import noise_sigma_of_run, suggest_for_run
 from .design_scoring import Suggestions, plot_scores, score_candidates
 
 __all__ = [
@@ -101,12 +101,10 @@ __all__ = [
     "laplace_eig",
     "nested_mc_eig",
     "nested_mc_eig_from_rollouts",
-    "noise_sigma_of_run",
     "parse_target",
     "particle_covariance",
     "plot_scores",
     "score_candidates",
     "simulator_forward",
-    "suggest_for_run",
     "target_variance",
 ]

@@ -16,11 +16,7 @@ from .design_candidates import Candidate
 from .errors import ConfigError
 from .gradients import default_rel_step
 from .likelihood import gains_from_theta
-
-try:  # the application-layer refactor moves the simulator to treeinfer.sim
-    from .sim import Simulator, simulate
-except ImportError:
-    from .simulator import Simulator, simulate
+from .sim import Simulator, simulate
 
 ForwardFn = Callable[[jax.Array], tuple[jax.Array, jax.Array]]
 """``theta [N, D] -> (tau [N, C, T] m, ok [N, C] bool)``: the C candidate pulls at N points."""
@@ -173,7 +169,7 @@ def _directions_array(candidates: Sequence[Candidate], sim: Simulator):
 def simulator_forward(sim: Simulator, forces, grasp_fraction, direction=None) -> ForwardFn:
     """``forward(theta [N, 2R]) -> (tau [N, C, T], stable [N, C])`` of the C profiles
     ``forces [C, T]`` N at ``grasp_fraction [C]`` (and ``direction [C, 3]``, passed to
-    :func:`~treeinfer.simulator.simulate` as ``direction=`` when given), one batched call."""
+    :func:`~treeinfer.sim.simulate` as ``direction=`` when given), one batched call."""
     forces = jnp.asarray(forces)
     grasp = jnp.asarray(grasp_fraction)
     extra = {} if direction is None else {"direction": jnp.asarray(direction)}

@@ -28,11 +28,7 @@ from .design_estimators import (
 )
 from .errors import ConfigError
 from .gradients import default_rel_step
-
-try:  # the application-layer refactor moves the simulator to treeinfer.sim
-    from .sim import Simulator
-except ImportError:
-    from .simulator import Simulator
+from .sim import Simulator
 
 
 # ==== the ranked table ============================================================================

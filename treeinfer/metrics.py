@@ -72,6 +72,7 @@ __all__ = [
     "TruthCheck",
     "ci_width",
     "fraction_outside",
+    "outside",
     "kde_1d",
     "noisy_predictive_interval",
     "noisy_predictive_nll",
@@ -150,10 +151,10 @@ def fraction_outside(
 @jax.jit
 def _fraction_outside(lower, upper, gt, mask, atol, rtol):
     m = _point_mask(gt, mask)
-    return jnp.sum(_outside(lower, upper, gt, atol, rtol) & m) / jnp.sum(m)
+    return jnp.sum(outside(lower, upper, gt, atol, rtol) & m) / jnp.sum(m)
 
 
-def _outside(lower, upper, x, atol: float = 1e-6, rtol: float = 1e-5):
+def outside(lower, upper, x, atol: float = 1e-6, rtol: float = 1e-5):
     """``x`` beyond ``[lower, upper]`` by more than ``atol + rtol * |bound|`` (numpy or jax)."""
     return (x < lower - (atol + rtol * abs(lower))) | (x > upper + (atol + rtol * abs(upper)))
 
@@ -276,7 +277,7 @@ def posterior_vs_truth(
     abs_err = np.abs(mean - t)
     with np.errstate(divide="ignore", invalid="ignore"):
         rel_err = abs_err / np.abs(t)
-    in_marg = ~_outside(lower, upper, t)  # same tolerance as fraction_outside
+    in_marg = ~outside(lower, upper, t)  # same tolerance as fraction_outside
 
     xv = x[eff]
     in_joint, ld_truth, ld_thr = None, float("nan"), float("nan")

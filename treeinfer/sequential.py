@@ -374,12 +374,13 @@ def prior_from_particles(
     )
 
 
-def prior_from_run(run_dir, labels_new: Sequence[str], **fit_options) -> SequentialPrior:
-    """:func:`prior_from_particles` of a run folder written by ``treeinfer infer`` (its final
-    particles, stable ones only)."""
-    from .runs import load_run
+def prior_from_run(run, labels_new: Sequence[str], **fit_options) -> SequentialPrior:
+    """:func:`prior_from_particles` of a finished run (its final particles, stable ones only).
 
-    run = load_run(run_dir)
+    ``run``: the posterior of a run, as :func:`treeinfer.runs.load_run` returns it (anything
+    with ``theta [P, D]``, ``labels``, ``stable [P]`` and ``tree``). It takes the loaded run, not
+    its folder, so that this module does not import :mod:`treeinfer.runs` (which imports it:
+    the run's configuration may name an earlier run as its prior)."""
     lo, hi = run.tree.bounds_array()
     box = (np.log(lo), np.log(hi))
     return prior_from_particles(

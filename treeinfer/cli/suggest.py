@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..design import STANDARD_TIMING, parse_target, suggest_for_run
+from ..design import STANDARD_TIMING, parse_target
+from ..design_run import suggest_for_run
 from ..errors import ConfigError
 from .common import (
     COMMAND_HELP,

@@ -164,8 +164,9 @@ def build_problem(
     )
     if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints
         from ..sequential import prior_from_run, with_prior
+        from .folder import load_run
 
-        prior = prior_from_run(o["prior_from"], problem.labels)
+        prior = prior_from_run(load_run(o["prior_from"]), problem.labels)
         problem = with_prior(problem, prior.log_density)
         settings = {**problem.settings, "prior_from": {"run": o["prior_from"], **prior.to_dict()}}
         problem = dataclasses.replace(problem, settings=settings)

@@ -19,7 +19,7 @@ LAPLACE_SCALE = 1.0
 LAPLACE_LM_ITERATIONS = 40  # 25 left every start short of the mode on the standard problem
 
 
-def _laplace_start(problem, config: dict, log: Callable[[str], None]):
+def laplace_start(problem, config: dict, log: Callable[[str], None]):
     """Particles around a Levenberg–Marquardt MAP fit (``--init laplace``): its Laplace
     approximation, drawn with the run's seed. The residual Jacobian follows ``--gradients``."""
     from ..laplace import particle_covariance
@@ -79,7 +79,7 @@ def _start(problem, config: dict, log: Callable[[str], None], programs=None):
     o = config["options"]
     init = o.get("init", "uniform")
     if init == "laplace":
-        return None, _laplace_start(problem, config, log)
+        return None, laplace_start(problem, config, log)
     if init == "importance":
         from ..fast_posterior import importance_for_run
 
