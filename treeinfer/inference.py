@@ -410,11 +410,16 @@ def _pulls_record(model, n: int) -> dict:
 
 
 def initial_particles(problem: Problem, n_particles: int, seed: int = 0) -> jax.Array:
-    """``[P, D]`` particles drawn uniformly in the (log) prior box."""
+    """``[P, D]`` particles drawn uniformly in the (log) prior box; a noise scale's column in
+    its start box (``problem.noise.extra_init``) instead."""
     check_count(n_particles, "n_particles")
     key = jax.random.fold_in(jax.random.key(int(seed)), 0x1A17)
     u = jax.random.uniform(key, (n_particles, problem.dim))
-    return jnp.asarray(problem.lower) + u * jnp.asarray(problem.upper - problem.lower)
+    lo, hi = np.array(problem.lower, float), np.array(problem.upper, float)
+    init = getattr(problem.noise, "extra_init", None)
+    if init is not None and len(init[0]):  # noise columns: near the data's estimate, not over
+        lo[-len(init[0]) :], hi[-len(init[0]) :] = init  # the prior's decades (issue 27)
+    return jnp.asarray(lo) + u * jnp.asarray(hi - lo)
 
 
 def check_count(n, what: str, minimum: int = 1) -> int:
