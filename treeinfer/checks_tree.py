@@ -24,7 +24,7 @@ REST_MIN = 0.01  # ... and beyond 1 cm is not "at rest"
 REST_FORCE = 0.1  # "force near zero at the start": below this share of max |force|
 VELOCITY_MISMATCH = 0.5  # relative misfit of integrated velocity vs displacement
 MAX_BRANCH_SPEED = 2.0  # m/s; the speed check's floor when the tree's inertia is unknown
-SPEED_MARGIN = 2.0  # the energy bound on the grasp point's speed, times this, is "too fast"
+SPEED_MARGIN = 1.25  # the energy bound on the grasp point's speed, times this, is "too fast"
 ZERO_ATOL = 1e-12
 
 

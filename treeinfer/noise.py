@@ -93,6 +93,7 @@ __all__ = [
     "DEFAULT_STUDENT_T_DF",
     "KINDS",
     "MIN_NOISE_SAMPLES",
+    "NOISE_FLAGS",
     "NOISE_KINDS",
     "SIGMA_PRIOR_SCALE",
     "RESOLUTION_FLOOR",
@@ -145,21 +146,49 @@ def check_df(df) -> float:
     return df
 
 
-def check_sigma(value, field: str, data_range: float | None = None) -> float:
-    """A noise standard deviation: finite, > 0 and (with ``data_range``) below the whole range
-    of the data (a sigma larger than everything the sensor recorded is a unit mistake).
+# config fields and the command-line flags that set them (named together in errors)
+NOISE_FLAGS = {
+    "noise_displacement": "--noise-displacement",
+    "noise_velocity": "--noise-velocity",
+    "noise_force": "--noise-force",
+}
 
-    Raises :class:`ConfigError` naming ``field`` (e.g. ``noise_displacement``)."""
+
+def _field_label(field: str) -> tuple[str, str]:
+    """(the name an error shows, the unit) for a noise setting's ``field``."""
+    flag = NOISE_FLAGS.get(field)
+    bare = field.lstrip("-").replace("-", "_")
+    unit = "m/s" if "velocity" in bare else "N" if "force" in bare else "m"
+    return (f"{field} ({flag})" if flag else field), unit
+
+
+def check_sigma(
+    value,
+    field: str,
+    data_range: float | None = None,
+    *,
+    allow_zero: bool = False,
+    what: str = "the whole range of the recorded data",
+) -> float:
+    """A noise standard deviation: finite, > 0 (>= 0 with ``allow_zero``: "no noise") and (with
+    ``data_range``) not above ``what`` (a sigma larger than everything the sensor recorded is a
+    unit mistake).
+
+    Raises :class:`ConfigError` naming ``field`` and, for a config field, its flag (e.g.
+    ``noise_displacement (--noise-displacement)``), with the unit (m, m/s or N)."""
+    label, unit = _field_label(field)
+    units = {"m": "metres", "m/s": "m/s", "N": "newtons"}[unit]
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ConfigError(f"{field}: expected a positive number (metres), got {value!r}") from None
-    if not math.isfinite(v) or v <= 0.0:
-        raise ConfigError(f"{field}: must be a finite positive number (metres), got {v}")
+        raise ConfigError(f"{label}: expected a positive number ({units}), got {value!r}") from None
+    if not math.isfinite(v) or v < 0.0 or (v == 0.0 and not allow_zero):
+        need = "a finite number >= 0" if allow_zero else "a finite positive number"
+        raise ConfigError(f"{label}: must be {need} ({units}), got {v:g}")
     if data_range is not None and v > data_range:
         raise ConfigError(
-            f"{field}: {v:g} is larger than the whole range of the recorded data ({data_range:g}); "
-            "check the units (metres)"
+            f"{label}: {v:g} {unit} is larger than {what} ({data_range:g} {unit}); check the "
+            f"units ({units})"
         )
     return v
 
