@@ -43,8 +43,7 @@ def test_prior_spans_resolution_to_range_and_is_normalised():
         return float(np.exp(p.log_prob(jnp.asarray(s))))
 
     total = sum(
-        integrate.quad(dens, a, b, limit=200)[0]
-        for a, b in ((lo - 1, lo), (lo, hi), (hi, hi + 12))
+        integrate.quad(dens, a, b, limit=200)[0] for a, b in ((lo - 1, lo), (lo, hi), (hi, hi + 12))
     )
     assert total == pytest.approx(1.0, rel=1e-3)
     inside = np.asarray(p.log_prob(jnp.linspace(lo, hi, 7)))
