@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from treeinfer.checks import data_checks
-from treeinfer.checks_data import _speed_limit
+from treeinfer.checks_data import speed_limit
 from treeinfer.checks_tree import response_range
 from treeinfer.examples import example_path
 from treeinfer.noise_estimate import estimate_white_noise
@@ -45,7 +45,7 @@ def speed_check(pattern: str = "/tmp/h27n_sim/*") -> None:
         n_minutes += sum(f.check == "time-unit" for f in data_checks(tree, minutes))
         for t in trajs:
             x, f, dt = np.asarray(t.displacement), np.asarray(t.force), float(t.dt)
-            limit = _speed_limit(f, x, dt, mob)[0]
+            limit = speed_limit(f, x, dt, mob)[0]
             worst = max(worst, float(np.max(np.abs(x[10:] - x[:-10]))) / (10 * dt) / limit)
     print(
         f"mobility {mob:.3g} 1/kg; time-unit findings on {n} simulated pulls: {flagged}; "

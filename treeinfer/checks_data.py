@@ -87,7 +87,7 @@ def _scale_causes(c: float, c_stiff: float, c_soft: float) -> list[str]:
 SPEED_WINDOWS = (10, 30, 100)  # samples over which the time-unit check measures speed
 
 
-def _speed_limit(f: np.ndarray, x: np.ndarray, dt: float, mobility: float):
+def speed_limit(f: np.ndarray, x: np.ndarray, dt: float, mobility: float):
     """(fastest plausible grasp-point speed in m/s, how it was set, the noise term) for the
     time-unit check; a k-sample difference may exceed the speed by ``noise term / k`` m/s.
 
@@ -317,7 +317,7 @@ def data_checks(
 
         # time unit: the grasp point cannot move faster than the work the pull did allows
         if len(x) >= 3:
-            limit, why, noise_speed = _speed_limit(f, x, dt, mobility)
+            limit, why, noise_speed = speed_limit(f, x, dt, mobility)
             # the largest change over k samples, for several k: a short window sees a fast
             # release, a long one averages the noise down (a slow pull under heavy noise)
             for k in sorted({min(k, len(x) - 1) for k in SPEED_WINDOWS}):
