@@ -347,7 +347,8 @@ def test_fit_verdict_from_run_and_preflight(tree, clean):
     fit = {"stable": np.ones(32, bool), "prediction": pred, "metrics": {"fraction_outside": 0.03}}
     v = fit_verdict_from_run(problem, SimpleNamespace(theta=theta), fit, noise_sigma=SIGMA)
     assert v.status == "ok", v
-    pred.mean = 100 * obs.displacement  # a cm-type misfit
+    pred.mean = 100 * obs.displacement  # a cm-type misfit: every point outside the band
+    fit["metrics"] = {"fraction_outside": 1.0}
     v = fit_verdict_from_run(problem, SimpleNamespace(theta=theta), fit, noise_sigma=SIGMA)
     assert v.status == "poor_fit" and v.as_dict()["measures"]["residual_to_noise"] > 10
     fit["prediction"] = None

@@ -142,17 +142,22 @@ def test_likelihood_terms(setup):
     assert b.extra_labels == () and b.kT == 0.05 and b.extra_log_prior is None
     auto = likelihood_terms(sim, obs, "boltzmann", kT="auto")
     assert auto.kT < 0.01 and "kT auto" in auto.description
-    # Gaussian, sigma inferred: one extra column with a numpyro Normal prior on log sigma_x
+    # Gaussian, sigma inferred: one extra column, log sigma_x flat from the resolution floor
+    # (1 micron) to the data's range with Gaussian tails (issue 27)
     g = likelihood_terms(sim, obs, "gaussian")
     assert g.extra_labels == ("sigma_x",) and g.kT is None and g.sigma_x is None
     est = g.settings["noise_estimate"]
     assert est == pytest.approx(SIGMA, rel=0.35)  # only 96 second differences, float32 tau
-    assert g.extra_lower[0] < math.log(est) < g.extra_upper[0]
+    lo, hi = math.log(1e-6), math.log(float(np.ptp(np.asarray(obs.displacement)[obs.mask])))
+    np.testing.assert_allclose([g.extra_lower[0], g.extra_upper[0]], [lo, hi], rtol=1e-6)
+    assert g.extra_init[0][0] < math.log(est) < g.extra_init[1][0]  # the start box
     th3 = jnp.asarray(np.column_stack([_theta_rows(), [math.log(est), 0.0]]), jnp.float32)
     lp = np.asarray(g.extra_log_prior(th3))
-    np.testing.assert_allclose(
-        lp, stats.norm.logpdf([math.log(est), 0.0], math.log(est), 1.5), rtol=1e-5
-    )
+    n = int(np.sum(obs.mask))
+    flat = -math.log(hi - lo + math.sqrt(math.pi / 2) * (0.5 / math.sqrt(n) + 1.0))
+    # sigma = 1 m lies above the range: the upper tail, a unit normal in log sigma
+    tail = stats.norm.logpdf(0.0, hi, 1.0) - stats.norm.logpdf(hi, hi, 1.0)
+    np.testing.assert_allclose(lp, [flat, flat + tail], rtol=1e-5)
     v, grad = g.value_and_grad(th3)
     assert v.shape == (2,) and grad.shape == (2, 5)
     np.testing.assert_allclose(noise_params_from_theta(th3, 2), [est, 1.0], rtol=1e-5)

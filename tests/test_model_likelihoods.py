@@ -103,7 +103,8 @@ def test_static_gaussian_posterior_matches_quadrature(static_case):
 
 def test_static_student_t_with_inferred_sigma(static_case):
     """Student-t with sigma_x inferred: theta = [log Kp, log sigma_x]; the likelihood is
-    scipy's t density (df 4 unless changed) and the sigma prior Normal(log sigma_hat, 1.5)."""
+    scipy's t density (df 4 unless changed) and the sigma prior flat in log sigma_x over
+    [resolution, data range] (issue 27), so two points inside it have the same prior."""
     from treeinfer import noise
 
     tree, sim, traj, tau = static_case
@@ -118,10 +119,11 @@ def test_static_student_t_with_inferred_sigma(static_case):
         r = traj.displacement - tau(math.exp(row[0]))
         want = scipy.stats.t.logpdf(r, df, scale=math.exp(row[1])).sum()
         assert g == pytest.approx(want, rel=1e-4)
-    est = problem.settings["noise_estimate"]
     lp = np.asarray(problem.log_prior(jnp.asarray(theta)), float)
-    ref = scipy.stats.norm.logpdf(theta[:, 1], math.log(est), noise.SIGMA_PRIOR_SCALE)
-    assert lp[0] - lp[1] == pytest.approx(ref[0] - ref[1], rel=1e-4)  # same box value for Kp
+    lo, hi = problem.lower[1], problem.upper[1]
+    assert lo < theta[:, 1].min() and theta[:, 1].max() < hi
+    assert math.exp(hi) == pytest.approx(np.ptp(traj.displacement))  # the data's range
+    assert lp[0] == pytest.approx(lp[1], abs=1e-6)  # same box value for Kp, flat in sigma
 
 
 @pytest.mark.parametrize("kind", ["gaussian", "ar1"])
@@ -182,7 +184,6 @@ def test_exact_laplace_of_a_static_model_matches_an_independent_fit(static_case)
     Normal prior on log sigma_x), its Hessian by central differences in float64."""
     from scipy.optimize import minimize
 
-    from treeinfer.noise import SIGMA_PRIOR_SCALE
     from treeinfer.static import exact_laplace
 
     tree, sim, traj, tau = static_case
@@ -196,12 +197,13 @@ def test_exact_laplace_of_a_static_model_matches_an_independent_fit(static_case)
         gradient="autodiff",
     )
     assert problem.labels == ("Kp[b]", "sigma_x")
-    centre = math.log(problem.settings["noise_estimate"])
+    lo_s, hi_s = problem.lower[1], problem.upper[1]
 
-    def logp(th):
+    def logp(th):  # the sigma prior is flat in log sigma inside [lo_s, hi_s] (issue 27)
         lk, ls = th
+        assert lo_s < ls < hi_s
         lik = scipy.stats.norm.logpdf(traj.displacement - tau(math.exp(lk)), scale=math.exp(ls))
-        return lik.sum() + scipy.stats.norm.logpdf(ls, centre, SIGMA_PRIOR_SCALE)
+        return lik.sum()
 
     ref = minimize(
         lambda th: -logp(th),

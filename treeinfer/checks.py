@@ -20,12 +20,14 @@ they are suspicious), each naming the file and the evidence:
 - **duplicates**: byte-identical files or identical arrays (the same evidence counted twice);
 - **all-zero** force or displacement (the posterior would be the prior).
 
-After inference, :func:`fit_checks` judges the training fit: residuals far beyond the noise
-scale (fitted, or implied by kT through :func:`noise_from_kT`), the share of training points
-outside the predictive band, posterior mass at a prior-box edge, and a posterior no narrower
-than the prior (the data had no effect). It returns a :class:`FitVerdict` with ``status`` one
-of ``ok | warning | poor_fit`` and the reasons. The command line ends a ``poor_fit`` run with
-exit code 4 (:data:`POOR_FIT_EXIT_CODE`) unless ``--allow-poor-fit``.
+After inference, :func:`fit_checks` judges the training fit by posterior predictive checks
+(:mod:`treeinfer.checks_fit`): coverage of the predictive band (with the inferred noise),
+standardised residuals (mean, scale, tails) and their autocorrelation ("model misfit:
+residuals autocorrelated"); then posterior mass of the gains at a prior-box edge and a posterior
+no narrower than the prior. A noise scale's position in its prior never decides it. It returns
+a :class:`FitVerdict` with ``status`` one of ``ok | warning | poor_fit`` and the reasons; a run
+whose bands cover its training data is never ``poor_fit``. The command line ends a
+``poor_fit`` run with exit code 4 (:data:`POOR_FIT_EXIT_CODE`) unless ``--allow-poor-fit``.
 
 Static compliance. A downward force ``f`` at the grasp point moves it ``f * C`` down once the
 tree has settled, with ``C = s K^-1 s^T``: ``s`` the grasp site's Jacobian along gravity and
@@ -42,6 +44,7 @@ from __future__ import annotations
 
 import math
 import os
+import statistics
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -68,9 +71,11 @@ from .checks_tree import (  # noqa: F401 -- re-exported: the old import path kee
     format_findings,
     grasp_reach,
     lever_arm_compliance,
+    response_range,
     simulation_cost_check,
     static_compliance,
 )
+from .errors import ConfigError
 from .tree import Tree
 
 __all__ = [
@@ -114,11 +119,15 @@ class FitVerdict(NamedTuple):
         }
 
 
-RESIDUAL_WARN, RESIDUAL_POOR = 3.0, 10.0  # RMS residual / noise sigma
-OUTSIDE_WARN, OUTSIDE_POOR = 3.0, 0.5  # x (1 - level); absolute fraction
 EDGE_BAND = 0.05  # share of the log box width counted as "at the edge"
 EDGE_SHARE = 0.5  # share of particles at/beyond one edge that is flagged
 NO_EFFECT = 0.9  # posterior std / prior std (log space) above which the data had no effect
+
+
+def is_noise_column(label: str) -> bool:
+    """A noise model's column (``sigma_x``, ``sigma_c``, ``rho``): judged by the posterior
+    predictive checks through the bands, never by where it falls in its prior box."""
+    return label.startswith("sigma") or label == "rho"
 
 
 def fit_checks(
@@ -133,64 +142,98 @@ def fit_checks(
     upper=None,
     labels: Sequence[str] | None = None,
     valid=None,
+    standardised=None,
+    noise_model: bool = True,
+    recorded=None,
 ) -> FitVerdict:
-    """Judge a finished run's training fit.
+    """Judge a finished run's training fit by posterior predictive checks
+    (:mod:`treeinfer.checks_fit`), plus where the gains' posterior sits in their prior box.
 
     Args:
-      residuals: [B, T] m, predictive mean minus observed displacement (or None).
-      mask: [B, T] bool, real samples. noise_sigma: m, the fitted displacement noise, or
-        :func:`noise_from_kT` of the run's kT.
-      fraction_outside: share (0-1) of training points outside the ``level`` predictive band.
+      residuals: [B, T] m, recorded minus predictive mean (or None).
+      mask: [B, T] bool, real samples. noise_sigma: m, the white noise scale the residuals are
+        standardised by when ``standardised`` is not given (``residuals / noise_sigma``: the
+        predictive spread's white part only).
+      fraction_outside: share (0-1) of training points outside the ``level`` predictive band
+        (None: from ``residuals / noise_sigma`` when both are given).
+      standardised: per pull, the one-step standardised residuals
+        (:func:`treeinfer.checks_fit.standardised_residuals`).
+      noise_model: False for the Boltzmann likelihood (coverage never gives ``poor_fit``;
+        ``recorded`` [B, T] gives the explained-variance check instead).
       theta: [P, D] final particles in log space; lower, upper: [D] log prior box;
-        labels: D names; valid: [P] bool, particles to use.
+        labels: D names (noise columns, :func:`is_noise_column`, are not judged by the box);
+        valid: [P] bool, particles to use.
+
+    ``poor_fit`` comes from the bands failing to cover the data (generative likelihoods), from
+    a Boltzmann fit that explains less than half the data's variance, or, only where no
+    coverage was measured, from the gains' posterior beyond a prior-box bound or as wide as the
+    prior. A run whose bands cover its data is at worst ``warning``.
 
     Returns:
       :class:`FitVerdict`.
     """
+    from . import checks_fit as cf
+
     poor: list[str] = []
     warn: list[str] = []
     m: dict = {}
-    if residuals is not None and noise_sigma is not None and noise_sigma > 0:
+    r = None
+    if residuals is not None:
         r = np.asarray(residuals, float)
+        r = r.reshape(1, -1) if r.ndim == 1 else r
         mk = np.ones(r.shape, bool) if mask is None else np.asarray(mask, bool)
         ok = mk & np.isfinite(r)
-        if ok.any():
+        if noise_sigma is not None and noise_sigma > 0 and ok.any():
             rms = float(np.sqrt(np.mean(r[ok] ** 2)))
-            ratio = rms / float(noise_sigma)
-            m["residual_rms_m"], m["noise_sigma_m"], m["residual_to_noise"] = (
-                rms,
-                float(noise_sigma),
-                ratio,
-            )
+            m["residual_rms_m"], m["noise_sigma_m"] = rms, float(noise_sigma)
+            m["residual_to_noise"] = rms / float(noise_sigma)
+            if standardised is None:
+                standardised = [r[b][ok[b]] / float(noise_sigma) for b in range(r.shape[0])]
+            if fraction_outside is None and noise_model:
+                zq = statistics.NormalDist().inv_cdf(0.5 + level / 2.0)
+                fraction_outside = float(np.mean(np.abs(r[ok]) > zq * float(noise_sigma)))
+    if fraction_outside is not None and not math.isfinite(fraction_outside):
+        fraction_outside = None
+    coverage_ok = None
+    if standardised is not None or fraction_outside is not None:
+        stats = cf.ppc_stats(standardised or [], fraction_outside)
+        p, w, meas = cf.ppc_findings(stats, level, noise_model)
+        if "residual_to_noise" in m and p:
+            p = [
+                f"{x} (training residuals RMS {m['residual_rms_m']:.3g} m, "
+                f"{m['residual_to_noise']:.3g}x the noise scale)"
+                for x in p
+            ]
+        poor += p
+        warn += w
+        m.update(meas)
+        coverage_ok = fraction_outside is not None and not p and noise_model
+    if not noise_model and r is not None and recorded is not None:
+        ev = cf.explained_variance(r, recorded, mask)
+        if ev is not None:
+            m["explained_variance"] = ev
             msg = (
-                f"training residuals (RMS {rms:.3g} m) are {ratio:.3g}x the noise scale "
-                f"({noise_sigma:.3g} m): the model does not explain the data"
+                f"the posterior-mean simulation explains {max(ev, 0.0):.0%} of the recorded "
+                "displacement's variance"
             )
-            if ratio > RESIDUAL_POOR:
-                poor.append(msg)
-            elif ratio > RESIDUAL_WARN:
+            if ev < cf.EXPLAINED_POOR:
+                poor.append(msg + ": the model does not explain the data")
+            elif ev < cf.EXPLAINED_WARN:
                 warn.append(msg)
-    if fraction_outside is not None and math.isfinite(fraction_outside):
-        expected = 1.0 - level
-        m["fraction_outside"] = float(fraction_outside)
-        msg = (
-            f"{fraction_outside:.1%} of training points lie outside the {level:.0%} "
-            "predictive band "
-            f"(about {expected:.0%} expected)"
-        )
-        if fraction_outside > OUTSIDE_POOR:
-            poor.append(msg)
-        elif fraction_outside > OUTSIDE_WARN * expected:
-            warn.append(msg)
     if theta is not None and lower is not None and upper is not None:
         th = np.asarray(theta, float)
         lo, hi = np.asarray(lower, float), np.asarray(upper, float)
         ok = np.all(np.isfinite(th), axis=1)
         if valid is not None:
             ok &= np.asarray(valid, bool)
-        th = th[ok]
         labels = list(labels) if labels is not None else [f"theta[{j}]" for j in range(th.shape[1])]
-        if len(th) >= 2:
+        keep = [j for j, lab in enumerate(labels) if not is_noise_column(lab)]
+        th, lo, hi = th[ok][:, keep], lo[keep], hi[keep]
+        labels = [labels[j] for j in keep]
+        # with the bands shown to cover the data, the box says something about the prior, not
+        # about the fit: a warning
+        box_poor = warn if coverage_ok else poor
+        if len(th) >= 2 and labels:
             width = hi - lo
             prior_std = width / math.sqrt(12.0)  # uniform on the log box
             post_std = th.std(axis=0, ddof=1)
@@ -211,11 +254,11 @@ def fit_checks(
                             f"median {math.exp(med[j]):.4g}): the "
                             f"data may lie outside the prior; widen inference.prior"
                         )
-                        (poor if beyond else warn).append(msg)
+                        (box_poor if beyond else warn).append(msg)
             m["at_prior_edge"] = edge
             flat = [lab for lab, r in zip(labels, ratio) if r > NO_EFFECT]
             if flat and len(flat) == len(labels):
-                poor.append(
+                box_poor.append(
                     f"the posterior is as wide as the prior for every parameter (std ratio "
                     f"{float(ratio.min()):.2f}-{float(ratio.max()):.2f}): the data had no effect "
                     "(kT far too large, or no force/displacement signal?)"
@@ -250,24 +293,43 @@ def preflight(
 def fit_verdict_from_run(
     problem, posterior, fit: dict, noise_sigma: float | None = None, level: float = 0.95
 ) -> FitVerdict:
-    """:func:`fit_checks` on what :func:`treeinfer.runs.run_inference` has at hand.
+    """:func:`fit_checks` on what :func:`treeinfer.runs.run_inference` has at hand: posterior
+    predictive checks on the training data (:mod:`treeinfer.checks_fit`).
 
     Args:
       problem: the inference problem (``obs`` [B, T] training data, ``lower``/``upper`` log
-        prior box [D], ``labels``). posterior: ``theta`` [P, D] log gains.
-      fit: the run's training fit: ``stable`` [P], ``prediction`` (``mean`` [B, T] m; None if
-        too few particles were stable), ``metrics`` (``fraction_outside``).
-      noise_sigma: the fitted displacement noise (m) if the noise model has one; None: the
-        residual test is skipped (kT is a temperature the user chose, not a measured noise, so
-        the sigma it implies is no yardstick for residuals).
+        prior box [D], ``labels``; ``settings``, ``noise``, ``sim`` where it has them: the
+        likelihood, its noise columns and force-noise term).
+      posterior: ``theta`` [P, D].
+      fit: the run's training fit: ``stable`` [P], ``prediction`` (``tau`` [P, B, T] draws,
+        ``valid``, ``mean`` [B, T], ``sigma``: the noise scale per draw; None if too few
+        particles were stable), ``metrics`` (``fraction_outside`` of the predictive band).
+      noise_sigma: a white noise scale (m) to standardise by when the prediction carries none.
     """
+    from . import checks_fit as cf
+    from .noise import NOISE_KINDS
+
     pred = fit.get("prediction")
     metrics = fit.get("metrics") or {}
-    residuals = mask = None
-    if pred is not None:
-        residuals = np.asarray(pred.mean, float) - np.asarray(problem.obs.displacement, float)
-        mask = np.asarray(problem.obs.mask, bool)
+    settings = getattr(problem, "settings", None) or {}
+    kind = settings.get("likelihood")
+    generative = kind in NOISE_KINDS or (kind is None and not settings and noise_sigma is not None)
+    obs = problem.obs
+    x = np.asarray(obs.displacement, float)
+    mask = np.asarray(obs.mask, bool)
+    residuals = standardised = None
     frac = metrics.get("fraction_outside")
+    if pred is not None:
+        residuals = x - np.asarray(pred.mean, float)
+        tau = getattr(pred, "tau", None)
+        if tau is not None:
+            nvar, extra = _noise_covariance(problem, posterior, pred, generative, noise_sigma)
+            if nvar is not None:
+                standardised = cf.standardised_residuals(
+                    x, tau, mask, nvar, extra, getattr(pred, "valid", None)
+                )
+        if not generative and getattr(pred, "sigma", None) is None:
+            frac = None  # a parameter-only band (no noise level): its coverage says nothing
     verdict = fit_checks(
         residuals=residuals,
         mask=mask,
@@ -279,6 +341,9 @@ def fit_verdict_from_run(
         upper=problem.upper,
         labels=list(problem.labels),
         valid=np.asarray(fit.get("stable"), bool) if fit.get("stable") is not None else None,
+        standardised=standardised,
+        noise_model=generative,
+        recorded=x,
     )
     if pred is None:  # the unstable-share limit already judged this; do not fail twice
         status = verdict.status if verdict.status == "poor_fit" else "warning"
@@ -288,3 +353,49 @@ def fit_verdict_from_run(
             verdict.measures,
         )
     return verdict
+
+
+def _noise_covariance(problem, posterior, pred, generative: bool, noise_sigma):
+    """``(white variance, extra [B, T, T] or None)`` of the run's noise model for
+    :func:`treeinfer.checks_fit.standardised_residuals`. Generative: sigma_x^2 of each draw
+    (Student-t: times df / (df - 2)), plus the force-noise covariance (``--noise-force``) or the
+    AR(1) one (``ar1``, at the posterior medians). Boltzmann: the data's own white-noise
+    estimate (residual structure beyond the sensor noise is what it can check)."""
+    settings = getattr(problem, "settings", None) or {}
+    kind = settings.get("likelihood")
+    obs = problem.obs
+    if not generative:
+        from .noise import estimate_displacement_noise
+
+        try:
+            return estimate_displacement_noise(obs).sigma ** 2, None
+        except ConfigError:
+            return None, None
+    labels = list(getattr(problem, "labels", ()))
+    theta = np.asarray(posterior.theta, float)
+    sigma = getattr(pred, "sigma", None)
+    if sigma is None:
+        sigma = noise_sigma
+    if sigma is None:
+        return None, None
+    nvar = np.asarray(sigma, float) ** 2
+    extra = None
+    if kind == "student_t":
+        df = float(settings.get("student_t_df") or 4.0)
+        nvar = nvar * df / (df - 2.0)
+    elif kind == "ar1" and {"sigma_x", "sigma_c", "rho"} <= set(labels):
+        sx = np.exp(np.median(theta[:, labels.index("sigma_x")]))
+        sc = np.exp(np.median(theta[:, labels.index("sigma_c")]))
+        rho = 1.0 / (1.0 + np.exp(-np.median(theta[:, labels.index("rho")])))
+        t = np.arange(np.shape(obs.displacement)[-1])
+        ar = sc**2 * rho ** np.abs(t[:, None] - t[None, :])
+        nvar, extra = sx**2, np.broadcast_to(ar, (np.shape(obs.displacement)[0], *ar.shape))
+    fmodel = getattr(getattr(problem, "noise", None), "force_noise", None)
+    if fmodel is not None:
+        try:
+            extra = fmodel.basis(problem.sim, np.asarray(obs.force), np.asarray(obs.mask, bool))
+            extra = extra.covariance()
+        except Exception:  # noqa: BLE001 -- the band's diagonal is a usable fallback
+            fv = getattr(pred, "force_variance", None)
+            extra = None if fv is None else np.stack([np.diag(v) for v in np.asarray(fv)])
+    return nvar, extra

@@ -19,12 +19,14 @@ from .checks_tree import (
     REST_MIN,
     SCALE_ERROR,
     SCALE_WARN,
+    SPEED_MARGIN,
     VELOCITY_MISMATCH,
     ZERO_ATOL,
     Finding,
-    compliance_range,
     grasp_reach,
+    response_range,
 )
+from .errors import ConfigError
 from .tree import Tree
 
 
@@ -82,6 +84,38 @@ def _scale_causes(c: float, c_stiff: float, c_soft: float) -> list[str]:
     return out
 
 
+SPEED_WINDOWS = (10, 30, 100)  # samples over which the time-unit check measures speed
+
+
+def speed_limit(f: np.ndarray, x: np.ndarray, dt: float, mobility: float):
+    """(fastest plausible grasp-point speed in m/s, how it was set, the noise term) for the
+    time-unit check; a k-sample difference may exceed the speed by ``noise term / k`` m/s.
+
+    Physics, not a fixed threshold: the tree starts at rest and is passive (springs, dampers,
+    gravity about a stable rest pose), so its kinetic energy never exceeds the work the pull
+    has done, ``W <= max|F| * range(x)``; a grasp-point speed v costs at least
+    ``v^2 / (2 mobility)`` of kinetic energy (``mobility`` the largest eigenvalue of
+    ``J M^-1 J^T`` over the prior box's rest poses, :func:`treeinfer.checks_tree.
+    response_range`). Hence ``v <= sqrt(2 mobility max|F| range(x))``, times
+    :data:`SPEED_MARGIN` (the pose moves during the pull). White noise of std sigma moves a
+    k-sample difference by up to ~5 sqrt(2) sigma (over a few hundred samples): that divided by
+    ``k dt``. A release (force dropped, the branch springing back at its own frequency) stays
+    under it; the same pull with time in minutes moves 60x faster than its energy allows."""
+    work = float(np.max(np.abs(f))) * float(np.ptp(x))
+    try:
+        from .noise_estimate import estimate_white_noise
+
+        sigma = estimate_white_noise(x[None], what="displacement").sigma
+    except ConfigError:
+        sigma = 0.0
+    noise = 5.0 * np.sqrt(2.0) * sigma / dt
+    if not (mobility > 0 and np.isfinite(mobility)):
+        return MAX_BRANCH_SPEED, f"at most {MAX_BRANCH_SPEED:g} m/s", noise
+    v = SPEED_MARGIN * float(np.sqrt(2.0 * mobility * work))
+    why = f"the pull's work, at most {work:.3g} J, moves it at {v:.3g} m/s at most"
+    return v, why, noise
+
+
 def _ratio_text(r: float) -> str:
     return f"{r:.3g}x"
 
@@ -110,7 +144,7 @@ def data_checks(
     out: list[Finding] = []
     tname = str(tree_file) if tree_file is not None else f"tree '{tree.name}'"
     out += [Finding("warning", tname, "tree-scale", w) for w in tree_scale_warnings(tree)]
-    c_stiff, c_soft = compliance_range(tree, grasp_fraction)
+    c_stiff, c_soft, mobility = response_range(tree, grasp_fraction)
     # the compliance range is that of a pull down at the tree's grasp: no scale check for other
     # pull directions (the tree file's pull.direction), or where a down pull cannot move the
     # grasp point (a vertical stem: its compliance along gravity is zero)
@@ -281,23 +315,27 @@ def data_checks(
                         )
                     )
 
-        # time unit: a branch grasp point does not move at metres per second
+        # time unit: the grasp point cannot move faster than the work the pull did allows
         if len(x) >= 3:
-            speed = float(np.max(np.abs(np.diff(x)))) / dt
-            # smooth over noise: the largest change over 10 samples
-            k = min(10, len(x) - 1)
-            speed_k = float(np.max(np.abs(x[k:] - x[:-k]))) / (k * dt)
-            if speed_k > MAX_BRANCH_SPEED:
-                out.append(
-                    Finding(
-                        "warning",
-                        name,
-                        "time-unit",
-                        f"the grasp point moves at {speed_k:.3g} m/s (steps of {dt:.3g} s; peak "
-                        f"single-step {speed:.3g} m/s), implausibly fast for a branch pull: "
-                        "is time in minutes instead of seconds (or displacement not in metres)?",
+            limit, why, noise_speed = speed_limit(f, x, dt, mobility)
+            # the largest change over k samples, for several k: a short window sees a fast
+            # release, a long one averages the noise down (a slow pull under heavy noise)
+            for k in sorted({min(k, len(x) - 1) for k in SPEED_WINDOWS}):
+                speed_k = float(np.max(np.abs(x[k:] - x[:-k]))) / (k * dt)
+                if speed_k > limit + noise_speed / k:
+                    speed = float(np.max(np.abs(np.diff(x)))) / dt
+                    out.append(
+                        Finding(
+                            "warning",
+                            name,
+                            "time-unit",
+                            f"the grasp point moves at {speed_k:.3g} m/s over {k} samples "
+                            f"(steps of {dt:.3g} s; peak single-step {speed:.3g} m/s), faster "
+                            f"than the tree can ({why}): is time in minutes instead of seconds "
+                            "(or displacement not in metres)?",
+                        )
                     )
-                )
+                    break
 
     # mixed units between files
     if len(comps) >= 2:

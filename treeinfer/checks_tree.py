@@ -23,7 +23,8 @@ REST_FRACTION = 0.25  # |x[0]| beyond this share of the displacement's range ...
 REST_MIN = 0.01  # ... and beyond 1 cm is not "at rest"
 REST_FORCE = 0.1  # "force near zero at the start": below this share of max |force|
 VELOCITY_MISMATCH = 0.5  # relative misfit of integrated velocity vs displacement
-MAX_BRANCH_SPEED = 2.0  # m/s; grasp-point speeds above this look like time in minutes
+MAX_BRANCH_SPEED = 2.0  # m/s; the speed check's floor when the tree's inertia is unknown
+SPEED_MARGIN = 1.25  # the energy bound on the grasp point's speed, times this, is "too fast"
 ZERO_ATOL = 1e-12
 
 
@@ -115,9 +116,12 @@ def _compliance_model(tree: Tree, grasp_fraction: float | None):
     return m, sid
 
 
-def _model_compliance(tree: Tree, m, sid: int, kp: dict[str, float]) -> float:
+def _model_compliance(tree: Tree, m, sid: int, kp: dict[str, float], out=None) -> float:
     """:func:`static_compliance` on a model from :func:`_compliance_model` (its joint
-    stiffnesses set to ``kp`` first)."""
+    stiffnesses set to ``kp`` first). ``out`` (a dict): receives ``mobility``, the largest
+    eigenvalue of ``J M^-1 J^T`` (1/kg) at the settled pose, ``J`` the grasp site's
+    translational Jacobian and ``M`` the joint-space mass matrix: a site velocity v costs at
+    least the kinetic energy ``v^2 / (2 mobility)``."""
     import mujoco
 
     settle_reference = _sim_attr("settle_reference")
@@ -144,6 +148,14 @@ def _model_compliance(tree: Tree, m, sid: int, kp: dict[str, float]) -> float:
     mujoco.mj_forward(m, d)
     jacp = np.zeros((3, m.nv))
     mujoco.mj_jacSite(m, d, jacp, None, sid)
+    if out is not None:
+        mass = np.zeros((m.nv, m.nv))
+        if hasattr(d, "qM"):  # MuJoCo < 3.3: mj_fullM(m, dst, qM)
+            mujoco.mj_fullM(m, mass, d.qM)
+        else:  # MuJoCo >= 3.3: mj_fullM(m, d, dst)
+            mujoco.mj_fullM(m, d, mass)
+        mob = jacp @ np.linalg.solve(mass, jacp.T)
+        out["mobility"] = float(np.max(np.linalg.eigvalsh(0.5 * (mob + mob.T))))
     g = np.asarray(tree.gravity, float)
     s = (g / np.linalg.norm(g)) @ jacp
     try:
@@ -210,8 +222,15 @@ COMPLIANCE_CORNERS_UP_TO = 4  # inferred joints up to which every corner is eval
 
 
 def compliance_range(tree: Tree, grasp_fraction: float | None = None) -> tuple[float, float]:
-    """(least, most) quasi-static compliance in m/N over the prior box's stiffnesses: the
-    smallest and largest :func:`static_compliance` along the box's diagonal in log space (every
+    """(least, most) quasi-static compliance in m/N over the prior box's stiffnesses
+    (:func:`response_range`'s first two)."""
+    return response_range(tree, grasp_fraction)[:2]
+
+
+def response_range(tree: Tree, grasp_fraction: float | None = None) -> tuple[float, float, float]:
+    """(least, most) quasi-static compliance in m/N over the prior box's stiffnesses, and the
+    grasp point's largest mobility (1/kg, see :func:`_model_compliance`) over the same poses:
+    the smallest and largest :func:`static_compliance` along the box's diagonal in log space (every
     inferred Kp at the same fraction of its log range, :data:`COMPLIANCE_DIAGONAL` points) and,
     up to :data:`COMPLIANCE_CORNERS_UP_TO` inferred joints, at every corner.
 
@@ -229,12 +248,16 @@ def compliance_range(tree: Tree, grasp_fraction: float | None = None) -> tuple[f
     if len(names) <= COMPLIANCE_CORNERS_UP_TO:
         points += [np.where(bits, hi, lo) for bits in itertools.product((0, 1), repeat=len(names))]
     m, sid = _compliance_model(tree, grasp_fraction)
-    values = [_model_compliance(tree, m, sid, dict(zip(names, np.exp(p)))) for p in points]
+    values, mobility = [], 0.0
+    for p in points:
+        out: dict = {}
+        values.append(_model_compliance(tree, m, sid, dict(zip(names, np.exp(p))), out))
+        mobility = max(mobility, out.get("mobility", 0.0))
     finite = [c for c in values if math.isfinite(c)]
     if not finite:
-        return math.inf, math.inf
+        return math.inf, math.inf, mobility
     # an unstable pose somewhere in the box: no bound on how soft the grasp point can be
-    return min(finite), (max(finite) if len(finite) == len(values) else math.inf)
+    return min(finite), (max(finite) if len(finite) == len(values) else math.inf), mobility
 
 
 def grasp_reach(tree: Tree, grasp_fraction: float | None = None) -> float:

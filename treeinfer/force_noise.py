@@ -64,6 +64,7 @@ import numpy as np
 
 from .errors import ConfigError, SimulationError
 from .noise import MIN_NOISE_SAMPLES, NoiseEstimate, as_observations
+from .noise_estimate import estimate_white_noise
 from .trajectories import Observations
 
 __all__ = [
@@ -80,8 +81,6 @@ __all__ = [
     "reference_theta",
     "resolve_noise_force",
 ]
-
-_MAD_TO_STD = 1.482602218505602  # 1 / Phi^-1(0.75): MAD of a Gaussian -> its std
 
 
 # --------------------------------------------------------------------------- the option
@@ -120,7 +119,9 @@ def check_noise_force(value) -> float | str:
             f"noise_force: expected a number (N), 'P%' or 'auto', got {value!r}"
         ) from None
     if not math.isfinite(v) or v <= 0.0:
-        raise ConfigError(f"noise_force: must be a finite positive number of newtons, got {v}")
+        raise ConfigError(
+            f"noise_force (--noise-force): must be a finite positive number of newtons, got {v}"
+        )
     return v
 
 
@@ -133,33 +134,26 @@ def estimate_force_noise(data, min_samples: int = MIN_NOISE_SAMPLES) -> NoiseEst
     """White force-noise std (N) from the recorded forces' high-frequency residual.
 
     ``sigma_F = 1.4826 * median(|d2 - median(d2)|) / sqrt(6)``, ``d2`` the second differences
-    of the recorded force at real samples (the estimator of
-    :func:`treeinfer.noise.estimate_displacement_noise`, applied to the force: white noise of
-    std s gives second differences of std ``sqrt(6) s``; a smooth pull's are tiny).
+    of the recorded force at real samples: the estimator of
+    :func:`treeinfer.noise.estimate_displacement_noise` applied to the force
+    (:func:`treeinfer.noise_estimate.estimate_white_noise`: white noise of std s gives second
+    differences of std ``sqrt(6) s``, a smooth pull's are tiny). A load cell read through an
+    ADC is quantised: the estimate is then floored at ``step / sqrt(12)``; a force stream
+    upsampled by repeating or interpolating samples is estimated at its native rate. The
+    estimate's ``notes`` say which.
 
-    Raises :class:`ConfigError` when there are fewer than ``min_samples`` second differences
-    ("too short to estimate") or more than half are zero (noise-free or quantised forces)."""
+    Raises :class:`ConfigError` naming ``--noise-force`` when there are fewer than
+    ``min_samples`` second differences ("too short to estimate") or when more than half of them
+    are zero and the values lie on no grid (a noise-free, piecewise-linear force: the
+    simulated profiles of ``treeinfer simulate`` without ``--noise-force``)."""
     obs = as_observations(data)
-    f = np.asarray(obs.force, float)
-    m = np.asarray(obs.mask, bool)
-    if f.shape[-1] < 3:
-        d2 = np.zeros((0,))
-    else:
-        d2 = (f[:, 2:] - 2.0 * f[:, 1:-1] + f[:, :-2])[m[:, 2:] & m[:, 1:-1] & m[:, :-2]]
-    if d2.size < min_samples:
-        raise ConfigError(
-            f"noise_force: the recordings are too short to estimate the force noise "
-            f"({d2.size} second differences, need at least {min_samples}); give it explicitly "
-            "(--noise-force, newtons or 'P%')"
-        )
-    sigma = _MAD_TO_STD * float(np.median(np.abs(d2 - np.median(d2)))) / math.sqrt(6.0)
-    if not sigma > 0.0:
-        raise ConfigError(
-            "noise_force: cannot estimate the force noise: more than half of the force's second "
-            "differences are zero (noise-free or quantised force); give it explicitly "
-            "(--noise-force, newtons or 'P%')"
-        )
-    return NoiseEstimate(sigma, int(d2.size), "robust MAD of force second differences / sqrt(6)")
+    try:
+        return estimate_white_noise(
+            obs.force, obs.mask, what="force", flag="--noise-force", unit="N",
+            min_samples=min_samples,
+        )  # fmt: skip
+    except ConfigError as e:
+        raise ConfigError(f"noise_force (--noise-force): {e}") from None
 
 
 def resolve_noise_force(value, data) -> tuple[float, str]:
@@ -173,15 +167,16 @@ def resolve_noise_force(value, data) -> tuple[float, str]:
     peak = _force_range(obs)
     if v == "auto":
         est = estimate_force_noise(obs)
-        sigma, how = est.sigma, f"estimated: {est.method}, n = {est.n_used}"
+        notes = "".join(f"; {n}" for n in est.notes)
+        sigma, how = est.sigma, f"estimated: {est.method}, n = {est.n_used}{notes}"
     elif isinstance(v, str):
         sigma, how = float(v[:-1]) / 100.0 * peak, f"{v} of the largest |force| {peak:.4g} N"
     else:
         sigma, how = v, "given"
     if not sigma < peak:
         raise ConfigError(
-            f"noise_force: {sigma:g} N is not smaller than the largest recorded force "
-            f"({peak:g} N); check the units (newtons)"
+            f"noise_force (--noise-force): {sigma:g} N is not smaller than the largest recorded "
+            f"force ({peak:g} N); check the units (newtons)"
         )
     return float(sigma), f"force noise sigma_F = {sigma:.4g} N ({how})"
 

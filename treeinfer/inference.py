@@ -411,11 +411,28 @@ def _pulls_record(model, n: int) -> dict:
 
 
 def initial_particles(problem: Problem, n_particles: int, seed: int = 0) -> jax.Array:
-    """``[P, D]`` particles drawn uniformly in the (log) prior box."""
+    """``[P, D]`` particles drawn uniformly in the (log) prior box; a noise scale's column in
+    its start box (``problem.noise.extra_init``) instead."""
     check_count(n_particles, "n_particles")
     key = jax.random.fold_in(jax.random.key(int(seed)), 0x1A17)
     u = jax.random.uniform(key, (n_particles, problem.dim))
-    return jnp.asarray(problem.lower) + u * jnp.asarray(problem.upper - problem.lower)
+    theta = jnp.asarray(problem.lower) + u * jnp.asarray(problem.upper - problem.lower)
+    return noise_start_columns(problem, theta, seed)
+
+
+def noise_start_columns(problem: Problem, theta, seed: int = 0) -> jax.Array:
+    """``theta [P, D]`` with the noise-scale columns (if any) drawn uniformly in their start box
+    ``problem.noise.extra_init`` (near the data's noise estimate): the prior's box spans
+    decades (issue 27), and a start spread over them costs the sampler its warm-up. For starts
+    that do not fit the noise columns themselves (uniform, the Boltzmann-loss Laplace fit)."""
+    init = getattr(getattr(problem, "noise", None), "extra_init", None)
+    if init is None or not len(init[0]):
+        return jnp.asarray(theta)
+    theta = jnp.asarray(theta)
+    lo, hi = (jnp.asarray(b, theta.dtype) for b in init)
+    key = jax.random.fold_in(jax.random.key(int(seed)), 0x5161)
+    u = jax.random.uniform(key, (theta.shape[0], lo.shape[0]), theta.dtype)
+    return theta.at[:, -lo.shape[0] :].set(lo + u * (hi - lo))
 
 
 def check_count(n, what: str, minimum: int = 1) -> int:
@@ -541,6 +558,7 @@ __all__ = [
     "infer",
     "predict",
     "initial_particles",
+    "noise_start_columns",
     "box_prior",
     "nn_inequality_prior",
 ]

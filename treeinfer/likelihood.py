@@ -354,7 +354,8 @@ class LikelihoodTerms(NamedTuple):
       (central differences for Boltzmann; autodiff through the FD-JVP simulator otherwise).
     extra_labels: labels of theta's extra columns after the 2R gains (``("sigma_x",)`` or ()).
       The column holds ``log sigma_x`` (sigma_x in m).
-    extra_lower, extra_upper: [E] initial-particle box of the extra columns (theta units).
+    extra_lower, extra_upper: [E] prior box of the extra columns (theta units): for a noise
+      scale the flat part of :class:`treeinfer.noise.NoisePrior` (resolution to data range).
     extra_log_prior: ``theta [N, D] -> [N]`` prior of the extra columns (None if E = 0).
     kT: the Boltzmann temperature used (None for the generative kinds).
     sigma_x: fixed displacement noise (m) if not inferred: given, or for Boltzmann with
@@ -371,6 +372,8 @@ class LikelihoodTerms(NamedTuple):
       the force-noise basis of the padded pulls), and ``loglik_of(data)`` is ``theta [N, D] ->
       [N]`` on them, equal to ``log_likelihood`` on the unpadded data; ``data`` may be traced (a
       jitted program's argument), so programs built on it serve every data set of one shape.
+    extra_init: ``(lower [E], upper [E])`` where uniform initial particles of the extra columns
+      are drawn (near the data's noise estimate, inside the prior box), or None: the box.
     """
 
     log_likelihood: Callable
@@ -386,6 +389,7 @@ class LikelihoodTerms(NamedTuple):
     force_noise: force_noise.ForceNoiseModel | None = None
     data_of: Callable | None = None
     loglik_of: Callable | None = None
+    extra_init: tuple | None = None
 
     @property
     def black_box(self) -> bool:
@@ -408,7 +412,7 @@ def likelihood_terms(
     sigma_x: float | None = None,
     sigma_v: float | None = None,
     df: float = noise.DEFAULT_STUDENT_T_DF,
-    sigma_prior_scale: float = noise.SIGMA_PRIOR_SCALE,
+    noise_floor: float | None = None,
     grasp_fraction=None,
     gradient: str = "fd",
     rel_step: float | None = None,
@@ -422,8 +426,12 @@ def likelihood_terms(
         ``"student_t"`` or ``"ar1"`` (generative, :mod:`treeinfer.noise`; theta then has the
         noise columns of :func:`noise_columns` after the gains).
       sigma_x: m. Generative kinds: fixed noise, or None to infer ``log sigma_x`` jointly as
-        theta's last column with prior ``Normal(log sigma_hat, sigma_prior_scale)`` centred on
-        the data estimate. Boltzmann with ``kT="auto"``: use it instead of the estimate.
+        theta's last column with the weakly-informative prior of
+        :func:`treeinfer.noise.noise_scale_prior` (log sigma_x flat from the sensor's
+        resolution to the data's range; the data estimate only seeds the start). Boltzmann with
+        ``kT="auto"``: use it instead of the estimate.
+      noise_floor: m, the displacement sensor's resolution if known: the prior's lower end
+        (None: ``step / sqrt(12)`` of a quantised recording, else 1 micron).
       sigma_v: m/s, velocity noise for the generative kinds (None: velocity term off).
       gradient: ``"fd"`` (black box, central differences) or ``"autodiff"`` (through the simulator).
       noise_force: None (default: no force-noise term, behaviour unchanged) or the std of white
@@ -581,10 +589,6 @@ def likelihood_terms(
         "student_t_df": df if kind == "student_t" else None,
         **({} if fmodel is None else fmodel.settings()),
     }
-    if not (math.isfinite(float(sigma_prior_scale)) and sigma_prior_scale > 0):
-        raise ConfigError(
-            f"sigma_prior_scale: must be a finite positive number, got {sigma_prior_scale!r}"
-        )
     labels = noise_columns(kind, sigma_x is None)
     if sigma_x is not None:
         sx = noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
@@ -597,29 +601,46 @@ def likelihood_terms(
             )  # fmt: skip
         est = noise.NoiseEstimate(sx, 0, "given")
     else:
-        est = noise.estimate_displacement_noise(obs)
+        try:
+            est = noise.estimate_displacement_noise(obs)
+        except ConfigError:  # the prior does not need it: the start box falls back to the range
+            est = None
         sx = None
-        settings.update(noise_displacement=None, noise_inferred=True, noise_estimate=est.sigma)
-        desc = (
-            f"{names[kind]} displacement noise, sigma_x inferred (prior log sigma_x ~ "
-            f"Normal(log sigma_hat, {sigma_prior_scale:g}); {est.describe()}){vel}"
+        settings.update(
+            noise_displacement=None,
+            noise_inferred=True,
+            noise_estimate=None if est is None else est.sigma,
         )
     import numpyro.distributions as dist
 
-    sigma_prior = noise.log_sigma_prior(est.sigma, sigma_prior_scale)
+    # weakly informative over decades: flat in log sigma from the sensor's resolution to the
+    # data's range (treeinfer.noise.NoisePrior); its flat part is the columns' box
+    prior = noise.noise_scale_prior(obs, est, noise_floor)
+    lo_s, hi_s = prior.log_bounds
+    if est is None:
+        init = (lo_s + 0.5 * (hi_s - lo_s), hi_s)
+    else:  # start near the estimate; it misses model error, which only adds: more room above
+        init = (max(math.log(est.sigma / 2.0), lo_s), min(math.log(est.sigma * 20.0), hi_s))
+        init = init if init[1] > init[0] else (lo_s, hi_s)
+    if sigma_x is None:
+        desc = (
+            f"{names[kind]} displacement noise, sigma_x inferred (prior {prior.describe()}; "
+            f"{'no estimate' if est is None else est.describe()}){vel}"
+        )
     rho_prior = dist.Normal(noise.RHO_PRIOR_LOC, noise.RHO_PRIOR_SCALE)
     col = 2 * sim.n_joints
-    centre = math.log(est.sigma)
-    lower, upper, priors = [], [], []
+    lower, upper, priors, init_lo, init_hi = [], [], [], [], []
     for k, lab in enumerate(labels):
         if lab == "rho":
             lower.append(0.0)  # rho 0.5 .. 0.99 for the initial particles
             upper.append(math.log(0.99 / 0.01))
             priors.append((col + k, rho_prior.log_prob))
         else:
-            lower.append(centre - 1.0)
-            upper.append(centre + 1.0)
-            priors.append((col + k, sigma_prior))
+            lower.append(lo_s)
+            upper.append(hi_s)
+            priors.append((col + k, prior.log_prob))
+        init_lo.append(init[0] if lab != "rho" else lower[-1])
+        init_hi.append(init[1] if lab != "rho" else upper[-1])
 
     def extra_log_prior(theta):
         theta = jnp.asarray(theta)
@@ -629,15 +650,14 @@ def likelihood_terms(
         lab: (
             f"logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, {noise.RHO_PRIOR_SCALE:g})"
             if lab == "rho"
-            else f"log {lab} ~ Normal(log {est.sigma:.4g}, {sigma_prior_scale:g})"
+            else prior.describe(lab)
         )
         for lab in labels
     }
     if kind == "ar1":
         desc += (
-            f"; AR(1) component sigma_c, rho inferred (log sigma_c ~ Normal(log sigma_hat, "
-            f"{sigma_prior_scale:g}), logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, "
-            f"{noise.RHO_PRIOR_SCALE:g}))"
+            f"; AR(1) component sigma_c, rho inferred (prior {prior.describe('sigma_c')}, "
+            f"logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, {noise.RHO_PRIOR_SCALE:g}))"
         )
     return LikelihoodTerms(
         loglik,
@@ -653,4 +673,5 @@ def likelihood_terms(
         fmodel,
         data_of,
         loglik_of,
+        (np.array(init_lo), np.array(init_hi)),
     )

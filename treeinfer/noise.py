@@ -61,13 +61,24 @@ differences ``x[t+1] - 2 x[t] + x[t-1]`` of std ``sqrt(6) sigma``; a smooth pull
 differences are tiny at 10 ms sampling (acceleration x dt^2). The robust scale (MAD / 0.6745)
 of the second differences over all real samples, divided by sqrt(6), estimates sigma; the
 median ignores the few samples at force kinks. On noise-free data it returns the (small)
-signal curvature instead of 0; that is an upper bound, harmless as a prior centre.
+signal curvature instead of 0 (an upper bound, flagged ``coarse``). Quantised values are
+floored at step / sqrt(12) and upsampled streams are estimated at their native rate
+(:mod:`treeinfer.noise_estimate`). The estimate only seeds the sampler's start and ``--kT
+auto``; it is NOT the prior's centre.
+
+The noise scale's prior (:func:`noise_scale_prior`, :class:`NoisePrior`): weakly informative
+over decades. ``log sigma_x`` is flat from the sensor's resolution (``step / sqrt(12)`` of a
+quantised recording, else 1 micron) up to the range of the recorded displacement, with a
+steep tail below (sigma cannot be below the sensor's resolution) and a soft one above. A
+clean recording (sigma settles at the model error, ~0.1 mm) and a noisy one (mm) fit with the
+same prior and no flags; the "box" of the sigma column that samplers, start searches and the
+straggler check see is this prior's flat part, so a posterior cannot leave it unless sigma is
+below the sensor's resolution or above everything it recorded.
 """
 
 from __future__ import annotations
 
 import math
-import statistics
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -75,15 +86,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import ConfigError
+from .noise_estimate import MIN_NOISE_SAMPLES, NoiseEstimate, estimate_white_noise
 from .trajectories import Observations, Trajectory, stack_trajectories
 
 __all__ = [
     "DEFAULT_STUDENT_T_DF",
     "KINDS",
     "MIN_NOISE_SAMPLES",
+    "NOISE_FLAGS",
     "NOISE_KINDS",
     "SIGMA_PRIOR_SCALE",
+    "RESOLUTION_FLOOR",
     "NoiseEstimate",
+    "NoisePrior",
     "as_observations",
     "check_df",
     "check_kind",
@@ -91,6 +106,7 @@ __all__ = [
     "estimate_displacement_noise",
     "log_sigma_prior",
     "noise_distribution",
+    "noise_scale_prior",
     "residual_log_prob",
     "standard_quantile",
 ]
@@ -102,15 +118,13 @@ NOISE_KINDS = ("gaussian", "student_t", "ar1")  # the generative ones (have a no
 RHO_PRIOR_LOC = math.log(0.9 / 0.1)
 RHO_PRIOR_SCALE = 2.0
 DEFAULT_STUDENT_T_DF = 4.0
-# Weakly-informative prior on log sigma_x: Normal(log sigma_hat, 1.5), sigma_hat the data-based
-# estimate. 95% of its mass lies within a factor exp(2.94) ~ 19 of the estimate either way, so
-# it only rules out absurd scales; with hundreds of samples the data decide (posterior std of
-# log sigma ~ 1 / sqrt(2 n)).
+# Scale of calibrate's (SBC's) proper prior Normal(log centre, scale) on log sigma_x
+# (:func:`log_sigma_prior`, which SBC draws data sets from); inference uses the flat-over-decades
+# :class:`NoisePrior` instead.
 SIGMA_PRIOR_SCALE = 1.5
-MIN_NOISE_SAMPLES = 20  # second differences needed for a noise estimate worth the name
-# 1.4826: MAD of a Gaussian -> its std (the standard library's quantile: scipy.stats costs
-# 0.6 s to import, and this module is on every run's import path)
-_MAD_TO_STD = 1.0 / statistics.NormalDist().inv_cdf(0.75)
+# the prior's lower end when the data show no quantisation step: 1 micron, below any pull rig's
+# displacement sensor (encoders, motion capture, cable potentiometers: 10 micron - 1 mm)
+RESOLUTION_FLOOR = 1e-6
 
 
 # --------------------------------------------------------------------------- checks
@@ -132,21 +146,49 @@ def check_df(df) -> float:
     return df
 
 
-def check_sigma(value, field: str, data_range: float | None = None) -> float:
-    """A noise standard deviation: finite, > 0 and (with ``data_range``) below the whole range
-    of the data (a sigma larger than everything the sensor recorded is a unit mistake).
+# config fields and the command-line flags that set them (named together in errors)
+NOISE_FLAGS = {
+    "noise_displacement": "--noise-displacement",
+    "noise_velocity": "--noise-velocity",
+    "noise_force": "--noise-force",
+}
 
-    Raises :class:`ConfigError` naming ``field`` (e.g. ``noise_displacement``)."""
+
+def _field_label(field: str) -> tuple[str, str]:
+    """(the name an error shows, the unit) for a noise setting's ``field``."""
+    flag = NOISE_FLAGS.get(field)
+    bare = field.lstrip("-").replace("-", "_")
+    unit = "m/s" if "velocity" in bare else "N" if "force" in bare else "m"
+    return (f"{field} ({flag})" if flag else field), unit
+
+
+def check_sigma(
+    value,
+    field: str,
+    data_range: float | None = None,
+    *,
+    allow_zero: bool = False,
+    what: str = "the whole range of the recorded data",
+) -> float:
+    """A noise standard deviation: finite, > 0 (>= 0 with ``allow_zero``: "no noise") and (with
+    ``data_range``) not above ``what`` (a sigma larger than everything the sensor recorded is a
+    unit mistake).
+
+    Raises :class:`ConfigError` naming ``field`` and, for a config field, its flag (e.g.
+    ``noise_displacement (--noise-displacement)``), with the unit (m, m/s or N)."""
+    label, unit = _field_label(field)
+    units = {"m": "metres", "m/s": "m/s", "N": "newtons"}[unit]
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ConfigError(f"{field}: expected a positive number (metres), got {value!r}") from None
-    if not math.isfinite(v) or v <= 0.0:
-        raise ConfigError(f"{field}: must be a finite positive number (metres), got {v}")
+        raise ConfigError(f"{label}: expected a positive number ({units}), got {value!r}") from None
+    if not math.isfinite(v) or v < 0.0 or (v == 0.0 and not allow_zero):
+        need = "a finite number >= 0" if allow_zero else "a finite positive number"
+        raise ConfigError(f"{label}: must be {need} ({units}), got {v:g}")
     if data_range is not None and v > data_range:
         raise ConfigError(
-            f"{field}: {v:g} is larger than the whole range of the recorded data ({data_range:g}); "
-            "check the units (metres)"
+            f"{label}: {v:g} {unit} is larger than {what} ({data_range:g} {unit}); check the "
+            f"units ({units})"
         )
     return v
 
@@ -171,31 +213,14 @@ def displacement_range(obs: Observations) -> float:
 # --------------------------------------------------------------------------- estimation
 
 
-class NoiseEstimate(NamedTuple):
-    """A data-based displacement-noise estimate.
-
-    sigma: m, the estimated white-noise standard deviation.
-    n_used: number of second differences it was computed from.
-    method: a one-line description of the estimator.
-    """
-
-    sigma: float
-    n_used: int
-    method: str
-
-    def describe(self) -> str:
-        return (
-            f"displacement noise sigma_x ~ {self.sigma * 1e3:.3g} mm "
-            f"({self.method}, n = {self.n_used})"
-        )
-
-
 def estimate_displacement_noise(data, min_samples: int = MIN_NOISE_SAMPLES) -> NoiseEstimate:
     """White displacement-noise std (m) from the high-frequency residual of the recordings.
 
     ``sigma = 1.4826 * median(|d2 - median(d2)|) / sqrt(6)`` with ``d2`` the second differences
-    ``x[t+1] - 2 x[t] + x[t-1]`` of every trajectory at real (masked-in) samples only (see the
-    module docstring for why this works and when it overestimates).
+    ``x[t+1] - 2 x[t] + x[t-1]`` of every trajectory at real (masked-in) samples only, computed
+    at the stream's native rate when it was upsampled (repeated or interpolated samples) and
+    floored at ``step / sqrt(12)`` when the values are quantised
+    (:func:`treeinfer.noise_estimate.estimate_white_noise`; the estimate's ``notes`` say which).
 
     Args:
       data: list of :class:`Trajectory` or an :class:`Observations` batch.
@@ -203,30 +228,100 @@ def estimate_displacement_noise(data, min_samples: int = MIN_NOISE_SAMPLES) -> N
 
     Raises:
       ConfigError: fewer than ``min_samples`` second differences ("too short to estimate"), or
-        a zero estimate (quantised or noise-free data): give the noise level explicitly then.
+        mostly zero second differences with no quantisation grid (constant data); the message
+        names ``--noise-displacement``.
     """
     obs = as_observations(data)
-    x = np.asarray(obs.displacement, float)
-    m = np.asarray(obs.mask, bool)
-    if x.shape[-1] < 3:
-        d2 = np.zeros((0,))
+    return estimate_white_noise(
+        obs.displacement,
+        obs.mask,
+        what="displacement",
+        flag="--noise-displacement",
+        unit="m",
+        min_samples=min_samples,
+    )
+
+
+# --------------------------------------------------------------------------- the sigma prior
+
+
+class NoisePrior(NamedTuple):
+    """The weakly-informative prior of an inferred noise scale (m), over decades.
+
+    ``log sigma`` is uniform on ``[log floor, log ceiling]`` with Gaussian tails of std
+    ``lower_tail`` below and ``upper_tail`` above (a smoothed box, normalised):
+
+    * ``floor``: the sensor's resolution: ``step / sqrt(12)`` when the recording is quantised on
+      a grid of ``step`` (detected from the data), else :data:`RESOLUTION_FLOOR` (1 micron);
+    * ``ceiling``: the range of the recorded displacement (a noise larger than everything the
+      sensor recorded is not a noise);
+    * ``lower_tail = 0.5 / sqrt(n)`` (n real samples): the likelihood of a noise-free record
+      pulls ``log sigma`` down by n nats per e-fold, so a tail this steep holds sigma within a
+      factor ``exp(0.25)`` of the floor; a sigma below the sensor's resolution is not physical.
+    * ``upper_tail = 1`` (a factor e): soft, the data always pull sigma below the range.
+
+    Nothing in between is preferred: a clean recording (sigma at the model error, ~0.1 mm) and a
+    noisy one (several mm) sit in the same flat part. ``rule`` says where the floor came from.
+    """
+
+    floor: float
+    ceiling: float
+    lower_tail: float
+    upper_tail: float
+    rule: str
+
+    @property
+    def log_bounds(self) -> tuple[float, float]:
+        """``(log floor, log ceiling)``: the prior box of the ``log sigma`` column."""
+        return math.log(self.floor), math.log(self.ceiling)
+
+    def log_prob(self, log_sigma):
+        """``log p(log sigma)`` (normalised; jnp, any shape)."""
+        lo, hi = self.log_bounds
+        s = jnp.asarray(log_sigma)
+        below = jnp.maximum(lo - s, 0.0) / self.lower_tail
+        above = jnp.maximum(s - hi, 0.0) / self.upper_tail
+        norm = (hi - lo) + math.sqrt(math.pi / 2.0) * (self.lower_tail + self.upper_tail)
+        return -0.5 * (below**2 + above**2) - math.log(norm)
+
+    def describe(self, name: str = "sigma_x") -> str:
+        return (
+            f"log {name} flat from {self.floor * 1e3:.3g} mm ({self.rule}) to "
+            f"{self.ceiling * 1e3:.3g} mm (the data's range)"
+        )
+
+
+def noise_scale_prior(data, estimate: NoiseEstimate | None = None, floor: float | None = None):
+    """:class:`NoisePrior` for ``data`` (trajectories or :class:`Observations`).
+
+    ``estimate``: the data's :func:`estimate_displacement_noise` (its quantisation ``step`` sets
+    the floor); None: estimated here when possible. ``floor``: the sensor's resolution (m) if
+    known (overrides both)."""
+    obs = as_observations(data)
+    ceiling = displacement_range(obs)
+    if not ceiling > 0:
+        raise ConfigError(
+            "trajectories: the recorded displacement does not vary: no noise scale to infer"
+        )
+    if floor is not None:
+        floor, rule = check_sigma(floor, "noise floor", ceiling), "given"
     else:
-        d2 = (x[:, 2:] - 2.0 * x[:, 1:-1] + x[:, :-2])[m[:, 2:] & m[:, 1:-1] & m[:, :-2]]
-    if d2.size < min_samples:
-        raise ConfigError(
-            f"trajectories: too short to estimate the displacement noise ({d2.size} second "
-            f"differences, need at least {min_samples}); give the noise level explicitly "
-            "(noise_displacement / --noise-displacement, metres)"
-        )
-    mad = float(np.median(np.abs(d2 - np.median(d2))))
-    sigma = _MAD_TO_STD * mad / math.sqrt(6.0)
-    if not sigma > 0.0:
-        raise ConfigError(
-            "trajectories: cannot estimate the displacement noise: more than half of the second "
-            "differences are zero (quantised or noise-free data); give the noise level explicitly "
-            "(noise_displacement / --noise-displacement, metres)"
-        )
-    return NoiseEstimate(sigma, int(d2.size), "robust MAD of second differences / sqrt(6)")
+        if estimate is None:
+            try:
+                estimate = estimate_displacement_noise(obs)
+            except ConfigError:
+                estimate = None
+        step = None if estimate is None else estimate.step
+        if step is not None:
+            floor, rule = (
+                step / math.sqrt(12.0),
+                f"quantisation step {step * 1e3:.3g} mm / sqrt(12)",
+            )
+        else:
+            floor, rule = RESOLUTION_FLOOR, "resolution floor"
+    floor = min(floor, ceiling / 100.0)  # at least two decades between the ends
+    n = int(np.sum(np.asarray(obs.mask, bool)))
+    return NoisePrior(floor, ceiling, 0.5 / math.sqrt(max(n, 1)), 1.0, rule)
 
 
 # --------------------------------------------------------------------------- densities
@@ -302,7 +397,8 @@ def ar1_white_log_prob(residual, mask, sigma_w, sigma_c, rho):
 
 
 def log_sigma_prior(center: float, scale: float = SIGMA_PRIOR_SCALE):
-    """Weakly-informative prior on ``log sigma_x``: ``Normal(log center, scale)`` (numpyro).
+    """A proper prior on ``log sigma_x``: ``Normal(log center, scale)`` (numpyro). Used by
+    ``calibrate`` (SBC draws sigma_x from it); inference uses :func:`noise_scale_prior`.
 
     Returns ``logp(log_sigma [N]) -> [N]``."""
     import numpyro.distributions as dist

@@ -315,6 +315,17 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
     cfg = _config_from_args(args)
     tree = load_tree(args.tree)
+    from ..checks import grasp_reach
+    from ..noise import check_sigma
+
+    for flag, v in (
+        ("--noise-displacement", cfg.noise_displacement),
+        ("--noise-prior-center", cfg.noise_prior_center),
+    ):
+        if v is not None:  # above any pull's range: a unit mistake (issue 27, "Bad input")
+            check_sigma(
+                v, flag, 2.0 * grasp_reach(tree), what="the farthest the grasp point can move"
+            )
     check_output_dir(args.out, args.force, "calibration")
     _prepare_jax()
     _say(

@@ -183,6 +183,18 @@ def run_demo(args: argparse.Namespace) -> int:
     _prepare_jax()
     tree_file = Path(__file__).resolve().parents[1] / "examples" / "two_branch.yaml"
     tree = load_tree(tree_file)
+    if args.noise_displacement is not None:
+        from ..checks import grasp_reach
+        from ..noise import check_sigma
+
+        # the grasp point cannot move more than twice its distance to a hinge: a noise above
+        # that is larger than any pull's range (a unit mistake)
+        check_sigma(
+            data_noise,
+            "--noise-displacement",
+            2.0 * grasp_reach(tree),
+            what="the largest displacement the tree's grasp point can reach",
+        )
     rng_params, rng_profiles = (
         np.random.default_rng(s) for s in np.random.SeedSequence(args.seed).spawn(2)
     )

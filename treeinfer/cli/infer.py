@@ -171,16 +171,21 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         type=float,
         metavar="M",
         help="displacement noise sigma_x in metres for --likelihood gaussian/student_t/ar1 "
-        "(default: inferred jointly, prior centred on the data's estimate) or for --kT auto "
-        "(default: estimated)",
+        "(default: inferred jointly under a weakly-informative prior, log sigma_x flat from the "
+        "sensor's resolution (step/sqrt(12) of a quantised recording, else 1 micron) to the "
+        "range of the data: clean and noisy recordings fit without it) or for --kT auto "
+        "(default: estimated from the data, at the native rate of an upsampled stream); must be "
+        "positive and below the data's range",
     )
     p.add_argument(
         "--noise-force",
         metavar="N|P%|auto",
         help="noise std of the RECORDED force per sample, as an errors-in-variables term "
         "(--likelihood gaussian only): newtons, P%% of the largest recorded |force|, or 'auto' "
-        "(estimated from the force's high-frequency residual); predictive bands then include "
-        "it (default: off; see treeinfer.force_noise)",
+        "(estimated from the force's high-frequency residual, floored at step/sqrt(12) for a "
+        "quantised load cell, at the native rate of an upsampled stream); must be positive and "
+        "below the largest recorded force; predictive bands then include it (default: off; see "
+        "treeinfer.force_noise)",
     )
     p.add_argument(
         "--noise-velocity",
@@ -341,7 +346,12 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "--allow-poor-fit",
         action="store_true",
         help="exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 "
-        "otherwise); the verdict stays in summary.json",
+        "otherwise); the verdict stays in summary.json. The verdict comes from posterior "
+        "predictive checks on the training data: poor_fit when the 95%% predictive bands "
+        "(with the inferred noise) miss far more than 5%% of the points; standardised "
+        "residuals off in mean, scale or tails and autocorrelated residuals ('model misfit') "
+        "only warn. Boltzmann runs (no noise model): poor_fit when the fit explains less than "
+        "half the displacement's variance",
     )
     p.add_argument(
         "--allow-implausible-data",

@@ -172,12 +172,13 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
             f"--n-traj {args.n_traj} disagrees with the {len(args.profile)} --profile spec(s) "
             "(one trajectory each)"
         )
+    from ..noise import check_sigma
+
     for flag, v in (
         ("--noise-force", args.noise_force),
         ("--noise-displacement", args.noise_displacement),
     ):
-        if not (math.isfinite(v) and v >= 0):
-            raise ConfigError(f"{flag}: must be >= 0, got {v:g}")
+        check_sigma(v, flag, allow_zero=True)  # 0: no noise
     if args.grasp_fraction is not None and not (0.0 < args.grasp_fraction <= 1.0):
         raise ConfigError(
             "--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got "
@@ -246,6 +247,7 @@ def run_simulate(args: argparse.Namespace) -> int:
             "(--peak-range), the step (--max-sim-dt) or check the parameters and the tree's "
             "units"
         )
+    _check_noise_against_data(args, forces, np.asarray(rollout.tau)[0])
     trajs = synthetic_trajectories(
         rollout, forces, args.dt, names, args.noise_force, args.noise_displacement, rng_noise
     )
@@ -274,6 +276,28 @@ def run_simulate(args: argparse.Namespace) -> int:
         "tree.yaml, true_params.json, config.json)"
     )
     return EXIT_OK
+
+
+def _check_noise_against_data(args, forces, tau) -> None:
+    """Noise larger than what it is added to is a unit mistake: --noise-force above the
+    largest |force| of the profiles, --noise-displacement above the simulated displacement's
+    range (issue 27, "Bad input")."""
+    from ..noise import check_sigma
+
+    check_sigma(
+        args.noise_force,
+        "--noise-force",
+        float(np.max(np.abs(forces))),
+        allow_zero=True,
+        what="the largest force of the profiles",
+    )
+    check_sigma(
+        args.noise_displacement,
+        "--noise-displacement",
+        float(np.max(tau) - np.min(tau)),
+        allow_zero=True,
+        what="the range of the simulated displacement",
+    )
 
 
 def _simulate_config(args, tree, specs, n_t, sim) -> dict[str, Any]:

@@ -45,12 +45,17 @@ def laplace_start(problem, config: dict, log: Callable[[str], None]):
         f"Laplace start: MAP from {len(fit.starts)} starts in {fit.iterations} LM iterations, "
         "start std (log units) " + ", ".join(f"{x:.3g}" for x in std)
     )
-    return laplace_particles(
+    theta = laplace_particles(
         jax.random.fold_in(jax.random.key(o["seed"]), 0x1A9),
         fit,
         o["particles"],
         scale=LAPLACE_SCALE,
     )
+    # the Boltzmann-loss fit does not see the noise columns: start them near the data's noise
+    # estimate, not over the prior's decades (issue 27)
+    from ..inference import noise_start_columns
+
+    return noise_start_columns(problem, theta, o["seed"])
 
 
 def _check_init(problem, options: dict) -> None:
