@@ -232,8 +232,8 @@ def markdown(res: dict) -> str:
         "",
         f"treeinfer {c['treeinfer_commit']}, {c['cpu_count']} CPUs, {c['date_utc']}",
         "",
-        "| case | seed | exit | verdict | test % inside | truths inside | max std/CRB | infer s "
-        "| evaluate s |",
+        "| case | seed | exit | verdict | test % inside | truths inside "
+        "| max std/CRB (force noise) | infer s | evaluate s |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in res["runs"]:
