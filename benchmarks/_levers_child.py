@@ -36,7 +36,7 @@ def precision_child(batch: int, n_steps: int, n_check: int, reps: int) -> dict:
     from treeinfer.sim.reference import simulate_reference
 
     tree, forces, _, _ = _standard_inputs(n_steps)
-    sim = make_simulator(tree, obs_dt=0.01)
+    sim = make_simulator(tree, obs_dt=0.01, accuracy="coarse")
     kp, kd = sample_gains(tree, max(batch, n_check), seed=11)
     dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     run = jax.jit(lambda a, b, f: simulate(sim, a, b, f))
@@ -86,7 +86,7 @@ def rollout_time_child(batch: int, n_steps: int, reps: int) -> dict:
     from treeinfer.sim import make_simulator, simulate
 
     tree, forces, _, _ = _standard_inputs(n_steps)
-    sim = make_simulator(tree, obs_dt=0.01)
+    sim = make_simulator(tree, obs_dt=0.01, accuracy="coarse")
     kp, kd = sample_gains(tree, batch, seed=5)
     a, b, f = (jnp.asarray(x, jnp.float32) for x in (kp, kd, forces))
     fn = jax.jit(lambda x, y, z: simulate(sim, x, y, z))

@@ -14,7 +14,7 @@ from treeinfer.sim import make_simulator
 
 def main(batches):
     for nb in [3, 6]:
-        sim = make_simulator(bench_tree(nb), obs_dt=0.01)
+        sim = make_simulator(bench_tree(nb), obs_dt=0.01, accuracy="coarse")
         t, nv = sim.hinge_tree, sim.mj_model.nv
 
         def step_tuple(q, v, kp):

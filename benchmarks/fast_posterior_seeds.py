@@ -53,7 +53,7 @@ def main(argv=None) -> int:
         )
     ]
     problem = make_problem(tree, trajs, substeps=args.substeps)
-    band_sim = make_simulator(tree, obs_dt=DT)
+    band_sim = make_simulator(tree, obs_dt=DT, accuracy="coarse")
     k = options.get("n_starts", 8) * (2 * problem.dim + 1)  # fast_posterior's own batch
     ev = BatchEvaluator(problem, default_chunk(k, options.get("n_draws", max(8 * k, 4 * 128))))
     devs = []

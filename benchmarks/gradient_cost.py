@@ -51,7 +51,7 @@ def standard_likelihood(n_steps: int = 300, backend: str = "fused"):
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml")
-    sim = make_simulator(tree, obs_dt=0.01, backend=backend)
+    sim = make_simulator(tree, obs_dt=0.01, backend=backend, accuracy="coarse")
     kp, kd = default_true_params(tree, np.random.default_rng(0))
     forces = profile_set("mixed", n=3, duration=n_steps * 0.01, dt=0.01, seed=0)[:, :n_steps]
     t = np.arange(n_steps) * 0.01

@@ -102,7 +102,7 @@ def lever_loops(args) -> dict:
     from treeinfer.sim import make_simulator, simulate
 
     tree, forces, _, _ = _standard_inputs(args.steps)
-    sim = make_simulator(tree, obs_dt=0.01)
+    sim = make_simulator(tree, obs_dt=0.01, accuracy="coarse")
     kp, kd = sample_gains(tree, args.batch, seed=5)
     a, b, f = (jnp.asarray(x, jnp.float32) for x in (kp, kd, forces))
     steps = args.batch * forces.shape[0] * args.steps * sim.substeps
@@ -115,7 +115,13 @@ def lever_loops(args) -> dict:
         ("substeps unrolled", {"unroll_inner": True}),
     ]:
         variants.append((name, functools.partial(simulate_variant, **kw), sim))
-    variants.append(("mjx backend", simulate, make_simulator(tree, obs_dt=0.01, backend="mjx")))
+    variants.append(
+        (
+            "mjx backend",
+            simulate,
+            make_simulator(tree, obs_dt=0.01, backend="mjx", accuracy="coarse"),
+        )
+    )
     variants.append(("mjx, euler integrator", simulate, with_integrator(sim, "euler")))
     rows, ref = [], None
     for name, sim_fn, s in variants:
@@ -259,7 +265,7 @@ def lever_profile(args) -> dict:
 
     mjx = import_mjx()
     tree, _, _, _ = _standard_inputs(args.steps)
-    sim = make_simulator(tree, obs_dt=0.01)
+    sim = make_simulator(tree, obs_dt=0.01, accuracy="coarse")
     model, t, nv = sim.model, sim.hinge_tree, sim.mj_model.nv
     stiff = [float(x) for x in sim.mj_model.jnt_stiffness[sim.mj_model.dof_jntid]]
     damp = [float(x) for x in sim.mj_model.dof_damping]

@@ -85,7 +85,7 @@ def main(argv=None) -> int:
     draws = pos.reshape(-1, pos.shape[-1])
     rng = np.random.default_rng(0)
     draws = draws[rng.permutation(len(draws))]  # subsets mix chains and steps
-    sim = make_simulator(tree, obs_dt=DT)
+    sim = make_simulator(tree, obs_dt=DT, accuracy="coarse")
     band = reference_metrics(sim, draws, data["test_force"], data["test_tau"], args.particles)
     record = {
         "command": "python -m benchmarks.mh_reference " + " ".join(argv or sys.argv[1:]),

@@ -90,7 +90,7 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
     from treeinfer.sim.reference import simulate_reference
 
     tree = bench_tree(n_branches)
-    sim = make_simulator(tree, obs_dt=args.obs_dt, backend=args.backend)
+    sim = make_simulator(tree, obs_dt=args.obs_dt, backend=args.backend, accuracy="coarse")
     forces = pull_profile(n_steps, sim.obs_dt)
     kp_pool, kd_pool = sample_gains(tree, POOL, seed=n_branches)
     steps_per_rollout = n_steps * sim.substeps

@@ -83,7 +83,7 @@ def main(argv=None) -> int:
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml")
-    sim = make_simulator(tree, obs_dt=0.01, backend=args.backend)
+    sim = make_simulator(tree, obs_dt=0.01, backend=args.backend, accuracy="coarse")
     phase("make_simulator")
     kp, kd = default_true_params(tree, np.random.default_rng(0))
     forces = profile_set("mixed", n=3, duration=args.steps * 0.01, dt=0.01, seed=0)[:, : args.steps]

@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     from treeinfer.tree import load_tree
 
     tree = load_tree(ROOT / "treeinfer" / "examples" / f"{args.tree}.yaml")
-    sim = make_simulator(tree, obs_dt=args.dt)
+    sim = make_simulator(tree, obs_dt=args.dt, accuracy="coarse")
     lo, hi = (np.log(b) for b in tree.bounds_array())
     rng = np.random.default_rng(0)
     theta = (

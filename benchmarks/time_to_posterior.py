@@ -91,7 +91,7 @@ def write_data(folder: Path, data_seed: int = 0) -> None:
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml")
-    sim = make_simulator(tree, obs_dt=DT)
+    sim = make_simulator(tree, obs_dt=DT, accuracy="coarse")
     kp, kd = default_true_params(tree, np.random.default_rng(0))
     out = {"kp": kp, "kd": kd}
     for name, seed in (("train", 2 * data_seed), ("test", 2 * data_seed + 1)):
@@ -384,7 +384,7 @@ def compare(runs: dict, workdir: Path, args) -> dict:
     from treeinfer.tree import load_tree
 
     data = np.load(workdir / "data.npz")
-    sim = make_simulator(load_tree(EXAMPLES / "three_branch.yaml"), obs_dt=DT)
+    sim = make_simulator(load_tree(EXAMPLES / "three_branch.yaml"), obs_dt=DT, accuracy="coarse")
     forces, truth = data["test_force"], data["test_tau"]
     ref = reference_metrics(sim, runs["reference"]["final_theta"], forces, truth, args.particles)
     print(

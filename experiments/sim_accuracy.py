@@ -78,7 +78,7 @@ def main(argv=None) -> dict:
     truth = exact(TRUE_KP, TRUE_KD)
     data = truth + rng.normal(0.0, args.noise, truth.shape)
     sims = {
-        "old (hold, 5 ms)": make_simulator(tree, obs_dt=DT, force_interp="hold"),
+        "old (hold, 5 ms)": make_simulator(tree, obs_dt=DT, force_interp="hold", accuracy="coarse"),
         "new (linear, 0.1 mm)": make_simulator(tree, obs_dt=DT, forces=prof),
     }
     out = {"noise_sd_m": args.noise, "true": {"kp": TRUE_KP, "kd": TRUE_KD}, "steps": {}}

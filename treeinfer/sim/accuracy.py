@@ -79,12 +79,66 @@ def prior_box_params(
     return x[:, :r], x[:, r:]
 
 
-def representative_forces(obs_dt: float, duration: float = 3.0, n: int = 8) -> np.ndarray:
-    """[n, T] N: a seeded mixed set of pulls (:func:`treeinfer.forces.profile_set`), used when
-    the accuracy check is asked for without the data's own profiles."""
+REPRESENTATIVE_PULLS = 8  # mixed ramp-hold-release / hold pulls of the representative set
+REPRESENTATIVE_DURATION = 3.0  # s: the length of a typical recorded pull (README, examples)
+TYPICAL_SAG_FRACTION = 0.1  # of the grasp point's reach: the sag a typical pull's peak gives
+MAX_PEAK_SCALE = 1e3  # a bound on the scaling (a model far outside tree scales)
+
+
+def typical_peak_scale(sim: Simulator) -> float:
+    """How much the standard pulls' peaks (2-8 N, :data:`treeinfer.forces.DEFAULT_PEAK_RANGE`)
+    are scaled up so that they bend THIS tree as a typical pull does, >= 1.
+
+    The static compliance of the grasp point along the pull (gravity) at the geometric rest
+    pose, ``c = j^T K^-1 j`` (``j``: the grasp site's Jacobian along gravity per dof, ``K``: the
+    joints' stiffness, inferred joints at the prior box's log-centre Kp), gives the sag of the
+    largest standard peak, ``8 N * c``. When that is below ``TYPICAL_SAG_FRACTION`` of the
+    grasp point's distance from the base (a stiff or large tree, which a robot pulls harder),
+    the peaks are scaled up to reach it; otherwise the standard pulls are kept (the example
+    trees: sags of a few cm to tens of cm). The discretisation error grows with the motion, so
+    scaling up and never down keeps the check conservative. A linear, gravity-free estimate:
+    it sets a force scale, not a prediction."""
+    import mujoco
+
+    from ..forces import DEFAULT_PEAK_RANGE
+
+    m = sim.mj_model
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    jac = np.zeros((3, m.nv))
+    mujoco.mj_jacSite(m, d, jac, None, sim.grasp_site)
+    j = np.asarray(sim.gravity_dir, float) @ jac
+    k = np.zeros(m.nv)
+    for jid in range(m.njnt):
+        k[m.jnt_dofadr[jid]] = m.jnt_stiffness[jid]
+    lo, hi = (np.asarray(b, float)[: sim.n_joints] for b in sim.prior_box)
+    k[np.asarray(sim.dof_ids)] = np.sqrt(lo * hi)
+    ok = k > 0  # a dof without a spring: no static sag to speak of; left out
+    compliance = float(np.sum(j[ok] ** 2 / k[ok]))
+    base = d.xpos[m.body_rootid[sim.grasp_body]]  # the tree's root body: its base
+    reach = float(np.linalg.norm(d.site_xpos[sim.grasp_site] - base))
+    sag = DEFAULT_PEAK_RANGE[1] * compliance
+    if not (sag > 0 and reach > 0):
+        return 1.0
+    return float(min(MAX_PEAK_SCALE, max(1.0, TYPICAL_SAG_FRACTION * reach / sag)))
+
+
+def representative_forces(
+    sim_or_obs_dt, duration: float = REPRESENTATIVE_DURATION, n: int = REPRESENTATIVE_PULLS
+) -> np.ndarray:
+    """[n, T] N: the pulls the accuracy check runs when no data are given (the API's
+    :func:`~treeinfer.sim.make_simulator` without ``forces``): the project's standard seeded set
+    (:func:`treeinfer.forces.profile_set` ``"mixed"``, seed 0: ramp-hold-release and hold pulls
+    of ``duration`` s with peaks 2-8 N, the set ``treeinfer simulate``, ``demo`` and
+    ``calibrate`` draw from), sampled every ``obs_dt``. Given a :class:`Simulator`, the peaks
+    are scaled by :func:`typical_peak_scale` (a stiff or large tree is pulled harder)."""
     from ..forces import profile_set
 
-    return profile_set("mixed", n=n, duration=duration, dt=obs_dt, seed=0)
+    if isinstance(sim_or_obs_dt, Simulator):
+        dt, scale = sim_or_obs_dt.obs_dt, typical_peak_scale(sim_or_obs_dt)
+    else:
+        dt, scale = float(sim_or_obs_dt), 1.0
+    return scale * profile_set("mixed", n=n, duration=duration, dt=dt, seed=0)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6))
@@ -218,7 +272,10 @@ def choose_substeps_for_accuracy(
         d = np.abs(tau(s) - tau(2 * s))
         return float(2.0 * np.nanmax(d)) if np.any(np.isfinite(d)) else math.inf
 
-    s = max(int(sim.substeps), math.ceil(sim.obs_dt / max_sim_dt - 1e-9))
+    # from the stability choice (not ``sim.substeps``: a simulator built with the default
+    # accuracy-controlled step would otherwise never go below the step chosen for 0.1 mm)
+    stable_s = int(sim.step_info.get("stability_substeps", sim.substeps))
+    s = max(stable_s, math.ceil(sim.obs_dt / max_sim_dt - 1e-9))
     err = error(s)
     if not math.isfinite(err):  # nothing simulates stably: refining cannot help; report it
         warnings.warn(
@@ -264,7 +321,7 @@ def with_accurate_step(
     """``sim`` with the substeps of :func:`choose_substeps_for_accuracy` (on ``forces``, or on
     :func:`representative_forces` when None) and ``step_info`` recording the tolerance, the
     estimated error and the stability choice."""
-    used = representative_forces(sim.obs_dt) if forces is None else forces
+    used = representative_forces(sim) if forces is None else forces
     tol = DEFAULT_SIM_TOLERANCE if tol is None else float(tol)
     path = _step_cache_path(sim, used, tol, max_sim_dt, kwargs)
     cached = _read_step_cache(path)
@@ -282,6 +339,8 @@ def with_accurate_step(
         "estimated_error": err,
         "forces": "given" if forces is not None else "representative",
     }
+    if forces is None:  # which pulls stood in for the data (module docstring)
+        info["representative_peak_n"] = float(np.max(np.abs(used)))
     return dataclasses.replace(sim, substeps=int(substeps), step_info=info)
 
 

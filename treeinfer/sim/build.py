@@ -20,6 +20,8 @@ from .simulator import (
     Simulator,
 )
 
+ACCURACIES = ("accurate", "coarse")  # make_simulator(accuracy=...): see its docstring
+
 
 def _stiff_corner_omega(mj_model, joint_ids: np.ndarray, kp_max: np.ndarray) -> float:
     """Largest natural frequency (rad/s) at the rest pose with inferred joints at ``kp_max``."""
@@ -67,23 +69,32 @@ def make_simulator(
     grasp_fraction=None,
     direction=None,
     grasp_branch=None,
+    accuracy: str = "accurate",
 ) -> Simulator:
     """Compile ``tree`` for batched rollouts observed every ``obs_dt`` seconds.
 
     Args:
       tree: the tree description (geometry, grasp, inferred joints, prior box).
       obs_dt: s, the trajectory sample interval (the CSV files' time step).
-      substeps: simulation steps per observation; default: the fewest that keep the stiffest
-        corner of the prior box stable and ``dt <= max_sim_dt`` (s), refined for accuracy when
-        ``forces`` or ``sim_tolerance`` is given (below). ``sim.step_info`` says how it was chosen.
-      forces: [B, T] N, the force profiles the simulator will run (the data's): with them the
-        step is refined until the step-doubling estimate of the discretisation error of ``tau``
-        is at most ``sim_tolerance`` on parameter sets spanning the prior box
-        (:func:`treeinfer.sim.accuracy.choose_substeps_for_accuracy`); ``grasp_fraction``,
-        ``direction`` and ``grasp_branch`` are those profiles' (as in :func:`simulate`).
+      substeps: simulation steps per observation; default: chosen by ``accuracy`` (below).
+        ``sim.step_info`` says how it was chosen.
+      accuracy: ``"accurate"`` (the default, the step ``treeinfer infer`` takes): the fewest
+        substeps that keep the stiffest corner of the prior box stable and ``dt <= max_sim_dt``
+        (s), refined until the step-doubling estimate of the discretisation error of ``tau`` is
+        at most ``sim_tolerance`` on parameter sets spanning the prior box
+        (:func:`treeinfer.sim.accuracy.choose_substeps_for_accuracy`), on ``forces`` when given
+        (the data's), else on a representative set of pulls
+        (:func:`treeinfer.sim.accuracy.representative_forces`: the standard seeded 3 s pulls,
+        peaks 2-8 N, scaled up for a stiff or large tree). The choice is kept on disk with the
+        compiled programs, so a later process with the same tree and pulls skips it.
+        ``"coarse"``: the stability step only (what ``make_simulator`` took before issue 27:
+        0.2-0.5 mm off an independent integration on the benchmark chains, several times faster
+        to roll out), for speed studies.
+      forces: [B, T] N, the force profiles the simulator will run (the data's), for the
+        accuracy-controlled step; ``grasp_fraction``, ``direction`` and ``grasp_branch`` are
+        those profiles' (as in :func:`simulate`).
       sim_tolerance: m, the accuracy target (default ``DEFAULT_SIM_TOLERANCE`` = 0.1 mm; the run
-        layer passes a tenth of the noise level when it knows it). Given without ``forces``,
-        the check runs on a representative set of pulls (:func:`treeinfer.forces.profile_set`).
+        layer passes a tenth of the noise level when it knows it).
       force_interp: ``"linear"`` (first-order hold between force samples, the default) or
         ``"hold"`` (zero-order hold, each sample held until the next); see :func:`simulate`.
       model_file: a user's own MJCF (``.xml``) or URDF file to simulate instead of exporting
@@ -113,6 +124,13 @@ def make_simulator(
         )
     if not (isinstance(max_sim_dt, (int, float)) and math.isfinite(max_sim_dt) and max_sim_dt > 0):
         raise ConfigError(f"max_sim_dt: must be a positive number of seconds, got {max_sim_dt!r}")
+    if accuracy not in ACCURACIES:
+        raise ConfigError(f"accuracy: must be one of {', '.join(ACCURACIES)}, got {accuracy!r}")
+    if accuracy == "coarse" and (forces is not None or sim_tolerance is not None):
+        raise ConfigError(
+            "accuracy='coarse' takes the stability step only; forces and sim_tolerance choose "
+            "the accuracy-controlled step (accuracy='accurate')"
+        )
     if sim_tolerance is not None and not (
         isinstance(sim_tolerance, (int, float))
         and math.isfinite(sim_tolerance)
@@ -211,7 +229,7 @@ def make_simulator(
         branch_axes=branch_axes,
         model_report={} if user is None else user.report,
     )
-    if step_info["method"] == "stability" and (forces is not None or sim_tolerance is not None):
+    if step_info["method"] == "stability" and accuracy == "accurate":
         from .accuracy import with_accurate_step
 
         sim = with_accurate_step(

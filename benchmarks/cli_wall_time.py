@@ -1,0 +1,194 @@
+"""The wall time a user waits for whole commands: process start, imports, checks, inference,
+evaluation and writing, with a warm and with an empty compile cache (issue 27, 5).
+
+The standard problem: the built-in ``three_branch`` example, 3 pulls of 3 s at 10 ms, 2 mm
+displacement + 0.05 N force noise, written once by ``treeinfer simulate`` (not timed). Each
+``infer`` command line (``--commands``; by default the default command, the calibrated path of
+issue 27 and Boltzmann from uniform draws) runs as a fresh process
+
+* **cold**: with ``TREEINFER_JAX_CACHE`` a new empty folder of its own (every XLA program is
+  compiled, the step choice is computed);
+* **warm**: again, with the folder the cold run filled (a new recording of the same shape
+  would also find its programs there; the step choice too, as for a rerun),
+
+in turn (A B C, A B C, ...: a drift of the shared machine's speed hits every command alike),
+``--repeats`` times; every run gets its own output folder. ``--session`` also times the
+README's "typical session" (the ``bash`` block after "A typical session:", each line with
+``treeinfer`` replaced by ``python -m treeinfer``, run in a new folder with a new cache), each
+command and the total, ``evaluate --kfold 3`` among them.
+
+Prints a table and writes JSON (``--json``, default ``benchmarks/results/cli_wall_time.json``)
+with the commands, the exit codes, the machine and the git commit. No timed assertions:
+timings on a shared machine are figures to compare side by side, not pass/fail.
+
+    python -m benchmarks.cli_wall_time [--repeats 2] [--commands default,calibrated] [--session]
+    python -m benchmarks.cli_wall_time --extra 'mine=--likelihood gaussian --particles 32'
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+COMMANDS = {  # label: flags after `infer --tree T --data D --out R`
+    "default": [],
+    "calibrated": ["--likelihood", "gaussian", "--noise-force", "auto", "--init", "laplace"],
+    "boltzmann_uniform": ["--likelihood", "boltzmann", "--init", "uniform"],
+}
+DATA = ["--n-traj", "3", "--duration", "3", "--dt", "0.01", "--seed", "0"]
+NOISE = ["--noise-displacement", "0.002", "--noise-force", "0.05"]
+
+
+def _env(cache: Path) -> dict:
+    """This checkout's treeinfer (``PYTHONPATH``: an editable install elsewhere must not win)
+    with ``cache`` as its compile cache."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env["TREEINFER_JAX_CACHE"] = str(cache)
+    return env
+
+
+def timed(cmd: list[str], cwd: Path, cache: Path, log: Path) -> dict:
+    """Run ``cmd``; its exit code and wall seconds (process start to exit), output in ``log``."""
+    t0 = time.perf_counter()
+    with open(log, "w") as f:
+        rc = subprocess.run(cmd, cwd=cwd, env=_env(cache), stdout=f, stderr=subprocess.STDOUT)
+    return {"command": shlex.join(cmd), "exit": rc.returncode, "wall_s": time.perf_counter() - t0}
+
+
+def readme_session() -> list[str]:
+    """The README's typical session: the lines of the ``bash`` block after "A typical session"."""
+    text = (ROOT / "README.md").read_text()
+    start = text.index("A typical session")
+    block = text[
+        text.index("```bash", start) + len("```bash") : text.index(
+            "```", text.index("```bash", start) + 7
+        )
+    ]
+    lines = [ln.strip() for ln in block.strip().splitlines() if ln.strip()]
+    if not lines or not all(ln.startswith("treeinfer ") for ln in lines):
+        raise SystemExit(
+            f"README.md: the typical session's block is not treeinfer commands: {lines}"
+        )
+    return lines
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--commands", default=",".join(COMMANDS), help="of " + ", ".join(COMMANDS))
+    ap.add_argument(
+        "--extra",
+        action="append",
+        default=[],
+        metavar="LABEL=FLAGS",
+        help="another infer command line to compare (repeatable)",
+    )
+    ap.add_argument("--repeats", type=int, default=1, help="cold+warm pairs per command")
+    ap.add_argument("--no-warm", action="store_true", help="cold runs only")
+    ap.add_argument("--session", action="store_true", help="also the README's typical session")
+    ap.add_argument("--work", type=Path, help="scratch folder (default: a new temporary one)")
+    ap.add_argument(
+        "--json", type=Path, default=ROOT / "benchmarks" / "results" / "cli_wall_time.json"
+    )
+    args = ap.parse_args(argv)
+    commands = {}
+    for label in filter(None, (c.strip() for c in args.commands.split(","))):
+        if label not in COMMANDS:
+            ap.error(f"--commands: unknown {label!r}; known: {', '.join(COMMANDS)}")
+        commands[label] = COMMANDS[label]
+    for item in args.extra:
+        label, _, flags = item.partition("=")
+        if not label or not _:
+            ap.error(f"--extra: expected LABEL=FLAGS, got {item!r}")
+        commands[label] = shlex.split(flags)
+    work = args.work or Path(tempfile.mkdtemp(prefix="cli_wall_time_"))
+    work.mkdir(parents=True, exist_ok=True)
+    py = [sys.executable, "-m", "treeinfer"]
+    tree = ROOT / "treeinfer" / "examples" / "three_branch.yaml"
+    data = work / "data"
+    prep = timed(
+        py + ["simulate", "--tree", str(tree), "--out", str(data), *DATA, *NOISE, "--force"],
+        work,
+        work / "cache_data",
+        work / "simulate.log",
+    )
+    if prep["exit"] != 0:
+        raise SystemExit(f"simulate failed (exit {prep['exit']}): see {work / 'simulate.log'}")
+    rows: dict = {
+        label: {"flags": flags, "cold": [], "warm": []} for label, flags in commands.items()
+    }
+    for rep in range(args.repeats):
+        for label, flags in commands.items():
+            cache = work / f"cache_{label}_{rep}"  # new and empty: the cold run
+            for phase in ("cold",) if args.no_warm else ("cold", "warm"):
+                out = work / f"run_{label}_{rep}_{phase}"
+                cmd = py + ["infer", "--tree", str(tree), "--data", str(data), "--out", str(out)]
+                r = timed(cmd + flags, work, cache, work / f"{out.name}.log")
+                rows[label][phase].append(r)
+                print(f"{label:20s} {phase}: {r['wall_s']:7.1f} s, exit {r['exit']}", flush=True)
+    session = None
+    if args.session:
+        sdir = work / "session"
+        sdir.mkdir(exist_ok=True)
+        session = []
+        for i, line in enumerate(readme_session()):
+            cmd = py + shlex.split(line)[1:]
+            r = timed(cmd, sdir, work / "cache_session", work / f"session_{i}.log")
+            r["readme_line"] = line
+            session.append(r)
+            print(f"session {line[:60]:60s} {r['wall_s']:7.1f} s, exit {r['exit']}", flush=True)
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+    ).stdout.strip()
+    res = {
+        "problem": "three_branch example, 3 pulls of 3 s at 10 ms, 2 mm + 0.05 N noise (simulate "
+        + shlex.join(DATA + NOISE)
+        + ")",
+        "commit": commit,
+        "machine": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "jax_platforms": os.environ.get("JAX_PLATFORMS"),
+        "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
+        "commands": rows,
+        "session": session,
+    }
+    print()
+    print(f"{'command':22s} {'cold s (median)':>16s} {'warm s (median)':>16s}  exit codes  flags")
+    import statistics
+
+    for label, r in rows.items():
+        med = {
+            p: statistics.median([x["wall_s"] for x in r[p]]) if r[p] else float("nan")
+            for p in ("cold", "warm")
+        }
+        codes = sorted({x["exit"] for p in ("cold", "warm") for x in r[p]})
+        print(
+            f"{label:22s} {med['cold']:16.1f} {med['warm']:16.1f}  {codes!s:10s}  "
+            + shlex.join(r["flags"])
+        )
+    if session:
+        total = sum(x["wall_s"] for x in session)
+        print(
+            f"README typical session: {total:.1f} s in all (cold cache), exit codes "
+            f"{[x['exit'] for x in session]}"
+        )
+        for x in session:
+            print(f"  {x['wall_s']:7.1f} s  {x['readme_line']}")
+        res["session_total_s"] = total
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(res, indent=2) + "\n")
+    print(f"wrote {args.json}")
+    return res
+
+
+if __name__ == "__main__":
+    main()
