@@ -204,7 +204,7 @@ def test_demo_rejects_bad_noise(tmp_path, capsys):
 
 # ---- infer -----------------------------------------------------------------------------------
 def test_infer_run_folder(run_dir, demo):
-    import arviz as az
+    from treeinfer.arviz_compat import read_netcdf
 
     out, stdout = run_dir
     names = {p.name for p in out.iterdir()}
@@ -258,7 +258,7 @@ def test_infer_run_folder(run_dir, demo):
         assert z["positions"].shape == (4, 8, 4) and it.tolist() == [0, 1, 2, 3]
         np.testing.assert_array_equal(z["positions"][-1], theta)
     assert labels == ["Kp[child]", "Kp[parent]", "Kd[child]", "Kd[parent]"]
-    idata = az.from_netcdf(out / "posterior.nc")
+    idata = read_netcdf(out / "posterior.nc")
     post = idata.posterior["theta"]
     assert list(post.coords["param"].values) == labels and post.shape == (1, 8, 4)
     np.testing.assert_allclose(post.values[0], theta, rtol=0, atol=0)
