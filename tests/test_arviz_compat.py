@@ -48,6 +48,17 @@ def test_from_dict_netcdf_round_trip(tmp_path):
     path.unlink()  # read_netcdf loaded everything and closed the file
 
 
+def test_add_group_survives_a_round_trip(tmp_path):
+    rng = np.random.default_rng(5)
+    idata = azc.from_dict({"theta": rng.normal(size=(2, 6, 3))})
+    extra = rng.normal(size=(2, 6))
+    assert azc.add_group(idata, "log_posterior", {"lp": extra}, attrs={"units": "nat"}) is idata
+    azc.write_netcdf(idata, tmp_path / "g.nc")
+    back = azc.read_netcdf(tmp_path / "g.nc")
+    np.testing.assert_array_equal(back.log_posterior["lp"].values, extra)
+    assert back.log_posterior.attrs["units"] == "nat"
+
+
 def test_convert_to_dataset_of_an_array():
     x = np.arange(24.0).reshape(2, 4, 3)
     ds = azc.convert_to_dataset(x)

@@ -26,6 +26,7 @@ from functools import cache
 import numpy as np
 
 __all__ = [
+    "add_group",
     "arviz_version",
     "convert_to_dataset",
     "ess",
@@ -117,6 +118,20 @@ def from_dict(
         if is_arviz1():
             out.attrs.update(attrs)
     return out
+
+
+def add_group(idata, name: str, variables: dict, *, coords=None, dims=None, attrs=None):
+    """Add group ``name`` (arrays ``[chain, draw, ...]``, as the posterior's) to ``idata`` from
+    :func:`from_dict`, in place; a group outside ArviZ's schema is allowed (0.2x warns about it,
+    silenced here). Returns ``idata``."""
+    ds = from_dict(variables, coords=coords, dims=dims, attrs=attrs).posterior
+    if is_arviz1():
+        idata[name] = ds.to_dataset()
+        return idata
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        idata.add_groups({name: ds})
+    return idata
 
 
 def _group_names(idata) -> list[str]:
