@@ -128,6 +128,17 @@ def test_summary_columns_and_values():
     np.testing.assert_allclose(table["ess_bulk"], ess_bulk, rtol=1e-12)
 
 
+def test_summary_table_names_the_interval_as_0_2x():
+    x = np.random.default_rng(6).normal(size=(1, 400, 1))
+    idata = azc.from_dict({"theta": x})
+    table = azc.summary_table(idata, kind="stats", hdi_prob=0.9)
+    assert {"mean", "sd", "hdi_5%", "hdi_95%"} <= set(table.columns)
+    lo, hi = float(table["hdi_5%"].iloc[0]), float(table["hdi_95%"].iloc[0])
+    inside = np.mean((x >= lo) & (x <= hi))
+    assert 0.88 <= inside <= 0.92  # 0.2x rounds the bounds to 2 decimals
+    assert "r_hat" in azc.summary_table(idata, kind="all").columns
+
+
 # ---- PSIS -------------------------------------------------------------------------------------
 
 # light tails (normal log weights, small scale) to heavy (Student-t 3 log weights, large scale)

@@ -36,6 +36,7 @@ __all__ = [
     "read_netcdf",
     "rhat",
     "summary",
+    "summary_table",
     "write_netcdf",
     "SUMMARY_COLUMNS",
 ]
@@ -213,6 +214,22 @@ def summary(data, var_names=None):
     _, stats = _modules()
     table = stats.summary(_sample_data(data), var_names=var_names, round_to="none")
     return table[list(SUMMARY_COLUMNS)].astype(float)
+
+
+def summary_table(data, *, kind: str = "all", hdi_prob: float = 0.94):
+    """ArviZ's summary for display (``kind`` ``"all"`` or ``"stats"``) with the highest-density
+    interval of probability ``hdi_prob``, its bounds named as on 0.2x on both series
+    (``hdi_5%`` / ``hdi_95%`` for 0.9; 1.x calls them ``hdi90_lb`` / ``hdi90_ub``); 1.x also
+    orders its columns differently. Values unrounded on 1.x, ArviZ's rounding on 0.2x."""
+    _, stats = _modules()
+    with warnings.catch_warnings():  # one chain of particles: the shape warning is moot
+        warnings.simplefilter("ignore", UserWarning)
+        if not is_arviz1():
+            return stats.summary(data, kind=kind, hdi_prob=hdi_prob)
+        table = stats.summary(data, kind=kind, ci_prob=hdi_prob, ci_kind="hdi", round_to="none")
+    tag = f"hdi{round(100 * hdi_prob):g}"
+    lo, hi = (100 * (1 - hdi_prob) / 2), (100 * (1 + hdi_prob) / 2)
+    return table.rename(columns={f"{tag}_lb": f"hdi_{lo:g}%", f"{tag}_ub": f"hdi_{hi:g}%"})
 
 
 def psis_log_weights(log_weights) -> tuple[np.ndarray, float]:
