@@ -36,12 +36,12 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="write the record here (JSON)")
     args = p.parse_args(argv)
 
-    import arviz
     import jax
 
     from benchmarks._ttp_child import DT, N_STEPS
     from benchmarks.inference import EXAMPLES
     from benchmarks.time_to_posterior import reference_metrics, write_data
+    from treeinfer import arviz_compat
     from treeinfer.fast_posterior import fast_posterior
     from treeinfer.inference import infer, make_problem
     from treeinfer.sim import make_simulator
@@ -79,7 +79,7 @@ def main(argv=None) -> int:
     it = np.asarray(run.trace_iterations)
     keep = it > args.warmup * args.iterations
     pos = np.asarray(run.trace_positions)[keep][:: args.thin]  # [n, chains, D]
-    rhat = arviz.rhat(arviz.convert_to_dataset(np.swapaxes(pos, 0, 1)))
+    rhat = arviz_compat.rhat(np.swapaxes(pos, 0, 1))
     rhat = np.asarray(rhat["x"])
     accept = float(np.nanmean(np.asarray(run.diagnostics.get("mean_acceptance_rate", np.nan))))
     draws = pos.reshape(-1, pos.shape[-1])

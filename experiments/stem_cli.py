@@ -53,13 +53,13 @@ def _cli(argv: list[str]) -> None:
 
 def _rhat_max(run: Path, warmup: float) -> float:
     """Largest split R-hat (arviz) over the run's chains after the warm-up share."""
-    import arviz as az
+    from treeinfer import arviz_compat as az
 
     with np.load(run / "trace.npz") as z:
         key = "positions" if "positions" in z.files else z.files[0]
         tr = np.asarray(z[key], float)  # [T, P, D]
     keep = tr[int(warmup * tr.shape[0]) :]
-    rhat = az.rhat(az.convert_to_dataset(np.swapaxes(keep, 0, 1)))["x"].values
+    rhat = az.rhat(np.swapaxes(keep, 0, 1))["x"].values
     return float(np.nanmax(rhat))
 
 

@@ -114,8 +114,7 @@ def _mh_draws(problem, args, seed: int):
     Returns (draws [N, D] of every chain over all of step 2 (after the warm-up), thinned to at
     most ``args.draws``; split R-hat per column over all chains of step 2 (arviz); acceptance;
     seconds)."""
-    import arviz as az
-
+    from treeinfer import arviz_compat as az
     from treeinfer.laplace import mh_proposal, problem_laplace_particles
 
     t0 = time.time()
@@ -160,7 +159,7 @@ def _mh_draws(problem, args, seed: int):
     )
     run = post.run
     keep = run.trace_positions[1:]  # [T, P, D]: every chain, every step after the warm-up
-    rhat = az.rhat(az.convert_to_dataset(np.swapaxes(keep, 0, 1)))["x"].values
+    rhat = az.rhat(np.swapaxes(keep, 0, 1))["x"].values
     acc = float(np.mean(run.diagnostics["mean_acceptance_rate"]))
     draws = keep.reshape(-1, keep.shape[-1])
     stride = max(1, len(draws) // args.draws)
@@ -181,9 +180,9 @@ def _nuts_draws(problem, args, seed: int):
 
     Returns (draws [N, D] over all chains, thinned to at most ``args.draws``; split R-hat per
     column over the chains (arviz); mean acceptance; seconds; divergences (count))."""
-    import arviz as az
     import blackjax
 
+    from treeinfer import arviz_compat as az
     from treeinfer.laplace import problem_laplace_particles
 
     t0 = time.time()
@@ -231,7 +230,7 @@ def _nuts_draws(problem, args, seed: int):
 
     pos, acc, div = sample(jax.random.split(k_run, args.walkers), states, params)
     pos = np.asarray(pos)  # [P, T, D]
-    rhat = az.rhat(az.convert_to_dataset(pos))["x"].values
+    rhat = az.rhat(pos)["x"].values
     draws = pos.reshape(-1, pos.shape[-1])
     stride = max(1, len(draws) // args.draws)
     n_div = int(np.sum(np.asarray(div)))

@@ -1,5 +1,7 @@
-"""The persistent compilation cache: on by default, keyed by the treeinfer/jax/jaxlib versions,
-and hit by a second process (what a reinstall of the same versions is, as far as JAX can tell)."""
+"""The persistent compilation cache: on by default in the command line and
+``treeinfer.configure_runtime()`` (not on ``import treeinfer``), keyed by the
+treeinfer/jax/jaxlib versions, and hit by a second process (what a reinstall of the same
+versions is, as far as JAX can tell)."""
 
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PROBE = """
 import json, jax, jax.numpy as jnp
 import treeinfer
+treeinfer.configure_runtime()
 hits = []
 jax.monitoring.register_event_listener(
     lambda e, **k: hits.append(e) if e == "/jax/compilation_cache/cache_hits" else None)

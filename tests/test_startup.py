@@ -138,7 +138,6 @@ def test_two_data_sets_of_one_bucket_share_one_compiled_program():
 def test_cached_program_is_traced_once_per_machine(tmp_path, monkeypatch):
     """The serialized export is written on the first call and read by the next (no tracing of
     the function), with the same results as a plain jit; off with TREEINFER_JAX_CACHE=off."""
-    pytest.importorskip("flatbuffers")  # jax.export's serialization needs it (an extra)
     from treeinfer.startup import cached_program, export_path
 
     monkeypatch.setenv("TREEINFER_JAX_CACHE", str(tmp_path))

@@ -42,6 +42,8 @@ HEAVY = (
     "blackjax",
     "optax",
     "arviz",
+    "arviz_base",  # ArviZ 1.x
+    "arviz_stats",
     "numpyro",
     "scipy.stats",
     "scipy.optimize",

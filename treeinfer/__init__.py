@@ -1,4 +1,18 @@
-"""treeinfer: learn how tree branches bend when a robot pulls on them."""
+"""treeinfer: learn how tree branches bend when a robot pulls on them.
+
+Importing treeinfer changes nothing outside it (no environment variables, no JAX settings). The
+command line sets up JAX's runtime for its run (:func:`configure_runtime`: persistent compile
+cache, GPU memory grown on demand); a program that uses the library calls
+``treeinfer.configure_runtime()`` itself, before its first JAX computation, to get the same.
+"""
+
+import sys as _sys
+
+if _sys.version_info < (3, 11):  # before any syntax or library that needs 3.11 fails obscurely
+    raise ImportError(
+        f"treeinfer needs Python >= 3.11; this is Python {_sys.version.split()[0]} "
+        f"({_sys.executable})"
+    )
 
 __version__ = "0.1.0"
 
@@ -25,6 +39,7 @@ _EXPORTS = {
     "Posterior": "inference",
     "load_posterior": "runs.posterior_load",
     "example_path": "examples",
+    "check_environment": "environment",
 }
 _MODULES = {
     "tree",
@@ -48,6 +63,8 @@ _MODULES = {
     "sharding",
     "runs",
     "mapfit",
+    "arviz_compat",
+    "environment",
 }
 
 
@@ -63,6 +80,40 @@ def __getattr__(name):
 
 def __dir__():
     return sorted(set(globals()) | set(_EXPORTS) | _MODULES)
+
+
+def configure_runtime(
+    cache_dir: str | None = None,
+    *,
+    compilation_cache: bool = True,
+    gpu_preallocate: bool | None = None,
+) -> dict:
+    """Set up JAX's runtime as the ``treeinfer`` command does; call it once, before the first
+    JAX computation (XLA reads the GPU memory settings when its GPU client starts).
+
+    Args:
+      cache_dir: the persistent compilation cache's folder (:func:`enable_compilation_cache`;
+        default ``$TREEINFER_JAX_CACHE`` or ``~/.cache/treeinfer/jax``; a user's own
+        ``JAX_COMPILATION_CACHE_DIR`` is kept).
+      compilation_cache: False leaves JAX's cache settings alone.
+      gpu_preallocate: None (default): grow GPU memory on demand
+        (``XLA_PYTHON_CLIENT_PREALLOCATE=false``) unless the environment already has one of
+        XLA's memory settings; False: grow on demand whatever the environment says; True:
+        JAX's own default (reserve 75% of the card at the first transfer).
+
+    Sets environment variables of this process (``JAX_COMPILATION_CACHE_DIR`` and the other
+    ``JAX_*`` cache defaults, ``XLA_PYTHON_CLIENT_PREALLOCATE``) and, when JAX is already
+    imported, JAX's config. Returns ``{"cache_dir": folder or None, "gpu_preallocate": bool}``
+    (what the GPU client will do)."""
+    import os
+
+    cache = enable_compilation_cache(cache_dir) if compilation_cache else None
+    if gpu_preallocate is None:
+        _grow_gpu_memory_on_demand()
+    else:
+        os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "true" if gpu_preallocate else "false"
+    prealloc = os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", "true").strip().lower()
+    return {"cache_dir": cache, "gpu_preallocate": prealloc not in ("false", "0")}
 
 
 def _cache_tag() -> str:
@@ -116,7 +167,8 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
     ``TREEINFER_JAX_CACHE=off`` turns the cache off (returns None). Every program is cached,
     however short its compile: on a 2-core CPU the many sub-second ones add up.
 
-    Called on ``import treeinfer`` (the cache is on by default). When JAX is not imported yet
+    Called by the command line and :func:`configure_runtime` (not on ``import treeinfer``).
+    When JAX is not imported yet
     this only sets the ``JAX_*`` environment defaults JAX reads at import (no JAX import, so
     ``treeinfer --help`` stays fast); a user's own ``JAX_COMPILATION_CACHE_DIR`` wins."""
     import os
@@ -174,22 +226,11 @@ def _grow_gpu_memory_on_demand() -> bool:
     programs need little memory (the standard problem's NNSVGD iteration a few MB; 131k
     parameter sets a few GB) and run the same once the pool has grown. Read by XLA when its GPU
     client starts, so it works as long as no JAX computation has run yet; set
-    ``XLA_PYTHON_CLIENT_PREALLOCATE=true`` to keep JAX's reservation."""
+    ``XLA_PYTHON_CLIENT_PREALLOCATE=true`` to keep JAX's reservation. Called by the command
+    line and :func:`configure_runtime`."""
     import os
 
     if any(name in os.environ for name in _GPU_MEMORY_SETTINGS):
         return False
     os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
     return True
-
-
-def _enable_cache_on_import() -> None:
-    import contextlib
-
-    with contextlib.suppress(Exception):  # never let the cache stop the package importing
-        enable_compilation_cache()
-    with contextlib.suppress(Exception):
-        _grow_gpu_memory_on_demand()
-
-
-_enable_cache_on_import()

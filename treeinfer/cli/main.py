@@ -129,6 +129,18 @@ def build_parser(only: str | None = None, lazy: bool = False) -> argparse.Argume
     return parser
 
 
+def _start_runtime() -> None:
+    """What a command needs before it runs: a supported Python and dependency set (one clear
+    message otherwise: :func:`treeinfer.environment.check_environment`, exit 2) and JAX's runtime
+    settings (:func:`treeinfer.configure_runtime`: persistent compile cache, GPU memory grown on
+    demand), which ``import treeinfer`` leaves to the program that uses it."""
+    import treeinfer
+    from treeinfer.environment import check_environment
+
+    check_environment()
+    treeinfer.configure_runtime()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit code (see the module docstring)."""
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
@@ -141,6 +153,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
     debug = bool(getattr(args, "debug", False))
     try:
+        _start_runtime()
         rc = args._run(args)
         return EXIT_OK if rc is None else int(rc)
     except TreeinferError as e:

@@ -23,8 +23,8 @@ remedies; :func:`kernel_stein_discrepancy` (IMQ kernel, standardised particles) 
 early; :func:`mcmc_draws` / :func:`mcmc_summary` summarise MCMC runs from the post-warm-up
 trace of all chains; :func:`prior_edge_mass` warns when posterior mass piles up at a box edge.
 
-ArviZ is imported lazily (it is slow to import and prints a FutureWarning
-about its coming 1.0 refactor, which we silence).
+ArviZ is reached through :mod:`treeinfer.arviz_compat` (ArviZ 0.2x and 1.x), imported
+lazily: it is slow to import.
 
 Modules: :mod:`.core` (ArviZ export, MCMC and SVGD diagnostics, warnings), :mod:`.stragglers`
 (stuck particles and remedies), :mod:`.convergence` (Stein discrepancy, moment change, early
@@ -56,7 +56,6 @@ from .core import (
     svgd_diagnostics,
     to_inference_data,
 )
-from .core import _arviz as _arviz  # private helpers some tests and callers use
 from .core import _labels as _labels
 from .stragglers import (
     FALSE_ALARM,

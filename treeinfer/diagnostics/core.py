@@ -9,6 +9,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .. import arviz_compat
 from .._io import atomic_save
 from ..errors import ConfigError
 
@@ -18,14 +19,6 @@ MAX_REL_RISE = 0.01
 MAX_UNSTABLE_FRACTION = 0.1
 WINDOW = 0.1  # last 10% of iterations
 MAX_KSD_FALL = 0.1  # KSD still falling by more than 10% over the window: not converged
-
-
-def _arviz():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FutureWarning)
-        import arviz
-
-    return arviz
 
 
 def _labels(labels: Sequence[str] | None, d: int) -> list[str]:
@@ -48,7 +41,8 @@ def to_inference_data(
     sampler: str | None = None,
     attrs: dict | None = None,
 ):
-    """Wrap sampler output in an :class:`arviz.InferenceData`.
+    """Wrap sampler output in ArviZ's container: an ``arviz.InferenceData`` on ArviZ 0.2x, an
+    ``xarray.DataTree`` on 1.x (:mod:`treeinfer.arviz_compat`; both read the same way).
 
     Args:
       samples: either an MCMC trace ``[n_iter, P, D]`` (each particle is one
@@ -64,10 +58,9 @@ def to_inference_data(
       attrs: extra attributes (strings/numbers) for the whole InferenceData.
 
     Returns:
-      ``InferenceData`` with group ``posterior`` (variable ``theta`` with dims
+      ``InferenceData`` / ``DataTree`` with group ``posterior`` (variable ``theta`` with dims
       ``(chain, draw, param)``) and, with ``log_density``, ``sample_stats``.
     """
-    az = _arviz()
     x = np.asarray(samples, dtype=float)
     if x.ndim == 3:
         theta = np.swapaxes(x, 0, 1)  # [P, n_iter, D]: chain = particle
@@ -91,23 +84,20 @@ def to_inference_data(
     all_attrs = dict(attrs or {})
     if sampler is not None:
         all_attrs["sampler"] = str(sampler)
-    idata = az.from_dict(
-        posterior={"theta": theta},
+    return arviz_compat.from_dict(
+        {"theta": theta},
         sample_stats=stats,
         dims={"theta": ["param"]},
         coords={"param": names},
         attrs=all_attrs or None,
     )
-    for group in idata.groups():
-        idata[group].attrs.update(all_attrs)
-    return idata
 
 
 def save_inference_data(idata, path) -> None:
     """Write ``idata`` to NetCDF (``netCDF4`` engine) atomically; read back with
-    ``arviz.from_netcdf``."""
+    :func:`treeinfer.arviz_compat.read_netcdf` (or ``arviz.from_netcdf``)."""
     with atomic_save(path) as tmp:
-        idata.to_netcdf(str(tmp), engine="netcdf4")
+        arviz_compat.write_netcdf(idata, tmp)
 
 
 # --------------------------------------------------------------------------- MCMC
@@ -141,7 +131,6 @@ def mcmc_diagnostics(
       "ess_tail_min_per_chain"}`` (plain floats/ints; NaN where undefined,
       e.g. constant chains).
     """
-    az = _arviz()
     x = np.asarray(trace, dtype=float)
     if x.ndim != 3:
         raise ConfigError(f"trace: expected shape [n_iter, P, D], got {x.shape}")
@@ -180,9 +169,9 @@ def mcmc_diagnostics(
             warnings.simplefilter(
                 "ignore", RuntimeWarning
             )  # constant chains: NaN, reported as such
-            rhat = az.rhat(idata, var_names=["theta"])["theta"].values
-            ess_b = az.ess(idata, var_names=["theta"], method="bulk")["theta"].values
-            ess_t = az.ess(idata, var_names=["theta"], method="tail")["theta"].values
+            rhat = arviz_compat.rhat(idata, var_names=["theta"])["theta"].values
+            ess_b = arviz_compat.ess(idata, "bulk", var_names=["theta"])["theta"].values
+            ess_t = arviz_compat.ess(idata, "tail", var_names=["theta"])["theta"].values
         flat = kept[:, good].reshape(-1, D)
         for i, name in enumerate(names):
             params[name] = {
