@@ -31,6 +31,7 @@ __all__ = [
     "convert_to_dataset",
     "ess",
     "from_dict",
+    "group_names",
     "is_arviz1",
     "psis_log_weights",
     "read_netcdf",
@@ -114,7 +115,7 @@ def from_dict(
         else:
             out = data_mod.from_dict(**groups, dims=dims, coords=coords)
     if attrs:
-        for name in _group_names(out):
+        for name in group_names(out):
             out[name].attrs.update(attrs)
         if is_arviz1():
             out.attrs.update(attrs)
@@ -135,7 +136,8 @@ def add_group(idata, name: str, variables: dict, *, coords=None, dims=None, attr
     return idata
 
 
-def _group_names(idata) -> list[str]:
+def group_names(idata) -> list[str]:
+    """The groups of an ``InferenceData`` (0.2x) or the child nodes of a ``DataTree`` (1.x)."""
     if is_arviz1():
         return list(idata.children)
     return list(idata.groups())

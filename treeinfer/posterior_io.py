@@ -2,15 +2,13 @@
 its ArviZ data (natural units with units and the prior box as attributes) and its figures (pair
 plot, trace). Below :mod:`treeinfer.posterior`: it takes the posterior as an argument.
 
-ArviZ is reached only through :func:`_arviz_from_dict`, :func:`_arviz_summary` and
-:func:`_arviz_rhat_ess` (one seam each), so the package's adapter module replaces them in one place.
+ArviZ is reached only through :mod:`treeinfer.arviz_compat` (ArviZ 0.2x and 1.x).
 """
 
 from __future__ import annotations
 
 import json
 import math
-import warnings
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -112,56 +110,45 @@ def _split(label: str) -> tuple[str, str | None]:
     return label, None
 
 
-# ==== the ArviZ seam ==============================================================================
-def _arviz():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FutureWarning)
-        import arviz
-
-    return arviz
-
-
+# ==== ArviZ, through the package's adapter (ArviZ 0.2x and 1.x) ===============================
 def _arviz_from_dict(posterior, sample_stats, coords, dims, attrs, extra_groups):
-    """InferenceData of ``posterior`` / ``sample_stats`` (``arviz.from_dict``) plus the
-    ``extra_groups`` ``{name: (variables, coords, dims)}`` (``add_groups``). The one place
-    that builds InferenceData here (adapter at merge: ``arviz_compat.from_dict`` and
-    ``arviz_compat.add_group``)."""
-    az = _arviz()
-    idata = az.from_dict(
-        posterior=posterior, sample_stats=sample_stats, coords=coords, dims=dims, attrs=attrs
+    """InferenceData (0.2x) / DataTree (1.x) of ``posterior`` / ``sample_stats`` plus the
+    ``extra_groups`` ``{name: (variables, coords, dims)}``."""
+    from . import arviz_compat
+
+    idata = arviz_compat.from_dict(
+        posterior, sample_stats=sample_stats, coords=coords, dims=dims, attrs=attrs
     )
     for name, (variables, g_coords, g_dims) in extra_groups.items():
-        ds = az.from_dict(posterior=variables, coords=g_coords, dims=g_dims, attrs=attrs).posterior
-        with warnings.catch_warnings():  # a group outside ArviZ's schema, on purpose
-            warnings.simplefilter("ignore", UserWarning)
-            idata.add_groups({name: ds})
+        arviz_compat.add_group(idata, name, variables, coords=g_coords, dims=g_dims, attrs=attrs)
     return idata
 
 
 def _arviz_summary(idata, kind: str, hdi_prob: float):
-    """``arviz.summary`` (adapter at merge: ``arviz_compat.summary``)."""
-    az = _arviz()
-    with warnings.catch_warnings():  # one chain of particles: ArviZ's shape warning is moot
-        warnings.simplefilter("ignore", UserWarning)
-        import logging
+    """ArviZ's summary table (:func:`treeinfer.arviz_compat.summary_table`), ArviZ's one-chain
+    messages quiet (a particle set is one "chain" on purpose)."""
+    import logging
 
-        log = logging.getLogger("arviz")
-        level = log.level
-        log.setLevel(logging.ERROR)
-        try:
-            return az.summary(idata, kind=kind, hdi_prob=hdi_prob)
-        finally:
-            log.setLevel(level)
+    from . import arviz_compat
+
+    log = logging.getLogger("arviz")
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        return arviz_compat.summary_table(idata, kind=kind, hdi_prob=hdi_prob)
+    finally:
+        log.setLevel(level)
 
 
 def _arviz_rhat_ess(chains: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(r_hat, ess_bulk, ess_tail)`` per column of ``chains [C, S, D]`` (``arviz.rhat`` /
-    ``arviz.ess``; adapter at merge: ``arviz_compat.rhat`` and ``arviz_compat.ess``)."""
-    az = _arviz()
-    out = []
-    for fn, kw in ((az.rhat, {}), (az.ess, {"method": "bulk"}), (az.ess, {"method": "tail"})):
-        out.append(np.array([float(fn(chains[:, :, j], **kw)) for j in range(chains.shape[2])]))
-    return tuple(out)
+    """``(r_hat, ess_bulk, ess_tail)`` per column of ``chains [C, S, D]``."""
+    from . import arviz_compat
+
+    x = np.asarray(chains, dtype=float)
+    r = arviz_compat.rhat(x)["x"].values
+    eb = arviz_compat.ess(x, "bulk")["x"].values
+    et = arviz_compat.ess(x, "tail")["x"].values
+    return np.asarray(r, float), np.asarray(eb, float), np.asarray(et, float)
 
 
 # ==== natural-unit InferenceData ==================================================================
@@ -230,7 +217,9 @@ def build_inference_data(
     for name, a in var_attrs.items():
         idata.posterior[name].attrs.update(a)
     idata.log_posterior["theta"].attrs["units"] = "natural log of each parameter's unit"
-    for group in idata.groups():
+    from .arviz_compat import group_names
+
+    for group in group_names(idata):
         idata[group].attrs.update(all_attrs)
     return idata
 
