@@ -34,6 +34,7 @@ from treeinfer.integrity import (
     validate_summary,
     verify_run,
 )
+from treeinfer.manifest import MANIFEST, write_manifest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -85,7 +86,7 @@ def test_force_never_replaces_the_commands_inputs(tmp_path):
     for inp in (data, data / "pull1.csv"):
         with pytest.raises(OutputExistsError, match="an input of this command"):
             check_output_dir(data, True, "run", inputs=[inp])
-    with pytest.raises(OutputExistsError, match="holds an input"):
+    with pytest.raises(OutputExistsError, match="contains an input"):
         _write(tmp_path, force=True, inputs=[data / "pull1.csv"])
     assert (data / "pull1.csv").read_text() == "x"
 
@@ -141,9 +142,9 @@ out = Path({str(out)!r})
 if {complete!r}:
     real = _io.os.replace
     calls = []
-    def die_on_second(src, dst):
+    def die_on_second(src, dst):  # of the publish step's renames (the first writes manifest.json)
         calls.append(1)
-        if len(calls) == 2:
+        if len(calls) == 3:
             os.kill(os.getpid(), signal.SIGKILL)
         return real(src, dst)
     _io.os.replace = die_on_second
@@ -173,6 +174,8 @@ def test_sigkill_between_renames_recovers_the_finished_result(tmp_path):
     assert any("recovered the finished result" in m for m in msgs), msgs
     assert (out / "result.txt").read_text() == "killed run"
     assert find_staging(out) == []
+    (old,) = tmp_path.glob("run.old-*")  # --force kept the previous result, never deleted it
+    assert (old / "result.txt").read_text() == "previous"
 
 
 def test_displaced_old_result_is_put_back(tmp_path):
@@ -231,7 +234,11 @@ def _fake_run(tmp_path: Path) -> tuple[Path, dict]:
     (run / "tree.yaml").write_text("branches:\n  - {name: child, length: 0.6}\n")
     (run / "posterior.nc").write_bytes(b"\x89HDF\r\n" + bytes(range(200)))
     (run / "particles.csv").write_text("particle,Kp[child]\n0,10.0\n")
-    return run, {"integrity": record_checksums(run)}
+    # as save_run and publish_staged write it: config.json promises the manifest of every file
+    config = {"integrity": {**record_checksums(run), "manifest": MANIFEST}}
+    (run / "config.json").write_text(json.dumps(config))
+    write_manifest(run)
+    return run, config
 
 
 def test_verify_run_accepts_an_untouched_run(tmp_path):
