@@ -273,8 +273,35 @@ def test_damaged_or_missing_posterior_is_refused(tmp_path, damage):
 
 def test_run_without_checksums_gets_a_note(tmp_path):
     run, _ = _fake_run(tmp_path)
+    (run / MANIFEST).unlink()  # a run from before checksums and manifests
     notes = verify_run(run, {"format": 1})
     assert "no checksums recorded" in notes[0]
+
+
+def test_run_from_before_manifests_loads_with_a_note(tmp_path):
+    run, config = _fake_run(tmp_path)
+    (run / MANIFEST).unlink()
+    del config["integrity"]["manifest"]
+    (notes,) = verify_run(run, config)
+    assert "before manifests" in notes and "config.json and summary.json could not be" in notes
+
+
+def test_removed_manifest_of_a_new_run_is_damage(tmp_path):
+    run, config = _fake_run(tmp_path)
+    (run / MANIFEST).unlink()
+    with pytest.raises(ConfigError, match="manifest.json is missing"):
+        verify_run(run, config)
+
+
+@pytest.mark.parametrize("name", ["config.json", "particles.csv"])
+def test_manifest_catches_an_edited_config_or_any_file(tmp_path, name):
+    run, _ = _fake_run(tmp_path)
+    with open(run / name, "a") as f:
+        f.write(" ")
+    with pytest.raises(ConfigError, match=f"{name} was edited after the run"):
+        verify_run(run, None)
+    (note,) = verify_run(run, None, allow_modified=True)
+    assert "--allow-modified" in note and name in note
 
 
 GOOD_CONFIG = {

@@ -212,3 +212,37 @@ def write_output_file(
     except OSError as e:
         raise output_error(path, e, "move the previous file aside") from None
     return atomic_write_bytes(path, data)
+
+
+def claim_output_files(
+    paths: Iterable[str | os.PathLike | None],
+    force: bool,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    what: str = "output file",
+) -> list[Path]:
+    """:func:`claim_output_file` for each of ``paths`` (None skipped), which must differ."""
+    inputs = list(inputs)
+    out = [claim_output_file(p, force, inputs, what) for p in paths if p is not None]
+    if len({_real(p) for p in out}) != len(out):
+        raise OutputExistsError(f"{', '.join(map(str, out))}: the output files must differ")
+    return out
+
+
+def retire_output_files(
+    paths: Iterable[str | os.PathLike | None],
+    force: bool,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    log: Callable[[str], None] | None = None,
+) -> list[Path]:
+    """Just before single output files are written (everything already built in memory): check
+    them again (:func:`claim_output_files`) and move each existing one aside, so that ``--force``
+    never loses the file it replaces."""
+    out = claim_output_files(paths, force, inputs)
+    from ._io import output_error
+
+    for p in out:
+        try:
+            move_aside(p, log, "file")
+        except OSError as e:
+            raise output_error(p, e, "move the previous file aside") from None
+    return out

@@ -313,9 +313,9 @@ def _config_from_args(args) -> SBCConfig:
 def run_calibrate(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
+    check_output_dir(args.out, args.force, "calibration", inputs=[args.tree])
     cfg = _config_from_args(args)
     tree = load_tree(args.tree)
-    check_output_dir(args.out, args.force, "calibration")
     _prepare_jax()
     _say(
         f"calibrate: {cfg.datasets} data sets of {cfg.n_traj} pulls on '{tree.name}', "
@@ -334,7 +334,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
         result = run_tree_sbc(tree, cfg, progress=progress, log=_say)
     record = config_record(args.tree, cfg)
-    with staged_output_dir(args.out, args.force, "calibration") as stage:
+    with staged_output_dir(args.out, args.force, "calibration", inputs=[args.tree]) as stage:
         atomic_write_json(stage / "config.json", record)
         dump_tree(tree, stage / "tree.yaml")
         summary = write_outputs(result, stage, record)

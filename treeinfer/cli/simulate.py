@@ -198,6 +198,8 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
 
 def run_simulate(args: argparse.Namespace) -> int:
     n_t = _check_simulate_args(args)
+    inputs = [args.tree, getattr(args, "params_json", None), args.model]
+    check_output_dir(args.out, args.force, inputs=inputs)  # before anything is read
     tree = load_tree(args.tree)
     if args.model is not None or args.repair_inertia is not None or tree.model is not None:
         tree = attach_model(tree, args.model, args.repair_inertia)
@@ -219,8 +221,6 @@ def run_simulate(args: argparse.Namespace) -> int:
         )
     forces = np.stack([from_spec(s, args.duration, args.dt) for s in specs])  # [B, T]
     assert forces.shape[1] == n_t
-    inputs = [args.tree, getattr(args, "params_json", None)]
-    check_output_dir(args.out, args.force, inputs=inputs)  # fail before the (slow) simulation
 
     _prepare_jax()
     rollout, sim = simulate_batch(
