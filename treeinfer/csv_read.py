@@ -132,11 +132,13 @@ def read_columns(
         TrajectoryFileError: naming file and line: unreadable, missing column, ragged row,
             non-numeric or empty cell.
     """
+    from .safe_load import read_regular_file
+    from .trajectory_types import MAX_FILE_BYTES
+
     path = Path(path)
-    try:
-        text = path.read_bytes().decode("utf-8-sig")
-    except OSError as e:
-        raise TrajectoryFileError(f"{path}: cannot read ({e.strerror or e})") from None
+    try:  # a FIFO or device is refused unopened; a huge file before it is read
+        raw = read_regular_file(path, "CSV file", TrajectoryFileError, max_bytes=MAX_FILE_BYTES)
+        text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise TrajectoryFileError(f"{path}: not UTF-8 text (byte {e.start})") from None
     rows: list[tuple[int, str]] = []

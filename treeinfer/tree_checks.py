@@ -47,6 +47,9 @@ def check_tie(tree: Tree) -> None:
 def _validate_branches(branches: tuple[Branch, ...]) -> None:
     if not branches:
         raise TreeFileError("branches: the tree has no branches")
+    from .limits import check_tree_size, tree_depth
+
+    check_tree_size(len(branches), tree_depth({b.name: b.parent for b in branches}))
     seen: set[str] = set()
     roots = 0
     for i, b in enumerate(branches):

@@ -408,14 +408,13 @@ def load_run(
     recorded one."""
     from ..integrity import load_npz, validate_run_config, validate_summary, verify_run
     from ..manifest import check_run_consistency, read_manifest
+    from ..safe_load import refuse_special_paths
 
     run_dir = Path(run_dir)
+    refuse_special_paths(run_dir, "run folder")  # a FIFO in it would block a reader
     if not run_dir.is_dir():
-        hint = (
-            f"; an interrupted run waits in {partial_dir(run_dir)} (--resume)"
-            if partial_dir(run_dir).is_dir()
-            else ""
-        )
+        part = partial_dir(run_dir)
+        hint = f"; an interrupted run waits in {part} (--resume)" if part.is_dir() else ""
         raise ConfigError(f"{run_dir}: no such run folder{hint}")
     if not (run_dir / "config.json").is_file():
         raise ConfigError(f"{run_dir}: not a treeinfer run (no config.json); give infer's --out")
