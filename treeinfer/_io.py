@@ -38,6 +38,7 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
+from . import interrupt
 from .errors import OutputExistsError, TreeinferError
 
 OUTPUT_MARKER = ".treeinfer-output"
@@ -468,6 +469,7 @@ def staged_output_dir(
                 prefix=f".{path.name}.{os.getpid()}.", suffix=STAGING_SUFFIX, dir=path.parent
             )
         )
+        interrupt.register(stage)  # removed even if a second Ctrl-C ends the process at once
         _publish_mode(stage, directory=True)
         (stage / OUTPUT_MARKER).write_text(_marker_text(False), encoding="utf-8")
     except OSError as e:
@@ -478,10 +480,14 @@ def staged_output_dir(
         yield stage
     except BaseException as e:
         shutil.rmtree(stage, ignore_errors=True)
+        interrupt.unregister(stage)
         if isinstance(e, OSError) and e.errno in _DISK_ERRNOS:
             raise output_error(getattr(e, "filename", None) or stage, e) from None
         raise
-    publish_staged(stage, path, what, log)
+    try:
+        publish_staged(stage, path, what, log)
+    finally:
+        interrupt.unregister(stage)
 
 
 def mark_output_dir(path: str | os.PathLike) -> Path:

@@ -107,3 +107,65 @@ def deep_recursion(depth: int) -> Iterator[None]:
         yield
     finally:
         sys.setrecursionlimit(old)
+
+
+def _opt(rest: list[str], flag: str, default: float) -> float:
+    """The value of ``flag`` among infer options passed through (``warmup -- ...``)."""
+    for i, a in enumerate(rest):
+        if a == flag and i + 1 < len(rest):
+            v = rest[i + 1]
+        elif a.startswith(flag + "="):
+            v = a.split("=", 1)[1]
+        else:
+            continue
+        try:
+            return float(v)
+        except ValueError:
+            return default  # infer itself names the bad value
+    return default
+
+
+def _n(v, default: float = 1.0) -> float:
+    if v is None:
+        return default
+    if isinstance(v, (list, tuple)):
+        return float(len(v))
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return default
+
+
+def check_command_size(command: str, args) -> None:
+    """:func:`check_work` for ``calibrate``, ``warmup`` and ``suggest`` from their parsed
+    options, before anything is read or compiled (``args.allow_large`` goes past)."""
+    g = lambda name, d=1.0: _n(getattr(args, name, None), d)  # noqa: E731
+    allow = bool(getattr(args, "allow_large", False))
+    if command == "calibrate":
+        samples = g("duration", 1.0) / max(g("dt", 0.01), 1e-9)
+        factors = [
+            ("--datasets", g("datasets")),
+            ("--n-traj", g("n_traj")),
+            ("samples (--duration / --dt)", samples),
+            ("max(--smc-particles, --particles)", max(g("smc_particles"), g("particles"))),
+            ("max(--smc-levels, --iterations)", max(g("smc_levels"), g("iterations"))),
+        ]
+        check_work(factors, allow, limit=MAX_WORK * 1e3)  # samples x pulls weigh less
+    elif command == "warmup":
+        rest = list(getattr(args, "infer_options", []) or [])
+        factors = [
+            ("--trajectories", g("trajectories")),
+            ("--steps", g("steps")),
+            ("infer --particles", _opt(rest, "--particles", 32)),
+            ("infer --iterations", _opt(rest, "--iterations", 300)),
+        ]
+        check_work(factors, allow, limit=MAX_WORK * 1e3)
+    elif command == "suggest":
+        factors = [
+            ("--particles", g("particles", 32)),
+            ("--grasp-fractions", g("grasp_fractions", 4)),
+            ("--peak-forces", g("peak_forces", 4)),
+            ("--profile-kinds", g("profile_kinds", 2)),
+            ("--directions", g("directions", 1)),
+        ]
+        check_work(factors, allow, limit=1e6)

@@ -18,6 +18,7 @@ from ..calibration import (
     write_outputs,
 )
 from ..errors import ConfigError
+from ..limits import check_command_size
 from ..tree import dump_tree, load_tree
 from .common import (
     COMMAND_HELP,
@@ -261,6 +262,11 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
     )
     add_backend_option(p)
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.add_argument(
+        "--allow-large",
+        action="store_true",
+        help="go past the size limit (treeinfer.limits) checked before any work",
+    )
     return p
 
 
@@ -313,6 +319,7 @@ def _config_from_args(args) -> SBCConfig:
 def run_calibrate(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
+    check_command_size("calibrate", args)  # before any work: --datasets 1e9 is an error now
     check_output_dir(args.out, args.force, "calibration", inputs=[args.tree])
     cfg = _config_from_args(args)
     tree = load_tree(args.tree)

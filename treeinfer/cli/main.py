@@ -128,6 +128,10 @@ def build_parser(only: str | None = None, lazy: bool = False) -> argparse.Argume
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit code (see the module docstring)."""
+    if argv is None:  # the real command line: Ctrl-C always ends it (treeinfer.interrupt)
+        from ..interrupt import install
+
+        install()
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     try:
         parser = build_parser(_command_of(argv), lazy=True)
