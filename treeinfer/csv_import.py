@@ -365,7 +365,8 @@ def import_csv(
             direction=None if dr is None else parse_direction(dr, f"direction for {m}"),
         )
     side = out / PULLS_FILE
-    existing = read_pulls(side, tree) if side.is_file() else None
+    # not is_file(): a FIFO or folder named pulls.yaml is refused by the reader, not replaced
+    existing = read_pulls(side, tree) if side.exists() or side.is_symlink() else None
     merged = dict(existing.pulls) if existing else {}
     merged.update(specs)
     # validate the sidecar before converting (cheap, and nothing is written on error)

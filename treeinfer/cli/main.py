@@ -140,6 +140,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return (
             e.code if isinstance(e.code, int) else (EXIT_OK if e.code is None else EXIT_USER_ERROR)
         )
+    except KeyboardInterrupt:  # Ctrl-C while the command's modules are imported
+        print("interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     debug = bool(getattr(args, "debug", False))
     try:
         rc = args._run(args)
