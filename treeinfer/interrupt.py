@@ -74,6 +74,19 @@ def _watch(fd: int, grace: float) -> None:
             _hard_exit(f"interrupted: still busy {grace:g} s later (in compiled code); exiting now")
 
 
+_handled = 0
+
+
+def _on_sigint(signum, frame) -> None:
+    """The main thread's handler: the first Ctrl-C raises KeyboardInterrupt as usual; a second
+    one (e.g. while the first is being cleaned up, or during shutdown) exits at once."""
+    global _handled
+    _handled += 1
+    if _handled >= 2:
+        _hard_exit("interrupted again: exiting now")
+    raise KeyboardInterrupt
+
+
 def install(grace: float = GRACE_S) -> bool:
     """Install the watchdog (once per process, from the main thread); False if it cannot be."""
     global _installed
@@ -83,7 +96,7 @@ def install(grace: float = GRACE_S) -> bool:
         try:
             r, w = os.pipe()
             os.set_blocking(w, False)
-            signal.signal(signal.SIGINT, signal.default_int_handler)
+            signal.signal(signal.SIGINT, _on_sigint)
             signal.set_wakeup_fd(w, warn_on_full_buffer=False)
         except (OSError, ValueError):
             return False
