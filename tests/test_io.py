@@ -238,6 +238,7 @@ def _fake_run(tmp_path: Path) -> tuple[Path, dict]:
     config = {"integrity": {**record_checksums(run), "manifest": MANIFEST}}
     (run / "config.json").write_text(json.dumps(config))
     write_manifest(run)
+    (run / ".treeinfer-output").write_text('{"writer": "treeinfer", "complete": true}\n')
     return run, config
 
 
@@ -291,6 +292,15 @@ def test_removed_manifest_of_a_new_run_is_damage(tmp_path):
     (run / MANIFEST).unlink()
     with pytest.raises(ConfigError, match="manifest.json is missing"):
         verify_run(run, config)
+
+
+@pytest.mark.parametrize("name", ["manifest.json", ".treeinfer-output"])
+def test_an_edited_manifest_or_marker_is_damage(tmp_path, name):
+    run, _ = _fake_run(tmp_path)
+    with open(run / name, "a") as f:
+        f.write(" ")  # still valid JSON: only the bytes tell
+    with pytest.raises(ConfigError, match=name):
+        verify_run(run, None)
 
 
 @pytest.mark.parametrize("name", ["config.json", "particles.csv"])

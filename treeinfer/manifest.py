@@ -13,6 +13,7 @@ whose particles do not fit their labels, or whose summary.json contradicts its p
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from collections.abc import Iterable, Mapping
@@ -32,6 +33,7 @@ __all__ = [
 MANIFEST_FORMAT = 1
 # written after the manifest (the publish step's completion flag), so not listed in it
 _UNLISTED = (MANIFEST, ".treeinfer-output")
+_MARKER = b'{"writer": "treeinfer", "complete": true}\n'  # treeinfer._io's, once published
 
 
 def _folder_files(folder: Path) -> list[str]:
@@ -96,6 +98,17 @@ def read_manifest(folder: str | os.PathLike) -> dict | None:
     for k in files:
         if k.startswith("/") or ".." in Path(k).parts:
             raise ConfigError(f"{path}: file name {k!r} points outside the folder")
+    # the manifest checks itself: treeinfer writes it in one canonical form, so any other byte
+    # (an edit that keeps the JSON valid) is damage too
+    canonical = json.dumps(d, indent=2, sort_keys=True) + "\n"
+    if path.read_bytes() != canonical.encode("utf-8"):
+        raise ConfigError(
+            f"{path}: was edited after it was written (not byte-identical to its "
+            "content as treeinfer writes it)"
+        )
+    marker = Path(folder) / ".treeinfer-output"
+    if (marker.read_bytes() if marker.is_file() else b"") != _MARKER:
+        raise ConfigError(f"{marker}: missing or edited (the folder's completion marker)")
     return dict(files)
 
 
