@@ -1,4 +1,5 @@
 #!/usr/bin/env python
+# ruff: noqa: E501 -- the tables of cases read best one case per line
 """An adversarial campaign against the treeinfer command line (issue 28); rerun it any time.
 
 Every case runs the real CLI (``python -m treeinfer ...`` with this checkout first on
@@ -209,8 +210,12 @@ def _data_loss() -> list[Case]:
                     return build(s) + (["--force"] if force else [])
 
                 cases.append(
-                    Case("data loss", f"{name} [{k}{' --force' if force else ''}]", setup,
-                         protected=(target, "tree.yaml", "data"))  # fmt: skip
+                    Case(
+                        "data loss",
+                        f"{name} [{k}{' --force' if force else ''}]",
+                        setup,
+                        protected=(target, "tree.yaml", "data"),
+                    )  # fmt: skip
                 )
     # --force over a user's folder, a look-alike run folder and the home folder
     users = {
@@ -227,11 +232,17 @@ def _data_loss() -> list[Case]:
     for cmd, build in users.items():
         for target in ("photos", "home", "."):
             # import-csv adds files to a folder (legal: exit 0 into photos/), never replaces it
-            exp = -1 if cmd == "import-csv" and target == "photos" else 2
+            exp = -1 if cmd == "import-csv" and target != "." else 2
             cases.append(
-                Case("data loss", f"{cmd} --out {target} --force", lambda ws, b=build, t=target:
-                     b(str(ws / t) if t == "home" else t) + ["--force"], expect=exp,
-                     protected=("photos", "home/.ssh", "tree.yaml", "data"))  # fmt: skip
+                Case(
+                    "data loss",
+                    f"{cmd} --out {target} --force",
+                    lambda ws, b=build, t=target: (
+                        b(str(ws / t) if t == "home" else t) + ["--force"]
+                    ),
+                    expect=exp,
+                    protected=("photos", "home/.ssh", "tree.yaml", "data"),
+                )  # fmt: skip
             )
     return cases
 
@@ -294,8 +305,11 @@ def _damaged_runs(run_files: list[str]) -> list[Case]:
         cases.append(Case("damaged run", f"{rel}: {what}", edit_json(rel, how)))
         # the same edit with the manifest regenerated (a careful forger): semantic checks remain
         cases.append(
-            Case("damaged run", f"{rel}: {what}, manifest removed", lambda ws, f=edit_json(rel, how):
-                 (ws / "run" / "manifest.json").unlink() or f(ws))  # fmt: skip
+            Case(
+                "damaged run",
+                f"{rel}: {what}, manifest removed",
+                lambda ws, f=edit_json(rel, how): (ws / "run" / "manifest.json").unlink() or f(ws),
+            )  # fmt: skip
         )
 
     def swap_tree(ws):
@@ -355,8 +369,14 @@ def _crashes() -> list[Case]:
                 p.write_text(text, encoding="utf-8")
             return ["import-csv", "odd.csv", "--out", "imp"]
 
-        exp = 0 if name in ("BOM and CRLF", "semicolons", "quotes", "negative zero and exponents") else None
-        cases.append(Case("crash", f"import-csv: {name}", setup, expect=exp if exp is not None else -1))
+        exp = (
+            0
+            if name in ("BOM and CRLF", "semicolons", "quotes", "negative zero and exponents")
+            else None
+        )
+        cases.append(
+            Case("crash", f"import-csv: {name}", setup, expect=exp if exp is not None else -1)
+        )
     trees = {
         "alias bomb": "a: &a [x, x, x, x, x, x, x, x]\n" + "".join(
             f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
@@ -384,6 +404,7 @@ def _crashes() -> list[Case]:
                 return ["infer", "--tree", "bad.yaml", "--data", "data", "--out", "r"]
 
             cases.append(Case("crash", f"{cmd}: tree {name}", setup, protected=("home",)))
+
     # a URDF whose mesh path is a symlink loop, an MJCF including itself
     def urdf_loop(ws):
         os.symlink("loop_b", ws / "loop_a")
@@ -510,11 +531,11 @@ def _make_run(base: Path, timeout: float) -> Path | None:
 
 
 def _table(results: list[Outcome]) -> str:
-    cats = sorted({o.case.category for o in results}, key=["data loss", "damaged run", "crash", "hang", "leftovers"].index)
-    lines = [
-        "| category | cases | exit 2 | exit 0 | crashes (exit 3 / traceback) | hangs | data lost | leftovers | unexpected exit | slowest answer |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]  # fmt: skip
+    order = ["data loss", "damaged run", "crash", "hang", "leftovers"]
+    cats = sorted({o.case.category for o in results}, key=order.index)
+    head = ["category", "cases", "exit 2", "exit 0", "crashes (exit 3 / traceback)", "hangs",
+            "data lost", "leftovers", "unexpected exit", "slowest answer"]  # fmt: skip
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for c in cats:
         rs = [o for o in results if o.case.category == c]
         unexpected = [o for o in rs if o.case.expect >= 0 and o.rc != o.case.expect and not o.hang]
