@@ -353,7 +353,7 @@ def _crashes() -> list[Case]:
         "time backwards": "time,force,displacement\n" + "".join(f"{1 - 0.01 * i},{i},{i}\n" for i in range(50)),
         "constant time": "time,force,displacement\n" + "".join(f"0,{i},{i}\n" for i in range(50)),
         "huge line": "time,force,displacement\n" + "1" * 2_000_000 + "\n",
-        "quotes": '"time","force","displacement"\n' + "".join(f'"{i}","{i}","{i}"\n' for i in range(50)),
+        "quotes": '"time","force","displacement"\n' + "".join(f'"{0.01 * i:.2f}","{0.1 * i:.2f}","{0.001 * i:.3f}"\n' for i in range(50)),
         "only comments": "# nothing\n# here\n",
         "negative zero and exponents": "time,force,displacement\n" + "".join(f"{i}e-2,-0,{i}E-4\n" for i in range(50)),
     }  # fmt: skip

@@ -203,3 +203,8 @@ def test_ctrl_c_ends_the_command_with_130_and_no_staging(tmp_path, twice):
     assert took < 10, took
     left = [q for q in tmp_path.rglob("*") if q.name.endswith(".staging")]
     assert left == []
+
+
+def test_a_csv_field_over_the_csv_modules_limit_is_a_user_error(ws, capsys):
+    (ws / "huge.csv").write_text("time,force,displacement\n" + "1" * 200_000 + "\n")
+    _answers_2_fast(["import-csv", ws / "huge.csv", "--out", ws / "imp"], capsys, "line 2")
