@@ -166,6 +166,8 @@ def test_tree_depth_and_size_limits():
         (["calibrate", "--out", "c", "--datasets", "1000000000"], "--datasets"),
         (["warmup", "--steps", "1000000000"], "--steps"),
         (["warmup", "--", "--particles", "1000000000"], "infer --particles"),
+        (["simulate", "--out", "c", "--duration", "1e12"], "--duration"),
+        (["simulate", "--out", "c", "--n-traj", "1000000000"], "--n-traj"),
     ],
 )
 def test_absurd_sizes_are_refused_before_any_work(ws, capsys, argv, flag):

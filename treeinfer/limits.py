@@ -160,6 +160,13 @@ def check_command_size(command: str, args) -> None:
             ("infer --iterations", _opt(rest, "--iterations", 300)),
         ]
         check_work(factors, allow, limit=MAX_WORK * 1e3)
+    elif command == "simulate":
+        if isinstance(getattr(args, "seed", 0), int) and args.seed < 0:
+            raise ConfigError(f"--seed: must be an integer >= 0, got {args.seed}")
+        samples = g("duration", 1.0) / max(g("dt", 0.01), 1e-9)
+        n = len(args.profile) if getattr(args, "profile", None) else g("n_traj", 8)
+        factors = [("--n-traj", n), ("samples (--duration / --dt)", samples)]
+        check_work(factors, allow, limit=1e8)  # 1e8 samples of 3 floats: 2.4 GB of output
     elif command == "suggest":
         factors = [
             ("--particles", g("particles", 32)),
