@@ -224,6 +224,8 @@ def test_output_folders_never_lose_data(tmp_path, monkeypatch):
         calls = []
 
         def flaky(src, dst, mode=mode, calls=calls):
+            if Path(dst).name == "manifest.json":  # written into the stage: not a publish rename
+                return real(src, dst)
             calls.append(1)
             if (mode == "rename1" and len(calls) == 1) or (mode == "rename2" and len(calls) == 2):
                 raise OSError(errno.EBUSY, "Device or resource busy")

@@ -381,8 +381,11 @@ def test_existing_output_refused_unless_force(tmp_path):
     (out / ".treeinfer-output").write_text('{"writer": "treeinfer", "complete": true}')
     paths = import_bag(bag, out, force=True)
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        [p.name for p in paths] + [".treeinfer-output", "import.json", "pulls.yaml"]
+        [p.name for p in paths]
+        + [".treeinfer-output", "import.json", "manifest.json", "pulls.yaml"]
     )
+    (old,) = tmp_path.glob("out.old-*")  # --force kept the folder it replaced (issue 28)
+    assert (old / "old.csv").read_text() == "x"
 
 
 # ----------------------------------------------------------------------------- pull splitting

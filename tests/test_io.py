@@ -34,6 +34,7 @@ from treeinfer.integrity import (
     validate_summary,
     verify_run,
 )
+from treeinfer.manifest import MANIFEST, write_manifest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -85,7 +86,7 @@ def test_force_never_replaces_the_commands_inputs(tmp_path):
     for inp in (data, data / "pull1.csv"):
         with pytest.raises(OutputExistsError, match="an input of this command"):
             check_output_dir(data, True, "run", inputs=[inp])
-    with pytest.raises(OutputExistsError, match="holds an input"):
+    with pytest.raises(OutputExistsError, match="contains an input"):
         _write(tmp_path, force=True, inputs=[data / "pull1.csv"])
     assert (data / "pull1.csv").read_text() == "x"
 
@@ -141,9 +142,9 @@ out = Path({str(out)!r})
 if {complete!r}:
     real = _io.os.replace
     calls = []
-    def die_on_second(src, dst):
+    def die_on_second(src, dst):  # of the publish step's renames (the first writes manifest.json)
         calls.append(1)
-        if len(calls) == 2:
+        if len(calls) == 3:
             os.kill(os.getpid(), signal.SIGKILL)
         return real(src, dst)
     _io.os.replace = die_on_second
@@ -173,6 +174,8 @@ def test_sigkill_between_renames_recovers_the_finished_result(tmp_path):
     assert any("recovered the finished result" in m for m in msgs), msgs
     assert (out / "result.txt").read_text() == "killed run"
     assert find_staging(out) == []
+    (old,) = tmp_path.glob("run.old-*")  # --force kept the previous result, never deleted it
+    assert (old / "result.txt").read_text() == "previous"
 
 
 def test_displaced_old_result_is_put_back(tmp_path):
@@ -231,7 +234,12 @@ def _fake_run(tmp_path: Path) -> tuple[Path, dict]:
     (run / "tree.yaml").write_text("branches:\n  - {name: child, length: 0.6}\n")
     (run / "posterior.nc").write_bytes(b"\x89HDF\r\n" + bytes(range(200)))
     (run / "particles.csv").write_text("particle,Kp[child]\n0,10.0\n")
-    return run, {"integrity": record_checksums(run)}
+    # as save_run and publish_staged write it: config.json promises the manifest of every file
+    config = {"integrity": {**record_checksums(run), "manifest": MANIFEST}}
+    (run / "config.json").write_text(json.dumps(config))
+    write_manifest(run)
+    (run / ".treeinfer-output").write_text('{"writer": "treeinfer", "complete": true}\n')
+    return run, config
 
 
 def test_verify_run_accepts_an_untouched_run(tmp_path):
@@ -266,8 +274,44 @@ def test_damaged_or_missing_posterior_is_refused(tmp_path, damage):
 
 def test_run_without_checksums_gets_a_note(tmp_path):
     run, _ = _fake_run(tmp_path)
+    (run / MANIFEST).unlink()  # a run from before checksums and manifests
     notes = verify_run(run, {"format": 1})
     assert "no checksums recorded" in notes[0]
+
+
+def test_run_from_before_manifests_loads_with_a_note(tmp_path):
+    run, config = _fake_run(tmp_path)
+    (run / MANIFEST).unlink()
+    del config["integrity"]["manifest"]
+    (notes,) = verify_run(run, config)
+    assert "before manifests" in notes and "config.json and summary.json could not be" in notes
+
+
+def test_removed_manifest_of_a_new_run_is_damage(tmp_path):
+    run, config = _fake_run(tmp_path)
+    (run / MANIFEST).unlink()
+    with pytest.raises(ConfigError, match="manifest.json is missing"):
+        verify_run(run, config)
+
+
+@pytest.mark.parametrize("name", ["manifest.json", ".treeinfer-output"])
+def test_an_edited_manifest_or_marker_is_damage(tmp_path, name):
+    run, _ = _fake_run(tmp_path)
+    with open(run / name, "a") as f:
+        f.write(" ")  # still valid JSON: only the bytes tell
+    with pytest.raises(ConfigError, match=name):
+        verify_run(run, None)
+
+
+@pytest.mark.parametrize("name", ["config.json", "particles.csv"])
+def test_manifest_catches_an_edited_config_or_any_file(tmp_path, name):
+    run, _ = _fake_run(tmp_path)
+    with open(run / name, "a") as f:
+        f.write(" ")
+    with pytest.raises(ConfigError, match=f"{name} was edited after the run"):
+        verify_run(run, None)
+    (note,) = verify_run(run, None, allow_modified=True)
+    assert "--allow-modified" in note and name in note
 
 
 GOOD_CONFIG = {

@@ -7,16 +7,21 @@ earlier run's results are never overwritten unless the caller asks.
 Output folders (:func:`staged_output_dir`):
 
 - are built in a staging folder ``.NAME.PID.XXXX.staging`` next to the destination and carry
-  a marker file ``.treeinfer-output``; ``--force`` (``force=True``) replaces only a folder with
-  that marker (or one a treeinfer from before the marker wrote: a ``config.json`` or
-  ``results.json`` recording treeinfer's version), or an empty one; never a folder holding the
-  inputs of the same command (``inputs=``), never a mount point;
+  a marker file ``.treeinfer-output`` and a ``manifest.json`` of every file with its sha256
+  (:func:`treeinfer.integrity.write_manifest`);
+- never overwrite or delete what was there (:mod:`treeinfer.ownership`): ``--force``
+  (``force=True``) moves the previous folder aside to ``NAME.old-<UTC time>`` (reported), and
+  only for a folder with the marker (or from a treeinfer before the marker: a ``config.json`` or
+  ``results.json`` recording treeinfer's version) or an empty one; an output that is, holds or
+  lies inside an input of the same command (``inputs=``), a mount point, the root, home or
+  current folder are refused before any work;
 - are never lost once complete: if the final rename fails (a mount point, a permission, a full
   disk) the finished folder is kept at ``NAME.complete-PID`` and the error names that path;
 - leave nothing behind on error, and a staging folder left by a killed process is cleaned by
   the next write to the same destination (:func:`clean_stale_staging`, which the run layer also
-  calls on ``--resume``): an unfinished one is removed, a finished one whose rename was cut
-  short is moved into place, a displaced previous result is put back.
+  calls on ``--resume``): an unfinished one (our marker, no mount point inside) is removed, a
+  finished one whose rename was cut short is moved into place, a displaced previous result is
+  put back (or kept aside as ``NAME.old-<time>``).
 
 Disk-full and I/O errors while writing become :class:`OutputWriteError` naming the file.
 """
@@ -33,6 +38,7 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
+from . import interrupt
 from .errors import OutputExistsError, TreeinferError
 
 OUTPUT_MARKER = ".treeinfer-output"
@@ -207,54 +213,42 @@ def is_treeinfer_output(path: str | os.PathLike) -> bool:
     return False
 
 
-def _inside(child: Path, parent: Path) -> bool:
-    try:
-        child.relative_to(parent)
-        return True
-    except ValueError:
-        return False
-
-
 def check_output_dir(
     path: str | os.PathLike,
     force: bool = False,
     what: str = "output",
     inputs: Iterable[str | os.PathLike] = (),
+    allow_inside: Iterable[str | os.PathLike] = (),
 ) -> Path:
     """Refuse an output folder that must not be (re)written; never delete anything here.
 
-    Refused: a path that exists and is not a folder; a mount point (it cannot be replaced as a
-    whole); a folder that is, or holds, one of ``inputs`` (the command's own input files or
-    folders); a non-empty folder without ``force``; with ``force``, a non-empty folder that
-    treeinfer did not write (see :func:`is_treeinfer_output`).
+    Refused (:mod:`treeinfer.ownership`): a folder that is, holds, or lies inside one of
+    ``inputs`` (the command's own input files or folders); a path that exists and is not a
+    folder; the root, home or current folder, or a mount point; a non-empty folder without
+    ``force``; with ``force``, a non-empty folder that treeinfer did not write (see
+    :func:`is_treeinfer_output`). ``force`` never deletes: the old folder is moved aside when the
+    new one is published (:func:`publish_staged`), so the marker decides nothing destructive.
     """
+    from .ownership import refuse_overlap, refuse_unmovable
+
     path = Path(path)
+    refuse_overlap(path, inputs, f"{what} folder", allow=allow_inside)
+    if path.is_symlink() and not path.exists():
+        raise OutputExistsError(f"{path}: {what} path is a broken symbolic link")
     if path.exists() and not path.is_dir():
         raise OutputExistsError(f"{path}: {what} path exists and is not a folder")
-    if path.is_dir() and os.path.ismount(path):
-        raise OutputExistsError(
-            f"{path}: {what} folder is a mount point, which treeinfer cannot replace as a whole; "
-            f"give a folder inside it, e.g. --out {path / 'run'}"
-        )
-    real = Path(os.path.realpath(path))
-    for inp in inputs:
-        if inp is None:
-            continue
-        rin = Path(os.path.realpath(inp))
-        if _inside(rin, real):
-            raise OutputExistsError(
-                f"{path}: {what} folder {'is' if rin == real else 'holds'} an input of this "
-                f"command ({inp}); writing there would destroy it: choose another --out"
-            )
+    if path.exists():
+        refuse_unmovable(path, what)
     if path.is_dir() and any(path.iterdir()):
         if not force:
             raise OutputExistsError(
-                f"{path}: {what} folder already holds results; choose another --out or pass --force"
+                f"{path}: {what} folder already holds results; choose another --out or pass "
+                "--force (the old folder is then kept as NAME.old-<time>)"
             )
         if not is_treeinfer_output(path):
             raise OutputExistsError(
                 f"{path}: --force replaces only folders treeinfer wrote (with a {OUTPUT_MARKER} "
-                "marker) or empty ones, and this one is neither; delete it yourself if you "
+                "marker) or empty ones, and this one is neither; move it yourself if you "
                 "mean to, or choose another --out"
             )
     return path
@@ -289,6 +283,19 @@ def _sibling_pid(entry: str, name: str) -> int | None:
     return int(head) if head.isdigit() else None
 
 
+def _removable_stage(stage: Path) -> bool:
+    """An unfinished staging folder that only treeinfer can have filled: our marker says
+    unfinished, and nothing in it is a mount point (rmtree would descend into it)."""
+    d = _read_json_quietly(stage / OUTPUT_MARKER)
+    if not (isinstance(d, dict) and d.get("writer") == "treeinfer" and d.get("complete") is False):
+        return False
+    for root, dirs, _files in os.walk(stage):
+        for name in dirs:
+            if os.path.ismount(os.path.join(root, name)):
+                return False
+    return True
+
+
 def find_staging(path: str | os.PathLike) -> list[Path]:
     """Staging (``.NAME.*.staging``) and displaced (``.NAME.*.old``, ``.NAME.old-*``) siblings of
     the output folder ``path``, left by a write in progress or by a killed process."""
@@ -317,6 +324,8 @@ def clean_stale_staging(
     a displaced previous result (``.old``) is put back if the destination is missing; an
     unfinished staging folder is removed.
     """
+    from .ownership import old_name
+
     path = Path(path)
     msgs: list[str] = []
     entries = find_staging(path)
@@ -352,9 +361,13 @@ def clean_stale_staging(
                 msgs.append(
                     f"{path}: put back the previous result a killed process had moved to {p.name}"
                 )
-            else:
+            elif p.name.endswith(STAGING_SUFFIX) and _removable_stage(p):
                 shutil.rmtree(p)
                 msgs.append(f"{p}: removed a staging folder left by an interrupted process")
+            else:  # not provably an unfinished staging folder of ours: keep it, visibly
+                kept = old_name(path)
+                os.replace(p, kept)
+                msgs.append(f"{p}: left by an interrupted process; kept as {kept}")
         except OSError as e:
             msgs.append(
                 f"{p}: stale staging folder could not be tidied ({e.strerror or e}); remove it "
@@ -381,13 +394,28 @@ def _rescue(stage: Path, path: Path, e: OSError, what: str) -> OutputWriteError:
     )
 
 
-def publish_staged(stage: Path, path: Path, what: str = "output") -> Path:
-    """Move the complete folder ``stage`` to ``path`` (replacing a previous one), never losing
-    either: on failure the previous result is put back and the new one kept (see _rescue)."""
+def publish_staged(
+    stage: Path, path: Path, what: str = "output", log: Callable[[str], None] | None = None
+) -> Path:
+    """Move the complete folder ``stage`` to ``path``, never losing either: a previous ``path``
+    is moved aside to ``NAME.old-<time>`` (reported; :func:`treeinfer.ownership.move_aside`),
+    never deleted; on failure the previous result is put back and the new one kept (_rescue).
+    The folder's ``manifest.json`` (every file with its sha256) is written first."""
+    from .manifest import write_manifest
+    from .ownership import old_name, report
+
+    try:
+        write_manifest(stage)
+    except OSError as e:
+        shutil.rmtree(stage, ignore_errors=True)  # our own staging folder, never published
+        raise output_error(stage, e) from None
     with contextlib.suppress(OSError):
         (stage / OUTPUT_MARKER).write_text(_marker_text(True), encoding="utf-8")
+    if path.is_dir() and not path.is_symlink():
+        with contextlib.suppress(OSError):
+            os.rmdir(path)  # an empty folder: nothing to keep (fails on anything else)
     if path.exists() or path.is_symlink():
-        old = path.with_name(f".{path.name}.{os.getpid()}{OLD_SUFFIX}")
+        old = old_name(path)
         try:
             os.replace(path, old)
         except OSError as e:
@@ -398,7 +426,11 @@ def publish_staged(stage: Path, path: Path, what: str = "output") -> Path:
             with contextlib.suppress(OSError):
                 os.replace(old, path)
             raise _rescue(stage, path, e, what) from None
-        shutil.rmtree(old, ignore_errors=True)
+        report(
+            f"the previous {what} {path} was moved to {old} (nothing was deleted; remove it "
+            "yourself when you no longer need it)",
+            log,
+        )
     else:
         try:
             os.replace(stage, path)
@@ -414,6 +446,7 @@ def staged_output_dir(
     what: str = "output",
     inputs: Iterable[str | os.PathLike] = (),
     log: Callable[[str], None] | None = None,
+    allow_inside: Iterable[str | os.PathLike] = (),
 ) -> Iterator[Path]:
     """Build a whole output folder under a temporary sibling and move it into place at the end.
 
@@ -424,9 +457,10 @@ def staged_output_dir(
     """
     path = Path(path)
     inputs = tuple(inputs)
-    check_output_dir(path, force, what, inputs)
+    check_output_dir(path, force, what, inputs, allow_inside)
     clean_stale_staging(path, log)
-    check_output_dir(path, force, what, inputs)  # a recovered result counts as existing output
+    # a recovered result counts as existing output
+    check_output_dir(path, force, what, inputs, allow_inside)
     stage: Path | None = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -435,6 +469,7 @@ def staged_output_dir(
                 prefix=f".{path.name}.{os.getpid()}.", suffix=STAGING_SUFFIX, dir=path.parent
             )
         )
+        interrupt.register(stage)  # removed even if a second Ctrl-C ends the process at once
         _publish_mode(stage, directory=True)
         (stage / OUTPUT_MARKER).write_text(_marker_text(False), encoding="utf-8")
     except OSError as e:
@@ -445,10 +480,14 @@ def staged_output_dir(
         yield stage
     except BaseException as e:
         shutil.rmtree(stage, ignore_errors=True)
+        interrupt.unregister(stage)
         if isinstance(e, OSError) and e.errno in _DISK_ERRNOS:
             raise output_error(getattr(e, "filename", None) or stage, e) from None
         raise
-    publish_staged(stage, path, what)
+    try:
+        publish_staged(stage, path, what, log)
+    finally:
+        interrupt.unregister(stage)
 
 
 def mark_output_dir(path: str | os.PathLike) -> Path:

@@ -151,6 +151,9 @@ def bag_topics(bag_path: str | os.PathLike) -> dict[str, str]:
     bag = Path(bag_path)
     if not bag.exists():
         raise TrajectoryFileError(f"{bag}: bag not found")
+    from .safe_load import refuse_special_paths
+
+    refuse_special_paths(bag, "bag", TrajectoryFileError)  # a FIFO would block the reader
     try:
         reader = AnyReader([bag], default_typestore=kortex_typestore(False))
         reader.open()

@@ -122,6 +122,9 @@ def open_bag_reader(bag: str | Path):
     from rosbags.rosbag2 import ReaderError as ReaderError2
 
     bag = Path(bag)
+    from .safe_load import refuse_special_paths
+
+    refuse_special_paths(bag, "bag", TrajectoryFileError)  # a FIFO would block the reader
     try:
         reader = _reader_class()([bag])
         reader.open()

@@ -59,6 +59,7 @@ from .csv_read import (  # noqa: F401 -- re-exported: the old import path keeps 
     read_columns,
 )
 from .errors import ConfigError, TrajectoryFileError
+from .ownership import move_aside, refuse_overlap
 from .pulls import (
     PULLS_FILE,
     PullSpec,
@@ -406,6 +407,9 @@ def import_csv(
     if dup:
         raise ConfigError(f"import-csv: several sources would be written as {dup}; rename them")
     out = Path(out)
+    # the data folder may not be, hold or lie inside a source (a converted file would replace
+    # its own source, or the next import would read its own output)
+    refuse_overlap(out, sources, "data folder")
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: exists and is not a folder")
     if not overwrite:
@@ -421,7 +425,8 @@ def import_csv(
             direction=None if dr is None else parse_direction(dr, f"direction for {m}"),
         )
     side = out / PULLS_FILE
-    existing = read_pulls(side, tree) if side.is_file() else None
+    # not is_file(): a FIFO or folder named pulls.yaml is refused by the reader, not replaced
+    existing = read_pulls(side, tree) if side.exists() or side.is_symlink() else None
     merged = dict(existing.pulls) if existing else {}
     merged.update(specs)
     # validate the sidecar before converting (cheap, and nothing is written on error)
@@ -457,6 +462,7 @@ def import_csv(
     out.mkdir(parents=True, exist_ok=True)
     paths, steps = [], {}
     for (traj, st), m, src in zip(results, names, sources):
+        move_aside(out / m, what="trajectory file")  # --force keeps the one it replaces
         p = write_trajectory(out / m, traj._replace(source=m))
         paths.append(p)
         steps[m] = st + [f"wrote {m}: {traj.n_steps} samples, dt {traj.dt:g} s"]

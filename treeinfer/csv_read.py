@@ -132,11 +132,13 @@ def read_columns(
         TrajectoryFileError: naming file and line: unreadable, missing column, ragged row,
             non-numeric or empty cell.
     """
+    from .safe_load import read_regular_file
+    from .trajectory_types import MAX_FILE_BYTES
+
     path = Path(path)
-    try:
-        text = path.read_bytes().decode("utf-8-sig")
-    except OSError as e:
-        raise TrajectoryFileError(f"{path}: cannot read ({e.strerror or e})") from None
+    try:  # a FIFO or device is refused unopened; a huge file before it is read
+        raw = read_regular_file(path, "CSV file", TrajectoryFileError, max_bytes=MAX_FILE_BYTES)
+        text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise TrajectoryFileError(f"{path}: not UTF-8 text (byte {e.start})") from None
     rows: list[tuple[int, str]] = []
@@ -148,14 +150,19 @@ def read_columns(
         raise TrajectoryFileError(f"{path}: no data (only blank or comment lines)")
     delim = delimiter or _sniff_delimiter("\n".join(r for _, r in rows[:20]))
 
-    def split(line: str) -> list[str]:
-        cells = next(csv.reader(io.StringIO(line), delimiter=delim, skipinitialspace=True))
+    def split(line: str, lineno: int) -> list[str]:
+        try:
+            cells = next(csv.reader(io.StringIO(line), delimiter=delim, skipinitialspace=True))
+        except csv.Error as e:  # e.g. a field over the csv module's size limit
+            raise TrajectoryFileError(
+                f"{path}, line {lineno}: cannot split the line ({e})"
+            ) from None
         if delim == " ":
             cells = [c for c in cells if c != ""]
         return [c.strip() for c in cells]
 
     first_line, first = rows[0]
-    cells = split(first)
+    cells = split(first, first_line)
     header = None if all(_is_number(c) for c in cells) else cells
     ncols = len(cells)
     wanted = {q: c for q, c in columns.items() if c is not None}
@@ -165,7 +172,7 @@ def read_columns(
     vals = {q: [] for q in index}
     lines = []
     for lineno, line in data_rows:
-        cells = split(line)
+        cells = split(line, lineno)
         if len(cells) != ncols:
             raise TrajectoryFileError(
                 f"{where(path, lineno)}: row has {len(cells)} cell(s) but the "

@@ -55,13 +55,17 @@ def suggest_for_run(
 
     ``sigma_x`` (m) defaults to :func:`noise_sigma_of_run`; ``duration`` (s) to the run's
     training trajectory length. With ``out``, writes ``suggestions.json`` (the ranked table,
-    settings, run path) and ``suggestions.png`` (:func:`plot_scores`) there; ``force``
-    overwrites existing files. Returns the :class:`Suggestions`."""
+    settings, run path) and ``suggestions.png`` (:func:`plot_scores`) there, as one folder
+    (``force`` moves a previous one aside, never deletes it; ``out`` may not be, hold or lie in
+    the run, except ``RUN/suggest``). Returns the :class:`Suggestions`."""
     from pathlib import Path
 
-    from ._io import atomic_write_json
+    from ._io import atomic_write_json, check_output_dir, staged_output_dir
     from .runs import load_run
 
+    if out is not None:  # before any work; RUN/suggest (the CLI's default) is the run's own
+        where = {"inputs": [run_dir], "allow_inside": [Path(run_dir) / "suggest"]}
+        check_output_dir(out, force, "suggestions", **where)
     run = load_run(run_dir)
     noise_from = "given"
     if sigma_x is None:
@@ -97,19 +101,13 @@ def suggest_for_run(
         }
     )
     if out is not None:
-        from .plots import save_figure
-
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        for name in ("suggestions.json", "suggestions.png"):
-            if (out / name).exists() and not force:
-                from .errors import OutputExistsError
-
-                raise OutputExistsError(f"{out / name}: exists; use --force to overwrite")
-        atomic_write_json(out / "suggestions.json", sugg.to_dict())
-        fig, _ = plot_scores(sugg)
-        save_figure(fig, out / "suggestions.png")
         import matplotlib.pyplot as plt
 
-        plt.close(fig)
+        from .plots import save_figure
+
+        with staged_output_dir(out, force, "suggestions", **where) as stage:
+            atomic_write_json(stage / "suggestions.json", sugg.to_dict())
+            fig, _ = plot_scores(sugg)
+            save_figure(fig, stage / "suggestions.png")
+            plt.close(fig)
     return sugg

@@ -106,8 +106,11 @@ def to_mjcf(tree: Tree, timestep: float = 0.002, integrator: str = "implicitfast
                 pos=_fmt([tree.grasp_fraction * b.length, 0, 0]),
                 size="0.01",
             )
-    ET.indent(root)
-    return ET.tostring(root, encoding="unicode")
+    from .limits import deep_recursion
+
+    with deep_recursion(len(tree.branches)):  # the stdlib's XML walks recurse per nesting level
+        ET.indent(root)
+        return ET.tostring(root, encoding="unicode")
 
 
 def to_mjmodel(tree: Tree, timestep: float = 0.002, integrator: str = "implicitfast"):

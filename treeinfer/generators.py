@@ -235,9 +235,18 @@ def fractal(
             )
     scale = [f ** (1.0 / expo) for f in fracs]
 
-    branches: list[Branch] = []
+    from .limits import check_tree_size
 
-    def grow(path: tuple[int, ...], parent: str | None, length: float, radius: float) -> None:
+    # before growing: depth 25 of a binary fork is 2^26 - 1 branches, which would never finish
+    check_tree_size(sum(branching**k for k in range(depth + 1)), depth + 1, where)
+    branches: list[Branch] = []
+    # depth-first, children in order (the names and order of the recursive walk this replaced),
+    # with an explicit stack: a deep tree cannot reach Python's recursion limit
+    stack: list[tuple[tuple[int, ...], str | None, float, float]] = [
+        ((), None, base_length, base_radius)
+    ]
+    while stack:
+        path, parent, length, radius = stack.pop()
         i = path[-1] if path else None
         nm = fractal_name(path, branching)
         branches.append(
@@ -251,10 +260,8 @@ def fractal(
             )
         )
         if len(path) < depth:
-            for c in range(branching):
-                grow(path + (c,), nm, length * length_ratio, radius * scale[c])
-
-    grow((), None, base_length, base_radius)
+            for c in reversed(range(branching)):
+                stack.append((path + (c,), nm, length * length_ratio, radius * scale[c]))
     if grasp is None:
         grasp = fractal_name((0,) * depth, branching)
     return _build("fractal", branches, grasp, grasp_fraction, levels, bounds, name, tree_kwargs)

@@ -40,6 +40,7 @@ __all__ = [
 
 CHECKSUM_FILES = ("tree.yaml", "posterior.nc", "particles.csv", "trace.npz")
 ALGORITHM = "sha256"
+MANIFEST = "manifest.json"  # every file of an output folder (treeinfer.manifest)
 
 
 def file_digest(path: str | os.PathLike) -> dict:
@@ -85,9 +86,15 @@ def verify_run(
 ) -> list[str]:
     """Check the run folder's files against their recorded checksums.
 
+    The folder's ``manifest.json`` (every file, config.json and summary.json included) is
+    checked when there is one. Without one: a config (``recorded``) that says a manifest was
+    written makes its absence a problem; a run from before manifests is checked against
+    ``config["integrity"]`` (tree.yaml, posterior.nc, particles.csv, trace.npz) and a note says
+    config.json and summary.json could not be verified.
+
     Args:
-      run_dir: the run folder. recorded: ``config`` (or ``config["integrity"]``); None or no
-        record (a run from before checksums): nothing to verify, one note says so.
+      run_dir: the run folder. recorded: ``config`` (or ``config["integrity"]``); None: not read
+        yet (only a manifest can be checked).
       allow_modified: accept changed or missing files, returning notes instead of raising.
       names: check only these files (default: every recorded one).
 
@@ -97,47 +104,56 @@ def verify_run(
     Raises:
       ConfigError: a recorded file is missing or changed and ``allow_modified`` is False.
     """
+    from .manifest import read_manifest, verify_manifest
+
     run_dir = Path(run_dir)
-    files = _recorded_files(recorded)
-    if files is None:
-        return [
-            (
-                f"{run_dir}: no checksums recorded (a run from an older treeinfer); its files "
-                "were not verified"
+    try:
+        manifest = read_manifest(run_dir)
+    except ConfigError as e:
+        if not allow_modified:
+            raise
+        return [f"{run_dir}: used with --allow-modified although {e}"]
+    notes: list[str] = []
+    if manifest is not None:
+        if names is not None:
+            manifest = {n: r for n, r in manifest.items() if n in set(names)}
+        problems = verify_manifest(run_dir, manifest)
+    else:
+        if recorded is None:
+            return []
+        integ = recorded.get("integrity") if isinstance(recorded, Mapping) else None
+        expects = isinstance(integ, Mapping) and integ.get("manifest") == MANIFEST
+        files = _recorded_files(recorded)
+        if files is None:
+            return [
+                (
+                    f"{run_dir}: no checksums recorded (a run from an older treeinfer); its files "
+                    "were not verified"
+                )
+            ]
+        problems = [f"{MANIFEST} is missing"] if expects else []
+        if not expects:
+            notes.append(
+                f"{run_dir}: a run from a treeinfer before manifests: tree.yaml, posterior.nc, "
+                "particles.csv and trace.npz were verified, config.json and summary.json could "
+                "not be"
             )
+        wanted = list(files) if names is None else [n for n in names if n in files]
+        problems += verify_manifest(
+            run_dir, {n: files[n] for n in wanted if isinstance(files[n], Mapping)}, "config.json"
+        )
+        problems += [
+            f"{n}: malformed checksum record" for n in wanted if not isinstance(files[n], Mapping)
         ]
-    wanted = list(files) if names is None else [n for n in names if n in files]
-    problems = []
-    for name in wanted:
-        rec = files[name]
-        p = run_dir / name
-        if not p.exists():
-            problems.append(f"{name} is missing")
-            continue
-        try:
-            now = file_digest(p)
-        except ConfigError as e:
-            problems.append(f"{name}: {e}")
-            continue
-        if not isinstance(rec, Mapping) or now[ALGORITHM] != rec.get(ALGORITHM):
-            size = f"{rec.get('bytes')} -> {now['bytes']} bytes" if isinstance(rec, Mapping) else ""
-            what = (
-                "was edited"
-                if name.endswith((".yaml", ".yml", ".json", ".csv"))
-                else "is damaged or was replaced"
-            )
-            problems.append(
-                f"{name} {what} after the run (sha256 differs from config.json; {size})"
-            )
     if not problems:
-        return []
+        return notes
     if not allow_modified:
         raise ConfigError(
             f"{run_dir}: the run folder changed since it was written: {'; '.join(problems)}. "
-            "Predictions from it would not come from the posterior that was inferred; run infer "
+            "Results from it would not come from the posterior that was inferred; run infer "
             "again, or pass --allow-modified to use it anyway (recorded in the output)"
         )
-    return [f"{run_dir}: used with --allow-modified although {p}" for p in problems]
+    return notes + [f"{run_dir}: used with --allow-modified although {p}" for p in problems]
 
 
 def verify_data(config: Mapping, data_dir: str | os.PathLike | None = None) -> list[str]:

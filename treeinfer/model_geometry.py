@@ -26,6 +26,9 @@ def _load_spec(path: Path):
         )
     if not path.is_file():
         raise TreeFileError(f"{path}: no such model file")
+    from .model_paths import check_model_paths
+
+    check_model_paths(path)  # no FIFO, device or link loop among the files MuJoCo opens
     try:
         spec = mujoco.MjSpec.from_file(str(path))
     except Exception as e:  # MuJoCo's own message says what is wrong with the file

@@ -5,7 +5,6 @@ validation. Apart from :mod:`treeinfer.usermodel` (which loads the model, and ne
 
 from __future__ import annotations
 
-import hashlib
 import math
 from pathlib import Path
 from typing import Any
@@ -29,8 +28,10 @@ MODEL_SUFFIXES = {".urdf": "URDF", ".xml": "MJCF", ".mjcf": "MJCF"}
 
 
 def file_sha256(path: str | Path) -> str:
-    """Hex sha256 of a file's bytes."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    """Hex sha256 of a file's bytes (a regular file: a FIFO or device is refused unopened)."""
+    from .integrity import file_digest
+
+    return file_digest(path)["sha256"]
 
 
 def _name_map(v: Any, fld: str, pre: str) -> dict[str, str]:

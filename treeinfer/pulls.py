@@ -216,10 +216,12 @@ def read_pulls(path: str | os.PathLike, tree=None) -> PullsFile:
     """
     import yaml
 
+    from .safe_load import read_regular_file
+
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
+    try:  # a FIFO or device is refused unopened
+        text = read_regular_file(path, "pulls file", ConfigError).decode("utf-8")
+    except UnicodeDecodeError as e:
         raise ConfigError(f"{path}: cannot read the pulls file ({e})") from None
     try:
         d = yaml.safe_load(text)

@@ -56,6 +56,7 @@ __all__ = [
     "loads_yaml",
     "number",
     "read_regular_file",
+    "refuse_special_paths",
     "require_regular_file",
     "string",
 ]
@@ -144,6 +145,50 @@ def read_regular_file(
         raise error(f"{path}: cannot read {what} ({e.strerror or e}){io}") from None
     finally:
         os.close(fd)
+
+
+def refuse_special_paths(
+    path: str | os.PathLike,
+    what: str = "input",
+    error: type[TreeinferError] = ConfigError,
+    max_entries: int = 100_000,
+) -> Path:
+    """Refuse, without opening anything, an input path that is, or a folder that holds, a FIFO,
+    device, socket or symbolic-link loop (a reader would block on it or read forever): the one
+    check every reader of a path runs first (bags, model files, data folders, run folders).
+
+    Missing paths are left to the reader (it names them). Folders are walked iteratively,
+    symlinks to folders not followed, at most ``max_entries`` entries.
+    """
+    path = Path(path)
+    stack, n = [path], 0
+    while stack:
+        p = stack.pop()
+        try:
+            st = os.stat(p)
+        except FileNotFoundError:
+            if p != path and os.path.islink(p):
+                raise error(f"{p}: {what} holds a broken symbolic link") from None
+            continue
+        except OSError as e:
+            why = "a symbolic-link loop" if e.errno == errno.ELOOP else (e.strerror or str(e))
+            raise error(f"{p}: cannot read {what} ({why})") from None
+        if stat.S_ISDIR(st.st_mode):
+            if p != path and os.path.islink(p):
+                continue
+            try:
+                entries = list(os.scandir(p))
+            except OSError as e:
+                raise error(f"{p}: cannot list {what} ({e.strerror or e})") from None
+            n += len(entries)
+            if n > max_entries:
+                raise error(f"{path}: {what} holds more than {max_entries} files; refused")
+            stack.extend(Path(e.path) for e in entries)
+            continue
+        kind = _kind_of(st.st_mode)
+        if kind is not None:
+            raise error(f"{p}: {what} is {kind}, not a regular file; refused before reading")
+    return path
 
 
 # ---- files -----------------------------------------------------------------------------------

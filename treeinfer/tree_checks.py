@@ -47,6 +47,9 @@ def check_tie(tree: Tree) -> None:
 def _validate_branches(branches: tuple[Branch, ...]) -> None:
     if not branches:
         raise TreeFileError("branches: the tree has no branches")
+    from .limits import check_tree_size, tree_depth
+
+    check_tree_size(len(branches), 0)  # the count first: a huge tree is refused before its loop
     seen: set[str] = set()
     roots = 0
     for i, b in enumerate(branches):
@@ -107,6 +110,8 @@ def _validate_branches(branches: tuple[Branch, ...]) -> None:
         seen.add(b.name)
     if roots != 1:
         raise TreeFileError(f"branches: exactly one root (parent: null) is required, found {roots}")
+    # parents come before children (checked above): no cycle, the depth is well defined
+    check_tree_size(len(branches), tree_depth({b.name: b.parent for b in branches}))
     names = {b.name for b in branches}
     for i, b in enumerate(branches):
         for suf in _GENERATED_SUFFIXES:

@@ -172,8 +172,11 @@ def to_urdf(tree: Tree, timestep: float = 0.002, integrator: str = "implicitfast
                 effort=repr(_BIG),
                 velocity=repr(_BIG),
             )
-    ET.indent(robot)
-    return ET.tostring(robot, encoding="unicode")
+    from .limits import deep_recursion
+
+    with deep_recursion(len(tree.branches)):  # the stdlib's XML walks recurse per nesting level
+        ET.indent(robot)
+        return ET.tostring(robot, encoding="unicode")
 
 
 def write_urdf(
@@ -264,6 +267,9 @@ def load_model_file(path: str | Path):
         )
     if not path.is_file():
         raise TreeFileError(f"{path}: no such file")
+    from .model_paths import check_model_paths
+
+    check_model_paths(path)  # no FIFO, device or link loop among the files MuJoCo opens
     try:
         return mujoco.MjModel.from_xml_path(str(path))
     except ValueError as e:  # MuJoCo's message names the element and line

@@ -18,6 +18,7 @@ from ..calibration import (
     write_outputs,
 )
 from ..errors import ConfigError
+from ..limits import check_command_size
 from ..tree import dump_tree, load_tree
 from .common import (
     COMMAND_HELP,
@@ -261,6 +262,11 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
     )
     add_backend_option(p)
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.add_argument(
+        "--allow-large",
+        action="store_true",
+        help="go past the size limit (treeinfer.limits) checked before any work",
+    )
     return p
 
 
@@ -313,6 +319,8 @@ def _config_from_args(args) -> SBCConfig:
 def run_calibrate(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
+    check_command_size("calibrate", args)  # before any work: --datasets 1e9 is an error now
+    check_output_dir(args.out, args.force, "calibration", inputs=[args.tree])
     cfg = _config_from_args(args)
     tree = load_tree(args.tree)
     from ..checks import grasp_reach
@@ -326,7 +334,6 @@ def run_calibrate(args: argparse.Namespace) -> int:
             check_sigma(
                 v, flag, 2.0 * grasp_reach(tree), what="the farthest the grasp point can move"
             )
-    check_output_dir(args.out, args.force, "calibration")
     _prepare_jax()
     _say(
         f"calibrate: {cfg.datasets} data sets of {cfg.n_traj} pulls on '{tree.name}', "
@@ -345,7 +352,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
         result = run_tree_sbc(tree, cfg, progress=progress, log=_say)
     record = config_record(args.tree, cfg)
-    with staged_output_dir(args.out, args.force, "calibration") as stage:
+    with staged_output_dir(args.out, args.force, "calibration", inputs=[args.tree]) as stage:
         atomic_write_json(stage / "config.json", record)
         dump_tree(tree, stage / "tree.yaml")
         summary = write_outputs(result, stage, record)

@@ -17,7 +17,7 @@ import numpy as np
 
 import treeinfer
 
-from ..errors import ConfigError, OutputExistsError
+from ..errors import ConfigError
 
 EXIT_OK = 0
 EXIT_USER_ERROR = 2
@@ -171,16 +171,6 @@ def _triple(text: str) -> tuple[float, float, float]:
     if len(vals) != 3:
         raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z, got {text!r}")
     return (vals[0], vals[1], vals[2])
-
-
-def _refuse_existing(paths: Sequence[Path], force: bool) -> None:
-    for p in paths:
-        if p.exists() and p.is_dir():
-            raise OutputExistsError(f"{p}: is a folder, expected a file name")
-        if p.exists() and not force:
-            raise OutputExistsError(
-                f"{p}: file exists; choose another name or pass --force to replace it"
-            )
 
 
 def _prepare_jax() -> None:

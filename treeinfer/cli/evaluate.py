@@ -127,7 +127,7 @@ def _prediction_csvs(pred, obs, trajs) -> dict[str, str]:
 
 def run_evaluate(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
-    check_output_dir(args.out, args.force, "evaluation", inputs=[args.run, args.data])
+    check_output_dir(args.out, args.force, "evaluation", inputs=[args.run, args.data, args.model])
     _prepare_jax()
     check_simulation_options(args)
     cache = runs.SimulatorCache()  # this command's simulators (the run's, and k-fold's)

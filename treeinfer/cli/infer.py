@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import runs
+from .._io import check_output_dir
 from ..errors import ConfigError
 from ..runs import RunConfig
 from ..runs.config import GRADIENT_CHOICES, INIT_CHOICES, OPTION_FIELDS
@@ -399,6 +400,9 @@ def run_infer(args: argparse.Namespace) -> int:
         o["grasp_fraction"] = args.grasp_fraction
         _check_infer_options(o)
         run_dir = args.out
+        check_output_dir(  # before anything is read: an output is never one of the inputs
+            run_dir, args.force, "run", inputs=[args.tree, args.data, args.model, args.prior_from]
+        )
         inputs = runs.load_run_inputs(
             args.tree,
             args.data,

@@ -143,6 +143,10 @@ def _start_runtime() -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit code (see the module docstring)."""
+    if argv is None:  # the real command line: Ctrl-C always ends it (treeinfer.interrupt)
+        from ..interrupt import install
+
+        install()
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     try:
         parser = build_parser(_command_of(argv), lazy=True)
@@ -151,6 +155,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return (
             e.code if isinstance(e.code, int) else (EXIT_OK if e.code is None else EXIT_USER_ERROR)
         )
+    except KeyboardInterrupt:  # Ctrl-C while the command's modules are imported
+        print("interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     debug = bool(getattr(args, "debug", False))
     try:
         _start_runtime()

@@ -160,7 +160,7 @@ def _compare_check(args: argparse.Namespace, run, grasp):
 def run_predict(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
     overwrite = _resolve_force_options(args)
-    inputs = [args.run] + ([args.force_file] if args.force_file is not None else [])
+    inputs = [args.run, args.force_file, args.model]
     check_output_dir(args.out, overwrite, "prediction", inputs=inputs)
     _prepare_jax()
     check_simulation_options(args)

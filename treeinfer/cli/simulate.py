@@ -17,6 +17,7 @@ from .. import __version__
 from .._io import atomic_write_json, check_output_dir, staged_output_dir
 from ..errors import ConfigError, SimulationError
 from ..forces import DEFAULT_PEAK_RANGE, SET_KINDS, from_spec, n_steps, random_specs
+from ..limits import check_command_size
 from ..runs import simulation_summary
 from ..sim import DEFAULT_MAX_SIM_DT
 from ..synthetic import default_true_params, parse_params, simulate_batch, synthetic_trajectories
@@ -199,6 +200,9 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
 
 def run_simulate(args: argparse.Namespace) -> int:
     n_t = _check_simulate_args(args)
+    check_command_size("simulate", args)  # before any work: --duration 1e12 is an error now
+    inputs = [args.tree, getattr(args, "params_json", None), args.model]
+    check_output_dir(args.out, args.force, inputs=inputs)  # before anything is read
     tree = load_tree(args.tree)
     if args.model is not None or args.repair_inertia is not None or tree.model is not None:
         tree = attach_model(tree, args.model, args.repair_inertia)
@@ -220,8 +224,6 @@ def run_simulate(args: argparse.Namespace) -> int:
         )
     forces = np.stack([from_spec(s, args.duration, args.dt) for s in specs])  # [B, T]
     assert forces.shape[1] == n_t
-    inputs = [args.tree, getattr(args, "params_json", None)]
-    check_output_dir(args.out, args.force, inputs=inputs)  # fail before the (slow) simulation
 
     _prepare_jax()
     rollout, sim = simulate_batch(

@@ -8,6 +8,7 @@ from pathlib import Path
 from ..design import STANDARD_TIMING, parse_target
 from ..design_run import suggest_for_run
 from ..errors import ConfigError
+from ..limits import check_command_size
 from .common import (
     COMMAND_HELP,
     EXIT_OK,
@@ -144,6 +145,11 @@ def configure_suggest(subparsers) -> argparse.ArgumentParser:
         help="folder for suggestions.json/png (default RUN/suggest)",
     )
     p.add_argument("--force", action="store_true", help="overwrite an earlier suggestions.json")
+    p.add_argument(
+        "--allow-large",
+        action="store_true",
+        help="go past the size limit (treeinfer.limits) checked before any work",
+    )
     return p
 
 
@@ -167,6 +173,7 @@ def _refuse_stiffness_only(run) -> None:
 
 
 def run_suggest(args: argparse.Namespace) -> int:
+    check_command_size("suggest", args)  # before any work
     target = parse_target(args.target) if args.target else None
     if args.sigma_x is not None and not args.sigma_x > 0:
         raise ConfigError(f"--sigma-x: must be a positive number of metres, got {args.sigma_x}")

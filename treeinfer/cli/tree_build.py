@@ -19,12 +19,12 @@ from .. import generators as gen
 from .._io import atomic_write_text
 from ..errors import ConfigError
 from ..export import to_mjcf
+from ..ownership import claim_output_files, retire_output_files
 from ..tree import Bounds, load_tree, tree_from_dict, tree_to_dict, world_frames
 from ..urdf import to_urdf
 from .common import (
     EXIT_OK,
     TREE_SUFFIXES,
-    _refuse_existing,
     print_model_report,
 )
 
@@ -199,6 +199,8 @@ def _summary(tree, path: Path) -> str:
 
 def run_tree(args: argparse.Namespace) -> int:
     out: Path = args.out
+    inputs = [args.source, args.model, getattr(args, "push_heights_from", None)]
+    claim_output_files([out, args.mjcf, args.urdf], args.force, inputs)  # before any work
     if out.suffix.lower() not in TREE_SUFFIXES:
         raise ConfigError(f"--out {out}: a tree file must end in {', '.join(TREE_SUFFIXES)}")
     if args.model is not None or args.repair_inertia is not None:
@@ -255,7 +257,7 @@ def run_tree(args: argparse.Namespace) -> int:
     targets = [out] + [p for p in (args.mjcf, args.urdf) if p is not None]
     if len({p.resolve() for p in targets}) != len(targets):
         raise ConfigError("--out, --mjcf and --urdf must name different files")
-    _refuse_existing(targets, args.force)
+    retire_output_files(targets, args.force, inputs)  # --force keeps what it replaces
 
     if generator_cfg is not None and kind != "explicit":
         gen.dump_generated(
@@ -399,7 +401,7 @@ def _run_tree_model(args: argparse.Namespace) -> int:
             repair_inertia=args.repair_inertia,
             **kw,
         )
-    _refuse_existing([out], args.force)
+    retire_output_files([out], args.force, [args.source, args.model])
     prepared = prepare_user_model(tree)  # every check now, not at the first simulation
     d = tree_to_dict(tree)
     text = (

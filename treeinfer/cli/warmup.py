@@ -18,7 +18,9 @@ from pathlib import Path
 
 import treeinfer
 
+from .. import interrupt
 from ..errors import ConfigError
+from ..limits import check_command_size
 from .common import COMMAND_HELP, EXIT_OK, EXIT_POOR_FIT, _say, add_command_parser
 
 # infer options warmup sets itself (the synthetic data and a throwaway run folder)
@@ -61,6 +63,11 @@ def configure_warmup(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--trajectories", type=int, default=3, metavar="B", help="pulls per data set")
     p.add_argument("--steps", type=int, default=300, metavar="T", help="samples per pull")
     p.add_argument("--dt", type=float, default=0.01, help="s between samples, as recorded")
+    p.add_argument(
+        "--allow-large",
+        action="store_true",
+        help="go past the size limit (treeinfer.limits) checked before any work",
+    )
     p.add_argument(
         "infer_options",
         nargs=argparse.REMAINDER,
@@ -107,6 +114,7 @@ def run_warmup(args: argparse.Namespace) -> int:
     from .main import main
 
     rest = _check(args)
+    check_command_size("warmup", args)  # before anything is simulated or compiled
     t0 = time.perf_counter()
     cache = treeinfer.enable_compilation_cache()
     if cache is None:
@@ -117,6 +125,7 @@ def run_warmup(args: argparse.Namespace) -> int:
     stats = compile_stats()
     mark = stats.mark()
     work = Path(tempfile.mkdtemp(prefix="treeinfer-warmup-"))
+    interrupt.register(work)  # removed even when a second Ctrl-C ends the process at once
     try:
         data, out = work / "data", work / "run"
         duration = (args.steps - 1) * args.dt

@@ -13,11 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import __version__
-from .._io import (
-    atomic_write_bytes,
-    atomic_write_text,
-    staged_output_dir,
-)
+from .._io import atomic_write_bytes, atomic_write_text, staged_output_dir
 from ..errors import ConfigError
 from ..evaluation import LEVEL
 from ..jsonio import read_json, write_json
@@ -307,7 +303,9 @@ def save_run(
         atomic_write_bytes(stage / "trace.npz", _npz_bytes(arrays))
         write_json(stage / "summary.json", summary)
         # written after the files it checksums: predict/evaluate/--resume verify them
-        write_json(stage / "config.json", {**config, "integrity": record_checksums(stage)})
+        # "manifest": publishing adds manifest.json (every file): its absence is damage
+        integrity = {**record_checksums(stage), "manifest": "manifest.json"}
+        write_json(stage / "config.json", {**config, "integrity": integrity})
 
         bw = _bandwidths(trace["positions"]) if sampler_spec(sampler).family == "svgd" else None
         write_run_figures(
@@ -365,20 +363,18 @@ def load_run(
     where the run's own URDF/MJCF lies now (moved since the run); its sha256 must be the
     recorded one."""
     from ..integrity import load_npz, validate_run_config, validate_summary, verify_run
+    from ..manifest import check_run_consistency, read_manifest
+    from ..safe_load import refuse_special_paths
 
     run_dir = Path(run_dir)
+    refuse_special_paths(run_dir, "run folder")  # a FIFO in it would block a reader
     if not run_dir.is_dir():
-        hint = (
-            f"; an interrupted run waits in {partial_dir(run_dir)} (--resume)"
-            if partial_dir(run_dir).is_dir()
-            else ""
-        )
+        part = partial_dir(run_dir)
+        hint = f"; an interrupted run waits in {part} (--resume)" if part.is_dir() else ""
         raise ConfigError(f"{run_dir}: no such run folder{hint}")
     if not (run_dir / "config.json").is_file():
-        raise ConfigError(
-            f"{run_dir}: not a treeinfer run (no config.json); give the folder `treeinfer infer "
-            "--out` wrote"
-        )
+        raise ConfigError(f"{run_dir}: not a treeinfer run (no config.json); give infer's --out")
+    notes = tuple(verify_run(run_dir, None, allow_modified))  # manifest first: config.json too
     config = read_json(run_dir / "config.json", "the run's config")
     if config.get("command") not in ("infer", "demo") or config.get("format") != RUN_FORMAT:
         raise ConfigError(
@@ -386,11 +382,13 @@ def load_run(
             f"{config.get('command')!r})"
         )
     validate_run_config(config, run_dir / "config.json")
-    notes = tuple(verify_run(run_dir, config, allow_modified))
+    if read_manifest(run_dir) is None:  # a run from before manifests, or its manifest removed
+        notes += tuple(verify_run(run_dir, config, allow_modified))
     for name in ("tree.yaml", "trace.npz"):
         if not (run_dir / name).is_file():
             raise ConfigError(f"{run_dir}: incomplete run folder, {name} is missing")
     tree = load_tree(run_dir / "tree.yaml")
+    tree_file = tree  # before a moved model file is attached
     if model_file is not None:
         from ..usermodel import attach_model
 
@@ -417,12 +415,12 @@ def load_run(
         )
     if model.is_paper:
         model = None  # the paper's model of [log Kp, log Kd]
-    summary = (
-        read_json(run_dir / "summary.json", "the run's summary")
-        if (run_dir / "summary.json").is_file()
-        else {}
-    )
+    has_summary = (run_dir / "summary.json").is_file()
+    summary = read_json(run_dir / "summary.json", "the run's summary") if has_summary else {}
     validate_summary(summary, run_dir / "summary.json", len(theta))
+    notes += tuple(
+        check_run_consistency(run_dir, config, tree_file, theta, labels, summary, allow_modified)
+    )
     stable = np.isfinite(ld)
     if summary.get("unstable_particles"):
         stable[np.asarray(summary["unstable_particles"], int)] = False

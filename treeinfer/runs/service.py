@@ -27,6 +27,7 @@ from ..evaluation import (
 )
 from ..jsonio import jsonable as _jsonable
 from ..jsonio import read_json, write_json
+from ..ownership import move_aside
 from ..trajectories import Trajectory
 from ..tree import Tree, dump_tree, load_tree, tree_to_dict
 from .cache import SimulatorCache
@@ -77,7 +78,7 @@ class InferOutcome(NamedTuple):
 def _inputs(config: dict) -> list[str]:
     """The run's input paths, which ``--force`` must never replace."""
     o = config["options"]
-    return [p for p in (o.get("tree"), o.get("data")) if p]
+    return [p for p in (o.get("tree"), o.get("data"), o.get("model"), o.get("prior_from")) if p]
 
 
 def _prepare_fresh(config: dict, inputs: RunInputs | None, log: Callable[[str], None]):
@@ -99,7 +100,7 @@ def _prepare_fresh(config: dict, inputs: RunInputs | None, log: Callable[[str], 
                 f"{partial}: an interrupted run is waiting there; continue it with `treeinfer "
                 f"infer --resume {run_dir}`, or pass --force to discard it and start over"
             )
-        shutil.rmtree(partial)
+        move_aside(partial, log, "interrupted run")
     o = config["options"]
     if inputs is None:
         inputs = load_run_inputs(
