@@ -92,7 +92,7 @@ def one_joint():
         f = peak * np.clip(t / (0.1 + 0.1 * i), 0.0, 1.0) * (t < 0.35)
         tau, _ = simulate_reference(sim, kp, kd, f)
         trajs.append(Trajectory(t, f, tau + 2e-3 * rng.normal(size=tau.shape), None, f"p{i}"))
-    problem = make_problem(tree, trajs, sim=sim, nn_prior=False, kT=0.05)
+    problem = make_problem(tree, trajs, sim=sim, nn_prior=False, kT=0.05, likelihood="boltzmann")
     return problem, np.log(np.concatenate([kp, kd]))
 
 

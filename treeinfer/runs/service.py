@@ -189,7 +189,7 @@ def run_inference(
         config = cfg.to_json()
         run_dir, partial, tree, trajs, truth = _prepare_fresh(config, inputs, log)
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
-        problem = build_problem(config, tree, trajs, cache)
+        problem = build_problem(config, tree, trajs, cache, log=log)
         _quasi_static_check(problem, config, log)
         _check_init(problem, config["options"])
         if problem.noise is not None:
@@ -239,7 +239,7 @@ def run_inference(
         trajs = check_data_unchanged(config)
         truth = read_true_params(tree, config["data"]["dir"])
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
-        problem = build_problem(config, tree, trajs, cache)
+        problem = build_problem(config, tree, trajs, cache, resumed=True)
         # sim_step says how the step was chosen (the rebuilt simulator takes the recorded one);
         # runs recorded before force interpolation existed rebuild with "hold" (build_problem)
         now = {k: v for k, v in problem.settings.items() if k != "sim_step"}
