@@ -231,7 +231,9 @@ class BatchEvaluator:
         n, k = len(theta), self.chunk
         pad = (-n) % k
         full = np.concatenate([theta, np.repeat(theta[-1:], pad, 0)]) if pad else theta
-        out = [self._prior(device_array(full[i : i + k], self._dtype)) for i in range(0, len(full), k)]
+        out = [
+            self._prior(device_array(full[i : i + k], self._dtype)) for i in range(0, len(full), k)
+        ]
         return np.concatenate([np.asarray(o, float) for o in out])[:n]
 
     def log_likelihood(self, r, theta) -> np.ndarray:
@@ -248,7 +250,9 @@ class BatchEvaluator:
         out = []
         for i in range(0, len(theta), k):
             ri = device_array(r[i : i + k], self._dtype)
-            out.append(self._noise(-ri[:, :b], -ri[:, b:], device_array(theta[i : i + k], self._dtype)))
+            out.append(
+                self._noise(-ri[:, :b], -ri[:, b:], device_array(theta[i : i + k], self._dtype))
+            )
         return np.concatenate([np.asarray(o, float) for o in out])[:n]
 
 

@@ -95,6 +95,9 @@ class Problem:
     noise: Any = None  # treeinfer.likelihood.LikelihoodTerms: the likelihood choice and its noise
     model: Any = None  # treeinfer.static.Model when not the dynamic model of [log Kp, log Kd]
     data_target: Any = None  # DataTarget: the samplers' programs take the data as an argument
+    # [S, D] starting points for the start pipeline's MAP fit found while building the problem
+    # (the force-noise reference's fit, treeinfer.start_pipeline), None: it screens the box
+    start_hint: Any = None
 
     @property
     def dim(self) -> int:

@@ -365,6 +365,24 @@ def data_observations(data: dict, dt: float) -> Observations:
     return Observations(data["force"], data["displacement"], data["velocity"], data["mask"], dt)
 
 
+def _padded_basis(basis, mask: np.ndarray):
+    """The force-noise basis of pulls padded to ``mask [B', T']`` (:func:`observation_data`)
+    from the unpadded pulls' ``basis`` [B, T, T]: ``C`` is zero in the rows and columns of
+    padded samples (force noise exists on real samples only, and the displacement before T
+    does not depend on the force after it), so the padded eigenbasis is ``U`` beside the
+    identity with eigenvalues 0 there, and a padded pull's is the identity. The same density
+    as the Jacobian of the padded pulls would give, without computing it (a forward-mode pass
+    of T' tangents per pull)."""
+    u, lam = np.asarray(basis.vectors), np.asarray(basis.values)
+    b, t = lam.shape
+    nb, nt = mask.shape
+    vectors = np.broadcast_to(np.eye(nt), (nb, nt, nt)).copy()
+    values = np.zeros((nb, nt))
+    vectors[:b, :t, :t] = u
+    values[:b, :t] = lam
+    return type(basis)(vectors, values, (~np.asarray(mask, bool)).sum(axis=1))
+
+
 class LikelihoodTerms(NamedTuple):
     """What :func:`likelihood_terms` builds, ready to plug into ``make_problem``.
 
@@ -584,7 +602,10 @@ def likelihood_terms(
     def data_of(o, shape=None):
         data = observation_data(o, grasp_fraction, shape)
         if fmodel is not None:  # the force-noise basis of these (padded) pulls: data as well
-            b = fmodel.basis(sim, np.asarray(data["force"]), np.asarray(data["mask"]))
+            if o is obs:  # the training pulls: their basis, padded (no second Jacobian)
+                b = _padded_basis(basis, np.asarray(data["mask"]))
+            else:
+                b = fmodel.basis(sim, np.asarray(data["force"]), np.asarray(data["mask"]))
             data["force_basis"] = type(b)(*(jnp.asarray(x) for x in b))
         return data
 

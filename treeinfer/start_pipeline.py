@@ -156,7 +156,8 @@ def ggn_terms(ev, theta, h: float, substeps: int | None = None):
 def force_noise_reference(
     make: Callable, problem0, n_starts: int, seed: int, programs=None, log=lambda m: None
 ):
-    """``(theta_ref [2R], theta_map [D])``: the force-noise term's reference (module docstring).
+    """``(theta_ref [2R], finals [S, D])``: the force-noise term's reference (module docstring)
+    and the final points of its second fit (the start pipeline's LM starts there).
 
     ``make(reference)`` builds the problem whose force Jacobian is taken at ``reference``
     (``[2R]`` log gains); ``problem0`` is the Gaussian problem without the force term. Both
@@ -186,7 +187,8 @@ def force_noise_reference(
         "force-noise reference: MAP without the force term in "
         f"{first.iterations} LM iterations, then with it in {second.iterations}"
     )
-    return ref, second.theta
+    order = np.argsort(second.values)
+    return ref, second.finals[order][np.isfinite(second.values[order])]
 
 
 def model_importance(problem, n_particles: int, seed: int = 0, n_draws: int | None = None):
@@ -222,6 +224,9 @@ def auto_start(problem, n_particles: int, seed: int = 0, log=lambda m: None, **o
     from .fast_posterior import importance_for_run
 
     if problem.model is None:
+        if problem.start_hint is not None and "starts" not in options:
+            # the MAP fit is done (the force-noise reference's): a few LM steps from its finals
+            options = {"starts": problem.start_hint, "max_iterations": 5, **options}
         return importance_for_run(problem, n_particles, seed, log, **options)
     return _model_start(problem, n_particles, seed, log)
 
@@ -281,4 +286,6 @@ def _model_start(problem, n_particles: int, seed: int, log):
         "seed": int(seed),
         "run": run_settings,
     }
-    return Posterior(theta, np.asarray(kp), np.asarray(kd), logp, problem.labels, run, settings), theta
+    return Posterior(
+        theta, np.asarray(kp), np.asarray(kd), logp, problem.labels, run, settings
+    ), theta

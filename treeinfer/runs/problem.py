@@ -182,17 +182,22 @@ def build_problem(
     ):
         from ..start_pipeline import force_noise_reference
 
+        # the reference fits' problems run on the rollout program only: no sampler target
+        fit_only = {**common, "shape_bucket": None}
+
         def make(ref):
             return make_problem(
-                tree, obs, **{**common, "force_noise_reference": ref, "force_noise_rule": PIPELINE_RULE}
+                tree, obs, **fit_only, force_noise_reference=ref, force_noise_rule=PIPELINE_RULE
             )
 
-        base = make_problem(tree, obs, **{**common, "noise_force": None})
-        ref, _ = force_noise_reference(
+        base = make_problem(tree, obs, **{**fit_only, "noise_force": None})
+        ref, finals = force_noise_reference(
             make, base, 8, int(o.get("seed", 0)), None if cache is None else cache.programs, log
         )
         reference = {"force_noise_reference": ref, "force_noise_rule": PIPELINE_RULE}
     problem = make_problem(tree, obs, **common, **reference)
+    if reference.get("force_noise_rule") == PIPELINE_RULE and not resumed:
+        problem = dataclasses.replace(problem, start_hint=finals)
     if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints
         from ..sequential import prior_from_run, with_prior
 
