@@ -86,8 +86,19 @@ def test_central_differences_match_mjx_autodiff(setup):
     short = [
         Trajectory(t.time[:25], t.force[:25], t.displacement[:25], None, t.source) for t in trajs
     ]
-    fd = make_problem(tree, short, kT=0.05, sim=sim, nn_prior=False, gradient="fd", rel_step=1e-2, likelihood="boltzmann")
-    ad = make_problem(tree, short, kT=0.05, sim=sim, nn_prior=False, gradient="autodiff", likelihood="boltzmann")
+    fd = make_problem(
+        tree,
+        short,
+        kT=0.05,
+        sim=sim,
+        nn_prior=False,
+        gradient="fd",
+        rel_step=1e-2,
+        likelihood="boltzmann",
+    )
+    ad = make_problem(
+        tree, short, kT=0.05, sim=sim, nn_prior=False, gradient="autodiff", likelihood="boltzmann"
+    )
     theta = jnp.asarray(
         np.stack([THETA_TRUE + [0.2, -0.1, 0.1, -0.2], THETA_TRUE + [-0.3, 0.2, -0.2, 0.1]]),
         jnp.float32,

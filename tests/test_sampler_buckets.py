@@ -151,7 +151,9 @@ def test_two_data_sets_of_one_bucket_compile_the_sampler_once():
     finals = []
     try:
         for lengths, bucket in (((50, 57), (2, 64)), ((60, 44), (2, 64)), ((50, 70), (2, 80))):
-            problem = make_problem(tree, _obs(lengths), sim=sim, kT=0.05, shape_bucket=bucket, likelihood="boltzmann")
+            problem = make_problem(
+                tree, _obs(lengths), sim=sim, kT=0.05, shape_bucket=bucket, likelihood="boltzmann"
+            )
             post = infer(problem, "nnsvgd", n_particles=4, n_iterations=2, seed=0,
                          progress=False, trace_every=None, cache=programs)  # fmt: skip
             finals.append(post.theta)

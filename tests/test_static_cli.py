@@ -272,8 +272,17 @@ def test_static_and_stiffness_only_take_generative_likelihoods_and_kT_auto():
         )
         assert p.labels == ("Kp[b]", "sigma_x")
         assert p.settings["likelihood"] == "gaussian" and p.settings["model_kind"] == kind
-    auto = make_problem(kp_only, [traj], kT="auto", nn_prior=False, backend="fused", likelihood="boltzmann")
-    full = make_problem(_one_joint_tree(), [traj], kT="auto", nn_prior=False, backend="fused", likelihood="boltzmann")
+    auto = make_problem(
+        kp_only, [traj], kT="auto", nn_prior=False, backend="fused", likelihood="boltzmann"
+    )
+    full = make_problem(
+        _one_joint_tree(),
+        [traj],
+        kT="auto",
+        nn_prior=False,
+        backend="fused",
+        likelihood="boltzmann",
+    )
     assert auto.dim == 1 and auto.kT == pytest.approx(full.kT)
     assert np.isfinite(np.asarray(auto.log_likelihood(np.log([[10.0]])))).all()
 
