@@ -158,3 +158,31 @@ def test_every_init_runs_with_every_likelihood(one_joint, likelihood, init):
     else:
         theta = ready.theta
     assert np.all(np.isfinite(np.asarray(p.log_density(jnp.asarray(theta)))))
+
+
+def test_reinitialised_stragglers_are_counted_and_printed(one_joint, capsys):
+    """Particles stuck far outside the box are moved to the bulk during the warm-up; the run
+    summary counts the moves and the console says how many were moved and how many remain."""
+    from treeinfer.cli.infer import _print_stragglers
+    from treeinfer.diagnostics import ReinitStragglers
+    from treeinfer.runs.folder import _straggler_and_edge
+
+    tree, trajs, truth = one_joint
+    p = _problem(tree, trajs, likelihood="boltzmann")
+    theta0 = truth + 0.05 * np.random.default_rng(0).normal(size=(8, 2))
+    theta0[:2] = p.upper + 3.0  # two particles stuck beyond the box
+    remedy = ReinitStragglers(4, p.lower, p.upper)
+    post = infer(p, "svgd", n_particles=8, n_iterations=4, initial_theta=theta0,
+                 reinit_stragglers=remedy, progress=False)  # fmt: skip
+    strag, _ = _straggler_and_edge(p, post)
+    assert strag["n_reinitialised"] >= 2
+    assert strag["n_stragglers"] == 0
+    _print_stragglers(strag, 8)
+    out = capsys.readouterr().out
+    assert f"{strag['n_reinitialised']} re-initialised" in out and "0 of 8 still stuck" in out
+    # without the remedy the same start leaves them stuck, and that is printed too
+    post = infer(p, "svgd", n_particles=8, n_iterations=4, initial_theta=theta0, progress=False)
+    strag, _ = _straggler_and_edge(p, post)
+    assert strag["n_reinitialised"] == 0 and strag["n_stragglers"] >= 2
+    _print_stragglers(strag, 8)
+    assert f"{strag['n_stragglers']} of 8 still stuck" in capsys.readouterr().out

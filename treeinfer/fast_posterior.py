@@ -609,8 +609,15 @@ def fast_posterior(
     phases["screen"], t = time.perf_counter() - t, time.perf_counter()
     fit = fit_map_batched(ev, starts, max_iterations, tolerance, substeps=coarse)
     coarse_fit = fit
+    modes = None
     if polish_iterations and coarse != ev.substeps:
-        fit = fit_map_batched(ev, fit.theta[None], polish_iterations, tolerance)
+        from .start_pipeline import distinct_modes
+
+        # every distinct local mode of the multi-start fit within MODE_GAP nats is polished
+        # and sampled (start_pipeline.multimode_importance), not the best one alone
+        modes = distinct_modes(fit, proposal_from_fit(fit)[1])
+        fit = fit_map_batched(ev, modes, polish_iterations, tolerance)
+        modes = distinct_modes(fit, proposal_from_fit(fit)[1])
     phases["map_fit"], t = time.perf_counter() - t, time.perf_counter()
     mean, cov = proposal_from_fit(fit)
     target = 4.0 * n_particles if target_ess is None else float(target_ess)
@@ -633,10 +640,18 @@ def fast_posterior(
         kept.append(r[:, : mask.shape[0]][:, mask])
         return out
 
-    imp, idx = adaptive_importance(
-        log_density, mean, cov, n_draws, int(n_particles), seed, float(df), max_rounds,
-        target, min_ess=min(target, 2.0 * n_particles),
-    )  # fmt: skip
+    if modes is not None and len(modes) > 1:
+        from .start_pipeline import multimode_importance
+
+        imp, idx = multimode_importance(
+            log_density, modes, cov, n_draws, int(n_particles), seed, float(df), max_rounds,
+            target, min(target, 2.0 * n_particles),
+        )  # fmt: skip
+    else:
+        imp, idx = adaptive_importance(
+            log_density, mean, cov, n_draws, int(n_particles), seed, float(df), max_rounds,
+            target, min_ess=min(target, 2.0 * n_particles),
+        )  # fmt: skip
     pred = np.concatenate(kept) + np.asarray(problem.obs.displacement, float)[mask]
     width_a, width_b, split = band_split(pred, imp.log_weights)
     # the particles: one draw per equal-weight stratum along the predictions' leading component
@@ -674,6 +689,7 @@ def fast_posterior(
         "program_runs_by_substeps": {str(s): n for s, n in sorted(ev.runs.items())},
         "khat": khat,
         "ess": ess,
+        "n_modes": 1 if modes is None else len(modes),
         "importance_rounds": imp.rounds,
         "band_split": split,
         "max_rounds": max_rounds,

@@ -110,7 +110,10 @@ def _reinitialised(run) -> int:
     ``n_reinitialised`` diagnostic, summed; 0 when the remedy was off or found none)."""
     diag = getattr(run, "diagnostics", None) or {}
     n = diag.get("n_reinitialised") if isinstance(diag, dict) else None
-    return 0 if n is None else int(np.nansum(np.asarray(n, float)))
+    if n is None:
+        return 0
+    parts = n if isinstance(n, (list, tuple)) else [n]  # per chunk, or already concatenated
+    return int(sum(np.sum(np.asarray(x, float)) for x in parts))
 
 
 def _straggler_and_edge(problem, posterior) -> tuple[dict, dict]:
