@@ -186,3 +186,19 @@ def test_reinitialised_stragglers_are_counted_and_printed(one_joint, capsys):
     assert strag["n_reinitialised"] == 0 and strag["n_stragglers"] >= 2
     _print_stragglers(strag, 8)
     assert f"{strag['n_stragglers']} of 8 still stuck" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("likelihood", ["boltzmann", "gaussian"])
+def test_auto_start_runs_on_the_static_model(one_joint, likelihood):
+    """A model the rollout program does not run (static equilibria) goes through its own
+    log-density: MAP and Hessian, then the same importance check."""
+    from treeinfer.runs.start import _start
+
+    tree, trajs, _ = one_joint
+    p = _problem(tree, trajs, likelihood=likelihood, model_kind="static", noise_force=None)
+    assert p.model is not None
+    config = {"options": {"init": "auto", "particles": 8, "seed": 0, "gradients": "fd"}}
+    ready, theta0 = _start(p, config, lambda m: None)
+    assert np.shape(theta0) == (8, p.dim) and np.all(np.isfinite(theta0))
+    theta = theta0 if ready is None else ready.theta
+    assert np.all(np.isfinite(np.asarray(p.log_density(jnp.asarray(theta)))))

@@ -332,8 +332,10 @@ def multimode_importance(
     modes whose proposals do not overlap; where two proposals cover the same mode each run
     estimates the whole posterior and the pool averages two estimates of it. Returns
     ``(ImportancePosterior, index [n_particles])`` as ``adaptive_importance``; ``khat`` is the
-    largest of the modes' and ``ok`` needs every mode with a share above 1% to pass."""
-    from .importance import adaptive_importance, systematic_resample
+    largest of the modes'; ``ok`` needs every mode with a share above 1% to have a k_hat
+    within :data:`treeinfer.importance.KHAT_LIMIT` and the pool an effective sample size of
+    ``min_ess``."""
+    from .importance import KHAT_LIMIT, adaptive_importance, systematic_resample
 
     runs = [
         adaptive_importance(
@@ -352,7 +354,11 @@ def multimode_importance(
     ess = float(1.0 / np.sum(w**2))
     big = [r for r, s in zip(runs, share) if s > 0.01]
     khat = float(max(r.khat for r in big))
-    reasons = [r.reason for r in big if not r.ok]
+    # each mode's tail (k_hat) must be trustworthy; the effective sample size is the pool's (a
+    # mode with a 30% share needs only its share of it)
+    reasons = [
+        f"Pareto k_hat {r.khat:.2f} > {KHAT_LIMIT} at a mode" for r in big if r.khat > KHAT_LIMIT
+    ]
     if ess < min_ess:
         reasons.append(f"effective sample size {ess:.0f} < {min_ess:.0f}")
     draws = np.concatenate([r.draws for r in runs])
