@@ -79,7 +79,9 @@ def run_dir(demo):
                 "--seed",
                 "0",
                 "--init",
-                "laplace",  # the demo's start
+                "auto",  # the demo's start (issue 27: the start pipeline)
+                "--reinit-stragglers",
+                "0",  # as the demo's --quick
                 *QUICK,
             ]
         )
