@@ -128,6 +128,8 @@ def test_infer_kT_auto(noisy_data, tmp_path):
         tmp_path / "r",
         "--kT",
         "auto",
+        "--likelihood",
+        "boltzmann",
         *QUICK,
     )
     assert rc == 0, err
