@@ -110,7 +110,7 @@ def test_infer_predict_evaluate_with_noise_force(data, tmp_path):
         (["--likelihood", "gaussian", "--noise-force", "150%"], "--noise-force"),
         (["--likelihood", "gaussian", "--noise-force", "500"], "noise_force"),  # above every force
         (["--likelihood", "student_t", "--noise-force", "0.1"], "--noise-force"),
-        (["--noise-force", "0.1"], "--noise-force"),  # boltzmann
+        (["--likelihood", "boltzmann", "--noise-force", "0.1"], "--noise-force"),
     ],
 )
 def test_bad_noise_force(data, tmp_path, extra, fragment):
