@@ -530,7 +530,7 @@ def likelihood_terms(
 
             return loglik_data
 
-        mask_b = jnp.asarray(np.asarray(obs.mask, bool))
+        mask_b = jnp.asarray(obs.mask, bool)  # may be traced (batch_posteriors)
 
         def boltzmann_residual(dx, dv, theta):
             def norm(r):
@@ -629,7 +629,7 @@ def likelihood_terms(
         checked_sx,
         checked_sv,
         df,
-        jnp.asarray(np.asarray(obs.mask, bool)),
+        jnp.asarray(obs.mask, bool),
         basis,
         2 * sim.n_joints,
     )
