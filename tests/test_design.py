@@ -295,6 +295,7 @@ def test_suggest_for_run_and_prior_from_run(tmp_path):
     assert rc == 2 and "--target" in err and "Traceback" not in err
     tree = demo / "run" / "tree.yaml"
     quick = ["--particles", "8", "--iterations", "3", "--checkpoint-every", "0", "--no-progress"]
+    quick += ["--likelihood", "boltzmann"]  # as the demo's run above (noise-free pulls)
     rc, _, err = cli(
         "infer",
         "--tree",
