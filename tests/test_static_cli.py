@@ -74,6 +74,8 @@ def test_cli_static_infer_then_evaluate_held_out_height(stem_data, capsys):
             "4",
             "--iterations",
             "4",
+            "--likelihood",
+            "boltzmann",
             "--kT",
             "0.002",
             "--no-progress",
