@@ -80,6 +80,14 @@ class RunConfig:
     (:func:`~.provenance.config_hash`). ``RunConfig(tree=..., data=..., out=..., **options)``
     validates options alone (the record fields stay None).
 
+    Defaults (issue 27): the calibrated measurement model, ``likelihood="gaussian"`` with
+    ``noise_force="default"`` (``"auto"`` where the model offers the term and the recorded
+    force's noise can be estimated, else off: :func:`treeinfer.inference.default_noise_force`),
+    ``init="auto"`` (the start pipeline, :mod:`treeinfer.start_pipeline`),
+    ``reinit_stragglers=DEFAULT_REINIT`` and ``stop_when_converged=True``. A ``config.json``
+    that leaves one of these options out was written before them and reads back with
+    :data:`LEGACY_DEFAULTS` (the paper's Boltzmann loss, uniform start, every iteration).
+
     Attributes: tree, data, out (absolute paths as strings); sampler (a registry name);
     particles (>= 2); iterations (>= 1); backend ("auto", "fused", "mjx"); kT (loss units per
     nat, > 0, or "auto": from the data's noise estimate); likelihood ("boltzmann", "gaussian",
