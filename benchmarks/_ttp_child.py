@@ -46,7 +46,7 @@ def child(args) -> int:
             zip(data["train_force"], data["train_tau"], data["train_tau_dot"])
         )
     ]
-    problem = make_problem(tree, trajs, substeps=args.substeps)
+    problem = make_problem(tree, trajs, substeps=args.substeps, likelihood="boltzmann")
     marks["problem"] = time.time()
     mode = args.child
     record: dict = {"mode": mode}

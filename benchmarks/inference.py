@@ -116,7 +116,7 @@ def make_standard_problem(
     for i, f in enumerate(forces):
         tau, tau_dot = simulate_reference(sim, kp, kd, f)
         trajs.append(Trajectory(t, f, tau, tau_dot, f"pull{i}"))
-    problem = make_problem(tree, trajs, sim=sim)
+    problem = make_problem(tree, trajs, sim=sim, likelihood="boltzmann")
     return problem, np.concatenate([np.log(kp), np.log(kd)])
 
 

@@ -60,7 +60,7 @@ def main(argv=None) -> int:
             zip(data["train_force"], data["train_tau"], data["train_tau_dot"])
         )
     ]
-    problem = make_problem(tree, trajs, substeps=args.substeps)
+    problem = make_problem(tree, trajs, substeps=args.substeps, likelihood="boltzmann")
     start = fast_posterior(problem, args.chains, n_starts=8, seed=0)
     theta0 = np.asarray(start.theta, np.float64)
     cov = np.cov(theta0.T)

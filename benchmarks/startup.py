@@ -98,7 +98,7 @@ def main(argv=None) -> int:
     nn_inequality_prior(tree)
     phase("nn_prior_train_or_load")
     n_before = len(log.entries)
-    problem = make_problem(tree, trajs, sim=sim)
+    problem = make_problem(tree, trajs, sim=sim, likelihood="boltzmann")
     phase("make_problem")
     posterior = infer(
         problem,

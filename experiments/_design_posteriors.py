@@ -52,7 +52,9 @@ def _starts(tree, sim, kts, obs, grasp, seeds, cfg: DesignConfig, programs) -> l
     from treeinfer.mapfit import laplace_particles
 
     if cfg.init == "uniform":
-        problem = make_problem(tree, obs[0], kT=1.0, sim=sim, nn_prior=False)
+        problem = make_problem(
+            tree, obs[0], kT=1.0, sim=sim, nn_prior=False, likelihood="boltzmann"
+        )
         return [np.asarray(initial_particles(problem, cfg.n_particles, s)) for s in seeds]
     out = []
     for i in range(0, len(obs), cfg.batch):

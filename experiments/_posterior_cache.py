@@ -33,8 +33,9 @@ def make_problem(cfg: StudyConfig, data: SyntheticData, nn_prior: bool):
         kw["kT"] = cfg.kT
     if cfg.eta is not None:
         kw["eta"] = cfg.eta
+    # explicit: the paper's loss is no longer make_problem's default (issue 27)
+    kw["likelihood"] = cfg.likelihood
     if cfg.likelihood != "boltzmann":
-        kw["likelihood"] = cfg.likelihood
         kw["noise_displacement"] = cfg.noise_displacement
     return _make_problem(data.tree, data.train, nn_prior=nn_prior, sim=data.sim, **kw)
 

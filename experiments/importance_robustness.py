@@ -74,7 +74,7 @@ def main(argv=None) -> int:
             zip(data["train_force"], data["train_tau"], data["train_tau_dot"])
         )
     ]
-    problem = make_problem(tree, trajs, substeps=args.substeps)
+    problem = make_problem(tree, trajs, substeps=args.substeps, likelihood="boltzmann")
     d = problem.dim
     ev = BatchEvaluator(problem, 8 * (2 * d + 1))
     n_draws = max(8 * ev.chunk, 4 * args.particles)

@@ -56,7 +56,7 @@ def problem(tree_name: str):
     trajs = [
         Trajectory(t, forces[b], np.asarray(roll.tau[0, b], float), None, f"p{b}") for b in range(2)
     ]
-    return make_problem(tree, trajs, kT=0.05, sim=sim, nn_prior=False)
+    return make_problem(tree, trajs, kT=0.05, sim=sim, nn_prior=False, likelihood="boltzmann")
 
 
 def measure(prob, settings: dict, n_particles: int, n_iterations: int, seed: int) -> dict:

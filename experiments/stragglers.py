@@ -48,7 +48,7 @@ def problem():
         Trajectory(t, forces[b], np.asarray(r.tau[0, b], float), None, f"train{b}")
         for b in range(2)
     ]
-    return make_problem(tree, trajs, kT=0.05, sim=sim, nn_prior=False)
+    return make_problem(tree, trajs, kT=0.05, sim=sim, nn_prior=False, likelihood="boltzmann")
 
 
 def run(seeds, n_particles, n_iterations, until, out: Path | None) -> list[dict]:

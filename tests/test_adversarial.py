@@ -666,6 +666,7 @@ def test_absurdly_small_kT_is_a_clear_option_error(tmp_path, clean, capsys):
 
     data = _write_set(tmp_path / "d", clean[:2])
     rc = main(["infer", "--tree", str(example_path("two_branch")), "--data", str(data),
-               "--out", str(tmp_path / "run"), "--kT", "1e-300", "--no-progress"])  # fmt: skip
+               "--out", str(tmp_path / "run"), "--kT", "1e-300", "--no-progress",
+               "--likelihood", "boltzmann"])  # fmt: skip
     err = capsys.readouterr().err
     assert rc == 2 and "--kT: 1e-300 is so small" in err and "max-sim-dt" not in err

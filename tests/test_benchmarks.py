@@ -75,7 +75,12 @@ def test_fd_gradient_evaluation(benchmark, setup):
     t = np.arange(N_STEPS) * OBS_DT
     tau0, vel0 = refs[0]
     problem = make_problem(
-        tree, [Trajectory(t, forces[0], tau0, vel0, "pull")], sim=sim, nn_prior=False, kT=0.05
+        tree,
+        [Trajectory(t, forces[0], tau0, vel0, "pull")],
+        sim=sim,
+        nn_prior=False,
+        kT=0.05,
+        likelihood="boltzmann",
     )
     theta = jnp.asarray(
         np.log(np.stack([np.concatenate([kp[i], kd[i]]) for i in (1, 2)])), jnp.float32

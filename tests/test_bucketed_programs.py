@@ -102,7 +102,9 @@ def _trajectories(lengths, seed=0):
 def test_training_fit_at_the_bucket_equals_the_fit_at_the_data_shape(tree, grasp):
     obs = stack_trajectories(_trajectories((50, 47, 44)))
     sim = make_simulator(tree, obs_dt=0.01, substeps=4)
-    problem = make_problem(tree, obs, sim=sim, nn_prior=False, kT=0.05, grasp_fraction=grasp)
+    problem = make_problem(
+        tree, obs, sim=sim, nn_prior=False, kT=0.05, grasp_fraction=grasp, likelihood="boltzmann"
+    )
     assert grasp is None or problem.settings.get("grasp_fraction") == grasp
     bucket = [4, 64]  # a padded row as well as padded steps
     assert bucket_observations(obs, *bucket).mask.sum() == obs.mask.sum()

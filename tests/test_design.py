@@ -236,7 +236,9 @@ def test_suggest_for_run_and_prior_from_run(tmp_path):
 
     demo = tmp_path / "demo"
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-        assert main(["demo", "--quick", "--out", str(demo), "--no-progress"]) == 0
+        # the paper's loss: the noise is derived from the run's kT (checked below)
+        argv = ["demo", "--quick", "--out", str(demo), "--no-progress", "--likelihood", "boltzmann"]
+        assert main(argv) == 0
     run = load_run(demo / "run")
     sigma, where = noise_sigma_of_run(run.config)
     assert 1e-5 < sigma < 0.05 and "kT" in where
@@ -294,6 +296,7 @@ def test_suggest_for_run_and_prior_from_run(tmp_path):
     assert rc == 2 and "--target" in err and "Traceback" not in err
     tree = demo / "run" / "tree.yaml"
     quick = ["--particles", "8", "--iterations", "3", "--checkpoint-every", "0", "--no-progress"]
+    quick += ["--likelihood", "boltzmann"]  # as the demo's run above (noise-free pulls)
     rc, _, err = cli(
         "infer",
         "--tree",

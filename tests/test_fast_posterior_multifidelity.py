@@ -26,7 +26,7 @@ FINE, COARSE = 8, 1
 
 def _problem(tree, trajs, substeps):
     sim = make_simulator(tree, obs_dt=0.01, substeps=substeps)
-    return make_problem(tree, trajs, sim=sim, nn_prior=False, kT=0.02)
+    return make_problem(tree, trajs, sim=sim, nn_prior=False, kT=0.02, likelihood="boltzmann")
 
 
 @pytest.fixture(scope="module")

@@ -42,7 +42,10 @@ def _main(*argv):
 def data(tmp_path_factory):
     """demo --quick data with 2 mm displacement and 2% (of the largest peak) force noise."""
     base = tmp_path_factory.mktemp("fnoise")
-    rc, _, err = _main("demo", "--quick", "--out", base / "demo", "--no-progress")
+    # noise-free pulls (the paper's loss; the demo's default adds 2 mm itself)
+    rc, _, err = _main(
+        "demo", "--quick", "--out", base / "demo", "--no-progress", "--likelihood", "boltzmann"
+    )
     assert rc == 0, err
     rng = np.random.default_rng(0)
     sets = {s: read_trajectory_dir(base / "demo" / "data" / s) for s in ("train", "test")}
@@ -107,7 +110,7 @@ def test_infer_predict_evaluate_with_noise_force(data, tmp_path):
         (["--likelihood", "gaussian", "--noise-force", "150%"], "--noise-force"),
         (["--likelihood", "gaussian", "--noise-force", "500"], "noise_force"),  # above every force
         (["--likelihood", "student_t", "--noise-force", "0.1"], "--noise-force"),
-        (["--noise-force", "0.1"], "--noise-force"),  # boltzmann
+        (["--likelihood", "boltzmann", "--noise-force", "0.1"], "--noise-force"),
     ],
 )
 def test_bad_noise_force(data, tmp_path, extra, fragment):

@@ -47,7 +47,7 @@ def setup():
         Trajectory(t, forces[b], np.asarray(r.tau[0, b], float), None, f"train{b}")
         for b in range(2)
     ]
-    problem = make_problem(tree, trajs, kT=0.05, sim=sim)
+    problem = make_problem(tree, trajs, kT=0.05, sim=sim, likelihood="boltzmann")
     return tree, sim, trajs, problem
 
 
@@ -73,7 +73,7 @@ def test_one_simulator_call_per_gradient(setup, monkeypatch):
         return real(*args, **kwargs)
 
     monkeypatch.setattr(lik, "simulate", counting)
-    problem = make_problem(tree, trajs, kT=0.05, sim=sim)
+    problem = make_problem(tree, trajs, kT=0.05, sim=sim, likelihood="boltzmann")
     theta = jnp.tile(jnp.asarray(THETA_TRUE, jnp.float32), (5, 1))
     jax.make_jaxpr(problem.value_and_grad)(theta)
     assert len(calls) == 1
@@ -86,8 +86,19 @@ def test_central_differences_match_mjx_autodiff(setup):
     short = [
         Trajectory(t.time[:25], t.force[:25], t.displacement[:25], None, t.source) for t in trajs
     ]
-    fd = make_problem(tree, short, kT=0.05, sim=sim, nn_prior=False, gradient="fd", rel_step=1e-2)
-    ad = make_problem(tree, short, kT=0.05, sim=sim, nn_prior=False, gradient="autodiff")
+    fd = make_problem(
+        tree,
+        short,
+        kT=0.05,
+        sim=sim,
+        nn_prior=False,
+        gradient="fd",
+        rel_step=1e-2,
+        likelihood="boltzmann",
+    )
+    ad = make_problem(
+        tree, short, kT=0.05, sim=sim, nn_prior=False, gradient="autodiff", likelihood="boltzmann"
+    )
     theta = jnp.asarray(
         np.stack([THETA_TRUE + [0.2, -0.1, 0.1, -0.2], THETA_TRUE + [-0.3, 0.2, -0.2, 0.1]]),
         jnp.float32,
@@ -143,7 +154,7 @@ def test_same_seed_same_particles(setup):
 def test_bad_arguments(setup):
     tree, sim, trajs, problem = setup
     with pytest.raises(ConfigError, match="kT"):
-        make_problem(tree, trajs, kT=-1.0, sim=sim)
+        make_problem(tree, trajs, kT=-1.0, sim=sim, likelihood="boltzmann")
     with pytest.raises(ConfigError, match="sampler"):
         infer(problem, "hmc", n_particles=4, n_iterations=1)
     with pytest.raises(ConfigError, match="n_particles"):

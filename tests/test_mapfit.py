@@ -199,7 +199,7 @@ def _two_joint_problem(noise, n_steps=80):
         tau, _ = simulate_reference(sim, kp, kd, f)
         tau = tau + noise * rng.normal(size=tau.shape)
         trajs.append(Trajectory(t, f, tau, None, f"p{i}"))
-    problem = make_problem(tree, trajs, sim=sim, nn_prior=False)
+    problem = make_problem(tree, trajs, sim=sim, nn_prior=False, likelihood="boltzmann")
     return problem, np.log(np.concatenate([kp, kd]))
 
 

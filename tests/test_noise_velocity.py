@@ -84,7 +84,7 @@ def test_bad_values_name_the_option(setup, kw, fragment):
 def test_run_config_validates_and_round_trips():
     base = dict(tree="t", data="d", out="o")
     with pytest.raises(ConfigError, match="--noise-velocity"):
-        RunConfig(**base, noise_velocity=0.05)  # boltzmann
+        RunConfig(**base, likelihood="boltzmann", noise_velocity=0.05)
     with pytest.raises(ConfigError, match="--noise-velocity"):
         RunConfig(**base, likelihood="gaussian", noise_velocity=0.0)
     with pytest.raises(ConfigError, match="--noise-velocity"):
@@ -111,7 +111,10 @@ def test_cli_run_records_the_velocity_term(setup, tmp_path):
         write_trajectory(data / t.source, t)
     common = ["infer", "--tree", example_path("two_branch"), "--data", data]
     quick = ["--particles", "4", "--iterations", "2", "--checkpoint-every", "0", "--no-progress"]
-    rc, text = _main(*common, "--out", tmp_path / "bad", "--noise-velocity", "0.05", *quick)
+    rc, text = _main(
+        *common, "--out", tmp_path / "bad", "--likelihood", "boltzmann", "--noise-velocity", "0.05",
+        *quick,
+    )  # fmt: skip
     assert rc == 2 and "--noise-velocity" in text and "Traceback" not in text, text
     rc, text = _main(
         *common,

@@ -151,7 +151,9 @@ def test_two_data_sets_of_one_bucket_compile_the_sampler_once():
     finals = []
     try:
         for lengths, bucket in (((50, 57), (2, 64)), ((60, 44), (2, 64)), ((50, 70), (2, 80))):
-            problem = make_problem(tree, _obs(lengths), sim=sim, kT=0.05, shape_bucket=bucket)
+            problem = make_problem(
+                tree, _obs(lengths), sim=sim, kT=0.05, shape_bucket=bucket, likelihood="boltzmann"
+            )
             post = infer(problem, "nnsvgd", n_particles=4, n_iterations=2, seed=0,
                          progress=False, trace_every=None, cache=programs)  # fmt: skip
             finals.append(post.theta)
@@ -175,7 +177,7 @@ def test_mcmc_samplers_on_the_data_argument_match_the_constant_path(sampler):
 
     tree, obs = _tree(), _obs((50, 57))
     sim = make_simulator(tree, obs_dt=0.01, substeps=2)
-    kw = {"sim": sim, "kT": 0.05, "nn_prior": False}
+    kw = {"sim": sim, "kT": 0.05, "nn_prior": False, "likelihood": "boltzmann"}
     a = make_problem(tree, obs, shape_bucket=(2, 64), **kw)
     b = make_problem(tree, obs, **kw)
     assert isinstance(a.data_sampler(sampler), DataSamplingAlgorithm)

@@ -153,7 +153,7 @@ def _chain_problems(levels=2, kT=0.05, duration=0.4, dt=0.02):
         )
         for i in range(2)
     ]
-    kw = {"nn_prior": False, "sim": sim, "kT": kT}
+    kw = {"nn_prior": False, "sim": sim, "kT": kT, "likelihood": "boltzmann"}
     # A: the ramp-hold-release pull (informs Kp and Kd); B: the slow ramp (mostly Kp)
     return (
         make_problem(tree, trajs[1:], **kw),
@@ -267,7 +267,7 @@ def test_posterior_program_matches_the_problem_sampler_per_data_set():
     from treeinfer.inference import make_problem
 
     problems = [
-        make_problem(p.tree, p.obs, kT=k, sim=p.sim, nn_prior=False)
+        make_problem(p.tree, p.obs, kT=k, sim=p.sim, nn_prior=False, likelihood="boltzmann")
         for p, k in zip([p_a, p_b], kts)
     ]
     rng = np.random.default_rng(0)
@@ -313,7 +313,7 @@ def test_map_fits_match_fit_map_per_data_set():
         tree, sim, kts, [p_a.obs, p_b.obs], g, seeds=[0, 5], nn_prior=False, **kw
     )
     for fit, obs, kT, seed in zip(fits, [p_a.obs, p_b.obs], kts, [0, 5]):
-        prob = make_problem(tree, obs, kT=kT, sim=sim, nn_prior=False)
+        prob = make_problem(tree, obs, kT=kT, sim=sim, nn_prior=False, likelihood="boltzmann")
         ref = fit_map(
             boltzmann_residuals(sim, obs, kT, g[0]),
             prob.log_prior,

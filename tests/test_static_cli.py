@@ -74,6 +74,8 @@ def test_cli_static_infer_then_evaluate_held_out_height(stem_data, capsys):
             "4",
             "--iterations",
             "4",
+            "--likelihood",
+            "boltzmann",
             "--kT",
             "0.002",
             "--no-progress",
@@ -242,7 +244,7 @@ def test_stiffness_only_problem_holds_damping_at_the_trees_value():
     force = np.clip(t / 0.2, 0, 1) * 2.0
     x = 0.01 * np.clip(t / 0.2, 0, 1)
     traj = Trajectory(t, force, x, np.gradient(x, dt), "syn.csv")
-    problem = make_problem(tree, [traj], nn_prior=False, backend="fused")
+    problem = make_problem(tree, [traj], nn_prior=False, backend="fused", likelihood="boltzmann")
     assert problem.labels == ("Kp[b]",) and problem.dim == 1
     assert problem.settings["fixed_kd"] == [0.3]
     full = boltzmann_log_likelihood(problem.sim, problem.obs, problem.kT)
@@ -272,8 +274,17 @@ def test_static_and_stiffness_only_take_generative_likelihoods_and_kT_auto():
         )
         assert p.labels == ("Kp[b]", "sigma_x")
         assert p.settings["likelihood"] == "gaussian" and p.settings["model_kind"] == kind
-    auto = make_problem(kp_only, [traj], kT="auto", nn_prior=False, backend="fused")
-    full = make_problem(_one_joint_tree(), [traj], kT="auto", nn_prior=False, backend="fused")
+    auto = make_problem(
+        kp_only, [traj], kT="auto", nn_prior=False, backend="fused", likelihood="boltzmann"
+    )
+    full = make_problem(
+        _one_joint_tree(),
+        [traj],
+        kT="auto",
+        nn_prior=False,
+        backend="fused",
+        likelihood="boltzmann",
+    )
     assert auto.dim == 1 and auto.kT == pytest.approx(full.kT)
     assert np.isfinite(np.asarray(auto.log_likelihood(np.log([[10.0]])))).all()
 

@@ -95,7 +95,13 @@ def _posterior_program(tree, sim, n_iterations, sampler, learning_rate, final_le
     def one(theta0, seed, kT, force, disp, vel, mask, grasp):
         obs = Observations(force, disp, vel, mask, float(sim.obs_dt))
         problem = make_problem(
-            tree, obs, kT=1.0, sim=sim, grasp_fraction=grasp, nn_prior=sampler == "nnsvgd"
+            tree,
+            obs,
+            kT=1.0,
+            sim=sim,
+            grasp_fraction=grasp,
+            nn_prior=sampler == "nnsvgd",
+            likelihood="boltzmann",
         )
         loglik = lambda th: problem.log_likelihood(th) / kT
         vg = combined_value_and_grad([loglik], [problem.log_prior])
@@ -173,7 +179,15 @@ def _build_terms_program(tree, sim, nn_prior: bool):
 
     def one(theta, kT, force, disp, vel, mask, grasp):
         obs = Observations(force, disp, vel, mask, float(sim.obs_dt))
-        problem = make_problem(tree, obs, kT=1.0, sim=sim, grasp_fraction=grasp, nn_prior=nn_prior)
+        problem = make_problem(
+            tree,
+            obs,
+            kT=1.0,
+            sim=sim,
+            grasp_fraction=grasp,
+            nn_prior=nn_prior,
+            likelihood="boltzmann",
+        )
 
         def residuals(th):  # as mapfit.boltzmann_residuals, with the data as arguments
             kp, kd = gains_from_theta(th[None, :], sim.n_joints)
@@ -230,7 +244,9 @@ def map_fits(
     if not np.all(np.isfinite(kT) & (kT > 0)):
         raise ConfigError(f"map_fits: kT must be positive numbers, got {kT.tolist()}")
     seeds = list(range(c)) if seeds is None else [int(s) for s in seeds]
-    problem = make_problem(tree, observations[0], kT=1.0, sim=sim, nn_prior=False)
+    problem = make_problem(
+        tree, observations[0], kT=1.0, sim=sim, nn_prior=False, likelihood="boltzmann"
+    )
     lower, upper = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
     starts = np.stack([latin_hypercube(n_starts, lower, upper, s) for s in seeds])  # [C, S, D]
     d = lower.size

@@ -73,6 +73,8 @@ COARSE_SEED = 7919
 # Student-t proposals (every round): Gaussian ones leave the posterior's tails short, so the
 # band came out 5-6 % narrow on average (experiments/importance_robustness.py, BENCHMARKS.md)
 DEFAULT_DF = 8.0
+# accurate-step LM iterations after the coarse fit for a generative likelihood (importance_for_run)
+GENERATIVE_POLISH = 8
 
 __all__ = [
     "DEFAULT_DF",
@@ -126,6 +128,13 @@ class BatchEvaluator:
         self.traced = bool(traced_substeps)
         self.runs: dict[int, int] = {}  # program runs per substep count
         self.kT = float(problem.kT)
+        # the rollout takes the gains only; noise columns (sigma_x, ...) cost no rollout
+        self.n_gains = 2 * sim.n_joints
+        terms = problem.noise
+        self.boltzmann = terms is None or terms.black_box
+        self._noise = None
+        if not self.boltzmann:  # the problem's own noise density, on the host's residuals
+            self._noise = jax.jit(terms.residual_loglik)
         sim, obs = problem.sim, problem.obs
         gf = problem.settings.get("grasp_fraction")
         if gf is not None and math.isclose(gf, problem.tree.grasp_fraction):
@@ -151,12 +160,12 @@ class BatchEvaluator:
             sim_key,
             gf,
             self.chunk,
-            problem.dim,
+            self.n_gains,
             self.shape,
             str(self._dtype),
             "traced substeps" if self.traced else "static substeps",
         )
-        example = (jax.ShapeDtypeStruct((self.chunk, problem.dim), self._dtype), *self._data)
+        example = (jax.ShapeDtypeStruct((self.chunk, self.n_gains), self._dtype), *self._data)
         if self.traced:
             example = (*example, np.int32(self.substeps))
 
@@ -189,7 +198,8 @@ class BatchEvaluator:
             self.calls += 1
             self.runs[s] = self.runs.get(s, 0) + 1
             th = device_array(full[i : i + k], self._dtype)
-            outs.append((*self._run(th, *self._data, *extra), self._prior(th)))
+            gains = th if th.shape[1] == self.n_gains else th[:, : self.n_gains]
+            outs.append((*self._run(gains, *self._data, *extra), self._prior(th)))
         r, ok, lp = (np.concatenate([np.asarray(o[j], float) for o in outs])[:n] for j in range(3))
         b, t, nb = self._rows, self._steps, self.shape[0]
         r = np.concatenate([r[:, :b, :t], r[:, nb : nb + b, :t]], axis=1)  # the data's rows, steps
@@ -203,9 +213,47 @@ class BatchEvaluator:
     def log_density(self, theta, substeps: int | None = None) -> np.ndarray:
         """``[N]`` log p(theta | data) up to a constant (as ``problem.log_density``; with
         ``substeps`` the simulator's step changed to that many substeps)."""
-        norms, ok, lp, _ = self.loss_terms(theta, substeps)
-        out = -norms.sum(-1) / self.kT + lp
-        return np.where(ok & np.isfinite(out), out, -np.inf)
+        return self.log_density_terms(theta, substeps)[0]
+
+    def log_density_terms(self, theta, substeps: int | None = None):
+        """``(log p [N], r [N, G, T])``: :meth:`log_density` and the residuals it came from."""
+        theta = np.atleast_2d(np.asarray(theta, float))
+        norms, ok, lp, r = self.loss_terms(theta, substeps)
+        if self.boltzmann:
+            out = -norms.sum(-1) / self.kT + lp
+        else:
+            out = self.log_likelihood(r, theta) + lp
+        return np.where(ok & np.isfinite(out), out, -np.inf), r
+
+    def log_prior(self, theta) -> np.ndarray:
+        """``[N]`` ``problem.log_prior`` at ``theta [N, D]``, in batches of ``chunk`` rows."""
+        theta = np.atleast_2d(np.asarray(theta, float))
+        n, k = len(theta), self.chunk
+        pad = (-n) % k
+        full = np.concatenate([theta, np.repeat(theta[-1:], pad, 0)]) if pad else theta
+        out = [
+            self._prior(device_array(full[i : i + k], self._dtype)) for i in range(0, len(full), k)
+        ]
+        return np.concatenate([np.asarray(o, float) for o in out])[:n]
+
+    def log_likelihood(self, r, theta) -> np.ndarray:
+        """``[N]`` the problem's generative log-likelihood from the residuals ``r [N, 2B, T]``
+        (simulated minus recorded, :meth:`evaluate`) and the noise columns of ``theta [N, D]``
+        (:attr:`treeinfer.likelihood.LikelihoodTerms.residual_loglik`, the same noise density
+        the problem's likelihood uses), in batches of ``chunk`` rows (one compiled shape)."""
+        b, k = self._rows, self.chunk
+        n = len(theta)
+        pad = (-n) % k
+        if pad:
+            r = np.concatenate([r, np.repeat(r[-1:], pad, 0)])
+            theta = np.concatenate([theta, np.repeat(theta[-1:], pad, 0)])
+        out = []
+        for i in range(0, len(theta), k):
+            ri = device_array(r[i : i + k], self._dtype)
+            out.append(
+                self._noise(-ri[:, :b], -ri[:, b:], device_array(theta[i : i + k], self._dtype))
+            )
+        return np.concatenate([np.asarray(o, float) for o in out])[:n]
 
 
 def default_chunk(k: int, n_draws: int) -> int:
@@ -284,15 +332,22 @@ def latin_hypercube(n: int, lower, upper, seed: int = 0) -> np.ndarray:
 
 
 def check_problem(problem) -> None:
-    """ConfigError unless ``problem`` is the paper's model with the Boltzmann likelihood."""
+    """ConfigError unless ``problem`` is the paper's dynamic model (theta = [log Kp, log Kd]
+    and the likelihood's noise columns) with a likelihood that offers its density from the
+    rollout residuals (every likelihood :func:`treeinfer.likelihood.likelihood_terms` builds)."""
     noise = getattr(problem, "noise", None)
-    if problem.model is not None or (noise is not None and not noise.black_box):
+    if problem.model is not None:
         raise ConfigError(
-            "fast posterior: only the dynamic model with the Boltzmann likelihood "
-            "(--likelihood boltzmann, --model-kind dynamic) is supported"
+            "fast posterior: the rollout program runs the paper's dynamic model only (not a "
+            "static model, stiffness-only parameters, a tie or per-recording pulls)"
         )
-    if problem.dim != 2 * problem.sim.n_joints:
-        raise ConfigError(f"fast posterior: theta has {problem.dim} columns, expected 2R")
+    extra = 0 if noise is None else len(noise.extra_labels)
+    if problem.dim != 2 * problem.sim.n_joints + extra:
+        raise ConfigError(
+            f"fast posterior: theta has {problem.dim} columns, expected 2R + {extra} noise columns"
+        )
+    if noise is not None and not noise.black_box and noise.residual_loglik is None:
+        raise ConfigError("fast posterior: this likelihood offers no density of the residuals")
 
 
 def _lm_terms(ev: BatchEvaluator, theta, h: float, substeps: int | None = None):
@@ -350,7 +405,11 @@ def fit_map_batched(
     p = ev.problem
     h = default_rel_step(jnp.float32) if rel_step is None else float(rel_step)
     theta = np.array(starts, float)
-    f, g, hs, gram, r2 = _lm_terms(ev, theta, h, substeps)
+    if ev.boltzmann:
+        terms = _lm_terms
+    else:  # a generative likelihood: its generalised Gauss-Newton curvature
+        from .start_pipeline import ggn_terms as terms
+    f, g, hs, gram, r2 = terms(ev, theta, h, substeps)
     n = len(theta)
     scale0 = np.array([np.mean(np.abs(np.diag(x))) + 1e-12 for x in hs])
     lam = 1e-3 * np.ones(n)
@@ -367,7 +426,7 @@ def fit_map_batched(
             big = np.max(np.abs(step))
             steps[i] = step if big <= max_step else step * (max_step / big)
         trial = theta + steps
-        ft, gt, ht, gram_t, r2_t = _lm_terms(ev, trial, h, substeps)
+        ft, gt, ht, gram_t, r2_t = terms(ev, trial, h, substeps)
         accept = ~done & np.isfinite(ft) & (ft < f)
         flat = accept & ((f - ft) < tolerance * (1.0 + np.abs(f)))
         for a, b in ((theta, trial), (f, ft), (g, gt), (hs, ht), (gram, gram_t), (r2, r2_t)):
@@ -394,7 +453,7 @@ def fit_map_batched(
     settings = {
         "n_starts": n,
         "jacobian": "fd",
-        "kind": "norm",
+        "kind": "norm" if ev.boltzmann else "generalised Gauss-Newton",
         "max_iterations": max_iterations,
         "tolerance": tolerance,
         "max_step": max_step,
@@ -411,11 +470,11 @@ def fit_map_batched(
         f,
         converged,
         it,
-        np.asarray(p.lower, float),
-        np.asarray(p.upper, float),
-        len(theta[best]),
+        np.asarray(p.lower, float)[: ev.n_gains],
+        np.asarray(p.upper, float)[: ev.n_gains],
+        ev.n_gains,
         settings,
-        norm_loss_covariance(gram[best], r2[best], ev.kT),
+        norm_loss_covariance(gram[best], r2[best], ev.kT) if ev.boltzmann else None,
     )
 
 
@@ -458,6 +517,7 @@ def fast_posterior(
     coarse_substeps: int | str | None = "auto",
     polish_iterations: int = 0,
     coarse_rounds: int = 2,
+    starts=None,
 ) -> FastPosterior:
     """Posterior particles of ``problem`` without sampler iterations (module docstring).
 
@@ -499,6 +559,8 @@ def fast_posterior(
         180-270; the coarse rounds cost about a third of accurate ones (4 against 14 substeps).
       max_iterations (None): 15 with a coarse step (the coarse importance rounds re-centre the
         proposal), else 30.
+      starts: ``[S, D]`` LM starting points instead of the screen's (e.g. a MAP found before,
+        :func:`treeinfer.start_pipeline.force_noise_reference`); None: screen the box.
     """
     from .importance import (
         BAND_SPLIT_LIMIT,
@@ -535,15 +597,27 @@ def fast_posterior(
     lower, upper = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
     ev.evaluate(lower[None], coarse)  # compile (and run once)
     phases["compile"], t = time.perf_counter() - t, time.perf_counter()
-    pts = latin_hypercube(n_screen, lower, upper, seed)
-    lp = ev.log_density(pts, coarse)
-    order = np.argsort(np.where(np.isfinite(lp), -lp, np.inf))
-    starts = pts[order[:n_starts]]
+    from .start_pipeline import screen
+
+    if starts is None:
+        pts = latin_hypercube(n_screen, lower, upper, seed)
+        lp, pts = screen(ev, pts, coarse)
+        order = np.argsort(np.where(np.isfinite(lp), -lp, np.inf))
+        starts = pts[order[:n_starts]]
+    else:
+        starts = np.atleast_2d(np.asarray(starts, float))
     phases["screen"], t = time.perf_counter() - t, time.perf_counter()
     fit = fit_map_batched(ev, starts, max_iterations, tolerance, substeps=coarse)
     coarse_fit = fit
+    modes = None
     if polish_iterations and coarse != ev.substeps:
-        fit = fit_map_batched(ev, fit.theta[None], polish_iterations, tolerance)
+        from .start_pipeline import distinct_modes
+
+        # every distinct local mode of the multi-start fit within MODE_GAP nats is polished
+        # and sampled (start_pipeline.multimode_importance), not the best one alone
+        modes = distinct_modes(fit, proposal_from_fit(fit)[1])
+        fit = fit_map_batched(ev, modes, polish_iterations, tolerance)
+        modes = distinct_modes(fit, proposal_from_fit(fit)[1])
     phases["map_fit"], t = time.perf_counter() - t, time.perf_counter()
     mean, cov = proposal_from_fit(fit)
     target = 4.0 * n_particles if target_ess is None else float(target_ess)
@@ -562,15 +636,22 @@ def fast_posterior(
     kept = []  # each draw's displacement residual at the data's points, for the band check
 
     def log_density(theta):
-        norms, stable, lp, r = ev.loss_terms(theta)
+        out, r = ev.log_density_terms(theta)
         kept.append(r[:, : mask.shape[0]][:, mask])
-        out = -norms.sum(-1) / ev.kT + lp
-        return np.where(stable & np.isfinite(out), out, -np.inf)
+        return out
 
-    imp, idx = adaptive_importance(
-        log_density, mean, cov, n_draws, int(n_particles), seed, float(df), max_rounds,
-        target, min_ess=min(target, 2.0 * n_particles),
-    )  # fmt: skip
+    if modes is not None and len(modes) > 1:
+        from .start_pipeline import multimode_importance
+
+        imp, idx = multimode_importance(
+            log_density, modes, cov, n_draws, int(n_particles), seed, float(df), max_rounds,
+            target, min(target, 2.0 * n_particles),
+        )  # fmt: skip
+    else:
+        imp, idx = adaptive_importance(
+            log_density, mean, cov, n_draws, int(n_particles), seed, float(df), max_rounds,
+            target, min_ess=min(target, 2.0 * n_particles),
+        )  # fmt: skip
     pred = np.concatenate(kept) + np.asarray(problem.obs.displacement, float)[mask]
     width_a, width_b, split = band_split(pred, imp.log_weights)
     # the particles: one draw per equal-weight stratum along the predictions' leading component
@@ -597,6 +678,7 @@ def fast_posterior(
         "n_draws": n_draws,
         "df": None if math.isinf(df) else df,
         "lm_iterations": coarse_fit.iterations,
+        "n_fit_starts": len(coarse_fit.starts),
         "lm_values": [float(v) for v in coarse_fit.values],
         "substeps": ev.substeps,
         "fit_substeps": coarse,
@@ -607,6 +689,7 @@ def fast_posterior(
         "program_runs_by_substeps": {str(s): n for s, n in sorted(ev.runs.items())},
         "khat": khat,
         "ess": ess,
+        "n_modes": 1 if modes is None else len(modes),
         "importance_rounds": imp.rounds,
         "band_split": split,
         "max_rounds": max_rounds,
@@ -700,6 +783,19 @@ def importance_for_run(problem, n_particles: int, seed: int = 0, log=lambda msg:
     pass their check, so no sampler needs to run, else None; ``theta0`` [P, D] the particles
     (the sampler's start when ``posterior`` is None). ``options`` go to :func:`fast_posterior`.
     """
+    if not (problem.noise is None or problem.noise.black_box):
+        # a generative likelihood's posterior is sharp (2 mm noise on ~900 samples): the coarse
+        # step moves its mode by several posterior widths (importance rounds at the coarse step
+        # then gave an effective sample size of 2-3 of 832 on the standard problem), so the
+        # coarse fit is polished at the accurate step and only accurate rounds are drawn
+        # one more round than the Boltzmann path: Pareto k_hat 0.74 after three rounds with an
+        # effective sample size of 225 sent the standard problem to the sampler (issue 27)
+        options = {
+            "coarse_rounds": 0,
+            "polish_iterations": GENERATIVE_POLISH,
+            "max_rounds": 4,
+            **options,
+        }
     res = fast_posterior(problem, n_particles, seed=seed, **options)
     imp = res.importance
     verdict = (
@@ -708,8 +804,14 @@ def importance_for_run(problem, n_particles: int, seed: int = 0, log=lambda msg:
         else f"not trusted ({res.reason}): the sampler runs from these particles"
     )
     log(
-        f"importance posterior: MAP from {len(res.fit.starts)} screened starts in "
-        f"{res.fit.iterations} LM iterations, {len(imp.draws)} draws in {imp.rounds} "
+        f"importance posterior: MAP from {res.settings['n_fit_starts']} starts in "
+        f"{res.settings['lm_iterations']} LM iterations"
+        + (
+            f" (+{res.settings['polish_iterations']} at the accurate step)"
+            if res.settings["polish_iterations"]
+            else ""
+        )
+        + f", {len(imp.draws)} draws in {imp.rounds} "
         f"round{'s' if imp.rounds > 1 else ''}, Pareto k_hat "
         f"{imp.khat:.2f}, effective sample size {imp.ess:.0f}: {verdict}"
     )

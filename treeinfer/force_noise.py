@@ -55,6 +55,7 @@ largest peak force), or ``"auto"``: estimated from the recorded force's high-fre
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import NamedTuple
 
@@ -289,7 +290,6 @@ def force_jacobian(sim, theta, forces, grasp_fraction=None, check: bool = True) 
     the term would silently vanish). Raises :class:`SimulationError` too if the rollout at
     ``theta`` is unstable."""
     from .gains import gains_from_theta
-    from .sim import simulate
 
     dtype = sim.dtype
     jsim = _force_differentiable(sim)
@@ -302,18 +302,7 @@ def force_jacobian(sim, theta, forces, grasp_fraction=None, check: bool = True) 
         else jnp.broadcast_to(jnp.asarray(grasp_fraction, dtype), forces.shape[:1])
     )
 
-    def one(f, g):
-        def tau(fb):
-            ro = simulate(jsim, kp, kd, fb[None], None if g is None else g[None])
-            return ro.tau[0, 0], ro.stable[0, 0]
-
-        jac, ok = jax.jacfwd(tau, has_aux=True)(f)
-        return jac, ok
-
-    if gf is None:
-        jac, ok = jax.jit(jax.vmap(lambda f: one(f, None)))(forces)
-    else:
-        jac, ok = jax.jit(jax.vmap(one))(forces, gf)
+    jac, ok = _jacobian_program(jsim, kp, kd, forces, gf)
     jac = np.asarray(jac, float)
     if not (np.all(np.asarray(ok)) and np.all(np.isfinite(jac))):
         raise SimulationError(
@@ -323,6 +312,25 @@ def force_jacobian(sim, theta, forces, grasp_fraction=None, check: bool = True) 
     if check:
         _check_force_jacobian(sim, kp, kd, np.asarray(forces, float), gf, jac)
     return jac
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _jacobian_program(jsim, kp, kd, forces, gf):
+    """:func:`force_jacobian`'s program, jitted once per simulator with the gains as arguments
+    (a closure over them compiled anew at every reference point: 10-30 s each on a 2-core
+    CPU, three times per run with the start pipeline's reference)."""
+    from .sim import simulate
+
+    def one(f, g):
+        def tau(fb):
+            ro = simulate(jsim, kp, kd, fb[None], None if g is None else g[None])
+            return ro.tau[0, 0], ro.stable[0, 0]
+
+        return jax.jacfwd(tau, has_aux=True)(f)
+
+    if gf is None:
+        return jax.vmap(lambda f: one(f, None))(forces)
+    return jax.vmap(one)(forces, gf)
 
 
 def _check_force_jacobian(sim, kp, kd, forces, gf, jac) -> None:

@@ -79,6 +79,7 @@ class ImportancePosterior(NamedTuple):
     df: float
     reason: str
     rounds: int = 1
+    raw_log_weights: np.ndarray | None = None  # [M] log p - log q (unsmoothed), when known
 
 
 def proposal_from_fit(fit, inflate: float = 1.0, box_precision: bool = True):
@@ -370,8 +371,9 @@ def adaptive_importance(
         proposals.append((*nxt, df_adapt))
     m_last, c_last, df_last = proposals[-1]
     imp = ImportancePosterior(
-        all_x[idx], all_x, lw, all_lp, khat, ess, ok, m_last, c_last, df_last, reason, r
-    )
+        all_x[idx], all_x, lw, all_lp, khat, ess, ok, m_last, c_last, df_last, reason, r,
+        np.where(np.isfinite(all_lp), all_lp - log_q, -np.inf),
+    )  # fmt: skip
     return imp, idx
 
 

@@ -96,6 +96,9 @@ class Problem:
     noise: Any = None  # treeinfer.likelihood.LikelihoodTerms: the likelihood choice and its noise
     model: Any = None  # treeinfer.static.Model when not the dynamic model of [log Kp, log Kd]
     data_target: Any = None  # DataTarget: the samplers' programs take the data as an argument
+    # [S, D] starting points for the start pipeline's MAP fit found while building the problem
+    # (the force-noise reference's fit, treeinfer.start_pipeline), None: it screens the box
+    start_hint: Any = None
 
     @property
     def dim(self) -> int:
@@ -155,32 +158,42 @@ def make_problem(
     backend: str = "auto",
     force_interp: str = "linear",
     sim_tolerance: float | None = None,
-    likelihood: str = "boltzmann",
+    likelihood: str | None = None,
     noise_displacement: float | None = None,
     model_kind: str = "dynamic",
     direction=None,
     grasp_branch=None,
     model=None,
-    noise_force=None,
+    noise_force="default",
     shape_bucket=None,
     noise_velocity: float | None = None,
+    force_noise_reference=None,
+    force_noise_rule: str = "J at the given reference",
 ) -> Problem:
     """Build the posterior target of ``tree`` given training ``trajectories``.
 
     Args:
       kT: Boltzmann temperature, a number or ``"auto"`` (from the data's noise estimate, see
         :mod:`treeinfer.likelihood` on choosing it).
-      likelihood: ``"boltzmann"`` (the paper's loss), ``"gaussian"``, ``"student_t"`` or
-        ``"ar1"`` (generative noise models, :mod:`treeinfer.noise`); built by
-        :func:`treeinfer.likelihood.likelihood_terms`.
+      likelihood: ``"gaussian"`` (None, the default: recorded = simulated + white noise,
+        sigma_x inferred jointly), ``"student_t"`` or ``"ar1"`` (generative noise models,
+        :mod:`treeinfer.noise`), or ``"boltzmann"`` (the paper's loss with temperature ``kT``);
+        built by :func:`treeinfer.likelihood.likelihood_terms`. A ``kT`` other than the default
+        without ``likelihood`` is refused (before issue 27 it meant the Boltzmann loss).
       noise_displacement: m, fixed displacement noise sigma_x for the generative likelihoods
         (None: inferred as an extra column of theta) or the noise used by ``kT="auto"``.
-      noise_force: None, or the recorded force's noise std (N, ``"P%"`` of the largest recorded
+      noise_force: ``"default"`` (the default: ``"auto"`` where the likelihood and model offer
+        the term and the data let it be estimated, else off; :func:`default_noise_force`), None
+        (off), or the recorded force's noise std (N, ``"P%"`` of the largest recorded
         force, or ``"auto"``: :func:`treeinfer.force_noise.resolve_noise_force`). With the
         paper's dynamic model: the errors-in-variables term of :mod:`treeinfer.force_noise`
         (gaussian likelihood). With ``model_kind="static"``: the load cell's noise read through
         each pull's compliance, ``sqrt(sigma_x^2 + (noise_force * compliance)^2)``
         (:func:`treeinfer.static.model_likelihood_terms`, Gaussian/Student-t).
+      force_noise_reference: ``[2R]`` log gains where the force-noise term's Jacobian is taken
+        (dynamic model; None: :func:`treeinfer.force_noise.reference_theta`'s MAP fit; the start
+        pipeline, :mod:`treeinfer.start_pipeline`, passes its own MAP of the same model);
+        force_noise_rule: how it was chosen (recorded).
       noise_velocity: None (default: the velocity term off) or m/s, the velocity residual's
         noise std for the generative likelihoods of the paper's model
         (:func:`treeinfer.likelihood.likelihood_terms`'s ``sigma_v``).
@@ -216,6 +229,7 @@ def make_problem(
         Applies to the paper's dynamic model (theta = [log Kp, log Kd] + noise columns); a
         static model, a stiffness-only layout or per-recording pulls keep the constants.
     """
+    likelihood = resolve_likelihood(likelihood, kT)
     if not (isinstance(kT, str) and kT == "auto"):
         kT = check_kT(kT)
     if gradient not in GRADIENTS:
@@ -258,6 +272,9 @@ def make_problem(
     if model is None:
         model = model_for(tree, model_kind, direction, grasp_branch)
     tree, layout = model.tree, model.layout
+    noise_force, force_note = default_noise_force(
+        noise_force, likelihood, model.is_paper or model.kind == "static", obs
+    )
     if model.is_paper:
         model = None  # the paper's model: theta = [log Kp, log Kd] (+ noise columns), as before
     options = dict(kT=kT, sigma_x=noise_displacement, grasp_fraction=grasp_fraction)
@@ -271,6 +288,8 @@ def make_problem(
             rel_step=rel_step,
             noise_force=noise_force,
             sigma_v=noise_velocity,
+            force_noise_reference=force_noise_reference,
+            force_noise_rule=force_noise_rule,
             **options,
         )
     else:  # the model's own rollout (static, stiffness only, per-recording pulls)
@@ -361,6 +380,8 @@ def make_problem(
             nn_seed=nn_seed,
         ),
     }
+    if force_note is not None:
+        settings["noise_force_default"] = force_note
     if data_target is not None:
         settings["shape_bucket"] = list(data_target.shape)
         settings["sampler_data"] = "arguments"
@@ -397,6 +418,53 @@ def make_problem(
         model=model,
         data_target=data_target,
     )
+
+
+DEFAULT_LIKELIHOOD = "gaussian"
+# a force-noise estimate below this share of the largest recorded force is float rounding
+CLEAN_FORCE = 1e-9
+
+
+def resolve_likelihood(likelihood: str | None, kT=DEFAULT_KT) -> str:
+    """``likelihood`` or, for None, the default (:data:`DEFAULT_LIKELIHOOD`). A ``kT`` other than
+    the default meant the Boltzmann loss while that was the default (before issue 27); given
+    without a likelihood it is refused with what to pass, rather than silently ignored."""
+    if likelihood is not None:
+        return likelihood
+    if not (isinstance(kT, (int, float)) and not isinstance(kT, bool) and kT == DEFAULT_KT):
+        raise ConfigError(
+            f"kT={kT!r} sets the temperature of the Boltzmann loss, which is no longer the "
+            f"default likelihood (now {DEFAULT_LIKELIHOOD!r}: recorded = simulated + noise, the "
+            "noise inferred); pass likelihood='boltzmann' with kT to keep the paper's loss, or "
+            "leave kT out"
+        )
+    return DEFAULT_LIKELIHOOD
+
+
+def default_noise_force(noise_force, likelihood: str, supported: bool, obs):
+    """``(noise_force, note)``: ``"default"`` resolved to ``"auto"`` (the recorded force's noise
+    estimated from the data, an errors-in-variables term) where the likelihood is Gaussian, the
+    model offers the term (``supported``: the paper's dynamic model or the static one) and the
+    force noise can be estimated; otherwise None (off) and ``note`` says why (recorded as the
+    problem setting ``noise_force_default``). Any other value is returned as given."""
+    if not (isinstance(noise_force, str) and noise_force == "default"):
+        return noise_force, None
+    if likelihood != "gaussian":
+        return None, None
+    if not supported:
+        return None, "off: this model (stiffness only, a tie or per-recording pulls) has no term"
+    from .force_noise import estimate_force_noise
+
+    try:
+        est = estimate_force_noise(obs)
+    except ConfigError as e:
+        return None, f"off: {str(e).removeprefix('noise_force: ')}"
+    f = np.abs(np.asarray(obs.force, float)[np.asarray(obs.mask, bool)])
+    if f.size and est.sigma < CLEAN_FORCE * float(f.max()):
+        # rounding in the second differences of a noise-free force (7.6e-17 N on a simulated
+        # ramp): a term of no size that would still cost its Jacobian
+        return None, f"off: the recorded force looks noise-free (estimate {est.sigma:.3g} N)"
+    return "auto", None
 
 
 def _pulls_record(model, n: int) -> dict:

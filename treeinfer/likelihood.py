@@ -262,32 +262,50 @@ def _measurement_loglik(
 
     sim_fn = finite_difference_jvp(rollout, rel_step) if black_box else rollout
 
+    density = _noise_density(kind, sigma_x, sigma_v, df, mask, force_basis, 2 * r)
+
     def loglik(theta: jax.Array) -> jax.Array:
         theta = jnp.asarray(theta)
         out = sim_fn(theta[:, : 2 * r])
-        c = 2 * r
+        dv = v_obs - out[:, 1] if use_v else None
+        return density(x_obs - out[:, 0], dv, theta)
+
+    return loglik
+
+
+def _noise_density(kind, sigma_x, sigma_v, df, mask, force_basis, n_gains: int):
+    """``(dx [N, B, T], dv [N, B, T] or None, theta [N, D]) -> [N]``: the generative noise
+    density of the recorded-minus-simulated displacement ``dx`` (and velocity ``dv``), the noise
+    columns read from theta after its ``n_gains`` gains; ``-inf`` where not finite (NaN marks an
+    unstable rollout). One function for the problem's likelihood and the start pipeline's host
+    evaluation of rollout residuals (:meth:`LikelihoodTerms.residual_loglik`), so both compute
+    the same density."""
+
+    def density(dx, dv, theta):
+        theta = jnp.asarray(theta)
+        c = n_gains
         if sigma_x is None:
             sx, c = jnp.exp(theta[:, c]), c + 1
         else:
-            sx = jnp.full(theta.shape[:1], sigma_x, out.dtype)
+            sx = jnp.full(theta.shape[:1], sigma_x, dx.dtype)
         if force_basis is not None:
             from . import force_noise  # numpyro: imported where the term is used
 
-            resid = jnp.where(mask, x_obs - out[:, 0], 0.0)
+            resid = jnp.where(mask, dx, 0.0)
             total = force_noise.mvn_log_prob(resid, force_basis, sx)
         elif kind == "ar1":
             sc, rho = jnp.exp(theta[:, c]), jax.nn.sigmoid(theta[:, c + 1])
-            total = noise.ar1_white_log_prob(x_obs - out[:, 0], mask, sx, sc, rho)
+            total = noise.ar1_white_log_prob(dx, mask, sx, sc, rho)
         else:
-            lp = noise.residual_log_prob(x_obs - out[:, 0], sx[:, None, None], kind, df)
+            lp = noise.residual_log_prob(dx, sx[:, None, None], kind, df)
             total = jnp.sum(jnp.where(mask, lp, 0.0), axis=(-2, -1))
-        if use_v:
-            sv = jnp.asarray(sigma_v, out.dtype)
-            lpv = noise.residual_log_prob(v_obs - out[:, 1], sv, predictive_noise_kind(kind), df)
+        if sigma_v is not None and dv is not None:
+            sv = jnp.asarray(sigma_v, dx.dtype)
+            lpv = noise.residual_log_prob(dv, sv, predictive_noise_kind(kind), df)
             total = total + jnp.sum(jnp.where(mask, lpv, 0.0), axis=(-2, -1))
         return jnp.where(jnp.isfinite(total), total, -jnp.inf)
 
-    return loglik
+    return density
 
 
 def observation_data(obs: Observations, grasp_fraction=None, shape=None) -> dict:
@@ -347,6 +365,24 @@ def data_observations(data: dict, dt: float) -> Observations:
     return Observations(data["force"], data["displacement"], data["velocity"], data["mask"], dt)
 
 
+def _padded_basis(basis, mask: np.ndarray):
+    """The force-noise basis of pulls padded to ``mask [B', T']`` (:func:`observation_data`)
+    from the unpadded pulls' ``basis`` [B, T, T]: ``C`` is zero in the rows and columns of
+    padded samples (force noise exists on real samples only, and the displacement before T
+    does not depend on the force after it), so the padded eigenbasis is ``U`` beside the
+    identity with eigenvalues 0 there, and a padded pull's is the identity. The same density
+    as the Jacobian of the padded pulls would give, without computing it (a forward-mode pass
+    of T' tangents per pull)."""
+    u, lam = np.asarray(basis.vectors), np.asarray(basis.values)
+    b, t = lam.shape
+    nb, nt = mask.shape
+    vectors = np.broadcast_to(np.eye(nt), (nb, nt, nt)).copy()
+    values = np.zeros((nb, nt))
+    vectors[:b, :t, :t] = u
+    values[:b, :t] = lam
+    return type(basis)(vectors, values, (~np.asarray(mask, bool)).sum(axis=1))
+
+
 class LikelihoodTerms(NamedTuple):
     """What :func:`likelihood_terms` builds, ready to plug into ``make_problem``.
 
@@ -374,6 +410,11 @@ class LikelihoodTerms(NamedTuple):
       jitted program's argument), so programs built on it serve every data set of one shape.
     extra_init: ``(lower [E], upper [E])`` where uniform initial particles of the extra columns
       are drawn (near the data's noise estimate, inside the prior box), or None: the box.
+    residual_loglik: ``(dx [N, B, T], dv [N, B, T], theta [N, D]) -> [N]``, the same
+      log-likelihood from the recorded-minus-simulated displacement ``dx`` (m) and velocity
+      ``dv`` (m/s) of the training data (zero at masked samples) of stable rollouts: what
+      :mod:`treeinfer.fast_posterior` evaluates on the host around its one rollout program
+      (None where a builder does not offer it).
     """
 
     log_likelihood: Callable
@@ -390,6 +431,7 @@ class LikelihoodTerms(NamedTuple):
     data_of: Callable | None = None
     loglik_of: Callable | None = None
     extra_init: tuple | None = None
+    residual_loglik: Callable | None = None
 
     @property
     def black_box(self) -> bool:
@@ -418,6 +460,7 @@ def likelihood_terms(
     rel_step: float | None = None,
     noise_force=None,
     force_noise_reference=None,
+    force_noise_rule: str = "J at the given reference",
 ) -> LikelihoodTerms:
     """The likelihood part of the posterior for one tree + data + likelihood choice.
 
@@ -440,6 +483,8 @@ def likelihood_terms(
         errors-in-variables covariance of :mod:`treeinfer.force_noise` to the likelihood.
       force_noise_reference: ``[2R]`` log gains at which the force Jacobian is taken; None: the
         MAP of the errors-in-variables model (:func:`~treeinfer.force_noise.reference_theta`).
+      force_noise_rule: how a given ``force_noise_reference`` was chosen (recorded in the
+        settings' ``noise_force_rule``).
     """
     noise.check_kind(kind)
     if noise_force is not None and kind != "gaussian":
@@ -493,6 +538,14 @@ def likelihood_terms(
 
             return loglik_data
 
+        mask_b = jnp.asarray(obs.mask, bool)  # may be traced (batch_posteriors)
+
+        def boltzmann_residual(dx, dv, theta):
+            def norm(r):
+                return jnp.sqrt(jnp.sum(jnp.where(mask_b, r, 0.0) ** 2, -1))
+
+            return -jnp.sum(norm(dx) + norm(dv), axis=-1) / kT_value
+
         return LikelihoodTerms(
             loglik,
             vg,
@@ -507,6 +560,7 @@ def likelihood_terms(
             None,
             lambda o, shape=None: observation_data(o, grasp_fraction, shape),
             boltzmann_of,
+            residual_loglik=boltzmann_residual,
         )
 
     df = noise.check_df(df)
@@ -530,7 +584,7 @@ def likelihood_terms(
                     f"force_noise_reference: expected {2 * sim.n_joints} finite log gains, "
                     f"got {ref.tolist()}"
                 )
-            rule += "; J at the given reference"
+            rule += f"; {force_noise_rule}"
         fmodel = force_noise.ForceNoiseModel(sigma_f, ref, rule, grasp_fraction)
         basis = fmodel.basis(sim, np.asarray(obs.force), np.asarray(obs.mask, bool))
     loglik = measurement_log_likelihood(
@@ -556,7 +610,10 @@ def likelihood_terms(
     def data_of(o, shape=None):
         data = observation_data(o, grasp_fraction, shape)
         if fmodel is not None:  # the force-noise basis of these (padded) pulls: data as well
-            b = fmodel.basis(sim, np.asarray(data["force"]), np.asarray(data["mask"]))
+            if o is obs:  # the training pulls: their basis, padded (no second Jacobian)
+                b = _padded_basis(basis, np.asarray(data["mask"]))
+            else:
+                b = fmodel.basis(sim, np.asarray(data["force"]), np.asarray(data["mask"]))
             data["force_basis"] = type(b)(*(jnp.asarray(x) for x in b))
         return data
 
@@ -575,6 +632,15 @@ def likelihood_terms(
             data["n_steps"],
         )
 
+    residual_loglik = _noise_density(
+        kind,
+        checked_sx,
+        checked_sv,
+        df,
+        jnp.asarray(obs.mask, bool),
+        basis,
+        2 * sim.n_joints,
+    )
     names = {
         "gaussian": "Gaussian",
         "student_t": f"Student-t (df = {df:g})",
@@ -597,7 +663,7 @@ def likelihood_terms(
         if kind != "ar1":
             return LikelihoodTerms(
                 loglik, vg, (), empty, empty, None, None, sx, settings, desc, fmodel, data_of,
-                loglik_of,
+                loglik_of, residual_loglik=residual_loglik,
             )  # fmt: skip
         est = noise.NoiseEstimate(sx, 0, "given")
     else:
@@ -674,4 +740,5 @@ def likelihood_terms(
         data_of,
         loglik_of,
         (np.array(init_lo), np.array(init_hi)),
+        residual_loglik,
     )

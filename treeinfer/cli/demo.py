@@ -37,7 +37,7 @@ DEMO_NOISE = 0.002  # m: the pulls' noise with a generative likelihood and no --
 DEMO_ITERATIONS = 300
 # the demo's start: with the paper's uniform start its 300 iterations ended with "log density
 # still rising" and "KSD still falling" warnings; from the Laplace fit they end converged
-DEMO_INIT = "laplace"
+DEMO_INIT = "auto"  # the start pipeline, as `treeinfer infer` (issue 27)
 DEMO_REINIT = 100  # iterations of the straggler remedy (issue 11: the demo had 8 of 32 stuck)
 
 # ==== demo ========================================================================================
@@ -46,14 +46,14 @@ examples:
   treeinfer demo                       # a few minutes on a laptop CPU
   treeinfer demo --out my-demo --seed 2
   treeinfer demo --quick               # tiny sizes: checks the installation in about a minute
-  treeinfer demo --likelihood gaussian # 2 mm noisy pulls, sigma_x inferred, predictive bands
-  treeinfer demo --likelihood gaussian --noise-displacement 0.001   # 1 mm noise, sigma_x given
+  treeinfer demo --noise-displacement 0.001   # 1 mm noise, sigma_x given
+  treeinfer demo --likelihood boltzmann       # the paper's loss on noise-free pulls
 
-By default the pulls are noise-free and inference uses the paper's Boltzmann loss. With
---likelihood gaussian|student_t|ar1 the demo adds white displacement noise to every pull (std
---noise-displacement, default 2 mm) and infers with that noise model: sigma_x is inferred unless
---noise-displacement gives it, and the reported bands are predictive (simulation + noise).
---noise-displacement with the Boltzmann loss only adds the noise to the pulls.
+By default (as `treeinfer infer`) the demo adds white displacement noise to every pull (std
+--noise-displacement, default 2 mm) and infers with the Gaussian measurement model (also with
+--likelihood student_t|ar1): sigma_x is inferred unless --noise-displacement gives it, and the
+reported bands are predictive (simulation + noise). --likelihood boltzmann uses the paper's loss
+on noise-free pulls; --noise-displacement then only adds the noise to the pulls.
 
 Stuck particles: the demo re-initialises particles stuck far below the bulk during the first
 --reinit-stragglers iterations (default 100 of 300; 0 turns the remedy off), so its intervals
@@ -94,9 +94,10 @@ def configure_demo(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--likelihood",
         choices=("boltzmann", "gaussian", "student_t", "ar1"),
-        default="boltzmann",
-        help="boltzmann (the paper's loss on noise-free pulls, default) or a generative noise "
-        "model: the pulls then get white displacement noise and the bands are predictive",
+        default="gaussian",
+        help="gaussian (default, as `treeinfer infer`), student_t or ar1: a generative noise "
+        "model, the pulls get white displacement noise and the bands are predictive; "
+        "boltzmann: the paper's loss on noise-free pulls",
     )
     p.add_argument(
         "--noise-displacement",
@@ -117,12 +118,12 @@ def configure_demo(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--init",
-        choices=("uniform", "laplace"),
+        choices=("auto", "importance", "uniform", "laplace"),
         default=DEMO_INIT,
-        help="initial particles, as for `treeinfer infer --init`: 'laplace' (around a "
-        "Levenberg-Marquardt MAP fit; the demo's default, so its 300 iterations end converged) "
-        "or 'uniform' in the prior box (the paper's; at 300 iterations the demo then warns that "
-        "the log density is still rising)",
+        help="initial particles, as for `treeinfer infer --init`: 'auto' (the default: screen, "
+        "MAP fit, importance sampling; the sampler runs only if the weights fail their check, "
+        "and stops once the answer stops changing), 'importance', 'laplace' (around a "
+        "Levenberg-Marquardt MAP fit) or 'uniform' in the prior box (the paper's)",
     )
     add_simulation_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -233,7 +233,14 @@ def run_evaluate(args: argparse.Namespace) -> int:
     )
     mean, std = mean_metrics([r.metrics for r in results])
     folds = [
-        {"fold": r.fold, "train": r.train, "test": r.test, "metrics": r.metrics} for r in results
+        {
+            "fold": r.fold,
+            "train": r.train,
+            "test": r.test,
+            "metrics": r.metrics,
+            "warnings": list(r.warnings),
+        }
+        for r in results
     ]
     metrics = {
         "run": str(args.run),
@@ -282,6 +289,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
     )
     for r in results:
         _print_metrics(r.metrics, f"fold {r.fold} (held out {', '.join(r.test)})")
+        for w in r.warnings:
+            print(f"  fold {r.fold}: {w}")
     print(
         f"mean over {args.kfold} folds: 95% band {1000 * mean['ci_width']:.3g} mm, "
         f"{mean['pct_outside']:.1f}% outside, predictive NLL "

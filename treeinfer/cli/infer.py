@@ -154,18 +154,20 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "--kT",
         type=_kT_arg,
         metavar="X|auto",
-        help="Boltzmann likelihood temperature in loss units (m + m/s) per nat; smaller = "
-        "sharper posterior; 'auto': from the data's displacement-noise estimate, kT = sigma / "
-        f"sqrt(T) * (1 + sqrt(2) dt omega2), printed (default {d['kT']:g}, the "
-        "paper-reproduction value; see treeinfer.likelihood)",
+        help="with --likelihood boltzmann only: the loss's temperature in loss units (m + m/s) "
+        "per nat; smaller = sharper posterior; 'auto': from the data's displacement-noise "
+        "estimate, kT = sigma / sqrt(T) * (1 + sqrt(2) dt omega2), printed (default "
+        f"{d['kT']:g}, the paper-reproduction value; see treeinfer.likelihood)",
     )
     p.add_argument(
         "--likelihood",
         choices=("boltzmann", "gaussian", "student_t", "ar1"),
-        help="boltzmann: the paper's loss with temperature --kT (default); gaussian: recorded = "
-        "simulated displacement + white noise sigma_x (inferred unless --noise-displacement; "
-        "calibrated bands); student_t: the same with heavy tails (outliers); ar1: white + AR(1) "
-        "residuals (slow errors, e.g. force noise)",
+        help="gaussian (default): recorded = simulated displacement + white noise sigma_x "
+        "(inferred unless --noise-displacement) and the recorded force's noise as an "
+        "errors-in-variables term (--noise-force auto): calibrated bands; student_t: the same "
+        "with heavy tails, for recordings with outliers; ar1: white + AR(1) residuals, for slow "
+        "errors the model does not explain; boltzmann: the paper's loss with temperature --kT "
+        "(reproducing the paper; its bands are not calibrated)",
     )
     p.add_argument(
         "--noise-displacement",
@@ -185,7 +187,8 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "(--likelihood gaussian only): newtons, P%% of the largest recorded |force|, or 'auto' "
         "(estimated from the force's high-frequency residual, floored at step/sqrt(12) for a "
         "quantised load cell, at the native rate of an upsampled stream); must be positive and "
-        "below the largest recorded force; predictive bands then include it (default: off; see "
+        "below the largest recorded force; predictive bands then include it (default: 'auto' "
+        "with --likelihood gaussian where the force noise can be estimated, else off; see "
         "treeinfer.force_noise)",
     )
     p.add_argument(
@@ -263,7 +266,8 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         type=int,
         metavar="N",
         help="warm-up remedy: up to iteration N, move stuck particles (log density far below "
-        "the bulk or far outside the box) next to good ones after every chunk; 0: off (default)",
+        "the bulk or far outside the box) next to good ones after every chunk; 0: off (default "
+        f"{d['reinit_stragglers']}); the run reports how many remain stuck",
     )
     p.add_argument(
         "--drop-stragglers",
@@ -277,7 +281,14 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         action="store_true",
         default=None,
         help="stop before --iterations once the particles' moments (and SVGD's kernelized "
-        "Stein discrepancy) stop changing; summary.json says why the run stopped",
+        "Stein discrepancy) stop changing; summary.json says why the run stopped (the default; "
+        "--run-all-iterations runs every one)",
+    )
+    p.add_argument(
+        "--run-all-iterations",
+        action="store_true",
+        help="run every --iterations (the behaviour before the convergence stop became the "
+        "default; for timing studies and the paper's protocol)",
     )
     p.add_argument(
         "--mcmc-warmup",
@@ -302,12 +313,13 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--init",
         choices=INIT_CHOICES,
-        help="initial particles: 'uniform' in the prior box (the paper's, default), 'laplace' "
-        "(around a Levenberg-Marquardt MAP fit, so iterations go into the posterior's shape) or "
-        "'importance' (a screened LM fit, then Pareto-smoothed importance sampling around the "
-        "mode: its draws are the posterior, with no sampler iterations, unless Pareto k-hat > "
-        "0.7 or too few effective samples, when the sampler runs from them; dynamic model and "
-        "Boltzmann likelihood only)",
+        help="initial particles: 'auto' (default): a screen of the prior box, a multi-start "
+        "Levenberg-Marquardt MAP fit, then Pareto-smoothed importance sampling around it: its "
+        "draws are the posterior, with no sampler iterations, unless Pareto k-hat > 0.7 or too "
+        "few effective samples, when the sampler runs from them until the answer stops "
+        "changing (falls back to 'uniform' if the fit finds no stable start); 'importance': "
+        "the same without the fallback; 'laplace' (around an LM MAP fit); 'uniform' in the "
+        "prior box (the paper's). Every value works with every likelihood and model",
     )
     p.add_argument(
         "--shape-buckets",
@@ -363,6 +375,32 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+def _print_stragglers(strag: dict | None, n_particles) -> None:
+    """One line: how many stuck particles were moved during the warm-up and how many remain
+    (issue 27: no run ends with stuck particles silently)."""
+    if not strag:
+        return
+    moved, left = int(strag.get("n_reinitialised", 0)), int(strag.get("n_stragglers", 0))
+    of = f" of {n_particles}" if n_particles else ""
+    if moved or left:
+        print(
+            f"stuck particles: {moved} re-initialised from the bulk during the warm-up; "
+            f"{left}{of} still stuck at the end"
+            + (" (summary.json 'stragglers' lists them)" if left else "")
+        )
+
+
+def _check_meaning_changed(args: argparse.Namespace) -> None:
+    """ConfigError for a command whose meaning the new defaults changed (issue 27): ``--kT``
+    set the Boltzmann loss's temperature when that loss was the default."""
+    if args.kT is not None and args.likelihood is None:
+        raise ConfigError(
+            "--kT: the default likelihood is now 'gaussian' (recorded = simulated + noise, the "
+            "noise inferred; --kT has no meaning there). To keep the paper's Boltzmann loss as "
+            f"before, pass --likelihood boltzmann --kT {args.kT}; or leave --kT out"
+        )
+
+
 def _check_infer_options(o: dict[str, Any]) -> None:
     """ConfigError naming the flag for any out-of-range option (before anything is read): the
     run configuration's own validation."""
@@ -398,6 +436,11 @@ def run_infer(args: argparse.Namespace) -> int:
             for k, v in INFER_DEFAULTS.items()
         }
         o["grasp_fraction"] = args.grasp_fraction
+        if args.run_all_iterations:
+            if args.stop_when_converged:
+                raise ConfigError("--run-all-iterations and --stop-when-converged: give one")
+            o["stop_when_converged"] = False
+        _check_meaning_changed(args)
         _check_infer_options(o)
         run_dir = args.out
         check_output_dir(  # before anything is read: an output is never one of the inputs
@@ -423,7 +466,7 @@ def run_infer(args: argparse.Namespace) -> int:
             **o,
         )
         plan = f"{o['sampler']} ({o['particles']} particles x {o['iterations']} iterations)"
-        if o.get("init") == "importance":  # the sampler runs only if the weights fail
+        if o.get("init") in ("auto", "importance"):  # the sampler runs if the weights fail
             plan = f"importance sampling ({o['particles']} particles), else {plan}"
         _say(f"{len(config['data']['files'])} training trajectories from {args.data}; {plan}")
     try:
@@ -464,6 +507,7 @@ def run_infer(args: argparse.Namespace) -> int:
         print(s["damping"])
     _print_fit(s.get("training_metrics"), "fit to the training data")
     _print_warnings(s["convergence_warnings"])
+    _print_stragglers(s.get("stragglers"), s.get("n_particles"))
     fit = s.get("fit") or {}
     status = fit.get("status", "ok")
     print(f"fit verdict: {status}" + "".join(f"\n  - {r}" for r in fit.get("reasons", [])))

@@ -30,8 +30,21 @@ from .inputs import RunInputs, load_run_inputs, load_run_tree, read_true_params 
 from .provenance import data_manifest, file_sha256, versions
 
 RUN_FORMAT = 1
+# --reinit-stragglers' default: stuck particles are moved next to the bulk up to this iteration
+# (the first half of the default 200-iteration cap: the warm-up)
+DEFAULT_REINIT = 100
+# The defaults before issue 27 (the paper's Boltzmann loss, uniform start, fixed iteration
+# count): an option a config.json does not give takes these, so a run folder written before
+# reads back (and resumes, and hashes) with the values it was made with.
+LEGACY_DEFAULTS = {
+    "likelihood": "boltzmann",
+    "noise_force": None,
+    "init": "uniform",
+    "reinit_stragglers": 0,
+    "stop_when_converged": False,
+}
 GRADIENT_CHOICES = ("fd", "jvp")
-INIT_CHOICES = ("uniform", "laplace", "importance")
+INIT_CHOICES = ("auto", "uniform", "laplace", "importance")
 
 
 def _count(flag: str, v, minimum: int, why: str = "") -> int:
@@ -66,6 +79,14 @@ class RunConfig:
     option but ``out``, ``force`` and ``max_unstable_share`` enters the resume hash
     (:func:`~.provenance.config_hash`). ``RunConfig(tree=..., data=..., out=..., **options)``
     validates options alone (the record fields stay None).
+
+    Defaults (issue 27): the calibrated measurement model, ``likelihood="gaussian"`` with
+    ``noise_force="default"`` (``"auto"`` where the model offers the term and the recorded
+    force's noise can be estimated, else off: :func:`treeinfer.inference.default_noise_force`),
+    ``init="auto"`` (the start pipeline, :mod:`treeinfer.start_pipeline`),
+    ``reinit_stragglers=DEFAULT_REINIT`` and ``stop_when_converged=True``. A ``config.json``
+    that leaves one of these options out was written before them and reads back with
+    :data:`LEGACY_DEFAULTS` (the paper's Boltzmann loss, uniform start, every iteration).
 
     Attributes: tree, data, out (absolute paths as strings); sampler (a registry name);
     particles (>= 2); iterations (>= 1); backend ("auto", "fused", "mjx"); kT (loss units per
@@ -110,20 +131,20 @@ class RunConfig:
     force: bool = False
     prior_from: str | None = None
     prior_tail: float = DEFAULT_PRIOR_SIGMA
-    reinit_stragglers: int = 0
+    reinit_stragglers: int = DEFAULT_REINIT
     drop_stragglers: bool = False
-    stop_when_converged: bool = False
+    stop_when_converged: bool = True
     mcmc_warmup: float = 0.5
     mcmc_thin: int = 0
     gradients: str = "fd"
-    init: str = "uniform"
+    init: str = "auto"
     model_kind: str = "dynamic"
     force_interp: str = "linear"
     max_sim_dt: float | None = None
     sim_tolerance: float | None = None
-    likelihood: str = "boltzmann"
+    likelihood: str = "gaussian"
     noise_displacement: float | None = None
-    noise_force: float | str | None = None
+    noise_force: float | str | None = "default"
     noise_velocity: float | None = None
     model: str | None = None
     repair_inertia: str | None = None
@@ -190,7 +211,12 @@ class RunConfig:
             )
         if self.noise_displacement is not None:
             set_("noise_displacement", check_sigma(self.noise_displacement, "--noise-displacement"))
-        if self.noise_force is not None:
+        if isinstance(self.noise_force, str) and self.noise_force == "default":
+            # the default force-noise term: with the Gaussian likelihood and no velocity term,
+            # resolved with the data and model (treeinfer.inference.default_noise_force)
+            if self.likelihood != "gaussian" or self.noise_velocity is not None:
+                set_("noise_force", None)
+        elif self.noise_force is not None:
             from ..force_noise import check_noise_force
 
             try:
@@ -209,7 +235,7 @@ class RunConfig:
                     "--noise-velocity: the velocity term belongs to a generative likelihood "
                     f"(--likelihood {'|'.join(NOISE_KINDS)}), got {self.likelihood!r}"
                 )
-            if self.noise_force is not None:
+            if self.noise_force not in (None, "default"):
                 raise ConfigError(
                     "--noise-velocity: not available with --noise-force (the errors-in-variables "
                     "term covers the displacement only); leave one out"
@@ -273,7 +299,7 @@ class RunConfig:
         out = {k: getattr(self, k) for k in OPTION_FIELDS}
         for k, default in (
             ("gradients", "fd"),
-            ("init", "uniform"),
+            ("init", LEGACY_DEFAULTS["init"]),
             ("model_kind", "dynamic"),
             ("tie", None),
             ("tie_scale", None),
@@ -330,8 +356,10 @@ class RunConfig:
         if missing:
             raise ConfigError(f"config.json options: missing field(s) {missing}")
         prior_from = options.get("prior_from")
+        # an option the file leaves out has the value it had when the file was written
+        legacy = {k: v for k, v in LEGACY_DEFAULTS.items() if k not in options}
         cfg = cls(
-            **{**options, "prior_from": None},
+            **{**legacy, **options, "prior_from": None},
             **record,
             given=frozenset(options),
         )
@@ -507,7 +535,7 @@ def sampler_settings(config: dict, start=None) -> dict:
     options = dict(sampler_options(name))
     init = config["options"].get("init", "uniform")
     # Both fitted starts (Laplace, importance) begin near the posterior: ramp the step up.
-    laplace = init in ("laplace", "importance")
+    laplace = init in ("laplace", "importance", "auto")
     if laplace and name in ("svgd", "nnsvgd"):
         options["warmup"] = LAPLACE_WARMUP
     if laplace and name == "mh":

@@ -91,6 +91,17 @@ def _diagnostics(
     return kind, diag, warns
 
 
+def _reinitialised(run) -> int:
+    """Particle moves by ``--reinit-stragglers`` over the run (the driver's per-iteration
+    ``n_reinitialised`` diagnostic, summed; 0 when the remedy was off or found none)."""
+    diag = getattr(run, "diagnostics", None) or {}
+    n = diag.get("n_reinitialised") if isinstance(diag, dict) else None
+    if n is None:
+        return 0
+    parts = n if isinstance(n, (list, tuple)) else [n]  # per chunk, or already concatenated
+    return int(sum(np.sum(np.asarray(x, float)) for x in parts))
+
+
 def _straggler_and_edge(problem, posterior) -> tuple[dict, dict]:
     """Stuck particles among the final ones and posterior mass beyond a prior-box edge (issue
     11): both warn in summary.json's ``convergence_warnings`` and on the CLI."""
@@ -109,6 +120,8 @@ def _straggler_and_edge(problem, posterior) -> tuple[dict, dict]:
         "n_nonfinite": int(rep.nonfinite.sum()),
         "dropped": bool(getattr(posterior, "settings", {}).get("dropped_stragglers", False)),
         "warnings": [w for w in rep.warnings if "non-finite" not in w],  # n_unstable covers those
+        # moved next to the bulk during the warm-up (--reinit-stragglers; 0 when off)
+        "n_reinitialised": _reinitialised(run),
     }
     edge = prior_edge_mass(posterior.theta, problem.lower, problem.upper, labels=labels)
     return strag, edge

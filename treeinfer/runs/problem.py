@@ -36,6 +36,8 @@ def _grasp_fractions(o: dict, tree: Tree, trajectories):
 
 
 SHAPE_BUCKET_CHOICES = ("on", "off")
+# noise_force_rule of a run whose force-noise reference the start pipeline found
+PIPELINE_RULE = "J at the start pipeline's MAP of this errors-in-variables model"
 
 
 def shape_bucket_for(config: dict, obs: Observations) -> list[int] | None:
@@ -61,7 +63,7 @@ def shape_bucket_for(config: dict, obs: Observations) -> list[int] | None:
         raise ConfigError(
             f"shape_buckets: expected one of {', '.join(SHAPE_BUCKET_CHOICES)}, got {choice!r}"
         )
-    if choice == "off" or o.get("init", "uniform") != "importance":
+    if choice == "off" or o.get("init", "uniform") not in ("auto", "importance"):
         return None
     b, t = np.shape(obs.force)
     return [trajectories_bucket(b), steps_bucket(t)]
@@ -99,8 +101,15 @@ def build_problem(
     tree: Tree,
     trajectories: Sequence[Trajectory] | Observations,
     cache: SimulatorCache | None = None,
+    resumed: bool = False,
+    log: Callable[[str], None] = lambda msg: None,
 ):
-    """The inference problem of a run config (the cached simulator; a jitted log-density)."""
+    """The inference problem of a run config (the cached simulator; a jitted log-density).
+
+    With ``--noise-force``, the force Jacobian's reference point: a resumed run (``resumed``)
+    takes the one it recorded; a run whose ``--init`` is ``auto`` or ``importance`` finds it on
+    the start pipeline's rollout program (:func:`treeinfer.start_pipeline.force_noise_reference`);
+    any other run fits it with :func:`treeinfer.force_noise.reference_theta`."""
     from ..inference import make_problem
 
     o = config["options"]
@@ -144,9 +153,7 @@ def build_problem(
     else:
         grasp = None if grasp is None else np.asarray(grasp, float).tolist()
         pulls = {"direction": model.direction, "grasp_branch": model.grasp_branch}
-    problem = make_problem(
-        tree,
-        obs,
+    common = dict(
         kT=o["kT"],
         nn_prior=sampler_spec(o["sampler"]).nn_prior,
         eta=o["eta"],
@@ -162,6 +169,35 @@ def build_problem(
         shape_bucket=sampler_bucket_for(config, obs),
         **pulls,
     )
+    reference = {}
+    if resumed and recorded.get("noise_force_reference") is not None:
+        rule = str(recorded.get("noise_force_rule", ""))
+        reference = {
+            "force_noise_reference": np.asarray(recorded["noise_force_reference"], float),
+            "force_noise_rule": rule.split("; ", 1)[1] if "; " in rule else rule,
+        }
+    elif (
+        o.get("init", "uniform") in ("auto", "importance")
+        and _force_term(o, tree, kind, model, obs) is not None
+    ):
+        from ..start_pipeline import force_noise_reference
+
+        # the reference fits' problems run on the rollout program only: no sampler target
+        fit_only = {**common, "shape_bucket": None}
+
+        def make(ref):
+            return make_problem(
+                tree, obs, **fit_only, force_noise_reference=ref, force_noise_rule=PIPELINE_RULE
+            )
+
+        base = make_problem(tree, obs, **{**fit_only, "noise_force": None})
+        ref, finals = force_noise_reference(
+            make, base, 8, int(o.get("seed", 0)), None if cache is None else cache.programs, log
+        )
+        reference = {"force_noise_reference": ref, "force_noise_rule": PIPELINE_RULE}
+    problem = make_problem(tree, obs, **common, **reference)
+    if reference.get("force_noise_rule") == PIPELINE_RULE and not resumed:
+        problem = dataclasses.replace(problem, start_hint=finals)
     if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints
         from ..sequential import prior_from_run, with_prior
         from .folder import load_run
@@ -179,6 +215,18 @@ def build_problem(
     # once
     # (op-by-op it costs tens of seconds); MH samples with the same function.
     return dataclasses.replace(problem, log_density=jax.jit(problem.log_density))
+
+
+def _force_term(o: dict, tree: Tree, kind: str, model, obs):
+    """The run's force-noise setting on the paper's dynamic model (None: no term there), the
+    default resolved as :func:`treeinfer.inference.make_problem` resolves it."""
+    from ..inference import default_noise_force, resolve_likelihood
+    from ..static import model_for
+
+    if model is not None or kind != "dynamic" or not model_for(tree, kind).is_paper:
+        return None
+    likelihood = resolve_likelihood(o.get("likelihood", "boltzmann"), o["kT"])
+    return default_noise_force(o.get("noise_force"), likelihood, True, obs)[0]
 
 
 def _data_checks(

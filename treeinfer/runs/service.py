@@ -62,8 +62,12 @@ from .problem import (  # noqa: F401 -- re-exported: the old import path keeps w
 from .provenance import config_hash, tree_to_dict_json
 from .start import LAPLACE_LM_ITERATIONS, LAPLACE_SCALE, _check_init, _start  # noqa: F401
 
-
 # ==== inference ===================================================================================
+# --init values whose particles start near the posterior, and the convergence stop they use
+FITTED_STARTS = ("auto", "importance", "laplace")
+FITTED_CONVERGENCE = {"min_iterations": 20, "window": 10}
+
+
 class InferOutcome(NamedTuple):
     """What :func:`run_inference` produced.
 
@@ -190,7 +194,7 @@ def run_inference(
         config = cfg.to_json()
         run_dir, partial, tree, trajs, truth = _prepare_fresh(config, inputs, log)
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
-        problem = build_problem(config, tree, trajs, cache)
+        problem = build_problem(config, tree, trajs, cache, log=log)
         _quasi_static_check(problem, config, log)
         _check_init(problem, config["options"])
         if problem.noise is not None:
@@ -240,7 +244,7 @@ def run_inference(
         trajs = check_data_unchanged(config)
         truth = read_true_params(tree, config["data"]["dir"])
         data_findings = _data_checks(config, tree, trajs, log, allow_implausible_data)
-        problem = build_problem(config, tree, trajs, cache)
+        problem = build_problem(config, tree, trajs, cache, resumed=True)
         # sim_step says how the step was chosen (the rebuilt simulator takes the recorded one);
         # runs recorded before force interpolation existed rebuild with "hold" (build_problem)
         now = {k: v for k, v in problem.settings.items() if k != "sim_step"}
@@ -401,7 +405,10 @@ def _convergence_options(o: dict, problem) -> dict:
 
     out = {}
     if o.get("stop_when_converged"):
-        out["stop_when"] = ConvergenceCriterion()
+        fitted = o.get("init", "uniform") in FITTED_STARTS
+        # particles from a fitted start are already near the posterior: the check may come
+        # sooner and compare shorter windows than after a start spread over the prior box
+        out["stop_when"] = ConvergenceCriterion(**(FITTED_CONVERGENCE if fitted else {}))
     if o.get("reinit_stragglers", 0) > 0:
         out["reinit_stragglers"] = ReinitStragglers(
             int(o["reinit_stragglers"]), problem.lower, problem.upper
@@ -415,15 +422,16 @@ def infer_posterior(
     trajectories,
     progress: bool = True,
     cache: SimulatorCache | None = None,
+    log: Callable[[str], None] = lambda msg: None,
 ):
     """(problem, posterior) for ``config``'s settings on ``trajectories`` (no run folder): the
     k-fold protocol reuses a run's settings this way."""
     from ..inference import infer
 
     cache = SimulatorCache() if cache is None else cache
-    problem = build_problem(config, tree, trajectories, cache)
+    problem = build_problem(config, tree, trajectories, cache, log=log)
     o = config["options"]
-    ready, theta0 = _start(problem, config, lambda msg: None, programs=cache.programs)
+    ready, theta0 = _start(problem, config, log, programs=cache.programs)
     if ready is not None:
         return problem, ready
     posterior = infer(
@@ -434,10 +442,26 @@ def infer_posterior(
         seed=o["seed"],
         progress=progress,
         cache=cache.programs,
+        **_convergence_options(o, problem),
         **({} if theta0 is None else {"initial_theta": theta0}),
         **_warmup_option(config, theta0),
     )
     return problem, posterior
+
+
+def fold_warnings(problem, posterior) -> list[str]:
+    """What a k-fold refit must not hide (issue 27): how it ended (importance weights or
+    sampler, and why the sampler stopped), stuck particles and posterior mass at the box."""
+    from .folder import _straggler_and_edge
+
+    run = posterior.run
+    stop = getattr(run, "stop_reason", None) or "max_iterations"
+    done = run.settings.get("n_iterations_done", run.settings.get("n_iterations"))
+    out = [f"ended by: {stop}" + (f" after {done} iterations" if done else "")]
+    strag, edge = _straggler_and_edge(problem, posterior)
+    if strag.get("n_reinitialised"):
+        out.append(f"{strag['n_reinitialised']} stuck particles re-initialised in the warm-up")
+    return out + list(strag["warnings"]) + list(edge.get("warnings", []))
 
 
 class FoldResult(NamedTuple):
@@ -447,6 +471,7 @@ class FoldResult(NamedTuple):
     metrics: dict
     theta: np.ndarray
     prediction: Prediction
+    warnings: tuple = ()  # fold_warnings: how the refit ended, stuck particles, box edges
 
 
 def kfold(
@@ -482,7 +507,10 @@ def kfold(
         g_train = [float(np.asarray(grasp_fraction)[j]) for j in tr] if per_traj else grasp_fraction
         g_test = np.asarray(grasp_fraction, float)[te] if per_traj else grasp_fraction
         cfg = {**config, "options": {**options, "grasp_fraction": g_train}}
-        problem, post = infer_posterior(cfg, tree, train, progress, cache)
+        problem, post = infer_posterior(cfg, tree, train, progress, cache, log)
+        warns = fold_warnings(problem, post)
+        for w in warns:
+            log(f"fold {i}/{k}: {w}")
         from ..static import model_with_pulls
 
         model, g_test = model_with_pulls(  # the held-out recordings' own pulls
@@ -509,6 +537,7 @@ def kfold(
                 m,
                 np.asarray(post.theta),
                 pred,
+                tuple(warns),
             )
         )
     return out

@@ -10,7 +10,7 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, SimulationError
 
 # For the Boltzmann loss laplace_particles draws the Gaussian matched to the loss's cone-shaped
 # density (mapfit.norm_loss_covariance), not the Gauss-Newton H^-1, which is far too narrow at a
@@ -59,8 +59,11 @@ def laplace_start(problem, config: dict, log: Callable[[str], None]):
 
 
 def _check_init(problem, options: dict) -> None:
-    """ConfigError (before the run folder is made) if the problem does not support ``--init``."""
-    if options.get("init", "uniform") != "importance":
+    """ConfigError (before the run folder is made) if the problem does not support ``--init``.
+    Every value works with every likelihood and model: the paper's dynamic model goes through
+    the rollout program (:func:`treeinfer.fast_posterior.check_problem`), any other model
+    through its own log-density (:mod:`treeinfer.start_pipeline`)."""
+    if options.get("init", "uniform") not in ("auto", "importance") or problem.model is not None:
         return
     from ..fast_posterior import check_problem
 
@@ -69,8 +72,7 @@ def _check_init(problem, options: dict) -> None:
     except ConfigError as e:
         why = str(e).removeprefix("fast posterior: ")
         raise ConfigError(
-            f"--init importance: {why} (its proposal and weights are built for theta = "
-            "[log Kp, log Kd] and the Boltzmann loss); use --init uniform or laplace"
+            f"--init {options['init']}: {why}; use --init uniform or laplace"
         ) from None
 
 
@@ -85,12 +87,20 @@ def _start(problem, config: dict, log: Callable[[str], None], programs=None):
     init = o.get("init", "uniform")
     if init == "laplace":
         return None, laplace_start(problem, config, log)
-    if init == "importance":
-        from ..fast_posterior import importance_for_run
+    if init in ("auto", "importance"):
+        from ..start_pipeline import auto_start
 
         _check_init(problem, o)
-        options = {} if programs is None else {"programs": programs}
-        return importance_for_run(problem, o["particles"], o["seed"], log, **options)
+        options = {} if programs is None or problem.model is not None else {"programs": programs}
+        if init == "importance":
+            return auto_start(problem, o["particles"], o["seed"], log, **options)
+        try:
+            return auto_start(problem, o["particles"], o["seed"], log, **options)
+        except (SimulationError, np.linalg.LinAlgError) as e:
+            # the pipeline found no stable start or no usable proposal: the sampler starts from
+            # the prior box instead, and says so
+            log(f"start pipeline failed ({e}); the sampler starts uniformly in the prior box")
+            return None, None
     return None, None
 
 
