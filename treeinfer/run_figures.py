@@ -57,7 +57,9 @@ def run_inference_data(posterior, problem, trace: dict, stable, summary: dict, a
     idata = posterior_inference_data(post)
     if post.method == "mcmc" and mcmc_chains(post) is not None:
         extra["trace_iterations"] = ",".join(str(int(i)) for i in trace["iterations"])
-    for group in idata.groups():
+    from .arviz_compat import group_names
+
+    for group in group_names(idata):
         idata[group].attrs.update({k: v for k, v in extra.items() if v is not None})
     return idata
 
