@@ -9,7 +9,7 @@ Output folders (:func:`staged_output_dir`):
 - are built in a staging folder ``.NAME.PID.XXXX.staging`` next to the destination and carry
   a marker file ``.treeinfer-output`` and a ``manifest.json`` of every file with its sha256
   (:func:`treeinfer.manifest.write_manifest`); the atomic writes of single files live in
-  :mod:`treeinfer.atomic` (below :mod:`treeinfer.ownership` and :mod:`treeinfer.manifest`);
+  :mod:`treeinfer.atomic_write` (below :mod:`treeinfer.ownership` and :mod:`treeinfer.manifest`);
 - never overwrite or delete what was there (:mod:`treeinfer.ownership`): ``--force``
   (``force=True``) moves the previous folder aside to ``NAME.old-<UTC time>`` (reported), and
   only for a folder with the marker (or from a treeinfer before the marker: a ``config.json`` or
@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from . import interrupt
-from .atomic import (  # noqa: F401 -- re-exported: the writers' import path since before the move
+from .atomic_write import (  # noqa: F401 -- re-exported: the old import path
     _DISK_ERRNOS,
     _ERRNO_HINT,
     OutputWriteError,

@@ -20,7 +20,7 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
-from .atomic import atomic_write_json
+from .atomic_write import atomic_write_json
 from .errors import ConfigError
 from .safe_load import require_regular_file
 

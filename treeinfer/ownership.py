@@ -32,7 +32,7 @@ import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
-from .atomic import atomic_write_bytes, output_error
+from .atomic_write import atomic_write_bytes, output_error
 from .errors import OutputExistsError
 
 __all__ = [
