@@ -415,6 +415,7 @@ def test_simulate_writes_a_complete_data_set(sim_a, capsys):
     assert sorted(p.name for p in sim_a.iterdir()) == [
         ".treeinfer-output",
         "config.json",
+        "manifest.json",  # every published folder lists its files' checksums (issue 28)
         "traj_000.csv",
         "traj_001.csv",
         "tree.yaml",

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import shutil
 import signal
+import site
 import subprocess
 import sys
 import time
@@ -179,10 +180,15 @@ def test_absurd_sizes_are_refused_before_any_work(ws, capsys, argv, flag):
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 @pytest.mark.parametrize("twice", [False, True])
 def test_ctrl_c_ends_the_command_with_130_and_no_staging(tmp_path, twice):
+    # HOME moves to tmp_path, which also moves Python's user site (pip install --user), and
+    # PYTHONPATH is replaced: keep both where the test process finds its packages (on the test
+    # machine MuJoCo was found only so, and the command died of ModuleNotFoundError, exit 3).
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
     env = {
         **os.environ,
         "HOME": str(tmp_path),
-        "PYTHONPATH": str(ROOT),
+        "PYTHONPATH": path,
+        "PYTHONUSERBASE": os.environ.get("PYTHONUSERBASE", site.getuserbase()),
         "JAX_PLATFORMS": "cpu",
         "TREEINFER_JAX_CACHE": "off",
     }

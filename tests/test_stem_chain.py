@@ -241,12 +241,15 @@ def test_cli_stem_tree_round_trips_to_the_studys_matched_layout(tmp_path, capsys
 
 def test_cli_stem_tree_errors(tmp_path, capsys):
     out = str(tmp_path / "s.yaml")
+    # a folder beside the output: an output inside an input folder is refused first (issue 28)
+    no_pulls = tmp_path / "no_pulls"
+    no_pulls.mkdir()
     for extra, match in (
         (["--push-heights", "0.1,0.2"], "--kind stem needs --stem-height"),
         ([*STEM_ARGS], r"--kind stem needs --push-heights"),
         ([*STEM_ARGS, "--push-heights", "0.1", "--grasp", "link0"], "--grasp does not apply"),
         ([*STEM_ARGS, "--push-heights", "0.1", "--tie-scale", "-1"], "positive number or 'none'"),
-        ([*STEM_ARGS, "--push-heights-from", str(tmp_path)], r"no pulls\.yaml there"),
+        ([*STEM_ARGS, "--push-heights-from", str(no_pulls)], r"no pulls\.yaml there"),
     ):
         assert main(["tree", "--kind", "stem", *extra, "--out", out]) != 0
         assert match.replace("\\", "") in capsys.readouterr().err.replace("\\", "")

@@ -408,7 +408,7 @@ def fit_map_batched(
     if ev.boltzmann:
         terms = _lm_terms
     else:  # a generative likelihood: its generalised Gauss-Newton curvature
-        from .start_pipeline import ggn_terms as terms
+        from .start_steps import ggn_terms as terms
     f, g, hs, gram, r2 = terms(ev, theta, h, substeps)
     n = len(theta)
     scale0 = np.array([np.mean(np.abs(np.diag(x))) + 1e-12 for x in hs])
@@ -597,7 +597,7 @@ def fast_posterior(
     lower, upper = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
     ev.evaluate(lower[None], coarse)  # compile (and run once)
     phases["compile"], t = time.perf_counter() - t, time.perf_counter()
-    from .start_pipeline import screen
+    from .start_steps import screen
 
     if starts is None:
         pts = latin_hypercube(n_screen, lower, upper, seed)
@@ -611,7 +611,7 @@ def fast_posterior(
     coarse_fit = fit
     modes = None
     if polish_iterations and coarse != ev.substeps:
-        from .start_pipeline import distinct_modes
+        from .start_steps import distinct_modes
 
         # every distinct local mode of the multi-start fit within MODE_GAP nats is polished
         # and sampled (start_pipeline.multimode_importance), not the best one alone
@@ -641,7 +641,7 @@ def fast_posterior(
         return out
 
     if modes is not None and len(modes) > 1:
-        from .start_pipeline import multimode_importance
+        from .start_steps import multimode_importance
 
         imp, idx = multimode_importance(
             log_density, modes, cov, n_draws, int(n_particles), seed, float(df), max_rounds,

@@ -15,7 +15,6 @@ the caller records in its output (``--allow-modified``).
 
 from __future__ import annotations
 
-import hashlib
 import math
 import os
 from collections.abc import Iterable, Mapping
@@ -23,6 +22,13 @@ from pathlib import Path
 from typing import Any
 
 from .errors import ConfigError
+from .manifest import (  # file_digest, in __all__, keeps its old import path
+    ALGORITHM,
+    MANIFEST,
+    file_digest,
+    read_manifest,
+    verify_manifest,
+)
 from .safe_load import require_regular_file
 
 __all__ = [
@@ -39,23 +45,6 @@ __all__ = [
 ]
 
 CHECKSUM_FILES = ("tree.yaml", "posterior.nc", "particles.csv", "trace.npz")
-ALGORITHM = "sha256"
-MANIFEST = "manifest.json"  # every file of an output folder (treeinfer.manifest)
-
-
-def file_digest(path: str | os.PathLike) -> dict:
-    """``{"sha256": hex, "bytes": n}`` of a regular file (ConfigError for FIFOs, devices)."""
-    path = require_regular_file(path, "file", ConfigError)
-    h = hashlib.sha256()
-    n = 0
-    try:
-        with open(path, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-                n += len(block)
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read ({e.strerror or e})") from None
-    return {ALGORITHM: h.hexdigest(), "bytes": n}
 
 
 def record_checksums(run_dir: str | os.PathLike, names: Iterable[str] = CHECKSUM_FILES) -> dict:
@@ -104,8 +93,6 @@ def verify_run(
     Raises:
       ConfigError: a recorded file is missing or changed and ``allow_modified`` is False.
     """
-    from .manifest import read_manifest, verify_manifest
-
     run_dir = Path(run_dir)
     try:
         manifest = read_manifest(run_dir)

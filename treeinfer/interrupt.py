@@ -12,6 +12,11 @@ the C-level handler at once, whatever the main thread is doing):
 
 Staging folders register themselves (:func:`register`, from :mod:`treeinfer._io`), so nothing is
 left behind either way. An interrupted ``infer`` keeps ``RUN.partial`` on purpose (``--resume``).
+
+The registry belongs to the :class:`CtrlC` object the command line's entry point installs as the
+SIGINT handler, not to this module (no module keeps state across calls: tests/test_architecture):
+:func:`register` finds it through ``signal.getsignal``, the process's own table of handlers, and
+does nothing where no command line installed one (the library used from a program or a test).
 """
 
 from __future__ import annotations
@@ -21,87 +26,121 @@ import os
 import select
 import shutil
 import signal
+import sys
 import threading
 import time
 
-__all__ = ["GRACE_S", "install", "register", "unregister"]
+__all__ = ["GRACE_S", "CtrlC", "exit_if_interrupted", "install", "register", "unregister"]
 
 GRACE_S = 5.0
-_lock = threading.Lock()
-_paths: set[str] = set()
-_installed = False
+
+
+class CtrlC:
+    """The SIGINT handler of one command-line process, with the temporary folders to remove if
+    the watchdog must end the process."""
+
+    def __init__(self, grace: float = GRACE_S):
+        self.grace = grace
+        self._lock = threading.Lock()
+        self._paths: set[str] = set()
+        self._handled = 0
+
+    def register(self, path) -> None:
+        with self._lock:
+            self._paths.add(os.fspath(path))
+
+    def unregister(self, path) -> None:
+        with self._lock:
+            self._paths.discard(os.fspath(path))
+
+    def hard_exit(self, msg: str) -> None:
+        with self._lock:
+            paths = list(self._paths)
+        for p in paths:
+            shutil.rmtree(p, ignore_errors=True)
+        with contextlib.suppress(OSError):
+            os.write(2, (msg + "\n").encode())
+        os._exit(130)
+
+    def __call__(self, signum, frame) -> None:
+        """The main thread's handler: the first Ctrl-C raises KeyboardInterrupt as usual; a
+        second one (e.g. while the first is being cleaned up, or during shutdown) exits at once."""
+        self._handled += 1
+        if self._handled >= 2:
+            self.hard_exit("interrupted again: exiting now")
+        raise KeyboardInterrupt
+
+    def watch(self, fd: int) -> None:
+        """The watchdog thread: reads the wakeup pipe the C-level handler writes at once."""
+        hits, deadline = 0, None
+        while True:
+            timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+            ready, _, _ = select.select([fd], [], [], timeout)
+            if ready:
+                try:
+                    data = os.read(fd, 512)
+                except OSError:
+                    return
+                n = data.count(bytes([signal.SIGINT]))
+                if not n:
+                    continue
+                hits += n
+                if hits >= 2:
+                    self.hard_exit("interrupted again: exiting now")
+                deadline = time.monotonic() + self.grace
+            elif deadline is not None:
+                self.hard_exit(
+                    f"interrupted: still busy {self.grace:g} s later (in compiled code); "
+                    "exiting now"
+                )
+
+
+def installed() -> CtrlC | None:
+    """The :class:`CtrlC` handling SIGINT in this process, if a command line installed one."""
+    handler = signal.getsignal(signal.SIGINT)
+    return handler if isinstance(handler, CtrlC) else None
 
 
 def register(path) -> None:
     """A temporary folder to remove if the process must be ended by the watchdog."""
-    with _lock:
-        _paths.add(os.fspath(path))
+    if (handler := installed()) is not None:
+        handler.register(path)
 
 
 def unregister(path) -> None:
-    with _lock:
-        _paths.discard(os.fspath(path))
-
-
-def _hard_exit(msg: str) -> None:
-    with _lock:
-        paths = list(_paths)
-    for p in paths:
-        shutil.rmtree(p, ignore_errors=True)
-    with contextlib.suppress(OSError):
-        os.write(2, (msg + "\n").encode())
-    os._exit(130)
-
-
-def _watch(fd: int, grace: float) -> None:
-    hits, deadline = 0, None
-    while True:
-        timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
-        ready, _, _ = select.select([fd], [], [], timeout)
-        if ready:
-            try:
-                data = os.read(fd, 512)
-            except OSError:
-                return
-            n = data.count(bytes([signal.SIGINT]))
-            if not n:
-                continue
-            hits += n
-            if hits >= 2:
-                _hard_exit("interrupted again: exiting now")
-            deadline = time.monotonic() + grace
-        elif deadline is not None:
-            _hard_exit(f"interrupted: still busy {grace:g} s later (in compiled code); exiting now")
-
-
-_handled = 0
-
-
-def _on_sigint(signum, frame) -> None:
-    """The main thread's handler: the first Ctrl-C raises KeyboardInterrupt as usual; a second
-    one (e.g. while the first is being cleaned up, or during shutdown) exits at once."""
-    global _handled
-    _handled += 1
-    if _handled >= 2:
-        _hard_exit("interrupted again: exiting now")
-    raise KeyboardInterrupt
+    if (handler := installed()) is not None:
+        handler.unregister(path)
 
 
 def install(grace: float = GRACE_S) -> bool:
     """Install the watchdog (once per process, from the main thread); False if it cannot be."""
-    global _installed
-    with _lock:
-        if _installed or threading.current_thread() is not threading.main_thread():
-            return _installed
-        try:
-            r, w = os.pipe()
-            os.set_blocking(w, False)
-            signal.signal(signal.SIGINT, _on_sigint)
-            signal.set_wakeup_fd(w, warn_on_full_buffer=False)
-        except (OSError, ValueError):
-            return False
-        threading.Thread(
-            target=_watch, args=(r, grace), name="treeinfer-ctrl-c", daemon=True
-        ).start()
-        _installed = True
+    if installed() is not None:
         return True
+    if threading.current_thread() is not threading.main_thread():
+        return False
+    handler, previous = CtrlC(grace), signal.getsignal(signal.SIGINT)
+    try:
+        r, w = os.pipe()
+        os.set_blocking(w, False)
+        signal.signal(signal.SIGINT, handler)
+        signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+    except (OSError, ValueError):
+        with contextlib.suppress(OSError, ValueError, TypeError):
+            signal.signal(signal.SIGINT, previous)  # no handler without its watchdog
+        return False
+    threading.Thread(target=handler.watch, args=(r,), name="treeinfer-ctrl-c", daemon=True).start()
+    return True
+
+
+def exit_if_interrupted(rc: int) -> int:
+    """``rc``, or, for an interrupted command (130) of a process whose Ctrl-C :func:`install`
+    handles, the process's end at once with 130 after flushing its output. The interpreter's
+    shutdown (JAX's exit hooks, threads joined) takes a while, and Python puts SIGINT back to its
+    default there: a second Ctrl-C then killed the process by the signal (exit status -2) instead
+    of ending it with 130. The command has cleaned up already; nothing of the shutdown is owed."""
+    if rc == 130 and installed() is not None:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(rc)
+    return rc

@@ -1,4 +1,4 @@
-"""The manifest of an output folder, and the checks of a run folder a checksum cannot make.
+"""The manifest of an output folder: the sha256 and size of every file in it.
 
 Every folder treeinfer publishes (:func:`treeinfer._io.publish_staged`: a run, a data set, an
 evaluation, a prediction, a calibration ...) gets ``manifest.json``: the sha256 and size of
@@ -6,29 +6,51 @@ every file in it, config.json and summary.json included, written last before the
 moved into place. :func:`treeinfer.integrity.verify_run` checks it wherever a run is read
 (``predict``, ``evaluate``, ``suggest``, ``infer --prior-from``, :func:`treeinfer.runs.load_run`).
 
-:func:`check_run_consistency` covers what a checksum cannot: an old run without a manifest, or
-one let through with ``--allow-modified``, whose tree.yaml is not the tree config.json recorded,
-whose particles do not fit their labels, or whose summary.json contradicts its particles.
+This module sits below :mod:`treeinfer._io` and :mod:`treeinfer.integrity` (both import it; it
+imports neither): the checksum (:func:`file_digest`) and the manifest's format live here. What a
+checksum cannot check, a run folder's files holding together, is
+:func:`treeinfer.runs.consistency.check_run_consistency`.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
-import math
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 
+from .atomic_write import atomic_write_json
 from .errors import ConfigError
-from .integrity import ALGORITHM, MANIFEST, file_digest
+from .safe_load import require_regular_file
 
 __all__ = [
+    "ALGORITHM",
     "MANIFEST",
-    "check_run_consistency",
+    "file_digest",
     "read_manifest",
     "verify_manifest",
     "write_manifest",
 ]
+
+ALGORITHM = "sha256"
+MANIFEST = "manifest.json"  # every file of an output folder
+
+
+def file_digest(path: str | os.PathLike) -> dict:
+    """``{"sha256": hex, "bytes": n}`` of a regular file (ConfigError for FIFOs, devices)."""
+    path = require_regular_file(path, "file", ConfigError)
+    h = hashlib.sha256()
+    n = 0
+    try:
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+                n += len(block)
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read ({e.strerror or e})") from None
+    return {ALGORITHM: h.hexdigest(), "bytes": n}
+
 
 MANIFEST_FORMAT = 1
 # written after the manifest (the publish step's completion flag), so not listed in it
@@ -55,7 +77,6 @@ def write_manifest(folder: str | os.PathLike) -> Path:
     """Write ``folder/manifest.json``: the sha256 and size of every file treeinfer wrote there
     (called on the complete staging folder, just before it is published)."""
     from . import __version__
-    from ._io import atomic_write_json
 
     folder = Path(folder)
     files = {rel: file_digest(folder / rel) for rel in _folder_files(folder)}
@@ -138,70 +159,3 @@ def verify_manifest(folder: str | os.PathLike, files: Mapping, source: str = MAN
                 f"{rec.get('bytes')} -> {now['bytes']} bytes)"
             )
     return problems
-
-
-def check_run_consistency(
-    run_dir: str | os.PathLike,
-    config: Mapping,
-    tree,
-    theta,
-    labels: Iterable[str],
-    summary: Mapping,
-    allow_modified: bool = False,
-) -> list[str]:
-    """Checks a checksum cannot make (a run from before manifests, or one let through with
-    ``--allow-modified``): tree.yaml is the tree config.json recorded; the particles have one
-    column per label; summary.json's posterior table is the particles' (same labels, the same
-    mean of each gain over the stable particles). Raises ConfigError naming the file, or with
-    ``allow_modified`` returns notes."""
-    import numpy as np
-
-    from .runs.provenance import tree_to_dict_json
-    from .tree import tree_to_dict
-
-    run_dir = Path(run_dir)
-    labels = list(labels)
-    problems = []
-    if tree_to_dict_json(tree_to_dict(tree)) != tree_to_dict_json(config["tree_dict"]):
-        problems.append(
-            f"{run_dir / 'tree.yaml'}: is not the tree recorded in config.json (swapped or edited)"
-        )
-    theta = np.asarray(theta, float)
-    if theta.ndim != 2 or theta.shape[1] != len(labels):
-        problems.append(
-            f"{run_dir / 'trace.npz'}: particles of shape {theta.shape} for {len(labels)} "
-            f"labels {labels}"
-        )
-    table = summary.get("posterior") if isinstance(summary, Mapping) else None
-    if isinstance(table, Mapping) and table and not problems:
-        if sorted(table) != sorted(labels):
-            problems.append(
-                f"{run_dir / 'summary.json'}, field 'posterior': labels {list(table)} are not "
-                f"the particles' {labels}"
-            )
-        else:
-            bad = set(summary.get("unstable_particles") or [])
-            ok = np.all(np.isfinite(theta), axis=1)
-            ok &= np.array([i not in bad for i in range(len(theta))], bool)
-            for j, lab in enumerate(labels):
-                rec = table[lab]
-                if not (lab.startswith(("Kp[", "Kd[")) and isinstance(rec, Mapping)):
-                    continue
-                mean = rec.get("mean")
-                if not isinstance(mean, (int, float)) or ok.sum() < 2:
-                    continue
-                now = float(np.mean(np.exp(theta[ok, j])))
-                if not math.isclose(now, float(mean), rel_tol=1e-3, abs_tol=1e-12):
-                    problems.append(
-                        f"{run_dir / 'summary.json'}, field 'posterior.{lab}.mean': {mean!r} "
-                        f"contradicts the particles (their mean is {now:.6g})"
-                    )
-    if not problems:
-        return []
-    if not allow_modified:
-        raise ConfigError(
-            f"{problems[0]}{'; ' + '; '.join(problems[1:]) if problems[1:] else ''}; the run "
-            "folder does not hold together: run infer again, or pass --allow-modified to use it "
-            "anyway (recorded in the output)"
-        )
-    return [f"{run_dir}: used with --allow-modified although {p}" for p in problems]

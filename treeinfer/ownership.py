@@ -32,6 +32,7 @@ import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+from .atomic_write import atomic_write_bytes, output_error
 from .errors import OutputExistsError
 
 __all__ = [
@@ -204,8 +205,6 @@ def write_output_file(
     path: str | os.PathLike, text: str | bytes, log: Callable[[str], None] | None = None
 ) -> Path:
     """Write a command's output file atomically, keeping a different previous file aside."""
-    from ._io import atomic_write_bytes, output_error
-
     data = text.encode("utf-8") if isinstance(text, str) else text
     try:
         keep_previous_file(path, data, log)
@@ -238,8 +237,6 @@ def retire_output_files(
     them again (:func:`claim_output_files`) and move each existing one aside, so that ``--force``
     never loses the file it replaces."""
     out = claim_output_files(paths, force, inputs)
-    from ._io import output_error
-
     for p in out:
         try:
             move_aside(p, log, "file")

@@ -5,15 +5,13 @@
 from __future__ import annotations
 
 import argparse
-from dataclasses import MISSING, fields
 from pathlib import Path
 from typing import Any
 
 from .. import runs
 from .._io import check_output_dir
 from ..errors import ConfigError
-from ..runs import RunConfig
-from ..runs.config import GRADIENT_CHOICES, INIT_CHOICES, OPTION_FIELDS
+from ..runs.config import GRADIENT_CHOICES, INIT_CHOICES
 from ..samplers import SAMPLER_NAMES
 from .common import (
     COMMAND_HELP,
@@ -33,69 +31,15 @@ from .common import (
     add_simulation_options,
     print_model_report,
 )
+from .infer_options import (
+    _RUN_OPTIONS,
+    INFER_DEFAULTS,
+    _check_infer_options,
+    _check_meaning_changed,
+    _kT_arg,
+)
 
 # ==== infer =======================================================================================
-# Defaults of `infer` (None in argparse, so that --resume can tell which options were given):
-# those of the run configuration.
-INFER_DEFAULTS: dict[str, Any] = {
-    f.name: f.default
-    for f in fields(RunConfig)
-    if f.default is not MISSING
-    and f.name in OPTION_FIELDS
-    and f.name not in ("grasp_fraction", "force", "model", "repair_inertia")
-}
-# options a resumed run takes from its checkpoint's config (argparse dest -> flag)
-_RUN_OPTIONS = {
-    "tree": "--tree",
-    "data": "--data",
-    "out": "--out",
-    "sampler": "--sampler",
-    "particles": "--particles",
-    "iterations": "--iterations",
-    "kT": "--kT",
-    "seed": "--seed",
-    "eta": "--eta",
-    "grasp_fraction": "--grasp-fraction",
-    "checkpoint_every": "--checkpoint-every",
-    "force": "--force",
-    "backend": "--backend",
-    "prior_from": "--prior-from",
-    "prior_tail": "--prior-tail",
-    "reinit_stragglers": "--reinit-stragglers",
-    "drop_stragglers": "--drop-stragglers",
-    "stop_when_converged": "--stop-when-converged",
-    "mcmc_warmup": "--mcmc-warmup",
-    "mcmc_thin": "--mcmc-thin",
-    "model_kind": "--model-kind",
-    "gradients": "--gradients",
-    "init": "--init",
-    "force_interp": "--force-interp",
-    "max_sim_dt": "--max-sim-dt",
-    "sim_tolerance": "--sim-tolerance",
-    "likelihood": "--likelihood",
-    "noise_displacement": "--noise-displacement",
-    "noise_force": "--noise-force",
-    "noise_velocity": "--noise-velocity",
-    "model": "--model",
-    "repair_inertia": "--repair-inertia",
-    "tie": "--tie",
-    "tie_scale": "--tie-scale",
-    "shape_buckets": "--shape-buckets",
-}
-
-
-def _kT_arg(s: str):
-    """``--kT``: a number, or ``auto`` (set from the data's noise estimate)."""
-    if s.strip().lower() == "auto":
-        return "auto"
-    try:
-        return float(s)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected a positive number or 'auto', got {s!r}"
-        ) from None
-
-
 _INFER_EPILOG = """\
 examples:
   treeinfer infer --tree two_branch.yaml --data data/train --out runs/nnsvgd
@@ -388,23 +332,6 @@ def _print_stragglers(strag: dict | None, n_particles) -> None:
             f"{left}{of} still stuck at the end"
             + (" (summary.json 'stragglers' lists them)" if left else "")
         )
-
-
-def _check_meaning_changed(args: argparse.Namespace) -> None:
-    """ConfigError for a command whose meaning the new defaults changed (issue 27): ``--kT``
-    set the Boltzmann loss's temperature when that loss was the default."""
-    if args.kT is not None and args.likelihood is None:
-        raise ConfigError(
-            "--kT: the default likelihood is now 'gaussian' (recorded = simulated + noise, the "
-            "noise inferred; --kT has no meaning there). To keep the paper's Boltzmann loss as "
-            f"before, pass --likelihood boltzmann --kT {args.kT}; or leave --kT out"
-        )
-
-
-def _check_infer_options(o: dict[str, Any]) -> None:
-    """ConfigError naming the flag for any out-of-range option (before anything is read): the
-    run configuration's own validation."""
-    RunConfig(tree="", data="", out="", **o)
 
 
 def run_infer(args: argparse.Namespace) -> int:

@@ -144,10 +144,14 @@ def _start_runtime() -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit code (see the module docstring)."""
     if argv is None:  # the real command line: Ctrl-C always ends it (treeinfer.interrupt)
-        from ..interrupt import install
+        from ..interrupt import exit_if_interrupted, install
 
         install()
-    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+        return exit_if_interrupted(_main(sys.argv[1:]))
+    return _main([str(a) for a in argv])
+
+
+def _main(argv: list[str]) -> int:
     try:
         parser = build_parser(_command_of(argv), lazy=True)
         args = parser.parse_args(argv)

@@ -376,8 +376,9 @@ def load_run(
     where the run's own URDF/MJCF lies now (moved since the run); its sha256 must be the
     recorded one."""
     from ..integrity import load_npz, validate_run_config, validate_summary, verify_run
-    from ..manifest import check_run_consistency, read_manifest
+    from ..manifest import read_manifest
     from ..safe_load import refuse_special_paths
+    from .consistency import check_run_consistency
 
     run_dir = Path(run_dir)
     refuse_special_paths(run_dir, "run folder")  # a FIFO in it would block a reader
