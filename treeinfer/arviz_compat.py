@@ -21,7 +21,6 @@ FutureWarning about the 1.0 refactor, silenced here). On 1.x only ``arviz_base``
 from __future__ import annotations
 
 import warnings
-from functools import cache
 
 import numpy as np
 
@@ -46,7 +45,6 @@ __all__ = [
 SUMMARY_COLUMNS = ("mean", "sd", "mcse_mean", "mcse_sd", "ess_bulk", "ess_tail", "r_hat")
 
 
-@cache
 def arviz_version() -> str:
     """The installed ArviZ version (the ``arviz`` distribution, else ``arviz-base``), read from
     the package metadata without importing ArviZ."""
@@ -68,10 +66,10 @@ def is_arviz1() -> bool:
     return int(arviz_version().split(".")[0]) >= 1
 
 
-@cache
 def _modules():
     """``(data module, stats module)``: ``(arviz, arviz)`` on 0.2x, ``(arviz_base,
-    arviz_stats)`` on 1.x."""
+    arviz_stats)`` on 1.x. Not memoised (no module keeps a cache: tests/test_architecture.py);
+    Python's module table makes a repeated import a lookup."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FutureWarning)  # 0.2x: "ArviZ is undergoing a refactor"
         if is_arviz1():
