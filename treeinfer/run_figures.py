@@ -50,7 +50,6 @@ def training_force_max(problem) -> float:
 def run_inference_data(posterior, problem, trace: dict, stable, summary: dict, attrs: dict):
     """The InferenceData written to ``posterior.nc``: natural units, the prior box, the
     likelihood and noise model as attributes (:func:`.posterior_io.build_inference_data`)."""
-    from .arviz_compat import update_attrs
     from .posterior_io import mcmc_chains, posterior_inference_data, run_attrs
 
     post = _posterior(posterior, problem, trace, stable)
@@ -58,7 +57,10 @@ def run_inference_data(posterior, problem, trace: dict, stable, summary: dict, a
     idata = posterior_inference_data(post)
     if post.method == "mcmc" and mcmc_chains(post) is not None:
         extra["trace_iterations"] = ",".join(str(int(i)) for i in trace["iterations"])
-    update_attrs(idata, {k: v for k, v in extra.items() if v is not None})
+    from .arviz_compat import group_names
+
+    for group in group_names(idata):
+        idata[group].attrs.update({k: v for k, v in extra.items() if v is not None})
     return idata
 
 
