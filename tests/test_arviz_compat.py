@@ -59,6 +59,25 @@ def test_add_group_survives_a_round_trip(tmp_path):
     assert back.log_posterior.attrs["units"] == "nat"
 
 
+def test_update_attrs_reaches_every_group_and_survives_a_round_trip(tmp_path):
+    """Attributes set after the data exist (run_figures' run attributes): every group on both
+    series (a 1.x DataTree's ``groups`` is a tuple, not 0.2x's method), and its root on 1.x."""
+    rng = np.random.default_rng(7)
+    idata = azc.from_dict(
+        {"theta": rng.normal(size=(2, 5, 2))}, sample_stats={"lp": np.ones((2, 5))}
+    )
+    azc.update_attrs(idata, {"likelihood": "gaussian", "n_train": 2})
+    azc.write_netcdf(idata, tmp_path / "a.nc")
+    back = azc.read_netcdf(tmp_path / "a.nc")
+    assert sorted(azc.group_names(back)) == ["posterior", "sample_stats"]
+    for name in azc.group_names(back):
+        assert (
+            back[name].attrs["likelihood"] == "gaussian" and int(back[name].attrs["n_train"]) == 2
+        )
+    if azc.is_arviz1():
+        assert back.attrs["likelihood"] == "gaussian"
+
+
 def test_convert_to_dataset_of_an_array():
     x = np.arange(24.0).reshape(2, 4, 3)
     ds = azc.convert_to_dataset(x)

@@ -81,6 +81,26 @@ def test_quantisation_step_detection():
     assert quantisation_step(list(noisy)) is None
 
 
+def test_a_noise_free_ramp_is_not_taken_for_a_quantised_recording():
+    """A simulated ramp-hold-release force lies on a grid of its slope per sample but carries no
+    rounding: no step is reported and the estimate is refused as noise-free (the default
+    force-noise term is then off), where the same force rounded to 0.1 N is a quantised
+    recording floored at 0.1 / sqrt(12)."""
+    t = np.arange(80) * 0.01
+    ramps = np.stack([p * np.clip(t / (0.1 + 0.1 * i), 0.0, 1.0) * (t < 0.45)
+                      for i, p in enumerate((6.0, 3.0))])  # fmt: skip
+    assert quantisation_step(list(ramps)) is None
+    with pytest.raises(ConfigError, match="piecewise-linear"):
+        estimate_white_noise(ramps, what="force", flag="--noise-force", unit="N")
+    line = np.linspace(0.0, 6.0, 41)[None]  # float rounding in its second differences
+    assert quantisation_step(list(line)) is None
+    assert estimate_white_noise(line, what="force", unit="N").sigma < 1e-12
+    noisy = ramps + 0.02 * np.random.default_rng(6).standard_normal(ramps.shape)
+    est = estimate_white_noise(np.round(noisy, 1), what="force", flag="--noise-force", unit="N")
+    assert est.step == pytest.approx(0.1, rel=1e-6)
+    assert est.sigma >= 0.1 / math.sqrt(12) - 1e-12
+
+
 # ---- upsampling --------------------------------------------------------------------------------
 def _native(sigma, T_native=160, dt=0.02, n=3, seed=4):
     rng = np.random.default_rng(seed)

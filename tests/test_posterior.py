@@ -321,7 +321,11 @@ def test_infer_returns_the_posterior_object():
     trajs = [
         Trajectory(t, forces[b], np.asarray(r.tau[0, b], float), None, f"p{b}") for b in (0, 1)
     ]
-    problem = treeinfer.make_problem(tree, trajs, kT=0.05, sim=sim, nn_prior=False)
+    # noise-free pulls and theta = [log Kp, log Kd] only: the paper's loss, named explicitly
+    # since issue 27 made the Gaussian likelihood (an extra sigma_x column) the default
+    problem = treeinfer.make_problem(
+        tree, trajs, kT=0.05, likelihood="boltzmann", sim=sim, nn_prior=False
+    )
     post = treeinfer.infer(problem, sampler="mh", n_particles=4, n_iterations=9, progress=False)
     assert isinstance(post, Posterior) and post.method == "mcmc"
     assert post.context.force_max == pytest.approx(5.0)

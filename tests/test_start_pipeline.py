@@ -39,12 +39,18 @@ def one_joint():
     rng = np.random.default_rng(4)
     ref = make_simulator(tree, obs_dt=0.01, substeps=SUBSTEPS)
     trajs = []
-    for i, peak in enumerate((6.0, 3.0)):
-        f = peak * np.clip(t / (0.1 + 0.1 * i), 0.0, 1.0) * (t < 0.45)
+    for i in range(2):
+        f = _ramp(t, i)
         tau, _ = simulate_reference(ref, kp, kd, f)
         noisy_f = f + 0.02 * rng.normal(size=f.shape)
         trajs.append(Trajectory(t, noisy_f, tau + 1e-3 * rng.normal(size=tau.shape), None, f"p{i}"))
     return tree, trajs, np.log(np.concatenate([kp, kd]))
+
+
+def _ramp(t, i):
+    """The noise-free commanded force of pull ``i`` (N): a ramp to its peak, then released."""
+    peak = (6.0, 3.0)[i]
+    return peak * np.clip(t / (0.1 + 0.1 * i), 0.0, 1.0) * (t < 0.45)
 
 
 def _problem(tree, trajs, **kw):
@@ -80,11 +86,20 @@ def test_make_problem_defaults_to_the_generative_model(one_joint):
     p = _problem(tree, trajs)
     assert p.settings["likelihood"] == "gaussian" and p.labels[-1] == "sigma_x"
     assert p.settings["noise_force"] > 0  # estimated from the recorded force
-    # a clean force cannot be estimated: the default term is off, and the settings say why
-    clean = [Trajectory(t.time, np.round(t.force, 1), t.displacement, None, t.source)
-             for t in trajs]  # fmt: skip
+    # a noise-free force (the commanded ramps) cannot be estimated: the default term is off,
+    # and the settings say why
+    clean = [Trajectory(t.time, _ramp(t.time, i), t.displacement, None, t.source)
+             for i, t in enumerate(trajs)]  # fmt: skip
     q = _problem(tree, clean)
     assert "noise_force" not in q.settings and q.settings["noise_force_default"].startswith("off")
+    # a force rounded to 0.1 N is not noise-free: it carries the rounding error, uniform of
+    # std step / sqrt(12), which the quantisation-aware estimate (issue 27's noise work) floors
+    # at; the errors-in-variables term is then on with that sigma
+    rounded = [Trajectory(t.time, np.round(t.force, 1), t.displacement, None, t.source)
+               for t in trajs]  # fmt: skip
+    r = _problem(tree, rounded)
+    assert r.settings["noise_force"] == pytest.approx(0.1 / np.sqrt(12), rel=1e-6)
+    assert "noise_force_default" not in r.settings
 
 
 def test_a_kT_without_a_likelihood_says_what_changed(one_joint, tmp_path, capsys):

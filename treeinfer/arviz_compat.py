@@ -37,6 +37,7 @@ __all__ = [
     "rhat",
     "summary",
     "summary_table",
+    "update_attrs",
     "write_netcdf",
     "SUMMARY_COLUMNS",
 ]
@@ -113,11 +114,19 @@ def from_dict(
         else:
             out = data_mod.from_dict(**groups, dims=dims, coords=coords)
     if attrs:
-        for name in group_names(out):
-            out[name].attrs.update(attrs)
-        if is_arviz1():
-            out.attrs.update(attrs)
+        update_attrs(out, attrs)
     return out
+
+
+def update_attrs(idata, attrs: dict) -> None:
+    """Set ``attrs`` (strings/numbers) on every group of ``idata`` (from :func:`from_dict`), and
+    on the root of a 1.x DataTree, in place: what :func:`from_dict`'s ``attrs`` does, for
+    attributes known only once the data exist. (``idata.groups()`` is a method on 0.2x but a
+    tuple property of a 1.x DataTree, so the loop goes through :func:`group_names`.)"""
+    for name in group_names(idata):
+        idata[name].attrs.update(attrs)
+    if is_arviz1():
+        idata.attrs.update(attrs)
 
 
 def add_group(idata, name: str, variables: dict, *, coords=None, dims=None, attrs=None):

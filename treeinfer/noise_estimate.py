@@ -43,6 +43,7 @@ MAX_FACTOR = 10  # largest upsampling factor looked for
 PHASE_RATIO = 10.0  # one phase's median |difference| this many times every other phase's
 QUANT_TOL = 1e-3  # |d / q - round(d / q)| below this share of a step counts as on the grid
 QUANT_SHARE = 0.99  # ... for this share of the non-zero differences
+ROUNDING_SHARE = 0.1  # moving second differences of one or two steps: at least this for a grid
 COARSE_CORRELATION = 0.0  # lag-1 correlation of d2 above this: the signal dominates
 _MAD_TO_STD = 1.0 / statistics.NormalDist().inv_cdf(0.75)  # 1.4826
 _SQRT12 = math.sqrt(12.0)
@@ -102,7 +103,18 @@ def quantisation_step(rows, min_differences: int = 10) -> float | None:
     such that at least :data:`QUANT_SHARE` of the non-zero first differences are integer
     multiples of q (to :data:`QUANT_TOL` of a step): then every row's values lie on a grid of
     step q. Unquantised data (float noise) have no such q: their smallest difference is tiny and
-    the others are not multiples of it."""
+    the others are not multiples of it.
+
+    An exactly piecewise-linear series (a simulated ramp-hold-release force, ``linspace``) also
+    lies on a grid, of its slope per sample, but carries no rounding: where it moves, its second
+    differences are zero except at a few kinks. Rounding error (within half a step) moves a
+    second difference by one or two steps, and does so all along a moving signal (the first
+    difference alternates between neighbouring multiples of q). So a grid counts only when at
+    least :data:`ROUNDING_SHARE` of the second differences where the series moves are one or
+    two steps (:func:`_moves_without_rounding`); a noise-free ramp gives None, and its estimate
+    is then refused or switched off as noise-free rather than floored at ``slope / sqrt(12)``.
+    (A quantised signal moving by exactly the same multiple of q every sample cannot be told
+    from a noise-free ramp; it is read as one.)"""
     d = np.concatenate([np.abs(np.diff(r)) for r in rows if r.size > 1] or [np.zeros(0)])
     tiny = 1e-12 * max(_scale(rows), 1e-300)
     nz = d[d > tiny]
@@ -115,8 +127,25 @@ def quantisation_step(rows, min_differences: int = 10) -> float | None:
         if np.max(k) > 1e7:  # a grid this fine relative to the steps is float noise, not a sensor
             return None
         if np.mean(np.abs(k - np.round(k)) <= QUANT_TOL) >= QUANT_SHARE:
-            return q
+            return None if _moves_without_rounding(rows, q, tiny) else q
     return None
+
+
+def _moves_without_rounding(rows, q: float, tiny: float) -> bool:
+    """True when, at the samples where the rows move (a non-zero first difference on either
+    side), fewer than :data:`ROUNDING_SHARE` of the second differences are one or two steps
+    ``q`` (rounding's jitter; a kink of a ramp is usually larger, and there are few of them):
+    straight segments between kinks, not values rounded onto a grid."""
+    jitter = moving = 0
+    for r in rows:
+        if r.size < 3:
+            continue
+        d1 = np.diff(r)
+        at = (np.abs(d1[:-1]) > tiny) | (np.abs(d1[1:]) > tiny)
+        d2 = np.abs(np.diff(d1)[at])
+        moving += int(d2.size)
+        jitter += int(np.sum((d2 > QUANT_TOL * q) & (d2 <= (2 + QUANT_TOL) * q)))
+    return moving > 0 and jitter < ROUNDING_SHARE * moving
 
 
 class Upsampling(NamedTuple):

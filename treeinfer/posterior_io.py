@@ -75,9 +75,13 @@ class PosteriorContext(NamedTuple):
 
 def context_from_problem(problem, run=None) -> PosteriorContext:
     """The context of a posterior sampled on ``problem`` (a :class:`treeinfer.inference.Problem`);
-    ``run``: the sampler's :class:`treeinfer.samplers.RunResult` (its trace)."""
+    ``run``: the sampler's :class:`treeinfer.samplers.RunResult` (its trace). A problem
+    without observations (``obs`` None: a black-box target handed to the samplers) has no
+    force range: ``force_max`` None, predictions unguarded by it."""
     obs = problem.obs
-    force = np.where(np.asarray(obs.mask, bool), np.abs(np.asarray(obs.force, float)), 0.0)
+    force = np.zeros(0)
+    if obs is not None:
+        force = np.where(np.asarray(obs.mask, bool), np.abs(np.asarray(obs.force, float)), 0.0)
     trace = None
     if run is not None and getattr(run, "trace_positions", None) is not None:
         trace = {
