@@ -150,10 +150,7 @@ def _model_compliance(tree: Tree, m, sid: int, kp: dict[str, float], out=None) -
     mujoco.mj_jacSite(m, d, jacp, None, sid)
     if out is not None:
         mass = np.zeros((m.nv, m.nv))
-        if hasattr(d, "qM"):  # MuJoCo < 3.3: mj_fullM(m, dst, qM)
-            mujoco.mj_fullM(m, mass, d.qM)
-        else:  # MuJoCo >= 3.3: mj_fullM(m, d, dst)
-            mujoco.mj_fullM(m, d, mass)
+        mujoco.mj_fullM(m, d, mass)  # the (m, d, dst) signature of every supported MuJoCo (>= 3.10)
         mob = jacp @ np.linalg.solve(mass, jacp.T)
         out["mobility"] = float(np.max(np.linalg.eigvalsh(0.5 * (mob + mob.T))))
     g = np.asarray(tree.gravity, float)
