@@ -261,7 +261,7 @@ def _base_config(command: str, args: argparse.Namespace) -> dict[str, Any]:
 def _metrics_rows(m: dict) -> list[tuple[str, str]]:
     rows = [
         ("95% band width", f"{1000 * m['ci_width']:.4g} mm"),
-        ("ground truth outside the band", f"{m['pct_outside']:.2f} %"),
+        ("recorded points outside the band", f"{m['pct_outside']:.2f} %"),
         (
             "predictive NLL",
             f"{m['predictive_nll_per_point']:.4g} nats/point ({m['n_points']} points)",
