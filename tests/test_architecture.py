@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from import_graph import import_targets, module_file
+
 import treeinfer
 
 ROOT = Path(treeinfer.__file__).resolve().parent
@@ -19,30 +21,11 @@ MODULES = sorted(
 )
 
 
-def _module_file(name: str) -> Path:
-    rel = Path(*name.split(".")[1:])
-    pkg = ROOT / rel / "__init__.py"
-    return pkg if pkg.is_file() else (ROOT / rel).with_suffix(".py")
-
-
 def _imports(name: str) -> set[str]:
     """Absolute names of the treeinfer modules ``name`` imports (at any depth of its code)."""
-    path = _module_file(name)
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     out = set()
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-        if isinstance(node, ast.Import):
-            out |= {a.name for a in node.names if a.name.startswith("treeinfer")}
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")
-                base = base[: len(base) - node.level + 1]
-                mod = ".".join(base + ([node.module] if node.module else []))
-            else:
-                mod = node.module or ""
-            if mod.startswith("treeinfer"):
-                out.add(mod)
-                out |= {f"{mod}.{a.name}" for a in node.names if f"{mod}.{a.name}" in MODULES}
+    for mod, subs in import_targets(name, MODULES):
+        out |= {mod} | subs
     return {m for m in out if m in MODULES or m == "treeinfer"}
 
 
@@ -202,7 +185,7 @@ def test_no_module_keeps_a_cache():
     memoised pure functions of ``ALLOWED_MEMOS``)."""
     found = []
     for m in MODULES:
-        found += module_caches(_module_file(m).read_text(encoding="utf-8"), m)
+        found += module_caches(module_file(m).read_text(encoding="utf-8"), m)
     for folder in ("experiments", "benchmarks"):
         for path in sorted((ROOT.parent / folder).glob("*.py")):
             found += module_caches(path.read_text(encoding="utf-8"), f"{folder}.{path.stem}")

@@ -10,6 +10,7 @@ import pkgutil
 from pathlib import Path
 
 import pytest
+from import_graph import import_targets, module_file
 
 import treeinfer
 
@@ -60,30 +61,11 @@ TOP_LEVEL = {"__init__", "__main__", "errors"}
 MOVED = all((ROOT / p / "__init__.py").is_file() for p in ("tree", "data", "model", "inference"))
 
 
-def _file(name: str) -> Path:
-    rel = Path(*name.split(".")[1:])
-    pkg = ROOT / rel / "__init__.py"
-    return pkg if pkg.is_file() else (ROOT / rel).with_suffix(".py")
-
-
 def _imports(name: str) -> set[str]:
     """The treeinfer modules ``name`` imports, at any depth of its code."""
-    path = _file(name)
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     out = set()
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-        if isinstance(node, ast.Import):
-            out |= {a.name for a in node.names if a.name.startswith("treeinfer")}
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")[: len(package.split(".")) - node.level + 1]
-                mod = ".".join(base + ([node.module] if node.module else []))
-            else:
-                mod = node.module or ""
-            if not mod.startswith("treeinfer"):
-                continue
-            subs = {f"{mod}.{a.name}" for a in node.names} & set(MODULES)
-            out |= subs if subs else {mod}
+    for mod, subs in import_targets(name, MODULES):
+        out |= subs if subs else {mod}
     return out
 
 
@@ -145,7 +127,7 @@ def test_the_cli_is_imported_by_nothing_below_it():
 def test_no_module_over_500_lines():
     long = {}
     for m in MODULES:
-        n = len(_file(m).read_text(encoding="utf-8").splitlines())
+        n = len(module_file(m).read_text(encoding="utf-8").splitlines())
         if n > MAX_LINES and m not in LONG_MODULES:
             long[m] = n
     assert not long, f"split these modules (at most {MAX_LINES} lines): {long}"
