@@ -733,6 +733,28 @@ class ParticleState(NamedTuple):
     logdensity: np.ndarray
 
 
+def importance_run_result(theta, logp, run_settings: dict, importance, elapsed_s: float):
+    """The :class:`treeinfer.samplers.RunResult` of an importance posterior that no sampler
+    refined: one state (iteration 0) of ``theta [P, D]`` and ``logp [P]``, ``stop_reason``
+    naming the weights' Pareto k_hat and effective sample size (``importance.khat``, ``.ess``).
+    Shared by the paper's model (:func:`posterior_from_fast`) and the other models' start
+    (:mod:`treeinfer.start_pipeline`)."""
+    from .samplers import RunResult
+
+    return RunResult(
+        final_positions=theta,
+        final_state=ParticleState(theta, logp),
+        trace_positions=theta[None],
+        trace_logdensity=logp[None],
+        trace_iterations=np.zeros(1, np.int64),
+        diagnostics={},
+        settings=run_settings,
+        elapsed_s=elapsed_s,
+        stop_reason=f"importance sampling (Pareto k_hat {importance.khat:.2f}, "
+        f"effective sample size {importance.ess:.0f})",
+    )
+
+
 def posterior_from_fast(problem, result: FastPosterior, seed: int = 0):
     """A :class:`treeinfer.inference.Posterior` of ``result`` (zero sampler iterations), for the
     run layer (``--init importance --iterations 0``): ``run`` is a
@@ -741,7 +763,6 @@ def posterior_from_fast(problem, result: FastPosterior, seed: int = 0):
     fit and the weights' diagnostics (``khat``, ``ess``)."""
     from .inference import Posterior
     from .likelihood import gains_from_theta
-    from .samplers import RunResult
 
     theta = np.asarray(result.theta, np.float32)
     logp = np.asarray(result.log_density, np.float32)
@@ -752,17 +773,8 @@ def posterior_from_fast(problem, result: FastPosterior, seed: int = 0):
         "start_iteration": 0,
         "seed": seed,
     }
-    run = RunResult(
-        final_positions=theta,
-        final_state=ParticleState(theta, logp),
-        trace_positions=theta[None],
-        trace_logdensity=logp[None],
-        trace_iterations=np.zeros(1, np.int64),
-        diagnostics={},
-        settings=run_settings,
-        elapsed_s=float(sum(result.phases.values())),
-        stop_reason=f"importance sampling (Pareto k_hat {result.importance.khat:.2f}, "
-        f"effective sample size {result.importance.ess:.0f})",
+    run = importance_run_result(
+        theta, logp, run_settings, result.importance, float(sum(result.phases.values()))
     )
     kp, kd = gains_from_theta(theta, problem.sim.n_joints)
     settings = {

@@ -137,9 +137,8 @@ def auto_start(problem, n_particles: int, seed: int = 0, log=lambda m: None, **o
 
 def _model_start(problem, n_particles: int, seed: int, log):
     """:func:`auto_start` for a model the rollout program does not run."""
-    from .fast_posterior import ParticleState
+    from .fast_posterior import importance_run_result
     from .inference import Posterior
-    from .samplers import RunResult
 
     imp, idx, lap = model_importance(problem, n_particles, seed)
     verdict = (
@@ -168,18 +167,7 @@ def _model_start(problem, n_particles: int, seed: int, log):
         "start_iteration": 0,
         "seed": seed,
     }
-    run = RunResult(
-        final_positions=theta,
-        final_state=ParticleState(theta, logp),
-        trace_positions=theta[None],
-        trace_logdensity=logp[None],
-        trace_iterations=np.zeros(1, np.int64),
-        diagnostics={},
-        settings=run_settings,
-        elapsed_s=0.0,
-        stop_reason=f"importance sampling (Pareto k_hat {imp.khat:.2f}, effective sample size "
-        f"{imp.ess:.0f})",
-    )
+    run = importance_run_result(theta, logp, run_settings, imp, 0.0)
     kp, kd = problem.model.layout.gains(theta)
     settings = {
         "problem": problem.settings,
