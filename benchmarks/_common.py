@@ -152,7 +152,7 @@ def default_machine_name() -> str:
 def merge_results(path: Path, section: str, results: dict, summary: dict) -> Path:
     """Merge ``results`` into ``section`` (key by key) and the top-level ``summary`` keys into the
     JSON at ``path`` (written atomically); everything else already there is kept."""
-    from treeinfer._io import atomic_write_json
+    from treeinfer.io.atomic import atomic_write_json
 
     path = Path(path)
     data = {}

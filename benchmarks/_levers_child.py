@@ -13,8 +13,8 @@ from benchmarks import _common as C
 
 def _standard_inputs(n_steps: int):
     from benchmarks.inference import EXAMPLES
-    from treeinfer.forces import profile_set
-    from treeinfer.synthetic import default_true_params
+    from treeinfer.data import profile_set
+    from treeinfer.sim.synthetic import default_true_params
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml")

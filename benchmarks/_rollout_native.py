@@ -15,7 +15,7 @@ def rollout_model(tree, sim):
     ``sim``."""
     import mujoco
 
-    from treeinfer.export import GRASP_SITE, to_mjcf
+    from treeinfer.tree.export import GRASP_SITE, to_mjcf
 
     spec = mujoco.MjSpec.from_string(to_mjcf(tree, timestep=sim.sim_dt))
     site_pos = np.asarray(sim.mj_model.site_pos[sim.grasp_site], float)

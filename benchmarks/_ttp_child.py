@@ -18,8 +18,8 @@ N_STEPS, DT = 300, 0.01
 
 def _write(result: str, record: dict) -> None:
     """The record as JSON, with the XLA programs this process compiled and those it loaded from
-    the persistent cache (:mod:`treeinfer.compile_stats`)."""
-    from treeinfer.compile_stats import compile_stats
+    the persistent cache (:mod:`treeinfer.sim.compile_stats`)."""
+    from treeinfer.sim.compile_stats import compile_stats
 
     record["compile_stats"] = compile_stats().since()
     Path(result).write_text(json.dumps(record))
@@ -28,12 +28,12 @@ def _write(result: str, record: dict) -> None:
 def child(args) -> int:
     import jax
 
-    from treeinfer.compile_stats import compile_stats
+    from treeinfer.sim.compile_stats import compile_stats
 
     compile_stats()  # listening from the start: every compilation of the path is counted
     from benchmarks.inference import EXAMPLES
+    from treeinfer.data.trajectories import Trajectory
     from treeinfer.inference import infer, make_problem
-    from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 
     marks = {"imports": time.time()}
@@ -55,7 +55,11 @@ def child(args) -> int:
     if mode == "reference_importance":
         return child_reference_importance(args, problem, marks, record)
     if mode == "fast":
-        from treeinfer.mapfit import fit_problem, laplace_particles, problem_with_gradients
+        from treeinfer.inference.mapfit import (
+            fit_problem,
+            laplace_particles,
+            problem_with_gradients,
+        )
 
         fit = fit_problem(
             problem,
@@ -99,7 +103,7 @@ def child(args) -> int:
         checks.append({"iteration": 0, "time": time.time(), "theta": np.asarray(theta0).tolist()})
     stop_when = None
     if mode == "fast" and args.stop_when_converged:
-        from treeinfer.diagnostics import ConvergenceCriterion
+        from treeinfer.inference import ConvergenceCriterion
 
         stop_when = ConvergenceCriterion(
             min_iterations=args.min_iterations, window=args.check_every
@@ -140,14 +144,13 @@ def child(args) -> int:
 
 
 def child_importance(args, problem, marks, record) -> int:
-    """The ``importance`` path: :func:`treeinfer.fast_posterior.fast_posterior` (one rollout
+    """The ``importance`` path: :func:`treeinfer.inference.fast_posterior` (one rollout
     program: screened LM fit, PSIS importance sampling); when its own check fails (``ok``
     False: Pareto k_hat > 0.7 or too few effective samples) NNSVGD runs from its particles as
     in the ``fast`` path, stopped by the convergence criterion."""
     import jax
 
-    from treeinfer.fast_posterior import fast_posterior
-    from treeinfer.inference import infer
+    from treeinfer.inference import fast_posterior, infer
 
     res = fast_posterior(
         problem,
@@ -169,7 +172,7 @@ def child_importance(args, problem, marks, record) -> int:
     checks = [{"iteration": 0, "time": time.time(), "theta": res.theta.tolist()}]
     final_theta, n_done, reason = res.theta, 0, "importance_ok"
     if not res.ok:
-        from treeinfer.diagnostics import ConvergenceCriterion
+        from treeinfer.inference import ConvergenceCriterion
 
         def on_chunk(iteration, state):
             theta = np.asarray(jax.block_until_ready(state.position))
@@ -219,7 +222,7 @@ def child_reference_importance(args, problem, marks, record) -> int:
     about 1 % noise: 128 exact draws' bands scatter by 6.6 %). An exact sampler in the limit,
     unlike NNSVGD, whose 128 particles settle into a band 10-15 % narrower on this problem
     (``experiments/importance_robustness.py``, BENCHMARKS.md issue 15 fifth pass)."""
-    from treeinfer.fast_posterior import fast_posterior
+    from treeinfer.inference import fast_posterior
 
     n = 32 * args.particles
     res = fast_posterior(

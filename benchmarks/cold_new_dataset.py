@@ -31,7 +31,7 @@ SETS = {"a": (0, 300), "b": (1, 290)}  # data seed, samples per pull
 
 def write_sets(work: Path) -> dict[str, Path]:
     from benchmarks.time_to_posterior import DT, write_data
-    from treeinfer.trajectories import Trajectory, write_trajectory
+    from treeinfer.data.trajectories import Trajectory, write_trajectory
 
     out = {}
     for name, (seed, n) in SETS.items():

@@ -36,7 +36,7 @@ def collect(out: Path, inputs: list[Path]) -> dict:
                 data[key] = value
     if "rollout" in data:
         data.update(summary(data["rollout"]["rows"]))
-    from treeinfer._io import atomic_write_json
+    from treeinfer.io.atomic import atomic_write_json
 
     atomic_write_json(out, C._plain(data))
     return data

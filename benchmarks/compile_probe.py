@@ -3,7 +3,7 @@
     python -m benchmarks.compile_probe --report FILE -- infer --tree ... --init importance
 
 Writes ``{"rc", "wall_s", "xla_compiles", "compile_s", "compiled": [[name, s], ...],
-"cache_hits"}`` to FILE (:mod:`treeinfer.compile_stats`: an XLA compilation is a backend
+"cache_hits"}`` to FILE (:mod:`treeinfer.sim.compile_stats`: an XLA compilation is a backend
 compile not served by the persistent cache). ``tests/test_cold_start.py`` and the
 cold-start section of BENCHMARKS.md use it.
 """
@@ -22,7 +22,7 @@ def main(argv=None) -> int:
     report, command = argv[1], argv[3:]
     t0 = time.perf_counter()
     from treeinfer.cli.main import main as cli
-    from treeinfer.compile_stats import compile_stats
+    from treeinfer.sim.compile_stats import compile_stats
 
     stats = compile_stats()
     rc = cli(command)

@@ -39,7 +39,7 @@ DEFAULT_JOINTS = "1,3,6,12,25,50,100,120,200"
 
 def tree_with_joints(n: int):
     """A prefix of n branches of the generated L-system tree (see the module docstring)."""
-    from treeinfer import generators as gen
+    from treeinfer.tree import generators as gen
     from treeinfer.tree import make_tree
 
     full = gen.lsystem("F", {"F": "F[+F][-F]F"}, 5, angle_deg=25, step_length=0.3)

@@ -1,6 +1,6 @@
 """The importance path's band over seeds at the default (accuracy-controlled) step, against the
 exact reference: the standard problem's training pulls (``benchmarks/time_to_posterior.py``'s
-data), :func:`treeinfer.fast_posterior.fast_posterior` with the options given as JSON, one line
+data), :func:`treeinfer.inference.fast_posterior` with the options given as JSON, one line
 per seed (program runs per step, rounds, ESS, k_hat, band and its deviation).
 
     python -m benchmarks.fast_posterior_seeds --seeds 0-9
@@ -35,10 +35,9 @@ def main(argv=None) -> int:
     from benchmarks._ttp_child import DT, N_STEPS
     from benchmarks.inference import EXAMPLES
     from benchmarks.time_to_posterior import band_metrics, write_data
-    from treeinfer.fast_posterior import BatchEvaluator, default_chunk, fast_posterior
-    from treeinfer.inference import make_problem
+    from treeinfer.data.trajectories import Trajectory
+    from treeinfer.inference import BatchEvaluator, default_chunk, fast_posterior, make_problem
     from treeinfer.sim import make_simulator
-    from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 
     with tempfile.TemporaryDirectory() as tmp:

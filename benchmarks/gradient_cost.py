@@ -7,10 +7,10 @@ On the standard problem (three-branch example, R = 3, D = 6, 3 pulls x 300 steps
 particles) it times, interleaved in one process so machine load hits all alike:
 
 * ``rollout``: the batched log-likelihood of P particles (one rollout each): the unit;
-* ``fd``: :func:`treeinfer.gradients.central_difference`, P x (2D + 1) rollouts in one call;
-* ``jvp``: :func:`treeinfer.gradients.jvp_value_and_grad`, D tangents pushed through one
+* ``fd``: :func:`treeinfer.model.central_difference`, P x (2D + 1) rollouts in one call;
+* ``jvp``: :func:`treeinfer.model.jvp_value_and_grad`, D tangents pushed through one
   primal rollout (exact);
-* ``reverse`` (``--reverse``): :func:`treeinfer.gradients.autodiff_value_and_grad`;
+* ``reverse`` (``--reverse``): :func:`treeinfer.model.autodiff_value_and_grad`;
 * ``jvp_plain`` (``--plain-jvp``): ``jvp`` with the fused pull's sensitivity rule off
   (``treeinfer.sim.fused_backend.SENSITIVITY_RULE``): ``jax.jvp`` through the step code, the
   path before the rule;
@@ -42,12 +42,12 @@ def standard_likelihood(n_steps: int = 300, backend: str = "fused"):
     """(log-likelihood ``theta [N, 6] -> [N]``, theta_true [6]) of the standard problem, without
     the NN prior (it is not part of the gradient being timed)."""
     from benchmarks.inference import EXAMPLES
-    from treeinfer.forces import profile_set
-    from treeinfer.likelihood import DEFAULT_KT, boltzmann_log_likelihood
+    from treeinfer.data import profile_set
+    from treeinfer.data.trajectories import Trajectory, stack_trajectories
+    from treeinfer.model import DEFAULT_KT, boltzmann_log_likelihood
     from treeinfer.sim import make_simulator
     from treeinfer.sim.reference import simulate_reference
-    from treeinfer.synthetic import default_true_params
-    from treeinfer.trajectories import Trajectory, stack_trajectories
+    from treeinfer.sim.synthetic import default_true_params
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml")
@@ -95,7 +95,7 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
 
     import treeinfer.sim.pallas as pk
-    from treeinfer.gradients import autodiff_value_and_grad, central_difference, jvp_value_and_grad
+    from treeinfer.model import autodiff_value_and_grad, central_difference, jvp_value_and_grad
 
     # the kernel's tangent layout per jvp entry, set before each is traced (read at trace time)
     layouts = list(dict.fromkeys(args.layout or [pk.TANGENT_LAYOUT]))

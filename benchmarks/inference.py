@@ -44,11 +44,12 @@ EXAMPLES = Path(__file__).resolve().parent.parent / "treeinfer" / "examples"
 
 
 class SimulateCounter:
-    """Wraps ``treeinfer.likelihood.simulate`` (what the likelihood calls) with a Python counter:
-    every call is one trace of the simulator into a jitted program; ``rows`` records P of each."""
+    """Wraps ``treeinfer.model.likelihood.simulate`` (what the likelihood calls) with a Python
+    counter: every call is one trace of the simulator into a jitted program; ``rows`` records P of
+    each."""
 
     def __init__(self):
-        import treeinfer.likelihood as lik
+        import treeinfer.model.likelihood as lik
 
         self._lik = lik
         self._orig = lik.simulate
@@ -72,7 +73,7 @@ class UnrolledSimulate:
     measure loop overhead on the GPU without changing the library's defaults."""
 
     def __init__(self, unroll_outer: int = 1, unroll_inner=1):
-        import treeinfer.likelihood as lik
+        import treeinfer.model.likelihood as lik
 
         self._lik, self._orig = lik, lik.simulate
 
@@ -99,12 +100,12 @@ def make_standard_problem(
 
     ``accurate``: the issue-12 accuracy-controlled step (``make_simulator(forces=...)``, the
     run layer's default) instead of the stability step (fewest stable substeps)."""
-    from treeinfer.forces import profile_set
+    from treeinfer.data import profile_set
+    from treeinfer.data.trajectories import Trajectory
     from treeinfer.inference import make_problem
     from treeinfer.sim import make_simulator
     from treeinfer.sim.reference import simulate_reference
-    from treeinfer.synthetic import default_true_params
-    from treeinfer.trajectories import Trajectory
+    from treeinfer.sim.synthetic import default_true_params
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml") if tree is None else tree
@@ -248,14 +249,14 @@ def standard(args) -> dict:
 def step_state(problem, n_particles: int, mesh=None, method: str = "shard_map"):
     """(algorithm, state) for timing NNSVGD steps: the state ``init`` would give, except log p and
     grad zero (they only feed the first direction), so no separate compile of ``init`` is needed.
-    With ``mesh``, the particle axis is sharded over it (``treeinfer.sharding``)."""
+    With ``mesh``, the particle axis is sharded over it (``treeinfer.inference.sharding``)."""
     import jax
     import jax.numpy as jnp
 
     from treeinfer.inference import initial_particles
 
     if mesh is not None:
-        from treeinfer import sharding
+        from treeinfer.inference import sharding
 
         problem = sharding.shard_problem(problem, mesh, method)
     algorithm = problem.sampler("nnsvgd")

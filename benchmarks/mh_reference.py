@@ -4,7 +4,7 @@
 a reference posterior's. Its two references disagree: NNSVGD after 400 iterations (the paper's
 sampler) gives a band 10-16% narrower than 16 384 Student-t importance draws. This script
 settles which is right with a third method that shares neither's approximation: P random-walk
-MH chains (:func:`treeinfer.samplers.mh`, the library's sampler) on the same standard problem,
+MH chains (:func:`treeinfer.inference.mh`, the library's sampler) on the same standard problem,
 started from the importance draws, proposal ``2.38 / sqrt(D)`` times their covariance's
 Cholesky factor, warm-up discarded, thinned; R-hat (ArviZ, rank-normalised split) over the
 chains. Its band is reported the way the benchmark reports the importance reference's: the
@@ -41,11 +41,10 @@ def main(argv=None) -> int:
     from benchmarks._ttp_child import DT, N_STEPS
     from benchmarks.inference import EXAMPLES
     from benchmarks.time_to_posterior import reference_metrics, write_data
-    from treeinfer import arviz_compat
-    from treeinfer.fast_posterior import fast_posterior
-    from treeinfer.inference import infer, make_problem
+    from treeinfer.data.trajectories import Trajectory
+    from treeinfer.inference import fast_posterior, infer, make_problem
+    from treeinfer.inference.diagnostics import arviz_compat
     from treeinfer.sim import make_simulator
-    from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 
     t0 = time.time()

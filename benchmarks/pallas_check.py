@@ -30,7 +30,7 @@ def main(argv=None) -> int:
 
     from benchmarks import _common as C
     from benchmarks.gradient_cost import standard_likelihood
-    from treeinfer.gradients import central_difference, jvp_value_and_grad
+    from treeinfer.model import central_difference, jvp_value_and_grad
     from treeinfer.sim import simulate
 
     out = {"platform": jax.devices()[0].platform}

@@ -50,7 +50,7 @@ POOL = 64
 
 def bench_tree(n_branches: int):
     """A chain of ``n_branches`` tapering branches, every joint inferred, default prior box."""
-    from treeinfer.generators import chain
+    from treeinfer.tree import chain
 
     return chain(
         n_branches,
@@ -75,7 +75,7 @@ def sample_gains(tree, n: int, seed: int = 0):
 
 def pull_profile(n_steps: int, dt: float) -> np.ndarray:
     """[1, T] N: ramp to 8 N over the first half, hold."""
-    from treeinfer.forces import ramp_hold
+    from treeinfer.data import ramp_hold
 
     dur = n_steps * dt
     return ramp_hold(8.0, 0.5 * dur, 0.5 * dur - dt, dt, dur, dt)[None, :n_steps]
@@ -147,7 +147,7 @@ def run_tree(n_branches, batches, n_steps, args, out_rows, record, save=lambda: 
         kp = jnp.asarray(kp_pool[idx], jnp.float32)
         kd = jnp.asarray(kd_pool[idx], jnp.float32)
         if args.shard and jax.device_count() > 1 and n % jax.device_count() == 0:
-            from treeinfer.sharding import shard_particles
+            from treeinfer.inference import shard_particles
 
             kp, kd = shard_particles(kp), shard_particles(kd)  # XLA splits the batch over devices
         fj = jnp.asarray(forces, jnp.float32)

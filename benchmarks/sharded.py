@@ -6,9 +6,9 @@
 
 The standard problem (``benchmarks.inference``); for each particle count, one jitted step on
 the default device alone (unsharded) and one with particles (and their finite-difference rows)
-sharded over all devices (``treeinfer.sharding``); after timing, ``--check-steps`` steps from the
-same start in both ways give the largest difference of the particles. (With Adam, a first step
-moves each coordinate by about the learning rate times the sign of its update, so a coordinate
+sharded over all devices (``treeinfer.inference.sharding``); after timing, ``--check-steps`` steps
+from the same start in both ways give the largest difference of the particles. (With Adam, a first
+step moves each coordinate by about the learning rate times the sign of its update, so a coordinate
 whose Stein update is near zero can flip by ~2 x lr from rounding alone: compare
 ``value_and_grad_check``, the batched value and gradient evaluated both ways on the same
 particles, for accuracy.)
@@ -28,7 +28,7 @@ def main(argv=None) -> int:
     import jax
 
     from benchmarks.inference import make_standard_problem, step_time
-    from treeinfer import sharding
+    from treeinfer.inference import sharding
 
     p = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter

@@ -75,11 +75,11 @@ def main(argv=None) -> int:
 
     import numpy as np
 
-    from treeinfer.forces import profile_set
+    from treeinfer.data import profile_set
+    from treeinfer.data.trajectories import Trajectory
     from treeinfer.sim import make_simulator
     from treeinfer.sim.reference import simulate_reference
-    from treeinfer.synthetic import default_true_params
-    from treeinfer.trajectories import Trajectory
+    from treeinfer.sim.synthetic import default_true_params
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml")

@@ -32,8 +32,8 @@ def main(argv=None) -> dict:
     import jax
     import jax.numpy as jnp
 
+    from treeinfer.data import profile_set
     from treeinfer.examples import example_path
-    from treeinfer.forces import profile_set
     from treeinfer.sim import make_simulator, simulate
     from treeinfer.sim.accuracy import choose_substeps_for_accuracy
     from treeinfer.tree import load_tree

@@ -13,16 +13,16 @@ The standard problem (``benchmarks/inference.py``: three-branch example, R = 3, 
 * ``today``: today's code path, uniform initialisation in the prior box, central differences,
   ``--today-iterations`` (200, the paper's setting);
 * ``fast``: Levenberg–Marquardt MAP from ``--starts`` Latin-hypercube points, at most
-  ``--lm-iterations`` (40) (:func:`treeinfer.mapfit.fit_problem`), particles drawn around it
-  (:func:`treeinfer.mapfit.laplace_particles`; for the Boltzmann loss the Gaussian matched to
-  its cone-shaped density, :func:`treeinfer.mapfit.norm_loss_covariance`, at ``--laplace-scale``
-  1), NNSVGD with ``--fast-gradients`` (fd: on the CPU forward mode costs 2.6x central
-  differences, ``benchmarks/gradient_cost.py``), its Adam learning rate ramped up over
+  ``--lm-iterations`` (40) (:func:`treeinfer.inference.fit_problem`), particles drawn around it
+  (:func:`treeinfer.inference.mapfit.laplace_particles`; for the Boltzmann loss the Gaussian matched
+  to its cone-shaped density, :func:`treeinfer.inference.mapfit.norm_loss_covariance`, at
+  ``--laplace-scale`` 1), NNSVGD with ``--fast-gradients`` (fd: on the CPU forward mode costs 2.6x
+  central differences, ``benchmarks/gradient_cost.py``), its Adam learning rate ramped up over
   ``--fast-warmup`` iterations (the sampler's ``warmup`` option), stopped by
-  :class:`treeinfer.diagnostics.ConvergenceCriterion` (``--stop-when-converged``) or at
+  :class:`treeinfer.inference.ConvergenceCriterion` (``--stop-when-converged``) or at
   ``--fast-iterations`` (60).
 
-* ``importance``: :func:`treeinfer.fast_posterior.fast_posterior`, no sampler iterations: one
+* ``importance``: :func:`treeinfer.inference.fast_posterior`, no sampler iterations: one
   compiled rollout program screens ``4 K`` box points, runs Levenberg–Marquardt from the
   ``--is-starts`` best (its central-difference points are the program's batch K), and
   importance-samples the Boltzmann-matched Gaussian around the mode (Pareto-smoothed weights);
@@ -84,10 +84,10 @@ def write_data(folder: Path, data_seed: int = 0) -> None:
     profiles' seeds are ``2 data_seed`` and ``2 data_seed + 1`` (seed 0: the benchmark's data
     as before), the tree's true gains are the same for every data seed."""
     from benchmarks.inference import EXAMPLES
-    from treeinfer.forces import profile_set
+    from treeinfer.data import profile_set
     from treeinfer.sim import make_simulator
     from treeinfer.sim.reference import simulate_reference
-    from treeinfer.synthetic import default_true_params
+    from treeinfer.sim.synthetic import default_true_params
     from treeinfer.tree import load_tree
 
     tree = load_tree(EXAMPLES / "three_branch.yaml")
@@ -114,8 +114,8 @@ def warm_nn_prior() -> None:
 # ---- comparison (parent) -----------------------------------------------------------------------
 def band_metrics(sim, theta, forces, truth) -> dict:
     """95% predictive band of particles ``theta`` on ``forces`` against noise-free ``truth``."""
-    from treeinfer.inference import predict
-    from treeinfer.metrics import summarize
+    from treeinfer.evaluation import summarize
+    from treeinfer.inference.problem import predict
 
     roll = predict(sim, np.asarray(theta, np.float32), forces)
     s = summarize(roll.tau, truth, valid=np.all(np.asarray(roll.stable), axis=1))
@@ -428,7 +428,7 @@ def compare(runs: dict, workdir: Path, args) -> dict:
             "load_average_after": rec.get("load_average_after"),
             "compile_cache_entries_at_start": rec.get("compile_cache_entries_at_start"),
             "data_seed": args.data_seed,
-            # this child's XLA compilations and persistent-cache loads (treeinfer.compile_stats)
+            # this child's XLA compilations and persistent-cache loads (treeinfer.sim.compile_stats)
             "xla_compiles": (rec.get("compile_stats") or {}).get("xla_compiles"),
             "compile_s": (rec.get("compile_stats") or {}).get("compile_s"),
             "compiled": (rec.get("compile_stats") or {}).get("compiled"),

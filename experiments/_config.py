@@ -14,8 +14,8 @@ if str(ROOT) not in sys.path:  # run as `python experiments/<study>.py` from any
     sys.path.insert(0, str(ROOT))
 
 from treeinfer.errors import ConfigError
-from treeinfer.noise import NOISE_KINDS, check_sigma  # noqa: E402
-from treeinfer.samplers import REGISTRY, SAMPLER_NAMES
+from treeinfer.inference import REGISTRY, SAMPLER_NAMES
+from treeinfer.model import NOISE_KINDS, check_sigma  # noqa: E402
 
 EXAMPLES = ROOT / "treeinfer" / "examples"
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -26,15 +26,15 @@ SAMPLER_LABELS = {name: name.upper() for name in REGISTRY}  # table and figure l
 
 # Modules whose code decides a posterior; a change to any of them invalidates the posterior cache.
 _POSTERIOR_MODULES = (
-    "treeinfer.inference",
-    "treeinfer.likelihood",
+    "treeinfer.inference.problem",
+    "treeinfer.model.likelihood",
     "treeinfer.sim",
-    "treeinfer.priors",
-    "treeinfer.gradients",
-    "treeinfer.tree",
-    "treeinfer.export",
-    "treeinfer.trajectories",
-    "treeinfer.samplers",
+    "treeinfer.model.priors",
+    "treeinfer.model.gradients",
+    "treeinfer.tree.description",
+    "treeinfer.tree.export",
+    "treeinfer.data.trajectories",
+    "treeinfer.inference.samplers",
 )
 
 
@@ -49,15 +49,15 @@ class StudyConfig:
       tree: a built-in example name (``treeinfer/examples/<tree>.yaml``) or a path.
       dt: s between samples; duration: s per trajectory (T = duration / dt samples).
       n_train, n_test: training / unseen test trajectories.
-      profile_kind, peak_range: the random force profiles (:func:`treeinfer.forces.random_specs`;
+      profile_kind, peak_range: the random force profiles (:func:`treeinfer.data.random_specs`;
         N for the peaks).
       n_particles, n_iterations: the same for every sampler (paper: "all hyper-parameters ...
         similar across the algorithms").
       samplers: the samplers run (one condition each, except in the noise and grasp studies).
-      sampler_options: per-sampler overrides of :data:`treeinfer.samplers.REGISTRY` defaults.
+      sampler_options: per-sampler overrides of :data:`treeinfer.inference.REGISTRY` defaults.
       kT, eta: likelihood temperature and inequality-prior slope (None: the library default).
       likelihood: ``boltzmann`` (the paper's loss, default) or a generative noise model
-        (``gaussian``, ``student_t``, ``ar1``: :mod:`treeinfer.noise`); then the headline band
+        (``gaussian``, ``student_t``, ``ar1``: :mod:`treeinfer.model.noise`); then the headline band
         is the predictive band (simulations + fitted noise).
       noise_displacement: m, fixed sigma_x of the generative likelihoods (None: inferred as an
         extra theta column).

@@ -22,7 +22,7 @@ class SyntheticData(NamedTuple):
 
     tree, sim: the tree (grasp at the training location) and its MJX simulator.
     kp, kd: [R] true gains (N m/rad, N m s/rad); theta: [2R] their natural logs.
-    train, test: lists of :class:`~treeinfer.trajectories.Trajectory` (s, N, m, m/s).
+    train, test: lists of :class:`~treeinfer.data.trajectories.Trajectory` (s, N, m, m/s).
     test_grasp: [n_test] fraction of the branch length where each test trajectory was recorded.
     train_specs, test_specs: the force profile specs (replayable with ``forces.from_spec``).
     """
@@ -39,7 +39,7 @@ class SyntheticData(NamedTuple):
     test_specs: list
 
     def true_params(self) -> dict:
-        from treeinfer.trajectories import true_params_record
+        from treeinfer.data.trajectories import true_params_record
 
         return true_params_record(self.tree, self.kp, self.kd, "experiments (default_true_params)")
 
@@ -67,8 +67,8 @@ def reference_trajectory(
     sim, kp, kd, force: np.ndarray, dt: float, source: str, grasp_fraction=None
 ):
     """Ground truth of one pull from plain MuJoCo (float64), as a Trajectory."""
+    from treeinfer.data.trajectories import Trajectory, validate_trajectory
     from treeinfer.sim.reference import simulate_reference
-    from treeinfer.trajectories import Trajectory, validate_trajectory
 
     tau, tau_dot = simulate_reference(sim, kp, kd, force, grasp_fraction)
     if not (np.all(np.isfinite(tau)) and np.max(np.abs(tau)) < sim.max_displacement):
@@ -84,8 +84,8 @@ def make_data(cfg: StudyConfig, seed: int, sims=None) -> SyntheticData:
 
     The grasp study's test set is its first ``n_test_per_location`` test profiles pulled at each
     of ``cfg.grasp_locations``; every other study's is ``n_test`` profiles at the tree's grasp."""
-    from treeinfer.forces import from_spec, random_specs
-    from treeinfer.synthetic import default_true_params
+    from treeinfer.data import from_spec, random_specs
+    from treeinfer.sim.synthetic import default_true_params
 
     tree, sim = _simulator(str(tree_path(cfg.tree)), float(cfg.dt), sims)
     rng = seed_streams(seed)
@@ -130,10 +130,10 @@ def noise_sigmas(data: SyntheticData, level: float) -> tuple[float, float]:
 
 def add_relative_noise(data: SyntheticData, level: float, seed: int) -> tuple[SyntheticData, dict]:
     """``data`` with white Gaussian noise on force and displacement of every training and test
-    trajectory (:func:`treeinfer.trajectories.add_noise`, velocities then differentiated from the
+    trajectory (:func:`treeinfer.data.add_noise`, velocities then differentiated from the
     noisy displacement, as for a recording). The generator is seeded by ``(seed, level)``, so a
     level's noise does not depend on which other levels are run."""
-    from treeinfer.trajectories import add_noise
+    from treeinfer.data import add_noise
 
     sf, sx = noise_sigmas(data, level)
     info = {"level": level, "sigma_force_N": sf, "sigma_displacement_m": sx}

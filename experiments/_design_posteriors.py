@@ -1,6 +1,6 @@
 """Data, posteriors and references of the design study (``experiments/design_study.py``): the
 noisy pulls, every arm's posterior through the batched programs of
-:mod:`treeinfer.batch_posteriors`, the held-out band and the Cramér-Rao reference."""
+:mod:`treeinfer.inference.batch`, the held-out band and the Cramér-Rao reference."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from experiments.common import reference_trajectory
 
 def _pull(sim, kp, kd, cand, cfg: DesignConfig, rng, name: str):
     """A noisy recording of candidate ``cand`` (ground truth from MuJoCo C)."""
+    from treeinfer.data import add_noise
     from treeinfer.design import candidate_forces
-    from treeinfer.trajectories import add_noise
 
     force = candidate_forces([cand], cfg.duration, cfg.dt)[0]
     clean = reference_trajectory(sim, kp, kd, force, cfg.dt, name, cand.grasp_fraction)
@@ -34,7 +34,7 @@ class _Post:
 
 def _kT(obs, cfg: DesignConfig) -> float:
     """The data set's Boltzmann temperature for the study's noise (see ``kT_velocity``)."""
-    from treeinfer.likelihood import signal_omega2, suggest_kT
+    from treeinfer.model.likelihood import signal_omega2, suggest_kT
 
     sigma = cfg.noise_mm * 1e-3
     omega2 = signal_omega2(obs, sigma) if cfg.kT_velocity else 0.0
@@ -43,13 +43,12 @@ def _kT(obs, cfg: DesignConfig) -> float:
 
 def _starts(tree, sim, kts, obs, grasp, seeds, cfg: DesignConfig, programs) -> list[np.ndarray]:
     """``[P, D]`` starting particles of each posterior (see the module docstring): Laplace draws
-    around a MAP fit of each data set (:func:`treeinfer.batch_posteriors.map_fits`: mapfit's
+    around a MAP fit of each data set (:func:`treeinfer.inference.map_fits`: mapfit's
     Levenberg-Marquardt fit, all data sets in one compiled program), or uniform in the box."""
     import jax
 
-    from treeinfer.batch_posteriors import map_fits
-    from treeinfer.inference import initial_particles, make_problem
-    from treeinfer.mapfit import laplace_particles
+    from treeinfer.inference import initial_particles, make_problem, map_fits
+    from treeinfer.inference.mapfit import laplace_particles
 
     if cfg.init == "uniform":
         problem = make_problem(
@@ -80,9 +79,9 @@ def _starts(tree, sim, kts, obs, grasp, seeds, cfg: DesignConfig, programs) -> l
 def _posteriors(tree, sim, jobs: list, cfg: DesignConfig, programs) -> list[_Post]:
     """Posteriors of ``jobs`` = [(trajectories, grasp fractions, seed)], all with the same
     number of pulls, through one batched NNSVGD program (``cfg.batch`` data sets per call);
-    ``programs``: the study's :class:`treeinfer.program_cache.ProgramCache`."""
-    from treeinfer.batch_posteriors import posterior_program, run_posteriors
-    from treeinfer.trajectories import stack_trajectories
+    ``programs``: the study's :class:`treeinfer.sim.program_cache.ProgramCache`."""
+    from treeinfer.data import stack_trajectories
+    from treeinfer.inference import posterior_program, run_posteriors
 
     program = posterior_program(
         tree,
@@ -114,8 +113,8 @@ def _posteriors(tree, sim, jobs: list, cfg: DesignConfig, programs) -> list[_Pos
 
 def _band_width(sim, theta, valid, force, grasp, level) -> float:
     """Mean over time of the ``level`` predictive band's width (m) at the held-out manipulation."""
-    from treeinfer.inference import predict
-    from treeinfer.metrics import predictive_interval
+    from treeinfer.evaluation.metrics import predictive_interval
+    from treeinfer.inference.problem import predict
 
     r = predict(sim, theta, force[None], grasp_fraction=np.array([grasp]))
     ok = np.asarray(r.stable[:, 0]) & np.asarray(valid)
@@ -157,7 +156,7 @@ def _fisher_reference(sim, theta_true, cands, cfg: DesignConfig) -> dict:
 
 def run_seeds(cfg: DesignConfig, tree, sim, seeds: list[int], quiet: bool, programs=None):
     """The study for ``seeds``: returns ``(per-seed records, suggestions of the first seed)``.
-    ``programs``: the :class:`treeinfer.program_cache.ProgramCache` of the batched MAP and
+    ``programs``: the :class:`treeinfer.sim.program_cache.ProgramCache` of the batched MAP and
     sampler programs, shared by both stages (and by later calls); None: one for this call."""
     from treeinfer.design import (
         Candidate,
@@ -166,8 +165,8 @@ def run_seeds(cfg: DesignConfig, tree, sim, seeds: list[int], quiet: bool, progr
         candidate_grid,
         score_candidates,
     )
-    from treeinfer.program_cache import ProgramCache
-    from treeinfer.synthetic import default_true_params
+    from treeinfer.sim.program_cache import ProgramCache
+    from treeinfer.sim.synthetic import default_true_params
 
     programs = ProgramCache() if programs is None else programs
 

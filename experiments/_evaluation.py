@@ -48,8 +48,8 @@ def predict_all(problem, theta: np.ndarray, data: SyntheticData) -> Predictions:
     """One batched prediction of ``theta`` on the training and test forces (one compiled shape
     per size: the grasp fraction is always passed per profile)."""
     from treeinfer.evaluation import rollout_loglik
-    from treeinfer.inference import predict
-    from treeinfer.likelihood import noise_params_from_theta, predictive_noise_kind
+    from treeinfer.inference.problem import predict
+    from treeinfer.model.likelihood import noise_params_from_theta, predictive_noise_kind
     from treeinfer.sim import Rollout
 
     n_train = len(data.train)
@@ -75,9 +75,9 @@ def metrics_for(
     pred: Predictions, theta: np.ndarray, data: SyntheticData, problem, cfg: StudyConfig, idx=None
 ) -> dict:
     """The paper's metrics on test trajectories ``idx`` (default all) plus the posterior against the
-    truth, as :func:`treeinfer.metrics.summarize` reports them; ``{"error": ...}`` when fewer than
-    two particles simulate stably (no predictive distribution)."""
-    from treeinfer.metrics import summarize
+    truth, as :func:`treeinfer.evaluation.summarize` reports them; ``{"error": ...}`` when fewer
+    than two particles simulate stably (no predictive distribution)."""
+    from treeinfer.evaluation import summarize
 
     idx = np.arange(len(data.test)) if idx is None else np.asarray(idx)
     gt = np.stack([data.test[i].displacement for i in idx])
@@ -112,7 +112,7 @@ def metrics_for(
 def interval_metrics(pred: Predictions, gt: np.ndarray, cfg: StudyConfig) -> dict:
     """CI width, % outside and predictive NLL of the test predictions against another ground
     truth ``gt [n_test, T]`` (e.g. the noise-free displacement in the noise study)."""
-    from treeinfer.metrics import summarize
+    from treeinfer.evaluation import summarize
 
     try:
         m = summarize(
@@ -141,7 +141,7 @@ def parameter_metrics(
 ) -> dict:
     """Posterior ``theta [P, D]`` vs the truth in log space (``parameters``,
     ``truth_in_joint_region``, ``mean_abs_log_error``, ``n_params_in_interval``)."""
-    from treeinfer.metrics import posterior_vs_truth
+    from treeinfer.evaluation import posterior_vs_truth
 
     n_gains = len(data.theta)  # the noise columns of a generative likelihood have no truth
     theta = np.asarray(theta)[:, :n_gains]
@@ -210,7 +210,7 @@ class Bands(NamedTuple):
 def bands_for(
     pred: Predictions, data: SyntheticData, idx: Sequence[int], level: float, max_samples: int = 10
 ) -> Bands:
-    from treeinfer.metrics import predictive_interval
+    from treeinfer.evaluation.metrics import predictive_interval
 
     idx = np.asarray(idx)
     gt = np.stack([data.test[i].displacement for i in idx])
@@ -234,7 +234,7 @@ def band_grid(
 ):
     """Rows = conditions, columns = test trajectories (paper Fig. 3/5 layout); ``transpose``
     puts the conditions in columns instead (Fig. 6: one column per grasp location)."""
-    from treeinfer.plots import plot_band_grid
+    from treeinfer.evaluation import plot_band_grid
 
     names = list(rows)
     stack = lambda f: np.stack([getattr(rows[n], f) for n in names])
@@ -257,7 +257,7 @@ def band_grid(
 
 def metric_figure(names: Sequence[str], conditions: Sequence[dict], title: str, keys=None):
     """Bars of CI width, % GT outside and predictive NLL per condition (NaN for failed ones)."""
-    from treeinfer.plots import metric_bars
+    from treeinfer.evaluation.plots import metric_bars
 
     keys = keys or {
         "95% CI width [m]": "ci_width",
@@ -274,7 +274,7 @@ def metric_figure(names: Sequence[str], conditions: Sequence[dict], title: str, 
 
 def pair_figure(sets: dict[str, np.ndarray], labels: Sequence[str], truth: np.ndarray, title: str):
     """Pair plot of log-parameter particles of several posteriors with the truth (paper Fig. 4)."""
-    from treeinfer.plots import pair_plot
+    from treeinfer.evaluation.plots import pair_plot
 
     fig, _ = pair_plot(sets, [f"ln {lab}" for lab in labels], truth, title=title)
     return fig

@@ -12,9 +12,9 @@ at 90% of the last one, the default prior box Kp 5-500 N m/rad, Kd 0.05-10 N m s
 * ``chain3``: three joints (0.8 m + 0.6 m + 0.4 m).
 
 Per seed (``numpy.random.SeedSequence([case index, seed]).spawn(4)``: truths, training pulls,
-test pulls, noise): the true gains of :func:`treeinfer.synthetic.default_true_params` (middle of
+test pulls, noise): the true gains of :func:`treeinfer.sim.synthetic.default_true_params` (middle of
 the log box, parent >= child, as ``treeinfer simulate`` draws them), training and UNSEEN test
-pulls from :func:`treeinfer.forces.random_specs` (``mixed``: ramp-hold-release and hold, peaks
+pulls from :func:`treeinfer.data.random_specs` (``mixed``: ramp-hold-release and hold, peaks
 2-8 N), then white noise: ``sigma_x`` on displacement and ``force_level`` times the largest
 peak force of the data set on force (one sensor, one level), as ``experiments/coverage.py``.
 """
@@ -34,8 +34,8 @@ CASES = ("chain2", "chain3")
 
 def case_tree(name: str):
     """The tree of case ``name`` (``chain2`` or ``chain3``)."""
-    from treeinfer.generators import chain
-    from treeinfer.tree import Bounds
+    from treeinfer.tree import chain
+    from treeinfer.tree.description import Bounds
 
     n = {"chain2": 2, "chain3": 3}[name]
     return chain(
@@ -75,9 +75,9 @@ def make_case(
     force_level: float = FORCE_LEVEL,
 ) -> Case:
     """The clean pulls of case ``name`` at ``seed`` (noise is added by :func:`noisy`)."""
-    from treeinfer.forces import from_spec, random_specs
+    from treeinfer.data import from_spec, random_specs
     from treeinfer.sim.planar_reference import PlanarTree
-    from treeinfer.synthetic import default_true_params
+    from treeinfer.sim.synthetic import default_true_params
 
     tree = case_tree(name)
     streams = [
@@ -120,7 +120,7 @@ def write_folder(path: Path, tree, kp, kd, force: np.ndarray, tau: np.ndarray, d
     """A data folder ``treeinfer infer``/``evaluate`` read: ``<tag><i>.csv`` per pull (no
     velocity column: treeinfer differentiates the recorded displacement, as for a recording)
     and ``true_params.json`` (so ``evaluate`` reports the posterior against the truth)."""
-    from treeinfer.trajectories import Trajectory, write_trajectory
+    from treeinfer.data.trajectories import Trajectory, write_trajectory
 
     path.mkdir(parents=True, exist_ok=True)
     t = np.arange(force.shape[1]) * dt

@@ -20,8 +20,8 @@ if str(ROOT) not in sys.path:  # run as `python experiments/<study>.py` from any
 from experiments._config import _POSTERIOR_MODULES, StudyConfig  # noqa: E402
 from experiments._data import SyntheticData  # noqa: E402
 from treeinfer import __version__
-from treeinfer._io import atomic_save
-from treeinfer.samplers import sampler_options
+from treeinfer.inference import sampler_options
+from treeinfer.io.atomic import atomic_save
 
 
 # ==== inference ===================================================================================
@@ -85,7 +85,7 @@ def posterior_key(
     problem, sampler: str, n_particles: int, n_iterations: int, seed: int, options: dict
 ) -> tuple[str, dict]:
     """Cache key and its description: everything that determines the sampler's output."""
-    from treeinfer.tree import tree_to_dict
+    from treeinfer.tree.description import tree_to_dict
 
     desc = {
         "sampler": sampler,

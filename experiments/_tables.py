@@ -18,7 +18,7 @@ if str(ROOT) not in sys.path:  # run as `python experiments/<study>.py` from any
 
 from experiments._config import Context, StudyConfig  # noqa: E402
 from experiments._data import SyntheticData  # noqa: E402
-from treeinfer._io import atomic_write_json, atomic_write_text, staged_output_dir
+from treeinfer.io.atomic import atomic_write_json, atomic_write_text, staged_output_dir
 
 
 # ==== results =====================================================================================
@@ -56,15 +56,15 @@ Metric definitions (all on unseen test trajectories unless noted):
 
 - **95% CI width** [m]: per test time step, the central 95% interval of a 1-D Gaussian KDE
   (Scott's rule) over the particles' predicted displacements
-  (`treeinfer.metrics.predictive_interval`);
+  (`treeinfer.evaluation.metrics.predictive_interval`);
   the width is averaged over all test points (trajectories x time steps).
 - **% GT outside**: share of ground-truth test points outside that interval, in percent.
 - **NLL / test point**: negative log density of each ground-truth test point under the same
-  per-step KDE, averaged over points (nats; `treeinfer.metrics.predictive_nll`). The total over
+  per-step KDE, averaged over points (nats; `treeinfer.evaluation.predictive_nll`). The total over
   all points is `predictive_nll` in results.json.
 - **Posterior NLL (train)**: our reading of the paper's Table I "Nll of the estimated posterior
   from the training trajectories": minus the particle average of the Boltzmann log-likelihood
-  `-sum_b L_b(theta) / kT` over the training trajectories (`treeinfer.metrics.posterior_nll`);
+  `-sum_b L_b(theta) / kT` over the training trajectories (`treeinfer.evaluation.posterior_nll`);
   its scale depends on kT and on the number and length of the trajectories.
 - **|log error|**: mean over the 2R parameters of |posterior mean of ln K - ln K_true|
   (0.1 is about 10% off); **in 95%**: how many true parameters lie inside the posterior's
@@ -155,7 +155,7 @@ def write_results(
 ) -> Path:
     """Write ``results.json`` (record + config + seed + versions + wall time), ``results.md`` and
     the PNG figures into ``ctx.out`` atomically (a staged folder renamed into place)."""
-    from treeinfer.plots import save_figure
+    from treeinfer.evaluation import save_figure
 
     record = {
         "study": ctx.cfg.study,

@@ -40,7 +40,7 @@ from experiments._planar_cases import CASES, SIGMA_X, make_case  # noqa: E402
 
 
 def main(argv=None) -> dict:
-    from treeinfer.inference import predict
+    from treeinfer.inference.problem import predict
     from treeinfer.sim import make_simulator
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

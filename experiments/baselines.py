@@ -131,7 +131,7 @@ def run(argv=None) -> int:
 
 
 def _trace_figure(post, name: str):
-    from treeinfer.plots import plot_trace
+    from treeinfer.evaluation.plots import plot_trace
 
     fig, _ = plot_trace(
         post.trace_logdensity,

@@ -13,7 +13,7 @@ prior ``log sigma_x ~ Normal(log 2 mm, 0.5)``), 5 training and 25 unseen test pu
   posterior std / Cramer-Rao ratio per parameter.
 * ``noisy``: the same plus 2% force noise (of each data set's peak force) on the recorded
   forces that drive inference, as on a real robot: a misspecification the model absorbs into
-  sigma_x (see :mod:`treeinfer.noise`). Its SBC ranks show the effect on the gains; its
+  sigma_x (see :mod:`treeinfer.model.noise`). Its SBC ranks show the effect on the gains; its
   predictive coverage is the figure for noisy recordings.
 
 Sampler: adaptive tempered SMC from exact prior draws (:mod:`treeinfer.calibration.smc`), all
@@ -134,9 +134,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     import treeinfer
-    from treeinfer._io import atomic_write_json, atomic_write_text, staged_output_dir
     from treeinfer.calibration import SBCConfig, config_record, run_tree_sbc, write_outputs
-    from treeinfer.runs.provenance import versions
+    from treeinfer.io import versions
+    from treeinfer.io.atomic import atomic_write_json, atomic_write_text, staged_output_dir
     from treeinfer.tree import load_tree
 
     treeinfer.enable_compilation_cache()

@@ -11,7 +11,7 @@ Sim-to-sim protocol (paper, "Sim-to-sim"):
   :func:`treeinfer.sim.reference.simulate_reference`), an execution path independent of the
   batched MJX simulator (float32) that inference uses; only the force-deformation trajectories
   pass from one to the other. True parameters are drawn by
-  :func:`treeinfer.synthetic.default_true_params` (log-uniform in the middle third of the prior
+  :func:`treeinfer.sim.synthetic.default_true_params` (log-uniform in the middle third of the prior
   box, parent >= child), as ``treeinfer simulate`` does.
 * **Training and test sets** use different force profiles drawn from independent seed streams
   (``numpy.random.SeedSequence(seed).spawn``): the test trajectories are never seen by inference.
@@ -51,7 +51,7 @@ from experiments._config import (  # noqa: E402  (re-exported: scripts import th
     tree_path,
 )
 from treeinfer.errors import ConfigError, OutputExistsError, TreeinferError
-from treeinfer.samplers import REGISTRY
+from treeinfer.inference import REGISTRY
 
 
 # ==== command line ================================================================================
@@ -136,7 +136,7 @@ def context_from_args(study: str, args: argparse.Namespace, **overrides) -> Cont
     elif args.cache is not None:
         cache = args.cache
     else:
-        from treeinfer.priors import default_cache_dir
+        from treeinfer.model import default_cache_dir
 
         cache = default_cache_dir() / "posteriors"
     out = args.out if args.out is not None else RESULTS / study

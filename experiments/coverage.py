@@ -9,21 +9,21 @@ displacement, as for a recording. ``--likelihood ar1|student_t`` fits the other 
 
 Fit: ``likelihood_terms(kind="gaussian")`` (sigma_x inferred jointly, prior centred on the data
 estimate) + the smoothed log box prior on the gains, sampled with numpyro's NUTS through the
-finite-difference custom_jvp simulator (``treeinfer.gradients.finite_difference_jvp``), started
+finite-difference custom_jvp simulator (``treeinfer.model.finite_difference_jvp``), started
 from the best of a few Adam maximisations. NUTS is used so the figures judge the LIKELIHOOD,
 not a particle sampler's approximation.
 
 Reported per tree:
 
 * % of noisy unseen test points inside the 95% PREDICTIVE band (simulation + fitted noise,
-  :func:`treeinfer.metrics.noisy_predictive_interval`), and inside the parameter-only band;
-  predictive NLL per point (:func:`treeinfer.metrics.noisy_predictive_nll`). Test predictions
-  are driven by the recorded (noisy) test forces, as they would be for a real recording.
+  :func:`treeinfer.evaluation.metrics.noisy_predictive_interval`), and inside the parameter-only
+  band; predictive NLL per point (:func:`treeinfer.evaluation.metrics.noisy_predictive_nll`). Test
+  predictions are driven by the recorded (noisy) test forces, as they would be for a real recording.
 * posterior std / Cramer-Rao bound per parameter, in log units: CRB from the simulator's
   sensitivities at the truth on the recorded training forces, ``Fisher = J^T J / sigma^2``
   (J by central differences, sigma = 2 mm, the displacement noise), which ignores the force
   noise (ratios above 1 expected with it), and the bound WITH the force noise,
-  ``Fisher = sum_b J_b^T (C_b + sigma^2 I)^-1 J_b``, ``C_b`` of :mod:`treeinfer.force_noise`
+  ``Fisher = sum_b J_b^T (C_b + sigma^2 I)^-1 J_b``, ``C_b`` of :mod:`treeinfer.model.force_noise`
   at the truth (the one to compare with under ``--noise-force``).
 * with ``--noise-force``: ``force_noise_rms_mm``, sqrt(mean diag C) of the training pulls at
   the reference (2.3 mm for two_branch at full size; 0 would mean the term is not there), and
@@ -91,12 +91,12 @@ def make_case(
 ):
     """The benchmark case: ``(tree, sim, kp, kd, train, test, sigma_F)``, train/test noisy
     :class:`Trajectory` lists; ``with_clean``: the clean train and test pulls appended."""
+    from treeinfer.data import from_spec, random_specs
+    from treeinfer.data.trajectories import Trajectory, add_noise
     from treeinfer.examples import example_path
-    from treeinfer.forces import from_spec, random_specs
     from treeinfer.sim import make_simulator
     from treeinfer.sim.reference import simulate_reference
-    from treeinfer.synthetic import default_true_params
-    from treeinfer.trajectories import Trajectory, add_noise
+    from treeinfer.sim.synthetic import default_true_params
     from treeinfer.tree import load_tree
 
     tree = load_tree(example_path(tree_name))
@@ -131,9 +131,9 @@ def fit(tree, sim, train, size: dict, seed: int, kind: str = "gaussian", noise_f
     import optax
     from numpyro.infer import MCMC, NUTS
 
+    from treeinfer.data import stack_trajectories
     from treeinfer.inference import box_prior
-    from treeinfer.likelihood import likelihood_terms
-    from treeinfer.trajectories import stack_trajectories
+    from treeinfer.model import likelihood_terms
 
     obs = stack_trajectories(train)
     terms = likelihood_terms(sim, obs, kind, noise_force=noise_force)
@@ -192,13 +192,14 @@ def crb_log_std(sim, kp, kd, train, sigma_force=None) -> np.ndarray:
 
     With ``sigma_force`` (N) the bound of the errors-in-variables model instead: per pull
     ``Fisher_b = J_b^T (C_b + sigma^2 I)^-1 J_b``, ``C_b = sigma_F^2 J_F J_F^T`` at the truth
-    (treeinfer.force_noise), i.e. the information left once the force noise is accounted for."""
+    (treeinfer.model.force_noise), i.e. the information left once the force noise is accounted
+    for."""
     import jax.numpy as jnp
 
-    from treeinfer.gradients import central_difference_jacobian
-    from treeinfer.likelihood import gains_from_theta
+    from treeinfer.data import stack_trajectories
+    from treeinfer.model import central_difference_jacobian
+    from treeinfer.model.likelihood import gains_from_theta
     from treeinfer.sim import simulate
-    from treeinfer.trajectories import stack_trajectories
 
     obs = stack_trajectories(train)
     forces = jnp.asarray(obs.force, jnp.float32)
@@ -215,7 +216,7 @@ def crb_log_std(sim, kp, kd, train, sigma_force=None) -> np.ndarray:
         j = np.asarray(jac[0], float)[mask]  # [n, 2R]
         fisher = j.T @ j / SIGMA_X**2
         return np.sqrt(np.diag(np.linalg.inv(fisher)))
-    from treeinfer.force_noise import force_noise_basis
+    from treeinfer.model import force_noise_basis
 
     theta_true = np.log(np.concatenate([kp, kd]))
     cov = force_noise_basis(sim, theta_true, obs.force, sigma_force, mask).covariance()
@@ -235,7 +236,7 @@ def force_noise_check(name: str, size: dict, seed: int, force_level: float, n_mc
 
     * ``sim_mismatch_rms_mm``: RMS of MuJoCo C (``simulate_reference``, which made the data) minus
       the inference simulator on the clean training forces, per pull (model error, vs 2 mm);
-    * ``force_rms_mm``: ``sqrt(mean diag C)`` of :func:`treeinfer.force_noise.point_variance`
+    * ``force_rms_mm``: ``sqrt(mean diag C)`` of :func:`treeinfer.model.point_variance`
       per training pull, and ``mc_rms_mm_reference`` / ``mc_rms_mm_inference``: the same from
       the Monte-Carlo variance of ``n_mc`` rollouts of training pull 0 driven by its clean force
       plus white noise of std sigma_F, by MuJoCo C and by the inference simulator (no
@@ -253,11 +254,11 @@ def force_noise_check(name: str, size: dict, seed: int, force_level: float, n_mc
     """
     import jax.numpy as jnp
 
-    from treeinfer import force_noise as fn
-    from treeinfer.likelihood import gains_from_theta, likelihood_terms
+    from treeinfer.data import stack_trajectories
+    from treeinfer.model import force_noise as fn
+    from treeinfer.model.likelihood import gains_from_theta, likelihood_terms
     from treeinfer.sim import simulate
     from treeinfer.sim.reference import simulate_reference
-    from treeinfer.trajectories import stack_trajectories
 
     tree, sim, kp, kd, train, test, sf, clean, clean_test = make_case(
         name, size, seed, force_level, with_clean=True
@@ -350,14 +351,14 @@ def evaluate(
     import jax
     import jax.numpy as jnp
 
-    from treeinfer import metrics
-    from treeinfer.likelihood import (
+    from treeinfer.data import stack_trajectories
+    from treeinfer.evaluation import metrics
+    from treeinfer.model.likelihood import (
         gains_from_theta,
         noise_params_from_theta,
         predictive_noise_kind,
     )
     from treeinfer.sim import simulate
-    from treeinfer.trajectories import stack_trajectories
 
     obs = stack_trajectories(test)
     idx = np.linspace(0, len(samples) - 1, n_pred).astype(int)
@@ -368,10 +369,10 @@ def evaluate(
     sigma = noise_params_from_theta(th, sim.n_joints, sigma_x)
     band_kind = predictive_noise_kind(kind)
     # errors-in-variables: the test pulls are driven by their RECORDED (noisy) forces, so the
-    # predictive band adds diag C of each test pull's own force (treeinfer.force_noise)
+    # predictive band adds diag C of each test pull's own force (treeinfer.model.force_noise)
     extra = None
     if force_noise is not None:
-        from treeinfer.force_noise import point_variance
+        from treeinfer.model import point_variance
 
         extra = point_variance(force_noise.basis(sim, obs.force, np.asarray(obs.mask, bool)))
     bands = metrics.predictive_bands(ro.tau, sigma, level, valid, band_kind, extra_variance=extra)
@@ -475,8 +476,8 @@ def main(argv=None) -> int:
         )
         force_rms = None  # sqrt(mean diag C) on the training pulls at theta_ref, mm
         if terms.force_noise is not None:
-            from treeinfer.force_noise import point_variance
-            from treeinfer.trajectories import stack_trajectories
+            from treeinfer.data import stack_trajectories
+            from treeinfer.model import point_variance
 
             tobs = stack_trajectories(train)
             pv = point_variance(terms.force_noise.basis(sim, tobs.force, np.asarray(tobs.mask)))

@@ -82,8 +82,8 @@ def _crb(case, substeps: int) -> tuple[dict, dict]:
     """Cramer-Rao std of each log parameter at the truth on the NOISY training forces (as a fit
     sees them), without and with the force noise; the simulator at the run's own step."""
     from experiments.coverage import crb_log_std
+    from treeinfer.data.trajectories import Trajectory
     from treeinfer.sim import make_simulator
-    from treeinfer.trajectories import Trajectory
 
     (f, x), _ = noisy(case)
     t = np.arange(f.shape[1]) * case.dt

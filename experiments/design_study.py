@@ -4,11 +4,11 @@ Protocol, per seed (sim-to-sim, as in the other studies: ground truth from plain
 float64, inference with the batched simulator):
 
 1. True gains drawn as ``treeinfer simulate`` does
-   (:func:`treeinfer.synthetic.default_true_params`).
+   (:func:`treeinfer.sim.synthetic.default_true_params`).
 2. **First pull** at the tip (grasp fraction 1), a ramp-hold-release (``hold`` profile) of
    ``first_peak`` N, with white Gaussian noise of ``noise_mm`` on the displacement; posterior 1
    by NNSVGD with the likelihood temperature of that noise, velocity term included
-   (:func:`treeinfer.likelihood.suggest_kT` with ``omega2`` of the data set).
+   (:func:`treeinfer.model.likelihood.suggest_kT` with ``omega2`` of the data set).
 3. **Score** the candidate second pulls (grasp fractions x peak forces x profile kinds) at
    posterior 1 (``sigma_x`` = the noise) with :func:`treeinfer.design.score_candidates`.
 4. **Second pulls**, each a new noisy recording: ``design`` (ranked first by the Laplace EIG),
@@ -31,14 +31,14 @@ here: on identical data, three sampler seeds gave held-out bands of 22, 182 and 
 particles 150 nats below the best one, while the Fisher information at the truth gives a band
 of ~4 mm; the arms' bands then differed by sampler noise, not by their data. So every posterior
 here (all arms alike) starts from draws of the Laplace approximation around a Levenberg-Marquardt
-MAP fit of *its own* data (:func:`treeinfer.mapfit.fit_map`, as ``treeinfer infer --init
+MAP fit of *its own* data (:func:`treeinfer.inference.fit_map`, as ``treeinfer infer --init
 laplace``; widened ``laplace_scale`` x), and NNSVGD's Adam step decays along a cosine from
 ``learning_rate`` to ``final_learning_rate`` so the particles settle (``init="uniform"`` and
 ``final_learning_rate=None`` give the old behaviour). The first version also set kT for the
 displacement term alone (``omega2 = 0``), which leaves the velocity term of the loss untempered:
 its posteriors came out ~3-4x narrower than the Cramér-Rao bound (``kT_velocity``). All
 posteriors of a stage run as one batched program
-(:func:`treeinfer.batch_posteriors.posterior_program`, ``batch`` data sets per call).
+(:func:`treeinfer.inference.posterior_program`, ``batch`` data sets per call).
 
 Targets (issue 16): the design pull shrinks the std of the worst-identified parameter (largest
 std after pull 1) at least 2x more than the repeat (median over seeds), and never widens the
@@ -124,8 +124,8 @@ def _resummarise(out: Path) -> int:
     """Recompute summary, markdown and figures from ``out/results.json`` (no inference)."""
     import json
 
-    from treeinfer._io import atomic_write_json, atomic_write_text, staged_output_dir
-    from treeinfer.plots import save_figure
+    from treeinfer.evaluation import save_figure
+    from treeinfer.io.atomic import atomic_write_json, atomic_write_text, staged_output_dir
 
     record = json.loads((out / "results.json").read_text())
     sugg_d = json.loads((out / "suggestions_seed0.json").read_text())
@@ -149,7 +149,7 @@ def _resummarise(out: Path) -> int:
 
 def main(argv=None, programs=None) -> int:
     """The study (see the module docstring). ``programs``: a
-    :class:`treeinfer.program_cache.ProgramCache` for the batched programs (the caller's, to
+    :class:`treeinfer.sim.program_cache.ProgramCache` for the batched programs (the caller's, to
     reuse them across calls; None: this call's)."""
     args = build_parser().parse_args(argv)
     over = {
@@ -170,8 +170,8 @@ def main(argv=None, programs=None) -> int:
         return _resummarise(Path(out))
     setup_jax()
     from treeinfer import make_simulator
-    from treeinfer._io import atomic_write_json, atomic_write_text, staged_output_dir
-    from treeinfer.plots import save_figure
+    from treeinfer.evaluation import save_figure
+    from treeinfer.io.atomic import atomic_write_json, atomic_write_text, staged_output_dir
     from treeinfer.tree import load_tree
 
     t0 = time.perf_counter()

@@ -5,8 +5,8 @@
 The standard problem of ``benchmarks/time_to_posterior.py`` (three-branch example, R = 3, 3
 training pulls x 300 steps, the same synthetic data, 128 particles). For each seed (the screen's
 Latin hypercube, the draws, the resample): one screened LM fit
-(:func:`treeinfer.fast_posterior.fast_posterior`), then importance sampling from its Gaussian with
-1, 2 and 3 adaptive rounds (:func:`treeinfer.importance.adaptive_importance`), each with the
+(:func:`treeinfer.inference.fast_posterior`), then importance sampling from its Gaussian with
+1, 2 and 3 adaptive rounds (:func:`treeinfer.inference.adaptive_importance`), each with the
 95 % predictive band on the 3 held-out pulls (as the benchmark measures it). The reference band
 is an importance posterior with many Student-t draws (``--ref-draws`` per round, 4 rounds, 32 P
 particles, its band averaged over the 32 P-particle subsets so that it has the runs' KDE
@@ -51,16 +51,17 @@ def main(argv=None) -> int:
         reference_metrics,
         write_data,
     )
-    from treeinfer.fast_posterior import BatchEvaluator, fast_posterior
-    from treeinfer.importance import (
+    from treeinfer.data.trajectories import Trajectory
+    from treeinfer.inference import (
+        BatchEvaluator,
         adaptive_importance,
         band_split,
+        fast_posterior,
         leading_projection,
+        make_problem,
         proposal_from_fit,
         sorted_resample,
     )
-    from treeinfer.inference import make_problem
-    from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 
     work = Path(tempfile.mkdtemp(prefix="isrob-"))

@@ -19,13 +19,10 @@ import math
 
 import numpy as np
 
-from treeinfer.checks import data_checks
-from treeinfer.checks_data import speed_limit
-from treeinfer.checks_tree import response_range
+from treeinfer.data import estimate_white_noise, read_trajectory, speed_limit
+from treeinfer.evaluation import data_checks
 from treeinfer.examples import example_path
-from treeinfer.noise_estimate import estimate_white_noise
-from treeinfer.trajectories import read_trajectory
-from treeinfer.tree import load_tree
+from treeinfer.tree import load_tree, response_range
 
 
 def _old_estimate(x: np.ndarray) -> float:

@@ -61,9 +61,9 @@ def make_data(seed: int, case: dict | None = None):
     import jax
     import jax.numpy as jnp
 
+    from treeinfer.data.trajectories import Trajectory
     from treeinfer.examples import example_path
     from treeinfer.sim import make_simulator, simulate
-    from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 
     case = CASES["cpu"] if case is None else case
@@ -122,9 +122,14 @@ def with_inequality_prior(problem, net_kwargs: dict):
     gain kind over its log box padded by half its width), with the network's settings open."""
     import dataclasses
 
-    from treeinfer.gradients import autodiff_value_and_grad, combine, mask_nonfinite
-    from treeinfer.inference import DEFAULT_ETA
-    from treeinfer.priors import inequality_prior, load_or_train_inequality_network
+    from treeinfer.inference.problem import DEFAULT_ETA
+    from treeinfer.model import (
+        autodiff_value_and_grad,
+        combine,
+        inequality_prior,
+        load_or_train_inequality_network,
+        mask_nonfinite,
+    )
 
     tree = problem.tree
     r = tree.n_inferred
@@ -163,8 +168,7 @@ def run(
     reinit_until: int = 0,
     init: str = "uniform",
 ) -> dict:
-    from treeinfer.diagnostics import find_stragglers
-    from treeinfer.inference import infer, make_problem
+    from treeinfer.inference import find_stragglers, infer, make_problem
 
     truth = np.log(np.concatenate([KP_TRUE, KD_TRUE]))
     case = CASES[case_name]
@@ -195,7 +199,7 @@ def run(
             sampler = target.split("-")[0]
             extra = dict(start)
             if reinit_until > 0:  # the warm-up remedy for stuck particles (--reinit-stragglers)
-                from treeinfer.diagnostics import ReinitStragglers
+                from treeinfer.inference import ReinitStragglers
 
                 extra["reinit_stragglers"] = ReinitStragglers(
                     reinit_until, problem.lower, problem.upper

@@ -36,10 +36,10 @@ def problem(tree_name: str):
     import jax
     import jax.numpy as jnp
 
+    from treeinfer.data.trajectories import Trajectory
     from treeinfer.examples import example_path
     from treeinfer.inference import make_problem
     from treeinfer.sim import make_simulator, simulate
-    from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 
     tree = load_tree(example_path(tree_name))
@@ -63,9 +63,7 @@ def measure(prob, settings: dict, n_particles: int, n_iterations: int, seed: int
     import jax
     import optax
 
-    from treeinfer import samplers
-    from treeinfer.diagnostics import mcmc_summary
-    from treeinfer.inference import initial_particles
+    from treeinfer.inference import initial_particles, mcmc_summary, samplers
 
     kw = dict(settings)
     adam = kw.pop("adam", None)

@@ -36,14 +36,14 @@ if __name__ == "__main__":  # run as a script from anywhere: use this checkout's
 
 import numpy as np
 
-from treeinfer import forces as F
-from treeinfer._io import atomic_write_text
 from treeinfer.cli.main import main
-from treeinfer.generators import chain
+from treeinfer.data import forces as F
+from treeinfer.data.direction import pull_direction
+from treeinfer.io.atomic import atomic_write_text
 from treeinfer.sim import make_simulator
-from treeinfer.sim.direction import pull_direction
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.tree import Bounds, dump_tree
+from treeinfer.tree import chain
+from treeinfer.tree.description import Bounds, dump_tree
 
 # true gains in the simulator's joint order, tree.inferred = (branch1, branch0): the upper
 # hinge first, then the base hinge

@@ -52,9 +52,9 @@ def main(argv=None) -> dict:
     import jax.numpy as jnp
     from planar_chain import PlanarTree
 
-    from treeinfer import forces as F
-    from treeinfer.generators import chain
+    from treeinfer.data import forces as F
     from treeinfer.sim import make_simulator, simulate
+    from treeinfer.tree import chain
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=41, help="grid points per parameter")

@@ -53,7 +53,7 @@ def _cli(argv: list[str]) -> None:
 
 def _rhat_max(run: Path, warmup: float) -> float:
     """Largest split R-hat (arviz) over the run's chains after the warm-up share."""
-    from treeinfer import arviz_compat as az
+    from treeinfer.inference.diagnostics import arviz_compat as az
 
     with np.load(run / "trace.npz") as z:
         key = "positions" if "positions" in z.files else z.files[0]
@@ -65,7 +65,7 @@ def _rhat_max(run: Path, warmup: float) -> float:
 
 def prepare(work: Path, seed: int, tie_scale: str) -> tuple[Path, list[str]]:
     """Steps 1-3: logs, import-csv, tree --kind stem. Returns (tree file, CSV names)."""
-    from treeinfer.synthetic_stem import Stem, write_stem_logs
+    from treeinfer.tree import Stem, write_stem_logs
 
     raw = write_stem_logs(work / "raw", Stem(), heights=HEIGHTS, seed=seed)
     data = work / "data" / "all"
@@ -191,8 +191,8 @@ def score(work: Path, names: list[str], test: int, args) -> dict:
     held-out points inside the band ``metrics.json`` scores (the predictive band, noise
     included, when the run has a noise model: the CSV's ``predictive_lower/upper``), the RMSE
     of the predictive mean and of the cantilever fitted to the two training CSVs, R-hat."""
-    from treeinfer.synthetic_stem import cantilever_displacement, fit_cantilever
-    from treeinfer.trajectories import read_trajectory
+    from treeinfer.data import read_trajectory
+    from treeinfer.tree import cantilever_displacement, fit_cantilever
 
     fdir = work / f"fold{test}"
     train, run, ev = fdir / "train", fdir / "run", fdir / "eval"

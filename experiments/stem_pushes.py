@@ -1,6 +1,6 @@
 """Leave-one-height-out on synthetic quasi-static stem pushes (issue 13's Target, stand-in data).
 
-A tapered elastic stem (treeinfer.synthetic_stem, not a hinge chain) is pushed sideways at three
+A tapered elastic stem (treeinfer.tree.stem, not a hinge chain) is pushed sideways at three
 heights; the logger writes raw CSVs (gf, mm, a wrapping ms counter, jitter, a load offset,
 noise). For each held-out height:
 
@@ -10,7 +10,7 @@ noise). For each held-out height:
    ``infer --model-kind static --likelihood gaussian``) to the two other heights, sampled by
    the library's Metropolis-Hastings (``infer(problem, "mh")``). The default model is 8 hinges
    at segment midpoints with their stiffnesses tied along the taper (one free scale,
-   :func:`treeinfer.static.tied_layout`); ``--no-tied --links 3`` fits free stiffnesses;
+   :func:`treeinfer.inference.tied_layout`); ``--no-tied --links 3`` fits free stiffnesses;
 3. predict the held-out height (``evaluate_trajectories`` at its own pull): the 95% predictive
    band (parameters + noise) and its mean;
 4. compare with the one-parameter cantilever ``x = F h^3 / 3EI`` fitted to the same two heights.
@@ -38,14 +38,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from treeinfer._io import atomic_write_text
-from treeinfer.csv_import import import_csv
+from treeinfer.data import load_data_pulls, read_trajectory, stack_resolved
+from treeinfer.data.import_csv import import_csv
 from treeinfer.evaluation import evaluate_trajectories, force_noise_for
-from treeinfer.inference import infer, make_problem
-from treeinfer.pulls import load_data_pulls, stack_resolved
+from treeinfer.inference import force_noise_estimate, infer, make_problem, model_for
+from treeinfer.io.atomic import atomic_write_text
 from treeinfer.sim import make_simulator
-from treeinfer.static import force_noise_estimate, model_for
-from treeinfer.synthetic_stem import (
+from treeinfer.tree.description import world_frames
+from treeinfer.tree.stem import (
     G0,
     Stem,
     branch_at_height,
@@ -56,8 +56,6 @@ from treeinfer.synthetic_stem import (
     stem_tree,
     write_stem_logs,
 )
-from treeinfer.trajectories import read_trajectory
-from treeinfer.tree import world_frames
 
 
 def import_logs(folder: Path, stem: Stem, tree, seed: int):
@@ -88,13 +86,12 @@ def import_logs(folder: Path, stem: Stem, tree, seed: int):
 
 def _laplace(problem, args, seed: int):
     """The fold's Laplace approximation: ``--laplace exact`` (default):
-    :func:`treeinfer.static.exact_laplace` (the MAP by Newton's method on the exact gradient of
+    :func:`treeinfer.inference.exact_laplace` (the MAP by Newton's method on the exact gradient of
     the static model, the covariance from its differences); ``values``: the generic
-    :func:`treeinfer.laplace.problem_laplace` (Hessian from differences of values: on this
+    :func:`treeinfer.inference.problem_laplace` (Hessian from differences of values: on this
     problem its MAP stops short and its covariance is 7x too wide in log sigma_x, the cause of
     the earlier R-hat 2-5)."""
-    from treeinfer.laplace import problem_laplace
-    from treeinfer.static import exact_laplace
+    from treeinfer.inference import exact_laplace, problem_laplace
 
     if args.laplace == "exact":
         return exact_laplace(problem, seed=seed)
@@ -114,8 +111,8 @@ def _mh_draws(problem, args, seed: int):
     Returns (draws [N, D] of every chain over all of step 2 (after the warm-up), thinned to at
     most ``args.draws``; split R-hat per column over all chains of step 2 (arviz); acceptance;
     seconds)."""
-    from treeinfer import arviz_compat as az
-    from treeinfer.laplace import mh_proposal, problem_laplace_particles
+    from treeinfer.inference import mh_proposal, problem_laplace_particles
+    from treeinfer.inference.diagnostics import arviz_compat as az
 
     t0 = time.time()
     lap = _laplace(problem, args, seed)
@@ -170,7 +167,7 @@ def _mh_draws(problem, args, seed: int):
 def _nuts_draws(problem, args, seed: int):
     """Posterior draws by BlackJAX NUTS on the problem's own log-density (the static model's
     settle is differentiable: ``lax.custom_root`` gives its implicit derivatives), started from
-    the problem's Laplace approximation (:func:`treeinfer.laplace.problem_laplace`):
+    the problem's Laplace approximation (:func:`treeinfer.inference.problem_laplace`):
 
     ``args.walkers`` chains from Laplace draws, each with its own Stan-style window adaptation
     (``blackjax.window_adaptation``: step size to 0.8 acceptance, dense inverse mass matrix
@@ -182,8 +179,8 @@ def _nuts_draws(problem, args, seed: int):
     column over the chains (arviz); mean acceptance; seconds; divergences (count))."""
     import blackjax
 
-    from treeinfer import arviz_compat as az
-    from treeinfer.laplace import problem_laplace_particles
+    from treeinfer.inference import problem_laplace_particles
+    from treeinfer.inference.diagnostics import arviz_compat as az
 
     t0 = time.time()
     lap = _laplace(problem, args, seed)
@@ -247,7 +244,7 @@ def matched_layout(tree, heights, args):
     tied to the shape that makes the chain's compliance the tapered beam's at every push height
     (from the push heights and the diameters alone, no recording), one free scale (soft tie
     ``--tie-scale`` about it, or hard with 0)."""
-    from treeinfer.static import tied_layout
+    from treeinfer.inference import tied_layout
 
     z, shape = matched_hinges(Stem(), heights)
     frames = world_frames(tree)
@@ -398,7 +395,7 @@ def analytic_table(stem: Stem, heights=(0.12, 0.24, 0.36)) -> list[str]:
             loo(chain(z, shape)),
         )
     )
-    from treeinfer.static import taper_shape
+    from treeinfer.inference import taper_shape
 
     for n in (3, 8, 16):  # the tree file's tie: Hencky lumping of the branches' radii
         tree = stem_tree(stem, n_links=n, hinges="midpoints", tie="taper")
@@ -474,8 +471,8 @@ def main(argv=None):
         "--laplace",
         choices=("exact", "values"),
         default="exact",
-        help="the start and proposal: exact (treeinfer.static.exact_laplace, default) or values "
-        "(treeinfer.laplace.problem_laplace, Hessian from differences of values)",
+        help="the start and proposal: exact (treeinfer.inference.exact_laplace, default) or values "
+        "(treeinfer.inference.problem_laplace, Hessian from differences of values)",
     )
     ap.add_argument(
         "--max-doublings", type=int, default=4, help="NUTS tree depth cap (<= 2^k - 1 leapfrogs)"
@@ -487,7 +484,7 @@ def main(argv=None):
         default="midpoints",
         help="hinge at each segment's base or middle (default), or 'matched': one hinge per "
         "push height at the pseudo-rigid-body pivot, stiffnesses tied to the shape matching the "
-        "tapered beam at every push height (treeinfer.synthetic_stem.matched_hinges; --links "
+        "tapered beam at every push height (treeinfer.tree.matched_hinges; --links "
         "is then the number of heights)",
     )
     ap.add_argument(

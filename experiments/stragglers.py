@@ -3,8 +3,8 @@
 The two-branch example (2 pulls x 1 s at 50 Hz, clean data, kT = 0.05) sampled by SVGD from
 the uniform start with few iterations: particles that start where the simulated displacement is
 far from the data stay behind the bulk (log density tens to hundreds of nats lower).
-:func:`treeinfer.diagnostics.find_stragglers` counts them; the same run with
-``reinit_stragglers=ReinitStragglers(until=...)`` in :func:`treeinfer.samplers.run` moves them
+:func:`treeinfer.inference.find_stragglers` counts them; the same run with
+``reinit_stragglers=ReinitStragglers(until=...)`` in :func:`treeinfer.inference.run` moves them
 next to the bulk during the warm-up, after which the run ends with none.
 
     python -m experiments.stragglers --seeds 0 1 2 --particles 32 --iterations 60
@@ -31,10 +31,10 @@ def problem():
     import jax
     import jax.numpy as jnp
 
+    from treeinfer.data.trajectories import Trajectory
     from treeinfer.examples import example_path
     from treeinfer.inference import make_problem
     from treeinfer.sim import make_simulator, simulate
-    from treeinfer.trajectories import Trajectory
     from treeinfer.tree import load_tree
 
     tree = load_tree(example_path("two_branch"))
@@ -54,10 +54,8 @@ def problem():
 def run(seeds, n_particles, n_iterations, until, out: Path | None) -> list[dict]:
     import jax
 
-    from treeinfer import samplers
-    from treeinfer.diagnostics import ReinitStragglers, find_stragglers
-    from treeinfer.inference import initial_particles
-    from treeinfer.program_cache import ProgramCache
+    from treeinfer.inference import ReinitStragglers, find_stragglers, initial_particles, samplers
+    from treeinfer.sim.program_cache import ProgramCache
 
     prob = problem()
     alg = prob.sampler("svgd")

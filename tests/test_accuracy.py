@@ -18,13 +18,13 @@ import numpy as np
 import pytest
 from planar_chain import PlanarTree
 
-from treeinfer import forces as F
+from treeinfer.data import forces as F
 from treeinfer.errors import ConfigError
-from treeinfer.generators import chain
 from treeinfer.sim import DEFAULT_SIM_TOLERANCE, make_simulator, simulate
 from treeinfer.sim.accuracy import choose_substeps_for_accuracy, default_tolerance
 from treeinfer.sim.reference import _c_model, settle_reference, simulate_reference
-from treeinfer.tree import Bounds, cylinder_inertia
+from treeinfer.tree.description import Bounds, cylinder_inertia
+from treeinfer.tree.generators import chain
 
 DT = 0.01
 DURATION = 3.0

@@ -18,15 +18,25 @@ import numpy as np
 import pytest
 import yaml
 
-from treeinfer import _io
-from treeinfer._io import OutputWriteError, clean_stale_staging, find_staging, staged_output_dir
-from treeinfer.checks import data_checks
+from treeinfer.data.trajectories import Trajectory, velocity_from_displacement
 from treeinfer.errors import ConfigError, TrajectoryFileError, TreeFileError, TreeinferError
+from treeinfer.evaluation.checks import data_checks
 from treeinfer.examples import example_path
-from treeinfer.integrity import record_checksums, validate_run_config, validate_summary, verify_run
-from treeinfer.safe_load import loads_json, loads_yaml
-from treeinfer.trajectories import Trajectory, velocity_from_displacement
-from treeinfer.tree import load_tree, tree_from_dict
+from treeinfer.io import atomic as _io
+from treeinfer.io.atomic import (
+    OutputWriteError,
+    clean_stale_staging,
+    find_staging,
+    staged_output_dir,
+)
+from treeinfer.io.safe_load import loads_json, loads_yaml
+from treeinfer.runs.integrity import (
+    record_checksums,
+    validate_run_config,
+    validate_summary,
+    verify_run,
+)
+from treeinfer.tree.description import load_tree, tree_from_dict
 
 N = int(os.environ.get("TREEINFER_FUZZ_EXAMPLES", "40"))
 BASE = yaml.safe_load(example_path("two_branch").read_text())
@@ -111,8 +121,8 @@ def test_hostile_tree_files_are_clean_errors(tmp_path):
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
 def test_special_files_as_inputs(tmp_path):
-    from treeinfer.integrity import file_digest
-    from treeinfer.safe_load import load_file
+    from treeinfer.io.safe_load import load_file
+    from treeinfer.runs.integrity import file_digest
 
     fifo = tmp_path / "fifo.yaml"
     os.mkfifo(fifo)
@@ -138,8 +148,8 @@ def tree():
 def clean(tree):
     """Quasi-static pulls of the two-branch tree at Kp = (60, 120) (independent of MJX: the
     settled static compliance times the force), 2 s at 50 Hz, 1 mm noise."""
-    from treeinfer.checks import static_compliance
-    from treeinfer.forces import ramp_hold
+    from treeinfer.data.forces import ramp_hold
+    from treeinfer.evaluation.checks import static_compliance
 
     c = static_compliance(tree, {"child": 60.0, "parent": 120.0})
     rng = np.random.default_rng(0)
@@ -178,7 +188,7 @@ CORRUPTIONS = {
 
 
 def test_corrupted_data_never_pass_silently(tree, clean):
-    from treeinfer.checks import static_compliance
+    from treeinfer.evaluation.checks import static_compliance
 
     assert data_checks(tree, clean) == []
     rng = np.random.default_rng(1)
@@ -417,7 +427,7 @@ def _ros2_bag_with_type(path: Path, msgtype: str, msgdef: str) -> Path:
 
 
 def test_injected_type_name_executes_nothing(tmp_path):
-    from treeinfer.bags import read_bag_streams
+    from treeinfer.data.import_bag import read_bag_streams
 
     mark = f"treeinfer-pwned-{os.getpid()}"
     target = Path("/tmp") / mark
@@ -437,8 +447,8 @@ def test_unknown_and_nonstandard_definitions_are_not_parsed(tmp_path):
     from rosbags.typesys import Stores, get_typestore  # noqa: F401
     from test_bags import write_bag
 
-    from treeinfer.bag_types import open_bag_reader
-    from treeinfer.bags import read_bag_streams
+    from treeinfer.data.bag_messages import open_bag_reader
+    from treeinfer.data.import_bag import read_bag_streams
 
     bag = write_bag(tmp_path / "rec", ros="ros2")
     streams = read_bag_streams(bag)  # the standard bag still reads
@@ -480,7 +490,7 @@ def test_stale_staging_is_always_tidied(tmp_path):
 
 # ---- 8. corrupted data sets end to end through `treeinfer infer` ---------------------------------
 def _write_set(d: Path, trajs) -> Path:
-    from treeinfer.trajectories import write_trajectory
+    from treeinfer.data.trajectories import write_trajectory
 
     d.mkdir(parents=True)
     for t in trajs:

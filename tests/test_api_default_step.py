@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from planar_chain import PlanarTree
 
-from treeinfer import forces as F
+from treeinfer.data import forces as F
 from treeinfer.errors import ConfigError
-from treeinfer.generators import chain
 from treeinfer.sim import DEFAULT_SIM_TOLERANCE, accuracy, make_simulator, simulate
-from treeinfer.tree import Bounds
+from treeinfer.tree.description import Bounds
+from treeinfer.tree.generators import chain
 
 DT = 0.01
 

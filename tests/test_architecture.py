@@ -92,7 +92,7 @@ def test_no_import_cycles_between_modules():
 
 # ---- no process-global caches hidden in modules ---------------------------------------------
 # Compiled programs and simulators are cached only in objects their owner passes down
-# (treeinfer.program_cache.ProgramCache, treeinfer.runs.SimulatorCache). Memoised pure functions
+# (treeinfer.sim.program_cache.ProgramCache, treeinfer.runs.SimulatorCache). Memoised pure functions
 # that build no program may stay, each with its reason here.
 ALLOWED_MEMOS = {
     "treeinfer.sim.levels.layout": "NumPy index arrays of a hashable tuple of constants",

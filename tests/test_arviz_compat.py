@@ -1,7 +1,8 @@
-"""treeinfer.arviz_compat: the same results on ArviZ 0.2x and 1.x (issue 25), checked against
-independent references: R-hat against a NumPy/SciPy implementation of Vehtari et al. (2021),
-ESS against the closed form of an AR(1) chain, PSIS against treeinfer.importance.psis (written
-from Vehtari et al. 2024, equal to ArviZ 0.2x's psislw)."""
+"""treeinfer.inference.diagnostics.arviz_compat: the same results on ArviZ 0.2x and 1.x (issue 25),
+checked against independent references: R-hat against a NumPy/SciPy implementation of Vehtari et al.
+(2021), ESS against the closed form of an AR(1) chain, PSIS against
+treeinfer.inference.importance.psis (written from Vehtari et al. 2024, equal to ArviZ 0.2x's
+psislw)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,8 @@ import numpy as np
 import pytest
 from scipy import stats as st
 
-from treeinfer import arviz_compat as azc
-from treeinfer.importance import psis
+from treeinfer.inference.diagnostics import arviz_compat as azc
+from treeinfer.inference.importance import psis
 
 
 def _trace(rng, chains=4, draws=400, d=2, shift=0.0):

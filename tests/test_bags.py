@@ -1,4 +1,5 @@
-"""Tests for treeinfer.bags: synthetic ROS1/ROS2 bags written with rosbags, then imported."""
+"""Tests for treeinfer.data.import_bag: synthetic ROS1/ROS2 bags written with rosbags, then
+imported."""
 
 from __future__ import annotations
 
@@ -13,10 +14,10 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from treeinfer.bags import find_pulls, import_bag
 from treeinfer.cli.import_bag import configure_parser, run_from_args
+from treeinfer.data.import_bag import find_pulls, import_bag
+from treeinfer.data.trajectories import read_trajectory, read_trajectory_dir
 from treeinfer.errors import OutputExistsError, TrajectoryFileError
-from treeinfer.trajectories import read_trajectory, read_trajectory_dir
 
 EPOCH_NS = 1_700_000_000 * 10**9  # header stamps are absolute times
 DURATION = 6.5  # s
@@ -451,7 +452,7 @@ def write_real_bag(path, ros="ros1", kind="wrench", pose_hz=10.0, sideways=False
     """A bag like the real Kinova recordings: pose at ``pose_hz`` (PoseStamped ``/tool_pose``),
     joint states, and the force as ``kind``: "wrench" (WrenchStamped 100 Hz with a rest offset
     and a noise blip), "kortex" (BaseCyclic_Feedback 100 Hz: force and tool pose), or "none"."""
-    from treeinfer.bags import kortex_typestore
+    from treeinfer.data.import_bag import kortex_typestore
 
     ts = kortex_typestore(ros == "ros1")
     ser = ts.serialize_ros1 if ros == "ros1" else ts.serialize_cdr
@@ -598,7 +599,7 @@ def test_kortex_feedback_as_force_and_pose(tmp_path, ros):
 
 
 def test_sideways_pull_projection_distance_and_sidecar(tmp_path):
-    from treeinfer.pulls import read_pulls
+    from treeinfer.data.pulls import read_pulls
 
     bag = write_real_bag(tmp_path / "side.bag", kind="kortex", sideways=True)
     paths = import_bag(
@@ -620,7 +621,7 @@ def test_sideways_pull_projection_distance_and_sidecar(tmp_path):
 
 
 def test_cli_cleaning_options(tmp_path, capsys):
-    from treeinfer.pulls import read_pulls
+    from treeinfer.data.pulls import read_pulls
 
     bag = write_real_bag(tmp_path / "real.bag")
     parser = configure_parser(argparse.ArgumentParser())

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from benchmarks.rollout import CRollout, bench_tree, c_pool, rollout_model, sample_gains
-from treeinfer.inference import make_problem
+from treeinfer.data.trajectories import Trajectory
+from treeinfer.inference.problem import make_problem
 from treeinfer.sim import make_simulator, simulate
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.trajectories import Trajectory
 
 pytestmark = pytest.mark.benchmark
 

@@ -10,13 +10,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from treeinfer.evaluation import _training_fit
+from treeinfer.data.trajectories import Trajectory, stack_trajectories
+from treeinfer.evaluation.predictive import _training_fit
 from treeinfer.examples import example_path
-from treeinfer.inference import _predict_traced, make_problem, predict
+from treeinfer.inference.problem import _predict_traced, make_problem, predict
 from treeinfer.sim import accuracy, make_simulator
-from treeinfer.startup import bucket_observations
-from treeinfer.trajectories import Trajectory, stack_trajectories
-from treeinfer.tree import load_tree
+from treeinfer.sim.startup import bucket_observations
+from treeinfer.tree.description import load_tree
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +138,7 @@ def test_training_fit_at_the_bucket_equals_the_fit_at_the_data_shape(tree, grasp
 def test_traced_rollout_program_key_leaves_out_only_the_step(tree):
     import jax
 
-    from treeinfer.fast_posterior import _rollout_residuals
+    from treeinfer.inference.fast import _rollout_residuals
 
     a = make_simulator(tree, obs_dt=0.01, substeps=4, backend="fused")
     b = make_simulator(tree, obs_dt=0.01, substeps=9, backend="fused")

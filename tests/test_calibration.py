@@ -92,7 +92,7 @@ def test_binomial_band_against_normal_approximation():
 
 
 def test_smoothed_box_draws_follow_the_prior_density():
-    from treeinfer.priors import smoothed_box
+    from treeinfer.model.priors import smoothed_box
 
     lo, hi, s = np.array([1.0]), np.array([3.0]), np.array([0.4])
     x = cal.sample_smoothed_box(np.random.default_rng(0), lo, hi, s, 20000)[:, 0]
@@ -123,7 +123,7 @@ def test_config_checks():
 @pytest.mark.parametrize("sampler", ["smc", "mh"])
 @pytest.mark.slow  # an SBC study, however tiny
 def test_tiny_tree_end_to_end(tmp_path, sampler):
-    from treeinfer.tree import load_tree
+    from treeinfer.tree.description import load_tree
 
     tree = load_tree("treeinfer/examples/two_branch.yaml")
     cfg = cal.SBCConfig(
@@ -284,7 +284,7 @@ def test_unstable_truths_are_redrawn(monkeypatch):
     """A prior draw whose simulation is unstable is redrawn (the GPU run of three_branch hit
     this path: device arrays came back read-only and the redraw's assignment failed)."""
     import treeinfer.calibration.study as study
-    from treeinfer.tree import load_tree
+    from treeinfer.tree.description import load_tree
 
     real = study._simulate_truths
     calls = []

@@ -8,7 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from treeinfer.checks import (
+from treeinfer.data.forces import ramp_hold
+from treeinfer.data.trajectories import Trajectory, velocity_from_displacement, write_trajectory
+from treeinfer.evaluation.checks import (
     compliance_range,
     data_checks,
     errors_of,
@@ -18,10 +20,8 @@ from treeinfer.checks import (
     static_compliance,
 )
 from treeinfer.examples import example_path
-from treeinfer.forces import ramp_hold
-from treeinfer.likelihood import suggest_kT
-from treeinfer.trajectories import Trajectory, velocity_from_displacement, write_trajectory
-from treeinfer.tree import load_tree
+from treeinfer.model.likelihood import suggest_kT
+from treeinfer.tree.description import load_tree
 
 DT = 0.02
 TRUE_KP = (60.0, 120.0)
@@ -84,7 +84,7 @@ def _only(findings, check, severity=None):
 def test_static_compliance_matches_a_settled_mujoco_pull(tree):
     """Independent reference: the MJX/fused rollout's displacement after a slow 0.5 N ramp has
     settled, divided by the force, at a soft, a stiff and a mixed corner of the box."""
-    from treeinfer.forces import ramp
+    from treeinfer.data.forces import ramp
 
     make_simulator, simulate = _sim()
 
@@ -107,7 +107,7 @@ def test_compliance_range_covers_the_box_where_compliance_is_not_monotone():
     arm: on the three-branch example the compliance peaks inside the box (0.11 m/N at Kp ~ 23,
     against 0.016 at the lower bound 5), and a slow pull simulated from the example's own model
     at in-box gains must not read as a unit mistake."""
-    from treeinfer.forces import ramp
+    from treeinfer.data.forces import ramp
 
     tree3 = load_tree(example_path("three_branch"))
     least, most = compliance_range(tree3)
@@ -253,7 +253,7 @@ def test_mm_tree_lengths_warn_or_fail(tree):
     import yaml
 
     from treeinfer.errors import TreeFileError
-    from treeinfer.tree import tree_from_dict
+    from treeinfer.tree.description import tree_from_dict
 
     d = yaml.safe_load(example_path("two_branch").read_text())
     for b in d["branches"]:
@@ -333,8 +333,8 @@ def test_fit_prior_back_when_data_have_no_effect(tree):
 def test_fit_verdict_from_run_and_preflight(tree, clean):
     from types import SimpleNamespace
 
-    from treeinfer.checks import fit_verdict_from_run, preflight
-    from treeinfer.trajectories import stack_trajectories
+    from treeinfer.data.trajectories import stack_trajectories
+    from treeinfer.evaluation.checks import fit_verdict_from_run, preflight
 
     obs = stack_trajectories(clean)
     lo, hi = _box(tree)
@@ -361,8 +361,8 @@ def test_fit_verdict_from_run_and_preflight(tree, clean):
 def test_simulation_cost_check(tree):
     import dataclasses
 
-    from treeinfer.checks import simulation_cost_check
-    from treeinfer.tree import Bounds
+    from treeinfer.evaluation.checks import simulation_cost_check
+    from treeinfer.tree.description import Bounds
 
     assert simulation_cost_check(tree, 0.01) == []
     twig = dataclasses.replace(tree.branch("child"), length=0.1, radius=0.003)

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from treeinfer.checks import fit_checks, fit_verdict_from_run
-from treeinfer.checks_fit import (
+from treeinfer.data.trajectories import Observations
+from treeinfer.evaluation.checks import fit_checks, fit_verdict_from_run
+from treeinfer.evaluation.ppc import (
     explained_variance,
     ppc_stats,
     standardised_residuals,
 )
-from treeinfer.trajectories import Observations
 
 SIGMA = 2e-3
 B, T = 3, 300

@@ -9,13 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from treeinfer.checks import data_checks
-from treeinfer.checks_tree import response_range
+from treeinfer.data.forces import from_spec, random_specs
+from treeinfer.data.trajectories import Trajectory
+from treeinfer.evaluation.checks import data_checks
 from treeinfer.examples import example_path
-from treeinfer.forces import from_spec, random_specs
-from treeinfer.synthetic import default_true_params
-from treeinfer.trajectories import Trajectory
-from treeinfer.tree import load_tree
+from treeinfer.sim.synthetic import default_true_params
+from treeinfer.tree.description import load_tree
+from treeinfer.tree.plausibility import response_range
 
 DT, DURATION = 0.01, 3.0
 
@@ -64,7 +64,7 @@ def test_speed_bound_against_mujoco_kinetic_energy():
     sqrt(2 mobility KE), KE MuJoCo's own kinetic energy (the inequality the check rests on)."""
     import mujoco
 
-    from treeinfer.checks_tree import _compliance_model, _sim_attr
+    from treeinfer.tree.plausibility import _compliance_model, _sim_attr
 
     tree = load_tree(example_path("three_branch"))
     _, _, mobility = response_range(tree)

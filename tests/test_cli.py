@@ -21,13 +21,13 @@ import numpy as np
 import pytest
 
 from treeinfer import __version__, cli
-from treeinfer import generators as gen
 from treeinfer.cli import COMMANDS, main
-from treeinfer.forces import from_spec
-from treeinfer.synthetic import default_true_params
-from treeinfer.trajectories import read_trajectory, read_trajectory_dir
-from treeinfer.tree import branch_density, load_tree, tree_to_dict
-from treeinfer.urdf import load_model_file
+from treeinfer.data.forces import from_spec
+from treeinfer.data.trajectories import read_trajectory, read_trajectory_dir
+from treeinfer.sim.synthetic import default_true_params
+from treeinfer.tree import generators as gen
+from treeinfer.tree.description import branch_density, load_tree, tree_to_dict
+from treeinfer.tree.urdf import load_model_file
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "treeinfer" / "examples"
@@ -621,7 +621,7 @@ def test_default_true_params_order_and_window():
     to the tip (so with shared boxes parent >= child)."""
     from dataclasses import replace
 
-    from treeinfer.tree import Bounds
+    from treeinfer.tree.description import Bounds
 
     boxes = {
         "branch2": Bounds((1.0, 100.0), (0.1, 1.0)),

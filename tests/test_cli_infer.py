@@ -22,15 +22,15 @@ import pytest
 
 from treeinfer import runs
 from treeinfer.cli import COMMANDS, INFER_DEFAULTS, main
-from treeinfer.errors import TrajectoryFileError
-from treeinfer.trajectories import (
+from treeinfer.data.trajectories import (
     Trajectory,
     read_force_profile,
     read_trajectory,
     read_trajectory_dir,
     write_trajectory,
 )
-from treeinfer.tree import load_tree
+from treeinfer.errors import TrajectoryFileError
+from treeinfer.tree.description import load_tree
 
 ROOT = Path(__file__).resolve().parents[1]
 TWO = ROOT / "treeinfer" / "examples" / "two_branch.yaml"
@@ -142,8 +142,8 @@ def test_help(capsys, name, options):
 
 
 def test_infer_defaults_match_the_library():
-    from treeinfer.inference import DEFAULT_ETA
-    from treeinfer.likelihood import DEFAULT_KT
+    from treeinfer.inference.problem import DEFAULT_ETA
+    from treeinfer.model.likelihood import DEFAULT_KT
 
     assert INFER_DEFAULTS["kT"] == DEFAULT_KT and INFER_DEFAULTS["eta"] == DEFAULT_ETA
 
@@ -212,7 +212,7 @@ def test_demo_rejects_bad_noise(tmp_path, capsys):
 
 # ---- infer -----------------------------------------------------------------------------------
 def test_infer_run_folder(run_dir, demo):
-    from treeinfer.arviz_compat import read_netcdf
+    from treeinfer.inference.diagnostics.arviz_compat import read_netcdf
 
     out, stdout = run_dir
     names = {p.name for p in out.iterdir()}
@@ -616,7 +616,7 @@ def test_evaluate_held_out(run_dir, demo, tmp_path, capsys):
 def test_evaluate_and_predict_use_each_recordings_grasp_point(run_dir, demo, tmp_path, capsys):
     import shutil
 
-    from treeinfer.pulls import PullSpec, write_pulls
+    from treeinfer.data.pulls import PullSpec, write_pulls
 
     out = run_dir[0]
     data = tmp_path / "d"
@@ -759,8 +759,8 @@ def test_infer_too_many_unstable_keeps_the_sampler_state(demo, tmp_path, monkeyp
     import jax.numpy as jnp
     import optax
 
-    from treeinfer import inference
-    from treeinfer.samplers import RunResult, SVGDState
+    from treeinfer.inference import problem as inference
+    from treeinfer.inference.samplers import RunResult, SVGDState
 
     theta = np.tile(np.log([50.0, 100.0, 1.0, 1.0]), (8, 1)).astype(np.float32)
     ld = np.full(8, -1.0, np.float32)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from treeinfer.cli import main
-from treeinfer.trajectories import add_noise, read_trajectory_dir, write_trajectory
+from treeinfer.data.trajectories import add_noise, read_trajectory_dir, write_trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 TWO = ROOT / "treeinfer" / "examples" / "two_branch.yaml"

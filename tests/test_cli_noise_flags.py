@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from treeinfer.cli import main
+from treeinfer.data.trajectories import Trajectory, write_trajectory
 from treeinfer.examples import example_path
-from treeinfer.trajectories import Trajectory, write_trajectory
 
 TREE = example_path("two_branch")
 

@@ -3,7 +3,7 @@ the same shape bucket (issue 15 item 4): `treeinfer infer --init importance` on 
 then a fresh process on data set B (other forces and displacements, another accurate step, the
 same number of pulls, a length in the same bucket); and `treeinfer warmup` then `infer`.
 
-XLA compilations are counted by :mod:`treeinfer.compile_stats` (JAX's monitoring events: a
+XLA compilations are counted by :mod:`treeinfer.sim.compile_stats` (JAX's monitoring events: a
 backend compile not served by the persistent cache), through ``benchmarks.compile_probe``."""
 
 from __future__ import annotations

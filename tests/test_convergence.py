@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from treeinfer import diagnostics as dg
 from treeinfer.errors import ConfigError
-from treeinfer.samplers import run, svgd
+from treeinfer.inference import diagnostics as dg
+from treeinfer.inference.samplers import run, svgd
 
 # ------------------------------------------------------------------ the stuck case
 

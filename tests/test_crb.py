@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 
 from experiments.coverage import SIGMA_X, crb_log_std
+from treeinfer.data.trajectories import Trajectory, stack_trajectories
 from treeinfer.examples import example_path
-from treeinfer.inference import make_problem
-from treeinfer.likelihood import likelihood_terms
+from treeinfer.inference.problem import make_problem
+from treeinfer.model.likelihood import likelihood_terms
 from treeinfer.sim import make_simulator, simulate
-from treeinfer.trajectories import Trajectory, stack_trajectories
-from treeinfer.tree import load_tree
+from treeinfer.tree.description import load_tree
 
 KP, KD = np.array([37.7, 98.7]), np.array([0.365, 1.047])  # child, parent (the demo's truth)
 

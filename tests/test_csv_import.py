@@ -1,4 +1,5 @@
-"""Tests for treeinfer.csv_import (import-csv): units, time base, tare, trim, errors, sidecar."""
+"""Tests for treeinfer.data.import_csv (import-csv): units, time base, tare, trim, errors,
+sidecar."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from treeinfer.csv_import import (
+from treeinfer.data.import_csv import (
     DISPLACEMENT_UNITS,
     FORCE_UNITS,
     TIME_UNITS,
@@ -16,9 +17,9 @@ from treeinfer.csv_import import (
     import_csv,
     parse_units,
 )
+from treeinfer.data.pulls import read_pulls
+from treeinfer.data.trajectories import read_trajectory
 from treeinfer.errors import ConfigError, TrajectoryFileError
-from treeinfer.pulls import read_pulls
-from treeinfer.trajectories import read_trajectory
 
 
 def r(v) -> str:

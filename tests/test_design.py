@@ -106,7 +106,7 @@ def test_nested_mc_eig_matches_closed_form_when_eig_is_small():
 @pytest.fixture(scope="module")
 def one_joint():
     from treeinfer import make_simulator
-    from treeinfer.generators import chain
+    from treeinfer.tree.generators import chain
 
     tree = chain(1, lengths=0.6, radii=0.015)
     sim = make_simulator(tree, obs_dt=0.02)
@@ -229,10 +229,10 @@ def test_suggest_for_run_and_prior_from_run(tmp_path):
     import io
 
     from treeinfer.cli import main
-    from treeinfer.design_run import noise_sigma_of_run, suggest_for_run
     from treeinfer.errors import OutputExistsError
+    from treeinfer.inference.sequential import prior_from_run
     from treeinfer.runs import load_run
-    from treeinfer.sequential import prior_from_run
+    from treeinfer.runs.suggest import noise_sigma_of_run, suggest_for_run
 
     demo = tmp_path / "demo"
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):

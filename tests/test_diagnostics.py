@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from treeinfer import arviz_compat
-from treeinfer import diagnostics as dg
 from treeinfer.errors import ConfigError
+from treeinfer.inference import diagnostics as dg
+from treeinfer.inference.diagnostics import arviz_compat
 
 LABELS = ["Kp[b1]", "Kd[b1]"]
 

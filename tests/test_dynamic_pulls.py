@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from treeinfer import forces as F
+from treeinfer.data import forces as F
+from treeinfer.data.direction import pull_direction
+from treeinfer.data.trajectories import Trajectory, stack_trajectories
 from treeinfer.examples import example_path
-from treeinfer.inference import make_problem, predict
+from treeinfer.inference.problem import make_problem, predict
+from treeinfer.inference.static import model_for
 from treeinfer.sim import make_simulator
-from treeinfer.sim.direction import pull_direction
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.static import model_for
-from treeinfer.trajectories import Trajectory, stack_trajectories
-from treeinfer.tree import load_tree
+from treeinfer.tree.description import load_tree
 
 DT = 0.02
 KP, KD = np.array([40.0, 15.0]), np.array([0.6, 0.2])

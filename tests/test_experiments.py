@@ -61,7 +61,7 @@ def test_data_is_seeded_and_train_test_differ():
 
 
 def test_ground_truth_pulls_down_and_matches_the_recorded_force():
-    from treeinfer.forces import from_spec
+    from treeinfer.data.forces import from_spec
 
     cfg = C.study_config("baselines", "tiny")
     data = C.make_data(cfg, 0)
@@ -281,7 +281,7 @@ def test_design_study_tiny(tmp_path):
     the same markdown from results.json (the program cache is the caller's: both stages and
     both seeds run on one batched MAP program and one batched sampler program)."""
     from experiments import design_study
-    from treeinfer.program_cache import ProgramCache
+    from treeinfer.sim.program_cache import ProgramCache
 
     out = tmp_path / "design"
     programs = ProgramCache()

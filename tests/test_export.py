@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from treeinfer import generators as gen
 from treeinfer.errors import ConfigError, TreeFileError
-from treeinfer.export import GRASP_SITE, to_mjmodel, write_mjcf
-from treeinfer.tree import Branch, load_tree, make_tree, world_frames
-from treeinfer.urdf import (
+from treeinfer.tree import generators as gen
+from treeinfer.tree.description import Branch, load_tree, make_tree, world_frames
+from treeinfer.tree.export import GRASP_SITE, to_mjmodel, write_mjcf
+from treeinfer.tree.urdf import (
     BASE_LINK,
     load_model_file,
     mjmodel_from_urdf,

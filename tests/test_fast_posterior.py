@@ -1,4 +1,5 @@
-"""The posterior without sampler iterations (treeinfer.fast_posterior, treeinfer.importance).
+"""The posterior without sampler iterations (treeinfer.inference.fast,
+treeinfer.inference.importance).
 
 References: a closed-form Gaussian target for the importance weights; ``problem.log_density``
 (the likelihood's own code path) for the batched evaluator; quadrature of the exact posterior on
@@ -16,24 +17,24 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from treeinfer.data.trajectories import Trajectory
 from treeinfer.errors import ConfigError
-from treeinfer.fast_posterior import (
+from treeinfer.inference.fast import (
     BatchEvaluator,
     fast_posterior,
     importance_for_run,
     posterior_from_fast,
 )
-from treeinfer.generators import chain
-from treeinfer.importance import (
+from treeinfer.inference.importance import (
     importance_posterior,
     importance_resample,
     psis,
     systematic_resample,
 )
-from treeinfer.inference import make_problem
+from treeinfer.inference.problem import make_problem
 from treeinfer.sim import make_simulator
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.trajectories import Trajectory
+from treeinfer.tree.generators import chain
 
 
 def test_importance_weights_recover_a_gaussian_target():
@@ -62,7 +63,7 @@ def test_importance_weights_recover_a_gaussian_target():
 
 @pytest.mark.parametrize("scale", [0.3, 1.0, 2.5])
 def test_psis_equals_arviz(scale):
-    from treeinfer.arviz_compat import psis_log_weights
+    from treeinfer.inference.diagnostics.arviz_compat import psis_log_weights
 
     rng = np.random.default_rng(4)
     # log-normal weights: heavier tails with the scale; M = 3600, whose tail length (3 sqrt(M))
@@ -172,7 +173,7 @@ def test_importance_for_run_logs_and_decides(one_joint):
 def test_fast_posterior_refuses_other_models(one_joint):
     """Every likelihood of the paper's dynamic model runs on the rollout program (issue 27:
     tests/test_start_pipeline.py checks its weights); another model (here the static one) goes
-    through treeinfer.start_pipeline instead and is refused here."""
+    through treeinfer.inference.start_pipeline instead and is refused here."""
     problem, _ = one_joint
     static = make_problem(
         problem.tree, problem.obs, nn_prior=False, likelihood="gaussian", noise_force=None,
@@ -199,9 +200,9 @@ def test_cli_infer_init_importance(tmp_path, capsys, monkeypatch):
     --resume of the finished run are refused with a user error."""
     import json
 
-    import treeinfer.fast_posterior as fp
-    from treeinfer.trajectories import write_trajectory
-    from treeinfer.tree import dump_tree
+    import treeinfer.inference.fast as fp
+    from treeinfer.data.trajectories import write_trajectory
+    from treeinfer.tree.description import dump_tree
 
     tree = chain(1, lengths=0.7, radii=0.03, angles_deg=0.0, base_position=(0.0, 0.0, 1.5),
                  base_pitch_deg=20.0, levels=1, name="c1")  # fmt: skip
@@ -276,7 +277,7 @@ def test_cli_infer_init_importance(tmp_path, capsys, monkeypatch):
     np.testing.assert_allclose(trace["positions"][0], calls[-1], rtol=1e-6)
 
     # the static model: every --init works with every model (issue 27), through its own
-    # log-density (treeinfer.start_pipeline), not the rollout program
+    # log-density (treeinfer.inference.start_pipeline), not the rollout program
     rc, err = _cli(capsys, "infer", *common, "--out", tmp_path / "run3", "--model-kind", "static")
     assert rc in (0, 4) and "importance posterior" in err and "Traceback" not in err, err
     assert (tmp_path / "run3" / "summary.json").is_file()
@@ -285,7 +286,7 @@ def test_cli_infer_init_importance(tmp_path, capsys, monkeypatch):
 def test_fast_posterior_ok_needs_a_stable_band_and_enough_ess(one_joint, monkeypatch):
     """``ok`` is False when the even and odd draws' bands disagree (band_split) or when the
     effective sample size stays below 2 P; adaptive rounds run while it is below."""
-    import treeinfer.importance as imp_mod
+    import treeinfer.inference.importance as imp_mod
 
     problem, _ = one_joint
     res = fast_posterior(problem, 32, n_starts=3, n_draws=2000, seed=3)
@@ -300,7 +301,7 @@ def test_fast_posterior_ok_needs_a_stable_band_and_enough_ess(one_joint, monkeyp
 
 
 def test_default_chunk_fills_an_accelerator_with_one_round(monkeypatch):
-    from treeinfer import fast_posterior as fp
+    from treeinfer.inference import fast as fp
 
     monkeypatch.setattr(fp.jax, "default_backend", lambda: "cpu")
     assert fp.default_chunk(104, 832) == 104  # the LM's batch: padding costs its share here

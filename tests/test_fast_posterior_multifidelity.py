@@ -13,13 +13,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from treeinfer.data.trajectories import Trajectory
 from treeinfer.errors import ConfigError
-from treeinfer.fast_posterior import BatchEvaluator, fast_posterior, resolve_coarse_substeps
-from treeinfer.generators import chain
-from treeinfer.inference import make_problem
+from treeinfer.inference.fast import BatchEvaluator, fast_posterior, resolve_coarse_substeps
+from treeinfer.inference.problem import make_problem
 from treeinfer.sim import make_simulator
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.trajectories import Trajectory
+from treeinfer.tree.generators import chain
 
 FINE, COARSE = 8, 1
 

@@ -1,4 +1,4 @@
-"""The errors-in-variables force-noise term (treeinfer.force_noise) against independent
+"""The errors-in-variables force-noise term (treeinfer.model.force_noise) against independent
 references: the MVN density against scipy.stats.multivariate_normal, the forward-mode force
 Jacobian against central differences of the simulator, the linearised covariance against the
 Monte-Carlo covariance of simulations driven by noisy forces, and the predictive band with the
@@ -14,19 +14,19 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from treeinfer import force_noise as fn
-from treeinfer import metrics
+from treeinfer.data.trajectories import Trajectory, stack_trajectories
 from treeinfer.errors import ConfigError
+from treeinfer.evaluation import metrics
 from treeinfer.examples import example_path
-from treeinfer.likelihood import (
+from treeinfer.model import force_noise as fn
+from treeinfer.model.likelihood import (
     gains_from_theta,
     likelihood_terms,
     measurement_log_likelihood,
     theta_from_gains,
 )
 from treeinfer.sim import make_simulator, simulate
-from treeinfer.trajectories import Trajectory, stack_trajectories
-from treeinfer.tree import load_tree
+from treeinfer.tree.description import load_tree
 
 DT = 0.02
 T = 50

@@ -6,7 +6,8 @@ term vanished in every GPU run (full-size coverage 92.0% with sigma_x inflated t
 These tests run the kernel in Pallas's CPU interpreter and check ``J`` against an independent
 reference, central differences of plain MuJoCo C in float64
 (:func:`treeinfer.sim.reference.simulate_reference`), and check that
-:func:`treeinfer.force_noise.force_jacobian`'s built-in directional check refuses a wrong ``J``.
+:func:`treeinfer.model.force_noise.force_jacobian`'s built-in directional check refuses a wrong
+``J``.
 """
 
 from __future__ import annotations
@@ -15,14 +16,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from treeinfer import force_noise as fn
 from treeinfer.errors import SimulationError
 from treeinfer.examples import example_path
-from treeinfer.gains import gains_from_theta
-from treeinfer.likelihood import theta_from_gains
+from treeinfer.model import force_noise as fn
+from treeinfer.model.gains import gains_from_theta
+from treeinfer.model.likelihood import theta_from_gains
 from treeinfer.sim import make_simulator
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.tree import load_tree
+from treeinfer.tree.description import load_tree
 
 DT = 0.02
 T = 25

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from treeinfer.cli import main
-from treeinfer.trajectories import add_noise, read_trajectory_dir, write_trajectory
+from treeinfer.data.trajectories import add_noise, read_trajectory_dir, write_trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 TWO = ROOT / "treeinfer" / "examples" / "two_branch.yaml"
@@ -82,7 +82,7 @@ def test_infer_predict_evaluate_with_noise_force(data, tmp_path):
     assert cfg["options"]["noise_force"] == "auto"
     assert cfg["problem"]["noise_force"] == pytest.approx(sf, rel=0.35)
     ref = np.asarray(cfg["problem"]["noise_force_reference"])
-    from treeinfer.tree import load_tree
+    from treeinfer.tree.description import load_tree
 
     lo, hi = np.log(load_tree(TWO).bounds_array())
     assert ref.shape == (4,) and np.all((ref >= lo) & (ref <= hi))  # the MAP, inside the box

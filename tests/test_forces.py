@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from treeinfer import forces as F
+from treeinfer.data import forces as F
 from treeinfer.errors import ConfigError
 
 DT = 0.01
@@ -31,7 +31,7 @@ def test_n_steps_and_times():
 
 
 def test_min_steps_matches_trajectory_files():
-    from treeinfer.trajectories import MIN_ROWS
+    from treeinfer.data.trajectories import MIN_ROWS
 
     assert F.MIN_STEPS == MIN_ROWS
 

@@ -18,22 +18,22 @@ import mujoco
 import numpy as np
 import pytest
 
+from treeinfer.data.trajectories import Trajectory, stack_trajectories
 from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
-from treeinfer.export import to_mjmodel
-from treeinfer.gradients import (
+from treeinfer.model.gradients import (
     combined_value_and_grad,
     jvp_combined_value_and_grad,
     jvp_value_and_grad,
     likelihood_value_and_grad,
 )
-from treeinfer.likelihood import boltzmann_log_likelihood
+from treeinfer.model.likelihood import boltzmann_log_likelihood
 from treeinfer.sim import fused as hd
 from treeinfer.sim import levels as lv
 from treeinfer.sim import make_simulator
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.trajectories import Trajectory, stack_trajectories
-from treeinfer.tree import load_tree
+from treeinfer.tree.description import load_tree
+from treeinfer.tree.export import to_mjmodel
 
 # The hand-written model of tests/test_hinge_dynamics.py (copied so each file stands alone). It
 # uses what our exports do not: a welded (joint-less) body, joint anchors and axes off the body

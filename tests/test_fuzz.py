@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from treeinfer.cli import main
 from treeinfer.errors import TreeFileError
 from treeinfer.examples import example_path
-from treeinfer.tree import Tree, tree_from_dict
+from treeinfer.tree.description import Tree, tree_from_dict
 
 N = int(os.environ.get("TREEINFER_FUZZ_EXAMPLES", "150"))
 FUZZ = settings(max_examples=N, deadline=None, suppress_health_check=list(HealthCheck))
@@ -93,7 +93,7 @@ def test_tree_loader_mutations(mutations):
 def test_tree_loader_random_text(tmp_path_factory, text):
     path = Path(tmp_path_factory.mktemp("t")) / "tree.yaml"
     path.write_text(text, encoding="utf-8")
-    from treeinfer.tree import load_tree
+    from treeinfer.tree.description import load_tree
 
     try:
         load_tree(path)
@@ -147,7 +147,7 @@ def test_cli_tree_fuzz(tmp_path_factory, capsys, kind, options):
     assert code in (0, 2), (argv, code, err)
     assert "Traceback" not in err
     if code == 0:
-        from treeinfer.tree import load_tree
+        from treeinfer.tree.description import load_tree
 
         load_tree(out)
     else:
@@ -187,7 +187,7 @@ def test_cli_missing_inputs_are_user_errors(tmp_path_factory, capsys, command, v
 
 
 def test_json_and_yaml_loaders_agree(tmp_path):
-    from treeinfer.tree import load_tree
+    from treeinfer.tree.description import load_tree
 
     (tmp_path / "t.json").write_text(json.dumps(BASE))
     (tmp_path / "t.yaml").write_text(yaml.safe_dump(BASE))

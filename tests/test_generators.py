@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import yaml
 
-from treeinfer import generators as gen
 from treeinfer.errors import ConfigError, TreeFileError
-from treeinfer.export import to_mjcf
-from treeinfer.tree import Bounds, load_tree, world_frames
+from treeinfer.tree import generators as gen
+from treeinfer.tree.description import Bounds, load_tree, world_frames
+from treeinfer.tree.export import to_mjcf
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "treeinfer" / "examples"
 

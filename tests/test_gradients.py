@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from treeinfer.errors import ConfigError
-from treeinfer.gradients import (
+from treeinfer.model.gradients import (
     autodiff_value_and_grad,
     central_difference,
     combine,

@@ -12,14 +12,14 @@ import mujoco
 import numpy as np
 import pytest
 
-from treeinfer import generators as gen
 from treeinfer.examples import example_path
-from treeinfer.export import to_mjmodel
 from treeinfer.sim import fused as hd
 from treeinfer.sim import levels as lv
 from treeinfer.sim import make_simulator
 from treeinfer.sim.fused_backend import LEVELS_FROM_JOINTS, uses_levels
-from treeinfer.tree import load_tree
+from treeinfer.tree import generators as gen
+from treeinfer.tree.description import load_tree
+from treeinfer.tree.export import to_mjmodel
 
 # A hand-written model that uses what our exports do not: a welded (joint-less) body, joint
 # anchors and axes off the body frame, rotated principal axes, armature, a non-zero spring

@@ -17,9 +17,9 @@ import pytest
 
 from treeinfer.cli.main import main
 from treeinfer.errors import TreeinferError
-from treeinfer.limits import check_tree_size, tree_depth
-from treeinfer.model_paths import check_model_paths
-from treeinfer.safe_load import refuse_special_paths
+from treeinfer.io.limits import check_tree_size, tree_depth
+from treeinfer.io.safe_load import refuse_special_paths
+from treeinfer.tree.model_paths import check_model_paths
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE_TREE = ROOT / "treeinfer" / "examples" / "two_branch.yaml"

@@ -1,5 +1,6 @@
-"""Adaptive importance sampling and the importance posterior's own checks (treeinfer.importance),
-and the NumPy draws and Latin hypercube that replaced scipy.stats on the fast path.
+"""Adaptive importance sampling and the importance posterior's own checks
+(treeinfer.inference.importance), and the NumPy draws and Latin hypercube that replaced scipy.stats
+on the fast path.
 
 References: scipy.stats densities and scipy.stats.qmc points; closed-form moments of Gaussian
 targets; numpy.quantile for the weighted band width.
@@ -12,8 +13,8 @@ import pytest
 from scipy import stats
 
 from treeinfer.errors import ConfigError
-from treeinfer.fast_posterior import latin_hypercube
-from treeinfer.importance import (
+from treeinfer.inference.fast import latin_hypercube
+from treeinfer.inference.importance import (
     KHAT_LIMIT,
     _draw,
     _weighted_width,
@@ -41,7 +42,9 @@ def test_draws_and_densities_equal_scipy(df):
 
 
 def test_latin_hypercube_equals_scipy_qmc():
-    from treeinfer.mapfit import latin_hypercube as scipy_lhs  # scipy.stats.qmc.LatinHypercube
+    from treeinfer.inference.mapfit import (
+        latin_hypercube as scipy_lhs,  # scipy.stats.qmc.LatinHypercube
+    )
 
     lo, hi = np.array([0.0, -1.0, 2.0, 3.0]), np.array([1.0, 3.0, 2.5, 9.0])
     for seed in (0, 3):
@@ -124,7 +127,7 @@ def test_student_t_later_rounds_keep_the_target():
 
 
 def test_sorted_resample_takes_one_draw_per_stratum():
-    from treeinfer.importance import leading_projection, sorted_resample
+    from treeinfer.inference.importance import leading_projection, sorted_resample
 
     rng = np.random.default_rng(5)
     key = rng.normal(size=1000)

@@ -11,15 +11,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from treeinfer import metrics, samplers
+from treeinfer.data.trajectories import Trajectory
 from treeinfer.errors import ConfigError
+from treeinfer.evaluation import metrics
 from treeinfer.examples import example_path
-from treeinfer.inference import infer, make_problem, predict
-from treeinfer.likelihood import gains_from_theta, theta_from_gains
-from treeinfer.program_cache import ProgramCache
+from treeinfer.inference import samplers
+from treeinfer.inference.problem import infer, make_problem, predict
+from treeinfer.model.likelihood import gains_from_theta, theta_from_gains
 from treeinfer.sim import make_simulator, simulate
-from treeinfer.trajectories import Trajectory
-from treeinfer.tree import load_tree
+from treeinfer.sim.program_cache import ProgramCache
+from treeinfer.tree.description import load_tree
 
 DT = 0.02
 T = 50
@@ -64,7 +65,7 @@ def test_one_simulator_call_per_gradient(setup, monkeypatch):
     """The FD gradient of all P particles and 2D perturbations is ONE batched simulate call."""
     tree, sim, trajs, _ = setup
     calls = []
-    import treeinfer.likelihood as lik
+    import treeinfer.model.likelihood as lik
 
     real = lik.simulate
 

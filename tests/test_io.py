@@ -12,8 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from treeinfer import _io
-from treeinfer._io import (
+from treeinfer.errors import ConfigError, OutputExistsError
+from treeinfer.io import atomic as _io
+from treeinfer.io.atomic import (
     OUTPUT_MARKER,
     OutputWriteError,
     atomic_save,
@@ -24,8 +25,8 @@ from treeinfer._io import (
     is_treeinfer_output,
     staged_output_dir,
 )
-from treeinfer.errors import ConfigError, OutputExistsError
-from treeinfer.integrity import (
+from treeinfer.io.manifest import MANIFEST, write_manifest
+from treeinfer.runs.integrity import (
     check_partial,
     load_npz,
     record_checksums,
@@ -34,7 +35,6 @@ from treeinfer.integrity import (
     validate_summary,
     verify_run,
 )
-from treeinfer.manifest import MANIFEST, write_manifest
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -11,8 +11,8 @@ import jax
 import numpy as np
 import pytest
 
-from treeinfer.laplace import laplace_particles, particle_covariance
-from treeinfer.mapfit import MapFit
+from treeinfer.inference.laplace import laplace_particles, particle_covariance
+from treeinfer.inference.mapfit import MapFit
 
 
 def _fit(norm_cov=None):

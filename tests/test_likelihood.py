@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from treeinfer.data.trajectories import Trajectory, add_noise, stack_trajectories
 from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
-from treeinfer.gradients import autodiff_value_and_grad
-from treeinfer.likelihood import (
+from treeinfer.model.gradients import autodiff_value_and_grad
+from treeinfer.model.likelihood import (
     boltzmann_log_likelihood,
     gains_from_theta,
     likelihood_terms,
@@ -23,8 +24,7 @@ from treeinfer.likelihood import (
     theta_from_gains,
 )
 from treeinfer.sim import make_simulator, simulate
-from treeinfer.trajectories import Trajectory, add_noise, stack_trajectories
-from treeinfer.tree import load_tree
+from treeinfer.tree.description import load_tree
 
 DT = 0.02
 T = 50
@@ -210,7 +210,7 @@ def test_predictive_band_at_truth_covers_95(setup):
     """At the TRUE parameters the 95% predictive band (simulation + Gaussian noise) holds 93-97%
     of noisy points of a simulated tree (no force noise); the parameter-only band (zero width
     for one parameter set) holds almost none."""
-    from treeinfer import metrics
+    from treeinfer.evaluation import metrics
 
     _tree, sim, _ = setup
     rec, simulated = _band_coverage(sim, 20, SIGMA, 0.0, seed=1)
@@ -224,15 +224,15 @@ def test_predictive_band_at_truth_covers_95(setup):
 
 
 def test_force_noise_enters_through_displacement(setup):
-    """Why treeinfer.noise documents force noise as an errors-in-variables term (opt-in,
-    treeinfer.force_noise; tests/test_force_noise.py): the simulator is driven by the recorded
+    """Why treeinfer.model.noise documents force noise as an errors-in-variables term (opt-in,
+    treeinfer.model.force_noise; tests/test_force_noise.py): the simulator is driven by the recorded
     force, so force noise reaches the residual through the branch's low-pass as a slow
     displacement error. Measured here (2% force noise, 2 mm
     displacement noise): it is slow (lag-1 autocorrelation > 0.8) and NOT negligible for this
     compliant tree (rms ~1.9 mm), so a white sigma_x fixed at the displacement noise alone
     under-covers, while sigma_x fitted to the training residuals (what inferring it does)
     absorbs it and keeps the 95% predictive band calibrated on unseen pulls."""
-    from treeinfer import metrics
+    from treeinfer.evaluation import metrics
 
     _tree, sim, _ = setup
     forces = _forces([6.0, 10.0])
@@ -306,7 +306,7 @@ def test_ar1_terms_layout_and_value(setup):
 def test_terms_plug_into_combined_value_and_grad(setup):
     """What make_problem will do: black-box Boltzmann by central differences, generative terms
     (FD custom_jvp inside) with the autodiff terms; both give the likelihood's own gradient."""
-    from treeinfer.gradients import central_difference, combined_value_and_grad
+    from treeinfer.model.gradients import central_difference, combined_value_and_grad
 
     _tree, sim, noisy = setup
     obs = stack_trajectories(noisy)
@@ -327,7 +327,7 @@ def test_terms_plug_into_combined_value_and_grad(setup):
 
 
 def test_natural_units():
-    from treeinfer.likelihood import natural_units
+    from treeinfer.model.likelihood import natural_units
 
     th = np.array([[math.log(40.0), math.log(0.5), math.log(0.002), math.log(9.0)]])
     got = natural_units(th, ["Kp[a]", "Kd[a]", "sigma_c", "rho"])

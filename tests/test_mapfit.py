@@ -1,4 +1,5 @@
-"""The fast start (treeinfer.mapfit): MAP by Levenberg–Marquardt and the Laplace approximation.
+"""The fast start (treeinfer.inference.mapfit): MAP by Levenberg–Marquardt and the Laplace
+approximation.
 
 References: closed-form posteriors of linear-Gaussian toys (where MAP and Laplace are exact),
 the least-squares point of a sum-of-norms toy, and the known truth of a two-joint tree whose
@@ -14,10 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from treeinfer.data.trajectories import Trajectory, read_trajectory_dir
 from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
-from treeinfer.inference import make_problem
-from treeinfer.mapfit import (
+from treeinfer.inference.mapfit import (
     ResidualModel,
     fit_map,
     fit_problem,
@@ -26,10 +27,10 @@ from treeinfer.mapfit import (
     norm_loss_covariance,
     problem_with_gradients,
 )
+from treeinfer.inference.problem import make_problem
 from treeinfer.sim import make_simulator
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.trajectories import Trajectory, read_trajectory_dir
-from treeinfer.tree import load_tree
+from treeinfer.tree.description import load_tree
 
 
 def _linear_toy(seed=0, n=30, dim=3, sigma=0.2):
@@ -244,9 +245,9 @@ def test_two_joint_tree_boltzmann_map_and_jvp_problem():
 
 def test_cli_infer_with_laplace_init_and_gradient_choice_recorded(tmp_path, capsys):
     from treeinfer.cli import main
+    from treeinfer.data.trajectories import write_trajectory
     from treeinfer.runs import infer_config
     from treeinfer.runs.service import build_problem
-    from treeinfer.trajectories import write_trajectory
 
     tree_file = example_path("two_branch")
     tree = load_tree(tree_file)
@@ -321,11 +322,12 @@ def test_cli_infer_with_laplace_init_and_gradient_choice_recorded(tmp_path, caps
 
 
 def test_lm_core_is_exact_on_least_squares_and_batches_data_sets_independently():
-    """treeinfer.lm.levenberg_marquardt (the loop of fit_map and batch_posteriors.map_fits):
-    on ``||A theta - y||^2 / 2`` it reaches the least-squares point (numpy.linalg.lstsq); two
-    data sets stacked as one batch of points give, point for point, what each gives alone (as
-    map_fits runs many data sets' starts together); extras follow the accepted points."""
-    from treeinfer.lm import levenberg_marquardt
+    """treeinfer.inference.lm.levenberg_marquardt (the loop of fit_map and
+    batch_posteriors.map_fits): on ``||A theta - y||^2 / 2`` it reaches the least-squares point
+    (numpy.linalg.lstsq); two data sets stacked as one batch of points give, point for point, what
+    each gives alone (as map_fits runs many data sets' starts together); extras follow the accepted
+    points."""
+    from treeinfer.inference.lm import levenberg_marquardt
 
     sets = [_linear_toy(seed=s)[:2] for s in (0, 1)]
 

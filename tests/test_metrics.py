@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy import optimize, stats
 
-from treeinfer import metrics
 from treeinfer.errors import ConfigError, SimulationError
+from treeinfer.evaluation import metrics
 
 
 def _scipy_interval(x, level=0.95):

@@ -12,11 +12,11 @@ import pytest
 import scipy.stats
 from scipy.optimize import brentq
 
-from treeinfer.inference import infer, make_problem
-from treeinfer.likelihood import measurement_log_likelihood
+from treeinfer.data.trajectories import Trajectory
+from treeinfer.inference.problem import infer, make_problem
+from treeinfer.model.likelihood import measurement_log_likelihood
 from treeinfer.sim import make_simulator
-from treeinfer.trajectories import Trajectory
-from treeinfer.tree import Bounds, Branch, make_tree
+from treeinfer.tree.description import Bounds, Branch, make_tree
 
 G = 9.81
 KP, A, SIGMA = 40.0, 0.6, 0.004  # N m/rad, grasp distance m, noise m
@@ -105,7 +105,7 @@ def test_static_student_t_with_inferred_sigma(static_case):
     """Student-t with sigma_x inferred: theta = [log Kp, log sigma_x]; the likelihood is
     scipy's t density (df 4 unless changed) and the sigma prior flat in log sigma_x over
     [resolution, data range] (issue 27), so two points inside it have the same prior."""
-    from treeinfer import noise
+    from treeinfer.model import noise
 
     tree, sim, traj, tau = static_case
     problem = make_problem(
@@ -129,7 +129,7 @@ def test_static_student_t_with_inferred_sigma(static_case):
 @pytest.mark.parametrize("kind", ["gaussian", "ar1"])
 def test_stiffness_only_generative_equals_the_full_model_at_fixed_damping(kind):
     """inference: {parameters: [kp]} with a generative likelihood: theta = [log Kp, noise
-    columns]; its log-likelihood is the full [log Kp, log Kd] model's (treeinfer.likelihood,
+    columns]; its log-likelihood is the full [log Kp, log Kd] model's (treeinfer.model.likelihood,
     the paper's layout) at the tree's own Kd."""
     tree = dataclasses.replace(
         make_tree([Branch("b", None, 0.5, 0.01, kd=0.3)], grasp_branch="b", grasp_fraction=1.0),
@@ -159,7 +159,7 @@ def test_stiffness_only_generative_equals_the_full_model_at_fixed_damping(kind):
 def test_tied_layout_is_the_free_model_at_scaled_stiffness(static_case):
     """One stiffness scale (Kp = s * shape): the problem's log-likelihood at [log s, log sigma]
     equals the free-stiffness problem's at [log(s * shape), log sigma]; the box is the scale's."""
-    from treeinfer.static import model_for, tied_layout
+    from treeinfer.inference.static import model_for, tied_layout
 
     tree, sim, traj, _ = static_case
     model = model_for(tree, "static")
@@ -178,13 +178,13 @@ def test_tied_layout_is_the_free_model_at_scaled_stiffness(static_case):
 
 
 def test_exact_laplace_of_a_static_model_matches_an_independent_fit(static_case):
-    """:func:`treeinfer.static.exact_laplace` (autodiff through the equilibrium): MAP and
+    """:func:`treeinfer.inference.static.exact_laplace` (autodiff through the equilibrium): MAP and
     covariance of [log Kp, log sigma_x] against a fit of the same posterior built from brentq
     equilibria and scipy densities (flat in log Kp inside the box, the problem's recorded
     Normal prior on log sigma_x), its Hessian by central differences in float64."""
     from scipy.optimize import minimize
 
-    from treeinfer.static import exact_laplace
+    from treeinfer.inference.static import exact_laplace
 
     tree, sim, traj, tau = static_case
     problem = make_problem(
@@ -233,9 +233,10 @@ def test_exact_laplace_of_a_static_model_matches_an_independent_fit(static_case)
 
 def test_init_laplace_of_a_static_run_with_exact_gradients_uses_the_exact_fit(static_case):
     """``infer --model-kind static --gradients jvp --init laplace``: the run layer's start is
-    :func:`treeinfer.static.exact_laplace` (its particles centre on that MAP and say so)."""
+    :func:`treeinfer.inference.static.exact_laplace` (its particles centre on that MAP and say
+    so)."""
+    from treeinfer.inference.static import exact_laplace
     from treeinfer.runs.start import _model_laplace_start
-    from treeinfer.static import exact_laplace
 
     tree, sim, traj, _ = static_case
     problem = make_problem(

@@ -11,21 +11,21 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from treeinfer import noise
+from treeinfer.data.trajectories import Trajectory, stack_trajectories, velocity_from_displacement
 from treeinfer.errors import ConfigError
-from treeinfer.gradients import (
+from treeinfer.model import noise
+from treeinfer.model.gradients import (
     autodiff_value_and_grad,
     central_difference_jacobian,
     finite_difference_jvp,
 )
-from treeinfer.likelihood import (
+from treeinfer.model.likelihood import (
     DEFAULT_KT,
     auto_kT,
     suggest_kT,
     trajectory_loss,
 )
 from treeinfer.sim import Rollout
-from treeinfer.trajectories import Trajectory, stack_trajectories, velocity_from_displacement
 
 
 def _smooth_pull(t, amp=0.05, omega=8.0, zeta=0.3):
@@ -190,8 +190,8 @@ def test_central_difference_jacobian_one_batched_call():
 def test_joint_sigma_inference_closed_form_with_nuts():
     """y = a x + e, e ~ N(0, sigma): (a, log sigma) inferred jointly by numpyro's NUTS through the
     finite-difference custom_jvp 'black box' a -> a x. Reference: the exact posterior (flat prior
-    on a; log sigma ~ Normal(log sigma_hat, 1.5) from treeinfer.noise) on a 1-D grid in log sigma
-    with a | sigma ~ N(a_hat, sigma^2 / sum x^2) integrated analytically."""
+    on a; log sigma ~ Normal(log sigma_hat, 1.5) from treeinfer.model.noise) on a 1-D grid in log
+    sigma with a | sigma ~ N(a_hat, sigma^2 / sum x^2) integrated analytically."""
     from numpyro.infer import MCMC, NUTS
 
     rng = np.random.default_rng(4)

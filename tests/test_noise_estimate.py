@@ -9,15 +9,15 @@ import math
 import numpy as np
 import pytest
 
-from treeinfer import noise
-from treeinfer.errors import ConfigError
-from treeinfer.force_noise import estimate_force_noise, resolve_noise_force
-from treeinfer.noise_estimate import (
+from treeinfer.data.noise_estimate import (
     detect_upsampling,
     estimate_white_noise,
     quantisation_step,
 )
-from treeinfer.trajectories import Trajectory
+from treeinfer.data.trajectories import Trajectory
+from treeinfer.errors import ConfigError
+from treeinfer.model import noise
+from treeinfer.model.force_noise import estimate_force_noise, resolve_noise_force
 
 
 def _pull(t, amp=0.05, omega=8.0, zeta=0.3):

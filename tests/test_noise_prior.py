@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from scipy import integrate, stats
 
-from treeinfer import noise
-from treeinfer.trajectories import Trajectory
+from treeinfer.data.trajectories import Trajectory
+from treeinfer.model import noise
 
 
 def _trajs(sigma, q=None, n=3, T=301, dt=0.01, seed=0):

@@ -15,12 +15,12 @@ from scipy import stats
 from test_crb import KD, KP, two_branch_pulls
 
 from treeinfer.cli import main
+from treeinfer.data.trajectories import Trajectory, write_trajectory
 from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
-from treeinfer.inference import make_problem
+from treeinfer.inference.problem import make_problem
 from treeinfer.runs.config import RunConfig
 from treeinfer.sim import simulate
-from treeinfer.trajectories import Trajectory, write_trajectory
 
 SX, SV = 0.002, 0.05  # m, m/s
 

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import pytest
 
-from treeinfer import _io
-from treeinfer._io import OUTPUT_MARKER, check_output_dir, staged_output_dir
 from treeinfer.cli.main import main
 from treeinfer.errors import OutputExistsError
-from treeinfer.ownership import move_aside, refuse_overlap
+from treeinfer.io import atomic as _io
+from treeinfer.io.atomic import OUTPUT_MARKER, check_output_dir, staged_output_dir
+from treeinfer.io.ownership import move_aside, refuse_overlap
 
 EXAMPLE_TREE = Path(__file__).resolve().parents[1] / "treeinfer" / "examples" / "two_branch.yaml"
 

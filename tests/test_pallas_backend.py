@@ -13,12 +13,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from treeinfer.forces import profile_set
-from treeinfer.generators import chain
-from treeinfer.gradients import central_difference, jvp_value_and_grad
+from treeinfer.data.forces import profile_set
+from treeinfer.model.gradients import central_difference, jvp_value_and_grad
 from treeinfer.sim import make_simulator, simulate
 from treeinfer.sim import pallas as pk
-from treeinfer.synthetic import default_true_params
+from treeinfer.sim.synthetic import default_true_params
+from treeinfer.tree.generators import chain
 
 T = 10
 # exact gradients of the two backends agree to float32 rounding: to ~1e-5 of their scale in the

@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 from test_pallas_backend import pallas_chain
 
+from treeinfer.data.forces import profile_set
 from treeinfer.examples import example_path
-from treeinfer.forces import profile_set
 from treeinfer.sim import make_simulator, simulate
 from treeinfer.sim import pallas as pk
-from treeinfer.synthetic import default_true_params
-from treeinfer.tree import load_tree
+from treeinfer.sim.synthetic import default_true_params
+from treeinfer.tree.description import load_tree
 
 T = 24
 K = 3  # random tangent directions per call

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from test_pallas_backend import pallas_chain
 
-from treeinfer.forces import profile_set
+from treeinfer.data.forces import profile_set
 from treeinfer.sim import _simulate, make_simulator
 from treeinfer.sim import pallas as pk
-from treeinfer.synthetic import default_true_params
+from treeinfer.sim.synthetic import default_true_params
 
 T = 40
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from matplotlib.collections import PolyCollection
 
-from treeinfer import plots
 from treeinfer.errors import ConfigError
+from treeinfer.evaluation import plots
 
 matplotlib.use("Agg")  # the module itself never picks a backend
 

@@ -20,7 +20,7 @@ from scipy import stats
 
 import treeinfer
 from treeinfer.errors import ConfigError, PosteriorError
-from treeinfer.posterior import Posterior, PosteriorContext
+from treeinfer.inference.posterior import Posterior, PosteriorContext
 
 matplotlib.use("Agg")
 
@@ -110,8 +110,8 @@ def test_failed_runs_and_bad_requests_are_refused(gauss):
 def test_arviz_data_has_units_and_the_prior_box(gauss, tmp_path):
     import xarray as xr
 
-    from treeinfer.arviz_compat import group_names, summary_table
-    from treeinfer.diagnostics import save_inference_data
+    from treeinfer.inference.diagnostics import save_inference_data
+    from treeinfer.inference.diagnostics.arviz_compat import group_names, summary_table
 
     _, _, theta = gauss
     post = _posterior(theta[:200], problem_settings={"likelihood": "gaussian", "kT": 0.05})
@@ -176,7 +176,7 @@ def _title_inside(fig):
 
 
 def test_figures_have_units_prior_box_and_truth(gauss, tmp_path):
-    from treeinfer.plots import save_figure
+    from treeinfer.evaluation.plots import save_figure
 
     _, _, theta = gauss
     truth = np.array([40.0, 100.0, 0.4, 1.0])
@@ -220,7 +220,7 @@ def test_figures_have_units_prior_box_and_truth(gauss, tmp_path):
 
 
 def test_band_plots_name_a_recording_and_a_truth():
-    from treeinfer.predictive import PredictiveBand
+    from treeinfer.evaluation.posterior_bands import PredictiveBand
 
     t = np.linspace(0, 1, 30)
     mean = 0.01 * t
@@ -308,10 +308,10 @@ def test_infer_returns_the_posterior_object():
     with its chains for ArviZ and its simulator for predictions."""
     import jax.numpy as jnp
 
+    from treeinfer.data.trajectories import Trajectory
     from treeinfer.examples import example_path
     from treeinfer.sim import make_simulator, simulate
-    from treeinfer.trajectories import Trajectory
-    from treeinfer.tree import load_tree
+    from treeinfer.tree.description import load_tree
 
     tree = load_tree(example_path("two_branch"))
     sim = make_simulator(tree, obs_dt=0.02)
@@ -343,7 +343,7 @@ def test_infer_returns_the_posterior_object():
 
 
 def test_noise_and_tied_columns_become_their_own_variables():
-    from treeinfer.posterior_io import build_inference_data
+    from treeinfer.inference.posterior_io import build_inference_data
 
     rng = np.random.default_rng(7)
     labels = ["Kp[a]", "Kd[a]", "sigma_x", "rho"]

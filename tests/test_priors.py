@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from treeinfer import priors
 from treeinfer.errors import ConfigError
-from treeinfer.gradients import autodiff_value_and_grad
-from treeinfer.priors import (
+from treeinfer.model import priors
+from treeinfer.model.gradients import autodiff_value_and_grad
+from treeinfer.model.priors import (
     inequality_prior,
     inequality_target,
     load_or_train_inequality_network,
@@ -319,7 +319,7 @@ def test_network_files_load_and_run_without_flax_as_flax_does():
     jax.numpy (issue 15): both must equal flax's own restore and ``Module.apply``."""
     from flax import serialization
 
-    from treeinfer.inequality_net import _mlp_apply, _model
+    from treeinfer.model.inequality_net import _mlp_apply, _model
 
     files = sorted(priors.BUNDLED_NETS.glob("inequality_net-*.msgpack"))
     assert files, "no bundled network"

@@ -1,6 +1,6 @@
-"""The Laplace start of any problem (:func:`treeinfer.laplace.problem_laplace`): the MAP and the
-Hessian of the log-density's values, checked on a Gaussian of known mean and covariance, and the
-MH proposal built from it. ``--init laplace`` for the static model with a soft taper tie runs in
+"""The Laplace start of any problem (:func:`treeinfer.inference.laplace.problem_laplace`): the MAP
+and the Hessian of the log-density's values, checked on a Gaussian of known mean and covariance, and
+the MH proposal built from it. ``--init laplace`` for the static model with a soft taper tie runs in
 ``tests/test_tie.py``'s CLI test."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from treeinfer.laplace import (
+from treeinfer.inference.laplace import (
     mh_proposal,
     problem_laplace,
     problem_laplace_particles,

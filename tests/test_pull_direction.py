@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 from planar_chain import PlanarTree
 
-from treeinfer import forces as F
+from treeinfer.data import forces as F
+from treeinfer.data.direction import pull_direction
 from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
-from treeinfer.generators import chain
 from treeinfer.sim import make_simulator, simulate
-from treeinfer.sim.direction import pull_direction
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.tree import Bounds, load_tree, tree_from_dict, tree_to_dict, world_frames
+from treeinfer.tree.description import Bounds, load_tree, tree_from_dict, tree_to_dict, world_frames
+from treeinfer.tree.generators import chain
 
 DT = 0.02
 

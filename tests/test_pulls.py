@@ -1,4 +1,4 @@
-"""Tests for treeinfer.pulls: the data folder's pulls.yaml sidecar."""
+"""Tests for treeinfer.data.pulls: the data folder's pulls.yaml sidecar."""
 
 from __future__ import annotations
 
@@ -7,8 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from treeinfer.errors import ConfigError
-from treeinfer.pulls import (
+from treeinfer.data.pulls import (
     PullSpec,
     ResolvedPull,
     check_same_pull,
@@ -22,7 +21,8 @@ from treeinfer.pulls import (
     stack_resolved,
     write_pulls,
 )
-from treeinfer.tree import Branch, make_tree
+from treeinfer.errors import ConfigError
+from treeinfer.tree.description import Branch, make_tree
 
 SIDECAR = """\
 default: {branch: stem, fraction: 0.5}
@@ -71,7 +71,7 @@ def test_read_resolve(tmp_path, tree):
 
 def test_horizontal_is_perpendicular_to_branch(tree):
     # the tip branch points along +x (stem up, turned -90 deg): horizontal is up x axis
-    from treeinfer.tree import world_frames
+    from treeinfer.tree.description import world_frames
 
     axis = world_frames(tree)["tip"][1][:, 0]
     h = pull_direction(tree, "tip", "horizontal")
@@ -170,9 +170,9 @@ def test_data_grasp_fractions(tmp_path, tree):
 
 
 def test_pull_leverage_flags_pushes_along_the_hinge_axes():
+    from treeinfer.data.pulls import check_pull_moves, pull_leverage
     from treeinfer.examples import example_path
-    from treeinfer.pulls import check_pull_moves, pull_leverage
-    from treeinfer.tree import load_tree, world_frames
+    from treeinfer.tree.description import load_tree, world_frames
 
     three = load_tree(example_path("three_branch"))  # every hinge bends in the x-z plane
     r = resolve_pull(PullSpec(direction="horizontal"), three)

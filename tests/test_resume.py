@@ -30,8 +30,8 @@ import pytest
 
 from treeinfer import runs
 from treeinfer.cli import main
+from treeinfer.data.trajectories import Trajectory, write_trajectory
 from treeinfer.errors import ConfigError
-from treeinfer.trajectories import Trajectory, write_trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 TWO = ROOT / "treeinfer" / "examples" / "two_branch.yaml"

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from treeinfer.errors import ConfigError
+from treeinfer.io.provenance import config_hash
 from treeinfer.runs import RunConfig, infer_config, load_run_inputs, run_inference
-from treeinfer.runs.provenance import config_hash
 
 FIXTURE = Path(__file__).resolve().parent / "fixtures" / "run_main_2026-11-22"
 DATA = FIXTURE / "data"

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from treeinfer import diagnostics as dg
+from treeinfer.inference import diagnostics as dg
 from treeinfer.runs.folder import _diagnostics
 
 

@@ -1,6 +1,6 @@
 """Issue 25: ``import treeinfer`` changes nothing outside the package; the command line sets up
 JAX's runtime (``treeinfer.configure_runtime``) and refuses an unsupported environment with one
-clear message (``treeinfer.environment``)."""
+clear message (``treeinfer.cli.environment``)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,12 @@ from pathlib import Path
 
 import pytest
 
+from treeinfer.cli.environment import (
+    UnsupportedEnvironment,
+    check_environment,
+    environment_problems,
+)
 from treeinfer.cli.main import main
-from treeinfer.environment import UnsupportedEnvironment, check_environment, environment_problems
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -42,8 +46,9 @@ def test_importing_treeinfer_leaves_the_environment_unchanged(tmp_path):
     code = (
         "import json, os\n"
         "before = dict(os.environ)\n"
-        "import treeinfer, treeinfer.tree, treeinfer.diagnostics, treeinfer.arviz_compat\n"
-        "import treeinfer.inference, jax\n"
+        "import treeinfer, treeinfer.tree.description, treeinfer.inference.diagnostics\n"
+        "import treeinfer.inference.diagnostics.arviz_compat\n"
+        "import treeinfer.inference.problem, jax\n"
         "after = dict(os.environ)\n"
         "print(json.dumps({'changed': sorted(k for k in before.keys() | after.keys()\n"
         "                                  if before.get(k) != after.get(k)),\n"

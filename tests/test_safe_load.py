@@ -11,7 +11,7 @@ import yaml
 
 from treeinfer.errors import ConfigError, TreeFileError
 from treeinfer.examples import example_path
-from treeinfer.safe_load import (
+from treeinfer.io.safe_load import (
     boolean,
     load_file,
     loads_json,
@@ -20,7 +20,7 @@ from treeinfer.safe_load import (
     read_regular_file,
     string,
 )
-from treeinfer.tree import load_tree, tree_from_dict, tree_scale_warnings
+from treeinfer.tree.description import load_tree, tree_from_dict, tree_scale_warnings
 
 BASE = yaml.safe_load(example_path("two_branch").read_text())
 
@@ -231,7 +231,7 @@ def test_scale_warnings():
 
 
 def test_list_data_files_names_what_it_skips(tmp_path):
-    from treeinfer.safe_load import list_data_files
+    from treeinfer.io.safe_load import list_data_files
 
     (tmp_path / "b.csv").write_text("x")
     (tmp_path / "a.csv").write_text("x")

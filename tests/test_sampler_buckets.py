@@ -11,11 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from treeinfer.generators import chain
-from treeinfer.inference import infer, make_problem
-from treeinfer.program_cache import ProgramCache
+from treeinfer.data.trajectories import Trajectory, stack_trajectories
+from treeinfer.inference.problem import infer, make_problem
 from treeinfer.sim import make_simulator
-from treeinfer.trajectories import Trajectory, stack_trajectories
+from treeinfer.sim.program_cache import ProgramCache
+from treeinfer.tree.generators import chain
 
 
 def _tree():
@@ -98,7 +98,7 @@ def test_velocity_and_force_noise_terms_padded_equal_unpadded(term):
     """The generative likelihood with the velocity term on (``sigma_v``, only through
     ``likelihood_terms``) and with the force-noise term (its basis, computed on the padded
     pulls, is data too); the force Jacobian's reference is given (no MAP fit: a fast test)."""
-    from treeinfer.likelihood import likelihood_terms
+    from treeinfer.model.likelihood import likelihood_terms
 
     tree, obs = _tree(), _obs((50, 57))
     sim = make_simulator(tree, obs_dt=0.01, substeps=2)
@@ -173,7 +173,7 @@ def test_mcmc_samplers_on_the_data_argument_match_the_constant_path(sampler):
     """SGLD (Adam-preconditioned) and MH (its proposal scale is a host array recorded in the
     settings) built on the data argument: the same chains as with the data as constants, to
     float rounding (a padded row of 7 steps here)."""
-    from treeinfer.samplers import DataSamplingAlgorithm
+    from treeinfer.inference.samplers import DataSamplingAlgorithm
 
     tree, obs = _tree(), _obs((50, 57))
     sim = make_simulator(tree, obs_dt=0.01, substeps=2)

@@ -14,9 +14,7 @@ import pytest
 from scipy.spatial.distance import pdist
 
 from treeinfer.errors import ConfigError
-from treeinfer.gradients import central_difference
-from treeinfer.program_cache import ProgramCache
-from treeinfer.samplers import (
+from treeinfer.inference.samplers import (
     SAMPLERS,
     make_sampler,
     median_length_scale,
@@ -26,6 +24,8 @@ from treeinfer.samplers import (
     stein_direction,
     svgd,
 )
+from treeinfer.model.gradients import central_difference
+from treeinfer.sim.program_cache import ProgramCache
 
 MU = np.array([1.0, -0.5])
 SD = np.array([1.0, 0.5])

@@ -21,12 +21,12 @@ import pytest
 from test_forward_mode import GENERAL_MJCF  # tests/ is on sys.path (pytest prepend)
 
 from treeinfer.examples import example_path
-from treeinfer.gradients import autodiff_value_and_grad, jvp_value_and_grad
+from treeinfer.model.gradients import autodiff_value_and_grad, jvp_value_and_grad
 from treeinfer.sim import _simulate, make_simulator
 from treeinfer.sim import fused as hd
 from treeinfer.sim import fused_backend as fb
 from treeinfer.sim import sensitivity as sn
-from treeinfer.tree import load_tree, tree_from_dict
+from treeinfer.tree.description import load_tree, tree_from_dict
 
 ONE_BRANCH = {
     "name": "one",
@@ -169,9 +169,9 @@ def test_pull_tangent_equals_plain_jvp_and_central_differences(name, plain, stag
 
 
 def test_likelihood_gradient_forward_reverse_and_force_fallback():
-    from treeinfer.likelihood import boltzmann_log_likelihood
+    from treeinfer.data.trajectories import Trajectory, stack_trajectories
+    from treeinfer.model.likelihood import boltzmann_log_likelihood
     from treeinfer.sim.reference import simulate_reference
-    from treeinfer.trajectories import Trajectory, stack_trajectories
 
     sim, forces = _pull_data("two", 20)
     kp, kd = np.array([120.0, 40.0]), np.array([1.0, 0.3])

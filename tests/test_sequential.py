@@ -1,4 +1,5 @@
-"""treeinfer.sequential: a fitted posterior as the next run's prior (A then B == A and B)."""
+"""treeinfer.inference.sequential: a fitted posterior as the next run's prior (A then B == A and
+B)."""
 
 import jax
 import jax.numpy as jnp
@@ -6,8 +7,9 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from treeinfer import batch_posteriors, sequential
 from treeinfer.errors import ConfigError
+from treeinfer.inference import batch as batch_posteriors
+from treeinfer.inference import sequential
 
 
 def _exact_particles(mu, cov, n, seed=0):
@@ -116,10 +118,10 @@ def _chain_problems(levels=2, kT=0.05, duration=0.4, dt=0.02):
     """Problems of pull A, pull B and both, on a 2-joint chain (``levels`` joints inferred from
     the tip), with noise-free data from the batched simulator at known gains."""
     from treeinfer import make_simulator, simulate
-    from treeinfer.forces import from_spec
-    from treeinfer.generators import chain
-    from treeinfer.inference import make_problem
-    from treeinfer.trajectories import Trajectory, validate_trajectory
+    from treeinfer.data.forces import from_spec
+    from treeinfer.data.trajectories import Trajectory, validate_trajectory
+    from treeinfer.inference.problem import make_problem
+    from treeinfer.tree.generators import chain
 
     tree = chain(
         2,
@@ -184,7 +186,7 @@ def test_chain_a_then_b_equals_a_and_b_on_a_grid():
     earlier posterior is sampled (400 draws), fitted (BIC picks the components), and used as the
     prior of B. Tolerances: means within 0.2 of the joint posterior's std, stds within 10%
     (measured: 0.1 and 5%; a one-Gaussian fit of this curved posterior gives stds 14% too wide)."""
-    from treeinfer.sequential import prior_from_particles, with_prior
+    from treeinfer.inference.sequential import prior_from_particles, with_prior
 
     prob_a, prob_b, prob_ab = _chain_problems(levels=1, kT=0.05)
     assert prob_a.labels == ("Kp[branch1]", "Kd[branch1]")
@@ -223,7 +225,7 @@ def test_two_joint_chain_a_then_b_agrees_with_a_and_b_svgd():
     a factor 1.5. A's posterior is box-wide in the parent's gains (tip pulls barely see them), so
     those may keep the box (``uninformed``); the child's gains carry over. About 3 min on 2 loaded
     cores (measured: mean offsets <= 0.2 std, std ratios 0.83-1.40)."""
-    from treeinfer.inference import infer
+    from treeinfer.inference.problem import infer
 
     prob_a, prob_b, prob_ab = _chain_problems()
     kw = {"sampler": "svgd", "n_particles": 48, "n_iterations": 400, "progress": False}
@@ -260,11 +262,11 @@ def test_two_joint_chain_a_then_b_agrees_with_a_and_b_svgd():
 def test_posterior_program_matches_the_problem_sampler_per_data_set():
     """The batched program (data and kT as arguments, vmapped over data sets) gives the same
     particles as each data set's own Problem.sampler run with the same start, keys and kT."""
-    from treeinfer.samplers import init_key, iteration_key
+    from treeinfer.inference.samplers import init_key, iteration_key
 
     p_b, p_a, _ = _chain_problems(kT=0.05)
     kts = [0.05, 0.02]
-    from treeinfer.inference import make_problem
+    from treeinfer.inference.problem import make_problem
 
     problems = [
         make_problem(p.tree, p.obs, kT=k, sim=p.sim, nn_prior=False, likelihood="boltzmann")
@@ -302,8 +304,8 @@ def test_posterior_program_matches_the_problem_sampler_per_data_set():
 def test_map_fits_match_fit_map_per_data_set():
     """The batched MAP fits (one program for all data sets) equal mapfit.fit_map run on each
     data set alone with the same starts, kT and Levenberg-Marquardt settings."""
-    from treeinfer.inference import make_problem
-    from treeinfer.mapfit import boltzmann_residuals, fit_map
+    from treeinfer.inference.mapfit import boltzmann_residuals, fit_map
+    from treeinfer.inference.problem import make_problem
 
     p_b, p_a, _ = _chain_problems(kT=0.05)
     tree, sim, kts = p_a.tree, p_a.sim, [0.05, 0.02]

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from treeinfer.examples import example_path
-from treeinfer.generators import chain
 from treeinfer.sim import make_simulator
 from treeinfer.sim.fused_backend import _settle_one
 from treeinfer.sim.reference import _c_model, settle_reference
-from treeinfer.tree import load_tree
+from treeinfer.tree.description import load_tree
+from treeinfer.tree.generators import chain
 
 
 def _trees():

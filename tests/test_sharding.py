@@ -1,4 +1,4 @@
-"""Particle sharding (treeinfer.sharding) on two CPU devices.
+"""Particle sharding (treeinfer.inference.sharding) on two CPU devices.
 
 Each test runs in a subprocess with ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` so
 the flag takes effect before JAX initialises (the test process itself keeps one device).
@@ -45,7 +45,7 @@ def run_two_devices(code: str) -> dict:
 CHEAP_TARGET = """
 import json
 import jax, jax.numpy as jnp, numpy as np
-from treeinfer.gradients import central_difference
+from treeinfer.model.gradients import central_difference
 from treeinfer import sharding as S
 
 rows = []
@@ -69,7 +69,7 @@ def test_sharded_svgd_gives_the_same_particles(method):
 method = {method!r}
 """
         + r"""
-from treeinfer.samplers import run, svgd
+from treeinfer.inference.samplers import run, svgd
 plain = run(svgd(vg, learning_rate=0.05), 7, theta0, 25, progress=False)
 rows_plain = sorted(set(rows)); rows.clear()
 alg = svgd(S.shard_value_and_grad(vg, mesh, method), learning_rate=0.05)
@@ -113,7 +113,7 @@ def test_infer_sharded_matches_infer_for_svgd_and_mh():
         CHEAP_TARGET
         + """
 from types import SimpleNamespace
-from treeinfer.inference import Problem, infer
+from treeinfer.inference.problem import Problem, infer
 logp = banana
 problem = Problem(
     tree=SimpleNamespace(inferred_pairs=lambda: []), sim=SimpleNamespace(n_joints=1), obs=None,
@@ -152,11 +152,11 @@ def test_sharded_problem_gradient_matches_on_the_simulator():
     res = run_two_devices("""
 import json
 import numpy as np, jax, jax.numpy as jnp
-from treeinfer.generators import chain
-from treeinfer.inference import make_problem
+from treeinfer.tree.generators import chain
+from treeinfer.inference.problem import make_problem
 from treeinfer.sim import make_simulator
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.trajectories import Trajectory
+from treeinfer.data.trajectories import Trajectory
 from treeinfer import sharding as S
 
 tree = chain(1, 0.6, 0.02, base_position=(0, 0, 1.5), base_pitch_deg=20.0)

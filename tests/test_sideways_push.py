@@ -14,9 +14,9 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from experiments.sideways_push import HEIGHTS, run_pipeline  # noqa: E402
+from treeinfer.data.direction import pull_direction  # noqa: E402
 from treeinfer.runs import load_run  # noqa: E402
 from treeinfer.sim import simulate  # noqa: E402
-from treeinfer.sim.direction import pull_direction  # noqa: E402
 
 
 def test_sideways_push_three_heights_pipeline(tmp_path):

@@ -18,7 +18,7 @@ from treeinfer.sim import (
     simulate,
 )
 from treeinfer.sim.reference import _c_model, settle_reference, simulate_reference
-from treeinfer.tree import load_tree
+from treeinfer.tree.description import load_tree
 
 T = 60
 DT = 0.02
@@ -146,7 +146,7 @@ def test_substeps_follow_the_stiffest_prior_corner():
     """A stiffer prior box needs a smaller simulation step."""
     from dataclasses import replace
 
-    from treeinfer.tree import Bounds
+    from treeinfer.tree.description import Bounds
 
     tree = load_tree(example_path("two_branch"))
     # the stability step (accuracy="coarse"); the default refines it further for accuracy

@@ -1,4 +1,4 @@
-"""treeinfer.small_solve (LAPACK-free small solves) and the static model's use of it (issue 13).
+"""treeinfer.sim.small_solve (LAPACK-free small solves) and the static model's use of it (issue 13).
 
 The stem study's 0.36 m fold hung for ever: jaxlib 0.10's batched LAPACK LU splits its batch over
 XLA's CPU thread pool and blocks the pool thread it runs on, so two LUs at once on a 2-core
@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from treeinfer.examples import example_path
+from treeinfer.inference.static import static_rollout
 from treeinfer.sim import make_simulator
-from treeinfer.small_solve import lu_factor, solve
-from treeinfer.static import static_rollout
-from treeinfer.tree import load_tree
+from treeinfer.sim.small_solve import lu_factor, solve
+from treeinfer.tree.description import load_tree
 
 
 def _lapack_calls(compiled_text: str) -> list[str]:

@@ -15,15 +15,15 @@ import numpy as np
 import pytest
 
 from treeinfer.cli import main
+from treeinfer.data.trajectories import Trajectory
 from treeinfer.errors import ConfigError
-from treeinfer.fast_posterior import BatchEvaluator, fast_posterior
-from treeinfer.generators import chain
-from treeinfer.inference import infer, make_problem
+from treeinfer.inference.fast import BatchEvaluator, fast_posterior
+from treeinfer.inference.problem import infer, make_problem
+from treeinfer.io.provenance import config_hash
 from treeinfer.runs.config import RunConfig
-from treeinfer.runs.provenance import config_hash
 from treeinfer.sim import make_simulator
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.trajectories import Trajectory
+from treeinfer.tree.generators import chain
 
 OLD_RUN = Path(__file__).resolve().parent / "fixtures" / "run_main_2026-11-22" / "run"
 SUBSTEPS = 4
@@ -179,7 +179,7 @@ def test_reinitialised_stragglers_are_counted_and_printed(one_joint, capsys):
     """Particles stuck far outside the box are moved to the bulk during the warm-up; the run
     summary counts the moves and the console says how many were moved and how many remain."""
     from treeinfer.cli.infer import _print_stragglers
-    from treeinfer.diagnostics import ReinitStragglers
+    from treeinfer.inference.diagnostics import ReinitStragglers
     from treeinfer.runs.folder import _straggler_and_edge
 
     tree, trajs, truth = one_joint

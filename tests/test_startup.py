@@ -1,4 +1,4 @@
-"""Shape buckets (treeinfer.startup): padded observations leave the log density unchanged."""
+"""Shape buckets (treeinfer.sim.startup): padded observations leave the log density unchanged."""
 
 from __future__ import annotations
 
@@ -9,13 +9,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from treeinfer.data.trajectories import Trajectory, stack_trajectories
 from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
-from treeinfer.inference import make_problem
+from treeinfer.inference.problem import make_problem
 from treeinfer.sim import make_simulator
-from treeinfer.startup import bucket_observations, steps_bucket, trajectories_bucket
-from treeinfer.trajectories import Trajectory, stack_trajectories
-from treeinfer.tree import load_tree
+from treeinfer.sim.startup import bucket_observations, steps_bucket, trajectories_bucket
+from treeinfer.tree.description import load_tree
 
 
 def test_buckets():
@@ -101,11 +101,11 @@ def test_two_data_sets_of_one_bucket_share_one_compiled_program():
     """Through the run layer (build_problem records the bucket, the importance path's evaluator
     pads to it): data sets of 57 and 60 steps compile one rollout program between them, and
     each gives the log density of its own unpadded problem."""
-    from treeinfer.fast_posterior import BatchEvaluator
-    from treeinfer.generators import chain
-    from treeinfer.program_cache import ProgramCache
+    from treeinfer.inference.fast import BatchEvaluator
     from treeinfer.runs import SimulatorCache
     from treeinfer.runs.problem import build_problem
+    from treeinfer.sim.program_cache import ProgramCache
+    from treeinfer.tree.generators import chain
 
     tree = chain(1, lengths=0.7, radii=0.03, angles_deg=0.0, base_position=(0.0, 0.0, 1.5),
                  base_pitch_deg=20.0, levels=1, name="c1")  # fmt: skip
@@ -138,7 +138,7 @@ def test_two_data_sets_of_one_bucket_share_one_compiled_program():
 def test_cached_program_is_traced_once_per_machine(tmp_path, monkeypatch):
     """The serialized export is written on the first call and read by the next (no tracing of
     the function), with the same results as a plain jit; off with TREEINFER_JAX_CACHE=off."""
-    from treeinfer.startup import cached_program, export_path
+    from treeinfer.sim.startup import cached_program, export_path
 
     monkeypatch.setenv("TREEINFER_JAX_CACHE", str(tmp_path))
     traced = []

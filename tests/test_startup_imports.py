@@ -25,12 +25,12 @@ ROOT = Path(__file__).resolve().parent.parent
 # what the importance path imports: the library's problem and fast posterior, the run layer and
 # the CLI command that drive it, the benchmark child
 ENTRY = (
-    "treeinfer.inference",
-    "treeinfer.fast_posterior",
-    "treeinfer.importance",
-    "treeinfer.startup",
-    "treeinfer.tree",
-    "treeinfer.trajectories",
+    "treeinfer.inference.problem",
+    "treeinfer.inference.fast",
+    "treeinfer.inference.importance",
+    "treeinfer.sim.startup",
+    "treeinfer.tree.description",
+    "treeinfer.data.trajectories",
     "treeinfer.runs",
     "treeinfer.runs.problem",
     "treeinfer.runs.start",
@@ -98,7 +98,7 @@ def test_the_importance_path_modules_import_no_heavy_library():
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = _import_tree(proc.stderr)
     names = {n for _, n in rows}
-    assert "treeinfer.fast_posterior" in names and "jax" in names  # the parse saw the imports
+    assert "treeinfer.inference.fast" in names and "jax" in names  # the parse saw the imports
     found = _chains(rows, HEAVY)
     assert not found, "heavy imports on the importance path:\n" + "\n".join(
         f"  {k}: {v}" for k, v in found.items()
@@ -113,14 +113,14 @@ def test_the_chain_parser_names_the_importer():
         import time: self [us] | cumulative | imported package
         import time:        10 |         10 |     scipy.stats._x
         import time:        10 |         20 |   scipy.stats
-        import time:        10 |         30 | treeinfer.noise
+        import time:        10 |         30 | treeinfer.model.noise
         import time:        10 |         10 | flax
         """
     )
     rows = _import_tree(text)
     assert rows[0] == (2, "scipy.stats._x")
     found = _chains(rows, ("scipy.stats", "flax", "arviz"))
-    assert found == {"scipy.stats": "scipy.stats._x <- scipy.stats <- treeinfer.noise",
+    assert found == {"scipy.stats": "scipy.stats._x <- scipy.stats <- treeinfer.model.noise",
                      "flax": "flax"}  # fmt: skip
 
 
@@ -133,10 +133,10 @@ def test_a_fast_posterior_run_imports_no_heavy_library(tmp_path):
         """
         import sys
         import numpy as np
-        from treeinfer.fast_posterior import fast_posterior
-        from treeinfer.generators import chain
-        from treeinfer.inference import make_problem
-        from treeinfer.trajectories import Trajectory
+        from treeinfer.inference.fast import fast_posterior
+        from treeinfer.tree.generators import chain
+        from treeinfer.inference.problem import make_problem
+        from treeinfer.data.trajectories import Trajectory
 
         tree = chain(1, lengths=0.7, radii=0.03, angles_deg=0.0, base_position=(0, 0, 1.5),
                      base_pitch_deg=20.0, levels=1, name="c1")
@@ -157,7 +157,7 @@ def test_a_fast_posterior_run_imports_no_heavy_library(tmp_path):
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     loaded = set(proc.stdout.split())
-    assert "treeinfer.fast_posterior" in loaded
+    assert "treeinfer.inference.fast" in loaded
     bad = sorted(m for m in loaded for h in HEAVY if m == h or m.startswith(h + "."))
     assert not bad, bad
 
@@ -169,7 +169,7 @@ def test_the_bundled_inequality_network_loads_and_runs_without_flax():
         """
         import sys
         import jax.numpy as jnp
-        from treeinfer.priors import inequality_prior, load_or_train_inequality_network
+        from treeinfer.model.priors import inequality_prior, load_or_train_inequality_network
         net = load_or_train_inequality_network(0.0, 1.0)
         assert net.loaded
         print(float(inequality_prior(net, [(0, 1)])(jnp.array([[0.2, 0.7]]))[0]))

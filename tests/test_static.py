@@ -1,4 +1,5 @@
-"""Tests for treeinfer.static: quasi-static equilibria, the quasi-static detector, theta layout."""
+"""Tests for treeinfer.inference.static: quasi-static equilibria, the quasi-static detector, theta
+layout."""
 
 from __future__ import annotations
 
@@ -9,12 +10,10 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
+from treeinfer.data.pulls import pull_direction
 from treeinfer.errors import ConfigError
 from treeinfer.examples import example_path
-from treeinfer.pulls import pull_direction
-from treeinfer.sim import make_simulator, simulate
-from treeinfer.sim.reference import _c_model, settle_reference
-from treeinfer.static import (
+from treeinfer.inference.static import (
     damping_note,
     natural_periods,
     parameter_layout,
@@ -22,7 +21,9 @@ from treeinfer.static import (
     static_rollout,
     suggest_static,
 )
-from treeinfer.tree import Branch, load_tree, make_tree
+from treeinfer.sim import make_simulator, simulate
+from treeinfer.sim.reference import _c_model, settle_reference
+from treeinfer.tree.description import Branch, load_tree, make_tree
 
 G = 9.81
 
@@ -267,8 +268,8 @@ def test_parameter_layout(three):
 
 def test_quasi_static_notice_on_the_stem():
     """The synthetic stem pushes (0.5 s samples) are quasi-static for the 3-link chain."""
-    from treeinfer.static import quasi_static_notice
-    from treeinfer.synthetic_stem import Stem, stem_tree
+    from treeinfer.inference.static import quasi_static_notice
+    from treeinfer.tree.stem import Stem, stem_tree
 
     tree = stem_tree(Stem())
     sim = make_simulator(tree, obs_dt=0.5, backend="fused")

@@ -11,10 +11,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from treeinfer.csv_import import import_csv
-from treeinfer.pulls import load_data_pulls, stack_resolved
-from treeinfer.synthetic_stem import Stem, branch_at_height, stem_tree, write_stem_logs
-from treeinfer.tree import Branch, dump_tree, load_tree, make_tree
+from treeinfer.data.import_csv import import_csv
+from treeinfer.data.pulls import load_data_pulls, stack_resolved
+from treeinfer.tree.description import Branch, dump_tree, load_tree, make_tree
+from treeinfer.tree.stem import Stem, branch_at_height, stem_tree, write_stem_logs
 
 HELD_OUT = 0.24  # m
 
@@ -51,9 +51,9 @@ def stem_data(tmp_path_factory):
 @pytest.mark.slow
 def test_cli_static_infer_then_evaluate_held_out_height(stem_data, capsys):
     from treeinfer.cli.main import main
+    from treeinfer.data.trajectories import read_trajectory_dir
+    from treeinfer.inference.static import static_rollout
     from treeinfer.runs import load_run
-    from treeinfer.static import static_rollout
-    from treeinfer.trajectories import read_trajectory_dir
 
     root = stem_data
     run = root / "run"
@@ -203,10 +203,10 @@ def test_cli_static_noise_force_band_flag_in_predict_evaluate_and_kfold(stem_dat
     folds = json.loads((kf / "metrics.json").read_text())["folds"]
     assert all(f["metrics"]["band_includes_force_noise"] is True for f in folds)
     # the same particles without the term: a narrower band than with it
-    from treeinfer.evaluation import evaluate_trajectories, force_noise_for, noise_for
+    from treeinfer.data.trajectories import read_trajectory_dir
+    from treeinfer.evaluation.predictive import evaluate_trajectories, force_noise_for, noise_for
+    from treeinfer.inference.static import model_with_pulls
     from treeinfer.runs import load_run
-    from treeinfer.static import model_with_pulls
-    from treeinfer.trajectories import read_trajectory_dir
 
     loaded = load_run(run)
     trajs = read_trajectory_dir(root / "test")
@@ -234,9 +234,9 @@ def _one_joint_tree(**kw):
 def test_stiffness_only_problem_holds_damping_at_the_trees_value():
     """inference: {parameters: [kp]} with the dynamic model: theta = [log Kp], the likelihood
     is the full model's at the tree's own Kd (an independent evaluation of the 2R target)."""
-    from treeinfer.inference import make_problem
-    from treeinfer.likelihood import boltzmann_log_likelihood
-    from treeinfer.trajectories import Trajectory
+    from treeinfer.data.trajectories import Trajectory
+    from treeinfer.inference.problem import make_problem
+    from treeinfer.model.likelihood import boltzmann_log_likelihood
 
     tree = dataclasses.replace(_one_joint_tree(), parameters=("kp",))
     dt, n = 0.02, 25
@@ -259,8 +259,8 @@ def test_static_and_stiffness_only_take_generative_likelihoods_and_kT_auto():
     """The noise likelihoods work with the static model and with stiffness only (theta = the
     model's gains + log sigma_x; values checked in test_model_likelihoods.py); Boltzmann with
     kT="auto" uses the same kT rule as the dynamic model on the same data."""
-    from treeinfer.inference import make_problem
-    from treeinfer.trajectories import Trajectory
+    from treeinfer.data.trajectories import Trajectory
+    from treeinfer.inference.problem import make_problem
 
     dt, n = 0.02, 25
     t = dt * np.arange(n)

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from treeinfer.data.trajectories import Trajectory
 from treeinfer.errors import ConfigError
-from treeinfer.inference import make_problem
-from treeinfer.static import force_noise_estimate, model_rollout
-from treeinfer.trajectories import Trajectory
-from treeinfer.tree import Bounds, Branch, make_tree
+from treeinfer.inference.problem import make_problem
+from treeinfer.inference.static import force_noise_estimate, model_rollout
+from treeinfer.tree.description import Bounds, Branch, make_tree
 
 
 def _tree():
@@ -95,9 +95,9 @@ def test_static_band_adds_load_cell_noise_through_the_compliance():
     ``c = L^2 / K`` (closed form), so the 95% band's half-width is 1.96 times that std."""
     from scipy.stats import norm
 
-    from treeinfer.evaluation import force_noise_for, predict_run
+    from treeinfer.evaluation.predictive import force_noise_for, predict_run
+    from treeinfer.inference.static import StaticForceNoise, model_for
     from treeinfer.sim import make_simulator
-    from treeinfer.static import StaticForceNoise, model_for
 
     kp, length, sx, sf = 200.0, 0.2, 1e-4, 0.5
     tree = _stiff_stem(kp)
@@ -130,7 +130,7 @@ def test_band_with_per_particle_extra_variance_is_the_mixture_quantile():
     from scipy.optimize import brentq
     from scipy.stats import norm
 
-    from treeinfer.metrics import noisy_predictive_interval
+    from treeinfer.evaluation.metrics import noisy_predictive_interval
 
     pred = np.zeros((4, 3))
     extra = np.array([0.0, 1.0, 4.0, 9.0])[:, None] * np.array([1.0, 0.5, 0.0])[None]

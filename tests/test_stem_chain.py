@@ -1,6 +1,6 @@
 """The matched stem chain from a tree file (issue 13): ``inference: {tie: shape, tie_shape}``
 (parsing, validation, its layout and log density), ``treeinfer tree --kind stem`` against
-:func:`treeinfer.synthetic_stem.matched_hinges` and the study's layout, ``--push-heights-from``,
+:func:`treeinfer.tree.stem.matched_hinges` and the study's layout, ``--push-heights-from``,
 a tied run's predictive band, and a tiny import-csv -> tree -> infer -> evaluate run."""
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from treeinfer import generators as gen
 from treeinfer.cli.main import main
 from treeinfer.errors import ConfigError, TreeFileError
-from treeinfer.synthetic_stem import Stem, StemProfile, matched_hinges, stem_tree
-from treeinfer.tree import load_tree, tree_from_dict, tree_to_dict, world_frames
+from treeinfer.tree import generators as gen
+from treeinfer.tree.description import load_tree, tree_from_dict, tree_to_dict, world_frames
+from treeinfer.tree.stem import Stem, StemProfile, matched_hinges, stem_tree
 
 HEIGHTS = (0.12, 0.24, 0.36)
 STEM_ARGS = ["--stem-height", "0.4", "--base-diameter", "0.010", "--tip-diameter", "0.006"]
@@ -84,7 +84,7 @@ def test_tie_shape_from_a_file_on_disk_names_the_file(tmp_path):
 
 
 def test_shape_tie_layout_hard_and_soft_and_run_flags():
-    from treeinfer.static import model_for, with_tie
+    from treeinfer.inference.static import model_for, with_tie
 
     shape = np.array([1.0, 0.41, 0.12])
     t = tree_from_dict(_chain(tie="shape", tie_shape=shape.tolist()))
@@ -113,8 +113,8 @@ def test_hard_shape_tie_log_density_is_the_free_models_at_scale_times_shape():
     """Through the static model's log density: the tied problem at log s equals the free
     (per-joint) problem at Kp_j = s * shape_j, up to the two priors' constants (both flat
     inside their boxes), for two scales whose likelihoods differ by many nats."""
-    from treeinfer.inference import make_problem
-    from treeinfer.trajectories import Trajectory
+    from treeinfer.data.trajectories import Trajectory
+    from treeinfer.inference.problem import make_problem
 
     shape = np.array([1.0, 0.5, 0.25])
     d = _chain(tie="shape", tie_shape=shape.tolist())
@@ -200,7 +200,7 @@ def test_cli_stem_tree_round_trips_to_the_studys_matched_layout(tmp_path, capsys
     """``tree --kind stem`` written -> loaded -> the same branches as the study's
     ``stem_tree(hinges="matched")`` and the same tied layout as its ``matched_layout``."""
     from experiments.stem_pushes import matched_layout
-    from treeinfer.static import tree_tied_layout
+    from treeinfer.inference.static import tree_tied_layout
 
     out = tmp_path / "stem.yaml"
     args = ["tree", "--kind", "stem", *STEM_ARGS, "--push-heights", "0.12,0.24,0.36"]
@@ -277,7 +277,7 @@ def test_cli_stem_tree_errors(tmp_path, capsys):
 
 
 def test_push_heights_from_a_data_folder_rewrite_its_pulls(tmp_path, capsys):
-    from treeinfer.pulls import PullSpec, read_pulls, write_pulls
+    from treeinfer.data.pulls import PullSpec, read_pulls, write_pulls
 
     data = tmp_path / "data"
     data.mkdir()
@@ -323,7 +323,7 @@ def test_push_heights_from_a_data_folder_rewrite_its_pulls(tmp_path, capsys):
 def test_tied_runs_predictive_band_keeps_its_noise_columns():
     """evaluation.noise_for on a tied run's draws: sigma_x is the last column (soft: after the
     scale and R deviations; hard: after the scale), not a deviation read as noise."""
-    from treeinfer.evaluation import noise_for
+    from treeinfer.evaluation.predictive import noise_for
 
     sig = np.array([3e-5, 8e-5])
     soft = np.column_stack([np.log([10.0, 12.0]), np.zeros((2, 3)) + 0.1, np.log(sig)])
@@ -343,7 +343,7 @@ def test_cli_import_tree_infer_evaluate_with_the_stem_chain(tmp_path, capsys):
     (noise included), wider than the parameter band."""
     import shutil
 
-    from treeinfer.synthetic_stem import write_stem_logs
+    from treeinfer.tree.stem import write_stem_logs
 
     all_ = tmp_path / "all"
     for path, push in write_stem_logs(tmp_path / "raw", Stem(), seed=2):

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from treeinfer.generators import chain
 from treeinfer.sim import accuracy, make_simulator
+from treeinfer.tree.generators import chain
 
 
 def _tree():

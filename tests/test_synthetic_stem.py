@@ -1,4 +1,4 @@
-"""Tests for treeinfer.synthetic_stem: the tapered-beam stand-in and the cantilever baseline."""
+"""Tests for treeinfer.tree.stem: the tapered-beam stand-in and the cantilever baseline."""
 
 from __future__ import annotations
 
@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_bvp
 
-from treeinfer.csv_import import import_csv
+from treeinfer.data.import_csv import import_csv
+from treeinfer.data.trajectories import read_trajectory
 from treeinfer.errors import ConfigError
-from treeinfer.synthetic_stem import (
+from treeinfer.tree.stem import (
     Stem,
     cantilever_displacement,
     compliance,
@@ -17,7 +18,6 @@ from treeinfer.synthetic_stem import (
     stem_tree,
     write_stem_logs,
 )
-from treeinfer.trajectories import read_trajectory
 
 
 def test_uniform_stem_is_the_textbook_cantilever():
@@ -97,7 +97,7 @@ def test_stem_tree():
 
 
 def test_stem_tree_midpoint_hinges_and_branch_at_height():
-    from treeinfer.synthetic_stem import branch_at_height
+    from treeinfer.tree.stem import branch_at_height
 
     stem = Stem()
     tree = stem_tree(stem, n_links=3, hinges="midpoints")
@@ -112,7 +112,7 @@ def test_stem_tree_midpoint_hinges_and_branch_at_height():
 def test_matched_hinges_uniform_stem_closed_form():
     """Uniform stem, pushes at a, 2a, 3a: pivots at 0.15a, 1.15a, 2.15a and, with
     c(h) = h^3 / 3EI, the triangular system for 1/K solved by hand, one row at a time."""
-    from treeinfer.synthetic_stem import matched_hinges
+    from treeinfer.tree.stem import matched_hinges
 
     stem = Stem(base_diameter=0.008, tip_diameter=0.008)
     a, ei = 0.1, float(stem.ei(0.0))
@@ -135,10 +135,10 @@ def test_matched_chain_reproduces_the_tapered_beam_in_the_static_model():
     the stem's own weight softens it by ~1%)."""
     import jax.numpy as jnp
 
-    from treeinfer.pulls import pull_direction
+    from treeinfer.data.pulls import pull_direction
+    from treeinfer.inference.static import static_rollout
     from treeinfer.sim import make_simulator
-    from treeinfer.static import static_rollout
-    from treeinfer.synthetic_stem import branch_at_height, matched_hinges
+    from treeinfer.tree.stem import branch_at_height, matched_hinges
 
     stem, heights = Stem(), (0.12, 0.24, 0.36)
     tree = stem_tree(stem, hinges="matched", push_heights=heights)

@@ -12,9 +12,9 @@ import pytest
 from scipy import stats
 
 from treeinfer.errors import ConfigError, TreeFileError
-from treeinfer.static import model_for, taper_shape, with_tie
-from treeinfer.synthetic_stem import Stem, stem_tree
-from treeinfer.tree import Branch, load_tree, make_tree, tree_from_dict, tree_to_dict
+from treeinfer.inference.static import model_for, taper_shape, with_tie
+from treeinfer.tree.description import Branch, load_tree, make_tree, tree_from_dict, tree_to_dict
+from treeinfer.tree.stem import Stem, stem_tree
 
 
 def _chain_dict(**inference):
@@ -131,8 +131,8 @@ def test_hard_and_soft_layouts_and_the_soft_prior():
 
 
 def test_tied_problem_has_no_inequality_prior_and_records_the_tie():
-    from treeinfer.inference import make_problem
-    from treeinfer.trajectories import Trajectory
+    from treeinfer.data.trajectories import Trajectory
+    from treeinfer.inference.problem import make_problem
 
     tree = make_tree(
         [
@@ -161,13 +161,13 @@ def test_cli_soft_tie_infer_then_evaluate(tmp_path, capsys):
     tree.yaml, problem) and the prediction is the static model's at the tied gains (recomputed
     here by hand)."""
     from treeinfer.cli.main import main
-    from treeinfer.csv_import import import_csv
-    from treeinfer.pulls import load_data_pulls, stack_resolved
+    from treeinfer.data.import_csv import import_csv
+    from treeinfer.data.pulls import load_data_pulls, stack_resolved
+    from treeinfer.data.trajectories import read_trajectory_dir
+    from treeinfer.inference.static import static_rollout
     from treeinfer.runs import load_run
-    from treeinfer.static import static_rollout
-    from treeinfer.synthetic_stem import branch_at_height, write_stem_logs
-    from treeinfer.trajectories import read_trajectory_dir
-    from treeinfer.tree import dump_tree
+    from treeinfer.tree.description import dump_tree
+    from treeinfer.tree.stem import branch_at_height, write_stem_logs
 
     tree = dataclasses.replace(
         stem_tree(Stem(), n_links=4, hinges="midpoints", kp_bounds=(0.05, 50.0)),

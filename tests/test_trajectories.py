@@ -1,4 +1,4 @@
-"""Tests for treeinfer.trajectories: CSV format, validation, velocity scheme, batching."""
+"""Tests for treeinfer.data.trajectories: CSV format, validation, velocity scheme, batching."""
 
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from treeinfer.errors import ConfigError, TrajectoryFileError
-from treeinfer.trajectories import (
+from treeinfer.data.trajectories import (
     Observations,
     Trajectory,
     add_noise,
@@ -22,6 +21,7 @@ from treeinfer.trajectories import (
     velocity_from_displacement,
     write_trajectory,
 )
+from treeinfer.errors import ConfigError, TrajectoryFileError
 
 
 def make_traj(n=40, dt=0.01, velocity=False, source="t.csv", seed=0):
@@ -432,7 +432,7 @@ def test_unmutated_fuzz_seed_loads(tmp_path):
 def test_band_csv_reads_with_csv_module(tmp_path):
     import csv
 
-    from treeinfer.trajectories import write_band_csv
+    from treeinfer.data.trajectories import write_band_csv
 
     t = np.arange(4) * 0.1
     path = write_band_csv(tmp_path / "p.csv", t, 2 * t, None, t, t - 1, t + 1, t - 2, t + 2)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from treeinfer.errors import TreeFileError
-from treeinfer.tree import (
+from treeinfer.tree.description import (
     Bounds,
     Branch,
     dump_tree,

@@ -1,8 +1,9 @@
-"""Bring your own model (treeinfer.usermodel): a user's URDF/MJCF from the tree's model: section.
+"""Bring your own model (treeinfer.tree.usermodel): a user's URDF/MJCF from the tree's model:
+section.
 
 The reference for every check is the model treeinfer builds itself from the same tree
-(treeinfer.export.to_mjmodel): a user model that describes the same multibody must put the grasp
-point at the same place and pull the same way.
+(treeinfer.tree.export.to_mjmodel): a user model that describes the same multibody must put the
+grasp point at the same place and pull the same way.
 """
 
 from __future__ import annotations
@@ -14,14 +15,14 @@ import mujoco
 import numpy as np
 import pytest
 
-from treeinfer import generators as gen
 from treeinfer.errors import TreeFileError
-from treeinfer.export import to_mjmodel
 from treeinfer.sim import make_simulator, simulate
 from treeinfer.sim.reference import simulate_reference
-from treeinfer.tree import Branch, dump_tree, load_tree, make_tree, world_frames
-from treeinfer.urdf import to_urdf
-from treeinfer.usermodel import attach_model, prepare_user_model, tree_from_model
+from treeinfer.tree import generators as gen
+from treeinfer.tree.description import Branch, dump_tree, load_tree, make_tree, world_frames
+from treeinfer.tree.export import to_mjmodel
+from treeinfer.tree.urdf import to_urdf
+from treeinfer.tree.usermodel import attach_model, prepare_user_model, tree_from_model
 
 
 def _rounded(urdf: str, decimals: int = 3) -> str:

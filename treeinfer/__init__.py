@@ -18,54 +18,188 @@ __version__ = "0.1.0"
 
 # The public API, imported lazily so `treeinfer --help` does not pay for JAX and MuJoCo.
 _EXPORTS = {
-    "load_tree": "tree",
-    "dump_tree": "tree",
-    "make_tree": "tree",
-    "Tree": "tree",
-    "Branch": "tree",
-    "Bounds": "tree",
-    "Trajectory": "trajectories",
-    "read_trajectory": "trajectories",
-    "read_trajectory_dir": "trajectories",
-    "write_trajectory": "trajectories",
-    "stack_trajectories": "trajectories",
+    "load_tree": "tree.description",
+    "dump_tree": "tree.description",
+    "make_tree": "tree.description",
+    "Tree": "tree.description",
+    "Branch": "tree.description",
+    "Bounds": "tree.description",
+    "Trajectory": "data.trajectories",
+    "read_trajectory": "data.trajectories",
+    "read_trajectory_dir": "data.trajectories",
+    "write_trajectory": "data.trajectories",
+    "stack_trajectories": "data.trajectories",
     "make_simulator": "sim",
     "simulate": "sim",
     "Rollout": "sim",
-    "make_problem": "inference",
-    "infer": "inference",
-    "predict": "inference",
-    "Problem": "inference",
-    "Posterior": "inference",
+    "make_problem": "inference.problem",
+    "infer": "inference.problem",
+    "predict": "inference.problem",
+    "Problem": "inference.problem",
+    "Posterior": "inference.problem",
     "load_posterior": "runs.posterior_load",
     "example_path": "examples",
-    "check_environment": "environment",
+    "check_environment": "cli.environment",
 }
 _MODULES = {
     "tree",
-    "generators",
-    "export",
-    "urdf",
     "sim",
-    "likelihood",
-    "priors",
-    "gradients",
-    "samplers",
+    "model",
     "inference",
-    "metrics",
-    "plots",
-    "diagnostics",
-    "trajectories",
-    "bags",
-    "forces",
+    "evaluation",
+    "data",
     "errors",
     "examples",
-    "sharding",
     "runs",
-    "mapfit",
-    "arviz_compat",
-    "environment",
+    "cli",
 }
+
+
+# Old module paths (the flat layout before issue 26) keep working for one release, with a
+# DeprecationWarning naming the new path: user scripts, notebooks and pickles written against
+# 0.1 still import. A finder first on sys.meta_path answers only for these names (none of
+# which exists any more), so it changes nothing else; being first, it also catches submodules
+# of a moved folder (treeinfer.samplers.svgd), which the path finder would load twice.
+# Old names that are now packages themselves (tree, inference, evaluation, design) are not here:
+# the package re-exports the old module's public names.
+_MOVED = {  # old module (before the layout by job, issue 26) -> where it lives now
+    "_generate": "tree._generate",
+    "_io": "io.atomic",
+    "_plot_common": "evaluation._plot_common",
+    "arviz_compat": "inference.diagnostics.arviz_compat",
+    "atomic_write": "io.atomic_write",
+    "bag_kortex": "data.kortex",
+    "bag_streams": "data.bags",
+    "bag_types": "data.bag_messages",
+    "bags": "data.import_bag",
+    "bands": "evaluation.bands",
+    "batch_posteriors": "inference.batch",
+    "checks": "evaluation.checks",
+    "checks_data": "data.checks",
+    "checks_fit": "evaluation.ppc",
+    "checks_tree": "tree.plausibility",
+    "compile_stats": "sim.compile_stats",
+    "csv_import": "data.import_csv",
+    "csv_read": "data.csv_format",
+    "design_candidates": "design.candidates",
+    "design_estimators": "design.estimators",
+    "design_run": "runs.suggest",
+    "design_scoring": "design.scoring",
+    "diagnostics": "inference.diagnostics",
+    "environment": "cli.environment",
+    "export": "tree.export",
+    "fast_posterior": "inference.fast",
+    "force_noise": "model.force_noise",
+    "forces": "data.forces",
+    "gains": "model.gains",
+    "generators": "tree.generators",
+    "gradients": "model.gradients",
+    "importance": "inference.importance",
+    "inequality_net": "model.inequality_net",
+    "integrity": "runs.integrity",
+    "interrupt": "io.interrupt",
+    "jsonio": "io.jsonio",
+    "laplace": "inference.laplace",
+    "likelihood": "model.likelihood",
+    "limits": "io.limits",
+    "lm": "inference.lm",
+    "lsystem": "tree.lsystem",
+    "manifest": "io.manifest",
+    "mapfit": "inference.mapfit",
+    "metrics": "evaluation.metrics",
+    "model_geometry": "tree.geometry",
+    "model_paths": "tree.model_paths",
+    "modelsection": "tree.model_section",
+    "noise": "model.noise",
+    "noise_estimate": "data.noise_estimate",
+    "ownership": "io.ownership",
+    "plot_posterior": "evaluation.posterior_plots",
+    "plot_trace": "evaluation.trace_plot",
+    "plots": "evaluation.plots",
+    "posterior": "inference.posterior",
+    "posterior_io": "inference.posterior_io",
+    "predictive": "evaluation.posterior_bands",
+    "priors": "model.priors",
+    "problem_priors": "model.prior_terms",
+    "program_cache": "sim.program_cache",
+    "pull_checks": "data.pull_checks",
+    "pulls": "data.pulls",
+    "rollout": "inference.rollout",
+    "run_figures": "runs.figures",
+    "runs.provenance": "io.provenance",
+    "safe_load": "io.safe_load",
+    "safe_parse": "io.safe_parse",
+    "samplers": "inference.samplers",
+    "sequential": "inference.sequential",
+    "sharding": "inference.sharding",
+    "side_files": "data.side_files",
+    "sim.direction": "data.direction",
+    "small_solve": "sim.small_solve",
+    "start_pipeline": "inference.start_pipeline",
+    "start_steps": "inference.start_steps",
+    "startup": "sim.startup",
+    "static": "inference.static",
+    "synthetic": "sim.synthetic",
+    "synthetic_stem": "tree.stem",
+    "temperature": "model.temperature",
+    "trajectories": "data.trajectories",
+    "trajectory_types": "data.types",
+    "tree_checks": "tree.checks",
+    "tree_options": "tree.options",
+    "tree_types": "tree.types",
+    "true_params": "data.true_params",
+    "urdf": "tree.urdf",
+    "usermodel": "tree.usermodel",
+}
+
+
+def _moved_target(fullname: str) -> str | None:
+    """``treeinfer.metrics`` -> ``treeinfer.evaluation.metrics``; also below a moved folder."""
+    if not fullname.startswith(__name__ + "."):
+        return None
+    rest = fullname[len(__name__) + 1 :]
+    parts = rest.split(".")
+    for k in range(len(parts), 0, -1):
+        head = ".".join(parts[:k])
+        if head in _MOVED:
+            return ".".join([__name__, _MOVED[head], *parts[k:]])
+    return None
+
+
+class _MovedFinder:
+    """Loads an old module path as the module that now holds it (same object, one copy)."""
+
+    @staticmethod
+    def find_spec(fullname, path=None, target=None):
+        import importlib.util
+
+        new = _moved_target(fullname)
+        if new is None:
+            return None
+        return importlib.util.spec_from_loader(fullname, _MovedLoader(new))
+
+
+class _MovedLoader:
+    def __init__(self, new: str):
+        self.new = new
+
+    def create_module(self, spec):
+        import importlib
+        import warnings
+
+        warnings.warn(
+            f"{spec.name} moved to {self.new} (issue 26); the old path goes in the next release",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        return importlib.import_module(self.new)
+
+    def exec_module(self, module):
+        pass  # the module was executed under its new name
+
+
+if not any(isinstance(f, _MovedFinder) for f in _sys.meta_path):
+    _sys.meta_path.insert(0, _MovedFinder())
 
 
 def __getattr__(name):
@@ -74,6 +208,8 @@ def __getattr__(name):
     if name in _EXPORTS:
         return getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
     if name in _MODULES:
+        return importlib.import_module(f".{name}", __name__)
+    if name in _MOVED:  # ti.metrics and the like: the old flat module, through the finder
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module 'treeinfer' has no attribute {name!r}")
 

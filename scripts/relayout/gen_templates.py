@@ -30,28 +30,28 @@ DOCS = {
         "Recordings: force-deformation trajectories and their files, where and in which "
         "direction each pull acted, plausibility checks of data against a tree, force profiles, "
         "and the importers (CSV, ROS bags).",
-        "treeinfer.tree, treeinfer.io, treeinfer.errors.",
+        "treeinfer.tree.description, treeinfer.io, treeinfer.errors.",
     ),
     "model": (
         "The log-density: theta's parameterisation (gains), priors and the learned inequality "
         "prior (NNSVGD's network), the Boltzmann and Gaussian likelihoods, noise models and the "
         "force-noise term, the temperature rule, and gradient estimators (central differences).",
-        "treeinfer.sim, treeinfer.data, treeinfer.tree, treeinfer.io, treeinfer.errors. "
+        "treeinfer.sim, treeinfer.data, treeinfer.tree.description, treeinfer.io, treeinfer.errors. "
         "Known exception until it is split: force_noise's noise estimate calls "
-        "treeinfer.inference.mapfit (inside a function).",
+        "treeinfer.inference.problem.mapfit (inside a function).",
     ),
     "inference": (
         "From a problem to particles: the front end (make_problem, infer, predict), "
         "starts (MAP fit, Laplace, importance sampling, the fast posterior), the samplers "
         "(BlackJAX-style kernels: SVGD, SGLD, SGHMC, MH), their diagnostics, sequential "
         "priors, batched posteriors, sharding, and the quasi-static model (static/).",
-        "treeinfer.model, treeinfer.sim, treeinfer.data, treeinfer.tree, treeinfer.io, "
+        "treeinfer.model, treeinfer.sim, treeinfer.data, treeinfer.tree.description, treeinfer.io, "
         "treeinfer.errors.",
     ),
     "evaluation": (
         "A posterior judged: predictions of every particle with their bands, metrics on "
         "plain arrays, figures returning (fig, axes), and the fit checks after inference.",
-        "treeinfer.inference and every layer below it.",
+        "treeinfer.inference.problem and every layer below it.",
     ),
 }
 

@@ -231,8 +231,9 @@ class Rewriter:
         # package -> {name: module that defines it}: the new packages' re-exports
         self.exports = exports
         # user-facing files (docs, notebooks, benchmarks, experiments) name the package's public
-        # re-export where there is one (treeinfer.tree.Tree, not treeinfer.tree.description.Tree);
-        # the package's own code and the tests name the defining module (patching needs it)
+        # re-export where there is one (treeinfer.tree.description.Tree, not
+        # treeinfer.tree.description.description.Tree); the package's own code and the tests name
+        # the defining module (patching needs it)
         self.public = False
 
     def dotted(self, d: str) -> str:

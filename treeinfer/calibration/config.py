@@ -37,7 +37,7 @@ class SBCConfig:
       misspecification check (ranks of the gains then show its effect).
     test_traj: unseen test pulls per data set (fresh profiles, same noise); > 0 adds the share
       of noisy test points inside the 95% predictive band (simulation + fitted noise,
-      :func:`treeinfer.metrics.noisy_predictive_interval`) and the parameter band.
+      :func:`treeinfer.evaluation.metrics.noisy_predictive_interval`) and the parameter band.
     """
 
     datasets: int = 20
@@ -70,8 +70,8 @@ class SBCConfig:
     test_traj: int = 0
 
     def check(self) -> SBCConfig:
-        from ..inference import check_count
-        from ..noise import check_df, check_sigma
+        from ..inference.problem import check_count
+        from ..model.noise import check_df, check_sigma
 
         check_count(self.datasets, "datasets", 2)
         check_count(self.particles, "particles", 2)

@@ -11,7 +11,7 @@ from .config import SBCConfig
 
 
 def _rollout_fn(sim, r):
-    from ..likelihood import gains_from_theta
+    from ..model.likelihood import gains_from_theta
     from ..sim import simulate
 
     def rollout(th, f):  # th [M, >=2R], f [B, T] -> (tau [M, B, T], stable [M, B])
@@ -26,13 +26,13 @@ def _crb_ratios(sim, truth, draws, forces_rec, labels, config: SBCConfig) -> dic
     """Posterior std (log units, over the draws) / Cramer-Rao std at the truth, per parameter:
     median and quartiles over data sets. Fisher of the gains ``J^T J / sigma^2`` with ``J`` the
     central-difference sensitivities of the training displacements to the log gains under the
-    recorded forces (:func:`treeinfer.gradients.central_difference_jacobian`); for log sigma_x
+    recorded forces (:func:`treeinfer.model.gradients.central_difference_jacobian`); for log sigma_x
     (Gaussian) the bound is ``1 / sqrt(2 n)`` (n samples; the Fisher matrix is block diagonal).
     Only for the Gaussian likelihood (None otherwise)."""
     import jax
     import jax.numpy as jnp
 
-    from ..gradients import central_difference_jacobian
+    from ..model.gradients import central_difference_jacobian
 
     if config.likelihood != "gaussian":
         return {"crb": None}
@@ -89,7 +89,7 @@ def _predictive_coverage(sim, draws, test, config: SBCConfig, infer_sigma: bool)
     import jax
     import jax.numpy as jnp
 
-    from ..metrics import predictive_bands
+    from ..evaluation.metrics import predictive_bands
 
     f_test, x_test, st_truth = test
     r = sim.n_joints

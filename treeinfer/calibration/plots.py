@@ -87,7 +87,7 @@ def write_outputs(result: SBCResult, directory, config: dict | None = None) -> d
     coverage}.png`` into ``directory`` (atomic writes). Returns the summary dict."""
     from pathlib import Path
 
-    from .._io import atomic_save, atomic_write_json, atomic_write_text
+    from ..io.atomic import atomic_save, atomic_write_json, atomic_write_text
 
     directory = Path(directory)
     (directory / "plots").mkdir(parents=True, exist_ok=True)

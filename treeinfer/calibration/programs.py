@@ -29,11 +29,11 @@ def build_program(sim, tree, config: SBCConfig, dim: int):
     import jax.numpy as jnp
     import optax
 
-    from .. import noise as _noise
-    from ..gradients import autodiff_value_and_grad, finite_difference_jvp
-    from ..likelihood import gains_from_theta
-    from ..priors import smoothed_box
-    from ..samplers import svgd
+    from ..inference.samplers import svgd
+    from ..model import noise as _noise
+    from ..model.gradients import autodiff_value_and_grad, finite_difference_jvp
+    from ..model.likelihood import gains_from_theta
+    from ..model.priors import smoothed_box
     from ..sim import simulate
     from .smc import tempered_smc
 

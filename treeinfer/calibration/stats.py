@@ -225,7 +225,7 @@ def result_json(result: SBCResult, config: dict | None = None) -> dict:
 
 
 def sample_smoothed_box(rng: np.random.Generator, lower, upper, sigma, n: int) -> np.ndarray:
-    """``[n, D]`` exact draws from :func:`treeinfer.priors.smoothed_box` (normalised).
+    """``[n, D]`` exact draws from :func:`treeinfer.model.priors.smoothed_box` (normalised).
 
     Per coordinate the density is flat on ``[lower, upper]`` with half-normal tails of std
     ``sigma`` outside, i.e. the mixture: box with probability ``w / (w + sqrt(2 pi) sigma)``

@@ -44,7 +44,7 @@ def _simulate_truths(sim, truth, forces, r):
     """``tau [N, B, T]`` and ``stable [N]`` of each data set's truth under its forces."""
     import jax
 
-    from ..likelihood import gains_from_theta
+    from ..model.likelihood import gains_from_theta
     from ..sim import simulate
 
     def one(th, f):
@@ -73,10 +73,10 @@ def run_tree_sbc(
     import jax
     import jax.numpy as jnp
 
-    from .. import noise as _noise
-    from ..forces import profile_set
+    from ..data.forces import profile_set
+    from ..model import noise as _noise
     from ..sim import DEFAULT_MAX_SIM_DT, make_simulator
-    from ..synthetic import sim_tree
+    from ..sim.synthetic import sim_tree
 
     config.check()
     rng = np.random.default_rng(config.seed)
@@ -215,7 +215,7 @@ def _record_forces(forces, share: float, rng: np.random.Generator) -> np.ndarray
 
 def config_record(tree_path, config: SBCConfig) -> dict:
     """``config.json`` content: every option, the seed and versions."""
-    from ..runs.provenance import versions
+    from ..io.provenance import versions
 
     return {
         "command": "calibrate",

@@ -7,7 +7,6 @@ import argparse
 import math
 from pathlib import Path
 
-from .._io import atomic_write_json, check_output_dir, staged_output_dir
 from ..calibration import (
     COVERAGE_LEVELS,
     SBC_LIKELIHOODS,
@@ -18,8 +17,9 @@ from ..calibration import (
     write_outputs,
 )
 from ..errors import ConfigError
-from ..limits import check_command_size
-from ..tree import dump_tree, load_tree
+from ..io.atomic import atomic_write_json, check_output_dir, staged_output_dir
+from ..io.limits import check_command_size
+from ..tree.description import dump_tree, load_tree
 from .common import (
     COMMAND_HELP,
     EXIT_OK,
@@ -265,7 +265,7 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--allow-large",
         action="store_true",
-        help="go past the size limit (treeinfer.limits) checked before any work",
+        help="go past the size limit (treeinfer.io.limits) checked before any work",
     )
     return p
 
@@ -323,8 +323,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
     check_output_dir(args.out, args.force, "calibration", inputs=[args.tree])
     cfg = _config_from_args(args)
     tree = load_tree(args.tree)
-    from ..checks import grasp_reach
-    from ..noise import check_sigma
+    from ..evaluation.checks import grasp_reach
+    from ..model.noise import check_sigma
 
     for flag, v in (
         ("--noise-displacement", cfg.noise_displacement),

@@ -465,7 +465,7 @@ def add_model_options(p: argparse.ArgumentParser, run: bool = False) -> None:
 def print_model_report(report: dict | None) -> None:
     """What was matched, set and repaired in a user model (stderr)."""
     if report:
-        from ..usermodel import describe_report
+        from ..tree.usermodel import describe_report
 
         for line in describe_report(report):
             _say(line)

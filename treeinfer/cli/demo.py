@@ -8,13 +8,18 @@ from pathlib import Path
 import numpy as np
 
 from .. import runs
-from .._io import check_output_dir, staged_output_dir
+from ..data.forces import DEFAULT_PEAK_RANGE, from_spec, random_specs
+from ..data.trajectories import (
+    TRUE_PARAMS_FILE,
+    true_params_record,
+    write_trajectory,
+    write_true_params,
+)
 from ..errors import ConfigError, SimulationError
-from ..evaluation import band_arrays, evaluate_trajectories, noise_for, write_evaluation
-from ..forces import DEFAULT_PEAK_RANGE, from_spec, random_specs
-from ..synthetic import default_true_params, simulate_batch, synthetic_trajectories
-from ..trajectories import TRUE_PARAMS_FILE, true_params_record, write_trajectory, write_true_params
-from ..tree import dump_tree, load_tree
+from ..evaluation.predictive import band_arrays, evaluate_trajectories, noise_for, write_evaluation
+from ..io.atomic import check_output_dir, staged_output_dir
+from ..sim.synthetic import default_true_params, simulate_batch, synthetic_trajectories
+from ..tree.description import dump_tree, load_tree
 from .common import (
     COMMAND_HELP,
     EXIT_OK,
@@ -171,7 +176,7 @@ def run_demo(args: argparse.Namespace) -> int:
     generative = likelihood != "boltzmann"
     data_noise = args.noise_displacement
     if data_noise is not None:
-        from ..noise import check_sigma
+        from ..model.noise import check_sigma
 
         check_sigma(data_noise, "--noise-displacement")
     elif generative:
@@ -185,8 +190,8 @@ def run_demo(args: argparse.Namespace) -> int:
     tree_file = Path(__file__).resolve().parents[1] / "examples" / "two_branch.yaml"
     tree = load_tree(tree_file)
     if args.noise_displacement is not None:
-        from ..checks import grasp_reach
-        from ..noise import check_sigma
+        from ..evaluation.checks import grasp_reach
+        from ..model.noise import check_sigma
 
         # the grasp point cannot move more than twice its distance to a hinge: a noise above
         # that is larger than any pull's range (a unit mistake)

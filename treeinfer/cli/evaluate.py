@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 
 from .. import runs
-from .._io import check_output_dir
+from ..data.pulls import data_grasp_fractions
+from ..data.trajectories import band_csv_text, read_trajectory_dir, stack_trajectories
 from ..errors import ConfigError
-from ..evaluation import (
+from ..evaluation.predictive import (
     band_arrays,
     evaluate_trajectories,
     force_noise_for,
@@ -20,8 +21,7 @@ from ..evaluation import (
     noise_for,
     write_evaluation,
 )
-from ..pulls import data_grasp_fractions
-from ..trajectories import band_csv_text, read_trajectory_dir, stack_trajectories
+from ..io.atomic import check_output_dir
 from .common import (
     _RUN_SIM_NOTE,
     COMMAND_HELP,
@@ -51,7 +51,7 @@ examples:
 Writes metrics.json, metrics.md and bands.png (95% predictive bands vs the held-out trajectories),
 config.json and per recording <name>_prediction.csv (time, force, recorded, mean, lower, upper;
 header first). With a pulls.yaml in DIR each recording is predicted at its own grasp point.
-Metrics (treeinfer.metrics.summarize): average 95% band width (m), share of
+Metrics (treeinfer.evaluation.metrics.summarize): average 95% band width (m), share of
 ground-truth points outside the band (%), predictive NLL of the held-out points under the
 per-step KDE, the posterior NLL (particle-averaged kT-scaled loss on the held-out data) and,
 if DIR has a true_params.json, the posterior against the true parameters (log space).
@@ -166,7 +166,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         run_fit_status=run.summary.get("status"),
     )
     if args.kfold is None:
-        from ..static import model_with_pulls
+        from ..inference.static import model_with_pulls
 
         model, grasp = model_with_pulls(
             run.model, args.data, [t.source for t in trajs], grasp, tree=run.tree

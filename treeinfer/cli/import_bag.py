@@ -1,6 +1,6 @@
 """``treeinfer import-bag``: cut a ROS bag into trajectory CSVs.
 
-The work is done by :func:`treeinfer.bags.import_bag`."""
+The work is done by :func:`treeinfer.data.import_bag.import_bag`."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import argparse
 import warnings
 from pathlib import Path
 
-from ..bags import _triple, import_bag
+from ..data.import_bag import _triple, import_bag
 from .common import (
     COMMAND_HELP,
     EXIT_OK,
@@ -141,7 +141,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
 
 def run_from_args(args: argparse.Namespace) -> list[Path]:
     """Run ``import-bag`` from parsed arguments; prints the notices and the written files."""
-    from .._io import check_output_dir
+    from ..io.atomic import check_output_dir
 
     # --force never replaces the folder holding the bag itself (issue 14)
     check_output_dir(args.out, args.force, "import-bag output", inputs=[args.bag])

@@ -1,5 +1,5 @@
 """``treeinfer import-csv``: logger CSVs -> trajectory CSVs + pulls.yaml
-(:func:`treeinfer.csv_import.import_csv`).
+(:func:`treeinfer.data.import_csv.import_csv`).
 """
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 import warnings
 
-from ..csv_import import import_csv
+from ..data.import_csv import import_csv
 from .common import COMMAND_HELP, EXIT_OK, add_command_parser, add_grasp_point_options
 
 _IMPORT_CSV_EPILOG = """\

@@ -9,10 +9,10 @@ from pathlib import Path
 from typing import Any
 
 from .. import runs
-from .._io import check_output_dir
 from ..errors import ConfigError
+from ..inference.samplers import SAMPLER_NAMES
+from ..io.atomic import check_output_dir
 from ..runs.config import GRADIENT_CHOICES, INIT_CHOICES
-from ..samplers import SAMPLER_NAMES
 from .common import (
     COMMAND_HELP,
     EXIT_INTERRUPTED,
@@ -101,7 +101,7 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         help="with --likelihood boltzmann only: the loss's temperature in loss units (m + m/s) "
         "per nat; smaller = sharper posterior; 'auto': from the data's displacement-noise "
         "estimate, kT = sigma / sqrt(T) * (1 + sqrt(2) dt omega2), printed (default "
-        f"{d['kT']:g}, the paper-reproduction value; see treeinfer.likelihood)",
+        f"{d['kT']:g}, the paper-reproduction value; see treeinfer.model.likelihood)",
     )
     p.add_argument(
         "--likelihood",
@@ -133,7 +133,7 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         "quantised load cell, at the native rate of an upsampled stream); must be positive and "
         "below the largest recorded force; predictive bands then include it (default: 'auto' "
         "with --likelihood gaussian where the force noise can be estimated, else off; see "
-        "treeinfer.force_noise)",
+        "treeinfer.model.force_noise)",
     )
     p.add_argument(
         "--noise-velocity",

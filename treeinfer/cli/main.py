@@ -6,8 +6,8 @@ as a pair ``configure_<name>(subparsers) -> parser`` and ``run_<name>(args) -> e
 those modules import what they need at their top and are imported only when their command runs, so
 ``treeinfer --help`` loads neither JAX nor MuJoCo. To add a command, write its module, add a
 line to :data:`~treeinfer.cli.common.COMMAND_HELP` and an entry to :data:`COMMANDS`. Commands
-parse and print; the work is done by the library (:mod:`treeinfer.synthetic`,
-:mod:`treeinfer.runs`, :mod:`treeinfer.evaluation`, ...).
+parse and print; the work is done by the library (:mod:`treeinfer.sim.synthetic`,
+:mod:`treeinfer.runs`, :mod:`treeinfer.evaluation.predictive`, ...).
 
 Exit codes: 0 success; 2 a user error (a :class:`~treeinfer.errors.TreeinferError`, a file that
 cannot be written, or a bad option: ``error: <message>`` on stderr, no traceback); 3 a bug in
@@ -131,11 +131,11 @@ def build_parser(only: str | None = None, lazy: bool = False) -> argparse.Argume
 
 def _start_runtime() -> None:
     """What a command needs before it runs: a supported Python and dependency set (one clear
-    message otherwise: :func:`treeinfer.environment.check_environment`, exit 2) and JAX's runtime
-    settings (:func:`treeinfer.configure_runtime`: persistent compile cache, GPU memory grown on
-    demand), which ``import treeinfer`` leaves to the program that uses it."""
+    message otherwise: :func:`treeinfer.cli.environment.check_environment`, exit 2) and JAX's
+    runtime settings (:func:`treeinfer.configure_runtime`: persistent compile cache, GPU memory
+    grown on demand), which ``import treeinfer`` leaves to the program that uses it."""
     import treeinfer
-    from treeinfer.environment import check_environment
+    from treeinfer.cli.environment import check_environment
 
     check_environment()
     treeinfer.configure_runtime()
@@ -143,8 +143,8 @@ def _start_runtime() -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit code (see the module docstring)."""
-    if argv is None:  # the real command line: Ctrl-C always ends it (treeinfer.interrupt)
-        from ..interrupt import exit_if_interrupted, install
+    if argv is None:  # the real command line: Ctrl-C always ends it (treeinfer.io.interrupt)
+        from ..io.interrupt import exit_if_interrupted, install
 
         install()
         return exit_if_interrupted(_main(sys.argv[1:]))

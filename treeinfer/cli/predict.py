@@ -10,14 +10,14 @@ from pathlib import Path
 import numpy as np
 
 from .. import runs
-from .._io import atomic_write_text, check_output_dir, staged_output_dir
+from ..data.forces import from_spec
+from ..data.pulls import PULLS_FILE, ResolvedPull, check_same_pull, load_data_pulls, pull_direction
+from ..data.trajectories import ForceProfile, band_csv_text, read_force_profile
 from ..errors import ConfigError
-from ..evaluation import force_noise_for, noise_for, predict_run
-from ..forces import from_spec
-from ..metrics import fraction_outside
-from ..plots import plot_trajectory_bands, save_figure
-from ..pulls import PULLS_FILE, ResolvedPull, check_same_pull, load_data_pulls, pull_direction
-from ..trajectories import ForceProfile, band_csv_text, read_force_profile
+from ..evaluation.metrics import fraction_outside
+from ..evaluation.plots import plot_trajectory_bands, save_figure
+from ..evaluation.predictive import force_noise_for, noise_for, predict_run
+from ..io.atomic import atomic_write_text, check_output_dir, staged_output_dir
 from .common import (
     _RUN_SIM_NOTE,
     COMMAND_HELP,
@@ -202,7 +202,7 @@ def run_predict(args: argparse.Namespace) -> int:
     if (
         src is not None and args.grasp_fraction is None and (src.parent / PULLS_FILE).is_file()
     ):  # at the recording's own branch, point and direction (pulls.yaml)
-        from ..static import model_with_pulls
+        from ..inference.static import model_with_pulls
 
         model, own = model_with_pulls(model, src.parent, [src.name], tree=run.tree)
         grasp = float(np.asarray(own)[0])

@@ -1,5 +1,5 @@
 """``treeinfer simulate``: synthetic trajectories of a tree under force profiles (sim-to-sim
-ground truth), via :mod:`treeinfer.synthetic`.
+ground truth), via :mod:`treeinfer.sim.synthetic`.
 """
 
 from __future__ import annotations
@@ -14,22 +14,27 @@ import mujoco
 import numpy as np
 
 from .. import __version__
-from .._io import atomic_write_json, check_output_dir, staged_output_dir
-from ..errors import ConfigError, SimulationError
-from ..forces import DEFAULT_PEAK_RANGE, SET_KINDS, from_spec, n_steps, random_specs
-from ..limits import check_command_size
-from ..runs import simulation_summary
-from ..sim import DEFAULT_MAX_SIM_DT
-from ..synthetic import default_true_params, parse_params, simulate_batch, synthetic_trajectories
-from ..trajectories import (
+from ..data.forces import DEFAULT_PEAK_RANGE, SET_KINDS, from_spec, n_steps, random_specs
+from ..data.trajectories import (
     MAX_DT,
     TRUE_PARAMS_FILE,
     true_params_record,
     write_trajectory,
     write_true_params,
 )
-from ..tree import dump_tree, load_tree
-from ..usermodel import attach_model
+from ..errors import ConfigError, SimulationError
+from ..io.atomic import atomic_write_json, check_output_dir, staged_output_dir
+from ..io.limits import check_command_size
+from ..runs import simulation_summary
+from ..sim import DEFAULT_MAX_SIM_DT
+from ..sim.synthetic import (
+    default_true_params,
+    parse_params,
+    simulate_batch,
+    synthetic_trajectories,
+)
+from ..tree.description import dump_tree, load_tree
+from ..tree.usermodel import attach_model
 from .common import (
     COMMAND_HELP,
     EXIT_OK,
@@ -173,7 +178,7 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
             f"--n-traj {args.n_traj} disagrees with the {len(args.profile)} --profile spec(s) "
             "(one trajectory each)"
         )
-    from ..noise import check_sigma
+    from ..model.noise import check_sigma
 
     for flag, v in (
         ("--noise-force", args.noise_force),
@@ -284,7 +289,7 @@ def _check_noise_against_data(args, forces, tau) -> None:
     """Noise larger than what it is added to is a unit mistake: --noise-force above the
     largest |force| of the profiles, --noise-displacement above the simulated displacement's
     range (issue 27, "Bad input")."""
-    from ..noise import check_sigma
+    from ..model.noise import check_sigma
 
     check_sigma(
         args.noise_force,

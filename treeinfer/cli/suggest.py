@@ -6,9 +6,9 @@ import argparse
 from pathlib import Path
 
 from ..design import STANDARD_TIMING, parse_target
-from ..design_run import suggest_for_run
 from ..errors import ConfigError
-from ..limits import check_command_size
+from ..io.limits import check_command_size
+from ..runs.suggest import suggest_for_run
 from .common import (
     COMMAND_HELP,
     EXIT_OK,
@@ -148,7 +148,7 @@ def configure_suggest(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--allow-large",
         action="store_true",
-        help="go past the size limit (treeinfer.limits) checked before any work",
+        help="go past the size limit (treeinfer.io.limits) checked before any work",
     )
     return p
 

@@ -15,13 +15,13 @@ import numpy as np
 import yaml
 
 from .. import __version__
-from .. import generators as gen
-from .._io import atomic_write_text
 from ..errors import ConfigError
-from ..export import to_mjcf
-from ..ownership import claim_output_files, retire_output_files
-from ..tree import Bounds, load_tree, tree_from_dict, tree_to_dict, world_frames
-from ..urdf import to_urdf
+from ..io.atomic import atomic_write_text
+from ..io.ownership import claim_output_files, retire_output_files
+from ..tree import generators as gen
+from ..tree.description import Bounds, load_tree, tree_from_dict, tree_to_dict, world_frames
+from ..tree.export import to_mjcf
+from ..tree.urdf import to_urdf
 from .common import (
     EXIT_OK,
     TREE_SUFFIXES,
@@ -132,7 +132,7 @@ def _tree_settings(args: argparse.Namespace, kind: str) -> dict[str, Any]:
 
 def _read_raw(path: Path) -> dict[str, Any]:
     """The parsed content of a tree file (already validated by ``load_tree``)."""
-    from ..tree import read_tree_file
+    from ..tree.description import read_tree_file
 
     d = read_tree_file(path)
     return d if isinstance(d, dict) else {}
@@ -296,7 +296,7 @@ def _pull_heights(folder: Path) -> dict[str, tuple[float, Any]]:
         ConfigError: no pulls file, an entry without a distance, several branch names, or
             entries that already name a generated chain's links.
     """
-    from ..pulls import PULLS_FILE, read_pulls
+    from ..data.pulls import PULLS_FILE, read_pulls
 
     path = Path(folder) / PULLS_FILE
     if not path.is_file():
@@ -338,7 +338,7 @@ def _report_stem(tree, cfg, pulls_dir) -> None:
     ``pulls_dir``, rewrite its pulls.yaml to point at those links (the original kept)."""
     import shutil
 
-    from ..pulls import PULLS_FILE, PullSpec, read_pulls, write_pulls
+    from ..data.pulls import PULLS_FILE, PullSpec, read_pulls, write_pulls
 
     points = gen.stem_push_points(tree, cfg["push_heights"])
     if tree.tie_shape is not None:
@@ -374,7 +374,7 @@ def _report_stem(tree, cfg, pulls_dir) -> None:
 def _run_tree_model(args: argparse.Namespace) -> int:
     """``tree --model FILE``: describe a user's URDF/MJCF (or attach it to ``--from``'s tree),
     check that it prepares for the simulator, and write the tree file."""
-    from ..usermodel import attach_model, prepare_user_model, tree_from_model
+    from ..tree.usermodel import attach_model, prepare_user_model, tree_from_model
 
     out: Path = args.out
     if args.kind not in (None, "explicit"):

@@ -5,7 +5,7 @@ first field recording starts without waiting on the compiler.
 It runs the run itself (``treeinfer simulate`` then ``treeinfer infer`` with the given infer
 options, into a temporary folder that is deleted): a list of programs kept by hand would drift
 from what ``infer`` compiles, and a real run is the only complete list. Data sets of the same
-shape bucket (:mod:`treeinfer.startup`) then reuse the programs (``tests/test_cold_start.py``).
+shape bucket (:mod:`treeinfer.sim.startup`) then reuse the programs (``tests/test_cold_start.py``).
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from pathlib import Path
 
 import treeinfer
 
-from .. import interrupt
 from ..errors import ConfigError
-from ..limits import check_command_size
+from ..io import interrupt
+from ..io.limits import check_command_size
 from .common import COMMAND_HELP, EXIT_OK, EXIT_POOR_FIT, _say, add_command_parser
 
 # infer options warmup sets itself (the synthetic data and a throwaway run folder)
@@ -66,7 +66,7 @@ def configure_warmup(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--allow-large",
         action="store_true",
-        help="go past the size limit (treeinfer.limits) checked before any work",
+        help="go past the size limit (treeinfer.io.limits) checked before any work",
     )
     p.add_argument(
         "infer_options",
@@ -110,7 +110,7 @@ def _shared_options(rest: list[str]) -> list[str]:
 
 
 def run_warmup(args: argparse.Namespace) -> int:
-    from ..compile_stats import compile_stats
+    from ..sim.compile_stats import compile_stats
     from .main import main
 
     rest = _check(args)

@@ -21,7 +21,7 @@ A finished run is one folder ``RUN/``::
                      prior box, truth if known), bands_train.png
 
 Atomicity: the folder is built in a hidden staging sibling and renamed into place at the very
-end (:func:`treeinfer._io.staged_output_dir`), so ``RUN/`` appears complete or not at all.
+end (:func:`treeinfer.io.atomic.staged_output_dir`), so ``RUN/`` appears complete or not at all.
 
 Checkpoints live *beside* the run, in ``RUN.partial/`` (never inside ``RUN/``)::
 
@@ -52,8 +52,9 @@ compiled sampler programs),
 that orchestrates the others).
 """
 
-from ..jsonio import read_json, write_json
-from ..program_cache import ProgramCache
+from ..io.jsonio import read_json, write_json
+from ..io.provenance import config_hash, data_manifest, file_sha256, versions
+from ..sim.program_cache import ProgramCache
 from .cache import SimulatorCache, simulator_for
 from .checkpoint import (
     CHECKPOINT_FILE,
@@ -88,7 +89,6 @@ from .folder import (
     simulation_line,
     simulation_summary,
 )
-from .provenance import config_hash, data_manifest, file_sha256, versions
 from .service import (
     FoldResult,
     InferOutcome,

@@ -1,6 +1,7 @@
 """The one cache of the application layer: compiled simulators by (tree, obs_dt, substeps,
 backend), and the command's compiled sampler programs (``SimulatorCache.programs``, a
-:class:`~treeinfer.program_cache.ProgramCache` handed to :func:`treeinfer.inference.infer`).
+:class:`~treeinfer.sim.program_cache.ProgramCache` handed to
+:func:`treeinfer.inference.problem.infer`).
 
 A :class:`~treeinfer.sim.Simulator` is immutable and is a *static* jit argument hashed by
 identity, so handing the same object to every predict() of a command reuses the traced and
@@ -17,15 +18,15 @@ import hashlib
 
 import numpy as np
 
-from ..program_cache import ProgramCache
+from ..io.provenance import tree_to_dict_json
 from ..sim import Simulator, make_simulator
-from ..tree import Tree, tree_to_dict
-from .provenance import tree_to_dict_json
+from ..sim.program_cache import ProgramCache
+from ..tree.description import Tree, tree_to_dict
 
 
 class SimulatorCache:
     """At most ``max_size`` simulators, the oldest dropped first, and ``programs``: the
-    command's :class:`~treeinfer.program_cache.ProgramCache` of compiled sampler programs (at
+    command's :class:`~treeinfer.sim.program_cache.ProgramCache` of compiled sampler programs (at
     most ``max_size`` too), which :mod:`treeinfer.runs.service` passes to every sampler run."""
 
     def __init__(self, max_size: int = 8):

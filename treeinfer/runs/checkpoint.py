@@ -18,10 +18,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import __version__
-from .._io import (
+from ..errors import ConfigError
+from ..io.atomic import (
     atomic_write_bytes,
 )
-from ..errors import ConfigError
 
 CHECKPOINT_FORMAT = 1
 CHECKPOINT_FILE = "checkpoint.npz"
@@ -151,7 +151,7 @@ def save_checkpoint(
 
 
 def _open_checkpoint(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
-    from ..integrity import validate_checkpoint_file
+    from .integrity import validate_checkpoint_file
 
     if not Path(path).exists():
         raise ConfigError(f"{path}: no such checkpoint")

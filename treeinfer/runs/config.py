@@ -12,22 +12,22 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, check_positive
-from ..inference import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA
-from ..likelihood import DEFAULT_KT
-from ..noise import KINDS as LIKELIHOODS
-from ..noise import NOISE_KINDS, check_sigma
-from ..samplers import sampler_options, sampler_spec
-from ..sim import BACKENDS, FORCE_INTERPS
-from ..trajectories import (
+from ..data.trajectories import (
     TRUE_PARAMS_FILE,
     Trajectory,
     read_trajectory_dir,
 )
-from ..tree import tree_to_dict
+from ..errors import ConfigError, check_positive
+from ..inference.problem import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA
+from ..inference.samplers import sampler_options, sampler_spec
+from ..io.provenance import data_manifest, file_sha256, versions
+from ..model.likelihood import DEFAULT_KT
+from ..model.noise import KINDS as LIKELIHOODS
+from ..model.noise import NOISE_KINDS, check_sigma
+from ..sim import BACKENDS, FORCE_INTERPS
+from ..tree.description import tree_to_dict
 from .checkpoint import CHECKPOINT_FILE, partial_dir
 from .inputs import RunInputs, load_run_inputs, load_run_tree, read_true_params  # noqa: F401
-from .provenance import data_manifest, file_sha256, versions
 
 RUN_FORMAT = 1
 # --reinit-stragglers' default: stuck particles are moved next to the bulk up to this iteration
@@ -82,37 +82,38 @@ class RunConfig:
 
     Defaults (issue 27): the calibrated measurement model, ``likelihood="gaussian"`` with
     ``noise_force="default"`` (``"auto"`` where the model offers the term and the recorded
-    force's noise can be estimated, else off: :func:`treeinfer.inference.default_noise_force`),
-    ``init="auto"`` (the start pipeline, :mod:`treeinfer.start_pipeline`),
-    ``reinit_stragglers=DEFAULT_REINIT`` and ``stop_when_converged=True``. A ``config.json``
-    that leaves one of these options out was written before them and reads back with
+    force's noise can be estimated, else off:
+    :func:`treeinfer.inference.problem.default_noise_force`), ``init="auto"`` (the start pipeline,
+    :mod:`treeinfer.inference.start_pipeline`), ``reinit_stragglers=DEFAULT_REINIT`` and
+    ``stop_when_converged=True``. A ``config.json`` that leaves one of these options out was written
+    before them and reads back with
     :data:`LEGACY_DEFAULTS` (the paper's Boltzmann loss, uniform start, every iteration).
 
     Attributes: tree, data, out (absolute paths as strings); sampler (a registry name);
     particles (>= 2); iterations (>= 1); backend ("auto", "fused", "mjx"); kT (loss units per
     nat, > 0, or "auto": from the data's noise estimate); likelihood ("boltzmann", "gaussian",
-    "student_t", "ar1": :func:`treeinfer.likelihood.likelihood_terms`); noise_displacement (m,
+    "student_t", "ar1": :func:`treeinfer.model.likelihood.likelihood_terms`); noise_displacement (m,
     None: inferred / estimated); noise_force (None: off; N, "P%" or "auto": the recorded force's
-    noise as an errors-in-variables term, gaussian only, :mod:`treeinfer.force_noise`);
+    noise as an errors-in-variables term, gaussian only, :mod:`treeinfer.model.force_noise`);
     noise_velocity (None: velocity term off, the default; m/s: the velocity residual's noise
     std, generative likelihoods only); seed (>= 0); eta (nats per unit of log gain, > 0);
     grasp_fraction (None or in (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0;
     0: at the end only); force;
     prior_from (None or an earlier run folder, absolute: its posterior becomes this run's prior on
-    the joints both infer, :mod:`treeinfer.sequential`).
+    the joints both infer, :mod:`treeinfer.inference.sequential`).
     prior_tail (smoothed-box tail width, share of each log-box width, > 0); reinit_stragglers
     (>= 0: re-initialise stuck particles near the bulk after every chunk up to this iteration;
     0: off); drop_stragglers (leave stuck final particles out of the summaries);
-    stop_when_converged (stop early, :class:`treeinfer.diagnostics.ConvergenceCriterion`);
+    stop_when_converged (stop early, :class:`treeinfer.inference.diagnostics.ConvergenceCriterion`);
     mcmc_warmup (share of an MCMC trace discarded, in [0, 1)); mcmc_thin (>= 0; 0: thin to at
     most 1024 post-warm-up draws). model_kind ("dynamic": the rollout; "static": equilibria
-    under each force sample, stiffness only, :mod:`treeinfer.static`).
+    under each force sample, stiffness only, :mod:`treeinfer.inference.static`).
     force_interp ("linear": forces interpolated between samples, "hold"; folders written before it
     existed were simulated with "hold", which their recorded ``problem`` settings say);
     max_sim_dt (s, None: the simulator's 5 ms) and sim_tolerance (m, None: 0.1 mm), the bounds of
     the accuracy-controlled simulation step chosen on the training forces; model (None or the
     absolute path of the user's own URDF/MJCF, ``--model``) and repair_inertia (None,
-    ``"geometry"``, ``"floor"``), see :mod:`treeinfer.usermodel`.
+    ``"geometry"``, ``"floor"``), see :mod:`treeinfer.tree.usermodel`.
     """
 
     tree: str
@@ -170,10 +171,10 @@ class RunConfig:
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)
-        from ..static import parse_model_kind
+        from ..inference.static import parse_model_kind
 
         set_("model_kind", parse_model_kind(self.model_kind))
-        from ..tree_types import parse_tie
+        from ..tree.types import parse_tie
 
         if self.tie is not None or self.tie_scale is not None:  # --tie-scale alone: the file's
             name = "taper" if self.tie is None else self.tie
@@ -203,7 +204,7 @@ class RunConfig:
                 raise ConfigError(
                     f"--kT: {self.kT:g} is so small that every particle's log-likelihood -L/kT "
                     f"overflows (below {MIN_KT:g}); a loss of L costs L/kT nats: typical values "
-                    "are 1e-3 to 10 (see treeinfer.likelihood.suggest_kT)"
+                    "are 1e-3 to 10 (see treeinfer.model.likelihood.suggest_kT)"
                 )
         if self.likelihood not in LIKELIHOODS:
             raise ConfigError(
@@ -213,11 +214,11 @@ class RunConfig:
             set_("noise_displacement", check_sigma(self.noise_displacement, "--noise-displacement"))
         if isinstance(self.noise_force, str) and self.noise_force == "default":
             # the default force-noise term: with the Gaussian likelihood and no velocity term,
-            # resolved with the data and model (treeinfer.inference.default_noise_force)
+            # resolved with the data and model (treeinfer.inference.problem.default_noise_force)
             if self.likelihood != "gaussian" or self.noise_velocity is not None:
                 set_("noise_force", None)
         elif self.noise_force is not None:
-            from ..force_noise import check_noise_force
+            from ..model.force_noise import check_noise_force
 
             try:
                 set_("noise_force", check_noise_force(self.noise_force))
@@ -516,9 +517,10 @@ LAPLACE_WARMUP = 10
 
 def laplace_mh_proposal(start) -> list:
     """MH's proposal for ``--init laplace``: the Cholesky factor of ``(2.38^2 / D)`` times the
-    covariance of the Laplace start's particles ``[P, D]`` (:func:`treeinfer.laplace.mh_proposal`),
-    as nested lists (config.json records it, so a resumed run moves the same way)."""
-    from ..laplace import mh_proposal
+    covariance of the Laplace start's particles ``[P, D]``
+    (:func:`treeinfer.inference.laplace.mh_proposal`), as nested lists (config.json records it, so a
+    resumed run moves the same way)."""
+    from ..inference.laplace import mh_proposal
 
     x = np.asarray(start, float)
     cov = np.atleast_2d(np.cov(x.T)) if len(x) > 1 else np.zeros((x.shape[1],) * 2)

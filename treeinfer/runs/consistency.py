@@ -1,4 +1,4 @@
-"""The checks of a run folder a checksum cannot make (moved from :mod:`treeinfer.manifest`,
+"""The checks of a run folder a checksum cannot make (moved from :mod:`treeinfer.io.manifest`,
 which sits below the tree and the run layer, so that the manifest no longer imports them).
 
 :func:`check_run_consistency` covers an old run without a manifest, or one let through with
@@ -34,8 +34,8 @@ def check_run_consistency(
     ``allow_modified`` returns notes."""
     import numpy as np
 
-    from ..tree import tree_to_dict
-    from .provenance import tree_to_dict_json
+    from ..io.provenance import tree_to_dict_json
+    from ..tree.description import tree_to_dict
 
     run_dir = Path(run_dir)
     labels = list(labels)

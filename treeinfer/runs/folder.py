@@ -13,13 +13,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import __version__
-from .._io import atomic_write_bytes, atomic_write_text, staged_output_dir
 from ..errors import ConfigError
-from ..evaluation import LEVEL
-from ..jsonio import read_json, write_json
-from ..posterior_io import UNITS  # one table of units (moved there, issue 29)
-from ..samplers import sampler_spec
-from ..tree import Tree, dump_tree, load_tree
+from ..evaluation.predictive import LEVEL
+from ..inference.posterior_io import UNITS  # one table of units (moved there, issue 29)
+from ..inference.samplers import sampler_spec
+from ..io.atomic import atomic_write_bytes, atomic_write_text, staged_output_dir
+from ..io.jsonio import read_json, write_json
+from ..tree.description import Tree, dump_tree, load_tree
 from .cache import SimulatorCache, simulator_for
 from .checkpoint import _npz_bytes, partial_dir
 from .config import RUN_FORMAT
@@ -29,7 +29,7 @@ from .config import RUN_FORMAT
 def posterior_table(theta, labels, valid=None, level: float = LEVEL) -> dict:
     """``{label: {mean, lower, upper, unit}}`` in natural units: the particle mean of the gain and
     the central ``level`` interval of the per-parameter KDE in log space, mapped back by ``exp``."""
-    from ..metrics import predictive_interval
+    from ..evaluation.metrics import predictive_interval
 
     theta = np.asarray(theta, float)
     ok = np.all(np.isfinite(theta), axis=1) & (True if valid is None else np.asarray(valid, bool))
@@ -38,7 +38,7 @@ def posterior_table(theta, labels, valid=None, level: float = LEVEL) -> dict:
         lo, hi, _ = (np.asarray(a) for a in predictive_interval(theta, level, ok))
     else:
         lo = hi = np.full(theta.shape[1], np.nan)
-    from ..likelihood import natural_units
+    from ..model.likelihood import natural_units
 
     nat = natural_units(theta[ok], labels) if ok.any() else np.zeros((0, len(labels)))
     bounds = natural_units(np.stack([lo, hi]), labels)  # monotone maps: interval ends map over
@@ -55,7 +55,7 @@ def posterior_table(theta, labels, valid=None, level: float = LEVEL) -> dict:
 
 
 def _bandwidths(positions: np.ndarray) -> np.ndarray:
-    from ..samplers import median_length_scale
+    from ..inference.samplers import median_length_scale
 
     if len(positions) == 0:
         return np.zeros(0)
@@ -68,7 +68,7 @@ def _diagnostics(
     """Convergence diagnostics of the run's trace. MCMC: R-hat/ESS over every chain after the
     run's own warm-up share (``--mcmc-warmup``), the draws the summaries report (one meaning of
     the option: the warm-up is discarded from both)."""
-    from ..diagnostics import convergence_warnings, mcmc_diagnostics, svgd_diagnostics
+    from ..inference.diagnostics import convergence_warnings, mcmc_diagnostics, svgd_diagnostics
 
     kind = sampler_spec(sampler).family
     try:
@@ -105,7 +105,7 @@ def _reinitialised(run) -> int:
 def _straggler_and_edge(problem, posterior) -> tuple[dict, dict]:
     """Stuck particles among the final ones and posterior mass beyond a prior-box edge (issue
     11): both warn in summary.json's ``convergence_warnings`` and on the CLI."""
-    from ..diagnostics import find_stragglers, prior_edge_mass
+    from ..inference.diagnostics import find_stragglers, prior_edge_mass
 
     labels = list(problem.labels)
     # the sampler's own final particles (before --drop-stragglers or MCMC draws replace them)
@@ -161,7 +161,7 @@ def simulation_line(sim) -> str:
 
 def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
     o = config["options"]
-    from ..run_figures import training_force_max
+    from .figures import training_force_max
 
     kind, diag, warns = _diagnostics(
         o["sampler"], trace, list(problem.labels), o.get("mcmc_warmup", 0.5)
@@ -197,14 +197,14 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
     }
     model = getattr(problem, "model", None)
     if model is not None and (model.kind == "static" or not model.layout.infers_damping):
-        from ..static import damping_note
+        from ..inference.static import damping_note
 
         summary["model_kind"] = model.kind
         summary["damping"] = damping_note(model.layout, model.kind)
     if problem.sim.model_report:  # a user's own URDF/MJCF: what was matched, set, repaired
         summary["model"] = problem.sim.model_report
     if truth is not None:
-        from ..metrics import posterior_vs_truth
+        from ..evaluation.metrics import posterior_vs_truth
 
         n_gains = len(truth)  # noise columns (sigma_x ...) have no true value
         if model is not None:  # stiffness only: theta holds Kp alone
@@ -244,7 +244,7 @@ def particles_csv(theta, labels, log_density, stable) -> str:
         ),
         ",".join(["particle", *labels, "log_density", "stable"]),
     ]
-    from ..likelihood import natural_units
+    from ..model.likelihood import natural_units
 
     for i, row in enumerate(natural_units(theta, labels)):
         lines.append(
@@ -279,11 +279,11 @@ def save_run(
     """Write the run folder (see the module docstring) atomically: built in a staging folder,
     moved into place at the end. ``inputs`` (the tree file and data folder) are never replaced
     by ``force``; config.json records the checksums of the files written before it
-    (``config["integrity"]``, see :mod:`treeinfer.integrity`). ``formats``: the figures' file
+    (``config["integrity"]``, see :mod:`treeinfer.runs.integrity`). ``formats``: the figures' file
     formats in ``plots/`` (``png``, ``pdf``, ``svg``)."""
-    from ..diagnostics import save_inference_data
-    from ..integrity import record_checksums
-    from ..run_figures import run_inference_data, write_run_figures
+    from ..inference.diagnostics import save_inference_data
+    from .figures import run_inference_data, write_run_figures
+    from .integrity import record_checksums
 
     labels = list(problem.labels)
     sampler = config["options"]["sampler"]
@@ -359,7 +359,9 @@ class LoadedRun(NamedTuple):
     summary: dict
     grasp_fraction: float | None
     notes: tuple[str, ...] = ()  # integrity notes (--allow-modified) to record in the output
-    model: Any = None  # treeinfer.static.Model (static model or stiffness only); None: dynamic
+    model: Any = (
+        None  # treeinfer.inference.static.Model (static model or stiffness only); None: dynamic
+    )
 
 
 def load_run(
@@ -370,15 +372,15 @@ def load_run(
 ) -> LoadedRun:
     """Read a run folder written by :func:`save_run` (ConfigError naming what is missing).
 
-    The files are checked against the checksums in config.json (:func:`treeinfer.integrity.
+    The files are checked against the checksums in config.json (:func:`treeinfer.runs.integrity.
     verify_run`): an edited tree.yaml or a damaged posterior is refused unless
     ``allow_modified``, which records notes in ``LoadedRun.notes`` instead. ``model_file``:
     where the run's own URDF/MJCF lies now (moved since the run); its sha256 must be the
     recorded one."""
-    from ..integrity import load_npz, validate_run_config, validate_summary, verify_run
-    from ..manifest import read_manifest
-    from ..safe_load import refuse_special_paths
+    from ..io.manifest import read_manifest
+    from ..io.safe_load import refuse_special_paths
     from .consistency import check_run_consistency
+    from .integrity import load_npz, validate_run_config, validate_summary, verify_run
 
     run_dir = Path(run_dir)
     refuse_special_paths(run_dir, "run folder")  # a FIFO in it would block a reader
@@ -404,7 +406,7 @@ def load_run(
     tree = load_tree(run_dir / "tree.yaml")
     tree_file = tree  # before a moved model file is attached
     if model_file is not None:
-        from ..usermodel import attach_model
+        from ..tree.usermodel import attach_model
 
         tree = attach_model(tree, model_file, keep_sha256=True)
     z = load_npz(run_dir / "trace.npz", "trace file")
@@ -413,8 +415,8 @@ def load_run(
         labels = tuple(str(s) for s in z["labels"])
     except KeyError as e:
         raise ConfigError(f"{run_dir / 'trace.npz'}: unreadable (no array {e})") from None
-    from ..likelihood import noise_columns
-    from ..static import model_for
+    from ..inference.static import model_for
+    from ..model.likelihood import noise_columns
 
     model = model_for(tree, config.get("problem", {}).get("model_kind", "dynamic"))
     gains = list(model.labels)

@@ -10,18 +10,19 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..trajectories import TRUE_PARAMS_FILE, Trajectory, read_trajectory_dir
-from ..trajectories import read_true_params as read_true_params_file
-from ..tree import Tree, load_tree
-from .provenance import data_manifest
+from ..data.trajectories import TRUE_PARAMS_FILE, Trajectory, read_trajectory_dir
+from ..data.trajectories import read_true_params as read_true_params_file
+from ..io.provenance import data_manifest
+from ..tree.description import Tree, load_tree
 
 
 def load_run_tree(tree_path, model=None, repair_inertia=None) -> Tree:
     """The tree of a run: the tree file, with ``--model``/``--repair-inertia`` applied to its
-    ``model:`` section (:func:`treeinfer.usermodel.attach_model`; the file's sha256 recorded)."""
+    ``model:`` section (:func:`treeinfer.tree.usermodel.attach_model`; the file's sha256
+    recorded)."""
     tree = load_tree(tree_path)
     if model is not None or repair_inertia is not None or tree.model is not None:
-        from ..usermodel import attach_model
+        from ..tree.usermodel import attach_model
 
         tree = attach_model(tree, model, repair_inertia)
     return tree
@@ -53,10 +54,10 @@ def load_run_inputs(
 ) -> RunInputs:
     """Read the tree and the training data of a new run once (clear errors for a missing folder,
     a bad file or a bad tree)."""
-    from ..static import run_tree
+    from ..inference.static import run_tree
 
     data_dir = Path(data_dir)
-    from ..static import with_tie
+    from ..inference.static import with_tie
 
     tree = run_tree(load_run_tree(tree_path, model, repair_inertia), model_kind)
     tree = with_tie(tree, tie, tie_scale)  # --tie/--tie-scale over the file's inference.tie

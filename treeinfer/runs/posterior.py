@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from ..samplers import sampler_spec
+from ..inference.samplers import sampler_spec
 from .checkpoint import Checkpoint
 
 MAX_MCMC_DRAWS = 1024  # --mcmc-thin 0: thin the post-warm-up draws to at most this many
@@ -22,8 +22,8 @@ def _summarised_posterior(posterior, problem, trace: dict, o: dict):
     (``--mcmc-thin``; 0: to at most MAX_MCMC_DRAWS draws), not only the final states.
     ``--drop-stragglers``: stuck final particles (SVGD) are left out. The sampler's own
     final state stays in ``posterior.run``."""
-    from ..diagnostics import find_stragglers, mcmc_draws
-    from ..likelihood import gains_from_theta
+    from ..inference.diagnostics import find_stragglers, mcmc_draws
+    from ..model.likelihood import gains_from_theta
 
     theta, logp, extra = posterior.theta, posterior.log_density, {}
     pos, ld = np.asarray(trace["positions"]), np.asarray(trace["log_density"])

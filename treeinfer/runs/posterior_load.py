@@ -1,5 +1,5 @@
-"""``treeinfer.load_posterior(RUN)``: the :class:`treeinfer.posterior.Posterior` of a run folder,
-folders written before posterior.nc held natural units included (read from trace.npz)."""
+"""``treeinfer.load_posterior(RUN)``: the :class:`treeinfer.inference.posterior.Posterior` of a run
+folder, folders written before posterior.nc held natural units included (read from trace.npz)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import PosteriorError
-from ..posterior import Posterior, PosteriorContext
+from ..inference.posterior import Posterior, PosteriorContext
 
 
 def _theta_box(run) -> tuple[np.ndarray, np.ndarray]:
@@ -34,7 +34,7 @@ def _force_max(run) -> float | None:
     v = run.summary.get("training_force_max_N")
     if isinstance(v, (int, float)) and math.isfinite(v) and v > 0:
         return float(v)
-    from ..trajectories import read_trajectory
+    from ..data.trajectories import read_trajectory
 
     data = run.config.get("data") or {}
     peak = 0.0
@@ -64,18 +64,18 @@ def _truth(run) -> np.ndarray | None:
 def load_posterior(
     path, *, allow_poor_fit: bool = False, allow_modified: bool = False, cache=None
 ) -> Posterior:
-    """The :class:`~treeinfer.posterior.Posterior` of a run folder (``treeinfer infer --out RUN``,
-    ``demo/run``).
+    """The :class:`~treeinfer.inference.posterior.Posterior` of a run folder (``treeinfer infer
+    --out RUN``, ``demo/run``).
 
     Checks the folder's checksums (``allow_modified`` accepts edited files, their notes in
     ``context.summary["integrity_notes"]``), refuses an interrupted run (``RUN.partial``: resume
     it first), and keeps a ``poor_fit`` run loadable for inspection (figures, ``to_arviz``,
     ``diagnostics``) while ``sample`` and the summaries refuse it unless ``allow_poor_fit``.
     ``cache``: a :class:`~treeinfer.runs.SimulatorCache` to share simulators between runs."""
-    from ..gains import gains_from_theta
-    from ..integrity import load_npz
+    from ..model.gains import gains_from_theta
     from .checkpoint import PARTIAL_SUFFIX, partial_dir
     from .folder import load_run
+    from .integrity import load_npz
 
     path = Path(path)
     if path.name.endswith(PARTIAL_SUFFIX) or (not path.exists() and partial_dir(path).is_dir()):

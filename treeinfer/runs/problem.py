@@ -11,12 +11,12 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from ..data.trajectories import Observations, Trajectory, stack_trajectories
 from ..errors import ConfigError, TrajectoryFileError
-from ..inference import DEFAULT_PRIOR_SIGMA
-from ..samplers import sampler_spec
-from ..startup import steps_bucket, trajectories_bucket
-from ..trajectories import Observations, Trajectory, stack_trajectories
-from ..tree import Tree
+from ..inference.problem import DEFAULT_PRIOR_SIGMA
+from ..inference.samplers import sampler_spec
+from ..sim.startup import steps_bucket, trajectories_bucket
+from ..tree.description import Tree
 from .cache import SimulatorCache, simulator_for
 
 
@@ -27,7 +27,7 @@ def _grasp_fractions(o: dict, tree: Tree, trajectories):
         return o.get("grasp_fraction")
     if isinstance(trajectories, Observations):
         return None
-    from ..pulls import data_grasp_fractions
+    from ..data.pulls import data_grasp_fractions
 
     own = data_grasp_fractions(o["data"], tree, [t.source for t in trajectories])
     if own is None:
@@ -42,13 +42,13 @@ PIPELINE_RULE = "J at the start pipeline's MAP of this errors-in-variables model
 
 def shape_bucket_for(config: dict, obs: Observations) -> list[int] | None:
     """``[B', T']`` the run's observations are padded to in the programs that take them as
-    arguments (:mod:`treeinfer.startup`), or None; recorded as ``shape_bucket`` in the run's
+    arguments (:mod:`treeinfer.sim.startup`), or None; recorded as ``shape_bucket`` in the run's
     problem settings (config.json).
 
     Option ``shape_buckets`` (``on``, the default, or ``off``). This is the bucket of ``--init
-    importance``'s rollout program (:class:`treeinfer.fast_posterior.BatchEvaluator`), recorded
+    importance``'s rollout program (:class:`treeinfer.inference.fast.BatchEvaluator`), recorded
     for those runs here; the samplers' programs take their bucket from
-    :func:`sampler_bucket_for` (the same bucket; :func:`treeinfer.inference.make_problem`
+    :func:`sampler_bucket_for` (the same bucket; :func:`treeinfer.inference.problem.make_problem`
     records it with ``sampler_data: "arguments"`` where its target takes the data as an
     argument). The masked padding changes the log density by float rounding only (~1e-6
     relative, ``tests/test_startup.py``, ``tests/test_sampler_buckets.py``). A resumed run
@@ -71,9 +71,9 @@ def shape_bucket_for(config: dict, obs: Observations) -> list[int] | None:
 
 def sampler_bucket_for(config: dict, obs: Observations) -> list[int] | None:
     """``[B', T']`` the samplers' programs take the run's observations padded to, as an argument
-    (:func:`treeinfer.inference.make_problem`'s ``shape_bucket``), or None (the data are
+    (:func:`treeinfer.inference.problem.make_problem`'s ``shape_bucket``), or None (the data are
     constants of the programs, as before). New runs: the buckets of the data's shape
-    (:func:`treeinfer.startup.trajectories_bucket`, :func:`~treeinfer.startup.steps_bucket`)
+    (:func:`treeinfer.sim.startup.trajectories_bucket`, :func:`~treeinfer.sim.startup.steps_bucket`)
     unless ``shape_buckets`` is ``off``, or the run takes an earlier run's posterior as its
     prior (``prior_from``: that target is not built on the data argument). A resumed run is
     built as recorded: the bucket when its problem settings record ``sampler_data:
@@ -108,9 +108,10 @@ def build_problem(
 
     With ``--noise-force``, the force Jacobian's reference point: a resumed run (``resumed``)
     takes the one it recorded; a run whose ``--init`` is ``auto`` or ``importance`` finds it on
-    the start pipeline's rollout program (:func:`treeinfer.start_pipeline.force_noise_reference`);
-    any other run fits it with :func:`treeinfer.force_noise.reference_theta`."""
-    from ..inference import make_problem
+    the start pipeline's rollout program
+    (:func:`treeinfer.inference.start_pipeline.force_noise_reference`); any other run fits it with
+    :func:`treeinfer.model.force_noise.reference_theta`."""
+    from ..inference.problem import make_problem
 
     o = config["options"]
     obs = (
@@ -137,7 +138,7 @@ def build_problem(
         sim = dataclasses.replace(sim, step_info=dict(recorded["sim_step"]))
     kind = o.get("model_kind", "dynamic")
     # each recording's own branch, grasp point and direction (the data folder's pulls.yaml)
-    from ..static import model_for, model_with_pulls
+    from ..inference.static import model_for, model_with_pulls
 
     table = not isinstance(trajectories, Observations)
     model, grasp = model_with_pulls(
@@ -180,7 +181,7 @@ def build_problem(
         o.get("init", "uniform") in ("auto", "importance")
         and _force_term(o, tree, kind, model, obs) is not None
     ):
-        from ..start_pipeline import force_noise_reference
+        from ..inference.start_pipeline import force_noise_reference
 
         # the reference fits' problems run on the rollout program only: no sampler target
         fit_only = {**common, "shape_bucket": None}
@@ -199,7 +200,7 @@ def build_problem(
     if reference.get("force_noise_rule") == PIPELINE_RULE and not resumed:
         problem = dataclasses.replace(problem, start_hint=finals)
     if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints
-        from ..sequential import prior_from_run, with_prior
+        from ..inference.sequential import prior_from_run, with_prior
         from .folder import load_run
 
         prior = prior_from_run(load_run(o["prior_from"]), problem.labels)
@@ -219,9 +220,9 @@ def build_problem(
 
 def _force_term(o: dict, tree: Tree, kind: str, model, obs):
     """The run's force-noise setting on the paper's dynamic model (None: no term there), the
-    default resolved as :func:`treeinfer.inference.make_problem` resolves it."""
-    from ..inference import default_noise_force, resolve_likelihood
-    from ..static import model_for
+    default resolved as :func:`treeinfer.inference.problem.make_problem` resolves it."""
+    from ..inference.problem import default_noise_force, resolve_likelihood
+    from ..inference.static import model_for
 
     if model is not None or kind != "dynamic" or not model_for(tree, kind).is_paper:
         return None
@@ -232,11 +233,12 @@ def _force_term(o: dict, tree: Tree, kind: str, model, obs):
 def _data_checks(
     config: dict, tree: Tree, trajs, log: Callable[[str], None], allow_implausible_data: bool
 ) -> list[str]:
-    """Plausibility checks before sampling (:mod:`treeinfer.checks`): errors stop the run unless
-    ``allow_implausible_data``; warnings are logged, and so are entries of the data folder that
-    are not read (FIFOs, broken links, ``.CSV``). Returns every finding as text (summary.json)."""
-    from ..checks import format_findings, preflight
-    from ..safe_load import list_data_files
+    """Plausibility checks before sampling (:mod:`treeinfer.evaluation.checks`): errors stop the run
+    unless ``allow_implausible_data``; warnings are logged, and so are entries of the data folder
+    that are not read (FIFOs, broken links, ``.CSV``). Returns every finding as text
+    (summary.json)."""
+    from ..evaluation.checks import format_findings, preflight
+    from ..io.safe_load import list_data_files
 
     o = config["options"]
     data_dir = Path(config["data"]["dir"])
@@ -274,7 +276,7 @@ def _checks_not_applicable(config: dict, tree: Tree, names: Sequence[str]) -> se
     drop = set()
     if config["options"].get("model_kind", "dynamic") == "static":
         drop.add("simulation-cost")
-    from ..pulls import PULLS_FILE, load_data_pulls
+    from ..data.pulls import PULLS_FILE, load_data_pulls
 
     data_dir = Path(config["data"]["dir"])
     if names and (data_dir / PULLS_FILE).is_file():
@@ -289,11 +291,11 @@ def _checks_not_applicable(config: dict, tree: Tree, names: Sequence[str]) -> se
 
 
 def _quasi_static_check(problem, config: dict, log: Callable[[str], None]) -> None:
-    """Log :func:`treeinfer.static.quasi_static_notice` when the dynamic model is asked to fit
-    data sampled far more slowly than the branch's slowest natural period."""
+    """Log :func:`treeinfer.inference.static.quasi_static_notice` when the dynamic model is asked to
+    fit data sampled far more slowly than the branch's slowest natural period."""
     if config["options"].get("model_kind", "dynamic") != "dynamic":
         return
-    from ..static import quasi_static_notice
+    from ..inference.static import quasi_static_notice
 
     try:
         notice = quasi_static_notice(problem.tree, problem.sim, float(problem.obs.dt))

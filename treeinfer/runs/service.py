@@ -15,9 +15,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .._io import check_output_dir, clean_stale_staging
+from ..data.trajectories import Trajectory
 from ..errors import ConfigError, OutputExistsError, SimulationError
-from ..evaluation import (
+from ..evaluation.predictive import (
     Prediction,
     _training_fit,
     evaluate_trajectories,
@@ -25,11 +25,12 @@ from ..evaluation import (
     kfold_splits,
     noise_for,
 )
-from ..jsonio import jsonable as _jsonable
-from ..jsonio import read_json, write_json
-from ..ownership import move_aside
-from ..trajectories import Trajectory
-from ..tree import Tree, dump_tree, load_tree, tree_to_dict
+from ..io.atomic import check_output_dir, clean_stale_staging
+from ..io.jsonio import jsonable as _jsonable
+from ..io.jsonio import read_json, write_json
+from ..io.ownership import move_aside
+from ..io.provenance import config_hash, tree_to_dict_json
+from ..tree.description import Tree, dump_tree, load_tree, tree_to_dict
 from .cache import SimulatorCache
 from .checkpoint import (
     CHECKPOINT_FILE,
@@ -59,7 +60,6 @@ from .problem import (  # noqa: F401 -- re-exported: the old import path keeps w
     _quasi_static_check,
     build_problem,
 )
-from .provenance import config_hash, tree_to_dict_json
 from .start import LAPLACE_LM_ITERATIONS, LAPLACE_SCALE, _check_init, _start  # noqa: F401
 
 # ==== inference ===================================================================================
@@ -88,7 +88,7 @@ def _inputs(config: dict) -> list[str]:
 def _prepare_fresh(config: dict, inputs: RunInputs | None, log: Callable[[str], None]):
     """The run folder, its staging folder and the run's inputs (``inputs`` if given: the ones
     :func:`~.config.infer_config` hashed, else read now)."""
-    from ..integrity import check_partial
+    from .integrity import check_partial
 
     run_dir = Path(config["options"]["out"])
     partial = partial_dir(run_dir)
@@ -141,7 +141,7 @@ def _resume_paths(run_arg: str | os.PathLike) -> tuple[Path, Path]:
             f"{partial}: no interrupted run to resume (an interrupted `treeinfer infer --out {p}` "
             f"leaves its checkpoint in {partial.name}/)"
         )
-    from ..integrity import check_partial
+    from .integrity import check_partial
 
     why = check_partial(partial)
     if why is not None:
@@ -171,20 +171,21 @@ def run_inference(
       on_checkpointer: called with the :class:`Checkpointer` before sampling starts (the CLI
         keeps it to say where a Ctrl-C left the run).
       cache: the command's :class:`SimulatorCache` (a new one if None).
-      allow_implausible_data: sample even if the plausibility checks (:mod:`treeinfer.checks`)
+      allow_implausible_data: sample even if the plausibility checks
+      (:mod:`treeinfer.evaluation.checks`)
         find errors in the data (they are logged and recorded in summary.json).
       inputs: the tree and data :func:`~.config.infer_config` was given (a new run; read again
         from the config's paths if None).
 
     The summary's ``fit`` (``status`` ok | warning | poor_fit, ``reasons``, ``measures``) judges
-    the training fit (:func:`treeinfer.checks.fit_verdict_from_run`); the CLI exits 4 on
+    the training fit (:func:`treeinfer.evaluation.checks.fit_verdict_from_run`); the CLI exits 4 on
     ``poor_fit`` unless ``--allow-poor-fit``.
 
     Raises:
       SimulationError: more than ``max_unstable_share`` of the final particles are unstable
         (``RUN.partial/`` is kept: resume with a larger ``max_unstable_share`` to write it anyway).
     """
-    from ..inference import initial_particles
+    from ..inference.problem import initial_particles
 
     cache = SimulatorCache() if cache is None else cache
     if resume is None:
@@ -215,7 +216,7 @@ def run_inference(
             raise
         previous = None
     else:
-        from ..integrity import validate_run_config
+        from .integrity import validate_run_config
 
         run_dir, partial = _resume_paths(resume)
         config = read_json(partial / "config.json", "the interrupted run's config")
@@ -301,7 +302,7 @@ def run_inference(
     summary = _run_summary(problem, posterior, config, trace, fit, truth)
     if ready is not None:
         _importance_diagnostics(summary, posterior)
-    from ..checks import fit_verdict_from_run
+    from ..evaluation.checks import fit_verdict_from_run
 
     verdict = fit_verdict_from_run(problem, posterior, fit, noise_sigma=_fitted_noise(problem))
     summary["fit"] = verdict.as_dict()
@@ -333,7 +334,7 @@ def run_inference(
 def _sample(problem, config, partial: Path, previous, theta0, progress, cache, on_checkpointer):
     """The sampler's run of :func:`run_inference` (from ``previous``'s checkpoint if any, else
     from ``theta0`` or the sampler's own start), checkpointing into ``partial``."""
-    from ..inference import infer
+    from ..inference.problem import infer
 
     o = config["options"]
     every = o["checkpoint_every"] or None
@@ -399,9 +400,9 @@ def _warmup_option(config: dict, start=None) -> dict:
 
 
 def _convergence_options(o: dict, problem) -> dict:
-    """``stop_when`` / ``reinit_stragglers`` for :func:`~treeinfer.inference.infer` from a run's
-    options (issue 11: --stop-when-converged, --reinit-stragglers N)."""
-    from ..diagnostics import ConvergenceCriterion, ReinitStragglers
+    """``stop_when`` / ``reinit_stragglers`` for :func:`~treeinfer.inference.problem.infer` from a
+    run's options (issue 11: --stop-when-converged, --reinit-stragglers N)."""
+    from ..inference.diagnostics import ConvergenceCriterion, ReinitStragglers
 
     out = {}
     if o.get("stop_when_converged"):
@@ -426,7 +427,7 @@ def infer_posterior(
 ):
     """(problem, posterior) for ``config``'s settings on ``trajectories`` (no run folder): the
     k-fold protocol reuses a run's settings this way."""
-    from ..inference import infer
+    from ..inference.problem import infer
 
     cache = SimulatorCache() if cache is None else cache
     problem = build_problem(config, tree, trajectories, cache, log=log)
@@ -511,7 +512,7 @@ def kfold(
         warns = fold_warnings(problem, post)
         for w in warns:
             log(f"fold {i}/{k}: {w}")
-        from ..static import model_with_pulls
+        from ..inference.static import model_with_pulls
 
         model, g_test = model_with_pulls(  # the held-out recordings' own pulls
             problem.model, options.get("data"), [t.source for t in test], g_test, tree=tree

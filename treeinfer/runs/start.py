@@ -22,8 +22,8 @@ LAPLACE_LM_ITERATIONS = 40  # 25 left every start short of the mode on the stand
 def laplace_start(problem, config: dict, log: Callable[[str], None]):
     """Particles around a Levenberg–Marquardt MAP fit (``--init laplace``): its Laplace
     approximation, drawn with the run's seed. The residual Jacobian follows ``--gradients``."""
-    from ..laplace import particle_covariance
-    from ..mapfit import fit_problem, laplace_particles
+    from ..inference.laplace import particle_covariance
+    from ..inference.mapfit import fit_problem, laplace_particles
 
     o = config["options"]
     if getattr(problem, "model", None) is not None:  # static, stiffness only, a taper tie
@@ -53,7 +53,7 @@ def laplace_start(problem, config: dict, log: Callable[[str], None]):
     )
     # the Boltzmann-loss fit does not see the noise columns: start them near the data's noise
     # estimate, not over the prior's decades (issue 27)
-    from ..inference import noise_start_columns
+    from ..inference.problem import noise_start_columns
 
     return noise_start_columns(problem, theta, o["seed"])
 
@@ -61,11 +61,11 @@ def laplace_start(problem, config: dict, log: Callable[[str], None]):
 def _check_init(problem, options: dict) -> None:
     """ConfigError (before the run folder is made) if the problem does not support ``--init``.
     Every value works with every likelihood and model: the paper's dynamic model goes through
-    the rollout program (:func:`treeinfer.fast_posterior.check_problem`), any other model
-    through its own log-density (:mod:`treeinfer.start_pipeline`)."""
+    the rollout program (:func:`treeinfer.inference.fast.check_problem`), any other model
+    through its own log-density (:mod:`treeinfer.inference.start_pipeline`)."""
     if options.get("init", "uniform") not in ("auto", "importance") or problem.model is not None:
         return
-    from ..fast_posterior import check_problem
+    from ..inference.fast import check_problem
 
     try:
         check_problem(problem)
@@ -80,7 +80,7 @@ def _start(problem, config: dict, log: Callable[[str], None], programs=None):
     """``(ready, theta0)`` for the run's ``--init``: ``ready`` a finished posterior (``--init
     importance`` whose importance weights pass their check: no sampler iterations) or None;
     ``theta0`` [P, D] the sampler's initial particles, None for the sampler's own (uniform).
-    ``programs``: the command's :class:`~treeinfer.program_cache.ProgramCache`
+    ``programs``: the command's :class:`~treeinfer.sim.program_cache.ProgramCache`
     (``SimulatorCache.programs``), where ``--init importance`` keeps its rollout program, so
     runs and folds whose data share a shape bucket compile it once."""
     o = config["options"]
@@ -88,7 +88,7 @@ def _start(problem, config: dict, log: Callable[[str], None], programs=None):
     if init == "laplace":
         return None, laplace_start(problem, config, log)
     if init in ("auto", "importance"):
-        from ..start_pipeline import auto_start
+        from ..inference.start_pipeline import auto_start
 
         _check_init(problem, o)
         options = {} if programs is None or problem.model is not None else {"programs": programs}
@@ -107,15 +107,15 @@ def _start(problem, config: dict, log: Callable[[str], None], programs=None):
 def _model_laplace_start(problem, o: dict, log: Callable[[str], None]):
     """``--init laplace`` for any model other than the paper's (the LM fit needs its
     residuals): the MAP and Hessian of the problem's own log-density
-    (:func:`treeinfer.laplace.problem_laplace`), drawn with the run's seed."""
-    from ..laplace import problem_laplace, problem_laplace_particles
+    (:func:`treeinfer.inference.laplace.problem_laplace`), drawn with the run's seed."""
+    from ..inference.laplace import problem_laplace, problem_laplace_particles
 
     exact = getattr(problem.model, "kind", None) == "static" and o.get("gradients") == "jvp"
     if exact:
         # exact derivatives (implicit function theorem through the equilibrium): Newton steps
         # reach the MAP and its Hessian, where the generic fit stopped short of it and its
         # covariance came out 7x too wide in log sigma_x (experiments/README.md, stem study)
-        from ..static import exact_laplace
+        from ..inference.static import exact_laplace
 
         lap = exact_laplace(problem, seed=o["seed"])
     else:

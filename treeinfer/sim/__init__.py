@@ -90,7 +90,7 @@ __all__ = [
 def velocity(tau: jax.Array, dt: float) -> jax.Array:
     """d tau / dt along the last axis: second-order central differences inside, second-order
     one-sided at both ends (``numpy.gradient(..., edge_order=2)``)."""
-    from ..trajectories import velocity_from_displacement
+    from ..data.trajectories import velocity_from_displacement
 
     return velocity_from_displacement(tau, dt)
 
@@ -134,7 +134,7 @@ def simulate(
       unroll_outer, unroll_inner: loop unrolling of the observation scan / substep loop
         (``True`` unrolls the substeps fully: faster steps, much longer compile).
       direction: None (along gravity: a downward pull), [3] or [B, 3]: the pull direction in
-        world coordinates (normalised here; see :func:`treeinfer.sim.direction.pull_direction`
+        world coordinates (normalised here; see :func:`treeinfer.data.direction.pull_direction`
         for ``"down"`` and ``"horizontal"``). The displacement ``tau`` is measured along it.
       grasp_branch: None (the tree's grasped branch), a branch name, or B names (Python
         strings, static under ``jit``): which branch each profile pulls. Profiles are grouped

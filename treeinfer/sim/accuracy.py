@@ -20,7 +20,7 @@ estimated where it matters:
 Starting from the stability choice, ``s`` grows (by the first-order prediction
 ``s * err / tol``, at least by one) until ``err(s) <= tol``. Every candidate runs through one
 compiled program: the substep count is a traced loop bound there, and the forces are padded to
-their shape bucket (:mod:`treeinfer.startup`), so a new data set of a bucket reuses the program
+their shape bucket (:mod:`treeinfer.sim.startup`), so a new data set of a bucket reuses the program
 compiled for an earlier one (from the persistent compilation cache in a new process).
 """
 
@@ -35,8 +35,8 @@ import jax
 import numpy as np
 
 from ..errors import ConfigError
-from ..startup import device_array
 from . import DEFAULT_MAX_SIM_DT, DEFAULT_SIM_TOLERANCE, Simulator, _simulate, make_simulator
+from .startup import device_array
 
 MAX_SUBSTEPS = 400  # per observation: the refinement stops here (and warns)
 NOISE_FRACTION = 0.1  # default tolerance: this fraction of the noise level when it is known
@@ -86,7 +86,7 @@ MAX_PEAK_SCALE = 1e3  # a bound on the scaling (a model far outside tree scales)
 
 
 def typical_peak_scale(sim: Simulator) -> float:
-    """How much the standard pulls' peaks (2-8 N, :data:`treeinfer.forces.DEFAULT_PEAK_RANGE`)
+    """How much the standard pulls' peaks (2-8 N, :data:`treeinfer.data.forces.DEFAULT_PEAK_RANGE`)
     are scaled up so that they bend THIS tree as a typical pull does, >= 1.
 
     The static compliance of the grasp point along the pull (gravity) at the geometric rest
@@ -100,7 +100,7 @@ def typical_peak_scale(sim: Simulator) -> float:
     it sets a force scale, not a prediction."""
     import mujoco
 
-    from ..forces import DEFAULT_PEAK_RANGE
+    from ..data.forces import DEFAULT_PEAK_RANGE
 
     m = sim.mj_model
     d = mujoco.MjData(m)
@@ -128,11 +128,11 @@ def representative_forces(
 ) -> np.ndarray:
     """[n, T] N: the pulls the accuracy check runs when no data are given (the API's
     :func:`~treeinfer.sim.make_simulator` without ``forces``): the project's standard seeded set
-    (:func:`treeinfer.forces.profile_set` ``"mixed"``, seed 0: ramp-hold-release and hold pulls
+    (:func:`treeinfer.data.forces.profile_set` ``"mixed"``, seed 0: ramp-hold-release and hold pulls
     of ``duration`` s with peaks 2-8 N, the set ``treeinfer simulate``, ``demo`` and
     ``calibrate`` draw from), sampled every ``obs_dt``. Given a :class:`Simulator`, the peaks
     are scaled by :func:`typical_peak_scale` (a stiff or large tree is pulled harder)."""
-    from ..forces import profile_set
+    from ..data.forces import profile_set
 
     if isinstance(sim_or_obs_dt, Simulator):
         dt, scale = sim_or_obs_dt.obs_dt, typical_peak_scale(sim_or_obs_dt)
@@ -148,12 +148,12 @@ def _rollout_tau(sim, kp, kd, forces, frac, dirs, grasp_branch, substeps):
     along gravity).
 
     The rollout is a stored ``jax.export`` program keyed without the step
-    (:func:`treeinfer.startup.stored_export`, :meth:`~treeinfer.sim.Simulator.program_key`):
+    (:func:`treeinfer.sim.startup.stored_export`, :meth:`~treeinfer.sim.Simulator.program_key`):
     a new process on a new recording, whose step this check is about to choose, inlines it
     instead of tracing the simulator (the Pallas kernel and the settle: 0.5-0.7 s of a GPU cold
     start, BENCHMARKS.md) and loads its XLA program from the persistent cache; this jit keeps it
     in memory for the process."""
-    from ..startup import stored_export
+    from .startup import stored_export
 
     has = (frac is not None, dirs is not None)
     args = [a for a in (kp, kd, forces, frac, dirs, substeps) if a is not None]
@@ -176,11 +176,11 @@ def _rollout_tau(sim, kp, kd, forces, frac, dirs, grasp_branch, substeps):
 
 def _bucketed(forces: np.ndarray, frac, dirs, gb):
     """The check's inputs padded to the shape bucket of ``forces [B, T]``
-    (:mod:`treeinfer.startup`), so the step-doubling program is compiled once per bucket, not
+    (:mod:`treeinfer.sim.startup`), so the step-doubling program is compiled once per bucket, not
     once per data set: steps hold each row's last force (the simulator holds it after the last
     sample anyway), padded rows repeat the last row (its grasp point, direction and branch too).
     A padded row or step is simulated and then cut off, never part of the error estimate."""
-    from ..startup import steps_bucket, trajectories_bucket
+    from .startup import steps_bucket, trajectories_bucket
 
     b, t = forces.shape
     nb, nt = trajectories_bucket(b), steps_bucket(t)
@@ -214,7 +214,7 @@ def choose_substeps_for_accuracy(
 
     Args:
       sim_or_tree: a :class:`~treeinfer.sim.Simulator` (its ``obs_dt``, backend, force
-        interpolation and prior box are used) or a :class:`~treeinfer.tree.Tree` (then
+        interpolation and prior box are used) or a :class:`~treeinfer.tree.description.Tree` (then
         ``obs_dt`` is required and ``make_kwargs`` go to :func:`make_simulator`).
       forces: [B, T] N, the force profiles to be simulated (the data's).
       tol: m, the accuracy target on ``tau``; default :func:`default_tolerance` of ``noise_sd``.

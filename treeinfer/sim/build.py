@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 from ..errors import ConfigError, TreeFileError
-from ..tree import Tree
+from ..tree.description import Tree
 from . import pallas as _pallas_hook
 from .simulator import (
     BACKENDS,
@@ -99,7 +99,7 @@ def make_simulator(
         ``"hold"`` (zero-order hold, each sample held until the next); see :func:`simulate`.
       model_file: a user's own MJCF (``.xml``) or URDF file to simulate instead of exporting
         ``tree`` (default: the tree's ``model:`` section, if any); prepared by
-        :func:`treeinfer.usermodel.prepare_user_model` (name map, fixed gains, grasp axis,
+        :func:`treeinfer.tree.usermodel.prepare_user_model` (name map, fixed gains, grasp axis,
         inertia and limit checks) with the settings of the tree's ``model:`` section.
       backend: ``"fused"``, ``"mjx"`` or ``"auto"`` (fused when the model is a contact-free
         hinge tree it reproduces, which every tree treeinfer builds is; MJX otherwise). Both
@@ -110,7 +110,7 @@ def make_simulator(
     """
     import mujoco
 
-    from ..export import GRASP_SITE, to_mjmodel
+    from ..tree.export import GRASP_SITE, to_mjmodel
 
     if not (isinstance(obs_dt, (int, float)) and math.isfinite(obs_dt) and obs_dt > 0):
         raise ConfigError(f"obs_dt: must be a positive number of seconds, got {obs_dt!r}")
@@ -141,7 +141,7 @@ def make_simulator(
         )
     user = None
     if model_file is not None or tree.model is not None:
-        from ..usermodel import prepare_user_model
+        from ..tree.usermodel import prepare_user_model
 
         user = prepare_user_model(tree, model_file)
     mj_model = to_mjmodel(tree) if user is None else user.mj_model

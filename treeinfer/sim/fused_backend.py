@@ -21,12 +21,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-# not jnp.linalg.solve: jaxlib 0.10's CPU batched LU deadlocks when two run at once
-# (treeinfer.small_solve says why)
-from ..small_solve import solve as small_solve
 from . import fused as hd
 from . import levels as lv
 from .mjx import Backend
+
+# not jnp.linalg.solve: jaxlib 0.10's CPU batched LU deadlocks when two run at once
+# (treeinfer.sim.small_solve says why)
+from .small_solve import solve as small_solve
 
 if TYPE_CHECKING:
     from .simulator import Simulator

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..small_solve import solve as small_solve  # not jnp.linalg.solve: treeinfer.small_solve
+from .small_solve import solve as small_solve  # not jnp.linalg.solve: treeinfer.sim.small_solve
 
 if TYPE_CHECKING:
     from . import Simulator

@@ -7,13 +7,14 @@ treeinfer's MuJoCo/fused step).
 Written from the equations of motion, not from MuJoCo, so that it can judge the simulator's
 discretisation (step size, force interpolation), not just its agreement with MuJoCo.
 
-Model (the same physics :mod:`treeinfer.tree` describes). Every branch ``b`` is a uniform solid
-cylinder of mass ``m_b = rho pi r_b^2 L_b`` whose centre of mass lies at ``L_b / 2`` along its
-axis and whose moment of inertia about an axis through that centre, perpendicular to the
-branch, is ``I_b = m_b (3 r_b^2 + L_b^2) / 12`` (:func:`treeinfer.tree.cylinder_inertia`). When
-every branch forks in the base's bending plane (``azimuth_deg == 0``) and gravity lies in that
-plane, the motion is planar: each branch is described by its *elevation* ``phi_b`` above the
-horizontal direction ``h = (cos yaw, sin yaw, 0)`` of the plane, with
+Model (the same physics :mod:`treeinfer.tree.description` describes). Every branch ``b`` is a
+uniform solid cylinder of mass ``m_b = rho pi r_b^2 L_b`` whose centre of mass lies at ``L_b / 2``
+along its axis and whose moment of inertia about an axis through that centre, perpendicular to the
+branch, is ``I_b = m_b (3 r_b^2 + L_b^2) / 12``
+(:func:`treeinfer.tree.description.cylinder_inertia`). When every branch forks in the base's bending
+plane (``azimuth_deg == 0``) and gravity lies in that plane, the motion is planar: each branch is
+described by its *elevation* ``phi_b`` above the horizontal direction ``h = (cos yaw, sin yaw, 0)``
+of the plane, with
 
     e(phi) = cos(phi) h + sin(phi) z          (unit vector along the branch)
     phi_b  = phi0_b - sum_{d in dofs(b)} q_d   (q: hinge angles, positive = downward)
@@ -54,7 +55,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 from scipy.optimize import root
 
-from treeinfer.tree import Tree, branch_density, cylinder_inertia
+from treeinfer.tree.description import Tree, branch_density, cylinder_inertia
 
 
 class PlanarTree:

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import jax.numpy as jnp
 import numpy as np
 
-from ..trajectories import velocity_from_displacement
+from ..data.trajectories import velocity_from_displacement
 
 if TYPE_CHECKING:
     from . import Simulator

@@ -70,7 +70,7 @@ class Simulator:
       branches: {branch name: (body index, length in m)} of every body the force may grasp.
       branch_axes: {body index: (start [3], end [3])} m, link axes of a user model in their
         body frames (absent: the axis runs along local x from 0 to the branch length).
-      model_report: a user model's preparation report (:mod:`treeinfer.usermodel`), else {}.
+      model_report: a user model's preparation report (:mod:`treeinfer.tree.usermodel`), else {}.
       step_layout: the fused step's layout: ``"scalar"``, ``"levels"`` or ``"auto"`` (by joint
         count; :mod:`treeinfer.sim.fused_backend`).
       step_info: how ``substeps`` was chosen: ``{"method": "given" | "stability" |
@@ -121,7 +121,7 @@ class Simulator:
         return h.hexdigest()
 
     def program_key(self, traced_substeps: bool) -> str:
-        """The simulator's part of a persistent program's key (``treeinfer.startup``'s
+        """The simulator's part of a persistent program's key (``treeinfer.sim.startup``'s
         ``cached_program`` and ``stored_export``): its content without ``step_info`` (how its
         step was chosen: metadata that differs between data sets whose accuracy-controlled
         step came out the same). A program that takes the substep count as an argument

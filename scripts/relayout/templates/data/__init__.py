@@ -2,14 +2,14 @@
 pull acted, plausibility checks of data against a tree, force profiles, and the importers (CSV,
 ROS bags).
 
-May import: treeinfer.tree, treeinfer.io, treeinfer.errors.
+May import: treeinfer.tree.description, treeinfer.io, treeinfer.errors.
 
 The public API is re-exported here name by name, imported lazily (on first use), so
 importing one module of the package does not import the others (startup cost, and no
 import order between them).
 
 Submodules: bag_messages, bags, checks, csv_format, direction, forces, import_bag, import_csv,
-kortex, pull_checks, pulls, side_files, trajectories, true_params, types."""
+kortex, noise_estimate, pull_checks, pulls, side_files, trajectories, true_params, types."""
 
 _EXPORTS = {
     "KNOWN_TYPES": "bag_messages",
@@ -22,6 +22,7 @@ _EXPORTS = {
     "read_bag_streams": "bags",
     "resample": "bags",
     "data_checks": "checks",
+    "speed_limit": "checks",
     "parse_units": "csv_format",
     "read_columns": "csv_format",
     "DEFAULT_PEAK_RANGE": "forces",
@@ -56,6 +57,11 @@ _EXPORTS = {
     "kortex_typestore": "kortex",
     "missing_force_message": "kortex",
     "read_kortex_streams": "kortex",
+    "NoiseEstimate": "noise_estimate",
+    "Upsampling": "noise_estimate",
+    "detect_upsampling": "noise_estimate",
+    "estimate_white_noise": "noise_estimate",
+    "quantisation_step": "noise_estimate",
     "check_pull_moves": "pull_checks",
     "check_same_pull": "pull_checks",
     "pull_leverage": "pull_checks",
@@ -107,6 +113,7 @@ _SUBMODULES = (
     "import_bag",
     "import_csv",
     "kortex",
+    "noise_estimate",
     "pull_checks",
     "pulls",
     "side_files",

@@ -1,13 +1,14 @@
 """A posterior judged: predictions of every particle with their bands, metrics on plain arrays,
 figures returning (fig, axes), and the fit checks after inference.
 
-May import: treeinfer.inference and every layer below it.
+May import: treeinfer.inference.problem and every layer below it.
 
 The public API is re-exported here name by name, imported lazily (on first use), so
 importing one module of the package does not import the others (startup cost, and no
 import order between them).
 
-Submodules: bands, checks, metrics, plots, posterior_plots, predictive."""
+Submodules: bands, checks, metrics, plots, posterior_bands, posterior_plots, ppc, predictive,
+trace_plot."""
 
 _EXPORTS = {
     "KDE1D": "bands",
@@ -37,6 +38,7 @@ _EXPORTS = {
     "TruthCheck": "metrics",
     "ci_width": "metrics",
     "fraction_outside": "metrics",
+    "outside": "metrics",
     "posterior_nll": "metrics",
     "posterior_vs_truth": "metrics",
     "predictive_nll": "metrics",
@@ -44,9 +46,15 @@ _EXPORTS = {
     "plot_band_grid": "plots",
     "plot_trajectory_bands": "plots",
     "save_figure": "plots",
+    "PredictiveBand": "posterior_bands",
+    "predict_band": "posterior_bands",
     "metric_bars": "posterior_plots",
     "pair_plot": "posterior_plots",
-    "plot_trace": "posterior_plots",
+    "PPCStats": "ppc",
+    "explained_variance": "ppc",
+    "ppc_findings": "ppc",
+    "ppc_stats": "ppc",
+    "standardised_residuals": "ppc",
     "Prediction": "predictive",
     "band_arrays": "predictive",
     "evaluate_trajectories": "predictive",
@@ -57,6 +65,7 @@ _EXPORTS = {
     "predict_run": "predictive",
     "rollout_loglik": "predictive",
     "write_evaluation": "predictive",
+    "plot_trace": "trace_plot",
 }
 _SUBMODULES = (
     "_plot_common",
@@ -64,8 +73,11 @@ _SUBMODULES = (
     "checks",
     "metrics",
     "plots",
+    "posterior_bands",
     "posterior_plots",
+    "ppc",
     "predictive",
+    "trace_plot",
 )
 
 __all__ = sorted(_EXPORTS)

@@ -3,15 +3,15 @@ Laplace, importance sampling, the fast posterior), the samplers (BlackJAX-style 
 SGLD, SGHMC, MH), their diagnostics, sequential priors, batched posteriors, sharding, and the
 quasi-static model (static/).
 
-May import: treeinfer.model, treeinfer.sim, treeinfer.data, treeinfer.tree, treeinfer.io,
-treeinfer.errors.
+May import: treeinfer.model, treeinfer.sim, treeinfer.data, treeinfer.tree.description,
+treeinfer.io, treeinfer.errors.
 
 The public API is re-exported here name by name, imported lazily (on first use), so
 importing one module of the package does not import the others (startup cost, and no
 import order between them).
 
-Submodules: batch, diagnostics, fast, importance, laplace, lm, mapfit, problem, samplers,
-sequential, sharding, static."""
+Submodules: batch, diagnostics, fast, importance, laplace, lm, mapfit, posterior, posterior_io,
+problem, rollout, samplers, sequential, sharding, start_pipeline, start_steps, static."""
 
 _EXPORTS = {
     "map_fits": "batch",
@@ -85,15 +85,27 @@ _EXPORTS = {
     "gaussian_residuals": "mapfit",
     "latin_hypercube": "mapfit",
     "problem_with_gradients": "mapfit",
+    "Posterior": "posterior",
+    "PosteriorContext": "posterior_io",
+    "arviz_summary": "posterior_io",
+    "build_inference_data": "posterior_io",
+    "context_from_problem": "posterior_io",
+    "mcmc_chains": "posterior_io",
+    "pair_plot_of": "posterior_io",
+    "posterior_inference_data": "posterior_io",
+    "rhat_ess": "posterior_io",
+    "run_attrs": "posterior_io",
+    "trace_plot_of": "posterior_io",
+    "unit_of": "posterior_io",
     "DataTarget": "problem",
-    "Posterior": "problem",
     "Problem": "problem",
     "box_prior": "problem",
     "infer": "problem",
     "initial_particles": "problem",
     "make_problem": "problem",
     "nn_inequality_prior": "problem",
-    "predict": "problem",
+    "noise_start_columns": "problem",
+    "predict": "rollout",
     "DataSamplingAlgorithm": "samplers",
     "LOG_DENSITY": "samplers",
     "MHInfo": "samplers",
@@ -141,6 +153,14 @@ _EXPORTS = {
     "shard_particles": "sharding",
     "shard_problem": "sharding",
     "shard_value_and_grad": "sharding",
+    "auto_start": "start_pipeline",
+    "force_noise_reference": "start_pipeline",
+    "model_importance": "start_pipeline",
+    "distinct_modes": "start_steps",
+    "ggn_terms": "start_steps",
+    "multimode_importance": "start_steps",
+    "noise_guess": "start_steps",
+    "screen": "start_steps",
     "MODEL_KINDS": "static",
     "Model": "static",
     "NEWTON_CLIP": "static",
@@ -182,10 +202,15 @@ _SUBMODULES = (
     "laplace",
     "lm",
     "mapfit",
+    "posterior",
+    "posterior_io",
     "problem",
+    "rollout",
     "samplers",
     "sequential",
     "sharding",
+    "start_pipeline",
+    "start_steps",
     "static",
 )
 

@@ -2,9 +2,9 @@
 (NNSVGD's network), the Boltzmann and Gaussian likelihoods, noise models and the force-noise
 term, the temperature rule, and gradient estimators (central differences).
 
-May import: treeinfer.sim, treeinfer.data, treeinfer.tree, treeinfer.io, treeinfer.errors. Known
-exception until it is split: force_noise's noise estimate calls
-treeinfer.inference.mapfit (inside a function).
+May import: treeinfer.sim, treeinfer.data, treeinfer.tree.description, treeinfer.io,
+treeinfer.errors. Known exception until it is split: force_noise's noise estimate calls
+treeinfer.inference.problem.mapfit (inside a function).
 
 The public API is re-exported here name by name, imported lazily (on first use), so
 importing one module of the package does not import the others (startup cost, and no
@@ -62,8 +62,11 @@ _EXPORTS = {
     "DEFAULT_STUDENT_T_DF": "noise",
     "KINDS": "noise",
     "MIN_NOISE_SAMPLES": "noise",
+    "NOISE_FLAGS": "noise",
     "NOISE_KINDS": "noise",
     "NoiseEstimate": "noise",
+    "NoisePrior": "noise",
+    "RESOLUTION_FLOOR": "noise",
     "SIGMA_PRIOR_SCALE": "noise",
     "as_observations": "noise",
     "check_df": "noise",
@@ -72,6 +75,7 @@ _EXPORTS = {
     "estimate_displacement_noise": "noise",
     "log_sigma_prior": "noise",
     "noise_distribution": "noise",
+    "noise_scale_prior": "noise",
     "residual_log_prob": "noise",
     "standard_quantile": "noise",
     "box_prior": "prior_terms",

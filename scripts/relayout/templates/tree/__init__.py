@@ -8,8 +8,8 @@ The public API is re-exported here name by name, imported lazily (on first use),
 importing one module of the package does not import the others (startup cost, and no
 import order between them).
 
-Submodules: checks, description, export, generators, geometry, lsystem, model_section, options,
-plausibility, stem, types, urdf, usermodel."""
+Submodules: checks, description, export, generators, geometry, lsystem, model_paths,
+model_section, options, plausibility, stem, types, urdf, usermodel."""
 
 _EXPORTS = {
     "check_tie": "checks",
@@ -35,6 +35,8 @@ _EXPORTS = {
     "interpret": "lsystem",
     "pipe_radii": "lsystem",
     "rewrite": "lsystem",
+    "MAX_INCLUDE_DEPTH": "model_paths",
+    "check_model_paths": "model_paths",
     "file_sha256": "model_section",
     "parse_model_section": "model_section",
     "parse_direction": "options",
@@ -49,6 +51,7 @@ _EXPORTS = {
     "format_findings": "plausibility",
     "grasp_reach": "plausibility",
     "lever_arm_compliance": "plausibility",
+    "response_range": "plausibility",
     "simulation_cost_check": "plausibility",
     "static_compliance": "plausibility",
     "Stem": "stem",
@@ -88,22 +91,7 @@ _EXPORTS = {
     "prepare_user_model": "usermodel",
     "tree_from_model": "usermodel",
 }
-_SUBMODULES = (
-    "_generate",
-    "checks",
-    "description",
-    "export",
-    "generators",
-    "geometry",
-    "lsystem",
-    "model_section",
-    "options",
-    "plausibility",
-    "stem",
-    "types",
-    "urdf",
-    "usermodel",
-)
+_SUBMODULES = ('_generate', 'checks', 'description', 'export', 'generators', 'geometry', 'lsystem', 'model_paths', 'model_section', 'options', 'plausibility', 'stem', 'types', 'urdf', 'usermodel')
 
 __all__ = sorted(_EXPORTS)
 

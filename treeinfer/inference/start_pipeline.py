@@ -1,0 +1,183 @@
+"""The one start pipeline (``--init auto``, the default): a posterior from a global screen, a
+multi-start MAP fit and importance sampling, for every likelihood and prior.
+
+    ready, theta0 = auto_start(problem, n_particles=64, seed=0)
+    # ready: a Posterior when the importance weights pass their check (no sampler needed);
+    # theta0 [P, D]: the particles the sampler starts from otherwise
+
+The paper's dynamic model (theta = [log Kp, log Kd] and the likelihood's noise columns) goes
+through :func:`treeinfer.inference.fast.fast_posterior`: one compiled rollout program for the
+gains, the likelihood's noise density evaluated on its residuals by a small program of its own
+(:attr:`treeinfer.model.likelihood.LikelihoodTerms.residual_loglik`, the very function the problem's
+likelihood uses), so noise columns (``sigma_x``, ...) cost no rollout. For the generative
+likelihoods the Levenberg–Marquardt step of the MAP fit uses the generalised Gauss–Newton
+curvature (:func:`ggn_terms`): the rollout is linearised by central differences, ``e(theta +
+a) ~ e + J a``, and the noise density of the linearised residual is differentiated exactly in
+``a`` and the noise columns (autodiff through the noise density only: a few microseconds);
+the prior (smoothed box, the NN inequality prior, the noise priors of
+:mod:`treeinfer.model.noise`) enters through its own autodiff derivatives. The importance weights
+are then ``p / q`` with the problem's exact log-density, prior included.
+
+With ``--noise-force`` the likelihood's force Jacobian is taken at a reference point, the MAP
+of the errors-in-variables model (:func:`treeinfer.model.force_noise.reference_theta` finds it with
+two compiled LM programs of its own, 30-200 s on a 2-core CPU). Here
+(:func:`force_noise_reference`) the same two steps run on the one rollout program: the MAP of
+the Gaussian model without the force term, then the MAP of the model whose force Jacobian is
+taken there (sigma_x inferred jointly, where reference_theta fixes it at the data's estimate);
+its gains are the reference.
+
+Any other model (static, stiffness only, a tie, per-recording pulls) goes through the problem's
+own jitted log-density: :func:`treeinfer.inference.laplace.problem_laplace` for the MAP and the
+covariance, then the same adaptive importance sampling (:func:`model_importance`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import ConfigError
+from .start_steps import (  # noqa: F401 -- re-exported: their import path before the move
+    MAX_MODES,
+    MODE_GAP,
+    MODE_SEPARATION,
+    distinct_modes,
+    ggn_terms,
+    multimode_importance,
+    noise_guess,
+    screen,
+)
+
+__all__ = ["auto_start", "force_noise_reference", "ggn_terms", "model_importance", "noise_guess"]
+
+# LM iterations of each force-noise reference step (the coarse-step fit of fast_posterior uses 15)
+REFERENCE_LM_ITERATIONS = 15
+
+
+def force_noise_reference(
+    make: Callable, problem0, n_starts: int, seed: int, programs=None, log=lambda m: None
+):
+    """``(theta_ref [2R], finals [S, D])``: the force-noise term's reference (module docstring)
+    and the final points of its second fit (the start pipeline's LM starts there).
+
+    ``make(reference)`` builds the problem whose force Jacobian is taken at ``reference``
+    (``[2R]`` log gains); ``problem0`` is the Gaussian problem without the force term. Both
+    steps are :func:`treeinfer.inference.fast.fast_posterior`'s screen and LM on one rollout
+    program (the evaluators share it through ``programs``)."""
+    from .fast import BatchEvaluator, default_chunk, fit_map_batched, latin_hypercube
+    from .fast import resolve_coarse_substeps as coarse_of
+
+    d, g = problem0.dim, 2 * problem0.sim.n_joints
+    k = n_starts * (2 * g + 1)
+    ev0 = BatchEvaluator(problem0, default_chunk(k, 8 * k), programs)
+    coarse = coarse_of(ev0, "auto")
+    lower, upper = np.asarray(problem0.lower, float), np.asarray(problem0.upper, float)
+    pts = latin_hypercube(4 * k, lower, upper, seed)
+    lp, pts = screen(ev0, pts, coarse)
+    starts = pts[np.argsort(np.where(np.isfinite(lp), -lp, np.inf))[:n_starts]]
+    first = fit_map_batched(ev0, starts, REFERENCE_LM_ITERATIONS, substeps=coarse)
+    ref = np.clip(first.theta[:g], lower[:g], upper[:g])
+    problem1 = make(ref)
+    ev1 = BatchEvaluator(problem1, ev0.chunk, programs)
+    if problem1.dim != d:
+        raise ConfigError("force_noise_reference: the two problems have other columns")
+    finals = first.finals[np.isfinite(first.values)]
+    second = fit_map_batched(ev1, finals, REFERENCE_LM_ITERATIONS, substeps=coarse)
+    ref = np.clip(second.theta[:g], lower[:g], upper[:g])
+    log(
+        "force-noise reference: MAP without the force term in "
+        f"{first.iterations} LM iterations, then with it in {second.iterations}"
+    )
+    order = np.argsort(second.values)
+    return ref, second.finals[order][np.isfinite(second.values[order])]
+
+
+def model_importance(problem, n_particles: int, seed: int = 0, n_draws: int | None = None):
+    """:class:`treeinfer.inference.fast.FastPosterior`-like ``(theta [P, D], ok, reason,
+    importance, lap)`` for a problem the rollout program does not run (static model, stiffness
+    only, a tie, per-recording pulls): the MAP and covariance of its own log-density
+    (:func:`treeinfer.inference.laplace.problem_laplace`), then Student-t adaptive importance
+    sampling with weights from ``problem.log_density`` (exact)."""
+    from .fast import DEFAULT_DF
+    from .importance import adaptive_importance
+    from .laplace import problem_laplace
+
+    lap = problem_laplace(problem, seed=seed)
+    fn = jax.jit(problem.log_density)
+    m = max(8 * problem.dim * 8, 4 * int(n_particles)) if n_draws is None else int(n_draws)
+    dtype = jnp.asarray(0.0).dtype
+
+    def log_density(x):
+        return np.asarray(fn(jnp.asarray(x, dtype)), float)
+
+    imp, idx = adaptive_importance(
+        log_density, lap.theta, lap.cov, m, int(n_particles), seed, DEFAULT_DF, 3,
+        4.0 * n_particles, min_ess=2.0 * n_particles,
+    )  # fmt: skip
+    return imp._replace(theta=imp.draws[idx]), idx, lap
+
+
+def auto_start(problem, n_particles: int, seed: int = 0, log=lambda m: None, **options):
+    """``(posterior or None, theta0 [P, D])`` of the start pipeline (module docstring):
+    ``posterior`` (:func:`treeinfer.inference.fast.posterior_from_fast`) when the importance
+    weights pass their check, else None and the sampler starts from ``theta0``. ``options`` go
+    to :func:`treeinfer.inference.fast.fast_posterior` (the paper's dynamic model)."""
+    from .fast import importance_for_run
+
+    if problem.model is None:
+        if problem.start_hint is not None and "starts" not in options:
+            # the MAP fit is done (the force-noise reference's): a few LM steps from its finals
+            options = {"starts": problem.start_hint, "max_iterations": 5, **options}
+        return importance_for_run(problem, n_particles, seed, log, **options)
+    return _model_start(problem, n_particles, seed, log)
+
+
+def _model_start(problem, n_particles: int, seed: int, log):
+    """:func:`auto_start` for a model the rollout program does not run."""
+    from .fast import importance_run_result
+    from .problem import Posterior
+
+    imp, idx, lap = model_importance(problem, n_particles, seed)
+    verdict = (
+        "used as the posterior (no sampler iterations)"
+        if imp.ok
+        else f"not trusted ({imp.reason}): the sampler runs from these particles"
+    )
+    log(
+        f"importance posterior: MAP of the log-density ({lap.n_evals} evaluations), "
+        f"{len(imp.draws)} draws in {imp.rounds} rounds, Pareto k_hat {imp.khat:.2f}, "
+        f"effective sample size {imp.ess:.0f}: {verdict}"
+    )
+    theta = np.asarray(imp.theta, np.float32)
+    if not imp.ok:
+        return None, theta
+    logp = np.asarray(imp.log_density[idx], np.float32)
+    run_settings = {
+        "method": "model_importance",
+        "khat": imp.khat,
+        "ess": imp.ess,
+        "n_draws": len(imp.draws),
+        "lm_iterations": 0,
+        "importance_rounds": imp.rounds,
+        "n_iterations": 0,
+        "n_iterations_done": 0,
+        "start_iteration": 0,
+        "seed": seed,
+    }
+    run = importance_run_result(theta, logp, run_settings, imp, 0.0)
+    kp, kd = problem.model.layout.gains(theta)
+    settings = {
+        "problem": problem.settings,
+        "sampler": "importance",
+        "sampler_options": {"n_draws": len(imp.draws)},
+        "n_particles": len(theta),
+        "n_iterations": 0,
+        "seed": int(seed),
+        "run": run_settings,
+    }
+    return Posterior(
+        theta, np.asarray(kp), np.asarray(kd), logp, problem.labels, run, settings
+    ), theta

@@ -1,0 +1,209 @@
+"""The steps of the start pipeline that :mod:`treeinfer.inference.fast` runs itself: the
+global screen, the generalised Gauss-Newton curvature of the MAP fit's LM step, and the local
+modes of the multi-start fit with their importance sampling. Moved here from
+:mod:`treeinfer.inference.start_pipeline` (which re-exports them and builds on fast_posterior) so
+that fast_posterior no longer imports the module that imports it (an import cycle); the method is
+described there.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["distinct_modes", "ggn_terms", "multimode_importance", "noise_guess", "screen"]
+
+
+def noise_guess(problem, r: np.ndarray, lower, upper) -> np.ndarray:
+    """``[N, E]`` starting values of the noise columns for rollout residuals ``r [N, 2B, T]``
+    (simulated minus recorded): each ``sigma`` column at the log of the masked displacement
+    residual's root mean square (the Gaussian model's conditional MAP without prior), ``rho``
+    at the middle of its box. The screen ranks gains by the density at these values."""
+    labels = problem.noise.extra_labels
+    b = np.shape(problem.obs.force)[0]
+    mask = np.asarray(problem.obs.mask, bool)
+    dx = r[:, :b]
+    rms = np.sqrt(np.sum(np.where(mask, dx, 0.0) ** 2, (1, 2)) / max(mask.sum(), 1))
+    rms = np.maximum(rms, 1e-12)
+    c = 2 * problem.sim.n_joints
+    out = np.empty((len(r), len(labels)))
+    for j, lab in enumerate(labels):
+        if lab == "rho":
+            out[:, j] = 0.5 * (lower[c + j] + upper[c + j])
+        else:
+            out[:, j] = np.log(rms)
+    return out
+
+
+def screen(ev, pts, substeps):
+    """``(log p [N], pts [N, D])`` of Latin-hypercube points ``pts``: the noise columns set by
+    :func:`noise_guess` at each point's residuals (generative likelihoods; the Boltzmann loss has
+    none), so the gains are ranked at a sensible noise level rather than a random one."""
+    if ev.boltzmann or ev.problem.dim == ev.n_gains:
+        return ev.log_density(pts, substeps), pts
+    r, ok, _ = ev.evaluate(pts, substeps)
+    pts = np.array(pts, float)
+    p = ev.problem
+    pts[:, ev.n_gains :] = noise_guess(p, r, np.asarray(p.lower), np.asarray(p.upper))
+    out = ev.log_likelihood(r, pts) + ev.log_prior(pts)
+    return np.where(ok & np.isfinite(out), out, -np.inf), pts
+
+
+def _ggn_program(ev):
+    """The jitted ``(e [S, G, T], J [S, G, T, g], theta [S, D]) -> (value [S], grad [S, D],
+    curvature [S, D, D])`` of ``-log p`` (module docstring), kept on the evaluator."""
+    prog = getattr(ev, "_ggn", None)
+    if prog is not None:
+        return prog
+    terms, log_prior = ev.problem.noise, ev.problem.log_prior
+    g, b = ev.n_gains, ev._rows
+
+    def one(e0, jac, th):
+        def phi(z):  # z = [a (gains step), noise columns]
+            e = e0 + jac @ z[:g]
+            t = jnp.concatenate([th[:g], z[g:]])
+            return -terms.residual_loglik(-e[None, :b], -e[None, b:], t[None])[0]
+
+        z0 = jnp.concatenate([jnp.zeros(g, th.dtype), th[g:]])
+        return phi(z0), jax.grad(phi)(z0), jax.hessian(phi)(z0)
+
+    def prior(th):
+        def neg(t):
+            return -log_prior(t[None])[0]
+
+        return neg(th), jax.grad(neg)(th), jax.hessian(neg)(th)
+
+    def run(e0, jac, theta):
+        f, gr, h = jax.vmap(one)(e0, jac, theta)
+        fp, gp, hp = jax.vmap(prior)(theta)
+        return f + fp, gr + gp, h + hp
+
+    ev._ggn = jax.jit(run)
+    return ev._ggn
+
+
+def _psd(h: np.ndarray) -> np.ndarray:
+    """Each ``[D, D]`` of ``h [S, D, D]`` projected onto the positive semi-definite cone (a
+    Student-t residual or the NN prior can make the curvature indefinite; the LM step and the
+    proposal need a PSD one)."""
+    h = 0.5 * (h + np.swapaxes(h, -1, -2))
+    w, v = np.linalg.eigh(h)
+    return np.einsum("sde,se,sfe->sdf", v, np.maximum(w, 0.0), v)
+
+
+def ggn_terms(ev, theta, h: float, substeps: int | None = None):
+    """:func:`treeinfer.inference.fast._lm_terms` for a generative likelihood: ``(value [S],
+    grad [S, D], curvature [S, D, D], gram, r2)`` of ``-log p`` at ``theta [S, D]`` from one
+    batch of the ``S (2g + 1)`` central-difference points in the gains (g = 2R; the noise
+    columns need no rollout). ``gram`` and ``r2`` (the Boltzmann cone's terms) are zeros."""
+    s, d = theta.shape
+    g = ev.n_gains
+    step = np.zeros((2 * g + 1, d))
+    step[1 : g + 1, :g] = h * np.eye(g)
+    step[g + 1 :, :g] = -h * np.eye(g)
+    pts = theta[:, None] + step[None]
+    r, ok, _ = ev.evaluate(pts.reshape(-1, d), substeps)
+    r = r.reshape(s, 2 * g + 1, *r.shape[1:])
+    ok = ok.reshape(s, -1).all(1)
+    jac = np.moveaxis((r[:, 1 : g + 1] - r[:, g + 1 :]) / (2 * h), 1, -1)  # [S, G, T, g]
+    dt = ev._dtype
+    value, grad, curv = (
+        np.asarray(x, float)
+        for x in _ggn_program(ev)(
+            jnp.asarray(r[:, 0], dt), jnp.asarray(jac, dt), jnp.asarray(theta, dt)
+        )
+    )
+    curv = _psd(curv)
+    good = ok & np.isfinite(value) & np.isfinite(grad).all(1) & np.isfinite(curv).all((1, 2))
+    value = np.where(good, value, np.inf)
+    grad[~good], curv[~good] = 0.0, 0.0
+    return value, grad, curv, np.zeros((s, 1, d, d)), np.zeros((s, 1))
+
+
+# local modes of the multi-start fit kept for importance sampling: within this many nats of the
+# best, at least MODE_SEPARATION of the best's proposal standard deviations apart in some
+# coordinate, at most MAX_MODES
+MODE_GAP = 10.0
+MODE_SEPARATION = 2.0
+MAX_MODES = 3
+
+
+def distinct_modes(fit, cov) -> np.ndarray:
+    """``[M, D]`` the distinct local optima among ``fit.finals`` (a
+    :class:`treeinfer.inference.mapfit.MapFit` of several starts), best first: finals within
+    :data:`MODE_GAP` nats of the best ``-log p``, a new mode when it lies more than
+    :data:`MODE_SEPARATION` standard deviations of ``cov`` (the best's proposal) from every
+    kept one in some coordinate. On the standard problem with the force-noise term the
+    posterior has two modes 0.5 nats apart (the child's and the parent's stiffness trade off:
+    Kp 30 / 62 and 45 / 53 N m/rad); the best alone left the true values outside every
+    interval."""
+    finals, values = np.asarray(fit.finals, float), np.asarray(fit.values, float)
+    sd = np.sqrt(np.maximum(np.diag(np.asarray(cov, float)), 1e-12))
+    order = [i for i in np.argsort(values) if np.isfinite(values[i])]
+    if not order:
+        return np.asarray(fit.theta, float)[None]
+    best = values[order[0]]
+    kept = []
+    for i in order:
+        if values[i] > best + MODE_GAP or len(kept) >= MAX_MODES:
+            break
+        if all(np.max(np.abs(finals[i] - finals[j]) / sd) > MODE_SEPARATION for j in kept):
+            kept.append(i)
+    return finals[kept]
+
+
+def multimode_importance(
+    log_density, modes, cov, n_draws, n_particles, seed, df, max_rounds, target, min_ess
+):
+    """:func:`treeinfer.inference.importance.adaptive_importance` around each of ``modes [M, D]``,
+    pooled: each mode's draws keep their (Pareto-smoothed, normalised) weights, scaled by that
+    mode's share of the evidence, ``Z_m = mean(p / q_m)`` over its draws (raw weights). Exact for
+    modes whose proposals do not overlap; where two proposals cover the same mode each run
+    estimates the whole posterior and the pool averages two estimates of it. Returns
+    ``(ImportancePosterior, index [n_particles])`` as ``adaptive_importance``; ``khat`` is the
+    largest of the modes'; ``ok`` needs every mode with a share above 1% to have a k_hat
+    within :data:`treeinfer.inference.importance.KHAT_LIMIT` and the pool an effective sample size
+    of ``min_ess``."""
+    from .importance import KHAT_LIMIT, adaptive_importance, systematic_resample
+
+    runs = [
+        adaptive_importance(
+            log_density, m, cov, n_draws, n_particles, seed + 101 * j, df, max_rounds, target,
+            min_ess=min_ess,
+        )[0]
+        for j, m in enumerate(np.asarray(modes, float))
+    ]  # fmt: skip
+    log_z = np.array(
+        [np.logaddexp.reduce(r.raw_log_weights) - np.log(len(r.raw_log_weights)) for r in runs]
+    )
+    share = np.exp(log_z - np.logaddexp.reduce(log_z))
+    lw = np.concatenate([r.log_weights + np.log(max(s, 1e-300)) for r, s in zip(runs, share)])
+    lw = lw - np.logaddexp.reduce(lw)
+    w = np.exp(lw)
+    ess = float(1.0 / np.sum(w**2))
+    big = [r for r, s in zip(runs, share) if s > 0.01]
+    khat = float(max(r.khat for r in big))
+    # each mode's tail (k_hat) must be trustworthy; the effective sample size is the pool's (a
+    # mode with a 30% share needs only its share of it)
+    reasons = [
+        f"Pareto k_hat {r.khat:.2f} > {KHAT_LIMIT} at a mode" for r in big if r.khat > KHAT_LIMIT
+    ]
+    if ess < min_ess:
+        reasons.append(f"effective sample size {ess:.0f} < {min_ess:.0f}")
+    draws = np.concatenate([r.draws for r in runs])
+    idx = systematic_resample(np.random.default_rng(seed), lw, n_particles)
+    best = runs[int(np.argmax(share))]
+    imp = best._replace(
+        theta=draws[idx],
+        draws=draws,
+        log_weights=lw,
+        log_density=np.concatenate([r.log_density for r in runs]),
+        khat=khat,
+        ess=ess,
+        ok=not reasons,
+        reason="; ".join(dict.fromkeys(reasons)),
+        rounds=sum(r.rounds for r in runs),
+        raw_log_weights=None,
+    )
+    return imp, idx

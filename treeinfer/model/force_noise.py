@@ -1,0 +1,480 @@
+"""Noise on the recorded force as an errors-in-variables term (``--noise-force``).
+
+The simulator is driven by the RECORDED force ``F_rec = F_true + e``, ``e[b, s]`` i.i.d.
+``Normal(0, sigma_F)`` per sample (one sensor: the same std on every sample and every pull).
+The recorded displacement is ``x_rec = x_sim(theta, F_true) + n`` with white ``n ~ N(0, sigma_x)``.
+Linearising the simulation in the force around the recorded one,
+
+    x_sim(theta, F_true) ~ x_sim(theta, F_rec) - J e,      J = d x_sim / d F   [T, T] per pull,
+
+so, marginalising the unknown ``e`` exactly (it is Gaussian and enters linearly),
+
+    x_rec | theta ~ MVN(x_sim(theta, F_rec), C + sigma_x^2 I),    C = sigma_F^2 J J^T.
+
+Why this and not the alternatives:
+
+* treating the noise-free force as B x T latent variables (the textbook errors-in-variables
+  model) costs two black-box simulations per latent per gradient: not feasible;
+* absorbing it into an inflated i.i.d. sigma_x (what ``--likelihood gaussian`` did before)
+  misses that the force-induced error is SLOW (the branch low-passes it: lag-1 autocorrelation
+  0.95-0.99) and that its size varies along the pull; predictive bands then miss 7-10% of noisy
+  test points instead of 5% (``experiments/README.md``, "Force noise");
+* ``ar1`` models a stationary slow error, but the force-induced one is not stationary (it is
+  zero at t = 0 and grows with the branch's response).
+
+``J`` is the exact forward-mode Jacobian of the batched simulator in its force input
+(``jax.jacfwd``; the simulator is causal, so ``J`` is lower triangular; with first-order-hold
+force interpolation its diagonal is not zero; on the Pallas backend it is taken through the
+fused twin, whose XLA step ``jacfwd`` differentiates in the force, and checked against a central
+difference of the run's own simulator: :func:`force_jacobian`). It depends on theta mainly
+through the branch's compliance; it is evaluated ONCE, at a reference parameter ``theta_ref``:
+by default the MAP of this errors-in-variables model (:func:`reference_theta`:
+Levenberg-Marquardt from several starts in the prior box,
+:func:`treeinfer.inference.mapfit.fit_map`, first without the force term, then with it).
+Why the MAP and not the prior median: the prior box spans one to two orders of magnitude in each
+gain, and ``J`` scales with the compliance, so ``C`` at the prior median can be off by that
+factor; the posterior is narrow (a few % in the identified gains), so ``J`` at the MAP is ``J``
+at every posterior draw to a few %. With ``C = U diag(L) U^T`` (``numpy.linalg.eigh``, once per
+pull, float64) the density for any sigma_x is exact and O(T^2) per particle: rotate the residual
+by ``U^T`` and sum independent numpyro ``Normal(0, sqrt(L + sigma_x^2))`` log densities
+(:func:`mvn_log_prob`); sigma_x stays a free (inferred) parameter.
+
+Predictive bands of a recording driven by a noisy force carry the same term, built from that
+recording's own force (:func:`force_noise_basis` on the test forces, at the same ``theta_ref``):
+draws are ``x_sim + U sqrt(L + sigma_x^2) z`` (:func:`predictive_draws`), and point-wise bands
+add ``diag C`` to each particle's ``sigma_x^2`` (:func:`point_variance`).
+
+``--noise-force`` semantics: the std of the force noise PER SAMPLE, constant over samples and
+pulls: a number in newtons (``0.12``), a percentage of the largest absolute recorded training
+force (``"2%"``: this is how the benchmarks of ``experiments/`` make it: 2% of the data set's
+largest peak force), or ``"auto"``: estimated from the recorded force's high-frequency residual
+(robust MAD of second differences / sqrt(6), as ``--kT auto`` does for the displacement,
+:func:`estimate_force_noise`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..data.noise_estimate import estimate_white_noise
+from ..data.trajectories import Observations
+from ..errors import ConfigError, SimulationError
+from .noise import MIN_NOISE_SAMPLES, NoiseEstimate, as_observations
+
+__all__ = [
+    "ForceNoiseBasis",
+    "ForceNoiseModel",
+    "check_noise_force",
+    "estimate_force_noise",
+    "force_jacobian",
+    "force_noise_basis",
+    "force_noise_covariance",
+    "mvn_log_prob",
+    "point_variance",
+    "predictive_draws",
+    "reference_theta",
+    "resolve_noise_force",
+]
+
+
+# --------------------------------------------------------------------------- the option
+
+
+def check_noise_force(value) -> float | str:
+    """Validate ``--noise-force``: a positive number (N), ``"P%"`` (0 < P < 100) or ``"auto"``.
+
+    Returns the number (float), the string ``"auto"``, or the normalised ``"P%"`` string.
+    Raises :class:`ConfigError` naming ``noise_force`` for anything else (negative, zero,
+    non-finite, a percentage >= 100)."""
+    if isinstance(value, str):
+        s = value.strip().lower()
+        if s == "auto":
+            return "auto"
+        if s.endswith("%"):
+            try:
+                pct = float(s[:-1])
+            except ValueError:
+                raise ConfigError(
+                    f"noise_force: expected a number (N), 'P%' or 'auto', got {value!r}"
+                ) from None
+            if not (math.isfinite(pct) and 0.0 < pct < 100.0):
+                raise ConfigError(f"noise_force: a percentage must be in (0, 100), got {value!r}")
+            return f"{pct:g}%"
+        try:
+            value = float(s)
+        except ValueError:
+            raise ConfigError(
+                f"noise_force: expected a number (N), 'P%' or 'auto', got {value!r}"
+            ) from None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(
+            f"noise_force: expected a number (N), 'P%' or 'auto', got {value!r}"
+        ) from None
+    if not math.isfinite(v) or v <= 0.0:
+        raise ConfigError(
+            f"noise_force (--noise-force): must be a finite positive number of newtons, got {v}"
+        )
+    return v
+
+
+def _force_range(obs: Observations) -> float:
+    f = np.asarray(obs.force, float)[np.asarray(obs.mask, bool)]
+    return float(np.max(np.abs(f))) if f.size else 0.0
+
+
+def estimate_force_noise(data, min_samples: int = MIN_NOISE_SAMPLES) -> NoiseEstimate:
+    """White force-noise std (N) from the recorded forces' high-frequency residual.
+
+    ``sigma_F = 1.4826 * median(|d2 - median(d2)|) / sqrt(6)``, ``d2`` the second differences
+    of the recorded force at real samples: the estimator of
+    :func:`treeinfer.model.noise.estimate_displacement_noise` applied to the force
+    (:func:`treeinfer.data.noise_estimate.estimate_white_noise`: white noise of std s gives second
+    differences of std ``sqrt(6) s``, a smooth pull's are tiny). A load cell read through an
+    ADC is quantised: the estimate is then floored at ``step / sqrt(12)``; a force stream
+    upsampled by repeating or interpolating samples is estimated at its native rate. The
+    estimate's ``notes`` say which.
+
+    Raises :class:`ConfigError` naming ``--noise-force`` when there are fewer than
+    ``min_samples`` second differences ("too short to estimate") or when more than half of them
+    are zero and the values lie on no grid (a noise-free, piecewise-linear force: the
+    simulated profiles of ``treeinfer simulate`` without ``--noise-force``)."""
+    obs = as_observations(data)
+    try:
+        return estimate_white_noise(
+            obs.force, obs.mask, what="force", flag="--noise-force", unit="N",
+            min_samples=min_samples,
+        )  # fmt: skip
+    except ConfigError as e:
+        raise ConfigError(f"noise_force (--noise-force): {e}") from None
+
+
+def resolve_noise_force(value, data) -> tuple[float, str]:
+    """``--noise-force`` value -> (sigma_F in N, a one-line description).
+
+    Numbers are newtons; ``"P%"`` is P% of the largest absolute recorded force of ``data``;
+    ``"auto"`` estimates it (:func:`estimate_force_noise`). A sigma_F at or above the largest
+    absolute recorded force is refused (a unit mistake: the pulls would be all noise)."""
+    obs = as_observations(data)
+    v = check_noise_force(value)
+    peak = _force_range(obs)
+    if v == "auto":
+        est = estimate_force_noise(obs)
+        notes = "".join(f"; {n}" for n in est.notes)
+        sigma, how = est.sigma, f"estimated: {est.method}, n = {est.n_used}{notes}"
+    elif isinstance(v, str):
+        sigma, how = float(v[:-1]) / 100.0 * peak, f"{v} of the largest |force| {peak:.4g} N"
+    else:
+        sigma, how = v, "given"
+    if not sigma < peak:
+        raise ConfigError(
+            f"noise_force (--noise-force): {sigma:g} N is not smaller than the largest recorded "
+            f"force ({peak:g} N); check the units (newtons)"
+        )
+    return float(sigma), f"force noise sigma_F = {sigma:.4g} N ({how})"
+
+
+# --------------------------------------------------------------------------- reference point
+
+
+def reference_theta(
+    sim, obs: Observations, grasp_fraction=None, sigma_force=None, n_starts: int = 8, seed=0
+):
+    """``theta_ref [2R]`` (log Kp, log Kd) at which the force Jacobian is taken.
+
+    1. The MAP of the Gaussian displacement model with sigma_x fitted and no force term, by
+       Levenberg-Marquardt (:func:`treeinfer.inference.mapfit.fit_map`) from ``n_starts``
+       Latin-hypercube points of the simulator's prior box.
+    2. With ``sigma_force`` (N): the MAP of the errors-in-variables model itself, its covariance
+       ``C`` taken at step 1's point and sigma_x fixed at the data's white-noise estimate
+       (:func:`treeinfer.model.noise.estimate_displacement_noise`), LM on the whitened residuals
+       ``diag(1 / sqrt(L + sigma_x^2)) U^T r`` from every final point of step 1. Step 1's model
+       is misspecified (the slow force-induced error is taken as white), and on the 3-branch
+       example its MAP lies in another mode (child stiffness off by a factor 1.5).
+
+    Both fits use a prior flat inside the box with Gaussian walls outside (scale 5% of each
+    log-box width) and the result is clipped to the box: without the walls a weakly identified
+    damping runs off to exp(-27) (an undamped reference: a ringing J). See the module docstring
+    for why the MAP."""
+    from ..inference.mapfit import ResidualModel, fit_map, gaussian_residuals
+    from .noise import estimate_displacement_noise
+
+    lo, hi = (np.log(np.asarray(b, float)) for b in sim.prior_box)
+    wall = 0.05 * (hi - lo)
+
+    def box_walls(theta):  # [P, 2R] -> [P]; 0 inside the box
+        th = theta[:, : lo.size]
+        out = jnp.maximum(lo - th, 0.0) + jnp.maximum(th - hi, 0.0)
+        return -0.5 * jnp.sum((out / wall) ** 2, axis=-1)
+
+    first = fit_map(
+        gaussian_residuals(sim, obs, None, grasp_fraction),
+        box_walls,
+        lo,
+        hi,
+        n_starts=n_starts,
+        seed=seed,
+        agree=3,
+    )
+    theta = np.clip(np.asarray(first.theta[: lo.size], float), lo, hi)
+    if sigma_force is not None:
+        try:
+            sx = estimate_displacement_noise(obs).sigma
+        except ConfigError:
+            sx = float(np.exp(first.theta[-1]))
+        mask = np.asarray(obs.mask, bool)
+        basis = force_noise_basis(sim, theta, obs.force, sigma_force, mask, grasp_fraction)
+        white = basis.vectors / np.sqrt(basis.values + sx**2)[:, None, :]  # [B, T, T]
+        base = gaussian_residuals(sim, obs, 1.0, grasp_fraction)  # r = tau - x, masked
+
+        def whitened(th):
+            r, ok = base.residuals(th)
+            return jnp.einsum("bts,bt->bs", jnp.asarray(white, r.dtype), r), ok
+
+        finals = np.clip(first.finals[:, : lo.size], lo, hi)
+        finals = finals[np.isfinite(first.values)]
+        second = fit_map(
+            ResidualModel(whitened, "gaussian"), box_walls, lo, hi, starts=finals, agree=3
+        )
+        theta = np.clip(np.asarray(second.theta[: lo.size], float), lo, hi)
+    if not np.all(np.isfinite(theta)):
+        raise SimulationError("force noise: the reference MAP fit did not give finite gains")
+    return theta
+
+
+# --------------------------------------------------------------------------- J, C, basis
+
+
+def _force_differentiable(sim):
+    """The simulator whose forward mode carries force tangents, for :func:`force_jacobian`.
+
+    ``sim`` itself, except on the Pallas backend (``backend="pallas"``, what ``"auto"`` picks on
+    a GPU): its ``custom_jvp`` (:mod:`treeinfer.sim.pallas`) pushes tangents of (kp, kd) only
+    and returns a ZERO tangent for the forces, silently, so ``jax.jacfwd`` in the force gave
+    ``J = 0`` there and the errors-in-variables term vanished on the GPU (issue 11: the full-size
+    coverage runs). Its fused twin runs the same step arithmetic (the kernel IS
+    :func:`treeinfer.sim.fused.step`, agreeing to float32 rounding: ``tests/test_pallas_backend``)
+    in plain XLA, which ``jacfwd`` differentiates in every input."""
+    if sim.backend == "pallas":
+        return dataclasses.replace(sim, backend="fused")
+    return sim
+
+
+# Directional check of J against the simulator's own primal rollouts (see force_jacobian):
+# perturbation per sample as a share of the largest |force|, and the allowed relative error.
+_CHECK_STEP = 0.01
+_CHECK_RTOL = 0.02
+
+
+def force_jacobian(sim, theta, forces, grasp_fraction=None, check: bool = True) -> np.ndarray:
+    """``J[b] = d tau[b, :] / d forces[b, :]`` at ``theta [2R]``: ``[B, T, T]`` (m/N, float64).
+
+    Exact forward mode (``jax.jacfwd``) through :func:`treeinfer.sim.simulate`, one pull at a
+    time under ``vmap``; ``J[b, t, s]`` is the change of the displacement at sample t per newton
+    at force sample s. On the Pallas backend the Jacobian is taken through the fused twin of
+    ``sim`` (:func:`_force_differentiable`: the kernel's JVP drops force tangents).
+
+    ``check`` (default on): one directional central difference of ``sim``'s OWN rollouts
+    (``tau(F + h v) - tau(F - h v)``, ``v`` random signs, ``h`` 1% of the largest |force|, one
+    batched call of 2B pulls) must match ``2 h J v`` to 2% (norm over each pull, plus a float
+    rounding floor); else :class:`SimulationError`. It guards against a backend whose
+    derivative in the force is wrong or missing (a zero ``J`` is not an error anywhere else:
+    the term would silently vanish). Raises :class:`SimulationError` too if the rollout at
+    ``theta`` is unstable."""
+    from .gains import gains_from_theta
+
+    dtype = sim.dtype
+    jsim = _force_differentiable(sim)
+    theta = jnp.asarray(np.asarray(theta, float)[None], dtype)
+    kp, kd = gains_from_theta(theta, sim.n_joints)
+    forces = jnp.asarray(np.atleast_2d(np.asarray(forces, float)), dtype)
+    gf = (
+        None
+        if grasp_fraction is None
+        else jnp.broadcast_to(jnp.asarray(grasp_fraction, dtype), forces.shape[:1])
+    )
+
+    jac, ok = _jacobian_program(jsim, kp, kd, forces, gf)
+    jac = np.asarray(jac, float)
+    if not (np.all(np.asarray(ok)) and np.all(np.isfinite(jac))):
+        raise SimulationError(
+            "force noise: the simulation at the reference parameters is unstable on some pull; "
+            "give another reference (force_noise_reference)"
+        )
+    if check:
+        _check_force_jacobian(sim, kp, kd, np.asarray(forces, float), gf, jac)
+    return jac
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _jacobian_program(jsim, kp, kd, forces, gf):
+    """:func:`force_jacobian`'s program, jitted once per simulator with the gains as arguments
+    (a closure over them compiled anew at every reference point: 10-30 s each on a 2-core
+    CPU, three times per run with the start pipeline's reference)."""
+    from ..sim import simulate
+
+    def one(f, g):
+        def tau(fb):
+            ro = simulate(jsim, kp, kd, fb[None], None if g is None else g[None])
+            return ro.tau[0, 0], ro.stable[0, 0]
+
+        return jax.jacfwd(tau, has_aux=True)(f)
+
+    if gf is None:
+        return jax.vmap(lambda f: one(f, None))(forces)
+    return jax.vmap(one)(forces, gf)
+
+
+def _check_force_jacobian(sim, kp, kd, forces, gf, jac) -> None:
+    """Raise :class:`SimulationError` unless ``jac [B, T, T]`` predicts ``sim``'s own response
+    to a small random force perturbation (see :func:`force_jacobian`)."""
+    from ..sim import simulate
+
+    n_b, n_t = forces.shape
+    rng = np.random.default_rng(0)
+    v = rng.choice([-1.0, 1.0], size=(n_b, n_t))
+    h = _CHECK_STEP * max(float(np.max(np.abs(forces))), 1e-12)
+    both = np.concatenate([forces + h * v, forces - h * v])
+    g2 = None if gf is None else jnp.concatenate([gf, gf])
+    ro = simulate(sim, kp, kd, jnp.asarray(both, sim.dtype), g2)
+    tau = np.asarray(ro.tau[0], float)
+    if not np.all(np.asarray(ro.stable)):
+        return  # a perturbed pull blew up: nothing to compare (the unperturbed one is stable)
+    fd = tau[:n_b] - tau[n_b:]  # [B, T] m
+    lin = 2.0 * h * np.einsum("bts,bs->bt", jac, v)
+    # float rounding of the two rollouts: a few ulps of the displacement's scale
+    eps = float(np.finfo(np.dtype(sim.dtype)).eps)
+    floor = 10.0 * eps * np.abs(tau[:n_b]).max(axis=1) * math.sqrt(n_t)
+    err = np.linalg.norm(fd - lin, axis=1)
+    bad = err > _CHECK_RTOL * np.linalg.norm(fd, axis=1) + floor
+    if np.any(bad):
+        b = int(np.argmax(bad))
+        rel = err[b] / max(float(np.linalg.norm(fd[b])), 1e-300)
+        raise SimulationError(
+            f"force noise: the forward-mode force Jacobian (backend {sim.backend!r}) does not "
+            f"match a central difference of the simulator on pull {b} (relative error "
+            f"{rel:.2g}); the backend's derivative in the force is wrong or missing"
+        )
+
+
+def force_noise_covariance(jac, sigma_force: float, mask=None) -> np.ndarray:
+    """``C[b] = sigma_F^2 J[b] diag(m[b]) J[b]^T``, masked to real samples: ``[B, T, T]`` (m^2).
+
+    ``jac``: ``[B, T, T]`` from :func:`force_jacobian`; ``mask`` ``[B, T]`` bool (None: all real).
+    Rows and columns of padded samples are zero (force noise exists only on real samples)."""
+    jac = np.asarray(jac, float)
+    m = np.ones(jac.shape[:2], bool) if mask is None else np.asarray(mask, bool)
+    jm = jac * m[:, :, None] * m[:, None, :]
+    return float(sigma_force) ** 2 * np.einsum("bts,bus->btu", jm, jm)
+
+
+class ForceNoiseBasis(NamedTuple):
+    """Eigen-decomposition of the force-induced covariance of each pull.
+
+    vectors: ``[B, T, T]`` U (columns are eigenvectors), values: ``[B, T]`` L >= 0 (m^2), so
+    ``C[b] = U[b] diag(L[b]) U[b]^T``. n_pad: ``[B]`` padded samples per pull (their rows and
+    columns of C are zero; :func:`mvn_log_prob` takes their white-noise terms out again).
+    """
+
+    vectors: np.ndarray
+    values: np.ndarray
+    n_pad: np.ndarray
+
+    def covariance(self) -> np.ndarray:
+        """``C [B, T, T]`` back from the basis (m^2)."""
+        u, lam = self.vectors, self.values
+        return np.einsum("bts,bs,bus->btu", u, lam, u)
+
+
+def force_noise_basis(
+    sim, theta_ref, forces, sigma_force: float, mask=None, grasp_fraction=None
+) -> ForceNoiseBasis:
+    """:class:`ForceNoiseBasis` of ``C = sigma_F^2 J J^T`` for the pulls ``forces [B, T]`` (N) at
+    ``theta_ref [2R]`` (``numpy.linalg.eigh`` in float64, once per pull)."""
+    forces = np.atleast_2d(np.asarray(forces, float))
+    m = np.ones(forces.shape, bool) if mask is None else np.asarray(mask, bool)
+    cov = force_noise_covariance(
+        force_jacobian(sim, theta_ref, forces, grasp_fraction), sigma_force, m
+    )
+    lam, u = np.linalg.eigh(cov)
+    return ForceNoiseBasis(u, np.clip(lam, 0.0, None), (~m).sum(axis=1))
+
+
+def mvn_log_prob(residual, basis: ForceNoiseBasis, sigma_x) -> jax.Array:
+    """``sum_b log MVN(residual[n, b] | 0, C[b] + sigma_x[n]^2 I)`` over real samples: ``[N]``.
+
+    Args:
+      residual: ``[N, B, T]`` m, recorded minus simulated displacement, ZERO at padded samples.
+      basis: from :func:`force_noise_basis` for the same pulls.
+      sigma_x: ``[N]`` m, white displacement noise per row.
+
+    In the eigenbasis the MVN factorises into independent normals ``z = U^T r``,
+    ``z_i ~ Normal(0, sqrt(L_i + sigma_x^2))`` (numpyro); O(B T^2) per row. Padded samples
+    contribute ``log N(0; 0, sigma_x)`` each to that full density (C is zero there) and are
+    taken out again, so the result is the exact density of the real samples."""
+    import numpyro.distributions as dist  # here, not at the top: keeps it off the start-up path
+
+    r = jnp.asarray(residual)
+    u = jnp.asarray(basis.vectors, r.dtype)
+    lam = jnp.asarray(basis.values, r.dtype)
+    sx = jnp.asarray(sigma_x, r.dtype)
+    z = jnp.einsum("bts,nbt->nbs", u, r)
+    scale = jnp.sqrt(lam[None] + sx[:, None, None] ** 2)
+    total = jnp.sum(dist.Normal(0.0, scale).log_prob(z), axis=(-2, -1))
+    n_pad = jnp.asarray(np.sum(basis.n_pad), r.dtype)
+    return total - n_pad * dist.Normal(0.0, sx).log_prob(jnp.zeros_like(sx))
+
+
+def point_variance(basis: ForceNoiseBasis) -> np.ndarray:
+    """``diag C`` per pull and sample: ``[B, T]`` (m^2), the force-induced variance each point of
+    a point-wise predictive band adds to ``sigma_x^2``."""
+    return np.einsum("bts,bs->bt", basis.vectors**2, basis.values)
+
+
+def predictive_draws(key, pred, sigma_x, basis: ForceNoiseBasis) -> jax.Array:
+    """Posterior-predictive draws of recordings driven by a noisy force: ``[P, B, T]`` (m).
+
+    ``pred [P, B, T]`` simulations, ``sigma_x [P]`` m; draw p is
+    ``pred[p] + U diag(sqrt(L + sigma_x[p]^2)) z``, z standard normal (one draw per particle)."""
+    pred = jnp.asarray(pred)
+    u = jnp.asarray(basis.vectors, pred.dtype)
+    lam = jnp.asarray(basis.values, pred.dtype)
+    sx = jnp.broadcast_to(jnp.asarray(sigma_x, pred.dtype), pred.shape[:1])
+    z = jax.random.normal(key, pred.shape, pred.dtype)
+    scaled = z * jnp.sqrt(lam[None] + sx[:, None, None] ** 2)
+    return pred + jnp.einsum("bts,pbs->pbt", u, scaled)
+
+
+class ForceNoiseModel(NamedTuple):
+    """The force-noise term of a run: enough to rebuild ``C`` for any pull.
+
+    sigma_force: N per sample. theta_ref: ``[2R]`` reference (log gains) of the linearisation.
+    description: one line for logs. grasp_fraction: as in the run (None: the tree's).
+    """
+
+    sigma_force: float
+    theta_ref: np.ndarray
+    description: str
+    grasp_fraction: object = None
+
+    def basis(self, sim, forces, mask=None) -> ForceNoiseBasis:
+        """Basis of the force-induced covariance for the pulls ``forces [B, T]`` (N)."""
+        return force_noise_basis(
+            sim, self.theta_ref, forces, self.sigma_force, mask, self.grasp_fraction
+        )
+
+    def settings(self) -> dict:
+        """JSON-ready record (``noise_force`` N, ``noise_force_reference`` log gains)."""
+        return {
+            "noise_force": self.sigma_force,
+            "noise_force_reference": [float(v) for v in self.theta_ref],
+            "noise_force_rule": self.description,
+        }

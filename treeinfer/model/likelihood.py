@@ -1,0 +1,745 @@
+"""The Boltzmann likelihood of force-deformation trajectories (paper eq. 4-6).
+
+Per trajectory b the loss is the plain L2 distance of position and velocity trajectories,
+
+    L_b(theta) = ||tau_sim - tau_gt||_2 + ||tau_dot_sim - tau_dot_gt||_2,
+
+and the log-likelihood of i.i.d. trajectories is ``log p(D | theta) = -sum_b L_b(theta) / kT``
+(the normaliser ``Z`` drops out of every sampler we use).
+
+Parameterisation: samplers work on ``theta = [log Kp_1..R, log Kd_1..R]``. Kp and Kd span
+orders of magnitude, so a log scale gives every particle the same relative resolution, makes
+one finite-difference step (and one SVGD bandwidth) fit all of them, and keeps gains positive.
+
+Choosing kT: the log-likelihood is ``-sum_b L_b / kT``, summed over trajectories; kT is a
+temperature *per trajectory loss* (metres + m/s), and the rule below does not depend on the
+number of trajectories B. With white displacement noise sigma (m) on T samples at step dt the
+norm ``||r_b||`` of the noise residual is ``~ sigma sqrt(T)``, so a model change ``delta`` moves
+``L_b`` by ``~ ||delta||^2 / (2 sigma sqrt(T))`` to second order, while the Gaussian measurement
+log-likelihood moves by ``||delta||^2 / (2 sigma^2)``. Equal curvature (posterior widths as under
+the generative Gaussian model, i.e. calibrated) needs
+
+    kT = sigma / sqrt(T) * (1 + sqrt(2) * dt * omega2)        (:func:`suggest_kT`)
+
+where the factor ``(1 + sqrt(2) dt omega2)`` accounts for the velocity term, which counts the same
+noise a second time; ``omega2`` (1/s^2) is the ratio of the signal's mean squared velocity to its
+mean squared displacement (0 drops the correction). ``kT = "auto"`` (:func:`auto_kT`, in
+:mod:`treeinfer.model.temperature`) estimates sigma
+(:func:`treeinfer.model.noise.estimate_displacement_noise`) and omega2 from the data and applies the
+rule. Example: 2 mm noise, 301 samples at 10 ms, omega2 = 0 gives kT = 1.2e-4.
+
+``DEFAULT_KT = 0.05`` is the paper-reproduction setting used by the studies in ``experiments/``;
+it is NOT tied to a noise level: by the rule it is the temperature for ~0.4-0.9 m of noise, i.e.
+a strongly tempered (wide) posterior. On noisy recordings use ``kT="auto"`` or, better, the
+generative measurement model (``likelihood_terms(kind="gaussian")``), which also infers sigma.
+
+Generative measurement likelihoods (:func:`measurement_log_likelihood`): recorded displacement =
+simulated displacement + i.i.d. noise (Gaussian or Student-t, :mod:`treeinfer.model.noise`), with
+sigma_x given or inferred as an extra column ``log sigma_x`` of theta. The simulator stays a
+black box: :func:`treeinfer.model.gradients.finite_difference_jvp` gives it central-difference
+derivatives, while the noise density and the sigma column get exact autodiff gradients.
+
+Noise on the recorded force (``likelihood_terms(kind="gaussian", noise_force=...)``,
+``--noise-force``): an errors-in-variables term, marginalised in closed form after linearising
+the simulation in the force; each pull's residual is then ``MVN(0, C_b + sigma_x^2 I)`` with
+``C_b = sigma_F^2 J_b J_b^T`` (:mod:`treeinfer.model.force_noise`, which says why this design).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..data.trajectories import Observations
+from ..errors import ConfigError
+from ..sim import Rollout, Simulator, simulate
+from . import noise
+from .gains import (  # noqa: F401  (re-exported: they lived here before)
+    gains_from_theta,
+    natural_units,
+    noise_columns,
+    noise_params_from_theta,
+    predictive_noise_kind,
+    theta_from_gains,
+)
+from .gradients import autodiff_value_and_grad, central_difference, finite_difference_jvp
+from .temperature import (  # re-exported: the kT rule lived here before the split
+    KTChoice,
+    auto_kT,
+    check_kT,
+    signal_omega2,
+    suggest_kT,
+)
+
+__all__ = [
+    "DEFAULT_KT",
+    "KTChoice",
+    "LikelihoodTerms",
+    "auto_kT",
+    "boltzmann_log_likelihood",
+    "check_kT",
+    "data_observations",
+    "gains_from_theta",
+    "likelihood_terms",
+    "log_likelihood_from_rollout",
+    "measurement_log_likelihood",
+    "natural_units",
+    "noise_columns",
+    "noise_params_from_theta",
+    "observation_data",
+    "padded_rollout",
+    "predictive_noise_kind",
+    "signal_omega2",
+    "suggest_kT",
+    "theta_from_gains",
+    "trajectory_loss",
+]
+
+DEFAULT_KT = 0.05
+
+
+def trajectory_loss(rollout: Rollout, obs: Observations) -> jax.Array:
+    """``L_b`` for every parameter set and trajectory: [P, B] (metres + metres per second).
+
+    Time steps outside ``obs.mask`` (padding of shorter trajectories) do not count."""
+    mask = jnp.asarray(obs.mask, rollout.tau.dtype)
+    dpos = (rollout.tau - jnp.asarray(obs.displacement, rollout.tau.dtype)) * mask
+    dvel = (rollout.tau_dot - jnp.asarray(obs.velocity, rollout.tau.dtype)) * mask
+    return jnp.sqrt(jnp.sum(dpos**2, -1)) + jnp.sqrt(jnp.sum(dvel**2, -1))
+
+
+def _padded_trajectory_loss(rollout: Rollout, obs: Observations) -> jax.Array:
+    """:func:`trajectory_loss` [P, B'] of observations with padded rows (no real sample): the
+    same values (0 on a padded row), but the norm of a padded row's zero residual is not
+    differentiated (d sqrt(s) / ds is infinite at s = 0: forward or reverse mode would give
+    NaN where the unpadded problem has no row at all)."""
+    mask = jnp.asarray(obs.mask, rollout.tau.dtype)
+    dpos = (rollout.tau - jnp.asarray(obs.displacement, rollout.tau.dtype)) * mask
+    dvel = (rollout.tau_dot - jnp.asarray(obs.velocity, rollout.tau.dtype)) * mask
+    real = jnp.any(jnp.asarray(obs.mask, bool), axis=-1)  # [B']
+
+    def norm(r):
+        s = jnp.sum(r**2, -1)
+        return jnp.where(real, jnp.sqrt(jnp.where(real, s, 1.0)), 0.0)
+
+    return norm(dpos) + norm(dvel)
+
+
+def log_likelihood_from_rollout(rollout: Rollout, obs: Observations, kT: float) -> jax.Array:
+    """``-sum_b L_b / kT`` [P]; ``-inf`` for a parameter set with any unstable rollout."""
+    ll = -jnp.sum(trajectory_loss(rollout, obs), axis=-1) / kT
+    return jnp.where(jnp.all(rollout.stable, axis=-1), ll, -jnp.inf)
+
+
+def boltzmann_log_likelihood(
+    sim: Simulator, obs: Observations, kT: float = DEFAULT_KT, grasp_fraction=None
+):
+    """Batched log-likelihood ``theta [N, 2R] -> [N]``: one simulator call for all N rows.
+
+    Args:
+      sim: the compiled tree (its ``obs_dt`` must equal the data's dt).
+      obs: stacked training trajectories (:func:`treeinfer.data.trajectories.stack_trajectories`).
+      kT: temperature (see the module docstring for how to choose it).
+      grasp_fraction: where the data were recorded along the grasped branch (None: the tree's).
+    """
+    check_kT(kT)
+    if not math.isclose(float(obs.dt), sim.obs_dt, rel_tol=1e-6):
+        raise ConfigError(
+            f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s"
+        )
+    # device_put, not jnp.asarray: jax compiles a small program per shape for jnp.asarray of a
+    # NumPy array (lax.stage), one XLA compile for every new data length at a cold start
+    forces = jax.device_put(obs.force)
+
+    def loglik(theta: jax.Array) -> jax.Array:
+        kp, kd = gains_from_theta(theta, sim.n_joints)
+        return log_likelihood_from_rollout(simulate(sim, kp, kd, forces, grasp_fraction), obs, kT)
+
+    return loglik
+
+
+# ----------------------------------------------------------------------------- measurement model
+
+
+def measurement_log_likelihood(
+    sim: Simulator,
+    obs: Observations,
+    kind: str = "gaussian",
+    sigma_x: float | None = None,
+    sigma_v: float | None = None,
+    df: float = noise.DEFAULT_STUDENT_T_DF,
+    grasp_fraction=None,
+    rel_step: float | None = None,
+    black_box: bool = True,
+    force_basis=None,
+):
+    """Generative log-likelihood ``theta [N, D] -> [N]`` (nats): displacement noise model.
+
+    ``log p(D | theta) = sum_{b,t real} log p_noise(x_obs[b,t] - tau[b,t](theta); sigma_x)
+    [+ sum log p_noise(v_obs - tau_dot; sigma_v)]``; ``-inf`` for rows with an unstable rollout.
+
+    Args:
+      kind: ``"gaussian"``, ``"student_t"`` (df ``df``) or ``"ar1"`` (white + AR(1)), see
+        :mod:`treeinfer.model.noise`.
+      sigma_x: m, fixed displacement noise; None: theta has an extra column ``log sigma_x``.
+        Noise columns follow the 2R gains in the order of :func:`noise_columns` (ar1 always has
+        ``log sigma_c, logit rho``); their priors are separate (:func:`likelihood_terms`).
+      sigma_v: m/s, velocity noise; None (default) leaves the velocity out.
+      black_box: True wraps the simulator in :func:`finite_difference_jvp` (central differences,
+        ``rel_step``); False lets JAX differentiate through the simulator (checks only).
+      force_basis: :class:`treeinfer.model.force_noise.ForceNoiseBasis` of the training pulls
+        (gaussian only): the displacement residual of each pull is then
+        ``MVN(0, C_b + sigma_x^2 I)`` with ``C_b`` the force-noise-induced covariance
+        (:mod:`treeinfer.model.force_noise`).
+    """
+    if kind not in noise.NOISE_KINDS:
+        raise ConfigError(
+            f"likelihood: expected one of {', '.join(noise.NOISE_KINDS)}, got {kind!r}"
+        )
+    if not math.isclose(float(obs.dt), sim.obs_dt, rel_tol=1e-6):
+        raise ConfigError(
+            f"trajectories have dt={obs.dt} s but the simulator was built for {sim.obs_dt} s"
+        )
+    df = noise.check_df(df)
+    use_v = sigma_v is not None
+    if use_v:
+        sigma_v = noise.check_sigma(sigma_v, "noise_velocity")
+    if sigma_x is not None:
+        sigma_x = noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
+    if force_basis is not None:
+        if kind != "gaussian" or use_v:
+            raise ConfigError(
+                "noise_force: the force-noise term needs --likelihood gaussian without a velocity "
+                f"term (got likelihood {kind!r}, velocity term {'on' if use_v else 'off'})"
+            )
+        if np.shape(force_basis.values) != tuple(np.shape(obs.displacement)):
+            raise ConfigError(
+                f"force_basis: built for pulls of shape {np.shape(force_basis.values)}, the data "
+                f"have {tuple(np.shape(obs.displacement))}"
+            )
+    return _measurement_loglik(
+        sim, obs, kind, sigma_x, sigma_v, df, grasp_fraction, rel_step, black_box, force_basis
+    )
+
+
+def _measurement_loglik(
+    sim,
+    obs,
+    kind,
+    sigma_x,
+    sigma_v,
+    df,
+    grasp_fraction,
+    rel_step,
+    black_box,
+    force_basis,
+    n_steps=None,
+):
+    """:func:`measurement_log_likelihood` after its checks: ``obs`` (and ``force_basis``) may be
+    traced arrays here (the sampler programs that take the data as arguments,
+    :meth:`LikelihoodTerms.loglik_of`); the other arguments are checked values. ``n_steps``:
+    None, or the unpadded length of ``obs`` padded past it (:func:`padded_rollout`)."""
+    r = sim.n_joints
+    dtype = sim.dtype
+    forces = jnp.asarray(obs.force, dtype)
+    x_obs = jnp.asarray(obs.displacement, dtype)
+    v_obs = jnp.asarray(obs.velocity, dtype)
+    mask = jnp.asarray(obs.mask, bool)
+    use_v = sigma_v is not None
+
+    def rollout(theta_gains):  # [M, 2R] -> [M, C, B, T], NaN where unstable
+        kp, kd = gains_from_theta(theta_gains, r)
+        if n_steps is None:
+            ro = simulate(sim, kp, kd, forces, grasp_fraction)
+        else:
+            ro = padded_rollout(sim, kp, kd, forces, grasp_fraction, n_steps, mask)
+        out = jnp.stack([ro.tau, ro.tau_dot], axis=1) if use_v else ro.tau[:, None]
+        return jnp.where(ro.stable[:, None, :, None], out, jnp.nan)
+
+    sim_fn = finite_difference_jvp(rollout, rel_step) if black_box else rollout
+
+    density = _noise_density(kind, sigma_x, sigma_v, df, mask, force_basis, 2 * r)
+
+    def loglik(theta: jax.Array) -> jax.Array:
+        theta = jnp.asarray(theta)
+        out = sim_fn(theta[:, : 2 * r])
+        dv = v_obs - out[:, 1] if use_v else None
+        return density(x_obs - out[:, 0], dv, theta)
+
+    return loglik
+
+
+def _noise_density(kind, sigma_x, sigma_v, df, mask, force_basis, n_gains: int):
+    """``(dx [N, B, T], dv [N, B, T] or None, theta [N, D]) -> [N]``: the generative noise
+    density of the recorded-minus-simulated displacement ``dx`` (and velocity ``dv``), the noise
+    columns read from theta after its ``n_gains`` gains; ``-inf`` where not finite (NaN marks an
+    unstable rollout). One function for the problem's likelihood and the start pipeline's host
+    evaluation of rollout residuals (:meth:`LikelihoodTerms.residual_loglik`), so both compute
+    the same density."""
+
+    def density(dx, dv, theta):
+        theta = jnp.asarray(theta)
+        c = n_gains
+        if sigma_x is None:
+            sx, c = jnp.exp(theta[:, c]), c + 1
+        else:
+            sx = jnp.full(theta.shape[:1], sigma_x, dx.dtype)
+        if force_basis is not None:
+            from . import force_noise  # numpyro: imported where the term is used
+
+            resid = jnp.where(mask, dx, 0.0)
+            total = force_noise.mvn_log_prob(resid, force_basis, sx)
+        elif kind == "ar1":
+            sc, rho = jnp.exp(theta[:, c]), jax.nn.sigmoid(theta[:, c + 1])
+            total = noise.ar1_white_log_prob(dx, mask, sx, sc, rho)
+        else:
+            lp = noise.residual_log_prob(dx, sx[:, None, None], kind, df)
+            total = jnp.sum(jnp.where(mask, lp, 0.0), axis=(-2, -1))
+        if sigma_v is not None and dv is not None:
+            sv = jnp.asarray(sigma_v, dx.dtype)
+            lpv = noise.residual_log_prob(dv, sv, predictive_noise_kind(kind), df)
+            total = total + jnp.sum(jnp.where(mask, lpv, 0.0), axis=(-2, -1))
+        return jnp.where(jnp.isfinite(total), total, -jnp.inf)
+
+    return density
+
+
+def observation_data(obs: Observations, grasp_fraction=None, shape=None) -> dict:
+    """``obs [B, T]`` padded to ``shape`` ``(B', T')`` (None: as it is) and masked
+    (:func:`treeinfer.sim.startup.bucket_observations`), as the pytree of arrays a program takes as
+    its data argument: ``force``, ``displacement``, ``velocity`` ([B', T'], the default float
+    dtype), ``mask`` ([B', T'] bool), ``n_steps`` (int32 scalar, the unpadded T) and, when
+    ``grasp_fraction`` is one fraction per trajectory, ``grasp`` [B'] (padded rows, at rest,
+    take the last fraction)."""
+    b, t = np.shape(obs.force)
+    if shape is not None:
+        from ..sim.startup import bucket_observations
+
+        obs = bucket_observations(obs, *(int(n) for n in shape))
+    d = {
+        "force": jnp.asarray(np.asarray(obs.force)),
+        "displacement": jnp.asarray(np.asarray(obs.displacement)),
+        "velocity": jnp.asarray(np.asarray(obs.velocity)),
+        "mask": jnp.asarray(np.asarray(obs.mask, bool)),
+        "n_steps": jnp.asarray(t, jnp.int32),
+    }
+    if grasp_fraction is not None and np.ndim(grasp_fraction) == 1:
+        g = np.asarray(grasp_fraction, float)
+        if g.size != b:
+            raise ConfigError(f"grasp_fraction: {g.size} fractions for {b} trajectories")
+        rows = np.shape(obs.force)[0]
+        d["grasp"] = jnp.asarray(np.concatenate([g, np.full(rows - b, g[-1])]))
+    return d
+
+
+def padded_rollout(sim: Simulator, kp, kd, forces, grasp_fraction, n_steps, mask) -> Rollout:
+    """:func:`treeinfer.sim.simulate` of observations padded past their length ``n_steps``
+    (a traced int32 is fine) and masked (``mask [B', T']``), equal on the real samples to the
+    rollout of the unpadded data: the velocity at sample ``n_steps - 1`` is the second-order
+    one-sided difference the unpadded rollout ends with (:func:`treeinfer.sim.velocity`), not
+    the central difference the padded steps would give (up to 3e-4 of the Boltzmann log
+    density, ``tests/test_sampler_buckets.py``); and ``stable`` counts real rows only (a padded
+    row, at rest, has no data). Written here, not in the simulator, because only the padded
+    programs need it; the same correction as :func:`treeinfer.inference.fast`'s."""
+    ro = simulate(sim, kp, kd, forces, grasp_fraction)
+    x = ro.tau
+    inv = 1.0 / (2.0 * sim.obs_dt)  # treeinfer.data.trajectories.velocity_from_displacement's
+
+    def at(i):
+        return jax.lax.dynamic_index_in_dim(x, i, axis=-1, keepdims=True)
+
+    last = (3.0 * at(n_steps - 1) - 4.0 * at(n_steps - 2) + at(n_steps - 3)) * inv
+    end = jnp.arange(x.shape[-1]) == n_steps - 1
+    tau_dot = jnp.where(end, jnp.where(ro.stable[..., None], last, 0.0), ro.tau_dot)
+    real_row = jnp.any(jnp.asarray(mask, bool), axis=-1)  # [B']
+    return Rollout(tau=x, tau_dot=tau_dot, stable=ro.stable | ~real_row)
+
+
+def data_observations(data: dict, dt: float) -> Observations:
+    """:class:`Observations` back from :func:`observation_data`'s pytree (arrays may be traced;
+    ``dt`` s is static)."""
+    return Observations(data["force"], data["displacement"], data["velocity"], data["mask"], dt)
+
+
+def _padded_basis(basis, mask: np.ndarray):
+    """The force-noise basis of pulls padded to ``mask [B', T']`` (:func:`observation_data`)
+    from the unpadded pulls' ``basis`` [B, T, T]: ``C`` is zero in the rows and columns of
+    padded samples (force noise exists on real samples only, and the displacement before T
+    does not depend on the force after it), so the padded eigenbasis is ``U`` beside the
+    identity with eigenvalues 0 there, and a padded pull's is the identity. The same density
+    as the Jacobian of the padded pulls would give, without computing it (a forward-mode pass
+    of T' tangents per pull)."""
+    u, lam = np.asarray(basis.vectors), np.asarray(basis.values)
+    b, t = lam.shape
+    nb, nt = mask.shape
+    vectors = np.broadcast_to(np.eye(nt), (nb, nt, nt)).copy()
+    values = np.zeros((nb, nt))
+    vectors[:b, :t, :t] = u
+    values[:b, :t] = lam
+    return type(basis)(vectors, values, (~np.asarray(mask, bool)).sum(axis=1))
+
+
+class LikelihoodTerms(NamedTuple):
+    """What :func:`likelihood_terms` builds, ready to plug into ``make_problem``.
+
+    log_likelihood: ``theta [N, D] -> [N]`` nats. value_and_grad: its value and uphill gradient
+      (central differences for Boltzmann; autodiff through the FD-JVP simulator otherwise).
+    extra_labels: labels of theta's extra columns after the 2R gains (``("sigma_x",)`` or ()).
+      The column holds ``log sigma_x`` (sigma_x in m).
+    extra_lower, extra_upper: [E] prior box of the extra columns (theta units): for a noise
+      scale the flat part of :class:`treeinfer.model.noise.NoisePrior` (resolution to data range).
+    extra_log_prior: ``theta [N, D] -> [N]`` prior of the extra columns (None if E = 0).
+    kT: the Boltzmann temperature used (None for the generative kinds).
+    sigma_x: fixed displacement noise (m) if not inferred: given, or for Boltzmann with
+      ``kT="auto"`` the data estimate (for the predictive band); None otherwise (fixed-kT
+      Boltzmann without a given noise: the paper's mode, parameter bands only).
+    settings: JSON-ready record. description: human-readable lines (print them).
+    force_noise: the force-noise term (:class:`treeinfer.model.force_noise.ForceNoiseModel`) when
+      ``noise_force`` was given, else None; predictive bands of recordings driven by a noisy
+      force add its covariance (``force_noise.basis(sim, forces)``).
+    data_of, loglik_of: the same likelihood with the observations as an argument (None where a
+      builder does not offer it): ``data_of(obs, shape=None)`` (host) turns observations on the
+      training data's time step and grasp points, padded to ``shape`` ``(B', T')`` (a shape
+      bucket, :mod:`treeinfer.sim.startup`), into a pytree of arrays (:func:`observation_data`, plus
+      the force-noise basis of the padded pulls), and ``loglik_of(data)`` is ``theta [N, D] ->
+      [N]`` on them, equal to ``log_likelihood`` on the unpadded data; ``data`` may be traced (a
+      jitted program's argument), so programs built on it serve every data set of one shape.
+    extra_init: ``(lower [E], upper [E])`` where uniform initial particles of the extra columns
+      are drawn (near the data's noise estimate, inside the prior box), or None: the box.
+    residual_loglik: ``(dx [N, B, T], dv [N, B, T], theta [N, D]) -> [N]``, the same
+      log-likelihood from the recorded-minus-simulated displacement ``dx`` (m) and velocity
+      ``dv`` (m/s) of the training data (zero at masked samples) of stable rollouts: what
+      :mod:`treeinfer.inference.fast` evaluates on the host around its one rollout program
+      (None where a builder does not offer it).
+    """
+
+    log_likelihood: Callable
+    value_and_grad: Callable
+    extra_labels: tuple[str, ...]
+    extra_lower: np.ndarray
+    extra_upper: np.ndarray
+    extra_log_prior: Callable | None
+    kT: float | None
+    sigma_x: float | None
+    settings: dict
+    description: str
+    force_noise: force_noise.ForceNoiseModel | None = None
+    data_of: Callable | None = None
+    loglik_of: Callable | None = None
+    extra_init: tuple | None = None
+    residual_loglik: Callable | None = None
+
+    @property
+    def black_box(self) -> bool:
+        """True: ``log_likelihood`` must be differenced (``combined_value_and_grad``'s
+        ``fd_terms``: the Boltzmann loss). False: JAX differentiates it (its simulator is wrapped
+        in :func:`finite_difference_jvp`), so it goes with the ``autodiff_terms``."""
+        return self.settings.get("likelihood") == "boltzmann"
+
+    def log_prior_terms(self) -> list:
+        """The extra columns' prior as a list of terms (empty when there are none)."""
+        return [] if self.extra_log_prior is None else [self.extra_log_prior]
+
+
+def likelihood_terms(
+    sim: Simulator,
+    obs: Observations,
+    kind: str = "boltzmann",
+    *,
+    kT: float | str = DEFAULT_KT,
+    sigma_x: float | None = None,
+    sigma_v: float | None = None,
+    df: float = noise.DEFAULT_STUDENT_T_DF,
+    noise_floor: float | None = None,
+    grasp_fraction=None,
+    gradient: str = "fd",
+    rel_step: float | None = None,
+    noise_force=None,
+    force_noise_reference=None,
+    force_noise_rule: str = "J at the given reference",
+) -> LikelihoodTerms:
+    """The likelihood part of the posterior for one tree + data + likelihood choice.
+
+    Args:
+      kind: ``"boltzmann"`` (the paper's loss, ``kT`` a number or ``"auto"``), ``"gaussian"``,
+        ``"student_t"`` or ``"ar1"`` (generative, :mod:`treeinfer.model.noise`; theta then has the
+        noise columns of :func:`noise_columns` after the gains).
+      sigma_x: m. Generative kinds: fixed noise, or None to infer ``log sigma_x`` jointly as
+        theta's last column with the weakly-informative prior of
+        :func:`treeinfer.model.noise.noise_scale_prior` (log sigma_x flat from the sensor's
+        resolution to the data's range; the data estimate only seeds the start). Boltzmann with
+        ``kT="auto"``: use it instead of the estimate.
+      noise_floor: m, the displacement sensor's resolution if known: the prior's lower end
+        (None: ``step / sqrt(12)`` of a quantised recording, else 1 micron).
+      sigma_v: m/s, velocity noise for the generative kinds (None: velocity term off).
+      gradient: ``"fd"`` (black box, central differences) or ``"autodiff"`` (through the simulator).
+      noise_force: None (default: no force-noise term, behaviour unchanged) or the std of white
+        noise on the recorded force: newtons, ``"P%"`` of the largest recorded |force|, or
+        ``"auto"`` (:func:`treeinfer.model.force_noise.resolve_noise_force`). Gaussian only: adds
+        the errors-in-variables covariance of :mod:`treeinfer.model.force_noise` to the likelihood.
+      force_noise_reference: ``[2R]`` log gains at which the force Jacobian is taken; None: the
+        MAP of the errors-in-variables model (:func:`~treeinfer.model.force_noise.reference_theta`).
+      force_noise_rule: how a given ``force_noise_reference`` was chosen (recorded in the
+        settings' ``noise_force_rule``).
+    """
+    noise.check_kind(kind)
+    if noise_force is not None and kind != "gaussian":
+        raise ConfigError(
+            f"noise_force: the force-noise term is available with --likelihood gaussian only, "
+            f"got {kind!r}"
+        )
+    if gradient not in ("fd", "autodiff"):
+        raise ConfigError(f"gradient: expected 'fd' or 'autodiff', got {gradient!r}")
+    empty = np.zeros((0,))
+    if kind == "boltzmann":
+        if isinstance(kT, str):
+            if kT != "auto":
+                raise ConfigError(f"kT: expected a positive number or 'auto', got {kT!r}")
+            choice = auto_kT(obs, sigma_x)
+            kT_value, est, desc = choice.kT, choice.estimate.sigma, choice.describe()
+            extra = {"kT_rule": desc, "omega2": choice.omega2}
+        else:
+            kT_value, extra = check_kT(kT), {}
+            # the paper's mode: no noise model unless one is given (then predictive bands use it)
+            est = (
+                None
+                if sigma_x is None
+                else noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
+            )
+            desc = f"Boltzmann likelihood, kT = {kT_value:g} (fixed)"
+        loglik = boltzmann_log_likelihood(sim, obs, kT_value, grasp_fraction)
+        vg = (
+            central_difference(loglik, rel_step=rel_step)
+            if gradient == "fd"
+            else autodiff_value_and_grad(loglik)
+        )
+        settings = {
+            "likelihood": "boltzmann",
+            "kT": kT_value,
+            "kT_auto": isinstance(kT, str),
+            "noise_displacement": est,
+            **extra,
+        }
+
+        def boltzmann_of(data):
+            o = data_observations(data, obs.dt)
+            gf = data.get("grasp", grasp_fraction)
+
+            def loglik_data(theta: jax.Array) -> jax.Array:
+                kp, kd = gains_from_theta(theta, sim.n_joints)
+                ro = padded_rollout(sim, kp, kd, o.force, gf, data["n_steps"], o.mask)
+                loss = _padded_trajectory_loss(ro, o)
+                ll = -jnp.sum(loss, axis=-1) / kT_value
+                return jnp.where(jnp.all(ro.stable, axis=-1), ll, -jnp.inf)
+
+            return loglik_data
+
+        mask_b = jnp.asarray(obs.mask, bool)  # may be traced (batch_posteriors)
+
+        def boltzmann_residual(dx, dv, theta):
+            def norm(r):
+                return jnp.sqrt(jnp.sum(jnp.where(mask_b, r, 0.0) ** 2, -1))
+
+            return -jnp.sum(norm(dx) + norm(dv), axis=-1) / kT_value
+
+        return LikelihoodTerms(
+            loglik,
+            vg,
+            (),
+            empty,
+            empty,
+            None,
+            kT_value,
+            est,
+            settings,
+            desc,
+            None,
+            lambda o, shape=None: observation_data(o, grasp_fraction, shape),
+            boltzmann_of,
+            residual_loglik=boltzmann_residual,
+        )
+
+    df = noise.check_df(df)
+    fmodel, basis = None, None
+    if noise_force is not None:
+        if sigma_v is not None:
+            raise ConfigError(
+                "noise_force: the force-noise term is not available with a velocity term "
+                "(noise_velocity); leave the velocity out"
+            )
+        from . import force_noise
+
+        sigma_f, rule = force_noise.resolve_noise_force(noise_force, obs)
+        if force_noise_reference is None:
+            ref = force_noise.reference_theta(sim, obs, grasp_fraction, sigma_f)
+            rule += "; J at the MAP of this errors-in-variables model"
+        else:
+            ref = np.asarray(force_noise_reference, float).reshape(-1)
+            if ref.shape != (2 * sim.n_joints,) or not np.all(np.isfinite(ref)):
+                raise ConfigError(
+                    f"force_noise_reference: expected {2 * sim.n_joints} finite log gains, "
+                    f"got {ref.tolist()}"
+                )
+            rule += f"; {force_noise_rule}"
+        fmodel = force_noise.ForceNoiseModel(sigma_f, ref, rule, grasp_fraction)
+        basis = fmodel.basis(sim, np.asarray(obs.force), np.asarray(obs.mask, bool))
+    loglik = measurement_log_likelihood(
+        sim,
+        obs,
+        kind,
+        sigma_x,
+        sigma_v,
+        df,
+        grasp_fraction,
+        rel_step,
+        black_box=gradient == "fd",
+        force_basis=basis,
+    )
+    vg = autodiff_value_and_grad(loglik)
+    checked_sx = (
+        None
+        if sigma_x is None
+        else noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
+    )
+    checked_sv = None if sigma_v is None else noise.check_sigma(sigma_v, "noise_velocity")
+
+    def data_of(o, shape=None):
+        data = observation_data(o, grasp_fraction, shape)
+        if fmodel is not None:  # the force-noise basis of these (padded) pulls: data as well
+            if o is obs:  # the training pulls: their basis, padded (no second Jacobian)
+                b = _padded_basis(basis, np.asarray(data["mask"]))
+            else:
+                b = fmodel.basis(sim, np.asarray(data["force"]), np.asarray(data["mask"]))
+            data["force_basis"] = type(b)(*(jnp.asarray(x) for x in b))
+        return data
+
+    def loglik_of(data):
+        return _measurement_loglik(
+            sim,
+            data_observations(data, obs.dt),
+            kind,
+            checked_sx,
+            checked_sv,
+            df,
+            data.get("grasp", grasp_fraction),
+            rel_step,
+            gradient == "fd",
+            data.get("force_basis"),
+            data["n_steps"],
+        )
+
+    residual_loglik = _noise_density(
+        kind,
+        checked_sx,
+        checked_sv,
+        df,
+        jnp.asarray(obs.mask, bool),
+        basis,
+        2 * sim.n_joints,
+    )
+    names = {
+        "gaussian": "Gaussian",
+        "student_t": f"Student-t (df = {df:g})",
+        "ar1": "white + AR(1)",
+    }
+    vel = f", velocity noise {sigma_v:g} m/s" if sigma_v is not None else ", velocity term off"
+    if fmodel is not None:
+        vel += f"; errors-in-variables {fmodel.description}"
+    settings = {
+        "likelihood": kind,
+        "noise_velocity": sigma_v,
+        "student_t_df": df if kind == "student_t" else None,
+        **({} if fmodel is None else fmodel.settings()),
+    }
+    labels = noise_columns(kind, sigma_x is None)
+    if sigma_x is not None:
+        sx = noise.check_sigma(sigma_x, "noise_displacement", noise.displacement_range(obs))
+        settings.update(noise_displacement=sx, noise_inferred=False)
+        desc = f"{names[kind]} displacement noise, sigma_x = {sx * 1e3:.4g} mm (given){vel}"
+        if kind != "ar1":
+            return LikelihoodTerms(
+                loglik, vg, (), empty, empty, None, None, sx, settings, desc, fmodel, data_of,
+                loglik_of, residual_loglik=residual_loglik,
+            )  # fmt: skip
+        est = noise.NoiseEstimate(sx, 0, "given")
+    else:
+        try:
+            est = noise.estimate_displacement_noise(obs)
+        except ConfigError:  # the prior does not need it: the start box falls back to the range
+            est = None
+        sx = None
+        settings.update(
+            noise_displacement=None,
+            noise_inferred=True,
+            noise_estimate=None if est is None else est.sigma,
+        )
+    import numpyro.distributions as dist
+
+    # weakly informative over decades: flat in log sigma from the sensor's resolution to the
+    # data's range (treeinfer.model.noise.NoisePrior); its flat part is the columns' box
+    prior = noise.noise_scale_prior(obs, est, noise_floor)
+    lo_s, hi_s = prior.log_bounds
+    if est is None:
+        init = (lo_s + 0.5 * (hi_s - lo_s), hi_s)
+    else:  # start near the estimate; it misses model error, which only adds: more room above
+        init = (max(math.log(est.sigma / 2.0), lo_s), min(math.log(est.sigma * 20.0), hi_s))
+        init = init if init[1] > init[0] else (lo_s, hi_s)
+    if sigma_x is None:
+        desc = (
+            f"{names[kind]} displacement noise, sigma_x inferred (prior {prior.describe()}; "
+            f"{'no estimate' if est is None else est.describe()}){vel}"
+        )
+    rho_prior = dist.Normal(noise.RHO_PRIOR_LOC, noise.RHO_PRIOR_SCALE)
+    col = 2 * sim.n_joints
+    lower, upper, priors, init_lo, init_hi = [], [], [], [], []
+    for k, lab in enumerate(labels):
+        if lab == "rho":
+            lower.append(0.0)  # rho 0.5 .. 0.99 for the initial particles
+            upper.append(math.log(0.99 / 0.01))
+            priors.append((col + k, rho_prior.log_prob))
+        else:
+            lower.append(lo_s)
+            upper.append(hi_s)
+            priors.append((col + k, prior.log_prob))
+        init_lo.append(init[0] if lab != "rho" else lower[-1])
+        init_hi.append(init[1] if lab != "rho" else upper[-1])
+
+    def extra_log_prior(theta):
+        theta = jnp.asarray(theta)
+        return sum(f(theta[:, j]) for j, f in priors)
+
+    settings["noise_prior"] = {
+        lab: (
+            f"logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, {noise.RHO_PRIOR_SCALE:g})"
+            if lab == "rho"
+            else prior.describe(lab)
+        )
+        for lab in labels
+    }
+    if kind == "ar1":
+        desc += (
+            f"; AR(1) component sigma_c, rho inferred (prior {prior.describe('sigma_c')}, "
+            f"logit rho ~ Normal({noise.RHO_PRIOR_LOC:.3g}, {noise.RHO_PRIOR_SCALE:g}))"
+        )
+    return LikelihoodTerms(
+        loglik,
+        vg,
+        labels,
+        np.array(lower),
+        np.array(upper),
+        extra_log_prior,
+        None,
+        sx,
+        settings,
+        desc,
+        fmodel,
+        data_of,
+        loglik_of,
+        (np.array(init_lo), np.array(init_hi)),
+        residual_loglik,
+    )
