@@ -165,7 +165,7 @@ def _private_uses(path: Path) -> list[str]:
     return found
 
 
-# treeinfer.io.atomic becomes the public treeinfer.io.atomic with the move (relayout renames this)
+# treeinfer.io.atomic: the atomic writers, public since the move (it was the private _io)
 PRIVATE_MODULES_UNTIL_THE_MOVE = {"treeinfer.io.atomic"}
 
 
