@@ -517,6 +517,78 @@ def _leftover_cases() -> list[Case]:
     return cases
 
 
+LIES_SRC: list[Path] = []  # a simulated training set of the example tree (made once in main)
+
+
+def _make_lies_source(base: Path, timeout: float) -> Path | None:
+    out = base / "lies-src"
+    env = {**os.environ, "HOME": str(base), "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu",
+           "TREEINFER_JAX_CACHE": "off", "MPLBACKEND": "Agg"}  # fmt: skip
+    r = subprocess.run([sys.executable, "-m", "treeinfer", "simulate", "--tree", str(EXAMPLE),
+                        "--out", str(out), "--n-traj", "3", "--seed", "1",
+                        "--noise-displacement", "0.002", "--noise-force", "0.05"],
+                       env=env, capture_output=True, timeout=timeout * 5)  # fmt: skip
+    return out if r.returncode == 0 else None
+
+
+def _lies() -> list[Case]:
+    """Recordings that lie (issue 28, section 3): a treeinfer simulation of the example tree
+    with one stream's unit, offset, clock or identity changed; ``infer`` must refuse them with
+    exit 2 naming the file and column (expect 2), or, for a late displacement, which only the
+    fit can see, warn (expect -1: judged by the message)."""
+    import csv
+
+    def transform(fn, which=None, dup=False):
+        def setup(ws):
+            (ws / "lied").mkdir()
+            for k, src in enumerate(sorted(LIES_SRC[0].glob("traj_*.csv"))):
+                rows = list(csv.DictReader(src.open()))
+                t = [float(r["time"]) for r in rows]
+                f = [float(r["force"]) for r in rows]
+                x = [float(r["displacement"]) for r in rows]
+                if which is None or which == k:
+                    t, f, x = fn(t, f, x)
+                with (ws / "lied" / src.name).open("w") as fh:
+                    fh.write("time,force,displacement\n")
+                    fh.writelines(f"{a!r},{b!r},{c!r}\n" for a, b, c in zip(t, f, x))
+            if dup:
+                shutil.copy(ws / "lied" / "traj_000.csv", ws / "lied" / "traj_009.csv")
+            shutil.copy(LIES_SRC[0] / "tree.yaml", ws / "tree.yaml")
+            return ["infer", "--tree", "tree.yaml", "--data", "lied", "--out", "r",
+                    "--no-progress"]  # fmt: skip
+
+        return setup
+
+    def scale(a=1.0, b=1.0, c=1.0):
+        return lambda t, f, x: ([v * a for v in t], [v * b for v in f], [v * c for v in x])
+
+    def shift(n):  # n > 0: the displacement n samples early (ahead of the force)
+        return lambda t, f, x: (t, f, x[n:] + [x[-1]] * n)
+
+    def offset(df=0.0, dx=0.0):
+        return lambda t, f, x: (t, [v + df for v in f], [v + dx for v in x])
+
+    cases = [
+        ("displacement in mm", scale(c=1000), None),
+        ("displacement in cm", scale(c=100), None),
+        ("displacement in inches", scale(c=39.37), None),
+        ("force in kN", scale(b=1e-3), None),
+        ("force in mN", scale(b=1e3), None),
+        ("force in kgf", scale(b=1 / 9.81), None),
+        ("force tare not subtracted (+5 N)", offset(df=5.0), None),
+        ("displacement from world origin (+5 cm)", offset(dx=0.05), None),
+        ("force and displacement swapped", lambda t, f, x: (t, x, f), None),
+        ("displacement sign flipped", scale(c=-1), None),
+        ("time in minutes", scale(a=1 / 60), None),
+        ("displacement 0.4 s ahead of the force", shift(40), None),
+        ("one file in mm", scale(c=1000), 1),
+        ("one file's force in kN", scale(b=1e-3), 1),
+    ]
+    out = [Case("data that lie", name, transform(fn, which)) for name, fn, which in cases]
+    out.append(Case("data that lie", "the same recording twice", transform(scale(), dup=True)))
+    return out
+
+
 # ---- main ------------------------------------------------------------------------------------
 def _make_run(base: Path, timeout: float) -> Path | None:
     out = base / "demo"
@@ -531,7 +603,7 @@ def _make_run(base: Path, timeout: float) -> Path | None:
 
 
 def _table(results: list[Outcome]) -> str:
-    order = ["data loss", "damaged run", "crash", "hang", "leftovers"]
+    order = ["data loss", "damaged run", "data that lie", "crash", "hang", "leftovers"]
     cats = sorted({o.case.category for o in results}, key=order.index)
     head = ["category", "cases", "exit 2", "exit 0", "crashes (exit 3 / traceback)", "hangs",
             "data lost", "leftovers", "unexpected exit", "slowest answer"]  # fmt: skip
@@ -565,6 +637,13 @@ def main(argv=None) -> int:
         ) if run else []  # fmt: skip
         cases = _data_loss() + (_damaged_runs(run_files) if run else []) + _crashes() + _hangs()
         cases += _leftover_cases()
+        if not args.only or args.only in "data that lie":
+            src = _make_lies_source(base, args.timeout)
+            if src is not None:
+                LIES_SRC.append(src)
+                cases += _lies()
+            else:
+                print("could not simulate the recordings for 'data that lie'", file=sys.stderr)
         if args.only:
             cases = [c for c in cases if args.only in c.category]
         if args.quick:

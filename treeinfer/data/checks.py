@@ -28,6 +28,7 @@ from ..tree.plausibility import (
     grasp_reach,
     response_range,
 )
+from .stream_checks import stream_checks
 
 
 # ---- per-trajectory statistics ---------------------------------------------------------------
@@ -191,6 +192,9 @@ def data_checks(
                 )
             )
             continue
+
+        # streams against each other: at rest under no load, cause before effect
+        out += stream_checks(name, f, x, dt)
 
         # reach: the grasp point cannot move further than its lever arm allows
         xmax = float(np.max(np.abs(x)))

@@ -345,6 +345,12 @@ def fit_verdict_from_run(
         noise_model=generative,
         recorded=x,
     )
+    if pred is not None:
+        align, meas = cf.alignment_findings(x, pred.mean, mask, float(obs.dt))
+        verdict.measures.update(meas)
+        if align:
+            status = "warning" if verdict.status == "ok" else verdict.status
+            verdict = FitVerdict(status, [*verdict.reasons, *align], verdict.measures)
     if pred is None:  # the unstable-share limit already judged this; do not fail twice
         status = verdict.status if verdict.status == "poor_fit" else "warning"
         return FitVerdict(

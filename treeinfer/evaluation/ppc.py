@@ -234,6 +234,62 @@ def ppc_findings(
     return poor, warn, meas
 
 
+ALIGN_MAX_SECONDS = 1.0  # shifts tried between the recording and the fit, each way
+ALIGN_MIN_SAMPLES, ALIGN_MIN_SECONDS = 3, 0.03  # a shift below both is no finding
+ALIGN_GAIN = 0.7  # the shifted fit's residual RMS below this share of the unshifted one's
+
+
+def best_alignment(recorded, mean, mask=None, dt: float = 1.0) -> tuple[int, float]:
+    """``(k, ratio)``: the shift ``k`` (samples; > 0: the recording comes later than the fit)
+    minimising the pooled RMS of ``recorded[t] - mean[t - k]`` over the overlapping real
+    samples, and that RMS over the unshifted one. A fit cannot absorb a clock offset between
+    the force and the displacement stream (it simulates the displacement from the recorded
+    force), so a recording that a shifted fit matches far better has its streams misaligned."""
+    x = np.atleast_2d(np.asarray(recorded, float))
+    mu = np.atleast_2d(np.asarray(mean, float))
+    m = np.ones(x.shape, bool) if mask is None else np.atleast_2d(np.asarray(mask, bool))
+    m = m & np.isfinite(x) & np.isfinite(mu)
+    max_k = int(min(x.shape[1] // 4, round(ALIGN_MAX_SECONDS / dt))) if dt > 0 else 0
+
+    def rms(k: int) -> float:
+        num = cnt = 0.0
+        for b in range(x.shape[0]):
+            if k >= 0:
+                a, c, w = x[b, k:], mu[b, : x.shape[1] - k], m[b, k:] & m[b, : x.shape[1] - k]
+            else:
+                a, c, w = x[b, :k], mu[b, -k:], m[b, :k] & m[b, -k:]
+            r = (a - c)[w]
+            num += float(r @ r)
+            cnt += r.size
+        return math.sqrt(num / cnt) if cnt else float("inf")
+
+    base = rms(0)
+    if not math.isfinite(base) or base <= 0 or max_k < 1:
+        return 0, 1.0
+    best_k, best = 0, base
+    for k in range(-max_k, max_k + 1):
+        v = rms(k)
+        if v < best:
+            best_k, best = k, v
+    return best_k, best / base
+
+
+def alignment_findings(recorded, mean, mask=None, dt: float = 1.0) -> tuple[list[str], dict]:
+    """A warning when the recording matches the fit shifted in time much better (streams
+    misaligned: a logger's lag, or time stamps of one stream offset), with the measure."""
+    k, ratio = best_alignment(recorded, mean, mask, dt)
+    meas = {"alignment_shift_s": k * dt, "alignment_rms_ratio": ratio}
+    if abs(k) <= ALIGN_MIN_SAMPLES or abs(k) * dt <= ALIGN_MIN_SECONDS or ratio >= ALIGN_GAIN:
+        return [], meas
+    side = "later" if k > 0 else "earlier"
+    return [
+        f"streams misaligned: the recorded displacement matches the fit {abs(k) * dt:.3g} s "
+        f"({abs(k)} samples) {side} with {1 - ratio:.0%} less residual: the displacement "
+        "and force streams' clocks are probably offset (a logger's lag); align them and "
+        "infer again"
+    ], meas
+
+
 def explained_variance(residuals, recorded, mask=None) -> float | None:
     """``1 - sum r^2 / sum (x - mean x)^2`` per pull, pooled (None without variation)."""
     r = np.asarray(residuals, float)

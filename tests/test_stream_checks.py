@@ -1,0 +1,89 @@
+"""Checks between a recording's streams (issue 28, section 3): offsets at rest, a displacement
+that moves before the force, and a fit that matches the recording better when shifted in time.
+The recordings are a mass-spring-damper's response to a ramp-hold pull, integrated by scipy
+(independent of treeinfer's simulator), with sensor noise."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from treeinfer.data.stream_checks import lead_of_displacement, rest_offsets, stream_checks
+from treeinfer.evaluation.ppc import alignment_findings, best_alignment
+
+DT = 0.01
+
+
+def _pull(seed=0, sx=0.002, sf=0.05, t_end=3.0, peak=5.0, k=20.0, c=3.0, m=0.5):
+    """Force ramp 0.5-1.5 s to ``peak`` N then hold; x'' = (F - c x' - k x) / m from rest."""
+    t = np.arange(0.0, t_end, DT)
+    force = np.interp(t, [0.0, 0.5, 1.5, t_end], [0.0, 0.0, peak, peak])
+    sol = solve_ivp(
+        lambda s, y: [y[1], (np.interp(s, t, force) - c * y[1] - k * y[0]) / m],
+        (0.0, t[-1]),
+        [0.0, 0.0],
+        t_eval=t,
+        max_step=DT / 2,
+        rtol=1e-8,
+        atol=1e-10,
+    )
+    rng = np.random.default_rng(seed)
+    x = sol.y[0] + sx * rng.standard_normal(t.size)
+    f = force + sf * rng.standard_normal(t.size)
+    return f, x
+
+
+@pytest.mark.parametrize("seed", range(12))
+@pytest.mark.parametrize("sx, sf", [(0.0, 0.0), (0.002, 0.05), (0.01, 0.5)])
+def test_honest_recordings_raise_nothing(seed, sx, sf):
+    f, x = _pull(seed, sx, sf)
+    assert stream_checks("p.csv", f, x, DT) == []
+
+
+def test_force_tare_not_subtracted():
+    f, x = _pull()
+    (finding,) = rest_offsets("p.csv", f + 5.0, x)
+    assert finding.check == "force-offset" and finding.file == "p.csv"
+    assert "column force" in finding.message and "tare" in finding.message
+
+
+def test_displacement_not_from_rest():
+    f, x = _pull()
+    (finding,) = rest_offsets("p.csv", f, x + 0.05)
+    assert finding.check == "displacement-offset" and "column displacement" in finding.message
+
+
+def test_small_offset_within_noise_passes():
+    f, x = _pull(sx=0.002)
+    assert rest_offsets("p.csv", f, x + 0.002) == []
+
+
+def test_displacement_ahead_of_the_force_is_a_clock_offset():
+    # the check sees the lead beyond the response's own delay (here about c/k = 0.15 s)
+    f, x = _pull()
+    n = int(0.4 / DT)
+    lead = np.concatenate([x[n:], np.repeat(x[-1], n)])
+    (finding,) = lead_of_displacement("p.csv", f, lead, DT)
+    assert finding.check == "stream-lag" and "BEFORE the force" in finding.message
+
+
+def test_a_late_displacement_is_left_to_the_fit():
+    # inertia and damping delay a response: no data-only finding, the alignment check sees it
+    f, x = _pull()
+    n = int(0.2 / DT)
+    late = np.concatenate([np.zeros(n), x[:-n]])
+    assert lead_of_displacement("p.csv", f, late, DT) == []
+
+
+def test_alignment_recovers_a_shift_and_ignores_noise():
+    f, x = _pull(sx=0.0)
+    rng = np.random.default_rng(1)
+    n = 20
+    recorded = np.concatenate([np.zeros(n), x[:-n]]) + 0.002 * rng.standard_normal(x.size)
+    k, ratio = best_alignment(recorded[None], x[None], dt=DT)
+    assert k == n and ratio < 0.5
+    warn, meas = alignment_findings(recorded[None], x[None], dt=DT)
+    assert warn and "misaligned" in warn[0] and meas["alignment_shift_s"] == pytest.approx(0.2)
+    honest = x + 0.002 * rng.standard_normal(x.size)
+    assert alignment_findings(honest[None], x[None], dt=DT)[0] == []
