@@ -41,6 +41,7 @@ from .common import (
     check_simulation_options,
     simulator_for_run,
 )
+from .options import add_formats_option
 
 # ==== evaluate ====================================================================================
 _EVALUATE_EPILOG = """\
@@ -93,6 +94,7 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
+    add_formats_option(p, "figure (bands.png)")
     add_model_options(p, run=True)
     add_simulation_options(p, _RUN_SIM_NOTE)
     p.add_argument(
@@ -203,6 +205,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
             args.force,
             md,
             extra_files=_prediction_csvs(pred, obs, trajs),
+            formats=args.formats or ("png",),
         )
         _print_metrics(m, f"held-out metrics on {len(trajs)} trajectories of {args.data}")
         print(
@@ -285,7 +288,16 @@ def run_evaluate(args: argparse.Namespace) -> int:
         for r in results
     }
     write_evaluation(
-        args.out, metrics, band_arrays(pairs), titles, dt, config, args.force, md, extra
+        args.out,
+        metrics,
+        band_arrays(pairs),
+        titles,
+        dt,
+        config,
+        args.force,
+        md,
+        extra,
+        formats=args.formats or ("png",),
     )
     for r in results:
         _print_metrics(r.metrics, f"fold {r.fold} (held out {', '.join(r.test)})")
