@@ -139,8 +139,8 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         "--sampler",
         choices=SBC_SAMPLERS,
         default=_D.sampler,
-        help="smc (default): adaptive tempered SMC from the prior, near-exact draws that keep "
-        "every mode; mh: Adam to the best mode, then random-walk MH chains there (misses other "
+        help="sampler: smc (default): adaptive tempered SMC from the prior, near-exact draws "
+        "that keep every mode; mh: Adam to the best mode, then random-walk MH chains there (misses other "
         "modes); svgd: the SVGD particles themselves",
     )
     p.add_argument(
@@ -211,7 +211,7 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         "--n-traj",
         type=int,
         default=_D.n_traj,
-        metavar="B",
+        metavar="N",
         help="pulls per data set (random 'mixed' force profiles, as `simulate`)",
     )
     p.add_argument(
@@ -231,8 +231,8 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         "the N and 'auto' forms of this option in infer/simulate have no meaning here); not "
         "in the inference model, so SBC is exact only at 0%%",
     )
-    p.add_argument("--duration", type=float, default=_D.duration, help="s per pull")
-    p.add_argument("--dt", type=float, default=_D.dt, help="s between samples")
+    p.add_argument("--duration", type=float, default=_D.duration, metavar="S", help="s per pull")
+    p.add_argument("--dt", type=float, default=_D.dt, metavar="S", help="s between samples")
     p.add_argument(
         "--seed",
         type=int,
@@ -244,6 +244,7 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         "--max-sim-dt",
         type=float,
         default=None,
+        metavar="S",
         help="s, upper bound on the simulation step (default 0.005)",
     )
     p.add_argument(

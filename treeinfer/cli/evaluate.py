@@ -89,8 +89,8 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
         "--grasp-fraction",
         type=float,
         metavar="F",
-        help="where along the grasped branch DIR's data were recorded (default: as the run's "
-        "training data)",
+        help="where along the grasped branch DIR's data were recorded, in (0, 1] (default: as "
+        "the run's training data)",
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")

@@ -27,8 +27,7 @@ LENGTH_UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "µm": 1e-6}
 AUTO = "auto"
 _SPLIT = re.compile(r"^(.*?)([A-Za-zµ%]*)$")  # "2.5mm" -> ("2.5", "mm"); "1e-3" -> ("1e-3", "")
 
-FORCE_NOISE_HELP = "N (0.05 or 0.05N; mN, kN), P%% (of the largest force) or 'auto'"
-DISPLACEMENT_NOISE_HELP = "m (0.002 = 2mm; cm, mm, um)"
+DISPLACEMENT_NOISE_HELP = "m (0.002 or 2mm; cm, um)"
 
 
 def _number_and_unit(text: str, what: str) -> tuple[float, str]:
@@ -214,7 +213,7 @@ class OverwriteOrOldValue(argparse.Action):
         super().__init__(option_strings, dest, nargs="?", const=True, default=False, **kwargs)
 
     def __call__(self, parser, namespace, values, option_string=None):
-        if values is None:
+        if values is None or values is self.const:  # `--force` alone: argparse gives const
             setattr(namespace, self.dest, True)
             return
         number = None

@@ -102,6 +102,7 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--n-traj",
         type=int,
+        metavar="N",
         default=None,
         help="number of trajectories (default 8; with --profile: one per spec)",
     )
@@ -118,8 +119,8 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
     gp.add_argument(
         "--params-json", type=Path, metavar="FILE", help="true parameters from a true_params.json"
     )
-    p.add_argument("--duration", type=float, default=3.0, help="s per trajectory")
-    p.add_argument("--dt", type=float, default=0.01, help="s between samples")
+    p.add_argument("--duration", type=float, default=3.0, metavar="S", help="s per trajectory")
+    p.add_argument("--dt", type=float, default=0.01, metavar="S", help="s between samples")
     gf = p.add_mutually_exclusive_group()
     gf.add_argument(
         "--profiles",

@@ -152,7 +152,7 @@ def configure_suggest(subparsers) -> argparse.ArgumentParser:
         default=None,
         help="folder for suggestions.json/png (default RUN/suggest)",
     )
-    p.add_argument("--force", action="store_true", help="overwrite an earlier suggestions.json")
+    p.add_argument("--force", action="store_true", help="replace an earlier suggestions.json")
     p.add_argument(
         "--allow-large",
         action="store_true",

@@ -95,7 +95,7 @@ def configure_tree(subparsers) -> argparse.ArgumentParser:
     g.add_argument(
         "--grasp-branch",
         dest="grasp",
-        metavar="BRANCH",
+        metavar="NAME",
         help="grasped branch (fractal, lsystem, explicit; a chain is grasped at its tip)",
     )
     g.add_argument(

@@ -62,10 +62,12 @@ def configure_warmup(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--tree", type=Path, required=True, help="tree description (YAML/JSON)")
     p.add_argument(
-        "--n-traj", dest="trajectories", type=int, default=3, metavar="B", help="number of pulls"
+        "--n-traj", dest="trajectories", type=int, default=3, metavar="N", help="number of pulls"
     )
     p.add_argument("--steps", type=int, default=300, metavar="T", help="samples per pull")
-    p.add_argument("--dt", type=float, default=0.01, help="s between samples, as recorded")
+    p.add_argument(
+        "--dt", type=float, default=0.01, metavar="S", help="s between samples, as recorded"
+    )
     p.add_argument(
         "--allow-large",
         action="store_true",
