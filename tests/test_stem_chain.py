@@ -247,7 +247,10 @@ def test_cli_stem_tree_errors(tmp_path, capsys):
     for extra, match in (
         (["--push-heights", "0.1,0.2"], "--kind stem needs --stem-height"),
         ([*STEM_ARGS], r"--kind stem needs --push-heights"),
-        ([*STEM_ARGS, "--push-heights", "0.1", "--grasp-branch", "link0"], "--grasp-branch does not apply"),
+        (
+            [*STEM_ARGS, "--push-heights", "0.1", "--grasp-branch", "link0"],
+            "--grasp-branch does not apply",
+        ),
         ([*STEM_ARGS, "--push-heights", "0.1", "--tie-scale", "-1"], "positive number or 'none'"),
         ([*STEM_ARGS, "--push-heights-from", str(no_pulls)], r"no pulls\.yaml there"),
     ):

@@ -140,8 +140,8 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         choices=SBC_SAMPLERS,
         default=_D.sampler,
         help="sampler: smc (default): adaptive tempered SMC from the prior, near-exact draws "
-        "that keep every mode; mh: Adam to the best mode, then random-walk MH chains there (misses other "
-        "modes); svgd: the SVGD particles themselves",
+        "that keep every mode; mh: Adam to the best mode, then random-walk MH chains there "
+        "(misses other modes); svgd: the SVGD particles themselves",
     )
     p.add_argument(
         "--smc-particles",
