@@ -225,7 +225,7 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--noise-force",
         type=force_noise,
-        default=0.0,
+        default="0%",
         metavar="P%",
         help="force noise on the recorded forces: P%% of each data set's largest force (2%%; "
         "the N and 'auto' forms of this option in infer/simulate have no meaning here); not "

@@ -37,7 +37,7 @@ from .common import (
     check_simulation_options,
 )
 from .infer import INFER_DEFAULTS
-from .options import add_formats_option, displacement_noise, refuse_noise_form
+from .options import add_formats_option, displacement_noise, figure_names, refuse_noise_form
 
 DEMO_NOISE = 0.002  # m: the pulls' noise with a generative likelihood and no --noise-displacement
 DEMO_ITERATIONS = 300
@@ -365,6 +365,6 @@ def run_demo(args: argparse.Namespace) -> int:
     print(
         f"wrote {out}/ (data/train, data/test, run/, evaluation/, demo.json); see "
         f"{out}/run/plots and "
-        f"{out}/evaluation/bands.png"
+        f"{out}/evaluation/{figure_names('bands', args.formats)}"
     )
     return EXIT_OK

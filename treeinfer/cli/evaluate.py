@@ -41,7 +41,7 @@ from .common import (
     check_simulation_options,
     simulator_for_run,
 )
-from .options import add_formats_option
+from .options import add_formats_option, figure_names
 
 # ==== evaluate ====================================================================================
 _EVALUATE_EPILOG = """\
@@ -209,7 +209,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
         )
         _print_metrics(m, f"held-out metrics on {len(trajs)} trajectories of {args.data}")
         print(
-            f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json, "
+            f"wrote {args.out}/ (metrics.json, metrics.md, {figure_names('bands', args.formats)}, "
+            "config.json, "
             "<recording>_prediction.csv per recording)"
         )
         return EXIT_OK
@@ -309,7 +310,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         f"{mean['predictive_nll_per_point']:.3g} nats/point"
     )
     print(
-        f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json, "
-        "fold_*_particles.csv)"
+        f"wrote {args.out}/ (metrics.json, metrics.md, {figure_names('bands', args.formats)}, "
+        "config.json, fold_*_particles.csv)"
     )
     return EXIT_OK

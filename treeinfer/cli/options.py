@@ -119,6 +119,12 @@ def add_formats_option(p: argparse.ArgumentParser, what: str = "figures") -> Non
     )
 
 
+def figure_names(stem: str, formats) -> str:
+    """``bands.png`` or ``bands.{png,pdf}``: the figure files a command wrote, for its report."""
+    fmts = list(formats or ("png",))
+    return f"{stem}.{fmts[0]}" if len(fmts) == 1 else f"{stem}.{{{','.join(fmts)}}}"
+
+
 def noise_form(value) -> str:
     """The form of a parsed noise value: ``"auto"``, ``"%"`` or ``"number"``."""
     if value == AUTO:

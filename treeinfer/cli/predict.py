@@ -35,7 +35,7 @@ from .common import (
     check_simulation_options,
     simulator_for_run,
 )
-from .options import OverwriteOrOldValue, add_deprecated, add_formats_option
+from .options import OverwriteOrOldValue, add_deprecated, add_formats_option, figure_names
 
 # ==== predict =====================================================================================
 _PREDICT_EPILOG = """\
@@ -280,5 +280,8 @@ def run_predict(args: argparse.Namespace) -> int:
             f"  {100 * float(fraction_outside(lower, upper, prof.displacement)):.1f}% of the "
             "recorded displacement lies outside the band"
         )
-    print(f"wrote {args.out}/ (prediction.csv, prediction.png, config.json)")
+    print(
+        f"wrote {args.out}/ (prediction.csv, {figure_names('prediction', args.formats)}, "
+        "config.json)"
+    )
     return EXIT_OK
