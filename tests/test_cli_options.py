@@ -301,3 +301,12 @@ def test_tree_error_names_the_new_flag(tmp_path):
         tmp_path / "t.yaml",
     )  # fmt: skip
     assert rc == 2 and "--lsystem-iterations does not apply" in err, err
+
+
+def test_noise_displacement_auto_is_the_default_where_there_is_one(tmp_path):
+    """`suggest --noise-displacement auto` is the run's noise model (the default): the command
+    goes on to read the run; 0 is refused naming the new flag."""
+    rc, out, err = _main("suggest", "--run", tmp_path / "norun", "--noise-displacement", "auto")
+    assert rc == 2 and "norun" in err and "--noise-displacement" not in err, err
+    rc, out, err = _main("suggest", "--run", tmp_path / "norun", "--noise-displacement", "0")
+    assert rc == 2 and "--noise-displacement: must be a positive number of metres" in err, err
