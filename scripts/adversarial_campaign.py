@@ -476,7 +476,7 @@ def _hangs() -> list[Case]:
         "calibrate --particles 1e9": ["calibrate", "--tree", "tree.yaml", "--out", "c", "--particles", "1000000000", "--smc-particles", "1000000000"],
         "calibrate --n-traj 1e7": ["calibrate", "--tree", "tree.yaml", "--out", "c", "--n-traj", "10000000"],
         "warmup --steps 1e9": ["warmup", "--tree", "tree.yaml", "--steps", "1000000000"],
-        "warmup --trajectories 1e8": ["warmup", "--tree", "tree.yaml", "--trajectories", "100000000"],
+        "warmup --n-traj 1e8": ["warmup", "--tree", "tree.yaml", "--n-traj", "100000000"],
         "warmup -- --particles 1e9": ["warmup", "--tree", "tree.yaml", "--", "--particles", "1000000000"],
         "suggest --particles 1e9": ["suggest", "--run", "run", "--particles", "1000000000"],
         "tree fractal depth 25": ["tree", "--kind", "fractal", "--depth", "25", "--out", "f.yaml"],

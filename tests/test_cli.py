@@ -334,7 +334,7 @@ def test_tree_levels_and_bounds_on_conversion(capsys, tmp_path):
             ["lengths has 3 values, expected 2"],
         ),
         (
-            ["--kind", "lsystem", "--axiom", "F", "--rule", "FF", "--iterations", "1"],
+            ["--kind", "lsystem", "--axiom", "F", "--rule", "FF", "--lsystem-iterations", "1"],
             ["--rule 'FF'"],
         ),
         (
@@ -352,7 +352,7 @@ def test_tree_levels_and_bounds_on_conversion(capsys, tmp_path):
             ],
             ["probability"],
         ),
-        (["--kind", "fractal", "--grasp", "nope"], ["unknown branch 'nope'"]),
+        (["--kind", "fractal", "--grasp-branch", "nope"], ["unknown branch 'nope'"]),
         (["--from", "MISSING.yaml"], ["MISSING.yaml", "no such file"]),
         (
             ["--from", str(EXAMPLES / "two_branch.yaml"), "--kind", "fractal"],

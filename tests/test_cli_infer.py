@@ -87,6 +87,8 @@ def run_dir(demo):
                 "--reinit-stragglers",
                 "0",  # as the demo's --quick
                 *QUICK,
+                "--formats",  # every figure also as SVG (issue 29; not part of the results)
+                "png,svg",
             ]
         )
     assert rc == 0, err.getvalue()
@@ -310,9 +312,11 @@ def test_infer_run_folder(run_dir, demo):
         assert post.mean[lab] == pytest.approx(s["posterior"][lab]["mean"], rel=1e-9)
         assert post.interval().loc[lab, "lower"] == pytest.approx(s["posterior"][lab]["lower"])
     assert post.sample(100, rng=0)["Kp[child]"].shape == (100,)
-    assert {p.name for p in (out / "plots").iterdir()} == {
-        "trace.png", "pairs.png", "bands_train.png"
+    assert {p.name for p in (out / "plots").iterdir()} == {  # the fixture's --formats png,svg
+        f"{stem}.{ext}" for stem in ("trace", "pairs", "bands_train") for ext in ("png", "svg")
     }  # fmt: skip
+    for stem in ("trace", "pairs", "bands_train"):
+        assert b"<svg" in (out / "plots" / f"{stem}.svg").read_bytes()[:2000]
     # same data, settings and seed as the demo's run: the same particles
     with np.load(demo[0] / "run" / "trace.npz") as z:
         assert np.array_equal(z["theta"], theta)
@@ -527,6 +531,31 @@ def test_predict_trajectory_and_force_only_csv(run_dir, demo, tmp_path, capsys):
     assert rc == 0, err
     _, c = _prediction(tmp_path / "p3")
     assert c.shape == (40, 6) and c[-1, 1] == 5.0
+
+
+def test_predict_and_evaluate_write_every_format_asked(run_dir, demo, tmp_path, capsys):
+    """--formats (issue 29): each figure in every format listed, and only those."""
+    test = demo[0] / "data" / "test"
+    rc, stdout, err = run(
+        capsys, "predict", "--run", run_dir[0], "--force-csv", test / "traj_002.csv",
+        "--out", tmp_path / "p", "--formats", "pdf",
+    )  # fmt: skip
+    assert rc == 0, err
+    assert (tmp_path / "p" / "prediction.pdf").read_bytes()[:5] == b"%PDF-"
+    assert not (tmp_path / "p" / "prediction.png").exists()
+    assert "prediction.pdf" in stdout
+    rc, stdout, err = run(
+        capsys, "evaluate", "--run", run_dir[0], "--data", test, "--out", tmp_path / "e",
+        "--formats", "png,svg,pdf",
+    )  # fmt: skip
+    assert rc == 0, err
+    for ext in ("png", "svg", "pdf"):
+        assert (tmp_path / "e" / f"bands.{ext}").stat().st_size > 0
+    assert "bands.{png,svg,pdf}" in stdout
+    rc, _, err = run(capsys, "evaluate", "--run", run_dir[0], "--data", test, "--out",
+                     tmp_path / "e2", "--formats", "jpg")  # fmt: skip
+    assert rc == 2 and "--formats" in err and "png,pdf,svg" in err
+    assert not (tmp_path / "e2").exists()
 
 
 def test_predict_errors(run_dir, tmp_path, capsys):

@@ -78,7 +78,7 @@ def test_a_new_data_set_of_the_bucket_compiles_nothing(data, tmp_path):
 def test_warmup_fills_the_cache_for_a_field_run(data, tmp_path):
     cache = tmp_path / "cache"
     r = subprocess.run(
-        [sys.executable, "-m", "treeinfer", "warmup", "--tree", TREE, "--trajectories", "2",
+        [sys.executable, "-m", "treeinfer", "warmup", "--tree", TREE, "--n-traj", "2",
          "--steps", "75", "--", *INFER],
         cwd=ROOT, env=_env(cache), capture_output=True, text=True,
     )  # fmt: skip

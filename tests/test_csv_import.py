@@ -361,11 +361,11 @@ def test_cli_import_csv(tmp_path, capsys):
         str(src),
         "--out",
         str(out),
-        "--time",
+        "--time-column",
         "ms",
         "--force-column",
         "g",
-        "--displacement",
+        "--displacement-column",
         "mm",
         "--units",
         "time=ms,force=gf,displacement=mm",
@@ -385,8 +385,8 @@ def test_cli_import_csv(tmp_path, capsys):
     assert "already holds" in capsys.readouterr().err
     assert main(argv + ["--force"]) == 0  # ... unless --force (overwrite, as everywhere)
     capsys.readouterr()
-    bad = ["import-csv", str(src), "--out", str(tmp_path / "e"), "--time", "ms"]
-    bad += ["--force-column", "g", "--displacement", "nope"]
+    bad = ["import-csv", str(src), "--out", str(tmp_path / "e"), "--time-column", "ms"]
+    bad += ["--force-column", "g", "--displacement-column", "nope"]
     assert main(bad) == 2
     err = capsys.readouterr().err
     assert "log.csv, line 1: no displacement column named 'nope'" in err

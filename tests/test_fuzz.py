@@ -120,7 +120,7 @@ TREE_OPTIONS = [
     "--lengths",
     "--radii",
     "--angles",
-    "--iterations",
+    "--lsystem-iterations",
     "--angle",
     "--step-length",
     "--seed",

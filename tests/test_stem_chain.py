@@ -247,7 +247,10 @@ def test_cli_stem_tree_errors(tmp_path, capsys):
     for extra, match in (
         (["--push-heights", "0.1,0.2"], "--kind stem needs --stem-height"),
         ([*STEM_ARGS], r"--kind stem needs --push-heights"),
-        ([*STEM_ARGS, "--push-heights", "0.1", "--grasp", "link0"], "--grasp does not apply"),
+        (
+            [*STEM_ARGS, "--push-heights", "0.1", "--grasp-branch", "link0"],
+            "--grasp-branch does not apply",
+        ),
         ([*STEM_ARGS, "--push-heights", "0.1", "--tie-scale", "-1"], "positive number or 'none'"),
         ([*STEM_ARGS, "--push-heights-from", str(no_pulls)], r"no pulls\.yaml there"),
     ):
@@ -353,11 +356,11 @@ def test_cli_import_tree_infer_evaluate_with_the_stem_chain(tmp_path, capsys):
                 str(path),
                 "--out",
                 str(all_),
-                "--time",
+                "--time-column",
                 "millis",
                 "--force-column",
                 "load_g",
-                "--displacement",
+                "--displacement-column",
                 "pos_mm",
                 "--units",
                 "time=ms,force=gf,displacement=mm",

@@ -28,6 +28,7 @@ from .common import (
     add_backend_option,
     add_command_parser,
 )
+from .options import AUTO, displacement_noise, force_noise, length, refuse_noise_form
 
 _D = SBCConfig()
 
@@ -62,23 +63,15 @@ seed, versions), tree.yaml, plots/rank_histograms.png, plots/coverage.png.
 """
 
 
-def _force_share(text: str) -> float:
-    """``--noise-force P%`` -> the share P / 100. A bare number is refused: in ``infer`` and
-    ``simulate`` it means newtons, and each calibration data set scales its noise to its own
-    peak force, so only the ``P%`` form has one meaning across commands."""
-    t = text.strip()
-    if not t.endswith("%"):
-        raise argparse.ArgumentTypeError(
-            f"give the share of each data set's largest force as P% (e.g. 2%), got {text!r} "
-            "(a bare number means newtons in infer and simulate)"
-        )
-    try:
-        v = float(t[:-1]) / 100.0
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected P% (e.g. 2%), got {text!r}") from None
-    if not 0.0 <= v < 1.0:
-        raise argparse.ArgumentTypeError(f"expected a share in [0%, 100%), got {text!r}")
-    return v
+def _force_share(value) -> float:
+    """Parsed ``--noise-force`` -> the share of each data set's largest force. Only the ``P%``
+    form (or 0, no noise): each calibration data set scales its noise to its own peak force."""
+    refuse_noise_form(
+        value if value not in (0, 0.0) else "0%", "--noise-force", "calibrate", ("%",),
+        "scales the force noise to each data set's largest force: give a share, e.g. 2% "
+        "(newtons and 'auto' are forms of the same option in infer and simulate)",
+    )  # fmt: skip
+    return 0.0 if value in (0, 0.0) else float(value[:-1]) / 100.0
 
 
 def configure_calibrate(subparsers) -> argparse.ArgumentParser:
@@ -115,18 +108,18 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--noise-displacement",
-        type=float,
+        type=displacement_noise,
         default=None,
-        metavar="M",
-        help="displacement noise sigma_x in metres, fixed and known to inference "
-        "(default: drawn from its prior and inferred jointly, as `infer` does)",
+        metavar="M|auto",
+        help="displacement noise sigma_x, m (0.002 or 2mm; cm, um), fixed and known to "
+        "inference; 'auto' (default): drawn from its prior and inferred jointly, as `infer` does",
     )
     p.add_argument(
         "--noise-prior-center",
-        type=float,
+        type=length,
         default=_D.noise_prior_center,
         metavar="M",
-        help="m, centre of the sigma_x prior when it is inferred",
+        help="m (or 2mm), centre of the sigma_x prior when it is inferred",
     )
     p.add_argument(
         "--sigma-prior-scale",
@@ -146,9 +139,9 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         "--sampler",
         choices=SBC_SAMPLERS,
         default=_D.sampler,
-        help="smc (default): adaptive tempered SMC from the prior, near-exact draws that keep "
-        "every mode; mh: Adam to the best mode, then random-walk MH chains there (misses other "
-        "modes); svgd: the SVGD particles themselves",
+        help="sampler: smc (default): adaptive tempered SMC from the prior, near-exact draws "
+        "that keep every mode; mh: Adam to the best mode, then random-walk MH chains there "
+        "(misses other modes); svgd: the SVGD particles themselves",
     )
     p.add_argument(
         "--smc-particles",
@@ -218,7 +211,7 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         "--n-traj",
         type=int,
         default=_D.n_traj,
-        metavar="B",
+        metavar="N",
         help="pulls per data set (random 'mixed' force profiles, as `simulate`)",
     )
     p.add_argument(
@@ -231,15 +224,15 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--noise-force",
-        type=_force_share,
-        default=0.0,
+        type=force_noise,
+        default="0%",
         metavar="P%",
-        help="force noise on the recorded forces, P%% of each data set's largest force (the "
-        "'P%%' form of infer's --noise-force; e.g. 2%%); not in the inference model, so SBC is "
-        "exact only at 0%%",
+        help="force noise on the recorded forces: P%% of each data set's largest force (2%%; "
+        "the N and 'auto' forms of this option in infer/simulate have no meaning here); not "
+        "in the inference model, so SBC is exact only at 0%%",
     )
-    p.add_argument("--duration", type=float, default=_D.duration, help="s per pull")
-    p.add_argument("--dt", type=float, default=_D.dt, help="s between samples")
+    p.add_argument("--duration", type=float, default=_D.duration, metavar="S", help="s per pull")
+    p.add_argument("--dt", type=float, default=_D.dt, metavar="S", help="s between samples")
     p.add_argument(
         "--seed",
         type=int,
@@ -251,6 +244,7 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
         "--max-sim-dt",
         type=float,
         default=None,
+        metavar="S",
         help="s, upper bound on the simulation step (default 0.005)",
     )
     p.add_argument(
@@ -271,6 +265,8 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
 
 
 def _config_from_args(args) -> SBCConfig:
+    if args.noise_displacement == AUTO:  # the default, said out loud
+        args.noise_displacement = None
     if args.max_sim_dt is not None and not (math.isfinite(args.max_sim_dt) and args.max_sim_dt > 0):
         raise ConfigError(
             f"--max-sim-dt: must be a positive number of seconds, got {args.max_sim_dt:g}"
@@ -306,7 +302,7 @@ def _config_from_args(args) -> SBCConfig:
         chunk=args.chunk,
         backend=args.backend,
         test_traj=args.test_traj,
-        noise_force=args.noise_force,
+        noise_force=_force_share(args.noise_force),
     )
     try:
         return cfg.check()

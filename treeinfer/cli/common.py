@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 import textwrap
 import time
@@ -59,6 +60,16 @@ class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaults
     def __init__(self, prog, indent_increment=2, max_help_position=30, width=_WIDTH):
         super().__init__(prog, indent_increment, max_help_position, width)
 
+    def _format_args(self, action, default_metavar):
+        if getattr(action, "shown_as_flag", False):  # predict's --force (cli.options)
+            return ""
+        return super()._format_args(action, default_metavar)
+
+    def _format_action_invocation(self, action):
+        if getattr(action, "shown_as_flag", False):
+            return ", ".join(action.option_strings)
+        return super()._format_action_invocation(action)
+
     def _get_help_string(self, action):
         d = action.default
         if d is None or d is False or d is argparse.SUPPRESS or "%(default)" in (action.help or ""):
@@ -85,8 +96,8 @@ EXPERT_HEADING = "expert options"
 # What `treeinfer COMMAND --help` shows first, per command: the options of the everyday job; the
 # rest go under EXPERT_HEADING (see group_options). Every option keeps working either way.
 COMMON_OPTIONS: dict[str, tuple[str, ...]] = {
-    "tree": ("--out", "--kind", "--from", "--model", "--grasp", "--grasp-fraction", "--levels",
-             "--kp-bounds", "--kd-bounds", "--mjcf", "--urdf", "--force"),
+    "tree": ("--out", "--kind", "--from", "--model", "--grasp-branch", "--grasp-fraction",
+             "--levels", "--kp-bounds", "--kd-bounds", "--mjcf", "--urdf", "--force"),
     "simulate": ("--tree", "--out", "--n-traj", "--seed", "--params", "--params-json",
                  "--duration", "--dt", "--profiles", "--noise-displacement", "--noise-force",
                  "--force"),
@@ -106,7 +117,7 @@ COMMON_OPTIONS: dict[str, tuple[str, ...]] = {
     "calibrate": ("--tree", "--out", "--datasets", "--likelihood", "--noise-displacement",
                   "--noise-force", "--sampler", "--particles", "--iterations", "--n-traj",
                   "--seed", "--force"),
-    "warmup": ("--tree", "--trajectories", "--steps", "--dt"),
+    "warmup": ("--tree", "--n-traj", "--steps", "--dt"),
 }  # fmt: skip
 
 
@@ -138,6 +149,7 @@ def group_options(p: argparse.ArgumentParser, common: Sequence[str]) -> argparse
     formatter = p._get_formatter()
     formatter.add_usage(None, shown, [])
     usage = formatter.format_help().strip().removeprefix("usage:").strip()
+    usage = re.sub(r"(--[\w-]+) \]", r"\1]", usage)  # a flag-like option (predict's --force)
     p.usage = usage.replace("%", "%%") + " [expert options]"
     return p
 

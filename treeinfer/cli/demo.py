@@ -37,6 +37,7 @@ from .common import (
     check_simulation_options,
 )
 from .infer import INFER_DEFAULTS
+from .options import add_formats_option, displacement_noise, figure_names, refuse_noise_form
 
 DEMO_NOISE = 0.002  # m: the pulls' noise with a generative likelihood and no --noise-displacement
 DEMO_ITERATIONS = 300
@@ -106,12 +107,12 @@ def configure_demo(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--noise-displacement",
-        type=float,
+        type=displacement_noise,
         default=None,
         metavar="M",
-        help=f"displacement noise std in m added to the pulls (default {DEMO_NOISE:g} with a "
-        "generative likelihood, none with boltzmann); given to a generative likelihood as a "
-        "fixed sigma_x (otherwise sigma_x is inferred)",
+        help=f"displacement noise std added to the pulls, m (0.002 or 2mm; cm, um) (default "
+        f"{DEMO_NOISE * 1e3:g}mm with a generative likelihood, none with boltzmann); given to a "
+        "generative likelihood as a fixed sigma_x (otherwise sigma_x is inferred)",
     )
     p.add_argument(
         "--reinit-stragglers",
@@ -131,6 +132,7 @@ def configure_demo(subparsers) -> argparse.ArgumentParser:
         "Levenberg-Marquardt MAP fit) or 'uniform' in the prior box (the paper's)",
     )
     add_simulation_options(p)
+    add_formats_option(p, "figures (run/plots, evaluation/bands.png)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -174,6 +176,10 @@ def run_demo(args: argparse.Namespace) -> int:
         reinit = args.reinit_stragglers
     likelihood = args.likelihood
     generative = likelihood != "boltzmann"
+    refuse_noise_form(
+        args.noise_displacement, "--noise-displacement", "demo", ("number",),
+        "adds displacement noise of a size you give, in metres (0.002 or 2mm)",
+    )  # fmt: skip
     data_noise = args.noise_displacement
     if data_noise is not None:
         from ..model.noise import check_sigma
@@ -278,6 +284,7 @@ def run_demo(args: argparse.Namespace) -> int:
         init=args.init,
     )
     config["via"] = "demo"
+    config["figure_formats"] = list(args.formats or ("png",))
     _say(
         f"demo: {sampler} with {particles} particles x {iterations} iterations from a "
         f"{args.init} start, {likelihood} likelihood"
@@ -323,6 +330,7 @@ def run_demo(args: argparse.Namespace) -> int:
         eval_config,
         args.force,
         md,
+        formats=args.formats or ("png",),
     )
     demo = {
         "sizes": {
@@ -357,6 +365,6 @@ def run_demo(args: argparse.Namespace) -> int:
     print(
         f"wrote {out}/ (data/train, data/test, run/, evaluation/, demo.json); see "
         f"{out}/run/plots and "
-        f"{out}/evaluation/bands.png"
+        f"{out}/evaluation/{figure_names('bands', args.formats)}"
     )
     return EXIT_OK

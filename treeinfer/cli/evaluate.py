@@ -41,6 +41,7 @@ from .common import (
     check_simulation_options,
     simulator_for_run,
 )
+from .options import add_formats_option, figure_names
 
 # ==== evaluate ====================================================================================
 _EVALUATE_EPILOG = """\
@@ -88,11 +89,12 @@ def configure_evaluate(subparsers) -> argparse.ArgumentParser:
         "--grasp-fraction",
         type=float,
         metavar="F",
-        help="where along the grasped branch DIR's data were recorded (default: as the run's "
-        "training data)",
+        help="where along the grasped branch DIR's data were recorded, in (0, 1] (default: as "
+        "the run's training data)",
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (--kfold)")
+    add_formats_option(p, "figure (bands.png)")
     add_model_options(p, run=True)
     add_simulation_options(p, _RUN_SIM_NOTE)
     p.add_argument(
@@ -203,10 +205,12 @@ def run_evaluate(args: argparse.Namespace) -> int:
             args.force,
             md,
             extra_files=_prediction_csvs(pred, obs, trajs),
+            formats=args.formats or ("png",),
         )
         _print_metrics(m, f"held-out metrics on {len(trajs)} trajectories of {args.data}")
         print(
-            f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json, "
+            f"wrote {args.out}/ (metrics.json, metrics.md, {figure_names('bands', args.formats)}, "
+            "config.json, "
             "<recording>_prediction.csv per recording)"
         )
         return EXIT_OK
@@ -285,7 +289,16 @@ def run_evaluate(args: argparse.Namespace) -> int:
         for r in results
     }
     write_evaluation(
-        args.out, metrics, band_arrays(pairs), titles, dt, config, args.force, md, extra
+        args.out,
+        metrics,
+        band_arrays(pairs),
+        titles,
+        dt,
+        config,
+        args.force,
+        md,
+        extra,
+        formats=args.formats or ("png",),
     )
     for r in results:
         _print_metrics(r.metrics, f"fold {r.fold} (held out {', '.join(r.test)})")
@@ -297,7 +310,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         f"{mean['predictive_nll_per_point']:.3g} nats/point"
     )
     print(
-        f"wrote {args.out}/ (metrics.json, metrics.md, bands.png, config.json, "
-        "fold_*_particles.csv)"
+        f"wrote {args.out}/ (metrics.json, metrics.md, {figure_names('bands', args.formats)}, "
+        "config.json, fold_*_particles.csv)"
     )
     return EXIT_OK

@@ -15,6 +15,7 @@ from .common import (
     add_command_parser,
     add_grasp_point_options,
 )
+from .options import add_deprecated
 
 # ==== import-bag ==================================================================================
 _IMPORT_BAG_EPILOG = """\
@@ -58,7 +59,13 @@ def _dt_or_source(text: str):
 def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``import-bag`` arguments to ``parser`` (a subcommand parser)."""
     parser.add_argument("bag", help="ROS1 .bag file or ROS2 bag folder")
-    parser.add_argument("--out", required=True, help="output folder for the trajectory CSVs")
+    parser.add_argument(
+        "--out",
+        required=True,
+        type=Path,
+        metavar="DIR",
+        help="output folder for the trajectory CSVs",
+    )
     parser.add_argument("--force-topic", help="WrenchStamped/Wrench topic (auto-detected)")
     parser.add_argument(
         "--pose-topic", help="PoseStamped/TransformStamped/TF topic (auto-detected)"
@@ -122,7 +129,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
         help="drop excursions peaking below F of the largest pull as blips (0.2)",
     )
     parser.add_argument(
-        "--displacement",
+        "--displacement-mode",
+        dest="displacement",
         choices=("projection", "distance"),
         default="projection",
         help="projection on the pull direction (default) or distance from the rest pose",
@@ -136,6 +144,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
     )
     add_grasp_point_options(parser)
     parser.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    add_deprecated(
+        parser,
+        "--displacement",
+        "--displacement-mode",
+        "--displacement-column names a column in import-csv",
+    )
     return parser
 
 

@@ -6,18 +6,20 @@ from __future__ import annotations
 
 import argparse
 import warnings
+from pathlib import Path
 
 from ..data.import_csv import import_csv
 from .common import COMMAND_HELP, EXIT_OK, add_command_parser, add_grasp_point_options
+from .options import add_deprecated
 
 _IMPORT_CSV_EPILOG = """\
 examples:
-  treeinfer import-csv log_low.csv --out data/stem --time millis --force-column load_g \\
-      --displacement pos_mm --units time=ms,force=gf,displacement=mm --dt 0.5 --tare \\
+  treeinfer import-csv log_low.csv --out data/stem --time-column millis --force-column load_g \\
+      --displacement-column pos_mm --units time=ms,force=gf,displacement=mm --dt 0.5 --tare \\
       --zero-displacement contact --trim --grasp-branch link0 --grasp-distance 0.12 \\
       --direction horizontal
-  treeinfer import-csv a.csv b.csv --out data/x --force-column 1 --displacement 2 \\
-      --time none --dt 0.01
+  treeinfer import-csv a.csv b.csv --out data/x --force-column 1 --displacement-column 2 \\
+      --time-column none --dt 0.01
 
 Each source becomes OUT/<name>.csv (time,force,displacement in s, N, m on a uniform grid) and
 an entry in OUT/pulls.yaml (grasp point and direction); run it once per grasp point into the
@@ -41,9 +43,10 @@ def configure_import_csv(subparsers) -> argparse.ArgumentParser:
         epilog=_IMPORT_CSV_EPILOG,
     )
     p.add_argument("sources", nargs="+", metavar="SRC", help="logger CSV file(s), one pull each")
-    p.add_argument("--out", required=True, metavar="DIR", help="data folder to write into")
     p.add_argument(
-        "--time",
+        "--out", required=True, type=Path, metavar="DIR", help="data folder to write into"
+    )
+    p.add_argument(
         "--time-column",
         dest="time",
         type=_column,
@@ -56,15 +59,14 @@ def configure_import_csv(subparsers) -> argparse.ArgumentParser:
         dest="force_col",
         default="force",
         metavar="COL",
-        help="force column (name or index); --force means overwrite, as everywhere",
+        help="force column, by header name or 0-based index (--force means overwrite)",
     )
     p.add_argument(
-        "--displacement",
         "--displacement-column",
         dest="displacement",
         default="displacement",
         metavar="COL",
-        help="displacement column",
+        help="displacement column, by header name or 0-based index",
     )
     p.add_argument("--units", metavar="Q=U,...", help="e.g. time=ms,force=gf,displacement=mm")
     p.add_argument(
@@ -85,6 +87,8 @@ def configure_import_csv(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--direction", metavar="D", help="down | horizontal | X,Y,Z (pulls.yaml)")
     p.add_argument("--delimiter", metavar="C", help="field separator (default: sniffed)")
     p.add_argument("--force", action="store_true", help="replace same-named CSVs in DIR")
+    add_deprecated(p, "--time", "--time-column")
+    add_deprecated(p, "--displacement", "--displacement-column")
     return p
 
 

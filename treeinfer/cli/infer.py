@@ -38,6 +38,7 @@ from .infer_options import (
     _check_meaning_changed,
     _kT_arg,
 )
+from .options import AUTO, add_formats_option, displacement_noise, force_noise
 
 # ==== infer =======================================================================================
 _INFER_EPILOG = """\
@@ -115,25 +116,26 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--noise-displacement",
-        type=float,
-        metavar="M",
-        help="displacement noise sigma_x in metres for --likelihood gaussian/student_t/ar1 "
-        "(default: inferred jointly under a weakly-informative prior, log sigma_x flat from the "
-        "sensor's resolution (step/sqrt(12) of a quantised recording, else 1 micron) to the "
-        "range of the data: clean and noisy recordings fit without it) or for --kT auto "
-        "(default: estimated from the data, at the native rate of an upsampled stream); must be "
-        "positive and below the data's range",
+        type=displacement_noise,
+        metavar="M|auto",
+        help="displacement noise sigma_x, m (0.002 or 2mm; cm, um), for --likelihood "
+        "gaussian/student_t/ar1 or for --kT auto; 'auto' (default): inferred jointly under a "
+        "weakly-informative prior, log sigma_x flat from the sensor's resolution (step/sqrt(12) "
+        "of a quantised recording, else 1 micron) to the range of the data (--kT auto: "
+        "estimated from the data, at the native rate of an upsampled stream); must be positive "
+        "and below the data's range",
     )
     p.add_argument(
         "--noise-force",
+        type=force_noise,
         metavar="N|P%|auto",
         help="noise std of the RECORDED force per sample, as an errors-in-variables term "
-        "(--likelihood gaussian only): newtons, P%% of the largest recorded |force|, or 'auto' "
-        "(estimated from the force's high-frequency residual, floored at step/sqrt(12) for a "
-        "quantised load cell, at the native rate of an upsampled stream); must be positive and "
-        "below the largest recorded force; predictive bands then include it (default: 'auto' "
-        "with --likelihood gaussian where the force noise can be estimated, else off; see "
-        "treeinfer.model.force_noise)",
+        "(--likelihood gaussian only): N (0.05 or 0.05N; mN, kN), P%% of the largest recorded "
+        "|force| (2%%), or 'auto' (estimated from the force's high-frequency residual, floored "
+        "at step/sqrt(12) for a quantised load cell, at the native rate of an upsampled stream); "
+        "must be positive and below the largest recorded force; predictive bands then include "
+        "it (default: 'auto' with --likelihood gaussian where the force noise can be estimated, "
+        "else off; see treeinfer.model.force_noise)",
     )
     p.add_argument(
         "--noise-velocity",
@@ -299,6 +301,7 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     add_model_options(p)
     add_simulation_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_formats_option(p, "run's figures (plots/)")
     p.add_argument(
         "--allow-poor-fit",
         action="store_true",
@@ -339,6 +342,8 @@ def run_infer(args: argparse.Namespace) -> int:
     _check_share(args.max_unstable_share)
     progress = not args.no_progress
     holder: dict[str, Any] = {}
+    if args.noise_displacement == AUTO:  # the default, said out loud
+        args.noise_displacement = None
     if args.resume is not None:
         given = [flag for dest, flag in _RUN_OPTIONS.items() if getattr(args, dest) is not None]
         if given:
@@ -392,6 +397,8 @@ def run_infer(args: argparse.Namespace) -> int:
             inputs=inputs,
             **o,
         )
+        # the figures' formats, read by runs.save_run (kept in the config for --resume)
+        config["figure_formats"] = list(args.formats or ("png",))
         plan = f"{o['sampler']} ({o['particles']} particles x {o['iterations']} iterations)"
         if o.get("init") in ("auto", "importance"):  # the sampler runs if the weights fail
             plan = f"importance sampling ({o['particles']} particles), else {plan}"

@@ -60,6 +60,7 @@ _RUN_OPTIONS = {
     "tie": "--tie",
     "tie_scale": "--tie-scale",
     "shape_buckets": "--shape-buckets",
+    "formats": "--formats",
 }
 
 

@@ -35,6 +35,7 @@ from .common import (
     check_simulation_options,
     simulator_for_run,
 )
+from .options import OverwriteOrOldValue, add_deprecated, add_formats_option, figure_names
 
 # ==== predict =====================================================================================
 _PREDICT_EPILOG = """\
@@ -92,12 +93,12 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--force",
         dest="force_flag",
-        nargs="?",
-        const=True,
-        default=False,
-        metavar="FORCE.csv",
-        help="replace a non-empty output folder, as in every command (`--force FILE`, the old "
-        "spelling of --force-csv FILE, still works but is deprecated)",
+        action=OverwriteOrOldValue,
+        old_dest="force_file",
+        old_flag="--force-csv",
+        metavar="",
+        help="replace a non-empty output folder, as in every command (the old `--force FILE` is "
+        "read as --force-csv FILE, with a deprecation message)",
     )
     add_model_options(p, run=True)
     add_simulation_options(p, _RUN_SIM_NOTE)
@@ -107,27 +108,17 @@ def configure_predict(subparsers) -> argparse.ArgumentParser:
         help="use the run even if its files changed since `infer` wrote them (checksums in its "
         "config.json); recorded in the output",
     )
-    p.add_argument("--overwrite", action="store_true", help="same as --force")
+    add_formats_option(p, "figure (prediction.png)")
+    add_deprecated(p, "--overwrite", "--force")
     return p
 
 
 def _resolve_force_options(args: argparse.Namespace) -> bool:
-    """``--force FILE`` (deprecated) -> ``--force-csv FILE``; returns whether to overwrite."""
-    overwrite = bool(args.overwrite)
-    if isinstance(args.force_flag, str):
-        if args.force_file is not None:
-            raise ConfigError("give the force file once: --force-csv FILE")
-        print(
-            f"warning: `--force {args.force_flag}` is deprecated: write `--force-csv "
-            f"{args.force_flag}`; --force alone means overwrite, as in every other command",
-            file=sys.stderr,
-        )
-        args.force_file = Path(args.force_flag)
-    elif args.force_flag:
-        overwrite = True
+    """Exactly one force source; returns whether to overwrite (``--force``; the old ``--force
+    FILE`` was turned into ``--force-csv FILE`` while parsing, :class:`OverwriteOrOldValue`)."""
     if (args.force_file is None) == (args.profile is None):
         raise ConfigError("give exactly one of --force-csv FILE and --profile SPEC")
-    return overwrite
+    return bool(args.force_flag)
 
 
 def _compare_check(args: argparse.Namespace, run, grasp):
@@ -276,7 +267,7 @@ def run_predict(args: argparse.Namespace) -> int:
             samples=pred.tau[pred.valid, 0],
             title=f"{prof.source}: 95% {band_name}, {int(pred.valid.sum())} particles",
         )
-        save_figure(fig, stage / "prediction.png")
+        save_figure(fig, stage / "prediction.png", formats=args.formats)
         runs.write_json(stage / "config.json", config)
     peak = float(np.max(np.abs(mean)))
     print(
@@ -289,5 +280,8 @@ def run_predict(args: argparse.Namespace) -> int:
             f"  {100 * float(fraction_outside(lower, upper, prof.displacement)):.1f}% of the "
             "recorded displacement lies outside the band"
         )
-    print(f"wrote {args.out}/ (prediction.csv, prediction.png, config.json)")
+    print(
+        f"wrote {args.out}/ (prediction.csv, {figure_names('prediction', args.formats)}, "
+        "config.json)"
+    )
     return EXIT_OK

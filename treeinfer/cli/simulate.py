@@ -52,6 +52,12 @@ from .common import (
     check_simulation_options,
     print_model_report,
 )
+from .options import (
+    DISPLACEMENT_NOISE_HELP,
+    displacement_noise,
+    force_noise,
+    refuse_noise_form,
+)
 
 # ==== simulate ====================================================================================
 _SIMULATE_EPILOG = """\
@@ -96,6 +102,7 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--n-traj",
         type=int,
+        metavar="N",
         default=None,
         help="number of trajectories (default 8; with --profile: one per spec)",
     )
@@ -112,8 +119,8 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
     gp.add_argument(
         "--params-json", type=Path, metavar="FILE", help="true parameters from a true_params.json"
     )
-    p.add_argument("--duration", type=float, default=3.0, help="s per trajectory")
-    p.add_argument("--dt", type=float, default=0.01, help="s between samples")
+    p.add_argument("--duration", type=float, default=3.0, metavar="S", help="s per trajectory")
+    p.add_argument("--dt", type=float, default=0.01, metavar="S", help="s between samples")
     gf = p.add_mutually_exclusive_group()
     gf.add_argument(
         "--profiles",
@@ -137,17 +144,18 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--noise-force",
-        type=float,
+        type=force_noise,
         default=0.0,
         metavar="SIGMA",
-        help="N, Gaussian noise added to the force",
+        help="Gaussian noise added to the force: N (0.05 or 0.05N; mN, kN) or P%% of the "
+        "largest force of the profiles (2%%)",
     )
     p.add_argument(
         "--noise-displacement",
-        type=float,
+        type=displacement_noise,
         default=0.0,
         metavar="SIGMA",
-        help="m, Gaussian noise added to the displacement",
+        help=f"Gaussian noise added to the displacement: {DISPLACEMENT_NOISE_HELP}",
     )
     p.add_argument(
         "--grasp-fraction",
@@ -178,13 +186,13 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
             f"--n-traj {args.n_traj} disagrees with the {len(args.profile)} --profile spec(s) "
             "(one trajectory each)"
         )
-    from ..model.noise import check_sigma
-
-    for flag, v in (
-        ("--noise-force", args.noise_force),
-        ("--noise-displacement", args.noise_displacement),
-    ):
-        check_sigma(v, flag, allow_zero=True)  # 0: no noise
+    refuse_noise_form(args.noise_force, "--noise-force", "simulate", ("number", "%"),
+                      "adds force noise of a size you give: newtons (0.05N) or a share of the "
+                      "largest force of the profiles (2%); 'auto' estimates a RECORDED force's "
+                      "noise (infer)")  # fmt: skip
+    refuse_noise_form(args.noise_displacement, "--noise-displacement", "simulate", ("number",),
+                      "adds displacement noise of a size you give, in metres (0.002 or 2mm); "
+                      "'auto' is for commands that infer it")  # fmt: skip
     if args.grasp_fraction is not None and not (0.0 < args.grasp_fraction <= 1.0):
         raise ConfigError(
             "--grasp-fraction: must be in (0, 1] (a fraction of the branch length), got "
@@ -229,6 +237,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         )
     forces = np.stack([from_spec(s, args.duration, args.dt) for s in specs])  # [B, T]
     assert forces.shape[1] == n_t
+    args.noise_force_N = _noise_force_newtons(args.noise_force, forces)
 
     _prepare_jax()
     rollout, sim = simulate_batch(
@@ -256,7 +265,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         )
     _check_noise_against_data(args, forces, np.asarray(rollout.tau)[0])
     trajs = synthetic_trajectories(
-        rollout, forces, args.dt, names, args.noise_force, args.noise_displacement, rng_noise
+        rollout, forces, args.dt, names, args.noise_force_N, args.noise_displacement, rng_noise
     )
     source = (
         "drawn (default_true_params)"
@@ -285,6 +294,14 @@ def run_simulate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _noise_force_newtons(value, forces) -> float:
+    """--noise-force in newtons: ``P%`` is P% of the largest |force| of the profiles (the
+    data set's largest force, as `infer --noise-force P%` reads the written data)."""
+    if isinstance(value, str):  # "P%" (refuse_noise_form refused "auto")
+        return float(value[:-1]) / 100.0 * float(np.max(np.abs(forces)))
+    return float(value)
+
+
 def _check_noise_against_data(args, forces, tau) -> None:
     """Noise larger than what it is added to is a unit mistake: --noise-force above the
     largest |force| of the profiles, --noise-displacement above the simulated displacement's
@@ -292,7 +309,7 @@ def _check_noise_against_data(args, forces, tau) -> None:
     from ..model.noise import check_sigma
 
     check_sigma(
-        args.noise_force,
+        args.noise_force_N,
         "--noise-force",
         float(np.max(np.abs(forces))),
         allow_zero=True,

@@ -18,6 +18,7 @@ from .common import (
     add_command_parser,
     add_run_option,
 )
+from .options import AUTO, add_deprecated, displacement_noise
 
 # ==== suggest =====================================================================================
 _SUGGEST_EPILOG = """\
@@ -34,8 +35,8 @@ displacement sensitivities J by central differences (all candidates x particles 
 simulator call: particles x 2D x candidates rollouts). With --target grasp=G,peak=F[,kind=K]:
 the expected reduction of the linearised predictive variance of that manipulation; with
 --parameter: of one parameter's posterior variance. sigma_x: the run's noise model, else the
-noise its kT stands for (see --sigma-x). Writes suggestions.json and suggestions.png to --out
-(default RUN/suggest).
+noise its kT stands for (see --noise-displacement). Writes suggestions.json and suggestions.png
+to --out (default RUN/suggest).
 """
 
 
@@ -116,11 +117,13 @@ def configure_suggest(subparsers) -> argparse.ArgumentParser:
         help="score by the variance reduction of one parameter, e.g. Kd[branch1]",
     )
     p.add_argument(
-        "--sigma-x",
-        type=float,
+        "--noise-displacement",
+        dest="sigma_x",
+        type=displacement_noise,
         default=None,
-        metavar="M",
-        help="displacement noise std in m (default: the run's noise model or its kT)",
+        metavar="M|auto",
+        help="displacement noise std sigma_x, m (0.002 or 2mm; cm, um); 'auto' (default): the "
+        "run's noise model or the noise its kT stands for",
     )
     p.add_argument(
         "--duration",
@@ -137,19 +140,25 @@ def configure_suggest(subparsers) -> argparse.ArgumentParser:
         help="posterior particles the sensitivities are taken at",
     )
     p.add_argument("--top", type=int, default=10, help="rows of the ranked table to print")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the particle subsample and the nested Monte Carlo noise",
+    )
     p.add_argument(
         "--out",
         type=Path,
         default=None,
         help="folder for suggestions.json/png (default RUN/suggest)",
     )
-    p.add_argument("--force", action="store_true", help="overwrite an earlier suggestions.json")
+    p.add_argument("--force", action="store_true", help="replace an earlier suggestions.json")
     p.add_argument(
         "--allow-large",
         action="store_true",
         help="go past the size limit (treeinfer.io.limits) checked before any work",
     )
+    add_deprecated(p, "--sigma-x", "--noise-displacement", "the same quantity in every command")
     return p
 
 
@@ -175,8 +184,12 @@ def _refuse_stiffness_only(run) -> None:
 def run_suggest(args: argparse.Namespace) -> int:
     check_command_size("suggest", args)  # before any work
     target = parse_target(args.target) if args.target else None
+    if args.sigma_x == AUTO:  # the default, said out loud
+        args.sigma_x = None
     if args.sigma_x is not None and not args.sigma_x > 0:
-        raise ConfigError(f"--sigma-x: must be a positive number of metres, got {args.sigma_x}")
+        raise ConfigError(
+            f"--noise-displacement: must be a positive number of metres, got {args.sigma_x:g}"
+        )
     _refuse_stiffness_only(args.run)
     _prepare_jax()
     out = args.out if args.out is not None else args.run / "suggest"

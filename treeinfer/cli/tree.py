@@ -15,6 +15,7 @@ from .common import (
     add_command_parser,
     add_model_options,
 )
+from .options import add_deprecated
 from .tree_build import _GENERATOR_OPTIONS, _NO_TIE_SCALE, run_tree  # noqa: F401 (run_tree: the command table)
 
 # ==== tree ========================================================================================
@@ -23,12 +24,12 @@ examples:
   treeinfer tree --kind fractal --depth 2 --branching 2 --base-pitch 20 --out fractal.yaml \\
       --mjcf fractal.xml
   treeinfer tree --kind chain --n 3 --lengths 0.7,0.6,0.5 --radii 0.03,0.02,0.014 --out chain.yaml
-  treeinfer tree --kind lsystem --axiom F --rule 'F=F[+F]F[-F]' --iterations 2 --angle 25 \\
-      --out ls.yaml
+  treeinfer tree --kind lsystem --axiom F --rule 'F=F[+F]F[-F]' --lsystem-iterations 2 \\
+      --angle 25 --out ls.yaml
   treeinfer tree --from two_branch.yaml --grasp-fraction 0.5 --out two_branch.json \\
       --urdf two_branch.urdf
   treeinfer tree --from fractal.yaml --kind fractal --depth 3 --out deeper.yaml   # re-generate
-  treeinfer tree --model my_tree.urdf --grasp link_7 --levels 2 --out my_tree.yaml  # your model
+  treeinfer tree --model my_tree.urdf --grasp-branch link_7 --levels 2 --out t.yaml  # your model
   treeinfer tree --from my_tree.yaml --model my_tree.urdf --repair-inertia geometry --out t.yaml
   treeinfer tree --kind stem --stem-height 0.4 --base-diameter 0.010 --tip-diameter 0.006 \
       --push-heights 0.12,0.24,0.36 --out stem.yaml
@@ -92,8 +93,9 @@ def configure_tree(subparsers) -> argparse.ArgumentParser:
     g = p.add_argument_group("grasp and inference (all kinds)")
     g.add_argument("--name", dest="tree_name", metavar="NAME", help="the tree's name")
     g.add_argument(
-        "--grasp",
-        metavar="BRANCH",
+        "--grasp-branch",
+        dest="grasp",
+        metavar="NAME",
         help="grasped branch (fractal, lsystem, explicit; a chain is grasped at its tip)",
     )
     g.add_argument(
@@ -168,7 +170,9 @@ def configure_tree(subparsers) -> argparse.ArgumentParser:
         help="rewrite rule, repeatable, e.g. 'F=FF-[-F+F]'; stochastic: repeat a symbol with "
         "probabilities, 'F=0.5:F[+F]' 'F=0.5:F[-F]'",
     )
-    ls.add_argument("--iterations", type=int, help="rewriting passes")
+    ls.add_argument(
+        "--lsystem-iterations", dest="iterations", type=int, metavar="N", help="rewriting passes"
+    )
     ls.add_argument("--angle", type=float, metavar="DEG", help="turtle turn angle, deg")
     ls.add_argument("--step-length", type=float, metavar="M", help="length of one F, m")
     ls.add_argument("--seed", type=int, help="seed for stochastic rules")
@@ -216,6 +220,14 @@ def configure_tree(subparsers) -> argparse.ArgumentParser:
         metavar="D",
         help="the data set's default push direction, as import-csv --direction: down | "
         "horizontal | X,Y,Z (default horizontal)",
+    )
+    add_deprecated(p, "--grasp", "--grasp-branch", "the name of the grasped branch everywhere")
+    add_deprecated(
+        p,
+        "--iterations",
+        "--lsystem-iterations",
+        "in `tree` it was the L-system's rewriting passes; --iterations is the sampler's "
+        "iterations in infer and calibrate",
     )
     return p
 

@@ -66,6 +66,8 @@ _GENERATOR_OPTIONS: dict[str, tuple[str, frozenset[str]]] = {
 }
 
 _NO_TIE_SCALE = "none"
+# argparse dests whose option is not "--" + dest (cli/tree.py)
+_FLAGS = {"tree_name": "--name", "grasp": "--grasp-branch", "iterations": "--lsystem-iterations"}
 
 
 def _parse_rules(items: Sequence[str]) -> dict[str, Any]:
@@ -111,7 +113,7 @@ def _tree_settings(args: argparse.Namespace, kind: str) -> dict[str, Any]:
         if value is None:
             continue
         if kind not in kinds:
-            flag = "--" + dest.replace("_", "-") if dest != "tree_name" else "--name"
+            flag = _FLAGS.get(dest, "--" + dest.replace("_", "-"))
             raise ConfigError(
                 f"{flag} does not apply to --kind {kind} (it is for: {', '.join(sorted(kinds))})"
             )

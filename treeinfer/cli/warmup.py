@@ -22,6 +22,7 @@ from ..errors import ConfigError
 from ..io import interrupt
 from ..io.limits import check_command_size
 from .common import COMMAND_HELP, EXIT_OK, EXIT_POOR_FIT, _say, add_command_parser
+from .options import add_deprecated
 
 # infer options warmup sets itself (the synthetic data and a throwaway run folder)
 _OWN = ("--data", "--out", "--resume", "--force")
@@ -30,9 +31,9 @@ _SHARED = ("--model", "--repair-inertia", "--grasp-fraction", "--force-interp", 
 
 _EPILOG = """\
 examples:
-  treeinfer warmup --tree tree.yaml --trajectories 3 --steps 300 -- \\
+  treeinfer warmup --tree tree.yaml --n-traj 3 --steps 300 -- \\
       --init importance --particles 128
-  treeinfer warmup --tree tree.yaml --trajectories 4 --steps 500 --dt 0.005 -- --init importance
+  treeinfer warmup --tree tree.yaml --n-traj 4 --steps 500 --dt 0.005 -- --init importance
 
 Everything after `--` is passed to `treeinfer infer` unchanged: give the options your field runs
 will use (particles, --init, sampler, backend, step, likelihood ...), since the compiled programs
@@ -60,14 +61,19 @@ def configure_warmup(subparsers) -> argparse.ArgumentParser:
         _EPILOG,
     )
     p.add_argument("--tree", type=Path, required=True, help="tree description (YAML/JSON)")
-    p.add_argument("--trajectories", type=int, default=3, metavar="B", help="pulls per data set")
+    p.add_argument(
+        "--n-traj", dest="trajectories", type=int, default=3, metavar="N", help="number of pulls"
+    )
     p.add_argument("--steps", type=int, default=300, metavar="T", help="samples per pull")
-    p.add_argument("--dt", type=float, default=0.01, help="s between samples, as recorded")
+    p.add_argument(
+        "--dt", type=float, default=0.01, metavar="S", help="s between samples, as recorded"
+    )
     p.add_argument(
         "--allow-large",
         action="store_true",
         help="go past the size limit (treeinfer.io.limits) checked before any work",
     )
+    add_deprecated(p, "--trajectories", "--n-traj", "the number of pulls in every command")
     p.add_argument(
         "infer_options",
         nargs=argparse.REMAINDER,
@@ -80,7 +86,7 @@ def configure_warmup(subparsers) -> argparse.ArgumentParser:
 def _check(args) -> list[str]:
     """The infer options (``--`` dropped); ConfigError naming the field for bad input."""
     if args.trajectories < 1:
-        raise ConfigError(f"--trajectories: must be an integer >= 1, got {args.trajectories}")
+        raise ConfigError(f"--n-traj: must be an integer >= 1, got {args.trajectories}")
     if args.steps < 3:
         raise ConfigError(f"--steps: must be an integer >= 3, got {args.steps}")
     if not (args.dt > 0 and args.dt < float("inf")):

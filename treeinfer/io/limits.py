@@ -154,7 +154,7 @@ def check_command_size(command: str, args) -> None:
     elif command == "warmup":
         rest = list(getattr(args, "infer_options", []) or [])
         factors = [
-            ("--trajectories", g("trajectories")),
+            ("--n-traj", g("trajectories")),
             ("--steps", g("steps")),
             ("infer --particles", _opt(rest, "--particles", 32)),
             ("infer --iterations", _opt(rest, "--iterations", 300)),

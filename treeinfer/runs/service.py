@@ -326,6 +326,7 @@ def run_inference(
         force=o["force"],
         inputs=_inputs(config),
         log=log,
+        formats=tuple(config.get("figure_formats") or ("png",)),  # infer --formats
     )
     shutil.rmtree(partial, ignore_errors=True)
     return InferOutcome(run_dir, config, summary, posterior)
