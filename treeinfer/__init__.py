@@ -36,6 +36,7 @@ _EXPORTS = {
     "infer": "inference.problem",
     "predict": "inference.problem",
     "Problem": "inference.problem",
+    "ProblemSpec": "inference.spec",
     "Posterior": "inference.problem",
     "load_posterior": "runs.posterior_load",
     "example_path": "examples",

@@ -11,9 +11,11 @@ importing one module of the package does not import the others (startup cost, an
 import order between them).
 
 Submodules: batch, diagnostics, fast, importance, laplace, lm, mapfit, posterior, posterior_io,
-problem, rollout, samplers, sequential, sharding, start_pipeline, start_steps, static."""
+problem, problem_types, rollout, samplers, sequential, sharding, spec, start_pipeline, start_steps,
+static."""
 
 _EXPORTS = {
+    "ProblemSpec": "spec",
     "map_fits": "batch",
     "posterior_program": "batch",
     "run_posteriors": "batch",
