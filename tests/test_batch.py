@@ -23,7 +23,8 @@ import pytest
 
 from treeinfer.cli import main
 from treeinfer.errors import ConfigError
-from treeinfer.runs.batch import plan, run_batch
+from treeinfer.runs.batch import run_batch
+from treeinfer.runs.batch_item import plan
 from treeinfer.runs.batch_manifest import read_manifest
 
 PARAMS = "60,0.5"  # Kp N m/rad, Kd N m s/rad of every simulated item

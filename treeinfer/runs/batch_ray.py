@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Sequence
 
 from ..errors import ConfigError
-from .batch import Report, Task, failed_row, run_item
+from .batch_item import Report, Task, failed_row, run_item
 from .cache import SimulatorCache
 
 CONNECT_TIMEOUT_S = 5.0  # a cluster address that does not answer within this fails at once
