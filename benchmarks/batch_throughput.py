@@ -80,7 +80,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-loop", action="store_true", help="leave out the shell loop")
     ap.add_argument("--folder", type=Path, help="work folder (default: a temporary one)")
     ap.add_argument(
-        "--json", type=Path, default=ROOT / "benchmarks" / "results" / "batch_throughput.json"
+        "--json",
+        type=Path,
+        default=ROOT / "experiments" / "results" / "benchmarks" / "batch_throughput.json",
     )
     args = ap.parse_args(argv)
     cores = _cores()

@@ -241,7 +241,7 @@ def test_rerun_skips_finished_items_and_retries_failed(batch, data):
         {"id": "a", "tree": "tree.yaml", "recordings": "a", "test": "test", **QUICK, "seed": "7"},
     ])))  # fmt: skip
     mode, why = plan(items[0], out, force=False)
-    assert mode == "failed" and "option seed is 0, the manifest gives 7" in why
+    assert mode == "failed" and "option seed is 0, the manifest" in why and "gives 7" in why
     assert plan(items[0], out, force=True) == ("fresh", True)
 
 
@@ -370,3 +370,42 @@ def test_nothing_to_resume_when_inputs_change(batch, data, tmp_path):
     ])  # fmt: skip
     mode, why = plan(read_manifest(str(m))[0], out, False)
     assert mode == "failed" and "recordings differ" in why
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_the_worker_pool_and_the_next_run_resumes(data, tmp_path):
+    """A terminal's Ctrl-C (SIGINT to the command's process group) during a 2-worker batch:
+    exit 130, no staging folder and no run folder without its manifest left, the table
+    written; the next run finishes every item."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "cc"
+    m = _write_csv(tmp_path / "m.csv", [
+        {"id": f"k{i}", "tree": str(data / "tree.yaml"), "recordings": str(data / rec), **QUICK}
+        for i, rec in enumerate("abab")
+    ])  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    p = subprocess.Popen(
+        [sys.executable, "-m", "treeinfer", "batch", "--manifest", str(m), "--out", str(out),
+         "--workers", "2", "--no-progress"],
+        env=env, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and p.poll() is None:
+        logs = list((out / "logs").glob("*.log")) if (out / "logs").is_dir() else []
+        if any(" in worker " in f.read_text() for f in logs):
+            break
+        time.sleep(0.1)
+    time.sleep(1.0)
+    os.killpg(p.pid, signal.SIGINT)
+    stdout, stderr = p.communicate(timeout=120)
+    assert p.returncode == 130, stderr.decode()[-2000:]
+    runs = out / "runs"
+    assert not [q for q in runs.iterdir() if q.name.startswith(".")]
+    for q in runs.iterdir():
+        assert q.name.endswith(".partial") or (q / "manifest.json").is_file()
+    statuses = {r["status"] for r in _table(out).values()}
+    assert statuses <= {"done", "interrupted", "pending"} and statuses - {"done"}
+    r = run_batch(read_manifest(str(m)), out, workers=1, progress=False)
+    assert [x["status"] for x in r.rows] == ["done"] * 4

@@ -29,6 +29,7 @@ interrupted or killed worker leaves at most ``runs/ID.partial`` (resumed next ti
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -45,6 +46,7 @@ from .batch_manifest import Item
 from .batch_table import write_table
 
 BATCH_FILE = "batch.json"
+LOCK_FILE = ".batch.lock"
 TABLE_EVERY_S = 5.0  # s between rewrites of the results table while items finish
 
 
@@ -60,9 +62,9 @@ class BatchResult(NamedTuple):
 
 
 # ---- the batch folder ----------------------------------------------------------------------
-def prepare_out(out: Path, items: Sequence[Item], manifest: str | None, settings: dict) -> None:
-    """Check and create the batch folder (before any work): a new or empty folder, or one a
-    batch wrote (its ``batch.json``); never one of the items' inputs nor inside one."""
+def check_out(out: Path, items: Sequence[Item], manifest: str | None) -> None:
+    """Refuse a batch folder that must not be written (before any work): one of the items'
+    inputs or inside one, or a non-empty folder that no batch wrote (no ``batch.json``)."""
     out = Path(out)
     inputs = [p for it in items for p in (it.tree, it.recordings, it.test) if p]
     refuse_overlap(out, inputs + ([manifest] if manifest else []), "batch folder")
@@ -74,6 +76,10 @@ def prepare_out(out: Path, items: Sequence[Item], manifest: str | None, settings
             f"{out}: holds files but no {BATCH_FILE}: not a batch folder; choose another --out "
             "(a batch folder is resumed by running the same command again)"
         )
+
+
+def prepare_out(out: Path, items: Sequence[Item], manifest: str | None, settings: dict) -> None:
+    """Create the batch folder's parts and record this run in ``batch.json``."""
     for sub in (RUNS, ITEMS, LOGS):
         (out / sub).mkdir(parents=True, exist_ok=True)
     mark_output_dir(out)
@@ -89,7 +95,6 @@ def prepare_out(out: Path, items: Sequence[Item], manifest: str | None, settings
     atomic_write_json(out / BATCH_FILE, record)
 
 
-# ---- the batch -------------------------------------------------------------------------------
 def default_workers(n_items: int) -> int:
     """Worker processes when ``--workers`` is not given: one per two usable cores (an item's
     XLA programs use more than one thread while they compile and run), at most one per item."""
@@ -128,13 +133,41 @@ def run_batch(
     the table files written, and whether it was interrupted (Ctrl-C; the table is written
     anyway and the next run resumes).
     """
-    from tqdm.auto import tqdm
-
     t0 = time.perf_counter()
     out = Path(out)
     settings = {"workers": workers, "ray": ray, "cpus_per_item": cpus_per_item,
                 "gpus_per_item": gpus_per_item, "force": bool(force)}  # fmt: skip
-    prepare_out(out, items, manifest, settings)
+    check_out(out, items, manifest)
+    out.mkdir(parents=True, exist_ok=True)
+    with _lock(out):
+        prepare_out(out, items, manifest, settings)
+        return _run_locked(items, out, workers, ray, cpus_per_item, gpus_per_item, force,
+                           progress, log, t0)  # fmt: skip
+
+
+@contextlib.contextmanager
+def _lock(out: Path):
+    """One batch process per batch folder at a time (two would run the same items)."""
+    import fcntl
+
+    with open(out / LOCK_FILE, "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.seek(0)
+            raise OutputExistsError(
+                f"{out}: another treeinfer batch is running on this folder ({f.read().strip()}); "
+                "wait for it, or give another --out"
+            ) from None
+        f.truncate(0)
+        f.write(f"pid {os.getpid()}\n")
+        f.flush()
+        yield
+
+
+def _run_locked(items, out, workers, ray, cpus_per_item, gpus_per_item, force, progress, log, t0):
+    from tqdm.auto import tqdm
+
     rows = [base_row(it, out) for it in items]
     jobs: list[tuple[int, Task]] = []
     for i, it in enumerate(items):
@@ -143,8 +176,9 @@ def run_batch(
             rows[i]["status"] = "invalid"
         elif mode == "failed":
             rows[i].update(status="failed", error=extra)
-        elif mode == "skip":
-            rows[i] = {**extra, "reused": True}
+        elif mode == "skip":  # where the manifest says things are now (same contents)
+            here = {k: rows[i][k] for k in ("tree", "recordings", "test", "manifest_line")}
+            rows[i] = {**extra, **here, "reused": True}
         else:
             jobs.append((i, Task(it, mode, str(out), bool(extra))))
     # items of the same shapes one after another: a worker's cache serves the next one

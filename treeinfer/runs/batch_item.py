@@ -70,7 +70,10 @@ def mismatch(config: dict, item: Item) -> str | None:
     )
     for k in OPTION_FIELDS:
         if k not in _NOT_COMPARED and getattr(then, k) != getattr(now, k):
-            return f"its option {k} is {getattr(then, k)!r}, the manifest gives {getattr(now, k)!r}"
+            return (
+                f"its option {k} is {getattr(then, k)!r}, the manifest (with this treeinfer's "
+                f"defaults) gives {getattr(now, k)!r}"
+            )
     return None
 
 
@@ -110,8 +113,9 @@ def plan(item: Item, out: Path, force: bool) -> tuple[str, object]:
                 why = mismatch(read_json(partial / "config.json", "run config"), item)
             except (TreeinferError, ValueError, TypeError) as e:
                 why = str(e)
-        # an interrupted run of other inputs or options is moved aside (never deleted)
-        return ("resume", False) if why is None else ("fresh", True)
+        # an interrupted run of other inputs or options (or any, with force: a checkpoint that
+        # cannot be resumed any more) is moved aside, never deleted
+        return ("resume", False) if why is None and not force else ("fresh", True)
     return "fresh", False
 
 

@@ -22,10 +22,11 @@ def run_here(jobs: Sequence[tuple[int, Task]], report: Report) -> None:
     cache = SimulatorCache()
     for i, task in jobs:
         try:
-            report(i, run_item(task, cache))
+            row = run_item(task, cache)
         except KeyboardInterrupt:
             report(i, failed_row(task, "interrupted (Ctrl-C); resumed next time", "interrupted"))
             raise
+        report(i, row)
 
 
 def _pool_worker(tasks, results) -> None:
@@ -38,18 +39,20 @@ def _pool_worker(tasks, results) -> None:
     treeinfer.configure_runtime()
     cache = SimulatorCache()
     pid = os.getpid()
-    while True:
-        job = tasks.get()
-        if job is None:
-            return
-        i, task = job
-        results.put(("start", i, pid, None))
-        try:
+    i = None
+    try:
+        while True:
+            job = tasks.get()
+            if job is None:
+                return
+            i, task = job
+            results.put(("start", i, pid, None))
             row = run_item(task, cache)
-        except KeyboardInterrupt:
+            results.put(("done", i, pid, row))
+            i = None
+    except KeyboardInterrupt:  # the terminal's Ctrl-C reaches every worker: stop quietly
+        if i is not None:
             results.put(("interrupted", i, pid, None))
-            return
-        results.put(("done", i, pid, row))
 
 
 def _exit_text(code: int | None) -> str:
