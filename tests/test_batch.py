@@ -409,3 +409,50 @@ def test_ctrl_c_stops_the_worker_pool_and_the_next_run_resumes(data, tmp_path):
     assert statuses <= {"done", "interrupted", "pending"} and statuses - {"done"}
     r = run_batch(read_manifest(str(m)), out, workers=1, progress=False)
     assert [x["status"] for x in r.rows] == ["done"] * 4
+
+
+def test_internal_error_fails_its_item_with_traceback_in_log(data, monkeypatch):
+    """A bug inside one item (not a user error): that row says 'internal error', its log has
+    the traceback, the batch goes on and exits 5."""
+    import treeinfer.runs.service as service
+
+    def boom(*a, **k):
+        raise RuntimeError("simulated bug")
+
+    monkeypatch.setattr(service, "build_problem", boom)
+    out = data / "out_bug"
+    m = _write_csv(data / "m_bug.csv", [
+        {"id": "z", "tree": "tree.yaml", "recordings": "a", **QUICK},
+    ])  # fmt: skip
+    rc, stdout, err = _main("batch", "--manifest", m, "--out", out, "--no-progress")
+    assert rc == 5, err
+    row = _table(out)["z"]
+    assert (
+        row["status"] == "failed"
+        and "internal error (RuntimeError: simulated bug)" in (row["error"])
+    )
+    assert "Traceback" in (out / "logs" / "z.log").read_text()
+    assert not (out / "items" / "z.json").exists()
+
+
+def test_table_without_pyarrow_says_so(tmp_path, monkeypatch):
+    import builtins
+
+    from treeinfer.runs.batch_table import write_table
+
+    real_import = builtins.__import__
+
+    def no_arrow(name, *a, **k):
+        if name.startswith("pyarrow"):
+            raise ImportError("no pyarrow here")
+        return real_import(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", no_arrow)
+    rows = [{"id": "a", "status": "done", "Kp[j]_mean": 1.5, "reused": False},
+            {"id": "b", "status": "failed", "error": "x, \"quoted\""}]  # fmt: skip
+    written = write_table(tmp_path, rows)
+    assert written[0] == "results.csv" and "pyarrow is not installed" in written[1]
+    assert not (tmp_path / "results.parquet").exists()
+    got = list(csv.DictReader(open(tmp_path / "results.csv", newline="")))
+    assert got[0]["Kp[j]_mean"] == "1.5" and got[1]["error"] == 'x, "quoted"'
+    assert got[0]["reused"] == "false" and got[1]["Kp[j]_mean"] == ""
