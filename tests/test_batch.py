@@ -191,6 +191,8 @@ def test_three_items_one_broken(batch, data):
         ) + len(s["data_checks"])
         assert (out / "runs" / k / "manifest.json").is_file()
         assert float(r["seconds_total"]) >= float(r["seconds_infer"]) > 0
+    # b ran after a in the same process, with the same shapes: it compiled nothing
+    assert int(t["b"]["xla_compiles"]) == 0 and float(t["b"]["compile_seconds"]) == 0.0
     # coverage on the held-out pull (same parameters, another seed): a 95% band holds most
     assert t["b"]["test_coverage_pct"] == ""
     assert 50.0 <= float(t["a"]["test_coverage_pct"]) <= 100.0

@@ -143,12 +143,15 @@ def run_item(task: Task, cache: SimulatorCache) -> dict:
     finished item is also written to ``items/ID.json``. Errors become a ``failed`` row (the
     traceback of an internal one goes to ``logs/ID.log``); KeyboardInterrupt propagates (the
     run keeps ``runs/ID.partial`` for the next time)."""
+    from ..sim.compile_stats import compile_stats
     from . import folder
     from .config import infer_config
     from .heldout import held_out_metrics
     from .inputs import load_run_inputs
     from .service import run_inference
 
+    stats = compile_stats()
+    mark = stats.mark()
     item, out = task.item, Path(task.out)
     run_dir = out / RUNS / item.id
     row = base_row(item, out)
@@ -210,7 +213,13 @@ def run_item(task: Task, cache: SimulatorCache) -> dict:
         except Exception as e:  # noqa: BLE001 -- a bug in one item must not end the batch
             row.update(status="failed", error=f"internal error ({type(e).__name__}: {e})")
             log("failed with an internal error:\n" + traceback.format_exc())
-        row.update(seconds_total=time.perf_counter() - t0, finished_utc=_utc())
+        compiled = stats.since(mark)
+        row.update(
+            seconds_total=time.perf_counter() - t0,
+            finished_utc=_utc(),
+            xla_compiles=compiled["xla_compiles"],
+            compile_seconds=compiled["compile_s"],
+        )
         if row["status"] == "done":
             record = {"spec_hash": item.spec_hash(), "row": row}
             atomic_write_json(out / ITEMS / f"{item.id}.json", record)

@@ -12,6 +12,8 @@ Columns (:data:`COLUMNS`, then three per posterior parameter, in the order they 
   predictive band (nominal 95; only when the item gives ``test``), ``test_band_width_mm``,
   ``test_nll_per_point`` (nats), ``n_test_points``;
 - ``seconds_total`` (the item in its worker), ``seconds_infer``, ``seconds_test``;
+  ``xla_compiles`` and ``compile_seconds``: XLA programs the item compiled (not loaded from the
+  persistent cache) and the time that took (0 for an item whose shapes its worker has seen);
   ``started_utc``, ``finished_utc``, ``worker`` (host:pid), ``reused`` (true: taken from an
   earlier batch run, not recomputed);
 - ``run_dir`` (``runs/ID``, inside the batch folder), ``tree``, ``recordings``, ``test``,
@@ -43,6 +45,8 @@ COLUMNS = (
     "seconds_total",
     "seconds_infer",
     "seconds_test",
+    "xla_compiles",
+    "compile_seconds",
     "started_utc",
     "finished_utc",
     "worker",
@@ -55,7 +59,7 @@ COLUMNS = (
     "error",
     "warnings",
 )
-_INTS = {"n_warnings", "n_test_points", "manifest_line"}
+_INTS = {"n_warnings", "n_test_points", "manifest_line", "xla_compiles"}
 _BOOLS = {"reused"}
 _FLOATS = {
     "test_coverage_pct",
@@ -64,6 +68,7 @@ _FLOATS = {
     "seconds_total",
     "seconds_infer",
     "seconds_test",
+    "compile_seconds",
 }
 STAT_SUFFIXES = ("_mean", "_lower", "_upper")
 
