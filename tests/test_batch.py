@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import importlib.util
 import io
 import json
 import os
@@ -356,6 +357,11 @@ def test_ray_missing_or_unreachable_fails_fast(data, monkeypatch):
     assert time.monotonic() - t < 10
     with pytest.raises(ConfigError, match="HOST:PORT"):
         batch_ray.check_reachable("nohost")
+    if importlib.util.find_spec("ray") is not None:  # the command: before anything is written
+        rc, _, err = _main("batch", "--manifest", data / "m_ray.csv", "--out",
+                           data / "out_unreachable", "--ray", "127.0.0.1:9")  # fmt: skip
+        assert rc == 2 and "cannot reach a Ray cluster" in err
+        assert not (data / "out_unreachable").exists()
 
 
 def test_nothing_to_resume_when_inputs_change(batch, data, tmp_path):

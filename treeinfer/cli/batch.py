@@ -78,8 +78,8 @@ def configure_batch(subparsers) -> argparse.ArgumentParser:
         type=int,
         metavar="N",
         help="items at a time: worker processes on this machine (1: in this process; default: "
-        "one per two CPU cores, at most one per item) or Ray workers with --ray (default: as "
-        "many as the cluster's CPUs allow)",
+        "one per two CPU cores, at most one per item; 1 with a GPU) or Ray workers with --ray "
+        "(default: as many as the cluster's CPUs allow)",
     )
     p.add_argument(
         "--ray",
@@ -121,7 +121,11 @@ def run_batch(args: argparse.Namespace) -> int:
     if args.ray is not None and not args.check:
         from ..runs.batch_ray import _import_ray
 
-        _import_ray()  # a clear error before anything is read
+        _import_ray()  # clear errors before anything is read
+        if args.ray != "local":
+            from ..runs.batch_ray import check_reachable
+
+            check_reachable(args.ray)
     items = read_manifest(args.manifest)
     bad = [it for it in items if it.error is not None]
     for it in bad:

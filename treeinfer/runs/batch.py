@@ -96,8 +96,15 @@ def prepare_out(out: Path, items: Sequence[Item], manifest: str | None, settings
 
 
 def default_workers(n_items: int) -> int:
-    """Worker processes when ``--workers`` is not given: one per two usable cores (an item's
-    XLA programs use more than one thread while they compile and run), at most one per item."""
+    """Worker processes when ``--workers`` is not given: 1 (this process) where JAX would use
+    an NVIDIA GPU (one process owns it; items are not batched on it yet), else one per two
+    usable cores (an item's XLA programs use more than one thread while they compile and run;
+    on the shared 2-core box a second worker was slower, BENCHMARKS.md), at most one per item."""
+    import glob
+
+    platforms = os.environ.get("JAX_PLATFORMS", "").lower()
+    if "cpu" != platforms and glob.glob("/dev/nvidia[0-9]*"):
+        return 1
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
