@@ -42,6 +42,7 @@ COMMAND_HELP: dict[str, str] = {
     "suggest": "rank candidate next pulls by expected information gain for a run's posterior",
     "calibrate": "simulation-based calibration: rank histograms, coverage, uniformity test",
     "warmup": "compile the programs of an infer run into the persistent cache, from synthetic data",
+    "batch": "infer many trees/branches of a manifest: one run folder each and a results table",
 }
 
 
@@ -118,6 +119,7 @@ COMMON_OPTIONS: dict[str, tuple[str, ...]] = {
                   "--noise-force", "--sampler", "--particles", "--iterations", "--n-traj",
                   "--seed", "--force"),
     "warmup": ("--tree", "--n-traj", "--steps", "--dt"),
+    "batch": ("--manifest", "--out", "--workers", "--ray", "--force", "--check"),
 }  # fmt: skip
 
 

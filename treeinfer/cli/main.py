@@ -71,6 +71,7 @@ COMMANDS: dict[str, Command] = {
     "suggest": _command("suggest"),
     "calibrate": _command("calibrate"),
     "warmup": _command("warmup"),
+    "batch": _command("batch"),
 }
 
 _MAIN_EPILOG = """\
@@ -90,7 +91,8 @@ reported in one line (exit code 2); add --debug to see the traceback.
 
 exit codes: 0 success; 2 an error in your input (file, option, implausible data); 3 an internal
 error (a bug: please report it); 4 `infer` finished but its fit checks judged the posterior a
-poor fit (summary.json "fit"; --allow-poor-fit makes that exit 0); 130 interrupted.
+poor fit (summary.json "fit"; --allow-poor-fit makes that exit 0); 5 `batch` finished but some
+items failed (their errors are in its results table); 130 interrupted.
 """
 
 

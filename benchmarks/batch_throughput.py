@@ -1,0 +1,220 @@
+"""Items per minute of ``treeinfer batch`` with 1, 2 and 4 worker processes (as many as the
+machine's cores allow), and optionally on a local Ray cluster, against a shell loop of
+``treeinfer infer`` over the same items (issue 31, section 1).
+
+The items: ``--items`` recordings of the built-in ``two_branch`` example (one pull each,
+``--duration`` s at ``--dt`` s, 0.5 mm displacement noise, true parameters drawn per item from
+the prior by ``treeinfer simulate --seed i``), written once (not timed). Every item is inferred
+with the same options (``--options``, default ``--particles 16``) by
+
+* **loop**: one ``python -m treeinfer infer`` process per item, one after another (what a shell
+  loop does: each process imports JAX, builds its simulator and loads its programs);
+* **batch wN**: one ``python -m treeinfer batch --workers N`` process over a manifest of all
+  items (N = 1 runs them in the batch process itself);
+* **ray wN** (``--ray``): ``batch --ray local --workers N``.
+
+All share one compile cache folder, warmed first by one untimed ``infer`` of item 0, so the
+figures compare steady-state throughput, not first compiles. Every mode writes fresh folders.
+Prints a table and writes JSON (``--json``) with the commands, exit codes and the machine. No
+timed assertions: figures from a shared machine are for side-by-side comparison.
+
+    python -m benchmarks.batch_throughput [--items 8] [--workers 1,2,4] [--ray]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+TREE = ROOT / "treeinfer" / "examples" / "two_branch.yaml"
+
+
+def _env(cache: Path) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env["TREEINFER_JAX_CACHE"] = str(cache)
+    env.setdefault("JAX_PLATFORMS", "cpu")
+    return env
+
+
+def _run(cmd: list[str], env: dict, log: Path) -> tuple[int, float]:
+    t = time.perf_counter()
+    with open(log, "ab") as f:
+        f.write(("$ " + shlex.join(cmd) + "\n").encode())
+        rc = subprocess.call(cmd, env=env, stdout=f, stderr=subprocess.STDOUT)
+    return rc, time.perf_counter() - t
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--items", type=int, default=8, help="number of items (default 8)")
+    ap.add_argument(
+        "--workers",
+        default=None,
+        help="comma-separated worker counts (default 1,2,4 up to the cores)",
+    )
+    ap.add_argument("--duration", type=float, default=1.0, help="s per pull (default 1)")
+    ap.add_argument("--dt", type=float, default=0.02, help="s between samples (default 0.02)")
+    ap.add_argument(
+        "--options",
+        default="--particles 16",
+        help="infer options of every item (default '--particles 16')",
+    )
+    ap.add_argument("--ray", action="store_true", help="also time --ray local (needs ray)")
+    ap.add_argument("--no-loop", action="store_true", help="leave out the shell loop")
+    ap.add_argument("--folder", type=Path, help="work folder (default: a temporary one)")
+    ap.add_argument(
+        "--json",
+        type=Path,
+        default=ROOT / "experiments" / "results" / "benchmarks" / "batch_throughput.json",
+    )
+    args = ap.parse_args(argv)
+    cores = _cores()
+    counts = (
+        [int(x) for x in args.workers.split(",")]
+        if args.workers
+        else [n for n in (1, 2, 4) if n <= cores]
+    )
+    work = args.folder or Path(tempfile.mkdtemp(prefix="batch_throughput_"))
+    work.mkdir(parents=True, exist_ok=True)
+    cache, log = work / "jax-cache", work / "commands.log"
+    env = _env(cache)
+    py = [sys.executable, "-m", "treeinfer"]
+    opts = shlex.split(args.options)
+    # the items (not timed)
+    rows = ["id,tree,recordings," + ",".join(o.lstrip("-").replace("-", "_") for o in opts[::2])]
+    for i in range(args.items):
+        d = work / "data" / f"item{i:03d}"
+        if not d.is_dir():
+            rc, _ = _run(
+                py
+                + [
+                    "simulate",
+                    "--tree",
+                    str(TREE),
+                    "--out",
+                    str(d),
+                    "--n-traj",
+                    "1",
+                    "--duration",
+                    str(args.duration),
+                    "--dt",
+                    str(args.dt),
+                    "--seed",
+                    str(i + 1),
+                    "--noise-displacement",
+                    "0.0005",
+                ],
+                env,
+                log,
+            )
+            if rc:
+                sys.exit(f"simulate failed (see {log})")
+        rows.append(f"item{i:03d},{TREE},{d}," + ",".join(opts[1::2]))
+    manifest = work / "manifest.csv"
+    manifest.write_text("\n".join(rows) + "\n")
+    infer = lambda i, out: (
+        py
+        + [
+            "infer",
+            "--tree",
+            str(TREE),
+            "--data",  # noqa: E731
+            str(work / "data" / f"item{i:03d}"),
+            "--out",
+            str(out),
+            "--no-progress",
+            "--allow-poor-fit",
+            *opts,
+        ]
+    )
+    _run(infer(0, work / "warm"), env, log)  # fill the compile cache (not timed)
+    results = []
+
+    def record(mode, workers, rc, wall, cmd):
+        results.append(
+            {
+                "mode": mode,
+                "workers": workers,
+                "rc": rc,
+                "wall_s": round(wall, 2),
+                "items_per_min": round(60 * args.items / wall, 2),
+                "command": cmd,
+            }
+        )
+        print(
+            f"{mode:>6} w{workers}: {wall:7.1f} s  {60 * args.items / wall:6.2f} items/min  "
+            f"(exit {rc})",
+            flush=True,
+        )
+
+    if not args.no_loop:
+        t, rcs = time.perf_counter(), []
+        for i in range(args.items):
+            rcs.append(_run(infer(i, work / "loop" / f"item{i:03d}"), env, log)[0])
+        cmd = shlex.join(infer(0, "loop/ITEM")) + "  # per item"
+        record("loop", 1, max(rcs), time.perf_counter() - t, cmd)
+    modes = [("batch", n, []) for n in counts]
+    modes += [("ray", n, ["--ray", "local"]) for n in counts if args.ray]
+    for mode, n, extra in modes:
+        cmd = py + [
+            "batch",
+            "--manifest",
+            str(manifest),
+            "--out",
+            str(work / f"{mode}_w{n}"),
+            "--workers",
+            str(n),
+            "--no-progress",
+            "--allow-poor-fit",
+            *extra,
+        ]
+        rc, wall = _run(cmd, env, log)
+        record(mode, n, rc, wall, shlex.join(cmd))
+    loop = next((r for r in results if r["mode"] == "loop"), None)
+    if loop:
+        for r in results:
+            r["speedup_vs_loop"] = round(loop["wall_s"] / r["wall_s"], 2)
+        print(
+            "speed-up over the shell loop: "
+            + ", ".join(
+                f"{r['mode']} w{r['workers']} {r['speedup_vs_loop']:.2f}x" for r in results[1:]
+            )
+        )
+    out = {
+        "items": args.items,
+        "duration_s": args.duration,
+        "dt_s": args.dt,
+        "options": args.options,
+        "tree": TREE.name,
+        "cores": cores,
+        "load_avg": os.getloadavg(),
+        "machine": platform.node(),
+        "python": sys.version.split()[0],
+        "results": results,
+        "folder": str(work),
+    }
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(out, indent=2) + "\n")
+    print(f"wrote {args.json} (logs: {log})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
