@@ -95,8 +95,9 @@ def configure_batch(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--force",
         action="store_true",
-        help="run again items whose run folder was made from other inputs or options (the old "
-        "folder is kept as ID.old-<time>); finished items that match are always skipped",
+        help="replace the run folders of items made from other inputs or options (the old "
+        "folder is kept as ID.old-<time>) and run them again; finished items that match are "
+        "always skipped",
     )
     p.add_argument("--check", action="store_true",
                    help="validate the manifest (every row) and exit: 0 valid, 2 not")  # fmt: skip

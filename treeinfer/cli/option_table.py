@@ -39,6 +39,10 @@ SHARED: dict[str, Meaning] = {
     ),
     "--dt": Meaning("time between samples, s", r"(^|\W)s(\W|$)"),
     "--duration": Meaning("length of a pull, s", r"(^|\W)s(\W|$)"),
+    "--allow-poor-fit": Meaning(
+        "exit 0 even if the fit checks judge the posterior a poor fit (exit code 4 otherwise)",
+        r"poor fit",
+    ),
     "--force": Meaning("replace (overwrite) existing output; takes no value", r"replace"),
     "--force-interp": Meaning(
         "force between samples: linear or hold (each sample held until the next)", r"'hold'"
