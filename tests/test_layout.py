@@ -60,7 +60,6 @@ LONG_MODULES = {
     "treeinfer.inference.fast": "716 lines",
     "treeinfer.model.likelihood": "656 lines",
     "treeinfer.sim.pallas": "642 lines",
-    "treeinfer.runs.config": "520 lines",
     "treeinfer.runs.service": "513 lines",
     "treeinfer.sim.fused": "503 lines",
     "treeinfer.runs.folder": "499 lines; the longer import paths of the move take it to ~501",

@@ -14,20 +14,25 @@ import numpy as np
 
 from ..data.trajectories import (
     TRUE_PARAMS_FILE,
-    Trajectory,
-    read_trajectory_dir,
 )
 from ..errors import ConfigError, check_positive
 from ..inference.problem import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA
-from ..inference.samplers import sampler_options, sampler_spec
-from ..io.provenance import data_manifest, file_sha256, versions
+from ..inference.samplers import sampler_spec
+from ..io.provenance import file_sha256, versions
 from ..model.likelihood import DEFAULT_KT
 from ..model.noise import KINDS as LIKELIHOODS
 from ..model.noise import NOISE_KINDS, check_sigma
 from ..sim import BACKENDS, FORCE_INTERPS
 from ..tree.description import tree_to_dict
 from .checkpoint import CHECKPOINT_FILE, partial_dir
-from .inputs import RunInputs, load_run_inputs, load_run_tree, read_true_params  # noqa: F401
+from .inputs import (  # noqa: F401 -- re-exported: their old home
+    RunInputs,
+    check_data_unchanged,
+    load_run_inputs,
+    load_run_tree,
+    read_true_params,
+)
+from .sampler_record import LAPLACE_WARMUP, laplace_mh_proposal, sampler_settings  # noqa: F401
 
 RUN_FORMAT = 1
 # --reinit-stragglers' default: stuck particles are moved next to the bulk up to this iteration
@@ -483,68 +488,3 @@ def infer_config(
         **more,
     )
     return cfg.to_json()
-
-
-def check_data_unchanged(config: dict) -> list[Trajectory]:
-    """Re-read the run's training data, refusing if any file changed, vanished or appeared."""
-    d = Path(config["data"]["dir"])
-    if not d.is_dir():
-        raise ConfigError(f"{d}: the run's data folder no longer exists; restore it to resume")
-    now = {f["name"]: f["sha256"] for f in data_manifest(d)}
-    then = {f["name"]: f["sha256"] for f in config["data"]["files"]}
-    changed = sorted(n for n in then if n in now and now[n] != then[n])
-    missing = sorted(set(then) - set(now))
-    added = sorted(set(now) - set(then))
-    if changed or missing or added:
-        parts = (
-            ([f"changed: {', '.join(changed)}"] if changed else [])
-            + ([f"missing: {', '.join(missing)}"] if missing else [])
-            + ([f"new: {', '.join(added)}"] if added else [])
-        )
-        raise ConfigError(
-            f"{d}: the training data differ from the run's (sha256 in config.json; "
-            f"{'; '.join(parts)}); restore the original files, or start a new run without "
-            "--resume"
-        )
-    return read_trajectory_dir(d)
-
-
-# Particles from --init laplace/importance already have the posterior's spread: full-size Adam
-# steps in the first iterations scatter them, so SVGD/NNSVGD ramp the step up over this many
-# iterations.
-LAPLACE_WARMUP = 10
-
-
-def laplace_mh_proposal(start) -> list:
-    """MH's proposal for ``--init laplace``: the Cholesky factor of ``(2.38^2 / D)`` times the
-    covariance of the Laplace start's particles ``[P, D]``
-    (:func:`treeinfer.inference.laplace.mh_proposal`), as nested lists (config.json records it, so a
-    resumed run moves the same way)."""
-    from ..inference.laplace import mh_proposal
-
-    x = np.asarray(start, float)
-    cov = np.atleast_2d(np.cov(x.T)) if len(x) > 1 else np.zeros((x.shape[1],) * 2)
-    ridge = 1e-10 * max(float(np.trace(cov)) / len(cov), 1e-12)
-    return mh_proposal(cov + ridge * np.eye(len(cov))).tolist()
-
-
-def sampler_settings(config: dict, start=None) -> dict:
-    """The sampler record of a run (``config.json``'s ``"sampler"``). With ``--init laplace``:
-    SVGD/NNSVGD ramp their step up; MH's proposal is shaped by the start's covariance
-    (:func:`laplace_mh_proposal` of ``start``, the Laplace particles; without ``start``, the one
-    the config recorded)."""
-    name = config["options"]["sampler"]
-    options = dict(sampler_options(name))
-    init = config["options"].get("init", "uniform")
-    # Both fitted starts (Laplace, importance) begin near the posterior: ramp the step up.
-    laplace = init in ("laplace", "importance", "auto")
-    if laplace and name in ("svgd", "nnsvgd"):
-        options["warmup"] = LAPLACE_WARMUP
-    if laplace and name == "mh":
-        if start is not None:
-            options["proposal_scale"] = laplace_mh_proposal(start)
-        else:
-            recorded = (config.get("sampler") or {}).get("options", {}).get("proposal_scale")
-            if isinstance(recorded, list):
-                options["proposal_scale"] = recorded
-    return {"name": name, "options": options}

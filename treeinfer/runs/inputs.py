@@ -12,6 +12,7 @@ import numpy as np
 
 from ..data.trajectories import TRUE_PARAMS_FILE, Trajectory, read_trajectory_dir
 from ..data.trajectories import read_true_params as read_true_params_file
+from ..errors import ConfigError
 from ..io.provenance import data_manifest
 from ..tree.description import Tree, load_tree
 
@@ -74,3 +75,27 @@ def read_true_params(tree: Tree, data_dir: str | os.PathLike) -> np.ndarray | No
     if not path.is_file():
         return None
     return read_true_params_file(tree, path, where=f"--params-json {path}")
+
+
+def check_data_unchanged(config: dict) -> list[Trajectory]:
+    """Re-read the run's training data, refusing if any file changed, vanished or appeared."""
+    d = Path(config["data"]["dir"])
+    if not d.is_dir():
+        raise ConfigError(f"{d}: the run's data folder no longer exists; restore it to resume")
+    now = {f["name"]: f["sha256"] for f in data_manifest(d)}
+    then = {f["name"]: f["sha256"] for f in config["data"]["files"]}
+    changed = sorted(n for n in then if n in now and now[n] != then[n])
+    missing = sorted(set(then) - set(now))
+    added = sorted(set(now) - set(then))
+    if changed or missing or added:
+        parts = (
+            ([f"changed: {', '.join(changed)}"] if changed else [])
+            + ([f"missing: {', '.join(missing)}"] if missing else [])
+            + ([f"new: {', '.join(added)}"] if added else [])
+        )
+        raise ConfigError(
+            f"{d}: the training data differ from the run's (sha256 in config.json; "
+            f"{'; '.join(parts)}); restore the original files, or start a new run without "
+            "--resume"
+        )
+    return read_trajectory_dir(d)
