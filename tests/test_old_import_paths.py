@@ -56,6 +56,18 @@ def test_old_path_is_the_same_module_with_a_warning(old, new):
     assert r.returncode == 0, r.stderr
 
 
+def test_other_imports_pass_the_finder_untouched_in_a_bare_interpreter():
+    # -S -I: no site, no editable-install hooks, so importlib.util is not loaded beforehand (a
+    # fresh virtualenv's console script met a recursion in the finder this way)
+    code = "import treeinfer, importlib.util, email.message, json; print('ok')"
+    r = subprocess.run(
+        [sys.executable, "-S", "-I", "-c", f"import sys; sys.path[:0] = {sys.path!r}; {code}"],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]
+
+
 def test_an_unknown_name_is_still_an_import_error():
     with pytest.raises(ImportError):
         importlib.import_module("treeinfer.no_such_module")

@@ -172,11 +172,13 @@ class _MovedFinder:
 
     @staticmethod
     def find_spec(fullname, path=None, target=None):
-        import importlib.util
-
+        # every import in the process passes here first: decide by the name alone, and import
+        # nothing before that (importing importlib.util here would look itself up: recursion)
         new = _moved_target(fullname)
         if new is None:
             return None
+        import importlib.util
+
         return importlib.util.spec_from_loader(fullname, _MovedLoader(new))
 
 
