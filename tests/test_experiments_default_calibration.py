@@ -95,3 +95,17 @@ def test_help_names_the_chunking_options(capsys):
     text = capsys.readouterr().out
     for flag in ("--seed-start", "--budget-s", "--merge"):
         assert flag in text
+
+
+@pytest.mark.slow
+def test_tiny_study_end_to_end(tmp_path):
+    """One noisy chain2 run through the CLI (infer + evaluate as fresh processes): the record
+    has the test coverage, the truths, std / CRB with the identified flags, and the summary."""
+    res = dc.main(["--size", "tiny", "--cases", "chain2", "--out", str(tmp_path)])
+    (run,) = res["runs"]
+    assert run["infer"]["exit"] in (0, 4)
+    assert 0.0 <= run["test_pct_inside"] <= 100.0
+    assert set(run["identified"]) == set(run["std_over_crb_force_noise"])
+    assert all(v > 0 for v in run["crb_log_std_force_noise"].values())
+    assert res["summary"]["per_case"]["chain2"]["n_runs"] == 1
+    assert (tmp_path / "results.md").exists()

@@ -207,3 +207,21 @@ def test_gain_prior_draws_follow_its_density(two_branch):
     assert share > 0.8  # the learned prior does favour the stiffer parent
     np.testing.assert_allclose(draws.mean(0), w @ box, atol=0.08)
     assert draws.shape == (4000, 2 * r)
+
+
+@pytest.mark.slow
+def test_sbc_default_tiny_end_to_end(tmp_path):
+    """One data set through the real default path; a second call adds nothing (resumed)."""
+    argv = ["--size", "tiny", "--n-datasets", "1", "--out", str(tmp_path)]
+    res = sbc_default.main(argv)
+    s = res["summary"]
+    assert (s["n_ranked"], s["n_failed"]) == (1, 0), s.get("failures")
+    assert s["labels"][-1] == "sigma_x" and len(s["labels"]) == 5
+    rec = read_jsonl([tmp_path / "records.jsonl"])[0]
+    assert set(rec["truth"]) == set(rec["labels"]) and len(rec["draws"]) >= 2
+    assert rec["stop_reason"] and rec["status"] in ("ok", "warning", "poor_fit")
+    for f in ("results.json", "results.md", "rank_histograms.png"):
+        assert (tmp_path / f).exists()
+    assert res["config"]["infer_defaults"]["likelihood"] == "gaussian"
+    again = sbc_default.main(argv)
+    assert again["summary"]["n_records"] == 1
