@@ -214,12 +214,14 @@ def run_sbc(
     indices: Sequence[int],
     one: Callable[[int], dict],
     budget_s: float | None = None,
-    log: Callable[[str], None] = print,
+    log: Callable[[str], None] = lambda m: print(m, flush=True),
+    done_in: Sequence[Path] | None = None,
 ) -> int:
     """Run ``one(i)`` (a record with ``truth`` and ``draws``, or ``error``) for every index not
-    yet in ``records`` and append each record as it comes; stop starting new ones once
-    ``budget_s`` seconds have passed. Returns how many were added."""
-    done = {r["index"] for r in read_jsonl([records])}
+    yet in ``records`` (or in any of ``done_in``, e.g. the other workers' files) and append each
+    record as it comes; stop starting new ones once ``budget_s`` seconds have passed. Returns how
+    many were added."""
+    done = {r["index"] for r in read_jsonl([records, *(done_in or [])])}
     t0, added = time.perf_counter(), 0
     for i in indices:
         if i in done:
@@ -353,7 +355,8 @@ def markdown(res: dict) -> str:
         "",
         f"{s['n_ranked']} data sets ranked ({s['n_failed']} failed); wall per fit: "
         + (
-            f"first {s['wall_s']['first']:.1f} s, median {s['wall_s']['median']:.1f} s"
+            f"first {s['wall_s']['first']:.1f} s, median {s['wall_s']['median']:.1f} s "
+            f"(workers: {c.get('workers', 1)})"
             if "wall_s" in s
             else "-"
         ),
@@ -407,7 +410,17 @@ def main(argv=None) -> dict:
         "--merge", nargs="+", type=Path, metavar="JSONL", help="only summarise these records"
     )
     ap.add_argument("--keep", action="store_true", help="keep every data set's run folder")
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="fit this many data sets at once, each in its own process sharing the GPU (one "
+        "fit leaves most of a GPU idle; default 1)",
+    )
+    ap.add_argument("--worker", type=int, help=argparse.SUPPRESS)  # internal: worker k of N
     args = ap.parse_args(argv)
+    if args.workers < 1 or (args.worker is not None and not 0 <= args.worker < args.workers):
+        ap.error("--workers must be >= 1")
     size = SIZES[args.size]
     out = args.out or ROOT / "experiments" / "results" / f"sbc_default_{args.size}"
     sx = tuple(float(v) for v in args.sigma_x_range.split(","))
@@ -430,6 +443,7 @@ def main(argv=None) -> dict:
         "seed": args.seed,
         "sigma_x_range": list(sx),
         "noise_force": args.noise_force,
+        "workers": args.workers,
         "infer_command": "treeinfer infer --tree T --data D --out R (no other flag; API, one "
         "SimulatorCache for every data set)",
         "infer_defaults": {k: v for k, v in INFER_DEFAULTS.items()},
@@ -444,6 +458,19 @@ def main(argv=None) -> dict:
     records = out / "records.jsonl"
     if args.merge:
         paths = list(args.merge)
+    elif args.workers > 1 and args.worker is None:
+        # N processes, data set i to worker i mod N, each appending to its own file (no two
+        # writers on one file); JAX must not pre-allocate the GPU in each of them
+        out.mkdir(parents=True, exist_ok=True)
+        env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+        argv = list(sys.argv[1:] if argv is None else argv)
+        procs = [
+            subprocess.Popen([sys.executable, __file__, *argv, "--worker", str(w)], env=env)
+            for w in range(args.workers)
+        ]
+        codes = [p.wait() for p in procs]
+        cfg["worker_exit_codes"] = codes
+        paths = sorted(out.glob("records*.jsonl"))
     else:
         import jax
 
@@ -478,8 +505,19 @@ def main(argv=None) -> dict:
             return rec
 
         out.mkdir(parents=True, exist_ok=True)
-        run_sbc(records, range(cfg["n_datasets"]), one, args.budget_s)
-        paths = [records]
+        indices = range(cfg["n_datasets"])
+        others = sorted(out.glob("records*.jsonl"))
+        if args.worker is not None:
+            records = out / f"records_w{args.worker}.jsonl"
+            indices = [i for i in indices if i % args.workers == args.worker]
+
+            def log(msg: str) -> None:
+                print(f"[worker {args.worker}] {msg}", flush=True)
+
+            run_sbc(records, indices, one, args.budget_s, log, done_in=others)
+            return {}  # the parent summarises every worker's records
+        run_sbc(records, indices, one, args.budget_s, done_in=others)
+        paths = sorted(out.glob("records*.jsonl"))
     recs = read_jsonl(paths)
     summary = summarise(recs, args.bins, args.seed)
     res = {"config": cfg, "records": [str(p) for p in paths], "summary": summary}

@@ -225,3 +225,17 @@ def test_sbc_default_tiny_end_to_end(tmp_path):
     assert res["config"]["infer_defaults"]["likelihood"] == "gaussian"
     again = sbc_default.main(argv)
     assert again["summary"]["n_records"] == 1
+
+
+def test_workers_skip_what_another_file_holds(tmp_path):
+    """Two workers' files (i mod 2) and a later single call: nothing fitted twice, every index
+    once in the union."""
+    w0, w1, single = (
+        tmp_path / f for f in ("records_w0.jsonl", "records_w1.jsonl", "records.jsonl")
+    )
+    toy = _toy()
+    sbc_default.run_sbc(w0, range(0, 20, 2), toy, log=lambda m: None)
+    sbc_default.run_sbc(w1, range(1, 10, 2), toy, log=lambda m: None)
+    added = sbc_default.run_sbc(single, range(20), toy, log=lambda m: None, done_in=[w0, w1])
+    assert added == 5  # 11, 13, 15, 17, 19
+    assert [r["index"] for r in read_jsonl([w0, w1, single])] == list(range(20))
