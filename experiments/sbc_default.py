@@ -356,7 +356,8 @@ def markdown(res: dict) -> str:
         f"{s['n_ranked']} data sets ranked ({s['n_failed']} failed); wall per fit: "
         + (
             f"first {s['wall_s']['first']:.1f} s, median {s['wall_s']['median']:.1f} s "
-            f"(workers: {c.get('workers', 1)})"
+            f"(workers: {c.get('workers', 1)}; this call {c.get('fits_this_call', '-')} fits "
+            f"in {c.get('call_wall_s', float('nan')):.0f} s)"
             if "wall_s" in s
             else "-"
         ),
@@ -456,6 +457,8 @@ def main(argv=None) -> dict:
         "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
     }
     records = out / "records.jsonl"
+    t_call = time.perf_counter()
+    n_before = len(read_jsonl(sorted(out.glob("records*.jsonl")))) if out.exists() else 0
     if args.merge:
         paths = list(args.merge)
     elif args.workers > 1 and args.worker is None:
@@ -519,6 +522,10 @@ def main(argv=None) -> dict:
         run_sbc(records, indices, one, args.budget_s, done_in=others)
         paths = sorted(out.glob("records*.jsonl"))
     recs = read_jsonl(paths)
+    if not args.merge:  # this call's throughput (with --workers: all of them together)
+        cfg["call_wall_s"] = time.perf_counter() - t_call
+        cfg["fits_this_call"] = len(recs) - n_before
+        cfg["fits_per_minute_this_call"] = 60.0 * cfg["fits_this_call"] / cfg["call_wall_s"]
     summary = summarise(recs, args.bins, args.seed)
     res = {"config": cfg, "records": [str(p) for p in paths], "summary": summary}
     out.mkdir(parents=True, exist_ok=True)
