@@ -8,6 +8,7 @@ warning :func:`treeinfer.runs.folder._diagnostics` gives that trace in a run's s
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -77,3 +78,50 @@ def test_kfold_warnings_script_compares_warning_kinds():
     assert bad["missing_in_metrics_json"] == ["Kd[a]: 27% beyond the box"] and not bad["pass"]
     unprinted = check(["ended by: max_iterations", "stuck"], printed, [], 2)
     assert unprinted["missing_in_output"] == ["stuck"]
+
+
+def test_kfold_warnings_script_glue(tmp_path, monkeypatch):
+    """The script's steps with the treeinfer commands replaced by stand-ins that write what the
+    real ones write (metrics.json's folds, each reference run's summary.json): the result names
+    the fold whose reference warning is missing, and the table is written."""
+    import json
+
+    from experiments import kfold_warnings as kw
+
+    def fake_cli(args, log):
+        log.write_text("")
+        out = Path(args[args.index("--out") + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        if args[0] == "simulate":
+            for i in range(3):
+                (out / f"traj_{i:03d}.csv").write_text("t\n")
+        if args[0] == "evaluate":
+            folds = [
+                {
+                    "fold": k,
+                    "train": [f"traj_{j:03d}.csv" for j in range(3) if j != k - 1],
+                    "test": [f"traj_{k - 1:03d}.csv"],
+                    "metrics": {"pct_outside": 4.0},
+                    "warnings": ["ended by: max_iterations after 200 iterations"],
+                }
+                for k in (1, 2, 3)
+            ]
+            (out / "metrics.json").write_text(json.dumps({"folds": folds}))
+            printed = "".join(
+                f"  fold {k}: ended by: max_iterations after 200 iterations\n" for k in (1, 2, 3)
+            )
+            return 0, 1.0, printed
+        if args[0] == "infer" and "fold2" in str(out):  # only fold 2's own run warns
+            (out / "summary.json").write_text(
+                json.dumps({"convergence_warnings": ["KSD still falling: -88%"]})
+            )
+        elif args[0] == "infer":
+            (out / "summary.json").write_text(json.dumps({"convergence_warnings": []}))
+        return 0, 1.0, ""
+
+    monkeypatch.setattr(kw, "_cli", fake_cli)
+    res = kw.main(["--out", str(tmp_path)])
+    assert not res["pass"]
+    assert [f["pass"] for f in res["folds"]] == [True, False, True]
+    assert res["folds"][1]["missing_in_metrics_json"] == ["KSD still falling: -88%"]
+    assert (tmp_path / "results.md").read_text().count("| 2 |") == 1
