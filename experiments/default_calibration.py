@@ -51,6 +51,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from experiments._planar_cases import CASES, FORCE_LEVEL, SIGMA_X, make_case, noisy, write_folder  # noqa: E402
+from experiments._study_stats import identified, rate_record  # noqa: E402
 
 SIZES = {
     "tiny": {"seeds": 1, "n_test": 2, "clean": False},  # a smoke test of the harness itself
@@ -95,6 +96,12 @@ def _crb(case, substeps: int) -> tuple[dict, dict]:
     return dict(zip(labels, map(float, plain))), dict(zip(labels, map(float, with_f)))
 
 
+def _prior_log_width(tree) -> dict:
+    """Width of each gain's prior box in log units, by label."""
+    lo, hi = tree.bounds_array()
+    return dict(zip(tree.parameter_labels(), map(float, np.log(np.asarray(hi) / np.asarray(lo)))))
+
+
 def one_run(case, work: Path, clean: bool, infer_args: list[str]) -> dict:
     """Data folders, ``infer`` and ``evaluate`` of one case and seed; the record of both."""
     from treeinfer.tree import dump_tree
@@ -112,15 +119,25 @@ def one_run(case, work: Path, clean: bool, infer_args: list[str]) -> dict:
     dump_tree(case.tree, d / "tree.yaml")
     write_folder(d / "train", case.tree, case.kp, case.kd, *tr, case.dt, "train")
     write_folder(d / "test", case.tree, case.kp, case.kd, *te, case.dt, "test")
-    for sub in ("run", "eval"):  # a half-finished earlier attempt
-        if (d / sub).exists():
-            import shutil
-
-            shutil.rmtree(d / sub)
     py = [sys.executable, "-m", "treeinfer"]
     infer = py + ["infer", "--tree", str(d / "tree.yaml"), "--data", str(d / "train")]
     infer += ["--out", str(d / "run"), *infer_args]
-    rc, wall = _run(infer, d / "infer.log")
+    done = d / "infer_done.json"  # a finished infer of an attempt that failed later: reused
+    if done.exists() and (d / "run").exists():
+        finished = json.loads(done.read_text())
+        rc, wall = finished["exit"], finished["wall_s"]
+    else:
+        for sub in ("run", "eval"):  # a half-finished earlier attempt
+            if (d / sub).exists():
+                import shutil
+
+                shutil.rmtree(d / sub)
+        rc, wall = _run(infer, d / "infer.log")
+        done.write_text(json.dumps({"exit": rc, "wall_s": wall}) + "\n")
+    if (d / "eval").exists():  # evaluate is rerun: never on top of a half-written folder
+        import shutil
+
+        shutil.rmtree(d / "eval")
     rec = {
         "case": case.name,
         "seed": case.seed,
@@ -139,14 +156,22 @@ def one_run(case, work: Path, clean: bool, infer_args: list[str]) -> dict:
         rec["n_unstable"] = s.get("n_unstable")
         rec["training_pct_outside"] = s.get("training_metrics", {}).get("pct_outside")
         rec["simulation"] = s.get("simulation")
+        rec["convergence_warnings"] = list(s.get("convergence_warnings", []))
+        rec["stop_reason"] = s.get("stop_reason")
+        rec["n_iterations_done"] = s.get("n_iterations_done")
+        rec["khat"] = (s.get("diagnostics") or {}).get("khat")
         rec["posterior_log_std"] = _posterior_log_std(d / "run", labels)
         if not clean:
             crb, crb_f = _crb(case, int(s["simulation"]["substeps"]))
             rec["crb_log_std"], rec["crb_log_std_force_noise"] = crb, crb_f
-            rec["std_over_crb"] = {k: rec["posterior_log_std"][k] / crb[k] for k in labels}
+            # the bound is of the gains (sigma_x's own is not part of the target)
+            rec["std_over_crb"] = {k: rec["posterior_log_std"][k] / crb[k] for k in crb}
             rec["std_over_crb_force_noise"] = {
-                k: rec["posterior_log_std"][k] / crb_f[k] for k in labels
+                k: rec["posterior_log_std"][k] / crb_f[k] for k in crb_f
             }
+            # a parameter the data barely inform has the prior's std: its ratio is no test
+            width = _prior_log_width(case.tree)
+            rec["identified"] = {k: identified(crb_f[k], width[k]) for k in crb_f}
         ev = py + ["evaluate", "--run", str(d / "run"), "--data", str(d / "test")]
         ev += ["--out", str(d / "eval")]
         rc_e, wall_e = _run(ev, d / "evaluate.log")
@@ -163,23 +188,24 @@ def one_run(case, work: Path, clean: bool, infer_args: list[str]) -> dict:
     return rec
 
 
-def summarise(records: list[dict]) -> dict:
-    """Pooled figures over the noisy runs; the clean runs' checks."""
-    from scipy.stats import binomtest
-
-    noisy_runs = [r for r in records if not r["clean"]]
-    clean_runs = [r for r in records if r["clean"]]
+def _group(noisy_runs: list[dict]) -> dict:
+    """Figures over a group of noisy runs (one case, or all): band coverage of the unseen
+    points, truths inside their 95% interval (pooled and per parameter, Clopper-Pearson),
+    posterior std / CRB of the identified parameters, stuck particles, warnings, wall times."""
+    out: dict = {"n_runs": len(noisy_runs)}
     inside = [v for r in noisy_runs for v in r.get("truth_in_interval", {}).values()]
-    out: dict = {"n_noisy_runs": len(noisy_runs)}
     if inside:
-        k, n = int(sum(inside)), len(inside)
-        ci = binomtest(k, n).proportion_ci(0.95)
-        out["truth_in_interval"] = {
-            "k": k,
-            "n": n,
-            "rate": k / n,
-            "clopper_pearson_95": [ci.low, ci.high],
-            "nominal_0.95_inside_ci": bool(ci.low <= 0.95 <= ci.high),
+        out["truth_in_interval"] = rate_record(inside)
+        labels = sorted({k for r in noisy_runs for k in r.get("truth_in_interval", {})})
+        out["truth_in_interval_per_parameter"] = {
+            k: rate_record(
+                [
+                    r["truth_in_interval"][k]
+                    for r in noisy_runs
+                    if k in r.get("truth_in_interval", {})
+                ]
+            )
+            for k in labels
         }
     cov = [r["test_pct_inside"] for r in noisy_runs if "test_pct_inside" in r]
     if cov:
@@ -187,31 +213,70 @@ def summarise(records: list[dict]) -> dict:
             "mean": float(np.mean(cov)),
             "min": float(np.min(cov)),
             "max": float(np.max(cov)),
-            "in_target_93_97": int(sum(93.0 <= c <= 97.0 for c in cov)),
+            "runs_in_target_93_97": int(sum(93.0 <= c <= 97.0 for c in cov)),
             "bands": sorted({r["test_band"] for r in noisy_runs if "test_band" in r}),
         }
     for key in ("std_over_crb", "std_over_crb_force_noise"):
-        ratios = [v for r in noisy_runs for v in r.get(key, {}).values()]
-        if ratios:
+        pairs = [
+            (v, r.get("identified", {}).get(k, True))
+            for r in noisy_runs
+            for k, v in r.get(key, {}).items()
+        ]
+        ident = [v for v, ok in pairs if ok]
+        if pairs:
             out[key] = {
-                "median": float(np.median(ratios)),
-                "max": float(np.max(ratios)),
-                "share_within_2x": float(np.mean(np.asarray(ratios) <= 2.0)),
+                "identified_parameters": len(ident),
+                "all_parameters": len(pairs),
+                "median_identified": float(np.median(ident)) if ident else None,
+                "max_identified": float(np.max(ident)) if ident else None,
+                # within a factor 2 either way: narrower than half the bound is over-confidence
+                "share_identified_within_2x": float(
+                    np.mean((np.asarray(ident) >= 0.5) & (np.asarray(ident) <= 2.0))
+                )
+                if ident
+                else None,
+                "share_identified_below_half": float(np.mean(np.asarray(ident) < 0.5))
+                if ident
+                else None,
             }
-    walls = [r["infer"]["wall_s"] for r in noisy_runs + clean_runs]
-    out["infer_wall_s"] = {"median": float(np.median(walls)), "max": float(np.max(walls))}
-    ev = [r["evaluate"]["wall_s"] for r in noisy_runs + clean_runs if "evaluate" in r]
+    walls = [r["infer"]["wall_s"] for r in noisy_runs]
+    if walls:
+        out["infer_wall_s"] = {"median": float(np.median(walls)), "max": float(np.max(walls))}
+    ev = [r["evaluate"]["wall_s"] for r in noisy_runs if "evaluate" in r]
     if ev:
         out["evaluate_wall_s"] = {"median": float(np.median(ev)), "max": float(np.max(ev))}
-    out["exit_codes"] = sorted({r["infer"]["exit"] for r in records})
+    out["exit_codes"] = sorted({r["infer"]["exit"] for r in noisy_runs})
     out["verdicts"] = {
-        v: sum(r.get("verdict") == v for r in noisy_runs)
+        v: sum(str(r.get("verdict")) == v for r in noisy_runs)
         for v in sorted({str(r.get("verdict")) for r in noisy_runs})
     }
-    out["stuck_particles"] = int(sum(r.get("stragglers") or 0 for r in records))
+    out["stop_reasons"] = {
+        v: sum(str(r.get("stop_reason")) == v for r in noisy_runs)
+        for v in sorted({str(r.get("stop_reason")) for r in noisy_runs})
+    }
+    out["stuck_particles"] = int(sum(r.get("stragglers") or 0 for r in noisy_runs))
+    out["runs_with_stuck_particles"] = int(sum((r.get("stragglers") or 0) > 0 for r in noisy_runs))
+    out["runs_with_convergence_warnings"] = int(
+        sum(bool(r.get("convergence_warnings")) for r in noisy_runs)
+    )
+    return out
+
+
+def summarise(records: list[dict]) -> dict:
+    """Pooled and per-case figures over the noisy runs; the clean runs' checks."""
+    noisy_runs = [r for r in records if not r["clean"]]
+    clean_runs = [r for r in records if r["clean"]]
+    out = {"pooled": _group(noisy_runs)}
+    out["per_case"] = {
+        c: _group([r for r in noisy_runs if r["case"] == c])
+        for c in sorted({r["case"] for r in noisy_runs})
+    }
+    out["n_noisy_runs"] = len(noisy_runs)
+    out["stuck_particles_all_runs"] = int(sum(r.get("stragglers") or 0 for r in records))
     out["clean"] = [
         {
             "case": r["case"],
+            "seed": r["seed"],
             "exit": r["infer"]["exit"],
             "verdict": r.get("verdict"),
             "poor_fit": r.get("verdict") == "poor_fit",
@@ -219,6 +284,12 @@ def summarise(records: list[dict]) -> dict:
             if r.get("truth_in_interval")
             else None,
             "test_pct_inside": r.get("test_pct_inside"),
+            "stuck_particles": r.get("stragglers"),
+            "convergence_warnings": r.get("convergence_warnings"),
+            "target_met": r["infer"]["exit"] == 0
+            and r.get("verdict") != "poor_fit"
+            and bool(r.get("truth_in_interval"))
+            and all(r["truth_in_interval"].values()),
         }
         for r in clean_runs
     ]
@@ -230,47 +301,121 @@ def markdown(res: dict) -> str:
     lines = [
         f"# Default-command calibration ({c['size']}): `{c['infer_command']}`",
         "",
-        f"treeinfer {c['treeinfer_commit']}, {c['cpu_count']} CPUs, {c['date_utc']}",
+        f"treeinfer {c['treeinfer_commit']}, {c['cpu_count']} CPUs, {c['machine']}, "
+        f"{c['date_utc']}",
         "",
-        "| case | seed | exit | verdict | test % inside | truths inside "
-        "| max std/CRB (force noise) | infer s | evaluate s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| case | seed | exit | verdict | stop | test % inside | truths inside "
+        "| std/CRB (force noise), identified | stuck | warnings | infer s | evaluate s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in res["runs"]:
         ins = r.get("truth_in_interval", {})
-        ratio = max(r.get("std_over_crb_force_noise", {}).values(), default=float("nan"))
+        ratios = [
+            v
+            for k, v in r.get("std_over_crb_force_noise", {}).items()
+            if r.get("identified", {}).get(k, True)
+        ]
+        rr = f"{min(ratios):.2f}-{max(ratios):.2f}" if ratios else "-"
         lines.append(
             f"| {r['case']}{' (clean)' if r['clean'] else ''} | {r['seed']} | "
-            f"{r['infer']['exit']} | {r.get('verdict')} | "
+            f"{r['infer']['exit']} | {r.get('verdict')} | {r.get('stop_reason')} | "
             f"{r.get('test_pct_inside', float('nan')):.1f} | "
-            f"{sum(ins.values())}/{len(ins)} | {ratio:.2f} | {r['infer']['wall_s']:.0f} | "
+            f"{sum(ins.values())}/{len(ins)} | {rr} | {r.get('stragglers')} | "
+            f"{len(r.get('convergence_warnings') or [])} | {r['infer']['wall_s']:.0f} | "
             f"{r.get('evaluate', {}).get('wall_s', float('nan')):.0f} |"
+        )
+    lines += [
+        "",
+        "| group | runs | test % inside: mean (min-max) | runs in 93-97% | truths inside "
+        "(Clopper-Pearson 95%) | identified std/CRB: median, max, share in 0.5-2 | stuck "
+        "| runs with warnings | infer s median |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, g in [("pooled", s["pooled"]), *s["per_case"].items()]:
+        t, ti = g.get("test_pct_inside", {}), g.get("truth_in_interval", {})
+        cr = g.get("std_over_crb_force_noise", {})
+        ci = ti.get("clopper_pearson_95", [math.nan, math.nan])
+
+        def f(x, fmt=".2f"):
+            return "-" if x is None else format(x, fmt)
+
+        lines.append(
+            f"| {name} | {g['n_runs']} | {f(t.get('mean'), '.1f')} ({f(t.get('min'), '.1f')}-"
+            f"{f(t.get('max'), '.1f')}) | {t.get('runs_in_target_93_97', '-')} | "
+            f"{ti.get('k', '-')}/{ti.get('n', '-')} [{ci[0]:.2f}, {ci[1]:.2f}] | "
+            f"{f(cr.get('median_identified'))}, {f(cr.get('max_identified'))}, "
+            f"{f(cr.get('share_identified_within_2x'))} | {g['stuck_particles']} | "
+            f"{g['runs_with_convergence_warnings']} | "
+            f"{f(g.get('infer_wall_s', {}).get('median'), '.0f')} |"
         )
     lines += ["", "```json", json.dumps(s, indent=2), "```", ""]
     return "\n".join(lines)
+
+
+def _write(out: Path, res: dict) -> None:
+    from treeinfer.io.atomic_write import atomic_write_bytes
+
+    # atomically: an interrupted write leaves the previous summary, never half of one
+    atomic_write_bytes(out / "results.json", (json.dumps(res, indent=2) + "\n").encode())
+    atomic_write_bytes(out / "results.md", markdown(res).encode())
+
+
+def merge(paths: list[Path], out: Path) -> dict:
+    """One summary of the runs of several ``results.json`` (e.g. seed chunks run in separate
+    GPU calls); a later file's run replaces an earlier one of the same case, seed and data."""
+    runs: dict = {}
+    configs = []
+    for p in paths:
+        res = json.loads(Path(p).read_text())
+        configs.append(res["config"])
+        for r in res["runs"]:
+            runs[(r["case"], r["seed"], r["clean"])] = r
+    records = [runs[k] for k in sorted(runs)]
+    config = {**configs[-1], "merged_from": [str(p) for p in paths], "configs": configs}
+    res = {"config": config, "summary": summarise(records), "runs": records}
+    out.mkdir(parents=True, exist_ok=True)
+    _write(out, res)
+    print(markdown(res))
+    return res
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", choices=list(SIZES), default="cpu")
     ap.add_argument("--seeds", type=int, help="seeds per case (default: the size's)")
+    ap.add_argument("--seed-start", type=int, default=0, help="first seed (default 0)")
     ap.add_argument(
         "--cases", default=",".join(CASES), help="comma-separated, of " + ", ".join(CASES)
     )
     ap.add_argument("--no-clean", action="store_true", help="skip the noise-free runs")
     ap.add_argument("--infer-args", default="", help="extra flags for `infer` (default: none)")
     ap.add_argument(
+        "--budget-s",
+        type=float,
+        help="start no new run after this many seconds (stay inside a call's time limit; a "
+        "rerun with the same --out continues)",
+    )
+    ap.add_argument(
+        "--merge",
+        nargs="+",
+        type=Path,
+        metavar="RESULTS_JSON",
+        help="run nothing: summarise the runs of these results.json files into --out",
+    )
+    ap.add_argument(
         "--out", type=Path, help="default experiments/results/default_calibration_<size>"
     )
     args = ap.parse_args(argv)
+    out = args.out or ROOT / "experiments" / "results" / f"default_calibration_{args.size}"
+    if args.merge:
+        return merge(args.merge, out)
     size = SIZES[args.size]
     seeds = args.seeds or size["seeds"]
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     bad = [c for c in cases if c not in CASES]
-    if bad or seeds < 1:
-        ap.error(f"--cases: unknown {bad}" if bad else "--seeds must be >= 1")
+    if bad or seeds < 1 or args.seed_start < 0:
+        ap.error(f"--cases: unknown {bad}" if bad else "--seeds must be >= 1, --seed-start >= 0")
     infer_args = shlex.split(args.infer_args)
-    out = args.out or ROOT / "experiments" / "results" / f"default_calibration_{args.size}"
     work = out / "work"
     # another flag set is another experiment: keep its runs apart
     if infer_args:
@@ -278,9 +423,10 @@ def main(argv=None) -> dict:
     commit = subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
     ).stdout.strip()
+    seed_list = list(range(args.seed_start, args.seed_start + seeds))
     config = {
         "size": args.size,
-        "seeds": seeds,
+        "seeds": seed_list,
         "cases": cases,
         "n_train": N_TRAIN,
         "n_test": size["n_test"],
@@ -291,37 +437,49 @@ def main(argv=None) -> dict:
         "clean": size["clean"] and not args.no_clean,
         "infer_command": "python -m treeinfer infer --tree T --data D --out R"
         + (" " + shlex.join(infer_args) if infer_args else ""),
+        "evaluate_command": "python -m treeinfer evaluate --run R --data TEST --out E",
         "reference": "treeinfer.sim.planar_reference.PlanarTree (scipy DOP853, rtol 1e-11)",
+        "crb": "Fisher J^T (C + sigma^2 I)^-1 J at the truth on the noisy training forces "
+        "(J central differences of the run's simulator; C the force-noise term), and J^T J / "
+        "sigma^2 without it; 'identified': CRB std < 1/4 of the uniform prior's log std",
         "treeinfer_commit": commit,
         "cpu_count": os.cpu_count(),
         "machine": platform.platform(),
         "jax_platforms": os.environ.get("JAX_PLATFORMS"),
         "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
+        "budget_s": args.budget_s,
     }
     records = []
     t0 = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
+    res = {"config": config, "summary": summarise([]), "runs": []}
+    stopped = False
     # seeds outer, cases inner: an interrupted study still has every case
-    for seed in range(seeds):
+    for seed in seed_list:
         for name in cases:
             case = make_case(name, seed, N_TRAIN, size["n_test"], DURATION, DT)
             runs = [False] + ([True] if config["clean"] and seed == 0 else [])
             for clean in runs:
+                if args.budget_s is not None and time.perf_counter() - t0 > args.budget_s:
+                    stopped = True
+                    break
                 rec = one_run(case, work, clean, infer_args)
                 records.append(rec)
                 print(
                     f"{name} seed {seed}{' clean' if clean else ''}: exit {rec['infer']['exit']}, "
                     f"verdict {rec.get('verdict')}, test inside "
                     f"{rec.get('test_pct_inside', math.nan):.1f}%, truths "
-                    f"{rec.get('truth_in_interval')}, infer {rec['infer']['wall_s']:.0f} s",
+                    f"{rec.get('truth_in_interval')}, stuck {rec.get('stragglers')}, "
+                    f"infer {rec['infer']['wall_s']:.0f} s",
                     flush=True,
                 )
                 # written after every run: the figures so far survive an interrupted study
                 config["total_wall_s"] = time.perf_counter() - t0
                 res = {"config": config, "summary": summarise(records), "runs": records}
-                (out / "results.json").write_text(json.dumps(res, indent=2) + "\n")
-                (out / "results.md").write_text(markdown(res))
-    print(json.dumps(res["summary"], indent=2))
+                _write(out, res)
+    if stopped:
+        print(f"time budget of {args.budget_s:.0f} s spent: rerun with the same --out to go on")
+    print(markdown(res))
     return res
 
 
