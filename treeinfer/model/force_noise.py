@@ -26,7 +26,9 @@ Why this and not the alternatives:
 (``jax.jacfwd``; the simulator is causal, so ``J`` is lower triangular; with first-order-hold
 force interpolation its diagonal is not zero; on the Pallas backend it is taken through the
 fused twin, whose XLA step ``jacfwd`` differentiates in the force, and checked against a central
-difference of the run's own simulator: :func:`force_jacobian`). It depends on theta mainly
+difference of the run's own simulator: :func:`force_jacobian`; taken at the simulator's
+stability step, 0.9% from J at the accurate one on the standard problem, and at the accurate
+step where the check finds it off: :func:`jacobian_substeps`). It depends on theta mainly
 through the branch's compliance; it is evaluated ONCE, at a reference parameter ``theta_ref``:
 by default the MAP of this errors-in-variables model (:func:`reference_theta`:
 Levenberg-Marquardt from several starts in the prior box,
@@ -54,6 +56,7 @@ largest peak force), or ``"auto"``: estimated from the recorded force's high-fre
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import math
@@ -272,92 +275,192 @@ def _force_differentiable(sim):
 # perturbation per sample as a share of the largest |force|, and the allowed relative error.
 _CHECK_STEP = 0.01
 _CHECK_RTOL = 0.02
+# J of the last few (simulator, theta, forces) of this process (force_jacobian): the run takes
+# J at its reference once for the likelihood, then the training fit's band and the fit verdict
+# ask for the same J again (three times 5-10 s on a 2-core CPU before it was kept)
+_KEPT: collections.OrderedDict = collections.OrderedDict()
+_KEPT_SIZE = 4
+_KEPT_MAX_BYTES = 64 * 2**20  # a J larger than this (long or many pulls) is not kept
 
 
-def force_jacobian(sim, theta, forces, grasp_fraction=None, check: bool = True) -> np.ndarray:
+def jacobian_substeps(sim) -> int:
+    """Substeps per observation at which :func:`force_jacobian` first takes J: the simulator's
+    stability step (``step_info["stability_substeps"]``) when its accurate step is finer.
+
+    Why: J is a linearisation (taken once, at a reference point, and a few % off at other
+    posterior draws), so the discretisation error of a merely stable step is immaterial to it:
+    on the standard problem J at 4 substeps is within 0.9% (Frobenius) of J at the accurate
+    32, at 8 within 0.4%, and it costs an eighth. The directional check always compares with
+    the ACCURATE simulator's own central difference (2%); a J that misses it there is taken
+    again at the accurate step."""
+    fine = int(sim.substeps)
+    stable = int(sim.step_info.get("stability_substeps", fine))
+    return stable if 1 <= stable < fine else fine
+
+
+def force_jacobian(
+    sim, theta, forces, grasp_fraction=None, check: bool = True, substeps: int | None = None
+) -> np.ndarray:
     """``J[b] = d tau[b, :] / d forces[b, :]`` at ``theta [2R]``: ``[B, T, T]`` (m/N, float64).
 
     Exact forward mode (``jax.jacfwd``) through :func:`treeinfer.sim.simulate`, one pull at a
     time under ``vmap``; ``J[b, t, s]`` is the change of the displacement at sample t per newton
     at force sample s. On the Pallas backend the Jacobian is taken through the fused twin of
     ``sim`` (:func:`_force_differentiable`: the kernel's JVP drops force tangents).
+    ``substeps``: the step J is taken at (default :func:`jacobian_substeps`: the stability
+    step; the simulator's own step when that one fails the check). The step is an argument
+    of one compiled program, so every step, reference and pull set of a shape shares it.
 
     ``check`` (default on): one directional central difference of ``sim``'s OWN rollouts
     (``tau(F + h v) - tau(F - h v)``, ``v`` random signs, ``h`` 1% of the largest |force|, one
-    batched call of 2B pulls) must match ``2 h J v`` to 2% (norm over each pull, plus a float
-    rounding floor); else :class:`SimulationError`. It guards against a backend whose
-    derivative in the force is wrong or missing (a zero ``J`` is not an error anywhere else:
-    the term would silently vanish). Raises :class:`SimulationError` too if the rollout at
-    ``theta`` is unstable."""
+    batched call of 2B pulls, at ``sim``'s own step) must match ``2 h J v`` to 2% (norm over
+    each pull, plus a float rounding floor); else :class:`SimulationError`. It guards against a
+    backend whose derivative in the force is wrong or missing (a zero ``J`` is not an error
+    anywhere else: the term would silently vanish). Raises :class:`SimulationError` too if the
+    rollout at ``theta`` is unstable.
+
+    The result of the last few calls is kept in this process (keyed by the simulator's content,
+    ``theta``, the forces and the grasp points), so a run's likelihood, training fit and fit
+    verdict take J once."""
     from .gains import gains_from_theta
 
     dtype = sim.dtype
-    jsim = _force_differentiable(sim)
-    theta = jnp.asarray(np.asarray(theta, float)[None], dtype)
-    kp, kd = gains_from_theta(theta, sim.n_joints)
-    forces = jnp.asarray(np.atleast_2d(np.asarray(forces, float)), dtype)
-    gf = (
+    theta64 = np.asarray(theta, float).reshape(-1)
+    forces64 = np.atleast_2d(np.asarray(forces, float))
+    gf64 = (
         None
         if grasp_fraction is None
-        else jnp.broadcast_to(jnp.asarray(grasp_fraction, dtype), forces.shape[:1])
+        else np.broadcast_to(np.asarray(grasp_fraction, float), forces64.shape[:1])
     )
-
-    jac, ok = _jacobian_program(jsim, kp, kd, forces, gf)
-    jac = np.asarray(jac, float)
-    if not (np.all(np.asarray(ok)) and np.all(np.isfinite(jac))):
+    key = (
+        sim.fingerprint,
+        theta64.tobytes(),
+        forces64.shape,
+        forces64.tobytes(),
+        None if gf64 is None else gf64.tobytes(),
+        bool(check),
+        substeps,
+    )
+    if key in _KEPT:
+        _KEPT.move_to_end(key)
+        return _KEPT[key].copy()
+    jsim = _force_differentiable(sim)
+    th = jnp.asarray(theta64[None], dtype)
+    kp, kd = gains_from_theta(th, sim.n_joints)
+    f = jnp.asarray(forces64, dtype)
+    gf = None if gf64 is None else jnp.asarray(gf64, dtype)
+    n_b, n_t = forces64.shape
+    v = np.random.default_rng(0).choice([-1.0, 1.0], size=(n_b, n_t))
+    h = _CHECK_STEP * max(float(np.max(np.abs(forces64))), 1e-12)
+    # the check's rollouts in the same program (one compilation), except on the Pallas backend,
+    # whose own kernel is what the check must run
+    fused_check = check and jsim is sim
+    first = jacobian_substeps(sim) if substeps is None else int(substeps)
+    bad = None
+    for step in dict.fromkeys([first, int(sim.substeps) if substeps is None else first]):
+        jac, ok, tau_pm, ok_pm = _jacobian_program(
+            jsim, kp, kd, f, gf, jnp.asarray(h * v, dtype), np.int32(step),
+            np.int32(sim.substeps), fused_check,
+        )  # fmt: skip
+        jac = np.asarray(jac, float)
+        if not (np.all(np.asarray(ok)) and np.all(np.isfinite(jac))):
+            raise SimulationError(
+                "force noise: the simulation at the reference parameters is unstable on some "
+                "pull; give another reference (force_noise_reference)"
+            )
+        if not check:
+            break
+        if fused_check:
+            tau_pm, ok_pm = np.asarray(tau_pm, float), np.asarray(ok_pm)
+        else:
+            tau_pm, ok_pm = _check_rollouts(sim, kp, kd, forces64, gf, h * v)
+        bad = _check_failures(forces64, tau_pm, ok_pm, h, v, jac, dtype)
+        if bad is None:
+            break
+    if bad is not None:
+        b, rel = bad
         raise SimulationError(
-            "force noise: the simulation at the reference parameters is unstable on some pull; "
-            "give another reference (force_noise_reference)"
+            f"force noise: the forward-mode force Jacobian (backend {sim.backend!r}) does not "
+            f"match a central difference of the simulator on pull {b} (relative error "
+            f"{rel:.2g}); the backend's derivative in the force is wrong or missing"
         )
-    if check:
-        _check_force_jacobian(sim, kp, kd, np.asarray(forces, float), gf, jac)
+    if jac.nbytes <= _KEPT_MAX_BYTES:
+        _KEPT[key] = jac.copy()
+        while len(_KEPT) > _KEPT_SIZE:
+            _KEPT.popitem(last=False)
     return jac
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _jacobian_program(jsim, kp, kd, forces, gf):
-    """:func:`force_jacobian`'s program, jitted once per simulator with the gains as arguments
-    (a closure over them compiled anew at every reference point: 10-30 s each on a 2-core
-    CPU, three times per run with the start pipeline's reference)."""
-    from ..sim import simulate
+@functools.partial(jax.jit, static_argnums=(0, 8))
+def _jacobian_program(jsim, kp, kd, forces, gf, hv, substeps, check_substeps, with_check):
+    """:func:`force_jacobian`'s program, jitted once per simulator with the gains, the step
+    (``substeps``, traced) and the perturbation ``hv [B, T]`` as arguments (a closure over the
+    gains compiled anew at every reference point: 10-30 s each on a 2-core CPU). With
+    ``with_check`` it also returns the rollouts ``tau(F + hv)``, ``tau(F - hv)`` at
+    ``check_substeps`` (``[2B, T]``) and their stability, else zeros."""
+    from ..sim import _simulate
 
     def one(f, g):
         def tau(fb):
-            ro = simulate(jsim, kp, kd, fb[None], None if g is None else g[None])
+            ro = _simulate(
+                jsim, kp, kd, fb[None], None if g is None else g[None], substeps=substeps
+            )
             return ro.tau[0, 0], ro.stable[0, 0]
 
         return jax.jacfwd(tau, has_aux=True)(f)
 
     if gf is None:
-        return jax.vmap(lambda f: one(f, None))(forces)
-    return jax.vmap(one)(forces, gf)
+        jac, ok = jax.vmap(lambda f: one(f, None))(forces)
+    else:
+        jac, ok = jax.vmap(one)(forces, gf)
+    both = jnp.concatenate([forces + hv, forces - hv])
+    if not with_check:
+        return jac, ok, jnp.zeros(both.shape, forces.dtype), jnp.ones(both.shape[:1], bool)
+    g2 = None if gf is None else jnp.concatenate([gf, gf])
+    ro = _simulate(jsim, kp, kd, both, g2, substeps=check_substeps)
+    return jac, ok, ro.tau[0], ro.stable[0]
+
+
+def _check_rollouts(sim, kp, kd, forces, gf, hv):
+    """``(tau [2B, T], stable [2B])`` of ``sim``'s own rollouts of ``forces +- hv``."""
+    from ..sim import simulate
+
+    both = np.concatenate([forces + hv, forces - hv])
+    g2 = None if gf is None else jnp.concatenate([gf, gf])
+    ro = simulate(sim, kp, kd, jnp.asarray(both, sim.dtype), g2)
+    return np.asarray(ro.tau[0], float), np.asarray(ro.stable[0])
+
+
+def _check_failures(forces, tau, stable, h, v, jac, dtype):
+    """None when ``jac [B, T, T]`` predicts the central difference of the rollouts ``tau
+    [2B, T]`` of ``forces +- h v`` to :data:`_CHECK_RTOL` (or a perturbed pull blew up: nothing
+    to compare), else ``(pull, relative error)`` of the worst pull."""
+    n_b, n_t = forces.shape
+    if not np.all(stable):
+        return None  # a perturbed pull blew up: nothing to compare (the unperturbed one is stable)
+    fd = tau[:n_b] - tau[n_b:]  # [B, T] m
+    lin = 2.0 * h * np.einsum("bts,bs->bt", jac, v)
+    # float rounding of the two rollouts: a few ulps of the displacement's scale
+    eps = float(np.finfo(np.dtype(dtype)).eps)
+    floor = 10.0 * eps * np.abs(tau[:n_b]).max(axis=1) * math.sqrt(n_t)
+    err = np.linalg.norm(fd - lin, axis=1)
+    bad = err > _CHECK_RTOL * np.linalg.norm(fd, axis=1) + floor
+    if not np.any(bad):
+        return None
+    b = int(np.argmax(bad))
+    return b, err[b] / max(float(np.linalg.norm(fd[b])), 1e-300)
 
 
 def _check_force_jacobian(sim, kp, kd, forces, gf, jac) -> None:
     """Raise :class:`SimulationError` unless ``jac [B, T, T]`` predicts ``sim``'s own response
     to a small random force perturbation (see :func:`force_jacobian`)."""
-    from ..sim import simulate
-
     n_b, n_t = forces.shape
-    rng = np.random.default_rng(0)
-    v = rng.choice([-1.0, 1.0], size=(n_b, n_t))
+    v = np.random.default_rng(0).choice([-1.0, 1.0], size=(n_b, n_t))
     h = _CHECK_STEP * max(float(np.max(np.abs(forces))), 1e-12)
-    both = np.concatenate([forces + h * v, forces - h * v])
-    g2 = None if gf is None else jnp.concatenate([gf, gf])
-    ro = simulate(sim, kp, kd, jnp.asarray(both, sim.dtype), g2)
-    tau = np.asarray(ro.tau[0], float)
-    if not np.all(np.asarray(ro.stable)):
-        return  # a perturbed pull blew up: nothing to compare (the unperturbed one is stable)
-    fd = tau[:n_b] - tau[n_b:]  # [B, T] m
-    lin = 2.0 * h * np.einsum("bts,bs->bt", jac, v)
-    # float rounding of the two rollouts: a few ulps of the displacement's scale
-    eps = float(np.finfo(np.dtype(sim.dtype)).eps)
-    floor = 10.0 * eps * np.abs(tau[:n_b]).max(axis=1) * math.sqrt(n_t)
-    err = np.linalg.norm(fd - lin, axis=1)
-    bad = err > _CHECK_RTOL * np.linalg.norm(fd, axis=1) + floor
-    if np.any(bad):
-        b = int(np.argmax(bad))
-        rel = err[b] / max(float(np.linalg.norm(fd[b])), 1e-300)
+    tau, ok = _check_rollouts(sim, kp, kd, forces, gf, h * v)
+    bad = _check_failures(forces, tau, ok, h, v, jac, sim.dtype)
+    if bad is not None:
+        b, rel = bad
         raise SimulationError(
             f"force noise: the forward-mode force Jacobian (backend {sim.backend!r}) does not "
             f"match a central difference of the simulator on pull {b} (relative error "
