@@ -26,9 +26,7 @@ Why this and not the alternatives:
 (``jax.jacfwd``; the simulator is causal, so ``J`` is lower triangular; with first-order-hold
 force interpolation its diagonal is not zero; on the Pallas backend it is taken through the
 fused twin, whose XLA step ``jacfwd`` differentiates in the force, and checked against a central
-difference of the run's own simulator: :func:`force_jacobian`; taken at the simulator's
-stability step, 0.9% from J at the accurate one on the standard problem, and at the accurate
-step where the check finds it off: :func:`jacobian_substeps`). It depends on theta mainly
+difference of the run's own simulator: :func:`force_jacobian`). It depends on theta mainly
 through the branch's compliance; it is evaluated ONCE, at a reference parameter ``theta_ref``:
 by default the MAP of this errors-in-variables model (:func:`reference_theta`:
 Levenberg-Marquardt from several starts in the prior box,
@@ -58,7 +56,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import functools
 import math
 from typing import NamedTuple
 
@@ -283,21 +280,6 @@ _KEPT_SIZE = 4
 _KEPT_MAX_BYTES = 64 * 2**20  # a J larger than this (long or many pulls) is not kept
 
 
-def jacobian_substeps(sim) -> int:
-    """Substeps per observation at which :func:`force_jacobian` first takes J: the simulator's
-    stability step (``step_info["stability_substeps"]``) when its accurate step is finer.
-
-    Why: J is a linearisation (taken once, at a reference point, and a few % off at other
-    posterior draws), so the discretisation error of a merely stable step is immaterial to it:
-    on the standard problem J at 4 substeps is within 0.9% (Frobenius) of J at the accurate
-    32, at 8 within 0.4%, and it costs an eighth. The directional check always compares with
-    the ACCURATE simulator's own central difference (2%); a J that misses it there is taken
-    again at the accurate step."""
-    fine = int(sim.substeps)
-    stable = int(sim.step_info.get("stability_substeps", fine))
-    return stable if 1 <= stable < fine else fine
-
-
 def force_jacobian(
     sim, theta, forces, grasp_fraction=None, check: bool = True, substeps: int | None = None
 ) -> np.ndarray:
@@ -307,9 +289,11 @@ def force_jacobian(
     time under ``vmap``; ``J[b, t, s]`` is the change of the displacement at sample t per newton
     at force sample s. On the Pallas backend the Jacobian is taken through the fused twin of
     ``sim`` (:func:`_force_differentiable`: the kernel's JVP drops force tangents).
-    ``substeps``: the step J is taken at (default :func:`jacobian_substeps`: the stability
-    step; the simulator's own step when that one fails the check). The step is an argument
-    of one compiled program, so every step, reference and pull set of a shape shares it.
+    ``substeps``: the step J is taken at (default the simulator's own); it is an argument of one
+    compiled program, so every step, reference and pull set of a shape shares it. (Why not the
+    merely stable step, an eighth of the cost: J there is 0.9% (Frobenius) from the accurate J on
+    the standard problem but up to 11% off in single columns, the response to a force at the
+    first samples, against MuJoCo C in ``tests/test_force_noise_backends.py``.)
 
     ``check`` (default on): one directional central difference of ``sim``'s OWN rollouts
     (``tau(F + h v) - tau(F - h v)``, ``v`` random signs, ``h`` 1% of the largest |force|, one
@@ -332,8 +316,10 @@ def force_jacobian(
         if grasp_fraction is None
         else np.broadcast_to(np.asarray(grasp_fraction, float), forces64.shape[:1])
     )
+    jsim = _force_differentiable(sim)
     key = (
         sim.fingerprint,
+        jsim.fingerprint,
         theta64.tobytes(),
         forces64.shape,
         forces64.tobytes(),
@@ -344,7 +330,6 @@ def force_jacobian(
     if key in _KEPT:
         _KEPT.move_to_end(key)
         return _KEPT[key].copy()
-    jsim = _force_differentiable(sim)
     th = jnp.asarray(theta64[None], dtype)
     kp, kd = gains_from_theta(th, sim.n_joints)
     f = jnp.asarray(forces64, dtype)
@@ -355,28 +340,23 @@ def force_jacobian(
     # the check's rollouts in the same program (one compilation), except on the Pallas backend,
     # whose own kernel is what the check must run
     fused_check = check and jsim is sim
-    first = jacobian_substeps(sim) if substeps is None else int(substeps)
+    step = int(sim.substeps) if substeps is None else int(substeps)
+    args = (kp, kd, f, jnp.asarray(h * v, dtype), np.int32(step), np.int32(sim.substeps))
+    args += () if gf is None else (gf,)
+    jac, ok, tau_pm, ok_pm = _jacobian_runner(jsim, fused_check, args)(*args)
+    jac = np.asarray(jac, float)
+    if not (np.all(np.asarray(ok)) and np.all(np.isfinite(jac))):
+        raise SimulationError(
+            "force noise: the simulation at the reference parameters is unstable on some "
+            "pull; give another reference (force_noise_reference)"
+        )
     bad = None
-    for step in dict.fromkeys([first, int(sim.substeps) if substeps is None else first]):
-        jac, ok, tau_pm, ok_pm = _jacobian_program(
-            jsim, kp, kd, f, gf, jnp.asarray(h * v, dtype), np.int32(step),
-            np.int32(sim.substeps), fused_check,
-        )  # fmt: skip
-        jac = np.asarray(jac, float)
-        if not (np.all(np.asarray(ok)) and np.all(np.isfinite(jac))):
-            raise SimulationError(
-                "force noise: the simulation at the reference parameters is unstable on some "
-                "pull; give another reference (force_noise_reference)"
-            )
-        if not check:
-            break
+    if check:
         if fused_check:
             tau_pm, ok_pm = np.asarray(tau_pm, float), np.asarray(ok_pm)
         else:
             tau_pm, ok_pm = _check_rollouts(sim, kp, kd, forces64, gf, h * v)
         bad = _check_failures(forces64, tau_pm, ok_pm, h, v, jac, dtype)
-        if bad is None:
-            break
     if bad is not None:
         b, rel = bad
         raise SimulationError(
@@ -391,20 +371,48 @@ def force_jacobian(
     return jac
 
 
-@functools.partial(jax.jit, static_argnums=(0, 8))
+_RUNNERS: dict = {}  # force_jacobian's programs of this process, by their key
+
+
+def _jacobian_runner(jsim, with_check: bool, args):
+    """:func:`_jacobian_program` of ``jsim`` as a function of ``args`` ``(kp, kd, forces, hv,
+    substeps, check_substeps[, gf])`` (the grasp points last, where given), traced once per
+    machine (:func:`treeinfer.sim.startup.cached_program`: a new process deserializes the stored
+    program instead of tracing the simulator's forward mode again, 3-6 s on a 2-core CPU) and
+    kept for this process."""
+    from ..sim.startup import cached_program
+
+    shapes = tuple((tuple(np.shape(a)), str(jnp.result_type(a))) for a in args)
+    key = repr(("force_noise._jacobian_program", jsim.program_key(True), with_check, shapes))
+    run = _RUNNERS.get(key)
+    if run is None:
+
+        def fn(kp, kd, forces, hv, substeps, check_substeps, *gf):
+            g = gf[0] if gf else None
+            return _jacobian_program(
+                jsim, kp, kd, forces, g, hv, substeps, check_substeps, with_check
+            )
+
+        run = _RUNNERS[key] = cached_program(fn, args, key)
+    return run
+
+
 def _jacobian_program(jsim, kp, kd, forces, gf, hv, substeps, check_substeps, with_check):
-    """:func:`force_jacobian`'s program, jitted once per simulator with the gains, the step
-    (``substeps``, traced) and the perturbation ``hv [B, T]`` as arguments (a closure over the
-    gains compiled anew at every reference point: 10-30 s each on a 2-core CPU). With
-    ``with_check`` it also returns the rollouts ``tau(F + hv)``, ``tau(F - hv)`` at
-    ``check_substeps`` (``[2B, T]``) and their stability, else zeros."""
-    from ..sim import _simulate
+    """:func:`force_jacobian`'s program with the gains, the step (``substeps``, traced) and the
+    perturbation ``hv [B, T]`` as arguments (a closure over the gains compiled anew at every
+    reference point: 10-30 s each on a 2-core CPU). With ``with_check`` it also returns the
+    rollouts ``tau(F + hv)``, ``tau(F - hv)`` at ``check_substeps`` (``[2B, T]``) and their
+    stability, else zeros."""
+    from ..sim import _simulate, simulate
+
+    def run(kp, kd, f, g, s):
+        if jsim.backend == "pallas":  # the kernel's own step (only where a test asks for it)
+            return simulate(jsim, kp, kd, f, g)
+        return _simulate(jsim, kp, kd, f, g, substeps=s)
 
     def one(f, g):
         def tau(fb):
-            ro = _simulate(
-                jsim, kp, kd, fb[None], None if g is None else g[None], substeps=substeps
-            )
+            ro = run(kp, kd, fb[None], None if g is None else g[None], substeps)
             return ro.tau[0, 0], ro.stable[0, 0]
 
         return jax.jacfwd(tau, has_aux=True)(f)
@@ -417,7 +425,7 @@ def _jacobian_program(jsim, kp, kd, forces, gf, hv, substeps, check_substeps, wi
     if not with_check:
         return jac, ok, jnp.zeros(both.shape, forces.dtype), jnp.ones(both.shape[:1], bool)
     g2 = None if gf is None else jnp.concatenate([gf, gf])
-    ro = _simulate(jsim, kp, kd, both, g2, substeps=check_substeps)
+    ro = run(kp, kd, both, g2, check_substeps)
     return jac, ok, ro.tau[0], ro.stable[0]
 
 
