@@ -17,11 +17,17 @@ README's "typical session" (the ``bash`` block after "A typical session:", each 
 ``treeinfer`` replaced by ``python -m treeinfer``, run in a new folder with a new cache), each
 command and the total, ``evaluate --kfold 3`` among them.
 
+``--baseline REV`` times the default command of an older treeinfer (git revision REV, unpacked
+with ``git archive``) in the same run, interleaved. Each run's CPU seconds (user + system) are
+printed next to its wall seconds: on a shared machine the wall time carries the other users'
+load (the 1-minute load average before each run is recorded), the CPU time much less.
+
 Prints a table and writes JSON (``--json``, default ``benchmarks/results/cli_wall_time.json``)
 with the commands, the exit codes, the machine and the git commit. No timed assertions:
 timings on a shared machine are figures to compare side by side, not pass/fail.
 
     python -m benchmarks.cli_wall_time [--repeats 2] [--commands default,calibrated] [--session]
+    python -m benchmarks.cli_wall_time --commands default --baseline 44434eb  # before/after
     python -m benchmarks.cli_wall_time --extra 'mine=--likelihood gaussian --particles 32'
 """
 
@@ -48,21 +54,52 @@ DATA = ["--n-traj", "3", "--duration", "3", "--dt", "0.01", "--seed", "0"]
 NOISE = ["--noise-displacement", "0.002", "--noise-force", "0.05"]
 
 
-def _env(cache: Path) -> dict:
-    """This checkout's treeinfer (``PYTHONPATH``: an editable install elsewhere must not win)
-    with ``cache`` as its compile cache."""
+def _env(cache: Path, src: Path = ROOT) -> dict:
+    """``src``'s treeinfer (default this checkout's; ``PYTHONPATH``: an editable install
+    elsewhere must not win) with ``cache`` as its compile cache."""
     env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env["PYTHONPATH"] = str(src) + os.pathsep + env.get("PYTHONPATH", "")
     env["TREEINFER_JAX_CACHE"] = str(cache)
     return env
 
 
-def timed(cmd: list[str], cwd: Path, cache: Path, log: Path) -> dict:
-    """Run ``cmd``; its exit code and wall seconds (process start to exit), output in ``log``."""
+def timed(cmd: list[str], cwd: Path, cache: Path, log: Path, src: Path = ROOT) -> dict:
+    """Run ``cmd``; its exit code, wall seconds (process start to exit) and CPU seconds (user +
+    system of the process and its children: on a shared machine the wall time counts the other
+    users' load too, the CPU time much less), the 1-minute load average before it, output in
+    ``log``."""
+    import resource
+
+    load = os.getloadavg()[0]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     with open(log, "w") as f:
-        rc = subprocess.run(cmd, cwd=cwd, env=_env(cache), stdout=f, stderr=subprocess.STDOUT)
-    return {"command": shlex.join(cmd), "exit": rc.returncode, "wall_s": time.perf_counter() - t0}
+        rc = subprocess.run(cmd, cwd=cwd, env=_env(cache, src), stdout=f, stderr=subprocess.STDOUT)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return {
+        "command": shlex.join(cmd),
+        "exit": rc.returncode,
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "load_before": load,
+    }
+
+
+def source_of(rev: str, work: Path) -> Path:
+    """A folder holding treeinfer as of git revision ``rev`` (``git archive``), for timing an
+    older version side by side with this checkout in the same run."""
+    out = work / f"src_{rev}"
+    if not (out / "treeinfer").is_dir():
+        out.mkdir(parents=True, exist_ok=True)
+        archive = subprocess.run(
+            ["git", "archive", rev, "treeinfer"], cwd=ROOT, capture_output=True, check=False
+        )
+        if archive.returncode != 0:
+            raise SystemExit(f"--baseline {rev}: git archive failed: {archive.stderr.decode()}")
+        subprocess.run(["tar", "-x", "-C", str(out)], input=archive.stdout, check=True)
+    return out
 
 
 def readme_session() -> list[str]:
@@ -91,6 +128,15 @@ def main(argv=None) -> dict:
         default=[],
         metavar="LABEL=FLAGS",
         help="another infer command line to compare (repeatable)",
+    )
+    ap.add_argument(
+        "--baseline",
+        action="append",
+        default=[],
+        metavar="REV",
+        help="also time the default command with treeinfer as of git revision REV (e.g. "
+        "44434eb, the default before issue 27's speed work), interleaved with the others "
+        "(repeatable)",
     )
     ap.add_argument("--repeats", type=int, default=1, help="cold+warm pairs per command")
     ap.add_argument("--no-warm", action="store_true", help="cold runs only")
@@ -123,6 +169,10 @@ def main(argv=None) -> dict:
     )
     if prep["exit"] != 0:
         raise SystemExit(f"simulate failed (exit {prep['exit']}): see {work / 'simulate.log'}")
+    sources = {label: ROOT for label in commands}
+    for rev in args.baseline:
+        label = f"default@{rev}"
+        commands[label], sources[label] = COMMANDS["default"], source_of(rev, work)
     rows: dict = {
         label: {"flags": flags, "cold": [], "warm": []} for label, flags in commands.items()
     }
@@ -132,9 +182,13 @@ def main(argv=None) -> dict:
             for phase in ("cold",) if args.no_warm else ("cold", "warm"):
                 out = work / f"run_{label}_{rep}_{phase}"
                 cmd = py + ["infer", "--tree", str(tree), "--data", str(data), "--out", str(out)]
-                r = timed(cmd + flags, work, cache, work / f"{out.name}.log")
+                r = timed(cmd + flags, work, cache, work / f"{out.name}.log", sources[label])
                 rows[label][phase].append(r)
-                print(f"{label:20s} {phase}: {r['wall_s']:7.1f} s, exit {r['exit']}", flush=True)
+                print(
+                    f"{label:20s} {phase}: {r['wall_s']:7.1f} s wall, {r['cpu_s']:7.1f} s CPU "
+                    f"(load {r['load_before']:.1f}), exit {r['exit']}",
+                    flush=True,
+                )
     session = None
     if args.session:
         sdir = work / "session"
@@ -162,17 +216,20 @@ def main(argv=None) -> dict:
         "session": session,
     }
     print()
-    print(f"{'command':22s} {'cold s (median)':>16s} {'warm s (median)':>16s}  exit codes  flags")
+    print(
+        f"{'command':22s} {'cold wall s':>12s} {'cold CPU s':>11s} {'warm wall s':>12s} "
+        f"{'warm CPU s':>11s}  exit codes  flags (medians)"
+    )
     import statistics
 
+    def med(xs, key):
+        return statistics.median([x[key] for x in xs]) if xs else float("nan")
+
     for label, r in rows.items():
-        med = {
-            p: statistics.median([x["wall_s"] for x in r[p]]) if r[p] else float("nan")
-            for p in ("cold", "warm")
-        }
         codes = sorted({x["exit"] for p in ("cold", "warm") for x in r[p]})
         print(
-            f"{label:22s} {med['cold']:16.1f} {med['warm']:16.1f}  {codes!s:10s}  "
+            f"{label:22s} {med(r['cold'], 'wall_s'):12.1f} {med(r['cold'], 'cpu_s'):11.1f} "
+            f"{med(r['warm'], 'wall_s'):12.1f} {med(r['warm'], 'cpu_s'):11.1f}  {codes!s:10s}  "
             + shlex.join(r["flags"])
         )
     if session:

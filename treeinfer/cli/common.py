@@ -397,7 +397,8 @@ def add_simulation_options(p: argparse.ArgumentParser, default_note: str = "") -
         default=None,
         metavar="M",
         help="m, accuracy target of the simulated displacement; the step is refined until its "
-        "estimated error is below it (default 1e-4)" + default_note,
+        "estimated error is below it (default 1e-4; infer with a generative likelihood: a "
+        "tenth of the displacement noise, within 1e-4 to 1e-3)" + default_note,
     )
 
 

@@ -576,8 +576,10 @@ def fast_posterior(
     for name, v in (("n_particles", n_particles), ("n_starts", n_starts)):
         if not (isinstance(v, (int, np.integer)) and v >= 1):
             raise ConfigError(f"{name}: must be an integer >= 1, got {v!r}")
-    d = problem.dim
-    k = n_starts * (2 * d + 1)
+    # one LM iteration's batch: the central differences in the gains (2R of them; a generative
+    # likelihood's noise columns need no rollout, start_steps.ggn_terms), so the force-noise
+    # reference's fits (start_pipeline.force_noise_reference) and this one share the program
+    k = n_starts * (4 * problem.sim.n_joints + 1)
     n_screen = 4 * k if n_screen is None else int(n_screen)
     n_draws = max(8 * k, 4 * n_particles) if n_draws is None else int(n_draws)
     if n_screen < n_starts:

@@ -34,6 +34,7 @@ from ..errors import ConfigError
 __all__ = [
     "KHAT_LIMIT",
     "ImportancePosterior",
+    "PopulationRounds",
     "BAND_SPLIT_LIMIT",
     "adaptive_importance",
     "band_split",
@@ -294,6 +295,72 @@ def weighted_moments(draws, log_weights, ridge: float = 1e-9):
     return mean, c + ridge * max(float(np.trace(c)) / len(mean), 1e-300) * np.eye(len(mean))
 
 
+class PopulationRounds:
+    """The rounds of :func:`adaptive_importance` one at a time, so that a caller can share
+    rounds out between several proposals (:func:`treeinfer.inference.start_steps.
+    multimode_importance`): :meth:`step` draws and weights one more round, :meth:`adapt` moves
+    the proposal to the weighted draws' moments (False: they give no usable covariance),
+    :meth:`result` is ``adaptive_importance``'s return. Attributes after a step: ``draws``,
+    ``log_p``, ``log_weights`` (PSIS, normalised), ``raw_log_weights`` (``log p - log q_mix``),
+    ``khat``, ``ess``, ``ok``, ``reason``, ``rounds``, ``sizes`` (draws per round)."""
+
+    def __init__(
+        self, log_density, mean, cov, n_draws: int, n_particles: int, seed: int = 0,
+        df: float = math.inf, min_ess: float | None = None, df_adapt: float | None = None,
+    ):  # fmt: skip
+        self.log_density, self.n_draws, self.n_particles = log_density, n_draws, int(n_particles)
+        self.seed, self.min_ess = seed, min_ess
+        self.df_adapt = float(df) if df_adapt is None else float(df_adapt)
+        self.proposals = [(np.asarray(mean, float), np.asarray(cov, float), float(df))]
+        self._draws, self._log_p, self.sizes = [], [], []
+        self.rounds = 0
+
+    def step(self) -> None:
+        """Draw ``n_draws`` from the last proposal, evaluate them, reweight every draw so far
+        against the deterministic mixture of all proposals (:func:`adaptive_importance`)."""
+        r = len(self.proposals)
+        m_r, c_r, df_r = self.proposals[-1]
+        x, _ = _draw(np.random.default_rng(self.seed + r), m_r, c_r, self.n_draws, df_r)
+        self._draws.append(x)
+        self._log_p.append(np.asarray(self.log_density(x), float))
+        self.sizes.append(len(x))
+        self.rounds = r
+        self.draws, self.log_p = np.concatenate(self._draws), np.concatenate(self._log_p)
+        log_qs = [_draw_log_density(None, m, c, 0, d, self.draws)[1] for m, c, d in self.proposals]
+        self.log_q = np.logaddexp.reduce(
+            np.stack(log_qs) + np.log(np.asarray(self.sizes, float))[:, None], axis=0
+        ) - np.log(float(sum(self.sizes)))
+        self.index, self.log_weights, self.khat, self.ess, self.ok, self.reason = (
+            importance_resample(
+                self.draws, self.log_p, self.log_q, self.n_particles, self.seed, self.min_ess
+            )
+        )
+        self.raw_log_weights = np.where(np.isfinite(self.log_p), self.log_p - self.log_q, -np.inf)
+
+    def adapt(self) -> bool:
+        """The next round's proposal: the weighted draws' mean and covariance (Student-t with
+        ``df_adapt``); False (and no change) when their covariance is not positive definite."""
+        try:
+            nxt = weighted_moments(self.draws, self.log_weights)
+            np.linalg.cholesky(nxt[1])
+        except np.linalg.LinAlgError:
+            return False
+        self.proposals.append((*nxt, self.df_adapt))
+        return True
+
+    def result(self):
+        """``(ImportancePosterior, index [n_particles])`` as :func:`adaptive_importance`."""
+        m_last, c_last, df_last = self.proposals[-1]
+        if len(self.proposals) > self.rounds:  # adapted but not drawn from: the one used last
+            m_last, c_last, df_last = self.proposals[self.rounds - 1]
+        idx = self.index
+        imp = ImportancePosterior(
+            self.draws[idx], self.draws, self.log_weights, self.log_p, self.khat, self.ess,
+            self.ok, m_last, c_last, df_last, self.reason, self.rounds, self.raw_log_weights,
+        )  # fmt: skip
+        return imp, idx
+
+
 def adaptive_importance(
     log_density,
     mean,
@@ -338,44 +405,25 @@ def adaptive_importance(
         later rounds' (default ``df``).
 
     Returns ``(ImportancePosterior, index [n_particles])``: ``theta = draws[index]``; its
-    ``rounds`` says how many rounds ran.
+    ``rounds`` says how many rounds ran (:class:`PopulationRounds` runs them).
     """
     if not (isinstance(max_rounds, (int, np.integer)) and max_rounds >= 1):
         raise ConfigError(f"max_rounds: must be an integer >= 1, got {max_rounds!r}")
     target = 2.0 * n_particles if target_ess is None else float(target_ess)
-    df_adapt = float(df) if df_adapt is None else float(df_adapt)
-    proposals = [(np.asarray(mean, float), np.asarray(cov, float), float(df))]
-    draws, log_p, sizes = [], [], []
+    run = PopulationRounds(
+        log_density, mean, cov, n_draws, n_particles, seed, df, min_ess, df_adapt
+    )
     while True:
-        r = len(proposals)
-        m_r, c_r, df_r = proposals[-1]
-        x, _ = _draw(np.random.default_rng(seed + r), m_r, c_r, n_draws, df_r)
-        draws.append(x)
-        log_p.append(np.asarray(log_density(x), float))
-        sizes.append(len(x))
-        all_x, all_lp = np.concatenate(draws), np.concatenate(log_p)
-        # the deterministic mixture of every proposal so far, at every draw
-        log_qs = [_draw_log_density(None, m, c, 0, d, all_x)[1] for m, c, d in proposals]
-        log_q = np.logaddexp.reduce(
-            np.stack(log_qs) + np.log(np.asarray(sizes, float))[:, None], axis=0
-        ) - np.log(float(sum(sizes)))
-        idx, lw, khat, ess, ok, reason = importance_resample(
-            all_x, all_lp, log_q, int(n_particles), seed, min_ess
-        )
-        if r >= max_rounds or (ess >= target and khat <= KHAT_LIMIT) or not np.isfinite(ess):
+        run.step()
+        if (
+            run.rounds >= max_rounds
+            or (run.ess >= target and run.khat <= KHAT_LIMIT)
+            or not np.isfinite(run.ess)
+        ):
             break
-        try:
-            nxt = weighted_moments(all_x, lw)
-            np.linalg.cholesky(nxt[1])
-        except np.linalg.LinAlgError:
+        if not run.adapt():
             break
-        proposals.append((*nxt, df_adapt))
-    m_last, c_last, df_last = proposals[-1]
-    imp = ImportancePosterior(
-        all_x[idx], all_x, lw, all_lp, khat, ess, ok, m_last, c_last, df_last, reason, r,
-        np.where(np.isfinite(all_lp), all_lp - log_q, -np.inf),
-    )  # fmt: skip
-    return imp, idx
+    return run.result()
 
 
 def _weighted_width(pred: np.ndarray, w: np.ndarray, level: float) -> float:

@@ -58,7 +58,13 @@ REFERENCE_LM_ITERATIONS = 15
 
 
 def force_noise_reference(
-    make: Callable, problem0, n_starts: int, seed: int, programs=None, log=lambda m: None
+    make: Callable,
+    problem0,
+    n_starts: int,
+    seed: int,
+    programs=None,
+    log=lambda m: None,
+    shape=None,
 ):
     """``(theta_ref [2R], finals [S, D])``: the force-noise term's reference (module docstring)
     and the final points of its second fit (the start pipeline's LM starts there).
@@ -66,13 +72,14 @@ def force_noise_reference(
     ``make(reference)`` builds the problem whose force Jacobian is taken at ``reference``
     (``[2R]`` log gains); ``problem0`` is the Gaussian problem without the force term. Both
     steps are :func:`treeinfer.inference.fast.fast_posterior`'s screen and LM on one rollout
-    program (the evaluators share it through ``programs``)."""
+    program (the evaluators share it through ``programs``; ``shape``: the observations' shape
+    bucket ``[B', T']`` of the run's own fast posterior, so that it shares the program too)."""
     from .fast import BatchEvaluator, default_chunk, fit_map_batched, latin_hypercube
     from .fast import resolve_coarse_substeps as coarse_of
 
     d, g = problem0.dim, 2 * problem0.sim.n_joints
     k = n_starts * (2 * g + 1)
-    ev0 = BatchEvaluator(problem0, default_chunk(k, 8 * k), programs)
+    ev0 = BatchEvaluator(problem0, default_chunk(k, 8 * k), programs, shape)
     coarse = coarse_of(ev0, "auto")
     lower, upper = np.asarray(problem0.lower, float), np.asarray(problem0.upper, float)
     pts = latin_hypercube(4 * k, lower, upper, seed)
@@ -81,7 +88,7 @@ def force_noise_reference(
     first = fit_map_batched(ev0, starts, REFERENCE_LM_ITERATIONS, substeps=coarse)
     ref = np.clip(first.theta[:g], lower[:g], upper[:g])
     problem1 = make(ref)
-    ev1 = BatchEvaluator(problem1, ev0.chunk, programs)
+    ev1 = BatchEvaluator(problem1, ev0.chunk, programs, shape)
     if problem1.dim != d:
         raise ConfigError("force_noise_reference: the two problems have other columns")
     finals = first.finals[np.isfinite(first.values)]

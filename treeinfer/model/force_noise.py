@@ -54,8 +54,8 @@ largest peak force), or ``"auto"``: estimated from the recorded force's high-fre
 
 from __future__ import annotations
 
+import collections
 import dataclasses
-import functools
 import math
 from typing import NamedTuple
 
@@ -63,10 +63,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..data.noise_estimate import estimate_white_noise
 from ..data.trajectories import Observations
 from ..errors import ConfigError, SimulationError
-from .noise import MIN_NOISE_SAMPLES, NoiseEstimate, as_observations
+from .force_noise_option import (  # noqa: F401 -- the option's functions, re-exported here
+    _force_range,
+    check_noise_force,
+    estimate_force_noise,
+    resolve_noise_force,
+)
 
 __all__ = [
     "ForceNoiseBasis",
@@ -82,104 +86,6 @@ __all__ = [
     "reference_theta",
     "resolve_noise_force",
 ]
-
-
-# --------------------------------------------------------------------------- the option
-
-
-def check_noise_force(value) -> float | str:
-    """Validate ``--noise-force``: a positive number (N), ``"P%"`` (0 < P < 100) or ``"auto"``.
-
-    Returns the number (float), the string ``"auto"``, or the normalised ``"P%"`` string.
-    Raises :class:`ConfigError` naming ``noise_force`` for anything else (negative, zero,
-    non-finite, a percentage >= 100)."""
-    if isinstance(value, str):
-        s = value.strip().lower()
-        if s == "auto":
-            return "auto"
-        if s.endswith("%"):
-            try:
-                pct = float(s[:-1])
-            except ValueError:
-                raise ConfigError(
-                    f"noise_force: expected a number (N), 'P%' or 'auto', got {value!r}"
-                ) from None
-            if not (math.isfinite(pct) and 0.0 < pct < 100.0):
-                raise ConfigError(f"noise_force: a percentage must be in (0, 100), got {value!r}")
-            return f"{pct:g}%"
-        try:
-            value = float(s)
-        except ValueError:
-            raise ConfigError(
-                f"noise_force: expected a number (N), 'P%' or 'auto', got {value!r}"
-            ) from None
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(
-            f"noise_force: expected a number (N), 'P%' or 'auto', got {value!r}"
-        ) from None
-    if not math.isfinite(v) or v <= 0.0:
-        raise ConfigError(
-            f"noise_force (--noise-force): must be a finite positive number of newtons, got {v}"
-        )
-    return v
-
-
-def _force_range(obs: Observations) -> float:
-    f = np.asarray(obs.force, float)[np.asarray(obs.mask, bool)]
-    return float(np.max(np.abs(f))) if f.size else 0.0
-
-
-def estimate_force_noise(data, min_samples: int = MIN_NOISE_SAMPLES) -> NoiseEstimate:
-    """White force-noise std (N) from the recorded forces' high-frequency residual.
-
-    ``sigma_F = 1.4826 * median(|d2 - median(d2)|) / sqrt(6)``, ``d2`` the second differences
-    of the recorded force at real samples: the estimator of
-    :func:`treeinfer.model.noise.estimate_displacement_noise` applied to the force
-    (:func:`treeinfer.data.noise_estimate.estimate_white_noise`: white noise of std s gives second
-    differences of std ``sqrt(6) s``, a smooth pull's are tiny). A load cell read through an
-    ADC is quantised: the estimate is then floored at ``step / sqrt(12)``; a force stream
-    upsampled by repeating or interpolating samples is estimated at its native rate. The
-    estimate's ``notes`` say which.
-
-    Raises :class:`ConfigError` naming ``--noise-force`` when there are fewer than
-    ``min_samples`` second differences ("too short to estimate") or when more than half of them
-    are zero and the values lie on no grid (a noise-free, piecewise-linear force: the
-    simulated profiles of ``treeinfer simulate`` without ``--noise-force``)."""
-    obs = as_observations(data)
-    try:
-        return estimate_white_noise(
-            obs.force, obs.mask, what="force", flag="--noise-force", unit="N",
-            min_samples=min_samples,
-        )  # fmt: skip
-    except ConfigError as e:
-        raise ConfigError(f"noise_force (--noise-force): {e}") from None
-
-
-def resolve_noise_force(value, data) -> tuple[float, str]:
-    """``--noise-force`` value -> (sigma_F in N, a one-line description).
-
-    Numbers are newtons; ``"P%"`` is P% of the largest absolute recorded force of ``data``;
-    ``"auto"`` estimates it (:func:`estimate_force_noise`). A sigma_F at or above the largest
-    absolute recorded force is refused (a unit mistake: the pulls would be all noise)."""
-    obs = as_observations(data)
-    v = check_noise_force(value)
-    peak = _force_range(obs)
-    if v == "auto":
-        est = estimate_force_noise(obs)
-        notes = "".join(f"; {n}" for n in est.notes)
-        sigma, how = est.sigma, f"estimated: {est.method}, n = {est.n_used}{notes}"
-    elif isinstance(v, str):
-        sigma, how = float(v[:-1]) / 100.0 * peak, f"{v} of the largest |force| {peak:.4g} N"
-    else:
-        sigma, how = v, "given"
-    if not sigma < peak:
-        raise ConfigError(
-            f"noise_force (--noise-force): {sigma:g} N is not smaller than the largest recorded "
-            f"force ({peak:g} N); check the units (newtons)"
-        )
-    return float(sigma), f"force noise sigma_F = {sigma:.4g} N ({how})"
 
 
 # --------------------------------------------------------------------------- reference point
@@ -272,92 +178,203 @@ def _force_differentiable(sim):
 # perturbation per sample as a share of the largest |force|, and the allowed relative error.
 _CHECK_STEP = 0.01
 _CHECK_RTOL = 0.02
+# J of the last few (simulator, theta, forces) of this process (force_jacobian): the run takes
+# J at its reference once for the likelihood, then the training fit's band and the fit verdict
+# ask for the same J again (three times 5-10 s on a 2-core CPU before it was kept)
+_KEPT: collections.OrderedDict = collections.OrderedDict()
+_KEPT_SIZE = 4
+_KEPT_MAX_BYTES = 64 * 2**20  # a J larger than this (long or many pulls) is not kept
 
 
-def force_jacobian(sim, theta, forces, grasp_fraction=None, check: bool = True) -> np.ndarray:
+def force_jacobian(
+    sim, theta, forces, grasp_fraction=None, check: bool = True, substeps: int | None = None
+) -> np.ndarray:
     """``J[b] = d tau[b, :] / d forces[b, :]`` at ``theta [2R]``: ``[B, T, T]`` (m/N, float64).
 
     Exact forward mode (``jax.jacfwd``) through :func:`treeinfer.sim.simulate`, one pull at a
     time under ``vmap``; ``J[b, t, s]`` is the change of the displacement at sample t per newton
     at force sample s. On the Pallas backend the Jacobian is taken through the fused twin of
     ``sim`` (:func:`_force_differentiable`: the kernel's JVP drops force tangents).
+    ``substeps``: the step J is taken at (default the simulator's own); it is an argument of one
+    compiled program, so every step, reference and pull set of a shape shares it. (Why not the
+    merely stable step, an eighth of the cost: J there is 0.9% (Frobenius) from the accurate J on
+    the standard problem but up to 11% off in single columns, the response to a force at the
+    first samples, against MuJoCo C in ``tests/test_force_noise_backends.py``.)
 
     ``check`` (default on): one directional central difference of ``sim``'s OWN rollouts
     (``tau(F + h v) - tau(F - h v)``, ``v`` random signs, ``h`` 1% of the largest |force|, one
-    batched call of 2B pulls) must match ``2 h J v`` to 2% (norm over each pull, plus a float
-    rounding floor); else :class:`SimulationError`. It guards against a backend whose
-    derivative in the force is wrong or missing (a zero ``J`` is not an error anywhere else:
-    the term would silently vanish). Raises :class:`SimulationError` too if the rollout at
-    ``theta`` is unstable."""
+    batched call of 2B pulls, at ``sim``'s own step) must match ``2 h J v`` to 2% (norm over
+    each pull, plus a float rounding floor); else :class:`SimulationError`. It guards against a
+    backend whose derivative in the force is wrong or missing (a zero ``J`` is not an error
+    anywhere else: the term would silently vanish). Raises :class:`SimulationError` too if the
+    rollout at ``theta`` is unstable.
+
+    The result of the last few calls is kept in this process (keyed by the simulator's content,
+    ``theta``, the forces and the grasp points), so a run's likelihood, training fit and fit
+    verdict take J once."""
     from .gains import gains_from_theta
 
     dtype = sim.dtype
-    jsim = _force_differentiable(sim)
-    theta = jnp.asarray(np.asarray(theta, float)[None], dtype)
-    kp, kd = gains_from_theta(theta, sim.n_joints)
-    forces = jnp.asarray(np.atleast_2d(np.asarray(forces, float)), dtype)
-    gf = (
+    theta64 = np.asarray(theta, float).reshape(-1)
+    forces64 = np.atleast_2d(np.asarray(forces, float))
+    gf64 = (
         None
         if grasp_fraction is None
-        else jnp.broadcast_to(jnp.asarray(grasp_fraction, dtype), forces.shape[:1])
+        else np.broadcast_to(np.asarray(grasp_fraction, float), forces64.shape[:1])
     )
-
-    jac, ok = _jacobian_program(jsim, kp, kd, forces, gf)
+    jsim = _force_differentiable(sim)
+    key = (
+        sim.fingerprint,
+        jsim.fingerprint,
+        theta64.tobytes(),
+        forces64.shape,
+        forces64.tobytes(),
+        None if gf64 is None else gf64.tobytes(),
+        bool(check),
+        substeps,
+    )
+    if key in _KEPT:
+        _KEPT.move_to_end(key)
+        return _KEPT[key].copy()
+    th = jnp.asarray(theta64[None], dtype)
+    kp, kd = gains_from_theta(th, sim.n_joints)
+    f = jnp.asarray(forces64, dtype)
+    gf = None if gf64 is None else jnp.asarray(gf64, dtype)
+    n_b, n_t = forces64.shape
+    v = np.random.default_rng(0).choice([-1.0, 1.0], size=(n_b, n_t))
+    h = _CHECK_STEP * max(float(np.max(np.abs(forces64))), 1e-12)
+    # the check's rollouts in the same program (one compilation), except on the Pallas backend,
+    # whose own kernel is what the check must run
+    fused_check = check and jsim is sim
+    step = int(sim.substeps) if substeps is None else int(substeps)
+    args = (kp, kd, f, jnp.asarray(h * v, dtype), np.int32(step), np.int32(sim.substeps))
+    args += () if gf is None else (gf,)
+    jac, ok, tau_pm, ok_pm = _jacobian_runner(jsim, fused_check, args)(*args)
     jac = np.asarray(jac, float)
     if not (np.all(np.asarray(ok)) and np.all(np.isfinite(jac))):
         raise SimulationError(
-            "force noise: the simulation at the reference parameters is unstable on some pull; "
-            "give another reference (force_noise_reference)"
+            "force noise: the simulation at the reference parameters is unstable on some "
+            "pull; give another reference (force_noise_reference)"
         )
+    bad = None
     if check:
-        _check_force_jacobian(sim, kp, kd, np.asarray(forces, float), gf, jac)
+        if fused_check:
+            tau_pm, ok_pm = np.asarray(tau_pm, float), np.asarray(ok_pm)
+        else:
+            tau_pm, ok_pm = _check_rollouts(sim, kp, kd, forces64, gf, h * v)
+        bad = _check_failures(forces64, tau_pm, ok_pm, h, v, jac, dtype)
+    if bad is not None:
+        b, rel = bad
+        raise SimulationError(
+            f"force noise: the forward-mode force Jacobian (backend {sim.backend!r}) does not "
+            f"match a central difference of the simulator on pull {b} (relative error "
+            f"{rel:.2g}); the backend's derivative in the force is wrong or missing"
+        )
+    if jac.nbytes <= _KEPT_MAX_BYTES:
+        _KEPT[key] = jac.copy()
+        while len(_KEPT) > _KEPT_SIZE:
+            _KEPT.popitem(last=False)
     return jac
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _jacobian_program(jsim, kp, kd, forces, gf):
-    """:func:`force_jacobian`'s program, jitted once per simulator with the gains as arguments
-    (a closure over them compiled anew at every reference point: 10-30 s each on a 2-core
-    CPU, three times per run with the start pipeline's reference)."""
-    from ..sim import simulate
+_RUNNERS: dict = {}  # force_jacobian's programs of this process, by their key
+
+
+def _jacobian_runner(jsim, with_check: bool, args):
+    """:func:`_jacobian_program` of ``jsim`` as a function of ``args`` ``(kp, kd, forces, hv,
+    substeps, check_substeps[, gf])`` (the grasp points last, where given), traced once per
+    machine (:func:`treeinfer.sim.startup.cached_program`: a new process deserializes the stored
+    program instead of tracing the simulator's forward mode again, 3-6 s on a 2-core CPU) and
+    kept for this process."""
+    from ..sim.startup import cached_program
+
+    shapes = tuple((tuple(np.shape(a)), str(jnp.result_type(a))) for a in args)
+    key = repr(("force_noise._jacobian_program", jsim.program_key(True), with_check, shapes))
+    run = _RUNNERS.get(key)
+    if run is None:
+
+        def fn(kp, kd, forces, hv, substeps, check_substeps, *gf):
+            g = gf[0] if gf else None
+            return _jacobian_program(
+                jsim, kp, kd, forces, g, hv, substeps, check_substeps, with_check
+            )
+
+        run = _RUNNERS[key] = cached_program(fn, args, key)
+    return run
+
+
+def _jacobian_program(jsim, kp, kd, forces, gf, hv, substeps, check_substeps, with_check):
+    """:func:`force_jacobian`'s program with the gains, the step (``substeps``, traced) and the
+    perturbation ``hv [B, T]`` as arguments (a closure over the gains compiled anew at every
+    reference point: 10-30 s each on a 2-core CPU). With ``with_check`` it also returns the
+    rollouts ``tau(F + hv)``, ``tau(F - hv)`` at ``check_substeps`` (``[2B, T]``) and their
+    stability, else zeros."""
+    from ..sim import _simulate, simulate
+
+    def run(kp, kd, f, g, s):
+        if jsim.backend == "pallas":  # the kernel's own step (only where a test asks for it)
+            return simulate(jsim, kp, kd, f, g)
+        return _simulate(jsim, kp, kd, f, g, substeps=s)
 
     def one(f, g):
         def tau(fb):
-            ro = simulate(jsim, kp, kd, fb[None], None if g is None else g[None])
+            ro = run(kp, kd, fb[None], None if g is None else g[None], substeps)
             return ro.tau[0, 0], ro.stable[0, 0]
 
         return jax.jacfwd(tau, has_aux=True)(f)
 
     if gf is None:
-        return jax.vmap(lambda f: one(f, None))(forces)
-    return jax.vmap(one)(forces, gf)
+        jac, ok = jax.vmap(lambda f: one(f, None))(forces)
+    else:
+        jac, ok = jax.vmap(one)(forces, gf)
+    both = jnp.concatenate([forces + hv, forces - hv])
+    if not with_check:
+        return jac, ok, jnp.zeros(both.shape, forces.dtype), jnp.ones(both.shape[:1], bool)
+    g2 = None if gf is None else jnp.concatenate([gf, gf])
+    ro = run(kp, kd, both, g2, check_substeps)
+    return jac, ok, ro.tau[0], ro.stable[0]
+
+
+def _check_rollouts(sim, kp, kd, forces, gf, hv):
+    """``(tau [2B, T], stable [2B])`` of ``sim``'s own rollouts of ``forces +- hv``."""
+    from ..sim import simulate
+
+    both = np.concatenate([forces + hv, forces - hv])
+    g2 = None if gf is None else jnp.concatenate([gf, gf])
+    ro = simulate(sim, kp, kd, jnp.asarray(both, sim.dtype), g2)
+    return np.asarray(ro.tau[0], float), np.asarray(ro.stable[0])
+
+
+def _check_failures(forces, tau, stable, h, v, jac, dtype):
+    """None when ``jac [B, T, T]`` predicts the central difference of the rollouts ``tau
+    [2B, T]`` of ``forces +- h v`` to :data:`_CHECK_RTOL` (or a perturbed pull blew up: nothing
+    to compare), else ``(pull, relative error)`` of the worst pull."""
+    n_b, n_t = forces.shape
+    if not np.all(stable):
+        return None  # a perturbed pull blew up: nothing to compare (the unperturbed one is stable)
+    fd = tau[:n_b] - tau[n_b:]  # [B, T] m
+    lin = 2.0 * h * np.einsum("bts,bs->bt", jac, v)
+    # float rounding of the two rollouts: a few ulps of the displacement's scale
+    eps = float(np.finfo(np.dtype(dtype)).eps)
+    floor = 10.0 * eps * np.abs(tau[:n_b]).max(axis=1) * math.sqrt(n_t)
+    err = np.linalg.norm(fd - lin, axis=1)
+    bad = err > _CHECK_RTOL * np.linalg.norm(fd, axis=1) + floor
+    if not np.any(bad):
+        return None
+    b = int(np.argmax(bad))
+    return b, err[b] / max(float(np.linalg.norm(fd[b])), 1e-300)
 
 
 def _check_force_jacobian(sim, kp, kd, forces, gf, jac) -> None:
     """Raise :class:`SimulationError` unless ``jac [B, T, T]`` predicts ``sim``'s own response
     to a small random force perturbation (see :func:`force_jacobian`)."""
-    from ..sim import simulate
-
     n_b, n_t = forces.shape
-    rng = np.random.default_rng(0)
-    v = rng.choice([-1.0, 1.0], size=(n_b, n_t))
+    v = np.random.default_rng(0).choice([-1.0, 1.0], size=(n_b, n_t))
     h = _CHECK_STEP * max(float(np.max(np.abs(forces))), 1e-12)
-    both = np.concatenate([forces + h * v, forces - h * v])
-    g2 = None if gf is None else jnp.concatenate([gf, gf])
-    ro = simulate(sim, kp, kd, jnp.asarray(both, sim.dtype), g2)
-    tau = np.asarray(ro.tau[0], float)
-    if not np.all(np.asarray(ro.stable)):
-        return  # a perturbed pull blew up: nothing to compare (the unperturbed one is stable)
-    fd = tau[:n_b] - tau[n_b:]  # [B, T] m
-    lin = 2.0 * h * np.einsum("bts,bs->bt", jac, v)
-    # float rounding of the two rollouts: a few ulps of the displacement's scale
-    eps = float(np.finfo(np.dtype(sim.dtype)).eps)
-    floor = 10.0 * eps * np.abs(tau[:n_b]).max(axis=1) * math.sqrt(n_t)
-    err = np.linalg.norm(fd - lin, axis=1)
-    bad = err > _CHECK_RTOL * np.linalg.norm(fd, axis=1) + floor
-    if np.any(bad):
-        b = int(np.argmax(bad))
-        rel = err[b] / max(float(np.linalg.norm(fd[b])), 1e-300)
+    tau, ok = _check_rollouts(sim, kp, kd, forces, gf, h * v)
+    bad = _check_failures(forces, tau, ok, h, v, jac, sim.dtype)
+    if bad is not None:
+        b, rel = bad
         raise SimulationError(
             f"force noise: the forward-mode force Jacobian (backend {sim.backend!r}) does not "
             f"match a central difference of the simulator on pull {b} (relative error "

@@ -96,6 +96,52 @@ def sampler_bucket_for(config: dict, obs: Observations) -> list[int] | None:
     return [trajectories_bucket(b), steps_bucket(t)]
 
 
+# The step's accuracy target of a generative likelihood (sigma_x inferred): this share of the
+# data's displacement-noise estimate, within [DEFAULT_SIM_TOLERANCE, MAX_NOISE_TOLERANCE].
+NOISE_TOLERANCE_SHARE = 0.1
+MAX_NOISE_TOLERANCE = 1e-3  # m
+
+
+def noise_tolerance(options: dict, obs: Observations) -> float | None:
+    """m, the simulation step's accuracy target of a new run without ``--sim-tolerance``: a
+    tenth of the displacement noise (the given ``noise_displacement``, else the data's robust
+    estimate, :func:`treeinfer.model.noise.estimate_displacement_noise`) for a generative
+    likelihood, never finer than the fixed default (0.1 mm) nor coarser than 1 mm; None (the
+    fixed default) for the Boltzmann loss (the paper's experiments keep their step) or when the
+    noise cannot be estimated.
+
+    Why: the step's error is a model error added to every simulated point; at a tenth of the
+    noise's standard deviation it adds 0.5% to the residual variance, invisible next to the
+    noise, while the fixed 0.1 mm asks a 2 mm-noise recording for twice the substeps (32
+    against 16 on the standard problem: every rollout of the run costs twice as much). The
+    step-doubling estimate bounds the error over the whole prior box, so at the posterior it is
+    smaller still (``tests/test_noise_tolerance.py`` checks the chosen step against an
+    independent integration)."""
+    from ..inference.problem import resolve_likelihood
+    from ..model.noise import estimate_displacement_noise
+    from ..sim import DEFAULT_SIM_TOLERANCE
+
+    try:
+        likelihood = resolve_likelihood(options.get("likelihood", "boltzmann"), options["kT"])
+    except ConfigError:  # make_problem refuses it, naming the option
+        return None
+    if likelihood == "boltzmann":
+        return None
+    sigma = options.get("noise_displacement")
+    if sigma is None:
+        try:
+            sigma = estimate_displacement_noise(obs).sigma
+        except ConfigError:
+            return None
+    try:
+        sigma = float(sigma)
+    except (TypeError, ValueError):
+        return None
+    if not (np.isfinite(sigma) and sigma > 0):
+        return None
+    return float(np.clip(NOISE_TOLERANCE_SHARE * sigma, DEFAULT_SIM_TOLERANCE, MAX_NOISE_TOLERANCE))
+
+
 def build_problem(
     config: dict,
     tree: Tree,
@@ -122,6 +168,9 @@ def build_problem(
     recorded = config.get("problem") or {}  # a resumed run: the settings it was built with
     # runs from before force interpolation existed held the force over each sample
     interp = recorded.get("force_interp", o.get("force_interp", "hold" if recorded else "linear"))
+    tolerance = o.get("sim_tolerance")
+    if tolerance is None and not recorded:
+        tolerance = noise_tolerance(o, obs)
     sim = simulator_for(
         tree,
         float(obs.dt),
@@ -130,7 +179,7 @@ def build_problem(
         cache,
         force_interp=interp,
         max_sim_dt=o.get("max_sim_dt"),
-        sim_tolerance=o.get("sim_tolerance"),
+        sim_tolerance=tolerance,
         forces=np.asarray(obs.force),
         grasp_fraction=o.get("grasp_fraction"),
     )
@@ -192,8 +241,15 @@ def build_problem(
             )
 
         base = make_problem(tree, obs, **{**fit_only, "noise_force": None})
+        bucket = shape_bucket_for(config, obs)
         ref, finals = force_noise_reference(
-            make, base, 8, int(o.get("seed", 0)), None if cache is None else cache.programs, log
+            make,
+            base,
+            8,
+            int(o.get("seed", 0)),
+            None if cache is None else cache.programs,
+            log,
+            None if bucket is None else tuple(bucket),
         )
         reference = {"force_noise_reference": ref, "force_noise_rule": PIPELINE_RULE}
     problem = make_problem(tree, obs, **common, **reference)
