@@ -12,7 +12,6 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
-import pytest
 
 from treeinfer.runs import folder, service
 
@@ -39,11 +38,6 @@ def _fold(n: int = 40, p: int = 8):
     return problem, post
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="needs the fold_warnings change to treeinfer/runs/service.py given in the s8-study "
-    "report (runs/ is another helper's this session); remove this marker once it is applied",
-)
 def test_fold_warnings_include_the_samplers_convergence_warnings():
     problem, post = _fold()
     trace = {

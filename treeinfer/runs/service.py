@@ -451,15 +451,26 @@ def infer_posterior(
     return problem, posterior
 
 
-def fold_warnings(problem, posterior) -> list[str]:
+def fold_warnings(problem, posterior, options: dict | None = None) -> list[str]:
     """What a k-fold refit must not hide (issue 27): how it ended (importance weights or
-    sampler, and why the sampler stopped), stuck particles and posterior mass at the box."""
-    from .folder import _straggler_and_edge
+    sampler, and why the sampler stopped), the sampler's convergence warnings (those ``infer``
+    puts in summary.json; ``options``: the run's, for the sampler and its warm-up share),
+    stuck particles and posterior mass at the box."""
+    from .folder import _diagnostics, _straggler_and_edge
 
     run = posterior.run
     stop = getattr(run, "stop_reason", None) or "max_iterations"
     done = run.settings.get("n_iterations_done", run.settings.get("n_iterations"))
     out = [f"ended by: {stop}" + (f" after {done} iterations" if done else "")]
+    if options is not None and not str(stop).startswith("importance"):
+        # the sampler ran: its trace's diagnostics, as a run's summary.json has them
+        _, _, diag = _diagnostics(
+            options["sampler"],
+            _merged_trace(run, None),
+            list(problem.labels),
+            options.get("mcmc_warmup", 0.5),
+        )
+        out += diag
     strag, edge = _straggler_and_edge(problem, posterior)
     if strag.get("n_reinitialised"):
         out.append(f"{strag['n_reinitialised']} stuck particles re-initialised in the warm-up")
@@ -510,7 +521,7 @@ def kfold(
         g_test = np.asarray(grasp_fraction, float)[te] if per_traj else grasp_fraction
         cfg = {**config, "options": {**options, "grasp_fraction": g_train}}
         problem, post = infer_posterior(cfg, tree, train, progress, cache, log)
-        warns = fold_warnings(problem, post)
+        warns = fold_warnings(problem, post, cfg["options"])
         for w in warns:
             log(f"fold {i}/{k}: {w}")
         from ..inference.static import model_with_pulls
