@@ -54,16 +54,10 @@ def assert_user_error(rc, err, *fragments):
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    """``treeinfer demo --quick``: (folder, its stdout)."""
-    out = tmp_path_factory.mktemp("demo") / "demo"
-    buf, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(err):
-        # the paper's loss and the Laplace start: the sampler runs its iterations, which the
-        # run-folder tests below read (the default, the start pipeline, usually runs none)
-        rc = main(["demo", "--quick", "--out", str(out), "--no-progress", *SAMPLER_RUN])
-    assert rc == 0, err.getvalue()
-    return out, buf.getvalue()
+def demo(demo_quick):
+    """``treeinfer demo --quick`` with SAMPLER_RUN: (folder, its stdout); the session's run
+    (tests/conftest.py), shared with the noise tests that read its pulls."""
+    return demo_quick
 
 
 @pytest.fixture(scope="module")
