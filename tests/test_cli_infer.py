@@ -84,7 +84,8 @@ def run_dir(demo):
             ]
         )
     assert rc == 0, err.getvalue()
-    return out, buf.getvalue()
+    # its console output, stdout and stderr (the tests look for lines in it)
+    return out, buf.getvalue() + err.getvalue()
 
 
 # ---- help ------------------------------------------------------------------------------------
@@ -231,6 +232,10 @@ def test_infer_run_folder(run_dir, demo):
         and cfg["options"]["particles"] == 8
         and cfg["options"]["sampler"] == "nnsvgd"
     )
+    # the Laplace start (SAMPLER_RUN) said so, and the default gradient is recorded in the
+    # problem, not among the options (as test_mapfit's slow CLI test checks)
+    assert "Laplace start" in stdout and cfg["options"]["init"] == "laplace"
+    assert "gradients" not in cfg["options"] and cfg["problem"]["gradient"] == "fd"
     assert {"treeinfer", "jax", "mujoco"} <= set(cfg["versions"])
     assert [f["name"] for f in cfg["data"]["files"]] == sorted(p.name for p in data.glob("*.csv"))
     for f in cfg["data"]["files"]:
