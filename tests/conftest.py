@@ -5,7 +5,11 @@ program (same shapes, new closures). The persistent compilation cache turns thos
 fast loads.
 """
 
+import contextlib
+import io
 import os
+
+import pytest
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
@@ -29,3 +33,22 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.get_closest_marker("gpu"):
             item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def demo_quick(tmp_path_factory):
+    """``treeinfer demo --quick`` with the paper's loss and the Laplace start (test_cli_infer's
+    ``SAMPLER_RUN``: the sampler runs its iterations, which its run-folder tests read):
+    (folder, its stdout). One run for the session: test_cli_infer reads its run and output, and
+    test_cli_noise and test_force_noise_cli take its noise-free pulls (the data depend on the
+    seed and the sizes only), which each made with a demo of their own before."""
+    from treeinfer.cli import main
+
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    buf, err = io.StringIO(), io.StringIO()
+    argv = ["demo", "--quick", "--out", str(out), "--no-progress"]
+    argv += ["--likelihood", "boltzmann", "--init", "laplace"]
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(err):
+        rc = main(argv)
+    assert rc == 0, err.getvalue()
+    return out, buf.getvalue()

@@ -54,16 +54,10 @@ def assert_user_error(rc, err, *fragments):
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    """``treeinfer demo --quick``: (folder, its stdout)."""
-    out = tmp_path_factory.mktemp("demo") / "demo"
-    buf, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(err):
-        # the paper's loss and the Laplace start: the sampler runs its iterations, which the
-        # run-folder tests below read (the default, the start pipeline, usually runs none)
-        rc = main(["demo", "--quick", "--out", str(out), "--no-progress", *SAMPLER_RUN])
-    assert rc == 0, err.getvalue()
-    return out, buf.getvalue()
+def demo(demo_quick):
+    """``treeinfer demo --quick`` with SAMPLER_RUN: (folder, its stdout); the session's run
+    (tests/conftest.py), shared with the noise tests that read its pulls."""
+    return demo_quick
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +86,8 @@ def run_dir(demo):
             ]
         )
     assert rc == 0, err.getvalue()
-    return out, buf.getvalue()
+    # its console output, stdout and stderr (the tests look for lines in it)
+    return out, buf.getvalue() + err.getvalue()
 
 
 # ---- help ------------------------------------------------------------------------------------
@@ -239,6 +234,10 @@ def test_infer_run_folder(run_dir, demo):
         and cfg["options"]["particles"] == 8
         and cfg["options"]["sampler"] == "nnsvgd"
     )
+    # the Laplace start (SAMPLER_RUN) said so, and the default gradient is recorded in the
+    # problem, not among the options (as test_mapfit's slow CLI test checks)
+    assert "Laplace start" in stdout and cfg["options"]["init"] == "laplace"
+    assert "gradients" not in cfg["options"] and cfg["problem"]["gradient"] == "fd"
     assert {"treeinfer", "jax", "mujoco"} <= set(cfg["versions"])
     assert [f["name"] for f in cfg["data"]["files"]] == sorted(p.name for p in data.glob("*.csv"))
     for f in cfg["data"]["files"]:

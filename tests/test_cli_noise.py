@@ -39,20 +39,18 @@ def _main(*argv):
 
 
 @pytest.fixture(scope="module")
-def noisy_data(tmp_path_factory):
+def noisy_data(tmp_path_factory, demo_quick):
     base = tmp_path_factory.mktemp("noise")
-    # noise-free pulls (the paper's loss; the demo's default adds 2 mm itself)
-    rc, _, err = _main(
-        "demo", "--quick", "--out", base / "demo", "--no-progress", "--likelihood", "boltzmann"
-    )
-    assert rc == 0, err
+    # noise-free pulls of the session's demo (the paper's loss; the demo's default adds 2 mm
+    # itself): tests/conftest.py
+    demo = demo_quick[0]
     rng = np.random.default_rng(0)
     for sub in ("train", "test"):
         (base / sub).mkdir()
-        for t in read_trajectory_dir(base / "demo" / "data" / sub):
+        for t in read_trajectory_dir(demo / "data" / sub):
             noisy = add_noise(t._replace(velocity=None), 0.0, SIGMA, rng)
             write_trajectory(base / sub / t.source, noisy._replace(source=t.source))
-    shutil.copy(base / "demo" / "data" / "train" / "true_params.json", base / "train")
+    shutil.copy(demo / "data" / "train" / "true_params.json", base / "train")
     return base
 
 

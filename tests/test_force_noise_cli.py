@@ -39,23 +39,21 @@ def _main(*argv):
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def data(tmp_path_factory, demo_quick):
     """demo --quick data with 2 mm displacement and 2% (of the largest peak) force noise."""
     base = tmp_path_factory.mktemp("fnoise")
-    # noise-free pulls (the paper's loss; the demo's default adds 2 mm itself)
-    rc, _, err = _main(
-        "demo", "--quick", "--out", base / "demo", "--no-progress", "--likelihood", "boltzmann"
-    )
-    assert rc == 0, err
+    # noise-free pulls of the session's demo (the paper's loss; the demo's default adds 2 mm
+    # itself): tests/conftest.py
+    demo = demo_quick[0]
     rng = np.random.default_rng(0)
-    sets = {s: read_trajectory_dir(base / "demo" / "data" / s) for s in ("train", "test")}
+    sets = {s: read_trajectory_dir(demo / "data" / s) for s in ("train", "test")}
     sf = 0.02 * max(np.abs(t.force).max() for ts in sets.values() for t in ts)
     for sub, trajs in sets.items():
         (base / sub).mkdir()
         for t in trajs:
             noisy = add_noise(t._replace(velocity=None), sf, SIGMA, rng)
             write_trajectory(base / sub / t.source, noisy._replace(source=t.source))
-    shutil.copy(base / "demo" / "data" / "train" / "true_params.json", base / "train")
+    shutil.copy(demo / "data" / "train" / "true_params.json", base / "train")
     return base, sf
 
 

@@ -140,16 +140,19 @@ def _random_state(m, rng):
     return d, kp, kd, body, force, lever
 
 
-def _fused_next_state(m, t, body, force, lever, layout="scalar"):
-    """(q [nv], v [nv], stiffness [nv], damping [nv]) -> next state [2 nv] of the fused step
-    (``layout``: ``"scalar"``, :mod:`treeinfer.sim.fused`; ``"levels"``, :mod:`~.levels`)."""
+def _fused_next_state(m, t, body, layout="scalar"):
+    """(q [nv], v [nv], stiffness [nv], damping [nv], force [3], lever [3]) -> next state [2 nv]
+    of the fused step (``layout``: ``"scalar"``, :mod:`treeinfer.sim.fused`; ``"levels"``,
+    :mod:`~.levels`). The force and lever are arguments, as in a pull (traced per step), so one
+    compiled program serves every random state."""
     spring = m.qpos_spring[m.jnt_qposadr[m.dof_jntid]]
 
-    def next_state(q, v, kp, kd):
+    def next_state(q, v, kp, kd, force, lever):
+        force, lever = tuple(force[i] for i in range(3)), tuple(lever[i] for i in range(3))
         if layout == "levels":
             out = lv.step(
                 lv.layout(t), q, v, kp, kd, spring, m.opt.timestep, body, (0.1, 0.0, 0.0),
-                tuple(force), tuple(lever),
+                force, lever,
             )  # fmt: skip
             return jnp.concatenate([out.qpos, out.qvel])
         out = hd.step(
@@ -162,8 +165,8 @@ def _fused_next_state(m, t, body, force, lever, layout="scalar"):
             m.opt.timestep,
             body,
             (0.1, 0.0, 0.0),
-            tuple(force),
-            tuple(lever),
+            force,
+            lever,
         )
         return jnp.concatenate([jnp.stack(out.qpos), jnp.stack(out.qvel)])
 
@@ -178,14 +181,16 @@ def test_step_state_jacobian_matches_mjd_transitionFD(name, model, layout):
     m = model
     t = hd.from_mjmodel(m)
     rng = np.random.default_rng(3)
+    # the force acts on the last body in every draw (_random_state): one program for all three
+    jac = jax.jit(jax.jacfwd(_fused_next_state(m, t, m.nbody - 1, layout), argnums=(0, 1)))
     with jax.enable_x64(True):
         for _ in range(3):
             d, kp, kd, body, force, lever = _random_state(m, rng)
+            assert body == m.nbody - 1
             a = np.zeros((2 * m.nv + m.na, 2 * m.nv + m.na))
             mujoco.mjd_transitionFD(m, d, 1e-6, True, a, None, None, None)
-            f = _fused_next_state(m, t, body, force, lever, layout)
             args = (jnp.asarray(d.qpos), jnp.asarray(d.qvel), jnp.asarray(kp), jnp.asarray(kd))
-            jq, jv = jax.jit(jax.jacfwd(f, argnums=(0, 1)))(*args)
+            jq, jv = jac(*args, jnp.asarray(force), jnp.asarray(lever))
             ours = np.concatenate([np.asarray(jq), np.asarray(jv)], axis=1)
             assert np.abs(ours - np.eye(2 * m.nv)).max() > 1e-3  # the step really couples states
             np.testing.assert_allclose(ours, a, atol=1e-6 * max(1.0, np.abs(a).max()))
@@ -201,8 +206,9 @@ def test_step_gain_jacobian_matches_fd_of_mj_step(name, model, layout):
     rng = np.random.default_rng(4)
     with jax.enable_x64(True):
         d0, kp, kd, body, force, lever = _random_state(m, rng)
-        f = _fused_next_state(m, t, body, force, lever, layout)
+        f = _fused_next_state(m, t, body, layout)
         args = (jnp.asarray(d0.qpos), jnp.asarray(d0.qvel), jnp.asarray(kp), jnp.asarray(kd))
+        args += (jnp.asarray(force), jnp.asarray(lever))
         jkp, jkd = (np.asarray(x) for x in jax.jit(jax.jacfwd(f, argnums=(2, 3)))(*args))
 
     def c_step(kp_, kd_):

@@ -243,15 +243,12 @@ def test_two_joint_tree_boltzmann_map_and_jvp_problem():
     np.testing.assert_allclose(g, g_fd, rtol=0.05, atol=0.05 * np.abs(np.asarray(g_fd)).max())
 
 
-def test_cli_infer_with_laplace_init_and_gradient_choice_recorded(tmp_path, capsys):
-    from treeinfer.cli import main
+def _laplace_cli_data(tmp_path):
+    """(tree file, folder of two noise-free pulls of the 2-branch example at 0.02 s)."""
     from treeinfer.data.trajectories import write_trajectory
-    from treeinfer.runs import infer_config
-    from treeinfer.runs.service import build_problem
 
     tree_file = example_path("two_branch")
-    tree = load_tree(tree_file)
-    sim = make_simulator(tree, obs_dt=0.02)
+    sim = make_simulator(load_tree(tree_file), obs_dt=0.02)
     t = np.arange(40) * 0.02
     data = tmp_path / "data"
     data.mkdir()
@@ -259,6 +256,18 @@ def test_cli_infer_with_laplace_init_and_gradient_choice_recorded(tmp_path, caps
         f = peak * np.clip(t / 0.3, 0.0, 1.0)
         tau, tau_dot = simulate_reference(sim, [60.0, 25.0], [0.8, 0.3], f)
         write_trajectory(data / f"p{i}.csv", Trajectory(t, f, tau, tau_dot, f"p{i}"))
+    return tree_file, data
+
+
+# A whole CLI inference: under -m slow. The default run keeps what it checks: test_cli_infer's
+# run folder is an `infer --init laplace` from the CLI (its "Laplace start" line, init recorded,
+# the default gradient recorded in the problem and not in the options), and
+# test_gradient_choice_reaches_the_problem_and_bad_names_are_refused below.
+@pytest.mark.slow
+def test_cli_infer_with_laplace_init_and_gradient_choice_recorded(tmp_path, capsys):
+    from treeinfer.cli import main
+
+    tree_file, data = _laplace_cli_data(tmp_path)
     out = tmp_path / "run"
     rc = main(
         [
@@ -286,6 +295,15 @@ def test_cli_infer_with_laplace_init_and_gradient_choice_recorded(tmp_path, caps
     config = json.loads((out / "config.json").read_text())
     assert config["options"]["init"] == "laplace" and "gradients" not in config["options"]
     assert config["problem"]["gradient"] == "fd"
+
+
+def test_gradient_choice_reaches_the_problem_and_bad_names_are_refused(tmp_path, capsys):
+    from treeinfer.cli import main
+    from treeinfer.runs import infer_config
+    from treeinfer.runs.service import build_problem
+
+    tree_file, data = _laplace_cli_data(tmp_path)
+    tree = load_tree(tree_file)
     # --gradients jvp reaches the problem (and is recorded); the defaults stay out of the options
     cfg = infer_config(
         tree_file,
@@ -313,7 +331,7 @@ def test_cli_infer_with_laplace_init_and_gradient_choice_recorded(tmp_path, caps
             "--data",
             str(data),
             "--out",
-            str(out),
+            str(tmp_path / "run"),
             "--gradients",
             "adjoint",
         ]

@@ -50,7 +50,12 @@ def _problem(name: str):
     return sim, kp, kd, forces, dkp, dkd
 
 
-@pytest.fixture(scope="module", params=["chain", "three_branch"])
+# The three-branch tree runs under -m slow (about 75 s of interpreted kernels): its sensitivity
+# layout stays in the default run through test_sensitivity_tangents_match_float64_central_
+# differences (the independent reference), and the chain runs both pulls here.
+@pytest.fixture(
+    scope="module", params=["chain", pytest.param("three_branch", marks=pytest.mark.slow)]
+)
 def problem(request):
     return request.param, _problem(request.param)
 

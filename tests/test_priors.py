@@ -294,7 +294,7 @@ def test_corrupt_cache_is_retrained(tmp_path):
     assert load_or_train_inequality_network(**settings, cache_dir=tmp_path).loaded
 
 
-def test_bundled_default_network_loads_and_matches_a_fresh_fit(tmp_path, monkeypatch):
+def test_bundled_default_network_loads_and_matches_a_fresh_fit(linear_net, tmp_path, monkeypatch):
     """The package ships the default-settings fit (a fresh install skips training). It must be
     what training with the current code and defaults gives, or it is stale."""
     bundled = list(priors.BUNDLED_NETS.glob("inequality_net-*.msgpack"))
@@ -307,7 +307,12 @@ def test_bundled_default_network_loads_and_matches_a_fresh_fit(tmp_path, monkeyp
     net = load_or_train_inequality_network(-2.0, 7.0, eta=10.0, cache_dir=tmp_path)  # empty cache
     assert net.loaded and Path(net.cache_path).parent == priors.BUNDLED_NETS
     monkeypatch.undo()
-    fresh = train_inequality_network(-2.0, 7.0, eta=10.0)
+    # a fresh fit with the defaults: linear_net's weights, trained once for the module. Training
+    # runs in normalised units, so the box and eta only rescale the same weights (as
+    # test_cache_second_call_loads checks): linear_net is that fit read on the bundled box.
+    fit = {k: v for k, v in linear_net.settings.items() if k not in ("box_low", "box_high", "eta")}
+    assert fit == {k: v for k, v in net.settings.items() if k not in ("box_low", "box_high", "eta")}
+    fresh = linear_net._replace(settings=net.settings)
     x = jnp.linspace(-2.0, 7.0, 41)
     parent, child = jnp.meshgrid(x, x)
     # same procedure and seed; float32 training on another machine may round differently

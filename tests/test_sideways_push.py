@@ -19,6 +19,12 @@ from treeinfer.runs import load_run  # noqa: E402
 from treeinfer.sim import simulate  # noqa: E402
 
 
+# A whole experiment (import-csv, a dynamic infer with MH, evaluate): about a minute on a
+# 16-core machine, more on CI's 2 cores (tests over ~20 s are slow-marked). The
+# default run keeps its parts: per-pull branch and direction against MuJoCo C
+# (test_pull_direction), evaluate at each recording's own pull (test_cli_infer's grasp-point test,
+# test_static_cli's held-out height), import-csv (test_csv_import).
+@pytest.mark.slow
 def test_sideways_push_three_heights_pipeline(tmp_path):
     result = run_pipeline(tmp_path, "tiny", seed=0)
     assert 0.0 <= result["pct_inside_predictive_95"] <= 100.0

@@ -34,7 +34,10 @@ def three(request):
     if request.param == "levels":
         sim = dataclasses.replace(sim, step_layout="levels")
     assert sim.backend == backend
-    run = jax.jit(lambda kp, kd, f, g: simulate(sim, kp, kd, f, g))
+    # simulate is jitted by simulator content and shapes: every call below with the rollout's
+    # shapes reuses one compiled program per backend (test_backends_agree_with_each_other's
+    # other backend too); a jit around it would compile a second program of its own
+    run = lambda kp, kd, f, g: simulate(sim, kp, kd, f, g)
     return tree, sim, run
 
 
@@ -111,9 +114,11 @@ def test_softer_branch_sags_more_and_settled_state_is_at_rest(three):
 
 
 def test_zero_force_keeps_rest(three):
+    """No force: every stable set stays at its settled rest (the rollout's shapes: no compile)."""
     _, _, run = three
-    r = run(jnp.asarray(KP[1:2]), jnp.asarray(KD[1:2]), jnp.zeros((2, T)), jnp.asarray([1.0, 0.6]))
-    assert np.max(np.abs(np.asarray(r.tau))) < 1e-5
+    r = run(jnp.asarray(KP), jnp.asarray(KD), jnp.zeros((2, T)), jnp.asarray([1.0, 0.6]))
+    assert np.asarray(r.stable[:3]).all()
+    assert np.max(np.abs(np.asarray(r.tau[:3]))) < 1e-5
 
 
 def test_grasp_fraction_changes_lever_arm(rollout):
@@ -131,15 +136,18 @@ def test_bad_options():
         make_simulator(tree, obs_dt=0.01, backend="warp")
 
 
-def test_backends_agree_with_each_other(three):
-    """The fused step and mjx.step integrate the same MuJoCo model: one parameter set, both."""
-    tree, sim, run = three
+def test_backends_agree_with_each_other(three, rollout):
+    """The fused step and mjx.step integrate the same MuJoCo model: the three stable parameter
+    sets of the rollout, both backends. The other backend's rollout has the same simulator
+    content and shapes as its own fixture's, so it is compiled once in the module."""
+    tree, sim, _ = three
     other = make_simulator(tree, obs_dt=DT, backend="mjx" if sim.backend == "fused" else "fused")
     f = jnp.asarray(_forces())
-    a = run(jnp.asarray(KP[1:2]), jnp.asarray(KD[1:2]), f, jnp.asarray([1.0, 0.6]))
-    b = simulate(other, jnp.asarray(KP[1:2]), jnp.asarray(KD[1:2]), f, jnp.asarray([1.0, 0.6]))
-    assert float(jnp.max(jnp.abs(a.tau))) > 0.01
-    np.testing.assert_allclose(np.asarray(a.tau), np.asarray(b.tau), atol=2e-5)
+    b = simulate(other, jnp.asarray(KP), jnp.asarray(KD), f, jnp.asarray([1.0, 0.6]))
+    a_tau = np.asarray(rollout.tau[:3])
+    assert np.max(np.abs(a_tau)) > 0.01
+    np.testing.assert_array_equal(np.asarray(rollout.stable), np.asarray(b.stable))
+    np.testing.assert_allclose(a_tau, np.asarray(b.tau[:3]), atol=2e-5)
 
 
 def test_substeps_follow_the_stiffest_prior_corner():

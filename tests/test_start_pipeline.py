@@ -153,8 +153,19 @@ def test_importance_weights_target_the_gaussian_posterior(one_joint):
     np.testing.assert_array_less(np.abs(ref_mean[:2] - truth), 4 * ref_sd[:2])
 
 
-@pytest.mark.parametrize("likelihood", ["boltzmann", "gaussian", "student_t", "ar1"])
-@pytest.mark.parametrize("init", ["auto", "importance", "laplace", "uniform"])
+def _init_likelihood_cases():
+    """Every --init with every likelihood; the default run keeps the pairs that run different
+    code. ``importance`` makes the same ``auto_start`` call as ``auto`` (only auto's fallback on
+    failure differs), so auto's four pairs cover it; ``uniform`` never reads the likelihood
+    (one pair shows it returns no start). The others run under ``-m slow``."""
+    for init in ("auto", "importance", "laplace", "uniform"):
+        for likelihood in ("boltzmann", "gaussian", "student_t", "ar1"):
+            repeat = init == "importance" or (init == "uniform" and likelihood != "gaussian")
+            marks = [pytest.mark.slow] if repeat else []
+            yield pytest.param(init, likelihood, marks=marks, id=f"{init}-{likelihood}")
+
+
+@pytest.mark.parametrize("init,likelihood", list(_init_likelihood_cases()))
 def test_every_init_runs_with_every_likelihood(one_joint, likelihood, init):
     from treeinfer.runs.start import _start
 
