@@ -23,7 +23,10 @@ Steps (:func:`tree_from_qsm`):
    the plane that gives a horizontal hinge (bending up and down, as gravity and a downward
    pull do; a near-vertical stem bends towards the grasp point), that plane is used and the
    link is turned by at most that angle; each link aims at its own QSM end, so the error does
-   not add up along the tree.
+   not add up along the tree. On the grasp's path, where neither holds, a welded connector
+   (``TURN_LENGTH`` long) turns the frame so that the hinge lies along the moment of the pull
+   (``pull_direction``, default down) about the joint; off the path (fixed gains) the hinge is
+   the normal of the two links' plane.
 5. **The rest.** ``lump``: every cylinder not in a link adds its mass to the link it hangs
    from, as one welded (jointless) cylinder per link whose centre is the lumped cylinders'
    centre of mass (mass and first moment kept); ``drop``: left out.
@@ -256,6 +259,8 @@ def tree_from_qsm(
             r_grasp = gp - p0 if k in on_path else None
             want = hinge_wanted(r_grasp, pull, d, frames[0][1][:, 1])
             ang, azi, turn = child_angles(d, pr, want, tol)
+            if turn is not None and k not in on_path:  # fixed gains: no connector (fewer bodies)
+                ang, azi, turn = turn[0], turn[1], None
             pname = run_names[pk]
             if turn is not None:  # a welded connector turns the frame, the hinge follows
                 tb = Branch(
