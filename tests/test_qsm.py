@@ -271,3 +271,22 @@ def test_cli_writes_a_tree_file_and_the_figure(tmp_path, capsys):
     assert "file exists" in capsys.readouterr().err
     assert main(args + ["--force", "--grasp", "b1"]) != 0
     assert "--grasp does not apply to --from-qsm" in capsys.readouterr().err
+
+
+def test_joints_where_an_axis_bends():
+    from treeinfer.tree.qsm_geometry import split_bends
+
+    bend = np.array([math.cos(math.radians(30)), 0.0, math.sin(math.radians(30))])
+    pts = [np.zeros(3)]
+    for k in range(8):
+        pts.append(pts[-1] + (np.array([0.1, 0, 0]) if k < 4 else 0.1 * bend))
+    start, end = np.array(pts[:-1]), np.array(pts[1:])
+    piece = list(range(8))
+    assert split_bends(piece, start, end, 0.01) == [[0, 1, 2, 3], [4, 5, 6, 7]]
+    assert split_bends(piece, start, end, 0.11) == [piece]  # the corner is 10.4 cm off the chord
+    assert split_bends(piece, start, end, None) == [piece]
+
+
+def test_straight_axes_get_no_bend_joints(tmp_path):
+    res = tree_from_qsm(_write(tmp_path, "simpleforest"), grasp_cylinder=14, max_deviation=0.001)
+    assert [lk.name for lk in res.links] == ["stem", "b1"]

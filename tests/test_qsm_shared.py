@@ -106,3 +106,15 @@ def test_a_pull_on_the_converted_tree_is_stable_and_matches_the_static_complianc
     held = float(np.mean(tau[int(1.5 / dt) : int(1.9 / dt)]))
     expected = 5.0 * lever_arm_compliance(tree, dict(zip(tree.inferred, kp)))
     assert abs(held) == pytest.approx(expected, rel=0.2)
+
+
+def test_joints_at_bends_agree_across_tools():
+    """Joints where the axes bend by more than 5 cm: the same links from all three tools."""
+    names = {
+        tool: [
+            lk.name
+            for lk in tree_from_qsm(QSM_DIR / f, grasp_point=GRASP, max_deviation=0.05).links
+        ]
+        for tool, f in FILES.items()
+    }
+    assert names["simpleforest"] == names["archi"] == names["treeqsm"]

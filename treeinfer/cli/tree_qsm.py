@@ -68,6 +68,13 @@ def add_qsm_options(p: argparse.ArgumentParser) -> None:
         "base and where the chain changes axis)",
     )
     q.add_argument(
+        "--max-deviation",
+        type=float,
+        metavar="M",
+        help="m: also a joint where an axis bends, so that every link follows its QSM axis "
+        "within M metres (default: no such joints)",
+    )
+    q.add_argument(
         "--rest",
         choices=RESTS,
         help="the tree off the grasp's chain: lump (default: its mass welded onto the chain), "
@@ -120,6 +127,7 @@ def run_tree_qsm(args: argparse.Namespace) -> int:
         prune_diameter=0.0 if args.prune_diameter is None else args.prune_diameter,
         max_order=args.max_order,
         joint_spacing=args.joint_spacing,
+        max_deviation=args.max_deviation,
         rest=args.rest or "lump",
         levels=args.levels,
         species=args.species,

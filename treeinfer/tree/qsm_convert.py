@@ -14,8 +14,9 @@ Steps (:func:`tree_from_qsm`):
    path is never pruned.
 3. **Links and joints.** Consecutive cylinders of an axis merge into one straight link from
    its joint to the last cylinder's end. Joints sit at the base, where an axis leaves its
-   parent, at forks of kept axes (``keep``; not closer than ``min_link_length``), and every
-   ``joint_spacing`` m along an axis (the axis split into equal parts at cylinder ends).
+   parent, at forks of kept axes (``keep``; not closer than ``min_link_length``), where the
+   axis bends (``max_deviation``: every cylinder end within that many m of its link's line)
+   and every ``joint_spacing`` m along an axis (split into equal parts at cylinder ends).
    A link's radius keeps its cylinders' wood volume; its base radius (taper) sets the
    stiffness box.
 4. **Hinge axes.** The tree description has one hinge per joint, about the normal of the plane
@@ -60,6 +61,7 @@ from .qsm_geometry import (
     on_segment,
     root_angles,
     round_sig,
+    split_bends,
     split_even,
     unit_vector,
 )
@@ -114,6 +116,7 @@ def tree_from_qsm(
     prune_diameter: float = 0.0,
     max_order: int | None = None,
     joint_spacing: float | None = None,
+    max_deviation: float | None = None,
     rest: str = "lump",
     levels: int | None = None,
     species: str | None = None,
@@ -137,6 +140,8 @@ def tree_from_qsm(
     """
     cyl = source if isinstance(source, Cylinders) else read_qsm(source, fmt, units)
     _check_options(grasp_point, grasp_cylinder, prune_diameter, joint_spacing, rest, levels)
+    if max_deviation is not None and not (math.isfinite(max_deviation) and max_deviation > 0):
+        raise ConfigError(f"max deviation {max_deviation!r}: expected a positive number (m)")
     w = wood(species, density, modulus)
     root = int(np.flatnonzero(cyl.parent < 0)[0])
     origin = cyl.start[root].copy()
@@ -220,7 +225,8 @@ def tree_from_qsm(
                     run_len = 0.0
         pieces = []
         for s, e in zip(cuts, cuts[1:] + [len(kept)]):
-            pieces += split_even(kept[s:e], length, joint_spacing)
+            for part in split_bends(kept[s:e], start, end, max_deviation):
+                pieces += split_even(part, length, joint_spacing)
         runs += [(piece, a) for piece in pieces]
 
     axis_names, run_names = link_names(runs)

@@ -38,6 +38,25 @@ def on_segment(p, a, b) -> np.ndarray:
     return a + t * ab
 
 
+def split_bends(piece: list[int], start, end, tol: float | None) -> list[list[int]]:
+    """``piece`` cut at cylinder ends until every cylinder end lies within ``tol`` m of its
+    link's straight line (Ramer-Douglas-Peucker: cut at the farthest end, recurse): joints
+    where the axis bends."""
+    if tol is None or len(piece) < 2:
+        return [piece]
+    a, b = start[piece[0]], end[piece[-1]]
+    ab = b - a
+    inner = end[piece[:-1]]
+    t = np.clip((inner - a) @ ab / max(float(ab @ ab), 1e-300), 0.0, 1.0)
+    dist = np.linalg.norm(a + t[:, None] * ab - inner, axis=1)
+    k = int(np.argmax(dist))
+    if dist[k] <= tol:
+        return [piece]
+    return split_bends(piece[: k + 1], start, end, tol) + split_bends(
+        piece[k + 1 :], start, end, tol
+    )
+
+
 def split_even(piece: list[int], length: np.ndarray, spacing: float | None) -> list[list[int]]:
     """``piece`` cut at cylinder ends into ``round(L / spacing)`` parts of about equal length."""
     total = float(length[piece].sum())
