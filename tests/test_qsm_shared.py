@@ -86,6 +86,7 @@ def test_three_tools_give_the_same_tree_for_one_grasp_point(converted):
         assert rep["max_end_error_m"] < 0.05  # links end where the QSM's axes end
 
 
+@pytest.mark.slow  # compiles the simulator for a 19-body tree: minutes on a loaded 2-core box
 def test_a_pull_on_the_converted_tree_is_stable_and_matches_the_static_compliance(converted):
     """A held pull of 5 N on the TreeQSM chain: the simulation is stable and the held
     displacement matches the small-rotation lever-arm compliance sum s_j^2 / Kp_j
