@@ -119,3 +119,22 @@ def test_joints_at_bends_agree_across_tools():
         for tool, f in FILES.items()
     }
     assert names["simpleforest"] == names["archi"] == names["treeqsm"]
+
+
+def test_converted_trees_stand_and_agree_in_compliance(converted):
+    """At the softest corner of the prior box each tree stands under its own weight (the
+    static stiffness with gravity is positive definite: a finite MuJoCo static compliance),
+    the compliance matches the lever-arm sum s_j^2 / Kp_j within 10% (gravity adds little),
+    and the three tools' compliances lie within a factor of 2."""
+    from treeinfer.tree.plausibility import lever_arm_compliance, static_compliance
+
+    compliance = {}
+    for tool, res in converted.items():
+        tree = res.tree
+        soft = {n: tree.bounds[n].kp[0] for n in tree.inferred}
+        c = static_compliance(tree, soft)
+        assert np.isfinite(c), tool
+        assert c == pytest.approx(lever_arm_compliance(tree, soft), rel=0.1), tool
+        compliance[tool] = c
+    vals = np.array(list(compliance.values()))
+    assert vals.max() / vals.min() < 2.0, compliance
