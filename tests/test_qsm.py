@@ -290,3 +290,26 @@ def test_joints_where_an_axis_bends():
 def test_straight_axes_get_no_bend_joints(tmp_path):
     res = tree_from_qsm(_write(tmp_path, "simpleforest"), grasp_cylinder=14, max_deviation=0.001)
     assert [lk.name for lk in res.links] == ["stem", "b1"]
+
+
+def test_mass_on_the_axis_makes_the_link_denser_and_files_stay_plain(tmp_path):
+    import yaml
+
+    from treeinfer.tree.description import Branch, dump_tree, load_tree
+    from treeinfer.tree.qsm_geometry import lump_mass
+
+    host = Branch("a", None, 1.0, 0.02)
+    frame = (np.zeros(3), np.eye(3), 1.0)
+    m = np.float64(0.5)  # as the converter sums it
+    stub, dens = lump_mass(host, frame, m, m * np.array([0.5, 0.0, 0.001]), 900.0)
+    own = 900.0 * math.pi * 0.02**2
+    assert stub is None and type(dens) is float and dens == pytest.approx(900 * (own + m) / own)
+    stub, dens = lump_mass(host, frame, m, m * np.array([0.5, 0.0, 0.3]), 900.0)
+    assert dens is None and stub.fixed and stub.length == pytest.approx(0.6)
+    # every converted tree writes as plain YAML and reads back the same
+    path = _write(tmp_path, "archi")
+    for kw in ({}, {"rest": "keep", "prune_diameter": 0.026}, {"grasp_cylinder": 15}):
+        res = tree_from_qsm(path, **kw)
+        out = dump_tree(res.tree, tmp_path / "t.yaml")
+        yaml.safe_load(out.read_text())
+        assert load_tree(out) == res.tree

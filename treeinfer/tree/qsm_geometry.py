@@ -173,7 +173,7 @@ def lump_mass(host: Branch, frame, m: float, moment, density: float):
     dist = float(np.linalg.norm(off))
     if dist < max(2 * host.radius, 0.01):
         own = density * math.pi * host.radius**2 * host.length
-        dens = density * (own + m) / own
+        dens = float(density * (own + m) / own)
         return None, (dens if dens <= DENSITY_RANGE[1] else None)
     dl = off / dist
     a = math.acos(float(np.clip(dl[0], -1, 1)))
