@@ -15,8 +15,17 @@ from .common import (
     add_command_parser,
     add_model_options,
 )
-from .tree_build import _GENERATOR_OPTIONS, _NO_TIE_SCALE, run_tree  # noqa: F401 (run_tree: the command table)
-from .tree_qsm import QSM_EPILOG, add_qsm_options
+from .tree_build import _GENERATOR_OPTIONS, _NO_TIE_SCALE  # noqa: F401
+from .tree_build import run_tree as _run_tree_build
+from .tree_qsm import QSM_EPILOG, add_qsm_options, run_tree_qsm
+
+
+def run_tree(args: argparse.Namespace) -> int:
+    """The command table's entry: ``--from-qsm`` converts a QSM, anything else builds as before."""
+    if getattr(args, "from_qsm", None) is not None:
+        return run_tree_qsm(args)
+    return _run_tree_build(args)
+
 
 # ==== tree ========================================================================================
 _TREE_EPILOG = """\

@@ -198,10 +198,6 @@ def _summary(tree, path: Path) -> str:
 
 
 def run_tree(args: argparse.Namespace) -> int:
-    if getattr(args, "from_qsm", None) is not None:
-        from .tree_qsm import run_tree_qsm
-
-        return run_tree_qsm(args)
     out: Path = args.out
     inputs = [args.source, args.model, getattr(args, "push_heights_from", None)]
     claim_output_files([out, args.mjcf, args.urdf], args.force, inputs)  # before any work
