@@ -313,3 +313,28 @@ def test_mass_on_the_axis_makes_the_link_denser_and_files_stay_plain(tmp_path):
         out = dump_tree(res.tree, tmp_path / "t.yaml")
         yaml.safe_load(out.read_text())
         assert load_tree(out) == res.tree
+
+
+def test_a_leaning_stem_still_bends_about_the_pull_moment(tmp_path):
+    """A stem leaning 20 degrees sideways to the grasp: its root hinge would be normal to the
+    lean; a welded connector turns it to the pull's moment, and the geometry is kept."""
+    from treeinfer.tree.types import rot_x
+
+    t = sapling()
+    rot = rot_x(math.radians(20.0))
+    for key in ("start", "end"):
+        t[key] = BASE + (t[key] - BASE) @ rot.T
+    path = write_simpleforest(tmp_path / "leaning.csv", t)
+    grasp = BASE + rot @ np.array([0.9, 0.0, 1.0])
+    res = tree_from_qsm(path, grasp_point=tuple(grasp))
+    assert res.tree.branch("stem").parent == "stem_turn"
+    frames = world_frames(res.tree)
+    for name in res.tree.inferred:
+        p, r = frames[name]
+        moment = np.cross(res.grasp_point - p, [0.0, 0.0, -1.0])
+        moment -= np.dot(moment, r[:, 0]) * r[:, 0]
+        assert abs(float(r[:, 1] @ moment)) / np.linalg.norm(moment) > math.cos(math.radians(5))
+    for lk in res.links:
+        p, r = frames[lk.name]
+        end = res.cylinders.end[lk.cylinders[-1]] - BASE
+        np.testing.assert_allclose(p + r[:, 0] * res.tree.branch(lk.name).length, end, atol=1e-5)

@@ -250,7 +250,16 @@ def tree_from_qsm(
             want = hinge_wanted(gp - p0, pull, d, None)
             base_pitch, base_yaw = root_angles(d, want, tol)
             rot = base_rot(base_pitch, base_yaw)
-            attach, pname, ang, azi, turn = 1.0, None, 0.0, 0.0, None
+            attach, pname, ang, azi = 1.0, None, 0.0, 0.0
+            wp = want - np.dot(want, d) * d
+            if abs(float(rot[:, 1] @ wp)) < math.cos(tol) * np.linalg.norm(wp):
+                # a leaning stem whose heading gives another hinge: a welded connector first
+                tb = Branch(f"{run_names[0]}_turn", None, TURN_LENGTH, TURN_LENGTH / 2, fixed=True)
+                branches.append(tb)
+                p0 = p0 + TURN_LENGTH * rot[:, 0]
+                azi = math.atan2(float(wp @ rot[:, 2]), float(wp @ rot[:, 1]))
+                pname = tb.name
+                rot = rot @ local_rotation(Branch("x", None, 1.0, 1.0, 0.0, math.degrees(azi)))
         else:
             first_of_axis = axes[a][0] == c0
             pk = int(link_of[cyl.parent[c0]]) if first_of_axis else k - 1
