@@ -142,6 +142,8 @@ def tree_from_qsm(
     _check_options(grasp_point, grasp_cylinder, prune_diameter, joint_spacing, rest, levels)
     if max_deviation is not None and not (math.isfinite(max_deviation) and max_deviation > 0):
         raise ConfigError(f"max deviation {max_deviation!r}: expected a positive number (m)")
+    if max_order is not None and (isinstance(max_order, bool) or max_order < 0):
+        raise ConfigError(f"max order {max_order!r}: expected an integer >= 0 (0: the stem)")
     w = wood(species, density, modulus)
     root = int(np.flatnonzero(cyl.parent < 0)[0])
     origin = cyl.start[root].copy()
