@@ -281,7 +281,10 @@ def _read_mat(path: Path) -> dict[str, np.ndarray]:
     try:
         m = scipy.io.loadmat(path, squeeze_me=True, struct_as_record=False)
     except (ValueError, TypeError, OSError, NotImplementedError) as e:
-        raise TreeFileError(f"{path}: not a MATLAB v5 file scipy can read ({e})") from None
+        raise TreeFileError(
+            f"{path}: not a MATLAB file scipy can read ({e}); a v7.3 (HDF5) file must be saved "
+            "again with save(..., '-v7')"
+        ) from None
     qsm = None
     for name, v in m.items():
         if name.startswith("__"):
