@@ -83,7 +83,7 @@ def test_three_tools_give_the_same_tree_for_one_grasp_point(converted):
         assert max(b[0] for b in boxes) < min(b[1] for b in boxes), (joint, boxes)
     for rep in reports.values():
         assert rep["grasp_offset_m"] < 0.02  # the point lies on each reconstruction
-        assert rep["max_end_error_m"] < 0.05  # links end where the QSM's axes end
+        assert rep["max_end_error_m"] <= 0.02 + 1e-9  # links end where the QSM's axes end
 
 
 @pytest.mark.slow  # compiles the simulator for a 19-body tree: minutes on a loaded 2-core box

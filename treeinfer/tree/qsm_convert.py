@@ -23,7 +23,8 @@ Steps (:func:`tree_from_qsm`):
    of the two links it joins. Where a link's direction lies within ``hinge_tolerance_deg`` of
    the plane that gives a horizontal hinge (bending up and down, as gravity and a downward
    pull do; a near-vertical stem bends towards the grasp point), that plane is used and the
-   link is turned by at most that angle; each link aims at its own QSM end, so the error does
+   link is turned by at most that angle (and so that its end moves by at most
+   ``SNAP_DISTANCE``); each link aims at its own QSM end, so the error does
    not add up along the tree. On the grasp's path, where neither holds, a welded connector
    (``TURN_LENGTH`` long) turns the frame so that the hinge lies along the moment of the pull
    (``pull_direction``, default down) about the joint; off the path (fixed gains) the hinge is
@@ -71,6 +72,7 @@ from .types import KD_RANGE, KP_RANGE, Bounds, Branch, Tree, local_rotation
 RESTS = ("lump", "drop", "keep")
 # m: a welded connector this long turns a link's frame so that its hinge axis can be chosen
 # (the tree description fixes a child's hinge to the normal of the plane of the two links)
+SNAP_DISTANCE = 0.02  # m: how far a link's end may move when it is turned to a wanted hinge
 TURN_LENGTH = 0.005  # (radius half of it: a body of 0.1 mg, well above MuJoCo's minimum)
 
 
@@ -240,6 +242,11 @@ def tree_from_qsm(
     pull = unit_vector(np.asarray(pull_direction, float))
     tol = math.radians(hinge_tolerance_deg)
     on_path = {int(link_of[c]) for c in path}
+
+    def snap_angle(v) -> float:
+        # turn a link only so far that its end moves by at most SNAP_DISTANCE
+        return min(tol, math.asin(min(1.0, SNAP_DISTANCE / max(float(np.linalg.norm(v)), 1e-9))))
+
     frames: list[tuple[np.ndarray, np.ndarray, float]] = []
     branches: list[Branch] = []
     base_pitch = base_yaw = 0.0
@@ -250,7 +257,7 @@ def tree_from_qsm(
             p0 = start[c0]
             d = unit_vector(end[c1] - p0)
             want = hinge_wanted(gp - p0, pull, d, None)
-            base_pitch, base_yaw = root_angles(d, want, tol)
+            base_pitch, base_yaw = root_angles(d, want, snap_angle(end[c1] - p0))
             rot = base_rot(base_pitch, base_yaw)
             attach, pname, ang, azi = 1.0, None, 0.0, 0.0
             wp = want - np.dot(want, d) * d
@@ -275,7 +282,7 @@ def tree_from_qsm(
             d = unit_vector(end[c1] - p0)
             r_grasp = gp - p0 if k in on_path else None
             want = hinge_wanted(r_grasp, pull, d, frames[0][1][:, 1])
-            ang, azi, turn = child_angles(d, pr, want, tol)
+            ang, azi, turn = child_angles(d, pr, want, tol, snap_angle(end[c1] - p0))
             if turn is not None and k not in on_path:  # fixed gains: no connector (fewer bodies)
                 ang, azi, turn = turn[0], turn[1], None
             pname = run_names[pk]

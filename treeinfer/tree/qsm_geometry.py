@@ -116,24 +116,24 @@ def hinge_wanted(r_grasp, pull, d, fallback) -> np.ndarray:
     return fallback if fallback is not None else np.array([0.0, 1.0, 0.0])
 
 
-def root_angles(d, want, tol) -> tuple[float, float]:
+def root_angles(d, want, snap) -> tuple[float, float]:
     """Pitch and yaw (rad) of the root link: its hinge (horizontal, normal to the heading)
-    along the horizontal part of ``want`` when ``d`` lies within ``tol`` of that heading's
+    along the horizontal part of ``want`` when ``d`` lies within ``snap`` rad of that heading's
     vertical plane, else exactly along ``d``."""
     heading = np.array([want[1], -want[0], 0.0])
     if np.linalg.norm(heading) > 1e-6:
         heading /= np.linalg.norm(heading)
         side = np.cross([0.0, 0.0, 1.0], heading)
-        if abs(float(np.dot(d, side))) <= math.sin(tol):
+        if abs(float(np.dot(d, side))) <= math.sin(snap):
             return math.atan2(d[2], float(np.dot(d, heading))), math.atan2(heading[1], heading[0])
     return math.asin(float(np.clip(d[2], -1, 1))), math.atan2(d[1], d[0])
 
 
-def child_angles(d, parent_rot, want, tol):
+def child_angles(d, parent_rot, want, tol, snap):
     """(angle, azimuth, turn) rad of a child along ``d`` in its parent's frame (see
     :func:`treeinfer.tree.types.local_rotation`) with its hinge within ``tol`` of ``want``:
-    exact when the plane of the two links gives that hinge; for a bend under ``tol``, the
-    hinge chosen and the link turned by at most ``tol``; else ``turn`` = the exact (angle,
+    exact when the plane of the two links gives that hinge; for a bend under ``snap`` rad,
+    the hinge chosen and the link turned by at most ``snap``; else ``turn`` = the exact (angle,
     azimuth) of a welded connector, and the hinge's azimuth about it."""
     xp, yp, zp = parent_rot[:, 0], parent_rot[:, 1], parent_rot[:, 2]
     dl = parent_rot.T @ d
@@ -146,13 +146,13 @@ def child_angles(d, parent_rot, want, tol):
     w = w / np.linalg.norm(w)
     if abs(float(np.dot(y_exact, w))) >= math.cos(tol):
         return a, az, None
-    if a <= tol:
+    if a <= snap:
         proj = w - np.dot(w, xp) * xp
         if np.linalg.norm(proj) > 0.1:
             az2 = math.atan2(float(np.dot(proj, zp)), float(np.dot(proj, yp)))
             yv = math.cos(az2) * yp + math.sin(az2) * zp
             zv = -math.sin(az2) * yp + math.cos(az2) * zp
-            if abs(float(np.dot(d, yv))) <= math.sin(tol):
+            if abs(float(np.dot(d, yv))) <= math.sin(snap):
                 return math.atan2(float(np.dot(d, zv)), float(np.dot(d, xp))), az2, None
     conn = parent_rot @ local_rotation(
         Branch("x", None, 1.0, 1.0, math.degrees(a), math.degrees(az))
