@@ -86,27 +86,28 @@ def test_three_tools_give_the_same_tree_for_one_grasp_point(converted):
         assert rep["max_end_error_m"] <= 0.02 + 1e-9  # links end where the QSM's axes end
 
 
-@pytest.mark.slow  # compiles the simulator for a 19-body tree: minutes on a loaded 2-core box
+@pytest.mark.slow  # compiles the simulator for an 18-body tree: minutes on a loaded 2-core box
 def test_a_pull_on_the_converted_tree_is_stable_and_matches_the_static_compliance(converted):
-    """A held pull of 5 N on the TreeQSM chain: the simulation is stable and the held
-    displacement matches the small-rotation lever-arm compliance sum s_j^2 / Kp_j
-    (treeinfer.tree.plausibility, independent of the simulator) within 20%."""
+    """treeinfer's own simulator (the one `simulate` and `infer` use) on the TreeQSM chain:
+    5 N ramped in over 0.5 s and held. The rollout is stable and the mean held displacement
+    matches the static compliance at the settled pose (treeinfer.tree.plausibility, not a
+    time integration) within 5%."""
     from treeinfer.data.forces import from_spec
     from treeinfer.sim.synthetic import simulate_batch
-    from treeinfer.tree.plausibility import lever_arm_compliance
+    from treeinfer.tree.plausibility import static_compliance
 
     tree = converted["treeqsm"].tree
     kp = np.array([np.sqrt(np.prod(tree.bounds[n].kp)) for n in tree.inferred])
     kd = np.array([np.sqrt(np.prod(tree.bounds[n].kd)) for n in tree.inferred])
-    dt, duration = 0.01, 2.0
-    force = from_spec("hold:peak=5,ramp=0.5,hold=1.5,release=0.0", duration, dt)[None]
-    rollout, _ = simulate_batch(tree, kp, kd, force, dt, 0.005, "auto", lambda *_: None)
+    dt, duration = 0.01, 4.0
+    force = from_spec("ramp:peak=5,ramp=0.5", duration, dt)[None]
+    rollout, _ = simulate_batch(tree, kp, kd, force, dt)
     assert bool(np.asarray(rollout.stable).all())
     tau = np.asarray(rollout.tau)[0, 0]
     assert np.all(np.isfinite(tau))
-    held = float(np.mean(tau[int(1.5 / dt) : int(1.9 / dt)]))
-    expected = 5.0 * lever_arm_compliance(tree, dict(zip(tree.inferred, kp)))
-    assert abs(held) == pytest.approx(expected, rel=0.2)
+    held = float(np.mean(tau[int(2.0 / dt) :]))
+    expected = 5.0 * static_compliance(tree, dict(zip(tree.inferred, kp)))
+    assert abs(held) == pytest.approx(expected, rel=0.05)
 
 
 def test_joints_at_bends_agree_across_tools():
