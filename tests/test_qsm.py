@@ -76,6 +76,15 @@ def test_bad_tables_name_file_line_and_column(tmp_path, line, column, value, mes
     assert str(path) in str(e.value)
 
 
+def test_a_nan_in_the_first_row_of_a_headerless_table(tmp_path):
+    path = write_treeqsm_v23(tmp_path / "cyl_data_nan.txt")
+    rows = path.read_text().splitlines()
+    rows[0] = "NaN\t" + rows[0].split("\t", 1)[1]
+    path.write_text("\n".join(rows) + "\n")
+    with pytest.raises(TreeFileError, match="line 1, column 'radius': NaN \\(not finite\\)"):
+        read_qsm(path)
+
+
 def test_missing_columns_and_unknown_layouts(tmp_path):
     path = write_simpleforest(tmp_path / "sf.csv")
     text = path.read_text().replace("parentID", "parent_id_x")

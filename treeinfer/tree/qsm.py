@@ -175,9 +175,17 @@ def _read_text(path: Path) -> tuple[list[list[str]], list[str] | None, int]:
         rows = [[c.strip() for c in ln.split("\t")] for ln in lines]
     else:
         rows = [ln.split() for ln in lines]
-    has_header = any(c and (c[0].isalpha() or c[0] == "_") for c in rows[0])
+    has_header = not all(_is_number(c) for c in rows[0])  # "nan" is a (bad) number, no name
     header = rows[0] if has_header else None
     return (rows[1:], header, 2) if has_header else (rows, None, 1)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _columns(path, rows, header, first_line, fmt) -> tuple[dict[str, np.ndarray], str]:
