@@ -16,7 +16,17 @@ from .common import (
     add_model_options,
 )
 from .options import add_deprecated
-from .tree_build import _GENERATOR_OPTIONS, _NO_TIE_SCALE, run_tree  # noqa: F401 (run_tree: the command table)
+from .tree_build import _GENERATOR_OPTIONS, _NO_TIE_SCALE  # noqa: F401
+from .tree_build import run_tree as _run_tree_build
+from .tree_qsm import QSM_EPILOG, add_qsm_options, run_tree_qsm
+
+
+def run_tree(args: argparse.Namespace) -> int:
+    """The command table's entry: ``--from-qsm`` converts a QSM, anything else builds as before."""
+    if getattr(args, "from_qsm", None) is not None:
+        return run_tree_qsm(args)
+    return _run_tree_build(args)
+
 
 # ==== tree ========================================================================================
 _TREE_EPILOG = """\
@@ -66,7 +76,7 @@ def configure_tree(subparsers) -> argparse.ArgumentParser:
         description="Build a tree from a generator (chain, fractal, L-system) or an existing tree "
         "file, write its description (YAML or JSON by the --out suffix) and optionally the MuJoCo "
         "MJCF and URDF models, and print a short summary (branches, inferred joints, grasp).",
-        epilog=_TREE_EPILOG,
+        epilog=_TREE_EPILOG + "\n" + QSM_EPILOG,
     )
     p.add_argument(
         "--out", required=True, type=Path, help="tree file to write (.yaml, .yml or .json)"
@@ -201,6 +211,7 @@ def configure_tree(subparsers) -> argparse.ArgumentParser:
         metavar="D[,D...]",
         help="m, the diameter at each push height (instead of, or with, base and tip)",
     )
+    add_qsm_options(p)
     st.add_argument(
         "--tie-scale",
         type=_tie_scale,

@@ -1,6 +1,6 @@
 """Trees: the tree description (branches, grasp point, inferred joints, prior boxes), its types and
-checks, generators (chains, fractals, L-systems, the stem), export to MJCF/URDF and users' own
-URDF/MJCF models.
+checks, generators (chains, fractals, L-systems, the stem), trees from QSMs (point-cloud
+reconstructions), export to MJCF/URDF and users' own URDF/MJCF models.
 
 May import: treeinfer.io and treeinfer.errors.
 
@@ -9,7 +9,8 @@ importing one module of the package does not import the others (startup cost, an
 import order between them).
 
 Submodules: checks, description, export, generators, geometry, lsystem, model_paths,
-model_section, options, plausibility, stem, types, urdf, usermodel."""
+model_section, options, plausibility, qsm (QSM cylinder tables), qsm_convert (QSM -> tree),
+qsm_geometry, qsm_plot, qsm_wood, stem, types, urdf, usermodel."""
 
 _EXPORTS = {
     "check_tie": "checks",
@@ -80,6 +81,12 @@ _EXPORTS = {
     "tree_scale_warnings": "types",
     "tree_to_dict": "types",
     "world_frames": "types",
+    "Cylinders": "qsm",
+    "read_qsm": "qsm",
+    "QsmTree": "qsm_convert",
+    "tree_from_qsm": "qsm_convert",
+    "plot_qsm": "qsm_plot",
+    "Wood": "qsm_wood",
     "load_model_file": "urdf",
     "mjmodel_from_urdf": "urdf",
     "rpy_from_matrix": "urdf",
@@ -103,6 +110,11 @@ _SUBMODULES = (
     "model_section",
     "options",
     "plausibility",
+    "qsm",
+    "qsm_convert",
+    "qsm_geometry",
+    "qsm_plot",
+    "qsm_wood",
     "stem",
     "types",
     "urdf",
