@@ -178,10 +178,9 @@ def _force_differentiable(sim):
 # perturbation per sample as a share of the largest |force|, and the allowed relative error.
 _CHECK_STEP = 0.01
 _CHECK_RTOL = 0.02
-# J of the last few (simulator, theta, forces) of this process (force_jacobian): the run takes
-# J at its reference once for the likelihood, then the training fit's band and the fit verdict
-# ask for the same J again (three times 5-10 s on a 2-core CPU before it was kept)
-_KEPT: collections.OrderedDict = collections.OrderedDict()
+# J of the last few (theta, forces) of a simulator, kept on it (Simulator.derived, force_jacobian):
+# the run takes J at its reference once for the likelihood, then the training fit's band and the
+# fit verdict ask for the same J again (three times 5-10 s on a 2-core CPU before it was kept)
 _KEPT_SIZE = 4
 _KEPT_MAX_BYTES = 64 * 2**20  # a J larger than this (long or many pulls) is not kept
 
@@ -209,9 +208,9 @@ def force_jacobian(
     anywhere else: the term would silently vanish). Raises :class:`SimulationError` too if the
     rollout at ``theta`` is unstable.
 
-    The result of the last few calls is kept in this process (keyed by the simulator's content,
-    ``theta``, the forces and the grasp points), so a run's likelihood, training fit and fit
-    verdict take J once."""
+    The result of the last few calls is kept on the simulator (``sim.derived``, keyed by its
+    content, ``theta``, the forces and the grasp points), so a run's likelihood, training fit
+    and fit verdict, which share the run's simulator, take J once."""
     from .gains import gains_from_theta
 
     dtype = sim.dtype
@@ -233,9 +232,10 @@ def force_jacobian(
         bool(check),
         substeps,
     )
-    if key in _KEPT:
-        _KEPT.move_to_end(key)
-        return _KEPT[key].copy()
+    kept = sim.derived.setdefault("force_jacobians", collections.OrderedDict())
+    if key in kept:
+        kept.move_to_end(key)
+        return kept[key].copy()
     th = jnp.asarray(theta64[None], dtype)
     kp, kd = gains_from_theta(th, sim.n_joints)
     f = jnp.asarray(forces64, dtype)
@@ -271,13 +271,10 @@ def force_jacobian(
             f"{rel:.2g}); the backend's derivative in the force is wrong or missing"
         )
     if jac.nbytes <= _KEPT_MAX_BYTES:
-        _KEPT[key] = jac.copy()
-        while len(_KEPT) > _KEPT_SIZE:
-            _KEPT.popitem(last=False)
+        kept[key] = jac.copy()
+        while len(kept) > _KEPT_SIZE:
+            kept.popitem(last=False)
     return jac
-
-
-_RUNNERS: dict = {}  # force_jacobian's programs of this process, by their key
 
 
 def _jacobian_runner(jsim, with_check: bool, args):
@@ -285,12 +282,13 @@ def _jacobian_runner(jsim, with_check: bool, args):
     substeps, check_substeps[, gf])`` (the grasp points last, where given), traced once per
     machine (:func:`treeinfer.sim.startup.cached_program`: a new process deserializes the stored
     program instead of tracing the simulator's forward mode again, 3-6 s on a 2-core CPU) and
-    kept for this process."""
+    kept on ``jsim`` (``Simulator.derived``) while it lives."""
     from ..sim.startup import cached_program
 
     shapes = tuple((tuple(np.shape(a)), str(jnp.result_type(a))) for a in args)
     key = repr(("force_noise._jacobian_program", jsim.program_key(True), with_check, shapes))
-    run = _RUNNERS.get(key)
+    runners = jsim.derived.setdefault("force_jacobian_programs", {})
+    run = runners.get(key)
     if run is None:
 
         def fn(kp, kd, forces, hv, substeps, check_substeps, *gf):
@@ -299,7 +297,7 @@ def _jacobian_runner(jsim, with_check: bool, args):
                 jsim, kp, kd, forces, g, hv, substeps, check_substeps, with_check
             )
 
-        run = _RUNNERS[key] = cached_program(fn, args, key)
+        run = runners[key] = cached_program(fn, args, key)
     return run
 
 

@@ -102,6 +102,11 @@ class Simulator:
     branch_axes: dict = field(default_factory=dict)
     model_report: dict = field(default_factory=dict)
     step_layout: str = "auto"
+    # what was derived from this simulator and is worth keeping while it lives (the force-noise
+    # Jacobian and its compiled program: treeinfer.model.force_noise.force_jacobian). Held here,
+    # not in a module, so it goes with the simulator its owner keeps (runs' SimulatorCache) and
+    # a new simulator (dataclasses.replace) starts empty; not part of the fingerprint.
+    derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @functools.cached_property
     def fingerprint(self) -> str:
@@ -114,7 +119,7 @@ class Simulator:
         mujoco.mj_saveModel(self.mj_model, None, buf)
         h.update(buf.tobytes())
         for f in fields(self):
-            if f.name in ("mj_model", "hinge_tree"):  # hinge_tree is read from mj_model
+            if f.name in ("mj_model", "hinge_tree", "derived"):  # hinge_tree: read from mj_model
                 continue
             h.update(f.name.encode())
             h.update(_canonical(getattr(self, f.name)).encode())
