@@ -30,6 +30,7 @@ from ..tree.plausibility import REST_FORCE, Finding
 
 REST_WINDOW = 0.05  # share of the samples before the force first rises that is "at rest" ...
 REST_WINDOW_MIN = 5  # ... but at least this many samples
+REST_NOISE_SIGMAS, REST_RANGE_SHARE = 4.0, 0.02  # "the force has not moved yet": within these
 OFFSET_SIGMAS = 6.0  # a resting value this many noise standard errors from zero is an offset
 DISP_OFFSET_MIN = 0.005  # m; and at least this much (a rest position within 5 mm is fine)
 DISP_OFFSET_SHARE = 0.05  # ... and this share of the displacement's range
@@ -53,12 +54,14 @@ def _noise(values: np.ndarray) -> float:
 
 def rest_samples(force: np.ndarray) -> int:
     """How many leading samples are at rest: up to where the force first leaves its starting
-    level by a tenth of its range, and at most :data:`REST_WINDOW` of the recording."""
+    level by more than its noise (four standard deviations, and 2% of its range), and at most
+    :data:`REST_WINDOW` of the recording. A pull that starts at once has none."""
     f = np.asarray(force, float)
     frange = float(np.ptp(f))
     if frange <= 0:
         return 0
-    moved = np.flatnonzero(np.abs(f - f[0]) > REST_FORCE * frange)
+    level = max(REST_NOISE_SIGMAS * _noise(f), REST_RANGE_SHARE * frange)
+    moved = np.flatnonzero(np.abs(f - f[0]) > level)
     first = int(moved[0]) if moved.size else f.size
     return int(min(first, max(REST_WINDOW_MIN, int(REST_WINDOW * f.size))))
 

@@ -33,6 +33,7 @@ class SimulatorCache:
         self.max_size = int(max_size)
         self._sims: dict[tuple, Simulator] = {}
         self.programs = ProgramCache(self.max_size)
+        self._jacobian_programs: dict = {}  # see get()
 
     def __len__(self) -> int:
         return len(set(map(id, self._sims.values())))
@@ -78,6 +79,10 @@ class SimulatorCache:
                 force_interp=force_interp,
                 **kw,
             )
+            # the force-noise Jacobian's compiled programs are shared by every simulator of this
+            # cache (they are keyed by the program's content): a second data set of the same
+            # shapes (batch, k-fold) builds a new simulator but reuses its program
+            sim.derived["force_jacobian_programs"] = self._jacobian_programs
             while len(self._sims) >= self.max_size:
                 self._sims.pop(next(iter(self._sims)))
             # under the requested and the resolved settings: a run folder records the resolved ones
