@@ -306,3 +306,15 @@ def test_unstable_truths_are_redrawn(monkeypatch):
     assert calls[:2] == [3, 1]  # all truths, then the one redraw
     assert np.all(np.isfinite(res.draws))
     assert res.info["n_redrawn_unstable_truths"] == 1
+
+
+def test_sbc_figures_in_every_format_asked(tmp_path):
+    # calibrate --formats: the rank histograms and coverage plot in each format, written whole
+    mu, draws = _conjugate_study(np.random.default_rng(4))
+    res = cal.summarize_sbc(mu, draws, ["a", "b"], seed=1)
+    cal.write_outputs(res, tmp_path, formats=("png", "svg"))
+    for stem in ("rank_histograms", "coverage"):
+        png, svg = tmp_path / "plots" / f"{stem}.png", tmp_path / "plots" / f"{stem}.svg"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert b"<svg" in svg.read_bytes()[:2000]
+    assert not list(tmp_path.rglob("*.tmp")) and not list(tmp_path.rglob(".*"))

@@ -9,7 +9,7 @@ import numpy as np
 from .stats import SBCResult, binomial_band, result_json
 
 
-def plot_rank_histograms(result: SBCResult, path=None, band_level: float = 0.99):
+def plot_rank_histograms(result: SBCResult, path=None, band_level: float = 0.99, formats=None):
     """Rank histograms (one panel per parameter) with the ``band_level`` binomial band of a
     uniform histogram shaded; p-values in the titles. Returns the figure (saved to ``path``)."""
     import matplotlib
@@ -45,13 +45,15 @@ def plot_rank_histograms(result: SBCResult, path=None, band_level: float = 0.99)
         fontsize=9,
     )
     fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=120)
+    if path is not None:  # atomically, in each of ``formats`` (default: path's own suffix)
+        from ..evaluation.plots import save_figure
+
+        save_figure(fig, path, formats=formats)
         plt.close(fig)
     return fig
 
 
-def plot_coverage(result: SBCResult, path=None, band_level: float = 0.99):
+def plot_coverage(result: SBCResult, path=None, band_level: float = 0.99, formats=None):
     """Expected vs observed coverage of central intervals, one line per parameter, with the
     ``band_level`` binomial band of a calibrated posterior. Returns the figure."""
     import matplotlib
@@ -76,15 +78,18 @@ def plot_coverage(result: SBCResult, path=None, band_level: float = 0.99):
     ax.legend(fontsize=7)
     ax.set_title(f"SBC coverage, N = {n} data sets, L = {result.n_draws} draws", fontsize=9)
     fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=120)
+    if path is not None:  # atomically, in each of ``formats`` (default: path's own suffix)
+        from ..evaluation.plots import save_figure
+
+        save_figure(fig, path, formats=formats)
         plt.close(fig)
     return fig
 
 
-def write_outputs(result: SBCResult, directory, config: dict | None = None) -> dict:
+def write_outputs(result: SBCResult, directory, config: dict | None = None, formats=None) -> dict:
     """``sbc_summary.json``, ``ranks.csv``, ``draws.npz`` and ``plots/{rank_histograms,
-    coverage}.png`` into ``directory`` (atomic writes). Returns the summary dict."""
+    coverage}.png`` (or each of ``formats``: png, pdf, svg) into ``directory`` (atomic writes).
+    Returns the summary dict."""
     from pathlib import Path
 
     from ..io.atomic import atomic_save, atomic_write_json, atomic_write_text
@@ -109,6 +114,6 @@ def write_outputs(result: SBCResult, directory, config: dict | None = None) -> d
                 ranks=result.ranks,
                 labels=np.asarray(result.labels),
             )
-    plot_rank_histograms(result, directory / "plots" / "rank_histograms.png")
-    plot_coverage(result, directory / "plots" / "coverage.png")
+    plot_rank_histograms(result, directory / "plots" / "rank_histograms.png", formats=formats)
+    plot_coverage(result, directory / "plots" / "coverage.png", formats=formats)
     return summary

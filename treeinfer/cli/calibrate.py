@@ -28,7 +28,14 @@ from .common import (
     add_backend_option,
     add_command_parser,
 )
-from .options import AUTO, displacement_noise, force_noise, length, refuse_noise_form
+from .options import (
+    AUTO,
+    add_formats_option,
+    displacement_noise,
+    force_noise,
+    length,
+    refuse_noise_form,
+)
 
 _D = SBCConfig()
 
@@ -256,6 +263,7 @@ def configure_calibrate(subparsers) -> argparse.ArgumentParser:
     )
     add_backend_option(p)
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_formats_option(p, "figures (plots/rank_histograms, plots/coverage)")
     p.add_argument(
         "--allow-large",
         action="store_true",
@@ -351,7 +359,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     with staged_output_dir(args.out, args.force, "calibration", inputs=[args.tree]) as stage:
         atomic_write_json(stage / "config.json", record)
         dump_tree(tree, stage / "tree.yaml")
-        summary = write_outputs(result, stage, record)
+        summary = write_outputs(result, stage, record, formats=args.formats)
     u = summary["uniformity"]
     for lab, t in u["parameters"].items():
         _say(

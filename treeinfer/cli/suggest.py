@@ -18,7 +18,7 @@ from .common import (
     add_command_parser,
     add_run_option,
 )
-from .options import AUTO, add_deprecated, displacement_noise
+from .options import AUTO, add_deprecated, add_formats_option, displacement_noise, figure_names
 
 # ==== suggest =====================================================================================
 _SUGGEST_EPILOG = """\
@@ -153,6 +153,7 @@ def configure_suggest(subparsers) -> argparse.ArgumentParser:
         help="folder for suggestions.json/png (default RUN/suggest)",
     )
     p.add_argument("--force", action="store_true", help="replace an earlier suggestions.json")
+    add_formats_option(p, "figure (suggestions.png)")
     p.add_argument(
         "--allow-large",
         action="store_true",
@@ -208,6 +209,7 @@ def run_suggest(args: argparse.Namespace) -> int:
         seed=args.seed,
         out=out,
         force=args.force,
+        formats=args.formats,
     )
     s = sugg.settings
     print(
@@ -218,5 +220,6 @@ def run_suggest(args: argparse.Namespace) -> int:
     )
     print(sugg.table(args.top))
     print(f"best: {sugg.specs[0]} at grasp fraction {sugg.best.grasp_fraction:g}")
-    print(f"wrote {out / 'suggestions.json'} and {out / 'suggestions.png'}")
+    figures = figure_names(str(out / "suggestions"), args.formats)
+    print(f"wrote {out / 'suggestions.json'} and {figures}")
     return EXIT_OK

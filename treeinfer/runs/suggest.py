@@ -50,6 +50,7 @@ def suggest_for_run(
     seed: int = 0,
     out=None,
     force: bool = False,
+    formats=None,
 ) -> Suggestions:
     """Score candidate next pulls for the posterior of a finished run folder.
 
@@ -108,6 +109,6 @@ def suggest_for_run(
         with staged_output_dir(out, force, "suggestions", **where) as stage:
             atomic_write_json(stage / "suggestions.json", sugg.to_dict())
             fig, _ = plot_scores(sugg)
-            save_figure(fig, stage / "suggestions.png")
+            save_figure(fig, stage / "suggestions.png", formats=formats)
             plt.close(fig)
     return sugg
