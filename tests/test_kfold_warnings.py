@@ -13,7 +13,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from treeinfer.runs import folder, service
+from treeinfer.runs import folder, folds
 
 
 def _fold(n: int = 40, p: int = 8):
@@ -49,7 +49,7 @@ def test_fold_warnings_include_the_samplers_convergence_warnings():
     }
     _, _, expected = folder._diagnostics("nnsvgd", trace, list(problem.labels))
     assert expected, "the climbing trace must trigger a convergence warning"
-    warns = service.fold_warnings(problem, post, {"sampler": "nnsvgd", "mcmc_warmup": 0.5})
+    warns = folds.fold_warnings(problem, post, {"sampler": "nnsvgd", "mcmc_warmup": 0.5})
     assert warns[0].startswith("ended by: max_iterations")
     for w in expected:
         assert w in warns

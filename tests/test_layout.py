@@ -48,8 +48,7 @@ KNOWN_UPWARD = {
     # evaluation/ inside its methods (predict, pair_plot, plot_trace), imported on call.
     ("treeinfer.inference.posterior", "treeinfer.evaluation.bands"): "Posterior.predict; "
     "move Posterior and infer's front end to a user-facing layer above evaluation",
-    ("treeinfer.inference.posterior", "treeinfer.evaluation.plots"): "Posterior.plot_*; "
-    "as above",
+    ("treeinfer.inference.posterior", "treeinfer.evaluation.plots"): "Posterior.plot_*; as above",
     ("treeinfer.inference.posterior", "treeinfer.evaluation.posterior_bands"): "Posterior.predict; "
     "as above",
     ("treeinfer.inference.posterior_io", "treeinfer.evaluation.posterior_plots"): "the pair "
@@ -60,7 +59,6 @@ LONG_MODULES = {
     "treeinfer.inference.fast": "716 lines",
     "treeinfer.model.likelihood": "656 lines",
     "treeinfer.sim.pallas": "642 lines",
-    "treeinfer.runs.service": "513 lines",
     "treeinfer.sim.fused": "503 lines",
     "treeinfer.runs.folder": "499 lines; the longer import paths of the move take it to ~501",
 }

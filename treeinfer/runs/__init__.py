@@ -89,12 +89,11 @@ from .folder import (
     simulation_line,
     simulation_summary,
 )
+from .folds import FoldResult, kfold
 from .service import (
-    FoldResult,
     InferOutcome,
     build_problem,
     infer_posterior,
-    kfold,
     run_inference,
 )
 
