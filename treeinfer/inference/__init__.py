@@ -219,15 +219,6 @@ _SUBMODULES = (
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name):
-    import importlib
+from ..io.lazy import lazy_package  # noqa: E402 -- after the tables it reads
 
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
-    if name in _SUBMODULES:
-        return importlib.import_module(f"{__name__}.{name}")
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_EXPORTS) | set(_SUBMODULES))
+__getattr__, __dir__ = lazy_package(__name__, _EXPORTS, _SUBMODULES)
