@@ -4,7 +4,7 @@ Run from the repository root after simulating the data sets it reads:
 
     for prof in release step mixed; do for seed in 0 1 2; do
       python -m treeinfer simulate --tree treeinfer/examples/three_branch.yaml \
-        --out /tmp/h27n_sim/${prof}_$seed --profiles $prof --n-traj 4 --seed $seed; done; done
+        --out /tmp/h27n_sim/${prof}_$seed --profile-kind $prof --n-traj 4 --seed $seed; done; done
     python -m experiments.issue27_noise_checks
 
 Prints: time-unit findings on treeinfer's own release/step/mixed pulls (and on the same pulls

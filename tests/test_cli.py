@@ -92,7 +92,7 @@ def test_version(capsys):
                 "--params-json",
                 "--duration",
                 "--dt",
-                "--profiles",
+                "--profile-kind",
                 "--peak-range",
                 "--noise-force",
                 "--noise-displacement",

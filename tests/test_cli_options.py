@@ -247,6 +247,8 @@ OLD = [  # command, old argv, new argv, (dest, value)
      ("trajectories", 2)),
     ("predict", ["--run", "r", "--out", "o", "--overwrite"], ["--run", "r", "--out", "o",
      "--force"], ("force_flag", True)),
+    ("simulate", ["--tree", "t", "--out", "o", "--profiles", "step"],
+     ["--tree", "t", "--out", "o", "--profile-kind", "step"], ("profiles", "step")),
 ]  # fmt: skip
 _REQUIRED = {
     "tree": ["--out", "t.yaml"],

@@ -100,7 +100,7 @@ COMMON_OPTIONS: dict[str, tuple[str, ...]] = {
     "tree": ("--out", "--kind", "--from", "--model", "--grasp-branch", "--grasp-fraction",
              "--levels", "--kp-bounds", "--kd-bounds", "--mjcf", "--urdf", "--force"),
     "simulate": ("--tree", "--out", "--n-traj", "--seed", "--params", "--params-json",
-                 "--duration", "--dt", "--profiles", "--noise-displacement", "--noise-force",
+                 "--duration", "--dt", "--profile-kind", "--noise-displacement", "--noise-force",
                  "--force"),
     "import-bag": ("--out", "--force-topic", "--pose-topic", "--direction", "--grasp-branch",
                    "--grasp-fraction", "--grasp-distance", "--force"),

@@ -54,6 +54,7 @@ from .common import (
 )
 from .options import (
     DISPLACEMENT_NOISE_HELP,
+    add_deprecated,
     displacement_noise,
     force_noise,
     refuse_noise_form,
@@ -123,10 +124,12 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--dt", type=float, default=0.01, metavar="S", help="s between samples")
     gf = p.add_mutually_exclusive_group()
     gf.add_argument(
-        "--profiles",
+        "--profile-kind",
+        dest="profiles",
         choices=SET_KINDS,
         default=None,
-        help="kind of random profile set (default mixed: ramp and ramp-hold-release alternately)",
+        help="kind of random profile set (default mixed: ramp and ramp-hold-release "
+        "alternately); --profile gives explicit specs instead",
     )
     gf.add_argument(
         "--profile",
@@ -134,6 +137,8 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
         metavar="SPEC",
         help="explicit profile spec, repeatable (one trajectory each)",
     )
+    # one letter from --profile, another meaning: the kind of random set is --profile-kind
+    add_deprecated(p, "--profiles", "--profile-kind")
     p.add_argument(
         "--peak-range",
         type=_pair,
