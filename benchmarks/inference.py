@@ -44,12 +44,12 @@ EXAMPLES = Path(__file__).resolve().parent.parent / "treeinfer" / "examples"
 
 
 class SimulateCounter:
-    """Wraps ``treeinfer.model.likelihood.simulate`` (what the likelihood calls) with a Python
-    counter: every call is one trace of the simulator into a jitted program; ``rows`` records P of
-    each."""
+    """Wraps ``treeinfer.model.boltzmann.simulate`` (what the Boltzmann likelihood calls) with a
+    Python counter: every call is one trace of the simulator into a jitted program; ``rows``
+    records P of each."""
 
     def __init__(self):
-        import treeinfer.model.likelihood as lik
+        import treeinfer.model.boltzmann as lik
 
         self._lik = lik
         self._orig = lik.simulate
@@ -73,7 +73,7 @@ class UnrolledSimulate:
     measure loop overhead on the GPU without changing the library's defaults."""
 
     def __init__(self, unroll_outer: int = 1, unroll_inner=1):
-        import treeinfer.model.likelihood as lik
+        import treeinfer.model.boltzmann as lik
 
         self._lik, self._orig = lik, lik.simulate
 

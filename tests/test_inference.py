@@ -65,7 +65,7 @@ def test_one_simulator_call_per_gradient(setup, monkeypatch):
     """The FD gradient of all P particles and 2D perturbations is ONE batched simulate call."""
     tree, sim, trajs, _ = setup
     calls = []
-    import treeinfer.model.likelihood as lik
+    import treeinfer.model.boltzmann as lik  # where the Boltzmann likelihood calls simulate
 
     real = lik.simulate
 

@@ -194,7 +194,7 @@ def rollout_loglik(rollout, obs: Observations, kT: float, ok=None, dtype=None) -
     """[P, B] Boltzmann log-likelihood ``-loss / kT`` of each particle's rollout [P, B, T] on each
     trajectory of ``obs``; -inf where ``ok`` (default ``rollout.stable`` [P, B]) is False.
     ``dtype``: of the loss before scaling (default: the simulator's)."""
-    from ..model.likelihood import trajectory_loss
+    from ..model.boltzmann import trajectory_loss
 
     loss = np.asarray(trajectory_loss(rollout, obs), dtype)
     return np.where(np.asarray(rollout.stable) if ok is None else ok, -loss / kT, -np.inf)

@@ -26,8 +26,9 @@ import numpy as np
 from ..data.trajectories import Observations, Trajectory, stack_trajectories
 from ..errors import ConfigError
 from ..model import noise
+from ..model.boltzmann import DEFAULT_KT
 from ..model.gradients import combine, combined_value_and_grad, jvp_combined_value_and_grad
-from ..model.likelihood import DEFAULT_KT, gains_from_theta, likelihood_terms
+from ..model.likelihood import gains_from_theta, likelihood_terms
 from ..model.prior_terms import (  # noqa: F401 -- re-exported: their old home
     DEFAULT_ETA,
     DEFAULT_PRIOR_SIGMA,

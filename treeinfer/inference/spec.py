@@ -19,8 +19,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
-from ..model.likelihood import DEFAULT_KT, check_kT
+from ..model.boltzmann import DEFAULT_KT
 from ..model.prior_terms import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA
+from ..model.temperature import check_kT
 from ..sim import BACKENDS, FORCE_INTERPS
 
 GRADIENTS = ("fd", "jvp", "autodiff")  # how make_problem differentiates the simulator likelihood

@@ -10,8 +10,8 @@ The public API is re-exported here name by name, imported lazily (on first use),
 importing one module of the package does not import the others (startup cost, and no
 import order between them).
 
-Submodules: force_noise, gains, gradients, inequality_net, likelihood, noise, prior_terms,
-priors, temperature."""
+Submodules: boltzmann, force_noise, gains, gradients, inequality_net, likelihood, noise,
+prior_terms, priors, temperature."""
 
 _EXPORTS = {
     "ForceNoiseBasis": "force_noise",
@@ -49,16 +49,16 @@ _EXPORTS = {
     "InequalityNet": "inequality_net",
     "inequality_target": "inequality_net",
     "train_inequality_network": "inequality_net",
-    "DEFAULT_KT": "likelihood",
+    "DEFAULT_KT": "boltzmann",
     "LikelihoodTerms": "likelihood",
-    "boltzmann_log_likelihood": "likelihood",
+    "boltzmann_log_likelihood": "boltzmann",
     "data_observations": "likelihood",
     "likelihood_terms": "likelihood",
-    "log_likelihood_from_rollout": "likelihood",
+    "log_likelihood_from_rollout": "boltzmann",
     "measurement_log_likelihood": "likelihood",
     "observation_data": "likelihood",
     "padded_rollout": "likelihood",
-    "trajectory_loss": "likelihood",
+    "trajectory_loss": "boltzmann",
     "DEFAULT_STUDENT_T_DF": "noise",
     "KINDS": "noise",
     "MIN_NOISE_SAMPLES": "noise",
@@ -91,6 +91,7 @@ _EXPORTS = {
     "suggest_kT": "temperature",
 }
 _SUBMODULES = (
+    "boltzmann",
     "force_noise",
     "gains",
     "gradients",

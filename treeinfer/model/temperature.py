@@ -1,6 +1,7 @@
 """Choosing the Boltzmann temperature kT from the noise (split from
-:mod:`treeinfer.model.likelihood`, which re-exports every name; its docstring derives the rule ``kT
-= sigma / sqrt(T) (1 + sqrt(2) dt omega2)``)."""
+:mod:`treeinfer.model.likelihood`, which re-exports every name; the docstring of
+:mod:`treeinfer.model.boltzmann` derives the rule
+``kT = sigma / sqrt(T) (1 + sqrt(2) dt omega2)``)."""
 
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ from ..errors import ConfigError, check_positive
 from ..inference.problem import DEFAULT_ETA, DEFAULT_PRIOR_SIGMA
 from ..inference.samplers import sampler_spec
 from ..io.provenance import file_sha256, versions
-from ..model.likelihood import DEFAULT_KT
+from ..model.boltzmann import DEFAULT_KT
 from ..model.noise import KINDS as LIKELIHOODS
 from ..model.noise import NOISE_KINDS, check_sigma
 from ..sim import BACKENDS, FORCE_INTERPS

@@ -23,8 +23,9 @@ import numpy as np
 from ...data.trajectories import Observations
 from ...errors import ConfigError
 from ...model import noise
+from ...model.boltzmann import DEFAULT_KT, log_likelihood_from_rollout
 from ...model.gradients import autodiff_value_and_grad, central_difference, finite_difference_jvp
-from ...model.likelihood import DEFAULT_KT, likelihood_terms, log_likelihood_from_rollout
+from ...model.likelihood import likelihood_terms
 from ...sim import Simulator
 from .model import Model, model_rollout
 
