@@ -138,7 +138,7 @@ def test_training_fit_at_the_bucket_equals_the_fit_at_the_data_shape(tree, grasp
 def test_traced_rollout_program_key_leaves_out_only_the_step(tree):
     import jax
 
-    from treeinfer.inference.fast import _rollout_residuals
+    from treeinfer.inference.fast_evaluator import _rollout_residuals
 
     a = make_simulator(tree, obs_dt=0.01, substeps=4, backend="fused")
     b = make_simulator(tree, obs_dt=0.01, substeps=9, backend="fused")

@@ -301,7 +301,7 @@ def test_fast_posterior_ok_needs_a_stable_band_and_enough_ess(one_joint, monkeyp
 
 
 def test_default_chunk_fills_an_accelerator_with_one_round(monkeypatch):
-    from treeinfer.inference import fast as fp
+    from treeinfer.inference import fast_evaluator as fp
 
     monkeypatch.setattr(fp.jax, "default_backend", lambda: "cpu")
     assert fp.default_chunk(104, 832) == 104  # the LM's batch: padding costs its share here

@@ -10,9 +10,9 @@ The public API is re-exported here name by name, imported lazily (on first use),
 importing one module of the package does not import the others (startup cost, and no
 import order between them).
 
-Submodules: batch, diagnostics, fast, importance, laplace, lm, mapfit, posterior, posterior_io,
-problem, problem_types, rollout, samplers, sequential, sharding, spec, start_pipeline, start_steps,
-static."""
+Submodules: batch, diagnostics, fast, fast_evaluator, fast_fit, fast_result, importance, laplace,
+lm, mapfit, posterior, posterior_io, problem, problem_types, rollout, samplers, sequential,
+sharding, spec, start_pipeline, start_steps, static."""
 
 _EXPORTS = {
     "ProblemSpec": "spec",
@@ -47,15 +47,15 @@ _EXPORTS = {
     "straggler_mask": "diagnostics",
     "svgd_diagnostics": "diagnostics",
     "to_inference_data": "diagnostics",
-    "BatchEvaluator": "fast",
+    "BatchEvaluator": "fast_evaluator",
     "DEFAULT_DF": "fast",
-    "FastPosterior": "fast",
-    "ParticleState": "fast",
-    "default_chunk": "fast",
+    "FastPosterior": "fast_result",
+    "ParticleState": "fast_result",
+    "default_chunk": "fast_evaluator",
     "fast_posterior": "fast",
-    "fit_map_batched": "fast",
+    "fit_map_batched": "fast_fit",
     "importance_for_run": "fast",
-    "posterior_from_fast": "fast",
+    "posterior_from_fast": "fast_result",
     "resolve_coarse_substeps": "fast",
     "BAND_SPLIT_LIMIT": "importance",
     "ImportancePosterior": "importance",
@@ -200,6 +200,9 @@ _SUBMODULES = (
     "batch",
     "diagnostics",
     "fast",
+    "fast_evaluator",
+    "fast_fit",
+    "fast_result",
     "importance",
     "laplace",
     "lm",

@@ -31,7 +31,7 @@ def predict(
     argument, not as a constant, so simulators that differ only in their step (an
     accuracy-controlled step chosen on each data set's forces) share one compiled program; the
     values agree with the default's to float32 rounding (another formulation of the same loop,
-    as :class:`treeinfer.inference.fast.BatchEvaluator`'s). The dynamic model only.
+    as :class:`treeinfer.inference.fast_evaluator.BatchEvaluator`'s). The dynamic model only.
 
     ``grasp_fraction`` (scalar or [B]) predicts at another point of the grasped branch.
     ``model``: the run's :class:`treeinfer.inference.static.Model` (static model or stiffness only;

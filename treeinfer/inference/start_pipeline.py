@@ -74,8 +74,9 @@ def force_noise_reference(
     steps are :func:`treeinfer.inference.fast.fast_posterior`'s screen and LM on one rollout
     program (the evaluators share it through ``programs``; ``shape``: the observations' shape
     bucket ``[B', T']`` of the run's own fast posterior, so that it shares the program too)."""
-    from .fast import BatchEvaluator, default_chunk, fit_map_batched, latin_hypercube
     from .fast import resolve_coarse_substeps as coarse_of
+    from .fast_evaluator import BatchEvaluator, default_chunk
+    from .fast_fit import fit_map_batched, latin_hypercube
 
     d, g = problem0.dim, 2 * problem0.sim.n_joints
     k = n_starts * (2 * g + 1)
@@ -103,7 +104,7 @@ def force_noise_reference(
 
 
 def model_importance(problem, n_particles: int, seed: int = 0, n_draws: int | None = None):
-    """:class:`treeinfer.inference.fast.FastPosterior`-like ``(theta [P, D], ok, reason,
+    """:class:`treeinfer.inference.fast_result.FastPosterior`-like ``(theta [P, D], ok, reason,
     importance, lap)`` for a problem the rollout program does not run (static model, stiffness
     only, a tie, per-recording pulls): the MAP and covariance of its own log-density
     (:func:`treeinfer.inference.laplace.problem_laplace`), then Student-t adaptive importance
@@ -129,7 +130,7 @@ def model_importance(problem, n_particles: int, seed: int = 0, n_draws: int | No
 
 def auto_start(problem, n_particles: int, seed: int = 0, log=lambda m: None, **options):
     """``(posterior or None, theta0 [P, D])`` of the start pipeline (module docstring):
-    ``posterior`` (:func:`treeinfer.inference.fast.posterior_from_fast`) when the importance
+    ``posterior`` (:func:`treeinfer.inference.fast_result.posterior_from_fast`) when the importance
     weights pass their check, else None and the sampler starts from ``theta0``. ``options`` go
     to :func:`treeinfer.inference.fast.fast_posterior` (the paper's dynamic model)."""
     from .fast import importance_for_run
@@ -144,7 +145,7 @@ def auto_start(problem, n_particles: int, seed: int = 0, log=lambda m: None, **o
 
 def _model_start(problem, n_particles: int, seed: int, log):
     """:func:`auto_start` for a model the rollout program does not run."""
-    from .fast import importance_run_result
+    from .fast_result import importance_run_result
     from .problem import Posterior
 
     imp, idx, lap = model_importance(problem, n_particles, seed)

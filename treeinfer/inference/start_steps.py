@@ -93,7 +93,7 @@ def _psd(h: np.ndarray) -> np.ndarray:
 
 
 def ggn_terms(ev, theta, h: float, substeps: int | None = None):
-    """:func:`treeinfer.inference.fast._lm_terms` for a generative likelihood: ``(value [S],
+    """:func:`treeinfer.inference.fast_fit._lm_terms` for a generative likelihood: ``(value [S],
     grad [S, D], curvature [S, D, D], gram, r2)`` of ``-log p`` at ``theta [S, D]`` from one
     batch of the ``S (2g + 1)`` central-difference points in the gains (g = 2R; the noise
     columns need no rollout). ``gram`` and ``r2`` (the Boltzmann cone's terms) are zeros."""

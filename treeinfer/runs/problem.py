@@ -46,8 +46,8 @@ def shape_bucket_for(config: dict, obs: Observations) -> list[int] | None:
     problem settings (config.json).
 
     Option ``shape_buckets`` (``on``, the default, or ``off``). This is the bucket of ``--init
-    importance``'s rollout program (:class:`treeinfer.inference.fast.BatchEvaluator`), recorded
-    for those runs here; the samplers' programs take their bucket from
+    importance``'s rollout program (:class:`treeinfer.inference.fast_evaluator.BatchEvaluator`),
+    recorded for those runs here; the samplers' programs take their bucket from
     :func:`sampler_bucket_for` (the same bucket; :func:`treeinfer.inference.problem.make_problem`
     records it with ``sampler_data: "arguments"`` where its target takes the data as an
     argument). The masked padding changes the log density by float rounding only (~1e-6

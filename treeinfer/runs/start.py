@@ -61,11 +61,11 @@ def laplace_start(problem, config: dict, log: Callable[[str], None]):
 def _check_init(problem, options: dict) -> None:
     """ConfigError (before the run folder is made) if the problem does not support ``--init``.
     Every value works with every likelihood and model: the paper's dynamic model goes through
-    the rollout program (:func:`treeinfer.inference.fast.check_problem`), any other model
+    the rollout program (:func:`treeinfer.inference.fast_evaluator.check_problem`), any other model
     through its own log-density (:mod:`treeinfer.inference.start_pipeline`)."""
     if options.get("init", "uniform") not in ("auto", "importance") or problem.model is not None:
         return
-    from ..inference.fast import check_problem
+    from ..inference.fast_evaluator import check_problem
 
     try:
         check_problem(problem)

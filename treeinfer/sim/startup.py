@@ -19,9 +19,9 @@ result; use a few particle counts (64, 128, 256) instead.
 
 Wiring: the run layer records the bucket of an ``--init importance`` run
 (:func:`treeinfer.runs.problem.shape_bucket_for`, ``shape_bucket`` in config.json's problem
-settings) and :class:`treeinfer.inference.fast.BatchEvaluator` pads the data to it; its rollout
-program takes the data as arguments, so it is shared by every data set of the bucket. New
-runs of the paper's dynamic model also pad the samplers' data
+settings) and :class:`treeinfer.inference.fast_evaluator.BatchEvaluator` pads the data to it;
+its rollout program takes the data as arguments, so it is shared by every data set of the
+bucket. New runs of the paper's dynamic model also pad the samplers' data
 (:func:`treeinfer.runs.problem.sampler_bucket_for`, ``make_problem(shape_bucket=)``): the
 sampler chunk takes the data as an argument (:class:`treeinfer.inference.samplers.base.
 DataSamplingAlgorithm`), so a second data set of the bucket reuses its compiled program.
