@@ -54,10 +54,9 @@ KNOWN_UPWARD = {
     ("treeinfer.inference.posterior_io", "treeinfer.evaluation.posterior_plots"): "the pair "
     "plot of a run's posterior; as above",
 }
-# Modules over 500 lines today, to be split (the lead shrinks this list as they are).
-LONG_MODULES = {
-    "treeinfer.sim.pallas": "642 lines",
-}
+# Modules over 500 lines today, to be split (the lead shrinks this list as they are): none since
+# the last three were split (issue 26); keep it empty.
+LONG_MODULES: dict[str, str] = {}
 MAX_LINES = 500
 TOP_LEVEL = {"__init__", "__main__", "errors"}
 # after the move, a package per job; before it, the old flat layout (this part waits for it)
