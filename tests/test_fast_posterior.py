@@ -162,12 +162,26 @@ def test_importance_for_run_logs_and_decides(one_joint):
     assert len(lines) == 1 and "k_hat" in lines[0] and theta0.shape == (64, 2)
     assert post is not None and "no sampler iterations" in lines[0]
     np.testing.assert_array_equal(post.theta, theta0.astype(np.float32))
+    good = post.theta.astype(float)
     # too few draws for the effective sample size asked: not trusted, particles still returned
+    lines.clear()
+    post, theta0 = importance_for_run(
+        problem, 64, seed=3, log=lines.append, n_starts=3, n_draws=40, max_rounds=1,
+        resample=False,
+    )  # fmt: skip
+    assert post is None and "not trusted" in lines[0] and theta0.shape == (64, 2)
+    assert "the sampler runs from these particles" in lines[0]
+    # by default resample-move refines them on the same program: the trusted posterior again
     lines.clear()
     post, theta0 = importance_for_run(
         problem, 64, seed=3, log=lines.append, n_starts=3, n_draws=40, max_rounds=1
     )
-    assert post is None and "not trusted" in lines[0] and theta0.shape == (64, 2)
+    assert len(lines) == 2 and lines[1].startswith("resample-move:"), lines
+    assert post is not None and "resample-move" in post.run.stop_reason
+    sd = good.std(0)
+    assert np.all(np.abs(post.theta.mean(0) - good.mean(0)) < 0.5 * sd)
+    assert np.all(np.abs(post.theta.std(0) / sd - 1) < 0.35)
+    assert post.run.settings["resample_move"]["ok"]
 
 
 def test_fast_posterior_refuses_other_models(one_joint):

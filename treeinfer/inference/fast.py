@@ -305,7 +305,7 @@ def fast_posterior(
         "program_calls": ev.calls,
     }
     return FastPosterior(
-        theta, ok, reason, fit, imp, imp.log_density[idx], phases, ev.calls, settings
+        theta, ok, reason, fit, imp, imp.log_density[idx], phases, ev.calls, settings, ev
     )
 
 
@@ -332,11 +332,21 @@ def resolve_coarse_substeps(ev: BatchEvaluator, coarse) -> int:
     return int(coarse)
 
 
-def importance_for_run(problem, n_particles: int, seed: int = 0, log=lambda msg: None, **options):
+def importance_for_run(
+    problem,
+    n_particles: int,
+    seed: int = 0,
+    log=lambda msg: None,
+    resample: bool = True,
+    **options,
+):
     """The run layer's ``--init importance``: :func:`fast_posterior`, one status line to ``log``,
     and ``(posterior, theta0)``: ``posterior`` (:func:`posterior_from_fast`) when the weights
-    pass their check, so no sampler needs to run, else None; ``theta0`` [P, D] the particles
-    (the sampler's start when ``posterior`` is None). ``options`` go to :func:`fast_posterior`.
+    pass their check, so no sampler needs to run; when they do not, ``resample`` (default)
+    refines them by resample-move (:mod:`treeinfer.inference.resample_move`: Metropolis sweeps
+    on the same rollout program until the cloud settles), whose particles are then the
+    posterior; else None. ``theta0`` [P, D] the particles (the sampler's start when
+    ``posterior`` is None). ``options`` go to :func:`fast_posterior`.
     """
     if not (problem.noise is None or problem.noise.black_box):
         # a generative likelihood's posterior is sharp (2 mm noise on ~900 samples): the coarse
@@ -356,7 +366,8 @@ def importance_for_run(problem, n_particles: int, seed: int = 0, log=lambda msg:
     verdict = (
         "used as the posterior (no sampler iterations)"
         if res.ok
-        else f"not trusted ({res.reason}): the sampler runs from these particles"
+        else f"not trusted ({res.reason})"
+        + ("" if resample else ": the sampler runs from these particles")
     )
     log(
         f"importance posterior: MAP from {res.settings['n_fit_starts']} starts in "
@@ -370,4 +381,44 @@ def importance_for_run(problem, n_particles: int, seed: int = 0, log=lambda msg:
         f"round{'s' if imp.rounds > 1 else ''}, Pareto k_hat "
         f"{imp.khat:.2f}, effective sample size {imp.ess:.0f}: {verdict}"
     )
-    return (posterior_from_fast(problem, res, seed) if res.ok else None), res.theta
+    if res.ok or not resample:
+        return (posterior_from_fast(problem, res, seed) if res.ok else None), res.theta
+    return _resample_move_start(problem, res, n_particles, seed, log)
+
+
+def _resample_move_start(problem, res, n_particles: int, seed: int, log):
+    """Untrusted importance weights: resample-move (:mod:`treeinfer.inference.resample_move`)
+    on the start pipeline's own rollout program; its cloud is the posterior when it settled,
+    else the sampler's start."""
+    import time
+
+    from .resample_move import resample_move
+
+    t0 = time.perf_counter()
+    imp = res.importance
+    mv = resample_move(
+        res.evaluator.log_density, imp.draws, imp.log_weights, imp.log_density,
+        int(n_particles), seed=seed,
+    )  # fmt: skip
+    elapsed = time.perf_counter() - t0
+    log(
+        f"resample-move: {mv.describe()}, {elapsed:.0f} s: "
+        + (
+            "used as the posterior"
+            if mv.ok
+            else f"not settled ({mv.reason}): the sampler runs from these particles"
+        )
+    )
+    theta = np.asarray(mv.theta, float)
+    if not mv.ok:
+        return None, theta
+    settings = {**res.settings, "resample_move": mv.settings(), "ok": True}
+    phases = {**res.phases, "resample_move": elapsed}
+    moved = res._replace(
+        theta=theta, log_density=mv.log_density, ok=True, settings=settings, phases=phases
+    )
+    reason = (
+        f"resample-move after importance sampling (Pareto k_hat {imp.khat:.2f}): "
+        f"{mv.sweeps} Metropolis sweeps, the cloud settled"
+    )
+    return posterior_from_fast(problem, moved, seed, reason), theta

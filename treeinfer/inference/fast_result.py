@@ -38,6 +38,7 @@ class FastPosterior(NamedTuple):
     phases: dict
     calls: int
     settings: dict
+    evaluator: object = None  # the BatchEvaluator it ran on (resample-move reuses its program)
 
 
 class ParticleState(NamedTuple):
@@ -48,7 +49,9 @@ class ParticleState(NamedTuple):
     logdensity: np.ndarray
 
 
-def importance_run_result(theta, logp, run_settings: dict, importance, elapsed_s: float):
+def importance_run_result(
+    theta, logp, run_settings: dict, importance, elapsed_s: float, stop_reason: str | None = None
+):
     """The :class:`treeinfer.inference.samplers.RunResult` of an importance posterior that no
     sampler refined: one state (iteration 0) of ``theta [P, D]`` and ``logp [P]``, ``stop_reason``
     naming the weights' Pareto k_hat and effective sample size (``importance.khat``, ``.ess``).
@@ -65,12 +68,15 @@ def importance_run_result(theta, logp, run_settings: dict, importance, elapsed_s
         diagnostics={},
         settings=run_settings,
         elapsed_s=elapsed_s,
-        stop_reason=f"importance sampling (Pareto k_hat {importance.khat:.2f}, "
+        stop_reason=stop_reason
+        or f"importance sampling (Pareto k_hat {importance.khat:.2f}, "
         f"effective sample size {importance.ess:.0f})",
     )
 
 
-def posterior_from_fast(problem, result: FastPosterior, seed: int = 0):
+def posterior_from_fast(
+    problem, result: FastPosterior, seed: int = 0, stop_reason: str | None = None
+):
     """A :class:`treeinfer.inference.problem.Posterior` of ``result`` (zero sampler iterations), for
     the run layer (``--init importance --iterations 0``): ``run`` is a
     :class:`treeinfer.inference.samplers.RunResult` whose trace is the one state (iteration 0),
@@ -89,8 +95,9 @@ def posterior_from_fast(problem, result: FastPosterior, seed: int = 0):
         "seed": seed,
     }
     run = importance_run_result(
-        theta, logp, run_settings, result.importance, float(sum(result.phases.values()))
-    )
+        theta, logp, run_settings, result.importance, float(sum(result.phases.values())),
+        stop_reason,
+    )  # fmt: skip
     kp, kd = gains_from_theta(theta, problem.sim.n_joints)
     settings = {
         "problem": problem.settings,

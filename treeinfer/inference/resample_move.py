@@ -1,0 +1,193 @@
+"""Resample-move: importance draws whose weights are not trusted, refined by random-walk
+Metropolis moves at the posterior until the particle cloud stops changing.
+
+The start pipeline (:mod:`treeinfer.inference.fast`) ends with importance sampling from the
+MAP's Laplace/Student-t proposal. When the weights fail their check (Pareto k_hat > 0.7: the
+proposal misses part of the posterior), the particles used to go to NNSVGD for up to 200
+iterations. Two reasons not to by default:
+
+* cost: an NNSVGD iteration takes a black-box gradient per particle, ``2D + 1`` rollouts, so
+  200 iterations of 64 particles are ~140,000 rollouts (213-331 s on two cores of the device
+  machine in ``experiments/default_calibration.py``), where one Metropolis sweep of 256 chains
+  is 256 rollouts and 10-30 sweeps do;
+* calibration: SVGD with a few dozen particles under-disperses in four or more dimensions
+  (its repulsion weakens with the dimension; Ba et al. 2021), while Metropolis chains target the
+  posterior exactly; started from resampled importance draws they begin near it, so a short
+  burn-in suffices.
+
+This is the resample-move step of sequential Monte Carlo (Gilks and Berzuini 2001; Chopin 2002)
+at temperature 1: systematic resampling by the importance weights
+(:func:`treeinfer.inference.importance.systematic_resample`), then sweeps of a Gaussian random
+walk whose covariance is the cloud's own (scaled by ``2.38 / sqrt(D)``, the scale tuned between
+sweeps towards 30% acceptance; adapting a population kernel from the population keeps every
+chain's target the posterior, as in BlackJAX's SMC kernels). Written on the host instead of with
+``blackjax.rmh`` because the log density is the start pipeline's NumPy-batched rollout program
+(:class:`treeinfer.inference.fast_evaluator.BatchEvaluator`): one call per sweep for every chain,
+no new program to compile.
+
+Stopping: after ``min_sweeps``, every ``check_every`` sweeps the cloud's mean and std per
+column are compared with those ``check_every`` sweeps before; the cloud is converged when the
+largest mean change is below ``tol`` of the std and the largest std change below ``tol`` of it
+twice in a row, and at least ``min_moved`` of the chains have accepted a move (copies of one
+draw have separated). Otherwise, after ``max_sweeps``, ``ok`` is False and says why.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from ..errors import ConfigError
+
+__all__ = ["MoveResult", "resample_move"]
+
+TARGET_ACCEPT = 0.3
+
+
+class MoveResult(NamedTuple):
+    """Result of :func:`resample_move`.
+
+    theta: [P, D] particles (P of the chains, without replacement). log_density: [P].
+    chains: [N, D] every chain's last state; chain_log_density: [N]. ok: converged (module
+    docstring); reason: why not ("" when ok). sweeps: Metropolis sweeps run. acceptance: mean
+    acceptance over the sweeps. moved: share of chains that accepted at least one move.
+    change: ``(mean change / std, relative std change)`` at the last check.
+    """
+
+    theta: np.ndarray
+    log_density: np.ndarray
+    chains: np.ndarray
+    chain_log_density: np.ndarray
+    ok: bool
+    reason: str
+    sweeps: int
+    acceptance: float
+    moved: float
+    change: tuple
+
+    def settings(self) -> dict:
+        """JSON-ready record of the diagnostics."""
+        return {
+            "method": "resample_move",
+            "chains": int(len(self.chains)),
+            "sweeps": int(self.sweeps),
+            "acceptance": float(self.acceptance),
+            "moved": float(self.moved),
+            "mean_change_sd": float(self.change[0]),
+            "std_change": float(self.change[1]),
+            "ok": bool(self.ok),
+            "reason": self.reason,
+        }
+
+    def describe(self) -> str:
+        """One line for the log."""
+        return (
+            f"{len(self.chains)} chains x {self.sweeps} random-walk Metropolis sweeps "
+            f"(acceptance {100 * self.acceptance:.0f}%, {100 * self.moved:.0f}% of chains moved; "
+            f"last change: mean {self.change[0]:.3f} sd, std {100 * self.change[1]:.1f}%)"
+        )
+
+
+def _cloud_chol(x: np.ndarray) -> np.ndarray:
+    """Cholesky factor of the cloud's covariance, regularised relative to its diagonal."""
+    c = np.atleast_2d(np.cov(x.T))
+    d = np.diag(c).copy()
+    d[~(d > 0)] = 1e-8
+    c = c + np.diag(1e-6 * d + 1e-12)
+    try:
+        return np.linalg.cholesky(c)
+    except np.linalg.LinAlgError:
+        return np.diag(np.sqrt(d))
+
+
+def _change(a: tuple, b: tuple) -> tuple[float, float]:
+    """``(max |mean_a - mean_b| / std_b, max |std_a / std_b - 1|)`` over columns."""
+    (ma, sa), (mb, sb) = a, b
+    sb = np.where(sb > 0, sb, 1.0)
+    return float(np.max(np.abs(ma - mb) / sb)), float(np.max(np.abs(sa / sb - 1.0)))
+
+
+def resample_move(
+    log_density,
+    draws,
+    log_weights,
+    draws_log_density,
+    n_particles: int,
+    n_chains: int | None = None,
+    seed: int = 0,
+    min_sweeps: int = 8,
+    max_sweeps: int = 40,
+    check_every: int = 4,
+    tol: float = 0.15,
+    min_moved: float = 0.9,
+) -> MoveResult:
+    """Resample importance draws by their weights, then Metropolis sweeps until stable.
+
+    Args:
+      log_density: ``[M, D] -> [M]`` NumPy log posterior density (``-inf``/NaN where the
+        simulation is unstable), called once per sweep with every chain.
+      draws: ``[M, D]`` importance draws; log_weights: ``[M]`` their (normalised or not) log
+        weights; draws_log_density: ``[M]`` log density at the draws (no re-evaluation).
+      n_particles: P particles returned. n_chains: N chains (default ``4 P``).
+      seed: of the resampling, the moves and the choice of the P returned chains.
+      min_sweeps, max_sweeps, check_every, tol, min_moved: the stopping rule (module docstring).
+    """
+    draws = np.atleast_2d(np.asarray(draws, float))
+    lw = np.asarray(log_weights, float)
+    lpd = np.asarray(draws_log_density, float)
+    n_chains = 4 * int(n_particles) if n_chains is None else int(n_chains)
+    for name, v in (("n_particles", n_particles), ("n_chains", n_chains)):
+        if not (isinstance(v, (int, np.integer)) and v >= 2):
+            raise ConfigError(f"{name}: must be an integer >= 2, got {v!r}")
+    if n_particles > n_chains:
+        raise ConfigError(f"n_particles ({n_particles}) must not exceed n_chains ({n_chains})")
+    if not (1 <= min_sweeps <= max_sweeps) or check_every < 1:
+        raise ConfigError(
+            f"sweeps: need 1 <= min_sweeps <= max_sweeps and check_every >= 1, got "
+            f"{min_sweeps}, {max_sweeps}, {check_every}"
+        )
+    ok_w = np.isfinite(lw) & np.isfinite(lpd)
+    if not ok_w.any():
+        raise ConfigError("resample_move: no importance draw with a finite weight")
+    from .importance import systematic_resample
+
+    rng = np.random.default_rng([int(seed), 104729])
+    idx = systematic_resample(rng, np.where(ok_w, lw, -np.inf), n_chains)
+    x, lp = draws[idx].copy(), lpd[idx].copy()
+    n, d = x.shape
+    log_s = math.log(2.38 / math.sqrt(d))
+    moved = np.zeros(n, bool)
+    accepted, stats, change, calm = [], [], (math.inf, math.inf), 0
+    ok, reason, sweeps = False, "", 0
+    for sweeps in range(1, max_sweeps + 1):
+        chol = _cloud_chol(x)
+        xp = x + math.exp(log_s) * rng.standard_normal((n, d)) @ chol.T
+        lpp = np.asarray(log_density(xp), float)
+        lpp = np.where(np.isnan(lpp), -np.inf, lpp)
+        with np.errstate(invalid="ignore"):
+            ratio = np.where(np.isfinite(lpp), lpp - lp, -np.inf)
+        acc = np.log(rng.random(n)) < ratio
+        x[acc], lp[acc] = xp[acc], lpp[acc]
+        moved |= acc
+        rate = float(acc.mean())
+        accepted.append(rate)
+        log_s += 1.5 * (rate - TARGET_ACCEPT)
+        stats.append((x.mean(axis=0), x.std(axis=0, ddof=1)))
+        if sweeps >= min_sweeps and sweeps % check_every == 0 and sweeps > check_every:
+            change = _change(stats[-1], stats[-1 - check_every])
+            calm = calm + 1 if max(change) < tol else 0
+            if calm >= 2 and moved.mean() >= min_moved:
+                ok = True
+                break
+    if not ok:
+        reason = (
+            f"the cloud still changed after {sweeps} sweeps (mean by {change[0]:.2f} sd, std "
+            f"by {100 * change[1]:.0f}%; {100 * moved.mean():.0f}% of chains moved)"
+        )
+    keep = np.sort(rng.choice(n, size=int(n_particles), replace=False))
+    return MoveResult(
+        x[keep], lp[keep], x, lp, ok, reason, sweeps, float(np.mean(accepted)),
+        float(moved.mean()), change,
+    )  # fmt: skip
