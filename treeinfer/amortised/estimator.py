@@ -1,0 +1,283 @@
+"""An amortised posterior of one tree: train it on simulations (:func:`train`), store and load it
+(:func:`save`, :func:`load`: ``model.msgpack`` + ``model.json`` in a folder built aside and
+published whole, :func:`treeinfer.io.atomic.staged_output_dir`), refuse it for another tree or
+another pull layout (:meth:`Amortised.check_tree`, :meth:`Amortised.check_recordings`), and
+draw a recording's posterior in milliseconds (:meth:`Amortised.draw`)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..errors import ConfigError
+from ..io.jsonio import jsonable
+from . import network
+from .config import AmortiseConfig, differences, fingerprint, tree_identity
+from .simulations import bin_matrix, features, simulate_training_set, theta_box
+
+FORMAT = "treeinfer-amortised/1"
+WEIGHTS_FILE = "model.msgpack"
+META_FILE = "model.json"
+# a recording's dt may differ from the layout's by float rounding of its time column only
+DT_RTOL = 1e-3
+
+
+@dataclass
+class Amortised:
+    """A trained estimator (``model``: the flowjax/equinox pytree) and its record (``meta``: the
+    tree's identity and fingerprint, the layout, the training config, the features' scales, the
+    parameter box, the training report, the treeinfer version)."""
+
+    model: object
+    meta: dict
+
+    @property
+    def config(self) -> AmortiseConfig:
+        return AmortiseConfig.from_json(self.meta["config"])
+
+    @property
+    def labels(self) -> list[str]:
+        return list(self.meta["labels"])
+
+    def _box(self):
+        lo, hi = (np.asarray(self.meta["box"][k], float) for k in ("lower", "upper"))
+        return (lo + hi) / 2, (hi - lo) / 2
+
+    def to_z(self, theta):
+        c, h = self._box()
+        return (np.asarray(theta, float) - c) / h
+
+    def from_z(self, z):
+        c, h = self._box()
+        return np.asarray(z, float) * h + c
+
+    @property
+    def log_jacobian(self) -> float:
+        """log |d z / d theta|: ``log q(theta) = log q(z) + log_jacobian``."""
+        return float(-np.sum(np.log(self._box()[1])))
+
+    def features(self, force, disp) -> np.ndarray:
+        """[B, F] the summary features of one recording (``force``, ``disp`` [B, T])."""
+        import jax.numpy as jnp
+
+        lay = self.config.layout
+        f = features(jnp.asarray(force, jnp.float32), jnp.asarray(disp, jnp.float32),
+                     bin_matrix(lay.n_steps, lay.bins), *self.meta["scales"])  # fmt: skip
+        return np.asarray(f)
+
+    def draw(self, force, disp, n: int = 1024, seed: int = 0):
+        """``(theta [n, D], log q(theta) [n])``: the amortised posterior of one recording
+        (``force``, ``disp`` [B, T] on the layout's grid), in theta units (log Kp, log Kd, log
+        sigma_x). One pass of the summary and the flow (compiled on the first call)."""
+        import jax
+
+        key = (n, "draw")
+        fn = self.__dict__.setdefault("_programs", {}).get(key)
+        if fn is None:
+            fn = self._programs[key] = network.sampler(self.model, int(n))
+        z, lq = fn(jax.random.key(seed), self.features(force, disp))
+        return self.from_z(np.asarray(z, float)), np.asarray(lq, float) + self.log_jacobian
+
+    def log_q(self, theta, feats) -> np.ndarray:
+        """log q(theta [M, D] | one recording's features [B, F]) in theta units."""
+        fn = self.__dict__.setdefault("_programs", {}).get("dens")
+        if fn is None:
+            fn = self._programs["dens"] = network.log_density(self.model)
+        return np.asarray(fn(self.to_z(theta).astype(np.float32), feats), float) + self.log_jacobian
+
+    # ---- refusals ------------------------------------------------------------------------------
+    def check_tree(self, tree, where: str = "--tree") -> None:
+        """ConfigError (exit 2) if ``tree`` is not the one the model was trained for, naming the
+        first fields that differ."""
+        ident = tree_identity(tree)
+        if fingerprint(ident) == self.meta["tree_fingerprint"]:
+            return
+        diff = differences(self.meta["tree"], ident)
+        raise ConfigError(
+            f"{where}: this amortised model was trained for another tree ('{self.meta['tree']['name']}'"
+            f", fingerprint {self.meta['tree_fingerprint'][:12]}); they differ in "
+            f"{', '.join(diff) or 'their description'}. Train one for this tree with `treeinfer "
+            "amortise`, or infer without --amortised"
+        )
+
+    def check_recordings(self, trajectories: Sequence, grasp_fraction=None, where: str = "--data"):
+        """``(force [B, T], disp [B, T])`` of the recordings, or ConfigError (exit 2) naming how
+        they differ from the layout the model was trained for (number of pulls, samples, time
+        step, grasp point)."""
+        lay = self.config.layout
+        why = []
+        if len(trajectories) != lay.n_pulls:
+            why.append(f"{len(trajectories)} pulls (trained for {lay.n_pulls})")
+        lengths = sorted({len(t.time) for t in trajectories})
+        if lengths != [lay.n_steps]:
+            why.append(f"{'/'.join(map(str, lengths))} samples per pull (trained for "
+                       f"{lay.n_steps}: {lay.duration:g} s at dt {lay.dt:g} s)")  # fmt: skip
+        dts = [float(np.median(np.diff(t.time))) for t in trajectories if len(t.time) > 1]
+        if dts and max(abs(d - lay.dt) for d in dts) > DT_RTOL * lay.dt:
+            why.append(f"time step {dts[0]:g} s (trained for {lay.dt:g} s)")
+        g_model = lay.grasp_fraction
+        if grasp_fraction is not None and not _same_grasp(grasp_fraction, g_model):
+            why.append(f"grasp fraction {grasp_fraction} (trained for "
+                       f"{'the tree' + chr(39) + 's' if g_model is None else g_model})")  # fmt: skip
+        if why:
+            raise ConfigError(
+                f"{where}: the recordings do not have the layout this amortised model was trained "
+                f"for: {'; '.join(why)}. Train a model for this layout (`treeinfer amortise "
+                "--n-traj --duration --dt --grasp-fraction`), or infer without --amortised"
+            )
+        force = np.stack([np.asarray(t.force, float) for t in trajectories])
+        disp = np.stack([np.asarray(t.displacement, float) for t in trajectories])
+        return force, disp
+
+
+def _same_grasp(given, trained) -> bool:
+    g = np.atleast_1d(np.asarray(given, float))
+    return trained is not None and bool(np.allclose(g, float(trained), atol=1e-9))
+
+
+# ---- training ----------------------------------------------------------------------------------
+def train(tree, config: AmortiseConfig, log: Callable[[str], None] = lambda m: None,
+          progress: bool = False) -> Amortised:  # fmt: skip
+    """Simulate ``config.train.simulations`` data sets of ``tree`` under the layout's pulls and
+    fit the estimator to them (module :mod:`treeinfer.amortised.network`)."""
+    import jax
+
+    t0 = time.perf_counter()
+    tr, lay = config.train, config.layout
+    data, scales = simulate_training_set(tree, lay, tr, log=log)
+    t_sim = time.perf_counter() - t0
+    if len(data.theta) < 16:
+        raise ConfigError(
+            f"amortise: only {len(data.theta)} of {tr.simulations} simulations were stable; "
+            "check the tree's prior box"
+        )
+    lower, upper, _ = theta_box(tree, tr)
+    labels = tree.parameter_labels() + ["sigma_x"]
+    meta = {
+        "format": FORMAT,
+        "treeinfer_version": __version__,
+        "tree": tree_identity(tree),
+        "tree_fingerprint": fingerprint(tree_identity(tree)),
+        "labels": labels,
+        "columns": "log Kp and log Kd of the inferred joints (N m/rad, N m s/rad), log sigma_x (m)",
+        "layout": {**jsonable(lay.__dict__), "n_steps": lay.n_steps, "bins": lay.bins,
+                   "direction": "down (along gravity)",
+                   "grasp_branch": tree.grasp_branch},  # fmt: skip
+        "config": config.to_json(),
+        "scales": [float(s) for s in scales],
+        "box": {"lower": lower.tolist(), "upper": upper.tolist()},
+    }
+    am = Amortised(None, meta)
+    z = am.to_z(data.theta).astype(np.float32)
+    key = jax.random.key(tr.seed)
+    k_build, k_fit = jax.random.split(key)
+    model = network.build(k_build, z.shape[1], data.feats.shape[-1], tr.flow_layers, tr.width,
+                          tr.embedding)  # fmt: skip
+    log(f"training the flow on {len(z)} simulated data sets ({data.n_unstable} unstable dropped)")
+    t1 = time.perf_counter()
+    model, losses = network.fit(model, z, data.feats, k_fit, tr.epochs, tr.batch_size,
+                                tr.learning_rate, tr.patience, progress)  # fmt: skip
+    am.model = model
+    am.meta["training"] = {
+        "n_datasets": int(len(z)),
+        "n_unstable": int(data.n_unstable),
+        "epochs_run": len(losses["train"]),
+        "best_val_loss": float(min(losses["val"])),
+        "final_train_loss": float(losses["train"][-1]),
+        "simulation_s": round(t_sim, 2),
+        "training_s": round(time.perf_counter() - t1, 2),
+        "feature_envelope": _envelope(data.feats),
+    }
+    return am
+
+
+def _envelope(feats: np.ndarray) -> dict:
+    """The training recordings' range of each pull's largest |force| and |displacement| bin and
+    of its noise estimates (features scaled), for the check of a new recording's domain."""
+    nb = (feats.shape[-1] - 2) // 2
+    top_f = np.abs(feats[..., :nb]).max(axis=-1)
+    top_x = np.abs(feats[..., nb : 2 * nb]).max(axis=-1)
+    out = {}
+    for name, v in (("force", top_f), ("displacement", top_x),
+                    ("log_force_noise", feats[..., -2]), ("log_disp_noise", feats[..., -1])):  # fmt: skip
+        out[name] = [float(np.quantile(v, 0.001)), float(np.quantile(v, 0.999))]
+    return out
+
+
+# ---- storage -----------------------------------------------------------------------------------
+def save(am: Amortised, out, force: bool = False, inputs=(), log=None) -> Path:
+    """Write ``out/`` (``model.msgpack``: the weights; ``model.json``: the record) atomically:
+    built aside and moved into place whole; an existing folder is replaced only with ``force``
+    and only if treeinfer wrote it (the old one kept as ``NAME.old-<time>``)."""
+    from flax.serialization import msgpack_serialize
+
+    from ..io.atomic import staged_output_dir
+    from ..io.jsonio import write_json
+
+    blob = msgpack_serialize({str(i): a for i, a in enumerate(network.leaves(am.model))})
+    import hashlib
+
+    meta = {**am.meta, "weights_sha256": hashlib.sha256(blob).hexdigest()}
+    with staged_output_dir(out, force, "amortised model", inputs, log) as stage:
+        (stage / WEIGHTS_FILE).write_bytes(blob)
+        write_json(stage / META_FILE, meta)
+    am.meta = meta
+    return Path(out)
+
+
+def load(path) -> Amortised:
+    """The model in folder ``path`` (ConfigError naming the file for a missing, corrupt or
+    foreign one)."""
+    import hashlib
+
+    from flax.serialization import msgpack_restore
+
+    from ..io.jsonio import read_json
+
+    path = Path(path)
+    if not (path / META_FILE).is_file() or not (path / WEIGHTS_FILE).is_file():
+        raise ConfigError(
+            f"{path}: not an amortised model folder (needs {META_FILE} and {WEIGHTS_FILE}, as "
+            "`treeinfer amortise --out` writes)"
+        )
+    meta = read_json(path / META_FILE, "amortised model record")
+    if meta.get("format") != FORMAT:
+        raise ConfigError(f"{path / META_FILE}: format {meta.get('format')!r}, expected {FORMAT!r}")
+    blob = (path / WEIGHTS_FILE).read_bytes()
+    if hashlib.sha256(blob).hexdigest() != meta.get("weights_sha256"):
+        raise ConfigError(f"{path / WEIGHTS_FILE}: does not match the sha256 in {META_FILE}")
+    try:
+        stored = msgpack_restore(blob)
+        values = [stored[str(i)] for i in range(len(stored))]
+    except Exception as e:  # noqa: BLE001 -- any decoding failure is a corrupt file
+        raise ConfigError(f"{path / WEIGHTS_FILE}: cannot be read ({e})") from None
+    cfg = AmortiseConfig.from_json(meta["config"])
+    import jax
+
+    tr = cfg.train
+    skeleton = network.build(jax.random.key(0), len(meta["labels"]),
+                             2 * meta["layout"]["bins"] + 2, tr.flow_layers, tr.width,
+                             tr.embedding)  # fmt: skip
+    model = network.with_leaves(skeleton, values, str(path / WEIGHTS_FILE))
+    return Amortised(model, meta)
+
+
+def summarize(theta, labels: Sequence[str]) -> list[dict]:
+    """Per column the posterior mean and 95% interval in natural units (exp of the log column)."""
+    nat = np.exp(np.asarray(theta, float))
+    out = []
+    for j, lab in enumerate(labels):
+        lo, hi = np.quantile(nat[:, j], [0.025, 0.975])
+        out.append({"label": lab, "mean": float(nat[:, j].mean()), "lower": float(lo),
+                    "upper": float(hi)})  # fmt: skip
+    return out
+
+
+def _finite(x) -> bool:
+    return all(math.isfinite(float(v)) for v in np.ravel(x))

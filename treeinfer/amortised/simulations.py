@@ -1,0 +1,184 @@
+"""Training simulations of an amortised posterior: parameter sets drawn from treeinfer's prior
+(the smoothed box over the log gains, :func:`treeinfer.model.prior_terms.box_prior`, sampled
+exactly) and the noise model (``log sigma_x`` and the force noise log-uniform in their ranges),
+pulls drawn from the layout's profile family (:func:`treeinfer.data.forces.random_specs`), one
+batched rollout (:func:`treeinfer.sim.simulate`, vmapped over parameter sets and pulls) per
+chunk of parameter sets, and the recordings' summary features (:func:`features`) kept instead of
+the traces (20 000 data sets of 8 pulls x 300 samples would be 380 MB; their features 65 MB)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..data.forces import from_spec, random_specs
+from ..model.prior_terms import DEFAULT_PRIOR_SIGMA
+from .config import PullLayout, TrainConfig
+
+# MAD -> standard deviation of a normal; second differences of white noise have variance 6 s^2
+_MAD = 1.4826
+_SECOND_DIFF = math.sqrt(6.0)
+
+
+class TrainingSet(NamedTuple):
+    """theta [N, D] (log Kp, log Kd of the inferred joints, log sigma_x), feats [N, B, F] (the
+    recordings' :func:`features`), and what was dropped: ``n_unstable`` parameter sets whose
+    rollout was unstable (the prior restricted to stable sets, as the simulator-based posterior
+    is, where unstable particles are dropped)."""
+
+    theta: np.ndarray
+    feats: np.ndarray
+    n_unstable: int
+
+
+def theta_box(tree, train: TrainConfig, prior_sigma: float = DEFAULT_PRIOR_SIGMA):
+    """``(lower [D], upper [D], tail [D])`` of the training prior in theta units: the tree's log
+    prior box with the smoothed box's Gaussian tails (``prior_sigma`` of each width), then
+    ``log sigma_x`` in ``train.sigma_x_range`` (no tail)."""
+    lo, hi = tree.bounds_array()
+    llo, lhi = np.log(lo), np.log(hi)
+    slo, shi = np.log(train.sigma_x_range[0]), np.log(train.sigma_x_range[1])
+    if shi <= slo:  # a fixed noise: a sliver of width, so that the standardisation is defined
+        slo, shi = slo - 1e-3, shi + 1e-3
+    lower, upper = np.append(llo, slo), np.append(lhi, shi)
+    tail = np.append(prior_sigma * (lhi - llo), 0.0)
+    return lower, upper, tail
+
+
+def draw_prior(rng: np.random.Generator, lower, upper, tail, n: int) -> np.ndarray:
+    """[n, D] draws of the smoothed box: per coordinate a uniform on [lower, upper] with weight
+    ``upper - lower`` and a half-normal tail of std ``tail`` on each side with weight ``sqrt(2 pi)
+    tail / 2`` (:func:`treeinfer.model.priors.smoothed_box`, normalised, is this mixture)."""
+    lower, upper, tail = (np.asarray(a, float) for a in (lower, upper, tail))
+    width = upper - lower
+    w_tail = math.sqrt(2 * math.pi) * tail / 2
+    p_in = width / (width + 2 * w_tail)
+    u = rng.uniform(size=(n, lower.size))
+    inside = rng.uniform(lower, upper, size=(n, lower.size))
+    excess = np.abs(rng.normal(size=(n, lower.size))) * tail
+    below = u < (1 - p_in) / 2
+    above = u > (1 + p_in) / 2
+    return np.where(below, lower - excess, np.where(above, upper + excess, inside))
+
+
+def draw_profiles(rng: np.random.Generator, layout: PullLayout, n: int) -> np.ndarray:
+    """[n, T] N: ``n`` pulls of the layout's profile family (seeded specs, as `simulate`)."""
+    specs = random_specs(layout.profile_kind, n, layout.duration, layout.peak_range, seed=rng)
+    return np.stack([from_spec(s, layout.duration, layout.dt) for s in specs])
+
+
+def bin_matrix(n_steps: int, bins: int) -> np.ndarray:
+    """[T, bins]: the mean over each of ``bins`` consecutive equal shares of the T samples
+    (``x @ W``). Bin means, not point samples: they keep what the noise averages out to."""
+    idx = np.minimum((np.arange(n_steps) * bins) // n_steps, bins - 1)
+    w = np.zeros((n_steps, bins))
+    w[np.arange(n_steps), idx] = 1.0
+    return w / w.sum(axis=0, keepdims=True)
+
+
+def _noise_scale(x):
+    """Robust noise std along the last axis: MAD of second differences / sqrt(6) (as
+    :func:`treeinfer.model.noise.estimate_displacement_noise`, in jnp over a batch)."""
+    d2 = x[..., 2:] - 2 * x[..., 1:-1] + x[..., :-2]
+    med = jnp.median(d2, axis=-1, keepdims=True)
+    return _MAD * jnp.median(jnp.abs(d2 - med), axis=-1) / _SECOND_DIFF
+
+
+def features(force, disp, bins_w, force_scale: float, disp_scale: float):
+    """[..., B, 2 bins + 2]: per pull the bin means of force / ``force_scale`` and displacement /
+    ``disp_scale``, then the log of each channel's robust noise estimate (the bin means hide the
+    noise, which sets the posterior's width). ``force``, ``disp`` [..., B, T]."""
+    w = jnp.asarray(bins_w, force.dtype)
+    f, x = force / force_scale, disp / disp_scale
+    tiny = 1e-6
+    sf = jnp.log(_noise_scale(f) + tiny)[..., None]
+    sx = jnp.log(_noise_scale(x) + tiny)[..., None]
+    return jnp.concatenate([f @ w, x @ w, sf, sx], axis=-1)
+
+
+def training_simulator(tree, layout: PullLayout, backend: str = "auto", seed: int = 0):
+    """The simulator of every training chunk: its step chosen for accuracy on pulls of the
+    family at the top of the peak range (the hardest), so one compiled rollout serves all."""
+    from ..sim import make_simulator
+
+    rng = np.random.default_rng(seed)
+    bank = draw_profiles(rng, layout, max(layout.n_pulls, 4))
+    bank = bank / np.maximum(np.abs(bank).max(axis=1, keepdims=True), 1e-12)
+    return make_simulator(
+        tree,
+        obs_dt=layout.dt,
+        backend=backend,
+        forces=bank * layout.peak_range[1],
+        grasp_fraction=layout.grasp_fraction,
+    )
+
+
+def _rollout(sim, layout: PullLayout):
+    from ..model.gains import gains_from_theta
+    from ..sim import simulate
+
+    @jax.jit
+    def run(theta_gains, forces):
+        kp, kd = gains_from_theta(theta_gains, sim.n_joints)
+        r = simulate(sim, kp, kd, forces, layout.grasp_fraction)
+        return r.tau, jnp.all(r.stable, axis=1)
+
+    return run
+
+
+def simulate_training_set(
+    tree,
+    layout: PullLayout,
+    train: TrainConfig,
+    n: int | None = None,
+    seed: int | None = None,
+    sim=None,
+    scales: tuple[float, float] | None = None,
+    log: Callable[[str], None] = lambda m: None,
+) -> tuple[TrainingSet, tuple[float, float]]:
+    """``(TrainingSet, (force_scale, disp_scale))`` of ``n`` (default ``train.simulations``)
+    data sets: per chunk of ``train.chunk`` parameter sets one draw of the layout's pulls, one
+    batched rollout, noise added per data set. ``scales``: the features' normalisation (a
+    model's own, for held-out sets); None: the force scale is the top of the peak range and
+    the displacement scale the 95th percentile of the first chunk's largest |displacement|."""
+    n = train.simulations if n is None else int(n)
+    seed = train.seed if seed is None else int(seed)
+    sim = training_simulator(tree, layout, train.backend, seed) if sim is None else sim
+    run = _rollout(sim, layout)
+    lower, upper, tail = theta_box(tree, train)
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0xA3]))
+    bins_w = bin_matrix(layout.n_steps, layout.bins)
+    feat_fn = jax.jit(features, static_argnums=(3, 4))
+    g = 2 * tree.n_inferred
+    thetas, feats, unstable = [], [], 0
+    done = 0
+    while done < n:
+        m = min(train.chunk, n - done)
+        theta = draw_prior(rng, lower, upper, tail, train.chunk)  # one shape: one compile
+        forces = draw_profiles(rng, layout, layout.n_pulls)
+        tau, ok = run(jnp.asarray(theta[:, :g], jnp.float32), jnp.asarray(forces, jnp.float32))
+        tau, ok = np.asarray(tau, float)[:m], np.asarray(ok)[:m]
+        theta = theta[:m]
+        if scales is None:
+            top = np.abs(tau[ok]).max(axis=(1, 2)) if ok.any() else np.ones(1)
+            scales = (float(layout.peak_range[1]), float(max(np.percentile(top, 95), 1e-6)))
+        sx = np.exp(theta[:, g])[:, None, None]
+        sf = np.exp(rng.uniform(*np.log(train.sigma_f_range), size=(m, 1, 1)))
+        disp = tau + sx * rng.normal(size=tau.shape)
+        rec_f = forces[None] + sf * rng.normal(size=tau.shape)
+        f = feat_fn(jnp.asarray(rec_f, jnp.float32), jnp.asarray(disp, jnp.float32), bins_w,
+                    *scales)  # fmt: skip
+        thetas.append(theta[ok])
+        feats.append(np.asarray(f)[ok])
+        unstable += int((~ok).sum())
+        done += m
+        log(f"simulated {done}/{n} data sets ({unstable} unstable, dropped)")
+    out = TrainingSet(
+        np.concatenate(thetas).astype(np.float32), np.concatenate(feats).astype(np.float32), unstable
+    )
+    return out, scales
