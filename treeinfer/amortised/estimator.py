@@ -198,16 +198,20 @@ def train(tree, config: AmortiseConfig, log: Callable[[str], None] = lambda m: N
 
 
 def _envelope(feats: np.ndarray) -> dict:
-    """The training recordings' range of each pull's largest |force| and |displacement| bin and
-    of its noise estimates (features scaled), for the check of a new recording's domain."""
-    nb = (feats.shape[-1] - 2) // 2
-    top_f = np.abs(feats[..., :nb]).max(axis=-1)
-    top_x = np.abs(feats[..., nb : 2 * nb]).max(axis=-1)
+    """The training recordings' range (0.1-99.9% quantiles over pulls) of each summary that a
+    new recording must share (:func:`~treeinfer.amortised.simulations.features`: the log
+    amplitudes of force and displacement and their log noise estimates), for the check of a new
+    recording's domain (:mod:`treeinfer.amortised.check`)."""
     out = {}
-    for name, v in (("force", top_f), ("displacement", top_x),
-                    ("log_force_noise", feats[..., -2]), ("log_disp_noise", feats[..., -1])):  # fmt: skip
+    for name, j in FEATURE_TAIL.items():
+        v = feats[..., j]
         out[name] = [float(np.quantile(v, 0.001)), float(np.quantile(v, 0.999))]
     return out
+
+
+# the summaries after the shapes, by their index from the end of the features
+FEATURE_TAIL = {"log_force": -4, "log_displacement": -3, "log_force_noise": -2,
+                "log_disp_noise": -1}  # fmt: skip
 
 
 # ---- storage -----------------------------------------------------------------------------------
@@ -262,7 +266,7 @@ def load(path) -> Amortised:
 
     tr = cfg.train
     skeleton = network.build(jax.random.key(0), len(meta["labels"]),
-                             2 * meta["layout"]["bins"] + 2, tr.flow_layers, tr.width,
+                             2 * meta["layout"]["bins"] + 4, tr.flow_layers, tr.width,
                              tr.embedding)  # fmt: skip
     model = network.with_leaves(skeleton, values, str(path / WEIGHTS_FILE))
     return Amortised(model, meta)

@@ -85,11 +85,12 @@ def _params(model):
 
 
 def leaves(model) -> list[np.ndarray]:
-    """The model's array leaves, in order (what is stored)."""
+    """The model's array leaves, in order (what is stored): the weights and the integer ones
+    too (the flow's random permutations between layers, drawn when it is built)."""
     import jax
 
     eqx, _, _ = _flowjax()
-    arrays = eqx.filter(model, eqx.is_inexact_array)
+    arrays = eqx.filter(model, eqx.is_array)
     return [np.asarray(x) for x in jax.tree_util.tree_leaves(arrays)]
 
 
@@ -100,7 +101,7 @@ def with_leaves(model, values, where: str):
     import jax.numpy as jnp
 
     eqx, _, _ = _flowjax()
-    arrays, static = eqx.partition(model, eqx.is_inexact_array)
+    arrays, static = eqx.partition(model, eqx.is_array)
     flat, treedef = jax.tree_util.tree_flatten(arrays)
     if len(flat) != len(values):
         raise ConfigError(f"{where}: {len(values)} weight arrays, the architecture has {len(flat)}")

@@ -43,6 +43,7 @@ COMMAND_HELP: dict[str, str] = {
     "calibrate": "simulation-based calibration: rank histograms, coverage, uniformity test",
     "warmup": "compile the programs of an infer run into the persistent cache, from synthetic data",
     "batch": "infer many trees/branches of a manifest: one run folder each and a results table",
+    "amortise": "train an amortised posterior of a tree (a flow on simulations) for infer --amortised",
 }
 
 
@@ -120,6 +121,8 @@ COMMON_OPTIONS: dict[str, tuple[str, ...]] = {
                   "--seed", "--force"),
     "warmup": ("--tree", "--n-traj", "--steps", "--dt"),
     "batch": ("--manifest", "--out", "--workers", "--ray", "--force", "--check"),
+    "amortise": ("--tree", "--out", "--n-traj", "--duration", "--dt", "--simulations", "--seed",
+                 "--force"),
 }  # fmt: skip
 
 

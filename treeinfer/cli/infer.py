@@ -194,6 +194,15 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
     )
     add_backend_option(p, default=None)
     p.add_argument(
+        "--amortised",
+        type=Path,
+        metavar="MODEL",
+        help="start from the amortised posterior of `treeinfer amortise --out MODEL` (trained "
+        "for this tree and layout of recordings; refused otherwise): milliseconds, then checked "
+        "against the simulator (Pareto-smoothed importance weights); if the check fails, the "
+        "run falls back to the simulator-based path and says so (summary.json 'amortised')",
+    )
+    p.add_argument(
         "--prior-from",
         type=Path,
         metavar="RUN",
@@ -342,6 +351,7 @@ def run_infer(args: argparse.Namespace) -> int:
     _check_share(args.max_unstable_share)
     progress = not args.no_progress
     holder: dict[str, Any] = {}
+    amortised = None
     if args.noise_displacement == AUTO:  # the default, said out loud
         args.noise_displacement = None
     if args.resume is not None:
@@ -399,6 +409,10 @@ def run_infer(args: argparse.Namespace) -> int:
         )
         # the figures' formats, read by runs.save_run (kept in the config for --resume)
         config["figure_formats"] = list(args.formats or ("png",))
+        if args.amortised is not None:  # the model loaded and checked before anything runs
+            from .amortise import amortised_for_infer
+
+            amortised = amortised_for_infer(args, inputs, o)
         plan = f"{o['sampler']} ({o['particles']} particles x {o['iterations']} iterations)"
         if o.get("init") in ("auto", "importance"):  # the sampler runs if the weights fail
             plan = f"importance sampling ({o['particles']} particles), else {plan}"
@@ -414,6 +428,7 @@ def run_infer(args: argparse.Namespace) -> int:
             cache=runs.SimulatorCache(),
             allow_implausible_data=args.allow_implausible_data,
             inputs=inputs,
+            amortised=amortised,
         )
     except KeyboardInterrupt:
         cp = holder.get("cp")
@@ -432,6 +447,11 @@ def run_infer(args: argparse.Namespace) -> int:
             )
         return EXIT_INTERRUPTED
     s = outcome.summary
+    if s.get("amortised"):
+        a = s["amortised"]
+        _say("amortised posterior " + ("used: its importance weights pass (Pareto k_hat "
+             f"{a['khat']:.2f})" if a["used"] else f"not used ({a.get('reason')}); the "
+             "simulator-based path ran instead"))  # fmt: skip
     if s.get("stop_reason", "max_iterations") != "max_iterations":
         _say(f"stopped early: {s['stop_reason']}")
     print_model_report(s.get("model"))

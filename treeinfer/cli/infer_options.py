@@ -61,6 +61,7 @@ _RUN_OPTIONS = {
     "tie_scale": "--tie-scale",
     "shape_buckets": "--shape-buckets",
     "formats": "--formats",
+    "amortised": "--amortised",
 }
 
 

@@ -72,6 +72,7 @@ COMMANDS: dict[str, Command] = {
     "calibrate": _command("calibrate"),
     "warmup": _command("warmup"),
     "batch": _command("batch"),
+    "amortise": _command("amortise"),
 }
 
 _MAIN_EPILOG = """\

@@ -154,6 +154,7 @@ def run_inference(
     cache: SimulatorCache | None = None,
     allow_implausible_data: bool = False,
     inputs: RunInputs | None = None,
+    amortised: tuple[Callable, dict] | None = None,
 ) -> InferOutcome:
     """Sample a posterior and write the run folder; or continue an interrupted one (``resume``).
 
@@ -170,6 +171,10 @@ def run_inference(
         find errors in the data (they are logged and recorded in summary.json).
       inputs: the tree and data :func:`~.config.infer_config` was given (a new run; read again
         from the config's paths if None).
+      amortised: ``(start, report)`` of :func:`treeinfer.amortised.amortised_start` (``infer
+        --amortised``, a new run): ``start(problem, config, log)`` is tried before the start
+        pipeline and its checked posterior used if it gives one; else the run goes on as
+        without it. ``report`` (filled by ``start``) is summary.json's ``amortised``.
 
     The summary's ``fit`` (``status`` ok | warning | poor_fit, ``reasons``, ``measures``) judges
     the training fit (:func:`treeinfer.evaluation.checks.fit_verdict_from_run`); the CLI exits 4 on
@@ -195,7 +200,14 @@ def run_inference(
         if problem.noise is not None:
             log(f"likelihood: {problem.noise.description}")
         # --init laplace/importance: drawn before the sampler is recorded (MH's proposal)
-        ready_start, start = _start(problem, config, log, programs=cache.programs)
+        ready_start = None if amortised is None else amortised[0](problem, config, log)
+        if ready_start is not None:
+            start = None
+        else:
+            if amortised is not None:
+                log(f"amortised posterior not used ({amortised[1].get('reason')}): falling back "
+                    "to the simulator-based path")  # fmt: skip
+            ready_start, start = _start(problem, config, log, programs=cache.programs)
         cfg = dataclasses.replace(
             cfg, problem=problem.settings, sampler_record=sampler_settings(config, start)
         )
@@ -296,6 +308,8 @@ def run_inference(
     summary = _run_summary(problem, posterior, config, trace, fit, truth)
     if ready is not None:
         _importance_diagnostics(summary, posterior)
+    if amortised is not None and resume is None:
+        summary["amortised"] = {**amortised[1], "fallback": not amortised[1].get("used")}
     from ..evaluation.checks import fit_verdict_from_run
 
     verdict = fit_verdict_from_run(problem, posterior, fit, noise_sigma=_fitted_noise(problem))

@@ -1,0 +1,157 @@
+"""The amortised posterior checked on the spot, and the run layer's start built from it.
+
+Two checks, in order, before a flow's answer is trusted:
+
+1. **Domain.** Each pull's largest force and displacement and its two noise estimates must lie
+   in the training recordings' range (their 0.1-99.9% quantiles, recorded at training) widened
+   by :data:`DOMAIN_MARGIN`: a recording outside it (a force ten times the trained peaks, a
+   stiffer branch than the prior allows) is one the network never saw; its answer is not
+   looked at.
+2. **Importance weights.** ``M`` draws of the flow ``q`` are weighted by ``p / q`` with ``p``
+   the simulator-based posterior's own log-density (the run's problem: likelihood, noise model
+   and priors; one batched rollout per chunk of draws) and Pareto-smoothed
+   (:func:`treeinfer.inference.importance.importance_resample`, ``psis`` = ``arviz.psislw``).
+   ``k_hat <= 0.7`` and an effective sample size of at least a quarter of the particles: the
+   resampled draws are the posterior (exact up to importance-sampling error, whatever the
+   flow's own error). Otherwise the flow is off for this recording.
+
+When either check fails, :func:`amortised_start` returns no posterior and the run goes the
+simulator-based way (``--init auto``: screen, MAP fit, importance, the sampler if needed),
+saying so; the report lands in summary.json under ``amortised``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+DOMAIN_MARGIN = 0.25  # share of the training range's width added on each side
+DEFAULT_DRAWS = 1024  # flow draws weighted (PSIS k_hat needs several hundred to be reliable)
+CHUNK = 256  # draws per log-density call (one compiled shape)
+
+
+def domain_reasons(am, feats: np.ndarray) -> list[str]:
+    """Why the recording's features (``[B, F]``) lie outside the training range (empty: inside):
+    its pulls' force and displacement amplitudes and noise estimates, each against the range
+    recorded at training, widened by :data:`DOMAIN_MARGIN` of its width (in log units)."""
+    from .estimator import FEATURE_TAIL
+
+    env = am.meta.get("training", {}).get("feature_envelope")
+    if not env:
+        return []
+    f_scale, x_scale = am.meta["scales"]
+    what = {"log_force": ("largest |force|", "N", f_scale),
+            "log_displacement": ("largest |displacement|", "m", x_scale),
+            "log_force_noise": ("force noise", "N", f_scale),
+            "log_disp_noise": ("displacement noise", "m", x_scale)}  # fmt: skip
+    out = []
+    for key, j in FEATURE_TAIL.items():
+        lo, hi = env[key]
+        pad = DOMAIN_MARGIN * (hi - lo)
+        v = feats[:, j]
+        bad = np.flatnonzero((v < lo - pad) | (v > hi + pad))
+        if bad.size:
+            i = int(bad[0])
+            name, unit, s = what[key]
+            out.append(f"pull {i + 1}: {name} {s * math.exp(v[i]):.3g} {unit} outside the "
+                       f"training range {s * math.exp(lo):.3g}-{s * math.exp(hi):.3g} {unit}")  # fmt: skip
+    return out
+
+
+def _log_density(problem, draws: np.ndarray) -> np.ndarray:
+    import jax.numpy as jnp
+
+    dtype = jnp.asarray(0.0).dtype
+    m = len(draws)
+    padded = np.concatenate([draws, np.repeat(draws[-1:], (-m) % CHUNK, axis=0)])
+    out = [np.asarray(problem.log_density(jnp.asarray(padded[i : i + CHUNK], dtype)), float)
+           for i in range(0, len(padded), CHUNK)]  # fmt: skip
+    return np.concatenate(out)[:m]
+
+
+def _posterior(problem, theta, logp, imp_settings: dict, imp, seed: int, elapsed: float):
+    """A run-layer Posterior of the resampled flow draws (no sampler iterations), as the start
+    pipeline's importance posterior is (:func:`treeinfer.inference.fast.importance_run_result`)."""
+    from ..inference.fast import importance_run_result
+    from ..inference.problem import Posterior
+    from ..model.gains import gains_from_theta
+
+    theta = np.asarray(theta, np.float32)
+    logp = np.asarray(logp, np.float32)
+    run_settings = {**imp_settings, "n_iterations": 0, "n_iterations_done": 0,
+                    "start_iteration": 0, "seed": seed}  # fmt: skip
+    run = importance_run_result(theta, logp, run_settings, imp, elapsed)
+    run = run._replace(stop_reason="amortised posterior, checked: " + run.stop_reason)
+    kp, kd = gains_from_theta(theta, problem.sim.n_joints)
+    settings = {
+        "problem": problem.settings,
+        "sampler": "amortised",
+        "sampler_options": {"n_draws": imp_settings["n_draws"]},
+        "n_particles": len(theta),
+        "n_iterations": 0,
+        "seed": int(seed),
+        "run": run_settings,
+    }
+    return Posterior(theta, np.asarray(kp), np.asarray(kd), logp, problem.labels, run, settings)
+
+
+def amortised_start(am, force, disp, model_path: str = "", n_draws: int = DEFAULT_DRAWS,
+                    seed: int = 0) -> tuple[Callable, dict]:  # fmt: skip
+    """``(start, report)``: ``start(problem, config, log) -> posterior or None`` for
+    :func:`treeinfer.runs.run_inference` (None: the checks failed and the run takes the
+    simulator-based path), and the report it fills (summary.json ``amortised``): the flow's
+    posterior and its latency now, the checks' outcome when the start runs.
+
+    ``force``, ``disp`` [B, T]: the recordings (already checked against the model's layout:
+    :meth:`~treeinfer.amortised.estimator.Amortised.check_recordings`)."""
+    from .estimator import summarize
+
+    feats = am.features(force, disp)
+    am.draw(force, disp, n_draws, seed)  # compile (or load from the cache): not the latency
+    t0 = time.perf_counter()
+    draws, log_q = am.draw(force, disp, n_draws, seed)
+    latency = time.perf_counter() - t0
+    report = {
+        "model": str(model_path),
+        "tree_fingerprint": am.meta["tree_fingerprint"],
+        "latency_ms": round(1e3 * latency, 2),
+        "n_draws": int(n_draws),
+        "flow_posterior": summarize(draws, am.labels),
+        "used": False,
+    }
+    reasons = domain_reasons(am, feats)
+
+    def start(problem, config, log):
+        from ..inference.importance import ImportancePosterior, importance_resample
+
+        if reasons:
+            report.update(check="domain", reason="; ".join(reasons))
+            return None
+        if problem.model is not None or list(problem.labels) != am.labels:
+            report.update(check="columns", reason=(
+                f"the run's parameters are {list(problem.labels)}, the model's {am.labels} "
+                "(the amortised model needs --likelihood gaussian with sigma_x inferred)"))  # fmt: skip
+            return None
+        o = config["options"]
+        t1 = time.perf_counter()
+        log_p = _log_density(problem, draws)
+        idx, lw, khat, ess, ok, reason = importance_resample(
+            draws, log_p, log_q, int(o["particles"]), int(o["seed"])
+        )
+        report.update(check="importance", khat=float(khat), ess=float(ess),
+                      check_s=round(time.perf_counter() - t1, 2))  # fmt: skip
+        if not ok:
+            report["reason"] = reason
+            return None
+        imp = ImportancePosterior(draws[idx], draws, lw, log_p, khat, ess, True,
+                                  draws.mean(0), np.cov(draws.T), math.inf, "")  # fmt: skip
+        report["used"] = True
+        settings = {"method": "amortised", "khat": float(khat), "ess": float(ess),
+                    "n_draws": int(n_draws), "lm_iterations": 0}  # fmt: skip
+        return _posterior(problem, draws[idx], log_p[idx], settings, imp, int(o["seed"]),
+                          latency + report["check_s"])  # fmt: skip
+
+    return start, report
