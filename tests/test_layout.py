@@ -34,6 +34,7 @@ LAYERS = {
     "evaluation": ("evaluation", 6),
     "design": ("design", 7),
     "calibration": ("calibration", 7),
+    "amortised": ("amortised", 7),
     "runs": ("runs", 8),
     "cli": ("cli", 9),
 }

@@ -15,8 +15,15 @@ import numpy as np
 DEFAULT_LEVELS = (0.5, 0.8, 0.9, 0.95)
 
 
-def expected_coverage(am, tree, n_sets: int = 200, n_draws: int = 256, seed: int = 1,
-                      levels=DEFAULT_LEVELS, log=lambda m: None) -> dict:  # fmt: skip
+def expected_coverage(
+    am,
+    tree,
+    n_sets: int = 200,
+    n_draws: int = 256,
+    seed: int = 1,
+    levels=DEFAULT_LEVELS,
+    log=lambda m: None,
+) -> dict:
     """``{"coverage": {label: {level: share}}, "ranks": {label: [n_sets]}, "chi2_p": {label:
     p}, "n_sets", "n_draws", "latency_ms"}`` of ``am`` on ``n_sets`` held-out data sets of
     ``tree`` (simulated with ``seed``: use one the model was not trained with). ``chi2_p``: the
@@ -30,8 +37,9 @@ def expected_coverage(am, tree, n_sets: int = 200, n_draws: int = 256, seed: int
     from .simulations import simulate_training_set
 
     cfg = am.config
-    held, _ = simulate_training_set(tree, cfg.layout, cfg.train, n=n_sets, seed=seed,
-                                    scales=tuple(am.meta["scales"]), log=log)  # fmt: skip
+    held, _ = simulate_training_set(
+        tree, cfg.layout, cfg.train, n=n_sets, seed=seed, scales=tuple(am.meta["scales"]), log=log
+    )
     draw = network.sampler(am.model, int(n_draws))
     labels = am.labels
     ranks = np.zeros((len(held.theta), len(labels)), int)
@@ -47,8 +55,10 @@ def expected_coverage(am, tree, n_sets: int = 200, n_draws: int = 256, seed: int
         for lv in levels:
             lo, hi = np.quantile(theta, [(1 - lv) / 2, (1 + lv) / 2], axis=0)
             inside[lv][i] = (truth >= lo) & (truth <= hi)
-    coverage = {lab: {str(lv): float(inside[lv][:, j].mean()) for lv in levels}
-                for j, lab in enumerate(labels)}  # fmt: skip
+    coverage = {
+        lab: {str(lv): float(inside[lv][:, j].mean()) for lv in levels}
+        for j, lab in enumerate(labels)
+    }
     chi2 = {}
     for j, lab in enumerate(labels):
         counts = np.histogram(ranks[:, j], bins=10, range=(0, n_draws + 1))[0]

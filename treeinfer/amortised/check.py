@@ -43,10 +43,12 @@ def domain_reasons(am, feats: np.ndarray) -> list[str]:
     if not env:
         return []
     f_scale, x_scale = am.meta["scales"]
-    what = {"log_force": ("largest |force|", "N", f_scale),
-            "log_displacement": ("largest |displacement|", "m", x_scale),
-            "log_force_noise": ("force noise", "N", f_scale),
-            "log_disp_noise": ("displacement noise", "m", x_scale)}  # fmt: skip
+    what = {
+        "log_force": ("largest |force|", "N", f_scale),
+        "log_displacement": ("largest |displacement|", "m", x_scale),
+        "log_force_noise": ("force noise", "N", f_scale),
+        "log_disp_noise": ("displacement noise", "m", x_scale),
+    }
     out = []
     for key, j in FEATURE_TAIL.items():
         lo, hi = env[key]
@@ -56,8 +58,11 @@ def domain_reasons(am, feats: np.ndarray) -> list[str]:
         if bad.size:
             i = int(bad[0])
             name, unit, s = what[key]
-            out.append(f"pull {i + 1}: {name} {s * math.exp(v[i]):.3g} {unit} outside the "
-                       f"training range {s * math.exp(lo):.3g}-{s * math.exp(hi):.3g} {unit}")  # fmt: skip
+            lo_s, hi_s = s * math.exp(lo), s * math.exp(hi)
+            out.append(
+                f"pull {i + 1}: {name} {s * math.exp(v[i]):.3g} {unit} outside the "
+                f"training range {lo_s:.3g}-{hi_s:.3g} {unit}"
+            )
     return out
 
 
@@ -67,8 +72,10 @@ def _log_density(problem, draws: np.ndarray) -> np.ndarray:
     dtype = jnp.asarray(0.0).dtype
     m = len(draws)
     padded = np.concatenate([draws, np.repeat(draws[-1:], (-m) % CHUNK, axis=0)])
-    out = [np.asarray(problem.log_density(jnp.asarray(padded[i : i + CHUNK], dtype)), float)
-           for i in range(0, len(padded), CHUNK)]  # fmt: skip
+    out = [
+        np.asarray(problem.log_density(jnp.asarray(padded[i : i + CHUNK], dtype)), float)
+        for i in range(0, len(padded), CHUNK)
+    ]
     return np.concatenate(out)[:m]
 
 
@@ -81,8 +88,13 @@ def _posterior(problem, theta, logp, imp_settings: dict, imp, seed: int, elapsed
 
     theta = np.asarray(theta, np.float32)
     logp = np.asarray(logp, np.float32)
-    run_settings = {**imp_settings, "n_iterations": 0, "n_iterations_done": 0,
-                    "start_iteration": 0, "seed": seed}  # fmt: skip
+    run_settings = {
+        **imp_settings,
+        "n_iterations": 0,
+        "n_iterations_done": 0,
+        "start_iteration": 0,
+        "seed": seed,
+    }
     run = importance_run_result(theta, logp, run_settings, imp, elapsed)
     run = run._replace(stop_reason="amortised posterior, checked: " + run.stop_reason)
     kp, kd = gains_from_theta(theta, problem.sim.n_joints)
@@ -98,8 +110,9 @@ def _posterior(problem, theta, logp, imp_settings: dict, imp, seed: int, elapsed
     return Posterior(theta, np.asarray(kp), np.asarray(kd), logp, problem.labels, run, settings)
 
 
-def amortised_start(am, force, disp, model_path: str = "", n_draws: int = DEFAULT_DRAWS,
-                    seed: int = 0) -> tuple[Callable, dict]:  # fmt: skip
+def amortised_start(
+    am, force, disp, model_path: str = "", n_draws: int = DEFAULT_DRAWS, seed: int = 0
+) -> tuple[Callable, dict]:
     """``(start, report)``: ``start(problem, config, log) -> posterior or None`` for
     :func:`treeinfer.runs.run_inference` (None: the checks failed and the run takes the
     simulator-based path), and the report it fills (summary.json ``amortised``): the flow's
@@ -131,9 +144,11 @@ def amortised_start(am, force, disp, model_path: str = "", n_draws: int = DEFAUL
             report.update(check="domain", reason="; ".join(reasons))
             return None
         if problem.model is not None or list(problem.labels) != am.labels:
-            report.update(check="columns", reason=(
+            why = (
                 f"the run's parameters are {list(problem.labels)}, the model's {am.labels} "
-                "(the amortised model needs --likelihood gaussian with sigma_x inferred)"))  # fmt: skip
+                "(it needs --likelihood gaussian with sigma_x inferred)"
+            )
+            report.update(check="columns", reason=why)
             return None
         o = config["options"]
         t1 = time.perf_counter()
@@ -141,17 +156,44 @@ def amortised_start(am, force, disp, model_path: str = "", n_draws: int = DEFAUL
         idx, lw, khat, ess, ok, reason = importance_resample(
             draws, log_p, log_q, int(o["particles"]), int(o["seed"])
         )
-        report.update(check="importance", khat=float(khat), ess=float(ess),
-                      check_s=round(time.perf_counter() - t1, 2))  # fmt: skip
+        report.update(
+            check="importance",
+            khat=float(khat),
+            ess=float(ess),
+            check_s=round(time.perf_counter() - t1, 2),
+        )
         if not ok:
             report["reason"] = reason
             return None
-        imp = ImportancePosterior(draws[idx], draws, lw, log_p, khat, ess, True,
-                                  draws.mean(0), np.cov(draws.T), math.inf, "")  # fmt: skip
+        imp = ImportancePosterior(
+            draws[idx],
+            draws,
+            lw,
+            log_p,
+            khat,
+            ess,
+            True,
+            draws.mean(0),
+            np.cov(draws.T),
+            math.inf,
+            "",
+        )
         report["used"] = True
-        settings = {"method": "amortised", "khat": float(khat), "ess": float(ess),
-                    "n_draws": int(n_draws), "lm_iterations": 0}  # fmt: skip
-        return _posterior(problem, draws[idx], log_p[idx], settings, imp, int(o["seed"]),
-                          latency + report["check_s"])  # fmt: skip
+        settings = {
+            "method": "amortised",
+            "khat": float(khat),
+            "ess": float(ess),
+            "n_draws": int(n_draws),
+            "lm_iterations": 0,
+        }
+        return _posterior(
+            problem,
+            draws[idx],
+            log_p[idx],
+            settings,
+            imp,
+            int(o["seed"]),
+            latency + report["check_s"],
+        )
 
     return start, report

@@ -62,8 +62,7 @@ class PullLayout:
             raise ConfigError(f"--grasp-fraction: must be in (0, 1], got {self.grasp_fraction}")
         if self.profile_kind not in SET_KINDS:
             raise ConfigError(
-                f"--profile-kind: expected one of {', '.join(SET_KINDS)}, got "
-                f"{self.profile_kind!r}"
+                f"--profile-kind: expected one of {', '.join(SET_KINDS)}, got {self.profile_kind!r}"
             )
         object.__setattr__(self, "peak_range", _pair(self.peak_range, "--peak-range"))
 

@@ -67,8 +67,12 @@ class Amortised:
         import jax.numpy as jnp
 
         lay = self.config.layout
-        f = features(jnp.asarray(force, jnp.float32), jnp.asarray(disp, jnp.float32),
-                     bin_matrix(lay.n_steps, lay.bins), *self.meta["scales"])  # fmt: skip
+        f = features(
+            jnp.asarray(force, jnp.float32),
+            jnp.asarray(disp, jnp.float32),
+            bin_matrix(lay.n_steps, lay.bins),
+            *self.meta["scales"],
+        )
         return np.asarray(f)
 
     def draw(self, force, disp, n: int = 1024, seed: int = 0):
@@ -100,8 +104,9 @@ class Amortised:
             return
         diff = differences(self.meta["tree"], ident)
         raise ConfigError(
-            f"{where}: this amortised model was trained for another tree ('{self.meta['tree']['name']}'"
-            f", fingerprint {self.meta['tree_fingerprint'][:12]}); they differ in "
+            f"{where}: this amortised model was trained for another tree "
+            f"('{self.meta['tree']['name']}', fingerprint {self.meta['tree_fingerprint'][:12]}); "
+            "they differ in "
             f"{', '.join(diff) or 'their description'}. Train one for this tree with `treeinfer "
             "amortise`, or infer without --amortised"
         )
@@ -116,15 +121,19 @@ class Amortised:
             why.append(f"{len(trajectories)} pulls (trained for {lay.n_pulls})")
         lengths = sorted({len(t.time) for t in trajectories})
         if lengths != [lay.n_steps]:
-            why.append(f"{'/'.join(map(str, lengths))} samples per pull (trained for "
-                       f"{lay.n_steps}: {lay.duration:g} s at dt {lay.dt:g} s)")  # fmt: skip
+            why.append(
+                f"{'/'.join(map(str, lengths))} samples per pull (trained for "
+                f"{lay.n_steps}: {lay.duration:g} s at dt {lay.dt:g} s)"
+            )
         dts = [float(np.median(np.diff(t.time))) for t in trajectories if len(t.time) > 1]
         if dts and max(abs(d - lay.dt) for d in dts) > DT_RTOL * lay.dt:
             why.append(f"time step {dts[0]:g} s (trained for {lay.dt:g} s)")
         g_model = lay.grasp_fraction
         if grasp_fraction is not None and not _same_grasp(grasp_fraction, g_model):
-            why.append(f"grasp fraction {grasp_fraction} (trained for "
-                       f"{'the tree' + chr(39) + 's' if g_model is None else g_model})")  # fmt: skip
+            why.append(
+                f"grasp fraction {grasp_fraction} (trained for "
+                f"{'the tree grasp' if g_model is None else g_model})"
+            )
         if why:
             raise ConfigError(
                 f"{where}: the recordings do not have the layout this amortised model was trained "
@@ -142,8 +151,12 @@ def _same_grasp(given, trained) -> bool:
 
 
 # ---- training ----------------------------------------------------------------------------------
-def train(tree, config: AmortiseConfig, log: Callable[[str], None] = lambda m: None,
-          progress: bool = False) -> Amortised:  # fmt: skip
+def train(
+    tree,
+    config: AmortiseConfig,
+    log: Callable[[str], None] = lambda m: None,
+    progress: bool = False,
+) -> Amortised:
     """Simulate ``config.train.simulations`` data sets of ``tree`` under the layout's pulls and
     fit the estimator to them (module :mod:`treeinfer.amortised.network`)."""
     import jax
@@ -166,9 +179,13 @@ def train(tree, config: AmortiseConfig, log: Callable[[str], None] = lambda m: N
         "tree_fingerprint": fingerprint(tree_identity(tree)),
         "labels": labels,
         "columns": "log Kp and log Kd of the inferred joints (N m/rad, N m s/rad), log sigma_x (m)",
-        "layout": {**jsonable(lay.__dict__), "n_steps": lay.n_steps, "bins": lay.bins,
-                   "direction": "down (along gravity)",
-                   "grasp_branch": tree.grasp_branch},  # fmt: skip
+        "layout": {
+            **jsonable(lay.__dict__),
+            "n_steps": lay.n_steps,
+            "bins": lay.bins,
+            "direction": "down (along gravity)",
+            "grasp_branch": tree.grasp_branch,
+        },
         "config": config.to_json(),
         "scales": [float(s) for s in scales],
         "box": {"lower": lower.tolist(), "upper": upper.tolist()},
@@ -177,12 +194,22 @@ def train(tree, config: AmortiseConfig, log: Callable[[str], None] = lambda m: N
     z = am.to_z(data.theta).astype(np.float32)
     key = jax.random.key(tr.seed)
     k_build, k_fit = jax.random.split(key)
-    model = network.build(k_build, z.shape[1], data.feats.shape[-1], tr.flow_layers, tr.width,
-                          tr.embedding)  # fmt: skip
+    model = network.build(
+        k_build, z.shape[1], data.feats.shape[-1], tr.flow_layers, tr.width, tr.embedding
+    )
     log(f"training the flow on {len(z)} simulated data sets ({data.n_unstable} unstable dropped)")
     t1 = time.perf_counter()
-    model, losses = network.fit(model, z, data.feats, k_fit, tr.epochs, tr.batch_size,
-                                tr.learning_rate, tr.patience, progress)  # fmt: skip
+    model, losses = network.fit(
+        model,
+        z,
+        data.feats,
+        k_fit,
+        tr.epochs,
+        tr.batch_size,
+        tr.learning_rate,
+        tr.patience,
+        progress,
+    )
     am.model = model
     am.meta["training"] = {
         "n_datasets": int(len(z)),
@@ -210,8 +237,12 @@ def _envelope(feats: np.ndarray) -> dict:
 
 
 # the summaries after the shapes, by their index from the end of the features
-FEATURE_TAIL = {"log_force": -4, "log_displacement": -3, "log_force_noise": -2,
-                "log_disp_noise": -1}  # fmt: skip
+FEATURE_TAIL = {
+    "log_force": -4,
+    "log_displacement": -3,
+    "log_force_noise": -2,
+    "log_disp_noise": -1,
+}
 
 
 # ---- storage -----------------------------------------------------------------------------------
@@ -265,9 +296,14 @@ def load(path) -> Amortised:
     import jax
 
     tr = cfg.train
-    skeleton = network.build(jax.random.key(0), len(meta["labels"]),
-                             2 * meta["layout"]["bins"] + 4, tr.flow_layers, tr.width,
-                             tr.embedding)  # fmt: skip
+    skeleton = network.build(
+        jax.random.key(0),
+        len(meta["labels"]),
+        2 * meta["layout"]["bins"] + 4,
+        tr.flow_layers,
+        tr.width,
+        tr.embedding,
+    )
     model = network.with_leaves(skeleton, values, str(path / WEIGHTS_FILE))
     return Amortised(model, meta)
 
@@ -278,8 +314,9 @@ def summarize(theta, labels: Sequence[str]) -> list[dict]:
     out = []
     for j, lab in enumerate(labels):
         lo, hi = np.quantile(nat[:, j], [0.025, 0.975])
-        out.append({"label": lab, "mean": float(nat[:, j].mean()), "lower": float(lo),
-                    "upper": float(hi)})  # fmt: skip
+        out.append(
+            {"label": lab, "mean": float(nat[:, j].mean()), "lower": float(lo), "upper": float(hi)}
+        )
     return out
 
 

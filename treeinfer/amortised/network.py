@@ -116,8 +116,17 @@ def with_leaves(model, values, where: str):
     return eqx.combine(new, static)
 
 
-def fit(model, z, feats, key, epochs: int, batch_size: int, learning_rate: float, patience: int,
-        progress: bool = False):  # fmt: skip
+def fit(
+    model,
+    z,
+    feats,
+    key,
+    epochs: int,
+    batch_size: int,
+    learning_rate: float,
+    patience: int,
+    progress: bool = False,
+):
     """``(model, losses)``: maximum likelihood of ``z [N, D]`` given ``feats [N, B, F]`` by
     flowjax's :func:`~flowjax.train.fit_to_data` (Adam with a cosine decay, a tenth held out,
     the best epoch's weights kept), the loss the estimator's own negative log density."""

@@ -3,8 +3,9 @@
 exactly) and the noise model (``log sigma_x`` and the force noise log-uniform in their ranges),
 pulls drawn from the layout's profile family (:func:`treeinfer.data.forces.random_specs`), one
 batched rollout per chunk of parameter sets (:func:`treeinfer.sim.simulate`, vmapped over the
-pulls and, each parameter set with pulls of its own, over the sets), and the recordings' summary features (:func:`features`) kept instead of
-the traces (20 000 data sets of 8 pulls x 300 samples would be 380 MB; their features 65 MB)."""
+pulls and, each parameter set with pulls of its own, over the sets), and the recordings'
+summary features (:func:`features`) kept instead of the traces (20 000 data sets of 8 pulls x
+300 samples would be 380 MB; their features 65 MB)."""
 
 from __future__ import annotations
 
@@ -154,9 +155,10 @@ def simulate_training_set(
 ) -> tuple[TrainingSet, tuple[float, float]]:
     """``(TrainingSet, (force_scale, disp_scale))`` of ``n`` (default ``train.simulations``)
     data sets: per chunk of ``train.chunk`` parameter sets, each with its own draw of the
-    layout's pulls, one batched rollout; noise added per data set. ``scales``: the features' normalisation (a
-    model's own, for held-out sets); None: the force scale is the top of the peak range and
-    the displacement scale the 95th percentile of the first chunk's largest |displacement|."""
+    layout's pulls, one batched rollout; noise added per data set.
+    ``scales``: the features' normalisation (a model's own, for held-out sets); None: the force
+    scale is the top of the peak range and the displacement scale the 95th percentile of the
+    first chunk's largest |displacement|."""
     n = train.simulations if n is None else int(n)
     seed = train.seed if seed is None else int(seed)
     sim = training_simulator(tree, layout, train.backend, seed) if sim is None else sim
@@ -184,14 +186,17 @@ def simulate_training_set(
         sf = np.exp(rng.uniform(*np.log(train.sigma_f_range), size=(m, 1, 1)))
         disp = tau + sx * rng.normal(size=tau.shape)
         rec_f = forces + sf * rng.normal(size=tau.shape)
-        f = feat_fn(jnp.asarray(rec_f, jnp.float32), jnp.asarray(disp, jnp.float32), bins_w,
-                    *scales)  # fmt: skip
+        f = feat_fn(
+            jnp.asarray(rec_f, jnp.float32), jnp.asarray(disp, jnp.float32), bins_w, *scales
+        )
         thetas.append(theta[ok])
         feats.append(np.asarray(f)[ok])
         unstable += int((~ok).sum())
         done += m
         log(f"simulated {done}/{n} data sets ({unstable} unstable, dropped)")
     out = TrainingSet(
-        np.concatenate(thetas).astype(np.float32), np.concatenate(feats).astype(np.float32), unstable
+        np.concatenate(thetas).astype(np.float32),
+        np.concatenate(feats).astype(np.float32),
+        unstable,
     )
     return out, scales

@@ -53,39 +53,94 @@ def configure_amortise(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--tree", required=True, type=Path, help="tree description (YAML/JSON)")
     add_out_option(p, "MODEL")
-    p.add_argument("--n-traj", type=int, default=8, metavar="N",
-                   help="number of pulls (trajectories) per recording (default 8)")  # fmt: skip
-    p.add_argument("--duration", type=float, default=3.0, metavar="S",
-                   help="s per pull (default 3)")  # fmt: skip
-    p.add_argument("--dt", type=float, default=0.01, metavar="S",
-                   help="s between samples (default 0.01)")  # fmt: skip
-    p.add_argument("--profile-kind", choices=SET_KINDS, default="mixed",
-                   help="kind of the random force profiles (default mixed: ramp and "
-                   "ramp-hold-release alternately)")  # fmt: skip
-    p.add_argument("--peak-range", type=_pair, default=DEFAULT_PEAK_RANGE, metavar="LO,HI",
-                   help="N, range of the random peaks (default "
-                   f"{DEFAULT_PEAK_RANGE[0]:g},{DEFAULT_PEAK_RANGE[1]:g})")  # fmt: skip
-    p.add_argument("--grasp-fraction", type=float, metavar="F",
-                   help="grasp point along the grasped branch, in (0, 1] (default: the tree's)")  # fmt: skip
-    p.add_argument("--seed", type=int, default=0, metavar="S",
-                   help="seed of the simulations, the network's weights and the training")  # fmt: skip
+    p.add_argument(
+        "--n-traj",
+        type=int,
+        default=8,
+        metavar="N",
+        help="number of pulls (trajectories) per recording (default 8)",
+    )
+    p.add_argument(
+        "--duration", type=float, default=3.0, metavar="S", help="s per pull (default 3)"
+    )
+    p.add_argument(
+        "--dt", type=float, default=0.01, metavar="S", help="s between samples (default 0.01)"
+    )
+    p.add_argument(
+        "--profile-kind",
+        choices=SET_KINDS,
+        default="mixed",
+        help="kind of the random force profiles (default mixed: ramp and "
+        "ramp-hold-release alternately)",
+    )
+    p.add_argument(
+        "--peak-range",
+        type=_pair,
+        default=DEFAULT_PEAK_RANGE,
+        metavar="LO,HI",
+        help="N, range of the random peaks (default "
+        f"{DEFAULT_PEAK_RANGE[0]:g},{DEFAULT_PEAK_RANGE[1]:g})",
+    )
+    p.add_argument(
+        "--grasp-fraction",
+        type=float,
+        metavar="F",
+        help="grasp point along the grasped branch, in (0, 1] (default: the tree's)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        metavar="S",
+        help="seed of the simulations, the network's weights and the training",
+    )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     t = p.add_argument_group("training")
-    t.add_argument("--simulations", type=int, default=20000, metavar="N",
-                   help="simulated data sets to train on (default 20000; 1e5-1e6 on a GPU for "
-                   "sharp posteriors)")  # fmt: skip
-    t.add_argument("--noise-displacement-range", type=_pair, default=(1e-4, 5e-3),
-                   metavar="LO,HI", help="m, range of the displacement noise sigma_x drawn "
-                   "log-uniformly per data set (default 0.0001,0.005)")  # fmt: skip
-    t.add_argument("--noise-force-range", type=_pair, default=(5e-3, 0.2), metavar="LO,HI",
-                   help="N, range of the recorded force's noise drawn log-uniformly per data "
-                   "set (default 0.005,0.2)")  # fmt: skip
-    t.add_argument("--epochs", type=int, default=200, metavar="N",
-                   help="training epochs at most (early stop on a held-out tenth; default 200)")  # fmt: skip
-    t.add_argument("--flow-layers", type=int, default=5, metavar="N",
-                   help="layers of the masked autoregressive flow (default 5)")  # fmt: skip
-    t.add_argument("--width", type=int, default=64, metavar="N",
-                   help="hidden units of the networks (default 64)")  # fmt: skip
+    t.add_argument(
+        "--simulations",
+        type=int,
+        default=20000,
+        metavar="N",
+        help="simulated data sets to train on (default 20000; 1e5-1e6 on a GPU for "
+        "sharp posteriors)",
+    )
+    t.add_argument(
+        "--noise-displacement-range",
+        type=_pair,
+        default=(1e-4, 5e-3),
+        metavar="LO,HI",
+        help="m, range of the displacement noise sigma_x drawn "
+        "log-uniformly per data set (default 0.0001,0.005)",
+    )
+    t.add_argument(
+        "--noise-force-range",
+        type=_pair,
+        default=(5e-3, 0.2),
+        metavar="LO,HI",
+        help="N, range of the recorded force's noise drawn log-uniformly per data "
+        "set (default 0.005,0.2)",
+    )
+    t.add_argument(
+        "--epochs",
+        type=int,
+        default=200,
+        metavar="N",
+        help="training epochs at most (early stop on a held-out tenth; default 200)",
+    )
+    t.add_argument(
+        "--flow-layers",
+        type=int,
+        default=5,
+        metavar="N",
+        help="layers of the masked autoregressive flow (default 5)",
+    )
+    t.add_argument(
+        "--width",
+        type=int,
+        default=64,
+        metavar="N",
+        help="hidden units of the networks (default 64)",
+    )
     add_backend_option(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -94,13 +149,24 @@ def configure_amortise(subparsers) -> argparse.ArgumentParser:
 def amortise_config(args: argparse.Namespace):
     from ..amortised.config import AmortiseConfig, PullLayout, TrainConfig
 
-    layout = PullLayout(args.n_traj, args.duration, args.dt, args.grasp_fraction,
-                        args.profile_kind, tuple(args.peak_range))  # fmt: skip
-    train = TrainConfig(simulations=args.simulations, flow_layers=args.flow_layers,
-                        width=args.width, epochs=args.epochs, seed=args.seed,
-                        sigma_x_range=tuple(args.noise_displacement_range),
-                        sigma_f_range=tuple(args.noise_force_range),
-                        backend=args.backend or "auto")  # fmt: skip
+    layout = PullLayout(
+        args.n_traj,
+        args.duration,
+        args.dt,
+        args.grasp_fraction,
+        args.profile_kind,
+        tuple(args.peak_range),
+    )
+    train = TrainConfig(
+        simulations=args.simulations,
+        flow_layers=args.flow_layers,
+        width=args.width,
+        epochs=args.epochs,
+        seed=args.seed,
+        sigma_x_range=tuple(args.noise_displacement_range),
+        sigma_f_range=tuple(args.noise_force_range),
+        backend=args.backend or "auto",
+    )
     return AmortiseConfig(layout, train)
 
 
@@ -124,8 +190,10 @@ def run_amortise(args: argparse.Namespace) -> int:
         f"dropped) in {time.perf_counter() - t0:.0f} s ({tr['simulation_s']:.0f} s simulating, "
         f"{tr['epochs_run']} epochs); held-out loss {tr['best_val_loss']:.3f}"
     )
-    print(f"wrote {args.out}/ (model.msgpack, model.json) for tree '{tree.name}' "
-          f"(fingerprint {am.meta['tree_fingerprint'][:12]})")  # fmt: skip
+    print(
+        f"wrote {args.out}/ (model.msgpack, model.json) for tree '{tree.name}' "
+        f"(fingerprint {am.meta['tree_fingerprint'][:12]})"
+    )
     return EXIT_OK
 
 
@@ -143,17 +211,24 @@ def amortised_for_infer(args: argparse.Namespace, inputs, options: dict):
             "out --noise-displacement)"
         )
     if options.get("model_kind", "dynamic") != "dynamic" or options.get("tie"):
-        raise ConfigError("--amortised: the model is of the dynamic model of every joint's "
-                          "Kp and Kd; leave out --model-kind static and --tie")  # fmt: skip
+        raise ConfigError(
+            "--amortised: the model is of the dynamic model of every joint's "
+            "Kp and Kd; leave out --model-kind static and --tie"
+        )
     t0 = time.perf_counter()
     am = estimator.load(args.amortised)
     am.check_tree(inputs.tree, f"--tree {args.tree}")
-    force, disp = am.check_recordings(inputs.trajectories, args.grasp_fraction, f"--data {args.data}")
+    force, disp = am.check_recordings(
+        inputs.trajectories, args.grasp_fraction, f"--data {args.data}"
+    )
     load_s = time.perf_counter() - t0
-    start, report = check.amortised_start(am, force, disp, str(args.amortised),
-                                          seed=options.get("seed", 0))  # fmt: skip
-    _say(f"amortised posterior from {args.amortised} in {report['latency_ms']:.1f} ms (model "
-         f"loaded in {load_s:.2f} s); checking it against the simulator")  # fmt: skip
+    start, report = check.amortised_start(
+        am, force, disp, str(args.amortised), seed=options.get("seed", 0)
+    )
+    _say(
+        f"amortised posterior from {args.amortised} in {report['latency_ms']:.1f} ms (model "
+        f"loaded in {load_s:.2f} s); checking it against the simulator"
+    )
     for s in report["flow_posterior"]:
         _say(f"  {s['label']:<16} {s['mean']:.4g}  [{s['lower']:.4g}, {s['upper']:.4g}]")
     return start, report

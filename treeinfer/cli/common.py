@@ -43,7 +43,7 @@ COMMAND_HELP: dict[str, str] = {
     "calibrate": "simulation-based calibration: rank histograms, coverage, uniformity test",
     "warmup": "compile the programs of an infer run into the persistent cache, from synthetic data",
     "batch": "infer many trees/branches of a manifest: one run folder each and a results table",
-    "amortise": "train an amortised posterior of a tree (a flow on simulations) for infer --amortised",
+    "amortise": "train a tree's amortised posterior (a flow on simulations) for infer --amortised",
 }
 
 

@@ -78,7 +78,13 @@ SHARED: dict[str, Meaning] = {
     "--particles": Meaning(
         "number of posterior particles (draws, chains)", r"(particles|draws|chains)"
     ),
+    "--peak-range": Meaning(
+        "N, range of the random force profiles' peaks", r"N, range of the random peaks"
+    ),
     "--profile": Meaning("force profile spec, e.g. 'ramp:peak=5,ramp=1'", r"profile spec"),
+    "--profile-kind": Meaning(
+        "kind of the random force profiles: mixed, ramp, hold, release, step", r"kind of .*random"
+    ),
     "--reinit-stragglers": Meaning(
         "re-initialise stuck particles up to iteration N (0: off)", r"stuck particles"
     ),
