@@ -34,7 +34,16 @@ def _flowjax():
 
 def build(key, dim: int, n_features: int, layers: int, width: int, embedding: int):
     """A fresh (untrained) estimator: ``Estimator(embed, flow)`` with ``embed(feats [..., B, F])
-    -> [..., embedding]`` and ``flow`` a conditional flow over ``dim`` standardised columns."""
+    -> [..., embedding]`` and ``flow`` a conditional flow over ``dim`` standardised columns.
+
+    Built op by op: each small initialisation op compiles on its own the first time (10 s on a
+    2-core CPU; the persistent compile cache keeps them). It cannot be one compiled program:
+    flowjax keeps a closure over an intermediate array of its conditioner (a leaked tracer
+    under ``jit`` or ``eval_shape``)."""
+    return _build(key, dim, n_features, layers, width, embedding)
+
+
+def _build(key, dim, n_features, layers, width, embedding):
     import jax
 
     eqx, ff, fd = _flowjax()
@@ -68,9 +77,10 @@ def build(key, dim: int, n_features: int, layers: int, width: int, embedding: in
         cond_dim=embedding,
         flow_layers=layers,
         nn_width=width,
-        # False: sampling is one pass per layer (what a new recording needs, in milliseconds);
-        # the density then inverts autoregressively, D passes, cheap for D <= ~10 columns
-        invert=False,
+        # True (flowjax's default): the density is one pass per layer, what training takes
+        # millions of; sampling inverts autoregressively, D passes per layer, still
+        # milliseconds for the D <= ~10 columns of a tree (benchmarks/amortised_latency.py)
+        invert=True,
     )
     return Estimator(Summary(phi, rho), flow)
 
