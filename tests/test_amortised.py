@@ -25,8 +25,16 @@ from treeinfer.errors import ConfigError  # noqa: E402
 from treeinfer.tree.generators import chain  # noqa: E402
 
 LAYOUT = PullLayout(n_pulls=2, duration=0.3, dt=0.01, peak_range=(1.0, 2.0))
-TRAIN = TrainConfig(simulations=256, chunk=128, epochs=4, flow_layers=2, width=16, embedding=4,
-                    batch_size=64, sigma_x_range=(1e-3, 3e-3))  # fmt: skip
+TRAIN = TrainConfig(
+    simulations=256,
+    chunk=128,
+    epochs=4,
+    flow_layers=2,
+    width=16,
+    embedding=4,
+    batch_size=64,
+    sigma_x_range=(1e-3, 3e-3),
+)
 
 
 def _tree(length=0.7):
@@ -116,8 +124,10 @@ def test_another_layout_is_refused(model):
         am.check_recordings(trajs[:1])
     with pytest.raises(ConfigError, match="grasp fraction 0.5"):
         am.check_recordings(trajs, grasp_fraction=0.5)
-    short = [t._replace(time=t.time[:20], force=t.force[:20], displacement=t.displacement[:20])
-             for t in trajs]  # fmt: skip
+    short = [
+        t._replace(time=t.time[:20], force=t.force[:20], displacement=t.displacement[:20])
+        for t in trajs
+    ]
     with pytest.raises(ConfigError, match="20 samples per pull"):
         am.check_recordings(short)
 
@@ -153,8 +163,9 @@ def test_a_checked_answer_becomes_the_runs_posterior(model):
     am, _ = model
     force, disp = am.check_recordings(_recording(am))
     start, report = check.amortised_start(am, force, disp, n_draws=512)
-    post = start(_Problem(am, am.features(force, disp)), {"options": {"particles": 16,
-                                                                       "seed": 1}}, print)  # fmt: skip
+    post = start(
+        _Problem(am, am.features(force, disp)), {"options": {"particles": 16, "seed": 1}}, print
+    )
     assert post is not None and report["used"] and report["khat"] < 0.7
     assert post.theta.shape == (16, 3) and post.run.settings["method"] == "amortised"
     assert "amortised" in post.run.stop_reason
@@ -175,7 +186,7 @@ def test_infer_amortised_writes_a_run_folder_that_loads(model, tmp_path):
         write_trajectory(data / f"traj_{i:03d}.csv", t)
     out, err = io.StringIO(), io.StringIO()
     common = ["infer", "--tree", tree_file, "--data", data, "--amortised", path, "--no-progress"]
-    argv = common + ["--out", tmp_path / "run", "--particles", "16", "--allow-poor-fit"]  # fmt: skip
+    argv = common + ["--out", tmp_path / "run", "--particles", "16", "--allow-poor-fit"]
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         rc = main([str(a) for a in argv])
     assert rc == 0, err.getvalue()
@@ -185,5 +196,5 @@ def test_infer_amortised_writes_a_run_folder_that_loads(model, tmp_path):
     # another tree: refused before anything runs, exit 2
     dump_tree(_tree(length=0.9), tree_file)
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        rc = main([str(a) for a in common + ["--out", tmp_path / "run2"]])  # fmt: skip
+        rc = main([str(a) for a in common + ["--out", tmp_path / "run2"]])
     assert rc == 2 and "another tree" in err.getvalue()
