@@ -299,6 +299,11 @@ def likelihood_terms(
             rule += f"; {force_noise_rule}"
         fmodel = force_noise.ForceNoiseModel(sigma_f, ref, rule, grasp_fraction)
         basis = fmodel.basis(sim, np.asarray(obs.force), np.asarray(obs.mask, bool))
+        # the corrected score: the recorded force's noise biases the fit (force_noise docstring)
+        basis = force_noise.with_bias_slope(
+            sim, basis, ref, np.asarray(obs.force), sigma_f, np.asarray(obs.mask, bool),
+            grasp_fraction,
+        )  # fmt: skip
     loglik = measurement_log_likelihood(
         sim,
         obs,
@@ -326,7 +331,7 @@ def likelihood_terms(
                 b = _padded_basis(basis, np.asarray(data["mask"]))
             else:
                 b = fmodel.basis(sim, np.asarray(data["force"]), np.asarray(data["mask"]))
-            data["force_basis"] = type(b)(*(jnp.asarray(x) for x in b))
+            data["force_basis"] = type(b)(*(None if x is None else jnp.asarray(x) for x in b))
         return data
 
     def loglik_of(data):
@@ -360,7 +365,7 @@ def likelihood_terms(
     }
     vel = f", velocity noise {sigma_v:g} m/s" if sigma_v is not None else ", velocity term off"
     if fmodel is not None:
-        vel += f"; errors-in-variables {fmodel.description}"
+        vel += f"; errors-in-variables {fmodel.description}, bias-corrected"
     settings = {
         "likelihood": kind,
         "noise_velocity": sigma_v,

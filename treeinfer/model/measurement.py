@@ -154,7 +154,7 @@ def _noise_density(kind, sigma_x, sigma_v, df, mask, force_basis, n_gains: int):
             from . import force_noise  # numpyro: imported where the term is used
 
             resid = jnp.where(mask, dx, 0.0)
-            total = force_noise.mvn_log_prob(resid, force_basis, sx)
+            total = force_noise.mvn_log_prob(resid, force_basis, sx, theta[:, :n_gains])
         elif kind == "ar1":
             sc, rho = jnp.exp(theta[:, c]), jax.nn.sigmoid(theta[:, c + 1])
             total = noise.ar1_white_log_prob(dx, mask, sx, sc, rho)
@@ -242,4 +242,10 @@ def _padded_basis(basis, mask: np.ndarray):
     values = np.zeros((nb, nt))
     vectors[:b, :t, :t] = u
     values[:b, :t] = lam
-    return type(basis)(vectors, values, (~np.asarray(mask, bool)).sum(axis=1))
+    slope = None
+    if basis.slope is not None:  # no force noise on padded samples: zero slope there
+        slope = np.zeros((nb, nt, np.shape(basis.slope)[-1]))
+        slope[:b, :t] = np.asarray(basis.slope)
+    return type(basis)(
+        vectors, values, (~np.asarray(mask, bool)).sum(axis=1), slope, basis.theta_ref
+    )
