@@ -68,7 +68,7 @@ class ProblemSpec:
         read through each pull's compliance.
       noise_velocity: None (the velocity term off) or m/s, the velocity residual's noise std.
       force_noise_reference: ``[2R]`` log gains where the force-noise Jacobian is taken (None:
-        :func:`treeinfer.model.force_noise.reference_theta`'s MAP fit); force_noise_rule: how it
+        :func:`treeinfer.model.force_noise_reference.reference_theta`'s MAP fit); force_noise_rule: how it
         was chosen (recorded).
 
     Priors:

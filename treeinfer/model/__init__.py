@@ -24,7 +24,7 @@ _EXPORTS = {
     "mvn_log_prob": "force_noise",
     "point_variance": "force_noise",
     "predictive_draws": "force_noise",
-    "reference_theta": "force_noise",
+    "reference_theta": "force_noise_reference",
     "resolve_noise_force": "force_noise",
     "gains_from_theta": "gains",
     "natural_units": "gains",

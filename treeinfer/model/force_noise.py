@@ -39,22 +39,9 @@ pull, float64) the density for any sigma_x is exact and O(T^2) per particle: rot
 by ``U^T`` and sum independent numpyro ``Normal(0, sqrt(L + sigma_x^2))`` log densities
 (:func:`mvn_log_prob`); sigma_x stays a free (inferred) parameter.
 
-The bias correction. The simulator is driven by the RECORDED force, so the residual at theta
-holds ``-J(theta) eps`` (the model's response to the recorded noise ``eps``, which the branch
-never felt), and its expected weighted square grows with ``tr(Sigma^-1 C(theta))``: with ``C``
-fixed at ``theta_ref`` the fit prefers gains whose response to force noise is small (stiffer,
-more damped), a bias of several posterior widths and a posterior too narrow for its Cramer-Rao
-bound (``experiments/eiv_bias.py``: at 2% force noise the truth sat 14 nats below the maximum of
-a 5-parameter posterior, 2.5 expected; 43-73% of true values inside their 95% intervals in
-``experiments/default_calibration.py``). The corrected score of errors-in-variables models
-(Nakamura 1990) adds back that expectation's theta-dependent part,
-``+ 1/2 tr(Sigma^-1 (C(theta) - C(theta_ref)))``, whose expected value cancels the bias to first
-order and leaves sigma_x's estimate unbiased. It is linear in ``d_i(theta) = u_i^T C(theta) u_i``,
-the force-induced variance along each eigenvector of ``C(theta_ref)``; :func:`with_bias_slope`
-takes ``d_i``'s slope in the log gains by central differences of ``J`` (2 x 2R more Jacobians of
-the same compiled program), and :func:`mvn_log_prob` adds
-``1/2 sum_i slope_i . (theta - theta_ref) / (L_i + sigma_x^2)``. (The same check on that
-example: 3.5 nats with the correction.)
+The bias correction (the recorded force drives the simulator, so the fit prefers gains with
+a small response to force noise): :mod:`treeinfer.model.force_noise_bias`, added by
+:func:`mvn_log_prob` where the basis carries its slope.
 
 Predictive bands of a recording driven by a noisy force carry the same term, built from that
 recording's own force (:func:`force_noise_basis` on the test forces, at the same ``theta_ref``):
@@ -80,8 +67,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..data.trajectories import Observations
-from ..errors import ConfigError, SimulationError
+from ..errors import SimulationError
 from .force_noise_option import (  # noqa: F401 -- the option's functions, re-exported here
     _force_range,
     check_noise_force,
@@ -98,80 +84,10 @@ __all__ = [
     "force_noise_basis",
     "force_noise_covariance",
     "mvn_log_prob",
-    "with_bias_slope",
     "point_variance",
     "predictive_draws",
-    "reference_theta",
     "resolve_noise_force",
 ]
-
-
-# --------------------------------------------------------------------------- reference point
-
-
-def reference_theta(
-    sim, obs: Observations, grasp_fraction=None, sigma_force=None, n_starts: int = 8, seed=0
-):
-    """``theta_ref [2R]`` (log Kp, log Kd) at which the force Jacobian is taken.
-
-    1. The MAP of the Gaussian displacement model with sigma_x fitted and no force term, by
-       Levenberg-Marquardt (:func:`treeinfer.inference.mapfit.fit_map`) from ``n_starts``
-       Latin-hypercube points of the simulator's prior box.
-    2. With ``sigma_force`` (N): the MAP of the errors-in-variables model itself, its covariance
-       ``C`` taken at step 1's point and sigma_x fixed at the data's white-noise estimate
-       (:func:`treeinfer.model.noise.estimate_displacement_noise`), LM on the whitened residuals
-       ``diag(1 / sqrt(L + sigma_x^2)) U^T r`` from every final point of step 1. Step 1's model
-       is misspecified (the slow force-induced error is taken as white), and on the 3-branch
-       example its MAP lies in another mode (child stiffness off by a factor 1.5).
-
-    Both fits use a prior flat inside the box with Gaussian walls outside (scale 5% of each
-    log-box width) and the result is clipped to the box: without the walls a weakly identified
-    damping runs off to exp(-27) (an undamped reference: a ringing J). See the module docstring
-    for why the MAP."""
-    from ..inference.mapfit import ResidualModel, fit_map, gaussian_residuals
-    from .noise import estimate_displacement_noise
-
-    lo, hi = (np.log(np.asarray(b, float)) for b in sim.prior_box)
-    wall = 0.05 * (hi - lo)
-
-    def box_walls(theta):  # [P, 2R] -> [P]; 0 inside the box
-        th = theta[:, : lo.size]
-        out = jnp.maximum(lo - th, 0.0) + jnp.maximum(th - hi, 0.0)
-        return -0.5 * jnp.sum((out / wall) ** 2, axis=-1)
-
-    first = fit_map(
-        gaussian_residuals(sim, obs, None, grasp_fraction),
-        box_walls,
-        lo,
-        hi,
-        n_starts=n_starts,
-        seed=seed,
-        agree=3,
-    )
-    theta = np.clip(np.asarray(first.theta[: lo.size], float), lo, hi)
-    if sigma_force is not None:
-        try:
-            sx = estimate_displacement_noise(obs).sigma
-        except ConfigError:
-            sx = float(np.exp(first.theta[-1]))
-        mask = np.asarray(obs.mask, bool)
-        basis = force_noise_basis(sim, theta, obs.force, sigma_force, mask, grasp_fraction)
-        white = basis.vectors / np.sqrt(basis.values + sx**2)[:, None, :]  # [B, T, T]
-        base = gaussian_residuals(sim, obs, 1.0, grasp_fraction)  # r = tau - x, masked
-
-        def whitened(th):
-            r, ok = base.residuals(th)
-            return jnp.einsum("bts,bt->bs", jnp.asarray(white, r.dtype), r), ok
-
-        finals = np.clip(first.finals[:, : lo.size], lo, hi)
-        finals = finals[np.isfinite(first.values)]
-        second = fit_map(
-            ResidualModel(whitened, "gaussian"), box_walls, lo, hi, starts=finals, agree=3
-        )
-        theta = np.clip(np.asarray(second.theta[: lo.size], float), lo, hi)
-    if not np.all(np.isfinite(theta)):
-        raise SimulationError("force noise: the reference MAP fit did not give finite gains")
-    return theta
 
 
 # --------------------------------------------------------------------------- J, C, basis
@@ -484,31 +400,6 @@ def mvn_log_prob(residual, basis: ForceNoiseBasis, sigma_x, theta_gains=None) ->
 
 
 BIAS_STEP = 0.05  # log-gain step of the bias slope's central differences
-
-
-def with_bias_slope(
-    sim, basis: ForceNoiseBasis, theta_ref, forces, sigma_force: float, mask=None,
-    grasp_fraction=None, h: float = BIAS_STEP,
-) -> ForceNoiseBasis:  # fmt: skip
-    """``basis`` with the bias correction's slope (module docstring): ``slope[b, i, j]``
-    ``= d/d theta_j (u_i^T C_b(theta) u_i)`` at ``theta_ref``, by central differences of
-    :func:`force_jacobian` (step ``h`` in log gain; the same compiled program as ``J``)."""
-    ref = np.asarray(theta_ref, float).reshape(-1)
-    forces = np.atleast_2d(np.asarray(forces, float))
-    m = np.ones(forces.shape, bool) if mask is None else np.asarray(mask, bool)
-    u = np.asarray(basis.vectors, float)
-
-    def along(theta):  # [B, T]: u_i^T C(theta) u_i = sigma_F^2 |J^T u_i|^2
-        j = force_jacobian(sim, theta, forces, grasp_fraction, keep=False)
-        j = j * m[:, :, None] * m[:, None, :]
-        return float(sigma_force) ** 2 * np.sum(np.einsum("bts,bti->bsi", j, u) ** 2, axis=1)
-
-    eye = np.eye(ref.size)
-    slope = np.stack(
-        [(along(ref + h * eye[k]) - along(ref - h * eye[k])) / (2.0 * h) for k in range(ref.size)],
-        axis=-1,
-    )
-    return basis._replace(slope=slope, theta_ref=ref)
 
 
 def point_variance(basis: ForceNoiseBasis) -> np.ndarray:

@@ -194,7 +194,7 @@ def likelihood_terms(
         ``"auto"`` (:func:`treeinfer.model.force_noise.resolve_noise_force`). Gaussian only: adds
         the errors-in-variables covariance of :mod:`treeinfer.model.force_noise` to the likelihood.
       force_noise_reference: ``[2R]`` log gains at which the force Jacobian is taken; None: the
-        MAP of the errors-in-variables model (:func:`~treeinfer.model.force_noise.reference_theta`).
+        MAP of the errors-in-variables model (:func:`~treeinfer.model.force_noise_reference.reference_theta`).
       force_noise_rule: how a given ``force_noise_reference`` was chosen (recorded in the
         settings' ``noise_force_rule``).
     """
@@ -284,10 +284,13 @@ def likelihood_terms(
                 "(noise_velocity); leave the velocity out"
             )
         from . import force_noise
+        from .force_noise_bias import with_bias_slope
 
         sigma_f, rule = force_noise.resolve_noise_force(noise_force, obs)
         if force_noise_reference is None:
-            ref = force_noise.reference_theta(sim, obs, grasp_fraction, sigma_f)
+            from .force_noise_reference import reference_theta
+
+            ref = reference_theta(sim, obs, grasp_fraction, sigma_f)
             rule += "; J at the MAP of this errors-in-variables model"
         else:
             ref = np.asarray(force_noise_reference, float).reshape(-1)
@@ -300,7 +303,7 @@ def likelihood_terms(
         fmodel = force_noise.ForceNoiseModel(sigma_f, ref, rule, grasp_fraction)
         basis = fmodel.basis(sim, np.asarray(obs.force), np.asarray(obs.mask, bool))
         # the corrected score: the recorded force's noise biases the fit (force_noise docstring)
-        basis = force_noise.with_bias_slope(
+        basis = with_bias_slope(
             sim, basis, ref, np.asarray(obs.force), sigma_f, np.asarray(obs.mask, bool),
             grasp_fraction,
         )  # fmt: skip

@@ -156,7 +156,7 @@ def build_problem(
     takes the one it recorded; a run whose ``--init`` is ``auto`` or ``importance`` finds it on
     the start pipeline's rollout program
     (:func:`treeinfer.inference.start_pipeline.force_noise_reference`); any other run fits it with
-    :func:`treeinfer.model.force_noise.reference_theta`."""
+    :func:`treeinfer.model.force_noise_reference.reference_theta`."""
     from ..inference.problem import make_problem
 
     o = config["options"]
