@@ -153,7 +153,9 @@ def parse_force(raw: object, loc) -> float:
     """``'-   0.01N\\x03\\x02'`` -> -0.01 (kN)."""
     m = _FORCE.match(raw) if isinstance(raw, str) else None
     if m is None:
-        raise TrajectoryFileError(f"{_text(loc)}: expected a force reading like '  0.44M', got {raw!r}")
+        raise TrajectoryFileError(
+            f"{_text(loc)}: expected a force reading like '  0.44M', got {raw!r}"
+        )
     return float(m.group(2)) * (-1.0 if m.group(1) else 1.0)
 
 

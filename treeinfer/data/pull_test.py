@@ -9,8 +9,9 @@ From a parsed ``.pul`` file (:mod:`treeinfer.data.pul`) and its row of the metad
 2. force: ``raw`` kN x 1000 = N along the cable, minus its pre-load median (the tare; the file's
    ``force_tara`` is 0 and the load cell rests at about -10 N in some tests);
 3. phases: the ramp starts at the last sample at rest (at or below 2% of the peak force, and at
-   least 15 N: 1.5 quanta of the load cell) before the force first passes half its peak, and ends at the (first) peak; the release starts at the last
-   sample at or above 75% of the peak and ends at the first sample after it at rest;
+   least 15 N: 1.5 quanta of the load cell) before the force first passes half its peak, and
+   ends at the (first) peak; the release starts at the last sample at or above 75% of the peak
+   and ends at the first sample after it at rest;
 4. signed tilt per inclinometer: ``(X - tare_x, Y - tare_y)`` minus its pre-load mean,
    projected on the direction of the loaded tilt. That direction is the first right singular
    vector of the *uncentred* loaded samples (force > half the peak), i.e. the direction of
@@ -43,7 +44,7 @@ from ..io.safe_load import read_regular_file
 from .pul import PulFile
 
 __all__ = [
-    "Channel",
+    "TiltChannel",
     "PullTest",
     "PullSetup",
     "pull_test",
@@ -179,7 +180,7 @@ def read_test_setups(path: str | os.PathLike) -> dict[str, PullSetup]:
 
 
 @dataclass(frozen=True)
-class Channel:
+class TiltChannel:
     """One inclinometer as used: ``axis`` the unit (X, Y) direction of the loaded tilt, ``rest``
     the pre-load mean of (X - tare) in degrees, ``rest_sd`` the sd of the signed tilt before the
     load (rad), ``perp_sd`` the sd of the perpendicular component under load (rad)."""
@@ -205,7 +206,7 @@ class PullTest:
     time: np.ndarray
     force: np.ndarray
     tilt: dict[str, np.ndarray]
-    channels: dict[str, Channel]
+    channels: dict[str, TiltChannel]
     phases: dict[str, int]
     steps: list[str] = field(default_factory=list)
     source: str = ""
@@ -304,7 +305,7 @@ def pull_test(
         on_t = _onto(ts, signed, t, max_gap)
         gaps = int(np.isnan(on_t).sum())
         tilts[name] = on_t
-        channels[name] = Channel(
+        channels[name] = TiltChannel(
             name=name,
             source=src,
             height=float(height),
@@ -357,8 +358,10 @@ def meta_record(test: PullTest) -> dict:
         "source_sha256": test.source_sha256,
         "columns": {"time": "s", "force": "N along the cable"}
         | {f"tilt_{c}": "rad, along the pull" for c in test.tilt},
-        "setup": {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                  for k, v in setup.items()},
+        "setup": {
+            k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+            for k, v in setup.items()
+        },
         "cable_angle_rad": test.setup.cable_angle,
         "pull_azimuth_deg": test.setup.pull_azimuth_deg,
         "channels": {k: asdict(c) for k, c in test.channels.items()},
@@ -405,9 +408,9 @@ def read_pull_test(path: str | os.PathLike) -> PullTest:
         setup=PullSetup(**setup_d),
         time=data[:, 0],
         force=data[:, 1],
-        tilt={h[len("tilt_"):]: data[:, i] for i, h in enumerate(head) if h.startswith("tilt_")},
+        tilt={h[len("tilt_") :]: data[:, i] for i, h in enumerate(head) if h.startswith("tilt_")},
         channels={
-            k: Channel(**{**c, "axis": tuple(c["axis"]), "rest": tuple(c["rest"])})
+            k: TiltChannel(**{**c, "axis": tuple(c["axis"]), "rest": tuple(c["rest"])})
             for k, c in meta["channels"].items()
         },
         phases={k: int(v) for k, v in meta["phases"].items()},
