@@ -55,7 +55,7 @@ _EXPORTS = {
     "TiltChannel": "pull_test",
     "PullSetup": "pull_test",
     "PullTest": "pull_test",
-    "pull_test": "pull_test",
+    "make_pull_test": "pull_test",
     "read_pull_test": "pull_test",
     "read_test_setups": "pull_test",
     "write_pull_test": "pull_test",

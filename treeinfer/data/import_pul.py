@@ -18,7 +18,14 @@ from typing import NamedTuple
 from ..errors import ConfigError, TrajectoryFileError
 from ..io.ownership import claim_output_files, refuse_overlap
 from .pul import read_pul
-from .pull_test import MAX_GAP_S, PullTest, pull_test, read_test_setups, sha256_of, write_pull_test
+from .pull_test import (
+    MAX_GAP_S,
+    PullTest,
+    make_pull_test,
+    read_test_setups,
+    sha256_of,
+    write_pull_test,
+)
 
 __all__ = ["METADATA_FILE", "PulImport", "find_metadata", "import_pul"]
 
@@ -87,7 +94,7 @@ def import_pul(
                 f"{src}: no row with pul_file '{src.stem}' in {table} (the test's set-up: "
                 "heights, anchor, inclinometers)"
             )
-        tests.append(pull_test(read_pul(src), setup, max_gap, sha256_of(src)))
+        tests.append(make_pull_test(read_pul(src), setup, max_gap, sha256_of(src)))
     paths = []
     for t in tests:
         paths.extend(write_pull_test(t, out))

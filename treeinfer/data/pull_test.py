@@ -3,7 +3,7 @@ one time base, with the set-up of the test (heights, cable angle) from the per-t
 
 From a parsed ``.pul`` file (:mod:`treeinfer.data.pul`) and its row of the metadata table
 (``trees.csv``, the ``trees`` sheet of Hill et al. 2024's ``static-pulling-trees.xlsx``),
-:func:`pull_test` makes a :class:`PullTest`:
+:func:`make_pull_test` makes a :class:`PullTest`:
 
 1. time base: the force readings' timestamps, in s from the first one;
 2. force: ``raw`` kN x 1000 = N along the cable, minus its pre-load median (the tare; the file's
@@ -47,7 +47,7 @@ __all__ = [
     "TiltChannel",
     "PullTest",
     "PullSetup",
-    "pull_test",
+    "make_pull_test",
     "read_pull_test",
     "read_test_setups",
     "write_pull_test",
@@ -257,7 +257,7 @@ def _onto(t_src: np.ndarray, y: np.ndarray, t: np.ndarray, max_gap: float) -> np
     return np.where(bad, np.nan, out)
 
 
-def pull_test(
+def make_pull_test(
     pul: PulFile, setup: PullSetup, max_gap: float = MAX_GAP_S, source_sha256: str = ""
 ) -> PullTest:
     """Force and signed tilts on one time base (the steps of the module docstring)."""
