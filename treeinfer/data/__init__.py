@@ -46,7 +46,6 @@ _EXPORTS = {
     "smooth_step": "forces",
     "METADATA_FILE": "import_pul",
     "PulImport": "import_pul",
-    "import_pul": "import_pul",
     "INCLINOMETERS": "pul",
     "PUL_SUFFIX": "pul",
     "PulFile": "pul",
