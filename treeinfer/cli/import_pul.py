@@ -49,7 +49,7 @@ def configure_import_pul(subparsers) -> argparse.ArgumentParser:
         type=float,
         default=MAX_GAP_S,
         metavar="S",
-        help="s; an inclinometer is not interpolated across readings further apart",
+        help="no interpolation of an inclinometer across readings more than S seconds apart",
     )
     p.add_argument("--force", action="store_true", help="replace same-named outputs in DIR")
     return p
