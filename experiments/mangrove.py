@@ -201,7 +201,7 @@ def figure(curves: dict[str, dict], path: Path) -> None:
             if r == 0 and i == 0:
                 ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=80)
     plt.close(fig)
 
 
@@ -299,7 +299,7 @@ def main(argv=None) -> int:
     import numpyro
 
     config = {
-        "command": "nice python experiments/mangrove.py " + " ".join(argv or sys.argv[1:]),
+        "command": " ".join(["nice python experiments/mangrove.py", *(argv or sys.argv[1:])]),
         "data": str(data),
         "tests": [r["test"] for r in results],
         "warmup": args.warmup,
