@@ -144,6 +144,18 @@ def test_gaps_are_not_interpolated_and_repeats_dropped(tmp_path, tiny):
     assert np.isfinite(t_rep.tilt["root"][1:]).all()
 
 
+def test_tare_is_the_median_at_rest_before_a_sudden_load(tmp_path, tiny):
+    """A load applied in one step: the pre-load is every sample before it, not the first."""
+    setup = read_test_setups(tiny.parent.parent / "trees.csv")["tiny"]
+    rest = np.tile([-0.01, 0.01, 0.01, 0.01], 3)[:11]  # median +0.01 kN, first -0.01 kN
+    f = np.concatenate([rest, np.full(30, 1.0), np.zeros(19)])
+    pul = tmp_path / "tiny.pul"
+    make_pul(pul, f_kn=f)
+    t = make_pull_test(read_pul(pul), setup)
+    assert t.force[:11] == pytest.approx((rest - 0.01) * 1000)
+    assert "tare +10.0 N" in t.steps[1]
+
+
 def _break(path: Path, cycle: int, key: str, value) -> int:
     """Replace one field of one cycle; return the line of that cycle's opening brace."""
     d = json.loads(path.read_text())

@@ -217,6 +217,12 @@ class PullTest:
         return int(self.time.size)
 
 
+def _first(mask: np.ndarray) -> int:
+    """Index of the first True, or the length when there is none (``argmax`` would say 0)."""
+    idx = np.flatnonzero(mask)
+    return int(idx[0]) if idx.size else int(mask.size)
+
+
 def rest_threshold(peak: float) -> float:
     """N: a tared force at or below this is at rest."""
     return max(REST_FRACTION * peak, REST_MIN_N)
@@ -267,9 +273,10 @@ def make_pull_test(
     t = pul.force.t[order] - t0
     f_raw = pul.force.values[order] * KN
     steps.append(f"time base: {t.size} force readings, s from the first ({t[-1]:.1f} s long)")
-    pre = f_raw[: max(1, int(np.argmax(f_raw > LOADED_FRACTION * f_raw.max())))]
-    # the pre-load part: before the force first reaches the rest threshold of its peak
-    pre = pre[: max(1, int(np.argmax(pre - pre[0] > rest_threshold(f_raw.max() - pre[0]))))]
+    # the pre-load part: before the force first rises a rest threshold above its first value
+    # (and before it first passes half its peak)
+    pre = f_raw[: max(1, _first(f_raw > LOADED_FRACTION * f_raw.max()))]
+    pre = pre[: max(1, _first(pre - pre[0] > rest_threshold(f_raw.max() - pre[0])))]
     tare = float(np.median(pre))
     force = f_raw - tare
     steps.append(f"force: kN x 1000 -> N; tare {tare:+.1f} N (median of the pre-load samples)")
