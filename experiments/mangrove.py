@@ -73,7 +73,7 @@ def _rmse(a, b) -> float:
     return float(np.sqrt(np.mean(d**2))) if d.size else math.nan
 
 
-def run_test(name: str, data: Path, args) -> tuple[dict, dict]:
+def run_test(name: str, data: Path, args, noise: str = "iid") -> tuple[dict, dict]:
     from treeinfer.data import make_pull_test, read_pul, read_test_setups
     from treeinfer.inference.pulltest import (
         beam_predict,
@@ -101,6 +101,7 @@ def run_test(name: str, data: Path, args) -> tuple[dict, dict]:
         num_samples=args.samples,
         num_chains=args.chains,
         seed=args.seed,
+        noise=noise,
     )
     span = slice(win["fit"].start, win["release"].stop)
     band = predictive_band(model, post, test.force[span], n_draws=args.draws, seed=args.seed)
@@ -134,6 +135,7 @@ def run_test(name: str, data: Path, args) -> tuple[dict, dict]:
         parts[part] = rec
     result = {
         "test": name,
+        "noise": noise,
         "tree_id": setup.tree_id,
         "species": setup.species,
         "site": setup.site,
@@ -220,34 +222,35 @@ def markdown(results: list[dict], config: dict) -> str:
         "",
         f"Command: `{config['command']}`",
         "",
-        "| test | channel | part | n | coverage | RMSE chain (deg) | RMSE beam (deg) "
+        "| test | noise | channel | part | n | coverage | RMSE chain (deg) | RMSE beam (deg) "
         "| RMSE springs (deg) |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         for part in ("fit", *PARTS, "heldout"):
             for c, m in r["parts"][part].items():
                 lines.append(
-                    f"| {r['test']} | {c} | {part} | {m['n']} | {m['coverage']:.1%} | "
+                    f"| {r['test']} | {r['noise']} | {c} | {part} | {m['n']} | "
+                    f"{m['coverage']:.1%} | "
                     f"{math.degrees(m['rmse_chain']):.4f} | {math.degrees(m['rmse_beam']):.4f} | "
                     f"{math.degrees(m['rmse_springs']):.4f} |"
                 )
     lines += [
         "",
-        "| test | Kp root (N m/rad) | Kp stem (N m/rad) | sigma root (deg) | sigma trunk (deg) "
-        "| R-hat max | divergences | beam K (N m/rad) | beam EI (N m^2) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| test | noise | Kp root (N m/rad) | Kp stem (N m/rad) | sigma root (deg) "
+        "| sigma trunk (deg) | R-hat max | divergences | beam K (N m/rad) | beam EI (N m^2) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         p, d = r["posterior"], r["diagnostics"]
-        rh = [v for k in ("r_hat_log_kp", "r_hat_sigma") for v in (d.get(k) or [])]
+        rh = [v for k in d if k.startswith("r_hat") for v in (d[k] or [])]
 
         def ci(k, scale=1.0):
             m, lo, hi = (p[k][q] * scale for q in ("mean", "q2.5", "q97.5"))
             return f"{m:.4g} [{lo:.4g}, {hi:.4g}]"
 
         lines.append(
-            f"| {r['test']} | {ci('kp_root')} | {ci('kp_stem')} | "
+            f"| {r['test']} | {r['noise']} | {ci('kp_root')} | {ci('kp_stem')} | "
             f"{ci('sigma_root', 180 / math.pi)} | {ci('sigma_trunk', 180 / math.pi)} | "
             f"{max(rh) if rh else float('nan'):.3f} | {d['divergences']} | "
             f"{r['beam']['k_root']:.4g} | {r['beam']['ei']:.4g} |"
@@ -266,6 +269,7 @@ def main(argv=None) -> int:
     ap.add_argument("--chains", type=int, default=2)
     ap.add_argument("--draws", type=int, default=400, help="posterior draws in the band")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--noise", default="iid,ar1", help="noise models, comma-separated: iid, ar1")
     args = ap.parse_args(argv)
     data = args.data or shared_data()
     if data is None:
@@ -275,33 +279,38 @@ def main(argv=None) -> int:
 
     t0, cpu0 = time.time(), time.process_time()
     results, curves = [], {}
-    for name in [s.strip() for s in args.tests.split(",") if s.strip()]:
-        print(f"{name} ...", flush=True)
-        r, cv = run_test(name, data, args)
-        results.append(r)
-        curves[name] = cv
-        h = r["parts"]["heldout"]
-        print(
-            "  held out: coverage "
-            + ", ".join(f"{c} {m['coverage']:.1%}" for c, m in h.items())
-            + "; RMSE chain/beam/springs (deg) "
-            + ", ".join(
-                f"{c} "
-                + "/".join(
-                    f"{math.degrees(m[k]):.3f}" for k in ("rmse_chain", "rmse_beam", "rmse_springs")
+    noises = [s.strip() for s in args.noise.split(",") if s.strip()]
+    for noise in noises:
+        curves[noise] = {}
+        for name in [s.strip() for s in args.tests.split(",") if s.strip()]:
+            print(f"{name} ({noise} noise) ...", flush=True)
+            r, cv = run_test(name, data, args, noise)
+            results.append(r)
+            curves[noise][name] = cv
+            h = r["parts"]["heldout"]
+            print(
+                "  held out: coverage "
+                + ", ".join(f"{c} {m['coverage']:.1%}" for c, m in h.items())
+                + "; RMSE chain/beam/springs (deg) "
+                + ", ".join(
+                    f"{c} "
+                    + "/".join(
+                        f"{math.degrees(m[k]):.3f}"
+                        for k in ("rmse_chain", "rmse_beam", "rmse_springs")
+                    )
+                    for c, m in h.items()
                 )
-                for c, m in h.items()
+                + f" ({r['wall_s']:.0f} s)",
+                flush=True,
             )
-            + f" ({r['wall_s']:.0f} s)",
-            flush=True,
-        )
     import jax
     import numpyro
 
     config = {
         "command": " ".join(["nice python experiments/mangrove.py", *(argv or sys.argv[1:])]),
         "data": str(data),
-        "tests": [r["test"] for r in results],
+        "tests": sorted({r["test"] for r in results}),
+        "noise": noises,
         "warmup": args.warmup,
         "samples": args.samples,
         "chains": args.chains,
@@ -318,13 +327,14 @@ def main(argv=None) -> int:
         "cpu_s": time.process_time() - cpu0,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    figure(curves, args.out / "bands.png")
+    for i, noise in enumerate(noises):  # bands.png: the first noise model's
+        figure(curves[noise], args.out / ("bands.png" if i == 0 else f"bands_{noise}.png"))
     atomic_write_text(
         args.out / "results.json",
         json.dumps({"config": config, "results": results}, indent=2, default=float) + "\n",
     )
     atomic_write_text(args.out / "results.md", markdown(results, config))
-    print(f"wrote {args.out}/results.json, results.md, bands.png")
+    print(f"wrote {args.out}/results.json, results.md, bands*.png")
     return 0
 
 

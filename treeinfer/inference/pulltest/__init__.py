@@ -21,6 +21,7 @@ _EXPORTS = {
     "chain_tree": "model",
     "model_tilts": "model",
     "pull_model": "model",
+    "NOISE_MODELS": "posterior",
     "NOISE_PRIOR": "posterior",
     "PullPosterior": "posterior",
     "fit_pull_test": "posterior",

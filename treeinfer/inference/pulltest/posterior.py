@@ -6,17 +6,22 @@ with a standard deviation per inclinometer, inferred with the stiffnesses:
     tilt_c(t) ~ Normal(model_c(F(t); Kp), sigma_c)
 
 priors ``log Kp_j ~ Uniform(log 1e3, log 1e8)`` (N m/rad; :data:`~.model.KP_PRIOR`) and
-``sigma_c ~ LogUniform(1e-6, 0.05)`` rad. The force is taken as recorded (its 10 N quantum is
-well below the ramp's forces; errors in the force are not modelled).
+``sigma_c ~ LogUniform(1e-6, 0.05)`` rad (``noise="iid"``). With ``noise="ar1"`` each channel's
+residual is white noise (``sigma_w``) plus a stationary AR(1) component (``sigma_a``, lag-1
+correlation ``rho`` per sample, logit-normal prior centred on 0.9), the exact likelihood of
+treeinfer's :func:`treeinfer.model.noise.ar1_white_log_prob` (a Kalman filter that predicts
+through missing samples); the band then uses the marginal sd ``sqrt(sigma_w^2 + sigma_a^2)``.
+Samples are treated as equally spaced (about 0.1 s). The force is taken as recorded (its 10 N
+quantum is well below the ramp's forces; errors in the force are not modelled).
 
 Why NUTS from numpyro and not treeinfer's start pipeline and samplers: those are built around
 the displacement likelihood of :mod:`treeinfer.model.likelihood` (particles x profiles x time
 rollouts, the grasp point's ``tau``) and do not take another likelihood without changing that
-module; this problem is small (2 stiffnesses + 2 noise levels, one equilibrium solve per force
+module; this problem is small (2 stiffnesses, 2-6 noise parameters, one equilibrium solve per force
 sample with exact implicit gradients), exactly what NUTS does best, and numpyro handles the
 bounded priors' transforms and the warm-up. Residuals of real recordings are autocorrelated
-(issue 30 section 3): with i.i.d. noise the stiffness intervals are too narrow; the predictive
-band is dominated by ``sigma_c`` and is what the experiment checks.
+(issue 30 section 3): with i.i.d. noise the stiffness intervals are too narrow (``ar1`` widens
+them); the predictive band is dominated by the noise sd and is what the experiment checks.
 """
 
 from __future__ import annotations
@@ -31,23 +36,34 @@ import numpy as np
 from ...errors import ConfigError
 from .model import KP_PRIOR, PullModel, model_tilts
 
-__all__ = ["NOISE_PRIOR", "PullPosterior", "fit_pull_test", "initial_stiffness", "predictive_band"]
+__all__ = [
+    "NOISE_MODELS",
+    "NOISE_PRIOR",
+    "PullPosterior",
+    "fit_pull_test",
+    "initial_stiffness",
+    "predictive_band",
+]
 
 NOISE_PRIOR = (1.0e-6, 0.05)  # rad: the LogUniform prior of each channel's noise sd
 NOISE_DRAWS = 4  # noise samples per parameter draw in the predictive band
+NOISE_MODELS = ("iid", "ar1")
 
 
 @dataclass(frozen=True)
 class PullPosterior:
     """Posterior draws: ``kp`` [S, R] N m/rad (columns ``joints``), ``sigma`` [S, C] rad
-    (columns ``channels``), and NUTS diagnostics (``r_hat``, ``ess`` per parameter,
-    ``divergences``)."""
+    (columns ``channels``: each channel's marginal noise sd), ``noise_params`` the noise
+    model's own draws (``ar1``: ``sigma_w``, ``sigma_a``, ``rho``, each [S, C]), and NUTS
+    diagnostics (``r_hat``, ``ess`` per parameter, ``divergences``)."""
 
     joints: tuple[str, ...]
     channels: tuple[str, ...]
     kp: np.ndarray
     sigma: np.ndarray
     diagnostics: dict = field(default_factory=dict)
+    noise: str = "iid"
+    noise_params: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         def stats(x):
@@ -60,6 +76,8 @@ class PullPosterior:
 
         out = {f"kp_{j}": stats(self.kp[:, i]) for i, j in enumerate(self.joints)}
         out |= {f"sigma_{c}": stats(self.sigma[:, i]) for i, c in enumerate(self.channels)}
+        for name, x in self.noise_params.items():
+            out |= {f"{name}_{c}": stats(x[:, i]) for i, c in enumerate(self.channels)}
         return out
 
 
@@ -87,18 +105,37 @@ def initial_stiffness(model: PullModel, force, tilt) -> np.ndarray:
     return np.clip(np.array([kp[j] for j in model.joints]), lo * 1.01, hi / 1.01)
 
 
-def _numpyro_model(model: PullModel, force, tilt, mask, kp_prior, noise_prior):
+def _numpyro_model(model: PullModel, force, tilt, mask, kp_prior, noise_prior, noise="iid"):
     import numpyro
     import numpyro.distributions as dist
 
     r, c = len(model.joints), tilt.shape[0]
     lo, hi = (math.log(v) for v in kp_prior)
     log_kp = numpyro.sample("log_kp", dist.Uniform(lo, hi).expand([r]).to_event(1))
-    sigma = numpyro.sample("sigma", dist.LogUniform(*noise_prior).expand([c]).to_event(1))
     pred, stable = model_tilts(model, jnp.exp(log_kp)[None], force)
     numpyro.factor("stable", jnp.where(stable[0], 0.0, -jnp.inf))
-    obs = dist.Normal(pred[0], sigma[:, None]).mask(mask)
-    numpyro.sample("tilt", obs.to_event(2), obs=jnp.where(mask, tilt, 0.0))
+    scale = dist.LogUniform(*noise_prior).expand([c]).to_event(1)
+    if noise == "iid":
+        sigma = numpyro.sample("sigma", scale)
+        obs = dist.Normal(pred[0], sigma[:, None]).mask(mask)
+        numpyro.sample("tilt", obs.to_event(2), obs=jnp.where(mask, tilt, 0.0))
+        return
+    from ...model.noise import RHO_PRIOR_LOC, RHO_PRIOR_SCALE, ar1_white_log_prob
+
+    sigma_w = numpyro.sample("sigma_w", scale)
+    sigma_a = numpyro.sample("sigma_a", scale)
+    z = numpyro.sample(
+        "logit_rho", dist.Normal(RHO_PRIOR_LOC, RHO_PRIOR_SCALE).expand([c]).to_event(1)
+    )
+    rho = jax.nn.sigmoid(z)
+    resid = jnp.where(mask, tilt - pred[0], 0.0)
+    total = 0.0
+    for i in range(c):  # one channel at a time: each has its own noise parameters
+        total = total + ar1_white_log_prob(
+            resid[i][None, None, :], mask[i][None, :], sigma_w[i][None], sigma_a[i][None],
+            rho[i][None],
+        )[0]  # fmt: skip
+    numpyro.factor("tilt", total)
 
 
 def fit_pull_test(
@@ -112,11 +149,16 @@ def fit_pull_test(
     seed: int = 0,
     kp_prior: tuple[float, float] = KP_PRIOR,
     noise_prior: tuple[float, float] = NOISE_PRIOR,
+    noise: str = "iid",
     progress: bool = False,
 ) -> PullPosterior:
     """NUTS on the static model: ``force`` [T] N along the cable, ``tilt`` [C, T] rad for the
-    channels of ``model.sensors`` (NaN where missing). Chains run one after the other (CPU)."""
+    channels of ``model.sensors`` (NaN where missing), ``noise`` ``"iid"`` or ``"ar1"`` (the
+    module docstring). Chains run one after the other (CPU)."""
     from numpyro.infer import MCMC, NUTS, init_to_value
+
+    if noise not in NOISE_MODELS:
+        raise ConfigError(f"noise: expected one of {', '.join(NOISE_MODELS)}, got {noise!r}")
 
     force = jnp.asarray(np.asarray(force, float))
     tilt_np = np.atleast_2d(np.asarray(tilt, float))
@@ -134,7 +176,7 @@ def fit_pull_test(
     s0 = np.clip(np.nanstd(resid, axis=1), noise_prior[0] * 2, noise_prior[1] / 2)
     kernel = NUTS(
         _numpyro_model,
-        init_strategy=init_to_value(values={"log_kp": jnp.log(k0), "sigma": jnp.asarray(s0)}),
+        init_strategy=init_to_value(values=_start(noise, k0, s0)),
         target_accept_prob=0.9,
         dense_mass=True,  # the trunk channel couples the two stiffnesses
     )
@@ -154,25 +196,57 @@ def fit_pull_test(
         jnp.asarray(mask),
         kp_prior,
         noise_prior,
+        noise,
     )
     draws = mcmc.get_samples(group_by_chain=True)
     from numpyro.diagnostics import effective_sample_size, split_gelman_rubin
 
     diag = {"divergences": int(np.asarray(mcmc.get_extra_fields()["diverging"]).sum())}
-    for name in ("log_kp", "sigma"):
+    for name in (
+        "log_kp",
+        *(("sigma",) if noise == "iid" else ("sigma_w", "sigma_a", "logit_rho")),
+    ):
         x = np.asarray(draws[name])
         diag[f"r_hat_{name}"] = (
             np.asarray(split_gelman_rubin(x)).tolist() if num_chains > 1 else None
         )
         diag[f"ess_{name}"] = np.asarray(effective_sample_size(x)).tolist()
-    flat = mcmc.get_samples()
+    flat = {k: np.asarray(v) for k, v in mcmc.get_samples().items()}
+    params = {}
+    if noise == "iid":
+        sigma = flat["sigma"]
+    else:
+        params = {
+            "sigma_w": flat["sigma_w"],
+            "sigma_a": flat["sigma_a"],
+            "rho": 1 / (1 + np.exp(-flat["logit_rho"])),
+        }
+        sigma = np.hypot(params["sigma_w"], params["sigma_a"])
     return PullPosterior(
         joints=tuple(model.joints),
         channels=tuple(model.sensors),
-        kp=np.exp(np.asarray(flat["log_kp"])),
-        sigma=np.asarray(flat["sigma"]),
+        kp=np.exp(flat["log_kp"]),
+        sigma=sigma,
         diagnostics=diag,
+        noise=noise,
+        noise_params=params,
     )
+
+
+def _start(noise: str, k0, s0) -> dict:
+    """NUTS's start: the closed-form stiffnesses, the noise sd of their residuals (``ar1``:
+    split evenly between the white and the correlated part, rho at its prior's centre)."""
+    if noise == "iid":
+        return {"log_kp": jnp.log(k0), "sigma": jnp.asarray(s0)}
+    from ...model.noise import RHO_PRIOR_LOC
+
+    half = jnp.asarray(s0) / math.sqrt(2)
+    return {
+        "log_kp": jnp.log(k0),
+        "sigma_w": half,
+        "sigma_a": half,
+        "logit_rho": jnp.full(len(s0), RHO_PRIOR_LOC),
+    }
 
 
 def predictive_band(
