@@ -175,3 +175,31 @@ def test_nuts_recovers_synthetic_stiffness_and_noise(model):
     # a band from a wrong stiffness would not cover: the test can fail
     off = np.asarray(model_tilts(model, jnp.asarray([KP * 0.8]), jnp.asarray(force))[0][0])
     assert ((off >= band["lo"]) & (off <= band["hi"])).mean() < 0.5
+
+
+def test_ar1_noise_widens_the_stiffness_interval_and_keeps_the_truth(model):
+    """Residuals with a slow AR(1) part (rho 0.95 per sample): the i.i.d. model's stiffness
+    intervals are too narrow; ``noise="ar1"`` holds the truth with wider intervals."""
+    rng = np.random.default_rng(5)
+    n = 120
+    force = np.linspace(20.0, 3000.0, n)
+    clean, _ = model_tilts(model, jnp.asarray(KP[None]), jnp.asarray(force))
+    rho, s_a, s_w = 0.95, np.deg2rad(0.02), np.deg2rad(0.003)
+    slow = np.zeros((2, n))
+    slow[:, 0] = s_a * rng.standard_normal(2)
+    for t in range(1, n):
+        slow[:, t] = rho * slow[:, t - 1] + math.sqrt(1 - rho**2) * s_a * rng.standard_normal(2)
+    y = np.asarray(clean[0]) + slow + s_w * rng.standard_normal((2, n))
+    kw = dict(num_warmup=150, num_samples=250, num_chains=1, seed=2)
+    iid = fit_pull_test(model, force, y, **kw)
+    ar1 = fit_pull_test(model, force, y, noise="ar1", **kw)
+    s = ar1.summary()
+    for j, name in enumerate(("root", "stem")):
+        assert s[f"kp_{name}"]["q2.5"] < KP[j] < s[f"kp_{name}"]["q97.5"], s
+        ratio = np.std(np.log(ar1.kp[:, j])) / np.std(np.log(iid.kp[:, j]))
+        assert ratio > 1.5, (name, ratio)
+    assert set(ar1.noise_params) == {"sigma_w", "sigma_a", "rho"}
+    np.testing.assert_allclose(
+        ar1.sigma, np.hypot(ar1.noise_params["sigma_w"], ar1.noise_params["sigma_a"])
+    )
+    assert np.median(ar1.noise_params["rho"]) > 0.8
