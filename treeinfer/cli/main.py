@@ -64,6 +64,7 @@ COMMANDS: dict[str, Command] = {
     "simulate": _command("simulate"),
     "import-bag": _command("import_bag"),
     "import-csv": _command("import_csv"),
+    "import-pul": _command("import_pul"),
     "infer": _command("infer"),
     "predict": _command("predict"),
     "evaluate": _command("evaluate"),

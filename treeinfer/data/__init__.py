@@ -1,6 +1,6 @@
 """Recordings: force-deformation trajectories and their files, where and in which direction each
 pull acted, plausibility checks of data against a tree, force profiles, and the importers (CSV,
-ROS bags).
+ROS bags, .pul static pulling tests).
 
 May import: treeinfer.tree, treeinfer.io, treeinfer.errors.
 
@@ -9,7 +9,8 @@ importing one module of the package does not import the others (startup cost, an
 import order between them).
 
 Submodules: bag_messages, bags, checks, csv_format, direction, forces, import_bag, import_csv,
-kortex, noise_estimate, pull_checks, pulls, side_files, trajectories, true_params, types."""
+import_pul, kortex, noise_estimate, pul, pull_checks, pull_test, pulls, side_files, trajectories,
+true_params, types."""
 
 _EXPORTS = {
     "KNOWN_TYPES": "bag_messages",
@@ -43,6 +44,20 @@ _EXPORTS = {
     "random_specs": "forces",
     "sample_times": "forces",
     "smooth_step": "forces",
+    "METADATA_FILE": "import_pul",
+    "PulImport": "import_pul",
+    "INCLINOMETERS": "pul",
+    "PUL_SUFFIX": "pul",
+    "PulFile": "pul",
+    "SensorSeries": "pul",
+    "read_pul": "pul",
+    "TiltChannel": "pull_test",
+    "PullSetup": "pull_test",
+    "PullTest": "pull_test",
+    "make_pull_test": "pull_test",
+    "read_pull_test": "pull_test",
+    "read_test_setups": "pull_test",
+    "write_pull_test": "pull_test",
     "FORCE_TYPES": "import_bag",
     "KORTEX_TYPE": "import_bag",
     "POSE_TYPES": "import_bag",
@@ -112,9 +127,12 @@ _SUBMODULES = (
     "forces",
     "import_bag",
     "import_csv",
+    "import_pul",
     "kortex",
     "noise_estimate",
+    "pul",
     "pull_checks",
+    "pull_test",
     "pulls",
     "side_files",
     "trajectories",

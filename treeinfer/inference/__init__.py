@@ -1,7 +1,7 @@
 """From a problem to particles: the front end (make_problem, infer, predict), starts (MAP fit,
 Laplace, importance sampling, the fast posterior), the samplers (BlackJAX-style kernels: SVGD,
-SGLD, SGHMC, MH), their diagnostics, sequential priors, batched posteriors, sharding, and the
-quasi-static model (static/).
+SGLD, SGHMC, MH), their diagnostics, sequential priors, batched posteriors, sharding, the
+quasi-static model (static/) and static tree pulling tests with inclinometers (pulltest/).
 
 May import: treeinfer.model, treeinfer.sim, treeinfer.data, treeinfer.tree, treeinfer.io,
 treeinfer.errors.
@@ -11,8 +11,8 @@ importing one module of the package does not import the others (startup cost, an
 import order between them).
 
 Submodules: batch, diagnostics, fast, fast_evaluator, fast_fit, fast_result, importance, laplace,
-lm, mapfit, posterior, posterior_io, problem, problem_types, rollout, samplers, sequential,
-sharding, spec, start_pipeline, start_steps, static."""
+lm, mapfit, posterior, posterior_io, problem, problem_types, pulltest, rollout, samplers,
+sequential, sharding, spec, start_pipeline, start_steps, static."""
 
 _EXPORTS = {
     "ProblemSpec": "spec",
@@ -210,6 +210,7 @@ _SUBMODULES = (
     "posterior",
     "posterior_io",
     "problem",
+    "pulltest",
     "rollout",
     "samplers",
     "sequential",

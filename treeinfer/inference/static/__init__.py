@@ -19,6 +19,9 @@ sample interval far longer than the branch's slowest natural period), and
 :func:`parameter_layout` gives the theta layout for inferring stiffness only
 (``inference: {parameters: [kp]}``) with any model.
 
+:func:`static_equilibria` returns the joint angles of those equilibria instead of the grasp
+point's displacement (for inclinometer observations, :mod:`treeinfer.inference.pulltest`).
+
 Modules: :mod:`~treeinfer.inference.static.equilibrium` (the solver),
 :mod:`~treeinfer.inference.static.detection` (quasi-static data),
 :mod:`~treeinfer.inference.static.layout` (theta layouts, model kinds),
@@ -31,7 +34,7 @@ from __future__ import annotations
 
 from ...tree.description import PARAMETERS, parse_parameters
 from .detection import QUASI_STATIC_RATIO, natural_periods, quasi_static_notice, suggest_static
-from .equilibrium import NEWTON_CLIP, static_rollout
+from .equilibrium import NEWTON_CLIP, Equilibria, static_equilibria, static_rollout
 from .layout import (
     MODEL_KINDS,
     ParameterLayout,
@@ -56,6 +59,7 @@ from .terms import (
 from .tied import TiedLayout, taper_shape, tied_layout, tree_tied_layout
 
 __all__ = [
+    "Equilibria",
     "MODEL_KINDS",
     "Model",
     "NEWTON_CLIP",
@@ -81,6 +85,7 @@ __all__ = [
     "quasi_static_notice",
     "run_tree",
     "static_force_noise_for",
+    "static_equilibria",
     "static_rollout",
     "taper_shape",
     "tied_layout",

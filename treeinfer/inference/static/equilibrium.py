@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -61,35 +62,9 @@ def _grasp_bodies(sim: Simulator, n: int, grasp_branch, tree) -> tuple[int, ...]
     return tuple(out)
 
 
-def static_rollout(
-    sim: Simulator,
-    kp,
-    forces,
-    grasp_fraction=None,
-    direction=None,
-    grasp_branch: str | Sequence[str] | None = None,
-    tree=None,
-    iterations: int | None = None,
-) -> Rollout:
-    """Equilibrium displacement of the grasp point under each force sample (no dynamics).
-
-    Args:
-        sim: from :func:`treeinfer.sim.make_simulator` with the fused backend (any tree
-            treeinfer builds). ``sim.obs_dt`` is used only for ``tau_dot``.
-        kp: [P, R] N m/rad, stiffness of the inferred joints (damping plays no role).
-        forces: [B, T] N, force along ``direction`` at the grasp point.
-        grasp_fraction: None (the tree's), a scalar or [B]: grasp point as a fraction of the
-            grasped branch's length from its joint.
-        direction: None (along gravity), [3] or [B, 3] world vectors (normalised here).
-        grasp_branch: None (the simulator's grasp branch), a name, or B names (static: one
-            compiled group per distinct branch); other branches need ``tree`` for lengths.
-        iterations: Newton iterations per sample (default ``sim.settle_iterations``).
-
-    Returns:
-        :class:`~treeinfer.sim.Rollout`: ``tau`` [P, B, T] m along the direction from
-        the gravity-settled rest, ``tau_dot`` its finite-difference derivative (the same scheme
-        as recorded data), ``stable`` [P, B] False where an equilibrium was not found.
-    """
+def _profile_geometry(sim: Simulator, kp, forces, grasp_fraction, direction, grasp_branch, tree):
+    """Checked inputs of :func:`static_rollout`: ``kp`` [P, R], ``forces`` [B, T], the grasp
+    bodies, the grasp points in their frames [B, 3] and the unit directions [B, 3]."""
     if sim.hinge_tree is None:
         raise ConfigError("the static model needs the fused hinge-tree backend (backend='fused')")
     dtype = sim.dtype
@@ -128,6 +103,41 @@ def static_rollout(
             if not np.all(np.isfinite(norms)) or np.any(norms == 0):
                 raise ConfigError("direction: each must be a finite non-zero vector")
         dirs = dirs / jnp.linalg.norm(dirs, axis=1, keepdims=True)
+    return kp, forces, bodies, sites, dirs
+
+
+def static_rollout(
+    sim: Simulator,
+    kp,
+    forces,
+    grasp_fraction=None,
+    direction=None,
+    grasp_branch: str | Sequence[str] | None = None,
+    tree=None,
+    iterations: int | None = None,
+) -> Rollout:
+    """Equilibrium displacement of the grasp point under each force sample (no dynamics).
+
+    Args:
+        sim: from :func:`treeinfer.sim.make_simulator` with the fused backend (any tree
+            treeinfer builds). ``sim.obs_dt`` is used only for ``tau_dot``.
+        kp: [P, R] N m/rad, stiffness of the inferred joints (damping plays no role).
+        forces: [B, T] N, force along ``direction`` at the grasp point.
+        grasp_fraction: None (the tree's), a scalar or [B]: grasp point as a fraction of the
+            grasped branch's length from its joint.
+        direction: None (along gravity), [3] or [B, 3] world vectors (normalised here).
+        grasp_branch: None (the simulator's grasp branch), a name, or B names (static: one
+            compiled group per distinct branch); other branches need ``tree`` for lengths.
+        iterations: Newton iterations per sample (default ``sim.settle_iterations``).
+
+    Returns:
+        :class:`~treeinfer.sim.Rollout`: ``tau`` [P, B, T] m along the direction from
+        the gravity-settled rest, ``tau_dot`` its finite-difference derivative (the same scheme
+        as recorded data), ``stable`` [P, B] False where an equilibrium was not found.
+    """
+    kp, forces, bodies, sites, dirs = _profile_geometry(
+        sim, kp, forces, grasp_fraction, direction, grasp_branch, tree
+    )
     n_iter = sim.settle_iterations if iterations is None else int(iterations)
     return _static_core(sim, bodies, n_iter, kp, forces, sites, dirs)
 
@@ -149,18 +159,13 @@ def _static_core(sim: Simulator, bodies: tuple, n_iter: int, kp, forces, sites, 
     return Rollout(tau=tau, tau_dot=tau_dot, stable=ok)
 
 
-def _static_group(sim: Simulator, body: int, n_iter: int, kp, forces, sites, dirs):
-    """[P, B, T] displacements and [P, B] flags for profiles grasped on one body."""
+def _solver(sim: Simulator, body: int, n_iter: int, dtype):
+    """``solve(kp_i, f, site, d, q0) -> (q [nv], ok)``: the equilibrium under a force ``f``
+    along ``d`` at ``site`` on ``body`` from the start ``q0``, and its flag (the residual there
+    is at most ``sim.settle_tolerance`` times ``1 + max|residual(q0)|``)."""
     t = sim.hinge_tree
     nv = t.nv
-    dtype = kp.dtype
-
     moving = hd._ancestor_dofs(t, body)  # dofs whose hinge moves the grasp point
-
-    def point(q, site):
-        kin = hd.kinematics(t, [q[i] for i in range(nv)])
-        p = hd.point(kin, body, tuple(site[i] for i in range(3)))
-        return jnp.stack([jnp.asarray(x, dtype) for x in p])
 
     def residual(q, kp_i, f, site, d):
         """Static torque plus J_C^T (f d): a hinge's column of the point Jacobian is
@@ -205,29 +210,105 @@ def _static_group(sim: Simulator, body: int, n_iter: int, kp, forces, sites, dir
         )
         return q, -small_solve(jac, dr)
 
-    def per_params(kp_i):
-        def solve(f, site, d, q0):
-            """The equilibrium ``q`` [nv] under force ``f`` and its flag: the residual there is
-            at most ``sim.settle_tolerance`` times ``1 + max|residual(q0)|``."""
-            q = equilibrium(kp_i, f, site, d, q0)
-            r0 = jax.lax.stop_gradient(residual(q0, kp_i, f, site, d))
-            r_last = jax.lax.stop_gradient(residual(q, kp_i, f, site, d))
-            ok = jnp.all(jnp.isfinite(q)) & (
-                jnp.max(jnp.abs(r_last)) <= sim.settle_tolerance * (1.0 + jnp.max(jnp.abs(r0)))
-            )
-            return q, ok
+    def solve(kp_i, f, site, d, q0):
+        q = equilibrium(kp_i, f, site, d, q0)
+        r0 = jax.lax.stop_gradient(residual(q0, kp_i, f, site, d))
+        r_last = jax.lax.stop_gradient(residual(q, kp_i, f, site, d))
+        ok = jnp.all(jnp.isfinite(q)) & (
+            jnp.max(jnp.abs(r_last)) <= sim.settle_tolerance * (1.0 + jnp.max(jnp.abs(r0)))
+        )
+        return q, ok
 
-        zero = jnp.zeros(nv, dtype)
-        q_rest, ok_rest = solve(jnp.asarray(0.0, dtype), sites[0], dirs[0], zero)
+    return solve
+
+
+def _equilibria_group(sim: Simulator, body: int, n_iter: int, kp, forces, sites, dirs):
+    """Equilibria of profiles grasped on one body: ``q`` [P, B, T, nv], the gravity-settled
+    rest ``q_rest`` [P, nv] and the flags ``ok`` [P, B] (every sample and the rest found)."""
+    solve = _solver(sim, body, n_iter, kp.dtype)
+    zero = jnp.zeros(sim.hinge_tree.nv, kp.dtype)
+
+    def per_params(kp_i):
+        q_rest, ok_rest = solve(kp_i, jnp.asarray(0.0, kp.dtype), sites[0], dirs[0], zero)
 
         def per_profile(f_row, site, d):
-            q, ok = jax.vmap(lambda f: solve(f, site, d, q_rest))(f_row)  # [T, nv], [T]
-            c = jax.vmap(lambda qq: point(qq, site))(q)  # [T, 3]
-            tau = (c - point(q_rest, site)) @ d
-            good = jnp.all(ok) & ok_rest & jnp.all(jnp.isfinite(tau))
-            good = good & jnp.all(jnp.abs(tau) < sim.max_displacement)
-            return tau, good
+            q, ok = jax.vmap(lambda f: solve(kp_i, f, site, d, q_rest))(f_row)  # [T, nv], [T]
+            return q, jnp.all(ok) & ok_rest
 
-        return jax.vmap(per_profile)(forces, sites, dirs)
+        q, ok = jax.vmap(per_profile)(forces, sites, dirs)
+        return q, q_rest, ok
 
     return jax.vmap(per_params)(kp)
+
+
+def _static_group(sim: Simulator, body: int, n_iter: int, kp, forces, sites, dirs):
+    """[P, B, T] displacements and [P, B] flags for profiles grasped on one body."""
+    t = sim.hinge_tree
+    nv = t.nv
+    dtype = kp.dtype
+
+    def point(q, site):
+        kin = hd.kinematics(t, [q[i] for i in range(nv)])
+        p = hd.point(kin, body, tuple(site[i] for i in range(3)))
+        return jnp.stack([jnp.asarray(x, dtype) for x in p])
+
+    q, q_rest, ok = _equilibria_group(sim, body, n_iter, kp, forces, sites, dirs)
+
+    def per_profile(q_row, qr, site, d):  # [T, nv], [nv]
+        c = jax.vmap(lambda qq: point(qq, site))(q_row)  # [T, 3]
+        return (c - point(qr, site)) @ d
+
+    tau = jax.vmap(  # over parameter sets, then profiles
+        lambda qp, qr: jax.vmap(lambda qq, s, d: per_profile(qq, qr, s, d))(qp, sites, dirs)
+    )(q, q_rest)
+    good = ok & jnp.all(jnp.isfinite(tau), axis=-1)
+    good = good & jnp.all(jnp.abs(tau) < sim.max_displacement, axis=-1)
+    return tau, good
+
+
+class Equilibria(NamedTuple):
+    """:func:`static_equilibria`: joint angles ``q`` [P, B, T, nv] under each force sample,
+    the gravity-settled rest ``q_rest`` [P, nv] and ``stable`` [P, B] (False where an
+    equilibrium was not found)."""
+
+    q: jax.Array
+    q_rest: jax.Array
+    stable: jax.Array
+
+
+def static_equilibria(
+    sim: Simulator,
+    kp,
+    forces,
+    grasp_fraction=None,
+    direction=None,
+    grasp_branch: str | Sequence[str] | None = None,
+    tree=None,
+    iterations: int | None = None,
+) -> Equilibria:
+    """The joint angles of :func:`static_rollout`'s equilibria (same arguments), for
+    observations other than the grasp point's displacement (inclinometers: the tilt of a link
+    is read from the kinematics at ``q``; see :mod:`treeinfer.inference.pulltest`)."""
+    kp, forces, bodies, sites, dirs = _profile_geometry(
+        sim, kp, forces, grasp_fraction, direction, grasp_branch, tree
+    )
+    n_iter = sim.settle_iterations if iterations is None else int(iterations)
+    return _equilibria_core(sim, bodies, n_iter, kp, forces, sites, dirs)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def _equilibria_core(sim: Simulator, bodies: tuple, n_iter: int, kp, forces, sites, dirs):
+    p, (b, n) = kp.shape[0], forces.shape
+    nv = sim.hinge_tree.nv
+    q = jnp.zeros((p, b, n, nv), kp.dtype)
+    q_rest = jnp.zeros((p, nv), kp.dtype)
+    ok = jnp.zeros((p, b), bool)
+    for body in sorted(set(bodies)):
+        idx = np.asarray([i for i, x in enumerate(bodies) if x == body])
+        q_g, r_g, ok_g = _equilibria_group(
+            sim, body, n_iter, kp, forces[idx], sites[idx], dirs[idx]
+        )
+        q = q.at[:, idx].set(q_g)
+        q_rest = r_g  # the rest does not depend on the profiles
+        ok = ok.at[:, idx].set(ok_g)
+    return Equilibria(q=q, q_rest=q_rest, stable=ok)

@@ -1,0 +1,342 @@
+"""Issue 30 section 4: static winch pulling tests of mangrove trees, the static chain model with
+inclinometer observations against a beam baseline, on held-out parts of each record.
+
+Data: ``../shared/data/mangrove`` (``pull_tests/*.pul`` and ``trees.csv``), from
+``jack-w-hill/mangrove-tree-strength``; paper: Hill JW, Bennion V, Lovelock CE (2024), *Mangrove
+tree strength estimated with field experiments*, Ecological Engineering 203: 107259,
+doi:10.1016/j.ecoleng.2024.107259. The data are read where they are, never copied.
+
+Per test:
+
+1. the ``.pul`` file and its metadata row -> force along the cable and the signed tilts of the
+   root and trunk inclinometers on one time base (``treeinfer.data.pull_test``);
+2. fit on the first half (in time) of the loading ramp: the two-link chain
+   (``treeinfer.inference.pulltest``: root hinge at the ground, stem hinge at the root clino,
+   cable at the sling height and angle), NUTS over both stiffnesses and each channel's noise sd;
+   and the uniform Euler-Bernoulli cantilever on a root-plate spring by least squares;
+3. held out: the second half of the ramp (``ramp2``), the hold at the peak (``hold``: creep) and
+   the release (``release``: hysteresis); per part and channel, the share of recorded tilts
+   inside the 95% posterior predictive band, and the RMSE of the chain's predictive mean and of
+   the beam's prediction.
+
+    nice python experiments/mangrove.py [--data ../shared/data/mangrove] [--tests a,b]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+if __name__ == "__main__":  # run as a script from anywhere: use this checkout's treeinfer
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+TESTS = ("halloran_1", "halloran_10", "gladstone_21", "gladstone_31")
+PARTS = ("ramp2", "hold", "release")
+CITATION = (
+    "Hill JW, Bennion V, Lovelock CE (2024) Mangrove tree strength estimated with field "
+    "experiments. Ecological Engineering 203: 107259. doi:10.1016/j.ecoleng.2024.107259"
+)
+
+
+def shared_data() -> Path | None:
+    """``$TREEINFER_SHARED_DATA/mangrove``, else ``shared/data/mangrove`` beside the repository
+    or any folder above it (a worktree lies deeper than the main checkout)."""
+    env = os.environ.get("TREEINFER_SHARED_DATA")
+    cands = [Path(env) / "mangrove"] if env else []
+    cands += [p / "shared" / "data" / "mangrove" for p in (REPO, *REPO.parents)]
+    return next((c for c in cands if (c / "trees.csv").is_file()), None)
+
+
+def windows(test) -> dict[str, slice]:
+    ph, t = test.phases, test.time
+    mid = int(np.searchsorted(t, (t[ph["ramp_start"]] + t[ph["ramp_end"]]) / 2))
+    return {
+        "fit": slice(ph["ramp_start"], mid),
+        "ramp2": slice(mid, ph["ramp_end"] + 1),
+        "hold": slice(ph["ramp_end"] + 1, ph["release_start"]),
+        "release": slice(ph["release_start"], ph["release_end"] + 1),
+    }
+
+
+def _rmse(a, b) -> float:
+    d = np.asarray(a) - np.asarray(b)
+    d = d[np.isfinite(d)]
+    return float(np.sqrt(np.mean(d**2))) if d.size else math.nan
+
+
+def run_test(name: str, data: Path, args, noise: str = "iid") -> tuple[dict, dict]:
+    from treeinfer.data import make_pull_test, read_pul, read_test_setups
+    from treeinfer.inference.pulltest import (
+        beam_predict,
+        fit_beam,
+        fit_pull_test,
+        fit_springs,
+        predictive_band,
+        pull_model,
+        springs_predict,
+    )
+
+    t0 = time.time()
+    setup = read_test_setups(data / "trees.csv")[name]
+    test = make_pull_test(read_pul(data / "pull_tests" / f"{name}.pul"), setup)
+    model = pull_model(setup)
+    chans = list(model.sensors)
+    win = windows(test)
+    y = np.stack([test.tilt[c] for c in chans])  # [C, T] rad
+    fit = win["fit"]
+    post = fit_pull_test(
+        model,
+        test.force[fit],
+        y[:, fit],
+        num_warmup=args.warmup,
+        num_samples=args.samples,
+        num_chains=args.chains,
+        seed=args.seed,
+        noise=noise,
+    )
+    span = slice(win["fit"].start, win["release"].stop)
+    band = predictive_band(model, post, test.force[span], n_draws=args.draws, seed=args.seed)
+    heights = [test.channels[c].height for c in chans]
+    beam = fit_beam(heights, setup.sling_height, setup.cable_angle, test.force[fit], y[:, fit])
+    beam_all = beam_predict(beam, heights, setup.sling_height, setup.cable_angle, test.force[span])
+    springs = fit_springs(setup.sling_height, setup.cable_angle, test.force[fit], y[:, fit])
+    springs_all = springs_predict(springs, setup.sling_height, setup.cable_angle, test.force[span])
+    off = span.start
+    parts = {}
+    for part in ("fit", *PARTS, "heldout"):
+        if part == "heldout":  # the second half of the ramp and the release (not the hold)
+            idx = np.r_[
+                win["ramp2"].start - off : win["ramp2"].stop - off,
+                win["release"].start - off : win["release"].stop - off,
+            ]
+        else:
+            idx = np.arange(win[part].start - off, win[part].stop - off)
+        rec = {}
+        for i, c in enumerate(chans):
+            yy = y[i, off:][idx]
+            ok = np.isfinite(yy)
+            inside = (yy >= band["lo"][i, idx]) & (yy <= band["hi"][i, idx])
+            rec[c] = {
+                "n": int(ok.sum()),
+                "coverage": float(inside[ok].mean()) if ok.any() else math.nan,
+                "rmse_chain": _rmse(band["mean"][i, idx], yy),
+                "rmse_beam": _rmse(beam_all[i, idx], yy),
+                "rmse_springs": _rmse(springs_all[i, idx], yy),
+            }
+        parts[part] = rec
+    result = {
+        "test": name,
+        "noise": noise,
+        "tree_id": setup.tree_id,
+        "species": setup.species,
+        "site": setup.site,
+        "peak_force_N": float(test.force.max()),
+        "cable_angle_deg": math.degrees(setup.cable_angle),
+        "sling_height_m": setup.sling_height,
+        "channels": {
+            c: {"height_m": test.channels[c].height, "link": model.sensors[c]} for c in chans
+        },
+        "phases_s": {k: float(test.time[v]) for k, v in test.phases.items()},
+        "fit_samples": int(fit.stop - fit.start),
+        "posterior": post.summary(),
+        "diagnostics": post.diagnostics,
+        "beam": {"k_root": beam.k_root, "ei": beam.ei, "fit_rmse": beam.rmse},
+        "springs": {c: float(k) for c, k in zip(chans, springs)},
+        "parts": parts,
+        "wall_s": time.time() - t0,
+    }
+    curves = {
+        "time": test.time[span],
+        "tilt": y[:, span],
+        "band": band,
+        "beam": beam_all,
+        "springs": springs_all,
+        "fit": (test.time[fit.start], test.time[fit.stop - 1]),
+        "phases": {k: test.time[v] for k, v in test.phases.items()},
+        "channels": chans,
+    }
+    return result, curves
+
+
+def figure(curves: dict[str, dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(curves)
+    fig, axs = plt.subplots(len(names), 2, figsize=(13, 2.9 * len(names)), squeeze=False)
+    for r, name in enumerate(names):
+        cv = curves[name]
+        t = cv["time"]
+        for i, c in enumerate(cv["channels"]):
+            ax = axs[r, i]
+            deg = np.rad2deg
+            ax.axvspan(*cv["fit"], color="0.9", label="fit (first half of the ramp)")
+            ax.plot(t, deg(cv["tilt"][i]), ".", ms=1.5, color="0.3", label="recorded")
+            ax.fill_between(
+                t,
+                deg(cv["band"]["lo"][i]),
+                deg(cv["band"]["hi"][i]),
+                color="C0",
+                alpha=0.35,
+                label="chain: 95% predictive band",
+            )
+            ax.plot(t, deg(cv["band"]["mean"][i]), color="C0", lw=0.8)
+            ax.plot(t, deg(cv["beam"][i]), "--", color="C3", lw=0.8, label="beam baseline")
+            ax.plot(t, deg(cv["springs"][i]), ":", color="C2", lw=0.9, label="spring baseline")
+            for k in ("ramp_end", "release_start"):
+                ax.axvline(cv["phases"][k], color="0.5", lw=0.5)
+            ax.set_title(f"{name}: {c} inclinometer", fontsize=9)
+            ax.set_ylabel("tilt along the pull (deg)")
+            if r == len(names) - 1:
+                ax.set_xlabel("time (s)")
+            if r == 0 and i == 0:
+                ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def markdown(results: list[dict], config: dict) -> str:
+    lines = [
+        "# Mangrove static pulling tests: the static chain model with inclinometers",
+        "",
+        f"Data: Hill et al. (2024), doi:10.1016/j.ecoleng.2024.107259 ({config['data']}).",
+        "Fit: first half of the loading ramp. Held out: the second half of the ramp (ramp2),",
+        "the hold at the peak (hold) and the release (release); `heldout` = ramp2 + release.",
+        "Coverage: share of recorded tilts inside the chain's 95% posterior predictive band.",
+        "RMSE in degrees: the chain's predictive mean and two baselines fitted by least squares",
+        "to the same data: beam (a uniform Euler-Bernoulli cantilever on a root-plate spring,",
+        "one pair of compliances for both inclinometers) and springs (tilt = moment at the",
+        "ground / K_c, one K_c per inclinometer).",
+        "",
+        f"Command: `{config['command']}`",
+        "",
+        "| test | noise | channel | part | n | coverage | RMSE chain (deg) | RMSE beam (deg) "
+        "| RMSE springs (deg) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        for part in ("fit", *PARTS, "heldout"):
+            for c, m in r["parts"][part].items():
+                lines.append(
+                    f"| {r['test']} | {r['noise']} | {c} | {part} | {m['n']} | "
+                    f"{m['coverage']:.1%} | "
+                    f"{math.degrees(m['rmse_chain']):.4f} | {math.degrees(m['rmse_beam']):.4f} | "
+                    f"{math.degrees(m['rmse_springs']):.4f} |"
+                )
+    lines += [
+        "",
+        "| test | noise | Kp root (N m/rad) | Kp stem (N m/rad) | sigma root (deg) "
+        "| sigma trunk (deg) | R-hat max | divergences | beam K (N m/rad) | beam EI (N m^2) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        p, d = r["posterior"], r["diagnostics"]
+        rh = [v for k in d if k.startswith("r_hat") for v in (d[k] or [])]
+
+        def ci(k, scale=1.0):
+            m, lo, hi = (p[k][q] * scale for q in ("mean", "q2.5", "q97.5"))
+            return f"{m:.4g} [{lo:.4g}, {hi:.4g}]"
+
+        lines.append(
+            f"| {r['test']} | {r['noise']} | {ci('kp_root')} | {ci('kp_stem')} | "
+            f"{ci('sigma_root', 180 / math.pi)} | {ci('sigma_trunk', 180 / math.pi)} | "
+            f"{max(rh) if rh else float('nan'):.3f} | {d['divergences']} | "
+            f"{r['beam']['k_root']:.4g} | {r['beam']['ei']:.4g} |"
+        )
+    lines += ["", "Config:", "", "```json", json.dumps(config, indent=2), "```", ""]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, help="the mangrove folder (default: found)")
+    ap.add_argument("--tests", default=",".join(TESTS), help="comma-separated test names")
+    ap.add_argument("--out", type=Path, default=REPO / "experiments" / "results" / "mangrove")
+    ap.add_argument("--warmup", type=int, default=300)
+    ap.add_argument("--samples", type=int, default=500)
+    ap.add_argument("--chains", type=int, default=2)
+    ap.add_argument("--draws", type=int, default=400, help="posterior draws in the band")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--noise", default="iid,ar1", help="noise models, comma-separated: iid, ar1")
+    args = ap.parse_args(argv)
+    data = args.data or shared_data()
+    if data is None:
+        print("the mangrove data (../shared/data/mangrove) is absent; give --data", file=sys.stderr)
+        return 2
+    from treeinfer.io import atomic_write_text
+
+    t0, cpu0 = time.time(), time.process_time()
+    results, curves = [], {}
+    noises = [s.strip() for s in args.noise.split(",") if s.strip()]
+    for noise in noises:
+        curves[noise] = {}
+        for name in [s.strip() for s in args.tests.split(",") if s.strip()]:
+            print(f"{name} ({noise} noise) ...", flush=True)
+            r, cv = run_test(name, data, args, noise)
+            results.append(r)
+            curves[noise][name] = cv
+            h = r["parts"]["heldout"]
+            print(
+                "  held out: coverage "
+                + ", ".join(f"{c} {m['coverage']:.1%}" for c, m in h.items())
+                + "; RMSE chain/beam/springs (deg) "
+                + ", ".join(
+                    f"{c} "
+                    + "/".join(
+                        f"{math.degrees(m[k]):.3f}"
+                        for k in ("rmse_chain", "rmse_beam", "rmse_springs")
+                    )
+                    for c, m in h.items()
+                )
+                + f" ({r['wall_s']:.0f} s)",
+                flush=True,
+            )
+    import jax
+    import numpyro
+
+    config = {
+        "command": " ".join(["nice python experiments/mangrove.py", *(argv or sys.argv[1:])]),
+        "data": str(data),
+        "tests": sorted({r["test"] for r in results}),
+        "noise": noises,
+        "warmup": args.warmup,
+        "samples": args.samples,
+        "chains": args.chains,
+        "draws": args.draws,
+        "seed": args.seed,
+        "citation": CITATION,
+        "versions": {
+            "python": platform.python_version(),
+            "jax": jax.__version__,
+            "numpyro": numpyro.__version__,
+            "numpy": np.__version__,
+        },
+        "wall_s": time.time() - t0,
+        "cpu_s": time.process_time() - cpu0,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    for i, noise in enumerate(noises):  # bands.png: the first noise model's
+        figure(curves[noise], args.out / ("bands.png" if i == 0 else f"bands_{noise}.png"))
+    atomic_write_text(
+        args.out / "results.json",
+        json.dumps({"config": config, "results": results}, indent=2, default=float) + "\n",
+    )
+    atomic_write_text(args.out / "results.md", markdown(results, config))
+    print(f"wrote {args.out}/results.json, results.md, bands*.png")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,38 @@
+"""Static tree pulling tests (winch cable at a height and angle, inclinometers on the stem):
+the chain model with angle observations, its posterior over the joint stiffnesses (NUTS), the
+predictive band, and a cantilever-beam baseline.
+
+May import: treeinfer.sim, treeinfer.tree, treeinfer.data, treeinfer.io, treeinfer.errors
+(the layers below inference), and treeinfer.inference.static.
+
+Submodules: model (the chain and its tilts), posterior (likelihood, NUTS, bands), beam
+(the least-squares baselines: a beam on a root-plate spring, and one spring per inclinometer)."""
+
+_EXPORTS = {
+    "BeamFit": "beam",
+    "beam_design": "beam",
+    "beam_predict": "beam",
+    "fit_beam": "beam",
+    "fit_springs": "beam",
+    "springs_predict": "beam",
+    "DENSITY": "model",
+    "KP_PRIOR": "model",
+    "PullModel": "model",
+    "chain_tree": "model",
+    "model_tilts": "model",
+    "pull_model": "model",
+    "NOISE_MODELS": "posterior",
+    "NOISE_PRIOR": "posterior",
+    "PullPosterior": "posterior",
+    "fit_pull_test": "posterior",
+    "initial_stiffness": "posterior",
+    "predictive_band": "posterior",
+}
+_SUBMODULES = ("beam", "model", "posterior")
+
+__all__ = sorted(_EXPORTS)
+
+
+from ...io.lazy import lazy_package  # noqa: E402 -- after the tables it reads
+
+__getattr__, __dir__ = lazy_package(__name__, _EXPORTS, _SUBMODULES)

@@ -1,0 +1,276 @@
+"""The posterior of a static pulling test: joint stiffnesses and per-channel noise, by NUTS.
+
+Likelihood: each recorded tilt (rad, NaN = missing) is the model's tilt plus Gaussian noise
+with a standard deviation per inclinometer, inferred with the stiffnesses:
+
+    tilt_c(t) ~ Normal(model_c(F(t); Kp), sigma_c)
+
+priors ``log Kp_j ~ Uniform(log 1e3, log 1e8)`` (N m/rad; :data:`~.model.KP_PRIOR`) and
+``sigma_c ~ LogUniform(1e-6, 0.05)`` rad (``noise="iid"``). With ``noise="ar1"`` each channel's
+residual is white noise (``sigma_w``) plus a stationary AR(1) component (``sigma_a``, lag-1
+correlation ``rho`` per sample, logit-normal prior centred on 0.9), the exact likelihood of
+treeinfer's :func:`treeinfer.model.noise.ar1_white_log_prob` (a Kalman filter that predicts
+through missing samples); the band then uses the marginal sd ``sqrt(sigma_w^2 + sigma_a^2)``.
+Samples are treated as equally spaced (about 0.1 s). The force is taken as recorded (its 10 N
+quantum is well below the ramp's forces; errors in the force are not modelled).
+
+Why NUTS from numpyro and not treeinfer's start pipeline and samplers: those are built around
+the displacement likelihood of :mod:`treeinfer.model.likelihood` (particles x profiles x time
+rollouts, the grasp point's ``tau``) and do not take another likelihood without changing that
+module; this problem is small (2 stiffnesses, 2-6 noise parameters, one equilibrium solve per force
+sample with exact implicit gradients), exactly what NUTS does best, and numpyro handles the
+bounded priors' transforms and the warm-up. Residuals of real recordings are autocorrelated
+(issue 30 section 3): with i.i.d. noise the stiffness intervals are too narrow (``ar1`` widens
+them); the predictive band is dominated by the noise sd and is what the experiment checks.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ...errors import ConfigError
+from .model import KP_PRIOR, PullModel, model_tilts
+
+__all__ = [
+    "NOISE_MODELS",
+    "NOISE_PRIOR",
+    "PullPosterior",
+    "fit_pull_test",
+    "initial_stiffness",
+    "predictive_band",
+]
+
+NOISE_PRIOR = (1.0e-6, 0.05)  # rad: the LogUniform prior of each channel's noise sd
+NOISE_DRAWS = 4  # noise samples per parameter draw in the predictive band
+NOISE_MODELS = ("iid", "ar1")
+
+
+@dataclass(frozen=True)
+class PullPosterior:
+    """Posterior draws: ``kp`` [S, R] N m/rad (columns ``joints``), ``sigma`` [S, C] rad
+    (columns ``channels``: each channel's marginal noise sd), ``noise_params`` the noise
+    model's own draws (``ar1``: ``sigma_w``, ``sigma_a``, ``rho``, each [S, C]), and NUTS
+    diagnostics (``r_hat``, ``ess`` per parameter, ``divergences``)."""
+
+    joints: tuple[str, ...]
+    channels: tuple[str, ...]
+    kp: np.ndarray
+    sigma: np.ndarray
+    diagnostics: dict = field(default_factory=dict)
+    noise: str = "iid"
+    noise_params: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        def stats(x):
+            return {
+                "mean": float(np.mean(x)),
+                "sd": float(np.std(x)),
+                "q2.5": float(np.quantile(x, 0.025)),
+                "q97.5": float(np.quantile(x, 0.975)),
+            }
+
+        out = {f"kp_{j}": stats(self.kp[:, i]) for i, j in enumerate(self.joints)}
+        out |= {f"sigma_{c}": stats(self.sigma[:, i]) for i, c in enumerate(self.channels)}
+        for name, x in self.noise_params.items():
+            out |= {f"{name}_{c}": stats(x[:, i]) for i, c in enumerate(self.channels)}
+        return out
+
+
+def initial_stiffness(model: PullModel, force, tilt) -> np.ndarray:
+    """A start for the chain's two springs from the small-angle closed form: the root spring
+    carries the cable's moment at the ground, ``tilt_root = F h cos a / K_root``, the stem
+    spring the moment at its hinge; each slope by least squares through the origin. Clipped
+    to the prior box."""
+    force, tilt = np.asarray(force, float), np.asarray(tilt, float)
+    chans = list(model.sensors)
+    h_r = model.tree.branch("root").length
+    arm = {"root": model.sling_height, "stem": max(model.sling_height - h_r, 0.0)}
+    ca = math.cos(model.cable_angle)
+    slopes = {}
+    for i, c in enumerate(chans):
+        ok = np.isfinite(tilt[i])
+        den = float(np.sum(force[ok] ** 2))
+        slopes[model.sensors[c]] = float(np.sum(force[ok] * tilt[i][ok]) / den) if den else 0.0
+    lo, hi = KP_PRIOR
+    s_root = slopes.get("root", 0.0)
+    k_root = arm["root"] * ca / s_root if s_root > 0 else math.sqrt(lo * hi)
+    s_stem = slopes.get("stem", 0.0) - s_root
+    k_stem = arm["stem"] * ca / s_stem if s_stem > 0 and arm["stem"] > 0 else math.sqrt(lo * hi)
+    kp = {"root": k_root, "stem": k_stem}
+    return np.clip(np.array([kp[j] for j in model.joints]), lo * 1.01, hi / 1.01)
+
+
+def _numpyro_model(model: PullModel, force, tilt, mask, kp_prior, noise_prior, noise="iid"):
+    import numpyro
+    import numpyro.distributions as dist
+
+    r, c = len(model.joints), tilt.shape[0]
+    lo, hi = (math.log(v) for v in kp_prior)
+    log_kp = numpyro.sample("log_kp", dist.Uniform(lo, hi).expand([r]).to_event(1))
+    pred, stable = model_tilts(model, jnp.exp(log_kp)[None], force)
+    numpyro.factor("stable", jnp.where(stable[0], 0.0, -jnp.inf))
+    scale = dist.LogUniform(*noise_prior).expand([c]).to_event(1)
+    if noise == "iid":
+        sigma = numpyro.sample("sigma", scale)
+        obs = dist.Normal(pred[0], sigma[:, None]).mask(mask)
+        numpyro.sample("tilt", obs.to_event(2), obs=jnp.where(mask, tilt, 0.0))
+        return
+    from ...model.noise import RHO_PRIOR_LOC, RHO_PRIOR_SCALE, ar1_white_log_prob
+
+    sigma_w = numpyro.sample("sigma_w", scale)
+    sigma_a = numpyro.sample("sigma_a", scale)
+    z = numpyro.sample(
+        "logit_rho", dist.Normal(RHO_PRIOR_LOC, RHO_PRIOR_SCALE).expand([c]).to_event(1)
+    )
+    rho = jax.nn.sigmoid(z)
+    resid = jnp.where(mask, tilt - pred[0], 0.0)
+    total = 0.0
+    for i in range(c):  # one channel at a time: each has its own noise parameters
+        total = total + ar1_white_log_prob(
+            resid[i][None, None, :], mask[i][None, :], sigma_w[i][None], sigma_a[i][None],
+            rho[i][None],
+        )[0]  # fmt: skip
+    numpyro.factor("tilt", total)
+
+
+def fit_pull_test(
+    model: PullModel,
+    force,
+    tilt,
+    *,
+    num_warmup: int = 500,
+    num_samples: int = 1000,
+    num_chains: int = 2,
+    seed: int = 0,
+    kp_prior: tuple[float, float] = KP_PRIOR,
+    noise_prior: tuple[float, float] = NOISE_PRIOR,
+    noise: str = "iid",
+    progress: bool = False,
+) -> PullPosterior:
+    """NUTS on the static model: ``force`` [T] N along the cable, ``tilt`` [C, T] rad for the
+    channels of ``model.sensors`` (NaN where missing), ``noise`` ``"iid"`` or ``"ar1"`` (the
+    module docstring). Chains run one after the other (CPU)."""
+    from numpyro.infer import MCMC, NUTS, init_to_value
+
+    if noise not in NOISE_MODELS:
+        raise ConfigError(f"noise: expected one of {', '.join(NOISE_MODELS)}, got {noise!r}")
+
+    force = jnp.asarray(np.asarray(force, float))
+    tilt_np = np.atleast_2d(np.asarray(tilt, float))
+    if tilt_np.shape != (len(model.sensors), force.shape[0]):
+        raise ConfigError(
+            f"fit_pull_test: tilt is {tilt_np.shape}, expected "
+            f"({len(model.sensors)}, {force.shape[0]}) (channels x force samples)"
+        )
+    mask = np.isfinite(tilt_np)
+    if mask.sum(axis=1).min() < 3:
+        raise ConfigError("fit_pull_test: fewer than 3 recorded tilts in a channel")
+    k0 = initial_stiffness(model, np.asarray(force), tilt_np)
+    pred0, _ = model_tilts(model, jnp.asarray(k0)[None], force)
+    resid = np.where(mask, tilt_np - np.asarray(pred0[0]), np.nan)
+    s0 = np.clip(np.nanstd(resid, axis=1), noise_prior[0] * 2, noise_prior[1] / 2)
+    kernel = NUTS(
+        _numpyro_model,
+        init_strategy=init_to_value(values=_start(noise, k0, s0)),
+        target_accept_prob=0.9,
+        dense_mass=True,  # the trunk channel couples the two stiffnesses
+    )
+    mcmc = MCMC(
+        kernel,
+        num_warmup=num_warmup,
+        num_samples=num_samples,
+        num_chains=num_chains,
+        chain_method="sequential",
+        progress_bar=progress,
+    )
+    mcmc.run(
+        jax.random.PRNGKey(seed),
+        model,
+        force,
+        jnp.asarray(tilt_np),
+        jnp.asarray(mask),
+        kp_prior,
+        noise_prior,
+        noise,
+    )
+    draws = mcmc.get_samples(group_by_chain=True)
+    from numpyro.diagnostics import effective_sample_size, split_gelman_rubin
+
+    diag = {"divergences": int(np.asarray(mcmc.get_extra_fields()["diverging"]).sum())}
+    for name in (
+        "log_kp",
+        *(("sigma",) if noise == "iid" else ("sigma_w", "sigma_a", "logit_rho")),
+    ):
+        x = np.asarray(draws[name])
+        diag[f"r_hat_{name}"] = (
+            np.asarray(split_gelman_rubin(x)).tolist() if num_chains > 1 else None
+        )
+        diag[f"ess_{name}"] = np.asarray(effective_sample_size(x)).tolist()
+    flat = {k: np.asarray(v) for k, v in mcmc.get_samples().items()}
+    params = {}
+    if noise == "iid":
+        sigma = flat["sigma"]
+    else:
+        params = {
+            "sigma_w": flat["sigma_w"],
+            "sigma_a": flat["sigma_a"],
+            "rho": 1 / (1 + np.exp(-flat["logit_rho"])),
+        }
+        sigma = np.hypot(params["sigma_w"], params["sigma_a"])
+    return PullPosterior(
+        joints=tuple(model.joints),
+        channels=tuple(model.sensors),
+        kp=np.exp(flat["log_kp"]),
+        sigma=sigma,
+        diagnostics=diag,
+        noise=noise,
+        noise_params=params,
+    )
+
+
+def _start(noise: str, k0, s0) -> dict:
+    """NUTS's start: the closed-form stiffnesses, the noise sd of their residuals (``ar1``:
+    split evenly between the white and the correlated part, rho at its prior's centre)."""
+    if noise == "iid":
+        return {"log_kp": jnp.log(k0), "sigma": jnp.asarray(s0)}
+    from ...model.noise import RHO_PRIOR_LOC
+
+    half = jnp.asarray(s0) / math.sqrt(2)
+    return {
+        "log_kp": jnp.log(k0),
+        "sigma_w": half,
+        "sigma_a": half,
+        "logit_rho": jnp.full(len(s0), RHO_PRIOR_LOC),
+    }
+
+
+def predictive_band(
+    model: PullModel, post: PullPosterior, force, level: float = 0.95, n_draws: int = 400, seed=0
+) -> dict[str, np.ndarray]:
+    """The posterior predictive of the recorded tilt under ``force`` [T]: ``mean`` (the model's
+    tilt averaged over draws), ``lo``/``hi`` (the central ``level`` interval of model + noise),
+    ``model_lo``/``model_hi`` (of the model's tilt alone); each [C, T] rad."""
+    rng = np.random.default_rng(seed)
+    idx = rng.choice(post.kp.shape[0], size=min(n_draws, post.kp.shape[0]), replace=False)
+    force = jnp.asarray(np.asarray(force, float))
+    pred, stable = model_tilts(model, jnp.asarray(post.kp[idx]), force)
+    pred = np.asarray(pred)[np.asarray(stable)]  # [S, C, T]
+    if pred.shape[0] == 0:
+        raise ConfigError("predictive_band: no posterior draw has an equilibrium for this force")
+    sig = post.sigma[idx][np.asarray(stable)]
+    # a few noise draws per parameter draw: smoother tail quantiles for the same solves
+    eps = rng.standard_normal((NOISE_DRAWS, *pred.shape))
+    noisy = (pred[None] + sig[None, :, :, None] * eps).reshape(-1, *pred.shape[1:])
+    q = (1 - level) / 2
+    return {
+        "mean": pred.mean(axis=0),
+        "lo": np.quantile(noisy, q, axis=0),
+        "hi": np.quantile(noisy, 1 - q, axis=0),
+        "model_lo": np.quantile(pred, q, axis=0),
+        "model_hi": np.quantile(pred, 1 - q, axis=0),
+    }
