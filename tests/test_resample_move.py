@@ -39,7 +39,7 @@ def test_recovers_a_correlated_gaussian_from_too_narrow_draws():
     sd = np.sqrt(np.diag(cov))
     np.testing.assert_allclose(res.chains.mean(0), mean, atol=0.15 * sd.max())
     np.testing.assert_allclose(res.chains.std(0), sd, rtol=0.15)
-    assert 0.15 < res.acceptance < 0.5 and res.moved > 0.9
+    assert 0.15 < res.acceptance < 0.5 and res.moved > 0.9 and res.travel >= 1.0
     assert res.theta.shape == (256, 4)
     np.testing.assert_allclose(res.log_density, logp(res.theta), atol=1e-9)
 
@@ -79,3 +79,18 @@ def test_bad_sizes_are_refused():
         resample_move(lambda t: np.zeros(len(t)), x, np.zeros(4), np.zeros(4), 8, 4)
     with pytest.raises(ConfigError, match="finite weight"):
         resample_move(lambda t: np.zeros(len(t)), x, np.full(4, -np.inf), np.zeros(4), 2, 4)
+
+
+def test_chains_that_do_not_move_are_not_settled():
+    """Every proposal rejected (an unstable simulation everywhere else): the cloud does not
+    change, which alone would read as "settled"; the travel rule says it is not."""
+    x = np.random.default_rng(0).normal(0, 1.0, (200, 3))
+
+    def logp(t):
+        return np.full(len(np.atleast_2d(t)), -np.inf)
+
+    args = (logp, x, np.zeros(200), np.zeros(200), 16, 64)
+    stuck = resample_move(*args, seed=0, min_sweeps=4, max_sweeps=12, min_moved=0.0)
+    assert not stuck.ok and stuck.travel == 0.0 and "travel 0.00 sd^2" in stuck.reason
+    lax = resample_move(*args, seed=0, min_sweeps=4, max_sweeps=12, min_moved=0.0, min_travel=0)
+    assert lax.ok  # the same cloud passes without the rule: the rule is what refuses it

@@ -28,8 +28,12 @@ no new program to compile.
 Stopping: after ``min_sweeps``, every ``check_every`` sweeps the cloud's mean and std per
 column are compared with those ``check_every`` sweeps before; the cloud is converged when the
 largest mean change is below ``tol`` of the std and the largest std change below ``tol`` of it
-twice in a row, and at least ``min_moved`` of the chains have accepted a move (copies of one
-draw have separated). Otherwise, after ``max_sweeps``, ``ok`` is False and says why.
+twice in a row, at least ``min_moved`` of the chains have accepted a move (copies of one
+draw have separated), and the chains have travelled: the mean over chains of their summed
+squared jumps, in units of the cloud's covariance, is at least ``min_travel`` times D (a cloud
+whose chains barely move also "stops changing": with a proposal far too wide the acceptance, and
+with it every step, shrinks towards zero). Otherwise, after ``max_sweeps``, ``ok`` is False and
+says why.
 """
 
 from __future__ import annotations
@@ -53,7 +57,8 @@ class MoveResult(NamedTuple):
     chains: [N, D] every chain's last state; chain_log_density: [N]. ok: converged (module
     docstring); reason: why not ("" when ok). sweeps: Metropolis sweeps run. acceptance: mean
     acceptance over the sweeps. moved: share of chains that accepted at least one move.
-    change: ``(mean change / std, relative std change)`` at the last check.
+    change: ``(mean change / std, relative std change)`` at the last check. travel: the chains'
+    mean summed squared jump over D, in units of the cloud's covariance.
     """
 
     theta: np.ndarray
@@ -66,6 +71,7 @@ class MoveResult(NamedTuple):
     acceptance: float
     moved: float
     change: tuple
+    travel: float = 0.0
 
     def settings(self) -> dict:
         """JSON-ready record of the diagnostics."""
@@ -77,6 +83,7 @@ class MoveResult(NamedTuple):
             "moved": float(self.moved),
             "mean_change_sd": float(self.change[0]),
             "std_change": float(self.change[1]),
+            "travel": float(self.travel),
             "ok": bool(self.ok),
             "reason": self.reason,
         }
@@ -85,7 +92,8 @@ class MoveResult(NamedTuple):
         """One line for the log."""
         return (
             f"{len(self.chains)} chains x {self.sweeps} random-walk Metropolis sweeps "
-            f"(acceptance {100 * self.acceptance:.0f}%, {100 * self.moved:.0f}% of chains moved; "
+            f"(acceptance {100 * self.acceptance:.0f}%, {100 * self.moved:.0f}% of chains moved, "
+            f"travel {self.travel:.1f} sd^2; "
             f"last change: mean {self.change[0]:.3f} sd, std {100 * self.change[1]:.1f}%)"
         )
 
@@ -122,6 +130,7 @@ def resample_move(
     check_every: int = 4,
     tol: float = 0.15,
     min_moved: float = 0.9,
+    min_travel: float = 1.0,
 ) -> MoveResult:
     """Resample importance draws by their weights, then Metropolis sweeps until stable.
 
@@ -132,7 +141,8 @@ def resample_move(
         weights; draws_log_density: ``[M]`` log density at the draws (no re-evaluation).
       n_particles: P particles returned. n_chains: N chains (default ``4 P``).
       seed: of the resampling, the moves and the choice of the P returned chains.
-      min_sweeps, max_sweeps, check_every, tol, min_moved: the stopping rule (module docstring).
+      min_sweeps, max_sweeps, check_every, tol, min_moved, min_travel: the stopping rule
+        (module docstring).
     """
     draws = np.atleast_2d(np.asarray(draws, float))
     lw = np.asarray(log_weights, float)
@@ -159,6 +169,7 @@ def resample_move(
     n, d = x.shape
     log_s = math.log(2.38 / math.sqrt(d))
     moved = np.zeros(n, bool)
+    jumped = np.zeros(n)  # summed squared jumps, in the cloud's covariance
     accepted, stats, change, calm = [], [], (math.inf, math.inf), 0
     ok, reason, sweeps = False, "", 0
     for sweeps in range(1, max_sweeps + 1):
@@ -169,6 +180,8 @@ def resample_move(
         with np.errstate(invalid="ignore"):
             ratio = np.where(np.isfinite(lpp), lpp - lp, -np.inf)
         acc = np.log(rng.random(n)) < ratio
+        z2 = np.sum(np.linalg.solve(chol, (xp - x).T) ** 2, axis=0)
+        jumped += np.where(acc, z2, 0.0)
         x[acc], lp[acc] = xp[acc], lpp[acc]
         moved |= acc
         rate = float(acc.mean())
@@ -178,16 +191,17 @@ def resample_move(
         if sweeps >= min_sweeps and sweeps % check_every == 0 and sweeps > check_every:
             change = _change(stats[-1], stats[-1 - check_every])
             calm = calm + 1 if max(change) < tol else 0
-            if calm >= 2 and moved.mean() >= min_moved:
+            if calm >= 2 and moved.mean() >= min_moved and jumped.mean() / d >= min_travel:
                 ok = True
                 break
     if not ok:
         reason = (
             f"the cloud still changed after {sweeps} sweeps (mean by {change[0]:.2f} sd, std "
-            f"by {100 * change[1]:.0f}%; {100 * moved.mean():.0f}% of chains moved)"
+            f"by {100 * change[1]:.0f}%; {100 * moved.mean():.0f}% of chains moved, travel "
+            f"{jumped.mean() / d:.2f} sd^2 of {min_travel:g} needed)"
         )
     keep = np.sort(rng.choice(n, size=int(n_particles), replace=False))
     return MoveResult(
         x[keep], lp[keep], x, lp, ok, reason, sweeps, float(np.mean(accepted)),
-        float(moved.mean()), change,
+        float(moved.mean()), change, float(jumped.mean() / d),
     )  # fmt: skip
