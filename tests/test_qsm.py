@@ -13,7 +13,7 @@ from treeinfer.errors import ConfigError, TreeFileError
 from treeinfer.tree import read_qsm, tree_from_qsm
 from treeinfer.tree.qsm_convert import carried_inertia
 from treeinfer.tree.qsm_wood import SPECIES, stiffness_box
-from treeinfer.tree.types import branch_density, cylinder_inertia, world_frames
+from treeinfer.tree.types import branch_inertial, world_frames
 
 
 def _write(tmp_path, kind, **kw):
@@ -116,10 +116,51 @@ def _tree_mass_and_com(tree):
     total, moment = 0.0, np.zeros(3)
     for b in tree.branches:
         p, r = frames[b.name]
-        m, _ = cylinder_inertia(b, branch_density(tree, b))
+        m, com, _ = branch_inertial(tree, b)
         total += m
-        moment += m * (p + r[:, 0] * b.length / 2)
+        moment += m * (p + r @ com)
     return total, moment / total
+
+
+def _mujoco_body_inertia(mj, body: int):
+    """(mass, world com [3], world inertia about it [3, 3]) of a compiled body at qpos0."""
+    import mujoco
+
+    d = mujoco.MjData(mj)
+    mujoco.mj_kinematics(mj, d)
+    rot = d.ximat[body].reshape(3, 3)
+    return mj.body_mass[body], d.xipos[body].copy(), rot @ np.diag(mj.body_inertia[body]) @ rot.T
+
+
+def _lumped_reference(res, name):
+    """The link ``name`` and the QSM cylinders lumped onto it as solid cylinder geoms of one
+    MuJoCo body, MuJoCo computing the body's inertia from them (independent of
+    treeinfer.tree.lump): (mass, world com, world inertia about it)."""
+    import mujoco
+
+    cyl, rho = res.cylinders, res.wood.density
+    start, end = cyl.start - res.origin, cyl.end - res.origin
+    frames = world_frames(res.tree)
+    b = res.tree.branch(name)
+    p, r = frames[name]
+    segs = [(p, p + r[:, 0] * b.length, b.radius, res.tree.density)]
+    host = {lk.name: set(lk.cylinders) for lk in res.links}[name]
+    for i in np.flatnonzero(res.lumped):  # lumped onto this link: its nearest link ancestor's
+        j = i
+        while res.lumped[j]:
+            j = int(cyl.parent[j])
+        if j in host:
+            segs.append((start[i], end[i], cyl.radius[i], rho))
+    fmt = lambda v: " ".join(f"{x:.12g}" for x in v)
+    geoms = "".join(
+        f'<geom type="cylinder" fromto="{fmt(a)} {fmt(e)}" size="{rr:.12g}" density="{d:.12g}"/>'
+        for a, e, rr, d in segs
+    )
+    mj = mujoco.MjModel.from_xml_string(
+        f'<mujoco><compiler inertiafromgeom="true"/><worldbody><body name="x">'
+        f'<freejoint/>{geoms}</body></worldbody></mujoco>'
+    )
+    return _mujoco_body_inertia(mj, 1)
 
 
 @pytest.mark.parametrize("kind", sorted(WRITERS))
@@ -145,18 +186,19 @@ def test_chain_to_a_grasp_point_keeps_geometry_mass_and_centre_of_mass(tmp_path,
     qm, qc = _qsm_mass_and_com(res.cylinders, res.wood.density)
     tm, tc = _tree_mass_and_com(tree)
     assert tm == pytest.approx(qm, rel=1e-4)
-    cyl, rho = res.cylinders, res.wood.density
-    m = rho * math.pi * cyl.radius**2 * cyl.length
-    centre = 0.5 * (cyl.start + cyl.end) - BASE
-    lumped_moment = (m[res.lumped, None] * centre[res.lumped]).sum(0)
-    stub_moment = np.zeros(3)
+    # ... and every lump is part of its link's body: MuJoCo's own inertia of the link and the
+    # cylinders lumped onto it (as geoms of one body) is the exported body's
+    from treeinfer.tree.export import to_mjmodel
+
+    mj = to_mjmodel(tree)
+    assert mj.nbody == len(res.links) + 1 and mj.njnt == len(res.links)  # one body per joint
+    assert set(res.lumps) <= {lk.name for lk in res.links} and res.lumps
     for name in res.lumps:
-        b = tree.branch(name)
-        p, r = frames[name]
-        stub_moment += cylinder_inertia(b, branch_density(tree, b))[0] * (
-            p + r[:, 0] * b.length / 2
-        )
-    np.testing.assert_allclose(stub_moment, lumped_moment, rtol=1e-4, atol=1e-7)
+        m_ref, c_ref, i_ref = _lumped_reference(res, name)
+        m, c, inertia = _mujoco_body_inertia(mj, mj.body(name).id)
+        assert m == pytest.approx(m_ref, rel=1e-6)
+        np.testing.assert_allclose(c, c_ref, atol=1e-7)
+        np.testing.assert_allclose(inertia, i_ref, rtol=1e-5, atol=1e-9 * np.abs(i_ref).max())
     # ... while a link of one radius puts its mass at its middle: the tapered QSM's centre of
     # mass moves by less than 2 cm here
     np.testing.assert_allclose(tc, qc - BASE, atol=0.02)
@@ -301,20 +343,11 @@ def test_straight_axes_get_no_bend_joints(tmp_path):
     assert [lk.name for lk in res.links] == ["stem", "b1"]
 
 
-def test_mass_on_the_axis_makes_the_link_denser_and_files_stay_plain(tmp_path):
+def test_lumps_in_files_round_trip_and_bad_lumps_are_refused(tmp_path):
     import yaml
 
-    from treeinfer.tree.description import Branch, dump_tree, load_tree
-    from treeinfer.tree.qsm_geometry import lump_mass
+    from treeinfer.tree.description import dump_tree, load_tree, tree_to_dict
 
-    host = Branch("a", None, 1.0, 0.02)
-    frame = (np.zeros(3), np.eye(3), 1.0)
-    m = np.float64(0.5)  # as the converter sums it
-    stub, dens = lump_mass(host, frame, m, m * np.array([0.5, 0.0, 0.001]), 900.0)
-    own = 900.0 * math.pi * 0.02**2
-    assert stub is None and type(dens) is float and dens == pytest.approx(900 * (own + m) / own)
-    stub, dens = lump_mass(host, frame, m, m * np.array([0.5, 0.0, 0.3]), 900.0)
-    assert dens is None and stub.fixed and stub.length == pytest.approx(0.6)
     # every converted tree writes as plain YAML and reads back the same
     path = _write(tmp_path, "archi")
     for kw in ({}, {"rest": "keep", "prune_diameter": 0.026}, {"grasp_cylinder": 15}):
@@ -322,11 +355,25 @@ def test_mass_on_the_axis_makes_the_link_denser_and_files_stay_plain(tmp_path):
         out = dump_tree(res.tree, tmp_path / "t.yaml")
         yaml.safe_load(out.read_text())
         assert load_tree(out) == res.tree
+    d = tree_to_dict(tree_from_qsm(path).tree)
+    host = next(i for i, b in enumerate(d["branches"]) if "lump" in b)
+    for field, value, message in (
+        ("mass", -1.0, "lump: mass: expected a positive number"),
+        ("com", [0.0, 1.0], "lump.com: expected a list of 3 numbers"),
+        ("inertia", [1.0, 1.0, 3.0, 0.0, 0.0, 0.0], "not those of a rigid body"),
+        ("inertia", [1.0, 1.0, "x", 0.0, 0.0, 0.0], "lump.inertia: expected numbers"),
+    ):
+        bad = yaml.safe_load(yaml.safe_dump(d))
+        bad["branches"][host]["lump"][field] = value
+        (tmp_path / "bad.yaml").write_text(yaml.safe_dump(bad))
+        with pytest.raises(TreeFileError, match=rf"bad.yaml: branches\[{host}\].*{message}"):
+            load_tree(tmp_path / "bad.yaml")
 
 
 def test_a_leaning_stem_still_bends_about_the_pull_moment(tmp_path):
     """A stem leaning 20 degrees sideways to the grasp: its root hinge would be normal to the
-    lean; a welded connector turns it to the pull's moment, and the geometry is kept."""
+    lean; the stem is twisted about its axis to the pull's moment, no welded body added, and the
+    geometry is kept."""
     from treeinfer.tree.types import rot_x
 
     t = sapling()
@@ -336,7 +383,9 @@ def test_a_leaning_stem_still_bends_about_the_pull_moment(tmp_path):
     path = write_simpleforest(tmp_path / "leaning.csv", t)
     grasp = BASE + rot @ np.array([0.9, 0.0, 1.0])
     res = tree_from_qsm(path, grasp_point=tuple(grasp))
-    assert res.tree.branch("stem").parent == "stem_turn"
+    stem = res.tree.branch("stem")
+    assert stem.parent is None and abs(stem.twist_deg) > 5.0
+    assert not any(b.fixed for b in res.tree.branches)
     frames = world_frames(res.tree)
     for name in res.tree.inferred:
         p, r = frames[name]

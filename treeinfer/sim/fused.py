@@ -35,6 +35,7 @@ one particle; ``vmap`` turns each scalar op into one elementwise op over the bat
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -218,11 +219,23 @@ def point(kin: Kinematics, body: int, local):
     return vadd(kin.pos[body], matvec(kin.rot[body], local))
 
 
+@functools.lru_cache(maxsize=4096)
+def _body_inertia(irot: tuple, inertia: tuple) -> tuple:
+    """A body's inertia tensor about its com in its own frame, ``irot diag(inertia) irot^T``,
+    as constants: diagonal (its zeros fold) when the principal axes are the body's axes, as for
+    every branch treeinfer builds, where it gives exactly the arithmetic of rotating to the
+    principal axes; for rotated principal axes (merged masses, a user's model) it saves the
+    27-product rotation ``rot @ irot`` in every call of :func:`_inertia_times`."""
+    r = np.asarray(irot, float)
+    full = r @ np.diag(np.asarray(inertia, float)) @ r.T
+    return _cmat(0.5 * (full + full.T))
+
+
 def _inertia_times(t: HingeTree, kin: Kinematics, b: int, v):
     """World inertia of body b (MuJoCo index) about its com, applied to the world vector v."""
-    r = matmul(kin.rot[b], t.irot[b - 1])
+    r = kin.rot[b]
     local = matTvec(r, v)
-    return matvec(r, tuple(mul(i, x) for i, x in zip(t.inertia[b - 1], local)))
+    return matvec(r, matvec(_body_inertia(t.irot[b - 1], t.inertia[b - 1]), local))
 
 
 def _ancestor_dofs(t: HingeTree, b: int) -> list[int]:

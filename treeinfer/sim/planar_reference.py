@@ -73,8 +73,12 @@ class PlanarTree:
     def __init__(self, tree: Tree, kp, kd, grasp_fraction=None, grasp_branch=None, direction=None):
         names = list(tree.names)
         for b in tree.branches:
-            if b.azimuth_deg != 0.0:
-                raise ValueError(f"branch {b.name}: azimuth_deg must be 0 for a planar model")
+            if b.azimuth_deg != 0.0 or b.twist_deg != 0.0:
+                raise ValueError(
+                    f"branch {b.name}: azimuth_deg and twist_deg must be 0 for a planar model"
+                )
+            if b.lump is not None:
+                raise ValueError(f"branch {b.name}: welded lumps are not in the planar model")
         yaw = math.radians(tree.base_yaw_deg)
         self.h = np.array([math.cos(yaw), math.sin(yaw), 0.0])
         self.z = np.array([0.0, 0.0, 1.0])

@@ -5,6 +5,7 @@ by :mod:`treeinfer.tree.description`."""
 from __future__ import annotations
 
 from ..errors import TreeFileError
+from .lump import check_lump
 from .types import (
     _GENERATED_SUFFIXES,
     MAX_BRANCH_LENGTH,
@@ -92,6 +93,9 @@ def _validate_branches(branches: tuple[Branch, ...]) -> None:
             )
         _finite(b.angle_deg, "angle_deg", w)
         _finite(b.azimuth_deg, "azimuth_deg", w)
+        _finite(b.twist_deg, "twist_deg", w)
+        if b.lump is not None:
+            check_lump(b.lump, w)
         _check_fraction(b.attach, "attach", w)
         if b.density is not None:
             _positive(b.density, "density", w)

@@ -28,6 +28,7 @@ import numpy as np
 from ..errors import ConfigError, TreeFileError
 from ..io.safe_load import load_file, string
 from .checks import _validate_branches, check_tie  # noqa: F401 -- re-exported
+from .lump import parse_lump
 from .types import (  # noqa: F401 -- re-exported: the old import path keeps working
     _GENERATED_SUFFIXES,
     DEFAULT_DENSITY,
@@ -189,6 +190,8 @@ _BRANCH_KEYS = {
     "kp",
     "kd",
     "fixed",
+    "twist_deg",
+    "lump",
 }
 _TOP_KEYS = {
     "name",
@@ -265,6 +268,8 @@ def tree_from_dict(d: Any, source: str = "<dict>", base_dir: str | Path | None =
                 kp=None if rb.get("kp") is None else _positive(rb["kp"], "kp", w),
                 kd=None if rb.get("kd") is None else _positive(rb["kd"], "kd", w),
                 fixed=fixed,
+                twist_deg=_finite(rb.get("twist_deg", 0.0), "twist_deg", w),
+                lump=parse_lump(rb.get("lump"), w),
             )
         )
     try:

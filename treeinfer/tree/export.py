@@ -2,7 +2,8 @@
 
 Both describe the same multibody: one body per branch, a hinge about the branch frame's y-axis
 at its base (absent for ``fixed`` branches), a cylinder along the frame's x-axis whose mass and
-inertia come from the wood density, and a ``grasp`` site on the grasped branch. The joint
+inertia come from the wood density (plus the branch's welded ``lump``, if any), and a ``grasp``
+site on the grasped branch. The joint
 spring has ``springref = 0``, so the passive torque is ``-Kp * psi - Kd * psi_dot`` about the
 geometric rest angle: the paper's PD controller with zero target.
 """
@@ -23,6 +24,7 @@ from .description import (
     local_rotation,
     quat_from_matrix,
 )
+from .types import branch_inertial
 
 GRASP_SITE = "grasp"
 _WOOD_RGBA = "0.45 0.30 0.15 1"
@@ -78,14 +80,25 @@ def to_mjcf(tree: Tree, timestep: float = 0.002, integrator: str = "implicitfast
                 damping=f"{kd:.10g}",
                 springref="0",
             )
-        mass, inertia = cylinder_inertia(b, branch_density(tree, b))
-        ET.SubElement(
-            body,
-            "inertial",
-            pos=_fmt([b.length / 2, 0, 0]),
-            mass=f"{mass:.10g}",
-            diaginertia=_fmt(inertia),
-        )
+        if b.lump is None:
+            mass, inertia = cylinder_inertia(b, branch_density(tree, b))
+            ET.SubElement(
+                body,
+                "inertial",
+                pos=_fmt([b.length / 2, 0, 0]),
+                mass=f"{mass:.10g}",
+                diaginertia=_fmt(inertia),
+            )
+        else:  # a welded lump: one body, its inertia the cylinder's plus the lump's
+            mass, com, full = branch_inertial(tree, b)
+            ET.SubElement(
+                body,
+                "inertial",
+                pos=_fmt(com),
+                mass=f"{mass:.10g}",
+                fullinertia=_fmt([full[0, 0], full[1, 1], full[2, 2], full[0, 1], full[0, 2],
+                                  full[1, 2]]),
+            )  # fmt: skip
         ET.SubElement(
             body,
             "geom",

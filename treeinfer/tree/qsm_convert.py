@@ -19,19 +19,18 @@ Steps (:func:`tree_from_qsm`):
    and every ``joint_spacing`` m along an axis (split into equal parts at cylinder ends).
    A link's radius keeps its cylinders' wood volume; its base radius (taper) sets the
    stiffness box.
-4. **Hinge axes.** The tree description has one hinge per joint, about the normal of the plane
-   of the two links it joins. Where a link's direction lies within ``hinge_tolerance_deg`` of
-   the plane that gives a horizontal hinge (bending up and down, as gravity and a downward
-   pull do; a near-vertical stem bends towards the grasp point), that plane is used and the
-   link is turned by at most that angle (and so that its end moves by at most
-   ``SNAP_DISTANCE``); each link aims at its own QSM end, so the error does
-   not add up along the tree. On the grasp's path, where neither holds, a welded connector
-   (``TURN_LENGTH`` long) turns the frame so that the hinge lies along the moment of the pull
-   (``pull_direction``, default down) about the joint; off the path (fixed gains) the hinge is
-   the normal of the two links' plane.
-5. **The rest.** ``lump``: every cylinder not in a link adds its mass to the link it hangs
-   from, as one welded (jointless) cylinder per link whose centre is the lumped cylinders'
-   centre of mass (mass and first moment kept); ``drop``: left out.
+4. **Hinge axes.** A joint is one hinge across its link. On the grasp's path it lies along the
+   moment of the pull (``pull_direction``, default down) about the joint; off the path, across
+   the link's bend under gravity. Where the link's direction lies within
+   ``hinge_tolerance_deg`` of the plane that gives that hinge without a twist (the normal of
+   the plane of the two links), that plane is used and the link is turned by at most that
+   angle (and so that its end moves by at most ``SNAP_DISTANCE``); each link aims at its own
+   QSM end, so the error does not add up along the tree. Elsewhere the link keeps its exact
+   direction and its frame is twisted about its own axis (``twist_deg``) to give the hinge.
+5. **The rest.** ``lump``: every cylinder not in a link is welded into the body of the link it
+   hangs from as that link's ``lump`` (:mod:`treeinfer.tree.lump`): their mass, centre of mass
+   and inertia (each cylinder's own plus the parallel-axis terms) are kept exactly, and the
+   model has one body per joint, like a hand-written tree; ``drop``: left out.
 6. **Priors** from the wood (:mod:`treeinfer.tree.qsm_wood`): the inferred joints (the path's,
    all by default, else the first ``levels`` up from the grasp) get a stiffness box from the
    link's base radius and length and a damping box from the inertia the joint carries; the
@@ -41,7 +40,7 @@ Steps (:func:`tree_from_qsm`):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +48,7 @@ import numpy as np
 
 from ..errors import ConfigError, TreeFileError
 from .description import make_tree
+from .lump import cylinders_lump
 from .qsm import Cylinders, children_of, read_qsm, topological_order
 from .qsm_geometry import (
     base_rot,
@@ -57,7 +57,6 @@ from .qsm_geometry import (
     clip_box,
     hinge_wanted,
     link_names,
-    lump_mass,
     nearest_cylinder,
     on_segment,
     root_angles,
@@ -70,10 +69,8 @@ from .qsm_wood import Wood, damping_box, stiffness_box, wood
 from .types import KD_RANGE, KP_RANGE, Bounds, Branch, Tree, local_rotation
 
 RESTS = ("lump", "drop", "keep")
-# m: a welded connector this long turns a link's frame so that its hinge axis can be chosen
-# (the tree description fixes a child's hinge to the normal of the plane of the two links)
 SNAP_DISTANCE = 0.02  # m: how far a link's end may move when it is turned to a wanted hinge
-TURN_LENGTH = 0.005  # (radius half of it: a body of 0.1 mg, well above MuJoCo's minimum)
+_MIN_LUMP_MASS = 1e-6  # kg; lighter remainders are left out (reported as dropped)
 
 
 @dataclass(frozen=True)
@@ -93,7 +90,7 @@ class QsmLink:
 @dataclass(frozen=True)
 class QsmTree:
     """What :func:`tree_from_qsm` returns: the ``tree``, the ``cylinders`` read (file frame),
-    the ``origin`` subtracted (m), the ``links`` (welded mass cylinders in ``lumps``), which
+    the ``origin`` subtracted (m), the ``links`` (those carrying a welded lump in ``lumps``), which
     cylinders became links (``in_links``) or were lumped (``lumped``), the grasped cylinder's
     index, and a ``report`` of figures (lengths, masses, counts)."""
 
@@ -259,16 +256,12 @@ def tree_from_qsm(
             want = hinge_wanted(gp - p0, pull, d, None)
             base_pitch, base_yaw = root_angles(d, want, snap_angle(end[c1] - p0))
             rot = base_rot(base_pitch, base_yaw)
-            attach, pname, ang, azi = 1.0, None, 0.0, 0.0
+            attach, pname, ang, azi, twist = 1.0, None, 0.0, 0.0, 0.0
             wp = want - np.dot(want, d) * d
             if abs(float(rot[:, 1] @ wp)) < math.cos(tol) * np.linalg.norm(wp):
-                # a leaning stem whose heading gives another hinge: a welded connector first
-                tb = Branch(f"{run_names[0]}_turn", None, TURN_LENGTH, TURN_LENGTH / 2, fixed=True)
-                branches.append(tb)
-                p0 = p0 + TURN_LENGTH * rot[:, 0]
-                azi = math.atan2(float(wp @ rot[:, 2]), float(wp @ rot[:, 1]))
-                pname = tb.name
-                rot = rot @ local_rotation(Branch("x", None, 1.0, 1.0, 0.0, math.degrees(azi)))
+                # a leaning stem whose heading gives another hinge: twisted about its axis
+                twist = math.atan2(float(wp @ rot[:, 2]), float(wp @ rot[:, 1]))
+                rot = rot @ local_rotation(Branch("x", None, 1.0, 1.0, twist_deg=_deg(twist)))
         else:
             first_of_axis = axes[a][0] == c0
             pk = int(link_of[cyl.parent[c0]]) if first_of_axis else k - 1
@@ -283,26 +276,12 @@ def tree_from_qsm(
             r_grasp = gp - p0 if k in on_path else None
             want = hinge_wanted(r_grasp, pull, d, frames[0][1][:, 1])
             ang, azi, turn = child_angles(d, pr, want, tol, snap_angle(end[c1] - p0))
-            if turn is not None and k not in on_path:  # fixed gains: no connector (fewer bodies)
-                ang, azi, turn = turn[0], turn[1], None
+            twist = 0.0
+            if turn is not None:  # the exact direction, the frame twisted to the hinge
+                ang, azi, twist = turn[0], turn[1], azi
             pname = run_names[pk]
-            if turn is not None:  # a welded connector turns the frame, the hinge follows
-                tb = Branch(
-                    name=f"{run_names[k]}_turn",
-                    parent=pname,
-                    length=TURN_LENGTH,
-                    radius=TURN_LENGTH / 2,
-                    angle_deg=round(math.degrees(turn[0]), 6),
-                    azimuth_deg=round(math.degrees(turn[1]), 6),
-                    attach=round(attach, 6),
-                    fixed=True,
-                )
-                branches.append(tb)
-                pr = pr @ local_rotation(tb)
-                p0 = p0 + TURN_LENGTH * pr[:, 0]
-                pname, attach = tb.name, 1.0
             rot = pr @ local_rotation(
-                Branch("x", None, 1.0, 1.0, math.degrees(ang), math.degrees(azi))
+                Branch("x", None, 1.0, 1.0, _deg(ang), _deg(azi), twist_deg=_deg(twist))
             )
         ln = float(np.linalg.norm(end[c1] - p0))
         if ln <= 0:
@@ -314,42 +293,37 @@ def tree_from_qsm(
                 parent=pname,
                 length=round(ln, 6),
                 radius=round(math.sqrt(vol / (math.pi * ln)), 6),
-                angle_deg=round(math.degrees(ang), 6),
-                azimuth_deg=round(math.degrees(azi), 6),
+                angle_deg=_deg(ang),
+                azimuth_deg=_deg(azi),
                 attach=round(attach, 6),
+                twist_deg=_deg(twist),
             )
         )
     link_index = {n: k for k, n in enumerate(run_names)}
 
-    # 5. the rest: lumped per host link, or dropped
+    # 5. the rest: welded into the body of the link it hangs from, or dropped
     lumped = np.zeros(cyl.n, bool)
-    stubs: list[Branch] = []
+    lumps: list[str] = []
     mass = w.density * math.pi * radius**2 * length
     lumped_mass = dropped_mass = 0.0
     if rest != "drop":
-        host_mass = np.zeros(len(runs))
-        host_moment = np.zeros((len(runs), 3))
-        for i in topo:
-            if in_links[i]:
+        host = np.full(cyl.n, -1)
+        for i in topo:  # parents first: a cylinder's host is its parent's
+            p = int(cyl.parent[i])
+            if not in_links[i]:
+                host[i] = link_of[p] if in_links[p] else host[p]
+        for h in range(len(runs)):
+            sel = np.flatnonzero(host == h)
+            if not len(sel) or mass[sel].sum() < _MIN_LUMP_MASS:
                 continue
-            j = i
-            while not in_links[j]:
-                j = int(cyl.parent[j])
-            h = int(link_of[j])
-            host_mass[h] += mass[i]
-            host_moment[h] += mass[i] * 0.5 * (start[i] + end[i])
-            lumped[i] = True
-        for h in np.flatnonzero(host_mass > 0):
+            lump = cylinders_lump(
+                mass[sel], start[sel], end[sel], radius[sel], frames[h][0], frames[h][1]
+            )
             bi = next(i for i, b in enumerate(branches) if b.name == run_names[h])
-            stub, dens = lump_mass(branches[bi], frames[h], host_mass[h], host_moment[h], w.density)
-            if stub is not None:
-                stubs.append(stub)
-                lumped_mass += host_mass[h]
-            elif dens is not None:
-                branches[bi] = Branch(**{**branches[bi].__dict__, "density": dens})
-                lumped_mass += host_mass[h]
-            else:
-                dropped_mass += host_mass[h]
+            branches[bi] = replace(branches[bi], lump=lump)
+            lumps.append(run_names[h])
+            lumped[sel] = True
+            lumped_mass += lump.mass
     dropped_mass += float(mass[~in_links & ~lumped].sum())
 
     # 6. which joints are inferred, and the priors
@@ -366,7 +340,7 @@ def tree_from_qsm(
     for k, (piece, _) in enumerate(runs):
         boxes[run_names[k]] = stiffness_box(w, float(radius[piece[0]]), frames[k][2])
     draft = _assemble(
-        branches + stubs, run_names[int(link_of[g])], inferred, w, base_pitch, base_yaw, name, cyl
+        branches, run_names[int(link_of[g])], inferred, w, base_pitch, base_yaw, name, cyl
     )
     carried = carried_inertia(draft)
     bounds_map, fixed = {}, {}
@@ -384,7 +358,7 @@ def tree_from_qsm(
         if b.name in fixed
         else b
         for b in branches
-    ] + stubs
+    ]
     gl = frames[int(link_of[g])]
     fraction = float(
         np.clip(np.dot(on_segment(gp, start[g], end[g]) - gl[0], gl[1][:, 0]), 0, None)
@@ -426,7 +400,7 @@ def tree_from_qsm(
         "links": len(links),
         "joints": len(links),
         "inferred": len(inferred),
-        "lumps": len(stubs),
+        "lumps": len(lumps),
         "link_length_m": float(sum(f[2] for f in frames)),
         "link_cylinder_length_m": float(length[in_links].sum()),
         "max_end_error_m": float(
@@ -449,7 +423,7 @@ def tree_from_qsm(
         cylinders=cyl,
         origin=origin,
         links=links,
-        lumps=tuple(s.name for s in stubs),
+        lumps=tuple(lumps),
         in_links=in_links,
         lumped=lumped,
         grasp_cylinder=int(g),
@@ -475,6 +449,10 @@ def _check_options(grasp_point, grasp_cylinder, prune_diameter, joint_spacing, r
         raise ConfigError(f"rest {rest!r}: expected one of {', '.join(RESTS)}")
     if levels is not None and (isinstance(levels, bool) or levels < 1):
         raise ConfigError(f"levels {levels!r}: expected a positive integer")
+
+
+def _deg(angle: float) -> float:
+    return round(math.degrees(angle), 6)
 
 
 def _assemble(branches, grasp, inferred, w, pitch, yaw, name, cyl, bounds=None, fraction=1.0):

@@ -1,6 +1,6 @@
 """Geometry of the QSM conversion (:mod:`treeinfer.tree.qsm_convert`): nearest cylinder,
-even splits, link names, hinge axes and frames, the lumped mass of the rest of the tree, and
-the inertia a joint carries. Split from the converter to keep modules short."""
+even splits, link names, hinge axes and frames, and the inertia a joint carries. Split from
+the converter to keep modules short."""
 
 from __future__ import annotations
 
@@ -9,17 +9,13 @@ import math
 import numpy as np
 
 from .types import (
-    DENSITY_RANGE,
     Branch,
     Tree,
     base_rotation,
-    branch_density,
-    cylinder_inertia,
+    branch_inertial,
     local_rotation,
     world_frames,
 )
-
-_MIN_LUMP_MASS = 1e-6  # kg; lighter remainders are left out (reported)
 
 
 def nearest_cylinder(p, start, end, radius) -> int:
@@ -160,42 +156,6 @@ def child_angles(d, parent_rot, want, tol, snap):
     return 0.0, math.atan2(float(np.dot(w, conn[:, 2])), float(np.dot(w, conn[:, 1]))), (a, az)
 
 
-def lump_mass(host: Branch, frame, m: float, moment, density: float):
-    """(stub, None): a welded cylinder on ``host`` with mass ``m`` centred on the lumped
-    centre of mass; (None, density): the host made denser, when that centre lies on the
-    host's axis; (None, None): too light to matter."""
-    if m < _MIN_LUMP_MASS:
-        return None, None
-    p0, rot, ln = frame
-    local = rot.T @ (moment / m - p0)
-    s = float(np.clip(local[0], 0.02 * ln, ln))
-    off = local - np.array([s, 0.0, 0.0])
-    dist = float(np.linalg.norm(off))
-    if dist < max(2 * host.radius, 0.01):
-        own = density * math.pi * host.radius**2 * host.length
-        dens = float(density * (own + m) / own)
-        return None, (dens if dens <= DENSITY_RANGE[1] else None)
-    dl = off / dist
-    a = math.acos(float(np.clip(dl[0], -1, 1)))
-    az = math.atan2(-dl[1], dl[2]) if math.sin(a) > 1e-9 else 0.0
-    stub_len = 2 * dist
-    r = math.sqrt(m / (density * math.pi * stub_len))
-    return (
-        Branch(
-            name=f"{host.name}_mass",
-            parent=host.name,
-            length=round(stub_len, 6),
-            radius=round(max(r, 1e-4), 7),
-            angle_deg=round(math.degrees(a), 6),
-            azimuth_deg=round(math.degrees(az), 6),
-            attach=round(s / ln, 6),
-            density=round(float(m / (math.pi * max(r, 1e-4) ** 2 * stub_len)), 6),
-            fixed=True,
-        ),
-        None,
-    )
-
-
 def clip_box(box, rng) -> tuple[float, float]:
     lo = min(max(box[0], rng[0]), rng[1] / 2)
     hi = max(min(box[1], rng[1]), lo * 2)
@@ -213,9 +173,8 @@ def carried_inertia(tree: Tree) -> dict[str, float]:
     per = {}
     for b in tree.branches:
         p, r = frames[b.name]
-        m, principal = cylinder_inertia(b, branch_density(tree, b))
-        com = p + r[:, 0] * b.length / 2
-        per[b.name] = (m, com, r @ np.diag(principal) @ r.T)
+        m, local_com, local_inertia = branch_inertial(tree, b)
+        per[b.name] = (m, p + r @ local_com, r @ local_inertia @ r.T)
     out = {}
     for b in tree.branches:
         p, r = frames[b.name]

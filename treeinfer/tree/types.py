@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import TreeFileError, check_positive
+from .lump import Lump, body_inertial
 
 # the pull direction, inferred parameters and tie live in tree_options (re-exported here)
 from .options import (  # noqa: F401 -- re-exported: the old import path keeps working
@@ -71,6 +72,10 @@ class Branch:
       kp, kd: fixed joint stiffness/damping used when this joint is not inferred
         (None: the tree's defaults).
       fixed: True welds the branch to its parent (no joint at all).
+      twist_deg: rotation of the branch frame, and so of its hinge, about the branch's own
+        axis after the fork (deg; 0: the hinge is normal to the plane of the branch and its
+        parent). Lets a hinge take any direction across the branch without a welded body.
+      lump: mass welded into the branch's body (:class:`treeinfer.tree.lump.Lump`), or None.
     """
 
     name: str
@@ -84,6 +89,8 @@ class Branch:
     kp: float | None = None
     kd: float | None = None
     fixed: bool = False
+    twist_deg: float = 0.0
+    lump: Lump | None = None
 
 
 @dataclass(frozen=True)
@@ -219,7 +226,9 @@ def base_rotation(tree: Tree) -> np.ndarray:
 
 def local_rotation(b: Branch) -> np.ndarray:
     """Rotation of a branch frame relative to its parent's frame (or the base frame)."""
-    return rot_x(math.radians(b.azimuth_deg)) @ rot_y(-math.radians(b.angle_deg))
+    r = rot_x(math.radians(b.azimuth_deg)) @ rot_y(-math.radians(b.angle_deg))
+    # a twist only where given: every other tree keeps its rotation to the last bit
+    return r @ rot_x(math.radians(b.twist_deg)) if b.twist_deg != 0.0 else r
 
 
 def local_offset(tree: Tree, b: Branch) -> np.ndarray:
@@ -251,6 +260,13 @@ def cylinder_inertia(b: Branch, density: float) -> tuple[float, np.ndarray]:
 
 def branch_density(tree: Tree, b: Branch) -> float:
     return tree.density if b.density is None else b.density
+
+
+def branch_inertial(tree: Tree, b: Branch) -> tuple[float, np.ndarray, np.ndarray]:
+    """(mass kg, centre of mass [3] m, inertia [3, 3] kg m^2 about it) of the branch's body in
+    its frame: the cylinder's, plus its ``lump``."""
+    m, principal = cylinder_inertia(b, branch_density(tree, b))
+    return body_inertial(m, principal, b.length, b.lump)
 
 
 def quat_from_matrix(r: np.ndarray) -> np.ndarray:
@@ -381,7 +397,7 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
             "length": b.length,
             "radius": b.radius,
         }
-        for k in ("angle_deg", "azimuth_deg"):
+        for k in ("angle_deg", "azimuth_deg", "twist_deg"):
             if getattr(b, k) != 0.0:
                 rb[k] = getattr(b, k)
         if b.attach != 1.0:
@@ -391,6 +407,8 @@ def tree_to_dict(tree: Tree) -> dict[str, Any]:
                 rb[k] = getattr(b, k)
         if b.fixed:
             rb["fixed"] = True
+        if b.lump is not None:
+            rb["lump"] = b.lump.to_dict()
         branches.append(rb)
     out = {
         "name": tree.name,

@@ -28,12 +28,11 @@ from ..errors import ConfigError, TreeFileError
 from .description import (
     Tree,
     base_rotation,
-    branch_density,
-    cylinder_inertia,
     local_offset,
     local_rotation,
 )
 from .export import GRASP_SITE
+from .types import branch_inertial
 
 WORLD_LINK = "world"
 BASE_LINK = "base_link"
@@ -133,19 +132,21 @@ def to_urdf(tree: Tree, timestep: float = 0.002, integrator: str = "implicitfast
     cyl_rot = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # Ry(pi/2): z -> x
     for b in tree.branches:
         link = ET.SubElement(robot, "link", name=b.name)
-        mass, inertia = cylinder_inertia(b, branch_density(tree, b))
+        mass, com, full = branch_inertial(tree, b)
         inert = ET.SubElement(link, "inertial")
-        _origin(inert, [b.length / 2, 0, 0])
+        _origin(inert, com)
         ET.SubElement(inert, "mass", value=repr(float(mass)))
+        # without a lump the off-diagonal terms are exact zeros: the file is as before
+        off = lambda i, j: "0" if full[i, j] == 0.0 else repr(float(full[i, j]))
         ET.SubElement(
             inert,
             "inertia",
-            ixx=repr(float(inertia[0])),
-            ixy="0",
-            ixz="0",
-            iyy=repr(float(inertia[1])),
-            iyz="0",
-            izz=repr(float(inertia[2])),
+            ixx=repr(float(full[0, 0])),
+            ixy=off(0, 1),
+            ixz=off(0, 2),
+            iyy=repr(float(full[1, 1])),
+            iyz=off(1, 2),
+            izz=repr(float(full[2, 2])),
         )
         for kind in ("visual", "collision"):
             el = ET.SubElement(link, kind, name=f"{b.name}_{kind}")
