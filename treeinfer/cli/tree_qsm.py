@@ -16,7 +16,7 @@ QSM_EPILOG = """\
 QSMs (--from-qsm FILE): TreeQSM (.mat, cylinder_*.txt, cyl_data_*.txt), SimpleForest CSV or aRchi
 CSV, in metres unless --qsm-units says otherwise. The chain from the grasp point (--grasp-point
 in the file's coordinates, or --grasp-cylinder; default: the stem's top) down to the base
-becomes the tree's links, the rest of the tree is lumped onto them as welded masses (--rest),
+becomes the tree's links, the rest of the tree is welded into their bodies (--rest),
 and the joints' prior boxes come from the wood (--species, --wood-modulus, --wood-density).
   treeinfer tree --from-qsm tree.mat --grasp-point=1.69,-16.09,256.03 --joint-spacing 0.5 \\
       --out tree.yaml      # also writes tree_qsm.png (the cylinders, links and joints)
@@ -201,7 +201,7 @@ def _qsm_lines(result, plot: Path) -> str:
             f"{r['qsm_length_m']:.3g} m of cylinders, {r['qsm_height_m']:.3g} m tall, "
             f"{r['mass_kg']:.3g} kg of wood",
             f"  links: {r['links']} ({r['link_length_m']:.3g} m, {r['link_mass_kg']:.3g} kg); "
-            f"lumped {r['lumped_mass_kg']:.3g} kg in {r['lumps']} welded masses, dropped "
+            f"lumped {r['lumped_mass_kg']:.3g} kg into {r['lumps']} links' bodies, dropped "
             f"{r['dropped_mass_kg']:.3g} kg; {r['pruned']} cylinders pruned",
             f"  grasp: cylinder {r['grasp_cylinder_id']} ({r['grasp_offset_m']:.3g} m from the "
             f"point); links end within {r['max_end_error_m']:.3g} m of the QSM's",
