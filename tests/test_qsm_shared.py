@@ -86,7 +86,7 @@ def test_three_tools_give_the_same_tree_for_one_grasp_point(converted):
         assert rep["max_end_error_m"] <= 0.02 + 1e-9  # links end where the QSM's axes end
 
 
-@pytest.mark.slow  # compiles the simulator for an 18-body tree: minutes on a loaded 2-core box
+@pytest.mark.slow  # compiles the simulator for the 8-joint chain: a few CPU-minutes
 def test_a_pull_on_the_converted_tree_is_stable_and_matches_the_static_compliance(converted):
     """treeinfer's own simulator (the one `simulate` and `infer` use) on the TreeQSM chain:
     5 N ramped in over 0.5 s and held. The rollout is stable and the mean held displacement

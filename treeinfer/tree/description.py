@@ -10,7 +10,9 @@ and a direction given by ``base.pitch_deg`` (elevation above horizontal; 90 = ve
 and ``base.yaw_deg`` (heading about the world z-axis). A child's frame sits ``attach`` (a
 fraction of the parent's length, default 1 = the tip) along its parent, turned by ``azimuth_deg``
 about the parent's x-axis (which plane it forks in; 0 keeps the parent's bending plane) and then
-by ``angle_deg`` about the new y-axis (positive = upward when the bending plane is vertical).
+by ``angle_deg`` about the new y-axis (positive = upward when the bending plane is vertical),
+and last by ``twist_deg`` (default 0) about its own x-axis, which turns its hinge across it. A
+branch's ``lump`` is mass welded into its body (:mod:`treeinfer.tree.lump`).
 
 The file format (YAML or JSON) is documented in the README; :func:`load_tree` reads it and
 :func:`tree_to_dict` writes it back.
