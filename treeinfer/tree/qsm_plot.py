@@ -1,7 +1,7 @@
 """The QSM with the converted tree drawn over it: cylinders (grey; line width grows with the
-radius; pale where lumped or dropped), links (red: inferred joints; blue: fixed gains),
-the centres of the masses lumped into links (green, size by mass), joints (black dots) and the grasp point (star), in two side
-views (x-z and y-z, base at the origin, metres)."""
+radius; pale where lumped or dropped), links (red: inferred joints; blue: fixed gains), the
+centres of the masses lumped into links (green, size by mass), joints (black dots) and the
+grasp point (star), in two side views (x-z and y-z, base at the origin, metres)."""
 
 from __future__ import annotations
 
