@@ -158,7 +158,7 @@ def _lumped_reference(res, name):
     )
     mj = mujoco.MjModel.from_xml_string(
         f'<mujoco><compiler inertiafromgeom="true"/><worldbody><body name="x">'
-        f'<freejoint/>{geoms}</body></worldbody></mujoco>'
+        f"<freejoint/>{geoms}</body></worldbody></mujoco>"
     )
     return _mujoco_body_inertia(mj, 1)
 

@@ -78,9 +78,7 @@ def plot_qsm(result: QsmTree, axes=None):
         Line2D([], [], color="0.75", lw=3, label="QSM cylinders lumped / dropped"),
         Line2D([], [], color="tab:red", lw=2, label="link, inferred joint"),
         Line2D([], [], color="tab:blue", lw=2, label="link, fixed gains"),
-        Line2D(
-            [], [], color="tab:green", marker="o", ls="--", label="lumped mass (in its link)"
-        ),
+        Line2D([], [], color="tab:green", marker="o", ls="--", label="lumped mass (in its link)"),
         Line2D([], [], color="k", marker="o", ls="", label="joint"),
         Line2D([], [], color="gold", mec="k", marker="*", ms=12, ls="", label="grasp"),
     ]
