@@ -35,7 +35,6 @@ one particle; ``vmap`` turns each scalar op into one elementwise op over the bat
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -219,13 +218,13 @@ def point(kin: Kinematics, body: int, local):
     return vadd(kin.pos[body], matvec(kin.rot[body], local))
 
 
-@functools.lru_cache(maxsize=4096)
 def _body_inertia(irot: tuple, inertia: tuple) -> tuple:
     """A body's inertia tensor about its com in its own frame, ``irot diag(inertia) irot^T``,
     as constants: diagonal (its zeros fold) when the principal axes are the body's axes, as for
     every branch treeinfer builds, where it gives exactly the arithmetic of rotating to the
     principal axes; for rotated principal axes (merged masses, a user's model) it saves the
-    27-product rotation ``rot @ irot`` in every call of :func:`_inertia_times`."""
+    27-product rotation ``rot @ irot`` in every call of :func:`_inertia_times`. (Not cached: a
+    3x3 product at trace time, and no module keeps a cache, tests/test_architecture.py.)"""
     r = np.asarray(irot, float)
     full = r @ np.diag(np.asarray(inertia, float)) @ r.T
     return _cmat(0.5 * (full + full.T))
