@@ -210,7 +210,7 @@ def force_jacobian(
             f"match a central difference of the simulator on pull {b} (relative error "
             f"{rel:.2g}); the backend's derivative in the force is wrong or missing"
         )
-    if keep and jac.nbytes <= _KEPT_MAX_BYTES:  # the bias slope's 4R Jacobians are not kept
+    if keep and jac.nbytes <= _KEPT_MAX_BYTES:  # the bias slope's 2R Jacobians are not kept
         kept[key] = jac.copy()
         while len(kept) > _KEPT_SIZE:
             kept.popitem(last=False)
@@ -399,7 +399,7 @@ def mvn_log_prob(residual, basis: ForceNoiseBasis, sigma_x, theta_gains=None) ->
     return total
 
 
-BIAS_STEP = 0.05  # log-gain step of the bias slope's central differences
+BIAS_STEP = 0.01  # log-gain step of the bias slope's forward differences
 
 
 def point_variance(basis: ForceNoiseBasis) -> np.ndarray:
@@ -448,5 +448,5 @@ class ForceNoiseModel(NamedTuple):
             "noise_force_rule": self.description,
             # the likelihood adds the corrected score's term (module docstring)
             "noise_force_bias_correction": f"corrected score, first order in the log gains "
-            f"(slope by central differences, step {BIAS_STEP:g})",
+            f"(slope by forward differences, step {BIAS_STEP:g})",
         }
