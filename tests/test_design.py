@@ -328,3 +328,15 @@ def test_suggest_for_run_and_prior_from_run(tmp_path):
         *quick,
     )
     assert rc == 2 and "--prior-from" in err
+    # a run whose files changed since infer wrote them: suggest refuses it, naming the file,
+    # unless --allow-modified, which records what changed in suggestions.json (issue 28)
+    png = demo / "run" / "plots" / "pairs.png"
+    png.write_bytes(png.read_bytes() + b"\0")
+    args = ["suggest", "--run", str(demo / "run"), "--grasp-fractions", "1", "--peak-forces", "5"]
+    args += ["--particles", "4", "--out", str(tmp_path / "sugg_mod")]
+    rc, _, err = cli(*args)
+    assert rc == 2 and "pairs.png" in err and "--allow-modified" in err
+    rc, out, err = cli(*args, "--allow-modified")
+    assert rc == 0, err
+    saved = json.loads((tmp_path / "sugg_mod" / "suggestions.json").read_text())
+    assert any("pairs.png" in n for n in saved["settings"]["integrity_notes"])

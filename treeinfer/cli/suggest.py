@@ -159,6 +159,12 @@ def configure_suggest(subparsers) -> argparse.ArgumentParser:
         action="store_true",
         help="go past the size limit (treeinfer.io.limits) checked before any work",
     )
+    p.add_argument(
+        "--allow-modified",
+        action="store_true",
+        help="use the run even if its files changed since `infer` wrote them (checksums in its "
+        "config.json); recorded in suggestions.json",
+    )
     add_deprecated(p, "--sigma-x", "--noise-displacement", "the same quantity in every command")
     return p
 
@@ -210,7 +216,10 @@ def run_suggest(args: argparse.Namespace) -> int:
         out=out,
         force=args.force,
         formats=args.formats,
+        allow_modified=args.allow_modified,
     )
+    for note in sugg.settings.get("integrity_notes", ()):
+        _say(f"warning: {note}")
     s = sugg.settings
     print(
         f"{s['n_candidates']} candidates, objective {s['objective']}"

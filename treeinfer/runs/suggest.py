@@ -51,6 +51,7 @@ def suggest_for_run(
     out=None,
     force: bool = False,
     formats=None,
+    allow_modified: bool = False,
 ) -> Suggestions:
     """Score candidate next pulls for the posterior of a finished run folder.
 
@@ -58,7 +59,9 @@ def suggest_for_run(
     training trajectory length. With ``out``, writes ``suggestions.json`` (the ranked table,
     settings, run path) and ``suggestions.png`` (:func:`plot_scores`) there, as one folder
     (``force`` moves a previous one aside, never deletes it; ``out`` may not be, hold or lie in
-    the run, except ``RUN/suggest``). Returns the :class:`Suggestions`."""
+    the run, except ``RUN/suggest``). ``allow_modified``: score a run whose files changed since
+    ``infer`` wrote them (:func:`treeinfer.runs.load_run`); what changed is recorded in the
+    settings (``integrity_notes``). Returns the :class:`Suggestions`."""
     from pathlib import Path
 
     from ..io.atomic import atomic_write_json, check_output_dir, staged_output_dir
@@ -67,7 +70,7 @@ def suggest_for_run(
     if out is not None:  # before any work; RUN/suggest (the CLI's default) is the run's own
         where = {"inputs": [run_dir], "allow_inside": [Path(run_dir) / "suggest"]}
         check_output_dir(out, force, "suggestions", **where)
-    run = load_run(run_dir)
+    run = load_run(run_dir, allow_modified=allow_modified)
     noise_from = "given"
     if sigma_x is None:
         sigma_x, noise_from = noise_sigma_of_run(run.config)
@@ -99,6 +102,7 @@ def suggest_for_run(
             "run": str(Path(run_dir).resolve()),
             "sigma_x_from": noise_from,
             "labels": list(run.labels),
+            **({"integrity_notes": list(run.notes)} if run.notes else {}),
         }
     )
     if out is not None:
