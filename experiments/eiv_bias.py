@@ -115,7 +115,8 @@ def main(argv=None) -> dict:
         from treeinfer.tree import dump_tree
 
         dump_tree(case.tree, out / "work" / "tree.yaml")
-        cmd = [sys.executable, "-m", "treeinfer", "infer", "--tree", str(out / "work" / "tree.yaml"),
+        tree = str(out / "work" / "tree.yaml")
+        cmd = [sys.executable, "-m", "treeinfer", "infer", "--tree", tree,
                "--data", str(data), "--out", str(run), "--force"]  # fmt: skip
         subprocess.run(cmd, check=True, cwd=ROOT)
     from treeinfer.inference.fast import BatchEvaluator

@@ -43,8 +43,7 @@ KNOWN_UPWARD = {
     (
         "treeinfer.model.force_noise_reference",
         "treeinfer.inference.mapfit",
-    ): "the force-noise reference fits a MAP point; "
-    "move reference_theta to the inference layer",
+    ): "the force-noise reference fits a MAP point; move reference_theta to the inference layer",
     # Posterior (the result type of infer, in inference/) draws bands and figures through
     # evaluation/ inside its methods (predict, pair_plot, plot_trace), imported on call.
     ("treeinfer.inference.posterior", "treeinfer.evaluation.bands"): "Posterior.predict; "

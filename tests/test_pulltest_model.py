@@ -177,7 +177,7 @@ def test_nuts_recovers_synthetic_stiffness_and_noise(model):
     assert ((off >= band["lo"]) & (off <= band["hi"])).mean() < 0.5
 
 
-@pytest.mark.slow  # 31 s of NUTS on a 2-core box; the white-noise NUTS test stays in the default run
+@pytest.mark.slow  # 31 s of NUTS on a 2-core box; the white-noise NUTS test stays by default
 def test_ar1_noise_widens_the_stiffness_interval_and_keeps_the_truth(model):
     """Residuals with a slow AR(1) part (rho 0.95 per sample): the i.i.d. model's stiffness
     intervals are too narrow; ``noise="ar1"`` holds the truth with wider intervals."""

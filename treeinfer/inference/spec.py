@@ -68,8 +68,8 @@ class ProblemSpec:
         read through each pull's compliance.
       noise_velocity: None (the velocity term off) or m/s, the velocity residual's noise std.
       force_noise_reference: ``[2R]`` log gains where the force-noise Jacobian is taken (None:
-        :func:`treeinfer.model.force_noise_reference.reference_theta`'s MAP fit); force_noise_rule: how it
-        was chosen (recorded).
+        :func:`treeinfer.model.force_noise_reference.reference_theta`'s MAP fit);
+        force_noise_rule: how it was chosen (recorded).
 
     Priors:
       nn_prior: add the learned inequality prior (NNSVGD's target); False gives SVGD's.

@@ -19,8 +19,9 @@ the prior (smoothed box, the NN inequality prior, the noise priors of
 are then ``p / q`` with the problem's exact log-density, prior included.
 
 With ``--noise-force`` the likelihood's force Jacobian is taken at a reference point, the MAP
-of the errors-in-variables model (:func:`treeinfer.model.force_noise_reference.reference_theta` finds it with
-two compiled LM programs of its own, 30-200 s on a 2-core CPU). Here
+of the errors-in-variables model
+(:func:`treeinfer.model.force_noise_reference.reference_theta` finds it with two compiled LM
+programs of its own, 30-200 s on a 2-core CPU). Here
 (:func:`force_noise_reference`) the same two steps run on the one rollout program: the MAP of
 the Gaussian model without the force term, then the MAP of the model whose force Jacobian is
 taken there (sigma_x inferred jointly, where reference_theta fixes it at the data's estimate);

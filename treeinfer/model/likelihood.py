@@ -194,7 +194,8 @@ def likelihood_terms(
         ``"auto"`` (:func:`treeinfer.model.force_noise.resolve_noise_force`). Gaussian only: adds
         the errors-in-variables covariance of :mod:`treeinfer.model.force_noise` to the likelihood.
       force_noise_reference: ``[2R]`` log gains at which the force Jacobian is taken; None: the
-        MAP of the errors-in-variables model (:func:`~treeinfer.model.force_noise_reference.reference_theta`).
+        MAP of the errors-in-variables model
+        (:func:`~treeinfer.model.force_noise_reference.reference_theta`).
       force_noise_rule: how a given ``force_noise_reference`` was chosen (recorded in the
         settings' ``noise_force_rule``).
     """
