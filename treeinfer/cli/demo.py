@@ -285,9 +285,17 @@ def run_demo(args: argparse.Namespace) -> int:
     )
     config["via"] = "demo"
     config["figure_formats"] = list(args.formats or ("png",))
+    # with --init auto the sampler runs only when the start pipeline's particles are not the
+    # posterior already (importance weights trusted, or resample-move settled): say so
+    start = (
+        f"the start pipeline (importance sampling, then resample-move), else {sampler} with "
+        f"{particles} particles x up to {iterations} iterations"
+        if args.init == "auto"
+        else f"{sampler} with {particles} particles x {iterations} iterations from a "
+        f"{args.init} start"
+    )
     _say(
-        f"demo: {sampler} with {particles} particles x {iterations} iterations from a "
-        f"{args.init} start, {likelihood} likelihood"
+        f"demo: {start}, {likelihood} likelihood"
         + (f", stuck particles re-initialised up to iteration {reinit}" if reinit else "")
     )
     cache = runs.SimulatorCache()
