@@ -62,7 +62,9 @@ def _ggn_program(ev):
     def one(e0, jac, th):
         def phi(z):  # z = [a (gains step), noise columns]
             e = e0 + jac @ z[:g]
-            t = jnp.concatenate([th[:g], z[g:]])
+            # the gains move with the step too: the force-noise bias correction depends on them
+            # directly (treeinfer.model.force_noise_bias), not only through the residual
+            t = jnp.concatenate([th[:g] + z[:g], z[g:]])
             return -terms.residual_loglik(-e[None, :b], -e[None, b:], t[None])[0]
 
         z0 = jnp.concatenate([jnp.zeros(g, th.dtype), th[g:]])
