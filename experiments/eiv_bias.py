@@ -53,6 +53,7 @@ def _problem(run: Path, force=None):
 
 def _correction(problem):
     """theta [N, D] -> [N]: the bias correction the likelihood adds (force_noise_bias)."""
+    from treeinfer.model.force_noise import bias_offset
     from treeinfer.model.force_noise_bias import with_bias_slope
 
     fm = problem.noise.force_noise
@@ -68,7 +69,7 @@ def _correction(problem):
     def corr(theta):
         th = np.atleast_2d(theta)
         s2 = np.exp(2 * th[:, d])
-        dth = th[:, :d] - b.theta_ref
+        dth = np.asarray(bias_offset(th[:, :d] - b.theta_ref))
         return 0.5 * np.sum(
             np.einsum("bsj,nj->nbs", b.slope, dth) / (b.values[None] + s2[:, None, None]),
             axis=(1, 2),
@@ -104,10 +105,14 @@ def main(argv=None) -> dict:
     ap.add_argument("--case", default="chain2")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path)
+    ap.add_argument(
+        "--n-test", type=int, default=2,
+        help="test pulls drawn with the case (25: as default_calibration.py does)",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     out = args.out or ROOT / "experiments" / "results" / f"eiv_bias_{args.case}_s{args.seed}"
     out.mkdir(parents=True, exist_ok=True)
-    case = make_case(args.case, args.seed, n_test=2)
+    case = make_case(args.case, args.seed, n_test=args.n_test)
     (train_f, train_x), _ = noisy(case)
     data, run = out / "work" / "train", out / "work" / "run"
     if not (run / "config.json").is_file():
@@ -138,7 +143,7 @@ def main(argv=None) -> dict:
     }
     res = {name: _delta(fn, truth, starts) for name, fn in variants.items()}
     record = {
-        "config": {"case": args.case, "seed": args.seed, "labels": labels,
+        "config": {"case": args.case, "seed": args.seed, "n_test": args.n_test, "labels": labels,
                    "truth": truth.tolist(), "command": " ".join(sys.argv)},
         "results": res,
     }  # fmt: skip

@@ -232,3 +232,32 @@ def test_auto_estimate_and_bad_values():
         fn.resolve_noise_force("auto", short)
     with pytest.raises(ConfigError, match="noise_force.*gaussian"):
         likelihood_terms(None, stack_trajectories(trajs), "student_t", noise_force=0.1)
+
+
+def test_bias_correction_is_first_order_near_the_reference_and_bounded_far_from_it():
+    """The correction 1/2 sum_i slope_i . dth / (L_i + sigma^2) is linear near the reference
+    and saturates beyond BIAS_TRUST log units: a weakly identified gain far from the reference
+    cannot buy unbounded density from the linear extrapolation (chain2 of default_calibration:
+    a damping 3 log units off gained 30 nats and the fit ran there)."""
+    rng = np.random.default_rng(1)
+    n_t, d = 5, 4
+    lam = rng.uniform(1e-6, 4e-6, size=(1, n_t))
+    u = np.linalg.qr(rng.normal(size=(n_t, n_t)))[0][None]
+    slope = rng.normal(scale=1e-6, size=(1, n_t, d))
+    ref = np.zeros(d)
+    basis = fn.ForceNoiseBasis(u, lam, np.zeros(1, int), slope, ref)
+    resid = jnp.zeros((1, 1, n_t))
+    sx = jnp.asarray([1e-3])
+
+    def corr(dth):
+        with_c = fn.mvn_log_prob(resid, basis, sx, jnp.asarray(dth)[None])
+        return float((with_c - fn.mvn_log_prob(resid, basis, sx))[0])
+
+    linear = 0.5 * np.einsum("bsj->j", slope / (lam + 1e-6)[..., None])  # per unit log gain
+    small = np.array([0.01, -0.02, 0.0, 0.015])
+    np.testing.assert_allclose(corr(small), linear @ small, rtol=1e-3)
+    bound = fn.BIAS_TRUST * np.sum(np.abs(linear))
+    for k in (1.0, 10.0, 1000.0):
+        assert abs(corr(k * np.array([1.0, -1.0, 1.0, -1.0]))) <= bound * (1 + 1e-5)
+    far = 1000.0 * np.sign(linear)
+    np.testing.assert_allclose(corr(far), bound, rtol=1e-4)

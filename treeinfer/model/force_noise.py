@@ -393,13 +393,25 @@ def mvn_log_prob(residual, basis: ForceNoiseBasis, sigma_x, theta_gains=None) ->
     n_pad = jnp.asarray(np.sum(basis.n_pad), r.dtype)
     total = total - n_pad * dist.Normal(0.0, sx).log_prob(jnp.zeros_like(sx))
     if basis.slope is not None and theta_gains is not None:
-        dth = jnp.asarray(theta_gains, r.dtype) - jnp.asarray(basis.theta_ref, r.dtype)
+        dth = bias_offset(jnp.asarray(theta_gains, r.dtype) - jnp.asarray(basis.theta_ref, r.dtype))
         d = jnp.einsum("bsj,nj->nbs", jnp.asarray(basis.slope, r.dtype), dth)
         total = total + 0.5 * jnp.sum(d / scale**2, axis=(-2, -1))
     return total
 
 
 BIAS_STEP = 0.01  # log-gain step of the bias slope's forward differences
+# log gains from the reference beyond which the first-order correction is held constant: its
+# linear extrapolation is unbounded (a weakly identified damping 3 log units below the
+# reference gained 30 nats on chain2, and the fit ran there) while the trace it stands for
+# saturates; the start pipeline takes the correction again at a MAP that moved
+# (treeinfer.inference.start_pipeline.force_noise_reference)
+BIAS_TRUST = 0.5
+
+
+def bias_offset(dth):
+    """``dth`` (log gains from the correction's reference), saturated smoothly at
+    ``BIAS_TRUST``: ``c tanh(dth / c)`` (exact to third order near the reference)."""
+    return BIAS_TRUST * jnp.tanh(dth / BIAS_TRUST)
 
 
 def point_variance(basis: ForceNoiseBasis) -> np.ndarray:
