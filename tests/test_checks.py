@@ -209,8 +209,21 @@ def test_bad_velocity_column(tree, clean, make, words):
 
 
 def test_time_in_minutes(tree, clean):
-    f = _checks(tree, _map(clean, lambda t: t._replace(time=t.time / 60.0, velocity=None)))
-    assert len(_only(f, "time-unit", "warning")) == 3
+    """Every file of the set faster than the energy bound allows: the clock, an error (issue 28:
+    a silent wrong-unit case before, a warning only); one file alone only where it breaks the
+    bound by TIME_UNIT_ERROR or more (a glitch in one recording does not stop the run)."""
+    from treeinfer.data.checks import TIME_UNIT_ERROR
+
+    minutes = _map(clean, lambda t: t._replace(time=t.time / 60.0, velocity=None))
+    f = _checks(tree, minutes)
+    hits = _only(f, "time-unit", "error")
+    assert len(hits) == 3 and "every file of the set" in hits[0].message
+    assert "minutes instead of seconds" in hits[0].message
+    one = _checks(tree, [minutes[0], *clean[1:]])
+    (hit,) = _only(one, "time-unit")
+    ratio = float(hit.message.split("x faster")[0].rsplit(" ", 1)[1])
+    assert hit.severity == ("error" if ratio >= TIME_UNIT_ERROR else "warning")
+    assert not [x for x in _checks(tree, clean) if x.check == "time-unit"]
     # with the velocity column (in m/s) the mismatch is an error naming the factor
     f = _checks(tree, _map(clean, lambda t: t._replace(time=t.time / 60.0)))
     msg = _only(f, "velocity", "error")[0].message
