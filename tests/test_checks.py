@@ -386,3 +386,32 @@ def test_simulation_cost_check(tree):
     )
     f = simulation_cost_check(stiff, 0.01, "t.yaml")
     assert f and f[0].severity == "error" and "simulation steps per 0.01 s sample" in f[0].message
+
+
+def test_misfit_called_noise_is_a_poor_fit(clean):
+    """A generative fit that covers the recording only by calling a structured misfit noise
+    (force in kgf: a compliance inside the prior box, so no data check sees it; issue 28's
+    campaign ran it to exit 0) is poor_fit: fitted sigma_x >= 10x the recording's own noise,
+    >= 10% of its range, residuals lag-1 >= 0.9. A fitted noise near the recording's own, or
+    residuals that are white, never are."""
+    from types import SimpleNamespace
+
+    from treeinfer.data.trajectories import stack_trajectories
+    from treeinfer.evaluation.checks import _misfit_called_noise
+    from treeinfer.model.noise import estimate_displacement_noise
+
+    obs = stack_trajectories(list(clean))
+    own = estimate_displacement_noise(obs).sigma
+    span = float(np.ptp(np.asarray(obs.displacement)[np.asarray(obs.mask, bool)]))
+    problem = SimpleNamespace(labels=("Kp[a]", "sigma_x"), obs=obs)
+
+    def post(sigma):
+        return SimpleNamespace(theta=np.tile([0.0, np.log(sigma)], (8, 1)))
+
+    big = max(20 * own, 0.3 * span)
+    reason, m = _misfit_called_noise(problem, post(big), {"ppc": {"lag1": 0.99}})
+    assert "kgf" in reason and m["fitted_sigma_m"] == pytest.approx(big)
+    assert _misfit_called_noise(problem, post(big), {"ppc": {"lag1": 0.5}}) is None
+    assert _misfit_called_noise(problem, post(1.2 * own), {"ppc": {"lag1": 0.99}}) is None
+    no_noise = SimpleNamespace(labels=("Kp[a]",), obs=obs)
+    assert _misfit_called_noise(no_noise, post(big), {"ppc": {"lag1": 0.99}}) is None
