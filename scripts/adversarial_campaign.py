@@ -534,8 +534,9 @@ def _make_lies_source(base: Path, timeout: float) -> Path | None:
 def _lies() -> list[Case]:
     """Recordings that lie (issue 28, section 3): a treeinfer simulation of the example tree
     with one stream's unit, offset, clock or identity changed; ``infer`` must refuse them with
-    exit 2 naming the file and column (expect 2), or, for a late displacement, which only the
-    fit can see, warn (expect -1: judged by the message)."""
+    exit 2 naming the file and column (expect 2); a force in kgf, whose compliance lies inside
+    the prior box's range so that no check before sampling can see it, must end in the fit
+    verdict poor_fit (expect 4: the fit calls a structured misfit noise)."""
     import csv
 
     def transform(fn, which=None, dup=False):
@@ -584,7 +585,9 @@ def _lies() -> list[Case]:
         ("one file in mm", scale(c=1000), 1),
         ("one file's force in kN", scale(b=1e-3), 1),
     ]
-    out = [Case("data that lie", name, transform(fn, which)) for name, fn, which in cases]
+    fit_only = {"force in kgf"}  # seen only by the fit verdict (exit 4), see the docstring
+    out = [Case("data that lie", name, transform(fn, which), expect=4 if name in fit_only else 2)
+           for name, fn, which in cases]  # fmt: skip
     out.append(Case("data that lie", "the same recording twice", transform(scale(), dup=True)))
     return out
 
