@@ -52,6 +52,9 @@ class Case:
     expect: int = 2
     protected: tuple[str, ...] = ()  # relative paths (files or folders) that must survive
     env: dict = field(default_factory=dict)
+    # a case that must run inference to be judged (the fit verdict) gets this many timeouts:
+    # a full run is no hang
+    timeout_scale: float = 1.0
 
 
 @dataclass
@@ -145,7 +148,7 @@ def run_case(case: Case, base: Path, timeout: float, run_src: Path | None) -> Ou
             cwd=ws,
             env=env,
             capture_output=True,
-            timeout=timeout,
+            timeout=timeout * case.timeout_scale,
             stdin=subprocess.DEVNULL,
         )
         rc, err, hang = r.returncode, r.stderr.decode(errors="replace"), False
@@ -534,8 +537,9 @@ def _make_lies_source(base: Path, timeout: float) -> Path | None:
 def _lies() -> list[Case]:
     """Recordings that lie (issue 28, section 3): a treeinfer simulation of the example tree
     with one stream's unit, offset, clock or identity changed; ``infer`` must refuse them with
-    exit 2 naming the file and column (expect 2), or, for a late displacement, which only the
-    fit can see, warn (expect -1: judged by the message)."""
+    exit 2 naming the file and column (expect 2); a force in kgf, whose compliance lies inside
+    the prior box's range so that no check before sampling can see it, must end in the fit
+    verdict poor_fit (expect 4: the fit calls a structured misfit noise)."""
     import csv
 
     def transform(fn, which=None, dup=False):
@@ -584,7 +588,10 @@ def _lies() -> list[Case]:
         ("one file in mm", scale(c=1000), 1),
         ("one file's force in kN", scale(b=1e-3), 1),
     ]
-    out = [Case("data that lie", name, transform(fn, which)) for name, fn, which in cases]
+    fit_only = {"force in kgf"}  # seen only by the fit verdict (exit 4), see the docstring
+    out = [Case("data that lie", name, transform(fn, which), expect=4 if name in fit_only else 2,
+                timeout_scale=5.0 if name in fit_only else 1.0)
+           for name, fn, which in cases]  # fmt: skip
     out.append(Case("data that lie", "the same recording twice", transform(scale(), dup=True)))
     return out
 

@@ -340,3 +340,18 @@ def test_suggest_for_run_and_prior_from_run(tmp_path):
     assert rc == 0, err
     saved = json.loads((tmp_path / "sugg_mod" / "suggestions.json").read_text())
     assert any("pairs.png" in n for n in saved["settings"]["integrity_notes"])
+    # infer --prior-from the modified run: refused naming the file, before any work; with
+    # --allow-modified, what changed is printed and recorded in the new run (issue 28)
+    day4 = ["infer", "--tree", str(tree), "--data", str(demo / "data" / "train"), "--out"]
+    day4 += [str(tmp_path / "day4"), "--prior-from", str(demo / "run"), *quick]
+    rc, _, err = cli(*day4)
+    assert rc == 2 and "pairs.png" in err and "--allow-modified" in err
+    assert not (tmp_path / "day4").exists()
+    rc, _, err = cli(*day4, "--allow-modified")
+    assert rc == 0, err
+    assert "warning:" in err and "pairs.png" in err
+    cfg = json.loads((tmp_path / "day4" / "config.json").read_text())
+    assert cfg["options"]["allow_modified"] is True
+    assert any("pairs.png" in n for n in cfg["problem"]["prior_from"]["integrity_notes"])
+    summary = json.loads((tmp_path / "day4" / "summary.json").read_text())
+    assert any("pairs.png" in n for n in summary["integrity_notes"])

@@ -279,3 +279,26 @@ def test_refuse_overlap_follows_symlinks(tmp_path):
         refuse_overlap(tmp_path / "alias", [data])
     refuse_overlap(tmp_path / "other", [data])  # unrelated: fine
     refuse_overlap(data / "suggest", [data], allow=[data / "suggest"])  # the one allowed place
+
+
+# ---- infer --prior-from RUN checks RUN as every reader of a run does ---------------------------
+def test_infer_prior_from_a_modified_run_is_refused_before_any_work(ws, capsys):
+    """A prior run whose file changed after it was written (its manifest's checksum): exit 2
+    naming the file and --allow-modified, before any data is read or anything written; and
+    --allow-modified without --prior-from (infer reads no run then) is refused too."""
+    from treeinfer.io.manifest import write_manifest
+
+    prior = ws / "prior"
+    prior.mkdir()
+    (prior / "config.json").write_text(json.dumps({"command": "infer", "format": 1}))
+    (prior / "particles.csv").write_text("particle,Kp[branch1]\n0,10.0\n")
+    write_manifest(prior)
+    (prior / OUTPUT_MARKER).write_text('{"writer": "treeinfer", "complete": true}\n')
+    with (prior / "particles.csv").open("a") as f:
+        f.write("1,11.0\n")  # an edit after the run
+    base = ["infer", "--tree", ws / "tree.yaml", "--data", ws / "data", "--out", ws / "new"]
+    err = _refused(ws, [*base, "--prior-from", prior], capsys, "--prior-from", "particles.csv")
+    assert "--allow-modified" in err and "Traceback" not in err
+    _refused(ws, [*base, "--allow-modified"], capsys, "--allow-modified", "--prior-from")
+    # --resume takes the option from the interrupted run's config.json
+    _refused(ws, ["infer", "--resume", ws / "new", "--allow-modified"], capsys, "--allow-modified")

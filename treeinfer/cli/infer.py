@@ -37,6 +37,7 @@ from .infer_options import (
     _check_infer_options,
     _check_meaning_changed,
     _kT_arg,
+    check_prior_run,
 )
 from .options import AUTO, add_formats_option, displacement_noise, force_noise
 
@@ -207,7 +208,15 @@ def configure_infer(subparsers) -> argparse.ArgumentParser:
         type=Path,
         metavar="RUN",
         help="an earlier run whose posterior becomes this run's prior on the joints both infer "
-        "(a Gaussian mixture fitted to its particles; the box prior stays for the others)",
+        "(a Gaussian mixture fitted to its particles; the box prior stays for the others); "
+        "its files are checked against its checksums first",
+    )
+    p.add_argument(
+        "--allow-modified",
+        action="store_true",
+        default=None,
+        help="use the --prior-from run even if its files changed since `infer` wrote them "
+        "(checksums in its manifest); recorded in this run's config.json and summary.json",
     )
     p.add_argument(
         "--prior-tail",
@@ -388,6 +397,8 @@ def run_infer(args: argparse.Namespace) -> int:
         check_output_dir(  # before anything is read: an output is never one of the inputs
             run_dir, args.force, "run", inputs=[args.tree, args.data, args.model, args.prior_from]
         )
+        for note in check_prior_run(args.prior_from, args.allow_modified):  # its integrity
+            _say(f"warning: {note}")
         inputs = runs.load_run_inputs(
             args.tree,
             args.data,

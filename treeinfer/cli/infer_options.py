@@ -40,6 +40,7 @@ _RUN_OPTIONS = {
     "backend": "--backend",
     "prior_from": "--prior-from",
     "prior_tail": "--prior-tail",
+    "allow_modified": "--allow-modified",
     "reinit_stragglers": "--reinit-stragglers",
     "drop_stragglers": "--drop-stragglers",
     "stop_when_converged": "--stop-when-converged",
@@ -92,3 +93,25 @@ def _check_infer_options(o: dict[str, Any]) -> None:
     """ConfigError naming the flag for any out-of-range option (before anything is read): the
     run configuration's own validation."""
     RunConfig(tree="", data="", out="", **o)
+
+
+def check_prior_run(prior_from, allow_modified: bool | None) -> list[str]:
+    """``--prior-from RUN`` checked as every reader of a run checks it, before anything else is
+    read: its files against the checksums of its manifest and its parts against each other
+    (:func:`treeinfer.runs.load_run`). A changed file is refused (ConfigError naming it) unless
+    ``--allow-modified``; then the notes saying what changed are returned (printed, and recorded
+    in the new run's config.json and summary.json). ``--allow-modified`` without
+    ``--prior-from`` is refused: no run is read."""
+    if prior_from is None:
+        if allow_modified:
+            raise ConfigError(
+                "--allow-modified: infer reads a run only with --prior-from RUN; give it or "
+                "leave --allow-modified out"
+            )
+        return []
+    from ..runs import load_run
+
+    try:
+        return list(load_run(prior_from, allow_modified=bool(allow_modified)).notes)
+    except ConfigError as e:
+        raise ConfigError(f"--prior-from: {e}") from None

@@ -351,6 +351,10 @@ def fit_verdict_from_run(
         if align:
             status = "warning" if verdict.status == "ok" else verdict.status
             verdict = FitVerdict(status, [*verdict.reasons, *align], verdict.measures)
+    misfit = _misfit_called_noise(problem, posterior, verdict.measures) if generative else None
+    if misfit is not None:
+        verdict = FitVerdict("poor_fit", [*verdict.reasons, misfit[0]], verdict.measures)
+        verdict.measures["misfit_called_noise"] = misfit[1]
     if pred is None:  # the unstable-share limit already judged this; do not fail twice
         status = verdict.status if verdict.status == "poor_fit" else "warning"
         return FitVerdict(
@@ -359,6 +363,47 @@ def fit_verdict_from_run(
             verdict.measures,
         )
     return verdict
+
+
+# A generative fit whose noise scale swallows the data: its bands cover the recording only
+# because it calls a structured misfit noise (a unit mistake the data checks cannot see, e.g. a
+# force in kgf inside the prior box's range). poor_fit when the fitted sigma_x is this many
+# times the recording's own white noise, this share of the displacement's range, and the
+# standardised residuals this autocorrelated (lag 1), all three at once.
+MISFIT_TO_NOISE, MISFIT_TO_RANGE, MISFIT_LAG1 = 10.0, 0.1, 0.9
+
+
+def _misfit_called_noise(problem, posterior, measures: dict) -> tuple[str, dict] | None:
+    """(reason, measures) when the fitted displacement noise is a structured misfit
+    (:data:`MISFIT_TO_NOISE`), else None."""
+    from ..model.noise import estimate_displacement_noise
+
+    labels = list(getattr(problem, "labels", ()))
+    lag1 = ((measures.get("ppc") or {}).get("lag1")) if isinstance(measures, dict) else None
+    if "sigma_x" not in labels or lag1 is None or not lag1 >= MISFIT_LAG1:
+        return None
+    th = np.asarray(posterior.theta, float)[:, labels.index("sigma_x")]
+    th = th[np.isfinite(th)]
+    obs = problem.obs
+    x = np.asarray(obs.displacement, float)[np.asarray(obs.mask, bool)]
+    try:
+        own = float(estimate_displacement_noise(obs).sigma)
+    except ConfigError:
+        return None
+    if not len(th) or not len(x) or own <= 0:
+        return None
+    fitted, span = float(np.exp(np.median(th))), float(np.ptp(x))
+    m = {"fitted_sigma_m": fitted, "own_noise_m": own, "range_m": span, "lag1": float(lag1)}
+    if fitted < MISFIT_TO_NOISE * own or fitted < MISFIT_TO_RANGE * span:
+        return None
+    return (
+        f"model misfit called noise: the fit needs a displacement noise of {fitted:.3g} m "
+        f"({fitted / span:.0%} of the displacement's range) where the recording's own noise is "
+        f"{own:.3g} m ({fitted / own:.3g}x), with residuals autocorrelated (lag-1 {lag1:.2f}): "
+        "the model cannot reproduce the recording with any gains in the prior box; force or "
+        "displacement in other units (kgf, lbf), or the wrong tree?",
+        m,
+    )
 
 
 def _noise_covariance(problem, posterior, pred, generative: bool, noise_sigma):

@@ -105,7 +105,9 @@ class RunConfig:
     grasp_fraction (None or in (0, 1]); max_unstable_share (in [0, 1]); checkpoint_every (>= 0;
     0: at the end only); force;
     prior_from (None or an earlier run folder, absolute: its posterior becomes this run's prior on
-    the joints both infer, :mod:`treeinfer.inference.sequential`).
+    the joints both infer, :mod:`treeinfer.inference.sequential`); allow_modified (use a
+    ``prior_from`` run whose files changed since it was written, ``--allow-modified``: what
+    changed is recorded in the problem's ``prior_from`` settings and summary.json).
     prior_tail (smoothed-box tail width, share of each log-box width, > 0); reinit_stragglers
     (>= 0: re-initialise stuck particles near the bulk after every chunk up to this iteration;
     0: off); drop_stragglers (leave stuck final particles out of the summaries);
@@ -157,6 +159,7 @@ class RunConfig:
     tie: str | None = None
     tie_scale: float | None = None
     shape_buckets: str = "on"
+    allow_modified: bool = False
     # ---- the record: config.json beyond the options (None until known; JSON key in brackets)
     command: str = "infer"
     versions: dict | None = None
@@ -289,6 +292,7 @@ class RunConfig:
                     "`treeinfer infer` wrote"
                 )
             set_("prior_from", str(prior.resolve()) if str(self.prior_from) else None)
+        set_("allow_modified", bool(self.allow_modified))
         set_("prior_tail", _positive("--prior-tail", self.prior_tail))
         set_("reinit_stragglers", _count("--reinit-stragglers", self.reinit_stragglers, 0))
         set_("drop_stragglers", bool(self.drop_stragglers))
@@ -311,6 +315,7 @@ class RunConfig:
             ("tie_scale", None),
             ("shape_buckets", "on"),
             ("noise_velocity", None),  # off: config.json as before the option existed
+            ("allow_modified", False),
         ):
             if out[k] == default:
                 del out[k]

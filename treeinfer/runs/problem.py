@@ -259,9 +259,14 @@ def build_problem(
         from ..inference.sequential import prior_from_run, with_prior
         from .folder import load_run
 
-        prior = prior_from_run(load_run(o["prior_from"]), problem.labels)
+        # checked as every reader of a run checks it; --allow-modified: what changed is recorded
+        earlier = load_run(o["prior_from"], allow_modified=bool(o.get("allow_modified")))
+        prior = prior_from_run(earlier, problem.labels)
         problem = with_prior(problem, prior.log_density)
-        settings = {**problem.settings, "prior_from": {"run": o["prior_from"], **prior.to_dict()}}
+        record = {"run": o["prior_from"], **prior.to_dict()}
+        if earlier.notes:
+            record["integrity_notes"] = list(earlier.notes)
+        settings = {**problem.settings, "prior_from": record}
         problem = dataclasses.replace(problem, settings=settings)
     bucket = shape_bucket_for(config, obs)
     if bucket is not None:

@@ -316,6 +316,9 @@ def run_inference(
     summary["fit"] = verdict.as_dict()
     summary["status"] = verdict.status
     summary["data_checks"] = data_findings
+    prior_notes = (problem.settings.get("prior_from") or {}).get("integrity_notes")
+    if prior_notes:  # infer --prior-from RUN --allow-modified: what changed in RUN
+        summary["integrity_notes"] = list(prior_notes)
     config = {
         **config,
         "posterior_settings": posterior.settings,
