@@ -195,10 +195,10 @@ def test_three_items_one_broken(batch, data):
     # b ran after a in the same process, with the same shapes: it reuses a's programs. Since the
     # step tolerance follows each data set's noise estimate (issue 27), a handful of programs
     # whose step differs are compiled again (3 of a's 110 with an empty compile cache, 2026-11-28;
-    # none with a warm one): at most a twentieth of a's, in a fifth of its compile time
+    # none with a warm one): at most a twentieth of a's. Counted, not timed: with a warm
+    # persistent cache a's "compile" is a 1 s cache read and a time ratio is noise
     a_n, b_n = int(t["a"]["xla_compiles"]), int(t["b"]["xla_compiles"])
     assert b_n <= max(3, a_n // 20), (a_n, b_n)
-    assert float(t["b"]["compile_seconds"]) <= 0.2 * float(t["a"]["compile_seconds"]) + 1e-9
     # coverage on the held-out pull (same parameters, another seed): a 95% band holds most
     assert t["b"]["test_coverage_pct"] == ""
     assert 50.0 <= float(t["a"]["test_coverage_pct"]) <= 100.0
