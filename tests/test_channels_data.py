@@ -16,6 +16,7 @@ def tree():
 
 
 def _folder(tmp_path, entry: dict, rows: str = None):
+    tmp_path.mkdir(parents=True, exist_ok=True)
     t = np.arange(101) * 0.02
     force = np.minimum(t, 1.0) * 4.0
     ti.write_trajectory(tmp_path / "pull_a.csv", ti.Trajectory(t, force, 1e-3 * force))
@@ -130,3 +131,17 @@ def test_sample_weights_interpolate():
     i, w = sample_weights([0.0, 0.05, 0.97, 1.0], 0.0, 0.1, 11)
     x = grid**2
     np.testing.assert_allclose((1 - w) * x[i] + w * x[i + 1], [0.0, 0.005, 0.943, 1.0], atol=1e-12)
+
+
+def test_cli_infer_refuses_bad_channel_with_exit_2(tmp_path, capsys):
+    from treeinfer.cli import main
+
+    folder = _folder(tmp_path / "data", {"point": {"link": "twig", "fraction": 0.5}})
+    rc = main(
+        ["infer", "--tree", str(ti.example_path("two_branch")), "--data", str(folder), "--out",
+         str(tmp_path / "run")]
+    )  # fmt: skip
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "channels.yaml: channel 'marker': field 'point'.link: unknown point 'twig'" in err
+    assert not (tmp_path / "run").exists()

@@ -27,9 +27,10 @@ the Gaussian model without the force term, then the MAP of the model whose force
 taken there (sigma_x inferred jointly, where reference_theta fixes it at the data's estimate);
 its gains are the reference.
 
-Any other model (static, stiffness only, a tie, per-recording pulls) goes through the problem's
-own jitted log-density: :func:`treeinfer.inference.laplace.problem_laplace` for the MAP and the
-covariance, then the same adaptive importance sampling (:func:`model_importance`).
+Any other model (static, stiffness only, a tie, per-recording pulls), and the paper's model with
+observation channels besides the grasp point (:mod:`treeinfer.model.channels`), goes through the
+problem's own jitted log-density: :func:`treeinfer.inference.laplace.problem_laplace` for the MAP
+and the covariance, then the same adaptive importance sampling (:func:`model_importance`).
 """
 
 from __future__ import annotations
@@ -136,7 +137,7 @@ def auto_start(problem, n_particles: int, seed: int = 0, log=lambda m: None, **o
     to :func:`treeinfer.inference.fast.fast_posterior` (the paper's dynamic model)."""
     from .fast import importance_for_run
 
-    if problem.model is None:
+    if problem.model is None and not problem.settings.get("channels"):
         if problem.start_hint is not None and "starts" not in options:
             # the MAP fit is done (the force-noise reference's): a few LM steps from its finals
             options = {"starts": problem.start_hint, "max_iterations": 5, **options}
@@ -177,7 +178,12 @@ def _model_start(problem, n_particles: int, seed: int, log):
         "seed": seed,
     }
     run = importance_run_result(theta, logp, run_settings, imp, 0.0)
-    kp, kd = problem.model.layout.gains(theta)
+    if problem.model is None:  # the paper's model with observation channels
+        from ..model.likelihood import gains_from_theta
+
+        kp, kd = gains_from_theta(theta, problem.sim.n_joints)
+    else:
+        kp, kd = problem.model.layout.gains(theta)
     settings = {
         "problem": problem.settings,
         "sampler": "importance",

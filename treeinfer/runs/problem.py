@@ -252,7 +252,18 @@ def build_problem(
             None if bucket is None else tuple(bucket),
         )
         reference = {"force_noise_reference": ref, "force_noise_rule": PIPELINE_RULE}
-    problem = make_problem(tree, obs, **common, **reference)
+    # observation channels besides the grasp point (the data folder's channels.yaml): they name
+    # their pulls by file name, so the final problem takes the trajectories, not the stack
+    channels = ()
+    if table and o.get("data"):
+        from ..data.channels import read_channels
+
+        channels = read_channels(o["data"], tree, trajectories)
+    if channels:
+        log(f"observation channels: {', '.join(c.name for c in channels)} (channels.yaml)")
+        problem = make_problem(tree, list(trajectories), **common, **reference, channels=channels)
+    else:
+        problem = make_problem(tree, obs, **common, **reference)
     if reference.get("force_noise_rule") == PIPELINE_RULE and not resumed:
         problem = dataclasses.replace(problem, start_hint=finals)
     if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints

@@ -159,3 +159,63 @@ def _simulate_features(sim, features, kp, kd, forces, grasp_fraction, direction)
     tau = jnp.where(ok[..., None], tau, 0.0)
     feats = jnp.where(ok[..., None, None, None], feats, 0.0)
     return ChannelRollout(tau, feats, ok)
+
+
+class ChannelSpec(NamedTuple):
+    """A synthetic sensor for :func:`synthetic_channels`: ``kind`` (``"position"`` |
+    ``"angle"``) at ``fraction`` of ``link``, measuring world ``components`` (``"xz"``), with
+    white Gaussian noise ``noise`` (m or rad; 0: none)."""
+
+    kind: str
+    link: str
+    fraction: float
+    components: str = "xyz"
+    noise: float = 0.0
+
+    @classmethod
+    def parse(cls, text: str) -> ChannelSpec:
+        """``KIND:LINK:FRACTION[:AXES[:NOISE]]``, e.g. ``position:child:0.5:xz:0.001``."""
+        parts = text.split(":")
+        if not 3 <= len(parts) <= 5:
+            raise ConfigError(
+                f"--channel {text!r}: expected KIND:LINK:FRACTION[:AXES[:NOISE]], e.g. "
+                "position:child:0.5:xz:0.001 (noise in m, or rad for an angle)"
+            )
+        kind, link = parts[0], parts[1]
+        if kind not in ("position", "angle"):
+            raise ConfigError(f"--channel {text!r}: KIND must be position or angle, got {kind!r}")
+        try:
+            frac = float(parts[2])
+            noise = float(parts[4]) if len(parts) > 4 else 0.0
+        except ValueError:
+            raise ConfigError(f"--channel {text!r}: FRACTION and NOISE must be numbers") from None
+        axes = parts[3] if len(parts) > 3 else ("xyz" if kind == "position" else "y")
+        if not (0.0 <= frac <= 1.0) or noise < 0 or not axes or set(axes) - set("xyz"):
+            raise ConfigError(
+                f"--channel {text!r}: FRACTION in [0, 1], AXES among x, y, z, NOISE >= 0"
+            )
+        return cls(kind, link, frac, axes, noise)
+
+
+def synthetic_channels(sim, kp, kd, forces, recordings, specs, rng, t0: float = 0.0) -> tuple:
+    """Simulated channels (:class:`treeinfer.data.channels.Channel`, noise ``"auto"``) of every
+    ``specs`` sensor on every pull ``forces [B, T]`` (file names ``recordings``) at the true
+    gains ``kp, kd [R]``, sampled on the pulls' grid, with each spec's noise from ``rng``."""
+    from ..data.channels import Channel, NamedPoint
+
+    feats = tuple(
+        feature_for(sim, s.kind, s.link, s.fraction) for s in specs
+    )  # one per spec (repeats are harmless)
+    ro = simulate_features(sim, np.atleast_2d(kp), np.atleast_2d(kd), forces, feats)
+    values = np.asarray(ro.features[0], float)  # [B, T, F, 3]
+    t = t0 + np.arange(values.shape[1]) * sim.obs_dt
+    out = []
+    for j, s in enumerate(specs):
+        axes = ["xyz".index(c) for c in s.components]
+        for b, rec in enumerate(recordings):
+            v = values[b, :, j][:, axes]
+            v = v + rng.normal(0.0, s.noise, v.shape) if s.noise > 0 else v
+            name = f"{s.kind}_{s.link}_{s.fraction:g}_{b:03d}"
+            point = NamedPoint(s.link, fraction=float(s.fraction))
+            out.append(Channel(name, s.kind, rec, point, tuple(s.components), t, v))
+    return tuple(out)
