@@ -105,7 +105,40 @@ def force_noise_reference(
     return ref, second.finals[order][np.isfinite(second.values[order])]
 
 
-def model_importance(problem, n_particles: int, seed: int = 0, n_draws: int | None = None):
+def channel_starts(problem, seed: int = 0, n: int = 8, log=lambda m: None) -> np.ndarray:
+    """``[n, D]`` start points for a problem with observation channels: the grasp-point-only
+    problem's start pipeline (the rollout program's multi-start LM fit and importance draws,
+    far more robust than random starts of the generic fit, which on the two-branch tree stopped
+    in a mode 4x off in Kp), each channel's ``log sigma`` then set by a line search of the full
+    log-density over its prior box."""
+    from .fast import importance_for_run
+    from .problem import make_problem
+
+    base = make_problem(
+        problem.tree, problem.obs, problem.spec.replace(channels=()), sim=problem.sim
+    )
+    _, theta0 = importance_for_run(base, max(16, n), seed, lambda m: None)
+    theta0 = np.asarray(theta0, float)
+    fn = jax.jit(problem.log_density)
+    lp0 = np.asarray(jax.jit(base.log_density)(jnp.asarray(theta0, jnp.float32)), float)
+    d0, lower, upper = base.dim, np.asarray(problem.lower), np.asarray(problem.upper)
+    starts = theta0[np.argsort(-np.nan_to_num(lp0, nan=-np.inf))[:n]]
+    starts = np.concatenate([starts, np.tile(0.5 * (lower[d0:] + upper[d0:]), (len(starts), 1))], 1)
+    grid = np.linspace(0.0, 1.0, 17)
+    for j in range(d0, problem.dim):  # one column at a time: 17 candidates per start
+        cand = np.repeat(starts, len(grid), axis=0)
+        cand[:, j] = np.tile(lower[j] + grid * (upper[j] - lower[j]), len(starts))
+        lp = np.asarray(fn(jnp.asarray(cand, jnp.float32)), float).reshape(len(starts), -1)
+        starts[:, j] = cand.reshape(len(starts), len(grid), -1)[
+            np.arange(len(starts)), np.argmax(np.nan_to_num(lp, nan=-np.inf), axis=1), j
+        ]
+    log(f"channel starts: {len(starts)} points from the grasp-point fit")
+    return starts
+
+
+def model_importance(
+    problem, n_particles: int, seed: int = 0, n_draws: int | None = None, extra=None
+):
     """:class:`treeinfer.inference.fast_result.FastPosterior`-like ``(theta [P, D], ok, reason,
     importance, lap)`` for a problem the rollout program does not run (static model, stiffness
     only, a tie, per-recording pulls): the MAP and covariance of its own log-density
@@ -115,7 +148,7 @@ def model_importance(problem, n_particles: int, seed: int = 0, n_draws: int | No
     from .importance import adaptive_importance
     from .laplace import problem_laplace
 
-    lap = problem_laplace(problem, seed=seed)
+    lap = problem_laplace(problem, seed=seed, extra=extra)
     fn = jax.jit(problem.log_density)
     m = max(8 * problem.dim * 8, 4 * int(n_particles)) if n_draws is None else int(n_draws)
     dtype = jnp.asarray(0.0).dtype
@@ -150,7 +183,10 @@ def _model_start(problem, n_particles: int, seed: int, log):
     from .fast_result import importance_run_result
     from .problem import Posterior
 
-    imp, idx, lap = model_importance(problem, n_particles, seed)
+    extra = None
+    if problem.model is None and problem.settings.get("channels"):
+        extra = channel_starts(problem, seed, log=log)
+    imp, idx, lap = model_importance(problem, n_particles, seed, extra=extra)
     verdict = (
         "used as the posterior (no sampler iterations)"
         if imp.ok
