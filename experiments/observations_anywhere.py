@@ -42,6 +42,11 @@ if str(ROOT) not in sys.path:
 
 CONFIG = {
     "tree": "treeinfer/examples/two_branch.yaml",
+    "scenarios": {
+        "child": "grasp at 0.9 of the child (the example's grasp point)",
+        "parent": "grasp at 0.9 of the parent (a robot that reaches the parent only); both "
+        "joints inferred",
+    },
     "truth": {"kp": {"child": 40.0, "parent": 80.0}, "kd": {"child": 0.3, "parent": 0.8}},
     "dt": 0.02,
     "duration": 3.0,
@@ -184,19 +189,31 @@ def tables(results: dict, labels: list[str]) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--grasp", choices=("child", "parent"), default="child")
     ap.add_argument("--out", type=Path, default=ROOT / "experiments/results/observations_anywhere")
     args = ap.parse_args(argv)
     import treeinfer as ti
     from treeinfer.io.provenance import versions
 
     tree = ti.load_tree(ROOT / CONFIG["tree"])
+    if args.grasp == "parent":
+        tree = tree.with_grasp(0.9, "parent")  # tree.inferred stays (child, parent)
     args.out.mkdir(parents=True, exist_ok=True)
-    results = {"config": {**CONFIG, "seeds": args.seeds, "versions": versions()}, "seeds": {}}
+    config = {**CONFIG, "grasp": args.grasp, "seeds": args.seeds, "versions": versions()}
+    results = {"config": config, "seeds": {}}
+    path = args.out / f"results_{args.grasp}.json"
     for seed in args.seeds:
         results["seeds"][str(seed)] = run_seed(tree, seed, lambda m: print(m, flush=True))
-        (args.out / "results.json").write_text(json.dumps(results, indent=1))
-    labels = [lab for lab in results["seeds"][str(args.seeds[0])]["grasp"]["labels"] if "[" in lab]
-    (args.out / "results.md").write_text(tables(results, labels))
+        path.write_text(json.dumps(results, indent=1))
+    md = []
+    for grasp in ("child", "parent"):
+        p = args.out / f"results_{grasp}.json"
+        if p.exists():
+            res = json.loads(p.read_text())
+            first = res["seeds"][sorted(res["seeds"], key=int)[0]]
+            labels = [lab for lab in first["grasp"]["labels"] if "[" in lab]
+            md.append(tables(res, labels, grasp))
+    (args.out / "results.md").write_text("\n".join(md))
     print((args.out / "results.md").read_text())
     return 0
 
