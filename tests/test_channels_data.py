@@ -145,3 +145,29 @@ def test_cli_infer_refuses_bad_channel_with_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "channels.yaml: channel 'marker': field 'point'.link: unknown point 'twig'" in err
     assert not (tmp_path / "run").exists()
+
+
+def test_image_channel_with_camera(tmp_path, tree):
+    cam = {"focal": [800, 800], "center": [640, 360], "position": [0.5, -2.0, 1.3],
+           "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]]}  # fmt: skip
+    rows = "time,u,v\n" + "".join(f"{k * 0.04:.2f},{k},{-k}\n" for k in range(40))
+    entry = {"kind": "image", "components": ["u", "v"], "units": {"value": "px"}, "camera": cam,
+             "time_offset": 0.0, "noise": 1.5}  # fmt: skip
+    folder = _folder(tmp_path, entry, rows)
+    (ch,) = read_channels(folder, tree, ti.read_trajectory_dir(folder))
+    assert ch.kind == "image" and list(ch.axes) == [0, 1] and len(ch.camera) == 16
+    assert ch.noise == 1.5
+    out = tmp_path / "copy"
+    out.mkdir()
+    for tr in ti.read_trajectory_dir(folder):
+        ti.write_trajectory(out / tr.source, tr)
+    ti.data.channels.write_channels(out, (ch,))
+    (back,) = read_channels(out, tree, ti.read_trajectory_dir(out))
+    assert back.camera == pytest.approx(ch.camera)
+    bad = dict(entry, camera={**cam, "rotation": [[1, 0, 0], [0, 1, 0], [0, 1, 0]]})
+    with pytest.raises(ConfigError, match=r"field 'camera'.rotation: must be a rotation"):
+        read_channels(_folder(tmp_path, bad, rows), tree)
+    with pytest.raises(ConfigError, match="needs a camera"):
+        read_channels(_folder(tmp_path, dict(entry, camera=None), rows), tree)
+    with pytest.raises(ConfigError, match="only image channels have a camera"):
+        read_channels(_folder(tmp_path, {"camera": cam}), tree)

@@ -97,3 +97,28 @@ def test_channels_match_planar_reference(tree):
     np.testing.assert_allclose(got[0, 0, :, 0], marker, atol=1e-4)
     np.testing.assert_allclose(got[0, 0, :, 1], tilt_child, atol=3e-4)
     np.testing.assert_allclose(got[0, 0, :, 2], tilt_parent, atol=3e-4)
+
+
+def _camera():
+    """A camera 2 m in front of the tree (looking along +y), image x right, y down."""
+    rot = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # rows: x_c, y_c, z_c
+    return (800.0, 780.0, 640.0, 360.0, *rot.ravel(), 0.5, -2.0, 1.3)
+
+
+def test_image_channel_matches_pinhole_projection_of_planar_reference(tree):
+    dt = 0.02
+    force = ti.data.forces.from_spec("hold:peak=4,ramp=0.4,hold=0.6,release=0.3", 1.6, dt)
+    kp, kd = np.array([40.0, 80.0]), np.array([0.3, 0.8])
+    sim = ti.make_simulator(tree, dt, forces=force[None], sim_tolerance=2e-5)
+    cam = _camera()
+    f = ob.feature_for(sim, "image", "child", 0.5, cam)
+    got = np.asarray(ob.simulate_features(sim, kp[None], kd[None], force[None], (f,)).features)
+    ref = PlanarTree(tree, kp, kd)
+    p = np.array([ref.point(qk, "child", 0.5) for qk in ref.rollout_q(force, dt)])  # world, m
+    rot, centre = np.asarray(cam[4:13]).reshape(3, 3), np.asarray(cam[13:16])
+    pc = (p - centre) @ rot.T
+    uv = np.column_stack([800.0 * pc[:, 0] / pc[:, 2] + 640.0, 780.0 * pc[:, 1] / pc[:, 2] + 360.0])
+    uv -= uv[0]
+    assert np.abs(uv).max() > 20  # the marker moves tens of pixels
+    np.testing.assert_allclose(got[0, 0, :, 0, :2], uv, atol=0.05)  # px
+    np.testing.assert_array_equal(got[0, 0, :, 0, 2], 0.0)

@@ -17,7 +17,8 @@ A data folder with channels::
         recording: pull_a.csv        # the pull this channel observed (a CSV of the folder)
         file: channels/marker_a.csv  # relative to the data folder (not at its top level:
                                      # every top-level CSV is a pull)
-        kind: position               # position (3-D displacement) | angle (rotation)
+        kind: position               # position (3-D displacement) | angle (rotation) |
+                                     # image (pixel displacement in a camera: needs camera:)
         point: {link: child, fraction: 0.5}  # or {link: child, distance: 0.3} (m from its joint)
         components: [x, z]           # world axes measured (position: displacement along them;
                                      # angle: rotation about them, right-handed), 1-3 of x, y, z
@@ -48,13 +49,14 @@ from ..errors import ConfigError, TrajectoryFileError, where
 from .csv_format import DISPLACEMENT_UNITS, TIME_UNITS
 
 CHANNELS_FILE = "channels.yaml"
-KINDS = ("position", "angle")
+KINDS = ("position", "angle", "image")
 AXES = ("x", "y", "z")
+IMAGE_AXES = ("u", "v")  # pixel columns (right) and rows (down) of an image channel
 ANGLE_UNITS = {"rad": 1.0, "mrad": 1e-3, "deg": math.pi / 180.0}
-VALUE_UNITS = {"position": DISPLACEMENT_UNITS, "angle": ANGLE_UNITS}
-SI_UNIT = {"position": "m", "angle": "rad"}
+VALUE_UNITS = {"position": DISPLACEMENT_UNITS, "angle": ANGLE_UNITS, "image": {"px": 1.0}}
+SI_UNIT = {"position": "m", "angle": "rad", "image": "px"}
 # largest plausible |value| in SI: past it the declared unit is almost surely wrong
-PLAUSIBLE = {"position": 5.0, "angle": math.pi}
+PLAUSIBLE = {"position": 5.0, "angle": math.pi, "image": 1e5}
 _FIELDS = {
     "name",
     "recording",
@@ -65,6 +67,7 @@ _FIELDS = {
     "units",
     "time_offset",
     "noise",
+    "camera",
 }
 
 
@@ -111,6 +114,7 @@ class Channel(NamedTuple):
     units: dict = {}
     time_offset: float = 0.0
     dropped: int = 0
+    camera: tuple = ()
 
     @property
     def rate(self) -> float:
@@ -120,7 +124,8 @@ class Channel(NamedTuple):
     @property
     def axes(self) -> np.ndarray:
         """[C] indices (0, 1, 2) of ``components``."""
-        return np.array([AXES.index(c) for c in self.components], dtype=np.int32)
+        names = IMAGE_AXES if self.kind == "image" else AXES
+        return np.array([names.index(c) for c in self.components], dtype=np.int32)
 
     def value_range(self) -> float:
         """Largest peak-to-peak of a component (SI), the noise prior's upper end."""
@@ -179,16 +184,50 @@ def parse_point(entry: Any, loc: str, tree=None) -> NamedPoint:
     return NamedPoint(link, distance, fraction)
 
 
-def _components(v: Any, loc: str) -> tuple[str, ...]:
+def _components(v: Any, loc: str, axes=AXES) -> tuple[str, ...]:
+    names = ", ".join(axes)
     if isinstance(v, str):
-        v = list(v) if set(v) <= set(AXES) else [v]
+        v = list(v) if set(v) <= set(axes) else [v]
     if not isinstance(v, (list, tuple)) or not v:
-        raise ConfigError(f"{loc}: expected a list of world axes among x, y, z, got {v!r}")
+        raise ConfigError(f"{loc}: expected a list of axes among {names}, got {v!r}")
     out = tuple(str(c).lower() for c in v)
-    bad = [c for c in out if c not in AXES]
+    bad = [c for c in out if c not in axes]
     if bad or len(set(out)) != len(out):
-        raise ConfigError(f"{loc}: expected distinct axes among x, y, z, got {list(v)}")
+        raise ConfigError(f"{loc}: expected distinct axes among {names}, got {list(v)}")
     return out
+
+
+def parse_camera(v: Any, loc: str) -> tuple:
+    """A pinhole camera ``{focal: [fx, fy], center: [cx, cy], rotation: 3x3 (rows: the
+    camera's x right, y down, z forward in world axes), position: [x, y, z] m}`` as the 16 floats
+    ``(fx, fy, cx, cy, R (9, row-major), position (3))``."""
+    if not isinstance(v, dict):
+        raise ConfigError(f"{loc}: an image channel needs a camera mapping {{focal, center, "
+                          f"rotation, position}}, got {v!r}")  # fmt: skip
+    unknown = set(v) - {"focal", "center", "rotation", "position"}
+    if unknown:
+        raise ConfigError(f"{loc}: unknown field(s) {sorted(unknown)}")
+
+    def arr(key, shape):
+        try:
+            a = np.asarray(v.get(key), float)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{loc}.{key}: expected numbers of shape {shape}") from None
+        if a.shape != shape or not np.all(np.isfinite(a)):
+            raise ConfigError(f"{loc}.{key}: expected finite numbers of shape {shape}")
+        return a
+
+    f, c, r, p = (
+        arr("focal", (2,)),
+        arr("center", (2,)),
+        arr("rotation", (3, 3)),
+        arr("position", (3,)),
+    )
+    if np.any(f <= 0):
+        raise ConfigError(f"{loc}.focal: must be positive (pixels)")
+    if not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
+        raise ConfigError(f"{loc}.rotation: must be a rotation matrix (orthonormal, det +1)")
+    return tuple(float(x) for x in np.concatenate([f, c, r.ravel(), p]))
 
 
 def _units(v: Any, kind: str, loc: str) -> dict:
@@ -284,7 +323,13 @@ def parse_channel(
     if kind not in KINDS:
         raise ConfigError(f"{loc}: field 'kind': expected one of {', '.join(KINDS)}, got {kind!r}")
     point = parse_point(entry.get("point"), f"{loc}: field 'point'", tree)
-    comps = _components(entry.get("components", list(AXES)), f"{loc}: field 'components'")
+    axes = IMAGE_AXES if kind == "image" else AXES
+    comps = _components(entry.get("components", list(axes)), f"{loc}: field 'components'", axes)
+    camera = ()
+    if kind == "image":
+        camera = parse_camera(entry.get("camera"), f"{loc}: field 'camera'")
+    elif "camera" in entry:
+        raise ConfigError(f"{loc}: field 'camera': only image channels have a camera")
     units = _units(entry.get("units"), kind, f"{loc}: field 'units'")
     offset = _number(entry.get("time_offset", 0.0), f"{loc}: field 'time_offset'")
     rec = entry.get("recording")
@@ -335,7 +380,7 @@ def parse_channel(
         dropped = int((~inside).sum())
         t, values = t[inside], values[inside]
     return Channel(
-        name, kind, rec, point, comps, t, values, sigma, str(path), units, offset, dropped
+        name, kind, rec, point, comps, t, values, sigma, str(path), units, offset, dropped, camera
     )
 
 
@@ -395,7 +440,15 @@ def channel_to_dict(ch: Channel, file: str) -> dict:
         "units": {"time": "s", "value": SI_UNIT[ch.kind]},
         "time_offset": 0.0,
         "noise": "auto" if ch.noise is None else float(ch.noise),
+        **({"camera": camera_to_dict(ch.camera)} if ch.camera else {}),
     }
+
+
+def camera_to_dict(camera: tuple) -> dict:
+    """The ``channels.yaml`` form of :func:`parse_camera`'s tuple."""
+    c = [float(x) for x in camera]
+    return {"focal": c[0:2], "center": c[2:4], "rotation": [c[4:7], c[7:10], c[10:13]],
+            "position": c[13:16]}  # fmt: skip
 
 
 def write_channels(folder: str | os.PathLike, channels: Sequence[Channel]) -> Path:

@@ -56,7 +56,7 @@ class ChannelBand(NamedTuple):
             "rmse": float(np.sqrt(np.mean((self.recorded - self.mean) ** 2))),
             "band_width": float(np.mean(hi - lo)),
             "samples": int(self.recorded.size),
-            "unit": "m" if self.channel.kind == "position" else "rad",
+            "unit": {"position": "m", "angle": "rad", "image": "px"}[self.channel.kind],
         }
 
 
@@ -181,7 +181,9 @@ def plot_channel_bands(bands: Sequence[ChannelBand]):
     nrow = -(-len(panels) // ncol)
     fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 2.8 * nrow), squeeze=False)
     for ax, (b, j) in zip(axes.flat, panels):
-        scale, unit = (1e3, "mm") if b.channel.kind == "position" else (1e3, "mrad")
+        scale, unit = {"position": (1e3, "mm"), "angle": (1e3, "mrad"), "image": (1.0, "px")}[
+            b.channel.kind
+        ]
         if b.predictive_lower is not None:
             ax.fill_between(b.time, scale * b.predictive_lower[:, j], scale *
                             b.predictive_upper[:, j], color="C0", alpha=0.2,

@@ -33,7 +33,7 @@ from .gains import gains_from_theta
 from .gradients import autodiff_value_and_grad, finite_difference_jvp
 
 # the smallest noise scale a channel's prior allows (sensor resolution), SI units
-RESOLUTION = {"position": 1e-6, "angle": 1e-6}
+RESOLUTION = {"position": 1e-6, "angle": 1e-6, "image": 1e-3}
 
 
 class ChannelLayout(NamedTuple):
@@ -84,7 +84,7 @@ def channel_layout(
             )
         b = names.index(ch.recording)
         length = float(sim.branches[ch.point.link][1]) if ch.point.link in sim.branches else 1.0
-        f = feature_for(sim, ch.kind, ch.point.link, ch.point.fraction_of(length))
+        f = feature_for(sim, ch.kind, ch.point.link, ch.point.fraction_of(length), ch.camera)
         if f not in feats:
             feats.append(f)
         n_b = int(np.atleast_1d(n_steps)[b] if np.ndim(n_steps) else n_steps)

@@ -11,7 +11,9 @@ is checked against MuJoCo C's ``mj_kinematics`` in ``tests/test_observe.py``).
 A *feature* is a static description ``(kind, body, local)`` of one sensed point: ``"position"``
 gives the world displacement [3] m of the point ``local`` (body frame) from its rest position;
 ``"angle"`` the rotation vector [3] rad (world axes) of the body's frame from its rest orientation
-(``log(R(t) R(0)^T)``). Row 0 of every rollout is the rest pose, so both are 0 there.
+(``log(R(t) R(0)^T)``); ``"image"`` the point's pixel displacement ``(u, v, 0)`` from its rest
+position in a pinhole camera (``u = fx x_c / z_c + cx``, ``v = fy y_c / z_c + cy``). Row 0 of
+every rollout is the rest pose, so all are 0 there.
 """
 
 from __future__ import annotations
@@ -29,15 +31,19 @@ from .simulator import Simulator
 
 
 class Feature(NamedTuple):
-    """A sensed point: ``kind`` ``"position"`` | ``"angle"``, MuJoCo ``body`` index, ``local``
-    [3] m in the body's frame (floats: hashable, static under jit)."""
+    """A sensed point: ``kind`` ``"position"`` | ``"angle"`` | ``"image"``, MuJoCo ``body``
+    index, ``local`` [3] m in the body's frame, ``camera`` (image: the 16 floats of
+    :func:`treeinfer.data.channels.parse_camera`); floats, hashable, static under jit."""
 
     kind: str
     body: int
     local: tuple[float, float, float]
+    camera: tuple = ()
 
 
-def feature_for(sim: Simulator, kind: str, link: str, fraction: float) -> Feature:
+def feature_for(
+    sim: Simulator, kind: str, link: str, fraction: float, camera: tuple = ()
+) -> Feature:
     """The :class:`Feature` of a point at ``fraction`` of ``link``'s axis."""
     if sim.hinge_tree is None:
         raise ConfigError(
@@ -50,7 +56,7 @@ def feature_for(sim: Simulator, kind: str, link: str, fraction: float) -> Featur
         )
     body, length = sim.branches[link]
     local = np.asarray(sim.branch_point(int(body), float(length), float(fraction)), float)
-    return Feature(kind, int(body), tuple(float(x) for x in local))
+    return Feature(kind, int(body), tuple(float(x) for x in local), tuple(camera))
 
 
 def _array(elems, shape, dtype) -> jax.Array:
@@ -88,6 +94,16 @@ def features_from_q(sim: Simulator, q: jax.Array, features: tuple[Feature, ...])
         if f.kind == "position":
             p = _array(hd.point(kin, f.body, f.local), shape, dtype)  # [..., T, 3]
             out.append(p - p[..., :1, :])
+        elif f.kind == "image":  # pinhole projection, pixels from the rest pose's
+            p = _array(hd.point(kin, f.body, f.local), shape, dtype)
+            c = np.asarray(f.camera, float)
+            rot, centre = jnp.asarray(c[4:13].reshape(3, 3), dtype), jnp.asarray(c[13:16], dtype)
+            pc = jnp.einsum("ij,...j->...i", rot, p - centre)
+            uv = jnp.stack(
+                [c[0] * pc[..., 0] / pc[..., 2] + c[2], c[1] * pc[..., 1] / pc[..., 2] + c[3]], -1
+            )
+            uv = uv - uv[..., :1, :]
+            out.append(jnp.concatenate([uv, jnp.zeros_like(uv[..., :1])], axis=-1))
         elif f.kind == "angle":
             r = _array(kin.rot[f.body], shape, dtype)  # [..., T, 3, 3]
             rel = jnp.einsum("...ij,...kj->...ik", r, r[..., :1, :, :])
