@@ -57,7 +57,8 @@ CONFIG = {
     "tilt": {"link": "child", "fraction": 0.5, "components": "y", "rate_hz": 50.0},
     "noise_scales": "inferred (sigma_x and one sigma[name] per channel)",
     "posterior": "model_importance(problem, n_particles=256): Laplace at the MAP + adaptive "
-    "importance sampling (Student-t, PSIS); weighted std over all draws",
+    "importance sampling (Student-t, PSIS); weighted std over all draws; resample-move (256 "
+    "particles) where the weights are not trusted",
     "likelihood": "gaussian, noise_force=None, nn_prior=True (make_problem's default)",
 }
 SETS = ("grasp", "+marker", "+tilt", "+marker+tilt")
@@ -109,7 +110,11 @@ def weighted_std(imp):
 def run_seed(tree, seed: int, log) -> dict:
     import treeinfer as ti
     from treeinfer.inference.fast import importance_for_run
-    from treeinfer.inference.start_pipeline import channel_starts, model_importance
+    from treeinfer.inference.start_pipeline import (
+        _channel_resample_move,
+        channel_starts,
+        model_importance,
+    )
 
     forces, trajs, sets = make_data(tree, seed)
     sim = ti.make_simulator(tree, CONFIG["dt"], forces=forces)
@@ -123,6 +128,11 @@ def run_seed(tree, seed: int, log) -> dict:
             extra = np.asarray(importance_for_run(problem, 16, seed, lambda m: None)[1])
         imp, _, lap = model_importance(problem, 256, seed, extra=extra)
         mean, std = weighted_std(imp)
+        method, moved = "importance", None
+        if not imp.ok:  # untrusted weights: resample-move, as the start pipeline does
+            moved, theta, _ = _channel_resample_move(problem, imp, 256, seed, lambda m: None)
+            method = "resample-move" + ("" if moved.ok else f" (not settled: {moved.reason})")
+            mean, std = theta.mean(0), theta.std(0)
         r = {
             "labels": list(problem.labels),
             "mean_log": mean.tolist(),
@@ -131,11 +141,13 @@ def run_seed(tree, seed: int, log) -> dict:
             "khat": float(imp.khat),
             "ess": float(imp.ess),
             "ok": bool(imp.ok),
+            "method": method,
+            "resample_move": None if moved is None else moved.settings(),
             "seconds": time.time() - t0,
         }
         out[name] = r
         log(
-            f"seed {seed} {name:13s} khat {imp.khat:.2f} ess {imp.ess:5.0f} "
+            f"seed {seed} {name:13s} khat {imp.khat:.2f} ess {imp.ess:5.0f} {method} "
             f"{time.time() - t0:5.0f} s  "
             + "  ".join(
                 f"{lab} {np.exp(m):.3g} (sd {s:.3f})"
@@ -173,15 +185,18 @@ def tables(results: dict, labels: list[str]) -> str:
             cells.append(f"**{g:.2f}x** [{', '.join(f'{x:.2f}' for x in r)}]")
         lines.append(f"| {lab} | {truth[kind.lower()][joint]:g} | " + " | ".join(cells) + " |")
     lines += ["", "## Posterior mean and std of log K per seed", ""]
-    lines.append("| seed | set | " + " | ".join(labels) + " | k-hat | ESS | s |")
-    lines.append("| --- | --- | " + " | ".join("---" for _ in labels) + " | --- | --- | --- |")
+    lines.append("| seed | set | " + " | ".join(labels) + " | k-hat | ESS | posterior | s |")
+    lines.append(
+        "| --- | --- | " + " | ".join("---" for _ in labels) + " | --- | --- | --- | --- |"
+    )
     for k in seeds:
         for s in SETS:
             r = results["seeds"][k][s]
             cells = [f"{r['mean'][j]:.3g} (sd {r['std_log'][j]:.3f})" for j in range(len(labels))]
             lines.append(
                 f"| {k} | {s} | " + " | ".join(cells)
-                + f" | {r['khat']:.2f} | {r['ess']:.0f} | {r['seconds']:.0f} |"
+                + f" | {r['khat']:.2f} | {r['ess']:.0f} | {r.get('method', 'importance')} | "
+                f"{r['seconds']:.0f} |"
             )  # fmt: skip
     return "\n".join(lines) + "\n"
 

@@ -178,6 +178,29 @@ def auto_start(problem, n_particles: int, seed: int = 0, log=lambda m: None, **o
     return _model_start(problem, n_particles, seed, log)
 
 
+def _channel_resample_move(problem, imp, n_particles: int, seed: int, log):
+    """Untrusted importance weights of a problem with observation channels: resample-move
+    (:mod:`treeinfer.inference.resample_move`) on the problem's own jitted log-density.
+    ``(MoveResult, theta [P, D], log density [P] or None when the cloud did not settle)``."""
+    import time
+
+    from .resample_move import resample_move
+
+    fn = jax.jit(problem.log_density)
+    dtype = jnp.asarray(0.0).dtype
+    t0 = time.perf_counter()
+    mv = resample_move(
+        lambda x: np.asarray(fn(jnp.asarray(x, dtype)), float),
+        imp.draws, imp.log_weights, imp.log_density, int(n_particles), seed=seed,
+    )  # fmt: skip
+    log(
+        f"resample-move: {mv.describe()}, {time.perf_counter() - t0:.0f} s: "
+        + ("used as the posterior" if mv.ok else f"not settled ({mv.reason}): the sampler runs")
+    )
+    theta = np.asarray(mv.theta, np.float32)
+    return mv, theta, (np.asarray(mv.log_density, np.float32) if mv.ok else None)
+
+
 def _model_start(problem, n_particles: int, seed: int, log):
     """:func:`auto_start` for a model the rollout program does not run."""
     from .fast_result import importance_run_result
@@ -198,9 +221,12 @@ def _model_start(problem, n_particles: int, seed: int, log):
         f"effective sample size {imp.ess:.0f}: {verdict}"
     )
     theta = np.asarray(imp.theta, np.float32)
-    if not imp.ok:
+    logp = np.asarray(imp.log_density[idx], np.float32) if imp.ok else None
+    moved = None
+    if not imp.ok and extra is not None:  # observation channels: resample-move, as fast.py does
+        moved, theta, logp = _channel_resample_move(problem, imp, n_particles, seed, log)
+    if logp is None:
         return None, theta
-    logp = np.asarray(imp.log_density[idx], np.float32)
     run_settings = {
         "method": "model_importance",
         "khat": imp.khat,
@@ -212,6 +238,7 @@ def _model_start(problem, n_particles: int, seed: int, log):
         "n_iterations_done": 0,
         "start_iteration": 0,
         "seed": seed,
+        **({"resample_move": moved.settings()} if moved is not None else {}),
     }
     run = importance_run_result(theta, logp, run_settings, imp, 0.0)
     if problem.model is None:  # the paper's model with observation channels
