@@ -111,7 +111,7 @@ def run_seed(tree, seed: int, log) -> dict:
     import treeinfer as ti
     from treeinfer.inference.fast import importance_for_run
     from treeinfer.inference.start_pipeline import (
-        _channel_resample_move,
+        channel_resample_move,
         channel_starts,
         model_importance,
     )
@@ -130,7 +130,7 @@ def run_seed(tree, seed: int, log) -> dict:
         mean, std = weighted_std(imp)
         method, moved = "importance", None
         if not imp.ok:  # untrusted weights: resample-move, as the start pipeline does
-            moved, theta, _ = _channel_resample_move(problem, imp, 256, seed, lambda m: None)
+            moved, theta, _ = channel_resample_move(problem, imp, 256, seed, lambda m: None)
             method = "resample-move" + ("" if moved.ok else f" (not settled: {moved.reason})")
             mean, std = theta.mean(0), theta.std(0)
         r = {

@@ -119,7 +119,7 @@ def test_write_read_roundtrip(tmp_path, tree):
     out.mkdir()
     for tr in trajs:
         ti.write_trajectory(out / tr.source, tr)
-    ti.data.channels.write_channels(out, chans)
+    ti.data.write_channels(out, chans)
     (back,) = read_channels(out, tree, ti.read_trajectory_dir(out))
     np.testing.assert_allclose(back.values, chans[0].values, rtol=1e-8)
     np.testing.assert_allclose(back.time, chans[0].time, atol=1e-9)
@@ -161,7 +161,7 @@ def test_image_channel_with_camera(tmp_path, tree):
     out.mkdir()
     for tr in ti.read_trajectory_dir(folder):
         ti.write_trajectory(out / tr.source, tr)
-    ti.data.channels.write_channels(out, (ch,))
+    ti.data.write_channels(out, (ch,))
     (back,) = read_channels(out, tree, ti.read_trajectory_dir(out))
     assert back.camera == pytest.approx(ch.camera)
     bad = dict(entry, camera={**cam, "rotation": [[1, 0, 0], [0, 1, 0], [0, 1, 0]]})
@@ -171,3 +171,19 @@ def test_image_channel_with_camera(tmp_path, tree):
         read_channels(_folder(tmp_path, dict(entry, camera=None), rows), tree)
     with pytest.raises(ConfigError, match="only image channels have a camera"):
         read_channels(_folder(tmp_path, {"camera": cam}), tree)
+
+
+def test_channel_files_are_checksummed_for_resume(tmp_path, tree):
+    from treeinfer.data.channel_files import channel_manifest
+    from treeinfer.io.provenance import data_manifest
+    from treeinfer.runs.inputs import check_data_unchanged
+
+    folder = _folder(tmp_path, {})
+    man = channel_manifest(folder)
+    assert [m["name"] for m in man] == ["channels.yaml", "channels/m.csv"]
+    config = {"data": {"dir": str(folder), "files": data_manifest(folder), "channel_files": man}}
+    assert len(check_data_unchanged(config)) == 1
+    with open(folder / "channels" / "m.csv", "a") as f:
+        f.write("9.9,1,1\n")
+    with pytest.raises(ConfigError, match=r"changed: channels/m.csv"):
+        check_data_unchanged(config)

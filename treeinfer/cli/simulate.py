@@ -305,7 +305,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         config["channels"] = [c._asdict() for c in channel_specs]
     with staged_output_dir(args.out, args.force, inputs=inputs) as stage:
         if channels:
-            from ..data.channels import write_channels
+            from ..data.channel_files import write_channels
 
             write_channels(stage, channels)
         for name, traj in zip(names, trajs):

@@ -8,8 +8,8 @@ The public API is re-exported here name by name, imported lazily (on first use),
 importing one module of the package does not import the others (startup cost, and no
 import order between them).
 
-Submodules: bag_messages, bags, channels, checks, csv_format, direction, forces, import_bag,
-import_csv, import_pul, kortex, noise_estimate, pul, pull_checks, pull_test, pulls,
+Submodules: bag_messages, bags, channel_files, channels, checks, csv_format, direction, forces,
+import_bag, import_csv, import_pul, kortex, noise_estimate, pul, pull_checks, pull_test, pulls,
 side_files, trajectories, true_params, types."""
 
 _EXPORTS = {
@@ -25,7 +25,8 @@ _EXPORTS = {
     "Channel": "channels",
     "NamedPoint": "channels",
     "read_channels": "channels",
-    "write_channels": "channels",
+    "channel_manifest": "channel_files",
+    "write_channels": "channel_files",
     "data_checks": "checks",
     "speed_limit": "checks",
     "parse_units": "csv_format",
@@ -125,6 +126,7 @@ _EXPORTS = {
 _SUBMODULES = (
     "bag_messages",
     "bags",
+    "channel_files",
     "channels",
     "checks",
     "csv_format",

@@ -425,50 +425,6 @@ def channels_from_dict(
     return tuple(out)
 
 
-def channel_to_dict(ch: Channel, file: str) -> dict:
-    """The ``channels.yaml`` entry of ``ch`` with its values written to ``file`` in SI units."""
-    p = {"link": ch.point.link}
-    p.update({"fraction": ch.point.fraction} if ch.point.fraction is not None else {})
-    p.update({"distance": ch.point.distance} if ch.point.distance is not None else {})
-    return {
-        "name": ch.name,
-        "recording": ch.recording,
-        "file": file,
-        "kind": ch.kind,
-        "point": p,
-        "components": list(ch.components),
-        "units": {"time": "s", "value": SI_UNIT[ch.kind]},
-        "time_offset": 0.0,
-        "noise": "auto" if ch.noise is None else float(ch.noise),
-        **({"camera": camera_to_dict(ch.camera)} if ch.camera else {}),
-    }
-
-
-def camera_to_dict(camera: tuple) -> dict:
-    """The ``channels.yaml`` form of :func:`parse_camera`'s tuple."""
-    c = [float(x) for x in camera]
-    return {"focal": c[0:2], "center": c[2:4], "rotation": [c[4:7], c[7:10], c[10:13]],
-            "position": c[13:16]}  # fmt: skip
-
-
-def write_channels(folder: str | os.PathLike, channels: Sequence[Channel]) -> Path:
-    """Write ``channels`` (SI, on the pulls' clock) as ``channels.yaml`` + ``channels/*.csv``."""
-    import yaml
-
-    folder = Path(folder)
-    (folder / "channels").mkdir(parents=True, exist_ok=True)
-    entries = []
-    for ch in channels:
-        rel = f"channels/{ch.name}.csv"
-        data = np.column_stack([ch.time, ch.values])
-        header = ",".join(["time", *ch.components])
-        np.savetxt(folder / rel, data, delimiter=",", header=header, comments="", fmt="%.9g")
-        entries.append(channel_to_dict(ch, rel))
-    path = folder / CHANNELS_FILE
-    path.write_text(yaml.safe_dump({"channels": entries}, sort_keys=False))
-    return path
-
-
 def sample_weights(time: np.ndarray, t0: float, dt: float, n_steps: int):
     """Linear interpolation of a pull's grid ``t0 + k dt`` (k < n_steps) at ``time`` [S]:
     ``(index [S] int32, weight [S])`` with value = ``(1 - w) x[i] + w x[i + 1]``."""

@@ -53,7 +53,15 @@ from .start_steps import (  # noqa: F401 -- re-exported: their import path befor
     screen,
 )
 
-__all__ = ["auto_start", "force_noise_reference", "ggn_terms", "model_importance", "noise_guess"]
+__all__ = [
+    "auto_start",
+    "channel_resample_move",
+    "channel_starts",
+    "force_noise_reference",
+    "ggn_terms",
+    "model_importance",
+    "noise_guess",
+]
 
 # LM iterations of each force-noise reference step (the coarse-step fit of fast_posterior uses 15)
 REFERENCE_LM_ITERATIONS = 15
@@ -178,7 +186,7 @@ def auto_start(problem, n_particles: int, seed: int = 0, log=lambda m: None, **o
     return _model_start(problem, n_particles, seed, log)
 
 
-def _channel_resample_move(problem, imp, n_particles: int, seed: int, log):
+def channel_resample_move(problem, imp, n_particles: int, seed: int, log):
     """Untrusted importance weights of a problem with observation channels: resample-move
     (:mod:`treeinfer.inference.resample_move`) on the problem's own jitted log-density.
     ``(MoveResult, theta [P, D], log density [P] or None when the cloud did not settle)``."""
@@ -224,7 +232,7 @@ def _model_start(problem, n_particles: int, seed: int, log):
     logp = np.asarray(imp.log_density[idx], np.float32) if imp.ok else None
     moved = None
     if not imp.ok and extra is not None:  # observation channels: resample-move, as fast.py does
-        moved, theta, logp = _channel_resample_move(problem, imp, n_particles, seed, log)
+        moved, theta, logp = channel_resample_move(problem, imp, n_particles, seed, log)
     if logp is None:
         return None, theta
     run_settings = {

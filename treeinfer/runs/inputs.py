@@ -88,8 +88,14 @@ def check_data_unchanged(config: dict) -> list[Trajectory]:
     d = Path(config["data"]["dir"])
     if not d.is_dir():
         raise ConfigError(f"{d}: the run's data folder no longer exists; restore it to resume")
+    from ..data.channel_files import channel_manifest
+
+    # the pulls and, where the run had them, its observation channels (channels.yaml + files)
+    channels = config["data"].get("channel_files") or []
     now = {f["name"]: f["sha256"] for f in data_manifest(d)}
     then = {f["name"]: f["sha256"] for f in config["data"]["files"]}
+    now.update({f["name"]: f["sha256"] for f in (channel_manifest(d) if channels else [])})
+    then.update({f["name"]: f["sha256"] for f in channels})
     changed = sorted(n for n in then if n in now and now[n] != then[n])
     missing = sorted(set(then) - set(now))
     added = sorted(set(now) - set(then))
