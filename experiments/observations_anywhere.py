@@ -54,6 +54,13 @@ CONFIG = {
     "profiles": "profile_set('mixed', n=2, duration=3.0, dt=0.02, seed=100 + seed)",
     "noise": {"displacement_m": 2e-3, "marker_m": 1e-3, "tilt_rad": 1e-3, "force": "none"},
     "marker": {"link": "child", "fraction": 0.5, "components": "xz", "rate_hz": 25.0},
+    "tip_marker": {
+        "link": "child",
+        "fraction": 1.0,
+        "components": "xz",
+        "rate_hz": 25.0,
+        "noise": "1 mm, drawn from its own stream (rng [seed, 1])",
+    },
     "tilt": {"link": "child", "fraction": 0.5, "components": "y", "rate_hz": 50.0},
     "noise_scales": "inferred (sigma_x and one sigma[name] per channel)",
     "posterior": "model_importance(problem, n_particles=256): Laplace at the MAP + adaptive "
@@ -61,7 +68,14 @@ CONFIG = {
     "particles) where the weights are not trusted",
     "likelihood": "gaussian, noise_force=None, nn_prior=True (make_problem's default)",
 }
-SETS = ("grasp", "+marker", "+tilt", "+marker+tilt")
+SETS = ("grasp", "+marker", "+tip-marker", "+tilt", "+marker+tilt")
+# the single sensors suggest --sensors can score (the linearised prediction of the ratio): a
+# 25 Hz marker is scored as a 50 Hz one with sqrt(2) x its noise (the same information)
+PREDICT = {
+    "+marker": ("position", "child", 0.5, "xz", 1e-3 * 2**0.5),
+    "+tip-marker": ("position", "child", 1.0, "xz", 1e-3 * 2**0.5),
+    "+tilt": ("angle", "child", 0.5, "y", 1e-3),
+}
 
 
 def make_data(tree, seed: int):
@@ -79,7 +93,8 @@ def make_data(tree, seed: int):
     ref = PlanarTree(tree, kp, kd)
     rng = np.random.default_rng(seed)
     nz = c["noise"]
-    trajs, markers, tilts = [], [], []
+    rng_tip = np.random.default_rng([seed, 1])  # the other sets' data stay as they were
+    trajs, markers, tilts, tips = [], [], [], []
     for b, f in enumerate(forces):
         q = ref.rollout_q(f, dt)
         t = np.arange(len(f)) * dt
@@ -95,8 +110,13 @@ def make_data(tree, seed: int):
         a = np.array([ref.rotation(qk, q[0], "child") for qk in q])[:, [1]]
         a = a + rng.normal(0, nz["tilt_rad"], a.shape)
         tilts.append(Channel(f"tilt_{b}", "angle", name, point, ("y",), t, a))
+        m = np.array([ref.point(qk, "child", 1.0) for qk in q])
+        m = (m - m[0])[::2][:, [0, 2]] + rng_tip.normal(0, nz["marker_m"], (len(t[::2]), 2))
+        tip = NamedPoint("child", fraction=1.0)
+        tips.append(Channel(f"tip_{b}", "position", name, tip, ("x", "z"), t[::2], m))
     return forces, trajs, {"grasp": (), "+marker": tuple(markers), "+tilt": tuple(tilts),
-                           "+marker+tilt": tuple(markers + tilts)}  # fmt: skip
+                           "+marker+tilt": tuple(markers + tilts),
+                           "+tip-marker": tuple(tips)}  # fmt: skip
 
 
 def weighted_std(imp):
@@ -128,11 +148,18 @@ def run_seed(tree, seed: int, log) -> dict:
             extra = np.asarray(importance_for_run(problem, 16, seed, lambda m: None)[1])
         imp, _, lap = model_importance(problem, 256, seed, extra=extra)
         mean, std = weighted_std(imp)
-        method, moved = "importance", None
+        method, moved, theta = "importance", None, np.asarray(imp.theta, float)
         if not imp.ok:  # untrusted weights: resample-move, as the start pipeline does
             moved, theta, _ = channel_resample_move(problem, imp, 256, seed, lambda m: None)
             method = "resample-move" + ("" if moved.ok else f" (not settled: {moved.reason})")
             mean, std = theta.mean(0), theta.std(0)
+        if name == "grasp":  # what suggest --sensors' linearisation expects of each sensor
+            from treeinfer.design.sensors import rank_sensors
+
+            cands = list(PREDICT.values())
+            scores = rank_sensors(sim, theta, problem.labels, forces, cands)
+            by = {(s_.kind, s_.link, s_.fraction): s_.std_ratio for s_ in scores}
+            out["predicted"] = {k: by[(c[0], c[1], c[2])] for k, c in PREDICT.items()}
         r = {
             "labels": list(problem.labels),
             "mean_log": mean.tolist(),
@@ -154,6 +181,61 @@ def run_seed(tree, seed: int, log) -> dict:
                 for lab, m, s in zip(problem.labels, mean, std)
             )  # fmt: skip
         )
+    return out
+
+
+def mh_check(tree, seed: int, sets: list[str], iterations: int, log) -> dict:
+    """Random-walk Metropolis chains (64, from the study's own posterior particles, proposal
+    from their covariance) as an independent check of the std the study reports."""
+    import treeinfer as ti
+    from treeinfer.inference.fast import importance_for_run
+    from treeinfer.inference.laplace import mh_proposal
+    from treeinfer.inference.start_pipeline import (
+        channel_resample_move,
+        channel_starts,
+        model_importance,
+    )
+
+    forces, trajs, all_sets = make_data(tree, seed)
+    sim = ti.make_simulator(tree, CONFIG["dt"], forces=forces)
+    out = {}
+    for name in sets:
+        t0 = time.time()
+        problem = ti.make_problem(tree, trajs, sim=sim, noise_force=None, channels=all_sets[name])
+        if all_sets[name]:
+            extra = channel_starts(problem, seed)
+        else:
+            extra = np.asarray(importance_for_run(problem, 16, seed, lambda m: None)[1])
+        imp, idx, _ = model_importance(problem, 256, seed, extra=extra)
+        theta = np.asarray(imp.theta, float)
+        if not imp.ok:
+            _, theta, _ = channel_resample_move(problem, imp, 256, seed, lambda m: None)
+        start = np.asarray(theta, float)[:: max(1, len(theta) // 64)][:64]
+        scale = mh_proposal(np.cov(np.asarray(theta, float), rowvar=False))
+        post = ti.infer(
+            problem,
+            sampler="mh",
+            n_particles=len(start),
+            n_iterations=iterations,
+            seed=seed,
+            progress=False,
+            initial_theta=start,
+            proposal_scale=scale,
+        )
+        tr = np.asarray(post.run.trace_positions, float)  # [n_trace, P, D]
+        draws = tr[tr.shape[0] // 2 :].reshape(-1, tr.shape[-1])
+        acc = post.run.diagnostics.get("mean_acceptance_rate")
+        out[name] = {
+            "labels": list(problem.labels),
+            "std_log": draws.std(0).tolist(),
+            "mean": np.exp(draws.mean(0)).tolist(),
+            "iterations": iterations,
+            "chains": len(start),
+            "acceptance": None if acc is None else float(np.mean(acc)),
+            "seconds": time.time() - t0,
+        }
+        log(f"MH seed {seed} {name}: " + "  ".join(
+            f"{lab} sd {s_:.3f}" for lab, s_ in zip(problem.labels, draws.std(0))))  # fmt: skip
     return out
 
 
@@ -184,6 +266,23 @@ def tables(results: dict, labels: list[str]) -> str:
             g = float(np.exp(np.mean(np.log(r))))
             cells.append(f"**{g:.2f}x** [{', '.join(f'{x:.2f}' for x in r)}]")
         lines.append(f"| {lab} | {truth[kind.lower()][joint]:g} | " + " | ".join(cells) + " |")
+    pred = [k for k in seeds if "predicted" in results["seeds"][k]]
+    if pred:
+        sets = [s for s in SETS[1:] if s in PREDICT]
+        lines += [
+            "",
+            "## The same ratios as `suggest --sensors` predicts them (linearised at the "
+            "grasp-only posterior mean; geometric mean over seeds)",
+            "",
+            "| parameter | " + " | ".join(sets) + " |",
+            "| --- | " + " | ".join("---" for _ in sets) + " |",
+        ]
+        for lab in labels:
+            cells = []
+            for s in sets:
+                r = [results["seeds"][k]["predicted"][s][lab] for k in pred]
+                cells.append(f"{float(np.exp(np.mean(np.log(r)))):.2f}x")
+            lines.append(f"| {lab} | " + " | ".join(cells) + " |")
     lines += ["", "## Posterior mean and std of log K per seed", ""]
     lines.append("| seed | set | " + " | ".join(labels) + " | k-hat | ESS | posterior | s |")
     lines.append(
@@ -205,6 +304,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--grasp", choices=("child", "parent"), default="child")
+    ap.add_argument(
+        "--mh-check",
+        nargs="*",
+        default=None,
+        metavar="SET",
+        help="instead of the study: Metropolis chains on these sets of --seeds[0] (default "
+        "grasp +marker), written to mh_check_<grasp>.json",
+    )
+    ap.add_argument("--mh-iterations", type=int, default=1500)
     ap.add_argument("--out", type=Path, default=ROOT / "experiments/results/observations_anywhere")
     args = ap.parse_args(argv)
     import treeinfer as ti
@@ -214,6 +322,14 @@ def main(argv=None) -> int:
     if args.grasp == "parent":
         tree = tree.with_grasp(0.9, "parent")  # tree.inferred stays (child, parent)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.mh_check is not None:
+        sets = args.mh_check or ["grasp", "+marker"]
+        res = mh_check(
+            tree, args.seeds[0], sets, args.mh_iterations, lambda m: print(m, flush=True)
+        )
+        record = {"seed": args.seeds[0], "grasp": args.grasp, "sets": res}
+        (args.out / f"mh_check_{args.grasp}.json").write_text(json.dumps(record, indent=1))
+        return 0
     config = {**CONFIG, "grasp": args.grasp, "seeds": args.seeds, "versions": versions()}
     results = {"config": config, "seeds": {}}
     path = args.out / f"results_{args.grasp}.json"
