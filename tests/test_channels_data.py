@@ -187,3 +187,13 @@ def test_channel_files_are_checksummed_for_resume(tmp_path, tree):
         f.write("9.9,1,1\n")
     with pytest.raises(ConfigError, match=r"changed: channels/m.csv"):
         check_data_unchanged(config)
+
+
+def test_a_kfold_split_keeps_the_channels_of_its_pulls(tmp_path, tree):
+    folder = _folder(tmp_path, {})
+    trajs = ti.read_trajectory_dir(folder)
+    other = trajs[0]._replace(source="pull_b.csv")
+    assert read_channels(folder, tree, [other], only_these_pulls=True) == ()
+    with pytest.raises(ConfigError, match="no pull 'pull_a.csv'"):
+        read_channels(folder, tree, [other])
+    assert len(read_channels(folder, tree, trajs, only_these_pulls=True)) == 1

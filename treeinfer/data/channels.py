@@ -384,9 +384,13 @@ def parse_channel(
     )
 
 
-def read_channels(folder: str | os.PathLike, tree=None, trajectories=None) -> tuple[Channel, ...]:
+def read_channels(
+    folder: str | os.PathLike, tree=None, trajectories=None, only_these_pulls: bool = False
+) -> tuple[Channel, ...]:
     """The channels of a data folder (``()`` without a ``channels.yaml``), checked against the
-    ``tree`` (point names) and the ``trajectories`` (recordings and time overlap) when given."""
+    ``tree`` (point names) and the ``trajectories`` (recordings and time overlap) when given.
+    ``only_these_pulls``: keep only the channels of those trajectories (a k-fold split of the
+    folder's pulls) instead of refusing the others."""
     import yaml
 
     folder = Path(folder)
@@ -397,11 +401,16 @@ def read_channels(folder: str | os.PathLike, tree=None, trajectories=None) -> tu
         raw = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
         raise ConfigError(f"{path}: not valid YAML ({e})") from None
-    return channels_from_dict(raw, folder, tree, trajectories, source=str(path))
+    return channels_from_dict(raw, folder, tree, trajectories, str(path), only_these_pulls)
 
 
 def channels_from_dict(
-    raw: Any, folder, tree=None, trajectories=None, source: str = CHANNELS_FILE
+    raw: Any,
+    folder,
+    tree=None,
+    trajectories=None,
+    source: str = CHANNELS_FILE,
+    only_these_pulls: bool = False,
 ) -> tuple[Channel, ...]:
     """:func:`read_channels` from the parsed YAML ``raw``."""
     if not isinstance(raw, dict) or not isinstance(raw.get("channels"), list):
@@ -414,10 +423,14 @@ def channels_from_dict(
         recordings = {
             Path(tr.source).name: (float(tr.time[0]), float(tr.time[-1])) for tr in trajectories
         }
-    out = [
-        parse_channel(e, i, Path(folder), tree, recordings, source)
-        for i, e in enumerate(raw["channels"])
-    ]
+    entries = list(enumerate(raw["channels"]))
+    if only_these_pulls and recordings is not None:
+        entries = [
+            (i, e)
+            for i, e in entries
+            if not isinstance(e, dict) or e.get("recording") in recordings
+        ]
+    out = [parse_channel(e, i, Path(folder), tree, recordings, source) for i, e in entries]
     names = [c.name for c in out]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:

@@ -258,7 +258,8 @@ def build_problem(
     if table and o.get("data"):
         from ..data.channels import read_channels
 
-        channels = read_channels(o["data"], tree, trajectories)
+        # a k-fold training split holds some of the folder's pulls: their channels only
+        channels = read_channels(o["data"], tree, trajectories, only_these_pulls=True)
     if channels:
         log(f"observation channels: {', '.join(c.name for c in channels)} (channels.yaml)")
         problem = make_problem(tree, list(trajectories), **common, **reference, channels=channels)
