@@ -32,11 +32,10 @@ def test_truth_with_true_noise_covers_about_95_percent(case):
     rng = np.random.default_rng(1)
     theta = np.column_stack(
         [np.log(KP) + 1e-3 * rng.normal(size=(16, 2)), np.log(KD) + 1e-3 * rng.normal(size=(16, 2)),
-         np.full((16, 2), np.log(1e-3))]
+         np.full((16, 1), np.log(1e-3))]
     )  # fmt: skip
-    labels = ["Kp[child]", "Kp[parent]", "Kd[child]", "Kd[parent]"] + [
-        f"sigma[{c.name}]" for c in chans
-    ]
+    assert {c.sensor for c in chans} == {"position_child_0.5"}  # one sensor on both pulls
+    labels = ["Kp[child]", "Kp[parent]", "Kd[child]", "Kd[parent]", "sigma[position_child_0.5]"]
     bands = channel_bands(sim, theta, labels, chans, trajs)
     assert len(bands) == 2
     outside = np.mean([b.metrics()["pct_outside"] for b in bands])

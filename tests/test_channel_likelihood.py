@@ -98,3 +98,22 @@ def test_channels_need_a_generative_likelihood(case):
     bad = chans[0]._replace(recording="p7.csv")
     with pytest.raises(ConfigError, match="'p7.csv', which is not in the data"):
         ti.make_problem(tree, trajs, sim=sim, noise_force=None, channels=(bad,))
+
+
+def test_channels_of_one_sensor_share_a_noise_column(case):
+    tree, sim, forces, trajs, chans, _, t = case
+    m = chans[0]
+    a = m._replace(name="m_a", sensor="cam")
+    b = m._replace(name="m_b", sensor="cam", recording="p0.csv")
+    layout = channel_layout(sim, (a, b), ["p0.csv", "p1.csv"], [0.0, 0.0], forces.shape[1])
+    assert layout.labels == ("sigma[cam]",) and list(layout.column) == [0, 0]
+    ll = channel_log_likelihood(sim, layout, forces)
+    theta = np.array([[*np.log(KP), *np.log(KD), np.log(2e-3)]])
+    got = float(ll(jnp.asarray(theta, jnp.float32))[0])
+    each = [
+        channel_log_likelihood(
+            sim, channel_layout(sim, (c._replace(noise=2e-3),), ["p0.csv", "p1.csv"], [0.0, 0.0],
+                                forces.shape[1]), forces)(jnp.asarray(theta[:, :4], jnp.float32))
+        for c in (a, b)
+    ]  # fmt: skip
+    assert got == pytest.approx(float(each[0][0] + each[1][0]), rel=1e-5)

@@ -197,3 +197,17 @@ def test_a_kfold_split_keeps_the_channels_of_its_pulls(tmp_path, tree):
     with pytest.raises(ConfigError, match="no pull 'pull_a.csv'"):
         read_channels(folder, tree, [other])
     assert len(read_channels(folder, tree, trajs, only_these_pulls=True)) == 1
+
+
+def test_sensor_name_round_trips_and_is_checked(tmp_path, tree):
+    folder = _folder(tmp_path, {"sensor": "cam1"})
+    (ch,) = read_channels(folder, tree, ti.read_trajectory_dir(folder))
+    assert ch.sensor == "cam1"
+    out = tmp_path / "copy"
+    out.mkdir()
+    for tr in ti.read_trajectory_dir(folder):
+        ti.write_trajectory(out / tr.source, tr)
+    ti.data.write_channels(out, (ch,))
+    assert read_channels(out, tree)[0].sensor == "cam1"
+    with pytest.raises(ConfigError, match="field 'sensor'"):
+        read_channels(_folder(tmp_path, {"sensor": "a[1]"}), tree)

@@ -28,7 +28,7 @@ def test_simulate_infer_evaluate_suggest_with_a_marker(tmp_path, capsys):
         if isinstance(summary["posterior"], list)
         else list(summary["posterior"])
     )
-    assert "sigma[position_child_0.5_000]" in str(labels)
+    assert "sigma[position_child_0.5]" in str(labels)  # one noise scale for the sensor
     out = tmp_path / "eval"
     assert main(["evaluate", "--run", str(run), "--data", str(tmp_path / "test"), "--out",
                  str(out)]) == 0  # fmt: skip

@@ -29,6 +29,7 @@ def channel_to_dict(ch: Channel, file: str) -> dict:
         "time_offset": 0.0,
         "noise": "auto" if ch.noise is None else float(ch.noise),
         **({"camera": camera_to_dict(ch.camera)} if ch.camera else {}),
+        **({"sensor": ch.sensor} if ch.sensor else {}),
     }
 
 

@@ -26,6 +26,8 @@ A data folder with channels::
         time_offset: 0.0             # s added to the file's time to put it on the pull's clock
         noise: auto                  # auto (inferred, like the displacement's) or a std in the
                                      # value unit
+        sensor: camera_marker_1      # optional: channels of one sensor (on several pulls)
+                                     # share one inferred noise scale, sigma[sensor]
 
 Values are measured from the tree's rest pose at the start of the pull: a position channel is
 the point's displacement from its rest position, an angle channel the rotation of the link's
@@ -68,6 +70,7 @@ _FIELDS = {
     "time_offset",
     "noise",
     "camera",
+    "sensor",
 }
 
 
@@ -100,6 +103,8 @@ class Channel(NamedTuple):
       noise: std in SI units, or None (inferred).
       source: the channel file (messages). units: the file's units as declared.
       time_offset: s. dropped: samples outside the pull's span left out.
+      camera: an image channel's pinhole camera (:func:`parse_camera`), else ().
+      sensor: the sensor's name (channels of one sensor share a noise scale), or "" (its own).
     """
 
     name: str
@@ -115,6 +120,7 @@ class Channel(NamedTuple):
     time_offset: float = 0.0
     dropped: int = 0
     camera: tuple = ()
+    sensor: str = ""
 
     @property
     def rate(self) -> float:
@@ -331,6 +337,9 @@ def parse_channel(
     elif "camera" in entry:
         raise ConfigError(f"{loc}: field 'camera': only image channels have a camera")
     units = _units(entry.get("units"), kind, f"{loc}: field 'units'")
+    sensor = entry.get("sensor", "")
+    if not isinstance(sensor, str) or any(c in sensor for c in "[],\n"):
+        raise ConfigError(f"{loc}: field 'sensor': expected a plain name, got {sensor!r}")
     offset = _number(entry.get("time_offset", 0.0), f"{loc}: field 'time_offset'")
     rec = entry.get("recording")
     if not isinstance(rec, str):
@@ -380,8 +389,9 @@ def parse_channel(
         dropped = int((~inside).sum())
         t, values = t[inside], values[inside]
     return Channel(
-        name, kind, rec, point, comps, t, values, sigma, str(path), units, offset, dropped, camera
-    )
+        name, kind, rec, point, comps, t, values, sigma, str(path), units, offset, dropped, camera,
+        sensor,
+    )  # fmt: skip
 
 
 def read_channels(

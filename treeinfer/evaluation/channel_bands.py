@@ -66,20 +66,20 @@ def _noise_draws(theta, labels, settings, channels: Sequence[Channel]) -> list:
     trained = {c["name"]: c for c in (settings or {}).get("channels", [])}
     out = []
     for ch in channels:
-        col = f"sigma[{ch.name}]"
+        col = f"sigma[{ch.sensor or ch.name}]"
         if col in labels:
             out.append(np.exp(theta[:, labels.index(col)]))
             continue
         same = [
-            f"sigma[{n}]"
+            f"sigma[{c.get('sensor', n)}]"
             for n, c in trained.items()
             if c["kind"] == ch.kind
             and c["link"] == ch.point.link
             and c.get("fraction") == ch.point.fraction
             and c.get("distance") == ch.point.distance
         ]
-        cols = [labels.index(c) for c in same if c in labels]
-        given = [trained[n]["noise"] for n, c in trained.items() if f"sigma[{n}]" in same]
+        cols = [labels.index(c) for c in dict.fromkeys(same) if c in labels]
+        given = [c["noise"] for n, c in trained.items() if f"sigma[{c.get('sensor', n)}]" in same]
         if cols:
             out.append(np.exp(np.mean(theta[:, cols], axis=1)))
         elif ch.noise is not None:

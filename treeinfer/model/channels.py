@@ -4,8 +4,9 @@ markers and inclinometers at named points (:mod:`treeinfer.data.channels`).
 Each channel ``c`` adds ``sum_s log N(y_cs | g_cs(theta), sigma_c^2)``: ``g`` is the simulated
 channel (:mod:`treeinfer.sim.observe`: forward kinematics of the rollout's joint angles)
 interpolated linearly at the channel's own sample times, ``sigma_c`` the channel's noise std,
-given in ``channels.yaml`` or inferred as a column ``sigma[name]`` of theta (``log sigma_c``,
-after every other column) with the displacement noise's weakly informative prior: log-flat from
+given in ``channels.yaml`` or inferred as a column ``sigma[sensor]`` of theta (``log sigma_c``,
+after every other column; channels with the same ``sensor`` share one, a channel without one has
+its own ``sigma[name]``) with the displacement noise's weakly informative prior: log-flat from
 the channel's resolution floor to its data range (:class:`treeinfer.model.noise.NoisePrior`).
 The displacement term (with its force-noise correction) is unchanged; the channel terms are
 independent of it and of each other (white noise per channel).
@@ -43,8 +44,10 @@ class ChannelLayout(NamedTuple):
     row [S]: the pull (row of the observations); index, weight [S]: linear interpolation on
     the pull's grid; feature, axis [S]: which feature and world axis; values [S] SI;
     channel [S]: index into ``channels``. sigma [C]: given noise (SI) or NaN where inferred.
-    inferred: indices of the channels whose noise is a column of theta, in column order.
-    priors: their :class:`~treeinfer.model.noise.NoisePrior`. channels: the channels.
+    inferred: the noise columns' keys, in column order: a channel's ``sensor`` (the channels
+    of one sensor on several pulls share one noise scale), else its name. column [C]: each
+    channel's noise column (-1: given). priors: the columns'
+    :class:`~treeinfer.model.noise.NoisePrior`. channels: the channels.
     """
 
     features: tuple[Feature, ...]
@@ -56,14 +59,15 @@ class ChannelLayout(NamedTuple):
     values: np.ndarray
     channel: np.ndarray
     sigma: np.ndarray
-    inferred: tuple[int, ...]
+    inferred: tuple[str, ...]
+    column: np.ndarray
     priors: tuple
     channels: tuple[Channel, ...]
 
     @property
     def labels(self) -> tuple[str, ...]:
         """theta's column labels of the inferred channel noises."""
-        return tuple(f"sigma[{self.channels[i].name}]" for i in self.inferred)
+        return tuple(f"sigma[{key}]" for key in self.inferred)
 
 
 def channel_layout(
@@ -75,7 +79,8 @@ def channel_layout(
     names = [Path(r).name for r in recordings]
     feats: list[Feature] = []
     cols = {k: [] for k in ("row", "index", "weight", "feature", "axis", "values", "channel")}
-    sigma, inferred, priors = [], [], []
+    sigma, column, inferred = [], [], []
+    spans: dict[str, list] = {}  # column key -> [floor, ceiling, samples]
     for c_i, ch in enumerate(channels):
         if ch.recording not in names:
             raise ConfigError(
@@ -100,18 +105,28 @@ def channel_layout(
             cols["channel"].append(np.full(s, c_i))
         if ch.noise is None:
             sigma.append(np.nan)
-            inferred.append(c_i)
+            key = ch.sensor or ch.name
+            if key not in inferred:
+                inferred.append(key)
+                spans[key] = [math.inf, 0.0, 0]
+            column.append(inferred.index(key))
             rng = ch.value_range()
             if not rng > 0:
                 raise ConfigError(
                     f"{ch.source}: channel '{ch.name}' does not vary: no noise scale to infer; "
                     "give its noise in channels.yaml"
                 )
-            floor = min(RESOLUTION[ch.kind], rng / 100.0)
-            n = s * len(ch.axes)
-            priors.append(noise.NoisePrior(floor, rng, 0.5 / math.sqrt(n), 1.0, "resolution"))
+            sp = spans[key]
+            sp[0] = min(sp[0], RESOLUTION[ch.kind], rng / 100.0)
+            sp[1] = max(sp[1], rng)
+            sp[2] += s * len(ch.axes)
         else:
             sigma.append(float(ch.noise))
+            column.append(-1)
+    priors = [
+        noise.NoisePrior(lo, hi, 0.5 / math.sqrt(n), 1.0, "resolution")
+        for lo, hi, n in (spans[k] for k in inferred)
+    ]
     cat = {k: np.concatenate(v) for k, v in cols.items()}
     return ChannelLayout(
         tuple(feats),
@@ -124,6 +139,7 @@ def channel_layout(
         cat["channel"].astype(np.int32),
         np.asarray(sigma, float),
         tuple(inferred),
+        np.asarray(column, np.int32),
         tuple(priors),
         tuple(channels),
     )
@@ -165,9 +181,7 @@ def channel_log_likelihood(
     chan = jnp.asarray(layout.channel)
     fixed = jnp.asarray(np.nan_to_num(layout.sigma, nan=1.0), sim.dtype)
     k = len(layout.inferred)
-    slot = np.full(len(layout.channels), -1)
-    slot[list(layout.inferred)] = np.arange(k)
-    slot = jnp.asarray(slot)
+    slot = jnp.asarray(layout.column)
 
     def predict(theta_gains):
         kp, kd = gains_from_theta(theta_gains, r)
@@ -266,6 +280,7 @@ def channel_record(ch: Channel) -> dict:
         "distance": ch.point.distance,
         "components": list(ch.components),
         "noise": ch.noise,
+        "sensor": ch.sensor or ch.name,
         "samples": int(len(ch.time)),
         "rate_hz": ch.rate,
         "source": ch.source,

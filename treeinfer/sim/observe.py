@@ -233,5 +233,6 @@ def synthetic_channels(sim, kp, kd, forces, recordings, specs, rng, t0: float = 
             v = v + rng.normal(0.0, s.noise, v.shape) if s.noise > 0 else v
             name = f"{s.kind}_{s.link}_{s.fraction:g}_{b:03d}"
             point = NamedPoint(s.link, fraction=float(s.fraction))
-            out.append(Channel(name, s.kind, rec, point, tuple(s.components), t, v))
+            sensor = f"{s.kind}_{s.link}_{s.fraction:g}"  # one noise scale over the pulls
+            out.append(Channel(name, s.kind, rec, point, tuple(s.components), t, v, sensor=sensor))
     return tuple(out)
