@@ -117,3 +117,14 @@ def test_channels_of_one_sensor_share_a_noise_column(case):
         for c in (a, b)
     ]  # fmt: skip
     assert got == pytest.approx(float(each[0][0] + each[1][0]), rel=1e-5)
+
+
+def test_channel_tolerance_is_a_tenth_of_each_channels_noise(case):
+    from treeinfer.model.channels import TOLERANCE_FLOOR, channel_tolerance
+
+    tree, _, _, _, chans, _, _ = case
+    m, tilt = chans  # marker: noise estimated from its 1 mm noise; tilt: given 2 mrad
+    assert channel_tolerance((tilt,), tree) == pytest.approx(0.1 * 2e-3 * 0.8)  # parent: 0.8 m
+    # 1 mm noise; at 33 Hz the estimate also counts some of the marker's curvature
+    assert 0.7e-4 < channel_tolerance((m,), tree) < 3e-4
+    assert channel_tolerance((tilt._replace(noise=1e-6),), tree) == TOLERANCE_FLOOR

@@ -94,9 +94,16 @@ def make_problem(
     if sim is None:  # the step accuracy-controlled on the training forces (sim_tolerance, m)
         kwargs = {} if spec.max_sim_dt is None else {"max_sim_dt": spec.max_sim_dt}
         if spec.substeps is None:
+            tolerance = spec.sim_tolerance
+            if tolerance is None and spec.channels:  # a tenth of each channel's noise too
+                from ..model.channels import channel_tolerance
+                from ..sim import DEFAULT_SIM_TOLERANCE
+
+                tol_ch = channel_tolerance(spec.channels, tree)
+                tolerance = DEFAULT_SIM_TOLERANCE if tol_ch is None else min(tol_ch, 1e-4)
             kwargs.update(
                 forces=np.asarray(obs.force),
-                sim_tolerance=spec.sim_tolerance,
+                sim_tolerance=tolerance,
                 grasp_fraction=grasp_fraction,
             )
         sim = make_simulator(

@@ -63,6 +63,12 @@ __all__ = [
     "noise_guess",
 ]
 
+# resample-move sweeps for a problem with observation channels: its start (Laplace at the
+# generic fit's MAP) can sit off the mode of a sharp posterior (an inclinometer at 1 mrad), and
+# the chains take more sweeps to get there (56 on the two-branch tree with a tilt sensor, where 40
+# stopped short); a sweep costs one batched evaluation of the chains
+CHANNEL_MAX_SWEEPS = 150
+
 # LM iterations of each force-noise reference step (the coarse-step fit of fast_posterior uses 15)
 REFERENCE_LM_ITERATIONS = 15
 
@@ -200,6 +206,7 @@ def channel_resample_move(problem, imp, n_particles: int, seed: int, log):
     mv = resample_move(
         lambda x: np.asarray(fn(jnp.asarray(x, dtype)), float),
         imp.draws, imp.log_weights, imp.log_density, int(n_particles), seed=seed,
+        max_sweeps=CHANNEL_MAX_SWEEPS,
     )  # fmt: skip
     log(
         f"resample-move: {mv.describe()}, {time.perf_counter() - t0:.0f} s: "
@@ -248,7 +255,13 @@ def _model_start(problem, n_particles: int, seed: int, log):
         "seed": seed,
         **({"resample_move": moved.settings()} if moved is not None else {}),
     }
-    run = importance_run_result(theta, logp, run_settings, imp, 0.0)
+    reason = None
+    if moved is not None:
+        reason = (
+            f"resample-move after importance sampling (Pareto k_hat {imp.khat:.2f}): "
+            f"{moved.sweeps} Metropolis sweeps, the cloud settled"
+        )
+    run = importance_run_result(theta, logp, run_settings, imp, 0.0, reason)
     if problem.model is None:  # the paper's model with observation channels
         from ..model.likelihood import gains_from_theta
 

@@ -269,6 +269,34 @@ def with_channels(terms, sim, obs, layout: ChannelLayout, grasp_fraction=None, r
     )
 
 
+TOLERANCE_FLOOR = 2e-5  # m: the finest step accuracy the channels ask for (substeps grow as 1/sqrt)
+
+
+def channel_tolerance(channels: Sequence[Channel], tree) -> float | None:
+    """m, an accuracy target of the simulation step that keeps each channel's discretisation
+    error at a tenth of its noise, or None (no position or angle channel). The step's accuracy
+    control measures the grasp point's displacement, so a channel's noise is expressed as a
+    displacement: a marker's as it is, an inclinometer's times its link's length (the lever that
+    turns an angle error into a displacement error). The noise is the given one, else a robust
+    estimate from the channel (MAD of second differences / sqrt(6), as for the displacement; at a
+    low rate it also counts some of a fast signal's curvature, so it errs towards a looser step).
+    Not below :data:`TOLERANCE_FLOOR`. Image channels (pixels) are left to the displacement's."""
+    out = []
+    for ch in channels:
+        if ch.kind not in ("position", "angle") or len(ch.time) < 4:
+            continue
+        sigma = ch.noise
+        if sigma is None:
+            d2 = np.diff(np.asarray(ch.values, float), n=2, axis=0)
+            mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) * 1.4826
+            sigma = float(np.median(mad)) / math.sqrt(6.0)
+        if not sigma > 0:
+            continue
+        lever = tree.branch(ch.point.link).length if ch.kind == "angle" else 1.0
+        out.append(0.1 * sigma * lever)
+    return max(TOLERANCE_FLOOR, min(out)) if out else None
+
+
 def channel_record(ch: Channel) -> dict:
     """JSON-ready description of a channel (a run's settings)."""
     return {
