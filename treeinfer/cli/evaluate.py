@@ -127,6 +127,32 @@ def _prediction_csvs(pred, obs, trajs) -> dict[str, str]:
     return out
 
 
+def _channel_bands(args, run, sim, model, trajs, metrics: dict, md: list):
+    """The data folder's observation channels (channels.yaml) against the run's posterior:
+    ``({file name: CSV text}, bands)``; their metrics go to ``metrics["channels"]`` and ``md``."""
+    from ..data.channels import read_channels
+    from ..evaluation.channel_bands import band_csv, channel_bands
+
+    channels = read_channels(args.data, run.tree, trajs)
+    if not channels:
+        return {}, []
+    if model is not None and not getattr(model, "is_paper", False):
+        _say("note: observation channels are scored for the paper's dynamic model only; skipped")
+        return {}, []
+    bands = channel_bands(
+        sim, run.theta, run.labels, channels, trajs, run.config.get("problem"), run.stable
+    )
+    metrics["channels"] = {b.channel.name: b.metrics() for b in bands}
+    md += ["", "## observation channels", "", "| channel | kind | point | band | outside [%] | "
+           "rmse | unit |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for name, cm in metrics["channels"].items():
+        md.append(
+            f"| {name} | {cm['kind']} | {cm['point']} | {cm['band']} | {cm['pct_outside']:.2f} | "
+            f"{cm['rmse']:.4g} | {cm['unit']} |"
+        )
+    return {f"channel_{b.channel.name}_prediction.csv": band_csv(b) for b in bands}, bands
+
+
 def run_evaluate(args: argparse.Namespace) -> int:
     _check_grasp(args.grasp_fraction)
     check_output_dir(args.out, args.force, "evaluation", inputs=[args.run, args.data, args.model])
@@ -195,6 +221,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md(
             "held-out metrics", m
         )
+        channel_files, bands = _channel_bands(args, run, sim, model, trajs, metrics, md)
         write_evaluation(
             args.out,
             metrics,
@@ -204,10 +231,21 @@ def run_evaluate(args: argparse.Namespace) -> int:
             config,
             args.force,
             md,
-            extra_files=_prediction_csvs(pred, obs, trajs),
+            extra_files={**_prediction_csvs(pred, obs, trajs), **channel_files},
             formats=args.formats or ("png",),
         )
         _print_metrics(m, f"held-out metrics on {len(trajs)} trajectories of {args.data}")
+        if bands:
+            from ..evaluation.channel_bands import plot_channel_bands
+            from ..evaluation.plots import save_figure
+
+            save_figure(plot_channel_bands(bands)[0], Path(args.out) / "channels.png",
+                        formats=args.formats)  # fmt: skip
+            for name, cm in metrics["channels"].items():
+                print(
+                    f"  channel {name} ({cm['kind']} at {cm['point']}): {cm['pct_outside']:.1f}% "
+                    f"outside the 95% {cm['band']} band, rmse {cm['rmse']:.3g} {cm['unit']}"
+                )
         print(
             f"wrote {args.out}/ (metrics.json, metrics.md, {figure_names('bands', args.formats)}, "
             "config.json, "

@@ -168,6 +168,15 @@ def configure_simulate(subparsers) -> argparse.ArgumentParser:
         metavar="F",
         help="grasp point along the grasped branch, in (0, 1] (default: the tree's)",
     )
+    p.add_argument(
+        "--channel",
+        action="append",
+        metavar="KIND:LINK:FRACTION[:AXES[:NOISE]]",
+        help="also record a sensor on every pull, repeatable: KIND position (a marker: its "
+        "displacement along the world AXES, default xyz) or angle (a tilt about the AXES, "
+        "default y) at FRACTION of LINK, with Gaussian NOISE (m or rad); written to "
+        "channels.yaml + channels/ (e.g. position:child:0.5:xz:0.001)",
+    )
     add_model_options(p)
     add_simulation_options(p)
     add_backend_option(p)
@@ -218,6 +227,9 @@ def _check_simulate_args(args: argparse.Namespace) -> int:
 
 def run_simulate(args: argparse.Namespace) -> int:
     n_t = _check_simulate_args(args)
+    from ..sim.observe import ChannelSpec
+
+    channel_specs = [ChannelSpec.parse(c) for c in (getattr(args, "channel", None) or [])]
     check_command_size("simulate", args)  # before any work: --duration 1e12 is an error now
     inputs = [args.tree, getattr(args, "params_json", None), args.model]
     check_output_dir(args.out, args.force, inputs=inputs)  # before anything is read
@@ -279,7 +291,23 @@ def run_simulate(args: argparse.Namespace) -> int:
     )
     true_params = true_params_record(tree, kp, kd, source)
     config = _simulate_config(args, tree, specs, n_t, sim)
+    channels = ()
+    if channel_specs:
+        from ..sim.observe import synthetic_channels
+
+        for c in channel_specs:
+            if c.link not in tree.names:
+                raise ConfigError(
+                    f"--channel {c.kind}:{c.link}: unknown point '{c.link}'; the tree's links: "
+                    f"{', '.join(tree.names)}"
+                )
+        channels = synthetic_channels(sim, kp, kd, forces, names, channel_specs, rng_noise)
+        config["channels"] = [c._asdict() for c in channel_specs]
     with staged_output_dir(args.out, args.force, inputs=inputs) as stage:
+        if channels:
+            from ..data.channel_files import write_channels
+
+            write_channels(stage, channels)
         for name, traj in zip(names, trajs):
             write_trajectory(stage / name, traj)  # provenance: config.json (specs, noise)
         dump_tree(tree, stage / "tree.yaml")

@@ -165,8 +165,67 @@ def configure_suggest(subparsers) -> argparse.ArgumentParser:
         help="use the run even if its files changed since `infer` wrote them (checksums in its "
         "config.json); recorded in suggestions.json",
     )
+    p.add_argument(
+        "--sensors",
+        action="store_true",
+        help="rank where to add a sensor instead of the next pull: a marker (x, y, z) at "
+        "quarters of every link and an inclinometer on every link, by the expected information "
+        "gain on the run's own pulls (linearised at the posterior mean; "
+        "treeinfer.design.sensors)",
+    )
+    p.add_argument(
+        "--sensor-noise",
+        type=_floats,
+        default=None,
+        metavar="M,RAD",
+        help="--sensors: noise std of a marker (m) and of an inclinometer (rad) "
+        "(default 0.001,0.001)",
+    )
     add_deprecated(p, "--sigma-x", "--noise-displacement", "the same quantity in every command")
     return p
+
+
+def _suggest_sensors(args) -> int:
+    """``suggest --sensors``: rank candidate sensors on the run's training pulls."""
+    import numpy as np
+
+    from .. import runs
+    from ..data.trajectories import read_trajectory_dir, stack_trajectories
+    from ..design.sensors import candidate_sensors, rank_sensors, sensors_table
+    from ..io.atomic import atomic_write_json
+
+    run = runs.load_run(args.run, allow_modified=args.allow_modified)
+    if run.model is not None:
+        raise ConfigError("--sensors: ranks sensors for the paper's dynamic model of Kp and Kd")
+    data = run.config["options"].get("data")
+    if not data or not Path(data).is_dir():
+        raise ConfigError(f"--sensors: the run's training data folder {data!r} is not there")
+    noise = {}
+    if args.sensor_noise is not None:
+        if len(args.sensor_noise) != 2 or min(args.sensor_noise) <= 0:
+            raise ConfigError("--sensor-noise: expected two positive numbers M,RAD")
+        noise = {"position": args.sensor_noise[0], "angle": args.sensor_noise[1]}
+    forces = np.asarray(stack_trajectories(read_trajectory_dir(data)).force)
+    theta = np.asarray(run.theta)[np.asarray(run.stable, bool)]
+    rng = np.random.default_rng(args.seed)
+    if len(theta) > args.particles:
+        theta = theta[rng.choice(len(theta), args.particles, replace=False)]
+    cands = candidate_sensors(list(run.sim.branches), noise=noise)
+    _say(f"scoring {len(cands)} candidate sensors on the {len(forces)} pulls of {data} ...")
+    scores = rank_sensors(run.sim, theta, list(run.labels), forces, cands)
+    print("\n".join(sensors_table(scores, args.top)))
+    out = args.out if args.out is not None else args.run / "suggest"
+    out.mkdir(parents=True, exist_ok=True)
+    record = {
+        "run": str(args.run),
+        "data": str(data),
+        "method": "linearised information gain at the posterior mean (treeinfer.design.sensors)",
+        "sensors": [s._asdict() for s in scores],
+    }
+    atomic_write_json(out / "sensors.json", record)
+    best = scores[0]
+    print(f"best: {best.label()} (gain {best.gain:.2f} nats); wrote {out / 'sensors.json'}")
+    return EXIT_OK
 
 
 def _refuse_stiffness_only(run) -> None:
@@ -199,6 +258,8 @@ def run_suggest(args: argparse.Namespace) -> int:
         )
     _refuse_stiffness_only(args.run)
     _prepare_jax()
+    if args.sensors:
+        return _suggest_sensors(args)
     out = args.out if args.out is not None else args.run / "suggest"
     _say(f"scoring candidates for {args.run} ...")
     sugg = suggest_for_run(

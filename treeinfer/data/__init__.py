@@ -8,9 +8,9 @@ The public API is re-exported here name by name, imported lazily (on first use),
 importing one module of the package does not import the others (startup cost, and no
 import order between them).
 
-Submodules: bag_messages, bags, checks, csv_format, direction, forces, import_bag, import_csv,
-import_pul, kortex, noise_estimate, pul, pull_checks, pull_test, pulls, side_files, trajectories,
-true_params, types."""
+Submodules: bag_messages, bags, channel_files, channels, checks, csv_format, direction, forces,
+import_bag, import_csv, import_pul, kortex, noise_estimate, pul, pull_checks, pull_test, pulls,
+side_files, trajectories, true_params, types."""
 
 _EXPORTS = {
     "KNOWN_TYPES": "bag_messages",
@@ -22,6 +22,11 @@ _EXPORTS = {
     "find_pulls": "bags",
     "read_bag_streams": "bags",
     "resample": "bags",
+    "Channel": "channels",
+    "NamedPoint": "channels",
+    "read_channels": "channels",
+    "channel_manifest": "channel_files",
+    "write_channels": "channel_files",
     "data_checks": "checks",
     "speed_limit": "checks",
     "parse_units": "csv_format",
@@ -121,6 +126,8 @@ _EXPORTS = {
 _SUBMODULES = (
     "bag_messages",
     "bags",
+    "channel_files",
+    "channels",
     "checks",
     "csv_format",
     "direction",

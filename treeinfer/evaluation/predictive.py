@@ -67,6 +67,9 @@ def noise_for(theta, n_joints: int, settings: dict | None):
     kind = predictive_noise_kind(settings.get("likelihood", "boltzmann"))
     fixed = settings.get("noise_displacement")
     theta = np.atleast_2d(np.asarray(theta))
+    k = int(settings.get("channel_noise_columns", 0))  # observation channels' sigma, last
+    if k:
+        theta = theta[:, :-k]
     if settings.get("kp_shape") is not None:  # a tied layout: one scale (+ R deviations), noise
         from ..inference.static.tied import tied_noise_theta
 

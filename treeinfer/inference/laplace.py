@@ -224,6 +224,7 @@ def problem_laplace(
     seed: int = 0,
     max_iterations: int = 200,
     box_precision: bool = True,
+    extra=None,
 ) -> ProblemLaplace:
     """MAP and Laplace covariance of ``problem`` (any
     :class:`~treeinfer.inference.problem.Problem`).
@@ -236,6 +237,10 @@ def problem_laplace(
     posterior's own width); ``box_precision`` adds ``12 / width^2`` (a uniform over the box) so
     directions the data leave flat are drawn with the prior's spread.
 
+    ``extra`` ``[K, D]``: start points of a fit already made (e.g. the grasp-point MAP of a problem
+    with observation channels), screened with the random ones (the best ``n_local`` of all are
+    polished).
+
     Raises:
         ConfigError: no start with a finite log-density.
     """
@@ -244,6 +249,8 @@ def problem_laplace(
     width = upper - lower
     u = np.random.default_rng(seed).random((max(1, int(n_starts)), lower.size))
     starts = lower + u * width
+    if extra is not None and np.size(extra):
+        starts = np.concatenate([np.atleast_2d(np.asarray(extra, float)), starts])
     f0 = _values(problem, starts)
     n_evals = len(starts)
     if not np.any(np.isfinite(f0)):

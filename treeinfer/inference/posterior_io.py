@@ -23,6 +23,7 @@ UNITS = {
     "sigma_x": "m",
     "sigma_c": "m",
     "rho": "",
+    "sigma": "m or rad",  # an observation channel's noise (sigma[name]): its channel's SI unit
     "Kp_scale": "N m/rad",  # a taper tie's scale (treeinfer.inference.static.tied)
     "Kp_taper_ratio": "",  # a soft tie's Kp_j / (scale * taper_j)
 }

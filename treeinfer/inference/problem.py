@@ -94,9 +94,16 @@ def make_problem(
     if sim is None:  # the step accuracy-controlled on the training forces (sim_tolerance, m)
         kwargs = {} if spec.max_sim_dt is None else {"max_sim_dt": spec.max_sim_dt}
         if spec.substeps is None:
+            tolerance = spec.sim_tolerance
+            if tolerance is None and spec.channels:  # a tenth of each channel's noise too
+                from ..model.channels import channel_tolerance
+                from ..sim import DEFAULT_SIM_TOLERANCE
+
+                tol_ch = channel_tolerance(spec.channels, tree)
+                tolerance = DEFAULT_SIM_TOLERANCE if tol_ch is None else min(tol_ch, 1e-4)
             kwargs.update(
                 forces=np.asarray(obs.force),
-                sim_tolerance=spec.sim_tolerance,
+                sim_tolerance=tolerance,
                 grasp_fraction=grasp_fraction,
             )
         sim = make_simulator(
@@ -156,6 +163,13 @@ def make_problem(
         terms = model_likelihood_terms(
             sim, model, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options, **extra
         )
+    if spec.channels:
+        if model is not None:
+            raise ConfigError(
+                "channels: observation channels work with the paper's dynamic model (every pull "
+                "down on the tree's grasp branch), not per-recording pulls, a tie or a static model"
+            )
+        terms = _add_channels(terms, sim, trajectories, obs, spec, grasp_fraction, rel_step)
     loglik = terms.log_likelihood
     n_gains = layout.dim
     box = box_prior(tree, prior_sigma, prior_space, None if model is None else layout)
@@ -260,6 +274,27 @@ def make_problem(
         data_target=data_target,
         spec=spec,
     )
+
+
+def _add_channels(terms, sim, trajectories, obs, spec, grasp_fraction, rel_step):
+    """``terms`` with the observation channels' terms (:mod:`treeinfer.model.channels`); the
+    channels name their pulls by file name, so the data must be trajectories (not stacked)."""
+    from ..model.channels import channel_layout, with_channels
+
+    if isinstance(trajectories, Observations):
+        raise ConfigError(
+            "channels: pass the trajectories (their file names tie each channel to its pull), "
+            "not stacked Observations"
+        )
+    trajs = list(trajectories)
+    layout = channel_layout(
+        sim,
+        spec.channels,
+        [tr.source for tr in trajs],
+        [float(tr.time[0]) for tr in trajs],
+        [tr.n_steps for tr in trajs],
+    )
+    return with_channels(terms, sim, obs, layout, grasp_fraction, rel_step)
 
 
 def _pulls_record(model, n: int) -> dict:

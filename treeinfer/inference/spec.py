@@ -93,6 +93,11 @@ class ProblemSpec:
         branch (None or B names). model: a prebuilt :class:`treeinfer.inference.static.Model`
         (overrides model_kind, direction and grasp_branch).
 
+    Observations besides the grasp point:
+      channels: :class:`treeinfer.data.channels.Channel` s (markers, inclinometers at named
+        points; :func:`treeinfer.data.channels.read_channels`), each adding its own Gaussian term
+        to a generative likelihood (:mod:`treeinfer.model.channels`). () (default): none.
+
     Programs:
       shape_bucket: None (data embedded in the samplers' programs), or ``(B', T')`` at least the
         data's ``[B, T]``: the programs take the data as an argument, padded and masked, so
@@ -125,6 +130,7 @@ class ProblemSpec:
     grasp_branch: Any = None
     model: Any = None
     shape_bucket: Any = None
+    channels: tuple = ()
 
     def __post_init__(self):
         if self.likelihood is not None:
@@ -153,6 +159,22 @@ class ProblemSpec:
             b = tuple(self.shape_bucket)
             if len(b) != 2 or not all(isinstance(n, (int, np.integer)) and n > 0 for n in b):
                 raise ConfigError(f"shape_bucket: expected (B, T) positive integers, got {b!r}")
+        if self.channels:
+            from ..data.channels import Channel
+
+            object.__setattr__(self, "channels", tuple(self.channels))
+            if not all(isinstance(c, Channel) for c in self.channels):
+                raise ConfigError("channels: expected treeinfer.data.channels.Channel items")
+            if self.resolved_likelihood == "boltzmann":
+                raise ConfigError(
+                    "channels: observation channels need a generative likelihood (gaussian, "
+                    "student_t, ar1), not the Boltzmann loss"
+                )
+            if self.model_kind != "dynamic" or self.model is not None:
+                raise ConfigError(
+                    "channels: observation channels work with the dynamic model of the tree's "
+                    "inferred joints (not --model-kind static, a tie or a prebuilt model)"
+                )
         if self.noise_velocity is not None and self.resolved_likelihood == "boltzmann":
             raise ConfigError(
                 "--noise-velocity: the velocity term belongs to a generative likelihood "

@@ -27,9 +27,10 @@ the Gaussian model without the force term, then the MAP of the model whose force
 taken there (sigma_x inferred jointly, where reference_theta fixes it at the data's estimate);
 its gains are the reference.
 
-Any other model (static, stiffness only, a tie, per-recording pulls) goes through the problem's
-own jitted log-density: :func:`treeinfer.inference.laplace.problem_laplace` for the MAP and the
-covariance, then the same adaptive importance sampling (:func:`model_importance`).
+Any other model (static, stiffness only, a tie, per-recording pulls), and the paper's model with
+observation channels besides the grasp point (:mod:`treeinfer.model.channels`), goes through the
+problem's own jitted log-density: :func:`treeinfer.inference.laplace.problem_laplace` for the MAP
+and the covariance, then the same adaptive importance sampling (:func:`model_importance`).
 """
 
 from __future__ import annotations
@@ -52,7 +53,21 @@ from .start_steps import (  # noqa: F401 -- re-exported: their import path befor
     screen,
 )
 
-__all__ = ["auto_start", "force_noise_reference", "ggn_terms", "model_importance", "noise_guess"]
+__all__ = [
+    "auto_start",
+    "channel_resample_move",
+    "channel_starts",
+    "force_noise_reference",
+    "ggn_terms",
+    "model_importance",
+    "noise_guess",
+]
+
+# resample-move sweeps for a problem with observation channels: its start (Laplace at the
+# generic fit's MAP) can sit off the mode of a sharp posterior (an inclinometer at 1 mrad), and
+# the chains take more sweeps to get there (56 on the two-branch tree with a tilt sensor, where 40
+# stopped short); a sweep costs one batched evaluation of the chains
+CHANNEL_MAX_SWEEPS = 150
 
 # LM iterations of each force-noise reference step (the coarse-step fit of fast_posterior uses 15)
 REFERENCE_LM_ITERATIONS = 15
@@ -134,7 +149,40 @@ def force_noise_reference(
     return ref, second.finals[order][np.isfinite(second.values[order])]
 
 
-def model_importance(problem, n_particles: int, seed: int = 0, n_draws: int | None = None):
+def channel_starts(problem, seed: int = 0, n: int = 8, log=lambda m: None) -> np.ndarray:
+    """``[n, D]`` start points for a problem with observation channels: the grasp-point-only
+    problem's start pipeline (the rollout program's multi-start LM fit and importance draws,
+    far more robust than random starts of the generic fit, which on the two-branch tree stopped
+    in a mode 4x off in Kp), each channel's ``log sigma`` then set by a line search of the full
+    log-density over its prior box."""
+    from .fast import importance_for_run
+    from .problem import make_problem
+
+    base = make_problem(
+        problem.tree, problem.obs, problem.spec.replace(channels=()), sim=problem.sim
+    )
+    _, theta0 = importance_for_run(base, max(16, n), seed, lambda m: None)
+    theta0 = np.asarray(theta0, float)
+    fn = jax.jit(problem.log_density)
+    lp0 = np.asarray(jax.jit(base.log_density)(jnp.asarray(theta0, jnp.float32)), float)
+    d0, lower, upper = base.dim, np.asarray(problem.lower), np.asarray(problem.upper)
+    starts = theta0[np.argsort(-np.nan_to_num(lp0, nan=-np.inf))[:n]]
+    starts = np.concatenate([starts, np.tile(0.5 * (lower[d0:] + upper[d0:]), (len(starts), 1))], 1)
+    grid = np.linspace(0.0, 1.0, 17)
+    for j in range(d0, problem.dim):  # one column at a time: 17 candidates per start
+        cand = np.repeat(starts, len(grid), axis=0)
+        cand[:, j] = np.tile(lower[j] + grid * (upper[j] - lower[j]), len(starts))
+        lp = np.asarray(fn(jnp.asarray(cand, jnp.float32)), float).reshape(len(starts), -1)
+        starts[:, j] = cand.reshape(len(starts), len(grid), -1)[
+            np.arange(len(starts)), np.argmax(np.nan_to_num(lp, nan=-np.inf), axis=1), j
+        ]
+    log(f"channel starts: {len(starts)} points from the grasp-point fit")
+    return starts
+
+
+def model_importance(
+    problem, n_particles: int, seed: int = 0, n_draws: int | None = None, extra=None
+):
     """:class:`treeinfer.inference.fast_result.FastPosterior`-like ``(theta [P, D], ok, reason,
     importance, lap)`` for a problem the rollout program does not run (static model, stiffness
     only, a tie, per-recording pulls): the MAP and covariance of its own log-density
@@ -144,7 +192,7 @@ def model_importance(problem, n_particles: int, seed: int = 0, n_draws: int | No
     from .importance import adaptive_importance
     from .laplace import problem_laplace
 
-    lap = problem_laplace(problem, seed=seed)
+    lap = problem_laplace(problem, seed=seed, extra=extra)
     fn = jax.jit(problem.log_density)
     m = max(8 * problem.dim * 8, 4 * int(n_particles)) if n_draws is None else int(n_draws)
     dtype = jnp.asarray(0.0).dtype
@@ -166,7 +214,7 @@ def auto_start(problem, n_particles: int, seed: int = 0, log=lambda m: None, **o
     to :func:`treeinfer.inference.fast.fast_posterior` (the paper's dynamic model)."""
     from .fast import importance_for_run
 
-    if problem.model is None:
+    if problem.model is None and not problem.settings.get("channels"):
         if problem.start_hint is not None and "starts" not in options:
             # the MAP fit is done (the force-noise reference's): a few LM steps from its finals
             options = {"starts": problem.start_hint, "max_iterations": 5, **options}
@@ -174,12 +222,39 @@ def auto_start(problem, n_particles: int, seed: int = 0, log=lambda m: None, **o
     return _model_start(problem, n_particles, seed, log)
 
 
+def channel_resample_move(problem, imp, n_particles: int, seed: int, log):
+    """Untrusted importance weights of a problem with observation channels: resample-move
+    (:mod:`treeinfer.inference.resample_move`) on the problem's own jitted log-density.
+    ``(MoveResult, theta [P, D], log density [P] or None when the cloud did not settle)``."""
+    import time
+
+    from .resample_move import resample_move
+
+    fn = jax.jit(problem.log_density)
+    dtype = jnp.asarray(0.0).dtype
+    t0 = time.perf_counter()
+    mv = resample_move(
+        lambda x: np.asarray(fn(jnp.asarray(x, dtype)), float),
+        imp.draws, imp.log_weights, imp.log_density, int(n_particles), seed=seed,
+        max_sweeps=CHANNEL_MAX_SWEEPS,
+    )  # fmt: skip
+    log(
+        f"resample-move: {mv.describe()}, {time.perf_counter() - t0:.0f} s: "
+        + ("used as the posterior" if mv.ok else f"not settled ({mv.reason}): the sampler runs")
+    )
+    theta = np.asarray(mv.theta, np.float32)
+    return mv, theta, (np.asarray(mv.log_density, np.float32) if mv.ok else None)
+
+
 def _model_start(problem, n_particles: int, seed: int, log):
     """:func:`auto_start` for a model the rollout program does not run."""
     from .fast_result import importance_run_result
     from .problem import Posterior
 
-    imp, idx, lap = model_importance(problem, n_particles, seed)
+    extra = None
+    if problem.model is None and problem.settings.get("channels"):
+        extra = channel_starts(problem, seed, log=log)
+    imp, idx, lap = model_importance(problem, n_particles, seed, extra=extra)
     verdict = (
         "used as the posterior (no sampler iterations)"
         if imp.ok
@@ -191,9 +266,12 @@ def _model_start(problem, n_particles: int, seed: int, log):
         f"effective sample size {imp.ess:.0f}: {verdict}"
     )
     theta = np.asarray(imp.theta, np.float32)
-    if not imp.ok:
+    logp = np.asarray(imp.log_density[idx], np.float32) if imp.ok else None
+    moved = None
+    if not imp.ok and extra is not None:  # observation channels: resample-move, as fast.py does
+        moved, theta, logp = channel_resample_move(problem, imp, n_particles, seed, log)
+    if logp is None:
         return None, theta
-    logp = np.asarray(imp.log_density[idx], np.float32)
     run_settings = {
         "method": "model_importance",
         "khat": imp.khat,
@@ -205,9 +283,21 @@ def _model_start(problem, n_particles: int, seed: int, log):
         "n_iterations_done": 0,
         "start_iteration": 0,
         "seed": seed,
+        **({"resample_move": moved.settings()} if moved is not None else {}),
     }
-    run = importance_run_result(theta, logp, run_settings, imp, 0.0)
-    kp, kd = problem.model.layout.gains(theta)
+    reason = None
+    if moved is not None:
+        reason = (
+            f"resample-move after importance sampling (Pareto k_hat {imp.khat:.2f}): "
+            f"{moved.sweeps} Metropolis sweeps, the cloud settled"
+        )
+    run = importance_run_result(theta, logp, run_settings, imp, 0.0, reason)
+    if problem.model is None:  # the paper's model with observation channels
+        from ..model.likelihood import gains_from_theta
+
+        kp, kd = gains_from_theta(theta, problem.sim.n_joints)
+    else:
+        kp, kd = problem.model.layout.gains(theta)
     settings = {
         "problem": problem.settings,
         "sampler": "importance",

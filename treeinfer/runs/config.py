@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..data.channel_files import channel_manifest as _channel_manifest
 from ..data.trajectories import (
     TRUE_PARAMS_FILE,
 )
@@ -484,6 +485,7 @@ def infer_config(
             "dt": trajs[0].dt,
             "n_steps": [t.n_steps for t in trajs],
             "true_params": TRUE_PARAMS_FILE if (data_dir / TRUE_PARAMS_FILE).is_file() else None,
+            **({"channel_files": ch} if (ch := _channel_manifest(data_dir)) else {}),
         },
         checkpoint={
             "every": int(checkpoint_every),

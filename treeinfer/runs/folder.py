@@ -420,7 +420,12 @@ def load_run(
 
     model = model_for(tree, config.get("problem", {}).get("model_kind", "dynamic"))
     gains = list(model.labels)
-    noise_ok = list(labels[len(gains) :]) in (
+    # observation channels' noise columns (sigma[name]) come last (treeinfer.model.channels)
+    n_ch = int(config.get("problem", {}).get("channel_noise_columns", 0))
+    if n_ch and not all(lab.startswith("sigma[") for lab in labels[len(labels) - n_ch :]):
+        raise ConfigError(f"{run_dir}: trace.npz labels {list(labels)}: expected {n_ch} channel "
+                          "noise columns sigma[name] last")  # fmt: skip
+    noise_ok = list(labels[len(gains) : len(labels) - n_ch]) in (
         [list(noise_columns(k, True)) for k in ("gaussian", "ar1")]
         + [list(noise_columns("ar1", False)), []]
     )

@@ -36,12 +36,15 @@ class RunInputs(NamedTuple):
     Attributes: tree (the run's tree: ``--model`` attached, stiffness only for the static model);
     trajectories (the training data, in file order); truth (``[2R]`` natural units from the data
     folder's ``true_params.json``, or None); files (the data files' names and sha256,
-    :func:`~.provenance.data_manifest`)."""
+    :func:`~.provenance.data_manifest`); channels (the folder's observation channels besides the
+    grasp point, :func:`treeinfer.data.channels.read_channels`, checked against the tree and the
+    pulls; () without a ``channels.yaml``)."""
 
     tree: Tree
     trajectories: list[Trajectory]
     truth: np.ndarray | None
     files: list[dict]
+    channels: tuple = ()
 
 
 def load_run_inputs(
@@ -64,7 +67,10 @@ def load_run_inputs(
     tree = with_tie(tree, tie, tie_scale)  # --tie/--tie-scale over the file's inference.tie
     files = data_manifest(data_dir) if data_dir.is_dir() else []
     trajs = read_trajectory_dir(data_dir)
-    return RunInputs(tree, trajs, read_true_params(tree, data_dir), files)
+    from ..data.channels import read_channels
+
+    channels = read_channels(data_dir, tree, trajs)
+    return RunInputs(tree, trajs, read_true_params(tree, data_dir), files, channels)
 
 
 def read_true_params(tree: Tree, data_dir: str | os.PathLike) -> np.ndarray | None:
@@ -82,8 +88,14 @@ def check_data_unchanged(config: dict) -> list[Trajectory]:
     d = Path(config["data"]["dir"])
     if not d.is_dir():
         raise ConfigError(f"{d}: the run's data folder no longer exists; restore it to resume")
+    from ..data.channel_files import channel_manifest
+
+    # the pulls and, where the run had them, its observation channels (channels.yaml + files)
+    channels = config["data"].get("channel_files") or []
     now = {f["name"]: f["sha256"] for f in data_manifest(d)}
     then = {f["name"]: f["sha256"] for f in config["data"]["files"]}
+    now.update({f["name"]: f["sha256"] for f in (channel_manifest(d) if channels else [])})
+    then.update({f["name"]: f["sha256"] for f in channels})
     changed = sorted(n for n in then if n in now and now[n] != then[n])
     missing = sorted(set(then) - set(now))
     added = sorted(set(now) - set(then))

@@ -169,8 +169,24 @@ def build_problem(
     # runs from before force interpolation existed held the force over each sample
     interp = recorded.get("force_interp", o.get("force_interp", "hold" if recorded else "linear"))
     tolerance = o.get("sim_tolerance")
+    # observation channels besides the grasp point (the data folder's channels.yaml): they name
+    # their pulls by file name, so the final problem takes the trajectories, not the stack; a
+    # k-fold training split holds some of the folder's pulls: their channels only
+    table = not isinstance(trajectories, Observations)
+    channels = ()
+    if table and o.get("data"):
+        from ..data.channels import read_channels
+
+        channels = read_channels(o["data"], tree, trajectories, only_these_pulls=True)
     if tolerance is None and not recorded:
         tolerance = noise_tolerance(o, obs)
+        if channels:  # a step accurate to a tenth of each channel's noise too
+            from ..model.channels import channel_tolerance
+
+            tol_ch = channel_tolerance(channels, tree)
+            if tol_ch is not None and (tolerance is None or tol_ch < tolerance):
+                log(f"simulation step: accuracy {tol_ch * 1e3:.3g} mm for the channels' noise")
+                tolerance = tol_ch
     sim = simulator_for(
         tree,
         float(obs.dt),
@@ -189,7 +205,6 @@ def build_problem(
     # each recording's own branch, grasp point and direction (the data folder's pulls.yaml)
     from ..inference.static import model_for, model_with_pulls
 
-    table = not isinstance(trajectories, Observations)
     model, grasp = model_with_pulls(
         model_for(tree, kind) if kind == "static" else None,
         o.get("data") if table else None,
@@ -252,7 +267,11 @@ def build_problem(
             None if bucket is None else tuple(bucket),
         )
         reference = {"force_noise_reference": ref, "force_noise_rule": PIPELINE_RULE}
-    problem = make_problem(tree, obs, **common, **reference)
+    if channels:
+        log(f"observation channels: {', '.join(c.name for c in channels)} (channels.yaml)")
+        problem = make_problem(tree, list(trajectories), **common, **reference, channels=channels)
+    else:
+        problem = make_problem(tree, obs, **common, **reference)
     if reference.get("force_noise_rule") == PIPELINE_RULE and not resumed:
         problem = dataclasses.replace(problem, start_hint=finals)
     if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints

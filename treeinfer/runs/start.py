@@ -19,6 +19,13 @@ LAPLACE_SCALE = 1.0
 LAPLACE_LM_ITERATIONS = 40  # 25 left every start short of the mode on the standard problem
 
 
+def _own_density(problem) -> bool:
+    """True where the start runs on the problem's own log-density, not on the rollout program
+    of the paper's model: another model (static, stiffness only, a tie), or observation channels
+    besides the grasp point (:mod:`treeinfer.model.channels`)."""
+    return getattr(problem, "model", None) is not None or bool(problem.settings.get("channels"))
+
+
 def laplace_start(problem, config: dict, log: Callable[[str], None]):
     """Particles around a Levenberg–Marquardt MAP fit (``--init laplace``): its Laplace
     approximation, drawn with the run's seed. The residual Jacobian follows ``--gradients``."""
@@ -26,7 +33,7 @@ def laplace_start(problem, config: dict, log: Callable[[str], None]):
     from ..inference.mapfit import fit_problem, laplace_particles
 
     o = config["options"]
-    if getattr(problem, "model", None) is not None:  # static, stiffness only, a taper tie
+    if _own_density(problem):  # static, stiffness only, a taper tie, observation channels
         return _model_laplace_start(problem, o, log)
     jacobian = "jvp" if o.get("gradients", "fd") == "jvp" else "fd"
     fit = fit_problem(
@@ -63,7 +70,7 @@ def _check_init(problem, options: dict) -> None:
     Every value works with every likelihood and model: the paper's dynamic model goes through
     the rollout program (:func:`treeinfer.inference.fast_evaluator.check_problem`), any other model
     through its own log-density (:mod:`treeinfer.inference.start_pipeline`)."""
-    if options.get("init", "uniform") not in ("auto", "importance") or problem.model is not None:
+    if options.get("init", "uniform") not in ("auto", "importance") or _own_density(problem):
         return
     from ..inference.fast_evaluator import check_problem
 
@@ -91,7 +98,7 @@ def _start(problem, config: dict, log: Callable[[str], None], programs=None):
         from ..inference.start_pipeline import auto_start
 
         _check_init(problem, o)
-        options = {} if programs is None or problem.model is not None else {"programs": programs}
+        options = {} if programs is None or _own_density(problem) else {"programs": programs}
         if init == "importance":
             return auto_start(problem, o["particles"], o["seed"], log, **options)
         try:

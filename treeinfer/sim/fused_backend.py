@@ -369,9 +369,11 @@ def _pull_one(
     direction=None,
     body: int | None = None,
     substeps=None,
+    with_q: bool = False,
 ):
     """:func:`treeinfer.sim.mjx.BACKEND`'s ``pull`` for the fused backend: same timing, force
-    and observation."""
+    and observation. ``with_q``: also return the joint angles at every observation, ``q [T,
+    nq]`` (the state whose grasp point ``tau`` reports; :mod:`treeinfer.sim.observe`)."""
     from .forcing import force_fraction, next_samples
 
     dtype = qpos_rest.dtype
@@ -411,17 +413,20 @@ def _pull_one(
         inner = {} if unroll_inner == 1 else {"unroll": unroll_inner}
         st = (q, v, lever, as_dtype(c_rest), comp)
         q, v, lever, c, comp = jax.lax.fori_loop(0, n_sub, sub, st, **inner)
+        q_obs = carry[0]  # the angles at t_k, where the first substep read the site c
         ok = ok & jnp.all(jnp.isfinite(q)) & jnp.all(jnp.abs(v) < sim.max_joint_speed)
-        return (q, v, lever, comp, ok), hd.dot(hd.vsub(c, c_rest), ddir)
+        tau_k = hd.dot(hd.vsub(c, c_rest), ddir)
+        return (q, v, lever, comp, ok), ((tau_k, q_obs) if with_q else tau_k)
 
     zero = jnp.zeros_like(qpos_rest)
     carry = (qpos_rest, zero, as_dtype(lever0), zero, jnp.bool_(True))
     forces = forces.astype(dtype)
-    (_, _, _, _, ok), tau = jax.lax.scan(
+    (_, _, _, _, ok), out = jax.lax.scan(
         observe, carry, (forces, next_samples(forces)), unroll=unroll_outer
     )
+    tau = out[0] if with_q else out
     ok = ok & jnp.all(jnp.isfinite(tau)) & jnp.all(jnp.abs(tau) < sim.max_displacement)
-    return tau, ok
+    return (tau, ok, out[1]) if with_q else (tau, ok)
 
 
 BACKEND = Backend("fused", _prepare, _pull)

@@ -130,6 +130,8 @@ class PlanarTree:
             rcom[i] = path_coeffs(i, b.length / 2)
         self.A = (rcom * self.mass[:, None]).T @ rcom  # A_ac = sum_b m_b R_b[a] R_b[c]
         self.mr = self.mass @ rcom  # sum_b m_b R_b[a]
+        self._path_coeffs, self._idx = path_coeffs, idx
+        self._lengths = {b.name: b.length for b in tree.branches}
         g_name = tree.grasp_branch if grasp_branch is None else grasp_branch
         frac = tree.grasp_fraction if grasp_fraction is None else float(grasp_fraction)
         gb = idx[g_name]
@@ -161,6 +163,19 @@ class PlanarTree:
         e = np.cos(phi)[:, None] * self.h + np.sin(phi)[:, None] * self.z
         return self.base + self.rc @ e
 
+    def point(self, q, branch: str, fraction: float) -> np.ndarray:
+        """World position [3] of the point at ``fraction`` of ``branch`` for angles ``q``."""
+        phi = self.phi(q)
+        e = np.cos(phi)[:, None] * self.h + np.sin(phi)[:, None] * self.z
+        i = self._idx[branch]
+        return self.base + self._path_coeffs(i, fraction * self._lengths[branch]) @ e
+
+    def rotation(self, q, q0, branch: str) -> np.ndarray:
+        """Rotation vector [3] (rad, world axes) of ``branch`` at ``q`` from its pose at ``q0``:
+        a turn by the change of its elevation about the plane's normal ``h x z``."""
+        i = self._idx[branch]
+        return (self.phi(q)[i] - self.phi(q0)[i]) * np.cross(self.h, self.z)
+
     # ---- dynamics ---------------------------------------------------------------------------
     def _gravity_q(self, q):
         """S^T Q_gravity [nv]."""
@@ -191,6 +206,12 @@ class PlanarTree:
         """tau [T] (m) at ``t_k = k dt`` under force samples ``forces`` [T] (N, along the pull
         direction), starting at rest at t = 0. ``interp``: "linear" (first-order hold) or
         "hold" (sample k from t_k to t_{k+1})."""
+        q = self.rollout_q(forces, dt, interp, rtol)
+        out = [self.grasp_point(qk) for qk in q]
+        return (np.asarray(out) - self.c_rest) @ self.direction
+
+    def rollout_q(self, forces, dt: float, interp: str = "linear", rtol: float = 1e-11):
+        """The hinge angles q [T, nv] at ``t_k = k dt`` of :meth:`rollout`."""
         f = np.asarray(forces, float)
         n = f.size
         if interp == "linear":
@@ -207,7 +228,7 @@ class PlanarTree:
         bounds = [0] + kinks + [n - 1]
         y = np.concatenate([self.q_rest, np.zeros(self.nv)])
         nv = self.nv
-        out = [self.grasp_point(self.q_rest)]
+        out = [self.q_rest]
         for lo, hi in itertools.pairwise(bounds):
             if hi == lo:
                 continue
@@ -226,6 +247,6 @@ class PlanarTree:
             )
             if not sol.success:
                 raise RuntimeError(sol.message)
-            out.extend(self.grasp_point(sol.y[:nv, j]) for j in range(sol.y.shape[1]))
+            out.extend(sol.y[:nv, j] for j in range(sol.y.shape[1]))
             y = sol.y[:, -1]
-        return (np.asarray(out) - self.c_rest) @ self.direction
+        return np.asarray(out)
