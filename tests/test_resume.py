@@ -142,6 +142,9 @@ def _args(data: Path, out: Path) -> list[str]:
         "--reinit-stragglers",
         "0",
         "--run-all-iterations",
+        # 8 particles x 24 iterations do not fit the data (exit 4, poor_fit); the checkpoints'
+        # bit-identity is under test, not the fit
+        "--allow-poor-fit",
         "--no-progress",
     ]
 
@@ -252,7 +255,8 @@ def test_sigkill_sigint_resume_bit_identical(tmp_path, capsys):
     assert main(["infer", "--resume", str(run), "--no-progress"]) == 2
     assert "pull_1.csv" in capsys.readouterr().err
     f.write_bytes(original)
-    assert main(["infer", "--resume", str(run), "--no-progress"]) == 0, capsys.readouterr().err
+    resumed = main(["infer", "--resume", str(run), "--no-progress", "--allow-poor-fit"])
+    assert resumed == 0, capsys.readouterr().err
     assert not partial.exists()
     assert np.array_equal(_particles(run), _particles(ref))
     assert (run / "particles.csv").read_text() == (ref / "particles.csv").read_text()
