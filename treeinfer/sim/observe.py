@@ -86,6 +86,7 @@ def rotation_vector(r: jax.Array) -> jax.Array:
 def features_from_q(sim: Simulator, q: jax.Array, features: tuple[Feature, ...]) -> jax.Array:
     """``[..., T, F, 3]`` channel values for joint angles ``q [..., T, nq]`` (row 0: rest)."""
     t = sim.hinge_tree
+    q = jnp.asarray(q)  # a NumPy float64 q: JAX's own float type (float32 without x64), no warning
     shape = q.shape[:-1]
     dtype = q.dtype
     kin = hd.kinematics(t, [q[..., i] for i in range(t.nv)])
