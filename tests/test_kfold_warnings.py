@@ -55,6 +55,28 @@ def test_fold_warnings_include_the_samplers_convergence_warnings():
         assert w in warns
 
 
+def test_a_fold_ended_by_resample_move_has_no_sampler_diagnostics():
+    """A fold whose posterior came from the start pipeline (importance sampling, then
+    resample-move) has one state, no sampler trace: no 'diagnostics unavailable' line (the
+    evaluate --kfold 3 run of experiments/kfold_warnings.py printed one for fold 2)."""
+    problem, post = _fold()
+    one = post.run.trace_positions[-1:]
+    post.run.trace_positions, post.run.trace_logdensity = one, post.run.trace_logdensity[-1:]
+    post.run.trace_iterations = np.array([1])
+    post.run.settings = {"start_iteration": 0}
+    for stop in (
+        "resample-move after importance sampling (Pareto k_hat 0.74): 12 Metropolis sweeps",
+        "importance sampling (Pareto k_hat 0.53, effective sample size 438)",
+    ):
+        post.run.stop_reason = stop
+        warns = folds.fold_warnings(problem, post, {"sampler": "nnsvgd", "mcmc_warmup": 0.5})
+        assert warns[0] == f"ended by: {stop}"
+        assert not any("diagnostics unavailable" in w for w in warns), warns
+    post.run.stop_reason = "max_iterations"  # the check above is not vacuous: a sampler's stop
+    warns = folds.fold_warnings(problem, post, {"sampler": "nnsvgd", "mcmc_warmup": 0.5})
+    assert any("diagnostics unavailable" in w for w in warns), warns
+
+
 def test_kfold_warnings_script_compares_warning_kinds():
     """``experiments/kfold_warnings.py``'s check: a reference warning counts as shown when the
     fold has the same warning up to its numbers, and every fold warning must be printed."""

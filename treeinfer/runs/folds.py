@@ -34,7 +34,9 @@ def fold_warnings(problem, posterior, options: dict | None = None) -> list[str]:
     stop = getattr(run, "stop_reason", None) or "max_iterations"
     done = run.settings.get("n_iterations_done", run.settings.get("n_iterations"))
     out = [f"ended by: {stop}" + (f" after {done} iterations" if done else "")]
-    if options is not None and not str(stop).startswith("importance"):
+    # importance sampling and resample-move (a start pipeline's posterior, no sampler trace:
+    # one state) have their own diagnostics in the stop reason, as infer's summary.json does
+    if options is not None and not str(stop).startswith(("importance", "resample-move")):
         # the sampler ran: its trace's diagnostics, as a run's summary.json has them
         _, _, diag = _diagnostics(
             options["sampler"],
