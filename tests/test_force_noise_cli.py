@@ -98,6 +98,14 @@ def test_infer_predict_evaluate_with_noise_force(data, tmp_path):
     assert rc == 0, err
     m = json.loads((tmp_path / "e" / "metrics.json").read_text())["metrics"]
     assert m["band"] == "predictive" and m["band_includes_force_noise"] is True
+    # the README's step 6 on a run of the default (generative) likelihood, whose particles
+    # carry a noise column after the gains (it exited 2: "theta: expected [P, 4], got (P, 5)")
+    rc, stdout, err = _main(
+        "suggest", "--run", out, "--grasp-fractions", "1.0", "--peak-forces", "2",
+        "--particles", "4", "--out", tmp_path / "s",
+    )  # fmt: skip
+    assert rc == 0, err
+    assert (tmp_path / "s" / "suggestions.json").is_file()
 
 
 @pytest.mark.parametrize(

@@ -86,7 +86,8 @@ def suggest_for_run(
     cands = candidate_grid(grasp_fractions, peak_forces, profile_kinds, directions)
     sugg = score_candidates(
         run.sim,
-        run.theta,
+        # the gains only: a generative likelihood's run has its noise columns after them
+        np.asarray(run.theta)[:, : 2 * run.sim.n_joints],
         cands,
         float(sigma_x),
         float(duration),
