@@ -335,3 +335,23 @@ def test_fast_posterior_is_the_same_with_a_larger_batch(one_joint):
     np.testing.assert_allclose(big.fit.theta, small.fit.theta, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(big.theta, small.theta, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(big.importance.ess, small.importance.ess, rtol=1e-4)
+
+
+def test_finite_psd_drops_nonfinite_curvature_without_failing_the_batch():
+    """One NaN curvature (an AR(1) density overflowing at a trial point on noise-free data) made
+    the batched eigen-decomposition raise for every point, and the start pipeline fell back to
+    uniform starts; now that point is zeroed and flagged, the others projected as before."""
+    from treeinfer.inference.start_steps import _psd, finite_psd
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(3, 4, 4))
+    h = a @ np.swapaxes(a, 1, 2) - 0.5 * np.eye(4)  # symmetric, some negative eigenvalues
+    bad = h.copy()
+    bad[1, 2, 3] = np.nan
+    with pytest.raises(np.linalg.LinAlgError):
+        _psd(bad)
+    out, finite = finite_psd(bad)
+    assert finite.tolist() == [True, False, True]
+    assert np.all(out[1] == 0.0)
+    np.testing.assert_allclose(out[[0, 2]], _psd(h[[0, 2]]))
+    assert np.all(np.linalg.eigvalsh(out[0]) >= -1e-12)

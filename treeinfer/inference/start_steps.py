@@ -94,6 +94,18 @@ def _psd(h: np.ndarray) -> np.ndarray:
     return np.einsum("sde,se,sfe->sdf", v, np.maximum(w, 0.0), v)
 
 
+def finite_psd(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(_psd(h) with non-finite matrices zeroed, finite [S])``. A point whose curvature is not
+    finite (an overflowing AR(1) density far from the data, a blown-up rollout) is dropped by
+    the caller; it is zeroed first because one NaN makes the batched eigen-decomposition fail
+    for EVERY point ("Eigenvalues did not converge": on noise-free data with
+    ``--likelihood ar1`` the whole start pipeline fell back to uniform starts)."""
+    h = np.array(h, float)
+    finite = np.isfinite(h).all((-2, -1))
+    h[~finite] = 0.0
+    return _psd(h), finite
+
+
 def ggn_terms(ev, theta, h: float, substeps: int | None = None):
     """:func:`treeinfer.inference.fast_fit._lm_terms` for a generative likelihood: ``(value [S],
     grad [S, D], curvature [S, D, D], gram, r2)`` of ``-log p`` at ``theta [S, D]`` from one
@@ -116,8 +128,8 @@ def ggn_terms(ev, theta, h: float, substeps: int | None = None):
             jnp.asarray(r[:, 0], dt), jnp.asarray(jac, dt), jnp.asarray(theta, dt)
         )
     )
-    curv = _psd(curv)
-    good = ok & np.isfinite(value) & np.isfinite(grad).all(1) & np.isfinite(curv).all((1, 2))
+    curv, finite = finite_psd(curv)
+    good = ok & np.isfinite(value) & np.isfinite(grad).all(1) & finite
     value = np.where(good, value, np.inf)
     grad[~good], curv[~good] = 0.0, 0.0
     return value, grad, curv, np.zeros((s, 1, d, d)), np.zeros((s, 1))
