@@ -53,7 +53,6 @@ def _problem(run: Path, force=None):
 
 def _correction(problem):
     """theta [N, D] -> [N]: the bias correction the likelihood adds (force_noise_bias)."""
-    from treeinfer.model.force_noise import bias_offset
     from treeinfer.model.force_noise_bias import with_bias_slope
 
     fm = problem.noise.force_noise
@@ -66,14 +65,22 @@ def _correction(problem):
     )  # fmt: skip
     d = b.slope.shape[-1]
 
-    def corr(theta):
-        th = np.atleast_2d(theta)
-        s2 = np.exp(2 * th[:, d])
-        dth = np.asarray(bias_offset(th[:, :d] - b.theta_ref))
-        return 0.5 * np.sum(
-            np.einsum("bsj,nj->nbs", b.slope, dth) / (b.values[None] + s2[:, None, None]),
-            axis=(1, 2),
-        )
+    def corr(theta):  # the density with the correction's slope minus the same without it
+        import jax.numpy as jnp
+
+        from treeinfer.model.force_noise import mvn_log_prob
+        from treeinfer.model.likelihood import gains_from_theta
+        from treeinfer.sim import simulate
+
+        th = np.atleast_2d(np.asarray(theta, float))
+        sim = problem.sim
+        kp, kd = gains_from_theta(jnp.asarray(th[:, :d], sim.dtype), sim.n_joints)
+        tau = np.asarray(simulate(sim, kp, kd, jnp.asarray(f, sim.dtype)).tau, float)
+        tau = tau.reshape(len(th), *f.shape)
+        resid = np.where(mask, np.asarray(obs.displacement, float)[None] - tau, 0.0)
+        sx = np.exp(th[:, d])
+        with_c = mvn_log_prob(resid, b, sx, th[:, :d])
+        return np.asarray(with_c - mvn_log_prob(resid, b, sx), float)
 
     return corr
 

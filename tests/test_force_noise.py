@@ -188,20 +188,22 @@ def test_likelihood_with_force_term_matches_scipy(sim):
             jnp.asarray(np.column_stack([theta, np.log(sx)]), jnp.float32)
         )
     )
-    # ... plus the bias correction 1/2 tr(Sigma^-1 (C(theta) - C(theta_ref))), first order in
-    # theta: zero at the reference; near it, the exact trace (J at theta itself). (Far from it
-    # the first order is only indicative: 0.19 against 0.09 nats at THETA + step.)
+    # ... plus the standardised bias correction (force_noise_bias): zero at the reference;
+    # near it, each direction's residual weighed by the exact force variance at theta (J at
+    # theta itself). (Far from it the first order is only indicative.)
     np.testing.assert_allclose(got2[0], ref[0], rtol=2e-4)
     step = np.array([0.1, -0.1, 0.2, 0.0]) / 20
     near = np.concatenate([THETA + step, [np.log(0.003)]])[None]
     got3 = float(jax.jit(terms.log_likelihood)(jnp.asarray(near, jnp.float32))[0])
     plain3 = float(jax.jit(ll)(jnp.asarray(near, jnp.float32))[0])
     c3 = fn.force_noise_basis(sim, THETA + step, obs.force, sf).covariance()
-    exact = 0.5 * sum(
-        np.trace(np.linalg.solve(cov[b] + 0.003**2 * np.eye(T), c3[b] - cov[b])) for b in range(2)
-    )
+    z = np.einsum("bts,bt->bs", basis.vectors, rec - _tau(sim, obs.force, near[:, :4])[0])
+    d3 = np.einsum("bts,btu,bus->bs", basis.vectors, c3, basis.vectors)
+    s2 = 0.003**2
+    exact = 0.5 * np.sum(z**2 * (1.0 / (basis.values + s2) - 1.0 / (d3 + s2)))
     assert abs(exact) > 0.005  # the term is not negligible at this step
-    np.testing.assert_allclose(got3 - plain3, exact, rtol=0.1)
+    # atol: float32 rounding of two log densities of ~1e3 nats (a few 1e-4)
+    np.testing.assert_allclose(got3 - plain3, exact, rtol=0.1, atol=1e-3)
     assert "corrected score" in terms.settings["noise_force_bias_correction"]
     assert terms.force_noise is not None and terms.settings["noise_force"] == sf
     plain = likelihood_terms(sim, obs, "gaussian")
@@ -234,30 +236,55 @@ def test_auto_estimate_and_bad_values():
         likelihood_terms(None, stack_trajectories(trajs), "student_t", noise_force=0.1)
 
 
-def test_bias_correction_is_first_order_near_the_reference_and_bounded_far_from_it():
-    """The correction 1/2 sum_i slope_i . dth / (L_i + sigma^2) is linear near the reference
-    and saturates beyond BIAS_TRUST log units: a weakly identified gain far from the reference
-    cannot buy unbounded density from the linear extrapolation (chain2 of default_calibration:
-    a damping 3 log units off gained 30 nats and the fit ran there)."""
+def test_bias_correction_is_unbiased_standardised_and_bounded():
+    """The standardised correction (force_noise_bias docstring) weighs each direction's residual
+    z_i by the force-induced variance at theta, d_i = L_i + slope_i . dth (first order, floored
+    at 0), keeping the reference's normalisation:
+
+    * its expectation over residuals drawn with the variance at theta is the same for every
+      theta (no preference for gains with a large or small response to the force noise: the
+      bias it corrects), checked by Monte Carlo against the closed form -1/2 sum(1 + log 2 pi
+      (L + s^2));
+    * to first order it equals the corrected score's 1/2 sum slope . dth / (L + s^2) at a typical
+      residual (z_i^2 = L_i + s^2), and it rewards nothing for a zero residual (the corrected
+      score's extra density for a large force response did, whatever the data: on chain2 it
+      drew the posterior toward an undamped child);
+    * beyond BIAS_TRUST log units it is held (a weakly identified gain far from the reference
+      cannot buy density from the linear extrapolation)."""
     rng = np.random.default_rng(1)
-    n_t, d = 5, 4
+    n_t, d = 6, 4
     lam = rng.uniform(1e-6, 4e-6, size=(1, n_t))
     u = np.linalg.qr(rng.normal(size=(n_t, n_t)))[0][None]
     slope = rng.normal(scale=1e-6, size=(1, n_t, d))
     ref = np.zeros(d)
     basis = fn.ForceNoiseBasis(u, lam, np.zeros(1, int), slope, ref)
-    resid = jnp.zeros((1, 1, n_t))
-    sx = jnp.asarray([1e-3])
+    s2 = 1e-6
+    sx = jnp.asarray([math.sqrt(s2)])
 
-    def corr(dth):
-        with_c = fn.mvn_log_prob(resid, basis, sx, jnp.asarray(dth)[None])
-        return float((with_c - fn.mvn_log_prob(resid, basis, sx))[0])
+    def logp(z, dth):  # z [M, n_t] in the eigenbasis -> [M]
+        r = np.einsum("ts,ms->mt", u[0], z)[:, None]  # [M, 1, n_t]
+        th = np.broadcast_to(np.asarray(dth, float), (len(z), d))
+        return np.asarray(
+            fn.mvn_log_prob(jnp.asarray(r), basis, jnp.full(len(z), sx[0]), jnp.asarray(th)), float
+        )
 
-    linear = 0.5 * np.einsum("bsj->j", slope / (lam + 1e-6)[..., None])  # per unit log gain
+    def var_at(dth):
+        dv = np.einsum("bsj,j->bs", slope, fn.BIAS_TRUST * np.tanh(np.asarray(dth) / fn.BIAS_TRUST))
+        return np.maximum(lam + dv, 0.0)[0] + s2
+
+    closed = -0.5 * np.sum(1.0 + np.log(2 * np.pi * (lam[0] + s2)))
+    for dth in (np.zeros(d), np.array([0.3, -0.2, 0.1, 0.4]), np.array([2.0, -3.0, 1.0, 5.0])):
+        z = rng.normal(size=(400, n_t)) * np.sqrt(var_at(dth))
+        mc = logp(z, dth)
+        assert abs(mc.mean() - closed) < 4 * mc.std() / math.sqrt(len(mc)) + 1e-3
+    # first order at a typical residual: the corrected score's slope
     small = np.array([0.01, -0.02, 0.0, 0.015])
-    np.testing.assert_allclose(corr(small), linear @ small, rtol=1e-3)
-    bound = fn.BIAS_TRUST * np.sum(np.abs(linear))
-    for k in (1.0, 10.0, 1000.0):
-        assert abs(corr(k * np.array([1.0, -1.0, 1.0, -1.0]))) <= bound * (1 + 1e-5)
-    far = 1000.0 * np.sign(linear)
-    np.testing.assert_allclose(corr(far), bound, rtol=1e-4)
+    typical = np.sqrt(lam[0] + s2)[None]
+    linear = 0.5 * np.einsum("bsj->j", slope / (lam + s2)[..., None])
+    got = logp(typical, small) - logp(typical, np.zeros(d))
+    np.testing.assert_allclose(got, linear @ small, rtol=2e-2)
+    zero = np.zeros((1, n_t))
+    assert abs(logp(zero, small)[0] - logp(zero, np.zeros(d))[0]) < 1e-9
+    # bounded: far moves change the density by no more than the saturated variance allows
+    far = [logp(typical, k * np.array([1.0, -1.0, 1.0, -1.0]))[0] for k in (10.0, 1000.0)]
+    np.testing.assert_allclose(far[0], far[1], rtol=1e-5)

@@ -388,14 +388,19 @@ def mvn_log_prob(residual, basis: ForceNoiseBasis, sigma_x, theta_gains=None) ->
     lam = jnp.asarray(basis.values, r.dtype)
     sx = jnp.asarray(sigma_x, r.dtype)
     z = jnp.einsum("bts,nbt->nbs", u, r)
-    scale = jnp.sqrt(lam[None] + sx[:, None, None] ** 2)
-    total = jnp.sum(dist.Normal(0.0, scale).log_prob(z), axis=(-2, -1))
+    var = lam[None] + sx[:, None, None] ** 2
+    total = jnp.sum(dist.Normal(0.0, jnp.sqrt(var)).log_prob(z), axis=(-2, -1))
     n_pad = jnp.asarray(np.sum(basis.n_pad), r.dtype)
     total = total - n_pad * dist.Normal(0.0, sx).log_prob(jnp.zeros_like(sx))
     if basis.slope is not None and theta_gains is not None:
+        # the standardised correction (force_noise_bias docstring): each direction's residual
+        # is weighed by the force-induced variance at THIS theta, d_i(theta) = u_i^T C(theta)
+        # u_i to first order (floored at 0: C is positive semi-definite), the normalisation kept
+        # at the reference
         dth = bias_offset(jnp.asarray(theta_gains, r.dtype) - jnp.asarray(basis.theta_ref, r.dtype))
-        d = jnp.einsum("bsj,nj->nbs", jnp.asarray(basis.slope, r.dtype), dth)
-        total = total + 0.5 * jnp.sum(d / scale**2, axis=(-2, -1))
+        delta = jnp.einsum("bsj,nj->nbs", jnp.asarray(basis.slope, r.dtype), dth)
+        var_theta = jnp.maximum(lam[None] + delta, 0.0) + sx[:, None, None] ** 2
+        total = total + 0.5 * jnp.sum(z**2 * (1.0 / var - 1.0 / var_theta), axis=(-2, -1))
     return total
 
 
