@@ -21,7 +21,9 @@ from . import network
 from .config import AmortiseConfig, differences, fingerprint, tree_identity
 from .simulations import bin_matrix, features, simulate_training_set, theta_box
 
-FORMAT = "treeinfer-amortised/1"
+# 2: the features' noise floor (simulations.NOISE_FLOOR) and the clean-force share; a model of
+# format 1 summarises a recording otherwise, and is refused with a word to retrain it
+FORMAT = "treeinfer-amortised/2"
 WEIGHTS_FILE = "model.msgpack"
 META_FILE = "model.json"
 # a recording's dt may differ from the layout's by float rounding of its time column only
@@ -283,7 +285,10 @@ def load(path) -> Amortised:
         )
     meta = read_json(path / META_FILE, "amortised model record")
     if meta.get("format") != FORMAT:
-        raise ConfigError(f"{path / META_FILE}: format {meta.get('format')!r}, expected {FORMAT!r}")
+        raise ConfigError(
+            f"{path / META_FILE}: format {meta.get('format')!r}, expected {FORMAT!r} (a model "
+            "from another treeinfer version: train it again with `treeinfer amortise`)"
+        )
     blob = (path / WEIGHTS_FILE).read_bytes()
     if hashlib.sha256(blob).hexdigest() != meta.get("weights_sha256"):
         raise ConfigError(f"{path / WEIGHTS_FILE}: does not match the sha256 in {META_FILE}")

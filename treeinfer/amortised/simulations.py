@@ -1,6 +1,8 @@
 """Training simulations of an amortised posterior: parameter sets drawn from treeinfer's prior
 (the smoothed box over the log gains, :func:`treeinfer.model.prior_terms.box_prior`, sampled
-exactly) and the noise model (``log sigma_x`` and the force noise log-uniform in their ranges),
+exactly, times the run's learned inequality prior on a tree with parent-child pairs, by
+rejection) and the noise model (``log sigma_x`` log-uniform in its range; the recorded force
+noise-free in a share of the data sets, else log-uniform in its range),
 pulls drawn from the layout's profile family (:func:`treeinfer.data.forces.random_specs`), one
 batched rollout per chunk of parameter sets (:func:`treeinfer.sim.simulate`, vmapped over the
 pulls and, each parameter set with pulls of its own, over the sets), and the recordings'
@@ -19,11 +21,16 @@ import numpy as np
 
 from ..data.forces import from_spec, random_specs
 from ..model.prior_terms import DEFAULT_PRIOR_SIGMA
+from ..errors import ConfigError
 from .config import PullLayout, TrainConfig
 
 # MAD -> standard deviation of a normal; second differences of white noise have variance 6 s^2
 _MAD = 1.4826
 _SECOND_DIFF = math.sqrt(6.0)
+# The noise estimates' floor, a share of the feature's scale (0.8 mN of an 8 N force scale):
+# a clean force's estimate is rounding (1e-7 of float32 in training, 1e-6 of a CSV's digits),
+# which without a floor would be two different summaries of the same noise-free recording.
+NOISE_FLOOR = 1e-4
 
 
 class TrainingSet(NamedTuple):
@@ -67,6 +74,44 @@ def draw_prior(rng: np.random.Generator, lower, upper, tail, n: int) -> np.ndarr
     return np.where(below, lower - excess, np.where(above, upper + excess, inside))
 
 
+def inequality_log_prior(tree):
+    """The run's learned inequality prior (``[n, 2R] -> [n]`` log density of the log gains;
+    :func:`treeinfer.model.prior_terms.nn_inequality_prior` with the run's defaults, from the
+    same disk cache), or None for a tree without parent-child pairs. The simulator-based
+    posterior that checks the flow has it (``make_problem``'s ``nn_prior=True``): a flow
+    trained without it spends its mass where the run's prior has little, which costs the
+    importance check effective sample size on every recording of a multi-joint tree."""
+    from ..model.prior_terms import nn_inequality_prior
+
+    return nn_inequality_prior(tree) if tree.inferred_pairs() else None
+
+
+def draw_training_prior(rng: np.random.Generator, tree, train: TrainConfig, n: int, ineq=None):
+    """[n, D] draws of the training prior: the smoothed box (:func:`draw_prior`) times
+    ``ineq`` (:func:`inequality_log_prior`; None: none) by rejection, a draw kept with
+    probability ``min(1, exp(log ineq))``: the learned penalty is <= 0 up to the network's
+    error, so the cap changes the prior only where that error is positive."""
+    lower, upper, tail = theta_box(tree, train)
+    if ineq is None:
+        return draw_prior(rng, lower, upper, tail, n)
+    import jax.numpy as jnp
+
+    g = 2 * tree.n_inferred
+    kept, have = [], 0
+    for _ in range(1000):  # an acceptance of 1/1000 would be a broken prior, not a slow one
+        theta = draw_prior(rng, lower, upper, tail, max(2 * n, 256))
+        log_a = np.asarray(ineq(jnp.asarray(theta[:, :g], jnp.float32)), float)
+        theta = theta[np.log(rng.uniform(size=len(theta))) < np.minimum(log_a, 0.0)]
+        kept.append(theta)
+        have += len(theta)
+        if have >= n:
+            return np.concatenate(kept)[:n]
+    raise ConfigError(
+        "amortise: the learned inequality prior rejected almost every draw of the tree's prior "
+        "box; check the box of the parent and child joints"
+    )
+
+
 def draw_profiles(rng: np.random.Generator, layout: PullLayout, n: int) -> np.ndarray:
     """[n, T] N: ``n`` pulls of the layout's profile family (seeded specs, as `simulate`)."""
     specs = random_specs(layout.profile_kind, n, layout.duration, layout.peak_range, seed=rng)
@@ -105,8 +150,8 @@ def features(force, disp, bins_w, force_scale: float, disp_scale: float):
         amp = jnp.max(jnp.abs(b), axis=-1, keepdims=True) + tiny
         out.append((b / amp, jnp.log(amp)))
     (fs, fa), (xs, xa) = out
-    sf = jnp.log(_noise_scale(force / force_scale) + tiny)[..., None]
-    sx = jnp.log(_noise_scale(disp / disp_scale) + tiny)[..., None]
+    sf = jnp.log(_noise_scale(force / force_scale) + NOISE_FLOOR)[..., None]
+    sx = jnp.log(_noise_scale(disp / disp_scale) + NOISE_FLOOR)[..., None]
     return jnp.concatenate([fs, xs, fa, xa, sf, sx], axis=-1)
 
 
@@ -163,7 +208,7 @@ def simulate_training_set(
     seed = train.seed if seed is None else int(seed)
     sim = training_simulator(tree, layout, train.backend, seed) if sim is None else sim
     run = _rollout(sim, layout)
-    lower, upper, tail = theta_box(tree, train)
+    ineq = inequality_log_prior(tree)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0xA3]))
     bins_w = bin_matrix(layout.n_steps, layout.bins)
     feat_fn = jax.jit(features, static_argnums=(3, 4))
@@ -172,7 +217,7 @@ def simulate_training_set(
     done = 0
     while done < n:
         m = min(train.chunk, n - done)
-        theta = draw_prior(rng, lower, upper, tail, train.chunk)  # one shape: one compile
+        theta = draw_training_prior(rng, tree, train, train.chunk, ineq)  # one shape: one compile
         forces = draw_profiles(rng, layout, train.chunk * layout.n_pulls)
         forces = forces.reshape(train.chunk, layout.n_pulls, -1)
         tau, ok = run(jnp.asarray(theta[:, :g], jnp.float32), jnp.asarray(forces, jnp.float32))
@@ -184,6 +229,7 @@ def simulate_training_set(
             scales = (float(layout.peak_range[1]), float(max(np.percentile(top, 95), 1e-6)))
         sx = np.exp(theta[:, g])[:, None, None]
         sf = np.exp(rng.uniform(*np.log(train.sigma_f_range), size=(m, 1, 1)))
+        sf = np.where(rng.uniform(size=(m, 1, 1)) < train.clean_force_share, 0.0, sf)
         disp = tau + sx * rng.normal(size=tau.shape)
         rec_f = forces + sf * rng.normal(size=tau.shape)
         f = feat_fn(
