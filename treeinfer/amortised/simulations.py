@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..data.forces import from_spec, random_specs
-from ..model.prior_terms import DEFAULT_PRIOR_SIGMA
 from ..errors import ConfigError
+from ..model.prior_terms import DEFAULT_PRIOR_SIGMA
 from .config import PullLayout, TrainConfig
 
 # MAD -> standard deviation of a normal; second differences of white noise have variance 6 s^2
