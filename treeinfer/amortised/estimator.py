@@ -222,6 +222,7 @@ def train(
         "simulation_s": round(t_sim, 2),
         "training_s": round(time.perf_counter() - t1, 2),
         "feature_envelope": _envelope(data.feats),
+        "noise_ratio_envelope": _quantiles(noise_ratio(data.theta[:, -1], data.feats, scales[1])),
     }
     return am
 
@@ -236,6 +237,24 @@ def _envelope(feats: np.ndarray) -> dict:
         v = feats[..., j]
         out[name] = [float(np.quantile(v, 0.001)), float(np.quantile(v, 0.999))]
     return out
+
+
+def _quantiles(v) -> list[float]:
+    return [float(np.quantile(v, 0.001)), float(np.quantile(v, 0.999))]
+
+
+def noise_ratio(log_sigma_x, feats, disp_scale: float) -> np.ndarray:
+    """``log sigma_x - log(the recording's own displacement noise estimate)`` (the median over
+    its pulls of :func:`~treeinfer.amortised.simulations.features`' robust estimate, less the
+    features' floor), per data set: ``log_sigma_x [N]``, ``feats [N, B, F]``. Near 0 for a
+    recording the simulator explains up to white noise; a posterior whose ``sigma_x`` exceeds
+    the recording's noise by more than the training sets ever did explains a misfit, not
+    noise (:func:`treeinfer.amortised.check.predictive_reasons`)."""
+    from .simulations import NOISE_FLOOR
+
+    est = np.exp(np.asarray(feats, float)[..., FEATURE_TAIL["log_disp_noise"]]) - NOISE_FLOOR
+    est = np.median(np.maximum(est, 1e-3 * NOISE_FLOOR), axis=-1) * disp_scale
+    return np.asarray(log_sigma_x, float) - np.log(est)
 
 
 # the summaries after the shapes, by their index from the end of the features
