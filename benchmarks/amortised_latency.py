@@ -3,13 +3,19 @@ posterior in < 100 ms on the 2-core CPU after training).
 
 Loads a model (``--model``, written by ``treeinfer amortise`` or
 ``experiments/amortised_calibration.py``; without it, trains a small one for a 1-joint chain
-first, not timed), simulates ``--recordings`` recordings of its layout, and times per recording:
-the summary features plus ``--draws`` flow draws with their log densities (what ``infer
---amortised`` prints before its check), after one untimed call (compilation, or a load from the
-persistent compile cache, which is timed separately as ``first_call_ms``), and the model's load.
-Prints a table and, with ``--json``, writes the figures with the machine.
+first, not timed), simulates ``--recordings`` recordings of its tree and layout from its
+training distribution, and times per recording: the summary features plus ``--draws`` flow
+draws with their log densities (what ``infer --amortised`` prints before its check), after one
+untimed call (compilation, or a load from the persistent compile cache, which is timed
+separately as ``first_call_ms``), and the model's load.
 
-    JAX_PLATFORMS=cpu python -m benchmarks.amortised_latency [--model M] [--draws 1024]
+With ``--check K`` it also times, on the first K recordings, the on-the-spot check against the
+simulator (:func:`treeinfer.amortised.check.amortised_start`'s start): building the run's
+problem (``make_problem``), the first evaluation of its density (compilation), and the check
+itself (importance weights of the flow's draws and the refinement rounds), each recording's
+outcome with it. Prints a table and, with ``--json``, writes the figures with the machine.
+
+    JAX_PLATFORMS=cpu python -m benchmarks.amortised_latency [--model M] [--draws 1024] [--check 5]
 """
 
 from __future__ import annotations
@@ -44,11 +50,37 @@ def _small_model(folder: Path) -> Path:
     return path
 
 
+def _time_check(am, tree, trajs, particles: int = 64) -> dict:
+    """Seconds of the check on one recording: the problem, its density's first call, the
+    check (importance weights and refinement rounds) with the density compiled."""
+    import treeinfer as ti
+    from treeinfer.amortised import check
+
+    force, disp = am.check_recordings(trajs)
+    t0 = time.perf_counter()
+    problem = ti.make_problem(tree, trajs)
+    t1 = time.perf_counter()
+    check._log_density(problem, am.draw(force, disp, check.CHUNK)[0])
+    t2 = time.perf_counter()
+    start, report = check.amortised_start(am, force, disp)
+    post = start(problem, {"options": {"particles": particles, "seed": 0}}, lambda m: None)
+    return {
+        "problem_s": round(t1 - t0, 3),
+        "compile_s": round(t2 - t1, 3),
+        "check_s": round(time.perf_counter() - t2, 3),
+        "used": post is not None,
+        "khat": report.get("khat", float("nan")),
+        "rounds": report.get("rounds"),
+        "reason": report.get("reason", ""),
+    }
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", type=Path, default=None, help="an amortised model folder")
     ap.add_argument("--draws", type=int, default=1024, help="flow draws per recording")
     ap.add_argument("--recordings", type=int, default=50)
+    ap.add_argument("--check", type=int, default=0, metavar="K", help="time the check on K")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
 
@@ -62,22 +94,21 @@ def main(argv=None) -> int:
         am = load(path)
         load_s = time.perf_counter() - t0
         lay = am.config.layout
-        rng = np.random.default_rng(0)
-        recs = []
-        for _ in range(args.recordings):  # plausible recordings: forces of the family, a sag
-            f = ti.data.forces.profile_set(
-                lay.profile_kind, lay.n_pulls, lay.duration, lay.dt, lay.peak_range, seed=rng
-            )
-            x = 0.01 * f / lay.peak_range[1] + 1e-3 * rng.normal(size=f.shape)
-            recs.append((f + 0.02 * rng.normal(size=f.shape), x))
+        from treeinfer.amortised.simulations import simulate_recordings
+        from treeinfer.tree.description import tree_from_dict
+
+        tree = tree_from_dict(am.meta["tree"])
+        recs = simulate_recordings(tree, lay, am.config.train, args.recordings, seed=7)
+        arrays = [am.check_recordings(trajs) for _, _, trajs in recs]
         t0 = time.perf_counter()
-        am.draw(*recs[0], args.draws)
+        am.draw(*arrays[0], args.draws)
         first = time.perf_counter() - t0
         times = []
-        for i, (f, x) in enumerate(recs):
+        for i, (f, x) in enumerate(arrays):
             t0 = time.perf_counter()
             am.draw(f, x, args.draws, seed=i)
             times.append(time.perf_counter() - t0)
+        checks = [_time_check(am, tree, trajs) for _, _, trajs in recs[: args.check]]
     ms = 1e3 * np.asarray(times)
     out = {
         "model": str(args.model or "small 1-joint model (trained here)"),
@@ -92,6 +123,7 @@ def main(argv=None) -> int:
             "p90": float(np.quantile(ms, 0.9)),
             "max": float(ms.max()),
         },
+        "check": checks,
         "machine": {
             "platform": platform.platform(),
             "cpus": os.cpu_count(),
@@ -105,6 +137,12 @@ def main(argv=None) -> int:
     print(f"  load {out['load_s']:.2f} s, first call {out['first_call_ms']:.0f} ms")
     lat = out["latency_ms"]
     print(f"  latency median {lat['median']:.2f} ms, p90 {lat['p90']:.2f} ms, max {lat['max']:.2f}")
+    for c in checks:
+        print(
+            f"  check: problem {c['problem_s']:.2f} s, first density {c['compile_s']:.2f} s, "
+            f"check {c['check_s']:.3f} s ({c['rounds']} round(s), k_hat {c['khat']:.2f}, "
+            f"used {c['used']})"
+        )
     if args.json:
         args.json.write_text(json.dumps(out, indent=1) + "\n")
     return 0

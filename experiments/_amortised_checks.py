@@ -13,6 +13,7 @@ logger's latency: inside every trained range, but no parameter set fits it)."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -21,51 +22,28 @@ OOD_KINDS = ("force x10", "delay 80 ms")
 
 
 def _recordings(am, tree, sim, n: int, seed: int, kind: str | None):
-    import jax.numpy as jnp
-
-    from treeinfer.amortised.simulations import (
-        draw_profiles,
-        draw_training_prior,
-        inequality_log_prior,
-    )
-    from treeinfer.data.trajectories import Trajectory
-    from treeinfer.model.gains import gains_from_theta
-    from treeinfer.sim import simulate
+    """In-distribution recordings (:func:`treeinfer.amortised.simulations.
+    simulate_recordings`), then made out-of-distribution as ``kind`` says."""
+    from treeinfer.amortised.simulations import simulate_recordings
 
     cfg = am.config
-    lay, tr = cfg.layout, cfg.train
-    rng = np.random.default_rng(seed)
-    theta = draw_training_prior(rng, tree, tr, n, inequality_log_prior(tree))
-    g = 2 * tree.n_inferred
-    t = np.arange(lay.n_steps) * lay.dt
-    out = []
-    for i in range(n):
-        forces = draw_profiles(rng, lay, lay.n_pulls)
-        if kind == "force x10":
-            forces = 10 * forces
-        kp, kd = gains_from_theta(jnp.asarray(theta[i : i + 1, :g], jnp.float32), tree.n_inferred)
-        r = simulate(sim, kp, kd, jnp.asarray(forces, jnp.float32), lay.grasp_fraction)
-        tau = np.asarray(r.tau[0], float)
-        if not bool(np.all(np.asarray(r.stable))):
-            continue
-        if kind == "delay 80 ms":
-            k = max(1, round(0.08 / lay.dt))
-            tau = np.concatenate([np.repeat(tau[:, :1], k, axis=1), tau[:, :-k]], axis=1)
-        sx = float(np.exp(theta[i, g]))
-        clean = rng.uniform() < tr.clean_force_share
-        sf = 0.0 if clean else float(np.exp(rng.uniform(*np.log(tr.sigma_f_range))))
-        trajs = [
-            Trajectory(
-                t,
-                f + sf * rng.normal(size=f.shape),
-                x + sx * rng.normal(size=x.shape),
-                None,
-                f"pull{b}",
-            )
-            for b, (f, x) in enumerate(zip(forces, tau))
+    lay = cfg.layout
+    if kind == "force x10":  # the pulls' forces ten times larger (and so the sag)
+        lay = dataclasses.replace(lay, peak_range=tuple(10 * p for p in lay.peak_range))
+    recs = simulate_recordings(tree, lay, cfg.train, n, seed, sim)
+    if kind == "delay 80 ms":
+        k = max(1, round(0.08 / lay.dt))
+        recs = [
+            (th, sf, [t._replace(displacement=_delayed(t.displacement, k)) for t in trajs])
+            for th, sf, trajs in recs
         ]
-        out.append((theta[i], sf, trajs))
-    return out
+    return recs
+
+
+def _delayed(x, k: int):
+    """``x`` ``k`` samples late (its first value held): a logger's latency. The noise moves
+    with it, so the recording's own noise estimate is unchanged."""
+    return np.concatenate([np.repeat(x[:1], k), x[:-k]])
 
 
 def run_checks(am, tree, n: int, seed: int = 2000, particles: int = 64, log=print) -> dict:

@@ -156,7 +156,8 @@ def refine(am, problem, feats, draws, log_q, n_particles: int, seed: int = 0, lo
         lq = np.logaddexp.reduce(
             np.stack(comps) + np.log(np.asarray(sizes, float))[:, None], axis=0
         ) - np.log(float(sum(sizes)))
-        idx, lw, khat, ess, ok, reason = importance_resample(x, lp, lq, n_particles, seed)
+        with np.errstate(over="ignore"):  # PSIS's tail fit at k_hat >> 1 (a first flow round)
+            idx, lw, khat, ess, ok, reason = importance_resample(x, lp, lq, n_particles, seed)
         done = (ok and ess >= target) or len(props) >= REFINE_ROUNDS or not np.isfinite(ess)
         if not done:
             last = props[-1][1] if props else None

@@ -246,3 +246,44 @@ def simulate_training_set(
         unstable,
     )
     return out, scales
+
+
+def simulate_recordings(tree, layout: PullLayout, train: TrainConfig, n: int, seed: int, sim=None):
+    """``[(theta [D], force_noise N, [Trajectory] x n_pulls)]``: ``n`` recordings drawn as the
+    training sets are (the training prior, the layout's pulls, ``sigma_x`` from its range, the
+    force clean in ``train.clean_force_share`` of them, else noisy in its range) on ``sim``
+    (None: :func:`training_simulator`), as the files `treeinfer simulate` writes would hold
+    them (unstable draws skipped): the in-distribution recordings of the check's tests, the
+    experiment and the latency benchmark."""
+    from ..data.trajectories import Trajectory
+    from ..model.gains import gains_from_theta
+    from ..sim import simulate
+
+    sim = training_simulator(tree, layout, train.backend, seed) if sim is None else sim
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E]))
+    theta = draw_training_prior(rng, tree, train, n, inequality_log_prior(tree))
+    g = 2 * tree.n_inferred
+    t = np.arange(layout.n_steps) * layout.dt
+    out = []
+    for i in range(n):
+        forces = draw_profiles(rng, layout, layout.n_pulls)
+        kp, kd = gains_from_theta(jnp.asarray(theta[i : i + 1, :g], jnp.float32), tree.n_inferred)
+        r = simulate(sim, kp, kd, jnp.asarray(forces, jnp.float32), layout.grasp_fraction)
+        if not bool(np.all(np.asarray(r.stable))):
+            continue
+        tau = np.asarray(r.tau[0], float)
+        sx = float(np.exp(theta[i, g]))
+        sf = float(np.exp(rng.uniform(*np.log(train.sigma_f_range))))
+        sf = 0.0 if rng.uniform() < train.clean_force_share else sf
+        trajs = [
+            Trajectory(
+                t,
+                f + sf * rng.normal(size=f.shape),
+                x + sx * rng.normal(size=x.shape),
+                None,
+                f"pull{b}",
+            )
+            for b, (f, x) in enumerate(zip(forces, tau))
+        ]
+        out.append((theta[i], sf, trajs))
+    return out
