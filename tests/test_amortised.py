@@ -198,3 +198,63 @@ def test_infer_amortised_writes_a_run_folder_that_loads(model, tmp_path):
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         rc = main([str(a) for a in common + ["--out", tmp_path / "run2"]])
     assert rc == 2 and "another tree" in err.getvalue()
+
+
+class _GaussianProblem:
+    """A posterior known in closed form: N(mu, diag(sd^2)) over (log Kp, log Kd, log sigma_x),
+    far narrower than a tiny flow and off its centre, as a recording's real posterior is."""
+
+    def __init__(self, mu, sd):
+        self.mu, self.sd = np.asarray(mu, float), np.asarray(sd, float)
+
+    def log_density(self, theta):
+        z = (np.asarray(theta, float) - self.mu) / self.sd
+        return -0.5 * np.sum(z**2, axis=-1)
+
+
+def test_refinement_reaches_a_posterior_far_narrower_than_the_flow(model):
+    """The flow's draws alone degenerate (k_hat >> 0.7); the refinement rounds must end with
+    passing weights whose mean and std are the Gaussian's (closed form)."""
+    am, _ = model
+    force, disp = am.check_recordings(_recording(am))
+    feats = am.features(force, disp)
+    draws, log_q = am.draw(force, disp, 1024)
+    # centred half a flow-std off the flow's mean, 100 times narrower
+    mu = draws.mean(0) + 0.5 * draws.std(0)
+    sd = draws.std(0) / 100
+    problem = _GaussianProblem(mu, sd)
+    imp, _ = check.refine(am, problem, feats, draws, log_q, 64, seed=0)
+    assert imp.rounds > 1 and imp.ok and imp.khat <= 0.7 and imp.ess >= 64
+    w = np.exp(imp.log_weights)
+    mean = w @ imp.draws
+    std = np.sqrt(w @ (imp.draws - mean) ** 2)
+    np.testing.assert_allclose(mean, mu, atol=0.3 * sd.max())
+    np.testing.assert_allclose(std, sd, rtol=0.25)
+
+
+def test_a_clean_force_is_inside_the_training_domain(model):
+    """A noise-free recorded force (`treeinfer simulate` without --noise-force, rounded to a
+    CSV's digits) summarises as the clean training sets do: no domain reason."""
+    am, _ = model
+    from treeinfer.amortised.simulations import draw_profiles
+
+    trajs = _recording(am)
+    rng = np.random.default_rng(5)
+    f = draw_profiles(rng, am.config.layout, 2)
+    clean = [t._replace(force=np.round(fi, 6)) for t, fi in zip(trajs, f)]
+    force, disp = am.check_recordings(clean)
+    assert check.domain_reasons(am, am.features(force, disp)) == []
+
+
+def test_the_predictive_check_compares_sigma_x_with_the_recordings_noise(model):
+    am, _ = model
+    force, disp = am.check_recordings(_recording(am))  # displacement noise 2 mm
+    feats = am.features(force, disp)
+    assert check.predictive_reasons(am, feats, np.log([2e-3] * 8)) == []
+    bad = check.predictive_reasons(am, feats, np.log([2e-2] * 8))
+    assert bad and "times the recording's own noise estimate" in bad[0]
+
+
+def test_the_clean_force_share_is_validated():
+    with pytest.raises(ConfigError, match="clean_force_share"):
+        TrainConfig(clean_force_share=1.5)

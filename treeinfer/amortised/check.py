@@ -46,9 +46,10 @@ DOMAIN_MARGIN = 0.25  # share of the training range's width added on each side
 DEFAULT_DRAWS = 1024  # flow draws weighted (PSIS k_hat needs several hundred to be reliable)
 CHUNK = 256  # draws per log-density call (one compiled shape)
 REFINE_ROUNDS = 3  # population Monte Carlo rounds after the flow's, at most
-REFINE_DRAWS = 512  # draws per round (two compiled chunks)
+REFINE_DRAWS = 256  # draws per round (one compiled chunk)
 REFINE_DF = 5.0  # the rounds' Student-t: heavier tails than the moments' Gaussian
 REFINE_INFLATE = 1.5  # the rounds' scale over the weighted draws' (a degenerate round is narrow)
+NEWTON_STEPS = 4  # Newton steps per refinement round (stencil calls), at most
 STEP_FLOOR = 1e-4  # smallest difference step of the Hessian (log units: float32's noise below)
 TARGET_ESS_SHARE = 1.0  # stop refining at an effective sample size of the particles' number
 
@@ -196,38 +197,74 @@ class _Chunked:
         self.log_density = lambda th: _log_density(problem, np.asarray(th, float))
 
 
+def _stencil(problem, x, h):
+    """``(f, g [D], H [D, D])``: the log density at ``x [D]``, its gradient and Hessian by
+    central differences of its values with steps ``h [D]``, in one batched call of 1 + 2 D^2
+    points (:func:`treeinfer.inference.laplace.value_hessian`'s stencil: values, not the
+    likelihood's own finite-difference gradient, at the posterior's scale). Written out here
+    because the Newton step needs the centre value and the gradient too, which
+    ``value_hessian`` computes and drops."""
+    d = x.size
+    e = np.eye(d) * h
+    pts = [x] + [x + s * e[i] for i in range(d) for s in (1, -1)]
+    pairs = [(i, j) for i in range(d) for j in range(i + 1, d)]
+    pts += [x + si * e[i] + sj * e[j] for i, j in pairs for si in (1, -1) for sj in (1, -1)]
+    f = _log_density(problem, np.stack(pts))
+    fp, fm = f[1 : 1 + 2 * d : 2], f[2 : 2 + 2 * d : 2]
+    g = (fp - fm) / (2 * h)
+    hess = np.diag((fp - 2 * f[0] + fm) / h**2)
+    for k, (i, j) in enumerate(pairs):
+        pp, pm, mp, mm = f[1 + 2 * d + 4 * k : 5 + 2 * d + 4 * k]
+        hess[i, j] = hess[j, i] = (pp - pm - mp + mm) / (4 * h[i] * h[j])
+    return float(f[0]), g, hess
+
+
 def _round_proposal(problem, x, lp, lw, last_cov, top_spread):
-    """``(mean, cov)`` of the next round's Student-t, or None: the Laplace approximation at the
-    best draw so far (its Hessian by central differences of the log density's values,
-    :func:`treeinfer.inference.laplace.value_hessian`, in one batched call of 1 + 2 D^2
-    points, steps the posterior's current spread (at most ``top_spread``, the flow's), set
-    twice as in :func:`~treeinfer.inference.laplace.problem_laplace`), its covariance times
-    :data:`REFINE_INFLATE`^2. Why not the weighted draws' moments alone (population Monte
-    Carlo's rule): with an effective sample size of 5-15 their covariance is that of a handful
-    of points, too narrow in some direction, and the rounds stalled at k_hat ~1 on a posterior
-    200 times narrower than the flow; the curvature does not depend on how the draws fell.
-    The moments remain the fallback where the Hessian is not negative definite."""
+    """``(mean, cov)`` of the next round's Student-t, or None: the Laplace approximation of the
+    posterior from the best draw so far, by up to :data:`NEWTON_STEPS` Newton steps on the
+    log density (:func:`_stencil`'s gradient and Hessian, steps the posterior's current spread,
+    at most ``top_spread``, the flow's; a step that lowers the density is halved), its
+    covariance times :data:`REFINE_INFLATE`^2. Why not the weighted draws' moments alone
+    (population Monte Carlo's rule): with an effective sample size of 5-15 their covariance is
+    that of a handful of points, too narrow in some direction, and the rounds stalled at k_hat
+    ~1 on a posterior 200 times narrower than the flow; and why a Newton step rather than the
+    best draw as the centre: the best of 1000 flow draws lies tens of posterior widths from
+    the mode when the flow is a hundred times wider. The moments remain the fallback where the
+    Hessian is not negative definite."""
     from ..inference.importance import weighted_moments
-    from ..inference.laplace import value_hessian
 
     try:
         mean_w, cov_w = weighted_moments(x, lw)
         np.linalg.cholesky(cov_w)
     except np.linalg.LinAlgError:
         return None
-    spread = np.sqrt(np.diag(last_cov if last_cov is not None else cov_w))
+    if last_cov is not None:  # the last round's Laplace spread
+        spread = np.sqrt(np.diag(last_cov))
+    else:  # a tenth of the flow's spread at least: the weighted draws' may be a few points',
+        # and steps under the posterior's width drown in float32's rounding of the density
+        spread = np.maximum(np.sqrt(np.diag(cov_w)), top_spread / 10)
     spread = np.clip(spread, STEP_FLOOR, top_spread)
-    best = x[int(np.argmax(np.where(np.isfinite(lp), lp, -np.inf)))]
-    cov = None
-    for _ in range(2):  # steps set twice, as problem_laplace: then at the Laplace std itself
-        prec = -value_hessian(_Chunked(problem), best, spread)
-        w, v = np.linalg.eigh(0.5 * (prec + prec.T))
-        if not (np.all(np.isfinite(w)) and w.min() > 0):
+    i_best = int(np.argmax(np.where(np.isfinite(lp), lp, -np.inf)))
+    here, f_here = x[i_best], float(lp[i_best])
+    centre, cov, step = None, None, None
+    for _ in range(NEWTON_STEPS):
+        f, g, hess = _stencil(problem, here, spread)
+        if step is not None and not f >= f_here - 1e-6 * abs(f_here):
+            step = step / 2  # the last step overshot: back half of it
+            here = here - step
+            continue
+        w, v = np.linalg.eigh(-0.5 * (hess + hess.T))
+        if not (np.isfinite(f) and np.all(np.isfinite(w)) and w.min() > 0):
             break
+        centre, f_here = here, f
         cov = (v / w) @ v.T
         spread = np.clip(np.sqrt(np.diag(cov)), STEP_FLOOR, top_spread)
+        step = cov @ g
+        # no further than the flow's spread in one step (a far step is a poor quadratic)
+        step = step * min(1.0, float(np.min(top_spread / (np.abs(step) + 1e-300))))
+        here = here + step
     if cov is not None:
-        return best, 0.5 * (cov + cov.T) * REFINE_INFLATE**2
+        return centre, 0.5 * (cov + cov.T) * REFINE_INFLATE**2
     return mean_w, cov_w * REFINE_INFLATE**2
 
 
