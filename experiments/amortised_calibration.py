@@ -131,6 +131,9 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--seed", type=int, default=0, help="training seed (held-out: seed + 1000)")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument(
+        "--model", type=Path, default=None, help="measure this trained model (no training)"
+    )
     ap.add_argument("--force", action="store_true")
     args = ap.parse_args(argv)
     if args.gpu:
@@ -167,7 +170,14 @@ def main(argv=None) -> int:
     name = f"amortised_{args.size}_{Path(args.tree).stem}"
     out = args.out or ROOT / "experiments" / "results" / name
     t0 = time.perf_counter()
-    am = train(tree, cfg, log=lambda m: print(m, file=sys.stderr))
+    if args.model:  # a model trained before (this script's, or `treeinfer amortise`'s)
+        from treeinfer.amortised import load
+
+        am = load(args.model)
+        am.check_tree(tree, f"--tree {args.tree}")
+        cfg = am.config
+    else:
+        am = train(tree, cfg, log=lambda m: print(m, file=sys.stderr))
     res = expected_coverage(am, tree, size["sets"], size["draws"], seed=args.seed + 1000)
     gaps = [abs(v - float(lv)) for row in res["coverage"].values() for lv, v in row.items()]
     checks = None
