@@ -1,6 +1,6 @@
 """The amortised posterior checked on the spot, and the run layer's start built from it.
 
-Two checks, in order, before a flow's answer is trusted:
+Four steps, in order, before a flow's answer is trusted:
 
 1. **Domain.** Each pull's largest force and displacement and its two noise estimates must lie
    in the training recordings' range (their 0.1-99.9% quantiles, recorded at training) widened
@@ -17,10 +17,12 @@ Two checks, in order, before a flow's answer is trusted:
 3. **Refinement.** A flow trained on 10^4 simulations is calibrated but wider than the
    posterior (3-10x in log Kp on a few pulls at 2 mm noise: its weights degenerate, k_hat 2-8).
    Up to :data:`REFINE_ROUNDS` more rounds of population Monte Carlo (Cappe et al. 2004) draw
-   :data:`REFINE_DRAWS` each from a Student-t at the weighted draws' moments, and every draw
-   so far is reweighted against the deterministic mixture of the flow and the rounds'
-   proposals (Owen & Zhou 2000: unbiased for any proposals, a draw of a poor round cannot get
-   an extreme weight where a later proposal covers it). The rounds stop once the weights pass
+   :data:`REFINE_DRAWS` each from a Student-t: the first round's at the mode of the start
+   pipeline's batched LM fit from the best draws (:func:`_lm_proposal`), later ones' at the
+   weighted draws' moments; every draw so far is reweighted against the deterministic
+   mixture of the flow and the rounds' proposals (Owen & Zhou 2000: unbiased for any
+   proposals, a draw of a poor round cannot get an extreme weight where a later proposal
+   covers it). The rounds stop once the weights pass
    with an effective sample size of :data:`TARGET_ESS_SHARE` of the particles. If they still
    fail, the flow is off for this recording.
 4. **Predictive.** The checked posterior's displacement noise ``sigma_x`` against the
@@ -29,7 +31,7 @@ Two checks, in order, before a flow's answer is trusted:
    a posterior whose noise soaks up the misfit: exact for the model, but not an answer to
    give without the simulator-based path's fit verdict.
 
-When either check fails, :func:`amortised_start` returns no posterior and the run goes the
+When a check fails, :func:`amortised_start` returns no posterior and the run goes the
 simulator-based way (``--init auto``: screen, MAP fit, importance, the sampler if needed),
 saying so; the report lands in summary.json under ``amortised``.
 """
@@ -168,6 +170,8 @@ def refine(am, problem, feats, draws, log_q, n_particles: int, seed: int = 0, lo
         if not done:
             if ev is not None and not props:  # the first round: the mode by LM, its curvature
                 nxt = _lm_proposal(ev, x, lp)
+            elif ev is not None:  # later rounds: the weighted draws' moments (PMC's rule)
+                nxt = _moments(x, lw)
             else:
                 last = props[-1][1] if props else None
                 nxt = _round_proposal(problem, x, lp, lw, last, draws.std(0) + STEP_FLOOR)
@@ -220,6 +224,19 @@ def _evaluator(problem):
         return BatchEvaluator(problem, LM_CHUNK)
     except (ConfigError, AttributeError, TypeError):
         return None
+
+
+def _moments(x, lw):
+    """``(mean, cov)`` of the weighted draws, the covariance times :data:`REFINE_INFLATE`^2,
+    or None where it is not positive definite."""
+    from ..inference.importance import weighted_moments
+
+    try:
+        mean, cov = weighted_moments(x, lw)
+        np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        return None
+    return mean, cov * REFINE_INFLATE**2
 
 
 def _lm_proposal(ev, x, lp):
