@@ -315,6 +315,8 @@ def _round_proposal(problem, x, lp, lw, last_cov, top_spread):
     centre, cov, step = None, None, None
     for _ in range(NEWTON_STEPS):
         f, g, hess = _stencil(problem, here, spread)
+        if not (np.all(np.isfinite(g)) and np.all(np.isfinite(hess))):
+            break  # a stencil point did not simulate
         if step is not None and not f >= f_here - 1e-6 * abs(f_here):
             step = step / 2  # the last step overshot: back half of it
             here = here - step
