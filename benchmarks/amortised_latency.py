@@ -62,7 +62,7 @@ def _time_check(am, tree, trajs, particles: int = 64) -> dict:
     problem = ti.make_problem(tree, trajs)
     t1 = time.perf_counter()
     ev = check._evaluator(problem)  # the rollout program: compiled (or loaded) once per shape
-    draws = am.draw(force, disp, check.LM_CHUNK)[0]
+    draws = am.draw(force, disp, 64)[0]
     ev.log_density(draws) if ev is not None else check._log_density(problem, draws)
     t2 = time.perf_counter()
     start, report = check.amortised_start(am, force, disp)

@@ -53,7 +53,6 @@ REFINE_DF = 5.0  # the rounds' Student-t: heavier tails than the moments' Gaussi
 REFINE_INFLATE = 1.5  # the rounds' scale over the weighted draws' (a degenerate round is narrow)
 LM_STARTS = 4  # best draws the first refinement round's LM fit starts from
 LM_ITERATIONS = 30  # as the start pipeline's fit
-LM_CHUNK = 64  # rollouts per program run (the LM's points and the importance draws)
 NEWTON_STEPS = 4  # Newton steps per refinement round (stencil calls), at most
 STEP_FLOOR = 1e-4  # smallest difference step of the Hessian (log units: float32's noise below)
 TARGET_ESS_SHARE = 1.0  # stop refining at an effective sample size of the particles' number
@@ -218,10 +217,12 @@ def _evaluator(problem):
     CPU, more than the check); this program compiles once per simulator and shape, and the
     persistent compile cache keeps it for the next process."""
     from ..errors import ConfigError
-    from ..inference.fast_evaluator import BatchEvaluator
+    from ..inference.fast_evaluator import BatchEvaluator, default_chunk
 
     try:
-        return BatchEvaluator(problem, LM_CHUNK)
+        # the start pipeline's rule: the LM's points on a CPU, a whole round on an accelerator
+        k = LM_STARTS * (4 * problem.sim.n_joints + 1)  # starts x (2 gains + 1) points
+        return BatchEvaluator(problem, default_chunk(k, DEFAULT_DRAWS))
     except (ConfigError, AttributeError, TypeError):
         return None
 

@@ -33,6 +33,12 @@ sampled every --dt s at --grasp-fraction, down along gravity, with forces of the
 family peaking in --peak-range N. `infer --amortised` refuses it (exit 2, naming what differs)
 for another tree, another number of pulls, samples, time step or grasp point.
 
+Training noise: sigma_x log-uniform in --noise-displacement-range; the recorded force noise-free
+in a quarter of the data sets (as `treeinfer simulate` writes it without --noise-force), else
+log-uniform in --noise-force-range. `infer --amortised` checks the flow's answer against the
+simulator (importance weights, refined from the flow's best draws by the start pipeline's LM
+fit when the flow is too wide) and falls back to the simulator-based path when it fails.
+
 OUT/ holds model.msgpack (the weights, flax msgpack) and model.json (the tree's description and
 fingerprint, the layout, the training settings and report, the treeinfer version); it is built
 aside and appears whole or not at all. See docs/amortised.md.
