@@ -221,7 +221,7 @@ def _evaluator(problem):
 
     try:
         # the start pipeline's rule: the LM's points on a CPU, a whole round on an accelerator
-        k = LM_STARTS * (4 * problem.sim.n_joints + 1)  # starts x (2 gains + 1) points
+        k = LM_STARTS * (4 * problem.sim.n_joints + 1)  # starts x (2 x gains + 1) points
         return BatchEvaluator(problem, default_chunk(k, DEFAULT_DRAWS))
     except (ConfigError, AttributeError, TypeError):
         return None
