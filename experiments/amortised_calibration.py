@@ -74,6 +74,7 @@ SIZES = {
         chunk=4096,
         batch=1024,
         patience=15,
+        embedding=32,  # 8 pulls of 5 columns' worth: twice the default summary
     ),
 }
 
@@ -165,6 +166,7 @@ def main(argv=None) -> int:
             chunk=size.get("chunk", 256),
             batch_size=size.get("batch", 256),
             patience=size.get("patience", 10),
+            embedding=size.get("embedding", 16),
         ),
     )
     name = f"amortised_{args.size}_{Path(args.tree).stem}"
