@@ -198,6 +198,12 @@ def test_infer_amortised_writes_a_run_folder_that_loads(model, tmp_path):
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         rc = main([str(a) for a in common + ["--out", tmp_path / "run2"]])
     assert rc == 2 and "another tree" in err.getvalue()
+    # other sensors in the data folder: refused before anything runs, exit 2
+    dump_tree(_tree(), tree_file)
+    (data / "channels.yaml").write_text("channels: []\n")
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = main([str(a) for a in common + ["--out", tmp_path / "run3"]])
+    assert rc == 2 and "channels.yaml declares" in err.getvalue()
 
 
 class _GaussianProblem:
@@ -258,3 +264,15 @@ def test_the_predictive_check_compares_sigma_x_with_the_recordings_noise(model):
 def test_the_clean_force_share_is_validated():
     with pytest.raises(ConfigError, match="clean_force_share"):
         TrainConfig(clean_force_share=1.5)
+
+
+@pytest.mark.parametrize("name", ["channels.yaml", "pulls.yaml"])
+def test_other_sensors_or_pulls_are_refused(tmp_path, name):
+    """A data folder with observation channels or per-recording pulls: exit 2 before the
+    model is even loaded (its summary holds the grasp point's force and displacement only)."""
+    from treeinfer.cli.amortise import _refuse_other_sensors
+
+    _refuse_other_sensors(tmp_path)  # a plain folder: nothing to refuse
+    (tmp_path / name).write_text("{}\n")
+    with pytest.raises(ConfigError, match=f"{name} declares"):
+        _refuse_other_sensors(tmp_path)

@@ -204,6 +204,28 @@ def run_amortise(args: argparse.Namespace) -> int:
 
 
 # ---- infer --amortised ------------------------------------------------------------------------
+def _refuse_other_sensors(data) -> None:
+    """ConfigError (exit 2) for a data folder with observation channels (channels.yaml: other
+    sensors) or per-recording pulls (pulls.yaml: other grasp points or directions): a model is
+    trained on the grasp point's force and displacement of pulls down at the tree's grasp, and
+    its summary has no place for the rest."""
+    from ..data.channels import CHANNELS_FILE
+    from ..data.pulls import PULLS_FILE
+
+    if data is None:
+        return
+    for name, what in (
+        (CHANNELS_FILE, "observation channels (other sensors)"),
+        (PULLS_FILE, "per-recording pulls (other grasp points or directions)"),
+    ):
+        if (Path(data) / name).exists():
+            raise ConfigError(
+                f"--data {data}: {name} declares {what}; an amortised model is trained on the "
+                "grasp point's force and displacement of pulls down at the tree's grasp only. "
+                "Infer without --amortised"
+            )
+
+
 def amortised_for_infer(args: argparse.Namespace, inputs, options: dict):
     """``(start, report)`` for :func:`treeinfer.runs.run_inference` from ``infer --amortised M``:
     the model loaded, refused (ConfigError, exit 2) for another tree or layout or a run whose
@@ -221,6 +243,7 @@ def amortised_for_infer(args: argparse.Namespace, inputs, options: dict):
             "--amortised: the model is of the dynamic model of every joint's "
             "Kp and Kd; leave out --model-kind static and --tie"
         )
+    _refuse_other_sensors(args.data)
     t0 = time.perf_counter()
     am = estimator.load(args.amortised)
     am.check_tree(inputs.tree, f"--tree {args.tree}")
