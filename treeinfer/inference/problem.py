@@ -163,13 +163,8 @@ def make_problem(
         terms = model_likelihood_terms(
             sim, model, obs, likelihood, gradient=grad_kind, rel_step=rel_step, **options, **extra
         )
-    if spec.channels:
-        if model is not None:
-            raise ConfigError(
-                "channels: observation channels work with the paper's dynamic model (every pull "
-                "down on the tree's grasp branch), not per-recording pulls, a tie or a static model"
-            )
-        terms = _add_channels(terms, sim, trajectories, obs, spec, grasp_fraction, rel_step)
+    if spec.channels:  # any model: the paper's, static, stiffness only, a tie, per-pull branches
+        terms = _add_channels(terms, sim, trajectories, obs, spec, grasp_fraction, rel_step, model)
     loglik = terms.log_likelihood
     n_gains = layout.dim
     box = box_prior(tree, prior_sigma, prior_space, None if model is None else layout)
@@ -276,7 +271,7 @@ def make_problem(
     )
 
 
-def _add_channels(terms, sim, trajectories, obs, spec, grasp_fraction, rel_step):
+def _add_channels(terms, sim, trajectories, obs, spec, grasp_fraction, rel_step, model=None):
     """``terms`` with the observation channels' terms (:mod:`treeinfer.model.channels`); the
     channels name their pulls by file name, so the data must be trajectories (not stacked)."""
     from ..model.channels import channel_layout, with_channels
@@ -294,7 +289,7 @@ def _add_channels(terms, sim, trajectories, obs, spec, grasp_fraction, rel_step)
         [float(tr.time[0]) for tr in trajs],
         [tr.n_steps for tr in trajs],
     )
-    return with_channels(terms, sim, obs, layout, grasp_fraction, rel_step)
+    return with_channels(terms, sim, obs, layout, grasp_fraction, rel_step, model)
 
 
 def _pulls_record(model, n: int) -> dict:

@@ -170,11 +170,6 @@ class ProblemSpec:
                     "channels: observation channels need a generative likelihood (gaussian, "
                     "student_t, ar1), not the Boltzmann loss"
                 )
-            if self.model_kind != "dynamic" or self.model is not None:
-                raise ConfigError(
-                    "channels: observation channels work with the dynamic model of the tree's "
-                    "inferred joints (not --model-kind static, a tie or a prebuilt model)"
-                )
         if self.noise_velocity is not None and self.resolved_likelihood == "boltzmann":
             raise ConfigError(
                 "--noise-velocity: the velocity term belongs to a generative likelihood "

@@ -163,6 +163,54 @@ def channel_predictions(
     return gather(layout, ro.features, ro.stable)
 
 
+def model_features(sim, model, theta, forces, features, grasp_fraction=None):
+    """``(features [P, B, T, F, 3], stable [P, B])`` of particles ``theta [P, >= D]`` (the
+    model's gain columns first) under ``forces [B, T]`` for any
+    :class:`treeinfer.inference.static.Model`: None (the paper's dynamic model), the dynamic
+    model with its pulls' directions and branches (one compiled group per pulled branch, as the
+    static solver groups them), or the static model, whose channels are the kinematics of each
+    force sample's equilibrium (:func:`treeinfer.inference.static.static_equilibria`) measured
+    from the gravity-settled rest, as a rollout's are from its first row."""
+    theta = jnp.atleast_2d(jnp.asarray(theta))
+    if model is None:
+        kp, kd = gains_from_theta(theta, sim.n_joints)
+        ro = simulate_features(sim, kp, kd, forces, features, grasp_fraction)
+        return ro.features, ro.stable
+    kp, kd = model.layout.gains(theta[:, : model.layout.dim])
+    branch = model.grasp_branch
+    branch = tuple(branch) if branch is not None and not isinstance(branch, str) else branch
+    if model.kind == "static":
+        from ..inference.static import static_equilibria
+        from ..sim.observe import features_from_q
+
+        eq = static_equilibria(
+            sim, kp, forces, grasp_fraction, model.direction, branch, model.tree
+        )
+        q = jnp.asarray(eq.q)
+        rest = jnp.broadcast_to(eq.q_rest[:, None, None, :], q.shape[:2] + (1, q.shape[-1]))
+        feats = features_from_q(sim, jnp.concatenate([rest, q], axis=2), tuple(features))
+        feats = feats[:, :, 1:]
+        ok = eq.stable & jnp.all(jnp.isfinite(feats), axis=(-3, -2, -1))
+        return jnp.where(ok[..., None, None, None], feats, 0.0), ok
+    from ..inference.static.equilibrium import _profile_geometry
+    from ..sim.observe import simulate_features_at
+
+    kp, forces, bodies, sites, dirs = _profile_geometry(
+        sim, kp, forces, grasp_fraction, model.direction, branch, model.tree
+    )
+    p, (b, n) = kp.shape[0], forces.shape
+    feats = jnp.zeros((p, b, n, len(features), 3), kp.dtype)
+    ok = jnp.zeros((p, b), bool)
+    for body in sorted(set(bodies)):  # one compiled program per pulled branch
+        idx = np.asarray([i for i, x in enumerate(bodies) if x == body])
+        ro = simulate_features_at(
+            sim, kp, kd.astype(kp.dtype), forces[idx], features, sites[idx], dirs[idx], body
+        )
+        feats = feats.at[:, idx].set(ro.features)
+        ok = ok.at[:, idx].set(ro.stable)
+    return feats, ok
+
+
 def channel_log_likelihood(
     sim,
     layout: ChannelLayout,
@@ -171,11 +219,14 @@ def channel_log_likelihood(
     direction=None,
     first_column: int | None = None,
     rel_step: float | None = None,
+    model=None,
 ):
-    """``theta [N, D] -> [N]`` nats: the channels' Gaussian terms. Gains are theta's first 2R
-    columns; the inferred ``log sigma`` columns start at ``first_column`` (default: the last
-    ``len(layout.inferred)`` columns)."""
-    r = sim.n_joints
+    """``theta [N, D] -> [N]`` nats: the channels' Gaussian terms. Gains are theta's first
+    columns (2R for the paper's model, ``model.layout.dim`` for a
+    :class:`treeinfer.inference.static.Model`: :func:`model_features`); the inferred
+    ``log sigma`` columns start at ``first_column`` (default: the last ``len(layout.inferred)``
+    columns)."""
+    n_gains = 2 * sim.n_joints if model is None else model.layout.dim
     forces = jnp.asarray(forces, sim.dtype)
     y = jnp.asarray(layout.values)
     chan = jnp.asarray(layout.channel)
@@ -184,15 +235,19 @@ def channel_log_likelihood(
     slot = jnp.asarray(layout.column)
 
     def predict(theta_gains):
-        kp, kd = gains_from_theta(theta_gains, r)
-        return channel_predictions(sim, layout, kp, kd, forces, grasp_fraction, direction)
+        if model is None and direction is not None:
+            kp, kd = gains_from_theta(theta_gains, sim.n_joints)
+            return channel_predictions(sim, layout, kp, kd, forces, grasp_fraction, direction)
+        feats, ok = model_features(sim, model, theta_gains, forces, layout.features,
+                                   grasp_fraction)  # fmt: skip
+        return gather(layout, feats, ok)
 
     sim_fn = finite_difference_jvp(predict, rel_step)
 
     def loglik(theta):
         theta = jnp.asarray(theta)
         c0 = theta.shape[1] - k if first_column is None else first_column
-        pred = sim_fn(theta[:, : 2 * r])  # [N, S]
+        pred = sim_fn(theta[:, :n_gains])  # [N, S]
         log_s = jnp.log(fixed)[None, :] * jnp.ones((theta.shape[0], 1), theta.dtype)
         if k:
             log_s = jnp.where(
@@ -207,9 +262,13 @@ def channel_log_likelihood(
     return loglik
 
 
-def with_channels(terms, sim, obs, layout: ChannelLayout, grasp_fraction=None, rel_step=None):
+def with_channels(
+    terms, sim, obs, layout: ChannelLayout, grasp_fraction=None, rel_step=None, model=None
+):
     """``terms`` (:class:`~treeinfer.model.likelihood.LikelihoodTerms` of a generative
-    likelihood) with the channels' terms added and their noise columns appended to theta.
+    likelihood) with the channels' terms added and their noise columns appended to theta;
+    ``model``: the run's :class:`treeinfer.inference.static.Model` (None: the paper's), whose
+    rollout (dynamic or static, each pull at its branch and direction) the channels read.
     The bucketed sampler programs and the start pipeline's residual density do not cover the
     channels: ``data_of``/``loglik_of``/``residual_loglik`` are None (the run takes the problem's
     own log-density: :func:`treeinfer.inference.start_pipeline.auto_start`)."""
@@ -218,8 +277,11 @@ def with_channels(terms, sim, obs, layout: ChannelLayout, grasp_fraction=None, r
             "observation channels: need a generative likelihood (--likelihood gaussian, "
             "student_t or ar1), not the Boltzmann loss"
         )
-    d0 = 2 * sim.n_joints + len(terms.extra_labels)
-    ch_ll = channel_log_likelihood(sim, layout, obs.force, grasp_fraction, None, d0, rel_step)
+    n_gains = 2 * sim.n_joints if model is None else model.layout.dim
+    d0 = n_gains + len(terms.extra_labels)
+    ch_ll = channel_log_likelihood(
+        sim, layout, obs.force, grasp_fraction, None, d0, rel_step, model
+    )
     base_ll, base_prior = terms.log_likelihood, terms.extra_log_prior
     priors = layout.priors
 

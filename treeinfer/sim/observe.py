@@ -178,6 +178,43 @@ def _simulate_features(sim, features, kp, kd, forces, grasp_fraction, direction)
     return ChannelRollout(tau, feats, ok)
 
 
+def simulate_features_at(
+    sim: Simulator, kp, kd, forces, features: tuple[Feature, ...], sites, dirs, body: int
+) -> ChannelRollout:
+    """:func:`simulate_features` for pulls on any ``body`` (MuJoCo index; the grasped branch's
+    or another), at ``sites [B, 3]`` in that body's frame along unit ``dirs [B, 3]`` (world):
+    the per-pull branches of :class:`treeinfer.inference.static.Model` (grouped by body by
+    :func:`treeinfer.model.channels.model_features`)."""
+    if sim.hinge_tree is None:
+        raise ConfigError("observation channels: need the fused (or pallas) backend")
+    return _simulate_features_at(sim, tuple(features), int(body), kp, kd, forces, sites, dirs)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def _simulate_features_at(sim, features, body, kp, kd, forces, sites, dirs):
+    from . import fused_backend as fb
+
+    dtype = sim.dtype
+    kp, kd, forces = jnp.atleast_2d(kp), jnp.atleast_2d(kd), jnp.atleast_2d(forces)
+    sites, dirs = jnp.asarray(sites, dtype), jnp.asarray(dirs, dtype)
+
+    def per_params(kp_i, kd_i):
+        (kp_c, kd_c), q_rest, settled = fb._prepare(sim, kp_i, kd_i, dtype)
+
+        def pull(f, s, d):
+            return fb._pull_one(sim, kp_c, kd_c, q_rest, f, s, direction=d, body=body, with_q=True)
+
+        tau, ok, q = jax.vmap(pull)(forces.astype(dtype), sites, dirs)
+        return tau, q, ok & settled
+
+    tau, q, ok = jax.vmap(per_params)(kp, kd)
+    feats = features_from_q(sim, q, features)
+    ok = ok & jnp.all(jnp.isfinite(feats), axis=(-3, -2, -1))
+    tau = jnp.where(ok[..., None], tau, 0.0)
+    feats = jnp.where(ok[..., None, None, None], feats, 0.0)
+    return ChannelRollout(tau, feats, ok)
+
+
 class ChannelSpec(NamedTuple):
     """A synthetic sensor for :func:`synthetic_channels`: ``kind`` (``"position"`` |
     ``"angle"``) at ``fraction`` of ``link``, measuring world ``components`` (``"xz"``), with

@@ -1,0 +1,116 @@
+"""Observation channels with every model (issue 30, section 2): the static model's channels (the
+kinematics of each force sample's equilibrium) and the dynamic model's with a pull direction and
+per-pull branches, both against the independent planar Lagrangian reference (scipy), and
+make_problem building channel terms for them."""
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import root
+
+import treeinfer as ti
+from treeinfer.data.channels import Channel, NamedPoint
+from treeinfer.inference.static import model_for
+from treeinfer.model.channels import model_features
+from treeinfer.sim import observe as ob
+from treeinfer.sim.planar_reference import PlanarTree
+
+KP, KD = np.array([40.0, 80.0]), np.array([0.3, 0.8])  # tree.inferred order: child, parent
+A = math.radians(25.0)
+DIRECTION = np.array([math.cos(A), 0.0, -math.sin(A)])  # a cable 25 deg below horizontal
+
+
+@pytest.fixture(scope="module")
+def tree():
+    return ti.load_tree(ti.example_path("two_branch"))
+
+
+def _static_reference(ref: PlanarTree, force: float) -> np.ndarray:
+    """q of the static equilibrium under ``force`` (no speed: the acceleration vanishes)."""
+    sol = root(lambda q: ref.acceleration(q, np.zeros(ref.nv), force), ref.q_rest, tol=1e-13)
+    assert sol.success
+    return sol.x
+
+
+def test_static_channels_match_planar_equilibria(tree):
+    sim = ti.make_simulator(tree, 0.1, accuracy="coarse")
+    model = model_for(tree, "static", direction=DIRECTION)
+    forces = np.array([[0.0, 1.0, 2.5, 4.0]])
+    feats = (
+        ob.feature_for(sim, "position", "child", 0.5),
+        ob.feature_for(sim, "angle", "child", 0.5),
+        ob.feature_for(sim, "angle", "parent", 0.5),
+    )
+    theta = model.layout.theta(KP, KD)[None]
+    got, ok = model_features(sim, model, theta, forces, feats)
+    got = np.asarray(got)[0, 0]  # [T, F, 3]
+    assert bool(np.asarray(ok).all())
+    ref = PlanarTree(tree, KP, KD, direction=DIRECTION)
+    rest_marker = ref.point(ref.q_rest, "child", 0.5)
+    for k, f in enumerate(forces[0]):
+        q = _static_reference(ref, f)
+        np.testing.assert_allclose(got[k, 0], ref.point(q, "child", 0.5) - rest_marker, atol=2e-5)
+        np.testing.assert_allclose(got[k, 1], ref.rotation(q, ref.q_rest, "child"), atol=5e-5)
+        np.testing.assert_allclose(got[k, 2], ref.rotation(q, ref.q_rest, "parent"), atol=5e-5)
+    assert abs(got[-1, 1, 1]) > 0.05  # the pull turns the child by a few degrees
+
+
+def test_dynamic_channels_with_direction_and_per_pull_branches(tree):
+    """Pull 0 on the child at 0.9 along the cable, pull 1 on the parent at 0.7 straight down."""
+    dt = 0.02
+    force = ti.data.forces.from_spec("hold:peak=4,ramp=0.4,hold=0.4,release=0.3", 1.4, dt)
+    forces = np.stack([force, 0.8 * force])
+    dirs = np.stack([DIRECTION, [0.0, 0.0, -1.0]])
+    sim = ti.make_simulator(tree, dt, forces=forces, sim_tolerance=2e-5)
+    model = model_for(tree, "dynamic")._replace(direction=dirs, grasp_branch=("child", "parent"))
+    feats = (
+        ob.feature_for(sim, "position", "child", 1.0),
+        ob.feature_for(sim, "angle", "parent", 0.5),
+    )
+    theta = model.layout.theta(KP, KD)[None]
+    got, ok = model_features(sim, model, theta, forces, feats, np.array([0.9, 0.7]))
+    got = np.asarray(got)[0]
+    assert bool(np.asarray(ok).all())
+    for b, (branch, frac) in enumerate([("child", 0.9), ("parent", 0.7)]):
+        ref = PlanarTree(tree, KP, KD, grasp_fraction=frac, grasp_branch=branch,
+                         direction=dirs[b])  # fmt: skip
+        q = ref.rollout_q(forces[b], dt)
+        tip = np.array([ref.point(qk, "child", 1.0) for qk in q])
+        tilt = np.array([ref.rotation(qk, q[0], "parent") for qk in q])
+        assert np.abs(tip - tip[0]).max() > 0.03
+        np.testing.assert_allclose(got[b, :, 0], tip - tip[0], atol=2e-4)
+        np.testing.assert_allclose(got[b, :, 1], tilt, atol=3e-4)
+
+
+@pytest.mark.parametrize("kind", ["static", "dynamic"])
+def test_make_problem_with_channels_for_a_pull_direction(tree, kind):
+    """The channels' term is built for the static model and for a dynamic model pulled along
+    a cable (refused before); its log-likelihood peaks near the truth."""
+    dt = 0.1 if kind == "static" else 0.02
+    t = np.arange(0, 1.2, dt)
+    force = np.interp(t, [0, 0.6, 1.2], [0, 4, 4])
+    ref = PlanarTree(tree, KP, KD, direction=DIRECTION)
+    if kind == "static":
+        qs = np.array([_static_reference(ref, f) for f in force])
+        rest = ref.q_rest
+    else:
+        qs = ref.rollout_q(force, dt)
+        rest = qs[0]
+    tau = np.array([(ref.grasp_point(q) - ref.grasp_point(rest)) @ DIRECTION for q in qs])
+    tilt = np.array([ref.rotation(q, rest, "child") for q in qs])[:, [1]]
+    rng = np.random.default_rng(3)
+    tr = ti.Trajectory(t, force, tau + rng.normal(0, 1e-3, t.size), None, "p0.csv")
+    ch = Channel("tilt", "angle", "p0.csv", NamedPoint("child", fraction=0.5), ("y",), t,
+                 tilt + rng.normal(0, 1e-3, tilt.shape))  # fmt: skip
+    p = ti.make_problem(tree, [tr], model_kind=kind, direction=DIRECTION, channels=(ch,),
+                        noise_force=None)  # fmt: skip
+    assert p.labels[-1] == "sigma[tilt]" and p.model is not None
+    assert ("Kd[child]" in p.labels) == (kind == "dynamic")  # the static model: stiffness only
+    gains = np.log(KP) if kind == "static" else np.log(np.concatenate([KP, KD]))
+    th = np.concatenate([gains, np.log([1e-3, 1e-3])])[None]
+    off = th.copy()
+    off[0, 0] += 0.3  # Kp[child] x 1.35
+    ll = np.asarray(p.log_likelihood(jnp.asarray(np.concatenate([th, off]), jnp.float32)))
+    assert ll[0] > ll[1] + 20
