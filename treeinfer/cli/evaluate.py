@@ -314,6 +314,14 @@ def run_evaluate(args: argparse.Namespace) -> int:
     md.append("")
     for r in results:
         md += _metrics_md(f"fold {r.fold} (held out: {', '.join(r.test)})", r.metrics)
+        if r.metrics.get("channels"):  # the held-out fold's observation channels
+            md += ["", "| channel | kind | point | band | outside [%] | rmse | unit |",
+                   "|---|---|---|---|---|---|---|"]  # fmt: skip
+            md += [
+                f"| {n} | {c['kind']} | {c['point']} | {c['band']} | {c['pct_outside']:.2f} | "
+                f"{c['rmse']:.4g} | {c['unit']} |"
+                for n, c in r.metrics["channels"].items()
+            ]
     titles = [f"{name} (fold {r.fold})" for r in results for name in r.test]
     # per-fold observations for the band grid
 
@@ -340,6 +348,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
     )
     for r in results:
         _print_metrics(r.metrics, f"fold {r.fold} (held out {', '.join(r.test)})")
+        for name, c in (r.metrics.get("channels") or {}).items():
+            print(
+                f"  fold {r.fold}: channel {name} ({c['kind']} at {c['point']}): "
+                f"{c['pct_outside']:.1f}% outside the 95% {c['band']} band"
+            )
         for w in r.warnings:
             print(f"  fold {r.fold}: {w}")
     print(

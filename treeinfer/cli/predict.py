@@ -49,7 +49,9 @@ FORCE.csv is a trajectory CSV (time,force,displacement[,velocity]: its displacem
 ground truth) or a force profile with only time,force columns; its time step must be the run's.
 --profile SPEC samples a profile spec instead (as in `treeinfer simulate --profile`; see its help).
 Writes prediction.csv (time, force, recorded, mean, lower, upper; s, N, m; header first),
-prediction.png and config.json. Particles whose simulation is unstable are left out and counted.
+prediction.png and config.json. A run with observation channels (channels.yaml) also writes
+channels/<channel>_prediction.csv and channels.png: the recording's own channels where its
+folder's channels.yaml names it, else one band per sensor the run was trained with. Particles whose simulation is unstable are left out and counted.
 A recording is predicted at its own grasp point (its folder's pulls.yaml); predicted elsewhere
 (--grasp-fraction), it is not compared: a warning says so and 'recorded' stays empty.
 --force alone replaces a non-empty --out folder, as in every command.
@@ -146,6 +148,33 @@ def _compare_check(args: argparse.Namespace, run, grasp):
             file=sys.stderr,
         )
     return grasp, problem is None
+
+
+def _channel_bands(run, sim, model, grasp, prof, src: Path | None, compare: bool) -> list:
+    """Bands of the run's observation channels (issue 30) under this force: the recording's own
+    channels where its folder's channels.yaml names it (and it is compared), else one channel
+    per sensor the run was trained with, bands only; [] for a run without channels."""
+    settings = run.config.get("problem") or {}
+    if not settings.get("channels"):
+        return []
+    from ..data.channels import read_channels
+    from ..data.trajectories import Trajectory
+    from ..evaluation.channel_bands import channel_bands, run_channels
+
+    name = src.name if src is not None else "profile"
+    disp = prof.displacement if prof.displacement is not None else np.zeros_like(prof.force)
+    traj = Trajectory(prof.time, prof.force, disp, None, name)
+    channels = ()
+    if src is not None and compare:
+        channels = read_channels(src.parent, run.tree, [traj], only_these_pulls=True)
+    if not channels:
+        channels = run_channels(settings, name, prof.time)
+    if not channels:
+        return []
+    return channel_bands(
+        sim, run.theta, run.labels, channels, [traj], settings, run.stable, model=model,
+        grasp_fraction=None if grasp is None else np.atleast_1d(np.asarray(grasp, float)),
+    )  # fmt: skip
 
 
 def run_predict(args: argparse.Namespace) -> int:
@@ -256,8 +285,15 @@ def run_predict(args: argparse.Namespace) -> int:
         integrity_notes=list(run.notes),
         run_fit_status=run.summary.get("status"),
     )
+    bands = _channel_bands(run, sim, model, grasp, prof, src, compare)
+    if bands:
+        config["channels"] = {b.channel.name: b.metrics() for b in bands}
     with staged_output_dir(args.out, overwrite, "prediction", inputs=inputs) as stage:
         atomic_write_text(stage / "prediction.csv", csv_text)
+        if bands:  # channels/<name>_prediction.csv and channels.png
+            from ..evaluation.channel_bands import write_channel_outputs
+
+            write_channel_outputs(stage, bands, formats=args.formats or ("png",))
         fig, _ = plot_trajectory_bands(
             prof.time,
             lower,
@@ -280,8 +316,17 @@ def run_predict(args: argparse.Namespace) -> int:
             f"  {100 * float(fraction_outside(lower, upper, prof.displacement)):.1f}% of the "
             "recorded displacement lies outside the band"
         )
+    for b in bands:
+        cm = b.metrics()
+        scored = (
+            f"{cm['pct_outside']:.1f}% of the recorded {cm['kind']} outside the 95% "
+            f"{cm['band']} band" if cm["pct_outside"] is not None
+            else f"95% {cm['band']} band {cm['band_width']:.3g} {cm['unit']} wide on average"
+        )  # fmt: skip
+        print(f"  channel {b.channel.name} ({cm['kind']} at {cm['point']}): {scored}")
     print(
         f"wrote {args.out}/ (prediction.csv, {figure_names('prediction', args.formats)}, "
-        "config.json)"
+        "config.json" + (", channels/<channel>_prediction.csv, channels.png" if bands else "")
+        + ")"
     )
     return EXIT_OK

@@ -38,22 +38,33 @@ class ChannelBand(NamedTuple):
     upper: np.ndarray
     predictive_lower: np.ndarray | None
     predictive_upper: np.ndarray | None
+    draws: np.ndarray | None = None  # [P, S, C] the stable particles' simulated channel
+    sigma: np.ndarray | None = None  # [P] their noise std (SI), None without a noise scale
+
+    @property
+    def has_recording(self) -> bool:
+        """False for a channel predicted under a new force (no recorded values, NaN)."""
+        return bool(np.isfinite(self.recorded).any())
+
+    def band(self) -> tuple[np.ndarray, np.ndarray]:
+        """The band a recording is compared with: predictive when a noise scale is known."""
+        if self.predictive_lower is not None:
+            return self.predictive_lower, self.predictive_upper
+        return self.lower, self.upper
 
     def metrics(self) -> dict:
-        """``{band, pct_outside, rmse, band_width, samples}`` (SI units of the channel)."""
-        lo, hi = (
-            (self.predictive_lower, self.predictive_upper)
-            if self.predictive_lower is not None
-            else (self.lower, self.upper)
-        )
+        """``{band, pct_outside, rmse, band_width, samples}`` (SI units of the channel);
+        ``pct_outside`` and ``rmse`` None without a recording."""
+        lo, hi = self.band()
+        rec = self.has_recording
         out = (self.recorded < lo) | (self.recorded > hi)
         return {
             "kind": self.channel.kind,
             "point": self.channel.point.label(),
             "recording": self.channel.recording,
             "band": "predictive" if self.predictive_lower is not None else "parameter",
-            "pct_outside": float(100.0 * out.mean()),
-            "rmse": float(np.sqrt(np.mean((self.recorded - self.mean) ** 2))),
+            "pct_outside": float(100.0 * out.mean()) if rec else None,
+            "rmse": float(np.sqrt(np.mean((self.recorded - self.mean) ** 2))) if rec else None,
             "band_width": float(np.mean(hi - lo)),
             "samples": int(self.recorded.size),
             "unit": {"position": "m", "angle": "rad", "image": "px"}[self.channel.kind],
@@ -101,31 +112,35 @@ def channel_bands(
     particle_ok=None,
     level: float = LEVEL,
     seed: int = 0,
+    model=None,
+    grasp_fraction=None,
 ) -> list[ChannelBand]:
     """The bands of ``channels`` for the posterior particles ``theta [P, D]`` (columns
     ``labels``; gains first) under the ``trajectories``' forces (each channel on the pull it
     names). ``settings``: the run's problem settings (its channels, to find a noise scale);
-    ``particle_ok`` [P]: particles to use (stable ones)."""
+    ``particle_ok`` [P]: particles to use (stable ones); ``model``: the run's
+    :class:`treeinfer.inference.static.Model` (None: the paper's dynamic model) with its pulls,
+    at ``grasp_fraction`` (None, a scalar or [B]). A channel whose values are NaN (predicted
+    under a new force: :func:`run_channels`) gets its bands only."""
     from ..data.trajectories import stack_trajectories
-    from ..model.channels import channel_layout, gather
-    from ..model.gains import gains_from_theta
-    from ..sim.observe import simulate_features
+    from ..model.channels import channel_layout, gather, model_features
 
     theta = np.atleast_2d(np.asarray(theta, float))
     if particle_ok is not None:
         theta = theta[np.asarray(particle_ok, bool)]
     trajs = list(trajectories)
     obs = stack_trajectories(trajs)
-    layout = channel_layout(
+    layout = channel_layout(  # the noise here only stands in: the bands take the run's
         sim,
-        channels,
+        [c if c.noise is not None else c._replace(noise=1.0) for c in channels],
         [t.source for t in trajs],
         [float(t.time[0]) for t in trajs],
         [t.n_steps for t in trajs],
     )
-    kp, kd = gains_from_theta(theta, sim.n_joints)
-    ro = simulate_features(sim, kp, kd, np.asarray(obs.force), layout.features)
-    pred = np.asarray(jax.device_get(gather(layout, ro.features, ro.stable)), float)  # [P, S]
+    feats, ok = model_features(
+        sim, model, theta, np.asarray(obs.force), layout.features, grasp_fraction
+    )
+    pred = np.asarray(jax.device_get(gather(layout, feats, ok)), float)  # [P, S]
     good = np.all(np.isfinite(pred), axis=1)
     if good.sum() < 2:
         raise ConfigError("channel bands: fewer than two particles give stable simulations")
@@ -149,8 +164,33 @@ def channel_bands(
                 * (np.repeat(sig[c_i], reps)[:, None, None])
             )
             plo, phi = np.quantile(noisy, q, axis=0)
-        bands.append(ChannelBand(ch, ch.time, ch.values, p.mean(0), lo, hi, plo, phi))
+        bands.append(
+            ChannelBand(ch, ch.time, ch.values, p.mean(0), lo, hi, plo, phi, p, sig[c_i])
+        )
     return bands
+
+
+def run_channels(settings: dict | None, recording: str, time) -> tuple[Channel, ...]:
+    """The sensors a run was trained with (its problem settings' ``channels``), one channel per
+    sensor (channels of one sensor on several pulls are one), placed on a new pull ``recording``
+    sampled at ``time [T]`` s, with NaN values: what :func:`channel_bands` predicts for a force
+    the sensors never saw (``treeinfer predict``). Named by the sensor; the noise is the
+    sensor's inferred column (found by that name) or its given noise."""
+    from ..data.channels import NamedPoint
+
+    out, seen = [], set()
+    for c in (settings or {}).get("channels", []):
+        key = c.get("sensor") or c["name"]
+        if key in seen or c["kind"] == "image":  # a run records no camera: not predictable
+            continue
+        seen.add(key)
+        point = NamedPoint(c["link"], c.get("distance"), c.get("fraction"))
+        comps = tuple(c["components"])
+        t = np.asarray(time, float)
+        values = np.full((len(t), len(comps)), np.nan)
+        out.append(Channel(key, c["kind"], recording, point, comps, t, values, c.get("noise"),
+                           "the run's channels", sensor=key))  # fmt: skip
+    return tuple(out)
 
 
 def band_csv(band: ChannelBand) -> str:

@@ -77,8 +77,9 @@ def write_run_figures(
     bandwidth=None,
     formats=("png",),
 ) -> list[Path]:
-    """``plots/trace``, ``plots/pairs`` and ``plots/bands_train`` in every format of ``formats``
-    (``png``, ``pdf``, ``svg``); returns the files written."""
+    """``plots/trace``, ``plots/pairs``, ``plots/bands_train`` and, for a run with observation
+    channels, ``plots/channels_train`` (``fit["channel_bands"]``) in every format of
+    ``formats`` (``png``, ``pdf``, ``svg``); returns the files written."""
     from ..evaluation.plots import plot_band_grid, save_figure
 
     post = _posterior(posterior, problem, trace, stable, truth)
@@ -103,4 +104,9 @@ def write_run_figures(
             reference_label="recording",
         )
         written += save_figure(fig, plots / "bands_train.png", formats=formats)
+    if fit.get("channel_bands"):  # observation channels: their bands on the training data
+        from ..evaluation.channel_bands import plot_channel_bands
+
+        fig, _ = plot_channel_bands(fit["channel_bands"])
+        written += save_figure(fig, plots / "channels_train.png", formats=formats)
     return written

@@ -51,6 +51,32 @@ def fold_warnings(problem, posterior, options: dict | None = None) -> list[str]:
     return out + list(strag["warnings"]) + list(edge.get("warnings", []))
 
 
+def fold_channel_metrics(problem, posterior, test, model, grasp, data_dir) -> dict:
+    """The held-out fold's observation channels (the data folder's channels.yaml entries on
+    its recordings) scored by the fold's posterior: ``{"channels": {name: metrics},
+    "channel_pct_outside": pooled share outside the 95% band (% of samples)}``, or {} without
+    any. A fold trains on its own pulls' channels (:func:`treeinfer.runs.problem.build_problem`)
+    and takes each sensor's noise from them (the held-out channel's ``sensor``, else one at the
+    same point)."""
+    if data_dir is None:
+        return {}
+    from ..data.channels import read_channels
+    from ..evaluation.channel_bands import channel_bands
+
+    channels = read_channels(data_dir, problem.tree, test, only_these_pulls=True)
+    if not channels:
+        return {}
+    g = None if grasp is None else np.atleast_1d(np.asarray(grasp, float))
+    bands = channel_bands(
+        problem.sim, posterior.theta, list(problem.labels), channels, test, problem.settings,
+        np.isfinite(posterior.log_density), model=model, grasp_fraction=g,
+    )  # fmt: skip
+    per = {b.channel.name: b.metrics() for b in bands}
+    n = sum(c["samples"] for c in per.values())
+    pooled = sum(c["pct_outside"] * c["samples"] for c in per.values()) / max(n, 1)
+    return {"channels": per, "channel_pct_outside": float(pooled)}
+
+
 class FoldResult(NamedTuple):
     fold: int
     train: list[str]
@@ -116,6 +142,7 @@ def kfold(
             model=model,
             force_noise=force_noise_for(problem.settings),
         )
+        m = {**m, **fold_channel_metrics(problem, post, test, model, g_test, options.get("data"))}
         out.append(
             FoldResult(
                 i,

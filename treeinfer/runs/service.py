@@ -313,6 +313,12 @@ def run_inference(
     from ..evaluation.checks import fit_verdict_from_run
 
     verdict = fit_verdict_from_run(problem, posterior, fit, noise_sigma=_fitted_noise(problem))
+    if fit.get("prediction") is not None:  # observation channels: their own checks and bands
+        from ..evaluation.channel_checks import channel_verdict
+
+        verdict, fit["channel_bands"] = channel_verdict(
+            verdict, problem, posterior, fit["stable"], trajs
+        )
     summary["fit"] = verdict.as_dict()
     summary["status"] = verdict.status
     summary["data_checks"] = data_findings
