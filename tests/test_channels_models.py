@@ -114,3 +114,47 @@ def test_make_problem_with_channels_for_a_pull_direction(tree, kind):
     off[0, 0] += 0.3  # Kp[child] x 1.35
     ll = np.asarray(p.log_likelihood(jnp.asarray(np.concatenate([th, off]), jnp.float32)))
     assert ll[0] > ll[1] + 20
+
+
+def test_kfold_scores_the_held_out_folds_channels(tree, tmp_path):
+    """runs.folds.fold_channel_metrics: the held-out pull's channel (from the data folder's
+    channels.yaml) in the fold's metrics, covered by a posterior at the truth and not by one
+    with a stiffness 1.5x off."""
+    from collections import namedtuple
+
+    from treeinfer.data.channel_files import write_channels
+    from treeinfer.runs.folds import fold_channel_metrics
+
+    dt = 0.1
+    t = np.arange(0, 1.5, dt)
+    ref = PlanarTree(tree, KP, KD, direction=DIRECTION)
+    rng = np.random.default_rng(5)
+    trajs, chans = [], []
+    for b, peak in enumerate([3.0, 4.0]):
+        force = np.interp(t, [0, 1.0, 1.5], [0, peak, peak])
+        qs = np.array([_static_reference(ref, f) for f in force])
+        tau = np.array([(ref.grasp_point(q) - ref.c_rest) @ DIRECTION for q in qs])
+        tilt = np.array([ref.rotation(q, ref.q_rest, "child") for q in qs])[:, [1]]
+        trajs.append(ti.Trajectory(t, force, tau + rng.normal(0, 1e-3, t.size), None,
+                                   f"p{b}.csv"))  # fmt: skip
+        chans.append(Channel(f"tilt_{b}", "angle", f"p{b}.csv", NamedPoint("child", fraction=0.5),
+                             ("y",), t, tilt + rng.normal(0, 1e-3, tilt.shape), sensor="tilt"))
+    write_channels(tmp_path, chans)
+    problem = ti.make_problem(tree, trajs[:1], model_kind="static", direction=DIRECTION,
+                              channels=tuple(chans[:1]), noise_force=None)  # fmt: skip
+    assert problem.labels[-1] == "sigma[tilt]"
+    post = namedtuple("Post", "theta log_density")
+    theta = np.concatenate([np.log(KP), np.log([1e-3, 1e-3])])
+    cloud = theta + 0.01 * np.random.default_rng(0).standard_normal((32, theta.size))
+    good = fold_channel_metrics(problem, post(cloud, np.zeros(32)), trajs[1:], problem.model,
+                                None, tmp_path)  # fmt: skip
+    assert list(good["channels"]) == ["tilt_1"]  # the held-out pull's channel only
+    assert good["channels"]["tilt_1"]["band"] == "predictive"
+    assert good["channel_pct_outside"] < 20.0
+    off = cloud.copy()
+    off[:, 0] += np.log(1.5)
+    bad = fold_channel_metrics(problem, post(off, np.zeros(32)), trajs[1:], problem.model,
+                               None, tmp_path)  # fmt: skip
+    assert bad["channel_pct_outside"] > 40.0
+    assert fold_channel_metrics(problem, post(cloud, np.zeros(32)), trajs[1:], problem.model,
+                                None, None) == {}  # fmt: skip
