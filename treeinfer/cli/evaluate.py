@@ -127,8 +127,9 @@ def _prediction_csvs(pred, obs, trajs) -> dict[str, str]:
     return out
 
 
-def _channel_bands(args, run, sim, model, trajs, metrics: dict, md: list):
-    """The data folder's observation channels (channels.yaml) against the run's posterior:
+def _channel_bands(args, run, sim, model, trajs, metrics: dict, md: list, grasp=None):
+    """The data folder's observation channels (channels.yaml) against the run's posterior (any
+    model: the paper's, static, stiffness only, each recording's own pull):
     ``({file name: CSV text}, bands)``; their metrics go to ``metrics["channels"]`` and ``md``."""
     from ..data.channels import read_channels
     from ..evaluation.channel_bands import band_csv, channel_bands
@@ -136,12 +137,10 @@ def _channel_bands(args, run, sim, model, trajs, metrics: dict, md: list):
     channels = read_channels(args.data, run.tree, trajs)
     if not channels:
         return {}, []
-    if model is not None and not getattr(model, "is_paper", False):
-        _say("note: observation channels are scored for the paper's dynamic model only; skipped")
-        return {}, []
     bands = channel_bands(
-        sim, run.theta, run.labels, channels, trajs, run.config.get("problem"), run.stable
-    )
+        sim, run.theta, run.labels, channels, trajs, run.config.get("problem"), run.stable,
+        model=model, grasp_fraction=None if grasp is None else np.atleast_1d(grasp),
+    )  # fmt: skip
     metrics["channels"] = {b.channel.name: b.metrics() for b in bands}
     md += ["", "## observation channels", "", "| channel | kind | point | band | outside [%] | "
            "rmse | unit |", "|---|---|---|---|---|---|---|"]  # fmt: skip
@@ -221,7 +220,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         md = [f"# treeinfer evaluate: run `{args.run}` on `{args.data}`", ""] + _metrics_md(
             "held-out metrics", m
         )
-        channel_files, bands = _channel_bands(args, run, sim, model, trajs, metrics, md)
+        channel_files, bands = _channel_bands(args, run, sim, model, trajs, metrics, md, grasp)
         write_evaluation(
             args.out,
             metrics,

@@ -194,25 +194,32 @@ def _suggest_sensors(args) -> int:
     from ..design.sensors import candidate_sensors, rank_sensors, sensors_table
     from ..io.atomic import atomic_write_json
 
+    from ..inference.static import model_with_pulls
+
     run = runs.load_run(args.run, allow_modified=args.allow_modified)
-    if run.model is not None:
-        raise ConfigError("--sensors: ranks sensors for the paper's dynamic model of Kp and Kd")
     data = run.config["options"].get("data")
     if not data or not Path(data).is_dir():
         raise ConfigError(f"--sensors: the run's training data folder {data!r} is not there")
+    trajs = read_trajectory_dir(data)
+    # any model: each training pull at its own branch, point and direction (pulls.yaml)
+    model, grasp = model_with_pulls(
+        run.model, data, [t.source for t in trajs], run.grasp_fraction, tree=run.tree
+    )
     noise = {}
     if args.sensor_noise is not None:
         if len(args.sensor_noise) != 2 or min(args.sensor_noise) <= 0:
             raise ConfigError("--sensor-noise: expected two positive numbers M,RAD")
         noise = {"position": args.sensor_noise[0], "angle": args.sensor_noise[1]}
-    forces = np.asarray(stack_trajectories(read_trajectory_dir(data)).force)
+    forces = np.asarray(stack_trajectories(trajs).force)
     theta = np.asarray(run.theta)[np.asarray(run.stable, bool)]
     rng = np.random.default_rng(args.seed)
     if len(theta) > args.particles:
         theta = theta[rng.choice(len(theta), args.particles, replace=False)]
     cands = candidate_sensors(list(run.sim.branches), noise=noise)
     _say(f"scoring {len(cands)} candidate sensors on the {len(forces)} pulls of {data} ...")
-    scores = rank_sensors(run.sim, theta, list(run.labels), forces, cands)
+    grasp = None if grasp is None else np.broadcast_to(np.asarray(grasp, float), len(forces))
+    scores = rank_sensors(run.sim, theta, list(run.labels), forces, cands, model=model,
+                          grasp_fraction=grasp)  # fmt: skip
     print("\n".join(sensors_table(scores, args.top)))
     out = args.out if args.out is not None else args.run / "suggest"
     out.mkdir(parents=True, exist_ok=True)

@@ -61,37 +61,38 @@ def rank_sensors(
     forces,
     candidates=None,
     rel_step: float = 1e-2,
+    model=None,
+    grasp_fraction=None,
 ) -> list[SensorScore]:
     """Candidates (default :func:`candidate_sensors` on every link of ``sim``) ranked by expected
     information gain for the run's particles ``theta [P, D]`` (gain columns first) on the pulls
-    ``forces [B, T]`` (N, at the tree's grasp point)."""
-    from ..model.gains import gains_from_theta
-    from ..sim.observe import feature_for, simulate_features
+    ``forces [B, T]`` (N, at the tree's grasp point, or each at its own branch, point and
+    direction with ``model``: a :class:`treeinfer.inference.static.Model`, static or dynamic,
+    whose gain columns are ``model.layout.dim``; None: the paper's ``[log Kp, log Kd]``)."""
+    from ..model.channels import model_features
+    from ..sim.observe import feature_for
 
-    r = sim.n_joints
-    theta = np.atleast_2d(np.asarray(theta, float))[:, : 2 * r]
-    if len(theta) < 2 * r + 2:
-        raise ConfigError(f"rank_sensors: need at least {2 * r + 2} particles, got {len(theta)}")
-    cov = np.cov(theta, rowvar=False) + 1e-12 * np.eye(2 * r)
+    d = 2 * sim.n_joints if model is None else model.layout.dim
+    theta = np.atleast_2d(np.asarray(theta, float))[:, :d]
+    if len(theta) < d + 2:
+        raise ConfigError(f"rank_sensors: need at least {d + 2} particles, got {len(theta)}")
+    cov = np.cov(theta, rowvar=False) + 1e-12 * np.eye(d)
     mean = theta.mean(0)
     cands = candidate_sensors(list(sim.branches)) if candidates is None else list(candidates)
     feats = tuple(feature_for(sim, k, link, f) for k, link, f, _, _ in cands)
-    pts = np.concatenate(
-        [mean[None], mean + rel_step * np.eye(2 * r), mean - rel_step * np.eye(2 * r)]
-    )
-    kp, kd = gains_from_theta(pts, r)
-    ro = simulate_features(sim, kp, kd, np.atleast_2d(forces), feats)
-    if not np.all(np.asarray(ro.stable)):
+    pts = np.concatenate([mean[None], mean + rel_step * np.eye(d), mean - rel_step * np.eye(d)])
+    feat, ok = model_features(sim, model, pts, np.atleast_2d(forces), feats, grasp_fraction)
+    if not np.all(np.asarray(ok)):
         raise ConfigError("rank_sensors: unstable simulations at the posterior mean's neighbours")
-    f = np.asarray(ro.features, float)  # [1 + 4R, B, T, F, 3]
-    jac = (f[1 : 1 + 2 * r] - f[1 + 2 * r :]) / (2 * rel_step)  # [2R, B, T, F, 3]
+    f = np.asarray(feat, float)  # [1 + 2D, B, T, F, 3]
+    jac = (f[1 : 1 + d] - f[1 + d :]) / (2 * rel_step)  # [D, B, T, F, 3]
     prec0 = np.linalg.inv(cov)
     _, logdet0 = np.linalg.slogdet(cov)
-    gain_labels = list(labels)[: 2 * r]
+    gain_labels = list(labels)[:d]
     out = []
     for i, (kind, link, frac, comps, sigma) in enumerate(cands):
         axes = ["xyz".index(c) for c in comps]
-        j = jac[:, :, :, i][..., axes].reshape(2 * r, -1).T  # [N, 2R]
+        j = jac[:, :, :, i][..., axes].reshape(d, -1).T  # [N, D]
         new = np.linalg.inv(prec0 + j.T @ j / sigma**2)
         _, logdet = np.linalg.slogdet(new)
         ratio = np.sqrt(np.diag(cov) / np.diag(new))

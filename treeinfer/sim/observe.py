@@ -48,7 +48,9 @@ def feature_for(
     if sim.hinge_tree is None:
         raise ConfigError(
             "observation channels: need the fused (or pallas) backend's hinge-tree model; this "
-            f"simulator uses {sim.backend!r} (a user model the fused step does not cover)"
+            f"simulator uses {sim.backend!r}: pass --backend fused (backend='fused') with a tree "
+            "file treeinfer builds (a user MJCF/URDF model, --model-file, is not covered: leave "
+            "channels.yaml out of its data folder)"
         )
     if link not in sim.branches:
         raise ConfigError(
@@ -137,7 +139,10 @@ def simulate_features(
     scalar or [B]; ``direction`` None, [3] or [B, 3]) and return the grasp point's displacement
     and the ``features`` at every observation."""
     if sim.hinge_tree is None:
-        raise ConfigError("observation channels: need the fused (or pallas) backend")
+        raise ConfigError(
+            "observation channels: need the fused (or pallas) backend: pass --backend fused "
+            "(backend='fused') with a tree file treeinfer builds"
+        )
     return _simulate_features(sim, tuple(features), kp, kd, forces, grasp_fraction, direction)
 
 
@@ -186,7 +191,10 @@ def simulate_features_at(
     the per-pull branches of :class:`treeinfer.inference.static.Model` (grouped by body by
     :func:`treeinfer.model.channels.model_features`)."""
     if sim.hinge_tree is None:
-        raise ConfigError("observation channels: need the fused (or pallas) backend")
+        raise ConfigError(
+            "observation channels: need the fused (or pallas) backend: pass --backend fused "
+            "(backend='fused') with a tree file treeinfer builds"
+        )
     return _simulate_features_at(sim, tuple(features), int(body), kp, kd, forces, sites, dirs)
 
 
