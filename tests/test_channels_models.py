@@ -158,3 +158,18 @@ def test_kfold_scores_the_held_out_folds_channels(tree, tmp_path):
     assert bad["channel_pct_outside"] > 40.0
     assert fold_channel_metrics(problem, post(cloud, np.zeros(32)), trajs[1:], problem.model,
                                 None, None) == {}  # fmt: skip
+
+
+def test_predict_run_takes_any_number_of_channel_noise_columns(tree):
+    """A run with four sensors has 2R + 1 + 4 columns: the training fit and evaluate simulate
+    its gain columns only (rollout.predict allows at most three noise columns)."""
+    from treeinfer.evaluation.predictive import predict_run
+
+    sim = ti.make_simulator(tree, 0.02, accuracy="coarse")
+    forces = ti.data.forces.profile_set("mixed", n=1, duration=0.6, dt=0.02, seed=1)
+    gains = np.log(np.concatenate([KP, KD]))
+    theta = gains + 0.01 * np.random.default_rng(0).standard_normal((8, 4))
+    wide = np.concatenate([theta, np.full((8, 5), np.log(1e-3))], axis=1)
+    a = predict_run(sim, theta, forces)
+    b = predict_run(sim, wide, forces)
+    np.testing.assert_array_equal(np.asarray(a.tau), np.asarray(b.tau))

@@ -134,7 +134,10 @@ def predict_run(
     from ..inference.rollout import predict
     from .metrics import noisy_predictive_interval, predictive_interval
 
-    theta = np.asarray(theta)
+    theta = np.atleast_2d(np.asarray(theta))
+    # the gain columns only: a run's noise columns (sigma_x, ... and one per observation
+    # channel's sensor, any number) never enter the simulation
+    theta = theta[:, : (2 * sim.n_joints if model is None else model.layout.dim)]
     rollout = jax.device_get(
         predict(
             sim,

@@ -268,7 +268,7 @@ def _model_start(problem, n_particles: int, seed: int, log):
     theta = np.asarray(imp.theta, np.float32)
     logp = np.asarray(imp.log_density[idx], np.float32) if imp.ok else None
     moved = None
-    if not imp.ok and extra is not None:  # observation channels: resample-move, as fast.py does
+    if not imp.ok and problem.settings.get("channels"):  # channels (any model): resample-move
         moved, theta, logp = channel_resample_move(problem, imp, n_particles, seed, log)
     if logp is None:
         return None, theta
