@@ -13,7 +13,7 @@ from scipy.optimize import root
 import treeinfer as ti
 from treeinfer.data.channels import Channel, NamedPoint
 from treeinfer.inference.static import model_for
-from treeinfer.model.channels import model_features
+from treeinfer.inference.static.channels import model_features
 from treeinfer.sim import observe as ob
 from treeinfer.sim.planar_reference import PlanarTree
 

@@ -69,7 +69,7 @@ def rank_sensors(
     ``forces [B, T]`` (N, at the tree's grasp point, or each at its own branch, point and
     direction with ``model``: a :class:`treeinfer.inference.static.Model`, static or dynamic,
     whose gain columns are ``model.layout.dim``; None: the paper's ``[log Kp, log Kd]``)."""
-    from ..model.channels import model_features
+    from ..inference.static.channels import model_features
     from ..sim.observe import feature_for
 
     d = 2 * sim.n_joints if model is None else model.layout.dim

@@ -123,7 +123,8 @@ def channel_bands(
     at ``grasp_fraction`` (None, a scalar or [B]). A channel whose values are NaN (predicted
     under a new force: :func:`run_channels`) gets its bands only."""
     from ..data.trajectories import stack_trajectories
-    from ..model.channels import channel_layout, gather, model_features
+    from ..inference.static.channels import model_features
+    from ..model.channels import channel_layout, gather
 
     theta = np.atleast_2d(np.asarray(theta, float))
     if particle_ok is not None:

@@ -289,7 +289,14 @@ def _add_channels(terms, sim, trajectories, obs, spec, grasp_fraction, rel_step,
         [float(tr.time[0]) for tr in trajs],
         [tr.n_steps for tr in trajs],
     )
-    return with_channels(terms, sim, obs, layout, grasp_fraction, rel_step, model)
+    if model is None:  # the paper's rollout
+        return with_channels(terms, sim, obs, layout, grasp_fraction, rel_step)
+    from .static.channels import channel_rollout
+
+    rollout = channel_rollout(sim, model, obs.force, layout.features, grasp_fraction)
+    return with_channels(
+        terms, sim, obs, layout, grasp_fraction, rel_step, model.layout.dim, rollout
+    )
 
 
 def _pulls_record(model, n: int) -> dict:

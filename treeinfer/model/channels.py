@@ -163,54 +163,6 @@ def channel_predictions(
     return gather(layout, ro.features, ro.stable)
 
 
-def model_features(sim, model, theta, forces, features, grasp_fraction=None):
-    """``(features [P, B, T, F, 3], stable [P, B])`` of particles ``theta [P, >= D]`` (the
-    model's gain columns first) under ``forces [B, T]`` for any
-    :class:`treeinfer.inference.static.Model`: None (the paper's dynamic model), the dynamic
-    model with its pulls' directions and branches (one compiled group per pulled branch, as the
-    static solver groups them), or the static model, whose channels are the kinematics of each
-    force sample's equilibrium (:func:`treeinfer.inference.static.static_equilibria`) measured
-    from the gravity-settled rest, as a rollout's are from its first row."""
-    theta = jnp.atleast_2d(jnp.asarray(theta))
-    if model is None:
-        kp, kd = gains_from_theta(theta, sim.n_joints)
-        ro = simulate_features(sim, kp, kd, forces, features, grasp_fraction)
-        return ro.features, ro.stable
-    kp, kd = model.layout.gains(theta[:, : model.layout.dim])
-    branch = model.grasp_branch
-    branch = tuple(branch) if branch is not None and not isinstance(branch, str) else branch
-    if model.kind == "static":
-        from ..inference.static import static_equilibria
-        from ..sim.observe import features_from_q
-
-        eq = static_equilibria(
-            sim, kp, forces, grasp_fraction, model.direction, branch, model.tree
-        )
-        q = jnp.asarray(eq.q)
-        rest = jnp.broadcast_to(eq.q_rest[:, None, None, :], q.shape[:2] + (1, q.shape[-1]))
-        feats = features_from_q(sim, jnp.concatenate([rest, q], axis=2), tuple(features))
-        feats = feats[:, :, 1:]
-        ok = eq.stable & jnp.all(jnp.isfinite(feats), axis=(-3, -2, -1))
-        return jnp.where(ok[..., None, None, None], feats, 0.0), ok
-    from ..inference.static.equilibrium import _profile_geometry
-    from ..sim.observe import simulate_features_at
-
-    kp, forces, bodies, sites, dirs = _profile_geometry(
-        sim, kp, forces, grasp_fraction, model.direction, branch, model.tree
-    )
-    p, (b, n) = kp.shape[0], forces.shape
-    feats = jnp.zeros((p, b, n, len(features), 3), kp.dtype)
-    ok = jnp.zeros((p, b), bool)
-    for body in sorted(set(bodies)):  # one compiled program per pulled branch
-        idx = np.asarray([i for i, x in enumerate(bodies) if x == body])
-        ro = simulate_features_at(
-            sim, kp, kd.astype(kp.dtype), forces[idx], features, sites[idx], dirs[idx], body
-        )
-        feats = feats.at[:, idx].set(ro.features)
-        ok = ok.at[:, idx].set(ro.stable)
-    return feats, ok
-
-
 def channel_log_likelihood(
     sim,
     layout: ChannelLayout,
@@ -219,14 +171,16 @@ def channel_log_likelihood(
     direction=None,
     first_column: int | None = None,
     rel_step: float | None = None,
-    model=None,
+    n_gains: int | None = None,
+    features=None,
 ):
     """``theta [N, D] -> [N]`` nats: the channels' Gaussian terms. Gains are theta's first
-    columns (2R for the paper's model, ``model.layout.dim`` for a
-    :class:`treeinfer.inference.static.Model`: :func:`model_features`); the inferred
-    ``log sigma`` columns start at ``first_column`` (default: the last ``len(layout.inferred)``
-    columns)."""
-    n_gains = 2 * sim.n_joints if model is None else model.layout.dim
+    ``n_gains`` columns (default 2R, the paper's ``[log Kp, log Kd]``); ``features``:
+    ``gains [N, n_gains] -> (features [N, B, T, F, 3], stable [N, B])`` of another model
+    (:func:`treeinfer.inference.static.channels.model_features`; default: the paper's rollout);
+    the inferred ``log sigma`` columns start at ``first_column`` (default: the last
+    ``len(layout.inferred)`` columns)."""
+    n_gains = 2 * sim.n_joints if n_gains is None else int(n_gains)
     forces = jnp.asarray(forces, sim.dtype)
     y = jnp.asarray(layout.values)
     chan = jnp.asarray(layout.channel)
@@ -235,12 +189,10 @@ def channel_log_likelihood(
     slot = jnp.asarray(layout.column)
 
     def predict(theta_gains):
-        if model is None and direction is not None:
+        if features is None:
             kp, kd = gains_from_theta(theta_gains, sim.n_joints)
             return channel_predictions(sim, layout, kp, kd, forces, grasp_fraction, direction)
-        feats, ok = model_features(sim, model, theta_gains, forces, layout.features,
-                                   grasp_fraction)  # fmt: skip
-        return gather(layout, feats, ok)
+        return gather(layout, *features(theta_gains))
 
     sim_fn = finite_difference_jvp(predict, rel_step)
 
@@ -263,12 +215,15 @@ def channel_log_likelihood(
 
 
 def with_channels(
-    terms, sim, obs, layout: ChannelLayout, grasp_fraction=None, rel_step=None, model=None
-):
+    terms, sim, obs, layout: ChannelLayout, grasp_fraction=None, rel_step=None, n_gains=None,
+    features=None,
+):  # fmt: skip
     """``terms`` (:class:`~treeinfer.model.likelihood.LikelihoodTerms` of a generative
     likelihood) with the channels' terms added and their noise columns appended to theta;
-    ``model``: the run's :class:`treeinfer.inference.static.Model` (None: the paper's), whose
-    rollout (dynamic or static, each pull at its branch and direction) the channels read.
+    ``n_gains``, ``features``: another model's gain columns and channel rollout (as
+    :func:`channel_log_likelihood`; the inference layer builds them for any
+    :class:`treeinfer.inference.static.Model`: dynamic or static, each pull at its branch and
+    direction); None: the paper's.
     The bucketed sampler programs and the start pipeline's residual density do not cover the
     channels: ``data_of``/``loglik_of``/``residual_loglik`` are None (the run takes the problem's
     own log-density: :func:`treeinfer.inference.start_pipeline.auto_start`)."""
@@ -277,10 +232,10 @@ def with_channels(
             "observation channels: need a generative likelihood (--likelihood gaussian, "
             "student_t or ar1), not the Boltzmann loss"
         )
-    n_gains = 2 * sim.n_joints if model is None else model.layout.dim
+    n_gains = 2 * sim.n_joints if n_gains is None else int(n_gains)
     d0 = n_gains + len(terms.extra_labels)
     ch_ll = channel_log_likelihood(
-        sim, layout, obs.force, grasp_fraction, None, d0, rel_step, model
+        sim, layout, obs.force, grasp_fraction, None, d0, rel_step, n_gains, features
     )
     base_ll, base_prior = terms.log_likelihood, terms.extra_log_prior
     priors = layout.priors

@@ -189,7 +189,7 @@ def simulate_features_at(
     """:func:`simulate_features` for pulls on any ``body`` (MuJoCo index; the grasped branch's
     or another), at ``sites [B, 3]`` in that body's frame along unit ``dirs [B, 3]`` (world):
     the per-pull branches of :class:`treeinfer.inference.static.Model` (grouped by body by
-    :func:`treeinfer.model.channels.model_features`)."""
+    :func:`treeinfer.inference.static.channels.model_features`)."""
     if sim.hinge_tree is None:
         raise ConfigError(
             "observation channels: need the fused (or pallas) backend: pass --backend fused "
