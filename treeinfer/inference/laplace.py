@@ -273,6 +273,9 @@ def problem_laplace(
     for _ in range(2):
         hess = value_hessian(problem, theta, steps)
         n_evals += 1 + 2 * lower.size**2
+        # a difference that left the box or met an unstable rollout (-inf): that entry gets no
+        # curvature, i.e. the box's spread (eigh raised LinAlgError on the NaN before)
+        hess = np.where(np.isfinite(hess), hess, 0.0)
         cov = _inverse_psd(_psd_part(-hess) + prec_box)
         steps = np.clip(np.sqrt(np.diag(cov)), 1e-6 * width, 0.25 * width)
     return ProblemLaplace(theta, 0.5 * (cov + cov.T), -float(best.fun), steps, n_evals)
