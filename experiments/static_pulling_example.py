@@ -171,7 +171,7 @@ def write_inputs(out: Path, tree, data, kp, kd) -> None:
 def dynamic_starts(problem, static_fit) -> np.ndarray:
     """Start points of the dynamic fit from the quasi-static one (a pulling test's natural
     order: the slow pull fixes the stiffness, damping is left to the dynamic model): the
-    static posterior's 8 best particles' Kp and noise scales, Kd at 5 values across its box."""
+    static posterior's Kp and noise scales (8 of its particles), Kd at 5 values across its box."""
     sp, st = static_fit
     labels = list(problem.labels)
     lo, hi = np.asarray(problem.lower), np.asarray(problem.upper)

@@ -263,10 +263,11 @@ def run_suggest(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"--noise-displacement: must be a positive number of metres, got {args.sigma_x:g}"
         )
+    if args.sensors:  # any model: the sensors' Jacobian of its own gain columns
+        _prepare_jax()
+        return _suggest_sensors(args)
     _refuse_stiffness_only(args.run)
     _prepare_jax()
-    if args.sensors:
-        return _suggest_sensors(args)
     out = args.out if args.out is not None else args.run / "suggest"
     _say(f"scoring candidates for {args.run} ...")
     sugg = suggest_for_run(

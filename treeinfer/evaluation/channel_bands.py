@@ -232,7 +232,8 @@ def plot_channel_bands(bands: Sequence[ChannelBand]):
         ax.fill_between(b.time, scale * b.lower[:, j], scale * b.upper[:, j], color="C0",
                         alpha=0.45, label="95% parameter")  # fmt: skip
         ax.plot(b.time, scale * b.mean[:, j], color="C0", lw=1)
-        ax.plot(b.time, scale * b.recorded[:, j], ".", color="k", ms=2, label="recorded")
+        if b.has_recording:  # a channel predicted under a new force has none
+            ax.plot(b.time, scale * b.recorded[:, j], ".", color="k", ms=2, label="recorded")
         comp = b.channel.components[j]
         ax.set_title(f"{b.channel.name}: {b.channel.kind} {comp} at {b.channel.point.label()}",
                      fontsize=8)  # fmt: skip
