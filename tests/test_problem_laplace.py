@@ -65,3 +65,25 @@ def test_value_hessian_of_a_quadratic_is_exact():
         log_density=lambda th: 0.5 * jnp.einsum("pi,ij,pj->p", th, jnp.asarray(h), th) + 3.0
     )
     np.testing.assert_allclose(value_hessian(prob, [0.3, -0.2], [0.1, 0.2]), h, atol=1e-3)
+
+
+def test_a_hessian_difference_outside_the_density_gets_the_box_spread():
+    """A MAP near a wall of the density (-inf past x1 = 0.2: a rollout that goes unstable, a
+    prior edge): the differences that cross it are not finite; that direction gets no
+    curvature, i.e. the box's 12 / width^2, and the other keeps its own (1 / 0.3^2). Before,
+    numpy's eigh raised 'Eigenvalues did not converge' on the NaN."""
+    base = _gaussian_problem([0.0, 0.15], np.diag([0.3**2, 0.1**2]), [-3, -3], [3, 3])
+
+    def log_density(theta):
+        t = jnp.asarray(theta, jnp.float32)
+        return jnp.where(t[:, 1] > 0.2, -jnp.inf, base.log_density(t))
+
+    # the fit's own gradient sees no wall (it stays inside); the Hessian's differences do
+    prob = SimpleNamespace(lower=base.lower, upper=base.upper, log_density=log_density,
+                           value_and_grad=base.value_and_grad)  # fmt: skip
+    lap = problem_laplace(prob, n_starts=16, seed=0)
+    assert np.all(np.isfinite(lap.cov))
+    np.testing.assert_allclose(lap.theta, [0.0, 0.15], atol=2e-3)  # 0.06 steps cross the wall
+    prec = np.linalg.inv(lap.cov)
+    np.testing.assert_allclose(prec[0, 0], 1 / 0.3**2 + 12 / 36.0, rtol=0.05)
+    np.testing.assert_allclose(prec[1, 1], 12 / 36.0, rtol=0.05)
