@@ -30,7 +30,7 @@ sampling with PSIS weights; resample-move where the weights are not trusted), i.
 intervals (static: Kp only; damping is not identified by a slow pull), and the held-out pull's
 coverage by the 95% predictive band, per inclinometer and for the displacement.
 
-    nice python experiments/static_pulling_example.py            # ~10 min on 2 shared cores
+    nice python experiments/static_pulling_example.py            # ~20 min on 2 busy cores
     nice python experiments/static_pulling_example.py --cli      # + the CLI commands (docs)
 
 Writes ``OUT/results.json``, ``OUT/results.md``, ``OUT/heldout_bands.png`` (and copies it to
