@@ -1,5 +1,6 @@
-"""Issue 30 section 4: static winch pulling tests of mangrove trees, the static chain model with
-inclinometer observations against a beam baseline, on held-out parts of each record.
+"""Issue 30 sections 3 and 4: static winch pulling tests of mangrove trees, the static chain
+model with inclinometer observations (elastic or viscoelastic joints, i.i.d. or AR(1)
+residuals) against a beam baseline, on held-out parts of each record.
 
 Data: ``../shared/data/mangrove`` (``pull_tests/*.pul`` and ``trees.csv``), from
 ``jack-w-hill/mangrove-tree-strength``; paper: Hill JW, Bennion V, Lovelock CE (2024), *Mangrove
@@ -12,14 +13,19 @@ Per test:
    root and trunk inclinometers on one time base (``treeinfer.data.pull_test``);
 2. fit on the first half (in time) of the loading ramp: the two-link chain
    (``treeinfer.inference.pulltest``: root hinge at the ground, stem hinge at the root clino,
-   cable at the sling height and angle), NUTS over both stiffnesses and each channel's noise sd;
-   and the uniform Euler-Bernoulli cantilever on a root-plate spring by least squares;
+   cable at the sling height and angle), NUTS over both stiffnesses and each channel's noise,
+   four ways (``--models``): ``elastic`` (springs, i.i.d. noise), ``elastic+ar1`` (AR(1)
+   residuals in continuous time, inferred jointly), ``creep`` (a standard linear solid per
+   joint: spring + creep ratio + relaxation time) and ``creep+ar1``; and the uniform
+   Euler-Bernoulli cantilever on a root-plate spring by least squares;
 3. held out: the second half of the ramp (``ramp2``), the hold at the peak (``hold``: creep) and
    the release (``release``: hysteresis); per part and channel, the share of recorded tilts
    inside the 95% posterior predictive band, and the RMSE of the chain's predictive mean and of
-   the beam's prediction.
+   the beam's prediction; and the check of the fit's residuals (their lag-1 autocorrelation
+   on the fitted samples).
 
     nice python experiments/mangrove.py [--data ../shared/data/mangrove] [--tests a,b]
+        [--models elastic,elastic+ar1,creep,creep+ar1]
 """
 
 from __future__ import annotations
@@ -41,6 +47,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 TESTS = ("halloran_1", "halloran_10", "gladstone_21", "gladstone_31")
 PARTS = ("ramp2", "hold", "release")
+MODELS = {  # name -> (creep, noise)
+    "elastic": (False, "iid"),
+    "elastic+ar1": (False, "ar1"),
+    "creep": (True, "iid"),
+    "creep+ar1": (True, "ar1"),
+}
 CITATION = (
     "Hill JW, Bennion V, Lovelock CE (2024) Mangrove tree strength estimated with field "
     "experiments. Ecological Engineering 203: 107259. doi:10.1016/j.ecoleng.2024.107259"
@@ -73,7 +85,7 @@ def _rmse(a, b) -> float:
     return float(np.sqrt(np.mean(d**2))) if d.size else math.nan
 
 
-def run_test(name: str, data: Path, args, noise: str = "iid") -> tuple[dict, dict]:
+def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, dict]:
     from treeinfer.data import make_pull_test, read_pul, read_test_setups
     from treeinfer.inference.pulltest import (
         beam_predict,
@@ -82,9 +94,11 @@ def run_test(name: str, data: Path, args, noise: str = "iid") -> tuple[dict, dic
         fit_springs,
         predictive_band,
         pull_model,
+        residual_check,
         springs_predict,
     )
 
+    creep, noise = MODELS[kind]
     t0 = time.time()
     setup = read_test_setups(data / "trees.csv")[name]
     test = make_pull_test(read_pul(data / "pull_tests" / f"{name}.pul"), setup)
@@ -97,14 +111,19 @@ def run_test(name: str, data: Path, args, noise: str = "iid") -> tuple[dict, dic
         model,
         test.force[fit],
         y[:, fit],
+        time=test.time[fit],
         num_warmup=args.warmup,
         num_samples=args.samples,
         num_chains=args.chains,
         seed=args.seed,
         noise=noise,
+        creep=creep,
     )
     span = slice(win["fit"].start, win["release"].stop)
-    band = predictive_band(model, post, test.force[span], n_draws=args.draws, seed=args.seed)
+    # the creep state starts at rest at the ramp's start (the fit window's and the band's)
+    band = predictive_band(
+        model, post, test.force[span], n_draws=args.draws, seed=args.seed, time=test.time[span]
+    )
     heights = [test.channels[c].height for c in chans]
     beam = fit_beam(heights, setup.sling_height, setup.cable_angle, test.force[fit], y[:, fit])
     beam_all = beam_predict(beam, heights, setup.sling_height, setup.cable_angle, test.force[span])
@@ -133,9 +152,14 @@ def run_test(name: str, data: Path, args, noise: str = "iid") -> tuple[dict, dic
                 "rmse_springs": _rmse(springs_all[i, idx], yy),
             }
         parts[part] = rec
+    n_fit = fit.stop - fit.start
+    check = residual_check(band["mean"][:, :n_fit], y[:, fit])
     result = {
         "test": name,
+        "model": kind,
         "noise": noise,
+        "creep": creep,
+        "residual_lag1": {c: float(v) for c, v in zip(chans, check["lag1"])},
         "tree_id": setup.tree_id,
         "species": setup.species,
         "site": setup.site,
@@ -167,7 +191,7 @@ def run_test(name: str, data: Path, args, noise: str = "iid") -> tuple[dict, dic
     return result, curves
 
 
-def figure(curves: dict[str, dict], path: Path) -> None:
+def figure(curves: dict[str, dict], path: Path, kind: str = "elastic") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -189,7 +213,7 @@ def figure(curves: dict[str, dict], path: Path) -> None:
                 deg(cv["band"]["hi"][i]),
                 color="C0",
                 alpha=0.35,
-                label="chain: 95% predictive band",
+                label=f"chain ({kind}): 95% predictive band",
             )
             ax.plot(t, deg(cv["band"]["mean"][i]), color="C0", lw=0.8)
             ax.plot(t, deg(cv["beam"][i]), "--", color="C3", lw=0.8, label="beam baseline")
@@ -207,9 +231,48 @@ def figure(curves: dict[str, dict], path: Path) -> None:
     plt.close(fig)
 
 
+def _deg(x: float) -> str:
+    return f"{math.degrees(x):.4f}"
+
+
+def summary_lines(results: list[dict]) -> list[str]:
+    """The headline table: per test and channel, each model's held-out coverage (ramp2 +
+    release; the hold apart), its RMSE against the beam's, and the fit's residual check."""
+    kinds = list(dict.fromkeys(r["model"] for r in results))
+    by = {(r["test"], r["model"]): r for r in results}
+    tests = list(dict.fromkeys(r["test"] for r in results))
+    lines = [
+        "| test | channel | "
+        + " | ".join(f"{k}: held-out cov. / hold cov. / RMSE / lag-1" for k in kinds)
+        + " | RMSE beam | RMSE springs |",
+        "|---|---|" + "---|" * len(kinds) + "---|---|",
+    ]
+    for t in tests:
+        first = by[(t, kinds[0])]
+        for c in first["parts"]["heldout"]:
+            cells = []
+            for k in kinds:
+                r = by.get((t, k))
+                if r is None:
+                    cells.append("")
+                    continue
+                h, hold = r["parts"]["heldout"][c], r["parts"]["hold"][c]
+                cells.append(
+                    f"{h['coverage']:.0%} / {hold['coverage']:.0%} / {_deg(h['rmse_chain'])} / "
+                    f"{r['residual_lag1'][c]:.2f}"
+                )
+            h = first["parts"]["heldout"][c]
+            lines.append(
+                f"| {t} | {c} | "
+                + " | ".join(cells)
+                + f" | {_deg(h['rmse_beam'])} | {_deg(h['rmse_springs'])} |"
+            )
+    return lines
+
+
 def markdown(results: list[dict], config: dict) -> str:
     lines = [
-        "# Mangrove static pulling tests: the static chain model with inclinometers",
+        "# Mangrove static pulling tests: elastic and viscoelastic chains, i.i.d. and AR(1) noise",
         "",
         f"Data: Hill et al. (2024), doi:10.1016/j.ecoleng.2024.107259 ({config['data']}).",
         "Fit: first half of the loading ramp. Held out: the second half of the ramp (ramp2),",
@@ -218,11 +281,16 @@ def markdown(results: list[dict], config: dict) -> str:
         "RMSE in degrees: the chain's predictive mean and two baselines fitted by least squares",
         "to the same data: beam (a uniform Euler-Bernoulli cantilever on a root-plate spring,",
         "one pair of compliances for both inclinometers) and springs (tilt = moment at the",
-        "ground / K_c, one K_c per inclinometer).",
+        "ground / K_c, one K_c per inclinometer). lag-1: the lag-1 autocorrelation of the",
+        "residuals on the fitted samples (the check: above 0.3, i.i.d. noise is the wrong model).",
+        "Models: elastic (springs), creep (a standard linear solid per joint), +ar1 (AR(1)",
+        "residuals in continuous time, correlation time <= 5 s, inferred jointly).",
         "",
         f"Command: `{config['command']}`",
         "",
-        "| test | noise | channel | part | n | coverage | RMSE chain (deg) | RMSE beam (deg) "
+        *summary_lines(results),
+        "",
+        "| test | model | channel | part | n | coverage | RMSE chain (deg) | RMSE beam (deg) "
         "| RMSE springs (deg) |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
@@ -230,28 +298,33 @@ def markdown(results: list[dict], config: dict) -> str:
         for part in ("fit", *PARTS, "heldout"):
             for c, m in r["parts"][part].items():
                 lines.append(
-                    f"| {r['test']} | {r['noise']} | {c} | {part} | {m['n']} | "
-                    f"{m['coverage']:.1%} | "
-                    f"{math.degrees(m['rmse_chain']):.4f} | {math.degrees(m['rmse_beam']):.4f} | "
-                    f"{math.degrees(m['rmse_springs']):.4f} |"
+                    f"| {r['test']} | {r['model']} | {c} | {part} | {m['n']} | "
+                    f"{m['coverage']:.1%} | {_deg(m['rmse_chain'])} | {_deg(m['rmse_beam'])} | "
+                    f"{_deg(m['rmse_springs'])} |"
                 )
     lines += [
         "",
-        "| test | noise | Kp root (N m/rad) | Kp stem (N m/rad) | sigma root (deg) "
-        "| sigma trunk (deg) | R-hat max | divergences | beam K (N m/rad) | beam EI (N m^2) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| test | model | Kp root (N m/rad) | Kp stem (N m/rad) | creep ratio root / stem "
+        "| creep tau root / stem (s) | sigma root (deg) | sigma trunk (deg) | AR(1) tau (s) "
+        "| R-hat max | divergences | beam K (N m/rad) | beam EI (N m^2) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         p, d = r["posterior"], r["diagnostics"]
         rh = [v for k in d if k.startswith("r_hat") for v in (d[k] or [])]
 
         def ci(k, scale=1.0):
+            if k not in p:
+                return "-"
             m, lo, hi = (p[k][q] * scale for q in ("mean", "q2.5", "q97.5"))
             return f"{m:.4g} [{lo:.4g}, {hi:.4g}]"
 
         lines.append(
-            f"| {r['test']} | {r['noise']} | {ci('kp_root')} | {ci('kp_stem')} | "
+            f"| {r['test']} | {r['model']} | {ci('kp_root')} | {ci('kp_stem')} | "
+            f"{ci('creep_ratio_root')} / {ci('creep_ratio_stem')} | "
+            f"{ci('creep_tau_root')} / {ci('creep_tau_stem')} | "
             f"{ci('sigma_root', 180 / math.pi)} | {ci('sigma_trunk', 180 / math.pi)} | "
+            f"{ci('tau_ar_root')} / {ci('tau_ar_trunk')} | "
             f"{max(rh) if rh else float('nan'):.3f} | {d['divergences']} | "
             f"{r['beam']['k_root']:.4g} | {r['beam']['ei']:.4g} |"
         )
@@ -269,24 +342,31 @@ def main(argv=None) -> int:
     ap.add_argument("--chains", type=int, default=2)
     ap.add_argument("--draws", type=int, default=400, help="posterior draws in the band")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--noise", default="iid,ar1", help="noise models, comma-separated: iid, ar1")
+    ap.add_argument(
+        "--models", default=",".join(MODELS), help=f"comma-separated: {', '.join(MODELS)}"
+    )
     args = ap.parse_args(argv)
     data = args.data or shared_data()
     if data is None:
         print("the mangrove data (../shared/data/mangrove) is absent; give --data", file=sys.stderr)
         return 2
+    kinds = [s.strip() for s in args.models.split(",") if s.strip()]
+    bad = [k for k in kinds if k not in MODELS]
+    if bad:
+        print(f"--models: unknown {bad}; expected {list(MODELS)}", file=sys.stderr)
+        return 2
     from treeinfer.io import atomic_write_text
 
     t0, cpu0 = time.time(), time.process_time()
     results, curves = [], {}
-    noises = [s.strip() for s in args.noise.split(",") if s.strip()]
-    for noise in noises:
-        curves[noise] = {}
+    args.out.mkdir(parents=True, exist_ok=True)
+    for kind in kinds:
+        curves[kind] = {}
         for name in [s.strip() for s in args.tests.split(",") if s.strip()]:
-            print(f"{name} ({noise} noise) ...", flush=True)
-            r, cv = run_test(name, data, args, noise)
+            print(f"{name} ({kind}) ...", flush=True)
+            r, cv = run_test(name, data, args, kind)
             results.append(r)
-            curves[noise][name] = cv
+            curves[kind][name] = cv
             h = r["parts"]["heldout"]
             print(
                 "  held out: coverage "
@@ -294,15 +374,13 @@ def main(argv=None) -> int:
                 + "; RMSE chain/beam/springs (deg) "
                 + ", ".join(
                     f"{c} "
-                    + "/".join(
-                        f"{math.degrees(m[k]):.3f}"
-                        for k in ("rmse_chain", "rmse_beam", "rmse_springs")
-                    )
+                    + "/".join(_deg(m[k]) for k in ("rmse_chain", "rmse_beam", "rmse_springs"))
                     for c, m in h.items()
                 )
-                + f" ({r['wall_s']:.0f} s)",
+                + f"; lag-1 {r['residual_lag1']} ({r['wall_s']:.0f} s)",
                 flush=True,
             )
+        figure(curves[kind], args.out / f"bands_{kind.replace('+', '_')}.png", kind)
     import jax
     import numpyro
 
@@ -310,7 +388,7 @@ def main(argv=None) -> int:
         "command": " ".join(["nice python experiments/mangrove.py", *(argv or sys.argv[1:])]),
         "data": str(data),
         "tests": sorted({r["test"] for r in results}),
-        "noise": noises,
+        "models": kinds,
         "warmup": args.warmup,
         "samples": args.samples,
         "chains": args.chains,
@@ -326,15 +404,12 @@ def main(argv=None) -> int:
         "wall_s": time.time() - t0,
         "cpu_s": time.process_time() - cpu0,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    for i, noise in enumerate(noises):  # bands.png: the first noise model's
-        figure(curves[noise], args.out / ("bands.png" if i == 0 else f"bands_{noise}.png"))
     atomic_write_text(
         args.out / "results.json",
         json.dumps({"config": config, "results": results}, indent=2, default=float) + "\n",
     )
     atomic_write_text(args.out / "results.md", markdown(results, config))
-    print(f"wrote {args.out}/results.json, results.md, bands*.png")
+    print(f"wrote {args.out}/results.json, results.md, bands_*.png")
     return 0
 
 

@@ -199,7 +199,7 @@ def test_ar1_noise_widens_the_stiffness_interval_and_keeps_the_truth(model):
         assert s[f"kp_{name}"]["q2.5"] < KP[j] < s[f"kp_{name}"]["q97.5"], s
         ratio = np.std(np.log(ar1.kp[:, j])) / np.std(np.log(iid.kp[:, j]))
         assert ratio > 1.5, (name, ratio)
-    assert set(ar1.noise_params) == {"sigma_w", "sigma_a", "rho"}
+    assert set(ar1.noise_params) == {"sigma_w", "sigma_a", "tau_ar", "rho"}
     np.testing.assert_allclose(
         ar1.sigma, np.hypot(ar1.noise_params["sigma_w"], ar1.noise_params["sigma_a"])
     )

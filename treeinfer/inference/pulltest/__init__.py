@@ -5,8 +5,10 @@ predictive band, and a cantilever-beam baseline.
 May import: treeinfer.sim, treeinfer.tree, treeinfer.data, treeinfer.io, treeinfer.errors
 (the layers below inference), and treeinfer.inference.static.
 
-Submodules: model (the chain and its tilts), posterior (likelihood, NUTS, bands), beam
-(the least-squares baselines: a beam on a root-plate spring, and one spring per inclinometer)."""
+Submodules: model (the chain and its tilts), creep (a standard linear solid per joint: the
+viscoelastic chain), residuals (AR(1) residuals in continuous time, the lag-1 check),
+posterior (likelihood, NUTS, bands), beam (the least-squares baselines: a beam on a root-plate
+spring, and one spring per inclinometer)."""
 
 _EXPORTS = {
     "BeamFit": "beam",
@@ -15,10 +17,19 @@ _EXPORTS = {
     "fit_beam": "beam",
     "fit_springs": "beam",
     "springs_predict": "beam",
+    "CREEP_RATIO_PRIOR": "creep",
+    "CREEP_TAU_PRIOR": "creep",
+    "creep_states": "creep",
+    "creep_tilts": "creep",
+    "LAG1_LIMIT": "residuals",
+    "TAU_AR_PRIOR": "residuals",
+    "lag1_autocorrelation": "residuals",
+    "ou_white_log_prob": "residuals",
     "DENSITY": "model",
     "KP_PRIOR": "model",
     "PullModel": "model",
     "chain_tree": "model",
+    "model_response": "model",
     "model_tilts": "model",
     "pull_model": "model",
     "NOISE_MODELS": "posterior",
@@ -27,8 +38,9 @@ _EXPORTS = {
     "fit_pull_test": "posterior",
     "initial_stiffness": "posterior",
     "predictive_band": "posterior",
+    "residual_check": "posterior",
 }
-_SUBMODULES = ("beam", "model", "posterior")
+_SUBMODULES = ("beam", "creep", "model", "posterior", "residuals")
 
 __all__ = sorted(_EXPORTS)
 

@@ -34,7 +34,15 @@ from ...sim import fused as hd
 from ...tree.description import Bounds, Branch, Tree, make_tree
 from ..static.equilibrium import static_equilibria
 
-__all__ = ["DENSITY", "KP_PRIOR", "PullModel", "chain_tree", "pull_model", "model_tilts"]
+__all__ = [
+    "DENSITY",
+    "KP_PRIOR",
+    "PullModel",
+    "chain_tree",
+    "pull_model",
+    "model_response",
+    "model_tilts",
+]
 
 DENSITY = 900.0  # kg/m^3, wood of Rhizophora/Avicennia (700-1000; Chave et al. 2009 via the paper)
 KP_PRIOR = (1.0e3, 1.0e8)  # N m/rad: the log-uniform prior box of each joint (trees, not twigs)
@@ -140,6 +148,16 @@ def model_tilts(
     """Tilt change of each sensor's link under each force: ``[P, C, T]`` rad (channels in the
     order of ``model.sensors``) and ``stable`` [P]. ``kp`` [P, R] N m/rad in the order of
     ``model.joints``; ``forces`` [T] N along the cable. Differentiable in ``kp``."""
+    tilts, _, _, stable = model_response(model, kp, forces, iterations)
+    return tilts, stable
+
+
+def model_response(
+    model: PullModel, kp, forces, iterations: int = NEWTON_ITERATIONS
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """:func:`model_tilts` and what the creep element needs: ``(tilts [P, C, T], dq [P, R, T]``
+    each inferred joint's deflection from its rest, ``jac [P, C, R]`` the tilts' derivative in
+    the joint angles at the rest, ``stable [P])``. The spring's moment change is ``kp * dq``."""
     if tuple(model.sim.dof_ids.shape) != (len(model.joints),):
         raise ConfigError("model_tilts: the simulator's inferred joints are not the model's")
     eq = static_equilibria(
@@ -154,6 +172,7 @@ def model_tilts(
     )
     t = model.sim.hinge_tree
     bodies = _body_ids(model)
+    dofs = np.asarray(model.sim.dof_ids)
 
     def tilt(q):  # [nv] -> [C]: each sensor link's angle in the x-z plane
         kin = hd.kinematics(t, [q[i] for i in range(t.nv)])
@@ -165,4 +184,7 @@ def model_tilts(
 
     rest = jax.vmap(tilt)(eq.q_rest)  # [P, C]
     loaded = jax.vmap(jax.vmap(tilt))(eq.q[:, 0])  # [P, T, C]
-    return jnp.swapaxes(loaded - rest[:, None, :], 1, 2), eq.stable[:, 0]
+    tilts = jnp.swapaxes(loaded - rest[:, None, :], 1, 2)
+    dq = jnp.swapaxes((eq.q[:, 0] - eq.q_rest[:, None, :])[..., dofs], 1, 2)  # [P, R, T]
+    jac = jax.vmap(jax.jacfwd(tilt))(eq.q_rest)[..., dofs]  # [P, C, R]
+    return tilts, dq, jac, eq.stable[:, 0]

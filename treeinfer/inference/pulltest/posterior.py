@@ -1,27 +1,29 @@
-"""The posterior of a static pulling test: joint stiffnesses and per-channel noise, by NUTS.
+"""The posterior of a static pulling test: joint stiffnesses, optional creep and per-channel
+noise, by NUTS.
 
-Likelihood: each recorded tilt (rad, NaN = missing) is the model's tilt plus Gaussian noise
-with a standard deviation per inclinometer, inferred with the stiffnesses:
+Likelihood: each recorded tilt (rad, NaN = missing) is the model's tilt plus noise per
+inclinometer, inferred with the stiffnesses:
 
-    tilt_c(t) ~ Normal(model_c(F(t); Kp), sigma_c)
+    tilt_c(t) = model_c(F(.), t; Kp[, c, tau]) + e_c(t)
 
-priors ``log Kp_j ~ Uniform(log 1e3, log 1e8)`` (N m/rad; :data:`~.model.KP_PRIOR`) and
-``sigma_c ~ LogUniform(1e-6, 0.05)`` rad (``noise="iid"``). With ``noise="ar1"`` each channel's
-residual is white noise (``sigma_w``) plus a stationary AR(1) component (``sigma_a``, lag-1
-correlation ``rho`` per sample, logit-normal prior centred on 0.9), the exact likelihood of
-treeinfer's :func:`treeinfer.model.noise.ar1_white_log_prob` (a Kalman filter that predicts
-through missing samples); the band then uses the marginal sd ``sqrt(sigma_w^2 + sigma_a^2)``.
-Samples are treated as equally spaced (about 0.1 s). The force is taken as recorded (its 10 N
-quantum is well below the ramp's forces; errors in the force are not modelled).
+The model is the elastic chain (:func:`.model.model_tilts`) or, with ``creep=True``, the
+viscoelastic one (:mod:`.creep`: a standard linear solid per joint, creep ratio ``c`` and
+relaxation time ``tau`` per joint, LogUniform priors :data:`~.creep.CREEP_RATIO_PRIOR`,
+:data:`~.creep.CREEP_TAU_PRIOR`). Priors ``log Kp_j ~ Uniform(log 1e3, log 1e8)`` (N m/rad;
+:data:`~.model.KP_PRIOR`). Noise ``"iid"``: ``e_c ~ Normal(0, sigma_c)``, ``sigma_c ~
+LogUniform(1e-6, 0.05)`` rad. ``"ar1"``: white noise (``sigma_w``) plus an AR(1) component in
+continuous time (``sigma_a``, correlation time ``tau_ar`` with a bounded prior), the exact
+likelihood of :func:`.residuals.ou_white_log_prob`; the band then uses the marginal sd
+``sqrt(sigma_w^2 + sigma_a^2)`` (held-out points lie many correlation times from the fit).
+The force is taken as recorded (its 10 N quantum is well below the ramp's forces; errors in
+the force are not modelled).
 
 Why NUTS from numpyro and not treeinfer's start pipeline and samplers: those are built around
 the displacement likelihood of :mod:`treeinfer.model.likelihood` (particles x profiles x time
 rollouts, the grasp point's ``tau``) and do not take another likelihood without changing that
-module; this problem is small (2 stiffnesses, 2-6 noise parameters, one equilibrium solve per force
-sample with exact implicit gradients), exactly what NUTS does best, and numpyro handles the
-bounded priors' transforms and the warm-up. Residuals of real recordings are autocorrelated
-(issue 30 section 3): with i.i.d. noise the stiffness intervals are too narrow (``ar1`` widens
-them); the predictive band is dominated by the noise sd and is what the experiment checks.
+module; this problem is small (2 stiffnesses, up to 4 creep and 6 noise parameters, one
+equilibrium solve per force sample with exact implicit gradients), exactly what NUTS does
+best, and numpyro handles the bounded priors' transforms and the warm-up.
 """
 
 from __future__ import annotations
@@ -34,7 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...errors import ConfigError
+from .creep import CREEP_RATIO_PRIOR, CREEP_TAU_PRIOR, creep_tilts
 from .model import KP_PRIOR, PullModel, model_tilts
+from .residuals import TAU_AR_PRIOR, lag1_autocorrelation, ou_white_log_prob
 
 __all__ = [
     "NOISE_MODELS",
@@ -43,19 +47,23 @@ __all__ = [
     "fit_pull_test",
     "initial_stiffness",
     "predictive_band",
+    "residual_check",
 ]
 
 NOISE_PRIOR = (1.0e-6, 0.05)  # rad: the LogUniform prior of each channel's noise sd
 NOISE_DRAWS = 4  # noise samples per parameter draw in the predictive band
 NOISE_MODELS = ("iid", "ar1")
+DEFAULT_DT = 0.1  # s: the time step assumed when no time base is given (the .pul rate)
 
 
 @dataclass(frozen=True)
 class PullPosterior:
     """Posterior draws: ``kp`` [S, R] N m/rad (columns ``joints``), ``sigma`` [S, C] rad
     (columns ``channels``: each channel's marginal noise sd), ``noise_params`` the noise
-    model's own draws (``ar1``: ``sigma_w``, ``sigma_a``, ``rho``, each [S, C]), and NUTS
-    diagnostics (``r_hat``, ``ess`` per parameter, ``divergences``)."""
+    model's own draws (``ar1``: ``sigma_w``, ``sigma_a``, ``tau_ar`` s and ``rho`` the lag-1
+    correlation at the median step, each [S, C]), ``creep_params`` (``creep=True``: ``ratio``
+    and ``tau`` s, each [S, R]), and NUTS diagnostics (``r_hat``, ``ess`` per parameter,
+    ``divergences``)."""
 
     joints: tuple[str, ...]
     channels: tuple[str, ...]
@@ -64,6 +72,8 @@ class PullPosterior:
     diagnostics: dict = field(default_factory=dict)
     noise: str = "iid"
     noise_params: dict = field(default_factory=dict)
+    creep: bool = False
+    creep_params: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         def stats(x):
@@ -78,7 +88,17 @@ class PullPosterior:
         out |= {f"sigma_{c}": stats(self.sigma[:, i]) for i, c in enumerate(self.channels)}
         for name, x in self.noise_params.items():
             out |= {f"{name}_{c}": stats(x[:, i]) for i, c in enumerate(self.channels)}
+        for name, x in self.creep_params.items():
+            out |= {f"creep_{name}_{j}": stats(x[:, i]) for i, j in enumerate(self.joints)}
         return out
+
+    def tilts(self, model: PullModel, idx, force, time):
+        """The model's tilts ``[S, C, T]`` and ``stable`` [S] at the draws ``idx``."""
+        kp = jnp.asarray(self.kp[idx])
+        if not self.creep:
+            return model_tilts(model, kp, force)
+        c, tau = (jnp.asarray(self.creep_params[k][idx]) for k in ("ratio", "tau"))
+        return creep_tilts(model, kp, c, tau, force, time)
 
 
 def initial_stiffness(model: PullModel, force, tilt) -> np.ndarray:
@@ -105,14 +125,25 @@ def initial_stiffness(model: PullModel, force, tilt) -> np.ndarray:
     return np.clip(np.array([kp[j] for j in model.joints]), lo * 1.01, hi / 1.01)
 
 
-def _numpyro_model(model: PullModel, force, tilt, mask, kp_prior, noise_prior, noise="iid"):
+def _numpyro_model(
+    model: PullModel, force, time, tilt, mask, kp_prior, noise_prior, noise="iid", creep=False
+):
     import numpyro
     import numpyro.distributions as dist
 
     r, c = len(model.joints), tilt.shape[0]
     lo, hi = (math.log(v) for v in kp_prior)
     log_kp = numpyro.sample("log_kp", dist.Uniform(lo, hi).expand([r]).to_event(1))
-    pred, stable = model_tilts(model, jnp.exp(log_kp)[None], force)
+    if creep:
+        ratio = numpyro.sample(
+            "creep_ratio", dist.LogUniform(*CREEP_RATIO_PRIOR).expand([r]).to_event(1)
+        )
+        tau = numpyro.sample("creep_tau", dist.LogUniform(*CREEP_TAU_PRIOR).expand([r]).to_event(1))
+        pred, stable = creep_tilts(
+            model, jnp.exp(log_kp)[None], ratio[None], tau[None], force, time
+        )
+    else:
+        pred, stable = model_tilts(model, jnp.exp(log_kp)[None], force)
     numpyro.factor("stable", jnp.where(stable[0], 0.0, -jnp.inf))
     scale = dist.LogUniform(*noise_prior).expand([c]).to_event(1)
     if noise == "iid":
@@ -120,22 +151,20 @@ def _numpyro_model(model: PullModel, force, tilt, mask, kp_prior, noise_prior, n
         obs = dist.Normal(pred[0], sigma[:, None]).mask(mask)
         numpyro.sample("tilt", obs.to_event(2), obs=jnp.where(mask, tilt, 0.0))
         return
-    from ...model.noise import RHO_PRIOR_LOC, RHO_PRIOR_SCALE, ar1_white_log_prob
-
     sigma_w = numpyro.sample("sigma_w", scale)
     sigma_a = numpyro.sample("sigma_a", scale)
-    z = numpyro.sample(
-        "logit_rho", dist.Normal(RHO_PRIOR_LOC, RHO_PRIOR_SCALE).expand([c]).to_event(1)
-    )
-    rho = jax.nn.sigmoid(z)
+    tau_ar = numpyro.sample("tau_ar", dist.LogUniform(*TAU_AR_PRIOR).expand([c]).to_event(1))
     resid = jnp.where(mask, tilt - pred[0], 0.0)
-    total = 0.0
-    for i in range(c):  # one channel at a time: each has its own noise parameters
-        total = total + ar1_white_log_prob(
-            resid[i][None, None, :], mask[i][None, :], sigma_w[i][None], sigma_a[i][None],
-            rho[i][None],
-        )[0]  # fmt: skip
-    numpyro.factor("tilt", total)
+    numpyro.factor("tilt", ou_white_log_prob(resid, mask, time, sigma_w, sigma_a, tau_ar))
+
+
+def _time_base(time, n: int) -> np.ndarray:
+    if time is None:
+        return np.arange(n) * DEFAULT_DT
+    time = np.asarray(time, float)
+    if time.shape != (n,) or not np.all(np.diff(time) > 0):
+        raise ConfigError(f"time: expected {n} increasing times (s), got shape {time.shape}")
+    return time
 
 
 def fit_pull_test(
@@ -143,6 +172,7 @@ def fit_pull_test(
     force,
     tilt,
     *,
+    time=None,
     num_warmup: int = 500,
     num_samples: int = 1000,
     num_chains: int = 2,
@@ -150,17 +180,22 @@ def fit_pull_test(
     kp_prior: tuple[float, float] = KP_PRIOR,
     noise_prior: tuple[float, float] = NOISE_PRIOR,
     noise: str = "iid",
+    creep: bool = False,
     progress: bool = False,
 ) -> PullPosterior:
     """NUTS on the static model: ``force`` [T] N along the cable, ``tilt`` [C, T] rad for the
-    channels of ``model.sensors`` (NaN where missing), ``noise`` ``"iid"`` or ``"ar1"`` (the
-    module docstring). Chains run one after the other (CPU)."""
+    channels of ``model.sensors`` (NaN where missing), ``time`` [T] s (default: every
+    :data:`DEFAULT_DT`; the creep and the AR(1) part follow it), ``noise`` ``"iid"`` or
+    ``"ar1"``, ``creep`` the viscoelastic joints (the module docstring). Chains run one after
+    the other (CPU)."""
     from numpyro.infer import MCMC, NUTS, init_to_value
 
     if noise not in NOISE_MODELS:
         raise ConfigError(f"noise: expected one of {', '.join(NOISE_MODELS)}, got {noise!r}")
 
-    force = jnp.asarray(np.asarray(force, float))
+    force_np = np.asarray(force, float)
+    force = jnp.asarray(force_np)
+    time = _time_base(time, force.shape[0])
     tilt_np = np.atleast_2d(np.asarray(tilt, float))
     if tilt_np.shape != (len(model.sensors), force.shape[0]):
         raise ConfigError(
@@ -170,13 +205,13 @@ def fit_pull_test(
     mask = np.isfinite(tilt_np)
     if mask.sum(axis=1).min() < 3:
         raise ConfigError("fit_pull_test: fewer than 3 recorded tilts in a channel")
-    k0 = initial_stiffness(model, np.asarray(force), tilt_np)
+    k0 = initial_stiffness(model, force_np, tilt_np)
     pred0, _ = model_tilts(model, jnp.asarray(k0)[None], force)
     resid = np.where(mask, tilt_np - np.asarray(pred0[0]), np.nan)
     s0 = np.clip(np.nanstd(resid, axis=1), noise_prior[0] * 2, noise_prior[1] / 2)
     kernel = NUTS(
         _numpyro_model,
-        init_strategy=init_to_value(values=_start(noise, k0, s0)),
+        init_strategy=init_to_value(values=_start(noise, creep, k0, s0)),
         target_accept_prob=0.9,
         dense_mass=True,  # the trunk channel couples the two stiffnesses
     )
@@ -192,20 +227,21 @@ def fit_pull_test(
         jax.random.PRNGKey(seed),
         model,
         force,
+        jnp.asarray(time),
         jnp.asarray(tilt_np),
         jnp.asarray(mask),
         kp_prior,
         noise_prior,
         noise,
+        creep,
     )
     draws = mcmc.get_samples(group_by_chain=True)
     from numpyro.diagnostics import effective_sample_size, split_gelman_rubin
 
     diag = {"divergences": int(np.asarray(mcmc.get_extra_fields()["diverging"]).sum())}
-    for name in (
-        "log_kp",
-        *(("sigma",) if noise == "iid" else ("sigma_w", "sigma_a", "logit_rho")),
-    ):
+    names = ["log_kp", *(("sigma",) if noise == "iid" else ("sigma_w", "sigma_a", "tau_ar"))]
+    names += ["creep_ratio", "creep_tau"] if creep else []
+    for name in names:
         x = np.asarray(draws[name])
         diag[f"r_hat_{name}"] = (
             np.asarray(split_gelman_rubin(x)).tolist() if num_chains > 1 else None
@@ -216,12 +252,15 @@ def fit_pull_test(
     if noise == "iid":
         sigma = flat["sigma"]
     else:
+        step = float(np.median(np.diff(time)))
         params = {
             "sigma_w": flat["sigma_w"],
             "sigma_a": flat["sigma_a"],
-            "rho": 1 / (1 + np.exp(-flat["logit_rho"])),
+            "tau_ar": flat["tau_ar"],
+            "rho": np.exp(-step / flat["tau_ar"]),
         }
         sigma = np.hypot(params["sigma_w"], params["sigma_a"])
+    creep_params = {"ratio": flat["creep_ratio"], "tau": flat["creep_tau"]} if creep else {}
     return PullPosterior(
         joints=tuple(model.joints),
         channels=tuple(model.sensors),
@@ -230,35 +269,48 @@ def fit_pull_test(
         diagnostics=diag,
         noise=noise,
         noise_params=params,
+        creep=creep,
+        creep_params=creep_params,
     )
 
 
-def _start(noise: str, k0, s0) -> dict:
-    """NUTS's start: the closed-form stiffnesses, the noise sd of their residuals (``ar1``:
-    split evenly between the white and the correlated part, rho at its prior's centre)."""
-    if noise == "iid":
-        return {"log_kp": jnp.log(k0), "sigma": jnp.asarray(s0)}
-    from ...model.noise import RHO_PRIOR_LOC
+CREEP_START = (0.05, 20.0)  # NUTS's start: a little creep, a relaxation time of 20 s
 
+
+def _start(noise: str, creep: bool, k0, s0) -> dict:
+    """NUTS's start: the closed-form stiffnesses, the noise sd of their residuals (``ar1``:
+    split evenly between the white and the correlated part, a correlation time of 1 s)."""
+    r = len(k0)
+    out = {"log_kp": jnp.log(k0)}
+    if creep:
+        out |= {
+            "creep_ratio": jnp.full(r, CREEP_START[0]),
+            "creep_tau": jnp.full(r, CREEP_START[1]),
+        }
+    if noise == "iid":
+        return out | {"sigma": jnp.asarray(s0)}
     half = jnp.asarray(s0) / math.sqrt(2)
-    return {
-        "log_kp": jnp.log(k0),
-        "sigma_w": half,
-        "sigma_a": half,
-        "logit_rho": jnp.full(len(s0), RHO_PRIOR_LOC),
-    }
+    return out | {"sigma_w": half, "sigma_a": half, "tau_ar": jnp.full(len(s0), 1.0)}
 
 
 def predictive_band(
-    model: PullModel, post: PullPosterior, force, level: float = 0.95, n_draws: int = 400, seed=0
+    model: PullModel,
+    post: PullPosterior,
+    force,
+    level: float = 0.95,
+    n_draws: int = 400,
+    seed=0,
+    time=None,
 ) -> dict[str, np.ndarray]:
-    """The posterior predictive of the recorded tilt under ``force`` [T]: ``mean`` (the model's
+    """The posterior predictive of the recorded tilt under ``force`` [T] (at ``time`` [T] s,
+    which the creep follows; its state starts at rest at ``time[0]``): ``mean`` (the model's
     tilt averaged over draws), ``lo``/``hi`` (the central ``level`` interval of model + noise),
     ``model_lo``/``model_hi`` (of the model's tilt alone); each [C, T] rad."""
     rng = np.random.default_rng(seed)
     idx = rng.choice(post.kp.shape[0], size=min(n_draws, post.kp.shape[0]), replace=False)
     force = jnp.asarray(np.asarray(force, float))
-    pred, stable = model_tilts(model, jnp.asarray(post.kp[idx]), force)
+    time = _time_base(time, force.shape[0])
+    pred, stable = post.tilts(model, idx, force, jnp.asarray(time))
     pred = np.asarray(pred)[np.asarray(stable)]  # [S, C, T]
     if pred.shape[0] == 0:
         raise ConfigError("predictive_band: no posterior draw has an equilibrium for this force")
@@ -274,3 +326,14 @@ def predictive_band(
         "model_lo": np.quantile(pred, q, axis=0),
         "model_hi": np.quantile(pred, 1 - q, axis=0),
     }
+
+
+def residual_check(band_mean, tilt) -> dict:
+    """The check of :mod:`.residuals`: ``lag1`` [C] the lag-1 autocorrelation of the recorded
+    ``tilt`` [C, T] minus a fit's predictive ``mean`` [C, T] (on the fitted samples), and
+    ``needs_ar1`` [C] where it exceeds :data:`~.residuals.LAG1_LIMIT` (i.i.d. noise would
+    make the band and the intervals too narrow)."""
+    from .residuals import LAG1_LIMIT
+
+    r1 = lag1_autocorrelation(np.asarray(tilt, float) - np.asarray(band_mean, float))
+    return {"lag1": r1, "needs_ar1": r1 > LAG1_LIMIT}
