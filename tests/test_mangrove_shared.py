@@ -1,7 +1,7 @@
 """The mangrove pulling tests in ../shared/data/mangrove (Hill, Bennion & Lovelock 2024,
 doi:10.1016/j.ecoleng.2024.107259): imported as the data README describes, and the static chain
-fitted to the first half of a ramp. Skipped with a reason where the shared data is absent (a
-user's checkout)."""
+fitted to the first half of a ramp, its residuals checked (lag-1 autocorrelation). Skipped
+with a reason where the shared data is absent (a user's checkout)."""
 
 from __future__ import annotations
 
@@ -94,3 +94,28 @@ def test_chain_fits_the_first_half_of_a_ramp(tests):
     resid = np.asarray(pred[0]) - y
     peak = np.nanmax(np.stack([t.tilt[c] for c in model.sensors]), axis=1)
     assert np.all(np.sqrt(np.nanmean(resid**2, axis=1)) < 0.1 * peak)
+
+
+def test_residuals_of_real_recordings_call_for_ar1(tests):
+    """The check of docs/pulling_tests.md on a test from each site (the study checks all four):
+    the elastic chain's residuals on the
+    first half-ramp (closed-form start) have a lag-1 autocorrelation far above the i.i.d.
+    limit, so i.i.d. noise is the wrong model for these recordings."""
+    from treeinfer.inference.pulltest import (
+        LAG1_LIMIT,
+        initial_stiffness,
+        lag1_autocorrelation,
+        model_tilts,
+        pull_model,
+    )
+
+    for name in ("halloran_10", "gladstone_31"):
+        t = tests[name]
+        model = pull_model(t.setup)
+        ph = t.phases
+        fit = slice(ph["ramp_start"], (ph["ramp_start"] + ph["ramp_end"]) // 2)
+        y = np.stack([t.tilt[c][fit] for c in model.sensors])
+        k = initial_stiffness(model, t.force[fit], y)
+        pred, _ = model_tilts(model, jnp.asarray(k[None]), jnp.asarray(t.force[fit]))
+        r1 = lag1_autocorrelation(y - np.asarray(pred[0]))
+        assert np.all(r1 > LAG1_LIMIT), (name, r1)
