@@ -34,6 +34,7 @@ import argparse
 import json
 import math
 import os
+import pickle
 import platform
 import sys
 import time
@@ -384,11 +385,22 @@ def main(argv=None) -> int:
     t0, cpu0 = time.time(), time.process_time()
     results, curves = [], {}
     args.out.mkdir(parents=True, exist_ok=True)
+    # each fit is kept as it ends: a run stopped on the shared box resumes where it was
+    # (``partial/`` goes once every fit is in the tables)
+    partial = args.out / "partial"
+    partial.mkdir(exist_ok=True)
+    resumed = 0
     for kind in kinds:
         curves[kind] = {}
         for name in [s.strip() for s in args.tests.split(",") if s.strip()]:
-            print(f"{name} ({kind}) ...", flush=True)
-            r, cv = run_test(name, data, args, kind)
+            kept = partial / f"{kind}_{name}.pkl"
+            if kept.is_file():
+                r, cv = pickle.loads(kept.read_bytes())
+                resumed += 1
+            else:
+                print(f"{name} ({kind}) ...", flush=True)
+                r, cv = run_test(name, data, args, kind)
+                kept.write_bytes(pickle.dumps((r, cv)))
             results.append(r)
             curves[kind][name] = cv
             h = r["parts"]["heldout"]
@@ -428,12 +440,19 @@ def main(argv=None) -> int:
         },
         "wall_s": time.time() - t0,
         "cpu_s": time.process_time() - cpu0,
+        "fits_resumed": resumed,
+        "fit_wall_s": sum(r["wall_s"] for r in results),
     }
     atomic_write_text(
         args.out / "results.json",
         json.dumps({"config": config, "results": results}, indent=2, default=float) + "\n",
     )
     atomic_write_text(args.out / "results.md", markdown(results, config))
+    for kind in kinds:  # only this run's fits: another run may share the folder
+        for name in {r["test"] for r in results}:
+            (partial / f"{kind}_{name}.pkl").unlink(missing_ok=True)
+    if not any(partial.iterdir()):
+        partial.rmdir()
     print(f"wrote {args.out}/results.json, results.md, bands_*.png")
     return 0
 
