@@ -21,6 +21,7 @@ from treeinfer.inference.pulltest import (
     fit_pull_test,
     lag1_autocorrelation,
     model_tilts,
+    ou_white_innovations,
     ou_white_log_prob,
     predictive_band,
     pull_model,
@@ -198,3 +199,25 @@ def test_nuts_recovers_synthetic_creep_and_the_check_tells_the_models_apart(mode
     inside_el = (y >= el_band["lo"]) & (y <= el_band["hi"])
     assert inside_el.mean() < inside.mean()
     assert math.isfinite(ve.diagnostics["divergences"])
+
+
+def test_ar1_innovations_are_white_under_the_model_and_not_under_another():
+    rng = np.random.default_rng(6)
+    n = 3000
+    t = np.cumsum(rng.uniform(0.08, 0.14, n))
+    sw, sa, tau = np.array([0.002]), np.array([0.01]), np.array([1.0])
+    # simulate the continuous-time AR(1) exactly on the irregular grid, plus white noise
+    a = np.zeros(n)
+    a[0] = sa[0] * rng.standard_normal()
+    for i in range(1, n):
+        rho = math.exp(-(t[i] - t[i - 1]) / tau[0])
+        a[i] = rho * a[i - 1] + sa[0] * math.sqrt(1 - rho**2) * rng.standard_normal()
+    resid = (a + sw[0] * rng.standard_normal(n))[None]
+    mask = np.ones((1, n), bool)
+    z = ou_white_innovations(resid, mask, t, sw, sa, tau)
+    assert abs(lag1_autocorrelation(z)[0]) < 0.06
+    assert np.nanstd(z) == pytest.approx(1.0, abs=0.05)
+    assert lag1_autocorrelation(resid)[0] > 0.8  # the raw residuals are not white
+    # a model with too short a correlation time leaves correlated innovations
+    z_bad = ou_white_innovations(resid, mask, t, sw, sa, tau / 20)
+    assert lag1_autocorrelation(z_bad)[0] > 0.3

@@ -24,6 +24,7 @@ _EXPORTS = {
     "LAG1_LIMIT": "residuals",
     "TAU_AR_PRIOR": "residuals",
     "lag1_autocorrelation": "residuals",
+    "ou_white_innovations": "residuals",
     "ou_white_log_prob": "residuals",
     "DENSITY": "model",
     "KP_PRIOR": "model",

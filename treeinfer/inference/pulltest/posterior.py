@@ -328,12 +328,29 @@ def predictive_band(
     }
 
 
-def residual_check(band_mean, tilt) -> dict:
+def residual_check(band_mean, tilt, post: PullPosterior | None = None, time=None) -> dict:
     """The check of :mod:`.residuals`: ``lag1`` [C] the lag-1 autocorrelation of the recorded
     ``tilt`` [C, T] minus a fit's predictive ``mean`` [C, T] (on the fitted samples), and
     ``needs_ar1`` [C] where it exceeds :data:`~.residuals.LAG1_LIMIT` (i.i.d. noise would
-    make the band and the intervals too narrow)."""
-    from .residuals import LAG1_LIMIT
+    make the band and the intervals too narrow). With an ``ar1`` posterior ``post`` (and
+    ``time`` [T] s), also ``lag1_innovations`` [C]: the same statistic of the standardised
+    Kalman innovations at the posterior medians, and ``ar1_enough`` [C] where it is below the
+    limit (the AR(1) part accounts for the correlation)."""
+    from .residuals import LAG1_LIMIT, ou_white_innovations
 
-    r1 = lag1_autocorrelation(np.asarray(tilt, float) - np.asarray(band_mean, float))
-    return {"lag1": r1, "needs_ar1": r1 > LAG1_LIMIT}
+    resid = np.asarray(tilt, float) - np.asarray(band_mean, float)
+    r1 = lag1_autocorrelation(resid)
+    out = {"lag1": r1, "needs_ar1": r1 > LAG1_LIMIT}
+    if post is not None and post.noise == "ar1":
+        med = {k: np.median(post.noise_params[k], axis=0) for k in ("sigma_w", "sigma_a", "tau_ar")}
+        z = ou_white_innovations(
+            np.nan_to_num(resid),
+            np.isfinite(resid),
+            _time_base(time, resid.shape[1]),
+            med["sigma_w"],
+            med["sigma_a"],
+            med["tau_ar"],
+        )
+        out["lag1_innovations"] = lag1_autocorrelation(z)
+        out["ar1_enough"] = out["lag1_innovations"] < LAG1_LIMIT
+    return out

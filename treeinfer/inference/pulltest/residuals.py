@@ -14,7 +14,9 @@ than that are the mechanical model's job (the creep element, :mod:`.creep`).
 
 :func:`lag1_autocorrelation` is the check: the lag-1 autocorrelation of a fit's residuals
 (i.i.d. residuals give about 0 +- 2/sqrt(n)). Above :data:`LAG1_LIMIT` the i.i.d. band and
-intervals are too narrow: fit with ``noise="ar1"``.
+intervals are too narrow: fit with ``noise="ar1"``. An ``ar1`` fit is checked the same way
+on its standardised innovations (:func:`ou_white_innovations`): if they are still correlated,
+the AR(1) part is not what the residuals are.
 """
 
 from __future__ import annotations
@@ -23,7 +25,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["LAG1_LIMIT", "TAU_AR_PRIOR", "lag1_autocorrelation", "ou_white_log_prob"]
+__all__ = [
+    "LAG1_LIMIT",
+    "TAU_AR_PRIOR",
+    "lag1_autocorrelation",
+    "ou_white_innovations",
+    "ou_white_log_prob",
+]
 
 TAU_AR_PRIOR = (0.05, 5.0)  # s: LogUniform prior of the AR(1) correlation time
 LAG1_LIMIT = 0.3  # residual lag-1 autocorrelation above which i.i.d. noise is the wrong model
@@ -42,29 +50,44 @@ def ou_white_log_prob(resid, mask, time, sigma_w, sigma_a, tau):
     marginal of the observed ones); tests check it against ``scipy.stats.multivariate_normal``."""
     import numpyro.distributions as dist
 
+    v, s, m = _innovations(resid, mask, time, sigma_w, sigma_a, tau)
+    lp = dist.Normal(0.0, jnp.sqrt(s)).log_prob(v)
+    return jnp.sum(jnp.where(m, lp, 0.0))
+
+
+def ou_white_innovations(resid, mask, time, sigma_w, sigma_a, tau) -> np.ndarray:
+    """``[C, T]``: the Kalman filter's standardised one-step innovations ``v / sqrt(S)`` (NaN
+    where missing). Under the model they are i.i.d. N(0, 1): their lag-1 autocorrelation is
+    the check of an ``ar1`` fit (the raw residuals of one are correlated by design)."""
+    v, s, m = _innovations(resid, mask, time, sigma_w, sigma_a, tau)
+    z = np.asarray(v / jnp.sqrt(s))
+    return np.where(np.asarray(m), z, np.nan).T
+
+
+def _innovations(resid, mask, time, sigma_w, sigma_a, tau):
     r = jnp.moveaxis(jnp.asarray(resid), -1, 0)  # [T, C]
     m = jnp.moveaxis(jnp.asarray(mask, bool), -1, 0)
+    r = jnp.where(m, r, 0.0)
     time = jnp.asarray(time, r.dtype)
     dt = jnp.concatenate([jnp.zeros(1, r.dtype), jnp.diff(time)])
     sw2, sa2, tau = jnp.asarray(sigma_w) ** 2, jnp.asarray(sigma_a) ** 2, jnp.asarray(tau)
 
     def step(carry, x):
-        mean, var, total = carry
+        mean, var = carry
         rt, mt, d = x
         rho = jnp.exp(-d / tau)
         mp, vp = rho * mean, rho**2 * var + (1.0 - rho**2) * sa2
         s = vp + sw2
         v = rt - mp
-        lp = dist.Normal(0.0, jnp.sqrt(s)).log_prob(v)
         k = vp / s
         mean = jnp.where(mt, mp + k * v, mp)
         var = jnp.where(mt, (1.0 - k) * vp, vp)
-        return (mean, var, total + jnp.where(mt, lp, 0.0)), None
+        return (mean, var), (v, s)
 
     zero = jnp.zeros(r.shape[1], r.dtype)
     # stationary start: the first step has dt = 0 (rho = 1) from (mean 0, var sa2)
-    (_, _, total), _ = jax.lax.scan(step, (zero, zero + sa2, zero), (r, m, dt))
-    return jnp.sum(total)
+    _, (v, s) = jax.lax.scan(step, (zero, zero + sa2), (r, m, dt))
+    return v, s, m
 
 
 def lag1_autocorrelation(resid) -> np.ndarray:
