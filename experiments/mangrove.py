@@ -398,6 +398,7 @@ def main(argv=None) -> int:
         action="store_true",
         help="write the tables and figures from the fits kept in partial/, fitting nothing",
     )
+    ap.add_argument("--keep-partial", action="store_true", help="keep partial/ at the end")
     args = ap.parse_args(argv)
     data = args.data or shared_data()
     if data is None:
@@ -481,7 +482,7 @@ def main(argv=None) -> int:
         json.dumps({"config": config, "results": results}, indent=2, default=float) + "\n",
     )
     atomic_write_text(args.out / "results.md", markdown(results, config))
-    for kind in kinds:  # only this run's fits: another run may share the folder
+    for kind in kinds if not args.keep_partial else ():  # only this run's: runs may share it
         for name in {r["test"] for r in results}:
             (partial / f"{kind}_{name}.pkl").unlink(missing_ok=True)
     if not any(partial.iterdir()):
