@@ -9,8 +9,13 @@ The standard problem's shape by default: ``three_branch``, 3 pulls of ``--sample
 (``rule``: :data:`treeinfer.sim.fused_backend.SENSITIVITY_RULE` on, ``plain``: off; both read at
 trace time) it prints the process CPU seconds of the first call (trace + compile + run) and the
 median of ``--reps`` more calls, and the largest difference between the two Jacobians relative
-to the largest entry. ``--tree`` also takes a tree file (a QSM chain: ``treeinfer tree
---from-qsm``). No timed assertions: figures for BENCHMARKS.md.
+to the largest entry. ``--tree`` also takes a tree file; ``--qsm FILE`` converts a QSM (the
+chain from the shared sapling's grasp point, joints every ``--joint-spacing`` m), as
+``benchmarks/qsm_compile.py`` does; ``--substeps 0``: the simulator's own step. No timed
+assertions: figures for BENCHMARKS.md.
+
+    python -m benchmarks.force_jacobian --qsm ../shared/data/qsm/treeqsm_QSM.mat \
+        --samples 50 --substeps 0   # docs/qsm.md's measurement
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--substeps", type=int, default=14)
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--paths", default="rule,plain")
+    ap.add_argument("--qsm", help="a QSM file: the chain to the sapling's grasp point")
+    ap.add_argument("--joint-spacing", type=float, default=1.0)
     args = ap.parse_args(argv)
 
     import jax
@@ -38,11 +45,18 @@ def main(argv=None) -> dict:
     from treeinfer.sim import make_simulator
     from treeinfer.tree.description import load_tree
 
-    try:
-        tree = load_tree(example_path(args.tree))
-    except Exception:  # noqa: BLE001 -- not an example name: a tree file
-        tree = load_tree(args.tree)
-    sim = make_simulator(tree, obs_dt=0.01, substeps=args.substeps)
+    if args.qsm:
+        from benchmarks.qsm_compile import GRASP
+        from treeinfer.tree import tree_from_qsm
+
+        tree = tree_from_qsm(args.qsm, grasp_point=GRASP, joint_spacing=args.joint_spacing).tree
+    else:
+        try:
+            tree = load_tree(example_path(args.tree))
+        except Exception:  # noqa: BLE001 -- not an example name: a tree file
+            tree = load_tree(args.tree)
+    sim = make_simulator(tree, obs_dt=0.01, substeps=args.substeps or None)
+    print(f"{sim.n_joints} joints, {sim.substeps} substeps, {args.pulls} x {args.samples} samples")
     t = np.arange(args.samples) * 0.01
     rng = np.random.default_rng(0)
     peak = rng.uniform(5.0, 15.0, args.pulls)
