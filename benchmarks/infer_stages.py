@@ -97,7 +97,8 @@ def _child(out: Path, argv: list[str]) -> int:
         w = wrap(label, orig)
         # every loaded treeinfer module that bound the same function by name
         for m in list(sys.modules.values()):
-            if getattr(m, "__name__", "").startswith("treeinfer") and getattr(m, attr, None) is orig:
+            ours = getattr(m, "__name__", "").startswith("treeinfer")
+            if ours and getattr(m, attr, None) is orig:
                 setattr(m, attr, w)
     t_imports = time.perf_counter() - t_start
     rc = cli.main(argv)
@@ -166,7 +167,8 @@ def main(argv=None) -> dict:
         data = work / "data"
         if not (data / "true_params.json").is_file():
             r = _run(
-                py + ["simulate", "--tree", str(tree), "--out", str(data), *DATA, *NOISE, "--force"],
+                [*py, "simulate", "--tree", str(tree), "--out", str(data), *DATA, *NOISE,
+                 "--force"],
                 work / "cache_data", work / "simulate.log",
             )  # fmt: skip
             if r["exit"] != 0:

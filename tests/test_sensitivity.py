@@ -220,6 +220,7 @@ def test_pull_uses_the_rule_for_the_scalar_layout_at_any_substep_count():
     for n in (None, 2):  # the simulator's own count, a static one
         jaxpr = str(jax.make_jaxpr(lambda a, n=n: _simulate(sim, a, a, f, substeps=n).tau)(ones))
         assert "name=_pull_sensitivity" in jaxpr
+
     def traced():  # a new function each time: make_jaxpr keeps the traces of one
         return jax.make_jaxpr(lambda a, n: _simulate(sim, a, a, f, substeps=n).tau)(
             ones, jnp.int32(3)
@@ -325,7 +326,7 @@ def test_force_jacobian_matches_central_differences_of_mujoco_c():
             up, down = f.copy(), f.copy()
             up[s] += h
             down[s] -= h
-            ref = (simulate_reference(sim, kp, kd, up)[0] - simulate_reference(sim, kp, kd, down)[0])
+            ref = simulate_reference(sim, kp, kd, up)[0] - simulate_reference(sim, kp, kd, down)[0]
             ref = ref / (2 * h)
             assert np.abs(ref).max() > 1e-6
             np.testing.assert_allclose(jac[:, s], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
