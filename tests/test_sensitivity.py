@@ -7,11 +7,20 @@
 * whole pulls against ``jax.jvp`` of the plain pull, against central differences of the
   rollout (float64), on 1-, 2- and 3-joint trees, and against central differences of MuJoCo C;
 * the likelihood gradient by forward mode (``jvp_value_and_grad``) against reverse mode (the
-  rule's transpose), and the force-tangent fallback (``force_noise``'s ``jax.jacfwd`` in the
-  forces) against the plain path; per-profile directions and grasp branches.
+  rule's transpose); per-profile directions and grasp branches;
+* force tangents (``force_noise``'s ``jax.jacfwd`` in the forces, at the simulator's own and at
+  a traced substep count): one step against ``jax.jvp`` of ``fused.step`` in the force, whole
+  pulls against the plain path and central differences of the rollout, and columns against
+  central differences of MuJoCo C.
+
+"The plain path" is ``jax.jvp`` of the step code, with
+:data:`treeinfer.sim.fused_backend.SENSITIVITY_RULE` off while tracing (:func:`plain_jvp`).
 """
 
 from __future__ import annotations
+
+import contextlib
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -37,6 +46,16 @@ ONE_BRANCH = {
     "grasp": {"branch": "b", "fraction": 0.8},
     "inference": {"levels": 1, "prior": {"kp": [5.0, 500.0], "kd": [0.05, 10.0]}},
 }
+
+
+@contextlib.contextmanager
+def plain_jvp():
+    """Trace with the sensitivity rule off: ``jax.jvp`` of the plain step code (the reference)."""
+    old, fb.SENSITIVITY_RULE = fb.SENSITIVITY_RULE, False
+    try:
+        yield
+    finally:
+        fb.SENSITIVITY_RULE = old
 
 
 def _trees():
@@ -153,8 +172,8 @@ def test_pull_tangent_equals_plain_jvp_and_central_differences(name, plain, stag
         dkp = jnp.asarray(rng.normal(size=(2, r))) * kp
         dkd = jnp.asarray(rng.normal(size=(2, r))) * kd
         fast = lambda a, b: _simulate(sim, a, b, f).tau
-        # the plain path: jax.jvp through the step code (an explicit substep count skips the rule)
-        slow = lambda a, b: _simulate(sim, a, b, f, substeps=sim.substeps).tau
+        # the plain path: jax.jvp through the step code (traced with the rule off)
+        slow = lambda a, b: _simulate(sim, a, b, f).tau
         tau, dtau = jax.jit(lambda a, b: jax.jvp(fast, (a, b), (dkp, dkd)))(kp, kd)
         scale = np.abs(np.asarray(dtau)).max()
         assert scale > 1e-4
@@ -162,7 +181,8 @@ def test_pull_tangent_equals_plain_jvp_and_central_differences(name, plain, stag
         rollout = jax.jit(fast)
         np.testing.assert_allclose(tau, rollout(kp, kd), rtol=1e-12, atol=1e-15)
         if plain:
-            tau_p, dtau_p = jax.jit(lambda a, b: jax.jvp(slow, (a, b), (dkp, dkd)))(kp, kd)
+            with plain_jvp():
+                tau_p, dtau_p = jax.jit(lambda a, b: jax.jvp(slow, (a, b), (dkp, dkd)))(kp, kd)
             np.testing.assert_allclose(tau, tau_p, rtol=1e-12, atol=1e-15)
             np.testing.assert_allclose(dtau, dtau_p, rtol=1e-9, atol=1e-9 * scale)
         h = 1e-6
@@ -190,26 +210,126 @@ def test_likelihood_gradient_forward_reverse_and_force_fallback():
         value_r, grad_r = jax.jit(autodiff_value_and_grad(loglik))(theta)
         np.testing.assert_allclose(value, value_r, rtol=1e-12)
         np.testing.assert_allclose(grad, grad_r, rtol=1e-9, atol=1e-9 * np.abs(grad).max())
-        # tangents in the forces (force_noise) take the plain jvp: same Jacobian
-        kp1, kd1 = jnp.asarray(kp)[None], jnp.asarray(kd)[None]
-        f = jnp.asarray(forces[:1])
-        jac = jax.jacfwd(lambda x: _simulate(sim, kp1, kd1, x).tau)(f)
-        jac_p = jax.jacfwd(lambda x: _simulate(sim, kp1, kd1, x, substeps=sim.substeps).tau)(f)
-        assert np.abs(np.asarray(jac)).max() > 0
-        np.testing.assert_allclose(jac, jac_p, rtol=1e-9, atol=1e-12)
 
 
-def test_pull_uses_the_rule_only_for_the_scalar_layout_and_default_substeps():
+def test_pull_uses_the_rule_for_the_scalar_layout_at_any_substep_count():
     sim, forces = _pull_data("two", 5)
     assert not fb.uses_levels(sim)
-    jaxpr = str(jax.make_jaxpr(lambda a: _simulate(sim, a, a, jnp.asarray(forces)).tau)(
-        jnp.ones((1, 2))
-    ))  # fmt: skip
-    assert "name=_pull_sensitivity" in jaxpr
-    jaxpr = str(jax.make_jaxpr(lambda a: _simulate(sim, a, a, jnp.asarray(forces), substeps=2).tau)(
-        jnp.ones((1, 2))
-    ))  # fmt: skip
+    f = jnp.asarray(forces)
+    ones = jnp.ones((1, 2))
+    for n in (None, 2):  # the simulator's own count, a static one
+        jaxpr = str(jax.make_jaxpr(lambda a, n=n: _simulate(sim, a, a, f, substeps=n).tau)(ones))
+        assert "name=_pull_sensitivity" in jaxpr
+
+    def traced():  # a new function each time: make_jaxpr keeps the traces of one
+        return jax.make_jaxpr(lambda a, n: _simulate(sim, a, a, f, substeps=n).tau)(
+            ones, jnp.int32(3)
+        )
+
+    assert "name=_pull_sensitivity" in str(traced())
+    with plain_jvp():
+        assert "name=_pull_sensitivity" not in str(traced())
+    lv_sim = dataclasses.replace(sim, step_layout="levels")
+    jaxpr = str(jax.make_jaxpr(lambda a: _simulate(lv_sim, a, a, f).tau)(ones))
     assert "name=_pull_sensitivity" not in jaxpr
+
+
+def test_step_force_tangent_equals_jvp_of_step():
+    """The force column of the step's linearization against ``jax.jvp`` of ``fused.step`` in
+    the force magnitude (float64, random states, a general tree, staged and unstaged)."""
+    t = _hinge("general")
+    rng = np.random.default_rng(7)
+    dt, body, site_local = 0.002, t.nbody, (0.1, 0.02, 0.0)
+    with jax.enable_x64(True):
+        for staged in (False, True):
+            q, v, stiff, damp, spring, _, lever, tg = _random_step_args(t, rng, [])
+            fdir = tuple(float(x) for x in rng.normal(size=3))
+            f0, df = jnp.asarray(3.7), jnp.asarray(rng.normal())
+
+            def full(q, v, lever, f):
+                force = tuple(f * d for d in fdir)
+                out = hd.step(t, q, v, stiff, damp, spring, dt, body, site_local, force, lever)
+                qn = q + dt * jnp.stack(out.qvel)
+                return qn, jnp.stack(out.qvel), jnp.stack(out.lever), jnp.stack(out.site)
+
+            _, ref = jax.jvp(full, (q, v, lever, f0), (tg["dq"], tg["dv"], tg["dl"], df))
+
+            def step(q, v, f):
+                return sn.step_linearization(
+                    t, q, v, stiff, damp, spring, dt, body, site_local,
+                    tuple(f * d for d in fdir), lever,
+                    pred=jnp.asarray(True) if staged else None, force_dir=fdir,
+                )  # fmt: skip
+
+            lin = jax.jit(step)(q, v, f0) if staged else step(q, v, f0)
+            zeros = [0.0] * t.nv
+            dq, dv, dl, dsite = sn.step_tangent(
+                t, lin, dt, tg["dq"], tg["dv"], tg["dl"], zeros, zeros, df
+            )
+            ours = (jnp.stack(dq), jnp.stack(dv), jnp.stack(dl), jnp.stack(dsite))
+            assert np.abs(np.asarray(lin.force)).max() > 0
+            for a, b in zip(ours, ref):
+                np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
+
+
+@pytest.mark.parametrize("name,traced", [("one", False), ("two", True), ("three", True)])
+def test_force_jacobian_equals_plain_jvp_and_central_differences(name, traced):
+    """``jax.jacfwd`` in the force samples (``force_noise.force_jacobian``'s program) through the
+    rule against the plain path and against central differences of the rollout in each force
+    sample (float64), at the simulator's own step or a traced substep count, with a pull
+    direction per profile on the two-branch tree."""
+    sim, forces = _pull_data(name, 12)
+    rng = np.random.default_rng(11)
+    opts = {"direction": jnp.asarray([[1.0, 0.0, -0.3], [0.0, 0.4, -1.0]])} if name == "two" else {}
+    with jax.enable_x64(True):
+        kp = jnp.asarray(rng.uniform(30, 200, (1, sim.n_joints)))
+        kd = jnp.asarray(rng.uniform(0.3, 3, (1, sim.n_joints)))
+        f = jnp.asarray(forces)
+        n = jnp.int32(sim.substeps + 1) if traced else None
+
+        def tau(x, n):
+            return _simulate(sim, kp, kd, x, substeps=n, **opts).tau[0]
+
+        jac = jax.jit(jax.jacfwd(tau))(f, n)  # [B, T, B, T]
+        with plain_jvp():
+            jac_p = jax.jit(jax.jacfwd(tau))(f, n)
+        scale = np.abs(np.asarray(jac)).max()
+        assert scale > 1e-5
+        np.testing.assert_allclose(jac, jac_p, rtol=1e-9, atol=1e-10 * scale)
+        # pulls are independent, the response causal
+        b, t = forces.shape
+        assert np.abs(np.asarray(jac)[0, :, 1]).max() == 0.0
+        assert np.abs(np.asarray(jac)[0, :, 0][np.triu_indices(t, 1)]).max() == 0.0
+        rollout = jax.jit(tau)
+        h = 1e-5
+        for s in (0, 3, t - 1):
+            e = jnp.zeros_like(f).at[:, s].set(h)
+            fd = (rollout(f + e, n) - rollout(f - e, n)) / (2 * h)
+            ours = jac[:, :, :, s].sum(-1)  # every pull's sample s moved
+            np.testing.assert_allclose(ours, fd, rtol=1e-6, atol=1e-7 * scale)
+
+
+def test_force_jacobian_matches_central_differences_of_mujoco_c():
+    """An independent reference for the force columns: central differences of the MuJoCo C
+    rollout (``simulate_reference``, ``mj_step`` in float64) in single force samples."""
+    from treeinfer.sim.reference import simulate_reference
+
+    sim = make_simulator(TREES["three"], obs_dt=0.01)
+    t = np.arange(30) * 0.01
+    f = 4.0 * np.clip(t / 0.2, 0, 1)
+    kp, kd = np.array([120.0, 60.0, 30.0]), np.array([1.0, 0.5, 0.3])
+    with jax.enable_x64(True):
+        tau = lambda x: _simulate(sim, kp[None], kd[None], x[None]).tau[0, 0]
+        jac = np.asarray(jax.jit(jax.jacfwd(tau))(jnp.asarray(f)))
+        for s in (0, 5, 17):
+            h = 1e-4
+            up, down = f.copy(), f.copy()
+            up[s] += h
+            down[s] -= h
+            ref = simulate_reference(sim, kp, kd, up)[0] - simulate_reference(sim, kp, kd, down)[0]
+            ref = ref / (2 * h)
+            assert np.abs(ref).max() > 1e-6
+            np.testing.assert_allclose(jac[:, s], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
 
 
 def test_pull_tangent_with_direction_grasp_branch_and_fraction():
@@ -228,9 +348,9 @@ def test_pull_tangent_with_direction_grasp_branch_and_fraction():
             "grasp_fraction": jnp.asarray([0.6, 0.9]),
         }
         fast = lambda a, b: _simulate(sim, a, b, f, **opts).tau
-        slow = lambda a, b: _simulate(sim, a, b, f, substeps=sim.substeps, **opts).tau
         _, dtau = jax.jvp(fast, (kp, kd), (dkp, dkd))
-        _, dtau_p = jax.jvp(slow, (kp, kd), (dkp, dkd))
+        with plain_jvp():
+            _, dtau_p = jax.jvp(fast, (kp, kd), (dkp, dkd))
         scale = np.abs(np.asarray(dtau_p)).max()
         assert scale > 1e-5
         np.testing.assert_allclose(dtau, dtau_p, rtol=1e-9, atol=1e-9 * scale)

@@ -358,11 +358,33 @@ def force_noise_basis(
     ``theta_ref [2R]`` (``numpy.linalg.eigh`` in float64, once per pull)."""
     forces = np.atleast_2d(np.asarray(forces, float))
     m = np.ones(forces.shape, bool) if mask is None else np.asarray(mask, bool)
+    # kept on the simulator as J is: a run builds the same basis for its reference problem,
+    # its final problem, the training fit's band and the fit verdict (an eigh of each pull's
+    # [T, T] covariance every time)
+    key = _basis_key(sim, "basis", theta_ref, forces, sigma_force, m, grasp_fraction)
+    kept = sim.derived.setdefault("force_noise_bases", collections.OrderedDict())
+    if key in kept:
+        kept.move_to_end(key)
+        return ForceNoiseBasis(*(None if x is None else np.array(x) for x in kept[key]))
     cov = force_noise_covariance(
         force_jacobian(sim, theta_ref, forces, grasp_fraction), sigma_force, m
     )
     lam, u = np.linalg.eigh(cov)
-    return ForceNoiseBasis(u, np.clip(lam, 0.0, None), (~m).sum(axis=1))
+    basis = ForceNoiseBasis(u, np.clip(lam, 0.0, None), (~m).sum(axis=1))
+    if u.nbytes <= _KEPT_MAX_BYTES:
+        kept[key] = ForceNoiseBasis(*(None if x is None else np.array(x) for x in basis))
+        while len(kept) > _KEPT_SIZE:
+            kept.popitem(last=False)
+    return basis
+
+
+def _basis_key(sim, what, theta, forces, sigma_force, mask, grasp_fraction, *more):
+    """The key of a basis (or its bias slope) kept on ``sim.derived``: the simulator's content
+    and every input, as bytes."""
+    gf = None if grasp_fraction is None else np.asarray(grasp_fraction, float).tobytes()
+    theta = np.asarray(theta, float).reshape(-1).tobytes()
+    return (what, sim.fingerprint, theta, forces.shape, forces.tobytes(), float(sigma_force),
+            np.asarray(mask, bool).tobytes(), gf, *more)  # fmt: skip
 
 
 def mvn_log_prob(residual, basis: ForceNoiseBasis, sigma_x, theta_gains=None) -> jax.Array:

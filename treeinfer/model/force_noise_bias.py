@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .force_noise import BIAS_STEP, ForceNoiseBasis, force_jacobian
+from .force_noise import BIAS_STEP, ForceNoiseBasis, _basis_key, force_jacobian
 
 __all__ = ["with_bias_slope"]
 
@@ -74,6 +74,17 @@ def with_bias_slope(
     # pull set on two CPU cores for 3 pulls of 300 samples); the O(h) error is below the first
     # order's own beyond a few h (module docstring)
     lam = np.asarray(basis.values, float)
-    eye = np.eye(ref.size)
-    slope = np.stack([(along(ref + h * eye[k]) - lam) / h for k in range(ref.size)], axis=-1)
-    return basis._replace(slope=slope, theta_ref=ref)
+    # kept on the simulator (a run's reference problem and its final problem take the same
+    # slope: 2R Jacobians each time), keyed by every input and the basis it projects on
+    key = _basis_key(
+        sim, "slope", ref, forces, sigma_force, m, grasp_fraction, float(h), lam.tobytes(),
+        u.tobytes(),
+    )  # fmt: skip
+    kept = sim.derived.setdefault("force_noise_slopes", {})
+    if key not in kept:
+        eye = np.eye(ref.size)
+        slope = np.stack([(along(ref + h * eye[k]) - lam) / h for k in range(ref.size)], axis=-1)
+        if len(kept) >= 2:  # the last two: a run linearises again at most a few times
+            kept.pop(next(iter(kept)))
+        kept[key] = slope
+    return basis._replace(slope=kept[key].copy(), theta_ref=ref)

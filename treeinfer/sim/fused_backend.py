@@ -158,11 +158,16 @@ def _pull(
     sim: Simulator, gains, qpos_rest, forces, site_local, unroll_outer=1, unroll_inner=1, **kw
 ):
     kp, kd = gains
-    if SENSITIVITY_RULE and kw.get("substeps") is None and not uses_levels(sim):
-        # same values; derivatives in the gains by the step's sensitivity equations
+    if SENSITIVITY_RULE and not kw.get("with_q") and not uses_levels(sim):
+        # same values; derivatives in the gains and the forces by the step's sensitivity
+        # equations. A substep count given as a Python int stays static (a constant loop
+        # bound); a traced one (force_noise's Jacobian program) is a primal of the rule
+        n = kw.get("substeps")
+        static = n if n is None or isinstance(n, int) else None
         return _pull_sensitivity(
-            sim, unroll_outer, unroll_inner, kw.get("body"),
+            sim, unroll_outer, unroll_inner, kw.get("body"), static,
             kp, kd, qpos_rest, forces, site_local, kw.get("direction"),
+            None if static is not None or n is None else n,
         )  # fmt: skip
     return _pull_one(sim, kp, kd, qpos_rest, forces, site_local, unroll_outer, unroll_inner, **kw)
 
@@ -174,22 +179,32 @@ def _pull(
 # 13). The rule below computes the step's state Jacobian once per step (``sensitivity.py``) and
 # applies it to every tangent direction with a few multiply-adds; under ``vmap`` over tangent
 # directions (``gradients.jvp_value_and_grad``, ``jax.jacfwd``) the Jacobian stays unbatched.
-# Tangents of the forces, grasp point or direction (``force_noise``) take the plain ``jax.jvp``.
+# Tangents of the forces go through the rule too (the force enters a step linearly through the
+# applied wrench: one more column of the step's Jacobian, ``StepLinearization.force``): the
+# errors-in-variables force Jacobian (``model.force_noise``, ``jax.jacfwd`` in T force samples)
+# took 3.0 CPU-s per call on the standard problem by the plain JVP (``benchmarks/
+# force_jacobian.py``) and 38 s on a QSM sapling's 4-joint chain (docs/qsm.md). Tangents of
+# the grasp point or the pull direction still take the plain ``jax.jvp``.
 
 
 SENSITIVITY_RULE = True
 """Read at trace time: False differentiates the plain step code (``jax.jvp`` of
-:func:`_pull_one`), for comparisons (``benchmarks/gradient_cost.py --plain-jvp``)."""
+:func:`_pull_one`), for comparisons (``benchmarks/gradient_cost.py --plain-jvp``,
+``benchmarks/force_jacobian.py``) and as the tests' reference."""
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3))
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3, 4))
 def _pull_sensitivity(
-    sim, unroll_outer, unroll_inner, body, kp, kd, qpos_rest, forces, site_local, direction
-):
-    """:func:`_pull_one` (the same values) with :func:`_pull_sensitivity_jvp` as derivative."""
+    sim, unroll_outer, unroll_inner, body, static_substeps,
+    kp, kd, qpos_rest, forces, site_local, direction, traced_substeps,
+):  # fmt: skip
+    """:func:`_pull_one` (the same values) with :func:`_pull_sensitivity_jvp` as derivative.
+    The substep count: ``static_substeps`` (None: the simulator's own; a Python int) or
+    ``traced_substeps`` (an int32 array; None when static)."""
+    n = static_substeps if traced_substeps is None else traced_substeps
     return _pull_one(
         sim, kp, kd, qpos_rest, forces, site_local, unroll_outer, unroll_inner,
-        direction=direction, body=body,
+        direction=direction, body=body, substeps=n,
     )  # fmt: skip
 
 
@@ -197,28 +212,32 @@ def _is_zero_tangent(x) -> bool:
     return x is None or isinstance(x, jax.custom_derivatives.SymbolicZero)
 
 
-def _pull_sensitivity_jvp(sim, unroll_outer, unroll_inner, body, primals, tangents):
-    kp, kd, qpos_rest, forces, site_local, direction = primals
-    dkp, dkd, dq0, dforces, dsite, ddirection = tangents
-    data = [dforces, dsite] + jax.tree_util.tree_leaves(
+def _pull_sensitivity_jvp(
+    sim, unroll_outer, unroll_inner, body, static_substeps, primals, tangents
+):
+    kp, kd, qpos_rest, forces, site_local, direction, traced_substeps = primals
+    dkp, dkd, dq0, dforces, dsite, ddirection, _ = tangents
+    n = static_substeps if traced_substeps is None else traced_substeps
+    data = [dsite] + jax.tree_util.tree_leaves(
         ddirection, is_leaf=lambda x: isinstance(x, jax.custom_derivatives.SymbolicZero)
     )
     if not all(_is_zero_tangent(x) for x in data):
         inst = lambda x, p: jnp.zeros_like(p) if _is_zero_tangent(x) else x
         plain = lambda *a: _pull_one(
             sim, a[0], a[1], a[2], a[3], a[4], unroll_outer, unroll_inner, direction=a[5],
-            body=body,
+            body=body, substeps=n,
         )  # fmt: skip
         tan = tuple(
             jax.tree_util.tree_map(inst, t, p, is_leaf=_is_zero_tangent) if p is not None else None
-            for t, p in zip(tangents, primals)
+            for t, p in zip(tangents[:6], primals[:6])
         )
-        return jax.jvp(plain, primals, tan)
+        return jax.jvp(plain, primals[:6], tan)
     dtype = qpos_rest.dtype
     zero = lambda x, like: jnp.zeros_like(like) if _is_zero_tangent(x) else x.astype(dtype)
     (tau, ok), dtau = pull_with_tangent(
         sim, kp, kd, qpos_rest, forces, site_local, zero(dkp, kp), zero(dkd, kd),
         zero(dq0, qpos_rest), unroll_outer, unroll_inner, direction, body,
+        dforces=None if _is_zero_tangent(dforces) else dforces.astype(dtype), substeps=n,
     )  # fmt: skip
     return (tau, ok), (dtau, np.zeros(np.shape(ok), jax.dtypes.float0))
 
@@ -240,12 +259,15 @@ def pull_with_tangent(
     unroll_inner=1,
     direction=None,
     body: int | None = None,
+    dforces=None,
+    substeps=None,
 ):
-    """One pull (:func:`_pull_one`, scalar layout, the simulator's own substeps) and its exact
-    tangent for the gain tangents ``dkp``, ``dkd`` [R] and rest-pose tangent ``dq0`` [nv]:
-    ``((tau [T], ok), dtau [T])`` (m). The step's Jacobian is computed once per step
-    (:func:`treeinfer.sim.sensitivity.step_linearization`) and does not depend on the tangent,
-    so under ``vmap`` over tangent directions it is shared by all of them."""
+    """One pull (:func:`_pull_one`, scalar layout) and its exact tangent for the gain tangents
+    ``dkp``, ``dkd`` [R], rest-pose tangent ``dq0`` [nv] and force tangent ``dforces`` [T] (N;
+    None: zero): ``((tau [T], ok), dtau [T])`` (m). ``substeps``: as :func:`_pull_one`'s (None:
+    the simulator's own; a Python int or a traced count). The step's Jacobian is computed once
+    per step (:func:`treeinfer.sim.sensitivity.step_linearization`) and does not depend on the
+    tangent, so under ``vmap`` over tangent directions it is shared by all of them."""
     from . import sensitivity as sn
     from .forcing import force_fraction, next_samples
 
@@ -257,10 +279,11 @@ def pull_with_tangent(
     else:
         ddir = tuple(jnp.asarray(direction[i], dtype) for i in range(3))
     bid = sim.grasp_body if body is None else body
-    n_sub = sim.substeps
-    dt = sim.sim_dt
+    n_sub = sim.substeps if substeps is None else substeps
+    dt = sim.sim_dt if substeps is None else sim.obs_dt / jnp.asarray(substeps, dtype)
     site_local = tuple(site_local[i] for i in range(3))
     stiffness, damping, spring = _gains(sim, kp, kd)
+    with_force = dforces is not None
     dstiff, ddamp = [0.0] * nv, [0.0] * nv
     for col, dof in enumerate(sim.dof_ids):
         dstiff[int(dof)] = dkp[col]
@@ -272,20 +295,21 @@ def pull_with_tangent(
 
     def observe(carry, ff):
         (q, v, lever, comp, ok), (dq, dv, dl) = carry
-        f0, f1 = ff
+        f0, f1, df0, df1 = ff
 
         def sub(k, st):
             (q, v, lever, c, comp), (dq, dv, dl, dc) = st
-            force = hd.vscale(
-                f0 + force_fraction(sim.force_interp, k, n_sub, dtype) * (f1 - f0), ddir
-            )
+            frac = force_fraction(sim.force_interp, k, n_sub, dtype)
+            force = hd.vscale(f0 + frac * (f1 - f0), ddir)
             lin = sn.step_linearization(
                 t, q, v, stiffness, damping, spring, dt, bid, site_local, force, lever,
-                pred=(k >= 0) if staged else None,
+                pred=(k >= 0) if staged else None, force_dir=ddir if with_force else None,
             )  # fmt: skip
+            # the force tangent interpolated as the force (linear in the samples)
+            dforce = hd.add(df0, hd.mul(frac, hd.sub(df1, df0))) if with_force else 0.0
             dq_new, dv_new, dl_new, dsite = sn.step_tangent(
                 t, lin, dt, [dq[i] for i in range(nv)], [dv[i] for i in range(nv)], dl,
-                dstiff, ddamp,
+                dstiff, ddamp, dforce,
             )  # fmt: skip
             out = lin.out
             site = out.site
@@ -314,9 +338,18 @@ def pull_with_tangent(
         (dq0, zero, as_dtype(dlever0)),
     )
     forces = forces.astype(dtype)
+    # no force tangent: Python zeros per sample (they fold away in step_tangent)
+    dforces = jnp.zeros((forces.shape[0], 0), dtype) if dforces is None else dforces[:, None]
+    pick = (lambda d: d[0]) if with_force else (lambda d: 0.0)
+
+    def observe_samples(carry, ff):
+        f0, f1, d0, d1 = ff
+        return observe(carry, (f0, f1, pick(d0), pick(d1)))
+
     (((_, _, _, _, ok), _), (tau, dtau)) = jax.lax.scan(
-        observe, carry, (forces, next_samples(forces)), unroll=unroll_outer
-    )
+        observe_samples, carry, (forces, next_samples(forces), dforces, next_samples(dforces)),
+        unroll=unroll_outer,
+    )  # fmt: skip
     ok = ok & jnp.all(jnp.isfinite(tau)) & jnp.all(jnp.abs(tau) < sim.max_displacement)
     return (tau, ok), dtau
 

@@ -84,7 +84,9 @@ class StepLinearization(NamedTuple):
     m; so 1/s^2, 1/s, rad/(s^2 m)); ``gain[i][j]`` = (H^-1)_{i, dof j}: the acceleration per
     unit torque at dof j (for the gain tangents); ``site_q[m][k]``, ``lever_q[m][k]``:
     d site_m / dq_k and d (site - com)_m / dq_k (m / rad); ``spring_arm`` [nv] = q - q_spring,
-    ``damp_arm`` [nv] = v + dt qacc (the torque per unit Kp, Kd is minus these)."""
+    ``damp_arm`` [nv] = v + dt qacc (the torque per unit Kp, Kd is minus these); ``force``
+    [nv]: d qacc / d f for the applied force ``f * force_dir`` (1/(s^2 N)), None when not asked
+    for (:func:`step_linearization`'s ``force_dir``)."""
 
     out: hd.StepOutput
     jac: tuple
@@ -93,6 +95,7 @@ class StepLinearization(NamedTuple):
     lever_q: tuple
     spring_arm: tuple
     damp_arm: tuple
+    force: tuple | None = None
 
 
 def _moved_by(t: hd.HingeTree, body: int, dof: int) -> tuple[bool, bool]:
@@ -170,11 +173,14 @@ def step_linearization(
     force,
     lever,
     pred=None,
+    force_dir=None,
 ) -> StepLinearization:
     """:func:`treeinfer.sim.fused.step` (same arguments, same primal arithmetic) and the state
     Jacobian its tangents need (:class:`StepLinearization`). ``pred``: a runtime-true unbatched
     scalar (the loop counter ``>= 0``) to stage the computation with :func:`materialize`
-    (XLA:CPU speed only; None: no staging)."""
+    (XLA:CPU speed only; None: no staging). ``force_dir`` (3 elements): also the column of a
+    force tangent along it, ``H^-1 ds/dF force_dir`` (the force enters ``s`` linearly, through
+    the applied force and its moment ``lever x F``; nothing else in the step reads it)."""
     nv = t.nv
     q = [qpos[i] for i in range(nv)]
     v = [qvel[i] for i in range(nv)]
@@ -244,22 +250,35 @@ def step_linearization(
         gain = tuple(tuple(gain_cols[j][i] for j in range(nv)) for i in range(nv))
         site_q = tuple(tuple(cols[k][1][m] for k in range(nv)) for m in range(3))
         lever_q = tuple(tuple(cols[k][2][m] for k in range(nv)) for m in range(3))
-        return jac, gain, site_q, lever_q
+        fcol = None
+        if force_dir is not None:
 
-    jac, gain, site_q, lever_q = stage(columns)
+            def applied(f):  # s's force-dependent part (minus the applied generalized force)
+                rhs = hd.bias_minus_applied(t, kin, tuple(v), body, f, hd.cross(lever, f))
+                return tuple(hd.mul(-1.0, rhs[i]) for i in range(nv))
+
+            dres = _jvp_sparse(applied, tuple(force), tuple(force_dir))
+            fcol = tuple(hd.solve_factored(t, factor, list(dres)))
+        return jac, gain, site_q, lever_q, fcol
+
+    jac, gain, site_q, lever_q, fcol = stage(columns)
     spring_arm = tuple(hd.sub(q[i], qpos_spring[i]) for i in range(nv))
     damp_arm = tuple(hd.add(v[i], hd.mul(dt, qacc[i])) for i in range(nv))
-    return StepLinearization(out, jac, gain, site_q, lever_q, spring_arm, damp_arm)
+    return StepLinearization(out, jac, gain, site_q, lever_q, spring_arm, damp_arm, fcol)
 
 
 def _is_zero(x) -> bool:
     return isinstance(x, float) and x == 0.0
 
 
-def step_tangent(t: hd.HingeTree, lin: StepLinearization, dt, dq, dv, dlever, dstiff, ddamp):
+def step_tangent(
+    t: hd.HingeTree, lin: StepLinearization, dt, dq, dv, dlever, dstiff, ddamp, dforce=0.0
+):
     """Tangent of one step: ``(dq' [nv], dv' [nv], dlever' [3], dsite [3])`` for the state
-    tangent ``dq``, ``dv`` [nv], ``dlever`` [3] and gain tangents ``dstiff``, ``ddamp`` [nv]
-    (N m/rad, N m s/rad; Python 0.0 for gains that are not inferred). ``dlever'`` and ``dsite``
+    tangent ``dq``, ``dv`` [nv], ``dlever`` [3], gain tangents ``dstiff``, ``ddamp`` [nv]
+    (N m/rad, N m s/rad; Python 0.0 for gains that are not inferred) and the applied force's
+    tangent ``dforce`` (N along the linearization's ``force_dir``; Python 0.0: none; needs
+    ``lin.force``). ``dlever'`` and ``dsite``
     are the tangents of the step's ``lever`` and ``site`` outputs (functions of the step's
     starting angles). ~(2 nv + 3 + R) multiply-adds per joint: no factorization, no solve."""
     nv = t.nv
@@ -276,6 +295,8 @@ def step_tangent(t: hd.HingeTree, lin: StepLinearization, dt, dq, dv, dlever, ds
     for i in range(nv):
         acc = hd.total(*(hd.mul(lin.jac[i][c], x[c]) for c in range(len(x))))
         acc = hd.sub(acc, hd.total(*(hd.mul(lin.gain[i][j], torque[j]) for j in range(nv))))
+        if not _is_zero(dforce):
+            acc = hd.add(acc, hd.mul(lin.force[i], dforce))
         da.append(acc)
     dv_new = [hd.add(dv[i], hd.mul(dt, da[i])) for i in range(nv)]
     dq_new = [hd.add(dq[i], hd.mul(dt, dv_new[i])) for i in range(nv)]
