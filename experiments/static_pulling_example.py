@@ -57,12 +57,16 @@ if str(ROOT) not in sys.path:
 
 OUT = ROOT / "experiments" / "results" / "static_pulling_example"
 CABLE_DEG = 20.0
+_CX, _CZ = math.cos(math.radians(CABLE_DEG)), -math.sin(math.radians(CABLE_DEG))  # pull direction
 TRUTH = {
     "kp": {"root": 3.0e6, "lower": 8.0e6, "upper": 4.0e6},  # N m/rad
     "kd": {"root": 3.0e4, "lower": 5.0e4, "upper": 2.0e4},  # N m s/rad
 }
-CLINOS = {"clino_0.5m": ("root", 0.5), "clino_2m": ("lower", 1.0 / 3.0),
-          "clino_6m": ("upper", 0.25)}  # fmt: skip  (link, fraction: heights 0.5, 2, 6 m)
+CLINOS = {
+    "clino_0.5m": ("root", 0.5),
+    "clino_2m": ("lower", 1.0 / 3.0),
+    "clino_6m": ("upper", 0.25),
+}  # fmt: skip  (link, fraction: heights 0.5, 2, 6 m)
 PULLS = {  # name: (folder, peak N, ramp s, hold s, release s)
     "pull_2kN.csv": ("train", 2000.0, 10.0, 3.0, 2.0),
     "pull_3kN.csv": ("test", 3000.0, 12.0, 3.0, 2.0),
@@ -76,8 +80,10 @@ CONFIG = {
     "sling": "upper link at 0.5 (8 m)",
     "truth": TRUTH,
     "clinos": {k: {"link": v[0], "fraction": v[1]} for k, v in CLINOS.items()},
-    "pulls": {k: {"folder": v[0], "peak_N": v[1], "ramp_s": v[2], "hold_s": v[3],
-                  "release_s": v[4]} for k, v in PULLS.items()},  # fmt: skip
+    "pulls": {
+        k: {"folder": v[0], "peak_N": v[1], "ramp_s": v[2], "hold_s": v[3], "release_s": v[4]}
+        for k, v in PULLS.items()
+    },  # fmt: skip
     "dt": DT,
     "noise": NOISE,
     "data": "PlanarTree (Lagrange + scipy), full dynamics at the true Kp and Kd",
@@ -100,7 +106,7 @@ branches:
   - {{name: lower, parent: root, length: 3.0, radius: 0.15}}
   - {{name: upper, parent: lower, length: 8.0, radius: 0.11}}
 grasp: {{branch: upper, fraction: 0.5}}                        # the sling, 8 m up
-pull: {{direction: [{math.cos(math.radians(CABLE_DEG)):.12f}, 0.0, {-math.sin(math.radians(CABLE_DEG)):.12f}]}}
+pull: {{direction: [{_CX:.12f}, 0.0, {_CZ:.12f}]}}
 inference:
   joints: [root, lower, upper]
   prior:
@@ -249,8 +255,8 @@ def held_out(problem, theta, test) -> tuple[dict, list]:
     n = sum(r["samples"] for r in res.values())
     return {
         "channels": res,
-        "channels_pct_inside": 100.0 - sum(r["pct_outside"] * r["samples"] for r in res.values())
-        / n,
+        "channels_pct_inside": 100.0
+        - sum(r["pct_outside"] * r["samples"] for r in res.values()) / n,
         "displacement_pct_inside": 100.0 - float(m["pct_outside"]),
         "displacement_band_mm": 1e3 * float(m["ci_width"]),
     }, (bands, pred, traj)
@@ -331,9 +337,14 @@ def results_md(res: dict) -> str:
             lines.append(f"| {kind} | {lab} | {p['truth']:.3g} | {p['median']:.3g} | "
                          f"[{p['lower']:.3g}, {p['upper']:.3g}] | "
                          f"{'yes' if p['inside'] else 'no'} |")  # fmt: skip
-    lines += ["", "## Held-out pull (3 kN): share of recorded points inside the 95% predictive "
-              "band", "", "| model | clino_0.5m | clino_2m | clino_6m | all clinos | "
-              "displacement | method | k_hat | seconds |", "|---|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Held-out pull (3 kN): share of recorded points inside the 95% predictive band",
+        "",
+        "| model | clino_0.5m | clino_2m | clino_6m | all clinos | "
+        "displacement | method | k_hat | seconds |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for kind, r in res["models"].items():
         h = r["held_out"]
         c = {k: 100.0 - v["pct_outside"] for k, v in h["channels"].items()}

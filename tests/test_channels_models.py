@@ -137,8 +137,18 @@ def test_kfold_scores_the_held_out_folds_channels(tree, tmp_path):
         tilt = np.array([ref.rotation(q, ref.q_rest, "child") for q in qs])[:, [1]]
         trajs.append(ti.Trajectory(t, force, tau + rng.normal(0, 1e-3, t.size), None,
                                    f"p{b}.csv"))  # fmt: skip
-        chans.append(Channel(f"tilt_{b}", "angle", f"p{b}.csv", NamedPoint("child", fraction=0.5),
-                             ("y",), t, tilt + rng.normal(0, 1e-3, tilt.shape), sensor="tilt"))
+        chans.append(
+            Channel(
+                f"tilt_{b}",
+                "angle",
+                f"p{b}.csv",
+                NamedPoint("child", fraction=0.5),
+                ("y",),
+                t,
+                tilt + rng.normal(0, 1e-3, tilt.shape),
+                sensor="tilt",
+            )
+        )
     write_channels(tmp_path, chans)
     problem = ti.make_problem(tree, trajs[:1], model_kind="static", direction=DIRECTION,
                               channels=tuple(chans[:1]), noise_force=None)  # fmt: skip

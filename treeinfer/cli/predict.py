@@ -51,7 +51,8 @@ ground truth) or a force profile with only time,force columns; its time step mus
 Writes prediction.csv (time, force, recorded, mean, lower, upper; s, N, m; header first),
 prediction.png and config.json. A run with observation channels (channels.yaml) also writes
 channels/<channel>_prediction.csv and channels.png: the recording's own channels where its
-folder's channels.yaml names it, else one band per sensor the run was trained with. Particles whose simulation is unstable are left out and counted.
+folder's channels.yaml names it, else one band per sensor the run was trained with.
+Particles whose simulation is unstable are left out and counted.
 A recording is predicted at its own grasp point (its folder's pulls.yaml); predicted elsewhere
 (--grasp-fraction), it is not compared: a warning says so and 'recorded' stays empty.
 --force alone replaces a non-empty --out folder, as in every command.
@@ -326,7 +327,6 @@ def run_predict(args: argparse.Namespace) -> int:
         print(f"  channel {b.channel.name} ({cm['kind']} at {cm['point']}): {scored}")
     print(
         f"wrote {args.out}/ (prediction.csv, {figure_names('prediction', args.formats)}, "
-        "config.json" + (", channels/<channel>_prediction.csv, channels.png" if bands else "")
-        + ")"
+        "config.json" + (", channels/<channel>_prediction.csv, channels.png" if bands else "") + ")"
     )
     return EXIT_OK

@@ -192,9 +192,8 @@ def _suggest_sensors(args) -> int:
     from .. import runs
     from ..data.trajectories import read_trajectory_dir, stack_trajectories
     from ..design.sensors import candidate_sensors, rank_sensors, sensors_table
-    from ..io.atomic import atomic_write_json
-
     from ..inference.static import model_with_pulls
+    from ..io.atomic import atomic_write_json
 
     run = runs.load_run(args.run, allow_modified=args.allow_modified)
     data = run.config["options"].get("data")

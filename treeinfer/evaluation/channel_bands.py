@@ -165,9 +165,7 @@ def channel_bands(
                 * (np.repeat(sig[c_i], reps)[:, None, None])
             )
             plo, phi = np.quantile(noisy, q, axis=0)
-        bands.append(
-            ChannelBand(ch, ch.time, ch.values, p.mean(0), lo, hi, plo, phi, p, sig[c_i])
-        )
+        bands.append(ChannelBand(ch, ch.time, ch.values, p.mean(0), lo, hi, plo, phi, p, sig[c_i]))
     return bands
 
 

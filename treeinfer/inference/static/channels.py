@@ -28,20 +28,18 @@ def model_features(sim, model, theta, forces, features, grasp_fraction=None):
     branch = model.grasp_branch
     branch = tuple(branch) if branch is not None and not isinstance(branch, str) else branch
     if model.kind == "static":
-        from .equilibrium import static_equilibria
         from ...sim.observe import features_from_q
+        from .equilibrium import static_equilibria
 
-        eq = static_equilibria(
-            sim, kp, forces, grasp_fraction, model.direction, branch, model.tree
-        )
+        eq = static_equilibria(sim, kp, forces, grasp_fraction, model.direction, branch, model.tree)
         q = jnp.asarray(eq.q)
         rest = jnp.broadcast_to(eq.q_rest[:, None, None, :], q.shape[:2] + (1, q.shape[-1]))
         feats = features_from_q(sim, jnp.concatenate([rest, q], axis=2), tuple(features))
         feats = feats[:, :, 1:]
         ok = eq.stable & jnp.all(jnp.isfinite(feats), axis=(-3, -2, -1))
         return jnp.where(ok[..., None, None, None], feats, 0.0), ok
-    from .equilibrium import _profile_geometry
     from ...sim.observe import simulate_features_at
+    from .equilibrium import _profile_geometry
 
     kp, forces, bodies, sites, dirs = _profile_geometry(
         sim, kp, forces, grasp_fraction, model.direction, branch, model.tree
