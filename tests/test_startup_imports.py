@@ -143,8 +143,10 @@ def test_a_fast_posterior_run_imports_no_heavy_library(tmp_path):
         t = np.arange(40) * 0.01
         f = 5.0 * np.clip(t / 0.1, 0.0, 1.0) * (t < 0.25)
         x = 0.01 * np.clip(t / 0.1, 0.0, 1.0) * (t < 0.25)
+        # the paper's loss, explicitly (the API's default became the Gaussian likelihood, whose
+        # noise densities are numpyro's)
         problem = make_problem(tree, [Trajectory(t, f, x, None, "p")], substeps=2,
-                               nn_prior=False, kT=0.05)
+                               nn_prior=False, kT=0.05, likelihood="boltzmann")
         res = fast_posterior(problem, 16, n_starts=2, n_draws=64, max_iterations=3)
         assert res.theta.shape == (16, 2)
         print(" ".join(sorted(sys.modules)))
