@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -136,9 +137,24 @@ def main(argv=None) -> int:
         "--model", type=Path, default=None, help="measure this trained model (no training)"
     )
     ap.add_argument("--force", action="store_true")
+    ap.add_argument("--sims", type=int, default=None, help="training simulations (the size's)")
+    ap.add_argument("--epochs", type=int, default=None, help="most epochs (the size's)")
+    ap.add_argument("--sets", type=int, default=None, help="held-out data sets (the size's)")
+    ap.add_argument(
+        "--check-budget-s",
+        type=float,
+        default=None,
+        help="stop starting new --check recordings after this many seconds (every kind in turn)",
+    )
     args = ap.parse_args(argv)
     if args.gpu:
         args.size = "full"
+    # the flow's epochs as a progress line every 10 s (flowjax's tqdm bar), on a GPU by default
+    os.environ.setdefault("TQDM_MININTERVAL", "10")
+    t_start = time.perf_counter()
+
+    def log(msg: str) -> None:
+        print(f"[{time.perf_counter() - t_start:7.1f} s] {msg}", file=sys.stderr, flush=True)
 
     import treeinfer as ti
     from treeinfer.amortised import (
@@ -153,7 +169,10 @@ def main(argv=None) -> int:
     from treeinfer.io.provenance import versions
 
     ti.enable_compilation_cache()
-    size = SIZES[args.size]
+    size = dict(SIZES[args.size])
+    for key, v in (("sims", args.sims), ("epochs", args.epochs), ("sets", args.sets)):
+        if v is not None:
+            size[key] = v
     tree = _tree(args.tree)
     cfg = AmortiseConfig(
         PullLayout(**size["layout"]),
@@ -179,14 +198,21 @@ def main(argv=None) -> int:
         am.check_tree(tree, f"--tree {args.tree}")
         cfg = am.config
     else:
-        am = train(tree, cfg, log=lambda m: print(m, file=sys.stderr))
-    res = expected_coverage(am, tree, size["sets"], size["draws"], seed=args.seed + 1000)
+        log(f"training: {size['sims']} simulations, at most {size['epochs']} epochs")
+        am = train(tree, cfg, log=log, progress=args.size == "full")
+    t1 = time.perf_counter()
+    log(f"calibration: {size['sets']} held-out data sets, {size['draws']} draws each")
+    res = expected_coverage(am, tree, size["sets"], size["draws"], seed=args.seed + 1000, log=log)
+    res["calibration_s"] = round(time.perf_counter() - t1, 1)
+    log(f"calibration done in {res['calibration_s']} s")
     gaps = [abs(v - float(lv)) for row in res["coverage"].values() for lv, v in row.items()]
     checks = None
     if args.check:
         from experiments._amortised_checks import run_checks
 
-        checks = run_checks(am, tree, args.check, seed=args.seed + 2000)
+        checks = run_checks(
+            am, tree, args.check, seed=args.seed + 2000, log=log, budget_s=args.check_budget_s
+        )
     res = {
         "config": {
             "size": args.size,
@@ -194,6 +220,8 @@ def main(argv=None) -> int:
             "seed": args.seed,
             "held_out_seed": args.seed + 1000,
             **cfg.to_json(),
+            "sets": size["sets"],
+            "draws": size["draws"],
             "command": "python experiments/amortised_calibration.py "
             + " ".join(sys.argv[1:] if argv is None else argv),
         },
