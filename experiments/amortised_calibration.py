@@ -67,14 +67,14 @@ SIZES = {
     "full": dict(
         layout=dict(),
         sims=200_000,
-        epochs=150,
+        epochs=100,
         width=128,
         layers=6,
         sets=500,
         draws=1000,
         chunk=4096,
         batch=1024,
-        patience=15,
+        patience=10,
         embedding=32,  # 8 pulls of 5 columns' worth: twice the default summary
     ),
 }
