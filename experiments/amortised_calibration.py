@@ -13,7 +13,13 @@ against the simulator. Target (issue 31): coverage within 2 points of nominal.
     JAX_PLATFORMS=cpu python experiments/amortised_calibration.py --size cpu    # ~40 s, CPU
     JAX_PLATFORMS=cpu python experiments/amortised_calibration.py --size cpu --tree two_branch \
         --check 10                                                     # 2 joints, CPU, minutes
-    python experiments/amortised_calibration.py --gpu --tree two_branch --check 20   # GPU
+    # one H200 (each well within its 10-minute limit: --gpu sets --budget-s 480, the training
+    # starting no epoch after 390 s and the checks none after what is left; progress on stderr)
+    python experiments/amortised_calibration.py --gpu --tree two_branch \
+        --out experiments/results/amortised_full_two_branch
+    python experiments/amortised_calibration.py --gpu --tree two_branch --check 5 \
+        --model experiments/results/amortised_full_two_branch/model \
+        --out experiments/results/amortised_full_two_branch_check
 
 ``--check N`` also runs the on-the-spot check of ``infer --amortised`` against the real
 simulator-based posterior (``make_problem``: the run's likelihood, force-noise term and
@@ -32,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -80,6 +85,12 @@ SIZES = {
 }
 
 
+# a GPU command may run 10 minutes: the training stops starting epochs RESERVE_S before the
+# budget, left for the held-out simulations, the flow's draws on them and the save
+GPU_BUDGET_S = 480.0
+RESERVE_S = 90.0
+
+
 def _tree(name: str):
     import treeinfer as ti
     from treeinfer.tree.generators import chain
@@ -99,7 +110,9 @@ def _markdown(res: dict) -> str:
         "",
         f"{res['n_sets']} held-out data sets, {res['n_draws']} flow draws each; trained on "
         f"{res['training']['n_datasets']} simulations in {res['training']['training_s']:.0f} s "
-        f"({res['training']['epochs_run']} epochs). Posterior latency (warm, this machine): "
+        f"({res['training']['epochs_run']} epochs"
+        + (", stopped at the time budget" if res["training"].get("stopped_at_deadline") else "")
+        + f"). Posterior latency (warm, this machine): "
         f"{res['latency_ms']:.2f} ms.",
         "",
         "| parameter | " + " | ".join(f"{float(lv):.0%}" for lv in levels) + " | SBC chi2 p |",
@@ -141,16 +154,24 @@ def main(argv=None) -> int:
     ap.add_argument("--epochs", type=int, default=None, help="most epochs (the size's)")
     ap.add_argument("--sets", type=int, default=None, help="held-out data sets (the size's)")
     ap.add_argument(
+        "--budget-s",
+        type=float,
+        default=None,
+        help="whole-command seconds: the flow's training starts no epoch after this less "
+        f"{RESERVE_S:g} s for the calibration and the save (default with --gpu: {GPU_BUDGET_S:g})",
+    )
+    ap.add_argument(
         "--check-budget-s",
         type=float,
         default=None,
-        help="stop starting new --check recordings after this many seconds (every kind in turn)",
+        help="stop starting new --check recordings after this many seconds (every kind in turn; "
+        "default: what --budget-s leaves)",
     )
     args = ap.parse_args(argv)
     if args.gpu:
         args.size = "full"
-    # the flow's epochs as a progress line every 10 s (flowjax's tqdm bar), on a GPU by default
-    os.environ.setdefault("TQDM_MININTERVAL", "10")
+        if args.budget_s is None:
+            args.budget_s = GPU_BUDGET_S
     t_start = time.perf_counter()
 
     def log(msg: str) -> None:
@@ -199,7 +220,10 @@ def main(argv=None) -> int:
         cfg = am.config
     else:
         log(f"training: {size['sims']} simulations, at most {size['epochs']} epochs")
-        am = train(tree, cfg, log=log, progress=args.size == "full")
+        deadline = None if args.budget_s is None else t_start + args.budget_s - RESERVE_S
+        am = train(tree, cfg, log=log, progress=args.size == "full", deadline=deadline)
+        if am.meta["training"]["stopped_at_deadline"]:
+            log(f"training stopped at the time budget ({args.budget_s:g} s for the command)")
     t1 = time.perf_counter()
     log(f"calibration: {size['sets']} held-out data sets, {size['draws']} draws each")
     res = expected_coverage(am, tree, size["sets"], size["draws"], seed=args.seed + 1000, log=log)
@@ -210,9 +234,10 @@ def main(argv=None) -> int:
     if args.check:
         from experiments._amortised_checks import run_checks
 
-        checks = run_checks(
-            am, tree, args.check, seed=args.seed + 2000, log=log, budget_s=args.check_budget_s
-        )
+        budget = args.check_budget_s
+        if budget is None and args.budget_s is not None:  # what the command has left, less 30 s
+            budget = max(0.0, args.budget_s - (time.perf_counter() - t_start) - 30.0)
+        checks = run_checks(am, tree, args.check, seed=args.seed + 2000, log=log, budget_s=budget)
     res = {
         "config": {
             "size": args.size,

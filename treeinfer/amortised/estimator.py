@@ -172,9 +172,12 @@ def train(
     config: AmortiseConfig,
     log: Callable[[str], None] = lambda m: None,
     progress: bool = False,
+    deadline: float | None = None,
 ) -> Amortised:
     """Simulate ``config.train.simulations`` data sets of ``tree`` under the layout's pulls and
-    fit the estimator to them (module :mod:`treeinfer.amortised.network`)."""
+    fit the estimator to them (module :mod:`treeinfer.amortised.network`). ``progress``: the
+    epochs to ``log`` (every 10 s); ``deadline`` (a :func:`time.perf_counter` value): no epoch
+    starts after it (``meta["training"]["stopped_at_deadline"]``)."""
     import jax
 
     t0 = time.perf_counter()
@@ -225,12 +228,15 @@ def train(
         tr.learning_rate,
         tr.patience,
         progress,
+        deadline,
+        log,
     )
     am.model = model
     am.meta["training"] = {
         "n_datasets": int(len(z)),
         "n_unstable": int(data.n_unstable),
         "epochs_run": len(losses["train"]),
+        "stopped_at_deadline": bool(losses["stopped_at_deadline"]),
         "best_val_loss": float(min(losses["val"])),
         "final_train_loss": float(losses["train"][-1]),
         "simulation_s": round(t_sim, 2),
