@@ -13,8 +13,10 @@ With ``--check K`` it also times, on the first K recordings, the on-the-spot che
 simulator (:func:`treeinfer.amortised.check.amortised_start`'s start): building the run's
 problem (``make_problem``), the first evaluation of its density on the rollout program
 (compiled in the first recording's, then reused), and the check itself (importance weights
-of the flow's draws and the refinement rounds), each recording's
-outcome with it. Prints a table and, with ``--json``, writes the figures with the machine.
+of the flow's draws and the refinement rounds), each recording's outcome with it, and the XLA
+compilations (and persistent-cache loads) of the check: the programs live with the model
+(:mod:`treeinfer.amortised.programs`), so from the second recording of a shape there are
+none. Prints a table and, with ``--json``, writes the figures with the machine.
 
     JAX_PLATFORMS=cpu python -m benchmarks.amortised_latency [--model M] [--draws 1024] [--check 5]
 """
@@ -56,18 +58,23 @@ def _time_check(am, tree, trajs, particles: int = 64) -> dict:
     check (importance weights and refinement rounds) with the density compiled."""
     import treeinfer as ti
     from treeinfer.amortised import check
+    from treeinfer.sim.compile_stats import compile_stats
 
     force, disp = am.check_recordings(trajs)
     t0 = time.perf_counter()
     problem = ti.make_problem(tree, trajs)
     t1 = time.perf_counter()
-    ev = check._evaluator(problem)  # the rollout program: compiled (or loaded) once per shape
+    mark = compile_stats().mark()
+    ev = check._evaluator(problem, am.programs)  # the model's programs: compiled once per shape
     draws = am.draw(force, disp, 64)[0]
     ev.log_density(draws) if ev is not None else check._log_density(problem, draws)
     t2 = time.perf_counter()
     start, report = check.amortised_start(am, force, disp)
     post = start(problem, {"options": {"particles": particles, "seed": 0}}, lambda m: None)
+    compiles = compile_stats().since(mark)
     return {
+        "xla_compiles": compiles["xla_compiles"],
+        "cache_loads": compiles["cache_hits"],
         "problem_s": round(t1 - t0, 3),
         "compile_s": round(t2 - t1, 3),
         "check_s": round(time.perf_counter() - t2, 3),
@@ -144,7 +151,7 @@ def main(argv=None) -> int:
         print(
             f"  check: problem {c['problem_s']:.2f} s, first density {c['compile_s']:.2f} s, "
             f"check {c['check_s']:.3f} s ({c['rounds']} round(s), k_hat {c['khat']:.2f}, "
-            f"used {c['used']})"
+            f"used {c['used']}; {c['xla_compiles']} compilations, {c['cache_loads']} cache loads)"
         )
     if args.json:
         args.json.write_text(json.dumps(out, indent=1) + "\n")

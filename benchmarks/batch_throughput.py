@@ -18,7 +18,19 @@ figures compare steady-state throughput, not first compiles. Every mode writes f
 Prints a table and writes JSON (``--json``) with the commands, exit codes and the machine. No
 timed assertions: figures from a shared machine are for side-by-side comparison.
 
+Items per minute is a rate: items finished / wall seconds x 60. The loop may run over the first
+``--loop-items`` items only (a process per item costs the same for every item: its rate needs
+a few), and ``--budget-s`` bounds each timed mode: the loop starts no item after it, a batch is
+interrupted at it (Ctrl-C, as a user would: its table is written and the next run resumes) and
+its rate counts the items it finished (``items/ID.json``), so an interrupted mode's rate is, if
+anything, low (its items in flight are lost). The items are written by a few processes on the
+CPU (``treeinfer simulate`` called in them per item: the same files, without a process per
+item).
+
     python -m benchmarks.batch_throughput [--items 8] [--workers 1,2,4] [--ray]
+    # a GPU host (16 cores), issue 31's target (batch >= 10x the loop's items per minute):
+    JAX_PLATFORMS=cuda python -m benchmarks.batch_throughput --items 100 --loop-items 4 \
+        --workers 4 --budget-s 180 --json experiments/results/benchmarks/batch_throughput_h200.json
 """
 
 from __future__ import annotations
@@ -28,6 +40,7 @@ import json
 import os
 import platform
 import shlex
+import signal
 import subprocess
 import sys
 import tempfile
@@ -46,12 +59,58 @@ def _env(cache: Path) -> dict:
     return env
 
 
-def _run(cmd: list[str], env: dict, log: Path) -> tuple[int, float]:
+def _run(cmd: list[str], env: dict, log: Path, budget_s: float | None = None):
+    """``(exit code, wall s, stopped)``: ``cmd`` to the end, or interrupted (SIGINT, then
+    SIGKILL after 30 s) once ``budget_s`` is spent (``stopped``)."""
     t = time.perf_counter()
     with open(log, "ab") as f:
         f.write(("$ " + shlex.join(cmd) + "\n").encode())
-        rc = subprocess.call(cmd, env=env, stdout=f, stderr=subprocess.STDOUT)
-    return rc, time.perf_counter() - t
+        p = subprocess.Popen(cmd, env=env, stdout=f, stderr=subprocess.STDOUT)
+        try:
+            return p.wait(timeout=budget_s), time.perf_counter() - t, False
+        except subprocess.TimeoutExpired:
+            wall = time.perf_counter() - t
+            p.send_signal(signal.SIGINT)
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+            return p.returncode, wall, True
+
+
+def _write_items(py: list[str], work: Path, args, env: dict, log: Path, cores: int) -> None:
+    """The items' data folders, written by a few processes (one per two cores, at most 8) each
+    calling `treeinfer simulate` for its share of the items, on the CPU: a process per item
+    would take longer than the benchmark on a GPU host, and a 1 s pull needs no GPU."""
+    todo = [i for i in range(args.items) if not (work / "data" / f"item{i:03d}").is_dir()]
+    if not todo:
+        return
+    calls = [
+        ["simulate", "--tree", str(TREE), "--out", str(work / "data" / f"item{i:03d}"),
+         "--n-traj", "1", "--duration", str(args.duration), "--dt", str(args.dt),
+         "--seed", str(i + 1), "--noise-displacement", "0.0005"]
+        for i in todo
+    ]  # fmt: skip
+    code = (
+        "import json, sys\nfrom treeinfer.cli import main\n"
+        "for argv in json.loads(sys.argv[1]):\n"
+        "    rc = main(argv)\n"
+        "    if rc:\n        sys.exit(f'simulate {argv}: exit {rc}')\n"
+    )
+    cpu = {**env, "JAX_PLATFORMS": "cpu"}
+    n = max(1, min(8, cores // 2, len(calls)))
+    t = time.perf_counter()
+    with open(log, "ab") as f:
+        procs = [
+            subprocess.Popen([py[0], "-c", code, json.dumps(calls[k::n])], env=cpu, stdout=f,
+                             stderr=subprocess.STDOUT)
+            for k in range(n)
+        ]  # fmt: skip
+        rcs = [p.wait() for p in procs]
+    if any(rcs):
+        sys.exit(f"simulate failed (see {log})")
+    print(f"wrote {len(todo)} items in {time.perf_counter() - t:.1f} s ({n} processes)", flush=True)
 
 
 def _cores() -> int:
@@ -78,6 +137,16 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--ray", action="store_true", help="also time --ray local (needs ray)")
     ap.add_argument("--no-loop", action="store_true", help="leave out the shell loop")
+    ap.add_argument(
+        "--loop-items", type=int, default=None, help="the loop's items: the first K (default all)"
+    )
+    ap.add_argument(
+        "--budget-s",
+        type=float,
+        default=None,
+        help="s per timed mode: the loop starts no item after it, a batch is interrupted at it "
+        "(its rate counts the items it finished)",
+    )
     ap.add_argument("--folder", type=Path, help="work folder (default: a temporary one)")
     ap.add_argument(
         "--json",
@@ -99,34 +168,9 @@ def main(argv=None) -> int:
     opts = shlex.split(args.options)
     # the items (not timed)
     rows = ["id,tree,recordings," + ",".join(o.lstrip("-").replace("-", "_") for o in opts[::2])]
+    _write_items(py, work, args, env, log, cores)
     for i in range(args.items):
-        d = work / "data" / f"item{i:03d}"
-        if not d.is_dir():
-            rc, _ = _run(
-                py
-                + [
-                    "simulate",
-                    "--tree",
-                    str(TREE),
-                    "--out",
-                    str(d),
-                    "--n-traj",
-                    "1",
-                    "--duration",
-                    str(args.duration),
-                    "--dt",
-                    str(args.dt),
-                    "--seed",
-                    str(i + 1),
-                    "--noise-displacement",
-                    "0.0005",
-                ],
-                env,
-                log,
-            )
-            if rc:
-                sys.exit(f"simulate failed (see {log})")
-        rows.append(f"item{i:03d},{TREE},{d}," + ",".join(opts[1::2]))
+        rows.append(f"item{i:03d},{TREE},{work / 'data' / f'item{i:03d}'}," + ",".join(opts[1::2]))
     manifest = work / "manifest.csv"
     manifest.write_text("\n".join(rows) + "\n")
     infer = lambda i, out: (
@@ -144,32 +188,40 @@ def main(argv=None) -> int:
             *opts,
         ]
     )
-    _run(infer(0, work / "warm"), env, log)  # fill the compile cache (not timed)
+    _, warm_s, _ = _run(infer(0, work / "warm"), env, log)  # fill the compile cache (not timed)
+    print(f"warm-up infer (compiles, not timed): {warm_s:.1f} s", flush=True)
     results = []
 
-    def record(mode, workers, rc, wall, cmd):
+    def record(mode, workers, rc, wall, cmd, done, stopped=False):
         results.append(
             {
                 "mode": mode,
                 "workers": workers,
                 "rc": rc,
+                "items": done,
                 "wall_s": round(wall, 2),
-                "items_per_min": round(60 * args.items / wall, 2),
+                "items_per_min": round(60 * done / wall, 2),
+                "stopped_at_budget": stopped,
                 "command": cmd,
             }
         )
         print(
-            f"{mode:>6} w{workers}: {wall:7.1f} s  {60 * args.items / wall:6.2f} items/min  "
-            f"(exit {rc})",
+            f"{mode:>6} w{workers}: {done:4d} items in {wall:7.1f} s  "
+            f"{60 * done / wall:6.2f} items/min  (exit {rc}"
+            + (", stopped at the budget)" if stopped else ")"),
             flush=True,
         )
 
     if not args.no_loop:
         t, rcs = time.perf_counter(), []
-        for i in range(args.items):
+        n_loop = args.items if args.loop_items is None else min(args.loop_items, args.items)
+        for i in range(n_loop):
+            if args.budget_s is not None and time.perf_counter() - t > args.budget_s and rcs:
+                break
             rcs.append(_run(infer(i, work / "loop" / f"item{i:03d}"), env, log)[0])
         cmd = shlex.join(infer(0, "loop/ITEM")) + "  # per item"
-        record("loop", 1, max(rcs), time.perf_counter() - t, cmd)
+        wall = time.perf_counter() - t
+        record("loop", 1, max(rcs), wall, cmd, len(rcs), len(rcs) < n_loop)
     modes = [("batch", n, []) for n in counts]
     modes += [("ray", n, ["--ray", "local"]) for n in counts if args.ray]
     for mode, n, extra in modes:
@@ -185,12 +237,13 @@ def main(argv=None) -> int:
             "--allow-poor-fit",
             *extra,
         ]
-        rc, wall = _run(cmd, env, log)
-        record(mode, n, rc, wall, shlex.join(cmd))
+        rc, wall, stopped = _run(cmd, env, log, args.budget_s)
+        done = len(list((work / f"{mode}_w{n}" / "items").glob("*.json")))
+        record(mode, n, rc, wall, shlex.join(cmd), done, stopped)
     loop = next((r for r in results if r["mode"] == "loop"), None)
-    if loop:
-        for r in results:
-            r["speedup_vs_loop"] = round(loop["wall_s"] / r["wall_s"], 2)
+    if loop and loop["items_per_min"] > 0:
+        for r in results:  # a ratio of rates: the modes may finish different numbers of items
+            r["speedup_vs_loop"] = round(r["items_per_min"] / loop["items_per_min"], 2)
         print(
             "speed-up over the shell loop: "
             + ", ".join(
@@ -199,6 +252,10 @@ def main(argv=None) -> int:
         )
     out = {
         "items": args.items,
+        "loop_items": args.loop_items,
+        "budget_s": args.budget_s,
+        "warm_s": round(warm_s, 1),
+        "jax_platforms": env.get("JAX_PLATFORMS"),
         "duration_s": args.duration,
         "dt_s": args.dt,
         "options": args.options,

@@ -46,21 +46,45 @@ def _delayed(x, k: int):
     return np.concatenate([np.repeat(x[:1], k), x[:-k]])
 
 
-def run_checks(am, tree, n: int, seed: int = 2000, particles: int = 64, log=print) -> dict:
-    """``{"in": [...], "out": {kind: [...]}, "summary": {...}}``: per recording, whether the
-    amortised answer was used, which check decided, k_hat, ESS, rounds, check seconds."""
+def run_checks(
+    am,
+    tree,
+    n: int,
+    seed: int = 2000,
+    particles: int = 64,
+    log=print,
+    budget_s: float | None = None,
+) -> dict:
+    """``{"rows": {"in": [...], kind: [...]}, "summary": {...}}``: per recording, whether the
+    amortised answer was used, which check decided, k_hat, ESS, rounds, check seconds.
+
+    The recordings run in turns (one in-distribution, one of each outside kind, then the next),
+    so that ``budget_s`` (seconds; None: no limit), which stops starting new ones once spent,
+    leaves every kind measured (``summary["stopped_at_budget"]``). A recording that fails the
+    domain check gets no problem built (``make_problem``'s force-noise reference fit costs
+    seconds to minutes and the start does not look at it)."""
     import treeinfer as ti
     from treeinfer.amortised import check
     from treeinfer.amortised.simulations import training_simulator
 
     sim = training_simulator(tree, am.config.layout, am.config.train.backend)
+    kinds = (None, *OOD_KINDS)
+    recs = {k: _recordings(am, tree, sim, n, seed + j, k) for j, k in enumerate(kinds)}
     rows = {"in": [], **{k: [] for k in OOD_KINDS}}
-    for j, kind in enumerate((None, *OOD_KINDS)):
-        for truth, sf, trajs in _recordings(am, tree, sim, n, seed + j, kind):
+    t_start, stopped = time.perf_counter(), False
+    for i in range(n):
+        for kind in kinds:
+            if i >= len(recs[kind]):
+                continue
+            if budget_s is not None and time.perf_counter() - t_start > budget_s:
+                stopped = True
+                break
+            truth, sf, trajs = recs[kind][i]
             t0 = time.perf_counter()
             force, disp = am.check_recordings(trajs)
             start, report = check.amortised_start(am, force, disp)
-            problem = ti.make_problem(tree, trajs, sim=sim)
+            inside = not check.domain_reasons(am, am.features(force, disp))
+            problem = ti.make_problem(tree, trajs, sim=sim) if inside else None
             t1 = time.perf_counter()
             post = start(problem, {"options": {"particles": particles, "seed": 0}}, lambda m: None)
             row = {
@@ -79,7 +103,10 @@ def run_checks(am, tree, n: int, seed: int = 2000, particles: int = 64, log=prin
                 th = np.asarray(post.theta, float)
                 row["z_truth"] = ((truth - th.mean(0)) / (th.std(0) + 1e-12)).round(2).tolist()
             rows["in" if kind is None else kind].append(row)
-            log(f"{kind or 'in-distribution'}: {row}")
+            log(f"{kind or 'in-distribution'} {i + 1}/{n}: {row}")
+        if stopped:
+            log(f"checks: time budget of {budget_s:g} s spent; stopped after {i} round(s)")
+            break
     summary = {
         "in_used": f"{sum(r['used'] for r in rows['in'])}/{len(rows['in'])}",
         **{
@@ -87,6 +114,8 @@ def run_checks(am, tree, n: int, seed: int = 2000, particles: int = 64, log=prin
             for k in OOD_KINDS
         },
         "check_s_median_in": float(np.median([r["check_s"] for r in rows["in"]] or [np.nan])),
+        "stopped_at_budget": stopped,
+        "checks_s": round(time.perf_counter() - t_start, 1),
     }
     return {"rows": rows, "summary": summary, "particles": particles}
 
@@ -100,7 +129,8 @@ def checks_markdown(checks: dict) -> list[str]:
         f"{s['check_s_median_in']:.2f} s, {checks['particles']} particles). Outside the "
         "training distribution, fell back: "
         + ", ".join(f"{k} {s[f'{k}_fell_back']}" for k in OOD_KINDS)
-        + ".",
+        + "."
+        + (" Stopped at the time budget (--check-budget-s)." if s.get("stopped_at_budget") else ""),
         "",
         "| recordings | used | check | k_hat | ESS | rounds | check s |",
         "|---|---|---|---|---|---|---|",

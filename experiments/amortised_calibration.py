@@ -13,7 +13,13 @@ against the simulator. Target (issue 31): coverage within 2 points of nominal.
     JAX_PLATFORMS=cpu python experiments/amortised_calibration.py --size cpu    # ~40 s, CPU
     JAX_PLATFORMS=cpu python experiments/amortised_calibration.py --size cpu --tree two_branch \
         --check 10                                                     # 2 joints, CPU, minutes
-    python experiments/amortised_calibration.py --gpu --tree two_branch --check 20   # GPU
+    # one H200 (each well within its 10-minute limit: --gpu sets --budget-s 480, the training
+    # starting no epoch after 390 s and the checks none after what is left; progress on stderr)
+    python experiments/amortised_calibration.py --gpu --tree two_branch \
+        --out experiments/results/amortised_full_two_branch
+    python experiments/amortised_calibration.py --gpu --tree two_branch --check 5 \
+        --model experiments/results/amortised_full_two_branch/model \
+        --out experiments/results/amortised_full_two_branch_check
 
 ``--check N`` also runs the on-the-spot check of ``infer --amortised`` against the real
 simulator-based posterior (``make_problem``: the run's likelihood, force-noise term and
@@ -66,17 +72,23 @@ SIZES = {
     "full": dict(
         layout=dict(),
         sims=200_000,
-        epochs=150,
+        epochs=100,
         width=128,
         layers=6,
         sets=500,
         draws=1000,
         chunk=4096,
         batch=1024,
-        patience=15,
+        patience=10,
         embedding=32,  # 8 pulls of 5 columns' worth: twice the default summary
     ),
 }
+
+
+# a GPU command may run 10 minutes: the training stops starting epochs RESERVE_S before the
+# budget, left for the held-out simulations, the flow's draws on them and the save
+GPU_BUDGET_S = 480.0
+RESERVE_S = 90.0
 
 
 def _tree(name: str):
@@ -98,7 +110,9 @@ def _markdown(res: dict) -> str:
         "",
         f"{res['n_sets']} held-out data sets, {res['n_draws']} flow draws each; trained on "
         f"{res['training']['n_datasets']} simulations in {res['training']['training_s']:.0f} s "
-        f"({res['training']['epochs_run']} epochs). Posterior latency (warm, this machine): "
+        f"({res['training']['epochs_run']} epochs"
+        + (", stopped at the time budget" if res["training"].get("stopped_at_deadline") else "")
+        + f"). Posterior latency (warm, this machine): "
         f"{res['latency_ms']:.2f} ms.",
         "",
         "| parameter | " + " | ".join(f"{float(lv):.0%}" for lv in levels) + " | SBC chi2 p |",
@@ -136,9 +150,32 @@ def main(argv=None) -> int:
         "--model", type=Path, default=None, help="measure this trained model (no training)"
     )
     ap.add_argument("--force", action="store_true")
+    ap.add_argument("--sims", type=int, default=None, help="training simulations (the size's)")
+    ap.add_argument("--epochs", type=int, default=None, help="most epochs (the size's)")
+    ap.add_argument("--sets", type=int, default=None, help="held-out data sets (the size's)")
+    ap.add_argument(
+        "--budget-s",
+        type=float,
+        default=None,
+        help="whole-command seconds: the flow's training starts no epoch after this less "
+        f"{RESERVE_S:g} s for the calibration and the save (default with --gpu: {GPU_BUDGET_S:g})",
+    )
+    ap.add_argument(
+        "--check-budget-s",
+        type=float,
+        default=None,
+        help="stop starting new --check recordings after this many seconds (every kind in turn; "
+        "default: what --budget-s leaves)",
+    )
     args = ap.parse_args(argv)
     if args.gpu:
         args.size = "full"
+        if args.budget_s is None:
+            args.budget_s = GPU_BUDGET_S
+    t_start = time.perf_counter()
+
+    def log(msg: str) -> None:
+        print(f"[{time.perf_counter() - t_start:7.1f} s] {msg}", file=sys.stderr, flush=True)
 
     import treeinfer as ti
     from treeinfer.amortised import (
@@ -153,7 +190,10 @@ def main(argv=None) -> int:
     from treeinfer.io.provenance import versions
 
     ti.enable_compilation_cache()
-    size = SIZES[args.size]
+    size = dict(SIZES[args.size])
+    for key, v in (("sims", args.sims), ("epochs", args.epochs), ("sets", args.sets)):
+        if v is not None:
+            size[key] = v
     tree = _tree(args.tree)
     cfg = AmortiseConfig(
         PullLayout(**size["layout"]),
@@ -179,14 +219,25 @@ def main(argv=None) -> int:
         am.check_tree(tree, f"--tree {args.tree}")
         cfg = am.config
     else:
-        am = train(tree, cfg, log=lambda m: print(m, file=sys.stderr))
-    res = expected_coverage(am, tree, size["sets"], size["draws"], seed=args.seed + 1000)
+        log(f"training: {size['sims']} simulations, at most {size['epochs']} epochs")
+        deadline = None if args.budget_s is None else t_start + args.budget_s - RESERVE_S
+        am = train(tree, cfg, log=log, progress=args.size == "full", deadline=deadline)
+        if am.meta["training"]["stopped_at_deadline"]:
+            log(f"training stopped at the time budget ({args.budget_s:g} s for the command)")
+    t1 = time.perf_counter()
+    log(f"calibration: {size['sets']} held-out data sets, {size['draws']} draws each")
+    res = expected_coverage(am, tree, size["sets"], size["draws"], seed=args.seed + 1000, log=log)
+    res["calibration_s"] = round(time.perf_counter() - t1, 1)
+    log(f"calibration done in {res['calibration_s']} s")
     gaps = [abs(v - float(lv)) for row in res["coverage"].values() for lv, v in row.items()]
     checks = None
     if args.check:
         from experiments._amortised_checks import run_checks
 
-        checks = run_checks(am, tree, args.check, seed=args.seed + 2000)
+        budget = args.check_budget_s
+        if budget is None and args.budget_s is not None:  # what the command has left, less 30 s
+            budget = max(0.0, args.budget_s - (time.perf_counter() - t_start) - 30.0)
+        checks = run_checks(am, tree, args.check, seed=args.seed + 2000, log=log, budget_s=budget)
     res = {
         "config": {
             "size": args.size,
@@ -194,6 +245,8 @@ def main(argv=None) -> int:
             "seed": args.seed,
             "held_out_seed": args.seed + 1000,
             **cfg.to_json(),
+            "sets": size["sets"],
+            "draws": size["draws"],
             "command": "python experiments/amortised_calibration.py "
             + " ".join(sys.argv[1:] if argv is None else argv),
         },

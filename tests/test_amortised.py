@@ -83,6 +83,41 @@ def test_flow_recovers_a_linear_gaussian_posterior():
         np.testing.assert_allclose(z.std(0), sd, rtol=0.25)
 
 
+def test_the_training_loop_is_flowjaxs_fit_to_data_and_stops_at_its_deadline():
+    """network.fit is flowjax's fit_to_data step for step (the same weights, an independent
+    reference: the library's own loop), plus a deadline after which no epoch starts."""
+    import equinox as eqx
+    import jax
+    import optax
+    import paramax
+    from flowjax.train import fit_to_data
+
+    rng = np.random.default_rng(0)
+    theta = rng.normal(size=(300, 2)).astype(np.float32)
+    feats = rng.normal(size=(300, 2, 3)).astype(np.float32)
+    m0 = network.build(jax.random.key(0), 2, 3, 2, 16, 4)
+    ours, losses = network.fit(m0, theta, feats, jax.random.key(1), 3, 64, 3e-3, 10)
+
+    def loss(params, static, z, f, key=None):
+        return -paramax.unwrap(eqx.combine(params, static)).log_prob(z, f).mean()
+
+    sched = optax.cosine_decay_schedule(3e-3, 3 * (int(0.9 * 300) // 64), alpha=0.05)
+    theirs, ref = fit_to_data(
+        jax.random.key(1), m0, (theta, feats), loss_fn=loss, optimizer=optax.adam(sched),
+        max_epochs=3, max_patience=10, batch_size=30, show_progress=False,
+    )  # fmt: skip
+    assert losses["train"] == ref["train"] and losses["val"] == ref["val"]
+    for a, b in zip(jax.tree.leaves(eqx.filter(ours, eqx.is_inexact_array)),
+                    jax.tree.leaves(eqx.filter(theirs, eqx.is_inexact_array))):  # fmt: skip
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert not losses["stopped_at_deadline"]
+    _, cut = network.fit(m0, theta, feats, jax.random.key(1), 50, 64, 3e-3, 100, deadline=0.0)
+    assert len(cut["train"]) == 1 and cut["stopped_at_deadline"]
+    lines = []
+    network.fit(m0, theta, feats, jax.random.key(1), 2, 64, 3e-3, 10, True, None, lines.append)
+    assert lines and lines[0].startswith("epoch 1/2: loss ")
+
+
 def test_a_trained_model_saves_and_loads_to_the_same_density(model):
     am, path = model
     loaded = estimator.load(path)

@@ -104,3 +104,33 @@ def test_a_delayed_displacement_falls_back(model):
     assert post is None and not report["used"], report
     assert report["check"] in ("predictive", "importance"), report
     assert report["reason"]
+
+
+def test_a_second_recording_of_the_same_shape_is_checked_without_compiling(model):
+    """Issue 31: the check's programs (rollouts, log-prior, noise density with the force-noise
+    term, the LM's Gauss-Newton terms) take the recording as arguments and live with the
+    model: the second recording of one shape compiles nothing (counted, not timed)."""
+    import dataclasses
+
+    import treeinfer as ti
+    from treeinfer.sim.compile_stats import compile_stats
+    from treeinfer.sim.program_cache import ProgramCache
+
+    am = dataclasses.replace(model, programs=ProgramCache(16))  # none from the other tests
+    stats = compile_stats()
+    seen = []
+    for kp, kd, seed in ((120.0, 0.8, 5), (90.0, 0.6, 6)):
+        trajs = _recording(kp, kd, seed, sigma_f=0.05)
+        force, disp = am.check_recordings(trajs)
+        start, report = check.amortised_start(am, force, disp, n_draws=1024)
+        problem = ti.make_problem(TREE, trajs)
+        assert problem.noise.force_noise is not None  # the force-noise term's programs too
+        mark = stats.mark()
+        start(problem, {"options": {"particles": 32, "seed": 0}}, lambda m: None)
+        seen.append((report, stats.since(mark)))
+    (first, c1), (second, c2) = seen
+    assert first["check"] == second["check"] == "importance", seen
+    # the LM round ran in both (its Gauss-Newton program is one of the three)
+    assert first["rounds"] >= 2 and second["rounds"] >= 2, seen
+    assert c1["xla_compiles"] + c1["cache_hits"] >= 1, c1  # the counter counts
+    assert c2["xla_compiles"] == 0 and c2["cache_hits"] == 0, c2["compiled"]

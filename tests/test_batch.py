@@ -323,6 +323,17 @@ def _killed_worker_then_resume(data, out: Path, **kw) -> list[dict]:
     r = run_batch(read_manifest(str(m)), out, progress=False, **kw)
     assert [x["status"] for x in r.rows] == ["done"] * 4
     assert [x["reused"] for x in r.rows] == [True, True, False, True]
+    # the table: every item done, each row its run folder's summary, and k3 (rerun after the
+    # kill, in another worker) the same posterior as k1 (same recordings and options)
+    t = _table(out)
+    assert sorted(t) == ["k1", "k2", "k3", "k4"] and {x["status"] for x in t.values()} == {"done"}
+    for k, row in t.items():
+        s = json.loads((out / "runs" / k / "summary.json").read_text())
+        assert float(row["Kp[branch0]_mean"]) == pytest.approx(
+            s["posterior"]["Kp[branch0]"]["mean"], rel=1e-12
+        )
+    for col in ("Kp[branch0]_mean", "Kd[branch0]_mean"):
+        assert float(t["k3"][col]) == pytest.approx(float(t["k1"][col]), rel=1e-5), col
     return r.rows
 
 

@@ -150,7 +150,7 @@ def refine(am, problem, feats, draws, log_q, n_particles: int, seed: int = 0, lo
     )
 
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x7E]))
-    ev = _evaluator(problem)
+    ev = _evaluator(problem, getattr(am, "programs", None))
     density = ev.log_density if ev is not None else (lambda th: _log_density(problem, th))
     xs, lps, sizes, props = [draws], [density(draws)], [len(draws)], []
     lq_flow = [np.asarray(log_q, float)]  # the flow's density, one network pass per round
@@ -208,23 +208,28 @@ class _Chunked:
         self.log_density = lambda th: _log_density(problem, np.asarray(th, float))
 
 
-def _evaluator(problem):
+def _evaluator(problem, programs=None):
     """The run's rollout program with the observations as arguments
     (:class:`treeinfer.inference.fast_evaluator.BatchEvaluator`, the start pipeline's: its
-    log density is ``problem.log_density``), or None for a problem it does not take (then
-    ``problem.log_density`` itself, in :data:`CHUNK`-point calls). Why: the problem's own
-    density embeds the recording as constants and compiles for every new one (4-7 s on a 2-core
-    CPU, more than the check); this program compiles once per simulator and shape, and the
-    persistent compile cache keeps it for the next process."""
+    log density is ``problem.log_density``), its log-prior, noise density and Gauss-Newton
+    programs with the recording's numbers as arguments too
+    (:func:`treeinfer.amortised.programs.with_argument_programs`), all kept in ``programs``
+    (the model's :class:`~treeinfer.sim.program_cache.ProgramCache`); or None for a problem it
+    does not take (then ``problem.log_density`` itself, in :data:`CHUNK`-point calls). Why:
+    the problem's own density embeds the recording as constants and compiles for every new one
+    (4-7 s on a 2-core CPU, more than the check); these programs compile once per simulator and
+    recording shape, and the persistent compile cache keeps them for the next process."""
     from ..errors import ConfigError
     from ..inference.fast_evaluator import BatchEvaluator, default_chunk
+    from .programs import with_argument_programs
 
     try:
         # the start pipeline's rule: the LM's points on a CPU, a whole round on an accelerator
         k = LM_STARTS * (4 * problem.sim.n_joints + 1)  # starts x (2 x gains + 1) points
-        return BatchEvaluator(problem, default_chunk(k, DEFAULT_DRAWS))
+        ev = BatchEvaluator(problem, default_chunk(k, DEFAULT_DRAWS), programs)
     except (ConfigError, AttributeError, TypeError):
         return None
+    return with_argument_programs(ev, programs)
 
 
 def _moments(x, lw):

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +26,17 @@ from .simulations import bin_matrix, features, simulate_training_set, theta_box
 FORMAT = "treeinfer-amortised/2"
 WEIGHTS_FILE = "model.msgpack"
 META_FILE = "model.json"
+# the check's programs per model: a rollout program, the log-prior, the noise density and the
+# Gauss-Newton terms per recording shape, with room for a second shape or chunk
+PROGRAMS_PER_MODEL = 16
+
+
+def _program_cache():
+    from ..sim.program_cache import ProgramCache
+
+    return ProgramCache(PROGRAMS_PER_MODEL)
+
+
 # a recording's dt may differ from the layout's by float rounding of its time column only
 DT_RTOL = 1e-3
 
@@ -34,10 +45,13 @@ DT_RTOL = 1e-3
 class Amortised:
     """A trained estimator (``model``: the flowjax/equinox pytree) and its record (``meta``: the
     tree's identity and fingerprint, the layout, the training config, the features' scales, the
-    parameter box, the training report, the treeinfer version)."""
+    parameter box, the training report, the treeinfer version). ``programs``: the compiled
+    programs of the check against the simulator (:mod:`treeinfer.amortised.programs`), kept
+    with the model so that a process checking many recordings of one shape compiles them once."""
 
     model: object
     meta: dict
+    programs: object = field(default_factory=_program_cache, repr=False, compare=False)
 
     @property
     def config(self) -> AmortiseConfig:
@@ -158,9 +172,12 @@ def train(
     config: AmortiseConfig,
     log: Callable[[str], None] = lambda m: None,
     progress: bool = False,
+    deadline: float | None = None,
 ) -> Amortised:
     """Simulate ``config.train.simulations`` data sets of ``tree`` under the layout's pulls and
-    fit the estimator to them (module :mod:`treeinfer.amortised.network`)."""
+    fit the estimator to them (module :mod:`treeinfer.amortised.network`). ``progress``: the
+    epochs to ``log`` (every 10 s); ``deadline`` (a :func:`time.perf_counter` value): no epoch
+    starts after it (``meta["training"]["stopped_at_deadline"]``)."""
     import jax
 
     t0 = time.perf_counter()
@@ -211,12 +228,15 @@ def train(
         tr.learning_rate,
         tr.patience,
         progress,
+        deadline,
+        log,
     )
     am.model = model
     am.meta["training"] = {
         "n_datasets": int(len(z)),
         "n_unstable": int(data.n_unstable),
         "epochs_run": len(losses["train"]),
+        "stopped_at_deadline": bool(losses["stopped_at_deadline"]),
         "best_val_loss": float(min(losses["val"])),
         "final_train_loss": float(losses["train"][-1]),
         "simulation_s": round(t_sim, 2),

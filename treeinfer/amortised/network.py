@@ -14,6 +14,8 @@ The weights are stored with flax's msgpack (the array leaves in order, :func:`le
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from ..errors import ConfigError
@@ -136,13 +138,28 @@ def fit(
     learning_rate: float,
     patience: int,
     progress: bool = False,
+    deadline: float | None = None,
+    log: Callable[[str], None] | None = None,
 ):
-    """``(model, losses)``: maximum likelihood of ``z [N, D]`` given ``feats [N, B, F]`` by
-    flowjax's :func:`~flowjax.train.fit_to_data` (Adam with a cosine decay, a tenth held out,
-    the best epoch's weights kept), the loss the estimator's own negative log density."""
+    """``(model, losses)``: maximum likelihood of ``z [N, D]`` given ``feats [N, B, F]``, Adam
+    with a cosine decay, a tenth held out, the best epoch's weights kept, early stop after
+    ``patience`` epochs without a better held-out loss; the loss the estimator's own negative
+    log density. ``deadline`` (a :func:`time.perf_counter` value; None: none): no epoch but the
+    first starts after it (``losses["stopped_at_deadline"]``); with ``progress``, ``log`` gets
+    a line after the first epoch and then every 10 s.
+
+    flowjax's :func:`~flowjax.train.fit_to_data` loop, step for step (its ``step``,
+    ``train_val_split``, ``get_batches``, ``count_fruitless`` and the same keys: the same
+    weights, ``tests/test_amortised.py``), written out here because it has no time limit and
+    no progress but a tqdm bar: a GPU command has 10 minutes, and a run killed at them loses
+    the model."""
+    import time
+
+    import jax.numpy as jnp
+    import jax.random as jr
     import optax
     import paramax
-    from flowjax.train import fit_to_data
+    from flowjax.train.train_utils import count_fruitless, get_batches, step, train_val_split
 
     eqx, _, _ = _flowjax()
 
@@ -151,18 +168,51 @@ def fit(
         return -m.log_prob(z, feats).mean()
 
     n_train = max(1, int(0.9 * len(z)) // batch_size)
-    schedule = optax.cosine_decay_schedule(learning_rate, epochs * n_train, alpha=0.05)
-    return fit_to_data(
-        key,
-        model,
-        (z, feats),
-        loss_fn=loss,
-        optimizer=optax.adam(schedule),
-        max_epochs=epochs,
-        max_patience=patience,
-        batch_size=min(batch_size, max(1, int(0.1 * len(z)))),
-        show_progress=progress,
+    batch_size = min(batch_size, max(1, int(0.1 * len(z))))
+    optimizer = optax.adam(optax.cosine_decay_schedule(learning_rate, epochs * n_train, alpha=0.05))
+    params, static = eqx.partition(
+        model, eqx.is_inexact_array, is_leaf=lambda leaf: isinstance(leaf, paramax.NonTrainable)
     )
+    best, opt_state = params, optimizer.init(params)
+    key, subkey = jr.split(key)
+    train_data, val_data = train_val_split(subkey, (jnp.asarray(z), jnp.asarray(feats)), 0.1)
+    losses = {"train": [], "val": []}
+    val_loss = eqx.filter_jit(loss)
+    t0 = t_log = time.perf_counter()
+    stopped = False
+    for epoch in range(epochs):
+        if deadline is not None and epoch and time.perf_counter() > deadline:
+            stopped = True
+            break
+        key, *subkeys = jr.split(key, 3)
+        train_data = [jr.permutation(subkeys[0], a) for a in train_data]
+        val_data = [jr.permutation(subkeys[1], a) for a in val_data]
+        batch_losses = []
+        for batch in zip(*get_batches(train_data, batch_size), strict=True):
+            key, subkey = jr.split(key)
+            params, opt_state, loss_i = step(
+                params, static, *batch, optimizer=optimizer, opt_state=opt_state,
+                loss_fn=loss, key=subkey,
+            )  # fmt: skip
+            batch_losses.append(loss_i)
+        losses["train"].append((sum(batch_losses) / len(batch_losses)).item())
+        batch_losses = []
+        for batch in zip(*get_batches(val_data, batch_size), strict=True):
+            key, subkey = jr.split(key)
+            batch_losses.append(val_loss(params, static, *batch, key=subkey))
+        losses["val"].append((sum(batch_losses) / len(batch_losses)).item())
+        if progress and log is not None and (epoch == 0 or time.perf_counter() - t_log > 10.0):
+            t_log = time.perf_counter()
+            log(
+                f"epoch {epoch + 1}/{epochs}: loss {losses['train'][-1]:.4f}, held-out "
+                f"{losses['val'][-1]:.4f} ({t_log - t0:.0f} s)"
+            )
+        if losses["val"][-1] == min(losses["val"]):
+            best = params
+        elif count_fruitless(losses["val"]) > patience:
+            break
+    losses["stopped_at_deadline"] = stopped
+    return eqx.combine(best, static), losses
 
 
 def sampler(model, n: int):
