@@ -167,68 +167,65 @@ def distinct_modes(fit, cov) -> np.ndarray:
     return finals[kept]
 
 
-def _pool(runs) -> np.ndarray:
-    """``[n]`` each run's share of the evidence, ``Z_m = mean(p / q_m)`` over its draws (raw
-    weights), normalised (:func:`multimode_importance`); equal shares when no draw is stable."""
-    log_z = np.array(
-        [np.logaddexp.reduce(r.raw_log_weights) - np.log(len(r.raw_log_weights)) for r in runs]
+def _mixture_weights(runs, order, n_particles, seed, min_ess):
+    """Every draw of every run in call order ``order`` [(run, round)], weighted against the
+    deterministic mixture of ALL the runs' proposals (the balance heuristic of multiple
+    importance sampling; Veach & Guibas 1995, Owen & Zhou 2000):
+    ``q_mix(x) = sum_(m, r) n_(m, r) q_(m, r)(x) / N``. Returns ``(draws, log_p, run_of [M],
+    importance_resample's (index, log_weights, khat, ess, ok, reason))``.
+
+    Why not each run's own weights pooled by its evidence share (as before): where two runs'
+    proposals overlap (modes of the multi-start fit on one curved ridge: chain2 of
+    experiments/default_calibration.py, the child's damping from 0.03 to 0.7) the shares
+    count the overlap twice and the run that drifted onto another had to be dropped, and with
+    it the end of the ridge that only it covered (seed 0: the truths Kp 37.7 / 98.7 lay outside
+    the intervals, 38.1-54.7 / 89.1-98.3; with every run kept and these weights, inside). The
+    mixture weights are unbiased whatever the overlap."""
+    from .importance import _draw_log_density, importance_resample
+
+    blocks, sizes = {}, []
+    for j, r in enumerate(runs):
+        ends = np.cumsum(r.sizes)
+        for k, (a, b) in enumerate(zip(ends - r.sizes, ends)):
+            blocks[(j, k + 1)] = (r.draws[a:b], r.log_p[a:b])
+        sizes += [(j, k) for k in range(len(r.sizes))]
+    draws = np.concatenate([blocks[o][0] for o in order])
+    log_p = np.concatenate([blocks[o][1] for o in order])
+    run_of = np.concatenate([np.full(len(blocks[o][0]), o[0]) for o in order])
+    terms = []
+    for j, k in sizes:
+        m, c, df = runs[j].proposals[k]
+        terms.append(np.log(runs[j].sizes[k]) + _draw_log_density(None, m, c, 0, df, draws)[1])
+    log_q = np.logaddexp.reduce(np.stack(terms), axis=0) - np.log(len(draws))
+    return (
+        draws,
+        log_p,
+        run_of,
+        importance_resample(draws, log_p, log_q, n_particles, seed, min_ess),
     )
-    share = np.exp(log_z - np.logaddexp.reduce(log_z))
-    if not np.all(np.isfinite(share)):  # no stable draw anywhere: equal shares
-        share = np.full(len(runs), 1.0 / len(runs))
-    return share
-
-
-def _merge_drifted(runs, live: list, sd) -> list:
-    """``live`` without the runs whose weighted draws' mean has drifted to within
-    :data:`MODE_SEPARATION` standard deviations ``sd`` (the best mode's proposal) of an earlier
-    live run's in every coordinate: two "modes" of the multi-start fit that lie on one curved
-    ridge of the posterior (the standard problem's child/parent stiffness trade-off: LM finals
-    at Kp 39 / 56 and 62 / 49 N m/rad), whose proposals both move to its middle. Each run
-    alone is a consistent importance estimate of what it covers, so dropping one keeps the
-    pool exact; kept, the drifted one went on drawing from a proposal that fits neither end
-    (k_hat 1.12 after 4 rounds) and sent the run to the sampler."""
-    from .importance import weighted_moments
-
-    means = {}
-    for j in live:
-        r = runs[j]
-        if np.isfinite(r.ess) and r.ess >= 2:
-            means[j] = weighted_moments(r.draws, r.log_weights)[0]
-    kept = []
-    for j in live:
-        if j in means and any(
-            i in means and np.max(np.abs(means[j] - means[i]) / sd) <= MODE_SEPARATION for i in kept
-        ):
-            continue
-        kept.append(j)
-    return kept
 
 
 def multimode_importance(
     log_density, modes, cov, n_draws, n_particles, seed, df, max_rounds, target, min_ess
 ):
     """:func:`treeinfer.inference.importance.adaptive_importance` around each of ``modes [M, D]``,
-    pooled: each mode's draws keep their (Pareto-smoothed, normalised) weights, scaled by that
-    mode's share of the evidence, ``Z_m = mean(p / q_m)`` over its draws (raw weights). Exact for
-    modes whose proposals do not overlap; where two proposals cover the same mode each run
-    estimates the whole posterior and the pool averages two estimates of it. Returns
-    ``(ImportancePosterior, index [n_particles])`` as ``adaptive_importance``, the draws in the
-    order ``log_density`` was called; ``khat`` is the largest of the modes'; ``ok`` needs every
-    mode with a share above 1% to have a k_hat within
-    :data:`treeinfer.inference.importance.KHAT_LIMIT` and the pool an effective sample size of
-    ``min_ess``.
+    pooled: every draw of every mode's rounds is weighted against the deterministic mixture of
+    all the proposals used (:func:`_mixture_weights`), Pareto-smoothed once. Unbiased whether
+    the modes' proposals overlap or not. Returns ``(ImportancePosterior, index [n_particles])``
+    as ``adaptive_importance``, the draws in the order ``log_density`` was called; ``khat``,
+    ``ess`` and ``ok`` are the pooled weights' (``ok``: k_hat within
+    :data:`treeinfer.inference.importance.KHAT_LIMIT` and an effective sample size of
+    ``min_ess``).
 
     The rounds are shared out (:class:`treeinfer.inference.importance.PopulationRounds`): one
-    round at every mode, then, while the pool's effective sample size is below ``target`` or
-    a mode with a share above 1% has a k_hat above the limit, one more round (at most
-    ``max_rounds`` per mode) at each such mode and at the mode that limits the pool's effective
-    sample size most (the largest ``share^2 / ess``). Before, every mode ran its rounds until
-    its own effective sample size reached ``target``: 7 rounds of 960 draws on the standard
-    problem (pooled ESS 561 for a target of 256), the largest single cost of the run. A mode
-    whose draws drift onto an earlier one's is merged into it (:func:`_merge_drifted`: its
-    draws stay at weight zero)."""
-    from .importance import KHAT_LIMIT, PopulationRounds, systematic_resample
+    round at every mode, then, while the pool's k_hat is above the limit or its effective
+    sample size below ``target``, one more round (at most ``max_rounds`` per mode) at each mode
+    that carries more than 1% of the weight with a k_hat of its own above the limit, and at the
+    mode whose draws limit the pool's effective sample size most (the largest sum of squared
+    weights). Before, every mode ran its rounds until its own effective sample size reached
+    ``target``: 7 rounds of 960 draws on the standard problem (pooled ESS 561 for a target of
+    256), the largest single cost of the run."""
+    from .importance import KHAT_LIMIT, PopulationRounds
 
     runs = [
         PopulationRounds(log_density, m, cov, n_draws, n_particles, seed + 101 * j, df, min_ess)
@@ -238,52 +235,29 @@ def multimode_importance(
     for j, r in enumerate(runs):
         r.step()
         order.append((j, r.rounds))
-    sd = np.sqrt(np.maximum(np.diag(np.asarray(cov, float)), 1e-12))
-    live = list(range(len(runs)))
     while True:
-        live = _merge_drifted(runs, live, sd)
-        share = np.zeros(len(runs))
-        share[live] = _pool([runs[j] for j in live])
-        w_sq = {
-            j: share[j] ** 2 / max(runs[j].ess, 1e-300) if np.isfinite(runs[j].ess) else np.inf
-            for j in live
-        }
-        ess = 1.0 / max(sum(w_sq.values()), 1e-300)
-        more = {j for j in live if share[j] > 0.01 and runs[j].khat > KHAT_LIMIT}
-        if ess < target:
-            more.add(max(w_sq, key=w_sq.get))
+        _, _, run_of, (_, lw, khat, ess, _, _) = _mixture_weights(
+            runs, order, n_particles, seed, min_ess
+        )
+        w = np.exp(lw)
+        share = np.array([w[run_of == j].sum() for j in range(len(runs))])
+        w_sq = np.array([np.sum(w[run_of == j] ** 2) for j in range(len(runs))])
+        # another round where a run that carries weight has an untrustworthy tail of its own,
+        # and at the run whose draws limit the pool's effective sample size most
+        more = set()
+        if not khat <= KHAT_LIMIT or ess < target:
+            more = {j for j, r in enumerate(runs) if share[j] > 0.01 and r.khat > KHAT_LIMIT}
+            more.add(int(np.argmax(w_sq)))
         more = [j for j in sorted(more) if runs[j].rounds < max_rounds and runs[j].adapt()]
         if not more:
             break
         for j in more:
             runs[j].step()
             order.append((j, runs[j].rounds))
-    # each run's draws and normalised weights, cut into its rounds, then laid out in call order
-    # (a merged run's draws stay, at weight zero: the caller's per-call records line up)
-    blocks = {}
-    for j, r in enumerate(runs):
-        ends = np.cumsum(r.sizes)
-        lw_j = r.log_weights + (np.log(share[j]) if share[j] > 0 else -np.inf)
-        for k, (a, b) in enumerate(zip(ends - r.sizes, ends)):
-            blocks[(j, k + 1)] = (r.draws[a:b], lw_j[a:b], r.log_p[a:b])
-    draws = np.concatenate([blocks[o][0] for o in order])
-    lw = np.concatenate([blocks[o][1] for o in order])
-    log_p = np.concatenate([blocks[o][2] for o in order])
-    lw = lw - np.logaddexp.reduce(lw)
-    w = np.exp(lw)
-    ess = float(1.0 / np.sum(w**2))
-    big = [runs[j] for j in live if share[j] > 0.01]
-    khat = float(max(r.khat for r in big))
-    # each mode's tail (k_hat) must be trustworthy; the effective sample size is the pool's (a
-    # mode with a 30% share needs only its share of it)
-    reasons = [
-        f"Pareto k_hat {r.khat:.2f} > {KHAT_LIMIT} at a mode" for r in big if r.khat > KHAT_LIMIT
-    ]
-    if ess < min_ess:
-        reasons.append(f"effective sample size {ess:.0f} < {min_ess:.0f}")
-    idx = systematic_resample(np.random.default_rng(seed), lw, n_particles)
+    draws, log_p, _, (idx, lw, khat, ess, ok, reason) = _mixture_weights(
+        runs, order, n_particles, seed, min_ess
+    )
     best = runs[int(np.argmax(share))].result()[0]
-    rounds = sum(r.rounds for r in runs)
     imp = best._replace(
         theta=draws[idx],
         draws=draws,
@@ -291,9 +265,9 @@ def multimode_importance(
         log_density=log_p,
         khat=khat,
         ess=ess,
-        ok=not reasons,
-        reason="; ".join(dict.fromkeys(reasons)),
-        rounds=rounds,
+        ok=ok,
+        reason=reason,
+        rounds=sum(r.rounds for r in runs),
         raw_log_weights=None,
     )
     return imp, idx
