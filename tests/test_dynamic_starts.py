@@ -130,3 +130,28 @@ def test_static_fit_seeds_the_dynamic_starts_near_the_truth(tree):
 
     lap = problem_laplace(problem, seed=0, extra=starts)
     np.testing.assert_allclose(np.exp(lap.theta[:2]), KP, rtol=0.05)
+
+
+def test_the_start_pipeline_takes_the_static_starts_else_its_own(monkeypatch):
+    """``auto_start``'s generic path (a model with channels): the static seed when the hook
+    gives one, the grasp-point fit's channel starts (the paper's model) when it does not."""
+    import treeinfer.inference.start_pipeline as sp
+    import treeinfer.inference.static.dynamic_starts as ds
+
+    seen = {}
+
+    def importance(problem, n, seed, extra=None):
+        seen["extra"] = extra
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(sp, "model_importance", importance)
+    monkeypatch.setattr(sp, "channel_starts", lambda problem, seed, log: np.full((2, 2), 7.0))
+    monkeypatch.setattr(ds, "static_first_starts", lambda problem, seed, log: np.ones((3, 2)))
+    prob = SimpleNamespace(settings={"channels": [{}]}, model=None)
+    with pytest.raises(RuntimeError, match="stop here"):
+        sp._model_start(prob, 8, 0, lambda m: None)
+    np.testing.assert_array_equal(seen["extra"], np.ones((3, 2)))
+    monkeypatch.setattr(ds, "static_first_starts", lambda problem, seed, log: None)
+    with pytest.raises(RuntimeError, match="stop here"):
+        sp._model_start(prob, 8, 0, lambda m: None)
+    np.testing.assert_array_equal(seen["extra"], np.full((2, 2), 7.0))
