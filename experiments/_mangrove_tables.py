@@ -99,7 +99,8 @@ def markdown(results: list[dict], config: dict) -> str:
     lines += [
         "",
         "| test | model | Kp root (N m/rad) | Kp stem (N m/rad) | creep ratio root / stem "
-        "| creep tau root / stem (s) | lag ratio / tau root (s) | sigma root (deg) | sigma trunk (deg) | AR(1) tau (s) "
+        "| creep tau root / stem (s) | lag ratio / tau root (s) | sigma root (deg) "
+        "| sigma trunk (deg) | AR(1) tau (s) "
         "| R-hat max | divergences | beam K (N m/rad) | beam EI (N m^2) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]

@@ -7,18 +7,18 @@ inclinometer, inferred with the stiffnesses:
     tilt_c(t) = model_c(F(.), t; Kp[, c, tau]) + e_c(t)
 
 The model is the elastic chain (:func:`.model.model_tilts`) or, with ``creep=True``, the
-viscoelastic one (:mod:`.creep`: a standard linear solid per joint, creep ratio ``c`` and
-relaxation time ``tau`` per joint, LogUniform priors :data:`~.creep.CREEP_RATIO_PRIOR`,
-:data:`~.creep.CREEP_TAU_PRIOR`); with ``lag=True`` as well, a fast lag element on the root
-joint (ratio and time constant, :data:`~.creep.LAG_TAU_PRIOR`; the slow creep's relaxation time
-then beyond it, :data:`~.creep.SLOW_TAU_PRIOR`: :func:`.creep.lagged_creep_tilts`). Priors
-``log Kp_j ~ Uniform(log 1e3, log 1e8)`` (N m/rad; :data:`~.model.KP_PRIOR`). Noise ``"iid"``: ``e_c ~ Normal(0, sigma_c)``, ``sigma_c ~
-LogUniform(1e-6, 0.05)`` rad. ``"ar1"``: white noise (``sigma_w``) plus an AR(1) component in
-continuous time (``sigma_a``, correlation time ``tau_ar`` with a bounded prior), the exact
-likelihood of :func:`.residuals.ou_white_log_prob`; the band then uses the marginal sd
-``sqrt(sigma_w^2 + sigma_a^2)`` (held-out points lie many correlation times from the fit).
-The force is taken as recorded (its 10 N quantum is well below the ramp's forces; errors in
-the force are not modelled).
+viscoelastic one (:mod:`.creep`: a standard linear solid per joint, creep ratio ``c`` and relaxation
+time ``tau`` per joint, LogUniform priors :data:`~.creep.CREEP_RATIO_PRIOR`,
+:data:`~.creep.CREEP_TAU_PRIOR`); with ``lag=True`` as well, a fast lag element on the root joint
+(ratio and time constant, :data:`~.creep.LAG_TAU_PRIOR`; the slow creep's relaxation time then
+beyond it, :data:`~.creep.SLOW_TAU_PRIOR`: :func:`.creep.lagged_creep_tilts`). Priors ``log Kp_j ~
+Uniform(log 1e3, log 1e8)`` (N m/rad; :data:`~.model.KP_PRIOR`). Noise ``"iid"``: ``e_c ~ Normal(0,
+sigma_c)``, ``sigma_c ~ LogUniform(1e-6, 0.05)`` rad. ``"ar1"``: white noise (``sigma_w``) plus an
+AR(1) component in continuous time (``sigma_a``, correlation time ``tau_ar`` with a bounded prior),
+the exact likelihood of :func:`.residuals.ou_white_log_prob`; the band then uses the marginal sd
+``sqrt(sigma_w^2 + sigma_a^2)`` (held-out points lie many correlation times from the fit). The force
+is taken as recorded (its 10 N quantum is well below the ramp's forces; errors in the force are not
+modelled).
 
 Why NUTS from numpyro and not treeinfer's start pipeline and samplers: those are built around
 the displacement likelihood of :mod:`treeinfer.model.likelihood` (particles x profiles x time
