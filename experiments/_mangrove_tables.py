@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
+
 PARTS = ("ramp2", "hold", "release")
 
 
@@ -106,7 +108,8 @@ def markdown(results: list[dict], config: dict) -> str:
     ]
     for r in results:
         p, d = r["posterior"], r["diagnostics"]
-        rh = [v for k in d if k.startswith("r_hat") for v in (d[k] or [])]
+        # per-joint or per-channel lists; a scalar parameter's (the root's lag) a number
+        rh = [v for k in d if k.startswith("r_hat") for v in np.atleast_1d(d[k] or [])]
 
         def ci(k, scale=1.0):
             if k not in p:
