@@ -19,6 +19,7 @@ _EXPORTS = {
     "springs_predict": "beam",
     "CREEP_RATIO_PRIOR": "creep",
     "CREEP_TAU_PRIOR": "creep",
+    "LAG_RATIO_PRIOR": "creep",
     "LAG_TAU_PRIOR": "creep",
     "SLOW_TAU_PRIOR": "creep",
     "lagged_creep_tilts": "creep",

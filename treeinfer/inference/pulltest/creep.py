@@ -40,6 +40,7 @@ from .model import NEWTON_ITERATIONS, PullModel, model_response
 __all__ = [
     "CREEP_RATIO_PRIOR",
     "CREEP_TAU_PRIOR",
+    "LAG_RATIO_PRIOR",
     "LAG_TAU_PRIOR",
     "SLOW_TAU_PRIOR",
     "creep_states",
@@ -55,6 +56,7 @@ CREEP_TAU_PRIOR = (
 # the fast lag element (LogUniform, s): the readings are 0.08-0.27 s apart, the winch's steps a
 # few seconds; below 0.05 s a lag is a softer spring at these rates
 LAG_TAU_PRIOR = (0.05, 5.0)
+LAG_RATIO_PRIOR = CREEP_RATIO_PRIOR  # its ratio (LogUniform): as the slow element's
 SLOW_TAU_PRIOR = (5.0, 1000.0)  # s: the slow creep's relaxation time beside a fast lag
 
 

@@ -41,6 +41,7 @@ from ...errors import ConfigError
 from .creep import (
     CREEP_RATIO_PRIOR,
     CREEP_TAU_PRIOR,
+    LAG_RATIO_PRIOR,
     LAG_TAU_PRIOR,
     SLOW_TAU_PRIOR,
     creep_tilts,
@@ -166,7 +167,7 @@ def _numpyro_model(
         tau_prior = SLOW_TAU_PRIOR if lag else CREEP_TAU_PRIOR
         tau = numpyro.sample("creep_tau", dist.LogUniform(*tau_prior).expand([r]).to_event(1))
         if lag:
-            cf = numpyro.sample("lag_ratio", dist.LogUniform(*CREEP_RATIO_PRIOR))
+            cf = numpyro.sample("lag_ratio", dist.LogUniform(*LAG_RATIO_PRIOR))
             tf = numpyro.sample("lag_tau", dist.LogUniform(*LAG_TAU_PRIOR))
             pred, stable = lagged_creep_tilts(
                 model, jnp.exp(log_kp)[None], ratio[None], tau[None], cf[None], tf[None],
