@@ -55,6 +55,7 @@ MODELS = {  # name -> (creep, noise, lag: the root's fast lag element)
     "creep": (True, "iid", False),
     "creep+ar1": (True, "ar1", False),
     "lag+creep+ar1": (True, "ar1", True),
+    "lag2+creep+ar1": (True, "ar1", "all"),  # the fast lag on every joint
 }
 CITATION = (
     "Hill JW, Bennion V, Lovelock CE (2024) Mangrove tree strength estimated with field "

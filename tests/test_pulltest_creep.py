@@ -273,3 +273,24 @@ def test_nuts_with_a_root_lag_runs_and_reports_it(model):
     assert ((y >= band["lo"]) & (y <= band["hi"])).mean() > 0.8
     with pytest.raises(Exception, match="lag"):
         fit_pull_test(model, force, y, time=t, lag=True, num_warmup=2, num_samples=2)
+
+
+def test_a_lag_on_every_joint_is_each_joints_extra_creep(model):
+    """``joint=None``: a fast element on each joint, the same as creep with the two ratios and
+    time constants added through the tilts' Jacobian (each joint's own)."""
+    from treeinfer.inference.pulltest import lagged_creep_tilts
+
+    t = np.arange(0.0, 60.0, 0.1)
+    force = np.interp(t, [0, 20, 40, 45, 60], [0, 2500.0, 2500.0, 0.0, 0.0])
+    kp = jnp.asarray(KP[None])
+    ratio, taus = jnp.asarray([[0.3, 0.2]]), jnp.asarray([[20.0, 30.0]])
+    cf, tf = jnp.asarray([[0.5, 0.8]]), jnp.asarray([[0.4, 1.5]])
+    got, ok = lagged_creep_tilts(model, kp, ratio, taus, cf, tf, force, t, joint=None)
+    base = creep_tilts(model, kp, ratio, taus, force, t)[0]
+    fast = creep_tilts(model, kp, cf, tf, force, t)[0]
+    elastic = model_tilts(model, kp, force)[0]
+    assert bool(ok[0])
+    np.testing.assert_allclose(np.asarray(got), np.asarray(base + fast - elastic), rtol=1e-5,
+                               atol=1e-12)  # fmt: skip
+    with pytest.raises(Exception, match="lag"):
+        fit_pull_test(model, force, np.zeros((2, t.size)), time=t, creep=True, lag="stem")

@@ -115,9 +115,13 @@ def lagged_creep_tilts(
 ) -> tuple[jax.Array, jax.Array]:
     """:func:`creep_tilts` with a fast lag element on ``joint`` (module docstring):
     ``lag_ratio`` and ``lag_tau`` [P] its ratio and time constant (s), driven, as the slow
-    element, by the joint's elastic deflection."""
+    element, by the joint's elastic deflection; ``joint=None``: one on every joint
+    (``lag_ratio`` and ``lag_tau`` [P, R])."""
     tilts, dq, jac, stable = model_response(model, kp, forces, iterations)
     qc = creep_states(dq, time, ratio, tau)  # [P, R, T]
+    if joint is None:
+        qf = creep_states(dq, time, lag_ratio, lag_tau)  # [P, R, T]
+        return tilts + jnp.einsum("pcr,prt->pct", jac, qc + qf), stable
     j = list(model.joints).index(joint)
     qf = creep_states(dq[:, j], time, lag_ratio, lag_tau)  # [P, T]
     out = tilts + jnp.einsum("pcr,prt->pct", jac, qc) + jac[:, :, j, None] * qf[:, None, :]

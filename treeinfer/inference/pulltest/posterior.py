@@ -102,8 +102,11 @@ class PullPosterior:
             out |= {f"{name}_{c}": stats(x[:, i]) for i, c in enumerate(self.channels)}
         for name, x in self.creep_params.items():
             out |= {f"creep_{name}_{j}": stats(x[:, i]) for i, j in enumerate(self.joints)}
-        for name, x in self.lag_params.items():
-            out[f"lag_{name}_root"] = stats(x)
+        for name, x in self.lag_params.items():  # [S] (the root's) or [S, R] (every joint's)
+            if np.ndim(x) == 1:
+                out[f"lag_{name}_root"] = stats(x)
+            else:
+                out |= {f"lag_{name}_{j}": stats(x[:, i]) for i, j in enumerate(self.joints)}
         return out
 
     def tilts(self, model: PullModel, idx, force, time):
@@ -115,7 +118,8 @@ class PullPosterior:
         if not self.lag_params:
             return creep_tilts(model, kp, c, tau, force, time)
         cf, tf = (jnp.asarray(self.lag_params[k][idx]) for k in ("ratio", "tau"))
-        return lagged_creep_tilts(model, kp, c, tau, cf, tf, force, time)
+        joint = "root" if cf.ndim == 1 else None
+        return lagged_creep_tilts(model, kp, c, tau, cf, tf, force, time, joint)
 
 
 def initial_stiffness(model: PullModel, force, tilt) -> np.ndarray:
@@ -167,11 +171,12 @@ def _numpyro_model(
         tau_prior = SLOW_TAU_PRIOR if lag else CREEP_TAU_PRIOR
         tau = numpyro.sample("creep_tau", dist.LogUniform(*tau_prior).expand([r]).to_event(1))
         if lag:
-            cf = numpyro.sample("lag_ratio", dist.LogUniform(*LAG_RATIO_PRIOR))
-            tf = numpyro.sample("lag_tau", dist.LogUniform(*LAG_TAU_PRIOR))
+            n_lag = [r] if lag == "all" else []
+            cf = numpyro.sample("lag_ratio", _prior(dist.LogUniform(*LAG_RATIO_PRIOR), n_lag))
+            tf = numpyro.sample("lag_tau", _prior(dist.LogUniform(*LAG_TAU_PRIOR), n_lag))
             pred, stable = lagged_creep_tilts(
                 model, jnp.exp(log_kp)[None], ratio[None], tau[None], cf[None], tf[None],
-                force, time,
+                force, time, None if lag == "all" else "root",
             )  # fmt: skip
         else:
             pred, stable = creep_tilts(
@@ -191,6 +196,11 @@ def _numpyro_model(
     tau_ar = numpyro.sample("tau_ar", dist.LogUniform(*TAU_AR_PRIOR).expand([c]).to_event(1))
     resid = jnp.where(mask, tilt - pred[0], 0.0)
     numpyro.factor("tilt", ou_white_log_prob(resid, mask, time, sigma_w, sigma_a, tau_ar))
+
+
+def _prior(d, shape: list):
+    """``d`` for a scalar parameter, else ``shape`` independent copies as one event."""
+    return d.expand(shape).to_event(1) if shape else d
 
 
 def _time_base(time, n: int) -> np.ndarray:
@@ -216,18 +226,21 @@ def fit_pull_test(
     noise_prior: tuple[float, float] = NOISE_PRIOR,
     noise: str = "iid",
     creep: bool = False,
-    lag: bool = False,
+    lag: bool | str = False,
     progress: bool = False,
 ) -> PullPosterior:
     """NUTS on the static model: ``force`` [T] N along the cable, ``tilt`` [C, T] rad for the
     channels of ``model.sensors`` (NaN where missing), ``time`` [T] s (default: every
     :data:`DEFAULT_DT`; the creep and the AR(1) part follow it), ``noise`` ``"iid"`` or
     ``"ar1"``, ``creep`` the viscoelastic joints, ``lag`` (with ``creep``) a fast lag element on
-    the root joint (the module docstring). Chains run one after the other (CPU)."""
+    the root joint (``True``) or on every joint (``"all"``) (the module docstring). Chains run
+    one after the other (CPU)."""
     from numpyro.infer import MCMC, NUTS, init_to_value
 
     if noise not in NOISE_MODELS:
         raise ConfigError(f"noise: expected one of {', '.join(NOISE_MODELS)}, got {noise!r}")
+    if lag not in (False, True, "all"):
+        raise ConfigError(f"lag: expected False, True (the root's) or 'all', got {lag!r}")
     if lag and not (creep and "root" in model.joints):
         raise ConfigError("lag: the root's fast lag element needs creep=True and a root joint")
 
@@ -331,7 +344,8 @@ def _start(noise: str, creep: bool, k0, s0, lag: bool = False) -> dict:
             "creep_tau": jnp.full(r, CREEP_START[1]),
         }
     if lag:
-        out |= {"lag_ratio": jnp.asarray(LAG_START[0]), "lag_tau": jnp.asarray(LAG_START[1])}
+        shape = (r,) if lag == "all" else ()
+        out |= {k: jnp.full(shape, v) for k, v in zip(("lag_ratio", "lag_tau"), LAG_START)}
     if noise == "iid":
         return out | {"sigma": jnp.asarray(s0)}
     half = jnp.asarray(s0) / math.sqrt(2)
