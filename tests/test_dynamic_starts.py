@@ -155,3 +155,14 @@ def test_the_start_pipeline_takes_the_static_starts_else_its_own(monkeypatch):
     with pytest.raises(RuntimeError, match="stop here"):
         sp._model_start(prob, 8, 0, lambda m: None)
     np.testing.assert_array_equal(seen["extra"], np.full((2, 2), 7.0))
+
+
+def test_a_static_model_that_cannot_be_built_leaves_the_pipeline_its_own_starts(tree):
+    """``--noise-velocity`` (the paper's model only): the static fit is refused, the starts are
+    None and the log says why, the run goes on."""
+    problem = _pull(tree, 8.0)
+    spec = problem.spec.replace(noise_velocity=0.01)
+    problem = problem.__class__(**{**problem.__dict__, "spec": spec})
+    said = []
+    assert static_first_starts(problem, log=said.append) is None
+    assert "could not be fitted" in said[-1] and "noise-velocity" in said[-1]

@@ -28,6 +28,7 @@ import math
 import numpy as np
 
 from ...data.types import Trajectory
+from ...errors import ConfigError, SimulationError
 from .detection import natural_periods
 
 RISE_PERIODS = 5.0  # the force's rise / the slowest natural period, above which a pull is slow
@@ -152,8 +153,13 @@ def static_first_starts(problem, seed: int = 0, log=lambda m: None) -> np.ndarra
     if trajs is None:
         log(f"{why}; its pulls cannot be matched to their channels: no static start")
         return None
-    static = static_problem(problem, trajs)
-    lap = problem_laplace(static, seed=seed)
+    try:
+        static = static_problem(problem, trajs)
+        lap = problem_laplace(static, seed=seed)
+    except (ConfigError, SimulationError, np.linalg.LinAlgError) as e:
+        # e.g. an option the static model does not take (--noise-velocity): its own starts
+        log(f"{why}; the static model could not be fitted ({e}): no static start")
+        return None
     rng = np.random.default_rng(seed)
     chol = np.linalg.cholesky(lap.cov + 1e-12 * np.eye(len(lap.cov)))
     draws = lap.theta + rng.standard_normal((N_STATIC - 1, len(lap.theta))) @ chol.T
