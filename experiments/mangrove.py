@@ -45,14 +45,17 @@ if __name__ == "__main__":  # run as a script from anywhere: use this checkout's
 
 import numpy as np
 
+from experiments._mangrove_tables import PARTS, _deg, markdown
+
 REPO = Path(__file__).resolve().parent.parent
 TESTS = ("halloran_1", "halloran_10", "gladstone_21", "gladstone_31")
-PARTS = ("ramp2", "hold", "release")
-MODELS = {  # name -> (creep, noise)
-    "elastic": (False, "iid"),
-    "elastic+ar1": (False, "ar1"),
-    "creep": (True, "iid"),
-    "creep+ar1": (True, "ar1"),
+MODELS = {  # name -> (creep, noise, lag: the root's fast lag element)
+    "elastic": (False, "iid", False),
+    "elastic+ar1": (False, "ar1", False),
+    "creep": (True, "iid", False),
+    "creep+ar1": (True, "ar1", False),
+    "lag+creep+ar1": (True, "ar1", True),
+    "lag2+creep+ar1": (True, "ar1", "all"),  # the fast lag on every joint
 }
 CITATION = (
     "Hill JW, Bennion V, Lovelock CE (2024) Mangrove tree strength estimated with field "
@@ -113,7 +116,7 @@ def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, 
         springs_predict,
     )
 
-    creep, noise = MODELS[kind]
+    creep, noise, lag = MODELS[kind]
     t0 = time.time()
     setup = read_test_setups(data / "trees.csv")[name]
     test = make_pull_test(read_pul(data / "pull_tests" / f"{name}.pul"), setup)
@@ -133,6 +136,7 @@ def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, 
         seed=args.seed,
         noise=noise,
         creep=creep,
+        lag=lag,
     )
     span = slice(win["fit"].start, win["release"].stop)
     # the creep state starts at rest at the ramp's start (the fit window's and the band's)
@@ -263,122 +267,6 @@ def innovations_lag1(r: dict, cv: dict) -> dict | None:
     return {c: float(v) for c, v in zip(chans, lag1_autocorrelation(z))}
 
 
-def _deg(x: float) -> str:
-    return f"{math.degrees(x):.4f}"
-
-
-def summary_lines(results: list[dict]) -> list[str]:
-    """The headline table: per test and channel, each model's held-out coverage (ramp2 +
-    release; the hold apart), its RMSE against the beam's, and the fit's residual check."""
-    kinds = list(dict.fromkeys(r["model"] for r in results))
-    by = {(r["test"], r["model"]): r for r in results}
-    tests = list(dict.fromkeys(r["test"] for r in results))
-    lines = [
-        "| test | channel | "
-        + " | ".join(f"{k}: held-out cov. / hold cov. / RMSE / lag-1" for k in kinds)
-        + " | RMSE beam | RMSE springs |",
-        "|---|---|" + "---|" * len(kinds) + "---|---|",
-    ]
-    # a fit not run (yet) leaves its cell empty
-    for t in tests:
-        first = next(by[(t, k)] for k in kinds if (t, k) in by)
-        for c in first["parts"]["heldout"]:
-            cells = []
-            for k in kinds:
-                r = by.get((t, k))
-                if r is None:
-                    cells.append("")
-                    continue
-                h, hold = r["parts"]["heldout"][c], r["parts"]["hold"][c]
-                lag = f"{r['residual_lag1'][c]:.2f}"
-                if r.get("innovations_lag1"):
-                    lag += f" ({r['innovations_lag1'][c]:.2f})"
-                cells.append(
-                    f"{h['coverage']:.0%} / {hold['coverage']:.0%} / {_deg(h['rmse_chain'])} / "
-                    + lag
-                )
-            h = first["parts"]["heldout"][c]
-            lines.append(
-                f"| {t} | {c} | "
-                + " | ".join(cells)
-                + f" | {_deg(h['rmse_beam'])} | {_deg(h['rmse_springs'])} |"
-            )
-    return lines
-
-
-def markdown(results: list[dict], config: dict) -> str:
-    lines = [
-        "# Mangrove static pulling tests: elastic and viscoelastic chains, i.i.d. and AR(1) noise",
-        "",
-        f"Data: Hill et al. (2024), doi:10.1016/j.ecoleng.2024.107259 ({config['data']}).",
-        *(
-            [
-                "Fit: the whole loading (ramp and hold). Held out: the release (`heldout`).",
-            ]
-            if config.get("split") == "loading"
-            else [
-                "Fit: first half of the loading ramp. Held out: the second half of the ramp",
-                "(ramp2), the hold at the peak (hold) and the release (release); `heldout` =",
-                "ramp2 + release.",
-            ]
-        ),
-        "Coverage: share of recorded tilts inside the chain's 95% posterior predictive band.",
-        "RMSE in degrees: the chain's predictive mean and two baselines fitted by least squares",
-        "to the same data: beam (a uniform Euler-Bernoulli cantilever on a root-plate spring,",
-        "one pair of compliances for both inclinometers) and springs (tilt = moment at the",
-        "ground / K_c, one K_c per inclinometer). lag-1: the lag-1 autocorrelation of the",
-        "residuals on the fitted samples (the check: above 0.3, i.i.d. noise is the wrong model);",
-        "in brackets for +ar1 fits, that of the standardised Kalman innovations (above 0.3, the",
-        "AR(1) part does not account for the correlation either).",
-        "Models: elastic (springs), creep (a standard linear solid per joint), +ar1 (AR(1)",
-        "residuals in continuous time, correlation time <= 5 s, inferred jointly).",
-        "",
-        f"Command: `{config['command']}`",
-        "",
-        *summary_lines(results),
-        "",
-        "| test | model | channel | part | n | coverage | RMSE chain (deg) | RMSE beam (deg) "
-        "| RMSE springs (deg) |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in results:
-        for part in ("fit", *PARTS, "heldout"):
-            for c, m in r["parts"][part].items():
-                lines.append(
-                    f"| {r['test']} | {r['model']} | {c} | {part} | {m['n']} | "
-                    f"{m['coverage']:.1%} | {_deg(m['rmse_chain'])} | {_deg(m['rmse_beam'])} | "
-                    f"{_deg(m['rmse_springs'])} |"
-                )
-    lines += [
-        "",
-        "| test | model | Kp root (N m/rad) | Kp stem (N m/rad) | creep ratio root / stem "
-        "| creep tau root / stem (s) | sigma root (deg) | sigma trunk (deg) | AR(1) tau (s) "
-        "| R-hat max | divergences | beam K (N m/rad) | beam EI (N m^2) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in results:
-        p, d = r["posterior"], r["diagnostics"]
-        rh = [v for k in d if k.startswith("r_hat") for v in (d[k] or [])]
-
-        def ci(k, scale=1.0):
-            if k not in p:
-                return "-"
-            m, lo, hi = (p[k][q] * scale for q in ("mean", "q2.5", "q97.5"))
-            return f"{m:.4g} [{lo:.4g}, {hi:.4g}]"
-
-        lines.append(
-            f"| {r['test']} | {r['model']} | {ci('kp_root')} | {ci('kp_stem')} | "
-            f"{ci('creep_ratio_root')} / {ci('creep_ratio_stem')} | "
-            f"{ci('creep_tau_root')} / {ci('creep_tau_stem')} | "
-            f"{ci('sigma_root', 180 / math.pi)} | {ci('sigma_trunk', 180 / math.pi)} | "
-            f"{ci('tau_ar_root')} / {ci('tau_ar_trunk')} | "
-            f"{max(rh) if rh else float('nan'):.3f} | {d['divergences']} | "
-            f"{r['beam']['k_root']:.4g} | {r['beam']['ei']:.4g} |"
-        )
-    lines += ["", "Config:", "", "```json", json.dumps(config, indent=2), "```", ""]
-    return "\n".join(lines)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, help="the mangrove folder (default: found)")
@@ -399,6 +287,12 @@ def main(argv=None) -> int:
         help="write the tables and figures from the fits kept in partial/, fitting nothing",
     )
     ap.add_argument("--keep-partial", action="store_true", help="keep partial/ at the end")
+    ap.add_argument(
+        "--merge",
+        action="store_true",
+        help="keep OUT/results.json's fits of other models or tests in the tables (their "
+        "figures are not redrawn)",
+    )
     args = ap.parse_args(argv)
     data = args.data or shared_data()
     if data is None:
@@ -454,11 +348,18 @@ def main(argv=None) -> int:
     import jax
     import numpyro
 
+    kept = []
+    if args.merge and (args.out / "results.json").is_file():  # earlier fits, other models/tests
+        old = json.loads((args.out / "results.json").read_text())
+        done = {(r["test"], r["model"]) for r in results}
+        kept = [r for r in old["results"] if (r["test"], r["model"]) not in done]
+        order = list(MODELS)
+        results = sorted(kept + results, key=lambda r: order.index(r["model"]))
     config = {
         "command": " ".join(["nice python experiments/mangrove.py", *(argv or sys.argv[1:])]),
         "data": str(data),
         "tests": sorted({r["test"] for r in results}),
-        "models": kinds,
+        "models": list(dict.fromkeys(r["model"] for r in results)),
         "split": args.split,
         "warmup": args.warmup,
         "samples": args.samples,
@@ -475,6 +376,7 @@ def main(argv=None) -> int:
         "wall_s": time.time() - t0,
         "cpu_s": time.process_time() - cpu0,
         "fits_resumed": resumed,
+        "fits_merged": len(kept),
         "fit_wall_s": sum(r["wall_s"] for r in results),
     }
     atomic_write_text(
@@ -483,7 +385,7 @@ def main(argv=None) -> int:
     )
     atomic_write_text(args.out / "results.md", markdown(results, config))
     for kind in kinds if not args.keep_partial else ():  # only this run's: runs may share it
-        for name in {r["test"] for r in results}:
+        for name in {r["test"] for r in results if r["model"] == kind}:
             (partial / f"{kind}_{name}.pkl").unlink(missing_ok=True)
     if not any(partial.iterdir()):
         partial.rmdir()

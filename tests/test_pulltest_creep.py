@@ -221,3 +221,76 @@ def test_ar1_innovations_are_white_under_the_model_and_not_under_another():
     # a model with too short a correlation time leaves correlated innovations
     z_bad = ou_white_innovations(resid, mask, t, sw, sa, tau / 20)
     assert lag1_autocorrelation(z_bad)[0] > 0.3
+
+
+def test_root_lag_is_a_generalised_kelvin_solid_against_scipy_lsim(model):
+    """The root joint with the fast lag element and the slow creep element in series with its
+    spring: its deflection under a moment history is the generalised Kelvin solid's creep
+    compliance ``1/K + c_f/(K (1 + tau_f s)) + c/(K (1 + tau s))`` (scipy's linear simulation);
+    the stem joint, without a lag, stays the standard linear solid."""
+    from treeinfer.inference.pulltest import lagged_creep_tilts
+
+    t = np.arange(0.0, 120.0, 0.1)
+    m = np.interp(t, [0, 40, 80, 85, 120], [0, 3000.0, 3000.0, 0.0, 0.0])
+    m = m + 200.0 * (np.floor(t / 3.0) % 2)  # winch steps
+    k, c, tau, cf, tf = 4.0e5, 0.3, 20.0, 0.6, 0.4
+    qe = m / k
+    qc = np.asarray(creep_states(jnp.asarray(qe[None]), t, np.array([c]), np.array([tau])))[0]
+    qf = np.asarray(creep_states(jnp.asarray(qe[None]), t, np.array([cf]), np.array([tf])))[0]
+    parts = [signal.lti([1.0 / k], [1.0]), signal.lti([c / k], [tau, 1.0]),
+             signal.lti([cf / k], [tf, 1.0])]  # fmt: skip
+    want = sum(signal.lsim(p, m, t)[1] for p in parts)
+    np.testing.assert_allclose(qe + qc + qf, want, rtol=2e-3, atol=1e-9)
+    # in the chain: the lag adds to the root's creep alone, through the tilts' Jacobian
+    force = np.where(t > 1.0, 2500.0, 0.0)
+    ratio, taus = jnp.asarray([[0.3, 0.2]]), jnp.asarray([[20.0, 30.0]])
+    base, _ = creep_tilts(model, jnp.asarray(KP[None]), ratio, taus, force, t)
+    got, ok = lagged_creep_tilts(
+        model, jnp.asarray(KP[None]), ratio, taus, jnp.asarray([cf]), jnp.asarray([tf]), force, t
+    )
+    assert bool(ok[0])
+    # a step held for 30 lag times: the root's extra creep is cf times its elastic deflection
+    root_only = creep_tilts(model, jnp.asarray(KP[None]), jnp.asarray([[cf, 0.0]]),
+                            jnp.asarray([[tf, 30.0]]), force, t)[0]  # fmt: skip
+    elastic = model_tilts(model, jnp.asarray(KP[None]), force)[0]
+    np.testing.assert_allclose(
+        np.asarray(got - base), np.asarray(root_only - elastic), rtol=1e-5, atol=1e-12
+    )
+    assert float(np.max(np.abs(got - base))) > 1e-4  # the lag is not nothing
+
+
+@pytest.mark.slow  # about a minute of NUTS on the loaded 2-core box
+def test_nuts_with_a_root_lag_runs_and_reports_it(model):
+    rng = np.random.default_rng(5)
+    t, force, y, truth = synthetic_pull(model, rng)
+    post = fit_pull_test(model, force, y, time=t, creep=True, lag=True, noise="ar1",
+                         num_warmup=60, num_samples=60, num_chains=1, seed=1)  # fmt: skip
+    s = post.summary()
+    assert {"lag_ratio_root", "lag_tau_root"} <= set(s)
+    assert 0.05 <= s["lag_tau_root"]["q2.5"] and s["lag_tau_root"]["q97.5"] <= 5.0
+    assert s["creep_tau_root"]["q2.5"] >= 5.0  # the slow element keeps to its own range
+    band = predictive_band(model, post, force, n_draws=50, time=t)
+    assert ((y >= band["lo"]) & (y <= band["hi"])).mean() > 0.8
+    with pytest.raises(Exception, match="lag"):
+        fit_pull_test(model, force, y, time=t, lag=True, num_warmup=2, num_samples=2)
+
+
+def test_a_lag_on_every_joint_is_each_joints_extra_creep(model):
+    """``joint=None``: a fast element on each joint, the same as creep with the two ratios and
+    time constants added through the tilts' Jacobian (each joint's own)."""
+    from treeinfer.inference.pulltest import lagged_creep_tilts
+
+    t = np.arange(0.0, 60.0, 0.1)
+    force = np.interp(t, [0, 20, 40, 45, 60], [0, 2500.0, 2500.0, 0.0, 0.0])
+    kp = jnp.asarray(KP[None])
+    ratio, taus = jnp.asarray([[0.3, 0.2]]), jnp.asarray([[20.0, 30.0]])
+    cf, tf = jnp.asarray([[0.5, 0.8]]), jnp.asarray([[0.4, 1.5]])
+    got, ok = lagged_creep_tilts(model, kp, ratio, taus, cf, tf, force, t, joint=None)
+    base = creep_tilts(model, kp, ratio, taus, force, t)[0]
+    fast = creep_tilts(model, kp, cf, tf, force, t)[0]
+    elastic = model_tilts(model, kp, force)[0]
+    assert bool(ok[0])
+    np.testing.assert_allclose(np.asarray(got), np.asarray(base + fast - elastic), rtol=1e-5,
+                               atol=1e-12)  # fmt: skip
+    with pytest.raises(Exception, match="lag"):
+        fit_pull_test(model, force, np.zeros((2, t.size)), time=t, creep=True, lag="stem")

@@ -252,8 +252,13 @@ def _model_start(problem, n_particles: int, seed: int, log):
     from .problem import Posterior
 
     extra = None
-    if problem.model is None and problem.settings.get("channels"):
-        extra = channel_starts(problem, seed, log=log)
+    if problem.settings.get("channels"):
+        from .static.dynamic_starts import static_first_starts
+
+        # a quasi-static pull (a winch ramp): the static model's fit seeds the dynamic one
+        extra = static_first_starts(problem, seed, log=log)
+        if extra is None and problem.model is None:
+            extra = channel_starts(problem, seed, log=log)
     imp, idx, lap = model_importance(problem, n_particles, seed, extra=extra)
     verdict = (
         "used as the posterior (no sampler iterations)"

@@ -7,16 +7,18 @@ inclinometer, inferred with the stiffnesses:
     tilt_c(t) = model_c(F(.), t; Kp[, c, tau]) + e_c(t)
 
 The model is the elastic chain (:func:`.model.model_tilts`) or, with ``creep=True``, the
-viscoelastic one (:mod:`.creep`: a standard linear solid per joint, creep ratio ``c`` and
-relaxation time ``tau`` per joint, LogUniform priors :data:`~.creep.CREEP_RATIO_PRIOR`,
-:data:`~.creep.CREEP_TAU_PRIOR`). Priors ``log Kp_j ~ Uniform(log 1e3, log 1e8)`` (N m/rad;
-:data:`~.model.KP_PRIOR`). Noise ``"iid"``: ``e_c ~ Normal(0, sigma_c)``, ``sigma_c ~
-LogUniform(1e-6, 0.05)`` rad. ``"ar1"``: white noise (``sigma_w``) plus an AR(1) component in
-continuous time (``sigma_a``, correlation time ``tau_ar`` with a bounded prior), the exact
-likelihood of :func:`.residuals.ou_white_log_prob`; the band then uses the marginal sd
-``sqrt(sigma_w^2 + sigma_a^2)`` (held-out points lie many correlation times from the fit).
-The force is taken as recorded (its 10 N quantum is well below the ramp's forces; errors in
-the force are not modelled).
+viscoelastic one (:mod:`.creep`: a standard linear solid per joint, creep ratio ``c`` and relaxation
+time ``tau`` per joint, LogUniform priors :data:`~.creep.CREEP_RATIO_PRIOR`,
+:data:`~.creep.CREEP_TAU_PRIOR`); with ``lag=True`` as well, a fast lag element on the root joint
+(ratio and time constant, :data:`~.creep.LAG_TAU_PRIOR`; the slow creep's relaxation time then
+beyond it, :data:`~.creep.SLOW_TAU_PRIOR`: :func:`.creep.lagged_creep_tilts`). Priors ``log Kp_j ~
+Uniform(log 1e3, log 1e8)`` (N m/rad; :data:`~.model.KP_PRIOR`). Noise ``"iid"``: ``e_c ~ Normal(0,
+sigma_c)``, ``sigma_c ~ LogUniform(1e-6, 0.05)`` rad. ``"ar1"``: white noise (``sigma_w``) plus an
+AR(1) component in continuous time (``sigma_a``, correlation time ``tau_ar`` with a bounded prior),
+the exact likelihood of :func:`.residuals.ou_white_log_prob`; the band then uses the marginal sd
+``sqrt(sigma_w^2 + sigma_a^2)`` (held-out points lie many correlation times from the fit). The force
+is taken as recorded (its 10 N quantum is well below the ramp's forces; errors in the force are not
+modelled).
 
 Why NUTS from numpyro and not treeinfer's start pipeline and samplers: those are built around
 the displacement likelihood of :mod:`treeinfer.model.likelihood` (particles x profiles x time
@@ -36,7 +38,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...errors import ConfigError
-from .creep import CREEP_RATIO_PRIOR, CREEP_TAU_PRIOR, creep_tilts
+from .creep import (
+    CREEP_RATIO_PRIOR,
+    CREEP_TAU_PRIOR,
+    LAG_RATIO_PRIOR,
+    LAG_TAU_PRIOR,
+    SLOW_TAU_PRIOR,
+    creep_tilts,
+    lagged_creep_tilts,
+)
 from .model import KP_PRIOR, PullModel, model_tilts
 from .residuals import TAU_AR_PRIOR, lag1_autocorrelation, ou_white_log_prob
 
@@ -62,7 +72,8 @@ class PullPosterior:
     (columns ``channels``: each channel's marginal noise sd), ``noise_params`` the noise
     model's own draws (``ar1``: ``sigma_w``, ``sigma_a``, ``tau_ar`` s and ``rho`` the lag-1
     correlation at the median step, each [S, C]), ``creep_params`` (``creep=True``: ``ratio``
-    and ``tau`` s, each [S, R]), and NUTS diagnostics (``r_hat``, ``ess`` per parameter,
+    and ``tau`` s, each [S, R]), ``lag_params`` (``lag=True``: the root's fast lag, ``ratio``
+    and ``tau`` s, each [S]), and NUTS diagnostics (``r_hat``, ``ess`` per parameter,
     ``divergences``)."""
 
     joints: tuple[str, ...]
@@ -74,6 +85,7 @@ class PullPosterior:
     noise_params: dict = field(default_factory=dict)
     creep: bool = False
     creep_params: dict = field(default_factory=dict)
+    lag_params: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         def stats(x):
@@ -90,6 +102,11 @@ class PullPosterior:
             out |= {f"{name}_{c}": stats(x[:, i]) for i, c in enumerate(self.channels)}
         for name, x in self.creep_params.items():
             out |= {f"creep_{name}_{j}": stats(x[:, i]) for i, j in enumerate(self.joints)}
+        for name, x in self.lag_params.items():  # [S] (the root's) or [S, R] (every joint's)
+            if np.ndim(x) == 1:
+                out[f"lag_{name}_root"] = stats(x)
+            else:
+                out |= {f"lag_{name}_{j}": stats(x[:, i]) for i, j in enumerate(self.joints)}
         return out
 
     def tilts(self, model: PullModel, idx, force, time):
@@ -98,7 +115,11 @@ class PullPosterior:
         if not self.creep:
             return model_tilts(model, kp, force)
         c, tau = (jnp.asarray(self.creep_params[k][idx]) for k in ("ratio", "tau"))
-        return creep_tilts(model, kp, c, tau, force, time)
+        if not self.lag_params:
+            return creep_tilts(model, kp, c, tau, force, time)
+        cf, tf = (jnp.asarray(self.lag_params[k][idx]) for k in ("ratio", "tau"))
+        joint = "root" if cf.ndim == 1 else None
+        return lagged_creep_tilts(model, kp, c, tau, cf, tf, force, time, joint)
 
 
 def initial_stiffness(model: PullModel, force, tilt) -> np.ndarray:
@@ -126,7 +147,16 @@ def initial_stiffness(model: PullModel, force, tilt) -> np.ndarray:
 
 
 def _numpyro_model(
-    model: PullModel, force, time, tilt, mask, kp_prior, noise_prior, noise="iid", creep=False
+    model: PullModel,
+    force,
+    time,
+    tilt,
+    mask,
+    kp_prior,
+    noise_prior,
+    noise="iid",
+    creep=False,
+    lag=False,
 ):
     import numpyro
     import numpyro.distributions as dist
@@ -138,10 +168,20 @@ def _numpyro_model(
         ratio = numpyro.sample(
             "creep_ratio", dist.LogUniform(*CREEP_RATIO_PRIOR).expand([r]).to_event(1)
         )
-        tau = numpyro.sample("creep_tau", dist.LogUniform(*CREEP_TAU_PRIOR).expand([r]).to_event(1))
-        pred, stable = creep_tilts(
-            model, jnp.exp(log_kp)[None], ratio[None], tau[None], force, time
-        )
+        tau_prior = SLOW_TAU_PRIOR if lag else CREEP_TAU_PRIOR
+        tau = numpyro.sample("creep_tau", dist.LogUniform(*tau_prior).expand([r]).to_event(1))
+        if lag:
+            n_lag = [r] if lag == "all" else []
+            cf = numpyro.sample("lag_ratio", _prior(dist.LogUniform(*LAG_RATIO_PRIOR), n_lag))
+            tf = numpyro.sample("lag_tau", _prior(dist.LogUniform(*LAG_TAU_PRIOR), n_lag))
+            pred, stable = lagged_creep_tilts(
+                model, jnp.exp(log_kp)[None], ratio[None], tau[None], cf[None], tf[None],
+                force, time, None if lag == "all" else "root",
+            )  # fmt: skip
+        else:
+            pred, stable = creep_tilts(
+                model, jnp.exp(log_kp)[None], ratio[None], tau[None], force, time
+            )
     else:
         pred, stable = model_tilts(model, jnp.exp(log_kp)[None], force)
     numpyro.factor("stable", jnp.where(stable[0], 0.0, -jnp.inf))
@@ -156,6 +196,11 @@ def _numpyro_model(
     tau_ar = numpyro.sample("tau_ar", dist.LogUniform(*TAU_AR_PRIOR).expand([c]).to_event(1))
     resid = jnp.where(mask, tilt - pred[0], 0.0)
     numpyro.factor("tilt", ou_white_log_prob(resid, mask, time, sigma_w, sigma_a, tau_ar))
+
+
+def _prior(d, shape: list):
+    """``d`` for a scalar parameter, else ``shape`` independent copies as one event."""
+    return d.expand(shape).to_event(1) if shape else d
 
 
 def _time_base(time, n: int) -> np.ndarray:
@@ -181,17 +226,23 @@ def fit_pull_test(
     noise_prior: tuple[float, float] = NOISE_PRIOR,
     noise: str = "iid",
     creep: bool = False,
+    lag: bool | str = False,
     progress: bool = False,
 ) -> PullPosterior:
     """NUTS on the static model: ``force`` [T] N along the cable, ``tilt`` [C, T] rad for the
     channels of ``model.sensors`` (NaN where missing), ``time`` [T] s (default: every
     :data:`DEFAULT_DT`; the creep and the AR(1) part follow it), ``noise`` ``"iid"`` or
-    ``"ar1"``, ``creep`` the viscoelastic joints (the module docstring). Chains run one after
-    the other (CPU)."""
+    ``"ar1"``, ``creep`` the viscoelastic joints, ``lag`` (with ``creep``) a fast lag element on
+    the root joint (``True``) or on every joint (``"all"``) (the module docstring). Chains run
+    one after the other (CPU)."""
     from numpyro.infer import MCMC, NUTS, init_to_value
 
     if noise not in NOISE_MODELS:
         raise ConfigError(f"noise: expected one of {', '.join(NOISE_MODELS)}, got {noise!r}")
+    if lag not in (False, True, "all"):
+        raise ConfigError(f"lag: expected False, True (the root's) or 'all', got {lag!r}")
+    if lag and not (creep and "root" in model.joints):
+        raise ConfigError("lag: the root's fast lag element needs creep=True and a root joint")
 
     force_np = np.asarray(force, float)
     force = jnp.asarray(force_np)
@@ -211,7 +262,7 @@ def fit_pull_test(
     s0 = np.clip(np.nanstd(resid, axis=1), noise_prior[0] * 2, noise_prior[1] / 2)
     kernel = NUTS(
         _numpyro_model,
-        init_strategy=init_to_value(values=_start(noise, creep, k0, s0)),
+        init_strategy=init_to_value(values=_start(noise, creep, k0, s0, lag)),
         target_accept_prob=0.9,
         dense_mass=True,  # the trunk channel couples the two stiffnesses
     )
@@ -234,6 +285,7 @@ def fit_pull_test(
         noise_prior,
         noise,
         creep,
+        lag,
     )
     draws = mcmc.get_samples(group_by_chain=True)
     from numpyro.diagnostics import effective_sample_size, split_gelman_rubin
@@ -241,6 +293,7 @@ def fit_pull_test(
     diag = {"divergences": int(np.asarray(mcmc.get_extra_fields()["diverging"]).sum())}
     names = ["log_kp", *(("sigma",) if noise == "iid" else ("sigma_w", "sigma_a", "tau_ar"))]
     names += ["creep_ratio", "creep_tau"] if creep else []
+    names += ["lag_ratio", "lag_tau"] if lag else []
     for name in names:
         x = np.asarray(draws[name])
         diag[f"r_hat_{name}"] = (
@@ -261,6 +314,7 @@ def fit_pull_test(
         }
         sigma = np.hypot(params["sigma_w"], params["sigma_a"])
     creep_params = {"ratio": flat["creep_ratio"], "tau": flat["creep_tau"]} if creep else {}
+    lag_params = {"ratio": flat["lag_ratio"], "tau": flat["lag_tau"]} if lag else {}
     return PullPosterior(
         joints=tuple(model.joints),
         channels=tuple(model.sensors),
@@ -271,13 +325,15 @@ def fit_pull_test(
         noise_params=params,
         creep=creep,
         creep_params=creep_params,
+        lag_params=lag_params,
     )
 
 
 CREEP_START = (0.05, 20.0)  # NUTS's start: a little creep, a relaxation time of 20 s
+LAG_START = (0.05, 0.5)  # and a little fast lag, 0.5 s
 
 
-def _start(noise: str, creep: bool, k0, s0) -> dict:
+def _start(noise: str, creep: bool, k0, s0, lag: bool = False) -> dict:
     """NUTS's start: the closed-form stiffnesses, the noise sd of their residuals (``ar1``:
     split evenly between the white and the correlated part, a correlation time of 1 s)."""
     r = len(k0)
@@ -287,6 +343,9 @@ def _start(noise: str, creep: bool, k0, s0) -> dict:
             "creep_ratio": jnp.full(r, CREEP_START[0]),
             "creep_tau": jnp.full(r, CREEP_START[1]),
         }
+    if lag:
+        shape = (r,) if lag == "all" else ()
+        out |= {k: jnp.full(shape, v) for k, v in zip(("lag_ratio", "lag_tau"), LAG_START)}
     if noise == "iid":
         return out | {"sigma": jnp.asarray(s0)}
     half = jnp.asarray(s0) / math.sqrt(2)
