@@ -355,3 +355,43 @@ def test_finite_psd_drops_nonfinite_curvature_without_failing_the_batch():
     assert np.all(out[1] == 0.0)
     np.testing.assert_allclose(out[[0, 2]], _psd(h[[0, 2]]))
     assert np.all(np.linalg.eigvalsh(out[0]) >= -1e-12)
+
+
+def test_ggn_terms_run_one_program_for_any_number_of_starts(one_joint):
+    """The LM's curvature program pads its rows to a multiple of GGN_ROWS: the fits of a run
+    (8, 12 starts, the polish's few modes) trace and compile it once per problem. Reference: the
+    same program on the unpadded rows, and the Gaussian density's value by hand."""
+    from treeinfer.inference.start_steps import GGN_ROWS, _ggn_program, ggn_terms
+
+    base, truth = one_joint
+    problem = make_problem(base.tree, base.obs, sim=base.sim, nn_prior=False,
+                           likelihood="gaussian")  # fmt: skip
+    ev = BatchEvaluator(problem, chunk=5)
+    rng = np.random.default_rng(1)
+    theta = np.concatenate([truth, [np.log(2e-3)]]) + 0.05 * rng.normal(size=(12, 3))
+    got = {s: ggn_terms(ev, theta[:s], 1e-3) for s in (1, 3, 12)}
+    prog = _ggn_program(ev)
+    assert prog._cache_size() == 1  # 1, 3 and 12 rows: one program
+    for s in (1, 3):  # the same program on the same rows: the same values
+        for a, b in zip(got[s][:3], got[12][:3]):
+            np.testing.assert_array_equal(a, b[:s])
+    # against the program on the unpadded rows (its own batch: equal to float32 rounding)
+    r, _, _ = ev.evaluate(theta[:3])
+    g = ev.n_gains
+    step = np.zeros((2 * g + 1, 3))
+    step[1 : g + 1, :g], step[g + 1 :, :g] = 1e-3 * np.eye(g), -1e-3 * np.eye(g)
+    rr = ev.evaluate((theta[:3, None] + step[None]).reshape(-1, 3))[0].reshape(3, 2 * g + 1, -1,
+                                                                           r.shape[-1])  # fmt: skip
+    jac = np.moveaxis((rr[:, 1 : g + 1] - rr[:, g + 1 :]) / 2e-3, 1, -1)
+    own = prog(jnp.asarray(rr[:, 0], jnp.float32), jnp.asarray(jac, jnp.float32),
+               jnp.asarray(theta[:3], jnp.float32))  # fmt: skip
+    assert prog._cache_size() == 2
+    np.testing.assert_allclose(got[3][0], np.asarray(own[0], float), rtol=1e-5)
+    np.testing.assert_allclose(got[3][1], np.asarray(own[1], float), rtol=1e-4, atol=1e-2)
+    # the value is -log p of the Gaussian residuals (+ the flat prior's constant): by hand
+    r, _, lp = ev.evaluate(theta[:3])
+    sx = np.exp(theta[:3, 2])
+    x = r[:, : r.shape[1] // 2].reshape(3, -1)[:, np.asarray(problem.obs.mask, bool).ravel()]
+    nll = 0.5 * np.sum(x**2, 1) / sx**2 + x.shape[1] * np.log(sx * np.sqrt(2 * np.pi))
+    np.testing.assert_allclose(got[3][0] - got[3][0][0], (nll - lp) - (nll - lp)[0], rtol=1e-3,
+                               atol=1e-2)  # fmt: skip
