@@ -12,8 +12,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..sim.startup import device_array
-
 __all__ = ["distinct_modes", "ggn_terms", "multimode_importance", "noise_guess", "screen"]
 
 
@@ -50,11 +48,6 @@ def screen(ev, pts, substeps):
     pts[:, ev.n_gains :] = noise_guess(p, r, np.asarray(p.lower), np.asarray(p.upper))
     out = ev.log_likelihood(r, pts) + ev.log_prior(pts)
     return np.where(ok & np.isfinite(out), out, -np.inf), pts
-
-
-# rows of the GGN program's batch: a multiple of this (its rows agree to the bit from 12 up;
-# 1-3 rows round otherwise, a float32 ulp of -log p)
-GGN_ROWS = 16
 
 
 def _ggn_program(ev):
@@ -129,14 +122,10 @@ def ggn_terms(ev, theta, h: float, substeps: int | None = None):
     ok = ok.reshape(s, -1).all(1)
     jac = np.moveaxis((r[:, 1 : g + 1] - r[:, g + 1 :]) / (2 * h), 1, -1)  # [S, G, T, g]
     dt = ev._dtype
-    # the program's rows padded to a multiple of GGN_ROWS (the last point repeated, its rows cut
-    # off): the fits of a run (8 starts, 12, the polish's 1-3 modes) share one compiled program
-    # per problem instead of one per batch size (a trace and a 2-3 CPU-s compile each)
-    rows = np.minimum(np.arange(-(-s // GGN_ROWS) * GGN_ROWS), s - 1)
     value, grad, curv = (
-        np.asarray(x, float)[:s]
+        np.asarray(x, float)
         for x in _ggn_program(ev)(
-            device_array(r[rows, 0], dt), device_array(jac[rows], dt), device_array(theta[rows], dt)
+            jnp.asarray(r[:, 0], dt), jnp.asarray(jac, dt), jnp.asarray(theta, dt)
         )
     )
     curv, finite = finite_psd(curv)
