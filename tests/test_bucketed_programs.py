@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from treeinfer.data.trajectories import Trajectory, stack_trajectories
-from treeinfer.evaluation.predictive import _training_fit
+from treeinfer.evaluation.training_fit import _training_fit
 from treeinfer.examples import example_path
 from treeinfer.inference.problem import _predict_traced, make_problem, predict
 from treeinfer.sim import accuracy, make_simulator

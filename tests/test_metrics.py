@@ -331,3 +331,16 @@ def test_noisy_band_bad_sigma():
         metrics.noisy_predictive_interval(np.zeros((3, 4)), -1.0)
     with pytest.raises(ConfigError, match="sigma"):
         metrics.noisy_predictive_interval(np.zeros((3, 4)), np.ones(2))
+
+
+@pytest.mark.parametrize("sigma", [-0.01, float("nan"), [0.01, 0.0, 0.02]])
+def test_noisy_band_refuses_a_noise_scale_that_is_not_finite_and_positive(sigma):
+    from treeinfer.evaluation.bands import noisy_predictive_interval
+
+    pred = np.random.default_rng(0).normal(size=(3, 5))
+    with pytest.raises(ConfigError, match="finite and positive"):
+        noisy_predictive_interval(pred, sigma)
+    with pytest.raises(ConfigError, match="finite and >= 0"):
+        noisy_predictive_interval(pred, 0.01, extra_variance=np.array([0, 1, -1e-9, 0, 0.0]))
+    lo, hi, _ = noisy_predictive_interval(pred, 0.01, extra_variance=np.zeros(5))  # accepted
+    assert np.all(np.asarray(hi) > np.asarray(lo))

@@ -205,3 +205,39 @@ def test_second_simulate_call_does_not_recompile():
         jax.monitoring.unregister_event_duration_listener(listener)
     np.testing.assert_array_equal(np.asarray(first.tau), np.asarray(third.tau))
     assert not np.allclose(np.asarray(first.tau), np.asarray(again.tau))
+
+
+@pytest.mark.parametrize("n_pulls", [1, 2])
+def test_one_parameter_set_runs_without_a_vmap_to_the_same_values(monkeypatch, n_pulls):
+    """One parameter set (the force Jacobian's) skips its vmap level (``treeinfer.sim._vmap``:
+    the while-loop batching rule traced it again for every loop, 40% of the Jacobian program's
+    trace) and gives the values of the vmap of one row to the bit."""
+    import treeinfer.sim as sim_pkg
+    from treeinfer.sim import _simulate, _vmap
+
+    seen = []
+
+    def fn(a, b):
+        seen.append((a.shape, b.shape))
+        return a + b, a * b
+
+    out = _vmap(fn, jnp.ones((1, 3)), jnp.full((1, 3), 2.0))
+    assert seen == [((3,), (3,))]  # called on the row itself, not under vmap
+    assert out[0].shape == (1, 3) and float(out[1][0, 0]) == 2.0
+    out = _vmap(fn, jnp.ones((2, 3)), jnp.full((2, 3), 2.0))
+    assert seen[-1] == ((3,), (3,)) and out[0].shape == (2, 3)  # traced once under vmap
+
+    sim = make_simulator(load_tree(example_path("two_branch")), obs_dt=0.01, substeps=4)
+    t = np.arange(60) * 0.01
+    f = np.stack([5.0 * np.clip(t / 0.2, 0, 1), 3.0 * np.clip(t / 0.1, 0, 1)])[:n_pulls]
+    kp, kd = np.array([[60.0, 25.0]]), np.array([[0.8, 0.3]])
+
+    def run():  # a new jit each time: the patched _vmap is traced
+        return jax.jit(lambda a, b, c: _simulate(sim, a, b, c))(kp, kd, f)
+
+    one = run()
+    monkeypatch.setattr(sim_pkg, "_vmap", lambda fn, *a: jax.vmap(fn)(*a))  # as before
+    before = run()
+    assert one.tau.shape == (1, n_pulls, 60) and bool(np.all(one.stable))
+    for a, b in zip(one, before):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -260,13 +260,20 @@ class PredictiveBands(NamedTuple):
     predictive: PredictiveInterval
 
 
+def _all_host(x, test) -> bool:
+    """``test`` (a NumPy predicate) holds at every entry of the concrete array ``x``."""
+    return bool(np.all(test(np.asarray(x))))
+
+
 def _noise_scale(sigma, n_particles: int, dtype) -> jax.Array:
     s = jnp.asarray(sigma, dtype)
     if s.ndim == 0:
         s = jnp.full((n_particles,), s)
     if s.shape != (n_particles,):
         raise ConfigError(f"sigma: expected a scalar or shape ({n_particles},), got {s.shape}")
-    if not _is_tracer(s) and not bool(jnp.all(jnp.isfinite(s) & (s > 0))):
+    # checked on the host: on the device each operation of the check is one more small program
+    # to compile (a cold `treeinfer infer` compiled 8 of them here, with extra_variance's below)
+    if not _is_tracer(s) and not _all_host(s, lambda a: np.isfinite(a) & (a > 0)):
         raise ConfigError("sigma: noise standard deviations must be finite and positive")
     return s
 
@@ -326,7 +333,7 @@ def _extra_variance(extra, pred) -> jax.Array:
             f"extra_variance: expected shape {tuple(pred.shape[1:])} or {tuple(pred.shape)} to "
             f"match pred, got {e.shape}"
         )
-    if not _is_tracer(e) and not bool(jnp.all(jnp.isfinite(e) & (e >= 0))):
+    if not _is_tracer(e) and not _all_host(e, lambda a: np.isfinite(a) & (a >= 0)):
         raise ConfigError("extra_variance: variances must be finite and >= 0")
     return jnp.moveaxis(e, 0, -1) if e.shape == pred.shape else e[..., None]
 

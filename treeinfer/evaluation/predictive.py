@@ -121,6 +121,7 @@ def predict_run(
     model=None,
     force_noise=None,
     traced_substeps: bool = False,
+    rollout=None,
 ) -> Prediction:
     """Simulate every particle ``theta [P, D]`` under ``forces [B, T]`` and summarise the bands
     (parameter band; predictive band too when ``noise_sigma``, scalar or ``[P]`` m, is given);
@@ -130,7 +131,9 @@ def predict_run(
     taken as recorded (noisy), and the predictive band adds the variance that noise induces
     (dynamic: ``diag C`` of each pull at the run's reference gains, ``force_variance [B, T]``;
     static: each draw's own ``(sigma_F c_p)^2``, ``force_variance [P, B, T]``). ``traced_substeps``:
-    as in :func:`treeinfer.inference.problem.predict`."""
+    as in :func:`treeinfer.inference.problem.predict`. ``rollout``: the
+    :class:`treeinfer.sim.Rollout` of ``theta`` under ``forces`` when the caller has it (the
+    run's training fit, from the start pipeline's program), else simulated here."""
     from ..inference.rollout import predict
     from .metrics import noisy_predictive_interval, predictive_interval
 
@@ -138,8 +141,8 @@ def predict_run(
     # the gain columns only: a run's noise columns (sigma_x, ... and one per observation
     # channel's sensor, any number) never enter the simulation
     theta = theta[:, : (2 * sim.n_joints if model is None else model.layout.dim)]
-    rollout = jax.device_get(
-        predict(
+    if rollout is None:
+        rollout = predict(
             sim,
             theta,
             np.atleast_2d(np.asarray(forces, np.float32)),
@@ -147,7 +150,7 @@ def predict_run(
             model=model,
             traced_substeps=traced_substeps and model is None,
         )
-    )
+    rollout = jax.device_get(rollout)
     stable = np.asarray(rollout.stable).all(axis=-1)
     valid = stable & (
         np.ones(len(theta), bool) if particle_ok is None else np.asarray(particle_ok, bool)
@@ -288,111 +291,6 @@ def evaluate_trajectories(
         "posterior_nll": "nats (kT-scaled loss)",
     }
     return m, pred, obs
-
-
-def _fit_bucket(problem, grasp):
-    """``(observations, grasp, padded)`` the training fit runs on: padded to the run's shape
-    bucket (``problem.settings["shape_bucket"]``: ``--init importance`` runs and samplers that
-    take the data as an argument), so that its programs (prediction, bands, NLL, and the small
-    array operations between them) have the bucket's shape and a new data set of the bucket
-    reuses them; the data's own for unbucketed runs, static models and force-noise runs (whose
-    band adds each point's force-induced variance, not computed for padded steps)."""
-    bucket = problem.settings.get("shape_bucket")
-    if (
-        bucket is None
-        or getattr(problem, "model", None) is not None
-        or force_noise_for(problem.settings) is not None
-    ):
-        return problem.obs, grasp, False
-    from ..sim.startup import bucket_observations
-
-    obs = problem.obs
-    padded = bucket_observations(obs, *bucket)
-    if isinstance(grasp, (list, tuple)) or np.ndim(grasp) == 1:  # one per row: repeat the last
-        g = np.asarray(grasp, float)
-        grasp = g[np.minimum(np.arange(padded.force.shape[0]), len(g) - 1)]
-    return padded, grasp, True
-
-
-def _cut(pred: Prediction, rows: int, steps: int, dt: float) -> Prediction:
-    """``pred`` of padded observations cut to the data's ``rows`` and ``steps``; the velocity
-    at the last real sample one-sided, as an unpadded prediction has it
-    (:func:`treeinfer.sim.velocity`), not the central difference the padded steps gave."""
-
-    def cut(x):
-        return None if x is None or np.ndim(x) == 0 else np.asarray(x)[..., :rows, :steps]
-
-    tau_dot = np.array(pred.tau_dot[:, :rows, :steps])
-    if steps >= 3:
-        x = pred.tau[:, :rows]
-        one_sided = (3.0 * x[..., steps - 1] - 4.0 * x[..., steps - 2] + x[..., steps - 3]) / (
-            2.0 * dt
-        )
-        tau_dot[..., steps - 1] = np.where(pred.stable[:, None], one_sided, 0.0)
-    return pred._replace(
-        tau=cut(pred.tau),
-        tau_dot=tau_dot.astype(pred.tau_dot.dtype),
-        lower=cut(pred.lower),
-        upper=cut(pred.upper),
-        mean=cut(pred.mean),
-        predictive_lower=cut(pred.predictive_lower),
-        predictive_upper=cut(pred.predictive_upper),
-        force_variance=cut(pred.force_variance),
-    )
-
-
-def _training_fit(problem, posterior, config) -> dict:
-    pred_ok = np.isfinite(posterior.log_density)
-    sim = problem.sim
-    from .metrics import summarize
-
-    sigma, kind = noise_for(posterior.theta, sim.n_joints, problem.settings)
-    rollout_pred = None
-    grasp = config["options"]["grasp_fraction"]
-    recorded = problem.settings.get("grasp_fraction")  # e.g. each recording's own (pulls.yaml)
-    if grasp is None and (isinstance(recorded, (list, tuple)) or problem.model is not None):
-        grasp = recorded
-    obs, grasp, padded = _fit_bucket(problem, grasp)
-    try:
-        rollout_pred = predict_run(
-            sim,
-            posterior.theta,
-            obs.force,
-            grasp,
-            pred_ok,
-            noise_sigma=sigma,
-            noise_kind=kind,
-            model=getattr(problem, "model", None),
-            force_noise=force_noise_for(problem.settings),
-            traced_substeps=padded,
-        )
-    except SimulationError:
-        pass  # too few stable particles: the stable-share check reports it
-    if rollout_pred is None:
-        return {"stable": np.zeros(len(posterior.theta), bool), "prediction": None, "metrics": None}
-    if padded:  # the real samples' velocity as unpadded (the loss below uses it)
-        rows, steps = np.shape(problem.obs.force)
-        cut = _cut(rollout_pred, rows, steps, float(problem.obs.dt))
-        tau_dot = np.array(rollout_pred.tau_dot)
-        tau_dot[:, :rows, steps - 1] = cut.tau_dot[..., steps - 1]
-        full = rollout_pred._replace(tau_dot=tau_dot)
-    else:
-        full = cut = rollout_pred
-    # padded rows have no real sample: a zero log-likelihood, which the sum over rows ignores
-    ll = _per_trajectory_loglik(full, obs, problem.kT)
-    metrics = summarize(
-        full.tau,
-        obs.displacement,
-        mask=obs.mask,
-        valid=rollout_pred.valid,
-        log_likelihood=ll,
-        noise_sigma=sigma,
-        noise_kind=kind,
-        extra_variance=rollout_pred.force_variance,
-    )
-    if rollout_pred.force_variance is not None:
-        metrics["band_includes_force_noise"] = True  # as evaluate's metrics.json
-    return {"stable": rollout_pred.valid, "prediction": cut, "metrics": metrics}
 
 
 # ==== k-fold cross-validation =====================================================================

@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..sim.startup import device_array
 
-__all__ = ["BatchEvaluator", "check_problem", "default_chunk"]
+__all__ = ["BatchEvaluator", "check_problem", "default_chunk", "held_evaluator"]
 
 
 class BatchEvaluator:
@@ -139,6 +139,25 @@ class BatchEvaluator:
         r = np.concatenate([r[:, :b, :t], r[:, nb : nb + b, :t]], axis=1)  # the data's rows, steps
         return r, ok.astype(bool), lp
 
+    def rollout(self, theta, substeps: int | None = None):
+        """``(tau [N, B, T], tau_dot [N, B, T], stable [N])``: the rollouts at the data's rows
+        and steps, from the residuals of :meth:`evaluate` with the recorded displacement and
+        velocity added back (in the program's dtype, so where the simulated and recorded values
+        are within a factor two of each other the sum is exact); zeros where unstable, as
+        :class:`treeinfer.sim.Rollout`. Right only where the data's mask is True (the residual
+        is zero elsewhere): the run layer's training fit uses it for fully observed data, so
+        that it runs the start pipeline's compiled program instead of compiling a prediction
+        of its own (:func:`held_evaluator`)."""
+        r, ok, _ = self.evaluate(theta, substeps)
+        b, dt = self._rows, np.dtype(self._dtype)
+        obs = self.problem.obs
+        x = np.asarray(obs.displacement, dt).astype(float)
+        v = np.asarray(obs.velocity, dt).astype(float)
+        keep = ok[:, None, None]
+        tau = np.where(keep, r[:, :b] + x, 0.0).astype(dt)
+        tau_dot = np.where(keep, r[:, b:] + v, 0.0).astype(dt)
+        return tau, tau_dot, ok
+
     def loss_terms(self, theta, substeps: int | None = None):
         """``(norms [N, G], stable [N], log_prior [N], r [N, G, T])``."""
         r, ok, lp = self.evaluate(theta, substeps)
@@ -188,6 +207,36 @@ class BatchEvaluator:
                 self._noise(-ri[:, :b], -ri[:, b:], device_array(theta[i : i + k], self._dtype))
             )
         return np.concatenate([np.asarray(o, float) for o in out])[:n]
+
+
+class _NotHeld(Exception):
+    pass
+
+
+class _HeldOnly:
+    """A :class:`~treeinfer.sim.program_cache.ProgramCache` view that hands out the programs it
+    holds and raises :class:`_NotHeld` instead of building one."""
+
+    def __init__(self, programs):
+        self.programs = programs
+
+    def get(self, key, build):
+        if key not in self.programs:
+            raise _NotHeld(key)
+        return self.programs.get(key, build)
+
+
+def held_evaluator(problem, programs, chunk: int, shape=None):
+    """A :class:`BatchEvaluator` of ``problem`` (batch ``chunk``, shape bucket ``shape``) whose
+    rollout program ``programs`` already holds, e.g. the start pipeline's after the run's
+    importance posterior; None when it holds none or the problem is not one the program runs:
+    nothing is traced or compiled here."""
+    if programs is None:
+        return None
+    try:
+        return BatchEvaluator(problem, chunk, _HeldOnly(programs), shape)
+    except (_NotHeld, ConfigError):
+        return None
 
 
 def default_chunk(k: int, n_draws: int) -> int:

@@ -16,9 +16,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..errors import ConfigError, OutputExistsError, SimulationError
-from ..evaluation.predictive import (
-    _training_fit,
-)
+from ..evaluation.training_fit import _training_fit
 from ..io.atomic import check_output_dir, clean_stale_staging
 from ..io.jsonio import jsonable as _jsonable
 from ..io.jsonio import read_json, write_json
@@ -54,7 +52,13 @@ from .problem import (  # noqa: F401 -- re-exported: the old import path keeps w
     _quasi_static_check,
     build_problem,
 )
-from .start import LAPLACE_LM_ITERATIONS, LAPLACE_SCALE, _check_init, _start  # noqa: F401
+from .start import (  # noqa: F401
+    LAPLACE_LM_ITERATIONS,
+    LAPLACE_SCALE,
+    _check_init,
+    _start,
+    held_evaluator,
+)
 
 # ==== inference ===================================================================================
 # --init values whose particles start near the posterior, and the convergence stop they use
@@ -293,7 +297,8 @@ def run_inference(
 
     trace = _merged_trace(posterior.run, previous)
     posterior = _summarised_posterior(posterior, problem, trace, o)
-    fit = _training_fit(problem, posterior, config)
+    # the start pipeline's compiled rollout program simulates the particles, where it ran
+    fit = _training_fit(problem, posterior, config, held_evaluator(problem, posterior, cache))
     from ..sim import check_stable_share
 
     try:

@@ -136,3 +136,22 @@ def _model_laplace_start(problem, o: dict, log: Callable[[str], None]):
     return problem_laplace_particles(
         jax.random.fold_in(jax.random.key(o["seed"]), 0x1A9), lap, o["particles"]
     )
+
+
+def held_evaluator(problem, posterior, cache):
+    """The start pipeline's :class:`~treeinfer.inference.fast_evaluator.BatchEvaluator` of
+    ``problem`` when ``cache`` (the command's :class:`~.cache.SimulatorCache`) still holds its
+    compiled program and ``posterior`` came from it (its run settings record the batch and the
+    draws, :func:`treeinfer.inference.fast.fast_posterior`), else None. The training fit runs the
+    particles on it instead of compiling a prediction program of its own."""
+    run = getattr(getattr(posterior, "run", None), "settings", None) or {}
+    if cache is None or run.get("method") != "fast_posterior":
+        return None
+    from ..inference.fast_evaluator import default_chunk
+    from ..inference.fast_evaluator import held_evaluator as held
+
+    try:
+        chunk = default_chunk(int(run["batch"]), int(run["n_draws"]))
+    except (KeyError, TypeError, ValueError):
+        return None
+    return held(problem, cache.programs, chunk)

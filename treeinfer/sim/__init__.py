@@ -187,6 +187,20 @@ def _grasp_groups(
     return groups
 
 
+def _vmap(fn, *args):
+    """``jax.vmap(fn)(*args)``, or ``fn`` on the one row with the axis added back when every
+    argument has one row. For the parameter sets: the force Jacobian takes one set under its
+    own vmap over pulls and jacfwd, and a vmap of one more level is one that JAX's while-loop
+    batching rule traces through again for every loop of the step (the Jacobian program's trace
+    11 CPU-s before, 6 after on the 2-core box, the same program values: BENCHMARKS.md,
+    ``tests/test_simulator.py``). Not for the pulls as well: without both vmaps of one row XLA
+    vectorises the step otherwise, and the rollout differs in float32 rounding."""
+    if all(np.shape(a)[0] == 1 for a in args):
+        out = fn(*(a[0] for a in args))
+        return jax.tree_util.tree_map(lambda x: x[None], out)
+    return jax.vmap(fn)(*args)
+
+
 def _simulate(
     sim: Simulator,
     kp,
@@ -250,7 +264,7 @@ def _simulate(
             tau, ok = jnp.concatenate(taus)[order], jnp.concatenate(oks)[order]
         return tau, ok & settled
 
-    tau, ok = jax.vmap(per_params)(kp, kd)
+    tau, ok = _vmap(per_params, kp, kd)
     tau = jnp.where(ok[..., None], tau, 0.0)
     tau_dot = jnp.where(ok[..., None], velocity(tau, sim.obs_dt), 0.0)
     return Rollout(tau=tau, tau_dot=tau_dot, stable=ok)

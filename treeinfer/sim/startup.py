@@ -33,7 +33,7 @@ A new data set of a bucket compiles nothing on the CPU's ``--init importance`` p
   choose_substeps_for_accuracy`) simulates the forces padded to their bucket (the step count was
   already an argument) and cuts the padding off before the error estimate: the same step as
   before, to the bit;
-* the training fit after sampling (:func:`treeinfer.evaluation.predictive._training_fit`:
+* the training fit after sampling (:func:`treeinfer.evaluation.training_fit._training_fit`:
 prediction,
   parameter and predictive bands, NLLs, and the small array operations between them) runs on
   the observations padded to the run's ``shape_bucket``, with the step count as a program

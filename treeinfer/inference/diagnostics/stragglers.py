@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -110,6 +111,14 @@ def straggler_mask(
     return mask, low, ~fin, outside, z, excess
 
 
+@functools.partial(jax.jit, static_argnums=(4, 5, 6))
+def _straggler_mask_jit(log_density, theta, lower, upper, z_max, min_gap, max_box_excess):
+    return straggler_mask(
+        log_density, theta, lower, upper, z_max=z_max, min_gap=min_gap,
+        max_box_excess=max_box_excess,
+    )  # fmt: skip
+
+
 def find_stragglers(
     log_density,
     theta,
@@ -153,7 +162,11 @@ def find_stragglers(
         if v is not None and not (np.isfinite(v) and v >= 0):
             raise ConfigError(f"find_stragglers: {nm} must be a finite number >= 0, got {v!r}")
     names = _labels(labels, x.shape[1])
-    out = straggler_mask(ld, x, lo, hi, z_max=z_max, min_gap=min_gap, max_box_excess=max_box_excess)
+    if min_gap is None:  # a number, for the jitted mask (the default's from these shapes)
+        min_gap = chi2_gap(x.shape[-1], x.shape[0])
+    # one compiled program: called eagerly, its 20-odd operations each compiled (and, on a
+    # warm cache, loaded) a program of its own, 0.5-1 s of a cold `treeinfer infer`
+    out = _straggler_mask_jit(ld, x, lo, hi, float(z_max), float(min_gap), float(max_box_excess))
     mask, low, nonfin, outside, z, excess = (np.asarray(a) for a in out)
     P = ld.shape[0]
     msgs = []
