@@ -86,7 +86,7 @@ def test_the_likelihood_takes_the_floor_and_offset_everywhere(clean):
     # by hand: offset and floor in a Gaussian of numpy's own
     sx = np.sqrt(np.exp(theta[:, 4].astype(float)) ** 2 + ie.rms**2)
     r = np.asarray(dx, float) + ie.shape[None]
-    ref = (-0.5 * (r / sx[:, None, None]) ** 2 - np.log(sx[:, None, None] * np.sqrt(2 * np.pi)))
+    ref = -0.5 * (r / sx[:, None, None]) ** 2 - np.log(sx[:, None, None] * np.sqrt(2 * np.pi))
     np.testing.assert_allclose(direct, ref.sum((-2, -1)), rtol=1e-4)
     # without the floor the truth's density is far lower: the error is the whole residual
     plain = likelihood_terms(problem.sim, obs, "gaussian")
@@ -157,3 +157,18 @@ def test_a_wrong_shape_is_refused(clean):
     ie = IntegrationError(np.zeros((5, 7)), 1e-6, 10, truth)
     with pytest.raises(ConfigError, match="integration_error"):
         likelihood_terms(problem.sim, problem.obs, "gaussian", integration_error=ie)
+
+
+def test_the_predictive_band_carries_the_floor():
+    """An unseen pull's rollout is not corrected for the error, so the band adds it in
+    quadrature (runs without a floor: unchanged)."""
+    from treeinfer.evaluation.predictive import noise_for
+
+    theta = np.array([[3.0, 4.0, -1.0, 0.0, np.log(1e-6)], [3.0, 4.0, -1.0, 0.0, np.log(2e-3)]])
+    plain, kind = noise_for(theta, 2, {"likelihood": "gaussian"})
+    floored, _ = noise_for(
+        theta, 2, {"likelihood": "gaussian", "integration_error": {"rms_m": 1.5e-6}}
+    )
+    assert kind == "gaussian"
+    np.testing.assert_allclose(plain, [1e-6, 2e-3], rtol=1e-5)  # float32 inside
+    np.testing.assert_allclose(floored, [np.hypot(1e-6, 1.5e-6), np.hypot(2e-3, 1.5e-6)], rtol=1e-5)
