@@ -172,3 +172,44 @@ def test_the_predictive_band_carries_the_floor():
     assert kind == "gaussian"
     np.testing.assert_allclose(plain, [1e-6, 2e-3], rtol=1e-5)  # float32 inside
     np.testing.assert_allclose(floored, [np.hypot(1e-6, 1.5e-6), np.hypot(2e-3, 1.5e-6)], rtol=1e-5)
+
+
+def test_with_the_force_noise_term_the_floor_is_offset_and_quadrature():
+    """The default's noisy path (errors-in-variables term, small two-branch case): the floored
+    likelihood is the force-noise MVN of the corrected residual with sigma_x^2 + rms^2 (scipy
+    with the dense covariance), and on 2 mm noise it differs from the plain one by a near
+    constant."""
+    from scipy import stats
+
+    from treeinfer.data.trajectories import stack_trajectories
+    from treeinfer.examples import example_path
+    from treeinfer.model.likelihood import theta_from_gains
+    from treeinfer.sim import make_simulator
+    from treeinfer.tree.description import load_tree
+
+    dt, n = 0.02, 50
+    sim = make_simulator(load_tree(example_path("two_branch")), obs_dt=dt)
+    theta0 = theta_from_gains(np.array([40.0, 120.0]), np.array([0.5, 1.5]))
+    t = np.arange(n) * dt
+    f = np.stack([np.clip(t / 0.5, 0.0, 1.0) * p for p in (3.0, 6.0)])
+    kp, kd = jnp.exp(jnp.asarray(theta0[None, :2])), jnp.exp(jnp.asarray(theta0[None, 2:]))
+    tau = np.asarray(simulate(sim, kp, kd, jnp.asarray(f, jnp.float32)).tau[0], float)
+    x = tau + 2e-3 * np.random.default_rng(3).standard_normal(tau.shape)
+    obs = stack_trajectories([Trajectory(t, f[b], x[b], None, f"p{b}") for b in range(2)])
+    e = 1.5e-6 * np.sin(np.pi * t / t[-1])[None] * np.array([[1.0], [2.0]])
+    ie = IntegrationError(e, float(np.sqrt(np.mean(e**2))), sim.substeps, theta0)
+    kw = dict(noise_force=0.05, force_noise_reference=theta0)
+    floored = likelihood_terms(sim, obs, "gaussian", integration_error=ie, **kw)
+    plain = likelihood_terms(sim, obs, "gaussian", **kw)
+    th = np.array([[*theta0, np.log(2e-3)], [*(theta0 + 0.05), np.log(2.5e-3)]], np.float32)
+    a = np.asarray(floored.log_likelihood(jnp.asarray(th)), float)
+    b = np.asarray(plain.log_likelihood(jnp.asarray(th)), float)
+    assert np.all(np.abs(a - b) < 0.1)  # measured 0.004 and 0.085 (130 nats below the first)
+    # at the reference the bias correction is zero: the MVN of the corrected residual
+    cov = floored.force_noise.basis(sim, np.asarray(obs.force), np.asarray(obs.mask)).covariance()
+    s2 = 2e-3**2 + ie.rms**2
+    ref = sum(
+        stats.multivariate_normal(tau[j] - e[j], cov[j] + s2 * np.eye(n)).logpdf(x[j])
+        for j in range(2)
+    )
+    np.testing.assert_allclose(a[0], ref, rtol=2e-4)
