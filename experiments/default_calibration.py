@@ -29,6 +29,7 @@ the folder to start over). Results: ``OUT/results.json`` (with the config) and `
 
     python experiments/default_calibration.py --size cpu    # 2 cases x 3 seeds + clean
     python experiments/default_calibration.py --size full   # 2 cases x 10 seeds, 25 test pulls
+    python experiments/default_calibration.py --seeds 1 --clean-only   # the clean runs alone
 """
 
 from __future__ import annotations
@@ -388,6 +389,9 @@ def main(argv=None) -> dict:
         "--cases", default=",".join(CASES), help="comma-separated, of " + ", ".join(CASES)
     )
     ap.add_argument("--no-clean", action="store_true", help="skip the noise-free runs")
+    ap.add_argument(
+        "--clean-only", action="store_true", help="only the noise-free runs (seed 0 of each case)"
+    )
     ap.add_argument("--infer-args", default="", help="extra flags for `infer` (default: none)")
     ap.add_argument(
         "--budget-s",
@@ -415,6 +419,8 @@ def main(argv=None) -> dict:
     bad = [c for c in cases if c not in CASES]
     if bad or seeds < 1 or args.seed_start < 0:
         ap.error(f"--cases: unknown {bad}" if bad else "--seeds must be >= 1, --seed-start >= 0")
+    if args.clean_only and (args.no_clean or args.seed_start != 0):
+        ap.error("--clean-only: the clean runs belong to seed 0 (no --no-clean, --seed-start 0)")
     infer_args = shlex.split(args.infer_args)
     work = out / "work"
     # another flag set is another experiment: keep its runs apart
@@ -434,7 +440,8 @@ def main(argv=None) -> dict:
         "dt_s": DT,
         "sigma_x_m": SIGMA_X,
         "force_noise_share_of_peak": FORCE_LEVEL,
-        "clean": size["clean"] and not args.no_clean,
+        "clean": (size["clean"] or args.clean_only) and not args.no_clean,
+        "clean_only": args.clean_only,
         "infer_command": "python -m treeinfer infer --tree T --data D --out R"
         + (" " + shlex.join(infer_args) if infer_args else ""),
         "evaluate_command": "python -m treeinfer evaluate --run R --data TEST --out E",
@@ -458,7 +465,8 @@ def main(argv=None) -> dict:
     for seed in seed_list:
         for name in cases:
             case = make_case(name, seed, N_TRAIN, size["n_test"], DURATION, DT)
-            runs = [False] + ([True] if config["clean"] and seed == 0 else [])
+            runs = [] if args.clean_only else [False]
+            runs += [True] if config["clean"] and seed == 0 else []
             for clean in runs:
                 if args.budget_s is not None and time.perf_counter() - t0 > args.budget_s:
                     stopped = True

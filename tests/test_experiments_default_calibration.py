@@ -111,3 +111,18 @@ def test_tiny_study_end_to_end(tmp_path):
     assert all(v > 0 for v in run["crb_log_std_force_noise"].values())
     assert res["summary"]["per_case"]["chain2"]["n_runs"] == 1
     assert (tmp_path / "results.md").exists()
+
+
+def test_clean_only_runs_the_noise_free_runs_alone(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_run(case, work, clean, infer_args):
+        calls.append((case, clean))
+        return _run(case, 0, 100.0, {"a": True}, {}, {}, clean=clean)
+
+    monkeypatch.setattr(dc, "one_run", fake_run)
+    monkeypatch.setattr(dc, "make_case", lambda name, *a: name)
+    dc.main(["--seeds", "1", "--clean-only", "--out", str(tmp_path)])
+    assert calls == [("chain2", True), ("chain3", True)]
+    with pytest.raises(SystemExit):
+        dc.main(["--clean-only", "--no-clean", "--out", str(tmp_path)])

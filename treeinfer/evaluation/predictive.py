@@ -80,6 +80,10 @@ def noise_for(theta, n_joints: int, settings: dict | None):
         sigma = noise_params_from_theta(theta, n_joints, fixed)
     except ConfigError:
         sigma = None
+    floor = (settings.get("integration_error") or {}).get("rms_m")
+    if sigma is not None and floor:  # the simulator's own error (model/integration_error.py):
+        # the band's rollouts are not corrected for it, so it is part of every point's spread
+        sigma = np.hypot(np.asarray(sigma, float), float(floor))
     return (None if sigma is None else np.asarray(sigma, float)), kind
 
 

@@ -138,6 +138,7 @@ def make_problem(
             sigma_v=noise_velocity,
             force_noise_reference=spec.force_noise_reference,
             force_noise_rule=spec.force_noise_rule,
+            integration_error=spec.integration_error,
             **options,
         )
     else:  # the model's own rollout (static, stiffness only, per-recording pulls)

@@ -70,6 +70,9 @@ class ProblemSpec:
       force_noise_reference: ``[2R]`` log gains where the force-noise Jacobian is taken (None:
         :func:`treeinfer.model.force_noise_reference.reference_theta`'s MAP fit);
         force_noise_rule: how it was chosen (recorded).
+      integration_error: None, or the simulator's discretisation error measured at the MAP
+        (:class:`treeinfer.model.integration_error.IntegrationError`; the run layer measures it,
+        :mod:`treeinfer.inference.integration_floor`): a floor under the displacement noise.
 
     Priors:
       nn_prior: add the learned inequality prior (NNSVGD's target); False gives SVGD's.
@@ -111,6 +114,7 @@ class ProblemSpec:
     noise_velocity: float | None = None
     force_noise_reference: Any = None
     force_noise_rule: str = "J at the given reference"
+    integration_error: Any = None
     nn_prior: bool = True
     eta: float = DEFAULT_ETA
     prior_sigma: float = DEFAULT_PRIOR_SIGMA

@@ -38,6 +38,7 @@ def measurement_log_likelihood(
     rel_step: float | None = None,
     black_box: bool = True,
     force_basis=None,
+    integration=None,
 ):
     """Generative log-likelihood ``theta [N, D] -> [N]`` (nats): displacement noise model.
 
@@ -57,6 +58,9 @@ def measurement_log_likelihood(
         (gaussian only): the displacement residual of each pull is then
         ``MVN(0, C_b + sigma_x^2 I)`` with ``C_b`` the force-noise-induced covariance
         (:mod:`treeinfer.model.force_noise`).
+      integration: None, or ``(rms, shape)``: the simulator's measured discretisation error
+        (:mod:`treeinfer.model.integration_error`): ``shape`` ``[B, T]`` (m) is removed from the
+        simulated displacement and ``rms`` (m) added to sigma_x in quadrature.
     """
     if kind not in noise.NOISE_KINDS:
         raise ConfigError(
@@ -84,8 +88,9 @@ def measurement_log_likelihood(
                 f"have {tuple(np.shape(obs.displacement))}"
             )
     return _measurement_loglik(
-        sim, obs, kind, sigma_x, sigma_v, df, grasp_fraction, rel_step, black_box, force_basis
-    )
+        sim, obs, kind, sigma_x, sigma_v, df, grasp_fraction, rel_step, black_box, force_basis,
+        integration=integration,
+    )  # fmt: skip
 
 
 def _measurement_loglik(
@@ -100,6 +105,7 @@ def _measurement_loglik(
     black_box,
     force_basis,
     n_steps=None,
+    integration=None,
 ):
     """:func:`measurement_log_likelihood` after its checks: ``obs`` (and ``force_basis``) may be
     traced arrays here (the sampler programs that take the data as arguments,
@@ -124,7 +130,7 @@ def _measurement_loglik(
 
     sim_fn = finite_difference_jvp(rollout, rel_step) if black_box else rollout
 
-    density = _noise_density(kind, sigma_x, sigma_v, df, mask, force_basis, 2 * r)
+    density = _noise_density(kind, sigma_x, sigma_v, df, mask, force_basis, 2 * r, integration)
 
     def loglik(theta: jax.Array) -> jax.Array:
         theta = jnp.asarray(theta)
@@ -135,21 +141,29 @@ def _measurement_loglik(
     return loglik
 
 
-def _noise_density(kind, sigma_x, sigma_v, df, mask, force_basis, n_gains: int):
+def _noise_density(kind, sigma_x, sigma_v, df, mask, force_basis, n_gains: int, integration=None):
     """``(dx [N, B, T], dv [N, B, T] or None, theta [N, D]) -> [N]``: the generative noise
     density of the recorded-minus-simulated displacement ``dx`` (and velocity ``dv``), the noise
     columns read from theta after its ``n_gains`` gains; ``-inf`` where not finite (NaN marks an
     unstable rollout). One function for the problem's likelihood and the start pipeline's host
     evaluation of rollout residuals (:meth:`LikelihoodTerms.residual_loglik`), so both compute
-    the same density."""
+    the same density. ``integration``: None or ``(rms, shape)``, the simulator's measured
+    discretisation error (:mod:`treeinfer.model.integration_error`: ``shape`` removed from the
+    simulated displacement, ``rms`` a floor in quadrature with sigma_x)."""
+    from .integration_error import corrected_residual, floored_scale
+
+    floor, e_shape = (None, None) if integration is None else integration
 
     def density(dx, dv, theta):
         theta = jnp.asarray(theta)
+        if e_shape is not None:
+            dx = corrected_residual(dx, mask, e_shape)
         c = n_gains
         if sigma_x is None:
             sx, c = jnp.exp(theta[:, c]), c + 1
         else:
             sx = jnp.full(theta.shape[:1], sigma_x, dx.dtype)
+        sx = floored_scale(sx, floor)
         if force_basis is not None:
             from . import force_noise  # numpyro: imported where the term is used
 

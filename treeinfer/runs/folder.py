@@ -195,6 +195,8 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
         "simulation": simulation_summary(problem.sim),
         "training_force_max_N": training_force_max(problem),  # predictions beyond are refused
     }
+    if problem.settings.get("integration_error"):  # the simulator's error as a noise floor
+        summary["integration_error"] = problem.settings["integration_error"]
     model = getattr(problem, "model", None)
     if model is not None and (model.kind == "static" or not model.layout.infers_damping):
         from ..inference.static import damping_note

@@ -267,11 +267,29 @@ def build_problem(
             None if bucket is None else tuple(bucket),
         )
         reference = {"force_noise_reference": ref, "force_noise_rule": PIPELINE_RULE}
+        from ..inference.integration_floor import applies, measure_integration_error
+
+        if applies(base, o.get("init")):  # the simulator's error at this MAP: a noise floor
+            ie = measure_integration_error(
+                base,
+                ref,
+                None if cache is None else cache.programs,
+                None if bucket is None else tuple(bucket),
+            )
+            log(f"noise floor: {ie.describe()}")
+            reference["integration_error"] = ie
     if channels:
         log(f"observation channels: {', '.join(c.name for c in channels)} (channels.yaml)")
         problem = make_problem(tree, list(trajectories), **common, **reference, channels=channels)
     else:
-        problem = make_problem(tree, obs, **common, **reference)
+        from ..inference.integration_floor import floor_for_run
+
+        problem = floor_for_run(  # the simulator's error at the MAP as a noise floor
+            make_problem(tree, obs, **common, **reference),
+            lambda ie: make_problem(tree, obs, **common, **reference, integration_error=ie),
+            o.get("init"), recorded if resumed else None, int(o.get("seed", 0)),
+            None if cache is None else cache.programs, shape_bucket_for(config, obs), log,
+        )  # fmt: skip
     if reference.get("force_noise_rule") == PIPELINE_RULE and not resumed:
         problem = dataclasses.replace(problem, start_hint=finals)
     if o.get("prior_from"):  # the earlier run's posterior as the prior of the shared joints
