@@ -67,8 +67,13 @@ class BatchEvaluator:
         terms = problem.noise
         self.boltzmann = terms is None or terms.black_box
         self._noise = None
+        # with a program cache (a run's, a batch's) the small programs around the rollout take
+        # what they close over (the recording's bounds, mask, force-noise basis, integration
+        # floor) as arguments: compiled once per shape, not once per recording
+        # (treeinfer.sim.args_program; a batch's second item compiled 6 programs, 3 with it)
+        self._arg_programs = programs
         if not self.boltzmann:  # the problem's own noise density, on the host's residuals
-            self._noise = jax.jit(terms.residual_loglik)
+            self._noise = self._program(terms.residual_loglik)
         sim, obs = problem.sim, problem.obs
         gf = problem.settings.get("grasp_fraction")
         if gf is not None and math.isclose(gf, problem.tree.grasp_fraction):
@@ -108,7 +113,19 @@ class BatchEvaluator:
             return cached_program(fn, example, repr(key))
 
         self._run = build() if programs is None else programs.get(key, build)
-        self._prior = jax.jit(problem.log_prior)
+        self._prior = self._program(problem.log_prior)
+
+    def _program(self, fn):
+        """``fn`` compiled: one program per argument shape shared through the program cache
+        (:class:`treeinfer.sim.args_program.ArgsProgram`), else ``jax.jit``."""
+        if self._arg_programs is None:
+            return jax.jit(fn)
+        from ..sim.args_program import ArgsProgram
+
+        programs = self._arg_programs
+        if isinstance(programs, _HeldOnly):  # only the rollout program must be held already
+            programs = programs.programs
+        return ArgsProgram(fn, programs)
 
     def evaluate(self, theta, substeps: int | None = None):
         """``(r, stable, log_prior)`` at ``theta [N, D]`` (class docstring); ``substeps``:

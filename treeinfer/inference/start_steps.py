@@ -81,7 +81,7 @@ def _ggn_program(ev):
         fp, gp, hp = jax.vmap(prior)(theta)
         return f + fp, gr + gp, h + hp
 
-    ev._ggn = jax.jit(run)
+    ev._ggn = ev._program(run) if hasattr(ev, "_program") else jax.jit(run)
     return ev._ggn
 
 
