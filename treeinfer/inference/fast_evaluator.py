@@ -72,8 +72,6 @@ class BatchEvaluator:
         # floor) as arguments: compiled once per shape, not once per recording
         # (treeinfer.sim.args_program; a batch's second item compiled 6 programs, 3 with it)
         self._arg_programs = programs
-        if not self.boltzmann:  # the problem's own noise density, on the host's residuals
-            self._noise = self._program(terms.residual_loglik)
         sim, obs = problem.sim, problem.obs
         gf = problem.settings.get("grasp_fraction")
         if gf is not None and math.isclose(gf, problem.tree.grasp_fraction):
@@ -114,6 +112,8 @@ class BatchEvaluator:
 
         self._run = build() if programs is None else programs.get(key, build)
         self._prior = self._program(problem.log_prior)
+        if not self.boltzmann:  # the problem's own noise density, on the host's residuals
+            self._noise = self._program(terms.residual_loglik)
 
     def _program(self, fn):
         """``fn`` compiled: one program per argument shape shared through the program cache
@@ -121,11 +121,16 @@ class BatchEvaluator:
         if self._arg_programs is None:
             return jax.jit(fn)
         from ..sim.args_program import ArgsProgram
+        from ..sim.program_cache import ProgramCache
 
         programs = self._arg_programs
         if isinstance(programs, _HeldOnly):  # only the rollout program must be held already
             programs = programs.programs
-        return ArgsProgram(fn, programs)
+        # a cache of their own, kept in the command's as one entry: a run builds a dozen of
+        # these small programs (prior, noise density, Gauss-Newton terms of each problem), and in
+        # the command's cache (8 programs) they would push out the rollout and sampler programs
+        small = programs.get(("BatchEvaluator small programs",), lambda: ProgramCache(32))
+        return ArgsProgram(fn, small)
 
     def evaluate(self, theta, substeps: int | None = None):
         """``(r, stable, log_prior)`` at ``theta [N, D]`` (class docstring); ``substeps``:
