@@ -41,6 +41,9 @@ def with_argument_programs(ev, programs=None):
     Written here, on the evaluator's attributes, because the check is where a process meets
     many recordings of one shape (a robot's); the start pipeline's own evaluator could take the
     same programs (its per-recording compilations are the same three)."""
+    if isinstance(ev._prior, ArgsProgram):
+        # built with a program cache, the evaluator already made them (BatchEvaluator._program)
+        return ev
     ev._prior = ArgsProgram(ev.problem.log_prior, programs)
     if ev._noise is not None:
         ev._noise = ArgsProgram(ev.problem.noise.residual_loglik, programs)
