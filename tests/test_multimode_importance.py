@@ -48,3 +48,24 @@ def test_pooled_weights_give_the_closed_form_mixture(modes):
     # the particles: resampled from the weighted draws
     assert np.allclose(imp.theta, imp.draws[idx])
     assert abs(np.mean(imp.theta[:, 0] > 0) - W) < 0.1
+
+
+def test_distinct_modes_keeps_the_finals_along_a_ridge():
+    """The multi-start fit's finals on one curved ridge lie within 2 sd of each other in the
+    best's Laplace covariance (the weak direction's sd is large); each one more than
+    MODE_SEPARATION sd from the others in some coordinate is a mode of its own, so the polish
+    and the mixture proposal cover the ridge, not only the end the best slid to."""
+    from types import SimpleNamespace
+
+    from treeinfer.inference.start_steps import MAX_MODES, MODE_GAP, distinct_modes
+
+    finals = np.array([[0.0, 0.0], [0.8, 0.1], [1.6, 0.3], [1.65, 0.3], [3.0, 0.0]])
+    values = np.array([0.0, 1.0, 2.6, 2.7, MODE_GAP + 1.0])  # -log p
+    fit = SimpleNamespace(finals=finals, values=values, theta=finals[0])
+    kept = distinct_modes(fit, np.eye(2))
+    # the near-duplicate (1.65) and the one beyond MODE_GAP are left out
+    np.testing.assert_array_equal(kept, finals[:3])
+    assert MAX_MODES >= 3
+    # a point 0.4 sd from the best is the same mode
+    fit2 = SimpleNamespace(finals=finals[:1] + [[0.0], [0.4]], values=values[:2], theta=finals[0])
+    assert len(distinct_modes(fit2, np.eye(2))) == 1
