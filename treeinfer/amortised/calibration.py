@@ -40,7 +40,7 @@ def expected_coverage(
     held, _ = simulate_training_set(
         tree, cfg.layout, cfg.train, n=n_sets, seed=seed, scales=tuple(am.meta["scales"]), log=log
     )
-    draw = network.sampler(am.model, int(n_draws))
+    draw = network.sampler(am.network_model(), int(n_draws))
     labels = am.labels
     ranks = np.zeros((len(held.theta), len(labels)), int)
     inside = {lv: np.zeros((len(held.theta), len(labels)), bool) for lv in levels}

@@ -127,32 +127,34 @@ def bin_matrix(n_steps: int, bins: int) -> np.ndarray:
     return w / w.sum(axis=0, keepdims=True)
 
 
-def _noise_scale(x):
+def _noise_scale(x, xp=jnp):
     """Robust noise std along the last axis: MAD of second differences / sqrt(6) (as
     :func:`treeinfer.model.noise.estimate_displacement_noise`, in jnp over a batch)."""
     d2 = x[..., 2:] - 2 * x[..., 1:-1] + x[..., :-2]
-    med = jnp.median(d2, axis=-1, keepdims=True)
-    return _MAD * jnp.median(jnp.abs(d2 - med), axis=-1) / _SECOND_DIFF
+    med = xp.median(d2, axis=-1, keepdims=True)
+    return _MAD * xp.median(xp.abs(d2 - med), axis=-1) / _SECOND_DIFF
 
 
-def features(force, disp, bins_w, force_scale: float, disp_scale: float):
+def features(force, disp, bins_w, force_scale: float, disp_scale: float, xp=jnp):
     """[..., B, 2 bins + 4]: per pull the shapes of force and displacement (bin means divided by
     the pull's largest |value|), then the logs of their amplitudes (largest |bin mean| over
     ``force_scale`` / ``disp_scale``) and of their robust noise estimates. Shapes and log
     amplitudes rather than raw traces: the displacement spans the prior's hundredfold range of
     stiffness, and its amplitude against the force's is what sets the stiffness; the bin means
-    hide the noise, which sets the posterior's width. ``force``, ``disp`` [..., B, T]."""
-    w = jnp.asarray(bins_w, force.dtype)
+    hide the noise, which sets the posterior's width. ``force``, ``disp`` [..., B, T].
+    ``xp``: jax.numpy (training, jitted) or numpy (a new recording's posterior,
+    :mod:`treeinfer.amortised.fastpath`: no program to compile)."""
+    w = xp.asarray(bins_w, force.dtype)
     tiny = 1e-6
     out = []
     for x, scale in ((force, force_scale), (disp, disp_scale)):
         b = (x / scale) @ w
-        amp = jnp.max(jnp.abs(b), axis=-1, keepdims=True) + tiny
-        out.append((b / amp, jnp.log(amp)))
+        amp = xp.max(xp.abs(b), axis=-1, keepdims=True) + tiny
+        out.append((b / amp, xp.log(amp)))
     (fs, fa), (xs, xa) = out
-    sf = jnp.log(_noise_scale(force / force_scale) + NOISE_FLOOR)[..., None]
-    sx = jnp.log(_noise_scale(disp / disp_scale) + NOISE_FLOOR)[..., None]
-    return jnp.concatenate([fs, xs, fa, xa, sf, sx], axis=-1)
+    sf = xp.log(_noise_scale(force / force_scale, xp) + NOISE_FLOOR)[..., None]
+    sx = xp.log(_noise_scale(disp / disp_scale, xp) + NOISE_FLOOR)[..., None]
+    return xp.concatenate([fs, xs, fa, xa, sf, sx], axis=-1)
 
 
 def training_simulator(tree, layout: PullLayout, backend: str = "auto", seed: int = 0):
