@@ -121,7 +121,37 @@ def _markdown(res: dict) -> str:
     for lab, row in cov.items():
         cells = " | ".join(f"{row[lv]:.3f}" for lv in levels)
         lines.append(f"| {lab} | {cells} | {res['chi2_p'][lab]:.3g} |")
-    lines += ["", f"Largest |coverage - nominal|: {res['max_coverage_gap']:.3f}", ""]
+    null = res.get("null_max_gap")
+    lines += [
+        "",
+        f"Largest |coverage - nominal|: {res['max_coverage_gap']:.3f}"
+        + (
+            f" (a perfectly calibrated posterior on {res['n_sets']} sets: median "
+            f"{null['median']:.3f}, 95th percentile {null['p95']:.3f})"
+            if null
+            else ""
+        ),
+        "",
+    ]
+    if "mean_log_q_truth" in res:
+        lines += [
+            f"Mean log q(truth | data) on the held-out sets: {res['mean_log_q_truth']:.3f} "
+            "(theta units; higher: sharper, for the same sets only).",
+            "",
+            "Coverage at 50% / 80% by the truth's place in the box (edge: within a tenth of "
+            "its width of an edge):",
+            "",
+            "| parameter | edge n | edge 50% | edge 80% | inside n | inside 50% | inside 80% |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for lab, row in res["coverage_by_place"].items():
+            e, i = row["edge"], row["inside"]
+            lines.append(
+                f"| {lab} | {e['n']} | {e.get('0.5', float('nan')):.3f} | "
+                f"{e.get('0.8', float('nan')):.3f} | {i['n']} | {i.get('0.5', float('nan')):.3f} "
+                f"| {i.get('0.8', float('nan')):.3f} |"
+            )
+        lines.append("")
     if res.get("checks"):
         from experiments._amortised_checks import checks_markdown
 
@@ -146,6 +176,18 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--seed", type=int, default=0, help="training seed (held-out: seed + 1000)")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument(
+        "--space",
+        choices=("probit", "box"),
+        default="probit",
+        help="the flow's coordinates (box: the models before session 13)",
+    )
+    ap.add_argument(
+        "--summary",
+        choices=("dynamics", "shapes"),
+        default="dynamics",
+        help="the per-pull features (shapes: the models before session 13)",
+    )
     ap.add_argument(
         "--model", type=Path, default=None, help="measure this trained model (no training)"
     )
@@ -207,6 +249,8 @@ def main(argv=None) -> int:
             batch_size=size.get("batch", 256),
             patience=size.get("patience", 10),
             embedding=size.get("embedding", 16),
+            space=args.space,
+            summary=args.summary,
         ),
     )
     name = f"amortised_{args.size}_{Path(args.tree).stem}"

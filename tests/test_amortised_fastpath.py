@@ -84,3 +84,17 @@ def test_weights_of_another_architecture_are_refused(model):
         fastpath.from_leaves(vals, DIM, N_FEATURES + 1, LAYERS, WIDTH, EMBEDDING)
     with pytest.raises(ConfigError, match="weight arrays"):
         fastpath.from_leaves(vals[:-1], DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING)
+
+
+def test_the_weights_file_reads_as_flax_writes_it(model):
+    from flax.serialization import msgpack_restore, msgpack_serialize
+
+    from treeinfer.amortised.estimator import read_weights
+
+    _, vals = model
+    blob = msgpack_serialize({str(i): a for i, a in enumerate(vals)})
+    got, want = read_weights(blob), msgpack_restore(blob)
+    assert sorted(got) == sorted(want) == sorted(str(i) for i in range(len(vals)))
+    for k in want:
+        assert got[k].dtype == want[k].dtype and got[k].shape == want[k].shape
+        np.testing.assert_array_equal(got[k], want[k])

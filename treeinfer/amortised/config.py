@@ -31,6 +31,7 @@ DEFAULT_SIGMA_F_RANGE = (5e-3, 0.2)  # N
 # one of them failed its domain check (force noise 8e-6 N outside 4e-3-0.24 N).
 DEFAULT_CLEAN_FORCE_SHARE = 0.25
 SPACES = ("probit", "box")
+SUMMARIES = ("dynamics", "shapes")
 BINS = 50  # samples per pull the embedding sees (bin means of the recording)
 
 
@@ -108,6 +109,10 @@ class TrainConfig:
     # normal quantile: the prior a standard normal) or "box" (the box standardised linearly,
     # the models before session 13)
     space: str = "probit"
+    # the per-pull features (treeinfer.amortised.simulations.features): "dynamics" (the shapes
+    # plus hand-made summaries of the compliance and the ringing after release) or "shapes"
+    # (the bin means' shapes only, the models before session 13)
+    summary: str = "dynamics"
 
     def __post_init__(self):
         for name, lo in (
@@ -126,6 +131,10 @@ class TrainConfig:
         if not 0 <= float(self.clean_force_share) <= 1:
             raise ConfigError(
                 f"clean_force_share: must be in [0, 1], got {self.clean_force_share!r}"
+            )
+        if self.summary not in SUMMARIES:
+            raise ConfigError(
+                f"summary: expected one of {', '.join(SUMMARIES)}, got {self.summary!r}"
             )
         if self.space not in SPACES:
             raise ConfigError(f"space: expected one of {', '.join(SPACES)}, got {self.space!r}")
@@ -154,6 +163,7 @@ class AmortiseConfig:
             for k in ("sigma_x_range", "sigma_f_range"):
                 tr[k] = tuple(tr[k])
             tr.setdefault("space", "box")  # a model from before the probit space
+            tr.setdefault("summary", "shapes")  # and before the hand-made summaries
             return cls(PullLayout(**lay), TrainConfig(**tr))
         except (KeyError, TypeError) as e:
             raise ConfigError(f"amortised model config: missing or unknown field ({e})") from None

@@ -17,7 +17,7 @@ import numpy as np
 from .. import __version__
 from ..errors import ConfigError
 from ..io.jsonio import jsonable
-from . import network
+from . import network, simulations
 from .config import AmortiseConfig, differences, fingerprint, tree_identity
 from .simulations import bin_matrix, features, simulate_training_set, theta_box
 
@@ -68,7 +68,7 @@ class Amortised:
 
     def _architecture(self) -> tuple:
         tr = self.config.train
-        n_features = 2 * self.meta["layout"]["bins"] + 4
+        n_features = simulations.n_features(self.meta["layout"]["bins"], tr.summary)
         return len(self.labels), n_features, tr.flow_layers, tr.width, tr.embedding
 
     def weight_leaves(self) -> list:
@@ -146,6 +146,7 @@ class Amortised:
             bin_matrix(lay.n_steps, lay.bins).astype(np.float32),
             *self.meta["scales"],
             xp=np,
+            summary=self.config.train.summary,
         )
         return np.asarray(f, np.float32)
 
@@ -370,8 +371,6 @@ def load(path) -> Amortised:
     foreign one)."""
     import hashlib
 
-    from flax.serialization import msgpack_restore
-
     from ..io.jsonio import read_json
 
     path = Path(path)
@@ -390,7 +389,7 @@ def load(path) -> Amortised:
     if hashlib.sha256(blob).hexdigest() != meta.get("weights_sha256"):
         raise ConfigError(f"{path / WEIGHTS_FILE}: does not match the sha256 in {META_FILE}")
     try:
-        stored = msgpack_restore(blob)
+        stored = read_weights(blob)
         values = [stored[str(i)] for i in range(len(stored))]
     except Exception as e:  # noqa: BLE001 -- any decoding failure is a corrupt file
         raise ConfigError(f"{path / WEIGHTS_FILE}: cannot be read ({e})") from None
@@ -400,6 +399,24 @@ def load(path) -> Amortised:
     except ConfigError as e:
         raise ConfigError(f"{path / WEIGHTS_FILE}: {e}") from None
     return am
+
+
+def read_weights(blob: bytes) -> dict:
+    """``{"0": array, ...}`` of a ``model.msgpack`` (flax's ``msgpack_serialize`` of the leaves).
+
+    Read with msgpack itself (flax's dependency) rather than flax's ``msgpack_restore``:
+    importing ``flax.serialization`` costs 0.7 s on the 2-core CPU, more than the rest of a
+    new recording's posterior, for a format of three fields per array (flax's ndarray
+    extension: code 1, the msgpack of shape, dtype name and C-order bytes)."""
+    import msgpack
+
+    def ext(code, data):
+        if code != 1:
+            raise ValueError(f"msgpack extension {code} is not flax's ndarray")
+        shape, dtype, buf = msgpack.unpackb(data, raw=True)
+        return np.frombuffer(buf, dtype=np.dtype(dtype.decode())).reshape(shape)
+
+    return msgpack.unpackb(blob, ext_hook=ext, raw=False, strict_map_key=False)
 
 
 def summarize(theta, labels: Sequence[str]) -> list[dict]:
