@@ -138,20 +138,7 @@ def _markdown(res: dict) -> str:
             f"Mean log q(truth | data) on the held-out sets: {res['mean_log_q_truth']:.3f} "
             "(theta units; higher: sharper, for the same sets only).",
             "",
-            "Coverage at 50% / 80% by the truth's place in the box (edge: within a tenth of "
-            "its width of an edge):",
-            "",
-            "| parameter | edge n | edge 50% | edge 80% | inside n | inside 50% | inside 80% |",
-            "|---|---|---|---|---|---|---|",
         ]
-        for lab, row in res["coverage_by_place"].items():
-            e, i = row["edge"], row["inside"]
-            lines.append(
-                f"| {lab} | {e['n']} | {e.get('0.5', float('nan')):.3f} | "
-                f"{e.get('0.8', float('nan')):.3f} | {i['n']} | {i.get('0.5', float('nan')):.3f} "
-                f"| {i.get('0.8', float('nan')):.3f} |"
-            )
-        lines.append("")
     if res.get("checks"):
         from experiments._amortised_checks import checks_markdown
 

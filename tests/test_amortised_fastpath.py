@@ -98,3 +98,113 @@ def test_the_weights_file_reads_as_flax_writes_it(model):
     for k in want:
         assert got[k].dtype == want[k].dtype and got[k].shape == want[k].shape
         np.testing.assert_array_equal(got[k], want[k])
+
+
+# ---- the posterior of a stored model: fast, nothing compiled, the same maths as flowjax's ----
+FULL_MODEL = "experiments/results/amortised_full_two_branch/model"  # 6 layers, width 128
+
+
+def test_a_loaded_models_first_posterior_compiles_nothing_and_is_fast():
+    """The issue's target: a new recording's posterior in < 100 ms on the 2-core CPU. Counted in
+    CPU time (the wall on this shared box is the load's); about 7 CPU-ms for 1024 draws of the
+    GPU-sized model, in the process's first call."""
+    import time
+    from pathlib import Path
+
+    from treeinfer.amortised import estimator
+    from treeinfer.sim.compile_stats import compile_stats
+
+    path = Path(__file__).resolve().parent.parent / FULL_MODEL
+    am = estimator.load(path)
+    assert am.model is None  # flowjax's modules are not built to answer
+    lay = am.config.layout
+    rng = np.random.default_rng(0)
+    force = np.abs(rng.normal(3.0, 1.0, (lay.n_pulls, lay.n_steps)))
+    disp = 0.01 * force + 1e-3 * rng.normal(size=force.shape)
+    mark = compile_stats().mark()
+    c0 = time.process_time()
+    theta, log_q = am.draw(force, disp, 1024, seed=1)
+    cpu_s = time.process_time() - c0
+    assert compile_stats().since(mark)["xla_compiles"] == 0
+    assert theta.shape == (1024, len(am.labels)) and np.all(np.isfinite(log_q))
+    assert cpu_s < 0.1, f"{1e3 * cpu_s:.0f} CPU-ms"
+
+
+def test_a_stored_box_space_model_gives_flowjaxs_density():
+    """A model from before the probit space and the dynamics summary (format 2 without those
+    fields) still loads, and its NumPy density of draws is flowjax's (the old path)."""
+    from pathlib import Path
+
+    from treeinfer.amortised import estimator
+
+    path = Path(__file__).resolve().parent.parent / "experiments/results/amortised_cpu_chain1/model"
+    am = estimator.load(path)
+    assert am.config.train.space == "box" and am.config.train.summary == "shapes"
+    lay = am.config.layout
+    rng = np.random.default_rng(2)
+    force = np.abs(rng.normal(3.0, 1.0, (lay.n_pulls, lay.n_steps)))
+    disp = 0.01 * force + 1e-3 * rng.normal(size=force.shape)
+    theta, log_q = am.draw(force, disp, 64)
+    feats = am.features(force, disp)
+    want = np.asarray(
+        network.log_density(am.network_model())(am.to_z(theta).astype(np.float32), feats)
+    ) + am.log_jacobian(theta)
+    np.testing.assert_allclose(log_q, want, rtol=1e-4, atol=2e-3)
+
+
+# ---- the probit space ------------------------------------------------------------------------
+def test_the_probit_space_makes_the_prior_a_standard_normal_and_inverts():
+    from scipy import stats
+
+    from treeinfer.amortised.simulations import draw_prior
+    from treeinfer.amortised.space import ProbitSpace
+
+    lo, hi = np.array([1.6, -3.0, -9.2]), np.array([6.2, 2.3, -5.3])
+    tail = np.append(0.1 * (hi - lo)[:2], 0.0)  # the noise column has none (log-uniform)
+    sp = ProbitSpace(lo, hi, tail)
+    theta = draw_prior(np.random.default_rng(0), lo, hi, tail, 20000)
+    u = sp.to_u(theta)
+    for j in range(2):  # the smoothed box's draws are N(0, 1) in u
+        assert stats.kstest(u[:, j], "norm").pvalue > 1e-3
+    assert stats.kstest(np.random.default_rng(1).uniform(size=2000), "norm").pvalue < 1e-3
+    np.testing.assert_allclose(sp.from_u(u), theta, atol=1e-9)
+    far = np.array([[-5.0, -20.0, -30.0], [10.0, 4.0, 0.0]])  # far in the tails: still inverts
+    assert np.all(np.isfinite(sp.to_u(far)))
+    np.testing.assert_allclose(sp.from_u(sp.to_u(far)), far, atol=1e-8)
+    # log |du/dtheta| against central differences, column by column
+    h = 1e-6
+    x = theta[:5]
+    fd = sum(
+        np.log(np.abs((sp.to_u(x + h * e)[:, j] - sp.to_u(x - h * e)[:, j]) / (2 * h)))
+        for j, e in enumerate(np.eye(3))
+    )
+    np.testing.assert_allclose(sp.log_abs_det(x), fd, atol=1e-5)
+
+
+# ---- the dynamics summaries ------------------------------------------------------------------
+def test_the_dynamics_summaries_are_the_same_in_numpy_and_jax_and_measure_what_they_say():
+    from treeinfer.amortised.simulations import bin_matrix, dynamics_features, features
+
+    n, bins = 200, 50
+    t = np.arange(n) * 0.01
+    w = bin_matrix(n, bins)
+    # a ramp-hold-release (released at 1.2 s) and a ramp that never lets go
+    hold = np.clip(t / 0.5, 0, 1) * (t < 1.2)
+    ramp = t / t[-1]
+    force = np.stack([hold, ramp]) * 4.0
+    ring = np.where(t > 1.2, 0.02 * np.exp(-4 * (t - 1.2)) * np.cos(25 * (t - 1.2)), 0.0)
+    disp = 0.05 * force / 4.0 + np.stack([ring, np.zeros(n)])
+    a = features(
+        jnp.asarray(force, jnp.float32), jnp.asarray(disp, jnp.float32), w, 4.0, 0.05,
+        summary="dynamics",
+    )  # fmt: skip
+    b = features(
+        force.astype(np.float32), disp.astype(np.float32), w.astype(np.float32), 4.0, 0.05,
+        xp=np, summary="dynamics",
+    )  # fmt: skip
+    np.testing.assert_allclose(np.asarray(a), b, atol=1e-5)
+    d = dynamics_features((force / 4.0) @ w, (disp / 0.05) @ w, np)
+    np.testing.assert_allclose(d[1, 1], 0.0, atol=1e-4)  # the hold's compliance: x = f exactly
+    assert d[1, 5] == 0 and np.all(d[1, 2:5] == 0)  # no release: no ringing summaries
+    assert d[0, 5] == 1 and d[0, 3] < -1  # released: the ringing decays
+    assert 0.1 < d[0, 4] < 0.5  # 25 rad/s over 40 ms bins: a sign change every 3 bins

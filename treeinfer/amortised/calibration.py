@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 
 DEFAULT_LEVELS = (0.5, 0.8, 0.9, 0.95)
-EDGE_SHARE = 0.1  # a truth this share of the box's width from an edge is "at the edge"
 
 
 def null_max_gap(n_sets: int, n_columns: int, levels=DEFAULT_LEVELS, reps: int = 2000) -> dict:
@@ -77,22 +76,6 @@ def expected_coverage(
         lab: {str(lv): float(inside[lv][:, j].mean()) for lv in levels}
         for j, lab in enumerate(labels)
     }
-    # coverage by the truth's place in the box: within EDGE_SHARE of its width of an edge, or
-    # inside. A flow that draws the prior's edges smooth covers the first too rarely and the
-    # second too often, which the overall share averages away
-    lo, hi = (np.asarray(am.meta["box"][k], float) for k in ("lower", "upper"))
-    pos = (held.theta - lo) / (hi - lo)
-    edge = (pos < EDGE_SHARE) | (pos > 1 - EDGE_SHARE)
-    by_place = {
-        lab: {
-            place: {
-                "n": int(m[:, j].sum()),
-                **{str(lv): float(inside[lv][m[:, j], j].mean()) for lv in levels if m[:, j].any()},
-            }
-            for place, m in (("edge", edge), ("inside", ~edge))
-        }
-        for j, lab in enumerate(labels)
-    }
     chi2 = {}
     for j, lab in enumerate(labels):
         counts = np.histogram(ranks[:, j], bins=10, range=(0, n_draws + 1))[0]
@@ -101,7 +84,6 @@ def expected_coverage(
         "coverage": coverage,
         "ranks": {lab: ranks[:, j].tolist() for j, lab in enumerate(labels)},
         "chi2_p": chi2,
-        "coverage_by_place": by_place,
         # the held-out sets' mean log q(truth | data) in theta units: a proper score, higher for
         # a sharper calibrated posterior; compare models on the same held-out sets only
         "mean_log_q_truth": float(np.mean(log_q_truth)),
