@@ -12,14 +12,14 @@ import jax.numpy as jnp  # noqa: E402
 
 from treeinfer.amortised import fastpath, network  # noqa: E402
 
-DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING = 5, 14, 3, 16, 4
+DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING, N_SKIP = 5, 14, 3, 16, 4, 3
 
 
 @pytest.fixture(scope="module")
 def model():
     """A flow with every weight drawn at random (a fresh flow's last layers start near the
     identity, which would hide a wrong transformer parameterisation)."""
-    m = network.build(jax.random.key(3), DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING)
+    m = network.build(jax.random.key(3), DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING, N_SKIP)
     rng = np.random.default_rng(0)
     vals = [
         v if v.dtype.kind in "bi" else (0.3 * rng.standard_normal(v.shape)).astype(v.dtype)
@@ -57,10 +57,12 @@ def test_numpy_summary_draws_and_densities_equal_flowjaxs(model):
     import paramax
 
     m, vals = model
-    fe = fastpath.from_leaves(vals, DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING)
+    fe = fastpath.from_leaves(vals, DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING, N_SKIP)
     u = paramax.unwrap(m)
     feats = np.random.default_rng(1).standard_normal((3, N_FEATURES)).astype(np.float32)
     cond = np.asarray(u.embed(jnp.asarray(feats)))
+    assert cond.shape == (EMBEDDING + N_SKIP,)  # the last features' means appended
+    np.testing.assert_allclose(cond[-N_SKIP:], feats[:, -N_SKIP:].mean(0), rtol=1e-5)
     np.testing.assert_allclose(fe.embed(feats), cond, rtol=1e-4, atol=1e-5)
     eps = np.random.default_rng(2).standard_normal((50, DIM)).astype(np.float32)
     x0 = np.asarray(jax.vmap(u.flow.base_dist.bijection.transform)(jnp.asarray(eps)))
@@ -81,9 +83,9 @@ def test_weights_of_another_architecture_are_refused(model):
 
     _, vals = model
     with pytest.raises(ConfigError, match="weight phi0.w has shape"):
-        fastpath.from_leaves(vals, DIM, N_FEATURES + 1, LAYERS, WIDTH, EMBEDDING)
+        fastpath.from_leaves(vals, DIM, N_FEATURES + 1, LAYERS, WIDTH, EMBEDDING, N_SKIP)
     with pytest.raises(ConfigError, match="weight arrays"):
-        fastpath.from_leaves(vals[:-1], DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING)
+        fastpath.from_leaves(vals[:-1], DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING, N_SKIP)
 
 
 def test_the_weights_file_reads_as_flax_writes_it(model):

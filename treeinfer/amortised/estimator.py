@@ -69,7 +69,8 @@ class Amortised:
     def _architecture(self) -> tuple:
         tr = self.config.train
         n_features = simulations.n_features(self.meta["layout"]["bins"], tr.summary)
-        return len(self.labels), n_features, tr.flow_layers, tr.width, tr.embedding
+        skip = network.skip_count(tr.summary)
+        return len(self.labels), n_features, tr.flow_layers, tr.width, tr.embedding, skip
 
     def weight_leaves(self) -> list:
         """The stored arrays (:func:`treeinfer.amortised.network.leaves`'s order)."""
@@ -273,7 +274,13 @@ def train(
     key = jax.random.key(tr.seed)
     k_build, k_fit = jax.random.split(key)
     model = network.build(
-        k_build, z.shape[1], data.feats.shape[-1], tr.flow_layers, tr.width, tr.embedding
+        k_build,
+        z.shape[1],
+        data.feats.shape[-1],
+        tr.flow_layers,
+        tr.width,
+        tr.embedding,
+        network.skip_count(tr.summary),
     )
     log(f"training the flow on {len(z)} simulated data sets ({data.n_unstable} unstable dropped)")
     t1 = time.perf_counter()

@@ -76,6 +76,7 @@ class FastEstimator:
     maf: list
     perm: np.ndarray  # [L, D]
     invperm: np.ndarray  # [L, D]
+    n_skip: int = 0  # the last features' means appended to the summary (network.skip_count)
 
     @property
     def dim(self) -> int:
@@ -84,8 +85,11 @@ class FastEstimator:
     # ---- the summary ---------------------------------------------------------------------------
     def embed(self, feats) -> np.ndarray:
         """[C] the condition of one recording's features [B, F] (the deep-sets summary)."""
-        h = _mlp(self.phi, np.asarray(feats, np.float32), _gelu).mean(axis=0)
-        return _mlp(self.rho, h, _gelu)
+        feats = np.asarray(feats, np.float32)
+        out = _mlp(self.rho, _mlp(self.phi, feats, _gelu).mean(axis=0), _gelu)
+        if self.n_skip:
+            out = np.concatenate([out, feats[:, -self.n_skip :].mean(axis=0)])
+        return out
 
     # ---- the flow -----------------------------------------------------------------------------
     def _layer_bias(self, cond):
@@ -143,7 +147,9 @@ class FastEstimator:
         return z, self.log_prob(z, cond)
 
 
-def from_leaves(values, dim: int, n_features: int, layers: int, width: int, embedding: int):
+def from_leaves(
+    values, dim: int, n_features: int, layers: int, width: int, embedding: int, n_skip: int = 0
+):
     """A :class:`FastEstimator` from the stored leaves (:func:`leaf_layout`'s order), shapes
     checked against the recorded architecture (ConfigError: a file of another one)."""
     names = leaf_layout()
@@ -154,7 +160,7 @@ def from_leaves(values, dim: int, n_features: int, layers: int, width: int, embe
         "phi0.w": (width, n_features),
         "rho1.w": (embedding, width),
         "base.loc": (dim,),
-        "maf0.w": (layers, width, dim + embedding),
+        "maf0.w": (layers, width, dim + embedding + n_skip),
         "maf1.w": (layers, 2 * dim, width),
         "perm": (layers, dim),
     }
@@ -191,4 +197,5 @@ def from_leaves(values, dim: int, n_features: int, layers: int, width: int, embe
         maf,
         a["perm"].astype(int),
         a["invperm"].astype(int),
+        n_skip,
     )
