@@ -13,13 +13,17 @@ import jax.numpy as jnp  # noqa: E402
 from treeinfer.amortised import fastpath, network  # noqa: E402
 
 DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING, N_SKIP = 5, 14, 3, 16, 4, 3
+# the features' standardisation (network.build's norm): loc, scale per feature
+NORM = (np.linspace(-2, 2, N_FEATURES), np.linspace(0.5, 3, N_FEATURES))
 
 
 @pytest.fixture(scope="module")
 def model():
     """A flow with every weight drawn at random (a fresh flow's last layers start near the
     identity, which would hide a wrong transformer parameterisation)."""
-    m = network.build(jax.random.key(3), DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING, N_SKIP)
+    m = network.build(
+        jax.random.key(3), DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING, N_SKIP, NORM
+    )
     rng = np.random.default_rng(0)
     vals = [
         v if v.dtype.kind in "bi" else (0.3 * rng.standard_normal(v.shape)).astype(v.dtype)
@@ -57,12 +61,13 @@ def test_numpy_summary_draws_and_densities_equal_flowjaxs(model):
     import paramax
 
     m, vals = model
-    fe = fastpath.from_leaves(vals, DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING, N_SKIP)
+    fe = fastpath.from_leaves(vals, DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING, N_SKIP, NORM)
     u = paramax.unwrap(m)
     feats = np.random.default_rng(1).standard_normal((3, N_FEATURES)).astype(np.float32)
     cond = np.asarray(u.embed(jnp.asarray(feats)))
     assert cond.shape == (EMBEDDING + N_SKIP,)  # the last features' means appended
-    np.testing.assert_allclose(cond[-N_SKIP:], feats[:, -N_SKIP:].mean(0), rtol=1e-5)
+    std = (feats - NORM[0]) / NORM[1]  # the skip connection sees the standardised features
+    np.testing.assert_allclose(cond[-N_SKIP:], std[:, -N_SKIP:].mean(0), rtol=1e-5)
     np.testing.assert_allclose(fe.embed(feats), cond, rtol=1e-4, atol=1e-5)
     eps = np.random.default_rng(2).standard_normal((50, DIM)).astype(np.float32)
     x0 = np.asarray(jax.vmap(u.flow.base_dist.bijection.transform)(jnp.asarray(eps)))

@@ -70,7 +70,9 @@ class Amortised:
         tr = self.config.train
         n_features = simulations.n_features(self.meta["layout"]["bins"], tr.summary)
         skip = network.skip_count(tr.summary)
-        return len(self.labels), n_features, tr.flow_layers, tr.width, tr.embedding, skip
+        fn = self.meta.get("feature_norm")
+        norm = None if fn is None else (fn["loc"], fn["scale"])
+        return len(self.labels), n_features, tr.flow_layers, tr.width, tr.embedding, skip, norm
 
     def weight_leaves(self) -> list:
         """The stored arrays (:func:`treeinfer.amortised.network.leaves`'s order)."""
@@ -273,15 +275,13 @@ def train(
     z = am.to_z(data.theta).astype(np.float32)
     key = jax.random.key(tr.seed)
     k_build, k_fit = jax.random.split(key)
-    model = network.build(
-        k_build,
-        z.shape[1],
-        data.feats.shape[-1],
-        tr.flow_layers,
-        tr.width,
-        tr.embedding,
-        network.skip_count(tr.summary),
-    )
+    if tr.summary == "dynamics":  # features standardised by the training set's (network.build)
+        flat = data.feats.reshape(-1, data.feats.shape[-1]).astype(float)
+        am.meta["feature_norm"] = {
+            "loc": flat.mean(axis=0).tolist(),
+            "scale": np.maximum(flat.std(axis=0), 1e-3).tolist(),
+        }
+    model = network.build(k_build, *am._architecture())
     log(f"training the flow on {len(z)} simulated data sets ({data.n_unstable} unstable dropped)")
     t1 = time.perf_counter()
     model, losses = network.fit(

@@ -77,6 +77,7 @@ class FastEstimator:
     perm: np.ndarray  # [L, D]
     invperm: np.ndarray  # [L, D]
     n_skip: int = 0  # the last features' means appended to the summary (network.skip_count)
+    norm: tuple | None = None  # (loc [F], scale [F]) of the features, or None (network.build)
 
     @property
     def dim(self) -> int:
@@ -86,6 +87,8 @@ class FastEstimator:
     def embed(self, feats) -> np.ndarray:
         """[C] the condition of one recording's features [B, F] (the deep-sets summary)."""
         feats = np.asarray(feats, np.float32)
+        if self.norm is not None:
+            feats = (feats - self.norm[0]) / self.norm[1]
         out = _mlp(self.rho, _mlp(self.phi, feats, _gelu).mean(axis=0), _gelu)
         if self.n_skip:
             out = np.concatenate([out, feats[:, -self.n_skip :].mean(axis=0)])
@@ -148,7 +151,14 @@ class FastEstimator:
 
 
 def from_leaves(
-    values, dim: int, n_features: int, layers: int, width: int, embedding: int, n_skip: int = 0
+    values,
+    dim: int,
+    n_features: int,
+    layers: int,
+    width: int,
+    embedding: int,
+    n_skip: int = 0,
+    norm=None,
 ):
     """A :class:`FastEstimator` from the stored leaves (:func:`leaf_layout`'s order), shapes
     checked against the recorded architecture (ConfigError: a file of another one)."""
@@ -198,4 +208,5 @@ def from_leaves(
         a["perm"].astype(int),
         a["invperm"].astype(int),
         n_skip,
+        None if norm is None else tuple(np.asarray(v, np.float32) for v in norm),
     )
