@@ -174,9 +174,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument(
         "--space",
-        choices=("probit", "box"),
-        default="probit",
-        help="the flow's coordinates (box: the models before session 13)",
+        choices=("box", "probit"),
+        default="box",
+        help="the flow's coordinates (probit: the prior a standard normal, "
+        "treeinfer.amortised.space)",
     )
     ap.add_argument(
         "--summary",

@@ -7,8 +7,10 @@ Why (session 13): the flow in the box's linear coordinates (``z = (theta - centr
 half-width``) must itself learn the prior's shape, a flat box with Gaussian shoulders, which
 an affine autoregressive flow (a Gaussian base moved and stretched column by column) draws as
 a rounded hump; where the data say little (the damping of a short pull) the posterior is that
-shape. In ``u`` the prior is the base Gaussian itself, and a posterior the data sharpen sees
-a locally affine map. (Measured at the CPU size: experiments/results/amortised_cpu_two_branch*.)
+shape. In ``u`` the prior is the base Gaussian itself. Measured at the CPU size
+(experiments/results/amortised_cpu_two_branch_s13/README.md): it helped the shapes-only
+summary and not the dynamics summary, so ``TrainConfig.space`` defaults to "box"; kept as
+an option for the GPU size's comparison.
 
 Computed in float64 with SciPy's log-space normal functions (``log_ndtr``, ``ndtri_exp``), on
 the half of each column nearer its lower edge (the other half by reflection), so that a draw
