@@ -174,10 +174,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument(
         "--space",
-        choices=("box", "probit"),
-        default="box",
+        choices=("probit", "box"),
+        default="probit",
         help="the flow's coordinates (probit: the prior a standard normal, "
-        "treeinfer.amortised.space)",
+        "treeinfer.amortised.space; box: the models before session 13)",
     )
     ap.add_argument(
         "--summary",
