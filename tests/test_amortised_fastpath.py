@@ -21,9 +21,7 @@ NORM = (np.linspace(-2, 2, N_FEATURES), np.linspace(0.5, 3, N_FEATURES))
 def model():
     """A flow with every weight drawn at random (a fresh flow's last layers start near the
     identity, which would hide a wrong transformer parameterisation)."""
-    m = network.build(
-        jax.random.key(3), DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING, N_SKIP, NORM
-    )
+    m = network.build(jax.random.key(3), DIM, N_FEATURES, LAYERS, WIDTH, EMBEDDING, N_SKIP, NORM)
     rng = np.random.default_rng(0)
     vals = [
         v if v.dtype.kind in "bi" else (0.3 * rng.standard_normal(v.shape)).astype(v.dtype)
