@@ -22,8 +22,12 @@ from .config import AmortiseConfig, differences, fingerprint, tree_identity
 from .simulations import bin_matrix, features, simulate_training_set, theta_box
 
 # 2: the features' noise floor (simulations.NOISE_FLOOR) and the clean-force share; a model of
-# format 1 summarises a recording otherwise, and is refused with a word to retrain it
-FORMAT = "treeinfer-amortised/2"
+# format 1 summarises a recording otherwise, and is refused with a word to retrain it.
+# 3 (session 13): the training config's space and summary, and the features' standardisation
+# (model.json's feature_norm); a treeinfer that reads format 2 only would build another
+# network for it, so it refuses it by its format. A record without them is read as box / shapes.
+FORMAT = "treeinfer-amortised/3"
+READABLE_FORMATS = ("treeinfer-amortised/2", FORMAT)
 WEIGHTS_FILE = "model.msgpack"
 META_FILE = "model.json"
 # the check's programs per model: a rollout program, the log-prior, the noise density and the
@@ -387,9 +391,10 @@ def load(path) -> Amortised:
             "`treeinfer amortise --out` writes)"
         )
     meta = read_json(path / META_FILE, "amortised model record")
-    if meta.get("format") != FORMAT:
+    if meta.get("format") not in READABLE_FORMATS:
         raise ConfigError(
-            f"{path / META_FILE}: format {meta.get('format')!r}, expected {FORMAT!r} (a model "
+            f"{path / META_FILE}: format {meta.get('format')!r}, expected one of "
+            f"{', '.join(READABLE_FORMATS)} (a model "
             "from another treeinfer version: train it again with `treeinfer amortise`)"
         )
     blob = (path / WEIGHTS_FILE).read_bytes()
