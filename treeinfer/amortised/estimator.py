@@ -433,7 +433,8 @@ def read_weights(blob: bytes) -> dict:
 
 def summarize(theta, labels: Sequence[str]) -> list[dict]:
     """Per column the posterior mean and 95% interval in natural units (exp of the log column)."""
-    nat = np.exp(np.asarray(theta, float))
+    with np.errstate(over="ignore"):  # a flow far outside its training (a recording the
+        nat = np.exp(np.asarray(theta, float))  # check will refuse) may draw exp overflows
     out = []
     for j, lab in enumerate(labels):
         lo, hi = np.quantile(nat[:, j], [0.025, 0.975])
