@@ -248,3 +248,16 @@ def test_a_trained_models_draws_carry_their_density_in_theta_units(space):
     ) + am.log_jacobian(theta)
     np.testing.assert_allclose(log_q, want, rtol=1e-4, atol=2e-3)
     np.testing.assert_allclose(am.log_q(theta, feats), log_q, rtol=1e-6, atol=1e-6)
+
+
+def test_the_null_gap_is_the_binomial_spread_of_a_calibrated_posterior():
+    """The largest coverage gap an exact posterior shows: for one column and the 50% level
+    alone it is |Binomial(n, 1/2) / n - 1/2|, whose median is 0.6745 sd (sd = 0.5 / sqrt(n));
+    over 5 columns x 4 levels it is larger, and it shrinks as 1 / sqrt(n)."""
+    from treeinfer.amortised.calibration import null_max_gap
+
+    one = null_max_gap(2000, 1, levels=(0.5,), reps=1000)
+    assert abs(one["median"] - 0.6745 * 0.5 / np.sqrt(2000)) < 0.002
+    small, large = null_max_gap(500, 5, reps=300), null_max_gap(5000, 5, reps=300)
+    assert small["median"] > 0.03 > one["median"]
+    assert 2.5 < small["median"] / large["median"] < 3.8  # sqrt(10) = 3.16

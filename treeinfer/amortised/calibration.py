@@ -40,7 +40,8 @@ def expected_coverage(
     log=lambda m: None,
 ) -> dict:
     """``{"coverage": {label: {level: share}}, "ranks": {label: [n_sets]}, "chi2_p": {label:
-    p}, "n_sets", "n_draws", "latency_ms"}`` of ``am`` on ``n_sets`` held-out data sets of
+    p}, "mean_log_q_truth", "null_max_gap": {"median", "p95"}, "n_sets", "n_draws",
+    "latency_ms"}`` of ``am`` on ``n_sets`` held-out data sets of
     ``tree`` (simulated with ``seed``: use one the model was not trained with). ``chi2_p``: the
     p-value of a chi-square test of the ranks' uniformity over 10 bins (scipy)."""
     import time
