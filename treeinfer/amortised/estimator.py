@@ -280,10 +280,10 @@ def train(
     key = jax.random.key(tr.seed)
     k_build, k_fit = jax.random.split(key)
     if tr.summary == "dynamics":  # features standardised by the training set's (network.build)
-        flat = data.feats.reshape(-1, data.feats.shape[-1]).astype(float)
+        flat = data.feats.reshape(-1, data.feats.shape[-1])  # float32; sums in float64 (no copy)
         am.meta["feature_norm"] = {
-            "loc": flat.mean(axis=0).tolist(),
-            "scale": np.maximum(flat.std(axis=0), 1e-3).tolist(),
+            "loc": flat.mean(axis=0, dtype=np.float64).tolist(),
+            "scale": np.maximum(flat.std(axis=0, dtype=np.float64), 1e-3).tolist(),
         }
     model = network.build(k_build, *am._architecture())
     log(f"training the flow on {len(z)} simulated data sets ({data.n_unstable} unstable dropped)")
