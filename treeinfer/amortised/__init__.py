@@ -5,8 +5,11 @@ simulator (Pareto-smoothed importance weights) and falls back to the simulator-b
 the check fails.
 
 Modules: :mod:`.config` (the pull layout, training settings, the tree's fingerprint),
-:mod:`.simulations` (training data from the batched simulator), :mod:`.network` (the summary
-network and the conditional flow, flowjax), :mod:`.estimator` (train, save, load, refuse, draw),
+:mod:`.simulations` (training data from the batched simulator and the recordings' features),
+:mod:`.network` (the summary network and the conditional flow, flowjax), :mod:`.space` (the
+flow's coordinates: the prior's probit map), :mod:`.fastpath` (the trained estimator in NumPy:
+a recording's posterior with nothing to compile), :mod:`.estimator` (train, save, load, refuse,
+draw),
 :mod:`.check` (the on-the-spot check and the run layer's start), :mod:`.calibration` (expected
 coverage on held-out simulated data sets).
 
@@ -32,5 +35,16 @@ _EXPORTS = {
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_package(
-    __name__, _EXPORTS, ("calibration", "check", "config", "estimator", "network", "simulations")
+    __name__,
+    _EXPORTS,
+    (
+        "calibration",
+        "check",
+        "config",
+        "estimator",
+        "fastpath",
+        "network",
+        "simulations",
+        "space",
+    ),
 )

@@ -17,13 +17,17 @@ import numpy as np
 from .. import __version__
 from ..errors import ConfigError
 from ..io.jsonio import jsonable
-from . import network
+from . import network, simulations
 from .config import AmortiseConfig, differences, fingerprint, tree_identity
 from .simulations import bin_matrix, features, simulate_training_set, theta_box
 
 # 2: the features' noise floor (simulations.NOISE_FLOOR) and the clean-force share; a model of
-# format 1 summarises a recording otherwise, and is refused with a word to retrain it
-FORMAT = "treeinfer-amortised/2"
+# format 1 summarises a recording otherwise, and is refused with a word to retrain it.
+# 3 (session 13): the training config's space and summary, and the features' standardisation
+# (model.json's feature_norm); a treeinfer that reads format 2 only would build another
+# network for it, so it refuses it by its format. A record without them is read as box / shapes.
+FORMAT = "treeinfer-amortised/3"
+READABLE_FORMATS = ("treeinfer-amortised/2", FORMAT)
 WEIGHTS_FILE = "model.msgpack"
 META_FILE = "model.json"
 # the check's programs per model: a rollout program, the log-prior, the noise density and the
@@ -43,15 +47,20 @@ DT_RTOL = 1e-3
 
 @dataclass
 class Amortised:
-    """A trained estimator (``model``: the flowjax/equinox pytree) and its record (``meta``: the
-    tree's identity and fingerprint, the layout, the training config, the features' scales, the
-    parameter box, the training report, the treeinfer version). ``programs``: the compiled
-    programs of the check against the simulator (:mod:`treeinfer.amortised.programs`), kept
-    with the model so that a process checking many recordings of one shape compiles them once."""
+    """A trained estimator and its record (``meta``: the tree's identity and fingerprint, the
+    layout, the training config, the features' scales, the parameter box, the training report,
+    the treeinfer version). ``model``: the flowjax/equinox pytree (training, calibration);
+    a loaded model leaves it None until :meth:`network_model` builds it (seconds: flowjax's
+    modules are built op by op), since a recording's posterior needs only ``weights``, the
+    stored arrays, evaluated in NumPy (:mod:`treeinfer.amortised.fastpath`). ``programs``: the
+    compiled programs of the check against the simulator (:mod:`treeinfer.amortised.programs`),
+    kept with the model so that a process checking many recordings of one shape compiles them
+    once."""
 
     model: object
     meta: dict
     programs: object = field(default_factory=_program_cache, repr=False, compare=False)
+    weights: list | None = field(default=None, repr=False, compare=False)
 
     @property
     def config(self) -> AmortiseConfig:
@@ -61,55 +70,112 @@ class Amortised:
     def labels(self) -> list[str]:
         return list(self.meta["labels"])
 
+    def _architecture(self) -> tuple:
+        tr = self.config.train
+        n_features = simulations.n_features(self.meta["layout"]["bins"], tr.summary)
+        skip = network.skip_count(tr.summary)
+        fn = self.meta.get("feature_norm")
+        norm = None if fn is None else (fn["loc"], fn["scale"])
+        return len(self.labels), n_features, tr.flow_layers, tr.width, tr.embedding, skip, norm
+
+    def weight_leaves(self) -> list:
+        """The stored arrays (:func:`treeinfer.amortised.network.leaves`'s order)."""
+        if self.weights is None:
+            self.weights = network.leaves(self.model)
+        return self.weights
+
+    def network_model(self):
+        """The flowjax/equinox estimator, built from the stored arrays on first use."""
+        if self.model is None:
+            import jax
+
+            skeleton = network.build(jax.random.key(0), *self._architecture())
+            self.model = network.with_leaves(skeleton, self.weights, "amortised model")
+        return self.model
+
+    @property
+    def fast(self):
+        """The estimator in NumPy (:class:`treeinfer.amortised.fastpath.FastEstimator`)."""
+        fe = self.__dict__.get("_fast")
+        if fe is None:
+            from .fastpath import from_leaves
+
+            fe = self.__dict__["_fast"] = from_leaves(self.weight_leaves(), *self._architecture())
+        return fe
+
     def _box(self):
         lo, hi = (np.asarray(self.meta["box"][k], float) for k in ("lower", "upper"))
         return (lo + hi) / 2, (hi - lo) / 2
 
+    def _space(self):
+        """The probit map of the prior (:class:`treeinfer.amortised.space.ProbitSpace`), or
+        None for a model in the box's linear coordinates."""
+        if self.config.train.space != "probit":
+            return None
+        sp = self.__dict__.get("_probit")
+        if sp is None:
+            from .space import ProbitSpace
+
+            box = self.meta["box"]
+            sp = self.__dict__["_probit"] = ProbitSpace(box["lower"], box["upper"], box["tail"])
+        return sp
+
     def to_z(self, theta):
+        """The flow's coordinates of ``theta`` [..., D]."""
+        sp = self._space()
+        if sp is not None:
+            return sp.to_u(theta)
         c, h = self._box()
         return (np.asarray(theta, float) - c) / h
 
     def from_z(self, z):
+        sp = self._space()
+        if sp is not None:
+            return sp.from_u(z)
         c, h = self._box()
         return np.asarray(z, float) * h + c
 
-    @property
-    def log_jacobian(self) -> float:
-        """log |d z / d theta|: ``log q(theta) = log q(z) + log_jacobian``."""
-        return float(-np.sum(np.log(self._box()[1])))
+    def log_jacobian(self, theta) -> np.ndarray:
+        """[n] log |d z / d theta| at ``theta`` [n, D]: ``log q(theta) = log q(z) +
+        log_jacobian``."""
+        sp = self._space()
+        if sp is not None:
+            return sp.log_abs_det(theta)
+        return np.full(len(theta), -np.sum(np.log(self._box()[1])))
 
     def features(self, force, disp) -> np.ndarray:
-        """[B, F] the summary features of one recording (``force``, ``disp`` [B, T])."""
-        import jax.numpy as jnp
-
+        """[B, F] the summary features of one recording (``force``, ``disp`` [B, T]), in NumPy
+        (float32 inputs, as the training's)."""
         lay = self.config.layout
         f = features(
-            jnp.asarray(force, jnp.float32),
-            jnp.asarray(disp, jnp.float32),
-            bin_matrix(lay.n_steps, lay.bins),
+            np.asarray(force, np.float32),
+            np.asarray(disp, np.float32),
+            bin_matrix(lay.n_steps, lay.bins).astype(np.float32),
             *self.meta["scales"],
+            xp=np,
+            summary=self.config.train.summary,
         )
-        return np.asarray(f)
+        return np.asarray(f, np.float32)
 
     def draw(self, force, disp, n: int = 1024, seed: int = 0):
         """``(theta [n, D], log q(theta) [n])``: the amortised posterior of one recording
         (``force``, ``disp`` [B, T] on the layout's grid), in theta units (log Kp, log Kd, log
-        sigma_x). One pass of the summary and the flow (compiled on the first call)."""
-        import jax
+        sigma_x). The features, the summary and the flow in NumPy: milliseconds, nothing to
+        compile (:mod:`treeinfer.amortised.fastpath`)."""
+        return self.draw_from_features(self.features(force, disp), n, seed)
 
-        key = (n, "draw")
-        fn = self.__dict__.setdefault("_programs", {}).get(key)
-        if fn is None:
-            fn = self._programs[key] = network.sampler(self.model, int(n))
-        z, lq = fn(jax.random.key(seed), self.features(force, disp))
-        return self.from_z(np.asarray(z, float)), np.asarray(lq, float) + self.log_jacobian
+    def draw_from_features(self, feats, n: int = 1024, seed: int = 0):
+        """:meth:`draw` of a recording's features [B, F]."""
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xD7]))
+        z, lq = self.fast.sample_and_log_prob(rng, int(n), feats)
+        theta = self.from_z(z)
+        return theta, lq + self.log_jacobian(theta)
 
     def log_q(self, theta, feats) -> np.ndarray:
-        """log q(theta [M, D] | one recording's features [B, F]) in theta units."""
-        fn = self.__dict__.setdefault("_programs", {}).get("dens")
-        if fn is None:
-            fn = self._programs["dens"] = network.log_density(self.model)
-        return np.asarray(fn(self.to_z(theta).astype(np.float32), feats), float) + self.log_jacobian
+        """log q(theta [M, D] | one recording's features [B, F]) in theta units (NumPy)."""
+        fe = self.fast
+        theta = np.asarray(theta, float)
+        return fe.log_prob(self.to_z(theta), fe.embed(feats)) + self.log_jacobian(theta)
 
     # ---- refusals ------------------------------------------------------------------------------
     def check_tree(self, tree, where: str = "--tree") -> None:
@@ -189,7 +255,7 @@ def train(
             f"amortise: only {len(data.theta)} of {tr.simulations} simulations were stable; "
             "check the tree's prior box"
         )
-    lower, upper, _ = theta_box(tree, tr)
+    lower, upper, tail = theta_box(tree, tr)
     labels = tree.parameter_labels() + ["sigma_x"]
     meta = {
         "format": FORMAT,
@@ -207,15 +273,19 @@ def train(
         },
         "config": config.to_json(),
         "scales": [float(s) for s in scales],
-        "box": {"lower": lower.tolist(), "upper": upper.tolist()},
+        "box": {"lower": lower.tolist(), "upper": upper.tolist(), "tail": tail.tolist()},
     }
     am = Amortised(None, meta)
     z = am.to_z(data.theta).astype(np.float32)
     key = jax.random.key(tr.seed)
     k_build, k_fit = jax.random.split(key)
-    model = network.build(
-        k_build, z.shape[1], data.feats.shape[-1], tr.flow_layers, tr.width, tr.embedding
-    )
+    if tr.summary == "dynamics":  # features standardised by the training set's (network.build)
+        flat = data.feats.reshape(-1, data.feats.shape[-1])  # float32; sums in float64 (no copy)
+        am.meta["feature_norm"] = {
+            "loc": flat.mean(axis=0, dtype=np.float64).tolist(),
+            "scale": np.maximum(flat.std(axis=0, dtype=np.float64), 1e-3).tolist(),
+        }
+    model = network.build(k_build, *am._architecture())
     log(f"training the flow on {len(z)} simulated data sets ({data.n_unstable} unstable dropped)")
     t1 = time.perf_counter()
     model, losses = network.fit(
@@ -296,7 +366,7 @@ def save(am: Amortised, out, force: bool = False, inputs=(), log=None) -> Path:
     from ..io.atomic import staged_output_dir
     from ..io.jsonio import write_json
 
-    blob = msgpack_serialize({str(i): a for i, a in enumerate(network.leaves(am.model))})
+    blob = msgpack_serialize({str(i): a for i, a in enumerate(am.weight_leaves())})
     import hashlib
 
     meta = {**am.meta, "weights_sha256": hashlib.sha256(blob).hexdigest()}
@@ -312,8 +382,6 @@ def load(path) -> Amortised:
     foreign one)."""
     import hashlib
 
-    from flax.serialization import msgpack_restore
-
     from ..io.jsonio import read_json
 
     path = Path(path)
@@ -323,38 +391,50 @@ def load(path) -> Amortised:
             "`treeinfer amortise --out` writes)"
         )
     meta = read_json(path / META_FILE, "amortised model record")
-    if meta.get("format") != FORMAT:
+    if meta.get("format") not in READABLE_FORMATS:
         raise ConfigError(
-            f"{path / META_FILE}: format {meta.get('format')!r}, expected {FORMAT!r} (a model "
+            f"{path / META_FILE}: format {meta.get('format')!r}, expected one of "
+            f"{', '.join(READABLE_FORMATS)} (a model "
             "from another treeinfer version: train it again with `treeinfer amortise`)"
         )
     blob = (path / WEIGHTS_FILE).read_bytes()
     if hashlib.sha256(blob).hexdigest() != meta.get("weights_sha256"):
         raise ConfigError(f"{path / WEIGHTS_FILE}: does not match the sha256 in {META_FILE}")
     try:
-        stored = msgpack_restore(blob)
+        stored = read_weights(blob)
         values = [stored[str(i)] for i in range(len(stored))]
     except Exception as e:  # noqa: BLE001 -- any decoding failure is a corrupt file
         raise ConfigError(f"{path / WEIGHTS_FILE}: cannot be read ({e})") from None
-    cfg = AmortiseConfig.from_json(meta["config"])
-    import jax
+    am = Amortised(None, meta, weights=values)
+    try:
+        am.fast  # noqa: B018 -- the arrays' shapes checked against the recorded architecture now
+    except ConfigError as e:
+        raise ConfigError(f"{path / WEIGHTS_FILE}: {e}") from None
+    return am
 
-    tr = cfg.train
-    skeleton = network.build(
-        jax.random.key(0),
-        len(meta["labels"]),
-        2 * meta["layout"]["bins"] + 4,
-        tr.flow_layers,
-        tr.width,
-        tr.embedding,
-    )
-    model = network.with_leaves(skeleton, values, str(path / WEIGHTS_FILE))
-    return Amortised(model, meta)
+
+def read_weights(blob: bytes) -> dict:
+    """``{"0": array, ...}`` of a ``model.msgpack`` (flax's ``msgpack_serialize`` of the leaves).
+
+    Read with msgpack itself (flax's dependency) rather than flax's ``msgpack_restore``:
+    importing ``flax.serialization`` costs 0.7 s on the 2-core CPU, more than the rest of a
+    new recording's posterior, for a format of three fields per array (flax's ndarray
+    extension: code 1, the msgpack of shape, dtype name and C-order bytes)."""
+    import msgpack
+
+    def ext(code, data):
+        if code != 1:
+            raise ValueError(f"msgpack extension {code} is not flax's ndarray")
+        shape, dtype, buf = msgpack.unpackb(data, raw=True)
+        return np.frombuffer(buf, dtype=np.dtype(dtype.decode())).reshape(shape)
+
+    return msgpack.unpackb(blob, ext_hook=ext, raw=False, strict_map_key=False)
 
 
 def summarize(theta, labels: Sequence[str]) -> list[dict]:
     """Per column the posterior mean and 95% interval in natural units (exp of the log column)."""
-    nat = np.exp(np.asarray(theta, float))
+    with np.errstate(over="ignore"):  # a flow far outside its training (a recording the
+        nat = np.exp(np.asarray(theta, float))  # check will refuse) may draw exp overflows
     out = []
     for j, lab in enumerate(labels):
         lo, hi = np.quantile(nat[:, j], [0.025, 0.975])

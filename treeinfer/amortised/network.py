@@ -34,18 +34,44 @@ def _flowjax():
     return eqx, ff, fd
 
 
-def build(key, dim: int, n_features: int, layers: int, width: int, embedding: int):
+def build(
+    key,
+    dim: int,
+    n_features: int,
+    layers: int,
+    width: int,
+    embedding: int,
+    n_skip: int = 0,
+    norm=None,
+):
     """A fresh (untrained) estimator: ``Estimator(embed, flow)`` with ``embed(feats [..., B, F])
-    -> [..., embedding]`` and ``flow`` a conditional flow over ``dim`` standardised columns.
+    -> [..., embedding + n_skip]`` and ``flow`` a conditional flow over ``dim`` standardised
+    columns. ``n_skip``: the last ``n_skip`` features' means over the pulls are appended to the
+    learned summary (:func:`skip_count`). ``norm``: ``(loc, scale)`` per feature, the training
+    set's, subtracted and divided before anything else (None: the features as they are, the
+    models before session 13): the features' logs span from about -9 to 1 and the networks
+    learn faster on standardised inputs, the skip connection's above all.
 
     Built op by op: each small initialisation op compiles on its own the first time (10 s on a
     2-core CPU; the persistent compile cache keeps them). It cannot be one compiled program:
     flowjax keeps a closure over an intermediate array of its conditioner (a leaked tracer
     under ``jit`` or ``eval_shape``)."""
-    return _build(key, dim, n_features, layers, width, embedding)
+    return _build(key, dim, n_features, layers, width, embedding, n_skip, norm)
 
 
-def _build(key, dim, n_features, layers, width, embedding):
+def skip_count(summary: str) -> int:
+    """The features whose means over the pulls go to the flow as they are, beside the learned
+    summary: for summary "dynamics", its hand-made summaries and the four amplitudes and noise
+    estimates (:func:`treeinfer.amortised.simulations.features`). Why: the posterior of
+    ``log sigma_x`` is about 1% of its prior's width and sits at the recording's own noise
+    estimate; through the deep-sets MLP the flow found it only roughly and widened the rest
+    (coverage 54-56% at 50% at the CPU size). None for "shapes" (the models before)."""
+    from .simulations import N_DYNAMICS
+
+    return N_DYNAMICS + 4 if summary == "dynamics" else 0
+
+
+def _build(key, dim, n_features, layers, width, embedding, n_skip=0, norm=None):
     import jax
 
     eqx, ff, fd = _flowjax()
@@ -56,12 +82,22 @@ def _build(key, dim, n_features, layers, width, embedding):
 
         phi: eqx.nn.MLP
         rho: eqx.nn.MLP
+        n_skip: int = eqx.field(static=True, default=0)
+        # tuples (hashable: static fields), not arrays: not weights, and not stored leaves
+        norm_loc: tuple = eqx.field(static=True, default=())
+        norm_scale: tuple = eqx.field(static=True, default=())
 
         def __call__(self, feats):
+            if self.norm_loc:
+                loc = jnp.asarray(self.norm_loc, feats.dtype)
+                feats = (feats - loc) / jnp.asarray(self.norm_scale, feats.dtype)
             h = jax.vmap(self.phi)(feats.reshape(-1, feats.shape[-1]))
             h = h.reshape(*feats.shape[:-1], -1).mean(axis=-2)
             flat = h.reshape(-1, h.shape[-1])
-            return jax.vmap(self.rho)(flat).reshape(*h.shape[:-1], -1)
+            out = jax.vmap(self.rho)(flat).reshape(*h.shape[:-1], -1)
+            if self.n_skip:
+                out = jnp.concatenate([out, feats[..., -self.n_skip :].mean(axis=-2)], axis=-1)
+            return out
 
     class Estimator(eqx.Module):
         embed: Summary
@@ -76,7 +112,7 @@ def _build(key, dim, n_features, layers, width, embedding):
     flow = ff.masked_autoregressive_flow(
         k3,
         base_dist=fd.Normal(jnp.zeros(dim)),
-        cond_dim=embedding,
+        cond_dim=embedding + n_skip,
         flow_layers=layers,
         nn_width=width,
         # True (flowjax's default): the density is one pass per layer, what training takes
@@ -84,7 +120,8 @@ def _build(key, dim, n_features, layers, width, embedding):
         # milliseconds for the D <= ~10 columns of a tree (benchmarks/amortised_latency.py)
         invert=True,
     )
-    return Estimator(Summary(phi, rho), flow)
+    loc, scale = ((), ()) if norm is None else (tuple(map(float, a)) for a in norm)
+    return Estimator(Summary(phi, rho, n_skip, loc, scale), flow)
 
 
 def _params(model):

@@ -127,32 +127,103 @@ def bin_matrix(n_steps: int, bins: int) -> np.ndarray:
     return w / w.sum(axis=0, keepdims=True)
 
 
-def _noise_scale(x):
+def _noise_scale(x, xp=jnp):
     """Robust noise std along the last axis: MAD of second differences / sqrt(6) (as
     :func:`treeinfer.model.noise.estimate_displacement_noise`, in jnp over a batch)."""
     d2 = x[..., 2:] - 2 * x[..., 1:-1] + x[..., :-2]
-    med = jnp.median(d2, axis=-1, keepdims=True)
-    return _MAD * jnp.median(jnp.abs(d2 - med), axis=-1) / _SECOND_DIFF
+    med = xp.median(d2, axis=-1, keepdims=True)
+    return _MAD * xp.median(xp.abs(d2 - med), axis=-1) / _SECOND_DIFF
 
 
-def features(force, disp, bins_w, force_scale: float, disp_scale: float):
-    """[..., B, 2 bins + 4]: per pull the shapes of force and displacement (bin means divided by
+N_DYNAMICS = 6  # the hand-made summaries of summary "dynamics" (:func:`dynamics_features`)
+
+
+def n_features(bins: int, summary: str) -> int:
+    """The features' number per pull of a summary kind (TrainConfig.summary)."""
+    return 2 * bins + 4 + (N_DYNAMICS if summary == "dynamics" else 0)
+
+
+def dynamics_features(fb, xb, xp=jnp):
+    """[..., B, N_DYNAMICS] per pull, from its bin means (``fb``, ``xb`` [..., B, bins], scaled):
+    what sets the stiffness and the damping, summarised by hand so that the network need not
+    find it in the shapes (session 13: the deep-sets summary of the shapes alone gave flows
+    5-50 times wider than the simulator-based posterior in Kp and Kd):
+
+    - the log least-squares compliance ``sum f x / sum f^2`` over the pull, and over its hold
+      (the bins where |f| >= 0.9 of its largest): the static compliance, the stiffness's
+      direct measure;
+    - after the release (the bins after the last one with |f| >= half its largest; none for a
+      ramp that never lets go): the log rms of the displacement against its value at the
+      release (the ringing's size: the damping's), the log ratio of the rms of the window's
+      second half to its first (the decay), and the share of bins where the displacement
+      changes sign (the ringing's frequency); zeros without a release window, whose flag is
+      the last feature."""
+    tiny = 1e-6
+    fa = xp.abs(fb)
+    peak = xp.max(fa, axis=-1, keepdims=True) + tiny
+    comp = xp.sum(fb * xb, axis=-1) / (xp.sum(fb * fb, axis=-1) + tiny)
+    hold = fa >= 0.9 * peak
+    comp_hold = xp.sum(xp.where(hold, fb * xb, 0), axis=-1) / (
+        xp.sum(xp.where(hold, fb * fb, 0), axis=-1) + tiny
+    )
+    n = fb.shape[-1]
+    idx = xp.arange(n)
+    loaded = fa >= 0.5 * peak
+    last = n - 1 - xp.argmax(xp.flip(loaded, axis=-1), axis=-1)  # the last loaded bin
+    after = idx > last[..., None]
+    n_after = xp.sum(after, axis=-1)
+    mid = last[..., None] + (n_after[..., None] + 1) // 2
+    first_half = after & (idx <= mid)
+    second_half = after & (idx > mid)
+    x_rel = xp.take_along_axis(xb, last[..., None], axis=-1)
+
+    def rms(m):
+        return xp.sqrt(xp.sum(xp.where(m, xb * xb, 0), axis=-1) / xp.maximum(xp.sum(m, -1), 1))
+
+    has = n_after >= 4
+    ring = xp.log(rms(after) / (xp.abs(x_rel[..., 0]) + tiny) + tiny)
+    decay = xp.log((rms(second_half) + tiny) / (rms(first_half) + tiny))
+    sign_change = (xb[..., 1:] * xb[..., :-1] < 0) & after[..., 1:]
+    crossings = xp.sum(sign_change, axis=-1) / xp.maximum(n_after, 1)
+    zero = xp.zeros_like(ring)
+    return xp.stack(
+        [
+            xp.log(xp.abs(comp) + tiny),
+            xp.log(xp.abs(comp_hold) + tiny),
+            xp.where(has, ring, zero),
+            xp.where(has, decay, zero),
+            xp.where(has, crossings, zero),
+            has.astype(ring.dtype),
+        ],
+        axis=-1,
+    )
+
+
+def features(
+    force, disp, bins_w, force_scale: float, disp_scale: float, xp=jnp, summary: str = "shapes"
+):
+    """[..., B, F]: per pull the shapes of force and displacement (bin means divided by
     the pull's largest |value|), then the logs of their amplitudes (largest |bin mean| over
     ``force_scale`` / ``disp_scale``) and of their robust noise estimates. Shapes and log
     amplitudes rather than raw traces: the displacement spans the prior's hundredfold range of
     stiffness, and its amplitude against the force's is what sets the stiffness; the bin means
-    hide the noise, which sets the posterior's width. ``force``, ``disp`` [..., B, T]."""
-    w = jnp.asarray(bins_w, force.dtype)
+    hide the noise, which sets the posterior's width. ``force``, ``disp`` [..., B, T].
+    ``xp``: jax.numpy (training, jitted) or numpy (a new recording's posterior,
+    :mod:`treeinfer.amortised.fastpath`: no program to compile)."""
+    w = xp.asarray(bins_w, force.dtype)
     tiny = 1e-6
     out = []
     for x, scale in ((force, force_scale), (disp, disp_scale)):
         b = (x / scale) @ w
-        amp = jnp.max(jnp.abs(b), axis=-1, keepdims=True) + tiny
-        out.append((b / amp, jnp.log(amp)))
+        amp = xp.max(xp.abs(b), axis=-1, keepdims=True) + tiny
+        out.append((b / amp, xp.log(amp)))
     (fs, fa), (xs, xa) = out
-    sf = jnp.log(_noise_scale(force / force_scale) + NOISE_FLOOR)[..., None]
-    sx = jnp.log(_noise_scale(disp / disp_scale) + NOISE_FLOOR)[..., None]
-    return jnp.concatenate([fs, xs, fa, xa, sf, sx], axis=-1)
+    sf = xp.log(_noise_scale(force / force_scale, xp) + NOISE_FLOOR)[..., None]
+    sx = xp.log(_noise_scale(disp / disp_scale, xp) + NOISE_FLOOR)[..., None]
+    extra = []
+    if summary == "dynamics":  # before the four summaries the domain check reads from the end
+        extra = [dynamics_features((force / force_scale) @ w, (disp / disp_scale) @ w, xp)]
+    return xp.concatenate([fs, xs, *extra, fa, xa, sf, sx], axis=-1)
 
 
 def training_simulator(tree, layout: PullLayout, backend: str = "auto", seed: int = 0):
@@ -211,7 +282,7 @@ def simulate_training_set(
     ineq = inequality_log_prior(tree)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0xA3]))
     bins_w = bin_matrix(layout.n_steps, layout.bins)
-    feat_fn = jax.jit(features, static_argnums=(3, 4))
+    feat_fn = jax.jit(features, static_argnums=(3, 4), static_argnames=("xp", "summary"))
     g = 2 * tree.n_inferred
     thetas, feats, unstable = [], [], 0
     done = 0
@@ -233,7 +304,11 @@ def simulate_training_set(
         disp = tau + sx * rng.normal(size=tau.shape)
         rec_f = forces + sf * rng.normal(size=tau.shape)
         f = feat_fn(
-            jnp.asarray(rec_f, jnp.float32), jnp.asarray(disp, jnp.float32), bins_w, *scales
+            jnp.asarray(rec_f, jnp.float32),
+            jnp.asarray(disp, jnp.float32),
+            bins_w,
+            *scales,
+            summary=train.summary,
         )
         thetas.append(theta[ok])
         feats.append(np.asarray(f)[ok])

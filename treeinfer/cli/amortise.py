@@ -254,9 +254,12 @@ def amortised_for_infer(args: argparse.Namespace, inputs, options: dict):
     start, report = check.amortised_start(
         am, force, disp, str(args.amortised), seed=options.get("seed", 0)
     )
+    report["load_s"] = round(load_s, 3)
     _say(
-        f"amortised posterior from {args.amortised} in {report['latency_ms']:.1f} ms (model "
-        f"loaded in {load_s:.2f} s); checking it against the simulator"
+        f"amortised posterior from {args.amortised} in {report['latency_ms']:.1f} ms "
+        f"({report['latency_cpu_ms']:.1f} CPU-ms; features, summary and {report['n_draws']} "
+        f"flow draws; model loaded and checked against the tree and the recordings in "
+        f"{1e3 * load_s:.0f} ms); checking it against the simulator"
     )
     for s in report["flow_posterior"]:
         _say(f"  {s['label']:<16} {s['mean']:.4g}  [{s['lower']:.4g}, {s['upper']:.4g}]")
