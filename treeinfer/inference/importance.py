@@ -47,12 +47,10 @@ __all__ = [
     "systematic_resample",
 ]
 
-# PSIS: above this the weights are not used as the posterior. Vehtari et al. call k_hat up to
-# 0.7 usable for estimating a MEAN from many draws; the start pipeline keeps 64 particles from a
-# few hundred effective draws and needs the posterior's TAILS (95% intervals), and SBC of the
-# default command (experiments/results/sbc_default_h200/, 54 data sets of the standard problem)
-# measured it: truths' z-scores had rms 1.09 where k_hat < 0.5, 1.94 at 0.5-0.7 (intervals half
-# as wide as they should be) and 3.1 above. Between 0.5 and 0.7 the draws go to resample-move.
+# PSIS: above this the weights are not the posterior. Vehtari et al.'s 0.7 is for a MEAN from
+# many draws; the start pipeline needs the TAILS (95% intervals) from a few hundred effective
+# draws: SBC of the default command (experiments/results/sbc_default_h200/) gave truths'
+# z-scores an rms of 1.09 where k_hat < 0.5, 1.94 at 0.5-0.7 and 3.1 above.
 KHAT_LIMIT = 0.5
 # the two halves of the weighted draws must agree on the band width within this share
 # (:func:`band_split`): a guard against gross instability. The halves' 2.5/97.5 % quantiles are
