@@ -111,3 +111,28 @@ def test_noise_on_a_slow_ramp_is_no_clock_offset_but_a_real_lag_still_is():
         "p.csv", f_true + rng.normal(0, 0.08, n), early + rng.normal(0, 0.002, n), dt
     )
     assert found and "BEFORE the force" in found[0].message
+
+
+def test_large_displacement_noise_on_a_slow_ramp_is_no_clock_offset():
+    """SBC data set 45 of experiments/sbc_default.py, simulated by treeinfer itself: a 2.3 s ramp
+    to 2.4 N with 0.05 N force noise, 55 mm of response and 3.3 mm displacement noise. The
+    displacement's FIRST crossing comes early where the noise is up, and the slope measured
+    between two samples there was steep by chance, so the timing jitter came out 4x too small:
+    "0.16 s BEFORE the force". The slope is now a fitted line; a real 0.3 s lead is still found."""
+    dt, n = 0.01, 300
+    t = np.arange(n) * dt
+    f_true = np.clip((t - 0.19) / 2.3, 0.0, 1.0) * 2.4
+    x_true = 0.023 * f_true
+    alarms = 0
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        f = f_true + rng.normal(0, 0.05, n)
+        x = x_true + rng.normal(0, 0.0033, n)
+        alarms += bool(lead_of_displacement("p.csv", f, x, dt))
+    assert alarms == 0
+    rng = np.random.default_rng(0)
+    early = np.interp(t + 0.6, t, x_true)  # displacement clock 0.6 s ahead
+    found = lead_of_displacement(
+        "p.csv", f_true + rng.normal(0, 0.05, n), early + rng.normal(0, 0.0033, n), dt
+    )
+    assert found and "BEFORE the force" in found[0].message

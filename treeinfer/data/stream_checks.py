@@ -121,12 +121,24 @@ def _onset(values: np.ndarray, share: float) -> int | None:
 TIMING_SIGMAS = 4.0  # ... and this many standard deviations of the two onsets' timing noise
 
 
+SLOPE_SECONDS = 0.2  # half-width of the window the crossing's slope is fitted over
+
+
 def _timing_sd(v: np.ndarray, idx: int, sigma: float, w: int) -> float:
     """Samples: the standard deviation of a crossing time at ``idx`` caused by noise ``sigma``
-    on ``v``, ``sigma / slope`` (the slope over ``w`` samples each side): on a slow ramp, noise
-    moves the crossing by many samples."""
+    on ``v``, ``sigma / slope``: on a slow ramp, noise moves the crossing by many samples.
+
+    The slope is a least-squares line over ``w`` samples each side, not the difference of the
+    two ends: a FIRST crossing of a noisy signal happens where the noise is up, and there the
+    end-to-end difference over a few samples is steep by chance. On a 2.3 s ramp to 2.4 N with
+    3.3 mm displacement noise (SBC data set 45 of experiments/sbc_default.py, simulated by
+    treeinfer itself) that made the jitter 4x too small and the check refused the data as
+    "displacement 0.16 s before the force"."""
     lo, hi = max(idx - w, 0), min(idx + w, len(v) - 1)
-    slope = abs(float(v[hi] - v[lo])) / max(hi - lo, 1)
+    if hi - lo < 2:
+        return float("inf")
+    t = np.arange(lo, hi + 1, dtype=float)
+    slope = abs(float(np.polyfit(t, np.asarray(v[lo : hi + 1], float), 1)[0]))
     return float(sigma / slope) if slope > 0 else float("inf")
 
 
@@ -165,7 +177,8 @@ def lead_of_displacement(name: str, force, displacement, dt: float) -> list[Find
     lead = tf - tx
     # noise times each crossing only to within sigma / slope: a 2% force noise on a slow ramp
     # moved the force's onset by 3-4 samples (a false alarm on an independent simulator's pull)
-    jitter = TIMING_SIGMAS * float(np.hypot(_timing_sd(f, tf, sf, w), _timing_sd(x, tx, sx, w)))
+    ws = max(w, int(round(SLOPE_SECONDS / dt)))
+    jitter = TIMING_SIGMAS * float(np.hypot(_timing_sd(f, tf, sf, ws), _timing_sd(x, tx, sx, ws)))
     if lead <= max(LEAD_SAMPLES, LEAD_SECONDS / dt, jitter):
         return []
     return [
