@@ -76,10 +76,11 @@ def write_run_figures(
     sampler: str,
     bandwidth=None,
     formats=("png",),
+    channels: bool = True,
 ) -> list[Path]:
     """``plots/trace``, ``plots/pairs``, ``plots/bands_train`` and, for a run with observation
-    channels, ``plots/channels_train`` (``fit["channel_bands"]``) in every format of
-    ``formats`` (``png``, ``pdf``, ``svg``); returns the files written."""
+    channels, ``plots/channels_train`` (``fit["channel_bands"]``; not with ``channels=False``)
+    in every format of ``formats`` (``png``, ``pdf``, ``svg``); returns the files written."""
     from ..evaluation.plots import plot_band_grid, save_figure
 
     post = _posterior(posterior, problem, trace, stable, truth)
@@ -104,9 +105,57 @@ def write_run_figures(
             reference_label="recording",
         )
         written += save_figure(fig, plots / "bands_train.png", formats=formats)
-    if fit.get("channel_bands"):  # observation channels: their bands on the training data
-        from ..evaluation.channel_bands import plot_channel_bands
-
-        fig, _ = plot_channel_bands(fit["channel_bands"])
-        written += save_figure(fig, plots / "channels_train.png", formats=formats)
+    if channels:
+        written += _channel_figure(plots, fit, formats)
     return written
+
+
+def _channel_figure(plots: Path, fit: dict, formats) -> list[Path]:
+    if not fit.get("channel_bands"):
+        return []
+    # observation channels: their bands on the training data
+    from ..evaluation.channel_bands import plot_channel_bands
+    from ..evaluation.plots import save_figure
+
+    fig, _ = plot_channel_bands(fit["channel_bands"])
+    return save_figure(fig, plots / "channels_train.png", formats=formats)
+
+
+class RunFigures:
+    """The run's figures (:func:`write_run_figures`) drawn on a second thread
+    (:class:`treeinfer.runs.background.Job`) into a scratch folder while the main thread
+    computes the run's summary and verdict (XLA compiles and runs, which release Python's lock);
+    :meth:`write` moves them into the run's ``plots/`` (about 3 CPU-s of matplotlib, two thirds
+    of it the pair plot's layout, off the command's critical path on a 2-core CPU). The same
+    files as drawing them in place; a drawing error is raised by :meth:`write`. The channels'
+    figure (``fit["channel_bands"]``, made by the verdict) is drawn by :meth:`write`."""
+
+    def __init__(self, posterior, problem, trace, stable, truth, fit, names, sampler,
+                 bandwidth=None, formats=("png",)):  # fmt: skip
+        import tempfile
+
+        from .background import Job
+
+        self._scratch = tempfile.TemporaryDirectory(prefix="treeinfer-plots-")
+        self._formats = formats
+        folder = Path(self._scratch.name)
+        names, fit = list(names), dict(fit)
+        self._job = Job(
+            lambda: write_run_figures(
+                folder, posterior, problem, trace, stable, truth, fit, names, sampler,
+                bandwidth=bandwidth, formats=formats, channels=False,
+            ),
+            "run-figures",
+        )  # fmt: skip
+
+    def write(self, plots: Path, fit: dict) -> list[Path]:
+        """The figures in ``plots`` (created); returns the files written."""
+        import shutil
+
+        try:
+            drawn = self._job.result()
+            plots.mkdir(parents=True, exist_ok=True)
+            written = [Path(shutil.move(str(f), str(plots / f.name))) for f in drawn]
+        finally:
+            self._scratch.cleanup()
+        return written + _channel_figure(plots, fit, self._formats)

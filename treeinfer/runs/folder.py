@@ -62,6 +62,11 @@ def _bandwidths(positions: np.ndarray) -> np.ndarray:
     return np.asarray(jax.jit(jax.vmap(median_length_scale))(jnp.asarray(positions)), float)
 
 
+def run_bandwidths(trace: dict, sampler: str):
+    """The trace plot's kernel bandwidths per iteration (SVGD samplers), else None."""
+    return _bandwidths(trace["positions"]) if sampler_spec(sampler).family == "svgd" else None
+
+
 def _diagnostics(
     sampler: str, trace: dict, labels, warmup: float = 0.5
 ) -> tuple[str, dict, list[str]]:
@@ -277,12 +282,15 @@ def save_run(
     inputs: Sequence[str | os.PathLike] = (),
     log=None,
     formats=("png",),
+    figures=None,
 ) -> Path:
     """Write the run folder (see the module docstring) atomically: built in a staging folder,
     moved into place at the end. ``inputs`` (the tree file and data folder) are never replaced
     by ``force``; config.json records the checksums of the files written before it
     (``config["integrity"]``, see :mod:`treeinfer.runs.integrity`). ``formats``: the figures' file
-    formats in ``plots/`` (``png``, ``pdf``, ``svg``)."""
+    formats in ``plots/`` (``png``, ``pdf``, ``svg``). ``figures``: a
+    :class:`~treeinfer.runs.figures.RunFigures` already drawing them (in ``formats``), else
+    they are drawn here."""
     from ..inference.diagnostics import save_inference_data
     from .figures import run_inference_data, write_run_figures
     from .integrity import record_checksums
@@ -322,20 +330,22 @@ def save_run(
         integrity = {**record_checksums(stage), "manifest": "manifest.json"}
         write_json(stage / "config.json", {**config, "integrity": integrity})
 
-        bw = _bandwidths(trace["positions"]) if sampler_spec(sampler).family == "svgd" else None
-        write_run_figures(
-            stage / "plots",
-            posterior,
-            problem,
-            trace,
-            stable,
-            truth,
-            fit,
-            [f["name"] for f in config["data"]["files"]],
-            sampler,
-            bandwidth=bw,
-            formats=formats,
-        )
+        if figures is not None:  # drawn on a second thread meanwhile (runs.figures)
+            figures.write(stage / "plots", fit)
+        else:
+            write_run_figures(
+                stage / "plots",
+                posterior,
+                problem,
+                trace,
+                stable,
+                truth,
+                fit,
+                [f["name"] for f in config["data"]["files"]],
+                sampler,
+                bandwidth=run_bandwidths(trace, sampler),
+                formats=formats,
+            )
     return Path(run_dir)
 
 

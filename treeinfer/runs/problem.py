@@ -250,22 +250,31 @@ def build_problem(
         # the reference fits' problems run on the rollout program only: no sampler target
         fit_only = {**common, "shape_bucket": None}
 
+        base = make_problem(tree, obs, **{**fit_only, "noise_force": None})
+        # the force Jacobian's program (the largest of the run: about 15 CPU-s to trace and
+        # compile on a 2-core CPU) is compiled on a second thread while the reference's screen
+        # and first fit run without the force term (runs.background)
+        jac = _prefetch_force_jacobian(sim, obs, grasp, base)
+
         def make(ref):
+            jac.wait()  # never two threads tracing the same program
             return make_problem(
                 tree, obs, **fit_only, force_noise_reference=ref, force_noise_rule=PIPELINE_RULE
             )
 
-        base = make_problem(tree, obs, **{**fit_only, "noise_force": None})
         bucket = shape_bucket_for(config, obs)
-        ref, finals = force_noise_reference(
-            make,
-            base,
-            8,
-            int(o.get("seed", 0)),
-            None if cache is None else cache.programs,
-            log,
-            None if bucket is None else tuple(bucket),
-        )
+        try:
+            ref, finals = force_noise_reference(
+                make,
+                base,
+                8,
+                int(o.get("seed", 0)),
+                None if cache is None else cache.programs,
+                log,
+                None if bucket is None else tuple(bucket),
+            )
+        finally:
+            jac.wait()
         reference = {"force_noise_reference": ref, "force_noise_rule": PIPELINE_RULE}
         from ..inference.integration_floor import applies, measure_integration_error
 
@@ -314,6 +323,24 @@ def build_problem(
     # once
     # (op-by-op it costs tens of seconds); MH samples with the same function.
     return dataclasses.replace(problem, log_density=jax.jit(problem.log_density))
+
+
+def _prefetch_force_jacobian(sim, obs: Observations, grasp, base):
+    """Compile the force Jacobian's program for these pulls on a second thread
+    (:func:`treeinfer.runs.background.prefetch`): the likelihood's basis, its bias slope and the
+    training fit's band ask for it later with the same simulator, forces and grasp points, and
+    its program does not depend on where J is taken (the gains are arguments). Taken at the
+    middle of the prior box and thrown away (``keep=False``; an unstable rollout there raises
+    after the compile, which is all that is wanted)."""
+    from ..model.force_noise import force_jacobian
+    from .background import prefetch
+
+    g = 2 * sim.n_joints
+    theta = 0.5 * (np.asarray(base.lower, float)[:g] + np.asarray(base.upper, float)[:g])
+    forces = np.asarray(obs.force)
+    return prefetch(
+        lambda: force_jacobian(sim, theta, forces, grasp, keep=False), "force-jacobian"
+    )
 
 
 def _force_term(o: dict, tree: Tree, kind: str, model, obs):

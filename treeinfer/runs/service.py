@@ -310,6 +310,9 @@ def run_inference(
             f"{e} (the limit is --max-unstable-share). The sampler state is kept in {partial}: "
             f"`treeinfer infer --resume {run_dir} --max-unstable-share X` writes the run anyway"
         ) from None
+    formats = tuple(config.get("figure_formats") or ("png",))  # infer --formats
+    # the figures are drawn on a second thread while the summary and verdict are computed
+    figures = _run_figures(problem, posterior, config, trace, fit, truth, formats)
     summary = _run_summary(problem, posterior, config, trace, fit, truth)
     if ready is not None:
         _importance_diagnostics(summary, posterior)
@@ -348,10 +351,24 @@ def run_inference(
         force=o["force"],
         inputs=_inputs(config),
         log=log,
-        formats=tuple(config.get("figure_formats") or ("png",)),  # infer --formats
+        formats=formats,
+        figures=figures,
     )
     shutil.rmtree(partial, ignore_errors=True)
     return InferOutcome(run_dir, config, summary, posterior)
+
+
+def _run_figures(problem, posterior, config: dict, trace: dict, fit: dict, truth, formats):
+    """:class:`~.figures.RunFigures` of the run (drawn on a second thread from now on)."""
+    from .figures import RunFigures
+    from .folder import run_bandwidths
+
+    sampler = config["options"]["sampler"]
+    return RunFigures(
+        posterior, problem, trace, np.asarray(fit["stable"], bool), truth, fit,
+        [f["name"] for f in config["data"]["files"]], sampler,
+        bandwidth=run_bandwidths(trace, sampler), formats=formats,
+    )  # fmt: skip
 
 
 def _sample(problem, config, partial: Path, previous, theta0, progress, cache, on_checkpointer):
