@@ -28,7 +28,7 @@ def enabled() -> bool:
 
 
 class Job:
-    """``fn()`` on a daemon thread, started at once; :meth:`result` waits for it and returns its
+    """``fn()`` on a second thread, started at once; :meth:`result` waits for it and returns its
     value or raises its exception on the caller's thread. With the background off
     (:func:`enabled`) ``fn`` runs in :meth:`result`, on the caller's thread, when first asked."""
 
@@ -39,7 +39,10 @@ class Job:
         self._done = False
         self._thread = None
         if enabled():
-            self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+            # not a daemon: the interpreter waits for it at exit. A daemon thread still inside
+            # XLA when the main thread ends (an error, exit 2) aborts the process (SIGABRT
+            # from XLA's runtime teardown) instead of exiting with the command's code
+            self._thread = threading.Thread(target=self._run, name=name, daemon=False)
             self._thread.start()
 
     def _run(self) -> None:

@@ -187,20 +187,6 @@ def build_problem(
             if tol_ch is not None and (tolerance is None or tol_ch < tolerance):
                 log(f"simulation step: accuracy {tol_ch * 1e3:.3g} mm for the channels' noise")
                 tolerance = tol_ch
-    sim = simulator_for(
-        tree,
-        float(obs.dt),
-        recorded.get("substeps"),
-        recorded.get("backend", o.get("backend", "auto")),
-        cache,
-        force_interp=interp,
-        max_sim_dt=o.get("max_sim_dt"),
-        sim_tolerance=tolerance,
-        forces=np.asarray(obs.force),
-        grasp_fraction=o.get("grasp_fraction"),
-    )
-    if recorded.get("sim_step"):  # a resumed run: how its step was chosen, as recorded
-        sim = dataclasses.replace(sim, step_info=dict(recorded["sim_step"]))
     kind = o.get("model_kind", "dynamic")
     # each recording's own branch, grasp point and direction (the data folder's pulls.yaml)
     from ..inference.static import model_for, model_with_pulls
@@ -218,6 +204,32 @@ def build_problem(
     else:
         grasp = None if grasp is None else np.asarray(grasp, float).tolist()
         pulls = {"direction": model.direction, "grasp_branch": model.grasp_branch}
+    # the force Jacobian's program (the largest of the run: about 15 CPU-s to trace and compile on
+    # a 2-core CPU) compiled on a second thread while the step is chosen and the reference's
+    # screen and first fit run (runs.background)
+    recorded_reference = resumed and recorded.get("noise_force_reference") is not None
+    pipeline_force = (
+        o.get("init", "uniform") in ("auto", "importance")
+        and _force_term(o, tree, kind, model, obs) is not None
+    )
+    jac = _prefetch_force_jacobian(
+        cache, tree, obs, grasp, recorded.get("backend", o.get("backend", "auto")), interp,
+        pipeline_force and not recorded_reference,
+    )  # fmt: skip
+    sim = simulator_for(
+        tree,
+        float(obs.dt),
+        recorded.get("substeps"),
+        recorded.get("backend", o.get("backend", "auto")),
+        cache,
+        force_interp=interp,
+        max_sim_dt=o.get("max_sim_dt"),
+        sim_tolerance=tolerance,
+        forces=np.asarray(obs.force),
+        grasp_fraction=o.get("grasp_fraction"),
+    )
+    if recorded.get("sim_step"):  # a resumed run: how its step was chosen, as recorded
+        sim = dataclasses.replace(sim, step_info=dict(recorded["sim_step"]))
     common = dict(
         kT=o["kT"],
         nn_prior=sampler_spec(o["sampler"]).nn_prior,
@@ -235,26 +247,17 @@ def build_problem(
         **pulls,
     )
     reference = {}
-    if resumed and recorded.get("noise_force_reference") is not None:
+    if recorded_reference:
         rule = str(recorded.get("noise_force_rule", ""))
         reference = {
             "force_noise_reference": np.asarray(recorded["noise_force_reference"], float),
             "force_noise_rule": rule.split("; ", 1)[1] if "; " in rule else rule,
         }
-    elif (
-        o.get("init", "uniform") in ("auto", "importance")
-        and _force_term(o, tree, kind, model, obs) is not None
-    ):
+    elif pipeline_force:
         from ..inference.start_pipeline import force_noise_reference
 
         # the reference fits' problems run on the rollout program only: no sampler target
         fit_only = {**common, "shape_bucket": None}
-
-        base = make_problem(tree, obs, **{**fit_only, "noise_force": None})
-        # the force Jacobian's program (the largest of the run: about 15 CPU-s to trace and
-        # compile on a 2-core CPU) is compiled on a second thread while the reference's screen
-        # and first fit run without the force term (runs.background)
-        jac = _prefetch_force_jacobian(sim, obs, grasp, base)
 
         def make(ref):
             jac.wait()  # never two threads tracing the same program
@@ -262,6 +265,7 @@ def build_problem(
                 tree, obs, **fit_only, force_noise_reference=ref, force_noise_rule=PIPELINE_RULE
             )
 
+        base = make_problem(tree, obs, **{**fit_only, "noise_force": None})
         bucket = shape_bucket_for(config, obs)
         try:
             ref, finals = force_noise_reference(
@@ -325,22 +329,32 @@ def build_problem(
     return dataclasses.replace(problem, log_density=jax.jit(problem.log_density))
 
 
-def _prefetch_force_jacobian(sim, obs: Observations, grasp, base):
+def _prefetch_force_jacobian(cache, tree, obs, grasp, backend, interp, needed: bool):
     """Compile the force Jacobian's program for these pulls on a second thread
-    (:func:`treeinfer.runs.background.prefetch`): the likelihood's basis, its bias slope and the
-    training fit's band ask for it later with the same simulator, forces and grasp points, and
-    its program does not depend on where J is taken (the gains are arguments). Taken at the
-    middle of the prior box and thrown away (``keep=False``; an unstable rollout there raises
-    after the compile, which is all that is wanted)."""
-    from ..model.force_noise import force_jacobian
+    (:func:`treeinfer.runs.background.prefetch`; a no-op unless ``needed`` and a ``cache`` is
+    given). Its program takes the gains and the step count as arguments, so it does not depend
+    on the accuracy-controlled step that is being chosen meanwhile: it is compiled on a
+    simulator of the same settings at one substep, and the cache shares the Jacobian programs of
+    all its simulators (:meth:`SimulatorCache.get`), so the run's simulator finds it there
+    (``tests/test_background.py``). Taken at log gains 0 and thrown away (``keep=False``; an
+    unstable rollout there raises after the compile, which is all that is wanted)."""
     from .background import prefetch
 
-    g = 2 * sim.n_joints
-    theta = 0.5 * (np.asarray(base.lower, float)[:g] + np.asarray(base.upper, float)[:g])
+    if not needed or cache is None:
+        return _NoPrefetch()
+    from ..model.force_noise import force_jacobian
+
+    early = cache.get(tree, float(obs.dt), 1, backend, force_interp=interp)
+    theta = np.zeros(2 * early.n_joints)
     forces = np.asarray(obs.force)
     return prefetch(
-        lambda: force_jacobian(sim, theta, forces, grasp, keep=False), "force-jacobian"
+        lambda: force_jacobian(early, theta, forces, grasp, keep=False), "force-jacobian"
     )
+
+
+class _NoPrefetch:
+    def wait(self) -> None:
+        pass
 
 
 def _force_term(o: dict, tree: Tree, kind: str, model, obs):
