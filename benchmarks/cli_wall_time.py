@@ -29,6 +29,8 @@ timings on a shared machine are figures to compare side by side, not pass/fail.
     python -m benchmarks.cli_wall_time [--repeats 2] [--commands default,calibrated] [--session]
     python -m benchmarks.cli_wall_time --commands default --baseline 44434eb  # before/after
     python -m benchmarks.cli_wall_time --extra 'mine=--likelihood gaussian --particles 32'
+    python -m benchmarks.cli_wall_time --commands default --variant \
+        background_off=TREEINFER_BACKGROUND=off  # the second thread's share, same run
 """
 
 from __future__ import annotations
@@ -54,16 +56,18 @@ DATA = ["--n-traj", "3", "--duration", "3", "--dt", "0.01", "--seed", "0"]
 NOISE = ["--noise-displacement", "0.002", "--noise-force", "0.05"]
 
 
-def _env(cache: Path, src: Path = ROOT) -> dict:
+def _env(cache: Path, src: Path = ROOT, extra: dict | None = None) -> dict:
     """``src``'s treeinfer (default this checkout's; ``PYTHONPATH``: an editable install
-    elsewhere must not win) with ``cache`` as its compile cache."""
-    env = dict(os.environ)
+    elsewhere must not win) with ``cache`` as its compile cache (and ``extra`` variables)."""
+    env = {**os.environ, **(extra or {})}
     env["PYTHONPATH"] = str(src) + os.pathsep + env.get("PYTHONPATH", "")
     env["TREEINFER_JAX_CACHE"] = str(cache)
     return env
 
 
-def timed(cmd: list[str], cwd: Path, cache: Path, log: Path, src: Path = ROOT) -> dict:
+def timed(
+    cmd: list[str], cwd: Path, cache: Path, log: Path, src: Path = ROOT, extra_env=None
+) -> dict:
     """Run ``cmd``; its exit code, wall seconds (process start to exit) and CPU seconds (user +
     system of the process and its children: on a shared machine the wall time counts the other
     users' load too, the CPU time much less), the 1-minute load average before it, output in
@@ -74,7 +78,9 @@ def timed(cmd: list[str], cwd: Path, cache: Path, log: Path, src: Path = ROOT) -
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     with open(log, "w") as f:
-        rc = subprocess.run(cmd, cwd=cwd, env=_env(cache, src), stdout=f, stderr=subprocess.STDOUT)
+        rc = subprocess.run(
+            cmd, cwd=cwd, env=_env(cache, src, extra_env), stdout=f, stderr=subprocess.STDOUT
+        )
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -138,6 +144,14 @@ def main(argv=None) -> dict:
         "44434eb, the default before issue 27's speed work), interleaved with the others "
         "(repeatable)",
     )
+    ap.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="LABEL=VAR=VALUE",
+        help="also time the default command with environment variable VAR set to VALUE, "
+        "interleaved with the others (repeatable), e.g. background=TREEINFER_BACKGROUND=off",
+    )
     ap.add_argument("--repeats", type=int, default=1, help="cold+warm pairs per command")
     ap.add_argument("--no-warm", action="store_true", help="cold runs only")
     ap.add_argument("--session", action="store_true", help="also the README's typical session")
@@ -173,6 +187,13 @@ def main(argv=None) -> dict:
     for rev in args.baseline:
         label = f"default@{rev}"
         commands[label], sources[label] = COMMANDS["default"], source_of(rev, work)
+    envs: dict = {label: {} for label in commands}
+    for item in args.variant:
+        label, _, setting = item.partition("=")
+        var, _, value = setting.partition("=")
+        if not label or not var or not _:
+            ap.error(f"--variant: expected LABEL=VAR=VALUE, got {item!r}")
+        commands[label], sources[label], envs[label] = COMMANDS["default"], ROOT, {var: value}
     rows: dict = {
         label: {"flags": flags, "cold": [], "warm": []} for label, flags in commands.items()
     }
@@ -182,7 +203,10 @@ def main(argv=None) -> dict:
             for phase in ("cold",) if args.no_warm else ("cold", "warm"):
                 out = work / f"run_{label}_{rep}_{phase}"
                 cmd = py + ["infer", "--tree", str(tree), "--data", str(data), "--out", str(out)]
-                r = timed(cmd + flags, work, cache, work / f"{out.name}.log", sources[label])
+                r = timed(
+                    cmd + flags, work, cache, work / f"{out.name}.log", sources[label],
+                    envs.get(label),
+                )  # fmt: skip
                 rows[label][phase].append(r)
                 print(
                     f"{label:20s} {phase}: {r['wall_s']:7.1f} s wall, {r['cpu_s']:7.1f} s CPU "
@@ -213,6 +237,7 @@ def main(argv=None) -> dict:
         "jax_platforms": os.environ.get("JAX_PLATFORMS"),
         "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
         "commands": rows,
+        "variants": {k: v for k, v in envs.items() if v},
         "session": session,
     }
     print()
