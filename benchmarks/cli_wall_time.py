@@ -109,8 +109,13 @@ def source_of(rev: str, work: Path) -> Path:
 
 
 def readme_session() -> list[str]:
-    """The README's typical session: the lines of the ``bash`` block after "A typical session"."""
+    """The README's typical session: the lines of the ``bash`` block after "A typical session",
+    or (the README since session 12) the ``treeinfer`` lines of every ``bash`` block of its
+    section "From a recording to a prediction", continuation lines joined, without the imports
+    of a user's own files (``import-csv``, ``import-bag``: the session simulates its data)."""
     text = (ROOT / "README.md").read_text()
+    if "A typical session" not in text:
+        return _section_session(text)
     start = text.index("A typical session")
     block = text[
         text.index("```bash", start) + len("```bash") : text.index(
@@ -122,6 +127,24 @@ def readme_session() -> list[str]:
         raise SystemExit(
             f"README.md: the typical session's block is not treeinfer commands: {lines}"
         )
+    return lines
+
+
+def _section_session(text: str) -> list[str]:
+    start = text.index("## From a recording to a prediction")
+    end = text.find("\n## ", start + 3)
+    section = text[start : end if end > 0 else len(text)]
+    lines, pos = [], 0
+    while (i := section.find("```bash", pos)) >= 0:
+        j = section.index("```", i + 7)
+        block = section[i + 7 : j].replace("\\\n", " ")
+        lines += [" ".join(ln.split()) for ln in block.splitlines() if ln.strip()]
+        pos = j + 3
+    lines = [
+        ln for ln in lines if not ln.startswith(("treeinfer import-csv", "treeinfer import-bag"))
+    ]
+    if not lines or not all(ln.startswith("treeinfer ") for ln in lines):
+        raise SystemExit(f"README.md: the session's blocks are not treeinfer commands: {lines}")
     return lines
 
 
