@@ -31,6 +31,7 @@ Per test:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -49,13 +50,15 @@ from experiments._mangrove_tables import PARTS, _deg, markdown
 
 REPO = Path(__file__).resolve().parent.parent
 TESTS = ("halloran_1", "halloran_10", "gladstone_21", "gladstone_31")
-MODELS = {  # name -> (creep, noise, lag: the root's fast lag element)
+MODELS = {  # name -> (creep, noise, lag: the root's fast lag element[, soft: root softening])
     "elastic": (False, "iid", False),
     "elastic+ar1": (False, "ar1", False),
     "creep": (True, "iid", False),
     "creep+ar1": (True, "ar1", False),
     "lag+creep+ar1": (True, "ar1", True),
     "lag2+creep+ar1": (True, "ar1", "all"),  # the fast lag on every joint
+    "soft+lag2+creep+ar1": (True, "ar1", "all", True),  # and a softening root plate
+    "soft+creep+ar1": (True, "ar1", False, True),
 }
 CITATION = (
     "Hill JW, Bennion V, Lovelock CE (2024) Mangrove tree strength estimated with field "
@@ -116,10 +119,14 @@ def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, 
         springs_predict,
     )
 
-    creep, noise, lag = MODELS[kind]
+    creep, noise, lag, *soft = MODELS[kind]
     t0 = time.time()
     setup = read_test_setups(data / "trees.csv")[name]
     test = make_pull_test(read_pul(data / "pull_tests" / f"{name}.pul"), setup)
+    if args.force == "dequantised":  # the load cell's 10 N staircase -> its level crossings
+        from treeinfer.data.pull_test import dequantised_force
+
+        test = dataclasses.replace(test, force=dequantised_force(test.time, test.force))
     model = pull_model(setup)
     chans = list(model.sensors)
     win = windows(test, args.split)
@@ -137,6 +144,7 @@ def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, 
         noise=noise,
         creep=creep,
         lag=lag,
+        soft=bool(soft and soft[0]),
     )
     span = slice(win["fit"].start, win["release"].stop)
     # the creep state starts at rest at the ramp's start (the fit window's and the band's)
@@ -277,6 +285,13 @@ def main(argv=None) -> int:
     ap.add_argument("--chains", type=int, default=2)
     ap.add_argument("--draws", type=int, default=400, help="posterior draws in the band")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--force",
+        choices=("recorded", "dequantised"),
+        default="recorded",
+        help="the force driving the models: as recorded (10 N steps) or through its level "
+        "crossings (treeinfer.data.pull_test.dequantised_force)",
+    )
     ap.add_argument("--split", choices=SPLITS, default="ramp", help="fitted part (windows())")
     ap.add_argument(
         "--models", default=",".join(MODELS), help=f"comma-separated: {', '.join(MODELS)}"

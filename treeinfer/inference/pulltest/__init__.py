@@ -7,6 +7,7 @@ May import: treeinfer.sim, treeinfer.tree, treeinfer.data, treeinfer.io, treeinf
 
 Submodules: model (the chain and its tilts), creep (a standard linear solid per joint: the
 viscoelastic chain), residuals (AR(1) residuals in continuous time, the lag-1 check),
+softening (a softening root plate, and the chain with any of its series elements),
 posterior (likelihood, NUTS, bands), beam (the least-squares baselines: a beam on a root-plate
 spring, and one spring per inclinometer)."""
 
@@ -30,6 +31,9 @@ _EXPORTS = {
     "lag1_autocorrelation": "residuals",
     "ou_white_innovations": "residuals",
     "ou_white_log_prob": "residuals",
+    "SOFT_TILT_PRIOR": "softening",
+    "chain_tilts": "softening",
+    "softening_angle": "softening",
     "DENSITY": "model",
     "KP_PRIOR": "model",
     "PullModel": "model",
@@ -45,7 +49,7 @@ _EXPORTS = {
     "predictive_band": "posterior",
     "residual_check": "posterior",
 }
-_SUBMODULES = ("beam", "creep", "model", "posterior", "residuals")
+_SUBMODULES = ("beam", "creep", "model", "posterior", "residuals", "softening")
 
 __all__ = sorted(_EXPORTS)
 

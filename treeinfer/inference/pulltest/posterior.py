@@ -11,7 +11,9 @@ viscoelastic one (:mod:`.creep`: a standard linear solid per joint, creep ratio 
 time ``tau`` per joint, LogUniform priors :data:`~.creep.CREEP_RATIO_PRIOR`,
 :data:`~.creep.CREEP_TAU_PRIOR`); with ``lag=True`` as well, a fast lag element on the root joint
 (ratio and time constant, :data:`~.creep.LAG_TAU_PRIOR`; the slow creep's relaxation time then
-beyond it, :data:`~.creep.SLOW_TAU_PRIOR`: :func:`.creep.lagged_creep_tilts`). Priors ``log Kp_j ~
+beyond it, :data:`~.creep.SLOW_TAU_PRIOR`: :func:`.creep.lagged_creep_tilts`); with ``soft=True``,
+a softening root plate (:mod:`.softening`: ``theta_s`` with the LogUniform prior
+:data:`~.softening.SOFT_TILT_PRIOR`). Priors ``log Kp_j ~
 Uniform(log 1e3, log 1e8)`` (N m/rad; :data:`~.model.KP_PRIOR`). Noise ``"iid"``: ``e_c ~ Normal(0,
 sigma_c)``, ``sigma_c ~ LogUniform(1e-6, 0.05)`` rad. ``"ar1"``: white noise (``sigma_w``) plus an
 AR(1) component in continuous time (``sigma_a``, correlation time ``tau_ar`` with a bounded prior),
@@ -44,10 +46,9 @@ from .creep import (
     LAG_RATIO_PRIOR,
     LAG_TAU_PRIOR,
     SLOW_TAU_PRIOR,
-    creep_tilts,
-    lagged_creep_tilts,
 )
 from .model import KP_PRIOR, PullModel, model_tilts
+from .softening import SOFT_TILT_PRIOR, chain_tilts
 from .residuals import TAU_AR_PRIOR, lag1_autocorrelation, ou_white_log_prob
 
 __all__ = [
@@ -86,6 +87,7 @@ class PullPosterior:
     creep: bool = False
     creep_params: dict = field(default_factory=dict)
     lag_params: dict = field(default_factory=dict)
+    soft_params: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         def stats(x):
@@ -107,19 +109,22 @@ class PullPosterior:
                 out[f"lag_{name}_root"] = stats(x)
             else:
                 out |= {f"lag_{name}_{j}": stats(x[:, i]) for i, j in enumerate(self.joints)}
+        for name, x in self.soft_params.items():  # [S]: the root plate's softening
+            out[f"soft_{name}_root"] = stats(x)
         return out
 
     def tilts(self, model: PullModel, idx, force, time):
         """The model's tilts ``[S, C, T]`` and ``stable`` [S] at the draws ``idx``."""
         kp = jnp.asarray(self.kp[idx])
-        if not self.creep:
-            return model_tilts(model, kp, force)
-        c, tau = (jnp.asarray(self.creep_params[k][idx]) for k in ("ratio", "tau"))
-        if not self.lag_params:
-            return creep_tilts(model, kp, c, tau, force, time)
-        cf, tf = (jnp.asarray(self.lag_params[k][idx]) for k in ("ratio", "tau"))
-        joint = "root" if cf.ndim == 1 else None
-        return lagged_creep_tilts(model, kp, c, tau, cf, tf, force, time, joint)
+        creep = lag = soft = None
+        if self.creep:
+            creep = tuple(jnp.asarray(self.creep_params[k][idx]) for k in ("ratio", "tau"))
+        if self.lag_params:
+            cf, tf = (jnp.asarray(self.lag_params[k][idx]) for k in ("ratio", "tau"))
+            lag = (cf, tf, "root" if cf.ndim == 1 else None)
+        if self.soft_params:
+            soft = jnp.asarray(self.soft_params["tilt"][idx])
+        return chain_tilts(model, kp, force, time, creep=creep, lag=lag, soft=soft)
 
 
 def initial_stiffness(model: PullModel, force, tilt) -> np.ndarray:
@@ -157,6 +162,7 @@ def _numpyro_model(
     noise="iid",
     creep=False,
     lag=False,
+    soft=False,
 ):
     import numpyro
     import numpyro.distributions as dist
@@ -164,26 +170,24 @@ def _numpyro_model(
     r, c = len(model.joints), tilt.shape[0]
     lo, hi = (math.log(v) for v in kp_prior)
     log_kp = numpyro.sample("log_kp", dist.Uniform(lo, hi).expand([r]).to_event(1))
+    creep_el = lag_el = soft_el = None
     if creep:
         ratio = numpyro.sample(
             "creep_ratio", dist.LogUniform(*CREEP_RATIO_PRIOR).expand([r]).to_event(1)
         )
         tau_prior = SLOW_TAU_PRIOR if lag else CREEP_TAU_PRIOR
         tau = numpyro.sample("creep_tau", dist.LogUniform(*tau_prior).expand([r]).to_event(1))
+        creep_el = (ratio[None], tau[None])
         if lag:
             n_lag = [r] if lag == "all" else []
             cf = numpyro.sample("lag_ratio", _prior(dist.LogUniform(*LAG_RATIO_PRIOR), n_lag))
             tf = numpyro.sample("lag_tau", _prior(dist.LogUniform(*LAG_TAU_PRIOR), n_lag))
-            pred, stable = lagged_creep_tilts(
-                model, jnp.exp(log_kp)[None], ratio[None], tau[None], cf[None], tf[None],
-                force, time, None if lag == "all" else "root",
-            )  # fmt: skip
-        else:
-            pred, stable = creep_tilts(
-                model, jnp.exp(log_kp)[None], ratio[None], tau[None], force, time
-            )
-    else:
-        pred, stable = model_tilts(model, jnp.exp(log_kp)[None], force)
+            lag_el = (cf[None], tf[None], None if lag == "all" else "root")
+    if soft:
+        soft_el = numpyro.sample("soft_tilt", dist.LogUniform(*SOFT_TILT_PRIOR))[None]
+    pred, stable = chain_tilts(
+        model, jnp.exp(log_kp)[None], force, time, creep=creep_el, lag=lag_el, soft=soft_el
+    )
     numpyro.factor("stable", jnp.where(stable[0], 0.0, -jnp.inf))
     scale = dist.LogUniform(*noise_prior).expand([c]).to_event(1)
     if noise == "iid":
@@ -227,14 +231,15 @@ def fit_pull_test(
     noise: str = "iid",
     creep: bool = False,
     lag: bool | str = False,
+    soft: bool = False,
     progress: bool = False,
 ) -> PullPosterior:
     """NUTS on the static model: ``force`` [T] N along the cable, ``tilt`` [C, T] rad for the
     channels of ``model.sensors`` (NaN where missing), ``time`` [T] s (default: every
     :data:`DEFAULT_DT`; the creep and the AR(1) part follow it), ``noise`` ``"iid"`` or
     ``"ar1"``, ``creep`` the viscoelastic joints, ``lag`` (with ``creep``) a fast lag element on
-    the root joint (``True``) or on every joint (``"all"``) (the module docstring). Chains run
-    one after the other (CPU)."""
+    the root joint (``True``) or on every joint (``"all"``) (the module docstring), ``soft`` a
+    softening root plate (:mod:`.softening`). Chains run one after the other (CPU)."""
     from numpyro.infer import MCMC, NUTS, init_to_value
 
     if noise not in NOISE_MODELS:
@@ -243,6 +248,8 @@ def fit_pull_test(
         raise ConfigError(f"lag: expected False, True (the root's) or 'all', got {lag!r}")
     if lag and not (creep and "root" in model.joints):
         raise ConfigError("lag: the root's fast lag element needs creep=True and a root joint")
+    if soft and "root" not in model.joints:
+        raise ConfigError("soft: the softening root plate needs a root joint")
 
     force_np = np.asarray(force, float)
     force = jnp.asarray(force_np)
@@ -262,7 +269,7 @@ def fit_pull_test(
     s0 = np.clip(np.nanstd(resid, axis=1), noise_prior[0] * 2, noise_prior[1] / 2)
     kernel = NUTS(
         _numpyro_model,
-        init_strategy=init_to_value(values=_start(noise, creep, k0, s0, lag)),
+        init_strategy=init_to_value(values=_start(noise, creep, k0, s0, lag, soft)),
         target_accept_prob=0.9,
         dense_mass=True,  # the trunk channel couples the two stiffnesses
     )
@@ -286,6 +293,7 @@ def fit_pull_test(
         noise,
         creep,
         lag,
+        soft,
     )
     draws = mcmc.get_samples(group_by_chain=True)
     from numpyro.diagnostics import effective_sample_size, split_gelman_rubin
@@ -294,6 +302,7 @@ def fit_pull_test(
     names = ["log_kp", *(("sigma",) if noise == "iid" else ("sigma_w", "sigma_a", "tau_ar"))]
     names += ["creep_ratio", "creep_tau"] if creep else []
     names += ["lag_ratio", "lag_tau"] if lag else []
+    names += ["soft_tilt"] if soft else []
     for name in names:
         x = np.asarray(draws[name])
         diag[f"r_hat_{name}"] = (
@@ -326,14 +335,16 @@ def fit_pull_test(
         creep=creep,
         creep_params=creep_params,
         lag_params=lag_params,
+        soft_params={"tilt": flat["soft_tilt"]} if soft else {},
     )
 
 
 CREEP_START = (0.05, 20.0)  # NUTS's start: a little creep, a relaxation time of 20 s
 LAG_START = (0.05, 0.5)  # and a little fast lag, 0.5 s
+SOFT_START = math.radians(10.0)  # and a nearly linear root plate (theta_s 10 deg)
 
 
-def _start(noise: str, creep: bool, k0, s0, lag: bool = False) -> dict:
+def _start(noise: str, creep: bool, k0, s0, lag: bool = False, soft: bool = False) -> dict:
     """NUTS's start: the closed-form stiffnesses, the noise sd of their residuals (``ar1``:
     split evenly between the white and the correlated part, a correlation time of 1 s)."""
     r = len(k0)
@@ -346,6 +357,8 @@ def _start(noise: str, creep: bool, k0, s0, lag: bool = False) -> dict:
     if lag:
         shape = (r,) if lag == "all" else ()
         out |= {k: jnp.full(shape, v) for k, v in zip(("lag_ratio", "lag_tau"), LAG_START)}
+    if soft:
+        out["soft_tilt"] = jnp.asarray(SOFT_START)
     if noise == "iid":
         return out | {"sigma": jnp.asarray(s0)}
     half = jnp.asarray(s0) / math.sqrt(2)

@@ -1,0 +1,122 @@
+"""The softening root plate (treeinfer.inference.pulltest.softening): the chain's tilts against
+the closed form of the law ``q = (M / K) (1 + |M| / (K theta_s))`` (small angles, one hinge
+turning under the ground moment), the same element through the chain with creep and lag as
+their sum, and NUTS on a synthetic softening pull: the softening found, the linear chain's
+band missing the held-out top of the ramp and the softening chain's band covering it."""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from treeinfer.data import PullSetup
+from treeinfer.inference.pulltest import (
+    SOFT_TILT_PRIOR,
+    chain_tilts,
+    creep_tilts,
+    fit_pull_test,
+    lagged_creep_tilts,
+    model_tilts,
+    predictive_band,
+    pull_model,
+    softening_angle,
+)
+
+SETUP = PullSetup(
+    name="synthetic",
+    height=6.0,
+    circumference_cm=(50.0,),
+    sling_height=1.9,
+    anchor_sling_height=0.35,
+    anchor_distance=10.5,
+    root_clino_height=1.0,
+    trunk_clino_height=2.3,
+)
+KP = np.array([4.0e5, 2.5e5])
+
+
+@pytest.fixture(scope="module")
+def model():
+    return pull_model(SETUP)
+
+
+def test_softening_root_against_the_closed_form(model):
+    """Stiff springs (P-Delta below 0.1%): the root clino reads the root hinge's rotation under
+    the ground moment ``M = F h cos a``, ``(M / K)(1 + M / (K theta_s))``; the trunk clino adds
+    the stem spring's linear ``F (h - h_root) cos a / K_stem``."""
+    f = np.array([100.0, 1000.0, 3000.0])
+    k_root, k_stem, theta_s = 2.0e7, 1.0e8, 2.0e-4  # rad: softening of 50-140% at these loads
+    got, ok = chain_tilts(
+        model, jnp.asarray([[k_root, k_stem]]), jnp.asarray(f), None, soft=jnp.asarray([theta_s])
+    )
+    assert bool(ok[0])
+    ca = math.cos(model.cable_angle)
+    m = f * SETUP.sling_height * ca
+    root = m / k_root * (1 + m / (k_root * theta_s))
+    assert root[-1] / (m[-1] / k_root) > 2.0  # far from linear: the test can fail
+    np.testing.assert_allclose(np.asarray(got[0, 0]), root, rtol=3e-3)
+    trunk = root + f * (SETUP.sling_height - SETUP.root_clino_height) * ca / k_stem
+    np.testing.assert_allclose(np.asarray(got[0, 1]), trunk, rtol=3e-3)
+    # symmetric in the sign of the load, and linear in the limit of a stiff plate
+    assert float(softening_angle(jnp.asarray([-1e-3]), jnp.asarray(1e-3))[0]) == pytest.approx(
+        -1e-3
+    )
+    lin = model_tilts(model, jnp.asarray([[k_root, k_stem]]), jnp.asarray(f))[0]
+    far = chain_tilts(model, jnp.asarray([[k_root, k_stem]]), jnp.asarray(f), None,
+                      soft=jnp.asarray([1e3]))[0]  # fmt: skip
+    np.testing.assert_allclose(np.asarray(far), np.asarray(lin), rtol=1e-5)
+
+
+def test_chain_tilts_adds_the_elements_to_creep_and_lag(model):
+    """Every element enters through the same Jacobian: softening + creep + lag = the lagged
+    creep chain plus the softening alone's extra tilt (and without elements, the elastic)."""
+    t = np.arange(0.0, 60.0, 0.1)
+    force = jnp.asarray(np.interp(t, [0, 20, 40, 45, 60], [0, 2500.0, 2500.0, 0.0, 0.0]))
+    kp = jnp.asarray(KP[None])
+    ratio, taus = jnp.asarray([[0.3, 0.2]]), jnp.asarray([[20.0, 30.0]])
+    cf, tf = jnp.asarray([0.5]), jnp.asarray([0.4])
+    ts = jnp.asarray([math.radians(1.0)])
+    got = chain_tilts(model, kp, force, t, creep=(ratio, taus), lag=(cf, tf, "root"), soft=ts)[0]
+    lagged = lagged_creep_tilts(model, kp, ratio, taus, cf, tf, force, t)[0]
+    soft_only = chain_tilts(model, kp, force, t, soft=ts)[0]
+    elastic = model_tilts(model, kp, force)[0]
+    np.testing.assert_allclose(
+        np.asarray(got), np.asarray(lagged + soft_only - elastic), rtol=1e-5, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        np.asarray(chain_tilts(model, kp, force, t, creep=(ratio, taus))[0]),
+        np.asarray(creep_tilts(model, kp, ratio, taus, force, t)[0]),
+        rtol=1e-6,
+    )
+    assert float(jnp.max(soft_only - elastic)) > 1e-4  # the softening is not nothing
+
+
+@pytest.mark.slow  # about a minute of NUTS on the loaded 2-core box
+def test_nuts_finds_the_softening_and_its_band_covers_the_held_out_ramp(model):
+    """A ramp to 6 kN on a plate whose compliance doubles at 1 deg, fitted on its first half:
+    the linear chain's band misses the held-out top, the softening chain's covers it and its
+    theta_s interval holds the truth."""
+    rng = np.random.default_rng(7)
+    force = np.linspace(20.0, 6000.0, 160)
+    truth = math.radians(1.0)
+    kp = jnp.asarray(KP[None])
+    clean = np.asarray(chain_tilts(model, kp, jnp.asarray(force), None,
+                                   soft=jnp.asarray([truth]))[0][0])  # fmt: skip
+    sigma = np.deg2rad([0.005, 0.01])
+    y = clean + sigma[:, None] * rng.standard_normal(clean.shape)
+    fit, held = slice(0, 80), slice(80, None)
+    kw = dict(num_warmup=100, num_samples=150, num_chains=1, seed=1)
+    soft = fit_pull_test(model, force[fit], y[:, fit], soft=True, **kw)
+    lin = fit_pull_test(model, force[fit], y[:, fit], **kw)
+    s = soft.summary()["soft_tilt_root"]
+    assert SOFT_TILT_PRIOR[0] <= s["q2.5"] < truth < s["q97.5"] <= SOFT_TILT_PRIOR[1], s
+
+    def coverage(post):
+        band = predictive_band(model, post, force, n_draws=100)
+        return ((y >= band["lo"]) & (y <= band["hi"]))[:, held].mean()
+
+    assert coverage(soft) > 0.85
+    assert coverage(lin) < 0.5
