@@ -80,7 +80,10 @@ def markdown(results: list[dict], config: dict) -> str:
         "AR(1) part does not account for the correlation either).",
         "Models: elastic (springs), creep (a standard linear solid per joint), +ar1 (AR(1)",
         "residuals in continuous time, correlation time <= 5 s, inferred jointly), lag+ (a",
-        "fast lag element on the root joint, 0.05-5 s, the slow creep then 5-1000 s).",
+        "fast lag element on the root joint, 0.05-5 s, the slow creep then 5-1000 s), lag2+",
+        "(the fast lag on every joint), soft+ (a softening root plate: rotation (M/K)(1 +",
+        "M/(K theta_s)), theta_s 0.25-25 deg), /dq (driven by the force through the load",
+        "cell's 10 N level crossings, `dequantised_force`, instead of the recorded staircase).",
         "",
         f"Command: `{config['command']}`",
         "",
@@ -101,10 +104,11 @@ def markdown(results: list[dict], config: dict) -> str:
     lines += [
         "",
         "| test | model | Kp root (N m/rad) | Kp stem (N m/rad) | creep ratio root / stem "
-        "| creep tau root / stem (s) | lag ratio / tau root (s) | sigma root (deg) "
+        "| creep tau root / stem (s) | lag ratio / tau root (s) | lag ratio / tau stem (s) "
+        "| theta_s root (deg) | sigma root (deg) "
         "| sigma trunk (deg) | AR(1) tau (s) "
         "| R-hat max | divergences | beam K (N m/rad) | beam EI (N m^2) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         p, d = r["posterior"], r["diagnostics"]
@@ -122,6 +126,8 @@ def markdown(results: list[dict], config: dict) -> str:
             f"{ci('creep_ratio_root')} / {ci('creep_ratio_stem')} | "
             f"{ci('creep_tau_root')} / {ci('creep_tau_stem')} | "
             f"{ci('lag_ratio_root')} / {ci('lag_tau_root')} | "
+            f"{ci('lag_ratio_stem')} / {ci('lag_tau_stem')} | "
+            f"{ci('soft_tilt_root', 180 / math.pi)} | "
             f"{ci('sigma_root', 180 / math.pi)} | {ci('sigma_trunk', 180 / math.pi)} | "
             f"{ci('tau_ar_root')} / {ci('tau_ar_trunk')} | "
             f"{max(rh) if rh else float('nan'):.3f} | {d['divergences']} | "

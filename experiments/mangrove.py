@@ -106,6 +106,16 @@ def _rmse(a, b) -> float:
     return float(np.sqrt(np.mean(d**2))) if d.size else math.nan
 
 
+def label(kind: str, force: str) -> str:
+    """A fit's name in the tables: the model, ``/dq`` when driven by the dequantised force."""
+    return kind if force == "recorded" else f"{kind}/dq"
+
+
+def _order(lab: str) -> tuple[int, str]:
+    kind, _, force = lab.partition("/")
+    return (list(MODELS).index(kind), force)
+
+
 def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, dict]:
     from treeinfer.data import make_pull_test, read_pul, read_test_setups
     from treeinfer.inference.pulltest import (
@@ -183,7 +193,10 @@ def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, 
     check = residual_check(band["mean"][:, :n_fit], y[:, fit])
     result = {
         "test": name,
-        "model": kind,
+        "model": label(kind, args.force),
+        "force": args.force,
+        "soft": bool(soft and soft[0]),
+        "lag": lag,
         "noise": noise,
         "creep": creep,
         "residual_lag1": {c: float(v) for c, v in zip(chans, check["lag1"])},
@@ -329,22 +342,23 @@ def main(argv=None) -> int:
     partial.mkdir(exist_ok=True)
     resumed = 0
     for kind in kinds:
-        curves[kind] = {}
+        lab = label(kind, args.force)
+        curves[lab] = {}
         for name in [s.strip() for s in args.tests.split(",") if s.strip()]:
-            kept = partial / f"{kind}_{name}.pkl"
+            kept = partial / f"{lab.replace('/', '_')}_{name}.pkl"
             if kept.is_file():
                 r, cv = pickle.loads(kept.read_bytes())
                 resumed += 1
             elif args.tables_only:
-                print(f"{name} ({kind}): not fitted yet, left out (--tables-only)", flush=True)
+                print(f"{name} ({lab}): not fitted yet, left out (--tables-only)", flush=True)
                 continue
             else:
-                print(f"{name} ({kind}) ...", flush=True)
+                print(f"{name} ({lab}) ...", flush=True)
                 r, cv = run_test(name, data, args, kind)
                 kept.write_bytes(pickle.dumps((r, cv)))
             r["innovations_lag1"] = innovations_lag1(r, cv)
             results.append(r)
-            curves[kind][name] = cv
+            curves[lab][name] = cv
             h = r["parts"]["heldout"]
             print(
                 "  held out: coverage "
@@ -358,8 +372,9 @@ def main(argv=None) -> int:
                 + f"; lag-1 {r['residual_lag1']} ({r['wall_s']:.0f} s)",
                 flush=True,
             )
-        if curves[kind]:
-            figure(curves[kind], args.out / f"bands_{kind.replace('+', '_')}.png", kind)
+        if curves[lab]:
+            stem = lab.replace("+", "_").replace("/", "_")
+            figure(curves[lab], args.out / f"bands_{stem}.png", lab)
     import jax
     import numpyro
 
@@ -368,14 +383,14 @@ def main(argv=None) -> int:
         old = json.loads((args.out / "results.json").read_text())
         done = {(r["test"], r["model"]) for r in results}
         kept = [r for r in old["results"] if (r["test"], r["model"]) not in done]
-        order = list(MODELS)
-        results = sorted(kept + results, key=lambda r: order.index(r["model"]))
+        results = sorted(kept + results, key=lambda r: _order(r["model"]))
     config = {
         "command": " ".join(["nice python experiments/mangrove.py", *(argv or sys.argv[1:])]),
         "data": str(data),
         "tests": sorted({r["test"] for r in results}),
         "models": list(dict.fromkeys(r["model"] for r in results)),
         "split": args.split,
+        "force": args.force,
         "warmup": args.warmup,
         "samples": args.samples,
         "chains": args.chains,
@@ -400,8 +415,9 @@ def main(argv=None) -> int:
     )
     atomic_write_text(args.out / "results.md", markdown(results, config))
     for kind in kinds if not args.keep_partial else ():  # only this run's: runs may share it
-        for name in {r["test"] for r in results if r["model"] == kind}:
-            (partial / f"{kind}_{name}.pkl").unlink(missing_ok=True)
+        lab = label(kind, args.force)
+        for name in {r["test"] for r in results if r["model"] == lab}:
+            (partial / f"{lab.replace('/', '_')}_{name}.pkl").unlink(missing_ok=True)
     if not any(partial.iterdir()):
         partial.rmdir()
     print(f"wrote {args.out}/results.json, results.md, bands_*.png")

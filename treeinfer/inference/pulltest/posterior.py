@@ -48,8 +48,8 @@ from .creep import (
     SLOW_TAU_PRIOR,
 )
 from .model import KP_PRIOR, PullModel, model_tilts
-from .softening import SOFT_TILT_PRIOR, chain_tilts
 from .residuals import TAU_AR_PRIOR, lag1_autocorrelation, ou_white_log_prob
+from .softening import SOFT_TILT_PRIOR, chain_tilts
 
 __all__ = [
     "NOISE_MODELS",
