@@ -252,3 +252,26 @@ def test_no_metadata_table_is_a_clear_error(tmp_path):
     pul.parent.mkdir(parents=True)
     make_pul(pul)
     assert main(["import-pul", str(pul), "--out", str(tmp_path / "o")]) == 2
+
+
+def test_dequantised_force_recovers_a_smooth_ramp_from_its_10_n_staircase():
+    """A slow ramp (a 190 N peak, as gladstone_21's) read every 0.1 s and rounded to the load
+    cell's 10 N, tared off the grid by 5 N: through the level crossings the force is within
+    a small fraction of a quantum of the truth (the staircase is off by up to half of one)."""
+    from treeinfer.data.pull_test import dequantised_force
+
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.uniform(0.08, 0.27, 400))  # the recordings' irregular steps
+    true = 190.0 * np.clip((t - t[20]) / (t[-20] - t[20]), 0, 1) + 3.0 * np.sin(t / 3.0)
+    rec = np.round((true + 5.0) / 10.0) * 10.0 - 5.0  # rounded, then a tare of 5 N
+    got = dequantised_force(t, rec)
+    ramp = slice(40, 360)
+    err_rec = np.sqrt(np.mean((rec[ramp] - true[ramp]) ** 2))
+    err_got = np.sqrt(np.mean((got[ramp] - true[ramp]) ** 2))
+    assert err_rec > 2.5  # about 10 / sqrt(12): the staircase's own error
+    assert err_got < 0.4 * err_rec
+    # a constant force (no level change) is left as it is
+    flat = np.full(50, 120.0)
+    np.testing.assert_array_equal(dequantised_force(np.arange(50.0), flat), flat)
+    with pytest.raises(ValueError, match="differ"):
+        dequantised_force(t[:5], rec[:6])
