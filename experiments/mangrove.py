@@ -59,6 +59,9 @@ MODELS = {  # name -> (creep, noise, lag: the root's fast lag element[, soft: ro
     "lag2+creep+ar1": (True, "ar1", "all"),  # the fast lag on every joint
     "soft+lag2+creep+ar1": (True, "ar1", "all", True),  # and a softening root plate
     "soft+creep+ar1": (True, "ar1", False, True),
+    # and a slowly varying gain error per channel (model error proportional to the tilt)
+    "soft+lag2+creep+ar1+gain": (True, "ar1+gain", "all", True),
+    "soft+creep+ar1+gain": (True, "ar1+gain", False, True),
 }
 CITATION = (
     "Hill JW, Bennion V, Lovelock CE (2024) Mangrove tree strength estimated with field "

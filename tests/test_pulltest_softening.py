@@ -120,3 +120,43 @@ def test_nuts_finds_the_softening_and_its_band_covers_the_held_out_ramp(model):
 
     assert coverage(soft) > 0.85
     assert coverage(lin) < 0.5
+
+
+def test_gain_error_likelihood_equals_the_multivariate_normal():
+    """The ``ar1+gain`` residuals' Kalman likelihood against scipy with the covariance
+    ``diag(theta) K_g diag(theta) + K_a + sigma_w^2 I`` (irregular steps, a gap, missing
+    samples); a wrong gain correlation time gives another density."""
+    from scipy.stats import multivariate_normal
+
+    from treeinfer.inference.pulltest import gain_ou_log_prob
+
+    rng = np.random.default_rng(4)
+    n = 70
+    steps = rng.uniform(0.08, 0.3, n - 1)
+    steps[30] = 4.0
+    t = np.concatenate([[0.0], np.cumsum(steps)])
+    theta = np.stack([np.linspace(0.001, 0.02, n), np.linspace(0.0, 0.05, n) ** 1.2])
+    sw, sa, ta = np.array([2e-4, 5e-4]), np.array([3e-4, 1e-4]), np.array([1.0, 0.4])
+    sg, tg = np.array([0.05, 0.2]), np.array([8.0, 20.0])
+
+    def cov(i, sel, tau_g=None):
+        tt, th = t[sel], theta[i, sel]
+        lag = np.abs(tt[:, None] - tt[None, :])
+        kg = sg[i] ** 2 * np.exp(-lag / (tau_g if tau_g is not None else tg[i]))
+        ka = sa[i] ** 2 * np.exp(-lag / ta[i])
+        return th[:, None] * kg * th[None, :] + ka + sw[i] ** 2 * np.eye(tt.size)
+
+    every = np.ones(n, bool)
+    resid = np.stack([multivariate_normal(np.zeros(n), cov(i, every)).rvs(random_state=rng)
+                      for i in range(2)])  # fmt: skip
+    mask = np.ones((2, n), bool)
+    mask[0, [5, 6, 40]] = False
+    mask[1, 60:] = False
+    got = float(gain_ou_log_prob(resid, theta, mask, t, sw, sa, ta, sg, tg))
+    want = sum(
+        multivariate_normal(np.zeros(mask[i].sum()), cov(i, mask[i])).logpdf(resid[i, mask[i]])
+        for i in range(2)
+    )
+    assert got == pytest.approx(want, abs=2e-3 * abs(want))
+    other = float(gain_ou_log_prob(resid, theta, mask, t, sw, sa, ta, sg * 0.2, tg))
+    assert abs(other - want) > 1.0

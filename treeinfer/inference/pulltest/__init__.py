@@ -7,6 +7,7 @@ May import: treeinfer.sim, treeinfer.tree, treeinfer.data, treeinfer.io, treeinf
 
 Submodules: model (the chain and its tilts), creep (a standard linear solid per joint: the
 viscoelastic chain), residuals (AR(1) residuals in continuous time, the lag-1 check),
+gain (a slowly varying gain error per channel: model error that grows with the tilt),
 softening (a softening root plate, and the chain with any of its series elements),
 posterior (likelihood, NUTS, bands), beam (the least-squares baselines: a beam on a root-plate
 spring, and one spring per inclinometer)."""
@@ -31,6 +32,9 @@ _EXPORTS = {
     "lag1_autocorrelation": "residuals",
     "ou_white_innovations": "residuals",
     "ou_white_log_prob": "residuals",
+    "GAIN_SD_PRIOR": "gain",
+    "GAIN_TAU_PRIOR": "gain",
+    "gain_ou_log_prob": "gain",
     "SOFT_TILT_PRIOR": "softening",
     "chain_tilts": "softening",
     "softening_angle": "softening",
@@ -49,7 +53,7 @@ _EXPORTS = {
     "predictive_band": "posterior",
     "residual_check": "posterior",
 }
-_SUBMODULES = ("beam", "creep", "model", "posterior", "residuals", "softening")
+_SUBMODULES = ("beam", "creep", "gain", "model", "posterior", "residuals", "softening")
 
 __all__ = sorted(_EXPORTS)
 

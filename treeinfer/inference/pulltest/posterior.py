@@ -18,9 +18,11 @@ Uniform(log 1e3, log 1e8)`` (N m/rad; :data:`~.model.KP_PRIOR`). Noise ``"iid"``
 sigma_c)``, ``sigma_c ~ LogUniform(1e-6, 0.05)`` rad. ``"ar1"``: white noise (``sigma_w``) plus an
 AR(1) component in continuous time (``sigma_a``, correlation time ``tau_ar`` with a bounded prior),
 the exact likelihood of :func:`.residuals.ou_white_log_prob`; the band then uses the marginal sd
-``sqrt(sigma_w^2 + sigma_a^2)`` (held-out points lie many correlation times from the fit). The force
-is taken as recorded (its 10 N quantum is well below the ramp's forces; errors in the force are not
-modelled).
+``sqrt(sigma_w^2 + sigma_a^2)`` (held-out points lie many correlation times from the fit).
+``"ar1+gain"``: and a slowly varying gain error per channel, model error proportional to the
+tilt (:mod:`.gain`: ``sigma_g``, ``tau_g``), in the band by its stationary marginal. The force is
+taken as given (errors in it are not modelled; :func:`treeinfer.data.pull_test.dequantised_force`
+removes most of the load cell's 10 N rounding before a fit).
 
 Why NUTS from numpyro and not treeinfer's start pipeline and samplers: those are built around
 the displacement likelihood of :mod:`treeinfer.model.likelihood` (particles x profiles x time
@@ -47,6 +49,7 @@ from .creep import (
     LAG_TAU_PRIOR,
     SLOW_TAU_PRIOR,
 )
+from .gain import GAIN_SD_PRIOR, GAIN_TAU_PRIOR, gain_ou_log_prob
 from .model import KP_PRIOR, PullModel, model_tilts
 from .residuals import TAU_AR_PRIOR, lag1_autocorrelation, ou_white_log_prob
 from .softening import SOFT_TILT_PRIOR, chain_tilts
@@ -63,7 +66,7 @@ __all__ = [
 
 NOISE_PRIOR = (1.0e-6, 0.05)  # rad: the LogUniform prior of each channel's noise sd
 NOISE_DRAWS = 4  # noise samples per parameter draw in the predictive band
-NOISE_MODELS = ("iid", "ar1")
+NOISE_MODELS = ("iid", "ar1", "ar1+gain")
 DEFAULT_DT = 0.1  # s: the time step assumed when no time base is given (the .pul rate)
 
 
@@ -199,7 +202,13 @@ def _numpyro_model(
     sigma_a = numpyro.sample("sigma_a", scale)
     tau_ar = numpyro.sample("tau_ar", dist.LogUniform(*TAU_AR_PRIOR).expand([c]).to_event(1))
     resid = jnp.where(mask, tilt - pred[0], 0.0)
-    numpyro.factor("tilt", ou_white_log_prob(resid, mask, time, sigma_w, sigma_a, tau_ar))
+    if noise == "ar1":
+        numpyro.factor("tilt", ou_white_log_prob(resid, mask, time, sigma_w, sigma_a, tau_ar))
+        return
+    sigma_g = numpyro.sample("sigma_g", dist.LogUniform(*GAIN_SD_PRIOR).expand([c]).to_event(1))
+    tau_g = numpyro.sample("tau_g", dist.LogUniform(*GAIN_TAU_PRIOR).expand([c]).to_event(1))
+    lp = gain_ou_log_prob(resid, pred[0], mask, time, sigma_w, sigma_a, tau_ar, sigma_g, tau_g)
+    numpyro.factor("tilt", lp)
 
 
 def _prior(d, shape: list):
@@ -300,6 +309,7 @@ def fit_pull_test(
 
     diag = {"divergences": int(np.asarray(mcmc.get_extra_fields()["diverging"]).sum())}
     names = ["log_kp", *(("sigma",) if noise == "iid" else ("sigma_w", "sigma_a", "tau_ar"))]
+    names += ["sigma_g", "tau_g"] if noise == "ar1+gain" else []
     names += ["creep_ratio", "creep_tau"] if creep else []
     names += ["lag_ratio", "lag_tau"] if lag else []
     names += ["soft_tilt"] if soft else []
@@ -321,6 +331,8 @@ def fit_pull_test(
             "tau_ar": flat["tau_ar"],
             "rho": np.exp(-step / flat["tau_ar"]),
         }
+        if noise == "ar1+gain":
+            params |= {"sigma_g": flat["sigma_g"], "tau_g": flat["tau_g"]}
         sigma = np.hypot(params["sigma_w"], params["sigma_a"])
     creep_params = {"ratio": flat["creep_ratio"], "tau": flat["creep_tau"]} if creep else {}
     lag_params = {"ratio": flat["lag_ratio"], "tau": flat["lag_tau"]} if lag else {}
@@ -362,7 +374,10 @@ def _start(noise: str, creep: bool, k0, s0, lag: bool = False, soft: bool = Fals
     if noise == "iid":
         return out | {"sigma": jnp.asarray(s0)}
     half = jnp.asarray(s0) / math.sqrt(2)
-    return out | {"sigma_w": half, "sigma_a": half, "tau_ar": jnp.full(len(s0), 1.0)}
+    out |= {"sigma_w": half, "sigma_a": half, "tau_ar": jnp.full(len(s0), 1.0)}
+    if noise == "ar1+gain":  # a 2% gain error wandering over 15 s
+        out |= {"sigma_g": jnp.full(len(s0), 0.02), "tau_g": jnp.full(len(s0), 15.0)}
+    return out
 
 
 def predictive_band(
@@ -389,7 +404,11 @@ def predictive_band(
     sig = post.sigma[idx][np.asarray(stable)]
     # a few noise draws per parameter draw: smoother tail quantiles for the same solves
     eps = rng.standard_normal((NOISE_DRAWS, *pred.shape))
-    noisy = (pred[None] + sig[None, :, :, None] * eps).reshape(-1, *pred.shape[1:])
+    noisy = pred[None] + sig[None, :, :, None] * eps
+    if "sigma_g" in post.noise_params:  # the gain error's stationary marginal (.gain)
+        sg = post.noise_params["sigma_g"][idx][np.asarray(stable)]
+        noisy = noisy + pred[None] * sg[None, :, :, None] * rng.standard_normal(eps.shape)
+    noisy = noisy.reshape(-1, *pred.shape[1:])
     q = (1 - level) / 2
     return {
         "mean": pred.mean(axis=0),

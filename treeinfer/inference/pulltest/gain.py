@@ -1,0 +1,83 @@
+"""Model error that scales with the response: a slowly varying gain error per channel, on top
+of the AR(1) + white residuals of :mod:`.residuals` (``noise="ar1+gain"``).
+
+Why: the chain's extrapolation error on held-out parts of a pull is not a fixed-size wiggle.
+The stiffness a first half of the ramp implies is off by some percent further up the ramp
+(the root plate softens, the lag and creep fitted on a slow ramp are not those of a faster
+one), so the error of the predicted tilt grows with the tilt. An AR(1) of a few seconds fitted
+where the tilts are small says nothing about that, and the band is then far too narrow at
+the peak; an AR(1) slow enough to cover it carries the ramp itself (:mod:`.residuals`). A
+relative error does neither: per channel,
+
+    e(t) = theta(t) g(t) + a(t) + w(t),
+
+``theta`` the model's tilt, ``g`` a stationary Ornstein-Uhlenbeck gain error (sd
+``sigma_g``, correlation time ``tau_g`` in :data:`GAIN_TAU_PRIOR`, longer than the AR(1)'s and
+short enough that the fitted half of a ramp shows how much the gain wanders, which is what
+sets ``sigma_g``), ``a`` the AR(1) part and ``w`` white. It is the model-discrepancy term of
+Kennedy and O'Hagan made proportional to the response.
+
+The likelihood is exact: a two-state Kalman filter per channel (states ``g`` and ``a``,
+observation ``theta_t g + a + w``), one ``lax.scan`` over the irregular time base, missing
+samples predicted through. Written out for the same reason as :func:`.residuals.
+ou_white_log_prob` (the observation's coefficient changes at every sample); tests check it
+against ``scipy.stats.multivariate_normal`` with the covariance
+``diag(theta) K_g diag(theta) + K_a + sigma_w^2 I``.
+
+The predictive band of held-out parts uses ``g``'s stationary marginal (sd ``sigma_g``), not
+its forecast from the fitted part: wider than the conditional forecast just after the fitted
+part, the same many correlation times later.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["GAIN_SD_PRIOR", "GAIN_TAU_PRIOR", "gain_ou_log_prob"]
+
+GAIN_SD_PRIOR = (1.0e-3, 0.5)  # sigma_g (a fraction of the tilt): LogUniform
+GAIN_TAU_PRIOR = (5.0, 50.0)  # s: LogUniform; beyond the AR(1)'s 5 s, within a fitted half-ramp
+
+
+def gain_ou_log_prob(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g, tau_g):
+    """Exact log-density (nats) of residuals ``resid`` [C, T] (``mask`` [C, T] False =
+    missing) at ``time`` [T] s, with the model's tilts ``theta`` [C, T] as the gain's
+    coefficient, per channel ``sigma_w``, ``sigma_a``, ``tau_a``, ``sigma_g``, ``tau_g``
+    [C]; summed over channels (module docstring)."""
+    import numpyro.distributions as dist
+
+    r = jnp.moveaxis(jnp.asarray(resid), -1, 0)  # [T, C]
+    h = jnp.moveaxis(jnp.asarray(theta), -1, 0)
+    m = jnp.moveaxis(jnp.asarray(mask, bool), -1, 0)
+    r = jnp.where(m, r, 0.0)
+    time = jnp.asarray(time, r.dtype)
+    dt = jnp.concatenate([jnp.zeros(1, r.dtype), jnp.diff(time)])
+    q_stat = jnp.stack([jnp.asarray(sigma_g) ** 2, jnp.asarray(sigma_a) ** 2], -1)  # [C, 2]
+    tau = jnp.stack([jnp.asarray(tau_g), jnp.asarray(tau_a)], -1)
+    sw2 = jnp.asarray(sigma_w) ** 2
+
+    def step(carry, x):
+        mean, cov = carry  # [C, 2], [C, 2, 2]
+        rt, ht, mt, d = x
+        rho = jnp.exp(-d / tau)  # [C, 2]
+        mp = rho * mean
+        cp = (
+            rho[:, :, None] * cov * rho[:, None, :]
+            + jnp.eye(2) * ((1 - rho**2) * q_stat)[:, :, None]
+        )
+        obs = jnp.stack([ht, jnp.ones_like(ht)], -1)  # [C, 2]
+        pc = jnp.einsum("cij,cj->ci", cp, obs)  # P H^T
+        s = jnp.einsum("ci,ci->c", obs, pc) + sw2
+        v = rt - jnp.einsum("ci,ci->c", obs, mp)
+        k = pc / s[:, None]
+        mean = jnp.where(mt[:, None], mp + k * v[:, None], mp)
+        cov = jnp.where(mt[:, None, None], cp - k[:, :, None] * pc[:, None, :], cp)
+        return (mean, cov), (v, s)
+
+    c = r.shape[1]
+    mean0 = jnp.zeros((c, 2), r.dtype)
+    cov0 = jnp.eye(2) * q_stat[:, :, None]  # stationary start (the first step has dt = 0)
+    _, (v, s) = jax.lax.scan(step, (mean0, cov0), (r, h, m, dt))
+    lp = dist.Normal(0.0, jnp.sqrt(s)).log_prob(v)
+    return jnp.sum(jnp.where(m, lp, 0.0))
