@@ -160,3 +160,27 @@ def test_gain_error_likelihood_equals_the_multivariate_normal():
     assert got == pytest.approx(want, abs=2e-3 * abs(want))
     other = float(gain_ou_log_prob(resid, theta, mask, t, sw, sa, ta, sg * 0.2, tg))
     assert abs(other - want) > 1.0
+
+
+def test_band_with_a_gain_error_widens_with_the_tilt(model):
+    """A posterior of one point (no parameter spread): the band's half-width is 1.96 times
+    ``sqrt(sigma^2 + (sigma_g theta)^2)`` at each force, so it grows with the tilt."""
+    from treeinfer.inference.pulltest import PullPosterior
+
+    s = 4000
+    sg = np.array([0.1, 0.05])
+    sigma = np.deg2rad([0.002, 0.004])
+    post = PullPosterior(
+        joints=("root", "stem"),
+        channels=("root", "trunk"),
+        kp=np.tile(KP, (s, 1)),
+        sigma=np.tile(sigma, (s, 1)),
+        noise="ar1+gain",
+        noise_params={"sigma_g": np.tile(sg, (s, 1)), "tau_g": np.full((s, 2), 10.0)},
+    )
+    force = np.linspace(0.0, 4000.0, 5)
+    band = predictive_band(model, post, force, n_draws=s, seed=3)
+    theta = np.asarray(model_tilts(model, jnp.asarray(KP[None]), jnp.asarray(force))[0][0])
+    want = 1.96 * np.sqrt(sigma[:, None] ** 2 + (sg[:, None] * theta) ** 2)
+    np.testing.assert_allclose((band["hi"] - band["lo"]) / 2, want, rtol=0.05)
+    assert want[0, -1] > 3 * want[0, 0]  # the gain term dominates at the top: can fail
