@@ -1,6 +1,7 @@
 """Issue 30 sections 3 and 4: static winch pulling tests of mangrove trees, the static chain
 model with inclinometer observations (elastic or viscoelastic joints, a softening root plate,
-i.i.d., AR(1) or AR(1) + gain-error residuals) against a beam baseline, on held-out parts of each record.
+i.i.d., AR(1) or AR(1) + gain-error residuals) against a beam baseline, on held-out parts of
+each record.
 
 Data: ``../shared/data/mangrove`` (``pull_tests/*.pul`` and ``trees.csv``), from
 ``jack-w-hill/mangrove-tree-strength``; paper: Hill JW, Bennion V, Lovelock CE (2024), *Mangrove
