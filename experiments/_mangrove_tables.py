@@ -46,9 +46,9 @@ def long_lines(results: list[dict]) -> list[str]:
     """Every fit (also those run on some tests only): held-out and hold coverage, RMSE, the
     residual check, against the baselines."""
     lines = [
-        "| test | channel | model | held-out cov. | hold cov. | RMSE (deg) | lag-1 "
-        "| RMSE beam | RMSE springs |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| test | channel | model | held-out cov. | hold cov. | RMSE (deg) | band width (deg) "
+        "| lag-1 | RMSE beam | RMSE springs |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     tests = list(dict.fromkeys(r["test"] for r in results))
     for t in tests:
@@ -59,9 +59,10 @@ def long_lines(results: list[dict]) -> list[str]:
                 lag = f"{r['residual_lag1'][c]:.2f}"
                 if r.get("innovations_lag1"):
                     lag += f" ({r['innovations_lag1'][c]:.2f})"
+                width = _deg(h["band_width"]) if "band_width" in h else "-"
                 lines.append(
                     f"| {t} | {c} | {r['model']} | {h['coverage']:.0%} | {hold['coverage']:.0%} "
-                    f"| {_deg(h['rmse_chain'])} | {lag} | {_deg(h['rmse_beam'])} "
+                    f"| {_deg(h['rmse_chain'])} | {width} | {lag} | {_deg(h['rmse_beam'])} "
                     f"| {_deg(h['rmse_springs'])} |"
                 )
     return lines
@@ -100,7 +101,8 @@ def markdown(results: list[dict], config: dict) -> str:
         "+gain (and a gain error per channel: model error proportional to the tilt, an OU",
         "process with correlation time 5-50 s, `treeinfer.inference.pulltest.gain`).",
         "The first table: the models fitted on all four tests (beam RMSE: on the recorded",
-        "force); the second: every fit, each with its own baselines.",
+        "force); the second: every fit, each with its own baselines and (where recorded) the",
+        "band's mean width on the held-out samples (its sharpness: a wide band covers anything).",
         "",
         f"Command: `{config['command']}`",
         "",

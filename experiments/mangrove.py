@@ -193,6 +193,8 @@ def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, 
                 "n": int(ok.sum()),
                 "coverage": float(inside[ok].mean()) if ok.any() else math.nan,
                 "rmse_chain": _rmse(band["mean"][i, idx], yy),
+                # the band's sharpness: a band as wide as the tilt covers anything
+                "band_width": float(np.mean(band["hi"][i, idx] - band["lo"][i, idx])),
                 "rmse_beam": _rmse(beam_all[i, idx], yy),
                 "rmse_springs": _rmse(springs_all[i, idx], yy),
             }
