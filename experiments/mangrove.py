@@ -66,6 +66,7 @@ MODELS = {  # name -> (creep, noise, lag: the root's fast lag element[, soft: ro
     # and a slowly varying gain error per channel (model error proportional to the tilt)
     "soft+lag2+creep+ar1+gain": (True, "ar1+gain", "all", True),
     "soft+creep+ar1+gain": (True, "ar1+gain", False, True),
+    "lag+creep+ar1+gain": (True, "ar1+gain", True),
 }
 BEST = "soft+lag2+creep+ar1+gain"  # the default: the model results/mangrove/README.md reports
 CITATION = (
