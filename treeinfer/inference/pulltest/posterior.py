@@ -78,8 +78,8 @@ class PullPosterior:
     correlation at the median step, each [S, C]), ``creep_params`` (``creep=True``: ``ratio``
     and ``tau`` s, each [S, R]), ``lag_params`` (``lag=True``: the root's fast lag, ``ratio``
     and ``tau`` s, each [S], or [S, R] with a lag on every joint), ``soft_params``
-    (``soft=True``: ``tilt``, the root plate's ``theta_s`` rad [S]), and NUTS diagnostics (``r_hat``, ``ess`` per parameter,
-    ``divergences``)."""
+    (``soft=True``: ``tilt``, the root plate's ``theta_s`` rad [S]), and NUTS diagnostics
+    (``r_hat``, ``ess`` per parameter, ``divergences``)."""
 
     joints: tuple[str, ...]
     channels: tuple[str, ...]
