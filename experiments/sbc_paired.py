@@ -50,7 +50,11 @@ def main(argv=None) -> dict:
     common = sorted(set(a) & set(b))
     if not common:
         raise SystemExit("no data set is in both runs")
-    out = {"paired_data_sets": len(common), "before": compare(a, common), "after": compare(b, common)}
+    out = {
+        "paired_data_sets": len(common),
+        "before": compare(a, common),
+        "after": compare(b, common),
+    }
     print(json.dumps(out, indent=1))
     return out
 
