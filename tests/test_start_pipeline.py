@@ -228,3 +228,35 @@ def test_auto_start_runs_on_the_static_model(one_joint, likelihood):
     assert np.shape(theta0) == (8, p.dim) and np.all(np.isfinite(theta0))
     theta = theta0 if ready is None else ready.theta
     assert np.all(np.isfinite(np.asarray(p.log_density(jnp.asarray(theta)))))
+
+
+def test_the_screen_covers_the_prior_and_its_tails(one_joint):
+    """The global screen's points follow the smoothed box prior, tails included (a fifth of
+    each gain's prior mass lies beyond the box: SBC found the truths there missed), stratified
+    as a Latin hypercube, clipped at SCREEN_TAIL_SDS tail widths; the noise columns stay in
+    their range."""
+    from scipy import stats
+
+    from treeinfer.inference.start_steps import SCREEN_TAIL_SDS, prior_points, prior_range
+    from treeinfer.model.priors import smoothed_box
+
+    tree, trajs, _ = one_joint
+    problem = _problem(tree, trajs)
+    lower, upper = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
+    pts = prior_points(problem, 416, seed=3)
+    assert pts.shape == (416, problem.dim)
+    np.testing.assert_array_equal(pts, prior_points(problem, 416, seed=3))
+    lo, hi = prior_range(problem)
+    s = problem.settings["prior_sigma"] * (upper[:2] - lower[:2])
+    np.testing.assert_allclose(hi - upper[:2], SCREEN_TAIL_SDS * s)
+    for j in range(2):
+        x = pts[:, j]
+        beyond = np.mean((x < lower[j]) | (x > upper[j]))
+        assert 0.17 < beyond < 0.23, (j, beyond)  # p_box = 1 / (1 + 0.1 sqrt(2 pi)) = 0.80
+        assert lo[j] <= x.min() and x.max() <= hi[j]
+        grid = np.linspace(lo[j] - 1, hi[j] + 1, 20001)
+        dens = np.exp(np.asarray(smoothed_box(lower[j : j + 1], upper[j : j + 1], s[j : j + 1],
+                                              normalized=True)(grid[:, None])))  # fmt: skip
+        cdf = np.cumsum(dens) * (grid[1] - grid[0])
+        assert stats.kstest(x, lambda v: np.interp(v, grid, cdf)).pvalue > 0.01
+    assert np.all((pts[:, 2:] >= lower[2:]) & (pts[:, 2:] <= upper[2:]))

@@ -201,13 +201,13 @@ def fast_posterior(
     if max_iterations is None:
         max_iterations = 15 if coarse != ev.substeps and coarse_rounds > 0 else 30
     phases, t = {}, time.perf_counter()
-    lower, upper = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
+    lower = np.asarray(problem.lower, float)
     ev.evaluate(lower[None], coarse)  # compile (and run once)
     phases["compile"], t = time.perf_counter() - t, time.perf_counter()
-    from .start_steps import screen
+    from .start_steps import prior_points, screen
 
     if starts is None:
-        pts = latin_hypercube(n_screen, lower, upper, seed)
+        pts = prior_points(problem, n_screen, seed)
         lp, pts = screen(ev, pts, coarse)
         order = np.argsort(np.where(np.isfinite(lp), -lp, np.inf))
         starts = pts[order[:n_starts]]

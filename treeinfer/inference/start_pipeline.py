@@ -96,18 +96,20 @@ def force_noise_reference(
     bucket ``[B', T']`` of the run's own fast posterior, so that it shares the program too)."""
     from .fast import resolve_coarse_substeps as coarse_of
     from .fast_evaluator import BatchEvaluator, default_chunk
-    from .fast_fit import fit_map_batched, latin_hypercube
+    from .fast_fit import fit_map_batched
+    from .start_steps import prior_points, prior_range
 
     d, g = problem0.dim, 2 * problem0.sim.n_joints
     k = n_starts * (2 * g + 1)
     ev0 = BatchEvaluator(problem0, default_chunk(k, 8 * k), programs, shape)
     coarse = coarse_of(ev0, "auto")
-    lower, upper = np.asarray(problem0.lower, float), np.asarray(problem0.upper, float)
-    pts = latin_hypercube(4 * k, lower, upper, seed)
+    # the screen covers the prior, its tails beyond the box included (start_steps.prior_points)
+    pts = prior_points(problem0, 4 * k, seed)
+    lower, upper = prior_range(problem0)
     lp, pts = screen(ev0, pts, coarse)
     starts = pts[np.argsort(np.where(np.isfinite(lp), -lp, np.inf))[:n_starts]]
     first = fit_map_batched(ev0, starts, REFERENCE_LM_ITERATIONS, substeps=coarse)
-    ref = np.clip(first.theta[:g], lower[:g], upper[:g])
+    ref = np.clip(first.theta[:g], lower, upper)
     finals = first.finals[np.isfinite(first.values)]
     iterations, moves = [], []
     for rounds in range(1, MAX_REFERENCE_ROUNDS + 1):
@@ -125,7 +127,7 @@ def force_noise_reference(
             best = np.argsort(np.where(np.isfinite(lp1), -lp1, np.inf))[: max(2, n_starts // 2)]
             starts1 = np.vstack([finals, pts1[best[np.isfinite(lp1[best])]]])
         second = fit_map_batched(ev1, starts1, REFERENCE_LM_ITERATIONS, substeps=coarse)
-        new = np.clip(second.theta[:g], lower[:g], upper[:g])
+        new = np.clip(second.theta[:g], lower, upper)
         iterations.append(second.iterations)
         moves.append(float(np.max(np.abs(new - ref))))
         ref = new

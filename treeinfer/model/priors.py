@@ -86,6 +86,7 @@ def __getattr__(name):
 
 
 __all__ = [
+    "smoothed_box_quantile",
     "InequalityNet",
     "default_cache_dir",
     "inequality_prior",
@@ -98,6 +99,32 @@ __all__ = [
 # ----------------------------------------------------------------------------
 # Smoothed box prior
 # ----------------------------------------------------------------------------
+
+
+def smoothed_box_quantile(u, lower, upper, sigma) -> np.ndarray:
+    """The quantile function of :func:`smoothed_box` (normalised) per coordinate: ``u [..., D]``
+    in (0, 1) to theta. The mixture of :func:`treeinfer.calibration.sample_smoothed_box` inverted
+    piece by piece: the lower half-normal tail below ``a = (1 - p_box) / 2``, the
+    uniform box between, the upper tail above ``1 - a``. Maps stratified uniforms (a Latin
+    hypercube) to stratified prior points (the start pipeline's screen,
+    :func:`treeinfer.inference.start_steps.prior_points`). The normal quantile is
+    ``statistics.NormalDist`` (no SciPy import on the CLI's start path)."""
+    from statistics import NormalDist
+
+    lo, hi = np.asarray(lower, float), np.asarray(upper, float)
+    s = np.broadcast_to(np.asarray(sigma, float), lo.shape)
+    w = hi - lo
+    p_box = w / (w + math.sqrt(2 * math.pi) * s)
+    a = 0.5 * (1.0 - p_box)
+    u = np.clip(np.asarray(u, float), 1e-12, 1.0 - 1e-12)
+    inv = np.vectorize(NormalDist().inv_cdf, otypes=[float])
+    # distance beyond an edge for tail mass m of the half-normal's a: 1 - m / (2 a) of N(0, 1)
+    below = u < a
+    above = u > 1.0 - a
+    tail_u = np.where(below, u, 1.0 - u) / np.where(a > 0, 2.0 * a, 1.0)
+    h = s * inv(np.clip(1.0 - tail_u, 0.5, 1.0 - 1e-12))
+    inside = lo + (u - a) / p_box * w
+    return np.where(below, lo - h, np.where(above, hi + h, inside))
 
 
 def smoothed_box(
