@@ -36,6 +36,7 @@ STAGES = [
     ("treeinfer.runs.service", "_data_checks", "data checks"),
     ("treeinfer.runs.service", "build_problem", "build the problem"),
     ("treeinfer.runs.cache", "simulator_for", "simulator and its step choice"),
+    ("treeinfer.runs.background", "_Prefetch.wait", "wait for a second thread's compile"),
     ("treeinfer.inference.start_pipeline", "force_noise_reference", "force-noise reference MAP"),
     ("treeinfer.inference.start_steps", "screen", "Latin-hypercube screen"),
     ("treeinfer.inference.fast_fit", "fit_map_batched", "LM / GGN MAP fit"),
@@ -48,7 +49,10 @@ STAGES = [
     ("treeinfer.inference.importance", "adaptive_importance", "importance sampling"),
     ("treeinfer.inference.resample_move", "resample_move", "resample-move"),
     ("treeinfer.runs.service", "_sample", "sampler"),
+    ("treeinfer.runs.service", "_summarised_posterior", "posterior summaries"),
     ("treeinfer.runs.service", "_training_fit", "training fit (bands)"),
+    ("treeinfer.runs.service", "_run_figures", "figures started (second thread)"),
+    ("treeinfer.runs.service", "_run_summary", "run summary"),
     ("treeinfer.evaluation.checks", "fit_verdict_from_run", "fit verdict"),
     ("treeinfer.runs.service", "save_run", "write the run folder"),
     ("treeinfer.runs.figures", "write_run_figures", "figures"),
@@ -93,6 +97,11 @@ def _child(out: Path, argv: list[str]) -> int:
 
     for mod_name, attr, label in STAGES:
         mod = importlib.import_module(mod_name)
+        if "." in attr:  # a method: patched on its class
+            cls_name, meth = attr.split(".")
+            cls = getattr(mod, cls_name)
+            setattr(cls, meth, wrap(label, getattr(cls, meth)))
+            continue
         orig = getattr(mod, attr)
         w = wrap(label, orig)
         # every loaded treeinfer module that bound the same function by name
@@ -101,6 +110,7 @@ def _child(out: Path, argv: list[str]) -> int:
             if ours and getattr(m, attr, None) is orig:
                 setattr(m, attr, w)
     t_imports = time.perf_counter() - t_start
+    events = _listen_compiles(stack)
     rc = cli.main(argv)
     res = {
         "exit": rc,
@@ -108,9 +118,64 @@ def _child(out: Path, argv: list[str]) -> int:
         "in_process_wall_s": time.perf_counter() - t_start,
         "in_process_cpu_s": time.process_time() - c_start,
         "stages": records,
+        "compiles": events,
     }
     out.write_text(json.dumps(res, indent=2) + "\n")
     return rc
+
+
+_EVENTS = {  # JAX's monitoring duration events: what a program's first call costs
+    "/jax/core/compile/jaxpr_trace_duration": "trace",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+    "/jax/core/compile/backend_compile_duration": "compile",
+}
+
+
+def _listen_compiles(stack: list[str]) -> list:
+    """A list that fills with ``[kind, function, seconds, stage, thread]`` per trace, lowering
+    and XLA compile (or persistent-cache load: ``compile`` events of a warm run) of the run."""
+    import threading
+
+    from jax import monitoring
+
+    events: list = []
+    t0 = time.perf_counter()
+
+    def on_duration(event: str, secs: float, **kw) -> None:
+        kind = _EVENTS.get(event)
+        if kind is not None:
+            where = (
+                stack[-1]
+                if stack and threading.current_thread() is threading.main_thread()
+                else threading.current_thread().name
+            )
+            events.append([kind, str(kw.get("fun_name", "?")), round(float(secs), 4), where,
+                           threading.current_thread().name,
+                           round(time.perf_counter() - t0 - secs, 3)])  # fmt: skip
+
+    monitoring.register_event_duration_secs_listener(on_duration)
+    return events
+
+
+def _print_compiles(events: list) -> None:
+    """Totals of the traces, lowerings and compiles per kind and per stage, the slowest ones."""
+    if not events:
+        return
+    by: dict = {}
+    for kind, _name, secs, where, *_ in events:
+        n, s = by.get((kind, where), (0, 0.0))
+        by[(kind, where)] = (n + 1, s + secs)
+    print(f"  {'kind':8s} {'stage':40s} {'count':>5s} {'wall s':>8s}")
+    for (kind, where), (n, s) in sorted(by.items(), key=lambda kv: -kv[1][1]):
+        if s >= 0.2:
+            print(f"  {kind:8s} {where[:40]:40s} {n:5d} {s:8.2f}")
+    for kind in _EVENTS.values():
+        ev = [e for e in events if e[0] == kind]
+        print(f"  {kind}: {len(ev)} events, {sum(e[2] for e in ev):.1f} s")
+    slow = sorted((e for e in events if e[2] >= 0.5), key=lambda e: -e[2])[:25]
+    for kind, name, secs, where, th, *start in slow:
+        at = f" @{start[0]:.1f}" if start else ""
+        print(f"    {kind:8s} {secs:6.2f} s  {name[:40]:40s} {where[:34]} ({th}){at}")
 
 
 def _env(cache: Path) -> dict:
@@ -184,6 +249,7 @@ def main(argv=None) -> dict:
         stages = json.loads(stages_json.read_text()) if stages_json.is_file() else {}
         res["runs"][phase] = {"whole": whole, **stages}
         _print(phase, whole, stages)
+        _print_compiles(stages.get("compiles", []))
     res["machine"] = {"cores": os.cpu_count(), "jax_platforms": os.environ.get("JAX_PLATFORMS")}
     res["commit"] = subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True

@@ -31,7 +31,7 @@ from test_forward_mode import GENERAL_MJCF  # tests/ is on sys.path (pytest prep
 
 from treeinfer.examples import example_path
 from treeinfer.model.gradients import autodiff_value_and_grad, jvp_value_and_grad
-from treeinfer.sim import _simulate, make_simulator
+from treeinfer.sim import _simulate, _simulate_force_jacobian, make_simulator
 from treeinfer.sim import fused as hd
 from treeinfer.sim import fused_backend as fb
 from treeinfer.sim import sensitivity as sn
@@ -307,6 +307,42 @@ def test_force_jacobian_equals_plain_jvp_and_central_differences(name, traced):
             fd = (rollout(f + e, n) - rollout(f - e, n)) / (2 * h)
             ours = jac[:, :, :, s].sum(-1)  # every pull's sample s moved
             np.testing.assert_allclose(ours, fd, rtol=1e-6, atol=1e-7 * scale)
+
+
+@pytest.mark.parametrize("name,traced", [("one", False), ("two", True), ("three", True)])
+def test_force_jacobian_as_one_tangent_axis_equals_jacfwd(name, traced):
+    """``_simulate_force_jacobian`` (the T force tangents carried as one trailing axis of the
+    state tangent, no vmap level: ``force_noise``'s program since session 14) against
+    ``jax.jacfwd`` of ``_simulate`` per pull under vmap (the program before), in the
+    simulator's float32: the rollout, the stability flags and J; and None where the rule does
+    not apply."""
+    sim, forces = _pull_data(name, 12)
+    rng = np.random.default_rng(5)
+    kp = jnp.asarray(rng.uniform(30, 200, (1, sim.n_joints)), jnp.float32)
+    kd = jnp.asarray(rng.uniform(0.3, 3, (1, sim.n_joints)), jnp.float32)
+    f = jnp.asarray(forces, jnp.float32)
+    n = jnp.int32(sim.substeps + 1) if traced else None
+
+    def per_pull(x, n):
+        def tau(fb):
+            ro = _simulate(sim, kp, kd, fb[None], substeps=n)
+            return ro.tau[0, 0], ro.stable[0, 0]
+
+        return jax.vmap(jax.jacfwd(tau, has_aux=True))(x)
+
+    jac_ref, ok_ref = jax.jit(per_pull)(f, n)
+    tau, ok, jac = jax.jit(lambda x, n: _simulate_force_jacobian(sim, kp[0], kd[0], x, None, n))(
+        f, n
+    )
+    scale = np.abs(np.asarray(jac_ref)).max()
+    assert scale > 1e-5 and np.all(np.asarray(ok_ref))
+    np.testing.assert_array_equal(ok, ok_ref)
+    np.testing.assert_allclose(jac, jac_ref, rtol=1e-6, atol=1e-6 * scale)
+    # the rule's primal (pull_with_tangent) rounds a few values otherwise than the plain rollout
+    plain = np.asarray(_simulate(sim, kp, kd, f, substeps=n).tau[0])
+    np.testing.assert_allclose(tau, plain, rtol=1e-6, atol=1e-4 * np.abs(plain).max())
+    with plain_jvp():
+        assert _simulate_force_jacobian(sim, kp[0], kd[0], f) is None
 
 
 def test_force_jacobian_matches_central_differences_of_mujoco_c():

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..sim.startup import device_array
+from ..sim.threads import map_calls
 
 __all__ = ["BatchEvaluator", "check_problem", "default_chunk", "held_evaluator"]
 
@@ -149,13 +150,18 @@ class BatchEvaluator:
         n, k = len(theta), self.chunk
         pad = (-n) % k
         full = np.concatenate([theta, np.repeat(theta[-1:], pad, 0)]) if pad else theta
-        outs = []
-        for i in range(0, len(full), k):
-            self.calls += 1
-            self.runs[s] = self.runs.get(s, 0) + 1
+        starts = range(0, len(full), k)
+        self.calls += len(starts)
+        self.runs[s] = self.runs.get(s, 0) + len(starts)
+
+        def chunk(i):  # the values on the host: the call's thread waits for its program
             th = device_array(full[i : i + k], self._dtype)
             gains = th if th.shape[1] == self.n_gains else th[:, : self.n_gains]
-            outs.append((*self._run(gains, *self._data, *extra), self._prior(th)))
+            outs = (*self._run(gains, *self._data, *extra), self._prior(th))
+            return [np.asarray(o) for o in outs]
+
+        # the chunks on the idle cores (treeinfer.sim.threads: the same values, sooner)
+        outs = map_calls(chunk, starts)
         r, ok, lp = (np.concatenate([np.asarray(o[j], float) for o in outs])[:n] for j in range(3))
         b, t, nb = self._rows, self._steps, self.shape[0]
         r = np.concatenate([r[:, :b, :t], r[:, nb : nb + b, :t]], axis=1)  # the data's rows, steps

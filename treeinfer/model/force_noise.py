@@ -247,7 +247,7 @@ def _jacobian_program(jsim, kp, kd, forces, gf, hv, substeps, check_substeps, wi
     reference point: 10-30 s each on a 2-core CPU). With ``with_check`` it also returns the
     rollouts ``tau(F + hv)``, ``tau(F - hv)`` at ``check_substeps`` (``[2B, T]``) and their
     stability, else zeros."""
-    from ..sim import _simulate, simulate
+    from ..sim import _simulate, _simulate_force_jacobian, simulate
 
     def run(kp, kd, f, g, s):
         if jsim.backend == "pallas":  # the kernel's own step (only where a test asks for it)
@@ -261,7 +261,12 @@ def _jacobian_program(jsim, kp, kd, forces, gf, hv, substeps, check_substeps, wi
 
         return jax.jacfwd(tau, has_aux=True)(f)
 
-    if gf is None:
+    fast = None
+    if jsim.backend != "pallas":  # the force tangents as one axis, not a vmap level
+        fast = _simulate_force_jacobian(jsim, kp[0], kd[0], forces, gf, substeps)
+    if fast is not None:
+        _, ok, jac = fast
+    elif gf is None:
         jac, ok = jax.vmap(lambda f: one(f, None))(forces)
     else:
         jac, ok = jax.vmap(one)(forces, gf)

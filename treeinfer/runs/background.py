@@ -12,19 +12,19 @@ everything on the main thread, in the old order (comparisons, debugging).
 
 from __future__ import annotations
 
-import os
 import threading
 from collections.abc import Callable
 from typing import Any
 
 __all__ = ["Job", "enabled", "prefetch"]
 
-_OFF = ("0", "off", "false", "no", "none")
-
 
 def enabled() -> bool:
-    """False when ``TREEINFER_BACKGROUND`` is ``off`` (or 0, false, no)."""
-    return os.environ.get("TREEINFER_BACKGROUND", "on").strip().lower() not in _OFF
+    """False when ``TREEINFER_BACKGROUND`` is ``off`` (or 0, false, no): the switch of
+    :mod:`treeinfer.sim.threads` too."""
+    from ..sim.threads import enabled as on
+
+    return on()
 
 
 class Job:

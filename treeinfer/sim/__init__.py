@@ -240,12 +240,7 @@ def _simulate(
         pull_fn = lambda *a, **k: impl.pull(sim, state, qpos_rest, *a, **k)
         taus, oks = [], []
         for body, length, idx in groups:
-            if grasp_fraction is None and body is None:  # the model's own grasp site
-                site_local = jnp.broadcast_to(
-                    jnp.asarray(sim.mj_model.site_pos[sim.grasp_site], dtype), (len(idx), 3)
-                )
-            else:
-                site_local = sim.branch_point(body, length, frac[idx])
+            site_local = _site_local(sim, grasp_fraction, body, length, frac[idx], dtype)
             opts = {"body": body, "substeps": substeps}
             if dirs is None:
                 pull = lambda f, s, o=opts: pull_fn(f, s, unroll_outer, unroll_inner, **o)
@@ -268,6 +263,50 @@ def _simulate(
     tau = jnp.where(ok[..., None], tau, 0.0)
     tau_dot = jnp.where(ok[..., None], velocity(tau, sim.obs_dt), 0.0)
     return Rollout(tau=tau, tau_dot=tau_dot, stable=ok)
+
+
+def _site_local(sim: Simulator, grasp_fraction, body, length, frac, dtype):
+    """``[n, 3]`` grasp points in their bodies' frames of ``n`` pulls of one grasp group."""
+    if grasp_fraction is None and body is None:  # the model's own grasp site
+        site = jnp.asarray(sim.mj_model.site_pos[sim.grasp_site], dtype)
+        return jnp.broadcast_to(site, (np.shape(frac)[0], 3))
+    return sim.branch_point(body, length, frac)
+
+
+def _simulate_force_jacobian(sim: Simulator, kp, kd, forces, grasp_fraction=None, substeps=None):
+    """``(tau [B, T], stable [B], J [B, T, T])`` of one parameter set (``kp``, ``kd`` [R]): the
+    rollout of ``forces [B, T]`` and each pull's ``d tau / d forces`` (zero where unstable), as
+    ``jax.jacfwd`` of :func:`_simulate` per pull gives them, with the force tangents carried by
+    :func:`treeinfer.sim.fused_backend.pull_force_jacobian` (no vmap level for them: a much
+    smaller trace). None where that does not apply (another backend, the levels layout, the
+    sensitivity rule off): take ``jax.jacfwd``."""
+    from . import fused_backend as fb
+
+    if not fb.force_jacobian_applies(sim):
+        return None
+    dtype = sim.dtype
+    n_b = forces.shape[0]
+    frac = jnp.broadcast_to(
+        jnp.asarray(sim.grasp_fraction if grasp_fraction is None else grasp_fraction, dtype),
+        (n_b,),
+    )
+    gains, qpos_rest, settled = fb._prepare(sim, kp, kd, dtype)
+    taus, oks, jacs, order = [], [], [], []
+    for body, length, idx in _grasp_groups(sim, None, n_b):
+        site_local = _site_local(sim, grasp_fraction, body, length, frac[idx], dtype)
+
+        def pull(f, s, body=body):
+            return fb.pull_force_jacobian(sim, gains, qpos_rest, f, s, body, substeps)
+
+        tau, ok, jac = jax.vmap(pull)(forces[idx], site_local)
+        taus.append(tau)
+        oks.append(ok)
+        jacs.append(jac)
+        order.append(idx)
+    back = np.argsort(np.concatenate(order))
+    tau, ok, jac = (jnp.concatenate(x)[back] for x in (taus, oks, jacs))
+    ok = ok & settled
+    return jnp.where(ok[:, None], tau, 0.0), ok, jnp.where(ok[:, None, None], jac, 0.0)
 
 
 def settle(sim: Simulator, kp: jax.Array, kd: jax.Array) -> tuple[jax.Array, jax.Array]:

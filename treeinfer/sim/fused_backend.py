@@ -292,6 +292,13 @@ def pull_with_tangent(
     rest, _ = _stepper(sim, kp, kd, dtype, bid, site_local)
     (c_rest, lever0), (dc_rest, dlever0) = jax.jvp(rest, (qpos_rest,), (dq0,))
     as_dtype = lambda xs: tuple(jnp.asarray(x, dtype) for x in xs)
+    # K force directions at once (dforces [T, K]): every state tangent carries a trailing [K]
+    # axis, the step's Jacobian none (see pull_force_jacobian)
+    n_dir = None if not with_force or jnp.ndim(dforces) == 1 else int(dforces.shape[1])
+    wide = lambda x: x if n_dir is None else jnp.broadcast_to(
+        jnp.asarray(x, dtype)[..., None], (*jnp.shape(x), n_dir)
+    )  # fmt: skip
+    dq0, dc_rest, dlever0 = wide(dq0), tuple(map(wide, dc_rest)), tuple(map(wide, dlever0))
 
     def observe(carry, ff):
         (q, v, lever, comp, ok), (dq, dv, dl) = carry
@@ -335,7 +342,7 @@ def pull_with_tangent(
     zero = jnp.zeros_like(qpos_rest)
     carry = (
         (qpos_rest, zero, as_dtype(lever0), zero, jnp.bool_(True)),
-        (dq0, zero, as_dtype(dlever0)),
+        (dq0, wide(zero), as_dtype(dlever0)),
     )
     forces = forces.astype(dtype)
     # no force tangent: Python zeros per sample (they fold away in step_tangent)
@@ -352,6 +359,30 @@ def pull_with_tangent(
     )  # fmt: skip
     ok = ok & jnp.all(jnp.isfinite(tau)) & jnp.all(jnp.abs(tau) < sim.max_displacement)
     return (tau, ok), dtau
+
+
+def pull_force_jacobian(sim: Simulator, gains, qpos_rest, forces, site_local, body=None,
+                        substeps=None):  # fmt: skip
+    """One pull's ``(tau [T], ok, J [T, T])``, ``J = d tau / d forces``: the values and tangents
+    ``jax.jacfwd`` of :func:`_pull` in the forces gives through the sensitivity rule, with the T
+    unit force tangents carried as one trailing axis of the state tangent instead of a ``vmap``
+    level. Why: the vmap makes JAX batch every loop of the step (its while-loop batching rule
+    traces each body again), which was most of the force Jacobian program's trace and much of
+    its compile on a 2-core CPU (``treeinfer.model.force_noise``; BENCHMARKS.md). For the
+    scalar layout with the rule on (:func:`force_jacobian_applies`)."""
+    kp, kd = gains
+    eye = jnp.eye(forces.shape[0], dtype=qpos_rest.dtype)
+    (tau, ok), jac = pull_with_tangent(
+        sim, kp, kd, qpos_rest, forces, site_local, jnp.zeros_like(kp), jnp.zeros_like(kd),
+        jnp.zeros_like(qpos_rest), body=body, dforces=eye, substeps=substeps,
+    )  # fmt: skip
+    return tau, ok, jac
+
+
+def force_jacobian_applies(sim: Simulator) -> bool:
+    """Whether :func:`_pull` differentiates ``sim`` by the sensitivity rule (so that
+    :func:`pull_force_jacobian` gives what ``jax.jacfwd`` of it would)."""
+    return sim.backend == "fused" and SENSITIVITY_RULE and not uses_levels(sim)
 
 
 def _stepper(sim: Simulator, kp, kd, dtype, bid: int, site_local):
