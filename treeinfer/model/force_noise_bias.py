@@ -82,8 +82,11 @@ def with_bias_slope(
     )  # fmt: skip
     kept = sim.derived.setdefault("force_noise_slopes", {})
     if key not in kept:
-        eye = np.eye(ref.size)
-        slope = np.stack([(along(ref + h * eye[k]) - lam) / h for k in range(ref.size)], axis=-1)
+        from ..sim.threads import map_calls
+
+        # the 2R Jacobians are independent: on the idle cores (the same values, sooner)
+        steps = ref + h * np.eye(ref.size)
+        slope = np.stack([(a - lam) / h for a in map_calls(along, steps)], axis=-1)
         if len(kept) >= 2:  # the last two: a run linearises again at most a few times
             kept.pop(next(iter(kept)))
         kept[key] = slope
