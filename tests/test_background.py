@@ -95,3 +95,40 @@ def test_the_jacobian_prefetched_on_a_one_substep_simulator_is_the_runs_program(
     assert sim.substeps > 1 and sim is not early
     assert early.program_key(True) == sim.program_key(True)
     assert early.derived["force_jacobian_programs"] is sim.derived["force_jacobian_programs"]
+
+
+def test_the_rollout_program_prefetched_on_a_one_substep_simulator_is_the_evaluators():
+    """runs.problem compiles the reference fits' rollout program on a one-substep simulator
+    (its step count is an argument) while the run's step is chosen: the run's evaluator must
+    find it in the command's cache already compiled (no second build, no second compile) and
+    give the residuals a fresh evaluator gives."""
+    import numpy as np
+    from test_startup import _config, _pulls  # tests/ is on sys.path (pytest prepend)
+
+    from treeinfer.inference.fast_evaluator import (
+        BatchEvaluator,
+        compile_rollout_program,
+        held_evaluator,
+    )
+    from treeinfer.runs.cache import SimulatorCache
+    from treeinfer.runs.problem import build_problem
+    from treeinfer.sim.program_cache import ProgramCache
+    from treeinfer.tree.generators import chain
+
+    tree = chain(1, lengths=0.7, radii=0.03, angles_deg=0.0, base_position=(0.0, 0.0, 1.5),
+                 base_pitch_deg=20.0, levels=1, name="c1")  # fmt: skip
+    cache = SimulatorCache()
+    problem = build_problem(_config(problem={"substeps": 2}), tree, _pulls((50, 57)), cache)
+    sim = problem.sim
+    early = cache.get(tree, float(problem.obs.dt), 1, sim.backend, force_interp=sim.force_interp)
+    assert early.substeps == 1 and sim.substeps == 2
+    assert held_evaluator(problem, cache.programs, 3) is None  # nothing compiled yet
+    compile_rollout_program(early, None, 3, problem.obs, None, cache.programs)
+    ev = held_evaluator(problem, cache.programs, 3)  # held: the same key
+    assert ev is not None
+    theta = np.log([[40.0, 0.6], [25.0, 1.5]])
+    r, ok, _ = ev.evaluate(theta)
+    assert ev._run._cache_size() == 1  # the prefetch's compile, not a second one
+    r0, ok0, _ = BatchEvaluator(problem, 3, ProgramCache()).evaluate(theta)
+    np.testing.assert_array_equal(r, r0)
+    np.testing.assert_array_equal(ok, ok0)

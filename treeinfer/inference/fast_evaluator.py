@@ -48,7 +48,7 @@ class BatchEvaluator:
 
     def __init__(self, problem, chunk: int, programs=None, shape=None, traced_substeps=None):
         check_problem(problem)
-        from ..sim.startup import bucket_observations, cached_program
+        from ..sim.startup import bucket_observations
 
         self.problem, self.chunk, self.calls = problem, int(chunk), 0
         sim = problem.sim
@@ -92,26 +92,9 @@ class BatchEvaluator:
                 (t, np.int32),
             )
         )
-        sim_key = sim.program_key(self.traced)
-        key = (
-            "fast_posterior.BatchEvaluator",
-            sim_key,
-            gf,
-            self.chunk,
-            self.n_gains,
-            self.shape,
-            str(self._dtype),
-            "traced substeps" if self.traced else "static substeps",
+        self._run = rollout_program(
+            sim, gf, self.chunk, self.shape, self._data, programs, self.traced, self.substeps
         )
-        example = (jax.ShapeDtypeStruct((self.chunk, self.n_gains), self._dtype), *self._data)
-        if self.traced:
-            example = (*example, np.int32(self.substeps))
-
-        def build():  # traced once per machine: treeinfer.sim.startup.cached_program
-            fn = _rollout_residuals(sim, gf, self.traced)
-            return cached_program(fn, example, repr(key))
-
-        self._run = build() if programs is None else programs.get(key, build)
         self._prior = self._program(problem.log_prior)
         if not self.boltzmann:  # the problem's own noise density, on the host's residuals
             self._noise = self._program(terms.residual_loglik)
@@ -235,6 +218,58 @@ class BatchEvaluator:
                 self._noise(-ri[:, :b], -ri[:, b:], device_array(theta[i : i + k], self._dtype))
             )
         return np.concatenate([np.asarray(o, float) for o in out])[:n]
+
+
+def rollout_program(sim, gf, chunk, shape, data, programs, traced=True, substeps=1):
+    """The jitted rollout program of :class:`BatchEvaluator` (``chunk`` parameter sets, the
+    observations ``data`` padded to ``shape`` as arguments), from ``programs`` (a
+    :class:`~treeinfer.sim.program_cache.ProgramCache`; None: a new one), built there if
+    missing. Its key leaves the step out where the step count is an argument (``traced``:
+    :meth:`treeinfer.sim.Simulator.program_key`)."""
+    from ..sim.startup import cached_program
+
+    dtype = sim.dtype
+    key = (
+        "fast_posterior.BatchEvaluator",
+        sim.program_key(traced),
+        gf,
+        int(chunk),
+        2 * sim.n_joints,
+        tuple(shape),
+        str(dtype),
+        "traced substeps" if traced else "static substeps",
+    )
+    example = (jax.ShapeDtypeStruct((int(chunk), 2 * sim.n_joints), dtype), *data)
+    if traced:
+        example = (*example, np.int32(substeps))
+
+    def build():  # traced once per machine: treeinfer.sim.startup.cached_program
+        return cached_program(_rollout_residuals(sim, gf, traced), example, repr(key))
+
+    return build() if programs is None else programs.get(key, build)
+
+
+def compile_rollout_program(sim, gf, chunk, obs, shape, programs) -> None:
+    """Compile (and fill ``programs`` with) the rollout program a :class:`BatchEvaluator` of
+    ``chunk`` sets on observations ``obs`` (padded to ``shape``, or None) will ask for, by one
+    call on zeros at one substep; e.g. on a second thread while the step is chosen
+    (``treeinfer.runs.problem``). The program depends on the data's shapes only and, its step
+    count an argument, not on the step: a simulator of the same settings at any step compiles
+    the same one."""
+    from ..sim.startup import bucket_observations
+
+    padded = obs if shape is None else bucket_observations(obs, *shape)
+    dtype = sim.dtype
+    b, t = np.shape(padded.force)
+    # as the evaluator passes them (device_array): the same program, not another trace of it
+    zeros = np.zeros((b, t))
+    data = (
+        device_array(zeros, dtype), device_array(zeros, dtype), device_array(zeros, dtype),
+        device_array(zeros, bool), device_array(np.shape(obs.force)[1], np.int32),
+    )  # fmt: skip
+    run = rollout_program(sim, gf, chunk, (b, t), data, programs)
+    theta = device_array(np.zeros((int(chunk), 2 * sim.n_joints)), dtype)
+    jax.block_until_ready(run(theta, *data, np.int32(1)))
 
 
 class _NotHeld(Exception):

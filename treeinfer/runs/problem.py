@@ -5,6 +5,7 @@ plausibility, quasi-static data). Used by :mod:`.service`, which re-exports it."
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -216,6 +217,11 @@ def build_problem(
         cache, tree, obs, grasp, recorded.get("backend", o.get("backend", "auto")), interp,
         pipeline_force and not recorded_reference,
     )  # fmt: skip
+    # and the reference fits' rollout program on a third (the step is chosen meanwhile on this one)
+    roll = _prefetch_rollout_program(
+        cache, tree, obs, grasp, recorded.get("backend", o.get("backend", "auto")), interp,
+        shape_bucket_for(config, obs), pipeline_force and not recorded_reference,
+    )  # fmt: skip
     sim = simulator_for(
         tree,
         float(obs.dt),
@@ -267,6 +273,7 @@ def build_problem(
 
         base = make_problem(tree, obs, **{**fit_only, "noise_force": None})
         bucket = shape_bucket_for(config, obs)
+        roll.wait()  # its rollout program: compiled on the second thread
         try:
             ref, finals = force_noise_reference(
                 make,
@@ -349,6 +356,32 @@ def _prefetch_force_jacobian(cache, tree, obs, grasp, backend, interp, needed: b
     forces = np.asarray(obs.force)
     return prefetch(
         lambda: force_jacobian(early, theta, forces, grasp, keep=False), "force-jacobian"
+    )
+
+
+def _prefetch_rollout_program(cache, tree, obs, grasp, backend, interp, bucket, needed: bool):
+    """Compile the force-noise reference fits' rollout program
+    (:func:`treeinfer.inference.start_pipeline.force_noise_reference`: 8 starts, a batch of
+    8 (2g + 1) parameter sets on a CPU) on a second thread, as :func:`_prefetch_force_jacobian`
+    does the Jacobian's: its step count is an argument, so a one-substep simulator of the same
+    settings compiles the program the run's simulator asks for (the same key in the command's
+    program cache, :meth:`treeinfer.sim.Simulator.program_key`), while the step is chosen on the
+    main thread. Skipped (nothing lost) for per-pull grasp points."""
+    from .background import prefetch
+
+    if not needed or cache is None or isinstance(grasp, list):
+        return _NoPrefetch()
+    from ..inference.fast_evaluator import compile_rollout_program, default_chunk
+
+    early = cache.get(tree, float(obs.dt), 1, backend, force_interp=interp)
+    # as BatchEvaluator reads the problem's grasp point: None is the simulator's own
+    gf = None if grasp is None or math.isclose(grasp, tree.grasp_fraction) else float(grasp)
+    k = 8 * (4 * early.n_joints + 1)
+    chunk = default_chunk(k, 8 * k)
+    shape = None if bucket is None else tuple(bucket)
+    return prefetch(
+        lambda: compile_rollout_program(early, gf, chunk, obs, shape, cache.programs),
+        "rollout-program",
     )
 
 
