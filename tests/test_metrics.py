@@ -76,14 +76,16 @@ def test_degenerate_step_is_zero_width_not_nan(rng):
 
 
 def test_jit_and_vmap_friendly(rng):
-    x = jnp.asarray(rng.normal(size=(16, 3, 5)))
+    # more series than bands._HOST_MAX_SERIES: the eager call runs the jitted program too (a few
+    # series go to the host twin, tests/test_bands_host.py)
+    x = jnp.asarray(rng.normal(size=(16, 5, 20)))
     valid = jnp.asarray(rng.random(16) > 0.2)
     f = jax.jit(metrics.predictive_interval, static_argnames=("level", "n_iter"))
     a = f(x, level=0.9, valid=valid)
     b = metrics.predictive_interval(x, 0.9, valid)
     for u, v in zip(a, b):
         np.testing.assert_allclose(u, v, rtol=1e-6)
-    gt = jnp.asarray(rng.normal(size=(3, 5)))
+    gt = jnp.asarray(rng.normal(size=(5, 20)))
     nll_jit = jax.jit(metrics.predictive_nll)(x, gt, None, valid)
     np.testing.assert_allclose(
         nll_jit.total, metrics.predictive_nll(x, gt, valid=valid).total, rtol=1e-6

@@ -18,6 +18,7 @@ from ..model.noise import noise_distribution, residual_log_prob, standard_quanti
 
 _DEGENERATE_EPS_FACTOR = 16.0
 _BRACKET_BANDWIDTHS = 10.0  # F(min - 10 h) <= Phi(-10) ~ 8e-24: below any useful level
+_HOST_MAX_SERIES = 64  # predictive_interval of at most this many series runs on the host
 
 
 class KDE1D(NamedTuple):
@@ -220,7 +221,14 @@ def predictive_interval(
     pred = _as_float_pred(pred)
     eff = _effective_valid(pred, valid)
     _require_particles(eff)
-    return _interval(pred, eff, 0.5 * (1.0 - float(level)), int(n_iter))
+    alpha = 0.5 * (1.0 - float(level))
+    if not (_is_tracer(pred) or _is_tracer(eff)) and pred[0].size <= _HOST_MAX_SERIES:
+        # a few series (parameter intervals): on the host, no program to compile (bands_host)
+        from .bands_host import interval_host
+
+        lo, hi, mean = interval_host(pred, eff, alpha, int(n_iter), pred.dtype)
+        return PredictiveInterval(jnp.asarray(lo), jnp.asarray(hi), jnp.asarray(mean))
+    return _interval(pred, eff, alpha, int(n_iter))
 
 
 @functools.partial(jax.jit, static_argnames=("alpha", "n_iter"))

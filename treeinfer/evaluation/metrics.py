@@ -42,7 +42,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import logsumexp
-from jax.scipy.stats import gaussian_kde
 
 from ..errors import ConfigError
 from .bands import (  # noqa: F401 -- re-exported: the old import path keeps working
@@ -255,7 +254,7 @@ def posterior_vs_truth(
       Marginal intervals are the central ``level`` intervals of the same 1-D
       Scott's-rule KDE used for trajectories, per dimension. The joint region
       is the ``level`` highest-density region of a D-dim Scott's-rule Gaussian KDE
-      (``jax.scipy.stats.gaussian_kde``, full covariance): the truth is inside
+      (``scipy.stats.gaussian_kde``, full covariance): the truth is inside
       if its KDE density is at least the ``1 - level`` quantile of the KDE
       densities at the particles themselves. Eager (not jittable).
     """
@@ -285,9 +284,11 @@ def posterior_vs_truth(
     eig = np.linalg.eigvalsh(cov) if np.all(np.isfinite(cov)) else np.array([0.0])
     # float32 KDE: treat a covariance that is singular to ~1e-6 relative as undefined
     if xv.shape[0] > x.shape[1] and eig.min() > 1e-6 * max(eig.max(), np.finfo(float).tiny):
-        ld = np.asarray(
-            _joint_logpdf(jnp.asarray(xv.T), jnp.asarray(np.column_stack([xv.T, t]))), float
-        )
+        # SciPy's KDE on the host, in float64 (jax.scipy's, which this mirrored, was one more
+        # XLA program to compile per run: about 1 s on a 2-core CPU for a few hundred points)
+        from scipy.stats import gaussian_kde
+
+        ld = gaussian_kde(xv.T).logpdf(np.column_stack([xv.T, t]))
         ld_parts, ld_truth = ld[:-1], float(ld[-1])
         ld_thr = float(np.quantile(ld_parts, 1.0 - level))
         if np.isfinite(ld_thr):
@@ -295,12 +296,6 @@ def posterior_vs_truth(
     return TruthCheck(
         mean, abs_err, rel_err, lower, upper, in_marg, in_joint, ld_truth, ld_thr, int(eff.sum())
     )
-
-
-@jax.jit
-def _joint_logpdf(data: jax.Array, points: jax.Array) -> jax.Array:
-    """Log density of the D-dim Scott's-rule KDE of ``data [D, n]`` at ``points [D, m]``."""
-    return gaussian_kde(data).logpdf(points)
 
 
 # --------------------------------------------------------------------------- report
