@@ -56,6 +56,11 @@ DATA = ["--n-traj", "3", "--duration", "3", "--dt", "0.01", "--seed", "0"]
 NOISE = ["--noise-displacement", "0.002", "--noise-force", "0.05"]
 
 
+def _data(seed: int) -> list[str]:
+    """:data:`DATA` with ``simulate --seed`` set to ``seed``."""
+    return [*DATA[:-1], str(seed)]
+
+
 def _env(cache: Path, src: Path = ROOT, extra: dict | None = None) -> dict:
     """``src``'s treeinfer (default this checkout's; ``PYTHONPATH``: an editable install
     elsewhere must not win) with ``cache`` as its compile cache (and ``extra`` variables)."""
@@ -176,6 +181,9 @@ def main(argv=None) -> dict:
         "interleaved with the others (repeatable), e.g. background=TREEINFER_BACKGROUND=off",
     )
     ap.add_argument("--repeats", type=int, default=1, help="cold+warm pairs per command")
+    ap.add_argument(
+        "--data-seed", type=int, default=0, help="the standard problem's simulate --seed"
+    )
     ap.add_argument("--no-warm", action="store_true", help="cold runs only")
     ap.add_argument("--session", action="store_true", help="also the README's typical session")
     ap.add_argument("--work", type=Path, help="scratch folder (default: a new temporary one)")
@@ -199,7 +207,17 @@ def main(argv=None) -> dict:
     tree = ROOT / "treeinfer" / "examples" / "three_branch.yaml"
     data = work / "data"
     prep = timed(
-        py + ["simulate", "--tree", str(tree), "--out", str(data), *DATA, *NOISE, "--force"],
+        py
+        + [
+            "simulate",
+            "--tree",
+            str(tree),
+            "--out",
+            str(data),
+            *_data(args.data_seed),
+            *NOISE,
+            "--force",
+        ],  # fmt: skip
         work,
         work / "cache_data",
         work / "simulate.log",
@@ -252,7 +270,7 @@ def main(argv=None) -> dict:
     ).stdout.strip()
     res = {
         "problem": "three_branch example, 3 pulls of 3 s at 10 ms, 2 mm + 0.05 N noise (simulate "
-        + shlex.join(DATA + NOISE)
+        + shlex.join(_data(args.data_seed) + NOISE)
         + ")",
         "commit": commit,
         "machine": platform.platform(),
