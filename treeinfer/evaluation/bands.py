@@ -16,8 +16,9 @@ from jax.scipy.special import logsumexp, ndtr
 from ..errors import ConfigError, SimulationError
 from ..model.noise import noise_distribution, residual_log_prob, standard_quantile
 
-_DEGENERATE_EPS_FACTOR = 16.0
-_BRACKET_BANDWIDTHS = 10.0  # F(min - 10 h) <= Phi(-10) ~ 8e-24: below any useful level
+# the KDE's constants live with its host twin (which this module imports, not the reverse)
+from .bands_host import _BRACKET_BANDWIDTHS, _DEGENERATE_EPS_FACTOR, interval_host
+
 _HOST_MAX_SERIES = 64  # predictive_interval of at most this many series runs on the host
 
 
@@ -224,8 +225,6 @@ def predictive_interval(
     alpha = 0.5 * (1.0 - float(level))
     if not (_is_tracer(pred) or _is_tracer(eff)) and pred[0].size <= _HOST_MAX_SERIES:
         # a few series (parameter intervals): on the host, no program to compile (bands_host)
-        from .bands_host import interval_host
-
         lo, hi, mean = interval_host(pred, eff, alpha, int(n_iter), pred.dtype)
         return PredictiveInterval(jnp.asarray(lo), jnp.asarray(hi), jnp.asarray(mean))
     return _interval(pred, eff, alpha, int(n_iter))

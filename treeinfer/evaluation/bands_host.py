@@ -16,9 +16,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtr
 
-from .bands import _BRACKET_BANDWIDTHS, _DEGENERATE_EPS_FACTOR
-
 __all__ = ["interval_host"]
+
+# the KDE's constants, shared with treeinfer.evaluation.bands (which imports them from here)
+_DEGENERATE_EPS_FACTOR = 16.0
+_BRACKET_BANDWIDTHS = 10.0  # F(min - 10 h) <= Phi(-10) ~ 8e-24: below any useful level
 
 
 def interval_host(pred, eff, alpha: float, n_iter: int, dtype):
