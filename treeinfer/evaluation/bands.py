@@ -223,7 +223,8 @@ def predictive_interval(
     eff = _effective_valid(pred, valid)
     _require_particles(eff)
     alpha = 0.5 * (1.0 - float(level))
-    if not (_is_tracer(pred) or _is_tracer(eff)) and pred[0].size <= _HOST_MAX_SERIES:
+    n_series = int(np.prod(pred.shape[1:]))  # not pred[0]: an indexing program to compile
+    if not (_is_tracer(pred) or _is_tracer(eff)) and n_series <= _HOST_MAX_SERIES:
         # a few series (parameter intervals): on the host, no program to compile (bands_host)
         lo, hi, mean = interval_host(pred, eff, alpha, int(n_iter), pred.dtype)
         return PredictiveInterval(jnp.asarray(lo), jnp.asarray(hi), jnp.asarray(mean))
