@@ -148,24 +148,3 @@ def test_the_command_line_stops_with_exit_2_before_running(fake_requirements, tm
     err = capsys.readouterr().err
     assert err.startswith("error: unsupported environment:") and "needs numpy >=99" in err
     assert "Traceback" not in err and not out.exists()
-
-
-def test_the_command_line_runs_openblas_on_one_thread_unless_told(tmp_path):
-    """``treeinfer.cli`` sets ``OPENBLAS_NUM_THREADS=1`` before NumPy loads OpenBLAS (``import
-    treeinfer`` loads no NumPy, so the CLI's import is the first): two OpenBLAS threads beside
-    JAX's waited on each other, and the rounding depended on the core count (BENCHMARKS.md,
-    session 14). A user's own setting is kept."""
-    code = (
-        "import os, sys\n"
-        "import treeinfer\n"
-        "assert 'numpy' not in sys.modules\n"
-        "import treeinfer.cli\n"
-        "print(os.environ.get('OPENBLAS_NUM_THREADS'))\n"
-    )
-    env = _clean_env(tmp_path)
-    env.pop("OPENBLAS_NUM_THREADS", None)
-    out = _python(code, env)
-    assert out.returncode == 0, out.stderr[-3000:]
-    assert out.stdout.split()[-1] == "1"
-    out = _python(code, {**env, "OPENBLAS_NUM_THREADS": "3"})
-    assert out.returncode == 0 and out.stdout.split()[-1] == "3"

@@ -4,15 +4,6 @@
 from __future__ import annotations
 
 import importlib
-import os
-
-# One OpenBLAS thread for NumPy's and SciPy's linear algebra in a command (the user's own setting
-# wins), set before NumPy loads OpenBLAS (the first import of .common does). Why: a command's
-# matrices are small (the force-noise basis: an eigh of 3 [300, 300] covariances) and its
-# cores are busy with JAX's threads (treeinfer.runs.background, treeinfer.sim.threads); two
-# OpenBLAS threads there waited on each other: 0.06-2.6 s for that eigh on the 2-core box,
-# 0.02 s on one thread, 2-5 CPU-s of a default `infer` (BENCHMARKS.md).
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from .common import (
     EXIT_INTERNAL_ERROR,
