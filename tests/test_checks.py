@@ -415,3 +415,28 @@ def test_misfit_called_noise_is_a_poor_fit(clean):
     assert _misfit_called_noise(problem, post(1.2 * own), {"ppc": {"lag1": 0.99}}) is None
     no_noise = SimpleNamespace(labels=("Kp[a]",), obs=obs)
     assert _misfit_called_noise(no_noise, post(big), {"ppc": {"lag1": 0.99}}) is None
+
+
+def test_noise_above_the_recordings_own_is_a_warning(clean):
+    """A fitted sigma_x 1.3x the recording's own white noise or more (second differences) is
+    flagged: on SBC of the default command the two fits in a wrong basin needed 2.1x and 3.4x,
+    every right one 0.89-1.08x. Near the recording's own: nothing."""
+    from types import SimpleNamespace
+
+    from treeinfer.data.trajectories import stack_trajectories
+    from treeinfer.evaluation.checks import NOISE_ABOVE_RECORDING, _noise_above_recording
+    from treeinfer.model.noise import estimate_displacement_noise
+
+    obs = stack_trajectories(list(clean))
+    own = estimate_displacement_noise(obs).sigma
+    problem = SimpleNamespace(labels=("Kp[a]", "sigma_x"), obs=obs)
+
+    def post(sigma):
+        return SimpleNamespace(theta=np.tile([0.0, np.log(sigma)], (8, 1)))
+
+    reason, m = _noise_above_recording(problem, post(2.1 * own))
+    assert "2.1x the recording's own" in reason and m["ratio"] == pytest.approx(2.1)
+    assert _noise_above_recording(problem, post(1.05 * own)) is None
+    assert _noise_above_recording(problem, post(0.9 * NOISE_ABOVE_RECORDING * own)) is None
+    no_noise = SimpleNamespace(labels=("Kp[a]",), obs=obs)
+    assert _noise_above_recording(no_noise, post(3 * own)) is None
