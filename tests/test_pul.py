@@ -275,3 +275,42 @@ def test_dequantised_force_recovers_a_smooth_ramp_from_its_10_n_staircase():
     np.testing.assert_array_equal(dequantised_force(np.arange(50.0), flat), flat)
     with pytest.raises(ValueError, match="differ"):
         dequantised_force(t[:5], rec[:6])
+
+
+def test_dequantised_force_keeps_a_quick_multi_level_step_where_it_is():
+    """A slow single-level ramp (0 -> 30 N over 30 s: each level lasts seconds) and then,
+    after a plateau, a winch step of +50 N between two samples (as halloran_1's): the ramp is
+    interpolated through its crossings, the step stays between its two samples (the force
+    must not rise before it: interpolating to the step from the ramp's last crossing, 10 s
+    earlier, would move 20 N of it seconds ahead of the tilts)."""
+    from treeinfer.data.pull_test import dequantised_force
+
+    t = np.arange(0.0, 60.0, 0.1)
+    t_step = 45.05  # between the samples at 45.0 and 45.1
+    true = np.clip(t - 5.0, 0.0, 30.0) + 50.0 * (t > t_step)
+    rec = np.round((true + 5.0) / 10.0) * 10.0 - 5.0  # rounded, tared 5 N off the grid
+    got = dequantised_force(t, rec)
+    ramp = (t > 8.0) & (t < 33.0)
+    assert np.sqrt(np.mean((got[ramp] - true[ramp]) ** 2)) < 1.5  # the staircase: ~2.9
+    before = (t > 36.0) & (t < t_step)  # the plateau before the step
+    np.testing.assert_allclose(got[before], true[before], atol=5.0 + 1e-9)
+    assert np.max(np.abs(got[before] - rec[before])) <= 5.0 + 1e-9
+    after = t > t_step
+    np.testing.assert_allclose(got[after], rec[after], atol=5.0 + 1e-9)
+    i = int(np.searchsorted(t, t_step))  # the step itself: the two readings either side
+    assert got[i - 1] == rec[i - 1] and got[i] == rec[i]
+    assert got[i] - got[i - 1] >= 40.0  # all of the step (50 N, read as 40-60 N)
+
+
+def test_dequantised_force_stays_within_half_a_quantum_of_the_reading():
+    """Whatever the record (random single and multi-level changes), the dequantised force is
+    a value the reading allows: within half a quantum of it at every sample."""
+    from treeinfer.data.pull_test import dequantised_force
+
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.08, 0.27, 600))
+    steps = rng.choice([0, 0, 0, 0, 1, -1, 2, 3, -4], size=600) * 10.0
+    rec = np.cumsum(steps) - 5.0
+    got = dequantised_force(t, rec)
+    assert np.max(np.abs(got - rec)) <= 5.0 + 1e-9
+    assert np.any(np.abs(got - rec) > 1.0)  # and it does move between the levels

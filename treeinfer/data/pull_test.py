@@ -346,30 +346,47 @@ def make_pull_test(
 
 def dequantised_force(time, force, quantum: float = FORCE_QUANTUM_N) -> np.ndarray:
     """The force between the load cell's quanta: ``force`` [T] N (recorded, rounded to
-    ``quantum``) at ``time`` [T] s -> [T] N, piecewise linear through the level crossings.
+    ``quantum``) at ``time`` [T] s -> [T] N, piecewise linear through the level crossings,
+    with the winch's quick steps kept as steps.
 
     Why: the recorded force is the true one rounded to the cell's 10 N. On a small tree (a
     190 N peak) a level lasts a second or more while the tilts rise smoothly under the true
     force, so a model driven by the staircase sees the tilt climb at a constant force (read
     as lag or creep) and errors of up to half a quantum, a fifth of the force early in the
-    ramp. Where the reading changes from level ``a`` to ``b`` between two samples, the true
-    force crossed ``(a + b) / 2`` between them: those crossings, at the mid-time of the two
-    samples, are the knots; before the first and after the last knot the reading is kept.
-    Uses only the force record (never the tilts), so it is the same for every test and
-    model. Where the force moves in quick steps of several quanta (a winch on a large tree),
-    the interpolation spreads each step over the interval before it, moving it ahead of the
-    tilts: on halloran_1 a lag model's held-out root coverage fell from 94% to 78%
-    (``experiments/results/mangrove/README.md``)."""
+    ramp. Where the reading changes by one level, from ``a`` to ``b``, between two samples,
+    the true force crossed ``(a + b) / 2`` between them: those crossings, at the mid-time of
+    the two samples, are knots. A change of two levels or more between two samples (0.1 s)
+    is no slow drift through a level but a quick step of the winch (a large tree's pull
+    goes in steps of several quanta, and the tilts follow them within a fraction of a
+    second): interpolating from the last crossing to it would spread it over the level's
+    whole duration before it, i.e. move the load ahead of the tilts (on halloran_1 a lag
+    model's held-out root coverage fell from 94% to 78%,
+    ``experiments/results/mangrove/README.md``). Such a step is kept: the knots are the two
+    recorded readings on either side of it, so the force holds its level until the step.
+    Before the first and after the last knot the reading is kept; the result is never more
+    than half a quantum from the reading. Uses only the force record (never the tilts), so
+    it is the same for every test and model."""
     time = np.asarray(time, float)
     force = np.asarray(force, float)
     if time.shape != force.shape or time.ndim != 1:
         raise ValueError(f"dequantised_force: time {time.shape} and force {force.shape} differ")
     # the tare shifts the grid off multiples of the quantum: follow the steps themselves
-    change = np.flatnonzero(np.abs(np.diff(force)) > quantum / 2)
+    jump = np.abs(np.diff(force))
+    change = np.flatnonzero(jump > quantum / 2)
     if change.size < 2:
         return force.copy()
-    tk = 0.5 * (time[change] + time[change + 1])
-    fk = 0.5 * (force[change] + force[change + 1])
+    single = jump[change] < 1.5 * quantum  # one level: a crossing; more: a quick step
+    cross = change[single]
+    step = change[~single]
+    tk = np.concatenate(
+        [0.5 * (time[cross] + time[cross + 1]), time[step], time[step + 1]]
+    )
+    fk = np.concatenate(
+        [0.5 * (force[cross] + force[cross + 1]), force[step], force[step + 1]]
+    )
+    # consecutive steps share a sample: one knot per time (the same reading)
+    tk, first = np.unique(tk, return_index=True)
+    fk = fk[first]
     out = np.interp(time, tk, fk)
     out[time < tk[0]] = force[time < tk[0]]
     out[time > tk[-1]] = force[time > tk[-1]]
