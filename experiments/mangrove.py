@@ -238,6 +238,10 @@ def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, 
         "fit": (test.time[fit.start], test.time[fit.stop - 1]),
         "phases": {k: test.time[v] for k, v in test.phases.items()},
         "channels": chans,
+        # kept for bands and checks redrawn without refitting (the pickle in partial/)
+        "posterior": post,
+        "force": test.force[span],
+        "fit_slice": (fit.start - span.start, fit.stop - span.start),
     }
     return result, curves
 
@@ -283,19 +287,28 @@ def figure(curves: dict[str, dict], path: Path, kind: str = "elastic") -> None:
 
 
 def innovations_lag1(r: dict, cv: dict) -> dict | None:
-    """An ``ar1`` fit's check: the lag-1 autocorrelation of its standardised Kalman
-    innovations on the fitted samples, at the posterior means of the noise parameters."""
-    from treeinfer.inference.pulltest import lag1_autocorrelation, ou_white_innovations
+    """An ``ar1`` or ``ar1+gain`` fit's check: the lag-1 autocorrelation of its standardised
+    Kalman innovations on the fitted samples, at the posterior means of the noise parameters
+    (``ar1+gain``: the two-state filter, the predictive mean as the gain's coefficient)."""
+    from treeinfer.inference.pulltest import (
+        gain_ou_innovations,
+        lag1_autocorrelation,
+        ou_white_innovations,
+    )
 
-    if r["noise"] != "ar1":
+    if r["noise"] not in ("ar1", "ar1+gain"):
         return None
     n, chans = r["fit_samples"], cv["channels"]
-    resid = cv["tilt"][:, :n] - cv["band"]["mean"][:, :n]
-    p = {
-        k: np.array([r["posterior"][f"{k}_{c}"]["mean"] for c in chans])
-        for k in ("sigma_w", "sigma_a", "tau_ar")
-    }
-    z = ou_white_innovations(np.nan_to_num(resid), np.isfinite(resid), cv["time"][:n], *p.values())
+    mean = cv["band"]["mean"][:, :n]
+    resid = cv["tilt"][:, :n] - mean
+    keys = ("sigma_w", "sigma_a", "tau_ar")
+    keys += ("sigma_g", "tau_g") if r["noise"] == "ar1+gain" else ()
+    p = [np.array([r["posterior"][f"{k}_{c}"]["mean"] for c in chans]) for k in keys]
+    mask = np.isfinite(resid)
+    if r["noise"] == "ar1":
+        z = ou_white_innovations(np.nan_to_num(resid), mask, cv["time"][:n], *p)
+    else:
+        z = gain_ou_innovations(np.nan_to_num(resid), mean, mask, cv["time"][:n], *p)
     return {c: float(v) for c, v in zip(chans, lag1_autocorrelation(z))}
 
 

@@ -184,3 +184,77 @@ def test_band_with_a_gain_error_widens_with_the_tilt(model):
     want = 1.96 * np.sqrt(sigma[:, None] ** 2 + (sg[:, None] * theta) ** 2)
     np.testing.assert_allclose((band["hi"] - band["lo"]) / 2, want, rtol=0.05)
     assert want[0, -1] > 3 * want[0, 0]  # the gain term dominates at the top: can fail
+
+
+def test_gain_error_innovations_whiten_the_residuals():
+    """The ``ar1+gain`` check's innovations: (1) exactly the Cholesky whitening ``L^-1 r`` of
+    the residuals under the model's covariance (numpy, observed samples in time order); (2)
+    on a long simulated record they are white and N(0, 1) under the true parameters, and
+    correlated (the check fires) when the gain error is left out (sigma_g 100x too small);
+    (3) ``residual_check`` reports them for an ``ar1+gain`` posterior."""
+    from treeinfer.inference.pulltest import (
+        LAG1_LIMIT,
+        PullPosterior,
+        gain_ou_innovations,
+        lag1_autocorrelation,
+        residual_check,
+    )
+
+    rng = np.random.default_rng(8)
+    # (1) against the covariance, with missing samples and a gap
+    n = 60
+    steps = rng.uniform(0.08, 0.3, n - 1)
+    steps[20] = 3.0
+    t = np.concatenate([[0.0], np.cumsum(steps)])
+    theta = np.linspace(0.002, 0.03, n)[None]
+    sw, sa, ta = np.array([3e-4]), np.array([2e-4]), np.array([0.8])
+    sg, tg = np.array([0.1]), np.array([10.0])
+    lag = np.abs(t[:, None] - t[None, :])
+    cov = (
+        theta[0][:, None] * sg[0] ** 2 * np.exp(-lag / tg[0]) * theta[0][None, :]
+        + sa[0] ** 2 * np.exp(-lag / ta[0])
+        + sw[0] ** 2 * np.eye(n)
+    )
+    resid = (np.linalg.cholesky(cov) @ rng.standard_normal(n))[None]
+    mask = np.ones((1, n), bool)
+    mask[0, [7, 8, 33]] = False
+    z = gain_ou_innovations(resid, theta, mask, t, sw, sa, ta, sg, tg)
+    ok = mask[0]
+    want = np.linalg.solve(np.linalg.cholesky(cov[np.ix_(ok, ok)]), resid[0, ok])
+    np.testing.assert_allclose(z[0, ok], want, atol=2e-5)  # float32 filter
+    assert np.isnan(z[0, ~ok]).all()
+    # (2) a long record: the gain error dominates where the tilt is large
+    n = 4000
+    t = np.cumsum(rng.uniform(0.08, 0.14, n))
+    theta = (0.02 * (1 + np.sin(t / 40.0)))[None]
+    g, a = np.zeros(n), np.zeros(n)
+    g[0], a[0] = sg[0] * rng.standard_normal(), sa[0] * rng.standard_normal()
+    for i in range(1, n):
+        rg, ra = np.exp(-(t[i] - t[i - 1]) / np.array([tg[0], ta[0]]))
+        g[i] = rg * g[i - 1] + sg[0] * math.sqrt(1 - rg**2) * rng.standard_normal()
+        a[i] = ra * a[i - 1] + sa[0] * math.sqrt(1 - ra**2) * rng.standard_normal()
+    resid = (theta[0] * g + a + sw[0] * rng.standard_normal(n))[None]
+    mask = np.ones((1, n), bool)
+    z = gain_ou_innovations(resid, theta, mask, t, sw, sa, ta, sg, tg)
+    assert abs(lag1_autocorrelation(z)[0]) < 0.06
+    assert np.nanstd(z) == pytest.approx(1.0, abs=0.05)
+    z_bad = gain_ou_innovations(resid, theta, mask, t, sw, sa, ta, sg / 100, tg)
+    assert lag1_autocorrelation(z_bad)[0] > LAG1_LIMIT
+    # (3) through residual_check, at a posterior of one point
+    s = 5
+    post = PullPosterior(
+        joints=("root",),
+        channels=("root",),
+        kp=np.ones((s, 1)),
+        sigma=np.ones((s, 1)),
+        noise="ar1+gain",
+        noise_params={
+            k: np.tile(v, (s, 1))
+            for k, v in dict(sigma_w=sw, sigma_a=sa, tau_ar=ta, sigma_g=sg, tau_g=tg).items()
+        },
+    )
+    tilt = theta + resid
+    check = residual_check(theta, tilt, post, time=t)
+    np.testing.assert_allclose(check["lag1_innovations"], lag1_autocorrelation(z), atol=1e-4)
+    assert check["ar1_enough"].all()
+    assert check["needs_ar1"].all()  # the raw residuals are correlated (by design)

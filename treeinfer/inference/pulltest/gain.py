@@ -33,8 +33,9 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-__all__ = ["GAIN_SD_PRIOR", "GAIN_TAU_PRIOR", "gain_ou_log_prob"]
+__all__ = ["GAIN_SD_PRIOR", "GAIN_TAU_PRIOR", "gain_ou_innovations", "gain_ou_log_prob"]
 
 GAIN_SD_PRIOR = (1.0e-3, 0.5)  # sigma_g (a fraction of the tilt): LogUniform
 GAIN_TAU_PRIOR = (5.0, 50.0)  # s: LogUniform; beyond the AR(1)'s 5 s, within a fitted half-ramp
@@ -47,10 +48,31 @@ def gain_ou_log_prob(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g,
     [C]; summed over channels (module docstring)."""
     import numpyro.distributions as dist
 
+    v, s, m = _filter(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g, tau_g)
+    lp = dist.Normal(0.0, jnp.sqrt(s)).log_prob(v)
+    return jnp.sum(jnp.where(m, lp, 0.0))
+
+
+def gain_ou_innovations(
+    resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g, tau_g
+) -> np.ndarray:
+    """``[C, T]``: the two-state Kalman filter's standardised one-step innovations
+    ``v / sqrt(S)`` (NaN where missing), arguments as :func:`gain_ou_log_prob`. Under the
+    model they are i.i.d. N(0, 1) (the Cholesky whitening of the residuals, in time order):
+    their lag-1 autocorrelation is the check of an ``ar1+gain`` fit
+    (:func:`.residuals.lag1_autocorrelation`; the raw residuals are correlated by design)."""
+    v, s, m = _filter(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g, tau_g)
+    z = np.asarray(v / jnp.sqrt(s))
+    return np.where(np.asarray(m), z, np.nan).T
+
+
+def _filter(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g, tau_g):
+    """The filter's innovations ``v`` and their variances ``s`` [T, C], and ``mask`` [T, C]."""
     r = jnp.moveaxis(jnp.asarray(resid), -1, 0)  # [T, C]
     h = jnp.moveaxis(jnp.asarray(theta), -1, 0)
     m = jnp.moveaxis(jnp.asarray(mask, bool), -1, 0)
     r = jnp.where(m, r, 0.0)
+    h = jnp.where(m, h, 0.0)  # a missing sample's tilt may be NaN: never used, kept finite
     time = jnp.asarray(time, r.dtype)
     dt = jnp.concatenate([jnp.zeros(1, r.dtype), jnp.diff(time)])
     q_stat = jnp.stack([jnp.asarray(sigma_g) ** 2, jnp.asarray(sigma_a) ** 2], -1)  # [C, 2]
@@ -79,5 +101,4 @@ def gain_ou_log_prob(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g,
     mean0 = jnp.zeros((c, 2), r.dtype)
     cov0 = jnp.eye(2) * q_stat[:, :, None]  # stationary start (the first step has dt = 0)
     _, (v, s) = jax.lax.scan(step, (mean0, cov0), (r, h, m, dt))
-    lp = dist.Normal(0.0, jnp.sqrt(s)).log_prob(v)
-    return jnp.sum(jnp.where(m, lp, 0.0))
+    return v, s, m

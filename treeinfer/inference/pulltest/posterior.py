@@ -424,25 +424,30 @@ def residual_check(band_mean, tilt, post: PullPosterior | None = None, time=None
     """The check of :mod:`.residuals`: ``lag1`` [C] the lag-1 autocorrelation of the recorded
     ``tilt`` [C, T] minus a fit's predictive ``mean`` [C, T] (on the fitted samples), and
     ``needs_ar1`` [C] where it exceeds :data:`~.residuals.LAG1_LIMIT` (i.i.d. noise would
-    make the band and the intervals too narrow). With an ``ar1`` posterior ``post`` (and
-    ``time`` [T] s), also ``lag1_innovations`` [C]: the same statistic of the standardised
-    Kalman innovations at the posterior medians, and ``ar1_enough`` [C] where it is below the
-    limit (the AR(1) part accounts for the correlation)."""
+    make the band and the intervals too narrow). With an ``ar1`` or ``ar1+gain`` posterior
+    ``post`` (and ``time`` [T] s), also ``lag1_innovations`` [C]: the same statistic of the
+    standardised Kalman innovations at the posterior medians of the noise parameters (for
+    ``ar1+gain`` the two-state filter of :mod:`.gain`, with ``mean`` as the gain's
+    coefficient), and ``ar1_enough`` [C] where it is below the limit (the correlated noise
+    model accounts for the residuals' correlation)."""
+    from .gain import gain_ou_innovations
     from .residuals import LAG1_LIMIT, ou_white_innovations
 
     resid = np.asarray(tilt, float) - np.asarray(band_mean, float)
     r1 = lag1_autocorrelation(resid)
     out = {"lag1": r1, "needs_ar1": r1 > LAG1_LIMIT}
-    if post is not None and post.noise == "ar1":
-        med = {k: np.median(post.noise_params[k], axis=0) for k in ("sigma_w", "sigma_a", "tau_ar")}
-        z = ou_white_innovations(
-            np.nan_to_num(resid),
-            np.isfinite(resid),
-            _time_base(time, resid.shape[1]),
-            med["sigma_w"],
-            med["sigma_a"],
-            med["tau_ar"],
-        )
-        out["lag1_innovations"] = lag1_autocorrelation(z)
-        out["ar1_enough"] = out["lag1_innovations"] < LAG1_LIMIT
+    if post is None or post.noise not in ("ar1", "ar1+gain"):
+        return out
+    keys = ("sigma_w", "sigma_a", "tau_ar")
+    keys += ("sigma_g", "tau_g") if post.noise == "ar1+gain" else ()
+    med = [np.median(post.noise_params[k], axis=0) for k in keys]
+    mask = np.isfinite(resid)
+    args = (np.nan_to_num(resid), mask, _time_base(time, resid.shape[1]), *med)
+    if post.noise == "ar1":
+        z = ou_white_innovations(*args)
+    else:
+        theta = np.nan_to_num(np.asarray(band_mean, float))
+        z = gain_ou_innovations(args[0], theta, *args[1:])
+    out["lag1_innovations"] = lag1_autocorrelation(z)
+    out["ar1_enough"] = out["lag1_innovations"] < LAG1_LIMIT
     return out
