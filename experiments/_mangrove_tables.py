@@ -1,10 +1,11 @@
 """The tables of ``experiments/mangrove.py`` (results.md): the headline per test and channel,
-the per-part table and the posterior summaries."""
+the per-part table and the posterior summaries; and its figure of the bands."""
 
 from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -156,3 +157,43 @@ def markdown(results: list[dict], config: dict) -> str:
         )
     lines += ["", "Config:", "", "```json", json.dumps(config, indent=2), "```", ""]
     return "\n".join(lines)
+
+
+def figure(curves: dict[str, dict], path: Path, kind: str = "elastic") -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(curves)
+    fig, axs = plt.subplots(len(names), 2, figsize=(13, 2.9 * len(names)), squeeze=False)
+    for r, name in enumerate(names):
+        cv = curves[name]
+        t = cv["time"]
+        for i, c in enumerate(cv["channels"]):
+            ax = axs[r, i]
+            deg = np.rad2deg
+            ax.axvspan(*cv["fit"], color="0.9", label="fitted")
+            ax.plot(t, deg(cv["tilt"][i]), ".", ms=1.5, color="0.3", label="recorded")
+            ax.fill_between(
+                t,
+                deg(cv["band"]["lo"][i]),
+                deg(cv["band"]["hi"][i]),
+                color="C0",
+                alpha=0.35,
+                label=f"chain ({kind}): 95% predictive band",
+            )
+            ax.plot(t, deg(cv["band"]["mean"][i]), color="C0", lw=0.8)
+            ax.plot(t, deg(cv["beam"][i]), "--", color="C3", lw=0.8, label="beam baseline")
+            ax.plot(t, deg(cv["springs"][i]), ":", color="C2", lw=0.9, label="spring baseline")
+            for k in ("ramp_end", "release_start"):
+                ax.axvline(cv["phases"][k], color="0.5", lw=0.5)
+            ax.set_title(f"{name}: {c} inclinometer", fontsize=9)
+            ax.set_ylabel("tilt along the pull (deg)")
+            if r == len(names) - 1:
+                ax.set_xlabel("time (s)")
+            if r == 0 and i == 0:
+                ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)

@@ -50,7 +50,7 @@ if __name__ == "__main__":  # run as a script from anywhere: use this checkout's
 
 import numpy as np
 
-from experiments._mangrove_tables import PARTS, _deg, markdown
+from experiments._mangrove_tables import PARTS, _deg, figure, markdown
 
 REPO = Path(__file__).resolve().parent.parent
 TESTS = ("halloran_1", "halloran_10", "gladstone_21", "gladstone_31")
@@ -125,28 +125,26 @@ def _order(lab: str) -> tuple[int, str]:
     return (list(MODELS).index(kind), force)
 
 
-def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, dict]:
+def load_test(name: str, data: Path, args):
+    """The test (force as ``--force`` says), its set-up and its chain model."""
     from treeinfer.data import make_pull_test, read_pul, read_test_setups
-    from treeinfer.inference.pulltest import (
-        beam_predict,
-        fit_beam,
-        fit_pull_test,
-        fit_springs,
-        predictive_band,
-        pull_model,
-        residual_check,
-        springs_predict,
-    )
+    from treeinfer.inference.pulltest import pull_model
 
-    creep, noise, lag, *soft = MODELS[kind]
-    t0 = time.time()
     setup = read_test_setups(data / "trees.csv")[name]
     test = make_pull_test(read_pul(data / "pull_tests" / f"{name}.pul"), setup)
     if args.force == "dequantised":  # the load cell's 10 N staircase -> its level crossings
         from treeinfer.data.pull_test import dequantised_force
 
         test = dataclasses.replace(test, force=dequantised_force(test.time, test.force))
-    model = pull_model(setup)
+    return test, setup, pull_model(setup)
+
+
+def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, dict]:
+    from treeinfer.inference.pulltest import fit_pull_test
+
+    creep, noise, lag, *soft = MODELS[kind]
+    t0 = time.time()
+    test, setup, model = load_test(name, data, args)
     chans = list(model.sensors)
     win = windows(test, args.split)
     y = np.stack([test.tilt[c] for c in chans])  # [C, T] rad
@@ -165,11 +163,59 @@ def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, 
         lag=lag,
         soft=bool(soft and soft[0]),
     )
+    result = {
+        "test": name,
+        "model": label(kind, args.force),
+        "force": args.force,
+        "soft": bool(soft and soft[0]),
+        "lag": lag,
+        "noise": noise,
+        "creep": creep,
+        "tree_id": setup.tree_id,
+        "species": setup.species,
+        "site": setup.site,
+        "peak_force_N": float(test.force.max()),
+        "cable_angle_deg": math.degrees(setup.cable_angle),
+        "sling_height_m": setup.sling_height,
+        "channels": {
+            c: {"height_m": test.channels[c].height, "link": model.sensors[c]} for c in chans
+        },
+        "phases_s": {k: float(test.time[v]) for k, v in test.phases.items()},
+        "fit_samples": int(fit.stop - fit.start),
+        "posterior": post.summary(),
+        "diagnostics": post.diagnostics,
+    }
+    result, curves = score(test, setup, model, post, args, result)
+    result["wall_s"] = time.time() - t0
+    return result, curves
+
+
+def score(test, setup, model, post, args, result: dict) -> tuple[dict, dict]:
+    """The band(s), the baselines and the per-part scores of a fitted posterior ``post``
+    (``result`` completed). An ``ar1+gain`` fit is scored with both gain bands, the
+    stationary marginal and the forecast from the fitted part (``coverage_<band>``,
+    ``band_width_<band>``); ``coverage`` and ``band_width`` are those of ``--gain-band``."""
+    from treeinfer.inference.pulltest import (
+        beam_predict,
+        fit_beam,
+        fit_springs,
+        predictive_band,
+        residual_check,
+        springs_predict,
+    )
+
+    chans = list(model.sensors)
+    win = windows(test, args.split)
+    y = np.stack([test.tilt[c] for c in chans])  # [C, T] rad
+    fit = win["fit"]
     span = slice(win["fit"].start, win["release"].stop)
     # the creep state starts at rest at the ramp's start (the fit window's and the band's)
-    band = predictive_band(
-        model, post, test.force[span], n_draws=args.draws, seed=args.seed, time=test.time[span]
-    )
+    kw = dict(n_draws=args.draws, seed=args.seed, time=test.time[span])
+    bands = {"stationary": predictive_band(model, post, test.force[span], **kw)}
+    if post.noise == "ar1+gain":
+        bands["forecast"] = predictive_band(model, post, test.force[span], fit_tilt=y[:, fit], **kw)
+    choice = args.gain_band if args.gain_band in bands else "stationary"
+    band = bands[choice]
     heights = [test.channels[c].height for c in chans]
     beam = fit_beam(heights, setup.sling_height, setup.cable_angle, test.force[fit], y[:, fit])
     beam_all = beam_predict(beam, heights, setup.sling_height, setup.cable_angle, test.force[span])
@@ -189,45 +235,34 @@ def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, 
         for i, c in enumerate(chans):
             yy = y[i, off:][idx]
             ok = np.isfinite(yy)
-            inside = (yy >= band["lo"][i, idx]) & (yy <= band["hi"][i, idx])
+
+            def cover(b):
+                inside = (yy >= b["lo"][i, idx]) & (yy <= b["hi"][i, idx])
+                return float(inside[ok].mean()) if ok.any() else math.nan
+
+            def width(b):  # the band's sharpness: a band as wide as the tilt covers anything
+                return float(np.mean(b["hi"][i, idx] - b["lo"][i, idx]))
+
             rec[c] = {
                 "n": int(ok.sum()),
-                "coverage": float(inside[ok].mean()) if ok.any() else math.nan,
+                "coverage": cover(band),
                 "rmse_chain": _rmse(band["mean"][i, idx], yy),
-                # the band's sharpness: a band as wide as the tilt covers anything
-                "band_width": float(np.mean(band["hi"][i, idx] - band["lo"][i, idx])),
+                "band_width": width(band),
                 "rmse_beam": _rmse(beam_all[i, idx], yy),
                 "rmse_springs": _rmse(springs_all[i, idx], yy),
             }
+            if len(bands) > 1:
+                for k, b in bands.items():
+                    rec[c] |= {f"coverage_{k}": cover(b), f"band_width_{k}": width(b)}
         parts[part] = rec
     n_fit = fit.stop - fit.start
     check = residual_check(band["mean"][:, :n_fit], y[:, fit])
-    result = {
-        "test": name,
-        "model": label(kind, args.force),
-        "force": args.force,
-        "soft": bool(soft and soft[0]),
-        "lag": lag,
-        "noise": noise,
-        "creep": creep,
+    result = result | {
+        "gain_band": choice if post.noise == "ar1+gain" else None,
         "residual_lag1": {c: float(v) for c, v in zip(chans, check["lag1"])},
-        "tree_id": setup.tree_id,
-        "species": setup.species,
-        "site": setup.site,
-        "peak_force_N": float(test.force.max()),
-        "cable_angle_deg": math.degrees(setup.cable_angle),
-        "sling_height_m": setup.sling_height,
-        "channels": {
-            c: {"height_m": test.channels[c].height, "link": model.sensors[c]} for c in chans
-        },
-        "phases_s": {k: float(test.time[v]) for k, v in test.phases.items()},
-        "fit_samples": int(fit.stop - fit.start),
-        "posterior": post.summary(),
-        "diagnostics": post.diagnostics,
         "beam": {"k_root": beam.k_root, "ei": beam.ei, "fit_rmse": beam.rmse},
         "springs": {c: float(k) for c, k in zip(chans, springs)},
         "parts": parts,
-        "wall_s": time.time() - t0,
     }
     curves = {
         "time": test.time[span],
@@ -244,46 +279,6 @@ def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, 
         "fit_slice": (fit.start - span.start, fit.stop - span.start),
     }
     return result, curves
-
-
-def figure(curves: dict[str, dict], path: Path, kind: str = "elastic") -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    names = list(curves)
-    fig, axs = plt.subplots(len(names), 2, figsize=(13, 2.9 * len(names)), squeeze=False)
-    for r, name in enumerate(names):
-        cv = curves[name]
-        t = cv["time"]
-        for i, c in enumerate(cv["channels"]):
-            ax = axs[r, i]
-            deg = np.rad2deg
-            ax.axvspan(*cv["fit"], color="0.9", label="fitted")
-            ax.plot(t, deg(cv["tilt"][i]), ".", ms=1.5, color="0.3", label="recorded")
-            ax.fill_between(
-                t,
-                deg(cv["band"]["lo"][i]),
-                deg(cv["band"]["hi"][i]),
-                color="C0",
-                alpha=0.35,
-                label=f"chain ({kind}): 95% predictive band",
-            )
-            ax.plot(t, deg(cv["band"]["mean"][i]), color="C0", lw=0.8)
-            ax.plot(t, deg(cv["beam"][i]), "--", color="C3", lw=0.8, label="beam baseline")
-            ax.plot(t, deg(cv["springs"][i]), ":", color="C2", lw=0.9, label="spring baseline")
-            for k in ("ramp_end", "release_start"):
-                ax.axvline(cv["phases"][k], color="0.5", lw=0.5)
-            ax.set_title(f"{name}: {c} inclinometer", fontsize=9)
-            ax.set_ylabel("tilt along the pull (deg)")
-            if r == len(names) - 1:
-                ax.set_xlabel("time (s)")
-            if r == 0 and i == 0:
-                ax.legend(fontsize=7, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
 
 
 def innovations_lag1(r: dict, cv: dict) -> dict | None:
@@ -331,6 +326,19 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--split", choices=SPLITS, default="ramp", help="fitted part (windows())")
     ap.add_argument(
+        "--gain-band",
+        choices=("stationary", "forecast"),
+        default="forecast",
+        help="an ar1+gain fit's band: the gain error's stationary marginal, or its forecast "
+        "from the fitted part (treeinfer.inference.pulltest.gain.gain_band_terms); both scored",
+    )
+    ap.add_argument(
+        "--rescore",
+        action="store_true",
+        help="redraw the bands and scores of the fits kept in partial/ from their posteriors "
+        "(pickles that keep one), refitting nothing",
+    )
+    ap.add_argument(
         "--models",
         default=BEST,
         help=f"comma-separated: {', '.join(MODELS)} (default: {BEST}, the best on all four)",
@@ -375,6 +383,10 @@ def main(argv=None) -> int:
             if kept.is_file():
                 r, cv = pickle.loads(kept.read_bytes())
                 resumed += 1
+                if args.rescore and "posterior" in cv:  # same posterior, bands redrawn
+                    test, setup, model = load_test(name, data, args)
+                    r, cv = score(test, setup, model, cv["posterior"], args, r)
+                    kept.write_bytes(pickle.dumps((r, cv)))
             elif args.tables_only:
                 print(f"{name} ({lab}): not fitted yet, left out (--tables-only)", flush=True)
                 continue
@@ -416,6 +428,7 @@ def main(argv=None) -> int:
         "tests": sorted({r["test"] for r in results}),
         "models": list(dict.fromkeys(r["model"] for r in results)),
         "split": args.split,
+        "gain_band": args.gain_band,
         "force": args.force,
         "warmup": args.warmup,
         "samples": args.samples,

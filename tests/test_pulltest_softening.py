@@ -258,3 +258,67 @@ def test_gain_error_innovations_whiten_the_residuals():
     np.testing.assert_allclose(check["lag1_innovations"], lag1_autocorrelation(z), atol=1e-4)
     assert check["ar1_enough"].all()
     assert check["needs_ar1"].all()  # the raw residuals are correlated (by design)
+
+
+def test_gain_forecast_is_the_gaussian_conditional_of_the_gain():
+    """The gain error's forecast from the fitted residuals against Gaussian conditioning on
+    the full covariance (numpy): ``E[g(t) | r] = k' S^-1 r``, ``Var = sigma_g^2 - k' S^-1 k``
+    with ``k_i = theta_i sigma_g^2 exp(-|t - t_i| / tau_g)``; right after the fitted part the
+    forecast is much narrower than the stationary marginal, long after it is that marginal."""
+    from treeinfer.inference.pulltest import gain_forecast
+
+    rng = np.random.default_rng(11)
+    n = 80
+    t = np.concatenate([[0.0], np.cumsum(rng.uniform(0.08, 0.3, n - 1))])
+    theta = np.stack([np.linspace(0.002, 0.03, n), np.linspace(0.01, 0.05, n)])
+    sw, sa, ta = np.array([2e-4, 4e-4]), np.array([1e-4, 3e-4]), np.array([0.6, 1.5])
+    sg, tg = np.array([0.1, 0.3]), np.array([12.0, 6.0])
+    later = t[-1] + np.array([0.0, 0.5, 3.0, 10.0, 300.0])
+    resid = np.empty((2, n))
+    want_m, want_v = np.empty((2, later.size)), np.empty((2, later.size))
+    for i in range(2):
+        lag = np.abs(t[:, None] - t[None, :])
+        kg = sg[i] ** 2 * np.exp(-lag / tg[i])
+        cov = theta[i][:, None] * kg * theta[i][None, :] + sa[i] ** 2 * np.exp(-lag / ta[i])
+        cov += sw[i] ** 2 * np.eye(n)
+        resid[i] = np.linalg.cholesky(cov) @ rng.standard_normal(n)
+        k = theta[i][:, None] * sg[i] ** 2 * np.exp(-np.abs(t[:, None] - later) / tg[i])
+        want_m[i] = k.T @ np.linalg.solve(cov, resid[i])
+        want_v[i] = sg[i] ** 2 - np.einsum("if,if->f", k, np.linalg.solve(cov, k))
+    mask = np.ones((2, n), bool)
+    m, v = gain_forecast(resid, theta, mask, t, sw, sa, ta, sg, tg, later)
+    np.testing.assert_allclose(np.asarray(m), want_m, atol=2e-3 * sg.max())
+    np.testing.assert_allclose(np.asarray(v), want_v, rtol=2e-3, atol=1e-6 * sg.max() ** 2)
+    assert np.all(np.asarray(v)[:, 0] < 0.5 * sg**2)  # the fitted part constrains the gain
+    np.testing.assert_allclose(np.asarray(v)[:, -1], sg**2, rtol=1e-3)
+
+
+def test_band_with_the_gain_forecast_follows_the_fitted_part(model):
+    """A posterior of one point; the fitted part's tilts read 20% above the model (a gain
+    error of +0.2, sigma_g 0.3, tau_g 50 s): with ``fit_tilt`` the band just after the fitted
+    part is centred near 1.2 times the model and narrower than the stationary band."""
+    from treeinfer.inference.pulltest import PullPosterior
+
+    s, n_fit = 300, 60
+    params = dict(sigma_w=2e-6, sigma_a=1e-6, tau_ar=1.0, sigma_g=0.3, tau_g=50.0)
+    post = PullPosterior(
+        joints=("root", "stem"),
+        channels=("root", "trunk"),
+        kp=np.tile(KP, (s, 1)),
+        sigma=np.full((s, 2), np.hypot(2e-6, 1e-6)),
+        noise="ar1+gain",
+        noise_params={k: np.full((s, 2), v) for k, v in params.items()},
+    )
+    force = np.linspace(100.0, 4000.0, 80)
+    time = np.arange(80) * 0.1
+    theta = np.asarray(model_tilts(model, jnp.asarray(KP[None]), jnp.asarray(force))[0][0])
+    fit_tilt = 1.2 * theta[:, :n_fit]
+    stat = predictive_band(model, post, force, n_draws=s, seed=1, time=time)
+    fc = predictive_band(model, post, force, n_draws=s, seed=1, time=time, fit_tilt=fit_tilt)
+    after = slice(n_fit, None)
+    centre = (fc["lo"][:, after] + fc["hi"][:, after]) / 2
+    np.testing.assert_allclose(centre / theta[:, after], 1.2, atol=0.02)
+    w_fc = (fc["hi"] - fc["lo"])[:, after]
+    w_st = (stat["hi"] - stat["lo"])[:, after]
+    assert np.all(w_fc < 0.3 * w_st)
+    np.testing.assert_allclose(fc["lo"][:, :n_fit], stat["lo"][:, :n_fit])  # on the fit: same

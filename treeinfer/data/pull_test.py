@@ -378,12 +378,8 @@ def dequantised_force(time, force, quantum: float = FORCE_QUANTUM_N) -> np.ndarr
     single = jump[change] < 1.5 * quantum  # one level: a crossing; more: a quick step
     cross = change[single]
     step = change[~single]
-    tk = np.concatenate(
-        [0.5 * (time[cross] + time[cross + 1]), time[step], time[step + 1]]
-    )
-    fk = np.concatenate(
-        [0.5 * (force[cross] + force[cross + 1]), force[step], force[step + 1]]
-    )
+    tk = np.concatenate([0.5 * (time[cross] + time[cross + 1]), time[step], time[step + 1]])
+    fk = np.concatenate([0.5 * (force[cross] + force[cross + 1]), force[step], force[step + 1]])
     # consecutive steps share a sample: one knot per time (the same reading)
     tk, first = np.unique(tk, return_index=True)
     fk = fk[first]

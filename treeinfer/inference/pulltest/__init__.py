@@ -34,6 +34,7 @@ _EXPORTS = {
     "ou_white_log_prob": "residuals",
     "GAIN_SD_PRIOR": "gain",
     "GAIN_TAU_PRIOR": "gain",
+    "gain_forecast": "gain",
     "gain_ou_innovations": "gain",
     "gain_ou_log_prob": "gain",
     "SOFT_TILT_PRIOR": "softening",

@@ -35,7 +35,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["GAIN_SD_PRIOR", "GAIN_TAU_PRIOR", "gain_ou_innovations", "gain_ou_log_prob"]
+__all__ = [
+    "GAIN_SD_PRIOR",
+    "GAIN_TAU_PRIOR",
+    "gain_forecast",
+    "gain_ou_innovations",
+    "gain_ou_log_prob",
+]
 
 GAIN_SD_PRIOR = (1.0e-3, 0.5)  # sigma_g (a fraction of the tilt): LogUniform
 GAIN_TAU_PRIOR = (5.0, 50.0)  # s: LogUniform; beyond the AR(1)'s 5 s, within a fitted half-ramp
@@ -48,7 +54,7 @@ def gain_ou_log_prob(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g,
     [C]; summed over channels (module docstring)."""
     import numpyro.distributions as dist
 
-    v, s, m = _filter(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g, tau_g)
+    v, s, m, _ = _filter(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g, tau_g)
     lp = dist.Normal(0.0, jnp.sqrt(s)).log_prob(v)
     return jnp.sum(jnp.where(m, lp, 0.0))
 
@@ -61,7 +67,7 @@ def gain_ou_innovations(
     model they are i.i.d. N(0, 1) (the Cholesky whitening of the residuals, in time order):
     their lag-1 autocorrelation is the check of an ``ar1+gain`` fit
     (:func:`.residuals.lag1_autocorrelation`; the raw residuals are correlated by design)."""
-    v, s, m = _filter(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g, tau_g)
+    v, s, m, _ = _filter(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g, tau_g)
     z = np.asarray(v / jnp.sqrt(s))
     return np.where(np.asarray(m), z, np.nan).T
 
@@ -100,5 +106,48 @@ def _filter(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g, tau_g):
     c = r.shape[1]
     mean0 = jnp.zeros((c, 2), r.dtype)
     cov0 = jnp.eye(2) * q_stat[:, :, None]  # stationary start (the first step has dt = 0)
-    _, (v, s) = jax.lax.scan(step, (mean0, cov0), (r, h, m, dt))
-    return v, s, m
+    last, (v, s) = jax.lax.scan(step, (mean0, cov0), (r, h, m, dt))
+    return v, s, m, last
+
+
+def gain_forecast(
+    resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g, tau_g, later
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """The gain error's forecast from the fitted part: its mean and variance ``[C, F]`` at
+    times ``later`` [F] s (at or after ``time[-1]``), given the residuals of the fitted
+    samples (arguments as :func:`gain_ou_log_prob`): the filter's state at the last fitted
+    sample, ``m_T`` and ``P_T``, carried forward by the Ornstein-Uhlenbeck process,
+    ``rho m_T`` and ``rho^2 P_T + (1 - rho^2) sigma_g^2`` with ``rho = exp(-(t - t_T) /
+    tau_g)``. Just after the fitted part it says what the fitted part showed of the gain;
+    many correlation times later it is the stationary marginal ``(0, sigma_g^2)``."""
+    *_, (mean, cov) = _filter(resid, theta, mask, time, sigma_w, sigma_a, tau_a, sigma_g, tau_g)
+    lag = jnp.asarray(later) - jnp.asarray(time)[-1]  # [F]
+    rho = jnp.exp(-jnp.maximum(lag, 0.0)[None, :] / jnp.asarray(tau_g)[:, None])  # [C, F]
+    sg2 = jnp.asarray(sigma_g)[:, None] ** 2
+    return rho * mean[:, :1], rho**2 * cov[:, :1, 0] + (1 - rho**2) * sg2
+
+
+def gain_band_terms(pred, params: dict, time, fit_tilt=None) -> tuple[np.ndarray, np.ndarray]:
+    """The gain error in a predictive band, per draw: its mean and sd ``[S, C, T]`` for the
+    model's tilts ``pred`` [S, C, T] at ``time`` [T] s and the draws' ``params`` (``sigma_w``,
+    ``sigma_a``, ``tau_ar``, ``sigma_g``, ``tau_g``, each [S, C]). Without ``fit_tilt``: the
+    stationary marginal (mean 0, sd ``sigma_g``) everywhere. With ``fit_tilt`` [C, n], the
+    recorded tilts of the first ``n`` samples (the fitted part): after them, each draw's
+    :func:`gain_forecast` from its own residuals there; on them, the stationary marginal."""
+    pred = np.asarray(pred)
+    sg = np.asarray(params["sigma_g"])
+    mean = np.zeros_like(pred)
+    sd = np.broadcast_to(sg[:, :, None], pred.shape).copy()
+    if fit_tilt is None:
+        return mean, sd
+    fit_tilt = np.asarray(fit_tilt, float)
+    n = fit_tilt.shape[1]
+    time = np.asarray(time, float)
+    mask = np.isfinite(fit_tilt)
+    resid = np.where(mask, fit_tilt[None] - pred[:, :, :n], 0.0)
+    keys = ("sigma_w", "sigma_a", "tau_ar", "sigma_g", "tau_g")
+    fc = jax.vmap(gain_forecast, in_axes=(0, 0, None, None, 0, 0, 0, 0, 0, None))
+    m, v = fc(resid, pred[:, :, :n], mask, time[:n], *(params[k] for k in keys), time[n:])
+    mean[:, :, n:] = np.asarray(m)
+    sd[:, :, n:] = np.sqrt(np.maximum(np.asarray(v), 0.0))
+    return mean, sd

@@ -389,11 +389,15 @@ def predictive_band(
     n_draws: int = 400,
     seed=0,
     time=None,
+    fit_tilt=None,
 ) -> dict[str, np.ndarray]:
     """The posterior predictive of the recorded tilt under ``force`` [T] (at ``time`` [T] s,
     which the creep follows; its state starts at rest at ``time[0]``): ``mean`` (the model's
     tilt averaged over draws), ``lo``/``hi`` (the central ``level`` interval of model + noise),
-    ``model_lo``/``model_hi`` (of the model's tilt alone); each [C, T] rad."""
+    ``model_lo``/``model_hi`` (of the model's tilt alone); each [C, T] rad. An ``ar1+gain``
+    posterior's gain error enters by its stationary marginal, or, given ``fit_tilt`` [C, n]
+    (the recorded tilts of the first ``n`` samples, the fitted part), by its forecast from
+    them after them (:func:`.gain.gain_band_terms`)."""
     rng = np.random.default_rng(seed)
     idx = rng.choice(post.kp.shape[0], size=min(n_draws, post.kp.shape[0]), replace=False)
     force = jnp.asarray(np.asarray(force, float))
@@ -406,9 +410,13 @@ def predictive_band(
     # a few noise draws per parameter draw: smoother tail quantiles for the same solves
     eps = rng.standard_normal((NOISE_DRAWS, *pred.shape))
     noisy = pred[None] + sig[None, :, :, None] * eps
-    if "sigma_g" in post.noise_params:  # the gain error's stationary marginal (.gain)
-        sg = post.noise_params["sigma_g"][idx][np.asarray(stable)]
-        noisy = noisy + pred[None] * sg[None, :, :, None] * rng.standard_normal(eps.shape)
+    if "sigma_g" in post.noise_params:  # the gain error (.gain)
+        from .gain import gain_band_terms
+
+        keep = idx[np.asarray(stable)]
+        params = {k: v[keep] for k, v in post.noise_params.items()}
+        g_mean, g_sd = gain_band_terms(pred, params, time, fit_tilt)
+        noisy = noisy + pred[None] * (g_mean[None] + g_sd[None] * rng.standard_normal(eps.shape))
     noisy = noisy.reshape(-1, *pred.shape[1:])
     q = (1 - level) / 2
     return {
