@@ -115,9 +115,10 @@ def _rmse(a, b) -> float:
     return float(np.sqrt(np.mean(d**2))) if d.size else math.nan
 
 
-def label(kind: str, force: str) -> str:
-    """A fit's name in the tables: the model, ``/dq`` when driven by the dequantised force."""
-    return kind if force == "recorded" else f"{kind}/dq"
+def label(kind: str, force: str, hist: bool = False) -> str:
+    """A fit's name in the tables: the model, ``/dq`` when driven by the dequantised force,
+    ``/hist`` when from the record's start (``--history``)."""
+    return kind + ("" if force == "recorded" else "/dq") + ("/hist" if hist else "")
 
 
 def _order(lab: str) -> tuple[int, str]:
@@ -139,6 +140,21 @@ def load_test(name: str, data: Path, args):
     return test, setup, pull_model(setup)
 
 
+HISTORY_STEP_S = 1.0  # s: the load before the ramp, thinned (a slow pre-load; creep >= 5 s)
+
+
+def history(test, start: int, on: bool) -> np.ndarray:
+    """Indices of the samples before ``start`` (the fitted part's first) that drive the model
+    without being fitted (``--history``): from the record's start, at least
+    :data:`HISTORY_STEP_S` apart. Why: the creep and lag elements start at rest where the
+    simulation starts; a tree held under a pre-load (halloran_1: 10-35 N for 80 s before the
+    ramp) has crept already, and a model started at the ramp sees the tilt there too high."""
+    if not on or start == 0:
+        return np.zeros(0, int)
+    t = test.time[:start]
+    return np.flatnonzero(np.diff(np.floor((t - t[0]) / HISTORY_STEP_S), prepend=-1) > 0)
+
+
 def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, dict]:
     from treeinfer.inference.pulltest import fit_pull_test
 
@@ -149,11 +165,13 @@ def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, 
     win = windows(test, args.split)
     y = np.stack([test.tilt[c] for c in chans])  # [C, T] rad
     fit = win["fit"]
+    hist = history(test, fit.start, args.history)
+    tilt_fit = np.concatenate([np.full((len(chans), hist.size), np.nan), y[:, fit]], axis=1)
     post = fit_pull_test(
         model,
-        test.force[fit],
-        y[:, fit],
-        time=test.time[fit],
+        test.force[np.r_[hist, fit.start : fit.stop]],
+        tilt_fit,
+        time=test.time[np.r_[hist, fit.start : fit.stop]],
         num_warmup=args.warmup,
         num_samples=args.samples,
         num_chains=args.chains,
@@ -165,7 +183,7 @@ def run_test(name: str, data: Path, args, kind: str = "elastic") -> tuple[dict, 
     )
     result = {
         "test": name,
-        "model": label(kind, args.force),
+        "model": label(kind, args.force, args.history),
         "force": args.force,
         "soft": bool(soft and soft[0]),
         "lag": lag,
@@ -209,11 +227,16 @@ def score(test, setup, model, post, args, result: dict) -> tuple[dict, dict]:
     y = np.stack([test.tilt[c] for c in chans])  # [C, T] rad
     fit = win["fit"]
     span = slice(win["fit"].start, win["release"].stop)
-    # the creep state starts at rest at the ramp's start (the fit window's and the band's)
-    kw = dict(n_draws=args.draws, seed=args.seed, time=test.time[span])
-    bands = {"stationary": predictive_band(model, post, test.force[span], **kw)}
+    # the creep state starts at rest at the ramp's start (the fit window's and the band's), or
+    # with --history at the record's start, the load before the ramp driving it unobserved
+    hist = history(test, fit.start, args.history)
+    sim = np.r_[hist, span.start : span.stop]
+    kw = dict(n_draws=args.draws, seed=args.seed, time=test.time[sim])
+    fit_tilt = np.concatenate([np.full((len(chans), hist.size), np.nan), y[:, fit]], axis=1)
+    bands = {"stationary": predictive_band(model, post, test.force[sim], **kw)}
     if post.noise == "ar1+gain":
-        bands["forecast"] = predictive_band(model, post, test.force[span], fit_tilt=y[:, fit], **kw)
+        bands["forecast"] = predictive_band(model, post, test.force[sim], fit_tilt=fit_tilt, **kw)
+    bands = {k: {q: v[:, hist.size :] for q, v in b.items()} for k, b in bands.items()}
     choice = args.gain_band if args.gain_band in bands else "stationary"
     band = bands[choice]
     heights = [test.channels[c].height for c in chans]
@@ -259,6 +282,7 @@ def score(test, setup, model, post, args, result: dict) -> tuple[dict, dict]:
     check = residual_check(band["mean"][:, :n_fit], y[:, fit])
     result = result | {
         "gain_band": choice if post.noise == "ar1+gain" else None,
+        "history_samples": int(hist.size),
         "residual_lag1": {c: float(v) for c, v in zip(chans, check["lag1"])},
         "beam": {"k_root": beam.k_root, "ei": beam.ei, "fit_rmse": beam.rmse},
         "springs": {c: float(k) for c, k in zip(chans, springs)},
@@ -333,6 +357,12 @@ def main(argv=None) -> int:
         "from the fitted part (treeinfer.inference.pulltest.gain.gain_band_terms); both scored",
     )
     ap.add_argument(
+        "--history",
+        action="store_true",
+        help="drive the models from the record's start (the pre-load, thinned to 1 s, not "
+        "fitted) so that creep and lag start at rest before the load, not at the ramp",
+    )
+    ap.add_argument(
         "--rescore",
         action="store_true",
         help="redraw the bands and scores of the fits kept in partial/ from their posteriors "
@@ -376,7 +406,7 @@ def main(argv=None) -> int:
     partial.mkdir(exist_ok=True)
     resumed = 0
     for kind in kinds:
-        lab = label(kind, args.force)
+        lab = label(kind, args.force, args.history)
         curves[lab] = {}
         for name in [s.strip() for s in args.tests.split(",") if s.strip()]:
             kept = partial / f"{lab.replace('/', '_')}_{name}.pkl"
@@ -429,6 +459,7 @@ def main(argv=None) -> int:
         "models": list(dict.fromkeys(r["model"] for r in results)),
         "split": args.split,
         "gain_band": args.gain_band,
+        "history": args.history,
         "force": args.force,
         "warmup": args.warmup,
         "samples": args.samples,
@@ -454,7 +485,7 @@ def main(argv=None) -> int:
     )
     atomic_write_text(args.out / "results.md", markdown(results, config))
     for kind in kinds if not args.keep_partial else ():  # only this run's: runs may share it
-        lab = label(kind, args.force)
+        lab = label(kind, args.force, args.history)
         for name in {r["test"] for r in results if r["model"] == lab}:
             (partial / f"{lab.replace('/', '_')}_{name}.pkl").unlink(missing_ok=True)
     if not any(partial.iterdir()):
