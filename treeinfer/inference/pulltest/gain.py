@@ -24,9 +24,13 @@ ou_white_log_prob` (the observation's coefficient changes at every sample); test
 against ``scipy.stats.multivariate_normal`` with the covariance
 ``diag(theta) K_g diag(theta) + K_a + sigma_w^2 I``.
 
-The predictive band of held-out parts uses ``g``'s stationary marginal (sd ``sigma_g``), not
-its forecast from the fitted part: wider than the conditional forecast just after the fitted
-part, the same many correlation times later.
+The predictive band of held-out parts takes ``g`` either by its stationary marginal (sd
+``sigma_g``) or by its forecast from the fitted part (:func:`gain_forecast`, through
+:func:`gain_band_terms`: the filter's state at the last fitted sample carried forward, i.e. the
+Gaussian conditional of ``g`` given the fitted residuals; the posterior predictive proper).
+The forecast is narrower just after the fitted part where that part pins the gain, and is the
+stationary marginal many correlation times later. :func:`gain_ou_innovations` are the
+filter's standardised innovations: the check of an ``ar1+gain`` fit.
 """
 
 from __future__ import annotations

@@ -20,7 +20,8 @@ AR(1) component in continuous time (``sigma_a``, correlation time ``tau_ar`` wit
 the exact likelihood of :func:`.residuals.ou_white_log_prob`; the band then uses the marginal sd
 ``sqrt(sigma_w^2 + sigma_a^2)`` (held-out points lie many correlation times from the fit).
 ``"ar1+gain"``: and a slowly varying gain error per channel, model error proportional to the
-tilt (:mod:`.gain`: ``sigma_g``, ``tau_g``), in the band by its stationary marginal. The force is
+tilt (:mod:`.gain`: ``sigma_g``, ``tau_g``), in the band by its stationary marginal or its
+forecast from the fitted part (``predictive_band(..., fit_tilt=)``). The force is
 taken as given (errors in it are not modelled; :func:`treeinfer.data.pull_test.dequantised_force`
 removes most of the load cell's 10 N rounding before a fit).
 
