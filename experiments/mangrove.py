@@ -277,6 +277,8 @@ def score(test, setup, model, post, args, result: dict) -> tuple[dict, dict]:
             if len(bands) > 1:
                 for k, b in bands.items():
                     rec[c] |= {f"coverage_{k}": cover(b), f"band_width_{k}": width(b)}
+                # the predictive mean with the gain's forecast (the model's mean: rmse_chain)
+                rec[c]["rmse_centre"] = _rmse(bands["forecast"]["centre"][i, idx], yy)
         parts[part] = rec
     n_fit = fit.stop - fit.start
     check = residual_check(band["mean"][:, :n_fit], y[:, fit])

@@ -318,6 +318,8 @@ def test_band_with_the_gain_forecast_follows_the_fitted_part(model):
     after = slice(n_fit, None)
     centre = (fc["lo"][:, after] + fc["hi"][:, after]) / 2
     np.testing.assert_allclose(centre / theta[:, after], 1.2, atol=0.02)
+    np.testing.assert_allclose(fc["centre"][:, after] / theta[:, after], 1.2, atol=0.01)
+    np.testing.assert_allclose(stat["centre"], stat["mean"])  # no forecast: the model's mean
     w_fc = (fc["hi"] - fc["lo"])[:, after]
     w_st = (stat["hi"] - stat["lo"])[:, after]
     assert np.all(w_fc < 0.3 * w_st)

@@ -395,7 +395,8 @@ def predictive_band(
     """The posterior predictive of the recorded tilt under ``force`` [T] (at ``time`` [T] s,
     which the creep follows; its state starts at rest at ``time[0]``): ``mean`` (the model's
     tilt averaged over draws), ``lo``/``hi`` (the central ``level`` interval of model + noise),
-    ``model_lo``/``model_hi`` (of the model's tilt alone); each [C, T] rad. An ``ar1+gain``
+    ``model_lo``/``model_hi`` (of the model's tilt alone), ``centre`` (the predictive mean:
+    ``mean`` but for a gain forecast's mean); each [C, T] rad. An ``ar1+gain``
     posterior's gain error enters by its stationary marginal, or, given ``fit_tilt`` [C, n]
     (the recorded tilts of the first ``n`` samples, the fitted part), by its forecast from
     them after them (:func:`.gain.gain_band_terms`)."""
@@ -411,6 +412,7 @@ def predictive_band(
     # a few noise draws per parameter draw: smoother tail quantiles for the same solves
     eps = rng.standard_normal((NOISE_DRAWS, *pred.shape))
     noisy = pred[None] + sig[None, :, :, None] * eps
+    centre = pred.mean(axis=0)
     if "sigma_g" in post.noise_params:  # the gain error (.gain)
         from .gain import gain_band_terms
 
@@ -418,6 +420,7 @@ def predictive_band(
         params = {k: v[keep] for k, v in post.noise_params.items()}
         g_mean, g_sd = gain_band_terms(pred, params, time, fit_tilt)
         noisy = noisy + pred[None] * (g_mean[None] + g_sd[None] * rng.standard_normal(eps.shape))
+        centre = (pred * (1.0 + g_mean)).mean(axis=0)
     noisy = noisy.reshape(-1, *pred.shape[1:])
     q = (1 - level) / 2
     return {
@@ -426,6 +429,7 @@ def predictive_band(
         "hi": np.quantile(noisy, 1 - q, axis=0),
         "model_lo": np.quantile(pred, q, axis=0),
         "model_hi": np.quantile(pred, 1 - q, axis=0),
+        "centre": centre,
     }
 
 
