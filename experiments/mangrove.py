@@ -271,6 +271,10 @@ def score(test, setup, model, post, args, result: dict) -> tuple[dict, dict]:
                 "coverage": cover(band),
                 "rmse_chain": _rmse(band["mean"][i, idx], yy),
                 "band_width": width(band),
+                # of the model's tilt alone: the parameters' share of the width
+                "band_width_model": float(
+                    np.mean(band["model_hi"][i, idx] - band["model_lo"][i, idx])
+                ),
                 "rmse_beam": _rmse(beam_all[i, idx], yy),
                 "rmse_springs": _rmse(springs_all[i, idx], yy),
             }
@@ -354,7 +358,7 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--gain-band",
         choices=("stationary", "forecast"),
-        default="forecast",
+        default="stationary",
         help="an ar1+gain fit's band: the gain error's stationary marginal, or its forecast "
         "from the fitted part (treeinfer.inference.pulltest.gain.gain_band_terms); both scored",
     )
