@@ -314,3 +314,20 @@ def test_dequantised_force_stays_within_half_a_quantum_of_the_reading():
     got = dequantised_force(t, rec)
     assert np.max(np.abs(got - rec)) <= 5.0 + 1e-9
     assert np.any(np.abs(got - rec) > 1.0)  # and it does move between the levels
+
+
+def test_mangrove_history_thins_the_pre_load_to_one_sample_a_second():
+    """``experiments/mangrove.py --history``: the samples before the fitted part that drive
+    the model unfitted, from the record's first, one per second, none after ``start``."""
+    from types import SimpleNamespace
+
+    from experiments.mangrove import HISTORY_STEP_S, history
+
+    rng = np.random.default_rng(2)
+    t = np.cumsum(rng.uniform(0.08, 0.27, 900))
+    test = SimpleNamespace(time=t)
+    idx = history(test, 700, True)
+    assert idx[0] == 0 and idx[-1] < 700
+    assert np.all(np.diff(t[idx]) > 0.5 * HISTORY_STEP_S)
+    assert idx.size == pytest.approx((t[699] - t[0]) / HISTORY_STEP_S, abs=2)
+    assert history(test, 700, False).size == 0 and history(test, 0, True).size == 0
