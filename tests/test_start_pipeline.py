@@ -237,7 +237,7 @@ def test_the_screen_covers_the_prior_and_its_tails(one_joint):
     their range."""
     from scipy import stats
 
-    from treeinfer.inference.start_steps import SCREEN_TAIL_SDS, prior_points, prior_range
+    from treeinfer.inference.screen_points import SCREEN_TAIL_SDS, prior_points, prior_range
     from treeinfer.model.priors import smoothed_box
 
     tree, trajs, _ = one_joint

@@ -204,7 +204,8 @@ def fast_posterior(
     lower = np.asarray(problem.lower, float)
     ev.evaluate(lower[None], coarse)  # compile (and run once)
     phases["compile"], t = time.perf_counter() - t, time.perf_counter()
-    from .start_steps import prior_points, screen
+    from .screen_points import prior_points
+    from .start_steps import screen
 
     if starts is None:
         pts = prior_points(problem, n_screen, seed)

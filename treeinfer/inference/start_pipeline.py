@@ -97,13 +97,13 @@ def force_noise_reference(
     from .fast import resolve_coarse_substeps as coarse_of
     from .fast_evaluator import BatchEvaluator, default_chunk
     from .fast_fit import fit_map_batched
-    from .start_steps import prior_points, prior_range
+    from .screen_points import prior_points, prior_range
 
     d, g = problem0.dim, 2 * problem0.sim.n_joints
     k = n_starts * (2 * g + 1)
     ev0 = BatchEvaluator(problem0, default_chunk(k, 8 * k), programs, shape)
     coarse = coarse_of(ev0, "auto")
-    # the screen covers the prior, its tails beyond the box included (start_steps.prior_points)
+    # the screen covers the prior, its tails beyond the box included (screen_points.prior_points)
     pts = prior_points(problem0, 4 * k, seed)
     lower, upper = prior_range(problem0)
     lp, pts = screen(ev0, pts, coarse)

@@ -107,7 +107,7 @@ def smoothed_box_quantile(u, lower, upper, sigma) -> np.ndarray:
     piece by piece: the lower half-normal tail below ``a = (1 - p_box) / 2``, the
     uniform box between, the upper tail above ``1 - a``. Maps stratified uniforms (a Latin
     hypercube) to stratified prior points (the start pipeline's screen,
-    :func:`treeinfer.inference.start_steps.prior_points`). The normal quantile is
+    :func:`treeinfer.inference.screen_points.prior_points`). The normal quantile is
     ``statistics.NormalDist`` (no SciPy import on the CLI's start path)."""
     from statistics import NormalDist
 
