@@ -203,7 +203,7 @@ def resample_move(
     ok_w = np.isfinite(lw) & np.isfinite(lpd)
     if not ok_w.any():
         raise ConfigError("resample_move: no importance draw with a finite weight")
-    from .importance import systematic_resample
+    from .importance import _draw_log_density, systematic_resample
 
     rng = np.random.default_rng([int(seed), 104729])
     idx = systematic_resample(rng, np.where(ok_w, lw, -np.inf), n_chains)
@@ -226,8 +226,6 @@ def resample_move(
             # fraction of a standard deviation), so the cloud forgets its importance draws in
             # a few sweeps where the posterior is near-elliptical; the random-walk sweeps
             # between them keep the chains moving where it is not (a curved ridge)
-            from .importance import _draw_log_density
-
             centre, cov = x.mean(axis=0), chol @ chol.T
             xp, lq_p = _draw_log_density(rng, centre, cov, n, INDEPENDENT_DF)
             lq_x = _draw_log_density(None, centre, cov, 0, INDEPENDENT_DF, x)[1]
