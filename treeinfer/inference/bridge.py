@@ -26,9 +26,9 @@ the chains (adaptive tempering, Jasra et al. 2011), resamples systematically, th
 is a draw of ``pi_0``.
 
 Written on the host, not with ``blackjax.adaptive_tempered_smc``: the log density is the start
-pipeline's NumPy-batched rollout program
-(:class:`treeinfer.inference.fast_evaluator.BatchEvaluator`), one call per sweep for every chain,
-which BlackJAX's jitted kernels cannot call without a host callback per particle.
+pipeline's NumPy-batched rollout program (:class:`treeinfer.inference.fast_evaluator.BatchEvaluator`),
+one call per sweep for every chain, which BlackJAX's jitted kernels cannot call without a host
+callback per particle.
 """
 
 from __future__ import annotations

@@ -393,8 +393,9 @@ def _resample_move_start(problem, res, n_particles: int, seed: int, log):
     else the sampler's start."""
     import time
 
-    from .bridge import tempered_bridge
     from .resample_move import resample_move
+
+    from .bridge import tempered_bridge
 
     t0 = time.perf_counter()
     imp = res.importance
