@@ -395,18 +395,10 @@ def _resample_move_start(problem, res, n_particles: int, seed: int, log):
 
     from .resample_move import resample_move
 
-    from .bridge import tempered_bridge
-
     t0 = time.perf_counter()
     imp = res.importance
-    # the failed weights' draws may sit on one lobe of the posterior: a tempered bridge from a
-    # broad Student-t at their moments puts chains in every lobe first (inference.bridge)
-    br = tempered_bridge(
-        res.evaluator.log_density, imp.draws, imp.log_weights, 4 * int(n_particles), seed=seed
-    )
-    log(f"{br.describe()}, {time.perf_counter() - t0:.0f} s")
     mv = resample_move(
-        res.evaluator.log_density, br.chains, br.log_weights, br.log_density,
+        res.evaluator.log_density, imp.draws, imp.log_weights, imp.log_density,
         int(n_particles), seed=seed,
     )  # fmt: skip
     elapsed = time.perf_counter() - t0
@@ -421,13 +413,13 @@ def _resample_move_start(problem, res, n_particles: int, seed: int, log):
     theta = np.asarray(mv.theta, float)
     if not mv.ok:
         return None, theta
-    settings = {**res.settings, "bridge": br.settings(), "resample_move": mv.settings(), "ok": True}
+    settings = {**res.settings, "resample_move": mv.settings(), "ok": True}
     phases = {**res.phases, "resample_move": elapsed}
     moved = res._replace(
         theta=theta, log_density=mv.log_density, ok=True, settings=settings, phases=phases
     )
     reason = (
-        f"resample-move after importance sampling (Pareto k_hat {imp.khat:.2f}) and a "
-        f"tempered bridge ({br.stages} stages): {mv.sweeps} Metropolis sweeps, the cloud settled"
+        f"resample-move after importance sampling (Pareto k_hat {imp.khat:.2f}): "
+        f"{mv.sweeps} Metropolis sweeps, the cloud settled"
     )
     return posterior_from_fast(problem, moved, seed, reason), theta
