@@ -89,7 +89,7 @@ COARSE_SEED = 7919
 # band came out 5-6 % narrow on average (experiments/importance_robustness.py, BENCHMARKS.md)
 DEFAULT_DF = 8.0
 # accurate-step LM iterations after the coarse fit for a generative likelihood (importance_for_run)
-GENERATIVE_POLISH = 8
+GENERATIVE_POLISH = 20
 
 __all__ = [
     "DEFAULT_DF",

@@ -69,8 +69,8 @@ __all__ = [
 # stopped short); a sweep costs one batched evaluation of the chains
 CHANNEL_MAX_SWEEPS = 150
 
-# LM iterations of each force-noise reference step (the coarse-step fit of fast_posterior uses 15)
-REFERENCE_LM_ITERATIONS = 15
+# LM iterations of each force-noise reference step (at most: as integration_floor.LM_ITERATIONS)
+REFERENCE_LM_ITERATIONS = 40
 # the force-noise reference: at most this many linearisations of the bias correction, taken
 # again while the corrected MAP moves more than RELINEARISE_TOL log units from the reference
 MAX_REFERENCE_ROUNDS = 3
