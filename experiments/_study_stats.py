@@ -8,6 +8,7 @@ in milliseconds.
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 import os
@@ -91,13 +92,19 @@ def append_jsonl(path: str | os.PathLike, record: dict) -> None:
 def read_jsonl(paths: Iterable[str | os.PathLike], key: str = "index") -> list[dict]:
     """The records of every file in ``paths`` (missing files skipped), one per ``key``: a later
     file's record replaces an earlier one with the same key. A last line cut short by a kill is
-    skipped; a damaged line elsewhere is an error naming the file and line."""
+    skipped; a damaged line elsewhere is an error naming the file and line. A ``.gz`` file is read
+    through gzip (finished studies' records are kept compressed: the device's 64 MiB carry counts
+    every tracked file)."""
     out: dict = {}
     for p in paths:
         p = Path(p)
         if not p.exists():
             continue
-        lines = p.read_text(encoding="utf-8").splitlines()
+        if p.suffix == ".gz":
+            with gzip.open(p, "rt", encoding="utf-8") as f:
+                lines = f.read().splitlines()
+        else:
+            lines = p.read_text(encoding="utf-8").splitlines()
         for i, line in enumerate(lines, start=1):
             if not line.strip():
                 continue

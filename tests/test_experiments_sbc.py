@@ -87,6 +87,12 @@ def test_records_of_several_calls_add_up(tmp_path):
     with open(split, "a") as f:
         f.write('{"index": 99, "draws": [[1')  # killed mid-write
     assert len(read_jsonl([split])) == 60
+    # finished studies keep their records gzipped: the same records, the cut last line skipped too
+    import gzip
+
+    packed = tmp_path / "split.jsonl.gz"
+    packed.write_bytes(gzip.compress(split.read_bytes()))
+    assert read_jsonl([packed]) == read_jsonl([split])
     bad = tmp_path / "bad.jsonl"
     bad.write_text('{"index": 0}\nnot json\n{"index": 1}\n')
     with pytest.raises(ValueError, match="bad.jsonl:2"):
