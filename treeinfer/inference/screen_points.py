@@ -2,8 +2,9 @@
 box's tails beyond the box included (:func:`prior_points`), and the range a MAP found there may
 take (:func:`prior_range`). A module of its own because :mod:`treeinfer.inference.fast_fit`
 (the Latin hypercube) and :mod:`treeinfer.inference.start_steps` (the screen's densities) import
-each other's neighbours; both :mod:`treeinfer.inference.fast` and
-:mod:`treeinfer.inference.start_pipeline` draw from here.
+each other's neighbours; :mod:`treeinfer.inference.fast`,
+:mod:`treeinfer.inference.start_pipeline` and :mod:`treeinfer.inference.integration_floor` (the
+first fit of a run without a force-noise term) draw from here.
 """
 
 from __future__ import annotations
