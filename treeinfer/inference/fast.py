@@ -204,14 +204,10 @@ def fast_posterior(
     lower = np.asarray(problem.lower, float)
     ev.evaluate(lower[None], coarse)  # compile (and run once)
     phases["compile"], t = time.perf_counter() - t, time.perf_counter()
-    from .screen_points import prior_points
-    from .start_steps import screen
+    from .screen_points import screen_starts
 
     if starts is None:
-        pts = prior_points(problem, n_screen, seed)
-        lp, pts = screen(ev, pts, coarse)
-        order = np.argsort(np.where(np.isfinite(lp), -lp, np.inf))
-        starts = pts[order[:n_starts]]
+        starts, _ = screen_starts(ev, problem, n_screen, n_starts, seed, coarse)
     else:
         starts = np.atleast_2d(np.asarray(starts, float))
     phases["screen"], t = time.perf_counter() - t, time.perf_counter()

@@ -97,15 +97,12 @@ def map_integration_error(problem, seed: int = 0, programs=None, shape=None, log
     final points (best first) for the run's own fit to start from."""
     from .fast import resolve_coarse_substeps
     from .fast_fit import fit_map_batched
-    from .screen_points import prior_points
-    from .start_steps import screen
+    from .screen_points import screen_starts
 
     ev = _evaluator(problem, programs, shape)
     coarse = resolve_coarse_substeps(ev, "auto")
-    # the prior's tails included, as the start pipeline's own screen (screen_points.prior_points)
-    pts = prior_points(problem, 4 * _batch(problem), seed)
-    lp, pts = screen(ev, pts, coarse)
-    starts = pts[np.argsort(np.where(np.isfinite(lp), -lp, np.inf))[:N_STARTS]]
+    # the start pipeline's own screen, the prior's tails included
+    starts, _ = screen_starts(ev, problem, 4 * _batch(problem), N_STARTS, seed, coarse)
     fit = fit_map_batched(ev, starts, LM_ITERATIONS, substeps=coarse)
     if coarse != ev.substeps:  # the error is measured at the run's step's MAP, not the coarse's
         good = fit.finals[np.isfinite(fit.values)]

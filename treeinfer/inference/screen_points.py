@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["SCREEN_TAIL_SDS", "prior_points", "prior_range"]
+__all__ = ["SCREEN_TAIL_SDS", "prior_points", "prior_range", "screen_starts"]
 
 # the screen's gain columns reach this many tail widths beyond the box at most (the quantile of
 # the smoothed box's tail mass that a Latin hypercube of a few hundred points resolves anyway)
@@ -65,3 +65,16 @@ def prior_range(problem) -> tuple[np.ndarray, np.ndarray]:
         s = float(sigma) * (hi - lo)
         lo, hi = lo - SCREEN_TAIL_SDS * s, hi + SCREEN_TAIL_SDS * s
     return lo, hi
+
+
+def screen_starts(ev, problem, n_screen: int, n_starts: int, seed: int, substeps):
+    """``(starts [n_starts, D], pts [n_screen, D])``: the global screen every first fit of the
+    start pipeline takes (:func:`treeinfer.inference.fast.fast_posterior`, the force-noise
+    reference, the integration floor's MAP): ``n_screen`` points of the prior, its tails included
+    (:func:`prior_points`), ranked by :func:`treeinfer.inference.start_steps.screen` at
+    ``substeps``; the best ``n_starts`` start the LM, unstable ones last. ``pts`` (noise columns
+    set) for a caller that ranks them again under another model."""
+    from .start_steps import screen
+
+    lp, pts = screen(ev, prior_points(problem, n_screen, seed), substeps)
+    return pts[np.argsort(np.where(np.isfinite(lp), -lp, np.inf))[:n_starts]], pts

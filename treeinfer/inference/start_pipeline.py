@@ -97,17 +97,15 @@ def force_noise_reference(
     from .fast import resolve_coarse_substeps as coarse_of
     from .fast_evaluator import BatchEvaluator, default_chunk
     from .fast_fit import fit_map_batched
-    from .screen_points import prior_points, prior_range
+    from .screen_points import prior_range, screen_starts
 
     d, g = problem0.dim, 2 * problem0.sim.n_joints
     k = n_starts * (2 * g + 1)
     ev0 = BatchEvaluator(problem0, default_chunk(k, 8 * k), programs, shape)
     coarse = coarse_of(ev0, "auto")
     # the screen covers the prior, its tails beyond the box included (screen_points.prior_points)
-    pts = prior_points(problem0, 4 * k, seed)
+    starts, pts = screen_starts(ev0, problem0, 4 * k, n_starts, seed, coarse)
     lower, upper = prior_range(problem0)
-    lp, pts = screen(ev0, pts, coarse)
-    starts = pts[np.argsort(np.where(np.isfinite(lp), -lp, np.inf))[:n_starts]]
     first = fit_map_batched(ev0, starts, REFERENCE_LM_ITERATIONS, substeps=coarse)
     ref = np.clip(first.theta[:g], lower, upper)
     finals = first.finals[np.isfinite(first.values)]
