@@ -76,6 +76,38 @@ def _lm_terms(ev: BatchEvaluator, theta, h: float, substeps: int | None = None):
     return value, grad, curv, gram, norms**2
 
 
+# a running start this close (log units, every gain) to another start at least as good has joined
+# its basin: it stops (not counted as converged), so that many starts cost what their distinct
+# basins cost
+MERGE_TOL = 0.02
+
+
+def _merged(theta, f, done, n_gains: int) -> np.ndarray:
+    """``[S]`` running starts within :data:`MERGE_TOL` of another start with a lower (or equal,
+    then earlier) objective."""
+    g = theta[:, :n_gains]
+    out = np.zeros(len(theta), bool)
+    for i in np.flatnonzero(~done & np.isfinite(f)):
+        near = np.max(np.abs(g - g[i]), axis=1) < MERGE_TOL
+        better = (f < f[i]) | ((f == f[i]) & (np.arange(len(f)) < i))
+        out[i] = bool(np.any(near & better & np.isfinite(f)))
+    return out
+
+
+def _active_terms(terms, ev, theta, rows, h, substeps, n):
+    """``terms`` at ``theta[rows]`` only, scattered into ``n`` rows (objective inf elsewhere)."""
+    d = theta.shape[1]
+    f, g, hs = np.full(n, np.inf), np.zeros((n, d)), np.zeros((n, d, d))
+    if len(rows) == 0:
+        return f, g, hs, np.zeros((n, 1, d, d)), np.zeros((n, 1))
+    kw = {} if ev.boltzmann else {"pad_to": n}
+    sub = terms(ev, theta[rows], h, substeps, **kw)
+    gram, r2 = np.zeros((n, *sub[3].shape[1:])), np.zeros((n, *sub[4].shape[1:]))
+    for a, b in zip((f, g, hs, gram, r2), sub):
+        a[rows] = b
+    return f, g, hs, gram, r2
+
+
 def fit_map_batched(
     ev: BatchEvaluator,
     starts,
@@ -106,8 +138,8 @@ def fit_map_batched(
         terms = _lm_terms
     else:  # a generative likelihood: its generalised Gauss-Newton curvature
         from .start_steps import ggn_terms as terms
-    f, g, hs, gram, r2 = terms(ev, theta, h, substeps)
     n = len(theta)
+    f, g, hs, gram, r2 = _active_terms(terms, ev, theta, np.arange(n), h, substeps, n)
     scale0 = np.array([np.mean(np.abs(np.diag(x))) + 1e-12 for x in hs])
     lam = 1e-3 * np.ones(n)
     done, converged = ~np.isfinite(f), np.zeros(n, bool)
@@ -123,7 +155,10 @@ def fit_map_batched(
             big = np.max(np.abs(step))
             steps[i] = step if big <= max_step else step * (max_step / big)
         trial = theta + steps
-        ft, gt, ht, gram_t, r2_t = terms(ev, trial, h, substeps)
+        # only the starts still running are simulated (a converged or merged one costs nothing)
+        ft, gt, ht, gram_t, r2_t = _active_terms(
+            terms, ev, trial, np.flatnonzero(~done), h, substeps, n
+        )
         accept = ~done & np.isfinite(ft) & (ft < f)
         flat = accept & ((f - ft) < np.minimum(tolerance * (1.0 + np.abs(f)), STEP_NATS))
         for a, b in ((theta, trial), (f, ft), (g, gt), (hs, ht), (gram, gram_t), (r2, r2_t)):
@@ -131,7 +166,7 @@ def fit_map_batched(
         lam = np.where(accept, np.maximum(lam / 3.0, 1e-9), lam * 4.0)
         newly = ~done & (flat | (np.max(np.abs(steps), 1) < 1e-6))
         converged |= newly
-        done |= newly | (lam > 1e10)
+        done |= newly | (lam > 1e10) | _merged(theta, f, done, ev.n_gains)
         if done.all():
             break
         low = np.min(f)

@@ -75,6 +75,19 @@ REFERENCE_LM_ITERATIONS = 40
 # again while the corrected MAP moves more than RELINEARISE_TOL log units from the reference
 MAX_REFERENCE_ROUNDS = 3
 RELINEARISE_TOL = 0.25
+# the posterior's other lobes, each with its own linearisation (treeinfer.model.force_noise_local):
+# an earlier round's MAP, or a final of the reference fits within LOBE_GAP nats of the best, is
+# fitted again with the Jacobian taken at itself when it lies, in some gain, more than
+# LOBE_SEPARATION log units AND LOBE_SDS standard deviations (the last fit's Laplace curvature)
+# from every reference: a weakly identified damping spread over a log unit inside ONE lobe is not
+# another lobe (SBC data set 90: a child's damping 1.2 log units, 1.2 sd, from the reference took
+# a reference of its own before the other lobe, 0.8-1.4 log units and > 5 sd away in the
+# stiffnesses, could). At most MAX_REFERENCES references in all. On data set 90 each lobe
+# scored 2-4 nats BELOW the other when judged by the other's linearisation, so the gap is wide
+LOBE_GAP = 10.0
+LOBE_SEPARATION = 0.5
+LOBE_SDS = 3.0
+MAX_REFERENCES = 3
 
 
 def force_noise_reference(
@@ -104,12 +117,16 @@ def force_noise_reference(
     ev0 = BatchEvaluator(problem0, default_chunk(k, 8 * k), programs, shape)
     coarse = coarse_of(ev0, "auto")
     # the screen covers the prior, its tails beyond the box included (screen_points.prior_points)
-    starts, pts = screen_starts(ev0, problem0, 4 * k, n_starts, seed, coarse)
+    # twice the starts of fast_posterior's own fit (its starts come from these fits' finals):
+    # the best screen points crowd into the broadest basin (SBC data set 134: the truth's basin,
+    # 10.7 nats higher, was reached only from the 21st best point); started ones that join a
+    # basin stop there (fast_fit.MERGE_TOL), so the extra starts cost their distinct basins
+    starts, pts = screen_starts(ev0, problem0, 4 * k, 2 * n_starts, seed, coarse)
     lower, upper = prior_range(problem0)
     first = fit_map_batched(ev0, starts, REFERENCE_LM_ITERATIONS, substeps=coarse)
     ref = np.clip(first.theta[:g], lower, upper)
     finals = first.finals[np.isfinite(first.values)]
-    iterations, moves = [], []
+    iterations, moves, history = [], [], [first.theta]
     for rounds in range(1, MAX_REFERENCE_ROUNDS + 1):
         problem1 = make(ref)
         ev1 = BatchEvaluator(problem1, ev0.chunk, programs, shape)
@@ -122,13 +139,14 @@ def force_noise_reference(
             # higher), beyond the LM's reach from there: the screen's points are ranked again
             # under the corrected model and its best few start too
             lp1, pts1 = screen(ev1, pts, coarse)
-            best = np.argsort(np.where(np.isfinite(lp1), -lp1, np.inf))[: max(2, n_starts // 2)]
+            best = np.argsort(np.where(np.isfinite(lp1), -lp1, np.inf))[: max(2, n_starts)]
             starts1 = np.vstack([finals, pts1[best[np.isfinite(lp1[best])]]])
         second = fit_map_batched(ev1, starts1, REFERENCE_LM_ITERATIONS, substeps=coarse)
         new = np.clip(second.theta[:g], lower, upper)
         iterations.append(second.iterations)
         moves.append(float(np.max(np.abs(new - ref))))
         ref = new
+        history.append(second.theta)
         finals = second.finals[np.isfinite(second.values)]
         # the correction is first order in the log gains about the reference: taken again at
         # a MAP that moved far from it (RELINEARISE_TOL log units), until it stays
@@ -146,7 +164,61 @@ def force_noise_reference(
         )
     )
     order = np.argsort(second.values)
-    return ref, second.finals[order][np.isfinite(second.values[order])]
+    finals = second.finals[order][np.isfinite(second.values[order])]
+
+    def fit_at(reference, starts):  # LM with the Jacobian taken at ``reference``
+        ev = BatchEvaluator(make(reference), ev0.chunk, programs, shape)
+        return fit_map_batched(ev, starts, REFERENCE_LM_ITERATIONS, substeps=coarse)
+
+    refs, lobes = lobe_references(
+        fit_at, ref, second, history[:-1], lambda th: np.clip(th[:g], lower, upper), log
+    )
+    return (refs[0] if len(refs) == 1 else refs), np.vstack([finals, *lobes])
+
+
+def lobe_references(fit_at, ref, last, earlier, gains_of, log=lambda m: None):
+    """``(references [K, 2R], lobe finals [K - 1, D] list)``: ``ref`` (the reference loop's
+    last) and one self-consistent reference per other lobe of the force-noise posterior
+    (:mod:`treeinfer.model.force_noise_local`): each candidate (an ``earlier`` round's MAP, the
+    latest first: a reference loop that flipped between lobes; then a final of ``last``, the last
+    fit, within :data:`LOBE_GAP` nats of its best) that is a distinct lobe (module constants) is
+    fitted by ``fit_at(reference, starts)`` with the Jacobian taken at itself, then at the
+    fit's MAP when it moved (the term is first order about its reference); kept when it stays a
+    distinct lobe within the gap."""
+    vals = np.asarray(last.values, float)
+    ok = np.isfinite(vals)
+    best = float(np.min(vals[ok]))
+    near = [last.finals[i] for i in np.argsort(vals) if ok[i] and vals[i] <= best + LOBE_GAP]
+    refs, lobes = [np.asarray(ref, float)], []
+    cov = getattr(last, "cov", None)
+    g = refs[0].size
+    sd = np.ones(g) if cov is None else np.sqrt(np.clip(np.diag(cov)[:g], 1e-4, 1e2))
+
+    def distinct(theta):
+        far = [np.abs(gains_of(theta) - r) for r in refs]
+        return all(np.any((d > LOBE_SEPARATION) & (d > LOBE_SDS * sd)) for d in far)
+
+    for cand in [*earlier[::-1], *near]:
+        if len(refs) >= MAX_REFERENCES:
+            break
+        if not distinct(cand):
+            continue
+        start, at = np.asarray(cand, float), gains_of(cand)
+        for _ in range(2):
+            fit = fit_at(at, start[None])
+            moved = float(np.max(np.abs(gains_of(fit.theta) - at)))
+            start, at = fit.theta, gains_of(fit.theta)
+            if moved <= RELINEARISE_TOL:
+                break
+        if fit.neg_log_posterior <= best + LOBE_GAP and distinct(start):
+            refs.append(at)
+            lobes.append(start)
+    if len(refs) > 1:
+        log(
+            f"force-noise reference: {len(refs)} lobes, the force Jacobian taken in each "
+            "(the term is first order about its reference)"
+        )
+    return np.stack(refs), lobes
 
 
 def channel_starts(problem, seed: int = 0, n: int = 8, log=lambda m: None) -> np.ndarray:

@@ -106,11 +106,13 @@ def finite_psd(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return _psd(h), finite
 
 
-def ggn_terms(ev, theta, h: float, substeps: int | None = None):
+def ggn_terms(ev, theta, h: float, substeps: int | None = None, pad_to: int | None = None):
     """:func:`treeinfer.inference.fast_fit._lm_terms` for a generative likelihood: ``(value [S],
     grad [S, D], curvature [S, D, D], gram, r2)`` of ``-log p`` at ``theta [S, D]`` from one
     batch of the ``S (2g + 1)`` central-difference points in the gains (g = 2R; the noise
-    columns need no rollout). ``gram`` and ``r2`` (the Boltzmann cone's terms) are zeros."""
+    columns need no rollout). ``gram`` and ``r2`` (the Boltzmann cone's terms) are zeros.
+    ``pad_to``: the curvature program runs on this many rows (the last repeated), so that a fit
+    whose active starts shrink reuses one compiled program."""
     s, d = theta.shape
     g = ev.n_gains
     step = np.zeros((2 * g + 1, d))
@@ -122,11 +124,11 @@ def ggn_terms(ev, theta, h: float, substeps: int | None = None):
     ok = ok.reshape(s, -1).all(1)
     jac = np.moveaxis((r[:, 1 : g + 1] - r[:, g + 1 :]) / (2 * h), 1, -1)  # [S, G, T, g]
     dt = ev._dtype
+    args = (r[:, 0], jac, theta)
+    if pad_to is not None and pad_to > s:
+        args = tuple(np.concatenate([a, np.repeat(a[-1:], pad_to - s, 0)]) for a in args)
     value, grad, curv = (
-        np.asarray(x, float)
-        for x in _ggn_program(ev)(
-            jnp.asarray(r[:, 0], dt), jnp.asarray(jac, dt), jnp.asarray(theta, dt)
-        )
+        np.asarray(x, float)[:s] for x in _ggn_program(ev)(*(jnp.asarray(a, dt) for a in args))
     )
     curv, finite = finite_psd(curv)
     good = ok & np.isfinite(value) & np.isfinite(grad).all(1) & finite

@@ -48,12 +48,9 @@ recording's own force (:func:`force_noise_basis` on the test forces, at the same
 draws are ``x_sim + U sqrt(L + sigma_x^2) z`` (:func:`predictive_draws`), and point-wise bands
 add ``diag C`` to each particle's ``sigma_x^2`` (:func:`point_variance`).
 
-``--noise-force`` semantics: the std of the force noise PER SAMPLE, constant over samples and
-pulls: a number in newtons (``0.12``), a percentage of the largest absolute recorded training
-force (``"2%"``: this is how the benchmarks of ``experiments/`` make it: 2% of the data set's
-largest peak force), or ``"auto"``: estimated from the recorded force's high-frequency residual
-(robust MAD of second differences / sqrt(6), as ``--kT auto`` does for the displacement,
-:func:`estimate_force_noise`).
+``--noise-force`` (N per sample, a percentage of the peak force, or ``"auto"``):
+:mod:`treeinfer.model.force_noise_option`. Several references, one per lobe of the posterior:
+:mod:`treeinfer.model.force_noise_local`.
 """
 
 from __future__ import annotations
@@ -68,6 +65,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import SimulationError
+from .force_noise_local import ForceNoiseModel  # noqa: F401 -- re-exported (it lived here)
 from .force_noise_option import (  # noqa: F401 -- the option's functions, re-exported here
     _force_range,
     check_noise_force,
@@ -112,10 +110,9 @@ def _force_differentiable(sim):
 # perturbation per sample as a share of the largest |force|, and the allowed relative error.
 _CHECK_STEP = 0.01
 _CHECK_RTOL = 0.02
-# J of the last few (theta, forces) of a simulator, kept on it (Simulator.derived, force_jacobian):
-# the run takes J at its reference once for the likelihood, then the training fit's band and the
-# fit verdict ask for the same J again (three times 5-10 s on a 2-core CPU before it was kept)
-_KEPT_SIZE = 4
+# J of the last few (theta, forces) of a simulator, kept on it (Simulator.derived): a run's
+# likelihood, training band and fit verdict take J at one reference (5-10 s each on 2 cores)
+_KEPT_SIZE = 8  # the references of a run's lobes (force_noise_local) among them
 _KEPT_MAX_BYTES = 64 * 2**20  # a J larger than this (long or many pulls) is not kept
 
 
@@ -196,20 +193,12 @@ def force_jacobian(
             "force noise: the simulation at the reference parameters is unstable on some "
             "pull; give another reference (force_noise_reference)"
         )
-    bad = None
     if check:
         if fused_check:
             tau_pm, ok_pm = np.asarray(tau_pm, float), np.asarray(ok_pm)
         else:
             tau_pm, ok_pm = _check_rollouts(sim, kp, kd, forces64, gf, h * v)
-        bad = _check_failures(forces64, tau_pm, ok_pm, h, v, jac, dtype)
-    if bad is not None:
-        b, rel = bad
-        raise SimulationError(
-            f"force noise: the forward-mode force Jacobian (backend {sim.backend!r}) does not "
-            f"match a central difference of the simulator on pull {b} (relative error "
-            f"{rel:.2g}); the backend's derivative in the force is wrong or missing"
-        )
+        _raise_bad(_check_failures(forces64, tau_pm, ok_pm, h, v, jac, dtype), sim.backend)
     if keep and jac.nbytes <= _KEPT_MAX_BYTES:  # the bias slope's 2R Jacobians are not kept
         kept[key] = jac.copy()
         while len(kept) > _KEPT_SIZE:
@@ -315,11 +304,15 @@ def _check_force_jacobian(sim, kp, kd, forces, gf, jac) -> None:
     v = np.random.default_rng(0).choice([-1.0, 1.0], size=(n_b, n_t))
     h = _CHECK_STEP * max(float(np.max(np.abs(forces))), 1e-12)
     tau, ok = _check_rollouts(sim, kp, kd, forces, gf, h * v)
-    bad = _check_failures(forces, tau, ok, h, v, jac, sim.dtype)
+    _raise_bad(_check_failures(forces, tau, ok, h, v, jac, sim.dtype), sim.backend)
+
+
+def _raise_bad(bad, backend) -> None:
+    """:class:`SimulationError` for a failed check ``bad = (pull, relative error)``."""
     if bad is not None:
         b, rel = bad
         raise SimulationError(
-            f"force noise: the forward-mode force Jacobian (backend {sim.backend!r}) does not "
+            f"force noise: the forward-mode force Jacobian (backend {backend!r}) does not "
             f"match a central difference of the simulator on pull {b} (relative error "
             f"{rel:.2g}); the backend's derivative in the force is wrong or missing"
         )
@@ -351,8 +344,10 @@ class ForceNoiseBasis(NamedTuple):
     theta_ref: np.ndarray | None = None  # [2R] where C and the slope were taken
 
     def covariance(self) -> np.ndarray:
-        """``C [B, T, T]`` back from the basis (m^2)."""
-        u, lam = self.vectors, self.values
+        """``C [B, T, T]`` back from the basis (m^2; stacked: its first reference's)."""
+        from .force_noise_local import primary
+
+        u, lam = primary(self).vectors, primary(self).values
         return np.einsum("bts,bs,bus->btu", u, lam, u)
 
 
@@ -410,6 +405,10 @@ def mvn_log_prob(residual, basis: ForceNoiseBasis, sigma_x, theta_gains=None) ->
     taken out again, so the result is the exact density of the real samples."""
     import numpyro.distributions as dist  # here, not at the top: keeps it off the start-up path
 
+    from .force_noise_local import blended_log_prob, is_stacked
+
+    if is_stacked(basis):  # one reference per lobe of the posterior (force_noise_local)
+        return blended_log_prob(residual, basis, sigma_x, theta_gains)
     r = jnp.asarray(residual)
     u = jnp.asarray(basis.vectors, r.dtype)
     lam = jnp.asarray(basis.values, r.dtype)
@@ -448,7 +447,10 @@ def bias_offset(dth):
 
 def point_variance(basis: ForceNoiseBasis) -> np.ndarray:
     """``diag C`` per pull and sample: ``[B, T]`` (m^2), the force-induced variance each point of
-    a point-wise predictive band adds to ``sigma_x^2``."""
+    a point-wise predictive band adds to ``sigma_x^2`` (a stacked basis: its first reference's)."""
+    from .force_noise_local import primary
+
+    basis = primary(basis)
     return np.einsum("bts,bs->bt", basis.vectors**2, basis.values)
 
 
@@ -457,40 +459,12 @@ def predictive_draws(key, pred, sigma_x, basis: ForceNoiseBasis) -> jax.Array:
 
     ``pred [P, B, T]`` simulations, ``sigma_x [P]`` m; draw p is
     ``pred[p] + U diag(sqrt(L + sigma_x[p]^2)) z``, z standard normal (one draw per particle)."""
-    pred = jnp.asarray(pred)
+    from .force_noise_local import primary
+
+    pred, basis = jnp.asarray(pred), primary(basis)
     u = jnp.asarray(basis.vectors, pred.dtype)
     lam = jnp.asarray(basis.values, pred.dtype)
     sx = jnp.broadcast_to(jnp.asarray(sigma_x, pred.dtype), pred.shape[:1])
     z = jax.random.normal(key, pred.shape, pred.dtype)
     scaled = z * jnp.sqrt(lam[None] + sx[:, None, None] ** 2)
     return pred + jnp.einsum("bts,pbs->pbt", u, scaled)
-
-
-class ForceNoiseModel(NamedTuple):
-    """The force-noise term of a run: enough to rebuild ``C`` for any pull.
-
-    sigma_force: N per sample. theta_ref: ``[2R]`` reference (log gains) of the linearisation.
-    description: one line for logs. grasp_fraction: as in the run (None: the tree's).
-    """
-
-    sigma_force: float
-    theta_ref: np.ndarray
-    description: str
-    grasp_fraction: object = None
-
-    def basis(self, sim, forces, mask=None) -> ForceNoiseBasis:
-        """Basis of the force-induced covariance for the pulls ``forces [B, T]`` (N)."""
-        return force_noise_basis(
-            sim, self.theta_ref, forces, self.sigma_force, mask, self.grasp_fraction
-        )
-
-    def settings(self) -> dict:
-        """JSON-ready record (``noise_force`` N, ``noise_force_reference`` log gains)."""
-        return {
-            "noise_force": self.sigma_force,
-            "noise_force_reference": [float(v) for v in self.theta_ref],
-            "noise_force_rule": self.description,
-            # the likelihood adds the corrected score's term (module docstring)
-            "noise_force_bias_correction": f"corrected score, first order in the log gains "
-            f"(slope by forward differences, step {BIAS_STEP:g})",
-        }

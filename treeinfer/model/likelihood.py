@@ -298,7 +298,7 @@ def likelihood_terms(
                 "(noise_velocity); leave the velocity out"
             )
         from . import force_noise
-        from .force_noise_bias import with_bias_slope
+        from .force_noise_local import check_references, training_basis
 
         sigma_f, rule = force_noise.resolve_noise_force(noise_force, obs)
         if force_noise_reference is None:
@@ -307,20 +307,10 @@ def likelihood_terms(
             ref = reference_theta(sim, obs, grasp_fraction, sigma_f)
             rule += "; J at the MAP of this errors-in-variables model"
         else:
-            ref = np.asarray(force_noise_reference, float).reshape(-1)
-            if ref.shape != (2 * sim.n_joints,) or not np.all(np.isfinite(ref)):
-                raise ConfigError(
-                    f"force_noise_reference: expected {2 * sim.n_joints} finite log gains, "
-                    f"got {ref.tolist()}"
-                )
+            ref = check_references(force_noise_reference, 2 * sim.n_joints)
             rule += f"; {force_noise_rule}"
         fmodel = force_noise.ForceNoiseModel(sigma_f, ref, rule, grasp_fraction)
-        basis = fmodel.basis(sim, np.asarray(obs.force), np.asarray(obs.mask, bool))
-        # the corrected score: the recorded force's noise biases the fit (force_noise docstring)
-        basis = with_bias_slope(
-            sim, basis, ref, np.asarray(obs.force), sigma_f, np.asarray(obs.mask, bool),
-            grasp_fraction,
-        )  # fmt: skip
+        basis = training_basis(sim, fmodel, obs)
     loglik = measurement_log_likelihood(
         sim,
         obs,

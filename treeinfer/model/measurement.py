@@ -82,7 +82,7 @@ def measurement_log_likelihood(
                 "noise_force: the force-noise term needs --likelihood gaussian without a velocity "
                 f"term (got likelihood {kind!r}, velocity term {'on' if use_v else 'off'})"
             )
-        if np.shape(force_basis.values) != tuple(np.shape(obs.displacement)):
+        if np.shape(force_basis.values)[-2:] != tuple(np.shape(obs.displacement)):
             raise ConfigError(
                 f"force_basis: built for pulls of shape {np.shape(force_basis.values)}, the data "
                 f"have {tuple(np.shape(obs.displacement))}"
@@ -249,6 +249,10 @@ def _padded_basis(basis, mask: np.ndarray):
     identity with eigenvalues 0 there, and a padded pull's is the identity. The same density
     as the Jacobian of the padded pulls would give, without computing it (a forward-mode pass
     of T' tangents per pull)."""
+    from .force_noise_local import is_stacked, split, stack
+
+    if is_stacked(basis):  # one reference per lobe (force_noise_local): each padded alike
+        return stack(_padded_basis(b, mask) for b in split(basis))
     u, lam = np.asarray(basis.vectors), np.asarray(basis.values)
     b, t = lam.shape
     nb, nt = mask.shape
