@@ -11,14 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = [
-    "SCREEN_TAIL_SDS",
-    "START_SEPARATION",
-    "diverse_best",
-    "prior_points",
-    "prior_range",
-    "screen_starts",
-]
+__all__ = ["SCREEN_TAIL_SDS", "prior_points", "prior_range", "screen_starts"]
 
 # the screen's gain columns reach this many tail widths beyond the box at most (the quantile of
 # the smoothed box's tail mass that a Latin hypercube of a few hundred points resolves anyway)
@@ -84,29 +77,4 @@ def screen_starts(ev, problem, n_screen: int, n_starts: int, seed: int, substeps
     from .start_steps import screen
 
     lp, pts = screen(ev, prior_points(problem, n_screen, seed), substeps)
-    order = np.argsort(np.where(np.isfinite(lp), -lp, np.inf))
-    return pts[order][diverse_best(pts[order], 2 * problem.sim.n_joints, n_starts)], pts
-
-
-# starts are the screen's best points at least this far apart (log units, in some gain); a
-# point nearer than this to a better one is taken only when too few are left. Why: the best few
-# of a few hundred points sit in the broadest basin, and their LM fits all end there; on SBC data
-# set 134 of experiments/results/sbc_default_s15_lm/ a basin 10.7 nats higher (the truth's, 1 log
-# unit away in a parent's stiffness and damping) got no start, and the posterior missed the
-# truth by 17 sd
-START_SEPARATION = 0.5
-
-
-def diverse_best(ranked, n_gains: int, n: int) -> np.ndarray:
-    """Indices into ``ranked [N, D]`` (best first) of ``n`` starts: greedily the best point
-    farther than :data:`START_SEPARATION` in some gain from every one kept, then the best of
-    the rest (module constant's comment)."""
-    g = np.asarray(ranked, float)[:, :n_gains]
-    kept: list[int] = []
-    for i in range(len(g)):
-        if len(kept) >= n:
-            break
-        if all(np.max(np.abs(g[i] - g[j])) > START_SEPARATION for j in kept):
-            kept.append(i)
-    rest = [i for i in range(len(g)) if i not in kept]
-    return np.asarray(kept + rest[: n - len(kept)], int)
+    return pts[np.argsort(np.where(np.isfinite(lp), -lp, np.inf))[:n_starts]], pts
