@@ -117,11 +117,7 @@ def force_noise_reference(
     ev0 = BatchEvaluator(problem0, default_chunk(k, 8 * k), programs, shape)
     coarse = coarse_of(ev0, "auto")
     # the screen covers the prior, its tails beyond the box included (screen_points.prior_points)
-    # twice the starts of fast_posterior's own fit (its starts come from these fits' finals):
-    # the best screen points crowd into the broadest basin (SBC data set 134: the truth's basin,
-    # 10.7 nats higher, was reached only from the 21st best point); started ones that join a
-    # basin stop there (fast_fit.MERGE_TOL), so the extra starts cost their distinct basins
-    starts, pts = screen_starts(ev0, problem0, 4 * k, 2 * n_starts, seed, coarse)
+    starts, pts = screen_starts(ev0, problem0, 4 * k, n_starts, seed, coarse)
     lower, upper = prior_range(problem0)
     first = fit_map_batched(ev0, starts, REFERENCE_LM_ITERATIONS, substeps=coarse)
     ref = np.clip(first.theta[:g], lower, upper)
@@ -139,7 +135,7 @@ def force_noise_reference(
             # higher), beyond the LM's reach from there: the screen's points are ranked again
             # under the corrected model and its best few start too
             lp1, pts1 = screen(ev1, pts, coarse)
-            best = np.argsort(np.where(np.isfinite(lp1), -lp1, np.inf))[: max(2, n_starts)]
+            best = np.argsort(np.where(np.isfinite(lp1), -lp1, np.inf))[: max(2, n_starts // 2)]
             starts1 = np.vstack([finals, pts1[best[np.isfinite(lp1[best])]]])
         second = fit_map_batched(ev1, starts1, REFERENCE_LM_ITERATIONS, substeps=coarse)
         new = np.clip(second.theta[:g], lower, upper)
