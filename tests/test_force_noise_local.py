@@ -117,46 +117,58 @@ def test_stacked_basis_pads_splits_and_records(case):
 
 
 def test_lobe_search_keeps_distinct_lobes_within_the_gap(monkeypatch):
-    """Candidates: a final near the reference (skipped), a far one within the gap (fitted at
-    itself, kept), one beyond the gap (skipped), an earlier round's MAP that the fit takes back
-    into a known lobe (dropped), a far one along a weakly identified gain (the same lobe)."""
-    ref = np.zeros(2)
-    finals = np.array([[0.1, 0.0, -6.0], [2.0, 0.0, -6.0], [0.0, 3.0, -6.0], [-3.0, 0.0, -6.0]])
-    values = np.array([0.0, 2.0, 3.0, sp.LOBE_GAP + 1.0])
+    """Gains [kp_x, kp_y, kd_x, kd_y] and a noise column. Candidates: a final near the reference
+    (skipped), two far in a stiffness within the gap (fitted at themselves, kept), one far in a
+    damping only (one lobe: skipped), one beyond the gap (skipped), an earlier round's MAP that
+    the fit takes back into a known lobe (dropped), a far one along a weakly identified
+    stiffness (the same lobe)."""
+    ref = np.zeros(4)
+    finals = np.array(
+        [
+            [0.1, 0.0, 0.0, 0.0, -6.0],
+            [2.0, 0.0, 0.0, 0.0, -6.0],
+            [0.0, 0.0, 3.0, 0.0, -6.0],
+            [0.0, 3.0, 0.0, 0.0, -6.0],
+            [-3.0, 0.0, 0.0, 0.0, -6.0],
+        ]
+    )
+    values = np.array([0.0, 2.0, 2.5, 3.0, sp.LOBE_GAP + 1.0])
     calls = []
 
-    def fit_at(at, starts):  # each lobe's own MAP: lobes at x = 2.3 and y = 3; (0, 0) else
+    def fit_at(at, starts):  # each lobe's own MAP: lobes at kp_x = 2.3 and kp_y = 3; 0 else
         calls.append(np.array(at))
         x = np.array(starts[0], float)
         if x[0] > 1.0:
-            x[:2], v = [2.3, 0.0], 1.0
+            x[:4], v = [2.3, 0.0, 0.0, 0.0], 1.0
         elif x[1] > 1.0:
-            x[:2], v = [0.0, 3.0], 2.0
+            x[:4], v = [0.0, 3.0, 0.0, 0.0], 2.0
         else:
-            x[:2], v = [0.05, 0.0], 0.5
+            x[:4], v = [0.05, 0.0, 0.0, 0.0], 0.5
         return SimpleNamespace(theta=x, neg_log_posterior=v)
 
-    last = SimpleNamespace(finals=finals, values=values, cov=0.01 * np.eye(3))  # sd 0.1
-    earlier = [np.array([0.8, 0.0, -6.0])]
+    def gains(th):
+        return np.asarray(th)[:4]
+
+    last = SimpleNamespace(finals=finals, values=values, cov=0.01 * np.eye(5))  # sd 0.1
+    earlier = [np.array([0.8, 0.0, 0.0, 0.0, -6.0])]
     monkeypatch.setattr(sp, "MAX_REFERENCES", 4)
-    refs, lobes = sp.lobe_references(fit_at, ref, last, earlier, lambda th: np.asarray(th)[:2])
-    np.testing.assert_allclose(refs, [[0.0, 0.0], [2.3, 0.0], [0.0, 3.0]])
+    refs, lobes = sp.lobe_references(fit_at, ref, last, earlier, gains)
+    np.testing.assert_allclose(refs, [[0, 0, 0, 0], [2.3, 0, 0, 0], [0, 3, 0, 0]])
     assert len(lobes) == 2
-    # the x lobe moved 0.3 from its candidate: linearised again at its MAP
-    assert any(np.allclose(c, [2.3, 0.0]) for c in calls)
-    assert len(calls) == 5  # x lobe twice, y lobe, the earlier MAP twice (then dropped)
+    # the kp_x lobe moved 0.3 from its candidate: linearised again at its MAP
+    assert any(np.allclose(c, [2.3, 0, 0, 0]) for c in calls)
+    assert len(calls) == 5  # kp_x lobe twice, kp_y lobe, the earlier MAP twice (then dropped)
     monkeypatch.setattr(sp, "MAX_REFERENCES", 2)
-    refs2, _ = sp.lobe_references(fit_at, ref, last, earlier, lambda th: np.asarray(th)[:2])
-    assert refs2.shape == (2, 2)
-    # y weakly identified (sd 2): 3 log units along it are 1.5 sd, the same lobe
-    wide = SimpleNamespace(finals=finals, values=values, cov=np.diag([0.01, 4.0, 0.01]))
-    refs3, _ = sp.lobe_references(fit_at, ref, wide, [], lambda th: np.asarray(th)[:2])
-    np.testing.assert_allclose(refs3, [[0.0, 0.0], [2.3, 0.0]])
-    refs1, _ = sp.lobe_references(
-        fit_at,
-        ref,
-        SimpleNamespace(finals=finals[:1], values=values[:1], cov=None),
-        [],
-        lambda t: t[:2],
-    )
-    assert refs1.shape == (1, 2)
+    assert sp.lobe_references(fit_at, ref, last, earlier, gains)[0].shape == (2, 4)
+    # a lobe 2 nats below the best under its own linearisation: kept only within LOBE_KEEP
+    monkeypatch.setattr(sp, "MAX_REFERENCES", 4)
+    monkeypatch.setattr(sp, "LOBE_KEEP", 1.5)
+    refs4, _ = sp.lobe_references(fit_at, ref, last, earlier, gains)
+    np.testing.assert_allclose(refs4, [[0, 0, 0, 0], [2.3, 0, 0, 0]])
+    monkeypatch.setattr(sp, "LOBE_KEEP", 5.0)
+    # kp_y weakly identified (sd 2): 3 log units along it are 1.5 sd, the same lobe
+    wide = SimpleNamespace(finals=finals, values=values, cov=np.diag([0.01, 4, 0.01, 0.01, 0.01]))
+    refs3, _ = sp.lobe_references(fit_at, ref, wide, [], gains)
+    np.testing.assert_allclose(refs3, [[0, 0, 0, 0], [2.3, 0, 0, 0]])
+    one = SimpleNamespace(finals=finals[:1], values=values[:1], cov=None)
+    assert sp.lobe_references(fit_at, ref, one, [], gains)[0].shape == (1, 4)
