@@ -21,6 +21,7 @@ from treeinfer.examples import example_path
 from treeinfer.inference import start_pipeline as sp
 from treeinfer.model import force_noise as fn
 from treeinfer.model import force_noise_local as fl
+from treeinfer.model.force_noise_model import ForceNoiseModel
 from treeinfer.model.likelihood import gains_from_theta, likelihood_terms, theta_from_gains
 from treeinfer.model.measurement import _padded_basis
 from treeinfer.sim import make_simulator, simulate
@@ -89,7 +90,7 @@ def test_blend_is_exact_near_each_reference(case):
 
 def test_stacked_basis_pads_splits_and_records(case):
     sim, obs, _, sf = case
-    model = fl.ForceNoiseModel(sf, np.stack([THETA_A, THETA_B]), "test")
+    model = ForceNoiseModel(sf, np.stack([THETA_A, THETA_B]), "test")
     basis = model.basis(sim, obs.force)
     parts = fl.split(basis)
     assert len(parts) == 2 and np.shape(basis.vectors) == (2, 2, T, T)

@@ -89,13 +89,13 @@ def noise_for(theta, n_joints: int, settings: dict | None):
 
 def force_noise_for(settings: dict | None):
     """The run's force-noise term from its problem settings, else None: for the paper's dynamic
-    model a :class:`treeinfer.model.force_noise.ForceNoiseModel` (``noise_force`` N and
+    model a :class:`treeinfer.model.force_noise_model.ForceNoiseModel` (``noise_force`` N and
     ``noise_force_reference``, written by runs with ``--noise-force``); for ``--model-kind
     static`` runs with ``--noise-force`` a :class:`treeinfer.inference.static.StaticForceNoise`
     (``force_noise`` N: the load cell's noise read through each draw's compliance, as in the
     run's likelihood)."""
     from ..inference.static import static_force_noise_for
-    from ..model.force_noise import ForceNoiseModel
+    from ..model.force_noise_model import ForceNoiseModel
 
     static = static_force_noise_for(settings)
     if static is not None:

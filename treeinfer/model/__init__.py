@@ -15,7 +15,7 @@ prior_terms, priors, temperature."""
 
 _EXPORTS = {
     "ForceNoiseBasis": "force_noise",
-    "ForceNoiseModel": "force_noise",
+    "ForceNoiseModel": "force_noise_model",
     "check_noise_force": "force_noise",
     "estimate_force_noise": "force_noise",
     "force_jacobian": "force_noise",

@@ -65,7 +65,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import SimulationError
-from .force_noise_local import ForceNoiseModel  # noqa: F401 -- re-exported (it lived here)
 from .force_noise_option import (  # noqa: F401 -- the option's functions, re-exported here
     _force_range,
     check_noise_force,
@@ -75,7 +74,6 @@ from .force_noise_option import (  # noqa: F401 -- the option's functions, re-ex
 
 __all__ = [
     "ForceNoiseBasis",
-    "ForceNoiseModel",
     "check_noise_force",
     "estimate_force_noise",
     "force_jacobian",
@@ -405,10 +403,16 @@ def mvn_log_prob(residual, basis: ForceNoiseBasis, sigma_x, theta_gains=None) ->
     taken out again, so the result is the exact density of the real samples."""
     import numpyro.distributions as dist  # here, not at the top: keeps it off the start-up path
 
-    from .force_noise_local import blended_log_prob, is_stacked
+    from .force_noise_local import is_stacked, reference_weights, split
 
     if is_stacked(basis):  # one reference per lobe of the posterior (force_noise_local)
-        return blended_log_prob(residual, basis, sigma_x, theta_gains)
+        parts = split(basis)
+        if theta_gains is None:
+            return mvn_log_prob(residual, parts[0], sigma_x)
+        each = [mvn_log_prob(residual, b, sigma_x, theta_gains) for b in parts]
+        w = reference_weights(theta_gains, basis.theta_ref)
+        # a reference whose density is -inf where its weight underflows to 0 gives no NaN
+        return jnp.sum(jnp.where(w > 0, w * jnp.stack(each, axis=-1), 0.0), axis=-1)
     r = jnp.asarray(residual)
     u = jnp.asarray(basis.vectors, r.dtype)
     lam = jnp.asarray(basis.values, r.dtype)

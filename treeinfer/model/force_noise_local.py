@@ -23,7 +23,10 @@ switch smoothly (so the LM's autodiff curvature stays finite) in the valley betw
 the posterior has little mass. The exact alternative, ``J`` at every particle, costs a
 forward-mode pass of T tangents per particle and evaluation (hundreds of rollouts each).
 
-A stacked basis is a :class:`~treeinfer.model.force_noise.ForceNoiseBasis` whose arrays carry a
+Here: the stacked basis and the blend's weights (no import of the term's modules: they import
+this one); the blend itself is :func:`treeinfer.model.force_noise.mvn_log_prob`, the run's term
+:class:`treeinfer.model.force_noise_model.ForceNoiseModel`. A stacked basis is a
+:class:`~treeinfer.model.force_noise.ForceNoiseBasis` whose arrays carry a
 leading reference axis (``vectors [K, B, T, T]``, ``values [K, B, T]``, ``slope [K, B, T, 2R]``,
 ``theta_ref [K, 2R]``; ``n_pad [B]`` shared): one pytree, so the likelihood's data and jitted
 programs take it as they take one basis. Predictive bands use the first reference's ``diag C``
@@ -33,23 +36,18 @@ few percent of a band dominated by sigma_x on the standard problem).
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 __all__ = [
-    "ForceNoiseModel",
     "LOCAL_SCALE",
-    "blended_log_prob",
     "check_references",
     "is_stacked",
     "primary",
     "reference_weights",
     "split",
     "stack",
-    "training_basis",
 ]
 
 # log units: the blend's length scale, the bias correction's trust radius
@@ -107,76 +105,6 @@ def reference_weights(theta_gains, refs) -> jax.Array:
     r = jnp.asarray(refs, th.dtype)
     d2 = jnp.sum((th[:, None, :] - r[None]) ** 2, axis=-1)
     return jax.nn.softmax(-0.5 * d2 / LOCAL_SCALE**2, axis=-1)
-
-
-def blended_log_prob(residual, basis, sigma_x, theta_gains=None) -> jax.Array:
-    """:func:`treeinfer.model.force_noise.mvn_log_prob` of a stacked ``basis``: each
-    reference's density blended by :func:`reference_weights` (``theta_gains`` None: the first
-    reference's alone)."""
-    from .force_noise import mvn_log_prob
-
-    parts = split(basis)
-    if theta_gains is None:
-        return mvn_log_prob(residual, parts[0], sigma_x)
-    each = jnp.stack([mvn_log_prob(residual, b, sigma_x, theta_gains) for b in parts], axis=-1)
-    w = reference_weights(theta_gains, basis.theta_ref)
-    # a reference whose density is -inf where its weight underflows to 0 must not give NaN
-    return jnp.sum(jnp.where(w > 0, w * each, 0.0), axis=-1)
-
-
-class ForceNoiseModel(NamedTuple):
-    """The force-noise term of a run: enough to rebuild ``C`` for any pull.
-
-    sigma_force: N per sample. theta_ref: ``[2R]`` reference (log gains) of the linearisation,
-    or ``[K, 2R]``: one per lobe of the posterior (:mod:`treeinfer.model.force_noise_local`).
-    description: one line for logs. grasp_fraction: as in the run (None: the tree's).
-    """
-
-    sigma_force: float
-    theta_ref: np.ndarray
-    description: str
-    grasp_fraction: object = None
-
-    def basis(self, sim, forces, mask=None):
-        """Basis of the force-induced covariance for the pulls ``forces [B, T]`` (N); stacked
-        (:mod:`treeinfer.model.force_noise_local`) when there are several references."""
-        from .force_noise import force_noise_basis
-
-        refs = np.asarray(self.theta_ref, float).reshape(-1, np.shape(self.theta_ref)[-1])
-        return stack(
-            force_noise_basis(sim, r, forces, self.sigma_force, mask, self.grasp_fraction)._replace(
-                theta_ref=r if len(refs) > 1 else None
-            )
-            for r in refs
-        )
-
-    def settings(self) -> dict:
-        """JSON-ready record (``noise_force`` N, ``noise_force_reference`` log gains)."""
-        from .force_noise import BIAS_STEP
-
-        return {
-            "noise_force": self.sigma_force,
-            "noise_force_reference": np.asarray(self.theta_ref, float).tolist(),
-            "noise_force_rule": self.description,
-            # the likelihood adds the corrected score's term (module docstring)
-            "noise_force_bias_correction": f"corrected score, first order in the log gains "
-            f"(slope by forward differences, step {BIAS_STEP:g})",
-        }
-
-
-def training_basis(sim, fmodel, obs):
-    """The training pulls' force-noise basis with the bias correction's slope (the corrected
-    score: the recorded force's noise biases the fit; force_noise docstring), at each of
-    ``fmodel``'s references (stacked where there are several: force_noise_local)."""
-    from .force_noise_bias import with_bias_slope
-
-    force, mask = np.asarray(obs.force), np.asarray(obs.mask, bool)
-    refs = np.asarray(fmodel.theta_ref, float).reshape(-1, np.shape(fmodel.theta_ref)[-1])
-    parts = split(fmodel.basis(sim, force, mask))
-    return stack(
-        with_bias_slope(sim, b, r, force, fmodel.sigma_force, mask, fmodel.grasp_fraction)
-        for b, r in zip(parts, refs)
-    )
 
 
 def check_references(reference, n_gains: int) -> np.ndarray:

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -62,6 +62,10 @@ from .measurement import (  # noqa: F401 -- the generative likelihood's pieces, 
     observation_data,
     padded_rollout,
 )
+
+if TYPE_CHECKING:
+    from .force_noise_model import ForceNoiseModel
+
 from .temperature import (  # re-exported: the kT rule lived here before the split
     KTChoice,
     auto_kT,
@@ -110,7 +114,8 @@ class LikelihoodTerms(NamedTuple):
       ``kT="auto"`` the data estimate (for the predictive band); None otherwise (fixed-kT
       Boltzmann without a given noise: the paper's mode, parameter bands only).
     settings: JSON-ready record. description: human-readable lines (print them).
-    force_noise: the force-noise term (:class:`treeinfer.model.force_noise.ForceNoiseModel`) when
+    force_noise: the force-noise term
+      (:class:`treeinfer.model.force_noise_model.ForceNoiseModel`) when
       ``noise_force`` was given, else None; predictive bands of recordings driven by a noisy
       force add its covariance (``force_noise.basis(sim, forces)``).
     data_of, loglik_of: the same likelihood with the observations as an argument (None where a
@@ -139,7 +144,7 @@ class LikelihoodTerms(NamedTuple):
     sigma_x: float | None
     settings: dict
     description: str
-    force_noise: force_noise.ForceNoiseModel | None = None
+    force_noise: ForceNoiseModel | None = None
     data_of: Callable | None = None
     loglik_of: Callable | None = None
     extra_init: tuple | None = None
@@ -298,7 +303,8 @@ def likelihood_terms(
                 "(noise_velocity); leave the velocity out"
             )
         from . import force_noise
-        from .force_noise_local import check_references, training_basis
+        from .force_noise_local import check_references
+        from .force_noise_model import ForceNoiseModel, training_basis
 
         sigma_f, rule = force_noise.resolve_noise_force(noise_force, obs)
         if force_noise_reference is None:
@@ -309,7 +315,7 @@ def likelihood_terms(
         else:
             ref = check_references(force_noise_reference, 2 * sim.n_joints)
             rule += f"; {force_noise_rule}"
-        fmodel = force_noise.ForceNoiseModel(sigma_f, ref, rule, grasp_fraction)
+        fmodel = ForceNoiseModel(sigma_f, ref, rule, grasp_fraction)
         basis = training_basis(sim, fmodel, obs)
     loglik = measurement_log_likelihood(
         sim,
