@@ -29,10 +29,15 @@ class ForceNoiseModel(NamedTuple):
     description: str
     grasp_fraction: object = None
 
+    @property
+    def references(self) -> np.ndarray:
+        """``[K, 2R]`` the references as rows (K = 1 for a single ``[2R]`` reference)."""
+        return np.asarray(self.theta_ref, float).reshape(-1, np.shape(self.theta_ref)[-1])
+
     def basis(self, sim, forces, mask=None):
         """Basis of the force-induced covariance for the pulls ``forces [B, T]`` (N); stacked
         (:mod:`treeinfer.model.force_noise_local`) when there are several references."""
-        refs = np.asarray(self.theta_ref, float).reshape(-1, np.shape(self.theta_ref)[-1])
+        refs = self.references
         return stack(
             force_noise_basis(sim, r, forces, self.sigma_force, mask, self.grasp_fraction)._replace(
                 theta_ref=r if len(refs) > 1 else None
@@ -57,7 +62,7 @@ def training_basis(sim, fmodel, obs):
     score: the recorded force's noise biases the fit; force_noise docstring), at each of
     ``fmodel``'s references (stacked where there are several: force_noise_local)."""
     force, mask = np.asarray(obs.force), np.asarray(obs.mask, bool)
-    refs = np.asarray(fmodel.theta_ref, float).reshape(-1, np.shape(fmodel.theta_ref)[-1])
+    refs = fmodel.references
     parts = split(fmodel.basis(sim, force, mask))
     return stack(
         with_bias_slope(sim, b, r, force, fmodel.sigma_force, mask, fmodel.grasp_fraction)
