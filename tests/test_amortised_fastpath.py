@@ -109,11 +109,11 @@ def test_the_weights_file_reads_as_flax_writes_it(model):
 FULL_MODEL = "experiments/results/amortised_full_two_branch/model"  # 6 layers, width 128
 
 
-def test_a_loaded_models_first_posterior_compiles_nothing_and_is_fast():
-    """The issue's target: a new recording's posterior in < 100 ms on the 2-core CPU. Counted in
-    CPU time (the wall on this shared box is the load's); about 7 CPU-ms for 1024 draws of the
-    GPU-sized model, in the process's first call."""
-    import time
+def test_a_loaded_models_first_posterior_compiles_nothing():
+    """The issue's target (a new recording's posterior in < 100 ms on the 2-core CPU) rests on
+    this: a loaded model's first posterior compiles no XLA program. Its time is a figure, not an
+    assertion: ``benchmarks/amortised_latency.py`` prints it (about 7 CPU-ms for 1024 draws of
+    the GPU-sized model, in the process's first call)."""
     from pathlib import Path
 
     from treeinfer.amortised import estimator
@@ -127,12 +127,9 @@ def test_a_loaded_models_first_posterior_compiles_nothing_and_is_fast():
     force = np.abs(rng.normal(3.0, 1.0, (lay.n_pulls, lay.n_steps)))
     disp = 0.01 * force + 1e-3 * rng.normal(size=force.shape)
     mark = compile_stats().mark()
-    c0 = time.process_time()
     theta, log_q = am.draw(force, disp, 1024, seed=1)
-    cpu_s = time.process_time() - c0
     assert compile_stats().since(mark)["xla_compiles"] == 0
     assert theta.shape == (1024, len(am.labels)) and np.all(np.isfinite(log_q))
-    assert cpu_s < 0.1, f"{1e3 * cpu_s:.0f} CPU-ms"
 
 
 def test_a_stored_box_space_model_gives_flowjaxs_density():

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import threading
-import time
 
 import pytest
 import yaml
@@ -36,10 +35,10 @@ def _bomb(levels: int = 9, width: int = 9) -> str:
 def test_alias_bomb_is_refused_fast():
     text = _bomb()
     assert len(text) < 2000
-    t0 = time.perf_counter()
+    # refused before expansion: expanding would build 9**9 leaves (gigabytes), so reaching the
+    # error at all shows the check ran first (no timed assertion: a loaded CI box varies 10x)
     with pytest.raises(ConfigError, match="alias bomb"):
         loads_yaml(text, "bomb.yaml")
-    assert time.perf_counter() - t0 < 2.0
     # a few honest aliases are fine and expand as PyYAML's would
     ok = "d: &d [1, 2]\ne: *d\n"
     assert loads_yaml(ok, "ok.yaml") == yaml.safe_load(ok)
