@@ -379,8 +379,22 @@ def importance_for_run(
         f"{imp.khat:.2f}, effective sample size {imp.ess:.0f}: {verdict}"
     )
     if res.ok or not resample:
-        return (posterior_from_fast(problem, res, seed) if res.ok else None), res.theta
-    return _resample_move_start(problem, res, n_particles, seed, log)
+        post, theta = (posterior_from_fast(problem, res, seed) if res.ok else None), res.theta
+    else:
+        post, theta = _resample_move_start(problem, res, n_particles, seed, log)
+    if post is not None:
+        _check_modes(res.evaluator, post, log)
+    return post, theta
+
+
+def _check_modes(ev, post, log) -> None:
+    """:func:`treeinfer.inference.mode_check.missed_modes` on the posterior's particles; its
+    warnings and record go to the run's settings (``missed_modes``), which the run's summary
+    turns into convergence warnings."""
+    from .mode_check import missed_modes
+
+    warnings, record = missed_modes(ev, post.theta, post.log_density, list(post.labels), log)
+    post.run.settings["missed_modes"] = {**record, "warnings": warnings}
 
 
 def _resample_move_start(problem, res, n_particles: int, seed: int, log):

@@ -173,7 +173,9 @@ def _run_summary(problem, posterior, config, trace, fit, truth) -> dict:
     )
     stable = np.asarray(fit["stable"], bool)
     strag, edge = _straggler_and_edge(problem, posterior)
-    warns = [*warns, *strag["warnings"], *edge["warnings"]]
+    # modes the start pipeline's particles missed (treeinfer.inference.mode_check)
+    missed = (getattr(posterior.run, "settings", None) or {}).get("missed_modes") or {}
+    warns = [*warns, *strag["warnings"], *edge["warnings"], *missed.get("warnings", [])]
     summary = {
         "sampler": o["sampler"],
         "n_particles": o["particles"],
