@@ -383,18 +383,10 @@ def importance_for_run(
     else:
         post, theta = _resample_move_start(problem, res, n_particles, seed, log)
     if post is not None:
-        _check_modes(res.evaluator, post, log)
+        from .mode_check import checked_posterior
+
+        post, theta = checked_posterior(problem, res, post, theta, int(n_particles), seed, log)
     return post, theta
-
-
-def _check_modes(ev, post, log) -> None:
-    """:func:`treeinfer.inference.mode_check.missed_modes` on the posterior's particles; its
-    warnings and record go to the run's settings (``missed_modes``), which the run's summary
-    turns into convergence warnings."""
-    from .mode_check import missed_modes
-
-    warnings, record = missed_modes(ev, post.theta, post.log_density, list(post.labels), log)
-    post.run.settings["missed_modes"] = {**record, "warnings": warnings}
 
 
 def _resample_move_start(problem, res, n_particles: int, seed: int, log):
