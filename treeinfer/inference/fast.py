@@ -385,7 +385,9 @@ def importance_for_run(
     if post is not None:
         from .mode_check import checked_posterior
 
-        post, theta = checked_posterior(problem, res, post, theta, int(n_particles), seed, log)
+        post, theta = checked_posterior(
+            problem, res, post, theta, int(n_particles), seed, log, _resample_move_start
+        )
     return post, theta
 
 

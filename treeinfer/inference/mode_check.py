@@ -157,13 +157,14 @@ def missed_modes(ev, theta, log_density, labels, log=lambda msg: None) -> tuple[
     return warnings, record
 
 
-def checked_posterior(problem, res, post, theta, n_particles: int, seed: int, log):
+def checked_posterior(problem, res, post, theta, n_particles: int, seed: int, log, refine):
     """``(posterior, theta)``: ``post`` (the start pipeline's posterior from ``res``, a
     :class:`treeinfer.inference.fast_result.FastPosterior`) checked by :func:`missed_modes`;
-    where it missed modes, drawn again over them (module docstring). The check's record goes
-    to the run's settings (``missed_modes``); its warnings stay there, for the run's
-    convergence warnings, only when the redraw did not settle."""
-    from .fast import _resample_move_start
+    where it missed modes, drawn again over them (module docstring), ``refine(problem, res,
+    n_particles, seed, log) -> (posterior or None, theta)`` (the pipeline's resample-move step,
+    passed in: :mod:`treeinfer.inference.fast` imports this module) when those weights fail.
+    The check's record goes to the run's settings (``missed_modes``); its warnings stay there,
+    for the run's convergence warnings, only when the redraw did not settle."""
     from .fast_result import posterior_from_fast
     from .start_steps import multimode_importance
 
@@ -198,7 +199,7 @@ def checked_posterior(problem, res, post, theta, n_particles: int, seed: int, lo
                 f"mode check (Pareto k_hat {imp.khat:.2f})",
             )  # fmt: skip
         else:
-            again, _ = _resample_move_start(problem, redo, n_particles, seed, log)
+            again, _ = refine(problem, redo, n_particles, seed, log)
         record["redrawn"] = again is not None
         if again is not None:
             post, theta, warnings = again, np.asarray(again.theta, float), []
